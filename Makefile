@@ -1,0 +1,55 @@
+# trimeter — the two commands a newcomer needs: `make demo` and `make test`.
+# Everything else here is a step of those two. Set-up is idempotent (tools/setup.sh).
+SHELL := /bin/bash
+VENV   := .venv
+PY     := $(VENV)/bin/python
+FUZZ_SECONDS ?= 60
+
+# Mitsuba's llvm_ad_* variants need LLVM >= 16; Debian's libllvm19 provides it (see ../shared/NOTES.md).
+LIBLLVM := /usr/lib/x86_64-linux-gnu/libLLVM-19.so
+ifneq ($(wildcard $(LIBLLVM)),)
+export DRJIT_LIBLLVM_PATH ?= $(LIBLLVM)
+endif
+
+.PHONY: help setup gen check-gen firmware firmware-test fuzz pytest test demo bench clean
+
+help:
+	@echo "make demo   - set up, start the twin with a virtual sample, run a press-button measurement, plot it"
+	@echo "make test   - set up, build firmware (sim + stm32f405), run C unit tests, fuzz, and pytest"
+	@echo "make bench  - the speed/accuracy benchmarks (map building, inversion)"
+
+setup:
+	@bash tools/setup.sh
+
+# Generated files (register map -> C header, Python module, Markdown) are committed; check-gen fails
+# when one of them is stale, so nobody edits a generated file by hand.
+gen: setup
+	$(PY) tools/gen_registers.py
+
+check-gen: setup
+	$(PY) tools/gen_registers.py --check
+
+firmware: setup
+	$(MAKE) -C firmware all
+
+firmware-test: setup
+	$(MAKE) -C firmware test
+
+fuzz: setup
+	$(MAKE) -C firmware fuzz FUZZ_SECONDS=$(FUZZ_SECONDS)
+
+pytest: setup firmware
+	$(PY) -m pytest -q
+
+test: setup check-gen firmware firmware-test fuzz pytest
+
+demo: setup firmware
+	$(PY) -m trimeter demo
+
+bench: setup firmware
+	$(PY) -m trimeter bench mapbuild
+	$(PY) -m trimeter bench fit
+
+clean:
+	$(MAKE) -C firmware clean || true
+	rm -rf build out

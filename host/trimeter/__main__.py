@@ -1,0 +1,5 @@
+import sys
+
+from trimeter.cli import main
+
+sys.exit(main())

@@ -1,0 +1,17 @@
+"""Exceptions shared by every layer; the CLI turns a TrimeterError into one clear line and exit code 2."""
+
+
+class TrimeterError(Exception):
+    """Base class for errors a user can act on (bad input, bad file, device refused)."""
+
+
+class InputError(TrimeterError, ValueError):
+    """An impossible value in a recipe, a command line or a data file. The message names the field."""
+
+
+class MapFileError(TrimeterError):
+    """A map or map-table file that is truncated, tampered with, or of an unknown version."""
+
+
+class DeviceError(TrimeterError):
+    """The instrument did not answer, answered wrongly, or refused (firmware/register-map mismatch)."""
