@@ -1,0 +1,193 @@
+"""AppearanceMap: the forward relation (α, σt, g, ρ_b, ρ_w) → (I_b, I_w, I_c) for one sample set-up.
+
+Representation (one concept, one place):
+- Per grid point (α_i, σt_j, g_k) the background-response coefficients A, B, C such that the diffuse
+  observable against a Lambertian background of reflectance ρ is
+
+      I(ρ) = A + B·ρ / (1 − C·ρ)
+
+  (exact for the ideal geometry — A: the slab's own reflectance, B: T_down·T_up, C: the slab's
+  diffuse reflectance seen from below — and verified against direct renders for the device). So
+  I_b = I(ρ_b(λ)) and I_w = I(ρ_w(λ)) for any per-wavelength background without re-rendering.
+- I_c is analytic (trimeter.forward.collimated) from σt, ℓ, n and the cover slides.
+- Std-errors: `std_b`, `std_w` — the Monte Carlo standard error of I at the recipe's reference
+  backgrounds `reference_rho_b`, `reference_rho_w`.
+Axes are strictly increasing; interpolation is trilinear in (α, ln σt, g).
+
+File: a trimeter container (trimeter.maps.container) of kind "appearance-map" whose meta holds the
+recipe (geometry preset + its parameters, n, thickness_mm, reference ρ's, sampling), provenance
+(Mitsuba version, builder, timings) and the map format version.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from trimeter.errors import InputError, MapFileError
+from trimeter.forward.collimated import collimated_transmittance
+from trimeter.maps.container import read_container, write_container
+from trimeter.paths import MAPS_DIR
+
+MAP_KIND = "appearance-map"
+MAP_FORMAT_VERSION = 1
+MAP_SUFFIX = ".tmap"
+_COEFFS = ("A", "B", "C")
+_REQUIRED = ("alpha", "sigma_t", "g", *_COEFFS, "std_b", "std_w")
+
+
+@dataclass(frozen=True)
+class AppearanceMap:
+    recipe: dict
+    alpha: np.ndarray
+    sigma_t: np.ndarray
+    g: np.ndarray
+    A: np.ndarray
+    B: np.ndarray
+    C: np.ndarray
+    std_b: np.ndarray
+    std_w: np.ndarray
+    provenance: dict = field(default_factory=dict)
+    checksum: str = ""
+    path: Path | None = None
+
+    def __post_init__(self):
+        shape = (len(self.alpha), len(self.sigma_t), len(self.g))
+        for name, axis in (("alpha", self.alpha), ("sigma_t", self.sigma_t), ("g", self.g)):
+            if axis.ndim != 1 or len(axis) < 2 or not np.all(np.diff(axis) > 0):
+                raise MapFileError(f"map axis {name} must be strictly increasing with ≥ 2 points")
+        for name in (*_COEFFS, "std_b", "std_w"):
+            if getattr(self, name).shape != shape:
+                raise MapFileError(f"map array {name} has shape {getattr(self, name).shape}, expected {shape}")
+        if self.sigma_t[0] <= 0:
+            raise MapFileError("map axis sigma_t must be positive (it is interpolated in log space)")
+        for key in ("geometry", "n", "thickness_mm"):
+            if key not in self.recipe:
+                raise MapFileError(f"map recipe lacks {key!r}")
+
+    # ----------------------------------------------------------------------------------------- I/O
+    @property
+    def name(self) -> str:
+        return str(self.recipe.get("name") or (self.path.stem if self.path else "unnamed"))
+
+    @property
+    def thickness_mm(self) -> float:
+        return float(self.recipe["thickness_mm"])
+
+    @property
+    def n(self) -> float:
+        return float(self.recipe["n"])
+
+    @property
+    def cover_slide_n(self) -> float | None:
+        geometry = self.recipe.get("geometry_params", {})
+        return float(geometry["cover_slide_n"]) if geometry.get("cover_slides") else None
+
+    def save(self, path: str | Path) -> str:
+        meta = {"map_format_version": MAP_FORMAT_VERSION, "recipe": self.recipe, "provenance": self.provenance}
+        arrays = {name: np.asarray(getattr(self, name), dtype=np.float64 if name in ("alpha", "sigma_t", "g")
+                                   else np.float32) for name in _REQUIRED}
+        return write_container(path, MAP_KIND, meta, arrays)
+
+    @classmethod
+    def load(cls, path: str | Path) -> "AppearanceMap":
+        path = Path(path)
+        meta, arrays, checksum = read_container(path, MAP_KIND)
+        version = meta.get("map_format_version")
+        if version != MAP_FORMAT_VERSION:
+            raise MapFileError(f"{path}: map format version {version!r} is not supported (expected {MAP_FORMAT_VERSION})")
+        missing = [name for name in _REQUIRED if name not in arrays]
+        if missing:
+            raise MapFileError(f"{path}: map lacks arrays {', '.join(missing)}")
+        try:
+            return cls(recipe=meta.get("recipe", {}), provenance=meta.get("provenance", {}), checksum=checksum,
+                       path=path, **{name: np.asarray(arrays[name], dtype=np.float64) for name in _REQUIRED})
+        except MapFileError as exc:
+            raise MapFileError(f"{path}: {exc}") from None
+
+    def info(self) -> dict:
+        return {
+            "name": self.name,
+            "path": str(self.path) if self.path else None,
+            "checksum_sha256": self.checksum,
+            "recipe": self.recipe,
+            "provenance": self.provenance,
+            "grid": {"alpha": len(self.alpha), "sigma_t": len(self.sigma_t), "g": len(self.g),
+                     "points": int(self.A.size)},
+            "range": {"alpha": [float(self.alpha[0]), float(self.alpha[-1])],
+                      "sigma_t": [float(self.sigma_t[0]), float(self.sigma_t[-1])],
+                      "g": [float(self.g[0]), float(self.g[-1])]},
+            "mc_stderr": {"median": float(np.median(np.concatenate([self.std_b.ravel(), self.std_w.ravel()]))),
+                          "max": float(max(self.std_b.max(), self.std_w.max()))},
+        }
+
+    # -------------------------------------------------------------------------------- evaluation
+    def coefficients(self, alpha, sigma_t, g):
+        """Trilinear interpolation of (A, B, C) in (α, ln σt, g); NaN outside the map's range."""
+        alpha, sigma_t, g = np.broadcast_arrays(*(np.asarray(v, dtype=float) for v in (alpha, sigma_t, g)))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            log_s = np.log(sigma_t)
+        idx_w = [_bracket(axis, x) for axis, x in ((self.alpha, alpha), (np.log(self.sigma_t), log_s), (self.g, g))]
+        (ia, wa, oka), (is_, ws, oks), (ig, wg, okg) = idx_w
+        inside = oka & oks & okg
+        out = []
+        for table in (self.A, self.B, self.C):
+            acc = np.zeros(alpha.shape)
+            for da in (0, 1):
+                fa = wa if da else 1 - wa
+                for ds in (0, 1):
+                    fs = ws if ds else 1 - ws
+                    for dg in (0, 1):
+                        fg = wg if dg else 1 - wg
+                        acc += fa * fs * fg * table[ia + da, is_ + ds, ig + dg]
+            out.append(np.where(inside, acc, np.nan))
+        return tuple(out)
+
+    def diffuse(self, alpha, sigma_t, g, rho):
+        """I(ρ) = A + Bρ/(1 − Cρ) at interpolated coefficients."""
+        A, B, C = self.coefficients(alpha, sigma_t, g)
+        rho = np.asarray(rho, dtype=float)
+        return A + B * rho / (1.0 - C * rho)
+
+    def collimated(self, sigma_t):
+        return collimated_transmittance(sigma_t, self.thickness_mm, self.n, self.cover_slide_n)
+
+    def query(self, alpha, sigma_t, g, rho_b, rho_w):
+        """(I_b, I_w, I_c) for materials and backgrounds (arrays broadcast; NaN outside the map)."""
+        A, B, C = self.coefficients(alpha, sigma_t, g)
+        rho_b, rho_w = np.asarray(rho_b, dtype=float), np.asarray(rho_w, dtype=float)
+        I_b = A + B * rho_b / (1.0 - C * rho_b)
+        I_w = A + B * rho_w / (1.0 - C * rho_w)
+        I_c = np.where(np.isnan(A), np.nan, self.collimated(np.asarray(sigma_t, dtype=float)))
+        return I_b, I_w, I_c
+
+
+def _bracket(axis: np.ndarray, x: np.ndarray):
+    """Cell index and weight of x on a strictly increasing axis, plus an inside-range mask."""
+    inside = (x >= axis[0]) & (x <= axis[-1])
+    i = np.clip(np.searchsorted(axis, x, side="right") - 1, 0, len(axis) - 2)
+    with np.errstate(invalid="ignore"):
+        w = (x - axis[i]) / (axis[i + 1] - axis[i])
+    return i, np.where(inside, w, 0.0), inside
+
+
+def shipped_maps() -> list[Path]:
+    """The maps that ship with trimeter (maps/*.tmap), sorted by name."""
+    return sorted(MAPS_DIR.glob(f"*{MAP_SUFFIX}"))
+
+
+def find_map(name_or_path: str | Path) -> Path:
+    """A map given by path, or by the name of a shipped map (`device-l0.4`, …)."""
+    p = Path(name_or_path)
+    if p.is_file():
+        return p
+    for candidate in shipped_maps():
+        if candidate.stem == str(name_or_path):
+            return candidate
+    names = ", ".join(c.stem for c in shipped_maps()) or "none built yet"
+    raise InputError(f"map {str(name_or_path)!r} is neither a file nor a shipped map (shipped: {names})")
+
+
