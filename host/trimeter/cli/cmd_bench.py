@@ -1,0 +1,7 @@
+"""`trimeter bench …`: benchmarks that print figures and ratios against a baseline run alongside."""
+
+from trimeter.cli._groups import register_group
+
+
+def register(subparsers) -> None:
+    register_group(subparsers, "bench", "benchmarks (speed and accuracy against a same-run baseline)", "trimeter.bench")
