@@ -4,3 +4,12 @@ Data flows one way: device -> raw spectra -> reflectances -> map inversion -> pa
 """
 
 __version__ = "0.1.0"
+
+
+def __getattr__(name):
+    # `trimeter.fit(...)` is the inversion entry point; imported lazily so `import trimeter` stays light.
+    if name == "fit":
+        from trimeter.inversion import fit
+
+        return fit
+    raise AttributeError(f"module 'trimeter' has no attribute {name!r}")
