@@ -1,0 +1,81 @@
+/* The hardware abstraction the core is written against.
+ *
+ * A port fills one hal_t and passes it to app_init(); the core never includes a port header and
+ * never touches a register. Every function receives the port's `ctx`, so the sim can run several
+ * instances and the tests can inspect a fake. All calls are non-blocking. Functions called from the
+ * step-timer ISR are marked [ISR]: they must be short and must not call back into the core. */
+#ifndef TRIMETER_HAL_H
+#define TRIMETER_HAL_H
+
+#include <stdbool.h>
+#include <stddef.h>
+#include <stdint.h>
+
+/* The three servo-driven shutters. */
+enum hal_shutter {
+    HAL_SHUTTER_PANEL_LEFT = 0,
+    HAL_SHUTTER_PANEL_RIGHT = 1,
+    HAL_SHUTTER_COLLIMATED = 2,
+    HAL_SHUTTER_COUNT
+};
+
+/* The LED PWM channels (both diffuse panels share one driver). */
+enum hal_led {
+    HAL_LED_PANELS = 0,
+    HAL_LED_COLLIMATED = 1,
+    HAL_LED_COUNT
+};
+
+/* Storage regions. Semantics are NOR flash: erase sets a whole region to 0xFF, a write can only
+ * clear bits, and a power cut may stop an erase or a write after any byte. Sizes are fixed so the
+ * layout is the same on every port (the STM32 maps them onto flash sectors 2, 3, 6, 7). */
+enum hal_region {
+    HAL_REGION_CONFIG_A = 0,
+    HAL_REGION_CONFIG_B = 1,
+    HAL_REGION_MAP_A = 2,
+    HAL_REGION_MAP_B = 3,
+    HAL_REGION_COUNT
+};
+#define HAL_CONFIG_REGION_SIZE (16u * 1024u)
+#define HAL_MAP_REGION_SIZE (128u * 1024u)
+
+typedef struct hal {
+    void *ctx;
+
+    /* Modbus UART. read returns the bytes available now (0 if none); write queues up to len
+     * bytes and returns how many it took (the core retries the rest on the next poll). */
+    size_t (*uart_read)(void *ctx, uint8_t *buf, size_t max);
+    size_t (*uart_write)(void *ctx, const uint8_t *buf, size_t len);
+
+    /* Monotonic microseconds since boot; 32-bit, wraps after 71 min (the core only ever
+     * subtracts two readings). */
+    uint32_t (*now_us)(void *ctx);
+
+    /* Stepper driver. [ISR] step_pulse emits one STEP pulse; dir true = away from home. */
+    void (*stepper_enable)(void *ctx, bool enabled);
+    void (*stepper_dir)(void *ctx, bool away_from_home);       /* [ISR] */
+    void (*stepper_step)(void *ctx);                           /* [ISR] */
+    bool (*endstop_active)(void *ctx);                         /* [ISR] */
+
+    /* Step timer: after step_timer_start(first_us) the port calls app_step_isr() once the
+     * interval has elapsed; the ISR returns the next interval in µs, 0 stops the timer.
+     * step_timer_stop may be called from thread context at any time. */
+    void (*step_timer_start)(void *ctx, uint32_t first_interval_us);
+    void (*step_timer_stop)(void *ctx);
+
+    /* Actuators. Servo pulse width 0 = no pulses (servo unpowered, holds position). */
+    void (*servo_pulse_us)(void *ctx, enum hal_shutter shutter, uint16_t pulse_us);
+    void (*led_level)(void *ctx, enum hal_led led, uint16_t permille);
+    void (*status_led)(void *ctx, bool on);
+    bool (*button_pressed)(void *ctx);
+
+    /* Storage. Return 0 on success, negative on an I/O error or out-of-range access. */
+    int (*storage_read)(void *ctx, enum hal_region region, uint32_t offset, void *buf, size_t len);
+    int (*storage_write)(void *ctx, enum hal_region region, uint32_t offset, const void *buf,
+                         size_t len);
+    int (*storage_erase)(void *ctx, enum hal_region region);
+
+    void (*watchdog_kick)(void *ctx);
+} hal_t;
+
+#endif
