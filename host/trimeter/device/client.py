@@ -1,0 +1,356 @@
+"""The instrument's typed API, generated at import from the register map (trimeter.registers).
+
+    dev = Device.open("/dev/ttyUSB0")            # checks vendor, firmware major, register-map hash
+    dev.read("position_slot")                     # -> Slot.WHITE   (enums as IntEnum, floats scaled)
+    dev.write("led_panels_level", 0.5)            # physical units; range-checked before it is sent
+    dev.command("goto_slot", "white"); dev.wait_idle(timeout_s=10)
+    dev.flash_map(table_bytes, version=3)         # chunked file records, resumable, read-back verified
+
+Nothing here knows an address or a type by heart: every name, address, width, scale, range and enum
+comes from trimeter.registers (generated from hardware/registers.toml).
+"""
+
+from __future__ import annotations
+
+import struct
+import time
+import zlib
+from dataclasses import dataclass
+from enum import IntEnum
+from typing import Callable
+
+from trimeter import registers as regs
+from trimeter.device.transport import (MAX_FILE_RECORD_WORDS, MAX_READ_BITS, MAX_READ_WORDS, ModbusExceptionReply,
+                                       RtuTransport, Transport)
+from trimeter.errors import DeviceError, InputError
+
+_STRUCT = {"u16": ">H", "i16": ">h", "u32": ">I", "i32": ">i", "f32": ">f"}
+# Device config: what `config list/get/set` show — the rw holding registers that persist with save_config.
+CONFIG_NAMES = tuple(r.name for r in regs.REGISTERS if r.table == "holding_register" and r.address >= 64)
+
+
+def encode(reg: regs.Register, value) -> list[int]:
+    """Physical value -> register words (or [0/1] for a bit), refusing out-of-range values by name."""
+    if reg.enum:
+        enum = regs.ENUMS[reg.enum]
+        try:
+            raw = enum[value.upper()] if isinstance(value, str) else enum(int(value))
+        except (KeyError, ValueError):
+            names = ", ".join(m.name.lower() for m in enum)
+            raise InputError(f"{reg.name}: {value!r} is not one of {names}") from None
+        raw = int(raw)
+    elif reg.type == "bool":
+        if isinstance(value, str):
+            lowered = value.strip().lower()
+            if lowered not in ("0", "1", "true", "false", "on", "off"):
+                raise InputError(f"{reg.name}: {value!r} is not a boolean (on/off, true/false, 1/0)")
+            value = lowered in ("1", "true", "on")
+        return [1 if value else 0]
+    else:
+        try:
+            physical = float(value)
+        except (TypeError, ValueError):
+            raise InputError(f"{reg.name}: {value!r} is not a number") from None
+        if physical != physical:
+            raise InputError(f"{reg.name}: NaN is not a value")
+        raw = physical / reg.scale
+        if reg.type != "f32":
+            if abs(raw - round(raw)) > 1e-6 * max(1.0, abs(raw)):
+                raise InputError(f"{reg.name}: {value} is not a multiple of its resolution {reg.scale:g} {reg.unit}")
+            raw = int(round(raw))
+        lo, hi = reg.min, reg.max
+        if not lo <= raw <= hi:
+            raise InputError(f"{reg.name}: {value} is outside {lo * reg.scale:g}..{hi * reg.scale:g} {reg.unit}".rstrip())
+        if reg.allowed and raw not in reg.allowed:
+            raise InputError(f"{reg.name}: {value} is not one of {', '.join(map(str, reg.allowed))}")
+    packed = struct.pack(_STRUCT[reg.type], raw)
+    return list(struct.unpack(f">{reg.words}H", packed))
+
+
+def decode(reg: regs.Register, words: list[int]):
+    """Register words -> physical value (bool, IntEnum, int or float)."""
+    if reg.type == "bool":
+        return bool(words[0])
+    raw = struct.unpack(_STRUCT[reg.type], struct.pack(f">{reg.words}H", *words))[0]
+    if reg.enum:
+        enum = regs.ENUMS[reg.enum]
+        try:
+            return enum(raw)
+        except ValueError:
+            return raw  # an enum value this host does not know: show the number rather than crash
+    if reg.type == "f32":
+        return raw
+    return raw * reg.scale if reg.scale != 1.0 else raw
+
+
+def _lookup(name: str) -> regs.Register:
+    try:
+        return regs.BY_NAME[name]
+    except KeyError:
+        raise InputError(f"no register named {name!r} (see hardware/registers.md)") from None
+
+
+GOTO = {"black": regs.Command.GOTO_BLACK, "white": regs.Command.GOTO_WHITE, "open": regs.Command.GOTO_OPEN}
+SLOT = {"black": regs.Slot.BLACK, "white": regs.Slot.WHITE, "open": regs.Slot.OPEN}
+
+
+@dataclass(frozen=True)
+class Identity:
+    vendor_id: int
+    model_id: int
+    firmware_version: tuple[int, int, int]
+    regmap_hash: int
+
+
+class Device:
+    """A connected trimeter. Construct with `Device.open(port)` or around any Transport (tests)."""
+
+    def __init__(self, transport: Transport, *, check: bool = True, clock: Callable[[], float] = time.monotonic,
+                 sleep: Callable[[float], None] = time.sleep):
+        self.transport = transport
+        self._clock = clock
+        self._sleep = sleep
+        self.identity = self.check_identity() if check else None
+
+    @classmethod
+    def open(cls, port: str, *, address: int = 1, baudrate: int = 19200, timeout_s: float = 0.5,
+             attempts: int = 4, reconnect_timeout_s: float = 10.0, check: bool = True) -> "Device":
+        transport = RtuTransport(port, address=address, baudrate=baudrate, timeout_s=timeout_s,
+                                 attempts=attempts, reconnect_timeout_s=reconnect_timeout_s)
+        try:
+            return cls(transport, check=check)
+        except BaseException:
+            transport.close()
+            raise
+
+    def close(self) -> None:
+        self.transport.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    # ---------------------------------------------------------------------------------- identity
+    def check_identity(self) -> Identity:
+        """Refuse a device that is not a trimeter, or whose firmware/register map differs from ours."""
+        values = self.read_many("vendor_id", "model_id", "firmware_version_major", "firmware_version_minor",
+                                "firmware_version_patch", "regmap_hash")
+        identity = Identity(values["vendor_id"], values["model_id"],
+                            (values["firmware_version_major"], values["firmware_version_minor"],
+                             values["firmware_version_patch"]), values["regmap_hash"])
+        if identity.vendor_id != regs.VENDOR_ID or identity.model_id != regs.MODEL_ID:
+            raise DeviceError(f"the device is not a trimeter (vendor 0x{identity.vendor_id:04X}, model "
+                              f"{identity.model_id}; expected 0x{regs.VENDOR_ID:04X}, {regs.MODEL_ID})")
+        if identity.firmware_version[0] != regs.FIRMWARE_VERSION[0]:
+            raise DeviceError("firmware {} is incompatible with this host (built for {}): update one of them".format(
+                ".".join(map(str, identity.firmware_version)), ".".join(map(str, regs.FIRMWARE_VERSION))))
+        if identity.regmap_hash != regs.REGMAP_HASH:
+            raise DeviceError(f"register map mismatch: device 0x{identity.regmap_hash:08X}, host "
+                              f"0x{regs.REGMAP_HASH:08X} (firmware and host were built from different "
+                              "hardware/registers.toml): flash matching firmware or update the host")
+        return identity
+
+    # ----------------------------------------------------------------------------- read / write
+    def read(self, name: str):
+        return self.read_many(name)[name]
+
+    def read_many(self, *names: str) -> dict:
+        """Read several items with as few requests as possible (one per table span)."""
+        by_table: dict[str, list[regs.Register]] = {}
+        for name in names:
+            reg = _lookup(name)
+            by_table.setdefault(reg.table, []).append(reg)
+        out = {}
+        for table, items in by_table.items():
+            lo = min(r.address for r in items)
+            hi = max(r.address + r.words for r in items)
+            limit = MAX_READ_BITS if table in ("coil", "discrete_input") else MAX_READ_WORDS
+            if hi - lo > limit:  # too far apart for one request: read each alone
+                for reg in items:
+                    out.update(self._read_block(table, reg.address, reg.address + reg.words, [reg]))
+            else:
+                out.update(self._read_block(table, lo, hi, items))
+        return {name: out[name] for name in names}
+
+    def _read_block(self, table, lo, hi, items):
+        if table in ("coil", "discrete_input"):
+            data = [int(b) for b in self.transport.read_bits(table, lo, hi - lo)]
+        else:
+            data = self.transport.read_words(table, lo, hi - lo)
+        return {r.name: decode(r, data[r.address - lo:r.address - lo + r.words]) for r in items}
+
+    def write(self, name: str, value) -> None:
+        reg = _lookup(name)
+        if reg.access != "rw":
+            raise InputError(f"{name} is read-only")
+        words = encode(reg, value)
+        try:
+            if reg.table == "coil":
+                self.transport.write_bits(reg.address, [bool(words[0])])
+            else:
+                self.transport.write_words(reg.address, words)
+        except ModbusExceptionReply as exc:
+            if exc.code == 3:
+                raise InputError(f"{name}: the device refused {value!r} (out of range or inconsistent)") from None
+            raise
+
+    def write_many(self, values: dict) -> None:
+        """Write several items, one request each, in the order given (each is range-checked first)."""
+        for name, value in values.items():
+            encode(_lookup(name), value)
+        for name, value in values.items():
+            self.write(name, value)
+
+    # ---------------------------------------------------------------------------------- actions
+    def command(self, action: str, argument: str | None = None) -> None:
+        """`command("home")`, `command("goto_slot", "white")`, `command("clear_fault")`, `command("save_config")`."""
+        if action == "goto_slot":
+            if argument not in GOTO:
+                raise InputError(f"goto_slot: slot {argument!r} is not one of {', '.join(GOTO)}")
+            cmd = GOTO[argument]
+        else:
+            cmd = action
+        self.write("command", cmd)
+
+    def set_lights(self, *, panels: bool, collimated: bool) -> None:
+        """Shutters and LEDs for one of the three set-ups (one coil write, coils 0..5 in order)."""
+        self.transport.write_bits(0, [panels, panels, collimated, panels, panels, collimated])
+
+    def wait_idle(self, timeout_s: float, *, poll_s: float = 0.01) -> None:
+        """Poll `busy` until it clears; a latched fault or the timeout raise DeviceError."""
+        deadline = self._clock() + timeout_s
+        while True:
+            busy, fault = self.read_many("busy", "fault").values()
+            if fault:
+                code = self.read("fault_code")
+                name = code.name.lower() if isinstance(code, IntEnum) else code
+                raise DeviceError(f"device fault: {name} (send clear_fault after fixing the cause)")
+            if not busy:
+                return
+            if self._clock() >= deadline:
+                raise DeviceError(f"device still busy after {timeout_s:g} s (slider or shutter stuck?)")
+            self._sleep(poll_s)
+
+    def goto(self, slot: str, timeout_s: float = 30.0) -> None:
+        """Move to a slot and wait until it has arrived and settled; homes first after a reset."""
+        if not self.read("homed"):
+            self.command("home")
+            self.wait_idle(timeout_s)
+        self.command("goto_slot", slot)
+        self.wait_idle(timeout_s)
+        at = self.read("position_slot")
+        if at != SLOT[slot]:
+            raise DeviceError(f"slider did not reach the {slot} slot (device reports {getattr(at, 'name', at)})")
+
+    def config(self) -> dict:
+        return self.read_many(*CONFIG_NAMES)
+
+    # ------------------------------------------------------------------------------ map tables
+    def map_status(self) -> dict:
+        names = [r.name for r in regs.REGISTERS if r.table == "input_register" and r.name.startswith("map_")]
+        return self.read_many(*names)
+
+    def flash_map(self, data: bytes, *, version: int, progress: Callable[[int, int], None] | None = None,
+                  timeout_s: float = 30.0) -> regs.MapSlot:
+        """Write a map table into the inactive slot, read it back, and only then activate it.
+
+        Resumable: if the device already holds an open write of exactly these bytes (same length and
+        CRC-32), it continues from the device's progress counter instead of starting again. An
+        interruption at any point leaves the previously active slot active."""
+        if not data:
+            raise InputError("map table is empty")
+        if len(data) > regs.MAP_SLOT_CAPACITY_BYTES:
+            raise InputError(f"map table is {len(data)} bytes; a device slot holds {regs.MAP_SLOT_CAPACITY_BYTES}")
+        crc = zlib.crc32(data)
+        padded = data + b"\0" * (len(data) % 2)
+        status = self.map_status()
+        start = 0
+        same = self.read_many("map_expected_length", "map_expected_crc32")
+        if (status["map_op_status"] == regs.MapOpStatus.WRITING and same["map_expected_length"] == len(data)
+                and same["map_expected_crc32"] == crc):
+            # Resume a record boundary below the device's high-water mark (the last frame may be partial).
+            start = max(0, (status["map_op_bytes_written"] // 2 - MAX_FILE_RECORD_WORDS)) * 2
+        else:
+            if status["map_op_status"] == regs.MapOpStatus.WRITING:
+                self.write("map_command", "abort")
+            self._begin_write(len(data), crc, version)
+        total = len(padded)
+        offset = start
+        while offset < total:
+            record = offset // 2
+            file_number, record_number = record // regs.MAP_RECORDS_PER_FILE + 1, record % regs.MAP_RECORDS_PER_FILE
+            words = min(MAX_FILE_RECORD_WORDS, regs.MAP_RECORDS_PER_FILE - record_number, (total - offset) // 2)
+            self.transport.write_file_records(file_number, record_number, padded[offset:offset + 2 * words])
+            offset += 2 * words
+            if progress:
+                progress(offset, total)
+        self.write("map_command", "verify")
+        result = self._wait_map_op(timeout_s)
+        if result != regs.MapOpStatus.VERIFY_OK:
+            raise DeviceError(f"map verify failed on the device ({result.name.lower()}); the old map stays active")
+        target = self._written_slot(len(data), crc)
+        back = self.read_map(target, len(data))
+        if back != data:
+            bad = next(i for i, (a, b) in enumerate(zip(back, data)) if a != b) if len(back) == len(data) else len(back)
+            self.write("map_command", "abort")
+            raise DeviceError(f"map read-back differs at byte {bad}; not activated, the old map stays active")
+        self.write("map_command", "activate")
+        result = self._wait_map_op(timeout_s)
+        active = self.read("map_active_slot")
+        if result != regs.MapOpStatus.ACTIVATED or active != target:
+            raise DeviceError(f"map activation failed ({getattr(result, 'name', result)}, active slot "
+                              f"{getattr(active, 'name', active)})")
+        return target
+
+    def _begin_write(self, length: int, crc: int, version: int) -> None:
+        # One FC 0x10 over 16..22: parameters first, the command last (hardware/registers.md).
+        first = regs.BY_NAME["map_expected_length"].address
+        words = [0] * (regs.BY_NAME["map_command"].address + 1 - first)
+        for name, value in (("map_expected_length", length), ("map_expected_crc32", crc),
+                            ("map_version", version), ("map_read_slot", 0), ("map_command", "begin_write")):
+            reg = regs.BY_NAME[name]
+            words[reg.address - first:reg.address - first + reg.words] = encode(reg, value)
+        self.transport.write_words(first, words)
+        if self.read("map_op_status") != regs.MapOpStatus.WRITING:
+            raise DeviceError(f"device did not open a map write (status {self.read('map_op_status').name.lower()})")
+
+    def _wait_map_op(self, timeout_s: float):
+        deadline = self._clock() + timeout_s
+        while True:
+            status = self.read("map_op_status")
+            if status != regs.MapOpStatus.WRITING or self._clock() >= deadline:
+                return status
+            self._sleep(0.01)
+
+    def _written_slot(self, length: int, crc: int) -> regs.MapSlot:
+        status = self.map_status()
+        active = status["map_active_slot"]
+        for slot in (regs.MapSlot.A, regs.MapSlot.B):
+            key = slot.name.lower()
+            if slot != active and status[f"map_slot_{key}_valid"] and status[f"map_slot_{key}_length"] == length \
+                    and status[f"map_slot_{key}_crc32"] == crc:
+                return slot
+        raise DeviceError("after verify no inactive slot holds the written map")
+
+    def read_map(self, slot: regs.MapSlot | str, length: int | None = None,
+                 progress: Callable[[int, int], None] | None = None) -> bytes:
+        """Read a slot's bytes back through file records (map_read_slot selects the slot)."""
+        slot = regs.MapSlot[slot.upper()] if isinstance(slot, str) else regs.MapSlot(slot)
+        if length is None:
+            length = self.read(f"map_slot_{slot.name.lower()}_length")
+        self.write("map_read_slot", slot)
+        out = bytearray()
+        total = length + length % 2
+        try:
+            while len(out) < total:
+                record = len(out) // 2
+                file_number, record_number = record // regs.MAP_RECORDS_PER_FILE + 1, record % regs.MAP_RECORDS_PER_FILE
+                words = min(MAX_FILE_RECORD_WORDS, regs.MAP_RECORDS_PER_FILE - record_number, (total - len(out)) // 2)
+                out += self.transport.read_file_records(file_number, record_number, words)
+                if progress:
+                    progress(len(out), total)
+        finally:
+            self.write("map_read_slot", regs.MapSlot.NONE)
+        return bytes(out[:length])

@@ -1,0 +1,214 @@
+"""Modbus RTU over a serial port: the ONE module that imports pymodbus (its API moves between minors).
+
+What this layer guarantees to the client above it (trimeter.device.client):
+- every request has an explicit timeout and a bounded number of attempts; after the last one a
+  DeviceError names the port, the request and the last failure;
+- after any failure the input is drained until the line is quiet and then flushed, so the framer
+  restarts on a clean buffer (garbage, a bad CRC or half a frame never poisons the next request);
+- a reply is only accepted if it answers *this* request: same function code, same address/count
+  (writes echo them), same length (reads). RTU has no transaction ids, so a late reply to an earlier
+  request of a different shape is recognised and discarded; one of the *same* shape arriving after
+  the drain window cannot be told apart by any RTU master — the drain window (`late_reply_window_s`)
+  is what bounds that risk;
+- when the serial adapter disappears (USB unplugged, twin restarted) the port is closed and reopened
+  until `reconnect_timeout_s` runs out; a Modbus exception reply is raised at once (never retried)
+  as ModbusExceptionReply carrying the exception code.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from dataclasses import dataclass, field
+from typing import Callable, Protocol
+
+from pymodbus import FramerType
+from pymodbus.client import ModbusSerialClient
+from pymodbus.exceptions import ConnectionException, ModbusException
+from pymodbus.pdu.file_message import FileRecord
+
+from trimeter.errors import DeviceError
+
+# pymodbus logs every timeout at ERROR; our retries make those routine, and our own errors say more.
+logging.getLogger("pymodbus").addHandler(logging.NullHandler())
+logging.getLogger("pymodbus").propagate = False
+
+TABLE_FUNCTION = {"coil": 0x01, "discrete_input": 0x02, "holding_register": 0x03, "input_register": 0x04}
+# Largest payloads that fit one 253-byte PDU.
+MAX_READ_WORDS = 125
+MAX_WRITE_WORDS = 123
+MAX_READ_BITS = 2000
+MAX_FILE_RECORD_WORDS = 120  # FC 0x15: 1 + 7 + 2n <= 253 (one sub-request per frame)
+
+
+class ModbusExceptionReply(DeviceError):
+    """The device answered with a Modbus exception (code 1: function, 2: address, 3: value, 4: failure)."""
+
+    def __init__(self, what: str, code: int):
+        super().__init__(f"device refused {what}: Modbus exception {code:02d} ({_EXCEPTION_TEXT.get(code, 'unknown')})")
+        self.code = code
+
+
+_EXCEPTION_TEXT = {1: "illegal function", 2: "illegal data address", 3: "illegal data value", 4: "device failure",
+                   6: "device busy"}
+
+
+class Transport(Protocol):
+    """The byte-level contract the typed client needs; tests substitute an in-memory fake."""
+
+    def read_bits(self, table: str, address: int, count: int) -> list[bool]: ...
+    def read_words(self, table: str, address: int, count: int) -> list[int]: ...
+    def write_bits(self, address: int, values: list[bool]) -> None: ...
+    def write_words(self, address: int, values: list[int]) -> None: ...
+    def read_file_records(self, file_number: int, record_number: int, count: int) -> bytes: ...
+    def write_file_records(self, file_number: int, record_number: int, data: bytes) -> None: ...
+    def close(self) -> None: ...
+
+
+@dataclass
+class LinkStats:
+    """Counters of what the link had to recover from (shown by `trimeter config list` / the HIL report)."""
+
+    requests: int = 0
+    retries: int = 0
+    stale_replies: int = 0
+    reconnects: int = 0
+    failures: int = 0
+    busy_s: float = field(default=0.0)  # wall time spent inside requests (host + protocol overhead)
+
+
+class RtuTransport:
+    """Modbus RTU master on one serial port, for one slave address."""
+
+    def __init__(self, port: str, *, address: int = 1, baudrate: int = 19200, timeout_s: float = 0.5,
+                 attempts: int = 4, late_reply_window_s: float | None = None, reconnect_timeout_s: float = 10.0):
+        if not 1 <= address <= 247:
+            raise DeviceError(f"Modbus address {address} is outside 1..247")
+        self.port = port
+        self.address = address
+        self.timeout_s = timeout_s
+        self.attempts = max(1, attempts)
+        self.late_reply_window_s = timeout_s if late_reply_window_s is None else late_reply_window_s
+        self.reconnect_timeout_s = reconnect_timeout_s
+        self.stats = LinkStats()
+        # retries=0: we retry ourselves, so every retry drains + flushes and checks the reply's shape.
+        self._client = ModbusSerialClient(port, framer=FramerType.RTU, baudrate=baudrate, timeout=timeout_s,
+                                          retries=0, reconnect_delay=0, name=f"trimeter@{port}")
+        self._open(deadline=time.monotonic() + reconnect_timeout_s)
+
+    # ------------------------------------------------------------------------------------ link care
+    def _open(self, deadline: float) -> None:
+        while not self._client.connect():
+            if time.monotonic() >= deadline:
+                raise DeviceError(f"cannot open serial port {self.port} (no such device, or it is in use)")
+            time.sleep(0.05)
+
+    def _reopen(self) -> None:
+        self._client.close()
+        self.stats.reconnects += 1
+        self._open(deadline=time.monotonic() + self.reconnect_timeout_s)
+
+    def _drain(self) -> None:
+        """Read until the line has been quiet for a while, then drop everything: a clean start."""
+        sock = self._client.socket
+        if sock is None:
+            return
+        quiet_needed = min(0.05, self.late_reply_window_s)
+        end = time.monotonic() + self.late_reply_window_s
+        last_byte = time.monotonic()
+        while time.monotonic() < end:
+            waiting = sock.in_waiting
+            if waiting:
+                sock.read(waiting)
+                last_byte = time.monotonic()
+            elif time.monotonic() - last_byte >= quiet_needed:
+                break
+            time.sleep(0.002)
+        sock.reset_input_buffer()
+
+    def close(self) -> None:
+        self._client.close()
+
+    # ------------------------------------------------------------------------------------- requests
+    def _execute(self, what: str, call: Callable[[ModbusSerialClient], object],
+                 answers: Callable[[object], bool]):
+        started = time.monotonic()
+        self.stats.requests += 1
+        last_failure = "no attempt"
+        try:
+            for attempt in range(self.attempts):
+                if attempt:
+                    self.stats.retries += 1
+                try:
+                    if self._client.socket is None:
+                        self._reopen()
+                    reply = call(self._client)
+                except (ModbusException, asyncio.TimeoutError, OSError) as exc:
+                    # ConnectionException / SerialException (an OSError) = the adapter went away.
+                    last_failure = str(exc).strip() or type(exc).__name__
+                    if isinstance(exc, (ConnectionException, OSError)) or self._client.socket is None:
+                        self._reopen()
+                    else:
+                        self._drain()
+                    continue
+                if reply.isError():
+                    raise ModbusExceptionReply(what, int(getattr(reply, "exception_code", 0)))
+                if not answers(reply):
+                    self.stats.stale_replies += 1
+                    last_failure = f"a reply that answers another request ({type(reply).__name__})"
+                    self._drain()
+                    continue
+                return reply
+            self.stats.failures += 1
+            raise DeviceError(f"no valid reply from the device on {self.port} to {what} "
+                              f"after {self.attempts} attempts (last: {last_failure})")
+        finally:
+            self.stats.busy_s += time.monotonic() - started
+
+    def read_bits(self, table: str, address: int, count: int) -> list[bool]:
+        fc = TABLE_FUNCTION[table]
+        method = {1: "read_coils", 2: "read_discrete_inputs"}[fc]
+        padded = (count + 7) // 8 * 8
+        reply = self._execute(
+            f"a read of {count} {table}s at {address}",
+            lambda c: getattr(c, method)(address, count=count, device_id=self.address),
+            lambda r: r.function_code == fc and len(r.bits) == padded)
+        return [bool(b) for b in reply.bits[:count]]
+
+    def read_words(self, table: str, address: int, count: int) -> list[int]:
+        fc = TABLE_FUNCTION[table]
+        method = {3: "read_holding_registers", 4: "read_input_registers"}[fc]
+        reply = self._execute(
+            f"a read of {count} {table}s at {address}",
+            lambda c: getattr(c, method)(address, count=count, device_id=self.address),
+            lambda r: r.function_code == fc and len(r.registers) == count)
+        return list(reply.registers)
+
+    def write_bits(self, address: int, values: list[bool]) -> None:
+        self._execute(
+            f"a write of {len(values)} coils at {address}",
+            lambda c: c.write_coils(address, list(values), device_id=self.address),
+            lambda r: r.function_code == 0x0F and (r.address, r.count) == (address, len(values)))
+
+    def write_words(self, address: int, values: list[int]) -> None:
+        self._execute(
+            f"a write of {len(values)} holding registers at {address}",
+            lambda c: c.write_registers(address, list(values), device_id=self.address),
+            lambda r: r.function_code == 0x10 and (r.address, r.count) == (address, len(values)))
+
+    def read_file_records(self, file_number: int, record_number: int, count: int) -> bytes:
+        request = [FileRecord(file_number=file_number, record_number=record_number, record_length=2 * count)]
+        reply = self._execute(
+            f"a file-record read of file {file_number} record {record_number} (+{count})",
+            lambda c: c.read_file_record(request, device_id=self.address),
+            lambda r: r.function_code == 0x14 and len(r.records) == 1 and len(r.records[0].record_data) == 2 * count)
+        return bytes(reply.records[0].record_data)
+
+    def write_file_records(self, file_number: int, record_number: int, data: bytes) -> None:
+        request = [FileRecord(file_number=file_number, record_number=record_number, record_data=bytes(data))]
+        self._execute(
+            f"a file-record write of file {file_number} record {record_number} (+{len(data) // 2})",
+            lambda c: c.write_file_record(request, device_id=self.address),
+            lambda r: r.function_code == 0x15 and len(r.records) == 1
+            and (r.records[0].file_number, r.records[0].record_number) == (file_number, record_number))

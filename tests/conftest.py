@@ -1,0 +1,19 @@
+"""Shared pytest options: the HIL suite runs against the twin unless --port/--spectrometer name a real
+instrument; tests marked `hardware` need one and are skipped on the twin."""
+
+import pytest
+
+
+def pytest_addoption(parser):
+    group = parser.getgroup("trimeter hardware-in-the-loop")
+    group.addoption("--port", default=None, help="serial port of a real trimeter (default: start the twin)")
+    group.addoption("--spectrometer", default=None, help="spectrometer URL of the real instrument, e.g. seabreeze:")
+
+
+def pytest_collection_modifyitems(config, items):
+    if config.getoption("--port"):
+        return
+    skip = pytest.mark.skip(reason="needs a real instrument: pass --port and --spectrometer")
+    for item in items:
+        if "hardware" in item.keywords:
+            item.add_marker(skip)

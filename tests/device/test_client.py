@@ -1,0 +1,118 @@
+"""The typed client against an in-memory instrument (tests/fakes.py): codec, identity checks,
+range checks by name, motion waits, and the map-table transfer (resume, verify, A/B activation)."""
+
+import struct
+import zlib
+
+import pytest
+from hypothesis import given, strategies as st
+
+from fakes import FakeInstrument
+from trimeter import registers as regs
+from trimeter.device.client import Device, decode, encode
+from trimeter.errors import DeviceError, InputError
+
+
+def test_identity_is_checked_and_a_mismatched_register_map_is_refused():
+    Device(FakeInstrument())
+    with pytest.raises(DeviceError, match="register map mismatch.*0xDEADBEEF"):
+        Device(FakeInstrument(regmap_hash=0xDEADBEEF))
+    with pytest.raises(DeviceError, match="firmware 9.0.0 is incompatible"):
+        Device(FakeInstrument(firmware=(9, 0, 0)))
+
+
+@given(st.sampled_from([r for r in regs.REGISTERS if r.access == "rw" and r.type != "bool" and not r.enum]),
+       st.floats(0, 1))
+def test_encode_decode_round_trip_within_range(reg, fraction):
+    raw = reg.min + fraction * (reg.max - reg.min)
+    if reg.type != "f32":
+        raw = round(raw)
+    if reg.allowed:
+        raw = reg.allowed[int(fraction * (len(reg.allowed) - 1))]
+    physical = raw * reg.scale
+    back = decode(reg, encode(reg, physical))
+    assert back == pytest.approx(physical, rel=1e-6, abs=1e-9)
+
+
+def test_out_of_range_values_are_refused_naming_the_field():
+    dev = Device(FakeInstrument())
+    with pytest.raises(InputError, match=r"led_panels_level: 1.5 is outside 0..1"):
+        dev.write("led_panels_level", 1.5)
+    with pytest.raises(InputError, match="modbus_baud: 12345 is not one of 9600"):
+        dev.write("modbus_baud", 12345)
+    with pytest.raises(InputError, match="status_pattern: 'disco' is not one of off, on"):
+        dev.write("status_pattern", "disco")
+    with pytest.raises(InputError, match="is read-only"):
+        dev.write("uptime_s", 3)
+    with pytest.raises(InputError, match="no register named 'position_furlongs'"):
+        dev.read("position_furlongs")
+    with pytest.raises(InputError, match="NaN"):
+        dev.write("speed_mm_s", float("nan"))
+
+
+def test_scaled_and_float_values_reach_the_wire_as_the_map_says():
+    fake = FakeInstrument()
+    dev = Device(fake)
+    dev.write("led_panels_level", 0.5)
+    assert fake.hr[regs.BY_NAME["led_panels_level"].address] == 500
+    dev.write("speed_mm_s", 12.5)
+    a = regs.BY_NAME["speed_mm_s"].address
+    assert struct.unpack(">f", struct.pack(">2H", *fake.hr[a:a + 2]))[0] == 12.5  # high word first
+    assert dev.read("speed_mm_s") == 12.5
+    assert dev.read("led_panels_level") == pytest.approx(0.5)
+    assert dev.read("status_pattern") is regs.StatusPattern.SLOW_BLINK
+
+
+def test_goto_homes_first_and_waits_until_idle():
+    fake = FakeInstrument(busy_polls=3)
+    dev = Device(fake)
+    dev.goto("white")
+    assert fake.commands == ["home", "goto_white"]
+    assert dev.read("position_slot") is regs.Slot.WHITE
+    assert not dev.read("busy")
+
+
+def test_wait_idle_times_out_with_a_clear_error():
+    fake = FakeInstrument(busy_polls=10**9)
+    now = [0.0]
+    dev = Device(fake, clock=lambda: now[0], sleep=lambda s: now.__setitem__(0, now[0] + s))
+    dev.command("home")
+    with pytest.raises(DeviceError, match="still busy after 1 s"):
+        dev.wait_idle(1.0)
+
+
+def test_flash_map_writes_inactive_slot_verifies_and_activates():
+    fake = FakeInstrument()
+    dev = Device(fake)
+    first = bytes(range(256)) * 100 + b"x"  # odd length, spans records across several frames
+    assert dev.flash_map(first, version=1) == regs.MapSlot.A
+    second = bytes(reversed(first))
+    assert dev.flash_map(second, version=2) == regs.MapSlot.B
+    assert fake.active == regs.MapSlot.B and fake.slots[regs.MapSlot.A] == first
+    assert dev.read_map("b") == second
+    status = dev.map_status()
+    assert status["map_slot_b_crc32"] == zlib.crc32(second) and status["map_slot_b_version"] == 2
+
+
+def test_interrupted_flash_leaves_old_map_active_and_resumes():
+    fake = FakeInstrument()
+    dev = Device(fake)
+    old, new = b"old map" * 1000, b"new map!" * 2000
+    dev.flash_map(old, version=1)
+    fake.fail_file_write_at = fake.file_writes + 50
+    with pytest.raises(DeviceError, match="link lost"):
+        dev.flash_map(new, version=2)
+    assert fake.active == regs.MapSlot.A and dev.read_map("a") == old
+    writes_before = fake.file_writes
+    fake.fail_file_write_at = None
+    assert dev.flash_map(new, version=2) == regs.MapSlot.B
+    total_frames = -(-len(new) // 240)
+    assert fake.file_writes - writes_before < total_frames  # resumed, not restarted
+    assert dev.read_map("b") == new
+
+
+def test_oversized_map_is_refused_before_touching_the_device():
+    fake = FakeInstrument()
+    with pytest.raises(InputError, match="slot holds 131072"):
+        Device(fake).flash_map(b"\0" * (regs.MAP_SLOT_CAPACITY_BYTES + 1), version=1)
+    assert fake.file_writes == 0
