@@ -19,10 +19,11 @@ enum hal_shutter {
     HAL_SHUTTER_COUNT
 };
 
-/* The LED PWM channels (both diffuse panels share one driver). */
+/* The LED PWM channels. */
 enum hal_led {
-    HAL_LED_PANELS = 0,
-    HAL_LED_COLLIMATED = 1,
+    HAL_LED_PANEL_LEFT = 0,
+    HAL_LED_PANEL_RIGHT = 1,
+    HAL_LED_COLLIMATED = 2,
     HAL_LED_COUNT
 };
 
@@ -51,9 +52,10 @@ typedef struct hal {
      * subtracts two readings). */
     uint32_t (*now_us)(void *ctx);
 
-    /* Stepper driver. [ISR] step_pulse emits one STEP pulse; dir true = away from home. */
+    /* Stepper driver. [ISR] stepper_step emits one STEP pulse; stepper_dir(true) drives the DIR
+     * pin high = the motor's positive direction (which end is home is config: homing_direction). */
     void (*stepper_enable)(void *ctx, bool enabled);
-    void (*stepper_dir)(void *ctx, bool away_from_home);       /* [ISR] */
+    void (*stepper_dir)(void *ctx, bool positive);             /* [ISR] */
     void (*stepper_step)(void *ctx);                           /* [ISR] */
     bool (*endstop_active)(void *ctx);                         /* [ISR] */
 

@@ -102,7 +102,7 @@ static void setup_profile(motion_t *m, int8_t dir, uint32_t steps, uint32_t spee
     m->t_end_us = motion_profile_time_us(m, m->decel_start) + ramp_time_us(na, accel);
     m->state = state;
     m->hal->stepper_enable(m->hal->ctx, true);
-    m->hal->stepper_dir(m->hal->ctx, dir > 0);
+    m->hal->stepper_dir(m->hal->ctx, (dir > 0) != m->cfg.home_is_positive);
     m->t_next_us = motion_profile_time_us(m, 1);
 }
 
@@ -127,7 +127,7 @@ int motion_home(motion_t *m)
     m->dir = -1;
     m->state = MOTION_HOMING_SEEK;
     m->hal->stepper_enable(m->hal->ctx, true);
-    m->hal->stepper_dir(m->hal->ctx, false);
+    m->hal->stepper_dir(m->hal->ctx, m->cfg.home_is_positive);
     /* The first call checks the endstop before any pulse: a carriage already home is found at once. */
     m->hal->step_timer_start(m->hal->ctx, 1);
     return MOTION_OK;

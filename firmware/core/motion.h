@@ -48,6 +48,7 @@ typedef struct motion_config {
     int32_t soft_min_steps;        /* targets allowed in [soft_min, soft_max]            */
     int32_t soft_max_steps;
     int32_t stall_tolerance_steps; /* re-homing: endstop found this far from expected    */
+    bool home_is_positive;         /* the endstop is at the motor's positive end         */
 } motion_config_t;
 
 typedef struct motion {

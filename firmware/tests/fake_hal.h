@@ -22,7 +22,7 @@ typedef struct fake_hal {
 
     /* stepper + plant */
     bool enabled;
-    bool dir_away;
+    bool dir_away;              /* DIR pin high: the carriage's steps increase */
     int32_t carriage_steps;     /* physical position; the endstop is active at <= endstop_steps */
     int32_t endstop_steps;
     int32_t hard_stop_steps;    /* the carriage can't go below this (mechanical end); pulses lost */

@@ -1,0 +1,451 @@
+/* The application; see app.h for the command semantics. */
+#include "app.h"
+
+#include <string.h>
+
+#include "regmap.h"
+
+static app_t app;
+
+const app_t *app_get(void) { return &app; }
+
+static uint32_t now(void) { return app.hal->now_us(app.hal->ctx); }
+
+/* ---------------------------------------------------------------- Modbus byte I/O */
+
+static size_t io_read(void *ctx, uint8_t *buf, size_t max)
+{
+    const hal_t *h = ctx;
+    return h->uart_read(h->ctx, buf, max);
+}
+
+static void io_write(void *ctx, const uint8_t *buf, size_t n)
+{
+    /* The port buffers a whole reply (hal.h); a short write would be a port bug, and dropping the
+     * tail makes the master see a CRC error and retry rather than hang here. */
+    const hal_t *h = ctx;
+    (void)h->uart_write(h->ctx, buf, n);
+}
+
+static uint32_t io_now(void *ctx)
+{
+    const hal_t *h = ctx;
+    return h->now_us(h->ctx);
+}
+
+/* ---------------------------------------------------------------- state */
+
+trimeter_fault_t app_fault(void)
+{
+    if (app.motion.fault != MOTION_FAULT_NONE) return (trimeter_fault_t)app.motion.fault;
+    return app.app_fault;
+}
+
+bool app_busy(void) { return motion_busy(&app.motion) || actuators_busy(&app.act) || app.pending_command; }
+
+trimeter_state_t app_state(void)
+{
+    if (app_fault() != TRIMETER_FAULT_NONE) return TRIMETER_STATE_FAULT;
+    switch (app.motion.state) {
+    case MOTION_HOMING_SEEK:
+    case MOTION_HOMING_BACKOFF: return TRIMETER_STATE_HOMING;
+    case MOTION_MOVING: return TRIMETER_STATE_MOVING;
+    default: break;
+    }
+    if (app.pending_command) return TRIMETER_STATE_MOVING;
+    return actuators_busy(&app.act) ? TRIMETER_STATE_SETTLING : TRIMETER_STATE_IDLE;
+}
+
+static trimeter_slot_t believed_slot(void)
+{
+    if (!app.motion.homed || motion_busy(&app.motion)) return TRIMETER_SLOT_UNKNOWN;
+    int32_t tolerance = (int32_t)(CONFIG_SLOT_TOLERANCE_MM * app.cfg.steps_per_mm + 0.5f);
+    for (int s = 0; s < CONFIG_SLOT_COUNT; s++) {
+        int32_t d = app.motion.position - config_slot_steps(&app.cfg, (enum config_slot)s);
+        if (d >= -tolerance && d <= tolerance) return (trimeter_slot_t)(TRIMETER_SLOT_BLACK + s);
+    }
+    return TRIMETER_SLOT_UNKNOWN;
+}
+
+/* ---------------------------------------------------------------- outputs */
+
+static uint16_t led_level(enum hal_led led)
+{
+    return led == HAL_LED_COLLIMATED ? app.hr[REG_HR_LED_COLLIMATED_LEVEL] : app.hr[REG_HR_LED_PANELS_LEVEL];
+}
+
+static void refresh_leds(void)
+{
+    for (int l = 0; l < HAL_LED_COUNT; l++)
+        actuators_set_led(&app.act, (enum hal_led)l, app.act.led_on[l], led_level((enum hal_led)l),
+                          app.cfg.led_settle_ms, now());
+}
+
+static void set_shutter(enum hal_shutter s, bool open)
+{
+    uint16_t pulse = open ? app.cfg.servo_open_us[s] : app.cfg.servo_closed_us[s];
+    actuators_set_shutter(&app.act, s, open, pulse, app.cfg.shutter_settle_ms, now());
+}
+
+/* ---------------------------------------------------------------- commands */
+
+static uint8_t start_motion(int command)
+{
+    motion_config_t mc;
+    config_motion(&app.cfg, &mc);
+    if (motion_configure(&app.motion, &mc) != MOTION_OK) return MB_EX_SERVER_DEVICE_FAILURE;
+    int rc;
+    if (command == TRIMETER_COMMAND_HOME) {
+        rc = motion_home(&app.motion);
+    } else {
+        enum config_slot slot = (enum config_slot)(command - TRIMETER_COMMAND_GOTO_BLACK);
+        rc = motion_move_to(&app.motion, config_slot_steps(&app.cfg, slot));
+    }
+    switch (rc) {
+    case MOTION_OK: return MB_OK;
+    case MOTION_ERR_LIMIT:
+    case MOTION_ERR_CONFIG: return MB_EX_ILLEGAL_DATA_VALUE;
+    default: return MB_EX_ILLEGAL_FUNCTION; /* faulted, not homed: the wrong state for this */
+    }
+}
+
+static uint8_t run_command(uint16_t command)
+{
+    switch (command) {
+    case TRIMETER_COMMAND_NONE: return MB_OK;
+    case TRIMETER_COMMAND_HOME:
+    case TRIMETER_COMMAND_GOTO_BLACK:
+    case TRIMETER_COMMAND_GOTO_WHITE:
+    case TRIMETER_COMMAND_GOTO_OPEN:
+        if (app_fault() != TRIMETER_FAULT_NONE) return MB_EX_ILLEGAL_FUNCTION;
+        if (motion_busy(&app.motion)) {
+            app.pending_command = command; /* runs when the current motion ends */
+            return MB_OK;
+        }
+        if (command != TRIMETER_COMMAND_HOME && !app.motion.homed) return MB_EX_ILLEGAL_FUNCTION;
+        return start_motion(command);
+    case TRIMETER_COMMAND_STOP:
+        app.pending_command = 0;
+        motion_stop(&app.motion);
+        return MB_OK;
+    case TRIMETER_COMMAND_CLEAR_FAULT:
+        motion_clear_fault(&app.motion);
+        app.app_fault = TRIMETER_FAULT_NONE;
+        return MB_OK;
+    case TRIMETER_COMMAND_SAVE_CONFIG:
+        if (motion_busy(&app.motion)) return MB_EX_ILLEGAL_FUNCTION;
+        if (config_save(app.hr, &app.storage) != STORAGE_OK) {
+            app.app_fault = TRIMETER_FAULT_STORAGE;
+            return MB_EX_SERVER_DEVICE_FAILURE;
+        }
+        return MB_OK;
+    case TRIMETER_COMMAND_LOAD_DEFAULTS: {
+        static uint16_t defaults[REG_HR_SPAN];
+        config_defaults(defaults);
+        memcpy(&app.hr[STORAGE_CONFIG_FIRST], &defaults[STORAGE_CONFIG_FIRST], STORAGE_CONFIG_WORDS * sizeof(uint16_t));
+        config_decode(app.hr, &app.cfg);
+        return MB_OK;
+    }
+    default: return MB_EX_ILLEGAL_DATA_VALUE;
+    }
+}
+
+static void run_map_command(uint16_t command)
+{
+    storage_t *st = &app.storage;
+    int rc;
+    switch (command) {
+    case TRIMETER_MAP_COMMAND_BEGIN_WRITE:
+        /* Flash erase stalls the CPU on the MCU: never while the step timer must run. */
+        if (motion_busy(&app.motion)) {
+            app.map_op_status = TRIMETER_MAP_OP_STATUS_ERROR_STATE;
+            return;
+        }
+        rc = storage_map_begin(st, &app.upload, regmap_get_u32(&app.hr[REG_HR_MAP_EXPECTED_LENGTH]),
+                               regmap_get_u32(&app.hr[REG_HR_MAP_EXPECTED_CRC32]), app.hr[REG_HR_MAP_VERSION]);
+        app.map_op_status = rc == STORAGE_OK ? TRIMETER_MAP_OP_STATUS_WRITING : TRIMETER_MAP_OP_STATUS_ERROR_STORAGE;
+        return;
+    case TRIMETER_MAP_COMMAND_VERIFY:
+        if (!app.upload.open) {
+            app.map_op_status = TRIMETER_MAP_OP_STATUS_ERROR_STATE;
+            return;
+        }
+        rc = storage_map_verify(st, &app.upload);
+        app.map_op_status = rc == STORAGE_OK             ? TRIMETER_MAP_OP_STATUS_VERIFY_OK
+                            : rc == STORAGE_ERR_MISMATCH ? TRIMETER_MAP_OP_STATUS_VERIFY_FAILED
+                                                         : TRIMETER_MAP_OP_STATUS_ERROR_STORAGE;
+        return;
+    case TRIMETER_MAP_COMMAND_ACTIVATE:
+        if (!app.upload.open || !app.upload.verified || motion_busy(&app.motion)) {
+            app.map_op_status = TRIMETER_MAP_OP_STATUS_ERROR_STATE;
+            return;
+        }
+        rc = storage_map_activate(st, &app.upload);
+        app.map_op_status = rc == STORAGE_OK ? TRIMETER_MAP_OP_STATUS_ACTIVATED : TRIMETER_MAP_OP_STATUS_ERROR_STORAGE;
+        return;
+    case TRIMETER_MAP_COMMAND_ABORT:
+        storage_map_abort(&app.upload);
+        app.map_op_status = TRIMETER_MAP_OP_STATUS_IDLE;
+        return;
+    default: return;
+    }
+}
+
+/* ---------------------------------------------------------------- Modbus data callbacks */
+
+static bool get_bit(const uint8_t *bits, unsigned i) { return (bits[i / 8] >> (i % 8)) & 1u; }
+
+uint8_t app_read_bits(void *ctx, mb_table_t table, uint16_t addr, uint16_t n, uint8_t *out)
+{
+    (void)ctx;
+    uint8_t ex = regmap_check_read((regmap_table_t)table, addr, n);
+    if (ex) return ex;
+    memset(out, 0, (n + 7u) / 8u);
+    for (unsigned i = 0; i < n; i++) {
+        unsigned a = addr + i;
+        bool v = false;
+        if (table == MB_TABLE_COILS) {
+            if (a <= REG_COIL_SHUTTER_COLLIMATED_OPEN) v = app.act.shutter_open[a - REG_COIL_SHUTTER_PANEL_LEFT_OPEN];
+            else if (a <= REG_COIL_LED_COLLIMATED_ON) v = app.act.led_on[a - REG_COIL_LED_PANEL_LEFT_ON];
+        } else {
+            switch (a) {
+            case REG_DI_ENDSTOP: v = app.hal->endstop_active(app.hal->ctx); break;
+            case REG_DI_BUTTON_PRESSED: v = app.act.button_stable; break;
+            case REG_DI_BUSY: v = app_busy(); break;
+            case REG_DI_FAULT: v = app_fault() != TRIMETER_FAULT_NONE; break;
+            case REG_DI_HOMED: v = app.motion.homed; break;
+            default: break;
+            }
+        }
+        if (v) out[i / 8] |= (uint8_t)(1u << (i % 8));
+    }
+    return MB_OK;
+}
+
+uint8_t app_write_bits(void *ctx, uint16_t addr, uint16_t n, const uint8_t *bits)
+{
+    (void)ctx;
+    uint8_t ex = regmap_check_write_bits(addr, n);
+    if (ex) return ex;
+    bool want[HAL_LED_COUNT];
+    for (int l = 0; l < HAL_LED_COUNT; l++) want[l] = app.act.led_on[l];
+    for (unsigned i = 0; i < n; i++) {
+        unsigned a = addr + i;
+        bool v = get_bit(bits, i);
+        if (a <= REG_COIL_SHUTTER_COLLIMATED_OPEN)
+            set_shutter((enum hal_shutter)(a - REG_COIL_SHUTTER_PANEL_LEFT_OPEN), v);
+        else
+            want[a - REG_COIL_LED_PANEL_LEFT_ON] = v;
+    }
+    /* All LEDs of one write switch together; an unchanged LED doesn't restart the settle. */
+    for (int l = 0; l < HAL_LED_COUNT; l++)
+        actuators_set_led(&app.act, (enum hal_led)l, want[l], led_level((enum hal_led)l), app.cfg.led_settle_ms,
+                          now());
+    return MB_OK;
+}
+
+static void fill_input_registers(uint16_t *ir)
+{
+    const mb_counters_t *c = mb_counters(&app.mb);
+    memset(ir, 0, REG_IR_SPAN * sizeof *ir);
+    ir[REG_IR_VENDOR_ID] = TRIMETER_VENDOR_ID;
+    ir[REG_IR_MODEL_ID] = TRIMETER_MODEL_ID;
+    ir[REG_IR_FIRMWARE_VERSION_MAJOR] = TRIMETER_FIRMWARE_VERSION_MAJOR;
+    ir[REG_IR_FIRMWARE_VERSION_MINOR] = TRIMETER_FIRMWARE_VERSION_MINOR;
+    ir[REG_IR_FIRMWARE_VERSION_PATCH] = TRIMETER_FIRMWARE_VERSION_PATCH;
+    regmap_put_u32(&ir[REG_IR_REGMAP_HASH], TRIMETER_REGMAP_HASH);
+    ir[REG_IR_STATE] = (uint16_t)app_state();
+    ir[REG_IR_FAULT_CODE] = (uint16_t)app_fault();
+    regmap_put_u32(&ir[REG_IR_POSITION_STEPS], (uint32_t)app.motion.position);
+    ir[REG_IR_POSITION_SLOT] = (uint16_t)believed_slot();
+    ir[REG_IR_BUTTON_EVENTS] = app.act.button_events;
+    regmap_put_u32(&ir[REG_IR_UPTIME_S], app.uptime_s);
+    ir[REG_IR_MODBUS_FRAMES_OK] = (uint16_t)c->frames_ok;
+    ir[REG_IR_MODBUS_CRC_ERRORS] = (uint16_t)(c->crc_errors + c->overruns);
+    ir[REG_IR_MODBUS_EXCEPTIONS] = (uint16_t)c->exceptions;
+    int active = storage_map_active(&app.storage);
+    ir[REG_IR_MAP_ACTIVE_SLOT] = (uint16_t)(active < 0 ? TRIMETER_MAP_SLOT_NONE : TRIMETER_MAP_SLOT_A + active);
+    static const uint16_t base[STORAGE_MAP_SLOTS] = {REG_IR_MAP_SLOT_A_VALID, REG_IR_MAP_SLOT_B_VALID};
+    for (int s = 0; s < STORAGE_MAP_SLOTS; s++) {
+        /* same layout for both slots: valid, length (u32), crc32 (u32), version */
+        const storage_map_slot_t *m = &app.storage.map[s];
+        bool valid = app.storage.map_valid[s];
+        ir[base[s]] = valid;
+        regmap_put_u32(&ir[base[s] + (REG_IR_MAP_SLOT_A_LENGTH - REG_IR_MAP_SLOT_A_VALID)], valid ? m->length : 0);
+        regmap_put_u32(&ir[base[s] + (REG_IR_MAP_SLOT_A_CRC32 - REG_IR_MAP_SLOT_A_VALID)], valid ? m->crc32 : 0);
+        ir[base[s] + (REG_IR_MAP_SLOT_A_VERSION - REG_IR_MAP_SLOT_A_VALID)] = valid ? m->version : 0;
+    }
+    ir[REG_IR_MAP_OP_STATUS] = app.map_op_status;
+    regmap_put_u32(&ir[REG_IR_MAP_OP_BYTES_WRITTEN], app.upload.open ? app.upload.bytes_written : 0);
+}
+
+uint8_t app_read_regs(void *ctx, mb_table_t table, uint16_t addr, uint16_t n, uint16_t *out)
+{
+    (void)ctx;
+    uint8_t ex = regmap_check_read((regmap_table_t)table, addr, n);
+    if (ex) return ex;
+    if (table == MB_TABLE_HOLDING_REGISTERS) {
+        memcpy(out, &app.hr[addr], n * sizeof *out);
+    } else {
+        static uint16_t ir[REG_IR_SPAN];
+        fill_input_registers(ir);
+        memcpy(out, &ir[addr], n * sizeof *out);
+    }
+    return MB_OK;
+}
+
+static bool covers(uint16_t addr, uint16_t n, uint16_t reg) { return reg >= addr && reg < addr + n; }
+
+uint8_t app_write_regs(void *ctx, uint16_t addr, uint16_t n, const uint16_t *vals)
+{
+    (void)ctx;
+    static uint16_t before[REG_HR_SPAN];
+    uint8_t ex = regmap_check_write_regs(addr, n, vals);
+    if (ex) return ex;
+    memcpy(before, app.hr, sizeof before);
+    memcpy(&app.hr[addr], vals, n * sizeof *vals);
+    config_t candidate;
+    config_decode(app.hr, &candidate);
+    if (!config_check(&candidate, NULL)) {
+        memcpy(app.hr, before, sizeof before);
+        return MB_EX_ILLEGAL_DATA_VALUE;
+    }
+    config_t previous = app.cfg;
+    app.cfg = candidate;
+    if (covers(addr, n, REG_HR_COMMAND)) ex = run_command(app.hr[REG_HR_COMMAND]);
+    if (ex) {
+        memcpy(app.hr, before, sizeof before);
+        app.cfg = previous;
+        return ex;
+    }
+    if (covers(addr, n, REG_HR_MAP_COMMAND)) run_map_command(app.hr[REG_HR_MAP_COMMAND]);
+    if (covers(addr, n, REG_HR_LED_PANELS_LEVEL) || covers(addr, n, REG_HR_LED_COLLIMATED_LEVEL) ||
+        app.cfg.led_settle_ms != previous.led_settle_ms)
+        refresh_leds();
+    return MB_OK;
+}
+
+/* File records → bytes of a map slot: record k holds bytes 2k (high) and 2k+1 (low). */
+static bool record_span(uint16_t file, uint16_t record, uint16_t n, uint32_t length, uint32_t *offset)
+{
+    uint32_t k = (uint32_t)(file - 1u) * TRIMETER_MAP_RECORDS_PER_FILE + record;
+    uint32_t records = (length + 1u) / 2u;
+    if (file == 0 || k >= records || n > records - k) return false;
+    *offset = 2u * k;
+    return true;
+}
+
+uint8_t app_read_file(void *ctx, uint16_t file, uint16_t record, uint16_t n, uint16_t *out)
+{
+    (void)ctx;
+    static uint8_t bytes[2 * 125];
+    uint16_t which = app.hr[REG_HR_MAP_READ_SLOT];
+    int slot = which == TRIMETER_MAP_SLOT_NONE ? storage_map_active(&app.storage) : (int)which - TRIMETER_MAP_SLOT_A;
+    uint32_t offset;
+    if (slot < 0 || !app.storage.map_valid[slot] || n > 125) return MB_EX_ILLEGAL_DATA_ADDRESS;
+    uint32_t length = app.storage.map[slot].length;
+    if (!record_span(file, record, n, length, &offset)) return MB_EX_ILLEGAL_DATA_ADDRESS;
+    uint32_t count = 2u * n;
+    if (offset + count > length) count = length - offset; /* the odd tail's pad byte */
+    memset(bytes, 0, sizeof bytes);
+    if (storage_map_read(&app.storage, slot, offset, bytes, count) != STORAGE_OK) return MB_EX_SERVER_DEVICE_FAILURE;
+    for (unsigned i = 0; i < n; i++) out[i] = (uint16_t)((bytes[2 * i] << 8) | bytes[2 * i + 1]);
+    return MB_OK;
+}
+
+uint8_t app_write_file(void *ctx, uint16_t file, uint16_t record, uint16_t n, const uint16_t *vals)
+{
+    (void)ctx;
+    static uint8_t bytes[2 * 125];
+    uint32_t offset;
+    if (!app.upload.open) return MB_EX_ILLEGAL_FUNCTION; /* no begin_write: wrong state */
+    if (n > 125 || !record_span(file, record, n, app.upload.expected_length, &offset))
+        return MB_EX_ILLEGAL_DATA_ADDRESS;
+    for (unsigned i = 0; i < n; i++) {
+        bytes[2 * i] = (uint8_t)(vals[i] >> 8);
+        bytes[2 * i + 1] = (uint8_t)vals[i];
+    }
+    uint32_t count = 2u * n;
+    if (offset + count > app.upload.expected_length) count = app.upload.expected_length - offset;
+    if (storage_map_session_write(&app.storage, &app.upload, offset, bytes, count) != STORAGE_OK) {
+        app.map_op_status = TRIMETER_MAP_OP_STATUS_ERROR_STORAGE;
+        return MB_EX_SERVER_DEVICE_FAILURE;
+    }
+    app.map_op_status = TRIMETER_MAP_OP_STATUS_WRITING;
+    return MB_OK;
+}
+
+/* ---------------------------------------------------------------- lifecycle */
+
+void app_init(const hal_t *hal)
+{
+    memset(&app, 0, sizeof app);
+    app.hal = hal;
+    app.boot_us = app.uptime_mark_us = hal->now_us(hal->ctx);
+    hal->step_timer_stop(hal->ctx);
+
+    storage_load(&app.storage, hal);
+    app.config_from_storage = config_load(app.hr, &app.storage);
+    config_decode(app.hr, &app.cfg);
+
+    motion_config_t mc;
+    config_motion(&app.cfg, &mc);
+    motion_init(&app.motion, hal, &mc);
+    actuators_init(&app.act, hal, app.boot_us);
+    for (int s = 0; s < HAL_SHUTTER_COUNT; s++) set_shutter((enum hal_shutter)s, false);
+
+    app.mb_io = (mb_io_t){.read = io_read, .write = io_write, .now_us = io_now, .ctx = (void *)hal};
+    app.mb_app = (mb_app_t){
+        .read_bits = app_read_bits,
+        .write_bits = app_write_bits,
+        .read_regs = app_read_regs,
+        .write_regs = app_write_regs,
+        .read_file = app_read_file,
+        .write_file = app_write_file,
+        .vendor = TRIMETER_VENDOR_NAME,
+        .product = TRIMETER_PRODUCT_CODE,
+        .revision = TRIMETER_FIRMWARE_VERSION,
+        .vendor_url = TRIMETER_VENDOR_URL,
+        .product_name = TRIMETER_PRODUCT_NAME,
+        .ctx = &app,
+    };
+    mb_init(&app.mb, app.cfg.modbus_address, app.cfg.modbus_baud, &app.mb_io, &app.mb_app);
+}
+
+void app_override_modbus_address(uint8_t address)
+{
+    if (address >= 1 && address <= MB_ADDRESS_MAX) mb_set_address(&app.mb, address);
+}
+
+void app_poll(void)
+{
+    uint32_t t = now();
+    mb_poll(&app.mb);
+    motion_poll(&app.motion, t);
+
+    bool moving = motion_busy(&app.motion);
+    if (app.was_moving && !moving && app.motion.state != MOTION_FAULT)
+        actuators_settle(&app.act, app.cfg.motion_settle_ms, t);
+    if (!moving && app.pending_command) {
+        int command = app.pending_command;
+        app.pending_command = 0;
+        /* refused (fault, not homed): dropped; the fault / homed registers say why */
+        if (app_fault() == TRIMETER_FAULT_NONE &&
+            (command == TRIMETER_COMMAND_HOME || app.motion.homed))
+            (void)start_motion(command);
+        moving = motion_busy(&app.motion);
+    }
+    app.was_moving = moving;
+
+    actuators_set_pattern(&app.act, app_fault() != TRIMETER_FAULT_NONE
+                                        ? STATUS_FAST_BLINK
+                                        : (enum status_pattern)app.hr[REG_HR_STATUS_PATTERN]);
+    actuators_poll(&app.act, t);
+
+    while (t - app.uptime_mark_us >= 1000000u) {
+        app.uptime_mark_us += 1000000u;
+        app.uptime_s++;
+    }
+}
+
+uint32_t app_step_isr(void) { return motion_isr(&app.motion); }

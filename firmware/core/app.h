@@ -1,0 +1,74 @@
+/* The application: binds the register map (registers_gen.h) to motion, actuators, config and
+ * storage, and runs the Modbus slave. One instance (the step ISR needs to find it).
+ *
+ *   app_init(hal)   boot: load storage + config, outputs off, shutters closed, slave listening
+ *   app_poll()      main loop body, never blocks: Modbus, timeouts, settle timers, button, LED
+ *   app_step_isr()  the step-timer interrupt: returns the next interval in µs, 0 = stop
+ *
+ * Command semantics (holding register `command`, written alone or at the end of a block write):
+ *   - home / goto_*: return at once; busy (discrete input) until the slider has arrived and
+ *     motion_settle_ms passed. A motion command while one runs is accepted and queued: it starts
+ *     when the current one ends (one pending command; a newer one replaces it).
+ *   - refused (exception 01, "wrong state") when a fault is latched, or goto_* before homing;
+ *     save_config while the slider moves (flash erase would stall the step timer) likewise.
+ *   - a value write that fails the register map (02/03) or the cross-checks in config.c (03)
+ *     changes nothing, including the command in the same write.
+ * Map upload (map_command): always answered OK when the value is valid; the outcome is in
+ * map_op_status (error_state when not allowed now, error_storage on a flash failure). */
+#ifndef TRIMETER_APP_H
+#define TRIMETER_APP_H
+
+#include <stdbool.h>
+#include <stdint.h>
+
+#include "actuators.h"
+#include "config.h"
+#include "hal.h"
+#include "modbus.h"
+#include "motion.h"
+#include "registers_gen.h"
+#include "storage.h"
+
+typedef struct app {
+    const hal_t *hal;
+    uint16_t hr[REG_HR_SPAN];   /* holding registers, the live values */
+    config_t cfg;               /* decoded from hr */
+    bool config_from_storage;   /* boot found a valid saved config */
+    motion_t motion;
+    actuators_t act;
+    storage_t storage;
+    storage_map_session_t upload;
+    uint16_t map_op_status;
+    trimeter_fault_t app_fault; /* faults not from motion (storage) */
+    int pending_command;        /* TRIMETER_COMMAND_* queued behind a running motion, 0 = none */
+    bool was_moving;
+    uint32_t boot_us;
+    uint32_t uptime_s;
+    uint32_t uptime_mark_us;
+    mb_io_t mb_io;
+    mb_app_t mb_app;
+    mb_slave_t mb;
+} app_t;
+
+void app_init(const hal_t *hal);
+void app_poll(void);
+uint32_t app_step_isr(void);
+
+/* The one instance, read-only, for ports that report state (the sim's plant) and for tests. */
+const app_t *app_get(void);
+/* Modbus address for this run (the sim's --address); 0 keeps the configured one. */
+void app_override_modbus_address(uint8_t address);
+
+trimeter_state_t app_state(void);
+trimeter_fault_t app_fault(void);
+bool app_busy(void);
+
+/* The Modbus data callbacks (exposed for the tests; mb_poll calls them). */
+uint8_t app_read_bits(void *ctx, mb_table_t table, uint16_t addr, uint16_t n, uint8_t *out_bits);
+uint8_t app_write_bits(void *ctx, uint16_t addr, uint16_t n, const uint8_t *bits);
+uint8_t app_read_regs(void *ctx, mb_table_t table, uint16_t addr, uint16_t n, uint16_t *out);
+uint8_t app_write_regs(void *ctx, uint16_t addr, uint16_t n, const uint16_t *vals);
+uint8_t app_read_file(void *ctx, uint16_t file, uint16_t record, uint16_t n, uint16_t *out);
+uint8_t app_write_file(void *ctx, uint16_t file, uint16_t record, uint16_t n, const uint16_t *vals);
+
+#endif
