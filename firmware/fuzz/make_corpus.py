@@ -1,0 +1,73 @@
+#!/usr/bin/env python3
+"""Write the fuzzer's seed corpus: valid RTU frames of every function code against the trimeter
+register map (slave 1 and broadcast), plus bad ones. Run from anywhere; output: corpus/."""
+
+from pathlib import Path
+import struct
+
+HERE = Path(__file__).resolve().parent
+
+
+def crc16(data: bytes) -> int:
+    crc = 0xFFFF
+    for byte in data:
+        crc ^= byte
+        for _ in range(8):
+            crc = (crc >> 1) ^ 0xA001 if crc & 1 else crc >> 1
+    return crc
+
+
+def frame(*parts) -> bytes:
+    body = b"".join(p if isinstance(p, bytes) else bytes([p]) for p in parts)
+    return body + struct.pack("<H", crc16(body))
+
+
+def u16(*values) -> bytes:
+    return struct.pack(f">{len(values)}H", *values)
+
+
+F32_80 = struct.pack(">f", 80.0)
+SEEDS = {
+    "fc01_read_coils": frame(1, 0x01, u16(0, 6)),
+    "fc02_read_discrete": frame(1, 0x02, u16(0, 5)),
+    "fc03_read_holding": frame(1, 0x03, u16(64, 28)),
+    "fc04_read_input_identity": frame(1, 0x04, u16(0, 8)),
+    "fc05_write_coil_on": frame(1, 0x05, u16(0, 0xFF00)),
+    "fc06_write_register": frame(1, 0x06, u16(2, 500)),
+    "fc0f_write_coils": frame(1, 0x0F, u16(0, 6), 1, 0x2A),
+    "fc10_write_f32": frame(1, 0x10, u16(64, 2), 4, F32_80),
+    "fc10_map_begin": frame(1, 0x10, u16(16, 7), 14, u16(0, 1000, 0x1234, 0x5678, 1, 0, 1)),
+    "fc10_half_wide": frame(1, 0x10, u16(65, 1), 2, u16(0)),
+    "fc17_read_write": frame(1, 0x17, u16(0, 5, 2, 1), 2, u16(700)),
+    "fc14_read_file": frame(1, 0x14, 14, 6, u16(1, 0, 4), 6, u16(2, 9990, 10)),
+    "fc15_write_file": frame(1, 0x15, 13, 6, u16(1, 0, 3), u16(0x0102, 0x0304, 0x0506)),
+    "fc2b_devid_basic": frame(1, 0x2B, 0x0E, 1, 0),
+    "fc2b_devid_regular": frame(1, 0x2B, 0x0E, 2, 0),
+    "fc2b_devid_individual": frame(1, 0x2B, 0x0E, 4, 2),
+    "broadcast_write_register": frame(0, 0x06, u16(3, 1)),
+    "broadcast_write_coils": frame(0, 0x0F, u16(0, 3), 1, 0x07),
+    "broadcast_read_ignored": frame(0, 0x03, u16(0, 1)),
+    "other_address": frame(7, 0x03, u16(0, 1)),
+    "bad_unknown_fc": frame(1, 0x08, u16(0, 0x1234)),
+    "bad_quantity": frame(1, 0x03, u16(0, 126)),
+    "bad_coil_value": frame(1, 0x05, u16(0, 0x1234)),
+    "bad_byte_count": frame(1, 0x10, u16(0, 2), 3, u16(1, 2)),
+    "bad_file_ref": frame(1, 0x14, 7, 5, u16(1, 0, 1)),
+    "bad_crc": frame(1, 0x03, u16(0, 1))[:-1] + b"\x00",
+    "bad_truncated": frame(1, 0x03, u16(0, 1))[:5],
+    "garbage": bytes(range(0x80, 0xC0)),
+    "oversize": frame(1, 0x10, u16(0, 123), 246, bytes(246)) + bytes(40),
+    "back_to_back": frame(1, 0x03, u16(0, 2)) + frame(1, 0x06, u16(2, 10)),
+}
+
+
+def main() -> None:
+    out = HERE / "corpus"
+    out.mkdir(exist_ok=True)
+    for name, data in SEEDS.items():
+        (out / name).write_bytes(data)
+    print(f"wrote {len(SEEDS)} seeds to {out}")
+
+
+if __name__ == "__main__":
+    main()
