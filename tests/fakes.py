@@ -44,7 +44,9 @@ class FakeInstrument:
         self.file_writes = 0
         self.fail_file_write_at: int | None = None  # raise a link failure on this file-record write
         self.commands: list[str] = []
-        self.uptime_s = 0
+        self.time_s = 0.0          # device clock: advances tick_s per request (what a real link costs)
+        self.tick_s = 0.05
+        self.on_request = None     # callable(fake) run on every request (fault injection in tests)
         self._refresh_map_registers()
 
     # ------------------------------------------------------------------------------ helpers
@@ -74,7 +76,13 @@ class FakeInstrument:
         self.coils = [False] * len(self.coils)
         self.inputs[regs.BY_NAME["homed"].address] = False
         self._set("ir", regs.BY_NAME["position_slot"], 0)
-        self.uptime_s = 0
+        self.time_s = 0.0
+
+    def _tick(self):
+        self.time_s += self.tick_s
+        self._set("ir", regs.BY_NAME["uptime_s"], int(self.time_s))
+        if self.on_request:
+            self.on_request(self)
 
     def _refresh_map_registers(self):
         self._set("ir", regs.BY_NAME["map_active_slot"], int(self.active))
@@ -88,8 +96,7 @@ class FakeInstrument:
 
     # ----------------------------------------------------------------------- Transport contract
     def read_bits(self, table, address, count):
-        self.uptime_s += 1
-        self._set("ir", regs.BY_NAME["uptime_s"], self.uptime_s)
+        self._tick()
         if table == "discrete_input":
             if self._busy_left:
                 self._busy_left -= 1
@@ -98,16 +105,19 @@ class FakeInstrument:
         return list(self.coils[address:address + count])
 
     def read_words(self, table, address, count):
+        self._tick()
         data = self.ir if table == "input_register" else self.hr
         if address + count > len(data):
             raise ModbusExceptionReply("read", 2)
         return list(data[address:address + count])
 
     def write_bits(self, address, values):
+        self._tick()
         self.coils[address:address + len(values)] = [bool(v) for v in values]
         self._busy_left = self.busy_polls
 
     def write_words(self, address, values):
+        self._tick()
         for i, value in enumerate(values):
             self.hr[address + i] = value
         if address <= regs.BY_NAME["command"].address < address + len(values):
@@ -192,7 +202,7 @@ class FakeOptics:
         self.rho_black = np.asarray(rho_black, float)
         self.rho_white = rho_white
         self.sample = None                                  # (I_b, I_w, I_c) arrays or None
-        self.brightness = 1.0                               # lamp drift factor (warm-up tests)
+        self.brightness = lambda device_time_s: 1.0         # lamp drift (warm-up tests)
 
     def rate(self, instrument: FakeInstrument) -> np.ndarray:
         panels = instrument.get("shutter_panel_left_open") and instrument.get("led_panel_left_on")
@@ -212,7 +222,7 @@ class FakeOptics:
                 out += self.diffuse * (i_w if slot == regs.Slot.WHITE else i_b)
             if coll and slot == regs.Slot.OPEN:
                 out += self.collimated * i_c
-        return out * self.brightness
+        return out * self.brightness(instrument.time_s)
 
 
 class FakeSpectrometer:
@@ -227,6 +237,7 @@ class FakeSpectrometer:
         self._limits = limits
         self._t = 10_000
         self.noise = noise
+        self.quantize = False
         self.rng = np.random.default_rng(seed)
         self.exposures = []
 
@@ -244,6 +255,8 @@ class FakeSpectrometer:
         counts = self.dark_offset + self.optics.rate(self.instrument) * self._t * 1e-6
         if self.noise:
             counts = counts + self.rng.normal(0, self.noise, counts.shape)
+        if self.quantize:
+            counts = np.floor(counts)
         return np.minimum(counts, self._saturation)
 
     @property

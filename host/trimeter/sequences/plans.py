@@ -1,0 +1,212 @@
+"""The measurement plans (paper Sec. 4.2) as generators of steps (trimeter.sequences.steps).
+
+- `warm_up`: lamps on, white background, spectra every `interval_s` until the relative change between
+  two consecutive spectra is under `threshold` — not a fixed wait; a timeout names the drift left.
+- `calibration`: the three references *without a sample*: white → diffuse spectrum = white / ρ_white_ref;
+  black → ρ_black(λ) = black / diffuse; open slot + collimated LED → collimated spectrum.
+- `sample_capture`: the sample against black, white and the collimated beam (HDR across decades for I_c).
+Every capture: auto-exposure, `frames` averaged exposures, dark frames at every integration time used
+(all shutters closed), rates in counts/s. Bins that saturate at every exposure, or read NaN, become NaN
+(and are flagged downstream) — never an exception.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from trimeter.errors import DeviceError
+from trimeter.sequences.reflectance import Calibration, Capture, RawSample
+from trimeter.sequences.steps import Acquire, Describe, DeviceTime, Expose, Lights, Move, Progress, Status, Wait
+
+SATURATION_FRACTION = 0.98   # a bin above this fraction of full scale counts as saturated
+EXPOSURE_TARGET = 0.7        # auto-exposure aims the brightest bin at this fraction of full scale
+NO_LIGHT_FRACTION = 0.003    # brightest bin under this fraction of full scale at the longest exposure: no light
+
+
+def _lit_bins(description, n):
+    lit = np.ones(n, dtype=bool)
+    lit[[p for p in description.dark_pixels if 0 <= p < n]] = False
+    return lit
+
+
+def _offset(counts, description):
+    """Dark-offset estimate of one frame, for exposure control only (the rates use real dark frames)."""
+    dark = [p for p in description.dark_pixels if 0 <= p < len(counts)]
+    return float(np.median(counts[dark])) if dark else float(np.nanpercentile(counts, 1))
+
+
+def auto_expose(start_us: float | None = None, *, target: float = EXPOSURE_TARGET, max_iterations: int = 10):
+    """Find the integration time that puts the brightest lit bin at `target` of full scale (its maximum,
+    not a percentile: a bin that saturates in every frame is lost, so none may).
+    Returns (integration_time_us, peak_fraction) — peak_fraction ≈ 0 means there is no light."""
+    description, wavelengths = yield Describe()
+    lo, hi = description.integration_time_us_limits
+    full = float(description.saturation_counts)
+    lit = _lit_bins(description, len(wavelengths))
+    t = float(start_us or min(max(10_000, lo), hi))
+    peak_fraction = 0.0
+    for _ in range(max_iterations):
+        t = yield Expose(t)
+        counts = yield Acquire()
+        offset = _offset(counts, description)
+        light = counts[lit]
+        light = light[np.isfinite(light)]
+        if light.size == 0:
+            return t, 0.0
+        headroom = full - offset
+        peak = float(np.max(light)) - offset
+        peak_fraction = peak / headroom
+        if np.max(light) >= SATURATION_FRACTION * full:
+            wanted = t * 0.25  # how far over full scale is unknown
+        elif peak <= 0:
+            wanted = t * 100
+        else:
+            wanted = t * target / peak_fraction
+        wanted = min(max(wanted, lo), hi)
+        if abs(wanted / t - 1) < 0.2 or wanted == t:
+            return t, peak_fraction
+        t = wanted
+    return t, peak_fraction
+
+
+def capture(slot: str, *, panels: bool = False, collimated: bool = False, frames: int = 2, hdr_decades: int = 0,
+            start_us: float | None = None):
+    """One set-up: move, light, auto-expose, then `frames` exposures at t, 10t, … (HDR decades).
+    Returns {integration_time_us: mean counts} and the auto-exposure's peak fraction."""
+    yield Move(slot)
+    yield Lights(panels=panels, collimated=collimated)
+    description, _ = yield Describe()
+    t, peak = yield from auto_expose(start_us)
+    times = [t]
+    hi = description.integration_time_us_limits[1]
+    for decade in range(1, hdr_decades + 1):
+        longer = min(t * 10 ** decade, hi)
+        if longer > times[-1]:
+            times.append(longer)
+    signals = {}
+    for wanted in times:
+        actual = yield Expose(wanted)
+        signals[actual] = yield Acquire(frames)
+    return signals, peak
+
+
+def dark_frames(times, *, frames: int = 2):
+    """All shutters closed; one averaged dark frame per integration time used."""
+    yield Lights(panels=False, collimated=False)
+    darks = {}
+    for wanted in sorted(set(times)):
+        actual = yield Expose(wanted)
+        darks[wanted] = yield Acquire(frames)
+    return darks
+
+
+def combine(signals: dict, darks: dict, saturation_counts: float, lit: np.ndarray) -> Capture:
+    """HDR merge: rate = Σ(S − D) / Σ t over every exposure in which the bin did not saturate."""
+    times = sorted(signals)
+    signal = np.stack([signals[t][lit] for t in times])
+    dark = np.stack([darks[t][lit] for t in times])
+    seconds = np.asarray(times, float)[:, None] * 1e-6
+    usable = np.isfinite(signal) & np.isfinite(dark) & (signal < SATURATION_FRACTION * saturation_counts)
+    net = np.where(usable, signal - dark, 0.0).sum(axis=0)
+    exposure = np.where(usable, seconds, 0.0).sum(axis=0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rate = np.where(exposure > 0, net / exposure, np.nan)
+    saturated = ~usable.any(axis=0) & np.isfinite(signal).any(axis=0)
+    return Capture(rate=rate, saturated=saturated, integration_times_us=np.asarray(times, float),
+                   signals=signal, darks=dark)
+
+
+def _check_light(peak: float, what: str) -> None:
+    if peak < NO_LIGHT_FRACTION:
+        raise DeviceError(f"no light from the {what} at the longest exposure (lamp failure, or a shutter stuck "
+                          "closed?); nothing was measured")
+
+
+def _captures(setups, frames, progress_from, progress_to, label):
+    description, wavelengths = yield Describe()
+    lit = _lit_bins(description, len(wavelengths))
+    raw, peaks = {}, {}
+    for i, (key, slot, panels, collimated, hdr, what) in enumerate(setups):
+        yield Progress(progress_from + (progress_to - progress_from) * i / (len(setups) + 1),
+                       f"{label}: {key} ({slot} slot)")
+        raw[key], peaks[key] = yield from capture(slot, panels=panels, collimated=collimated, frames=frames,
+                                                  hdr_decades=hdr)
+        if what:
+            _check_light(peaks[key], what)
+    yield Progress(progress_from + (progress_to - progress_from) * len(setups) / (len(setups) + 1),
+                   f"{label}: dark frames")
+    darks = yield from dark_frames([t for signals in raw.values() for t in signals], frames=frames)
+    out = {key: combine(raw[key], darks, description.saturation_counts, lit) for key in raw}
+    return out, wavelengths[lit], description
+
+
+def calibration(*, white_reference_reflectance: float, frames: int = 2):
+    """Paper Sec. 4.2, without a sample: returns a Calibration."""
+    if not 0 < white_reference_reflectance <= 1:
+        raise DeviceError(f"white reference reflectance must be in (0, 1], got {white_reference_reflectance}")
+    yield Status("fast_blink")
+    setups = [("white", "white", True, False, 0, "diffuse LED panels"),
+              ("black", "black", True, False, 0, None),
+              ("collimated", "open", False, True, 0, "collimated LED")]
+    captures, wavelengths, description = yield from _captures(setups, frames, 0.0, 1.0, "calibration")
+    device_time = yield DeviceTime()
+    yield Progress(1.0, "calibration done")
+    return Calibration.from_captures(wavelengths, captures, white_reference_reflectance=white_reference_reflectance,
+                                     device_time_s=device_time, spectrometer=description.to_dict())
+
+
+def sample_capture(*, frames: int = 2, hdr_decades: int = 2, label: str = "sample"):
+    """The sample against black, white and the collimated beam: returns a RawSample (rates, counts/s)."""
+    yield Status("fast_blink")
+    setups = [("black", "black", True, False, 0, None),
+              ("white", "white", True, False, 0, None),
+              ("collimated", "open", False, True, hdr_decades, None)]
+    captures, wavelengths, _ = yield from _captures(setups, frames, 0.0, 1.0, label)
+    device_time = yield DeviceTime()
+    return RawSample(wavelengths_nm=wavelengths, black=captures["black"], white=captures["white"],
+                     collimated=captures["collimated"], device_time_s=device_time)
+
+
+@dataclass(frozen=True)
+class WarmUpResult:
+    drift: float            # relative change between the last two spectra
+    elapsed_s: float        # device seconds the warm-up took
+    spectra: int
+
+
+def warm_up(*, threshold: float = 0.002, interval_s: float = 10.0, timeout_s: float = 900.0, frames: int = 2):
+    """Lamps on, white background; stop when two spectra `interval_s` apart differ by < `threshold`."""
+    yield Status("slow_blink")
+    yield Move("white")
+    yield Lights(panels=True, collimated=False)
+    description, wavelengths = yield Describe()
+    t, peak = yield from auto_expose()
+    _check_light(peak, "diffuse LED panels")
+    lit = _lit_bins(description, len(wavelengths))
+    yield Lights(panels=False, collimated=False)
+    yield Expose(t)
+    dark = (yield Acquire(frames))[lit]
+    yield Lights(panels=True, collimated=False)
+    start = yield DeviceTime()
+    previous, count, drift = None, 0, float("inf")
+    while True:
+        yield Expose(t)
+        current = (yield Acquire(frames))[lit] - dark
+        count += 1
+        now = yield DeviceTime()
+        if previous is not None:
+            bright = (previous > 0.1 * description.saturation_counts) & (current < SATURATION_FRACTION *
+                                                                         description.saturation_counts)
+            if bright.sum() < 3:
+                raise DeviceError("warm-up: too few well-exposed bins to judge the lamp drift")
+            drift = float(abs(np.median(current[bright] / previous[bright]) - 1.0))
+            yield Progress(min(0.99, threshold / max(drift, 1e-12)), f"warm-up: drift {drift:.2%} per {interval_s:g} s")
+            if drift < threshold:
+                return WarmUpResult(drift, now - start, count)
+        if now - start >= timeout_s:
+            raise DeviceError(f"lamps did not stabilise within {timeout_s:g} s (drift {drift:.2%} per "
+                              f"{interval_s:g} s, threshold {threshold:.2%}): check the LEDs")
+        previous = current
+        yield Wait(interval_s)

@@ -1,0 +1,159 @@
+"""Raw spectra → calibration → reflectances, exactly as the paper's Sec. 4.2 defines them.
+
+Calibration (no sample, all rates dark-subtracted, in counts/s):
+    diffuse(λ)    = white(λ) / ρ_white_ref          (ρ_white_ref: hardware/geometry.toml, 0.99)
+    ρ_black(λ)    = black(λ) / diffuse(λ)
+    collimated(λ) = open slot, collimated LED
+Sample:
+    I_b = black_sample / diffuse,  I_w = white_sample / diffuse,  I_c = collimated_sample / collimated
+and the map is queried at the measured backgrounds ρ_b = ρ_black(λ), ρ_w = ρ_white_ref.
+
+Bad bins never raise: a bin that saturated in every exposure, read NaN, or had no reference light
+gets NaN (and a CaptureFlag bit); the fit flags NaN inputs as unusable.
+"""
+
+from __future__ import annotations
+
+import enum
+import json
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+
+from trimeter.errors import InputError
+
+CALIBRATION_FORMAT_VERSION = 1
+MIN_REFERENCE_FRACTION = 1e-3   # reference rate below this fraction of its median: no usable light in that bin
+
+
+class CaptureFlag(enum.IntFlag):
+    NONE = 0
+    SATURATED = 1 << 0          # every exposure of this bin saturated
+    NONFINITE = 1 << 1          # the spectrometer returned NaN/inf
+    NO_REFERENCE_LIGHT = 1 << 2  # the calibration saw (almost) no light in this bin: ratios meaningless
+
+
+@dataclass
+class Capture:
+    """One set-up, HDR-merged: rate in counts/s per bin (NaN where unusable) and what it came from."""
+
+    rate: np.ndarray
+    saturated: np.ndarray
+    integration_times_us: np.ndarray
+    signals: np.ndarray = field(repr=False)   # (exposures, bins) mean counts
+    darks: np.ndarray = field(repr=False)
+
+    def flags(self) -> np.ndarray:
+        out = np.where(self.saturated, int(CaptureFlag.SATURATED), 0)
+        out |= np.where(~np.isfinite(self.rate) & ~self.saturated, int(CaptureFlag.NONFINITE), 0)
+        return out.astype(np.int32)
+
+
+@dataclass
+class RawSample:
+    wavelengths_nm: np.ndarray
+    black: Capture
+    white: Capture
+    collimated: Capture
+    device_time_s: float = 0.0
+
+
+def _reference_ok(rate: np.ndarray) -> np.ndarray:
+    finite = np.isfinite(rate)
+    if not finite.any():
+        return finite
+    scale = np.nanmedian(np.abs(rate[finite]))
+    return finite & (rate > MIN_REFERENCE_FRACTION * max(scale, 1e-30))
+
+
+@dataclass
+class Calibration:
+    wavelengths_nm: np.ndarray
+    diffuse: np.ndarray           # counts/s of the diffuse illumination (white / ρ_white_ref)
+    collimated: np.ndarray        # counts/s of the collimated beam
+    rho_black: np.ndarray         # black background reflectance per bin
+    rho_white: float              # white reference reflectance (declared, hardware/geometry.toml)
+    flags: np.ndarray             # CaptureFlag per bin
+    device_time_s: float = 0.0    # device uptime when it finished (staleness, reset detection)
+    created_utc: str = ""
+    spectrometer: dict = field(default_factory=dict)
+
+    @classmethod
+    def from_captures(cls, wavelengths_nm, captures: dict, *, white_reference_reflectance: float,
+                      device_time_s: float = 0.0, spectrometer: dict | None = None) -> "Calibration":
+        white, black, coll = captures["white"], captures["black"], captures["collimated"]
+        flags = white.flags() | black.flags() | coll.flags()
+        diffuse = white.rate / white_reference_reflectance
+        no_light = ~_reference_ok(diffuse) | ~_reference_ok(coll.rate)
+        flags |= np.where(no_light, int(CaptureFlag.NO_REFERENCE_LIGHT), 0).astype(np.int32)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            rho_black = np.where(no_light, np.nan, black.rate / diffuse)
+        return cls(np.asarray(wavelengths_nm, float), np.where(no_light, np.nan, diffuse),
+                   np.where(no_light, np.nan, coll.rate), rho_black, float(white_reference_reflectance),
+                   flags.astype(np.int32), float(device_time_s),
+                   datetime.now(timezone.utc).isoformat(timespec="seconds"), dict(spectrometer or {}))
+
+    # -------------------------------------------------------------------------------- files
+    def save(self, directory: str | Path) -> Path:
+        """calibration.json (meta) + calibration.csv (per bin); written next to each other."""
+        directory = Path(directory)
+        directory.mkdir(parents=True, exist_ok=True)
+        meta = {"format_version": CALIBRATION_FORMAT_VERSION, "rho_white": self.rho_white,
+                "device_time_s": self.device_time_s, "created_utc": self.created_utc,
+                "spectrometer": self.spectrometer, "bins": int(len(self.wavelengths_nm))}
+        (directory / "calibration.json").write_text(json.dumps(meta, indent=2))
+        table = np.column_stack([self.wavelengths_nm, self.diffuse, self.collimated, self.rho_black, self.flags])
+        np.savetxt(directory / "calibration.csv", table, delimiter=",", fmt=["%.4f", "%.8g", "%.8g", "%.8g", "%d"],
+                   header="wavelength_nm,diffuse_counts_per_s,collimated_counts_per_s,rho_black,flags", comments="")
+        return directory
+
+    @classmethod
+    def load(cls, directory: str | Path) -> "Calibration":
+        directory = Path(directory)
+        try:
+            meta = json.loads((directory / "calibration.json").read_text())
+            table = np.loadtxt(directory / "calibration.csv", delimiter=",", skiprows=1, ndmin=2)
+        except FileNotFoundError:
+            raise InputError(f"no calibration in {directory}: run `trimeter calibrate` with the holder empty") from None
+        except (ValueError, json.JSONDecodeError) as exc:
+            raise InputError(f"calibration in {directory} is corrupt ({exc}); run `trimeter calibrate` again") from None
+        if meta.get("format_version") != CALIBRATION_FORMAT_VERSION or table.shape[1] != 5 \
+                or table.shape[0] != meta.get("bins"):
+            raise InputError(f"calibration in {directory} has an unknown format or is truncated; calibrate again")
+        return cls(table[:, 0], table[:, 1], table[:, 2], table[:, 3], float(meta["rho_white"]),
+                   table[:, 4].astype(np.int32), float(meta.get("device_time_s", 0.0)), meta.get("created_utc", ""),
+                   meta.get("spectrometer", {}))
+
+
+@dataclass
+class Reflectances:
+    wavelengths_nm: np.ndarray
+    I_b: np.ndarray
+    I_w: np.ndarray
+    I_c: np.ndarray
+    rho_b: np.ndarray
+    rho_w: np.ndarray
+    flags: np.ndarray   # CaptureFlag per bin
+
+    def as_columns(self) -> dict:
+        return {"wavelength_nm": self.wavelengths_nm, "I_b": self.I_b, "I_w": self.I_w, "I_c": self.I_c,
+                "rho_b": self.rho_b, "rho_w": self.rho_w, "capture_flags": self.flags}
+
+
+def reflectances(calibration: Calibration, sample: RawSample) -> Reflectances:
+    """The paper's ratios, vectorised over bins; unusable bins become NaN with a flag, never an error."""
+    if len(sample.wavelengths_nm) != len(calibration.wavelengths_nm) or not np.allclose(
+            sample.wavelengths_nm, calibration.wavelengths_nm, rtol=0, atol=1e-3):
+        raise InputError("the calibration was taken with another spectrometer or wavelength set: calibrate again")
+    flags = calibration.flags | sample.black.flags() | sample.white.flags() | sample.collimated.flags()
+    with np.errstate(invalid="ignore", divide="ignore"):
+        i_b = sample.black.rate / calibration.diffuse
+        i_w = sample.white.rate / calibration.diffuse
+        i_c = sample.collimated.rate / calibration.collimated
+    bad = flags != 0
+    nan = np.float64("nan")
+    return Reflectances(calibration.wavelengths_nm.copy(), np.where(bad, nan, i_b), np.where(bad, nan, i_w),
+                        np.where(bad, nan, i_c), calibration.rho_black.copy(),
+                        np.full_like(calibration.rho_black, calibration.rho_white), flags.astype(np.int32))

@@ -1,0 +1,201 @@
+"""Steps and the runner: plans (generators) yield steps, the runner carries them out.
+
+A plan never touches a device: it yields `Move("white")`, `Lights(panels=True)`, `Acquire()` … and
+receives each step's result back (`spectrum = yield Acquire()`). Tests drive plans with fake devices
+(tests/fakes.py) or just check the steps they yield; the Runner executes them against a
+trimeter.device.Device and a Spectrometer (the pattern of bluesky plans, without its stack).
+
+The runner also guards the measurement: before every exposure it checks that the device has not been
+reset (uptime went backwards, homed lost, light set-up lost), so a reset mid-sequence is a clear
+DeviceError instead of a silently dark spectrum.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Callable, Generator
+
+import numpy as np
+
+from trimeter import registers as regs
+from trimeter.device.client import light_coils
+from trimeter.errors import DeviceError
+
+
+@dataclass(frozen=True)
+class Move:
+    slot: str  # black | white | open
+
+
+@dataclass(frozen=True)
+class Lights:
+    """Both LEDs stay on (warm); the shutters select the set-up: diffuse panels and/or collimated beam."""
+
+    panels: bool = False
+    collimated: bool = False
+
+
+@dataclass(frozen=True)
+class Expose:
+    """Set the integration time (clamped to the spectrometer's limits); returns the time it reports."""
+
+    integration_time_us: float
+
+
+@dataclass(frozen=True)
+class Acquire:
+    """Average `frames` exposures; returns raw counts (float64, dark not subtracted)."""
+
+    frames: int = 1
+
+
+@dataclass(frozen=True)
+class Describe:
+    """Returns (SpectrometerDescription, wavelengths_nm)."""
+
+
+@dataclass(frozen=True)
+class Wait:
+    """Wait this many seconds of *device* time (the firmware's uptime: simulated seconds on the twin)."""
+
+    seconds: float
+
+
+@dataclass(frozen=True)
+class DeviceTime:
+    """Returns the device's uptime in seconds."""
+
+
+@dataclass(frozen=True)
+class Status:
+    pattern: str  # off | on | slow_blink | fast_blink
+
+
+@dataclass(frozen=True)
+class Progress:
+    fraction: float
+    message: str
+
+
+Plan = Generator[object, object, object]
+
+
+@dataclass
+class Timing:
+    """Where a run's wall time went: exposures and waits for the device (physical) vs. everything else."""
+
+    wall_s: float = 0.0
+    exposure_s: float = 0.0         # integration time asked of the spectrometer (device seconds)
+    motion_wall_s: float = 0.0      # wall time spent waiting for the slider / shutters to settle
+    acquire_wall_s: float = 0.0     # wall time of the exposures (incl. readout + transfer)
+    wait_wall_s: float = 0.0        # warm-up waits
+    steps: dict = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        return {k: (round(v, 4) if isinstance(v, float) else v) for k, v in self.__dict__.items()}
+
+
+class Runner:
+    """Executes plans against a Device and a Spectrometer."""
+
+    def __init__(self, device, spectrometer, *, on_progress: Callable[[float, str], None] | None = None,
+                 move_timeout_s: float = 60.0, sleep: Callable[[float], None] = time.sleep):
+        self.device = device
+        self.spectrometer = spectrometer
+        self.on_progress = on_progress
+        self.move_timeout_s = move_timeout_s
+        self._sleep = sleep
+        self.timing = Timing()
+        self._lights: tuple[bool, bool] | None = None
+        self._slot: str | None = None
+        self._uptime: int | None = None
+        self._homed_seen = False
+
+    def run(self, plan: Plan):
+        started = time.monotonic()
+        reply = None
+        try:
+            while True:
+                try:
+                    step = plan.send(reply)
+                except StopIteration as stop:
+                    return stop.value
+                t0 = time.monotonic()
+                reply = self.execute(step)
+                name = type(step).__name__
+                self.timing.steps[name] = self.timing.steps.get(name, 0.0) + time.monotonic() - t0
+        finally:
+            self.timing.wall_s += time.monotonic() - started
+
+    # ------------------------------------------------------------------------------- guarding
+    def _check_not_reset(self) -> None:
+        uptime, homed = self.device.read_many("uptime_s", "homed").values()
+        if self._uptime is not None and uptime < self._uptime:
+            raise DeviceError(f"the device was reset during the sequence (uptime went from {self._uptime} s to "
+                              f"{uptime} s); the measurement was abandoned")
+        if self._homed_seen and not homed:
+            raise DeviceError("the device lost its homing during the sequence (reset?); the measurement was abandoned")
+        self._uptime = uptime
+        self._homed_seen = self._homed_seen or bool(homed)
+
+    def _check_setup(self) -> None:
+        self._check_not_reset()
+        if self._lights is not None:
+            want = light_coils(panels=self._lights[0], collimated=self._lights[1])
+            if [bool(c) for c in self.device.transport.read_bits("coil", 0, len(want))] != want:
+                raise DeviceError("the device lost its light set-up during the sequence (reset?); "
+                                  "the measurement was abandoned")
+
+    # ------------------------------------------------------------------------------- execute
+    def execute(self, step):
+        dev, spec = self.device, self.spectrometer
+        if isinstance(step, Move):
+            t0 = time.monotonic()
+            self._check_not_reset()
+            dev.goto(step.slot, timeout_s=self.move_timeout_s)  # homes on first use after power-up
+            self._check_not_reset()
+            self._slot = step.slot
+            self.timing.motion_wall_s += time.monotonic() - t0
+            return None
+        if isinstance(step, Lights):
+            t0 = time.monotonic()
+            dev.set_lights(panels=step.panels, collimated=step.collimated)
+            dev.wait_idle(self.move_timeout_s)
+            self._lights = (step.panels, step.collimated)
+            self.timing.motion_wall_s += time.monotonic() - t0
+            return None
+        if isinstance(step, Expose):
+            lo, hi = spec.integration_time_us_limits
+            spec.integration_time_us = int(min(max(round(step.integration_time_us), lo), hi))
+            return spec.integration_time_us
+        if isinstance(step, Acquire):
+            self._check_setup()
+            t0 = time.monotonic()
+            frames = [np.asarray(spec.intensities(), dtype=np.float64) for _ in range(max(1, step.frames))]
+            self.timing.acquire_wall_s += time.monotonic() - t0
+            self.timing.exposure_s += spec.integration_time_us * 1e-6 * len(frames)
+            self._check_not_reset()
+            return np.mean(frames, axis=0)
+        if isinstance(step, Describe):
+            return spec.description, np.asarray(spec.wavelengths_nm(), dtype=np.float64)
+        if isinstance(step, DeviceTime):
+            return float(dev.read("uptime_s"))
+        if isinstance(step, Wait):
+            t0 = time.monotonic()
+            start = dev.read("uptime_s")
+            while dev.read("uptime_s") - start < step.seconds:
+                self._sleep(0.02)
+            self._check_not_reset()
+            self.timing.wait_wall_s += time.monotonic() - t0
+            return None
+        if isinstance(step, Status):
+            dev.write("status_pattern", step.pattern)
+            return None
+        if isinstance(step, Progress):
+            if self.on_progress:
+                self.on_progress(step.fraction, step.message)
+            return None
+        raise TypeError(f"unknown step {step!r}")
+
+
