@@ -1,0 +1,415 @@
+/* The application through its Modbus data callbacks: busy flag, queued motion, fault latch and
+ * clear, config validation and persistence, shutters/LEDs/button, map upload via file records. */
+#include <string.h>
+
+#include "../core/app.h"
+#include "../core/crc.h"
+#include "../core/regmap.h"
+#include "check.h"
+#include "fake_hal.h"
+
+static fake_hal_t *f;
+
+static uint32_t isr(void *ctx)
+{
+    (void)ctx;
+    return app_step_isr();
+}
+
+/* Simulated time passes in 1 ms slices with the main loop running, as on the device. */
+static void run_ms(uint32_t ms)
+{
+    for (uint32_t i = 0; i < ms; i++) {
+        fake_hal_run_until(f, f->now_us + 1000, isr, NULL);
+        app_poll();
+    }
+}
+
+/* Runs until busy clears (or the limit); returns true if it did. */
+static bool run_until_idle(uint32_t limit_ms)
+{
+    for (uint32_t i = 0; i < limit_ms; i += 10) {
+        if (!app_busy()) return true;
+        run_ms(10);
+    }
+    return !app_busy();
+}
+
+static void boot(void)
+{
+    app_init(&f->hal);
+    run_ms(1);
+}
+
+static uint8_t write_reg(uint16_t addr, uint16_t v) { return app_write_regs(NULL, addr, 1, &v); }
+static uint8_t command(uint16_t c) { return write_reg(REG_HR_COMMAND, c); }
+
+static uint8_t write_f32(uint16_t addr, float v)
+{
+    uint16_t w[2];
+    regmap_put_f32(w, v);
+    return app_write_regs(NULL, addr, 2, w);
+}
+
+static float read_f32_hr(uint16_t addr)
+{
+    uint16_t w[2];
+    app_read_regs(NULL, MB_TABLE_HOLDING_REGISTERS, addr, 2, w);
+    return regmap_get_f32(w);
+}
+
+static uint16_t ir(uint16_t addr)
+{
+    uint16_t v = 0xDEAD;
+    CHECK_EQ_INT(app_read_regs(NULL, MB_TABLE_INPUT_REGISTERS, addr, 1, &v), MB_OK);
+    return v;
+}
+
+static uint32_t ir32(uint16_t addr)
+{
+    uint16_t w[2];
+    app_read_regs(NULL, MB_TABLE_INPUT_REGISTERS, addr, 2, w);
+    return regmap_get_u32(w);
+}
+
+static bool di(uint16_t addr)
+{
+    uint8_t b = 0;
+    CHECK_EQ_INT(app_read_bits(NULL, MB_TABLE_DISCRETE_INPUTS, addr, 1, &b), MB_OK);
+    return b & 1;
+}
+
+static uint8_t write_coil(uint16_t addr, bool v)
+{
+    uint8_t b = v;
+    return app_write_bits(NULL, addr, 1, &b);
+}
+
+static void fresh_device(void)
+{
+    if (f) fake_hal_free(f);
+    f = fake_hal_new();
+    f->carriage_steps = 3000; /* somewhere mid-travel at power-on */
+    f->endstop_steps = 0;
+    f->hard_stop_steps = -40;
+    boot();
+}
+
+static void home_device(void)
+{
+    CHECK_EQ_INT(command(TRIMETER_COMMAND_HOME), MB_OK);
+    CHECK(run_until_idle(30000));
+    CHECK(di(REG_DI_HOMED));
+}
+
+static void test_identity_and_boot_state(void)
+{
+    fresh_device();
+    CHECK_EQ_INT(ir(REG_IR_VENDOR_ID), TRIMETER_VENDOR_ID);
+    CHECK_EQ_INT(ir32(REG_IR_REGMAP_HASH), TRIMETER_REGMAP_HASH);
+    /* shutters are closed at boot and that takes the settle time */
+    CHECK(di(REG_DI_BUSY));
+    CHECK_EQ_INT(ir(REG_IR_STATE), TRIMETER_STATE_SETTLING);
+    CHECK_EQ_INT(f->servo_us[HAL_SHUTTER_COLLIMATED], REG_HR_SERVO_COLLIMATED_CLOSED_US_DEFAULT);
+    run_ms(REG_HR_SHUTTER_SETTLE_MS_DEFAULT + 2);
+    CHECK(!di(REG_DI_BUSY));
+    CHECK_EQ_INT(ir(REG_IR_STATE), TRIMETER_STATE_IDLE);
+    CHECK(!di(REG_DI_HOMED));
+    CHECK_EQ_INT(ir(REG_IR_POSITION_SLOT), TRIMETER_SLOT_UNKNOWN);
+    CHECK(f->watchdog_kicks > 0);
+}
+
+static void test_motion_commands_return_at_once_with_busy(void)
+{
+    fresh_device();
+    run_ms(500);
+    CHECK_EQ_INT(command(TRIMETER_COMMAND_GOTO_BLACK), MB_EX_ILLEGAL_FUNCTION); /* not homed */
+    uint64_t t0 = f->now_us;
+    CHECK_EQ_INT(command(TRIMETER_COMMAND_HOME), MB_OK);
+    CHECK_EQ_INT(f->now_us, t0); /* no simulated time passed inside the callback */
+    CHECK(di(REG_DI_BUSY));
+    CHECK_EQ_INT(ir(REG_IR_STATE), TRIMETER_STATE_HOMING);
+    CHECK(run_until_idle(30000));
+    CHECK(di(REG_DI_HOMED));
+    CHECK_EQ_INT(f->carriage_steps, 160); /* back-off 2 mm at 80 steps/mm */
+
+    CHECK_EQ_INT(command(TRIMETER_COMMAND_GOTO_WHITE), MB_OK);
+    CHECK(di(REG_DI_BUSY));
+    CHECK_EQ_INT(ir(REG_IR_STATE), TRIMETER_STATE_MOVING);
+    CHECK_EQ_INT(ir(REG_IR_POSITION_SLOT), TRIMETER_SLOT_UNKNOWN);
+    run_ms(100);
+    CHECK(ir32(REG_IR_POSITION_STEPS) > 160 && ir32(REG_IR_POSITION_STEPS) < 4800);
+    CHECK(run_until_idle(30000));
+    CHECK_EQ_INT((int32_t)ir32(REG_IR_POSITION_STEPS), 4800); /* 60 mm */
+    CHECK_EQ_INT(f->carriage_steps, 4800);
+    CHECK_EQ_INT(ir(REG_IR_POSITION_SLOT), TRIMETER_SLOT_WHITE);
+    CHECK_EQ_INT(app_read_regs(NULL, MB_TABLE_HOLDING_REGISTERS, REG_HR_COMMAND, 1, &(uint16_t){0}), MB_OK);
+}
+
+static void test_settle_after_arrival(void)
+{
+    fresh_device();
+    home_device();
+    CHECK_EQ_INT(command(TRIMETER_COMMAND_GOTO_BLACK), MB_OK);
+    /* wait for the motion itself to end, then busy must hold motion_settle_ms longer */
+    while (motion_busy(&app_get()->motion)) run_ms(1);
+    CHECK(di(REG_DI_BUSY));
+    CHECK_EQ_INT(ir(REG_IR_STATE), TRIMETER_STATE_SETTLING);
+    run_ms(REG_HR_MOTION_SETTLE_MS_DEFAULT - 5);
+    CHECK(di(REG_DI_BUSY));
+    run_ms(10);
+    CHECK(!di(REG_DI_BUSY));
+}
+
+static void test_command_during_motion_is_queued(void)
+{
+    fresh_device();
+    home_device();
+    CHECK_EQ_INT(command(TRIMETER_COMMAND_GOTO_OPEN), MB_OK);
+    run_ms(200);
+    CHECK_EQ_INT(command(TRIMETER_COMMAND_GOTO_BLACK), MB_OK); /* accepted while moving */
+    CHECK(run_until_idle(30000));
+    CHECK_EQ_INT(f->carriage_steps, 1600); /* 20 mm: the last command wins */
+    CHECK_EQ_INT(ir(REG_IR_POSITION_SLOT), TRIMETER_SLOT_BLACK);
+    /* stop drops a queued command */
+    CHECK_EQ_INT(command(TRIMETER_COMMAND_GOTO_OPEN), MB_OK);
+    CHECK_EQ_INT(command(TRIMETER_COMMAND_GOTO_WHITE), MB_OK);
+    CHECK_EQ_INT(command(TRIMETER_COMMAND_STOP), MB_OK);
+    CHECK(run_until_idle(2000));
+    CHECK(f->carriage_steps < 4800);
+}
+
+static void test_fault_latches_until_cleared(void)
+{
+    fresh_device();
+    f->endstop_broken = true;
+    CHECK_EQ_INT(command(TRIMETER_COMMAND_HOME), MB_OK);
+    CHECK(run_until_idle(60000));
+    CHECK(di(REG_DI_FAULT));
+    CHECK_EQ_INT(ir(REG_IR_FAULT_CODE), TRIMETER_FAULT_HOMING_TIMEOUT);
+    CHECK_EQ_INT(ir(REG_IR_STATE), TRIMETER_STATE_FAULT);
+    run_ms(5000); /* latched: still there later */
+    CHECK_EQ_INT(ir(REG_IR_FAULT_CODE), TRIMETER_FAULT_HOMING_TIMEOUT);
+    CHECK_EQ_INT(command(TRIMETER_COMMAND_HOME), MB_EX_ILLEGAL_FUNCTION);
+    uint16_t cmd;
+    app_read_regs(NULL, MB_TABLE_HOLDING_REGISTERS, REG_HR_COMMAND, 1, &cmd);
+    CHECK_EQ_INT(cmd, TRIMETER_COMMAND_HOME); /* the refused write changed nothing */
+    CHECK_EQ_INT(command(TRIMETER_COMMAND_CLEAR_FAULT), MB_OK);
+    CHECK(!di(REG_DI_FAULT));
+    CHECK_EQ_INT(ir(REG_IR_FAULT_CODE), TRIMETER_FAULT_NONE);
+    f->endstop_broken = false;
+    home_device();
+    CHECK(!di(REG_DI_FAULT));
+}
+
+static void test_stuck_slider_is_a_stall(void)
+{
+    fresh_device();
+    home_device();
+    CHECK_EQ_INT(command(TRIMETER_COMMAND_GOTO_WHITE), MB_OK);
+    CHECK(run_until_idle(30000));
+    f->stuck = true;
+    f->carriage_steps = 0; /* jammed at the home end without the firmware knowing */
+    CHECK_EQ_INT(command(TRIMETER_COMMAND_GOTO_OPEN), MB_OK);
+    CHECK(run_until_idle(30000));
+    CHECK_EQ_INT(ir(REG_IR_FAULT_CODE), TRIMETER_FAULT_STALL);
+}
+
+static void test_config_validation(void)
+{
+    fresh_device();
+    CHECK_EQ_INT(write_f32(REG_HR_SLOT_BLACK_MM, 30.0f), MB_OK);
+    CHECK(read_f32_hr(REG_HR_SLOT_BLACK_MM) == 30.0f);
+    CHECK_EQ_INT(write_f32(REG_HR_SLOT_BLACK_MM, 121.0f), MB_EX_ILLEGAL_DATA_VALUE); /* map max */
+    CHECK_EQ_INT(write_f32(REG_HR_SLOT_BLACK_MM, 1.0f), MB_EX_ILLEGAL_DATA_VALUE);   /* in the back-off */
+    CHECK(read_f32_hr(REG_HR_SLOT_BLACK_MM) == 30.0f);
+    /* 10000 steps/mm at 40 mm/s is 400 kHz of steps: no */
+    CHECK_EQ_INT(write_f32(REG_HR_STEPS_PER_MM, 10000.0f), MB_EX_ILLEGAL_DATA_VALUE);
+    CHECK(read_f32_hr(REG_HR_STEPS_PER_MM) == 80.0f);
+    CHECK_EQ_INT(write_reg(REG_HR_HOMING_DIRECTION, 0), MB_EX_ILLEGAL_DATA_VALUE);
+    CHECK_EQ_INT(write_reg(REG_HR_MODBUS_ADDRESS, 0), MB_EX_ILLEGAL_DATA_VALUE);
+    /* a block write with one bad value changes nothing, not even the good ones before it */
+    uint16_t block[6];
+    regmap_put_f32(&block[0], 25.0f);  /* slot_black_mm */
+    regmap_put_f32(&block[2], 65.0f);  /* slot_white_mm */
+    regmap_put_f32(&block[4], 0.5f);   /* slot_open_mm: inside the back-off */
+    CHECK_EQ_INT(app_write_regs(NULL, REG_HR_SLOT_BLACK_MM, 6, block), MB_EX_ILLEGAL_DATA_VALUE);
+    CHECK(read_f32_hr(REG_HR_SLOT_BLACK_MM) == 30.0f);
+    CHECK(read_f32_hr(REG_HR_SLOT_WHITE_MM) == 60.0f);
+    /* half a wide value: address error */
+    CHECK_EQ_INT(write_reg(REG_HR_SLOT_BLACK_MM, 0x4200), MB_EX_ILLEGAL_DATA_ADDRESS);
+}
+
+static void test_config_persists_across_reboot(void)
+{
+    fresh_device();
+    CHECK_EQ_INT(write_f32(REG_HR_SLOT_WHITE_MM, 70.0f), MB_OK);
+    boot(); /* not saved: lost */
+    CHECK(read_f32_hr(REG_HR_SLOT_WHITE_MM) == 60.0f);
+    CHECK_EQ_INT(write_f32(REG_HR_SLOT_WHITE_MM, 70.0f), MB_OK);
+    CHECK_EQ_INT(command(TRIMETER_COMMAND_SAVE_CONFIG), MB_OK);
+    boot();
+    CHECK(read_f32_hr(REG_HR_SLOT_WHITE_MM) == 70.0f);
+    CHECK(app_get()->config_from_storage);
+    CHECK_EQ_INT(command(TRIMETER_COMMAND_LOAD_DEFAULTS), MB_OK);
+    CHECK(read_f32_hr(REG_HR_SLOT_WHITE_MM) == 60.0f);
+    boot(); /* defaults were not saved: the saved 70 comes back */
+    CHECK(read_f32_hr(REG_HR_SLOT_WHITE_MM) == 70.0f);
+    /* flash refuses the save: storage fault, exception 04, old copy still loads */
+    f->power_budget = f->bytes_programmed + 10;
+    CHECK_EQ_INT(write_f32(REG_HR_SLOT_WHITE_MM, 80.0f), MB_OK);
+    CHECK_EQ_INT(command(TRIMETER_COMMAND_SAVE_CONFIG), MB_EX_SERVER_DEVICE_FAILURE);
+    CHECK_EQ_INT(ir(REG_IR_FAULT_CODE), TRIMETER_FAULT_STORAGE);
+    fake_hal_power_on(f);
+    boot();
+    CHECK(read_f32_hr(REG_HR_SLOT_WHITE_MM) == 70.0f);
+}
+
+static void test_shutters_leds_settle(void)
+{
+    fresh_device();
+    run_ms(500);
+    CHECK(!di(REG_DI_BUSY));
+    CHECK_EQ_INT(write_coil(REG_COIL_SHUTTER_PANEL_LEFT_OPEN, true), MB_OK);
+    CHECK_EQ_INT(f->servo_us[HAL_SHUTTER_PANEL_LEFT], REG_HR_SERVO_PANEL_LEFT_OPEN_US_DEFAULT);
+    CHECK(di(REG_DI_BUSY));
+    run_ms(REG_HR_SHUTTER_SETTLE_MS_DEFAULT + 2);
+    CHECK(!di(REG_DI_BUSY));
+    /* both panels in one write; level from led_panels_level */
+    CHECK_EQ_INT(write_reg(REG_HR_LED_PANELS_LEVEL, 600), MB_OK);
+    uint8_t both = 0x3;
+    CHECK_EQ_INT(app_write_bits(NULL, REG_COIL_LED_PANEL_LEFT_ON, 2, &both), MB_OK);
+    CHECK_EQ_INT(f->led_permille[HAL_LED_PANEL_LEFT], 600);
+    CHECK_EQ_INT(f->led_permille[HAL_LED_PANEL_RIGHT], 600);
+    CHECK_EQ_INT(f->led_permille[HAL_LED_COLLIMATED], 0);
+    CHECK(di(REG_DI_BUSY));
+    run_ms(REG_HR_LED_SETTLE_MS_DEFAULT + 2);
+    CHECK(!di(REG_DI_BUSY));
+    CHECK_EQ_INT(write_reg(REG_HR_LED_PANELS_LEVEL, 300), MB_OK); /* level change of a lit LED */
+    CHECK_EQ_INT(f->led_permille[HAL_LED_PANEL_LEFT], 300);
+    CHECK(di(REG_DI_BUSY));
+    uint8_t coils = 0;
+    CHECK_EQ_INT(app_read_bits(NULL, MB_TABLE_COILS, 0, 6, &coils), MB_OK);
+    CHECK_EQ_INT(coils, 0x19); /* left shutter, both panels */
+    CHECK_EQ_INT(app_write_bits(NULL, 6, 1, &both), MB_EX_ILLEGAL_DATA_ADDRESS);
+}
+
+static void test_button_debounce_and_events(void)
+{
+    fresh_device();
+    CHECK_EQ_INT(ir(REG_IR_BUTTON_EVENTS), 0);
+    /* contact bounce shorter than the debounce time: nothing */
+    for (int i = 0; i < 5; i++) {
+        f->button = true;
+        run_ms(3);
+        f->button = false;
+        run_ms(3);
+    }
+    CHECK_EQ_INT(ir(REG_IR_BUTTON_EVENTS), 0);
+    f->button = true;
+    run_ms(50);
+    CHECK(di(REG_DI_BUTTON_PRESSED));
+    f->button = false;
+    run_ms(50);
+    f->button = true;
+    run_ms(50);
+    f->button = false;
+    run_ms(50);
+    CHECK_EQ_INT(ir(REG_IR_BUTTON_EVENTS), 2);
+}
+
+static void test_status_led_patterns(void)
+{
+    fresh_device();
+    CHECK_EQ_INT(write_reg(REG_HR_STATUS_PATTERN, TRIMETER_STATUS_PATTERN_ON), MB_OK);
+    run_ms(5);
+    CHECK(f->status_led);
+    CHECK_EQ_INT(write_reg(REG_HR_STATUS_PATTERN, TRIMETER_STATUS_PATTERN_SLOW_BLINK), MB_OK);
+    int toggles = 0;
+    bool last = f->status_led;
+    for (int i = 0; i < 2000; i++) {
+        run_ms(1);
+        if (f->status_led != last) toggles++, last = f->status_led;
+    }
+    CHECK(toggles >= 3 && toggles <= 5); /* 1 Hz over 2 s */
+    CHECK_EQ_INT(write_reg(REG_HR_STATUS_PATTERN, 9), MB_EX_ILLEGAL_DATA_VALUE);
+}
+
+#define MAP_BYTES 1001
+static uint8_t map_data[MAP_BYTES];
+
+static void test_map_upload_over_file_records(void)
+{
+    fresh_device();
+    for (int i = 0; i < MAP_BYTES; i++) map_data[i] = (uint8_t)(i * 31 + 7);
+    uint16_t regs[120];
+    CHECK_EQ_INT(app_write_file(NULL, 1, 0, 1, regs), MB_EX_ILLEGAL_FUNCTION); /* no begin_write */
+    uint16_t params[7];
+    regmap_put_u32(&params[0], MAP_BYTES);
+    regmap_put_u32(&params[2], crc32_update(0, map_data, MAP_BYTES));
+    params[4] = 42;                               /* version */
+    params[5] = 0;                                /* read slot: active */
+    params[6] = TRIMETER_MAP_COMMAND_BEGIN_WRITE; /* acts after the parameters */
+    CHECK_EQ_INT(app_write_regs(NULL, REG_HR_MAP_EXPECTED_LENGTH, 7, params), MB_OK);
+    CHECK_EQ_INT(ir(REG_IR_MAP_OP_STATUS), TRIMETER_MAP_OP_STATUS_WRITING);
+    CHECK_EQ_INT(write_reg(REG_HR_MAP_COMMAND, TRIMETER_MAP_COMMAND_ACTIVATE), MB_OK);
+    CHECK_EQ_INT(ir(REG_IR_MAP_OP_STATUS), TRIMETER_MAP_OP_STATUS_ERROR_STATE); /* not verified */
+    for (uint32_t rec = 0; rec < (MAP_BYTES + 1) / 2; rec += 100) {
+        uint32_t n = (MAP_BYTES + 1) / 2 - rec < 100 ? (MAP_BYTES + 1) / 2 - rec : 100;
+        for (uint32_t i = 0; i < n; i++) {
+            uint32_t b = 2 * (rec + i);
+            regs[i] = (uint16_t)(map_data[b] << 8 | (b + 1 < MAP_BYTES ? map_data[b + 1] : 0));
+        }
+        CHECK_EQ_INT(app_write_file(NULL, 1, (uint16_t)rec, (uint16_t)n, regs), MB_OK);
+    }
+    CHECK_EQ_INT(app_write_file(NULL, 1, 501, 1, regs), MB_EX_ILLEGAL_DATA_ADDRESS); /* past the length */
+    CHECK_EQ_INT(ir32(REG_IR_MAP_OP_BYTES_WRITTEN), MAP_BYTES);
+    CHECK_EQ_INT(write_reg(REG_HR_MAP_COMMAND, TRIMETER_MAP_COMMAND_VERIFY), MB_OK);
+    CHECK_EQ_INT(ir(REG_IR_MAP_OP_STATUS), TRIMETER_MAP_OP_STATUS_VERIFY_OK);
+    CHECK_EQ_INT(ir(REG_IR_MAP_ACTIVE_SLOT), TRIMETER_MAP_SLOT_NONE);
+    CHECK_EQ_INT(write_reg(REG_HR_MAP_COMMAND, TRIMETER_MAP_COMMAND_ACTIVATE), MB_OK);
+    CHECK_EQ_INT(ir(REG_IR_MAP_OP_STATUS), TRIMETER_MAP_OP_STATUS_ACTIVATED);
+    CHECK_EQ_INT(ir(REG_IR_MAP_ACTIVE_SLOT), TRIMETER_MAP_SLOT_A);
+    CHECK_EQ_INT(ir(REG_IR_MAP_SLOT_A_VALID), 1);
+    CHECK_EQ_INT(ir32(REG_IR_MAP_SLOT_A_LENGTH), MAP_BYTES);
+    CHECK_EQ_INT(ir(REG_IR_MAP_SLOT_A_VERSION), 42);
+    boot(); /* survives a reboot, and reads back record by record */
+    CHECK_EQ_INT(ir(REG_IR_MAP_ACTIVE_SLOT), TRIMETER_MAP_SLOT_A);
+    uint16_t back[1];
+    CHECK_EQ_INT(app_read_file(NULL, 1, 500, 1, back), MB_OK); /* the odd tail: low byte padded */
+    CHECK_EQ_INT(back[0], map_data[1000] << 8);
+    CHECK_EQ_INT(app_read_file(NULL, 1, 10, 1, back), MB_OK);
+    CHECK_EQ_INT(back[0], map_data[20] << 8 | map_data[21]);
+    CHECK_EQ_INT(app_read_file(NULL, 1, 501, 1, back), MB_EX_ILLEGAL_DATA_ADDRESS);
+    CHECK_EQ_INT(write_reg(REG_HR_MAP_READ_SLOT, TRIMETER_MAP_SLOT_B), MB_OK);
+    CHECK_EQ_INT(app_read_file(NULL, 1, 0, 1, back), MB_EX_ILLEGAL_DATA_ADDRESS); /* B is empty */
+    /* a wrong CRC never activates */
+    regmap_put_u32(&params[2], 0x12345678u);
+    params[5] = 0;
+    CHECK_EQ_INT(app_write_regs(NULL, REG_HR_MAP_EXPECTED_LENGTH, 7, params), MB_OK);
+    regs[0] = 0x0102;
+    CHECK_EQ_INT(app_write_file(NULL, 1, 0, 1, regs), MB_OK);
+    CHECK_EQ_INT(write_reg(REG_HR_MAP_COMMAND, TRIMETER_MAP_COMMAND_VERIFY), MB_OK);
+    CHECK_EQ_INT(ir(REG_IR_MAP_OP_STATUS), TRIMETER_MAP_OP_STATUS_VERIFY_FAILED);
+    CHECK_EQ_INT(write_reg(REG_HR_MAP_COMMAND, TRIMETER_MAP_COMMAND_ACTIVATE), MB_OK);
+    CHECK_EQ_INT(ir(REG_IR_MAP_OP_STATUS), TRIMETER_MAP_OP_STATUS_ERROR_STATE);
+    CHECK_EQ_INT(ir(REG_IR_MAP_ACTIVE_SLOT), TRIMETER_MAP_SLOT_A);
+}
+
+int main(void)
+{
+    RUN_TEST(test_identity_and_boot_state);
+    RUN_TEST(test_motion_commands_return_at_once_with_busy);
+    RUN_TEST(test_settle_after_arrival);
+    RUN_TEST(test_command_during_motion_is_queued);
+    RUN_TEST(test_fault_latches_until_cleared);
+    RUN_TEST(test_stuck_slider_is_a_stall);
+    RUN_TEST(test_config_validation);
+    RUN_TEST(test_config_persists_across_reboot);
+    RUN_TEST(test_shutters_leds_settle);
+    RUN_TEST(test_button_debounce_and_events);
+    RUN_TEST(test_status_led_patterns);
+    RUN_TEST(test_map_upload_over_file_records);
+    fake_hal_free(f);
+    return CHECK_SUMMARY();
+}
