@@ -37,6 +37,7 @@ SEEDS = {
     "fc0f_write_coils": frame(1, 0x0F, u16(0, 6), 1, 0x2A),
     "fc10_write_f32": frame(1, 0x10, u16(64, 2), 4, F32_80),
     "fc10_map_begin": frame(1, 0x10, u16(16, 7), 14, u16(0, 1000, 0x1234, 0x5678, 1, 0, 1)),
+    "fc10_baud_allowed": frame(1, 0x10, u16(90, 2), 4, struct.pack(">I", 115200)),
     "fc10_half_wide": frame(1, 0x10, u16(65, 1), 2, u16(0)),
     "fc17_read_write": frame(1, 0x17, u16(0, 5, 2, 1), 2, u16(700)),
     "fc14_read_file": frame(1, 0x14, 14, 6, u16(1, 0, 4), 6, u16(2, 9990, 10)),
