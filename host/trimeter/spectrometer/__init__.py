@@ -1,0 +1,41 @@
+"""Spectrometer backends behind one Protocol, chosen by URL — never by global state.
+
+    open_spectrometer("sim:/dev/pts/5")   # the twin's spectrometer (line protocol, see README.md)
+    open_spectrometer("i2c:1")            # an AS7341 on /dev/i2c-1 (`i2c:1?address=0x39&gain=64`)
+    open_spectrometer("seabreeze:")       # the first Ocean spectrometer (`seabreeze:SERIAL` for one)
+"""
+
+from __future__ import annotations
+
+from trimeter.errors import InputError
+from trimeter.spectrometer.base import Spectrometer, SpectrometerDescription
+
+__all__ = ["Spectrometer", "SpectrometerDescription", "open_spectrometer", "BACKENDS"]
+
+BACKENDS = ("sim", "i2c", "seabreeze")
+
+
+def open_spectrometer(url: str, **options) -> Spectrometer:
+    """Open the spectrometer named by `url` (`<backend>:<address>[?key=value&...]`)."""
+    if not isinstance(url, str) or ":" not in url:
+        raise InputError(f"spectrometer must be '<backend>:<address>' with backend one of {', '.join(BACKENDS)}, got {url!r}")
+    backend, _, rest = url.partition(":")
+    address, _, query = rest.partition("?")
+    for item in filter(None, query.split("&")):
+        key, eq, value = item.partition("=")
+        if not eq:
+            raise InputError(f"spectrometer option {item!r} in {url!r} must be key=value")
+        options.setdefault(key, value)
+    if backend == "sim":
+        from trimeter.spectrometer.sim import SimSpectrometer
+
+        return SimSpectrometer(address, **options)
+    if backend == "i2c":
+        from trimeter.spectrometer.i2c import AS7341
+
+        return AS7341.open(address, **options)
+    if backend == "seabreeze":
+        from trimeter.spectrometer.seabreeze import SeaBreezeSpectrometer
+
+        return SeaBreezeSpectrometer(address or None, **options)
+    raise InputError(f"spectrometer backend must be one of {', '.join(BACKENDS)}, got {backend!r} in {url!r}")

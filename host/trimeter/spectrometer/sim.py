@@ -1,0 +1,133 @@
+"""`sim` backend: the twin's spectrometer over its own serial port (pty), as a line-protocol client.
+
+Protocol (ASCII, one command per line, exactly one reply line `OK[ payload]` or `ERR message`):
+`*IDN?`, `DESC?` (one-line JSON description), `WL?` (comma-separated nm), `IT <us>`, `IT?`,
+`ACQ` (`<n> <base64 of n little-endian uint16 counts>`), `TIME?`. Full table:
+host/trimeter/twin/README.md § "Spectrometer line protocol". The server is trimeter.twin.specserver.
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import time
+
+import numpy as np
+
+from trimeter.errors import DeviceError
+from trimeter.spectrometer.base import SpectrometerDescription, check_integration_time
+
+# A reply must come within this much wall time plus the exposure itself (at time scale 1).
+REPLY_TIMEOUT_S = 5.0
+
+
+class SimSpectrometer:
+    def __init__(self, port: str, timeout_s: float = REPLY_TIMEOUT_S, **_ignored):
+        import serial  # pyserial: a pty opens like any serial port
+
+        if not port:
+            raise DeviceError("sim spectrometer needs a port: sim:/dev/pts/N")
+        try:
+            self._serial = serial.Serial(port, 115200, timeout=0.05)
+        except (OSError, serial.SerialException) as exc:
+            raise DeviceError(f"cannot open sim spectrometer at {port}: {exc}") from None
+        self.port = port
+        self._timeout_s = float(timeout_s)
+        self._buffer = b""
+        try:
+            self._description = self._describe()
+            self._wavelengths = np.array([float(x) for x in self._command("WL?").split(",")])
+            self._it_us = int(self._command("IT?"))
+        except Exception:
+            self._serial.close()
+            raise
+        if len(self._wavelengths) != self._description.pixels:
+            self._serial.close()
+            raise DeviceError(f"sim spectrometer at {port}: WL? gave {len(self._wavelengths)} values, "
+                              f"DESC? says {self._description.pixels} pixels")
+
+    # ------------------------------------------------------------------------------ transport
+    def _command(self, line: str, extra_timeout_s: float = 0.0) -> str:
+        self._serial.reset_input_buffer()  # a late reply to an earlier command must not pass for this one
+        self._buffer = b""
+        self._serial.write(line.encode("ascii") + b"\n")
+        deadline = time.monotonic() + self._timeout_s + extra_timeout_s
+        while b"\n" not in self._buffer:
+            if time.monotonic() > deadline:
+                raise DeviceError(f"sim spectrometer at {self.port}: no reply to {line.split()[0]!r} "
+                                  f"within {self._timeout_s + extra_timeout_s:.1f} s")
+            self._buffer += self._serial.read(max(1, self._serial.in_waiting))
+        reply, _, self._buffer = self._buffer.partition(b"\n")
+        text = reply.decode("ascii", errors="replace").strip()
+        if text.startswith("ERR"):
+            raise DeviceError(f"sim spectrometer refused {line.split()[0]!r}: {text[3:].strip()}")
+        if not text.startswith("OK"):
+            raise DeviceError(f"sim spectrometer at {self.port}: malformed reply {text[:60]!r}")
+        return text[2:].strip()
+
+    def _describe(self) -> SpectrometerDescription:
+        try:
+            d = json.loads(self._command("DESC?"))
+            return SpectrometerDescription(
+                model=str(d["model"]), serial=str(d["serial"]), pixels=int(d["pixels"]),
+                wavelength_range_nm=tuple(float(x) for x in d["wavelength_range_nm"]),
+                integration_time_us_limits=tuple(int(x) for x in d["integration_time_us_limits"]),
+                saturation_counts=float(d["saturation_counts"]),
+                dark_pixels=tuple(int(i) for i in d["dark_pixels"]))
+        except (ValueError, KeyError, TypeError) as exc:
+            raise DeviceError(f"sim spectrometer at {self.port}: bad DESC? reply ({exc})") from None
+
+    # ------------------------------------------------------------------------------- protocol
+    @property
+    def description(self) -> SpectrometerDescription:
+        return self._description
+
+    def wavelengths_nm(self) -> np.ndarray:
+        return self._wavelengths.copy()
+
+    @property
+    def integration_time_us(self) -> int:
+        return self._it_us
+
+    @integration_time_us.setter
+    def integration_time_us(self, value) -> None:
+        us = check_integration_time(value, self.integration_time_us_limits)
+        self._command(f"IT {us}")
+        self._it_us = int(self._command("IT?"))
+
+    @property
+    def integration_time_us_limits(self) -> tuple[int, int]:
+        return self._description.integration_time_us_limits
+
+    @property
+    def saturation_counts(self) -> float:
+        return self._description.saturation_counts
+
+    @property
+    def dark_pixels(self) -> tuple[int, ...]:
+        return self._description.dark_pixels
+
+    def intensities(self) -> np.ndarray:
+        payload = self._command("ACQ", extra_timeout_s=self._it_us * 1e-6)
+        try:
+            n_text, data = payload.split(" ", 1)
+            counts = np.frombuffer(base64.b64decode(data, validate=True), dtype="<u2")
+        except (ValueError, TypeError) as exc:
+            raise DeviceError(f"sim spectrometer at {self.port}: malformed ACQ payload ({exc})") from None
+        if len(counts) != int(n_text) or len(counts) != self._description.pixels:
+            raise DeviceError(f"sim spectrometer at {self.port}: ACQ gave {len(counts)} counts, expected "
+                              f"{self._description.pixels}")
+        return counts.astype(np.float64)
+
+    def sim_time_s(self) -> float:
+        """Simulated seconds at the end of the last exposure (twin only: tells exposure from overhead)."""
+        return float(self._command("TIME?"))
+
+    def close(self) -> None:
+        self._serial.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
