@@ -32,9 +32,11 @@ def _lit_bins(description, n):
 
 
 def _offset(counts, description):
-    """Dark-offset estimate of one frame, for exposure control only (the rates use real dark frames)."""
+    """Dark-offset estimate of one frame from the masked pixels, for exposure control only (the rates use
+    real dark frames). Without masked pixels: 0, i.e. the offset counts as signal (conservative)."""
     dark = [p for p in description.dark_pixels if 0 <= p < len(counts)]
-    return float(np.median(counts[dark])) if dark else float(np.nanpercentile(counts, 1))
+    value = float(np.nanmedian(counts[dark])) if dark else 0.0
+    return value if np.isfinite(value) else 0.0
 
 
 def auto_expose(start_us: float | None = None, *, target: float = EXPOSURE_TARGET, max_iterations: int = 10):
@@ -55,7 +57,7 @@ def auto_expose(start_us: float | None = None, *, target: float = EXPOSURE_TARGE
         light = light[np.isfinite(light)]
         if light.size == 0:
             return t, 0.0
-        headroom = full - offset
+        headroom = max(full - offset, 1.0)
         peak = float(np.max(light)) - offset
         peak_fraction = peak / headroom
         if np.max(light) >= SATURATION_FRACTION * full:
@@ -118,8 +120,11 @@ def combine(signals: dict, darks: dict, saturation_counts: float, lit: np.ndarra
                    signals=signal, darks=dark)
 
 
-def _check_light(peak: float, what: str) -> None:
-    if peak < NO_LIGHT_FRACTION:
+def _check_light(capture: Capture, saturation_counts: float, what: str) -> None:
+    """Dark-subtracted brightest bin at the longest exposure: (almost) nothing means no light."""
+    net = capture.signals[-1] - capture.darks[-1]
+    net = net[np.isfinite(net)]
+    if net.size == 0 or float(np.max(net)) < NO_LIGHT_FRACTION * saturation_counts:
         raise DeviceError(f"no light from the {what} at the longest exposure (lamp failure, or a shutter stuck "
                           "closed?); nothing was measured")
 
@@ -133,12 +138,13 @@ def _captures(setups, frames, progress_from, progress_to, label):
                        f"{label}: {key} ({slot} slot)")
         raw[key], peaks[key] = yield from capture(slot, panels=panels, collimated=collimated, frames=frames,
                                                   hdr_decades=hdr)
-        if what:
-            _check_light(peaks[key], what)
     yield Progress(progress_from + (progress_to - progress_from) * len(setups) / (len(setups) + 1),
                    f"{label}: dark frames")
     darks = yield from dark_frames([t for signals in raw.values() for t in signals], frames=frames)
     out = {key: combine(raw[key], darks, description.saturation_counts, lit) for key in raw}
+    for key, _, _, _, _, what in setups:
+        if what:
+            _check_light(out[key], description.saturation_counts, what)
     return out, wavelengths[lit], description
 
 
@@ -182,8 +188,7 @@ def warm_up(*, threshold: float = 0.002, interval_s: float = 10.0, timeout_s: fl
     yield Move("white")
     yield Lights(panels=True, collimated=False)
     description, wavelengths = yield Describe()
-    t, peak = yield from auto_expose()
-    _check_light(peak, "diffuse LED panels")
+    t, _ = yield from auto_expose()
     lit = _lit_bins(description, len(wavelengths))
     yield Lights(panels=False, collimated=False)
     yield Expose(t)
@@ -195,6 +200,9 @@ def warm_up(*, threshold: float = 0.002, interval_s: float = 10.0, timeout_s: fl
         yield Expose(t)
         current = (yield Acquire(frames))[lit] - dark
         count += 1
+        if count == 1 and not np.nanmax(current, initial=0.0) >= NO_LIGHT_FRACTION * description.saturation_counts:
+            raise DeviceError("no light from the diffuse LED panels at the longest exposure (lamp failure, or a "
+                              "shutter stuck closed?); nothing was measured")
         now = yield DeviceTime()
         if previous is not None:
             bright = (previous > 0.1 * description.saturation_counts) & (current < SATURATION_FRACTION *

@@ -1,0 +1,162 @@
+"""One directory per measurement, written completely under a temporary name and then renamed.
+
+    <results root>/<UTC time>[-<label>]/
+        measurement.json      what, when, sample, thicknesses, map(s), method, timings, device identity
+        calibration.json/.csv the calibration used (diffuse + collimated spectra, ρ_black, flags)
+        raw_<setup>[_<ℓ>].csv raw counts: every exposure's mean signal and its dark frame
+        reflectances[_<ℓ>].csv I_b, I_w, I_c, ρ_b, ρ_w, capture flags per wavelength
+        parameters.csv/.json  α, σt, g with std, flags, the Beer's-law σt (per thickness too, if two)
+        figure.png            like the paper's Fig. 10
+        medium.xml / .json    a spectral Mitsuba 3 homogeneous medium, ready to render
+A crash, a reset or Ctrl-C at any point leaves at most a `.partial-*` directory, never a result that
+looks complete (the rename is the commit).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+
+from trimeter.sequences.reflectance import Calibration, RawSample, Reflectances
+
+PARAMETER_COLUMNS = ("alpha", "sigma_t", "g", "alpha_std", "sigma_t_std", "g_std", "flags", "sigma_t_beer")
+
+
+@dataclass
+class Parameters:
+    """Per-bin fitted parameters (σt in 1/mm); NaN where the fit flags a bin unusable."""
+
+    wavelengths_nm: np.ndarray
+    alpha: np.ndarray
+    sigma_t: np.ndarray
+    g: np.ndarray
+    alpha_std: np.ndarray
+    sigma_t_std: np.ndarray
+    g_std: np.ndarray
+    flags: np.ndarray
+    sigma_t_beer: np.ndarray
+    thickness_mm: float | None = None   # None for a combined estimate
+    extra: dict = field(default_factory=dict)
+
+    @classmethod
+    def from_fit(cls, wavelengths_nm, result, *, sigma_t_beer=None, thickness_mm=None) -> "Parameters":
+        """Adapt trimeter.fit's result (attributes or mapping with the issue's column names)."""
+        get = (lambda k: result[k]) if isinstance(result, dict) else (lambda k: getattr(result, k))
+        n = len(wavelengths_nm)
+
+        def column(name, default=np.nan):
+            try:
+                value = get(name)
+            except (KeyError, AttributeError):
+                value = None
+            return np.full(n, default, float) if value is None else np.asarray(value, dtype=float).reshape(n)
+
+        beer = column("sigma_t_beer") if sigma_t_beer is None else np.asarray(sigma_t_beer, float)
+        return cls(np.asarray(wavelengths_nm, float), column("alpha"), column("sigma_t"), column("g"),
+                   column("alpha_std"), column("sigma_t_std"), column("g_std"), column("flags", 0).astype(np.int64),
+                   beer, thickness_mm)
+
+    def columns(self) -> dict:
+        out = {"wavelength_nm": self.wavelengths_nm}
+        out.update({name: getattr(self, name) for name in PARAMETER_COLUMNS})
+        return out
+
+    def to_json(self) -> dict:
+        def clean(a):
+            return [None if not np.isfinite(v) else float(v) for v in np.asarray(a, float)]
+        d = {"thickness_mm": self.thickness_mm, "wavelength_nm": clean(self.wavelengths_nm)}
+        for name in PARAMETER_COLUMNS:
+            d[name] = [int(v) for v in self.flags] if name == "flags" else clean(getattr(self, name))
+        return d
+
+
+def write_csv(path: Path, columns: dict) -> None:
+    names = list(columns)
+    table = np.column_stack([np.asarray(columns[n], dtype=float) for n in names])
+    fmt = ["%d" if "flags" in n else "%.8g" for n in names]
+    fmt[0] = "%.4f"
+    np.savetxt(path, table, delimiter=",", header=",".join(names), comments="", fmt=fmt)
+
+
+def _raw_columns(wavelengths, capture) -> dict:
+    cols = {"wavelength_nm": wavelengths}
+    for i, t in enumerate(capture.integration_times_us):
+        cols[f"signal_{int(t)}us"] = capture.signals[i]
+        cols[f"dark_{int(t)}us"] = capture.darks[i]
+    cols["rate_counts_per_s"] = capture.rate
+    return cols
+
+
+@dataclass
+class Measurement:
+    """Everything one completed measurement produced; `write_measurement` stores it."""
+
+    calibration: Calibration
+    raw: list[RawSample]
+    reflectances: list[Reflectances]
+    thicknesses_mm: list[float]
+    parameters: Parameters                      # the (combined) estimate
+    per_thickness: list[Parameters] = field(default_factory=list)
+    meta: dict = field(default_factory=dict)
+
+
+def new_name(label: str | None = None) -> str:
+    stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%SZ")
+    return f"{stamp}-{label}" if label else stamp
+
+
+def write_measurement(root: str | Path, measurement: Measurement, *, label: str | None = None,
+                      figure: bool = True, medium: bool = True) -> Path:
+    """Write under `root/.partial-<name>`, then rename to `root/<name>` (unique); return the final path."""
+    root = Path(root)
+    root.mkdir(parents=True, exist_ok=True)
+    name = new_name(label)
+    final = root / name
+    suffix = 1
+    while final.exists():
+        suffix += 1
+        final = root / f"{name}-{suffix}"
+    partial = root / f".partial-{final.name}"
+    partial.mkdir()
+    try:
+        _write_all(partial, measurement, figure=figure, medium=medium)
+        os.rename(partial, final)
+    except BaseException:
+        shutil.rmtree(partial, ignore_errors=True)
+        raise
+    return final
+
+
+def _write_all(out: Path, m: Measurement, *, figure: bool, medium: bool) -> None:
+    two = len(m.raw) > 1
+    m.calibration.save(out)
+    for raw, refl, thickness in zip(m.raw, m.reflectances, m.thicknesses_mm):
+        tag = f"_{thickness:g}mm" if two else ""
+        for setup in ("black", "white", "collimated"):
+            write_csv(out / f"raw_{setup}{tag}.csv", _raw_columns(raw.wavelengths_nm, getattr(raw, setup)))
+        write_csv(out / f"reflectances{tag}.csv", refl.as_columns())
+    write_csv(out / "parameters.csv", m.parameters.columns())
+    for p in m.per_thickness:
+        write_csv(out / f"parameters_{p.thickness_mm:g}mm.csv", p.columns())
+    (out / "parameters.json").write_text(json.dumps(
+        {"combined": m.parameters.to_json(), "per_thickness": [p.to_json() for p in m.per_thickness]}, indent=1))
+    meta = dict(m.meta)
+    meta.setdefault("written_utc", datetime.now(timezone.utc).isoformat(timespec="seconds"))
+    meta["thicknesses_mm"] = list(m.thicknesses_mm)
+    if figure:
+        from trimeter.results.figure import plot_parameters
+
+        plot_parameters(out / "figure.png", m.parameters, m.per_thickness,
+                        title=meta.get("sample") or meta.get("label") or "")
+        meta["figure"] = "figure.png"
+    if medium:
+        from trimeter.results.medium import write_medium
+
+        meta["medium"] = write_medium(out, m.parameters)
+    (out / "measurement.json").write_text(json.dumps(meta, indent=2, default=str))

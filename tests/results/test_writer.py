@@ -1,0 +1,78 @@
+"""The results directory: complete or absent (temp dir + rename), readable CSV/JSON, a figure, and a
+Mitsuba medium that Mitsuba itself loads with the measured spectra."""
+
+import json
+
+import numpy as np
+import pytest
+
+from fakes import FakeInstrument, FakeOptics, FakeSpectrometer
+from trimeter.device.client import Device
+from trimeter.results import Measurement, Parameters, write_measurement
+from trimeter.results.medium import medium_dict
+from trimeter.sequences import Runner, calibration, reflectances, sample_capture
+
+WL = np.linspace(400, 700, 31)
+
+
+@pytest.fixture(scope="module")
+def measurement():
+    fake = FakeInstrument(busy_polls=1)
+    optics = FakeOptics(WL, diffuse=np.full(31, 1e6), collimated=np.full(31, 2e6), rho_black=np.full(31, 0.03),
+                        rho_white=0.99)
+    runner = Runner(Device(fake), FakeSpectrometer(fake, optics), sleep=lambda s: None)
+    cal = runner.run(calibration(white_reference_reflectance=0.99))
+    optics.sample = (np.full(31, 0.2), np.full(31, 0.5), np.full(31, 0.1))
+    raw = runner.run(sample_capture(hdr_decades=1))
+    refl = reflectances(cal, raw)
+    alpha = np.linspace(0.5, 0.99, 31)
+    alpha[3] = np.nan  # an unusable bin must survive every writer
+    result = {"alpha": alpha, "sigma_t": np.linspace(1, 5, 31), "g": np.full(31, 0.4),
+              "alpha_std": np.full(31, 0.01), "sigma_t_std": np.full(31, 0.1), "g_std": np.full(31, 0.05),
+              "flags": np.where(np.isnan(alpha), 1, 0)}
+    params = Parameters.from_fit(WL, result, sigma_t_beer=np.linspace(1, 5, 31))
+    return Measurement(cal, [raw], [refl], [0.4], params, meta={"sample": "test ink", "method": "lut"})
+
+
+def test_writes_a_complete_directory(tmp_path, measurement):
+    out = write_measurement(tmp_path, measurement, label="ink")
+    names = {p.name for p in out.iterdir()}
+    assert {"measurement.json", "calibration.json", "calibration.csv", "raw_black.csv", "raw_white.csv",
+            "raw_collimated.csv", "reflectances.csv", "parameters.csv", "parameters.json", "figure.png",
+            "medium.xml", "medium.json"} <= names
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".partial")]
+    table = np.genfromtxt(out / "parameters.csv", delimiter=",", names=True)
+    np.testing.assert_allclose(table["sigma_t"], np.linspace(1, 5, 31), rtol=1e-7)
+    assert np.isnan(table["alpha"][3]) and table["flags"][3] == 1
+    js = json.loads((out / "parameters.json").read_text())
+    assert js["combined"]["alpha"][3] is None and js["combined"]["g"][0] == 0.4
+    refl = np.genfromtxt(out / "reflectances.csv", delimiter=",", names=True)
+    np.testing.assert_allclose(refl["I_c"], 0.1, rtol=1e-9)
+    assert (out / "figure.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert json.loads((out / "measurement.json").read_text())["sample"] == "test ink"
+
+
+def test_failure_while_writing_leaves_nothing_that_looks_complete(tmp_path, measurement, monkeypatch):
+    import trimeter.results.figure as figure
+
+    def boom(*a, **k):
+        raise RuntimeError("disk full")
+
+    monkeypatch.setattr(figure, "plot_parameters", boom)
+    with pytest.raises(RuntimeError):
+        write_measurement(tmp_path, measurement)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_medium_loads_in_mitsuba_with_the_measured_spectra(measurement):
+    mi = pytest.importorskip("mitsuba")
+    mi.set_variant("scalar_spectral")
+    params = mi.traverse(mi.load_dict(medium_dict(measurement.parameters)))
+    p = measurement.parameters
+    valid = np.isfinite(p.alpha)
+    wl = np.array(params["sigma_t.value.wavelengths"])
+    np.testing.assert_allclose(np.array(params["sigma_t.value.values"]),
+                               np.interp(wl, p.wavelengths_nm, p.sigma_t), rtol=1e-5)
+    np.testing.assert_allclose(np.array(params["albedo.value.values"]),
+                               np.interp(wl, p.wavelengths_nm[valid], p.alpha[valid]), rtol=1e-5)
+    assert params["phase_function.g"] == pytest.approx(0.4, abs=1e-6)
