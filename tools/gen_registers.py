@@ -141,7 +141,9 @@ def _item(table: str, is_bits: bool, entry: dict, enums: dict) -> Item:
         lo, hi = min(enums[enum].values()), max(enums[enum].values())
     vmin = conv(entry.get("min", lo))
     vmax = conv(entry.get("max", hi))
-    default = conv(entry.get("default", max(vmin, min(0, vmax)) if type_ != "f32" else max(vmin, 0.0)))
+    if access == "rw" and "default" not in entry:
+        raise MapError(f"{where}: a writable item needs an explicit default")
+    default = conv(entry.get("default", 0))  # read-only items: the value before the app sets it
     for field, value in (("min", vmin), ("max", vmax), ("default", default)):
         if isinstance(value, float) and not math.isfinite(value):
             raise MapError(f"{where}: {field} must be finite")
