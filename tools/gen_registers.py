@@ -387,19 +387,14 @@ def render_python(m: dict) -> str:
 
 
 # -------------------------------------------------------------------------------------- Markdown
-def _md_value(it: Item, v) -> str:
+def _md_value(it: Item, v, enums: dict[str, dict[str, int]]) -> str:
     if it.enum:
-        names = {val: n for n, val in m_enums_cache[it.enum].items()}
+        names = {val: n for n, val in enums[it.enum].items()}
         return f"{v} ({names.get(v, '?')})"
     return f"{v:g}" if isinstance(v, float) else str(v)
 
 
-m_enums_cache: dict[str, dict[str, int]] = {}
-
-
 def render_markdown(m: dict) -> str:
-    m_enums_cache.clear()
-    m_enums_cache.update(m["enums"])
     ident, ver = m["identity"], m["version"]
     out = [f"<!-- {BANNER} -->", "# trimeter Modbus register map", "",
            f"Register-map hash `0x{regmap_hash(m):08X}` · firmware {'.'.join(map(str, ver))} · "
@@ -450,7 +445,7 @@ def render_markdown(m: dict) -> str:
             desc = it.description
             if it.allowed:
                 desc += f" Allowed: {', '.join(map(str, it.allowed))}."
-            rng = (_md_value(it, it.min), _md_value(it, it.max), _md_value(it, it.default)) \
+            rng = tuple(_md_value(it, v, m["enums"]) for v in (it.min, it.max, it.default)) \
                 if it.access == "rw" else ("", "", "")
             out.append(f"| {addr} | `{it.name}` | {it.type}{' enum ' + it.enum if it.enum else ''} | "
                        f"{it.access} | {su} | {rng[0]} | {rng[1]} | {rng[2]} | {desc} |")

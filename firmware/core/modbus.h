@@ -12,6 +12,11 @@
  * checked before any callback runs (exception 03); address + quantity past 65536: exception 02.
  * Broadcast (address 0): write codes are executed and never answered; reads are ignored.
  * Frames for other addresses, bad CRC, overlong (> 256 bytes) and truncated frames are dropped.
+ * A request whose function code is >= 0x80 is answered with exception 01 like any unknown code.
+ *
+ * Not handled here (the port's job): RS-485 direction control and the local echo of a half-duplex
+ * transceiver (discard RX while transmitting), TX buffering (io->write must not block), baud
+ * changes on the UART itself (call mb_set_baud after reconfiguring it).
  *
  * Timing: a frame ends after 3.5 character times of silence (11 bits per character at 8N1/8E1),
  * the spec's fixed 1750 us above 19200 baud. The t1.5 inter-character rule is not enforced (a
@@ -108,7 +113,8 @@ void mb_init(mb_slave_t *s, uint8_t address, uint32_t baud, const mb_io_t *io, c
 /* Drain available bytes; handle and answer a complete frame. Never waits. Call it often
  * (at least every t3.5 / 2 for prompt replies; it is correct at any rate). */
 void mb_poll(mb_slave_t *s);
-/* Configuration changes take effect from the next frame. */
+/* Configuration changes take effect from the next frame. An address outside 1..247 is ignored
+ * (the old one stays), so a bad config value can never make the device deaf. */
 void mb_set_address(mb_slave_t *s, uint8_t address);
 void mb_set_baud(mb_slave_t *s, uint32_t baud);
 const mb_counters_t *mb_counters(const mb_slave_t *s);
