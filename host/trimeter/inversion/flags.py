@@ -1,0 +1,32 @@
+"""Per-bin fit flags, declared once. Every method and the CLI report these bits; 0 means a clean fit.
+
+A bin whose flag includes any of `UNUSABLE` has α, σt, g = NaN. Other flags qualify a finite result:
+it is still inside physical bounds, but read it with the caveat the flag names.
+"""
+
+from __future__ import annotations
+
+import enum
+
+
+class FitFlag(enum.IntFlag):
+    NONE = 0
+    NONFINITE_INPUT = 1 << 0      # an intensity or background reflectance is NaN or ±inf  → NaN outputs
+    NEGATIVE_INPUT = 1 << 1       # an intensity is < 0 (beyond a small noise tolerance)  → NaN outputs
+    ABOVE_ONE = 1 << 2            # an intensity is > 1 (more light than the reference)     → NaN outputs
+    BLACK_NOT_BELOW_WHITE = 1 << 3  # I_b ≥ I_w: impossible for a passive sample; fitted, projected onto the gamut
+    IC_BELOW_FLOOR = 1 << 4       # I_c under the noise floor: σt is only a lower bound
+    G_UNDEFINED = 1 << 5          # α ≈ 0: nothing scatters, the phase function is unobservable → g = NaN
+    OUTSIDE_MAP = 1 << 6          # the solution hit the map's range; the value is clamped to the range edge
+    NOT_CONVERGED = 1 << 7        # the forward-map residual stayed above tolerance (outside the measurable gamut)
+    THICKNESS_DISAGREE = 1 << 8   # two thicknesses disagree beyond their combined uncertainty
+    BAD_BACKGROUND = 1 << 9       # ρ_b, ρ_w not in [0, 1] with ρ_b < ρ_w                    → NaN outputs
+
+
+UNUSABLE = FitFlag.NONFINITE_INPUT | FitFlag.NEGATIVE_INPUT | FitFlag.ABOVE_ONE | FitFlag.BAD_BACKGROUND
+
+
+def describe(value: int) -> str:
+    """'IC_BELOW_FLOOR|G_UNDEFINED' for a flag word (or 'NONE')."""
+    names = [f.name for f in FitFlag if f and (int(value) & f)]
+    return "|".join(names) if names else "NONE"

@@ -1,0 +1,187 @@
+"""The forward map as a fast, vectorised kernel shared by every method: trilinear A, B, C on the
+map's (α, ln σt, g) grid with analytic derivatives, a batched 2×2 Newton (Levenberg-Marquardt)
+solve of (I_b, I_w) for (α, g) at a known σt, and first-order uncertainty propagation.
+
+Why (α, g) at known σt: I_c depends on σt alone (trimeter.forward.collimated), so the square 3×3
+system's exact solution takes σt from I_c (Beer-Lambert with Fresnel, exact inverse) and leaves
+two equations in two unknowns. No Python loop per bin: every step is a gather + array arithmetic.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from trimeter.forward.collimated import collimated_transmittance
+
+
+
+@dataclass(frozen=True)
+class SigmaCell:
+    """Where each bin's σt sits on the grid (fixed during a Newton solve)."""
+    index: np.ndarray        # int (N,) lower node
+    weight: np.ndarray       # (N,) in [0, 1]
+    log_sigma_t: np.ndarray  # (N,) clamped to the grid
+
+
+class ForwardGrid:
+    def __init__(self, alpha, log_sigma_t, g, coefficients, *, n, thickness_mm, cover_slide_n, mc_stderr=0.0):
+        self.alpha = np.asarray(alpha, dtype=np.float64)
+        self.log_sigma_t = np.asarray(log_sigma_t, dtype=np.float64)
+        self.g = np.asarray(g, dtype=np.float64)
+        coefficients = np.asarray(coefficients, dtype=np.float64)  # (na, ns, ng, 3)
+        self.shape = coefficients.shape[:3]
+        # Per grid cell, the trilinear polynomial in the cell weights (wa, ws, wg), terms ordered
+        # 1, wa, ws, wg, wa·ws, wa·wg, ws·wg, wa·ws·wg: a bin's whole cell is one contiguous row.
+        v = {(da, ds, dg): coefficients[da:coefficients.shape[0] - 1 + da, ds:coefficients.shape[1] - 1 + ds,
+                                        dg:coefficients.shape[2] - 1 + dg]
+             for da in (0, 1) for ds in (0, 1) for dg in (0, 1)}
+        poly = [v[0, 0, 0], v[1, 0, 0] - v[0, 0, 0], v[0, 1, 0] - v[0, 0, 0], v[0, 0, 1] - v[0, 0, 0],
+                v[1, 1, 0] - v[1, 0, 0] - v[0, 1, 0] + v[0, 0, 0], v[1, 0, 1] - v[1, 0, 0] - v[0, 0, 1] + v[0, 0, 0],
+                v[0, 1, 1] - v[0, 1, 0] - v[0, 0, 1] + v[0, 0, 0],
+                v[1, 1, 1] - v[1, 1, 0] - v[1, 0, 1] - v[0, 1, 1] + v[1, 0, 0] + v[0, 1, 0] + v[0, 0, 1] - v[0, 0, 0]]
+        self._poly = np.ascontiguousarray(np.stack(poly, axis=-2).reshape(-1, 8, 3))
+        self._inv_da = 1.0 / np.diff(self.alpha)
+        self._inv_ds = 1.0 / np.diff(self.log_sigma_t)
+        self._inv_dg = 1.0 / np.diff(self.g)
+        self.n, self.thickness_mm, self.cover_slide_n = float(n), float(thickness_mm), cover_slide_n
+        self.mc_stderr = float(mc_stderr)
+        self.alpha_range = (float(self.alpha[0]), float(self.alpha[-1]))
+        self.g_range = (float(self.g[0]), float(self.g[-1]))
+        self.sigma_t_range = (float(np.exp(self.log_sigma_t[0])), float(np.exp(self.log_sigma_t[-1])))
+
+    @classmethod
+    def from_map(cls, amap) -> "ForwardGrid":
+        mc = float(np.median(np.concatenate([amap.std_b.ravel(), amap.std_w.ravel()])))
+        return cls(amap.alpha, np.log(amap.sigma_t), amap.g, np.stack([amap.A, amap.B, amap.C], axis=-1),
+                   n=amap.n, thickness_mm=amap.thickness_mm, cover_slide_n=amap.cover_slide_n, mc_stderr=mc)
+
+    @classmethod
+    def from_table(cls, table) -> "ForwardGrid":
+        return cls(table.alpha, table.log_sigma_t, table.g, table.coefficients_grid, n=table.n,
+                   thickness_mm=table.thickness_mm, cover_slide_n=table.cover_slide_n, mc_stderr=table.mc_stderr)
+
+    # ---------------------------------------------------------------------------------- helpers
+    @staticmethod
+    def _cell(axis, inv_d, x):
+        i = np.clip(np.searchsorted(axis, x, side="right") - 1, 0, len(axis) - 2)
+        w = np.clip((x - axis[i]) * inv_d[i], 0.0, 1.0)
+        return i, w
+
+    def sigma_cell(self, sigma_t) -> SigmaCell:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ls = np.log(np.asarray(sigma_t, dtype=np.float64))
+        ls = np.clip(np.nan_to_num(ls, nan=self.log_sigma_t[0], posinf=self.log_sigma_t[-1],
+                                   neginf=self.log_sigma_t[0]), self.log_sigma_t[0], self.log_sigma_t[-1])
+        i, w = self._cell(self.log_sigma_t, self._inv_ds, ls)
+        return SigmaCell(i, w, ls)
+
+    def collimated(self, sigma_t):
+        return collimated_transmittance(sigma_t, self.thickness_mm, self.n, self.cover_slide_n)
+
+    def coefficients(self, alpha, cell: SigmaCell, g, with_sigma_derivative=False):
+        """A, B, C (stacked (N, 3)) and their derivatives in α and g (and ln σt if asked)."""
+        ia, wa = self._cell(self.alpha, self._inv_da, alpha)
+        ig, wg = self._cell(self.g, self._inv_dg, g)
+        ns, ng = self.shape[1] - 1, self.shape[2] - 1
+        P = self._poly[(ia * ns + cell.index) * ng + ig]  # (N, 8, 3)
+        ws, wa_, wg_ = cell.weight[:, None], wa[:, None], wg[:, None]
+        p0 = P[:, 0] + P[:, 2] * ws
+        p1 = P[:, 1] + P[:, 4] * ws
+        p3 = P[:, 3] + P[:, 6] * ws
+        p5 = P[:, 5] + P[:, 7] * ws
+        value = p0 + p1 * wa_ + (p3 + p5 * wa_) * wg_
+        d_alpha = (p1 + p5 * wg_) * self._inv_da[ia][:, None]
+        d_g = (p3 + p5 * wa_) * self._inv_dg[ig][:, None]
+        if not with_sigma_derivative:
+            return value, d_alpha, d_g
+        d_ws = P[:, 2] + P[:, 4] * wa_ + P[:, 6] * wg_ + P[:, 7] * wa_ * wg_
+        return value, d_alpha, d_g, d_ws * self._inv_ds[cell.index][:, None]
+
+    @staticmethod
+    def diffuse(coef, rho):
+        """I(ρ) = A + Bρ/(1 − Cρ) and its gradient in (A, B, C), for coef (N, 3) and ρ (N,)."""
+        A, B, C = coef[:, 0], coef[:, 1], coef[:, 2]
+        inv = 1.0 / (1.0 - C * rho)
+        I = A + B * rho * inv
+        return I, np.stack([np.ones_like(A), rho * inv, B * rho * rho * inv * inv], axis=1)
+
+    def intensities(self, alpha, sigma_t, g, rho_b, rho_w):
+        """(I_b, I_w, I_c) by the kernel (for training data and checks; σt clamped to the grid)."""
+        cell = self.sigma_cell(sigma_t)
+        coef, _, _ = self.coefficients(np.asarray(alpha, float), cell, np.asarray(g, float))
+        I_b, _ = self.diffuse(coef, np.asarray(rho_b, float))
+        I_w, _ = self.diffuse(coef, np.asarray(rho_w, float))
+        return I_b, I_w, self.collimated(sigma_t)
+
+    # ----------------------------------------------------------------------------------- solving
+    def solve_alpha_g(self, I_b, I_w, cell: SigmaCell, rho_b, rho_w, alpha0, g0, iterations=5):
+        """Damped Gauss-Newton for (α, g) with I_b, I_w matched at the bins' own ρ_b, ρ_w. Steps are
+        clamped to the map's box; returns (α, g, residual norm)."""
+        alpha = np.clip(alpha0, *self.alpha_range)
+        g = np.clip(g0, *self.g_range)
+        for _ in range(iterations):  # fixed count: a vectorised step over all bins, not a per-bin loop
+            alpha, g, res = self._newton_step(I_b, I_w, cell, rho_b, rho_w, alpha, g)
+        coef, _, _ = self.coefficients(alpha, cell, g)
+        rb, _ = self.diffuse(coef, rho_b)
+        rw, _ = self.diffuse(coef, rho_w)
+        return alpha, g, np.hypot(rb - I_b, rw - I_w)
+
+    def _newton_step(self, I_b, I_w, cell, rho_b, rho_w, alpha, g):
+        coef, d_a, d_g = self.coefficients(alpha, cell, g)
+        Ib, grad_b = self.diffuse(coef, rho_b)
+        Iw, grad_w = self.diffuse(coef, rho_w)
+        rb, rw = Ib - I_b, Iw - I_w
+        j11 = np.einsum("ij,ij->i", grad_b, d_a); j12 = np.einsum("ij,ij->i", grad_b, d_g)
+        j21 = np.einsum("ij,ij->i", grad_w, d_a); j22 = np.einsum("ij,ij->i", grad_w, d_g)
+        # Levenberg-Marquardt on the 2×2 normal equations: stays finite where ∂I/∂g → 0 (α → 0).
+        h11 = j11 * j11 + j21 * j21; h22 = j12 * j12 + j22 * j22; h12 = j11 * j12 + j21 * j22
+        mu = 1e-9 + 1e-6 * (h11 + h22)
+        h11 = h11 + mu; h22 = h22 + mu
+        b1 = j11 * rb + j21 * rw; b2 = j12 * rb + j22 * rw
+        det = h11 * h22 - h12 * h12
+        step_a = -(h22 * b1 - h12 * b2) / det
+        step_g = -(h11 * b2 - h12 * b1) / det
+        # Trust region: a piecewise-trilinear map is only locally linear; cap the step at a few cells.
+        step_a = np.clip(step_a, -0.25, 0.25)
+        step_g = np.clip(step_g, -0.5, 0.5)
+        return (np.clip(alpha + step_a, *self.alpha_range), np.clip(g + step_g, *self.g_range),
+                np.hypot(rb, rw))
+
+    # ------------------------------------------------------------------------------- uncertainty
+    def jacobian(self, alpha, sigma_t, g, rho_b, rho_w):
+        """∂(I_b, I_w, I_c)/∂(α, σt, g) per bin: (N, 3, 3). I_c depends on σt only."""
+        cell = self.sigma_cell(sigma_t)
+        coef, d_a, d_g, d_ls = self.coefficients(np.clip(alpha, *self.alpha_range), cell,
+                                                 np.clip(g, *self.g_range), with_sigma_derivative=True)
+        s = np.exp(cell.log_sigma_t)
+        J = np.zeros((len(s), 3, 3))
+        for row, rho in ((0, rho_b), (1, rho_w)):
+            _, grad = self.diffuse(coef, rho)
+            J[:, row, 0] = np.einsum("ij,ij->i", grad, d_a)
+            J[:, row, 1] = np.einsum("ij,ij->i", grad, d_ls) / s
+            J[:, row, 2] = np.einsum("ij,ij->i", grad, d_g)
+        h = 1e-4
+        J[:, 2, 1] = (self.collimated(s * (1 + h)) - self.collimated(s * (1 - h))) / (2 * h * s)
+        return J
+
+    def propagate(self, J, sigma_I):
+        """Standard deviations of (α, σt, g) from independent intensity noise sigma_I (N, 3), to
+        first order: cov = J⁻¹ Σ J⁻ᵀ, using the block structure (row I_c has only ∂/∂σt)."""
+        var_s = (sigma_I[:, 2] / J[:, 2, 1]) ** 2
+        # δ(α, g) = J2⁻¹ (δI_bw − J_s δσt), J2 = ∂(I_b, I_w)/∂(α, g)
+        a, b, c, d = J[:, 0, 0], J[:, 0, 2], J[:, 1, 0], J[:, 1, 2]
+        det = a * d - b * c
+        with np.errstate(divide="ignore", invalid="ignore"):
+            inv = np.stack([np.stack([d, -b], -1), np.stack([-c, a], -1)], 1) / det[:, None, None]
+        sb, sw = sigma_I[:, 0] ** 2, sigma_I[:, 1] ** 2
+        cov_bw = np.zeros((len(det), 2, 2))
+        cov_bw[:, 0, 0] = sb + J[:, 0, 1] ** 2 * var_s
+        cov_bw[:, 1, 1] = sw + J[:, 1, 1] ** 2 * var_s
+        cov_bw[:, 0, 1] = cov_bw[:, 1, 0] = J[:, 0, 1] * J[:, 1, 1] * var_s
+        with np.errstate(invalid="ignore", over="ignore"):
+            cov = inv @ cov_bw @ np.swapaxes(inv, 1, 2)
+            std_a = np.sqrt(np.abs(cov[:, 0, 0]))
+            std_g = np.sqrt(np.abs(cov[:, 1, 1]))
+        return (np.nan_to_num(std_a, nan=np.inf), np.sqrt(var_s), np.nan_to_num(std_g, nan=np.inf))
