@@ -1,0 +1,14 @@
+/* Flash storage for the HAL: the four storage regions on their own sectors (see stm32f405.ld). */
+#ifndef TRIMETER_STM32F405_FLASH_H
+#define TRIMETER_STM32F405_FLASH_H
+
+#include <stddef.h>
+#include <stdint.h>
+
+#include "hal.h"
+
+int flash_region_read(void *ctx, enum hal_region region, uint32_t offset, void *buf, size_t len);
+int flash_region_write(void *ctx, enum hal_region region, uint32_t offset, const void *buf, size_t len);
+int flash_region_erase(void *ctx, enum hal_region region);
+
+#endif

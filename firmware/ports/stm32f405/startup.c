@@ -1,0 +1,45 @@
+/* Reset handler and vector table (Cortex-M4F, STM32F405: 16 system + 82 interrupt vectors). */
+#include <stdint.h>
+
+#include "regs.h"
+
+extern uint32_t _sidata, _sdata, _edata, _sbss, _ebss, _estack;
+extern int main(void);
+void reset_handler(void);
+void default_handler(void);
+void SysTick_Handler(void);
+void USART1_IRQHandler(void);
+void TIM5_IRQHandler(void);
+
+void default_handler(void)
+{
+    /* An unexpected interrupt or fault: stop here; the watchdog resets the board. */
+    for (;;) {
+    }
+}
+
+void reset_handler(void)
+{
+    /* The FPU first: -mfloat-abi=hard code may use it from the very first C statement. */
+    SCB_CPACR |= 0xFu << 20;
+    __asm__ volatile("dsb\n isb");
+    uint32_t *src = &_sidata, *dst = &_sdata;
+    while (dst < &_edata) *dst++ = *src++;
+    for (dst = &_sbss; dst < &_ebss;) *dst++ = 0;
+    main();
+    for (;;) {
+    }
+}
+
+#define VECTORS (16 + 82)
+/* Ranges fill every slot with the default handler, then the used ones are overridden. */
+#pragma GCC diagnostic ignored "-Woverride-init"
+__attribute__((section(".isr_vector"), used)) static void (*const vector_table[VECTORS])(void) = {
+    [0] = (void (*)(void))(&_estack),
+    [1] = reset_handler,
+    [2 ... 14] = default_handler,
+    [15] = SysTick_Handler,
+    [16 ... VECTORS - 1] = default_handler,
+    [16 + IRQ_USART1] = USART1_IRQHandler,
+    [16 + IRQ_TIM5] = TIM5_IRQHandler,
+};
