@@ -426,7 +426,20 @@ static void end_of_frame(mb_slave_t *s) {
             mb_handle_adu(s, buf + off, flen);
             off += flen;
         }
-        if (off < len) s->counters.crc_errors++;
+        if (off < len) {
+            s->counters.crc_errors++;
+            /* Noise glued in front of a request (an RS-485 driver switching on, a glitch): look
+             * for a request that ends exactly at the end of the bytes, for us or broadcast, whose
+             * length and CRC agree. O(n^2) in the worst case, but only for frames already bad. */
+            for (size_t start = off + 1u; start + 4u <= len; start++) {
+                const uint8_t *p = buf + start;
+                if (p[0] != s->address && p[0] != MB_ADDRESS_BROADCAST) continue;
+                if (request_length(p, len - start) != len - start) continue;
+                if (crc16_modbus(p, len - start) != 0u) continue;
+                mb_handle_adu(s, p, len - start);
+                break;
+            }
+        }
     }
     s->rx_len = 0;
     s->rx_overrun = 0;

@@ -22,7 +22,8 @@
  * the spec's fixed 1750 us above 19200 baud. The t1.5 inter-character rule is not enforced (a
  * slow poll loop cannot see it reliably); instead, if the bytes gathered between two silences do
  * not form one valid frame, the parser splits back-to-back requests by their function code's
- * length and CRC, and drops the rest.
+ * length and CRC, and recovers a request that noise was glued in front of (one for this address
+ * or broadcast, ending with the bytes, length and CRC agreeing); everything else is dropped.
  */
 #ifndef TRIMETER_MODBUS_H
 #define TRIMETER_MODBUS_H

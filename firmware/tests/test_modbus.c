@@ -416,6 +416,29 @@ static void test_back_to_back_frames_in_one_read(void) {
     CHECK_EQ_INT(mb_counters(&slave)->crc_errors, 1);
 }
 
+static void test_noise_before_a_request_is_skipped(void) {
+    setup(1, 19200);
+    uint8_t buf[16];
+    size_t len = with_crc(buf, READ_ONE, sizeof READ_ONE);
+    tb_line_push(&line, BYTES(0x00, 0xFF, 0x01, 0x7E)); /* glitch bytes, one looks like our address */
+    tb_line_push(&line, buf, len);
+    mb_poll(&slave);
+    silence();
+    CHECK_EQ_INT(line.writes, 1);
+    CHECK_EQ_INT(line.out_len, 7);
+    CHECK_EQ_INT(mb_counters(&slave)->crc_errors, 1);
+    /* Noise before a request for another slave: nothing answered. */
+    uint8_t other[16];
+    const uint8_t for_slave_2[] = {2, 0x03, 0x00, 0x00, 0x00, 0x01};
+    len = with_crc(other, for_slave_2, sizeof for_slave_2);
+    line.writes = 0;
+    tb_line_push(&line, BYTES(0x11, 0x22));
+    tb_line_push(&line, other, len);
+    mb_poll(&slave);
+    silence();
+    CHECK_EQ_INT(line.writes, 0);
+}
+
 static void test_garbage_and_bad_crc_are_dropped(void) {
     setup(1, 19200);
     uint8_t r[64], buf[16];
@@ -494,6 +517,7 @@ int main(void) {
     RUN_TEST(test_frame_split_byte_by_byte);
     RUN_TEST(test_gap_inside_frame_drops_it_and_resyncs);
     RUN_TEST(test_back_to_back_frames_in_one_read);
+    RUN_TEST(test_noise_before_a_request_is_skipped);
     RUN_TEST(test_garbage_and_bad_crc_are_dropped);
     RUN_TEST(test_oversize_frame_is_dropped);
     RUN_TEST(test_clock_wraparound);
