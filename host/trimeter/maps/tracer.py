@@ -1,0 +1,378 @@
+"""The fast map tracer: one path-traced batch per (σt, g) serves every α and every background ρ.
+
+Why it works (issue 5; paper Sec. 5.1, "reusing the Monte Carlo path space samples"): at fixed σt, g
+and geometry, free-flight distances, Fresnel choices and scattering directions do not depend on α or
+ρ. Everything is sampled proportionally (no weights besides a constant), so a path that reaches the
+light after k scattering events and m background bounces contributes w·α^k·ρ^m. We trace adjoint
+paths from the detector without α, record each path's final (k, m, reached-the-light), and histogram
+them. Then for every α on the map's axis
+
+    c_m(α) = w/N · Σ_k H[m, k] α^k          and    I(ρ) = Σ_m c_m ρ^m = A + Bρ/(1 − Cρ)
+
+with A = c0, B = c1, C = c2/c1 (exact for the ideal geometry, where the Lambertian background forgets
+directions). Paths therefore stop at their 3rd background hit — no long ρ tail to trace.
+
+No Russian roulette on α (it would break the polynomial): a path is traced until it escapes, is lost
+(sides, past the background), or has K scattering events, where α_max^K ≤ `truncation`. The
+truncated remainder of a path is worth at most w·α^K per path, so the truncation error of I is
+bounded by w·α^K·(fraction of paths truncated); the tally reports that bound.
+
+The loop is a Dr.Jit symbolic loop (compiled once per batch, all cores via the LLVM backend). The
+geometry is a layer stack with closed-form plane intersections, which is exact for both presets of
+hardware/geometry.toml: `ideal` (one slab, background right under it, light from the whole upper
+hemisphere) and `device` (cover slide | sample | cover slide, an air gap, a finite background, two
+rectangular Lambertian LED panels, a 2 mm detector spot; reflectance factor normalised by the white
+reference: I = π·L / E with E the panels' irradiance at the sample centre).
+The stack's side faces are dielectric (as in the direct-render scene); a ray leaving one counts if it
+reaches a panel (one leaving downward towards the background's rim is neglected).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass, field
+
+import numpy as np
+
+N_BACKGROUND_ORDERS = 3  # m = 0, 1, 2 → A, B, C
+
+
+@dataclass(frozen=True)
+class Panel:
+    center: tuple[float, float, float]
+    normal: tuple[float, float, float]      # facing the sample
+    axis_u: tuple[float, float, float]
+    axis_v: tuple[float, float, float]
+    half_u: float
+    half_v: float
+
+
+@dataclass(frozen=True)
+class Stack:
+    """The layer stack and its surroundings in mm; z up, the sample's top face at z = ℓ (+ slide)."""
+
+    layer_n: tuple[float, ...]              # refractive index of each layer, top → bottom
+    plane_z: tuple[float, ...]              # z of the len(layer_n)+1 interfaces, top → bottom
+    sample_layer: int
+    background_z: float
+    stack_half_width: float = math.inf      # lateral half-width of the stack (inf: slab)
+    background_half_width: float = math.inf
+    panels: tuple[Panel, ...] = ()          # empty: uniform sky of radiance 1 (ideal)
+    detector_half_side: float = 0.0        # the detector's spot: a square of the spot's area
+    scale: float = 1.0                      # observable per unit of radiance reaching the detector
+
+    @classmethod
+    def from_recipe(cls, geometry: str, geometry_params: dict, n: float, thickness_mm: float) -> "Stack":
+        """The stack in the frame of trimeter.forward.scenes (the direct-render reference): z = 0 is
+        the back face of the sample stack, +z points at the detector. Panels, their orientation and
+        the white-reference normalisation come from that module, so both agree by construction."""
+        if geometry == "ideal":
+            gap = float(geometry_params.get("background_gap_mm", 0.0))
+            return cls(layer_n=(n,), plane_z=(thickness_mm, 0.0), sample_layer=0, background_z=-gap)
+        if geometry != "device":
+            raise ValueError(f"unknown geometry {geometry!r}")
+        from trimeter.forward.scenes import panel_corners, reflectance_scale
+
+        p = geometry_params
+        if p.get("cover_slides"):
+            s, ng = float(p["cover_slide_thickness_mm"]), float(p["cover_slide_n"])
+            layers, planes, sample = (ng, n, ng), (2 * s + thickness_mm, s + thickness_mm, s, 0.0), 1
+        else:
+            layers, planes, sample = (n,), (thickness_mm, 0.0), 0
+        side = float(p["detector"]["spot_diameter_mm"]) * math.sqrt(math.pi) / 2  # square of the spot's area
+        return cls(layer_n=layers, plane_z=planes, sample_layer=sample,
+                   background_z=-float(p["background_gap_mm"]),
+                   stack_half_width=float(p["sample_width_mm"]) / 2,
+                   background_half_width=float(p["background_width_mm"]) / 2,
+                   panels=tuple(_panel_from_corners(c) for c in panel_corners(p)),
+                   detector_half_side=side / 2, scale=float(reflectance_scale(p)))
+
+
+def _panel_from_corners(corners) -> Panel:
+    corners = np.asarray(corners, dtype=float)
+    centre = corners.mean(axis=0)
+    eu, ev = corners[1] - corners[0], corners[3] - corners[0]
+    normal = np.cross(eu, ev)
+    normal /= np.linalg.norm(normal)
+    if normal @ centre > 0:          # face the sample (the origin)
+        normal = -normal
+    def floats(v):  # plain floats: numpy scalars must not meet Dr.Jit arrays
+        return tuple(float(c) for c in v)
+
+    return Panel(floats(centre), floats(normal), floats(eu / np.linalg.norm(eu)), floats(ev / np.linalg.norm(ev)),
+                 float(np.linalg.norm(eu)) / 2, float(np.linalg.norm(ev)) / 2)
+
+
+@dataclass
+class Tally:
+    """Histogram of contributing paths by (background bounces m, scattering events k)."""
+
+    counts: np.ndarray                  # (3, K+1) number of paths reaching the light with (m, k)
+    n_paths: int
+    weight: float                       # contribution of one path at α = ρ = 1
+    specular: float                     # deterministic first-surface reflection (k = m = 0)
+    truncated: int                      # paths stopped at K scatterings
+    k_max: int
+    seconds: float = 0.0
+    path_events: int = 0                # loop iterations over all paths (work measure)
+
+    def __iadd__(self, other: "Tally") -> "Tally":
+        if other.counts.shape[1] > self.counts.shape[1]:
+            self.counts = np.pad(self.counts, ((0, 0), (0, other.counts.shape[1] - self.counts.shape[1])))
+        self.counts[:, : other.counts.shape[1]] += other.counts
+        self.n_paths += other.n_paths
+        self.truncated += other.truncated
+        self.seconds += other.seconds
+        self.path_events += other.path_events
+        return self
+
+    def _moments(self, alpha):
+        """Per-order first and second raw moments of one path's value, shape (3, len(alpha))."""
+        alpha = np.atleast_1d(np.asarray(alpha, dtype=float))
+        k = np.arange(self.counts.shape[1])
+        with np.errstate(under="ignore"):
+            powers = alpha[None, :] ** k[:, None]               # (K+1, nα); 0**0 = 1
+            first = self.counts @ powers / self.n_paths * self.weight
+            second = self.counts @ (powers * powers) / self.n_paths * self.weight**2
+        return first, second
+
+    def orders(self, alpha):
+        """c_m(α) for m = 0, 1, 2 (m = 0 includes the specular reflection)."""
+        first, _ = self._moments(alpha)
+        first[0] += self.specular
+        return first
+
+    def abc(self, alpha):
+        c = self.orders(alpha)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            C = np.where(c[1] > 0, c[2] / c[1], 0.0)
+        return c[0], c[1], np.clip(C, 0.0, 0.999)
+
+    def stderr(self, alpha, rho):
+        """MC standard error of I(ρ) (the m ≤ 2 series; each path contributes once, so per-path
+        variance follows from the histograms of α^k and α^2k)."""
+        first, second = self._moments(alpha)
+        powers = rho ** np.arange(N_BACKGROUND_ORDERS)
+        mean = powers @ first
+        mean_sq = (powers**2) @ second
+        n = self.n_paths
+        var = np.maximum(mean_sq - mean * mean, 0.0) * n / max(n - 1, 1)
+        return np.sqrt(var / n)
+
+    def truncation_bound(self, alpha_max: float) -> float:
+        """Upper bound on the truncation error of any I (ρ ≤ 1, α ≤ α_max)."""
+        return self.weight * alpha_max**self.k_max * self.truncated / self.n_paths
+
+
+def k_max_for(alpha_max: float, truncation: float) -> int:
+    """Smallest K with α_max^K ≤ truncation."""
+    if alpha_max <= 0:
+        return 1
+    return max(1, math.ceil(math.log(truncation) / math.log(alpha_max)))
+
+
+# ------------------------------------------------------------------------------------ Dr.Jit part
+def _drjit():
+    """Import Dr.Jit's LLVM backend lazily (maps load and query without it)."""
+    llvm = "/usr/lib/x86_64-linux-gnu/libLLVM-19.so"
+    if os.path.exists(llvm):
+        os.environ.setdefault("DRJIT_LIBLLVM_PATH", llvm)
+    import drjit as dr
+    import drjit.llvm as backend
+    return dr, backend
+
+
+def _fresnel(dr, cos_i, eta):
+    """Unpolarised Fresnel reflectance for |cos_i| and relative index eta = n_t / n_i; also cos_t."""
+    sin2_t = (1 - cos_i * cos_i) / (eta * eta)
+    tir = sin2_t >= 1
+    cos_t = dr.safe_sqrt(1 - sin2_t)
+    rs = (cos_i - eta * cos_t) / (cos_i + eta * cos_t)
+    rp = (eta * cos_i - cos_t) / (eta * cos_i + cos_t)
+    F = dr.select(tir, 1.0, 0.5 * (rs * rs + rp * rp))
+    return F, cos_t
+
+
+def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max: int) -> Tally:
+    """Trace `n_paths` adjoint paths from the detector at extinction σt [1/mm] and HG anisotropy g."""
+    import time
+
+    dr, B = _drjit()
+    Float, UInt32, Bool = B.Float, B.UInt32, B.Bool
+    t0 = time.perf_counter()
+    L = len(stack.layer_n)
+    planes = [float(z) for z in stack.plane_z]
+    layer_n = [float(v) for v in stack.layer_n]
+    sample = stack.sample_layer
+    W, WB = stack.stack_half_width, stack.background_half_width
+    finite = math.isfinite(W)
+    # Opaque: the material is a kernel *input*, so one compiled kernel serves every (σt, g) column
+    # (literals would be baked in and force a fresh LLVM compile per column).
+    g_is_zero = abs(float(g)) < 1e-4
+    sigma_t, g = dr.opaque(Float, float(sigma_t)), dr.opaque(Float, float(g) if not g_is_zero else 0.5)
+    max_iter = 8 * k_max + 20000  # TIR bounces between scatterings count too; a safety net only
+
+    def per_layer(li, values):
+        out = Float(values[-1])
+        for i in range(len(values) - 2, -1, -1):
+            out = dr.select(li == i, values[i], out)
+        return out
+
+    def light(px, py, pz, dx, dy, dz):
+        """Radiance-1 light seen by a ray leaving upward: the sky (ideal) or the panels (device)."""
+        if not stack.panels:
+            return dz > 0
+        seen = Bool(False)
+        for p in stack.panels:
+            nx, ny, nz = p.normal
+            denom = dx * nx + dy * ny + dz * nz
+            t = ((p.center[0] - px) * nx + (p.center[1] - py) * ny + (p.center[2] - pz) * nz) / denom
+            hx, hy, hz = px + t * dx - p.center[0], py + t * dy - p.center[1], pz + t * dz - p.center[2]
+            u = hx * p.axis_u[0] + hy * p.axis_u[1] + hz * p.axis_u[2]
+            v = hx * p.axis_v[0] + hy * p.axis_v[1] + hz * p.axis_v[2]
+            seen |= (denom < 0) & (t > 0) & (dr.abs(u) <= p.half_u) & (dr.abs(v) <= p.half_v)
+        return seen
+
+    rng = B.PCG32(n_paths, initstate=dr.opaque(B.UInt64, seed & 0xFFFFFFFFFFFF),
+                  initseq=dr.opaque(B.UInt64, 0x9E3779B97F4A7C15 ^ seed))
+    # Start: just inside the top layer, straight down (the first interface is done in closed form).
+    if stack.detector_half_side > 0:
+        x = stack.detector_half_side * (2 * rng.next_float32() - 1)
+        y = stack.detector_half_side * (2 * rng.next_float32() - 1)
+    else:
+        x, y = dr.zeros(Float, n_paths), dr.zeros(Float, n_paths)
+    z = dr.full(Float, planes[0], n_paths)
+    dx, dy, dz = dr.zeros(Float, n_paths), dr.zeros(Float, n_paths), dr.full(Float, -1.0, n_paths)
+    li = dr.zeros(UInt32, n_paths)
+    k = dr.zeros(UInt32, n_paths)
+    m = dr.zeros(UInt32, n_paths)
+    it = dr.zeros(UInt32, n_paths)
+    alive = dr.full(Bool, True, n_paths)
+    hit = dr.full(Bool, False, n_paths)
+
+    def cond(x, y, z, dx, dy, dz, li, k, m, it, alive, hit, rng):
+        return alive
+
+    def body(x, y, z, dx, dy, dz, li, k, m, it, alive, hit, rng):
+        it = it + 1
+        in_stack = li < L
+        in_gap = li == L
+        going_down = dz < 0
+        # --- inside a layer: next event is a scattering (sample only) or an interface
+        z_top = per_layer(li, planes[:-1] + [planes[-1]])
+        z_bot = per_layer(li, planes[1:] + [stack.background_z])
+        z_plane = dr.select(going_down, z_bot, z_top)
+        dist_plane = dr.select(dz != 0, (z_plane - z) / dz, dr.inf)
+        u_free = rng.next_float32()
+        dist_scatter = dr.select(in_stack & (li == sample), -dr.log(1 - u_free) / sigma_t, dr.inf)
+        if finite:
+            to_wall_x = dr.select(dx > 0, (W - x) / dx, dr.select(dx < 0, (-W - x) / dx, dr.inf))
+            to_wall_y = dr.select(dy > 0, (W - y) / dy, dr.select(dy < 0, (-W - y) / dy, dr.inf))
+            dist_wall = dr.minimum(to_wall_x, to_wall_y)
+            wall_is_x = to_wall_x <= to_wall_y
+        else:
+            dist_wall = Float(dr.inf)
+            wall_is_x = Bool(True)
+        scatter = in_stack & (dist_scatter < dist_plane) & (dist_scatter < dist_wall)
+        wall = in_stack & ~scatter & (dist_wall < dist_plane)
+        cross = in_stack & ~scatter & ~wall
+        step = dr.select(scatter, dist_scatter, dr.select(cross, dist_plane, dr.select(wall, dist_wall, 0.0)))
+        x, y = x + step * dx, y + step * dy
+        z = dr.select(cross, z_plane, z + step * dz)
+
+        # --- scattering: Henyey-Greenstein in closed form, rotated about the current direction
+        u1, u2 = rng.next_float32(), rng.next_float32()
+        if g_is_zero:
+            cos_t = 1 - 2 * u1
+        else:
+            sq = (1 - g * g) / (1 - g + 2 * g * u1)
+            cos_t = (1 + g * g - sq * sq) / (2 * g)
+        cos_t = dr.clip(cos_t, -1.0, 1.0)
+        sin_t = dr.safe_sqrt(1 - cos_t * cos_t)
+        phi = 2 * math.pi * u2
+        sign = dr.select(dz >= 0, 1.0, -1.0)           # Duff et al. 2017 orthonormal basis
+        a = -1 / (sign + dz)
+        b = dx * dy * a
+        s1 = (1 + sign * dx * dx * a, sign * b, -sign * dx)
+        s2 = (b, sign + dy * dy * a, -dy)
+        cp, sp = sin_t * dr.cos(phi), sin_t * dr.sin(phi)
+        ndx = cp * s1[0] + sp * s2[0] + cos_t * dx
+        ndy = cp * s1[1] + sp * s2[1] + cos_t * dy
+        ndz = cp * s1[2] + sp * s2[2] + cos_t * dz
+        k = dr.select(scatter, k + 1, k)
+
+        # --- interface: Fresnel reflect or refract into the neighbour (air outside the stack)
+        n_here = per_layer(li, layer_n + [1.0])
+        # neighbour below layer li is layer li+1 (air under the last); above it li−1 (air over the
+        # first); from the gap going up, the bottom layer
+        n_next = dr.select(going_down, per_layer(li, layer_n[1:] + [1.0, 1.0]), per_layer(li, [1.0] + layer_n))
+        u_f = rng.next_float32()
+        F, cos_tr = _fresnel(dr, dr.abs(dz), n_next / n_here)
+        ratio = n_here / n_next
+        # --- the gap below the stack: background (going down) or the stack's bottom face (going up)
+        dist_bg = dr.select(going_down, (stack.background_z - z) / dz, (planes[-1] - z) / dz)
+        gx, gy = x + dist_bg * dx, y + dist_bg * dy
+        gap_down = in_gap & going_down
+        gap_up = in_gap & ~going_down
+        on_bg = gap_down & (dr.abs(gx) <= WB) & (dr.abs(gy) <= WB)
+        under_stack = gap_up & (dr.abs(gx) <= W) & (dr.abs(gy) <= W)
+        enter_interface = cross | under_stack
+        reflect = enter_interface & (u_f < F)
+        refract = enter_interface & ~reflect
+        x, y = dr.select(in_gap, gx, x), dr.select(in_gap, gy, y)
+        z = dr.select(gap_down, stack.background_z, dr.select(gap_up, planes[-1], z))
+
+        # Lambertian background bounce: m += 1, cosine-sampled upward direction
+        m = dr.select(on_bg, m + 1, m)
+        r_l = dr.sqrt(u1)
+        lx, ly, lz = r_l * dr.cos(phi), r_l * dr.sin(phi), dr.safe_sqrt(1 - u1)
+
+        tx, ty = dx * ratio, dy * ratio
+        tz = dr.select(going_down, -cos_tr, cos_tr)
+        # Side faces of the stack (device): a dielectric layer|air; reflect back in, or leave into air.
+        d_norm = dr.select(wall_is_x, dx, dy)
+        F_w, cos_w = _fresnel(dr, dr.abs(d_norm), 1.0 / n_here)
+        wall_reflect = wall & (u_f < F_w)
+        wall_exit = wall & ~wall_reflect
+        out_norm = dr.select(d_norm > 0, cos_w, -cos_w)
+        wdx = dr.select(wall_reflect, dr.select(wall_is_x, -dx, dx),
+                        dr.select(wall_is_x, out_norm, dx * n_here))
+        wdy = dr.select(wall_reflect, dr.select(wall_is_x, dy, -dy),
+                        dr.select(wall_is_x, dy * n_here, out_norm))
+        wdz = dr.select(wall_reflect, dz, dz * n_here)
+        new_dx = dr.select(scatter, ndx, dr.select(refract, tx, dr.select(on_bg, lx, dr.select(wall, wdx, dx))))
+        new_dy = dr.select(scatter, ndy, dr.select(refract, ty, dr.select(on_bg, ly, dr.select(wall, wdy, dy))))
+        new_dz = dr.select(scatter, ndz, dr.select(refract, tz, dr.select(reflect, -dz, dr.select(
+            on_bg, lz, dr.select(wall, wdz, dz)))))
+        new_li = dr.select(refract, dr.select(in_gap, L - 1, dr.select(going_down, li + 1, li - 1)), li)
+
+        # --- termination: left through the top (light?), past the stack's edge, lost, or truncated
+        out_top = refract & in_stack & ~going_down & (li == 0)
+        escaped_up = gap_up & ~under_stack
+        # (a ray leaving a side face downward could still reach the background's rim: neglected)
+        reach_light = (out_top | escaped_up | wall_exit) & light(x, y, z, new_dx, new_dy, new_dz)
+        lost = (gap_down & ~on_bg) | (on_bg & (m >= N_BACKGROUND_ORDERS))
+        done = out_top | escaped_up | wall_exit | lost | (k >= k_max) | (it >= max_iter)
+        hit = hit | (alive & reach_light)
+        alive = alive & ~done
+        return (x, y, z, new_dx, new_dy, new_dz, dr.select(out_top, li, new_li), k, m, it, alive, hit, rng)
+
+    state = dr.while_loop((x, y, z, dx, dy, dz, li, k, m, it, alive, hit, rng), cond, body,
+                          mode=os.environ.get('TRIMETER_LOOP_MODE', 'symbolic'), compress=bool(os.environ.get('TRIMETER_COMPRESS')))
+    k, m, it, hit = state[7], state[8], state[9], state[11]
+    k_np = np.asarray(k, dtype=np.int64)
+    m_np = np.asarray(m, dtype=np.int64)
+    hit_np = np.asarray(hit, dtype=bool)
+    it_np = np.asarray(it, dtype=np.int64)
+    truncated = int(np.count_nonzero((k_np >= k_max) | (it_np >= max_iter)))
+    sel = hit_np & (m_np < N_BACKGROUND_ORDERS)
+    counts = np.zeros((N_BACKGROUND_ORDERS, int(k_np[sel].max(initial=0)) + 1))
+    np.add.at(counts, (m_np[sel], k_np[sel]), 1.0)
+
+    # First interface (air → top layer) at normal incidence, in closed form.
+    r0 = ((layer_n[0] - 1.0) / (layer_n[0] + 1.0)) ** 2
+    specular = r0 * stack.scale if not stack.panels else 0.0  # the device's detector sees no panel specularly
+    return Tally(counts=counts, n_paths=n_paths, weight=(1 - r0) * stack.scale, specular=specular,
+                 truncated=truncated, k_max=k_max, seconds=time.perf_counter() - t0,
+                 path_events=int(it_np.sum()))
