@@ -5,10 +5,11 @@ only what its observable (one diffuse reflectance factor) needs: the sample, the
 light, one single-pixel sensor and a volumetric path tracer. Mitsuba is never imported here: these
 are plain dicts; `trimeter.forward.render` loads them.
 
-ideal  (paper Fig. 2) — a `cube` slab, width `slab_width_mm`, smooth `dielectric` boundary of index n
-       in air, `homogeneous` medium with an `hg` phase function; a Lambertian rectangle just under it
-       (an air gap of at least 1 µm: coincident surfaces are ill-posed for a ray tracer, and for a
-       laterally infinite slab the gap changes nothing); a `constant` emitter of radiance 1; one
+ideal  (paper Fig. 2) — a slab of width `slab_width_mm`, smooth `dielectric` faces of index n in air,
+       perfectly mirroring sides (so it is laterally infinite, see _ideal), `homogeneous` medium with
+       an `hg` phase function; a Lambertian rectangle, twice as wide, an air gap under it (ray
+       offsets must not skip it, see _ideal; for an infinite slab the gap changes nothing); a
+       `constant` emitter of radiance 1; one
        `radiancemeter` along the normal. I = radiance / 1.
 
 device (paper Figs. 6-8) — the frame is the instrument's: z = 0 is the back face of the sample stack
@@ -95,17 +96,31 @@ def reflectance_scale(geometry) -> float:
 # ------------------------------------------------------------------------------------------ ideal
 def _ideal(p: dict, n: float, ell: float, rho: float, spp: int) -> dict:
     half = float(p["slab_width_mm"]) / 2
-    gap = max(float(p.get("background_gap_mm", 0.0)), MIN_GAP_MM)
-    return {
+    # Mitsuba offsets spawned rays by ~1e-4 × (1 + |position|) in float32: a background closer than
+    # that to the slab is skipped near the edges and the emitter shines through from below (+6 % at
+    # α = 0.99, σt = 1/mm, ℓ = 0.5 mm, g = 0.8 with a 1 µm gap under a 1000 mm slab). For an infinite
+    # slab on a Lambertian background the air gap changes nothing, so keep one of 1 % of the width.
+    gap = max(float(p.get("background_gap_mm", 0.0)), 0.01 * 2 * half)
+    medium = {"type": "ref", "id": MEDIUM_ID}
+    boundary = _interface(n, 1.0)
+    # Top face at z = 0. The side faces are perfect mirrors: by the method of images a mirror-walled
+    # slab under uniform light IS the infinite slab. Open (refracting) sides let light that total
+    # internal reflection carries hundreds of mm sideways leak in from the emitter: +15 % at
+    # α = 0.99, σt = 0.5/mm, ℓ = 1 mm, g = 0.8 for a 1000 mm slab with dielectric sides.
+    shapes = {
         "illumination": {"type": "constant", "radiance": {"type": "uniform", "value": 1.0}},
-        # Top face at z = 0.
-        "slab": {"type": "cube", "to_world": _translate_scale([0, 0, -ell / 2], [half, half, ell / 2]),
-                 "bsdf": {"type": "dielectric", "int_ior": n, "ext_ior": 1.0},
-                 "interior": {"type": "ref", "id": MEDIUM_ID}},
-        "background": _lambertian_rect([0, 0, -ell - gap], [half, half], rho),
+        "slab_top": _rect([0, 0, 0.0], [0, 0, 1], [half, half], boundary, interior=medium),
+        "slab_bottom": _rect([0, 0, -ell], [0, 0, -1], [half, half], boundary, interior=medium),
+        # Wider than the slab, so the whole lower hemisphere under the slab sees background.
+        "background": _lambertian_rect([0, 0, -ell - gap], [2 * half, 2 * half], rho),
         "sensor": {"type": "radiancemeter", "origin": [0.0, 0.0, 1.0], "direction": [0.0, 0.0, -1.0],
                    "film": _one_pixel_film(), "sampler": {"type": "independent", "sample_count": spp}},
     }
+    # A conductor is one-sided: its normal faces the slab, whose medium is therefore its exterior.
+    mirror = {"type": "conductor", "material": "none"}
+    for i, (normal, centre) in enumerate(_side_walls(half, -ell / 2)):
+        shapes[f"slab_side{i}"] = {**_rect(centre, [-c for c in normal], [half, ell / 2], mirror), "exterior": medium}
+    return shapes
 
 
 # ----------------------------------------------------------------------------------------- device
