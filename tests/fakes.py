@@ -146,17 +146,19 @@ class FakeInstrument:
             self.write_version = self.get("map_version")
             self.write_buffer = bytearray(self.write_length + self.write_length % 2)
             self.slots[self.write_target] = b""
+            self.verified = None
             self._set("ir", regs.BY_NAME["map_op_bytes_written"], 0)
             self._set("ir", status, regs.MapOpStatus.WRITING)
         elif cmd == regs.MapCommand.VERIFY:
             data = bytes(self.write_buffer[:self.write_length])
             ok = zlib.crc32(data) == self.write_crc
-            if ok:
-                self.slots[self.write_target] = data
-                self.versions[self.write_target] = self.write_version
+            self.verified = data if ok else None
             self._set("ir", status, regs.MapOpStatus.VERIFY_OK if ok else regs.MapOpStatus.VERIFY_FAILED)
-            self.write_buffer = None
         elif cmd == regs.MapCommand.ACTIVATE:
+            # like the firmware: a slot becomes valid (and readable) only when it is activated
+            self.slots[self.write_target] = self.verified
+            self.versions[self.write_target] = self.write_version
+            self.write_buffer = None
             self.active = self.write_target
             self._set("ir", status, regs.MapOpStatus.ACTIVATED)
         elif cmd == regs.MapCommand.ABORT:
@@ -182,6 +184,8 @@ class FakeInstrument:
     def read_file_records(self, file_number, record_number, count):
         slot = regs.MapSlot(self.hr[regs.BY_NAME["map_read_slot"].address]) or self.active
         data = self.slots.get(slot, b"")
+        if not data:
+            raise ModbusExceptionReply("file read of an invalid slot", 2)
         data = data + b"\0" * (len(data) % 2)
         offset = ((file_number - 1) * regs.MAP_RECORDS_PER_FILE + record_number) * 2
         if offset + 2 * count > len(data):

@@ -90,6 +90,16 @@ def _lookup(name: str) -> regs.Register:
         raise InputError(f"no register named {name!r} (see hardware/registers.md)") from None
 
 
+def light_coils(*, panels: bool, collimated: bool, leds: bool = True) -> list[bool]:
+    """Coils 0..5 (every coil of the map, in address order) for a light set-up."""
+    want = {"shutter_panel_left_open": panels, "shutter_panel_right_open": panels,
+            "shutter_collimated_open": collimated, "led_panel_left_on": leds, "led_panel_right_on": leds,
+            "led_collimated_on": leds}
+    if sorted(regs.COILS[name].address for name in want) != list(range(regs.SPANS["coil"])):
+        raise AssertionError("the light coils are no longer coils 0..N in the register map")
+    return [bool(want[name]) for name in sorted(want, key=lambda n: regs.COILS[n].address)]
+
+
 GOTO = {"black": regs.Command.GOTO_BLACK, "white": regs.Command.GOTO_WHITE, "open": regs.Command.GOTO_OPEN}
 SLOT = {"black": regs.Slot.BLACK, "white": regs.Slot.WHITE, "open": regs.Slot.OPEN}
 
@@ -100,6 +110,10 @@ class Identity:
     model_id: int
     firmware_version: tuple[int, int, int]
     regmap_hash: int
+
+
+def _first_difference(a: bytes, b: bytes) -> int:
+    return next((i for i, (x, y) in enumerate(zip(a, b)) if x != y), min(len(a), len(b)))
 
 
 class Device:
@@ -214,9 +228,9 @@ class Device:
             cmd = action
         self.write("command", cmd)
 
-    def set_lights(self, *, panels: bool, collimated: bool) -> None:
-        """Shutters and LEDs for one of the three set-ups (one coil write, coils 0..5 in order)."""
-        self.transport.write_bits(0, [panels, panels, collimated, panels, panels, collimated])
+    def set_lights(self, *, panels: bool, collimated: bool, leds: bool = True) -> None:
+        """Shutters for one of the set-ups, LEDs kept on (warm) — one FC 0x0F over coils 0..5."""
+        self.transport.write_bits(0, light_coils(panels=panels, collimated=collimated, leds=leds))
 
     def wait_idle(self, timeout_s: float, *, poll_s: float = 0.01) -> None:
         """Poll `busy` until it clears; a latched fault or the timeout raise DeviceError."""
@@ -254,7 +268,7 @@ class Device:
 
     def flash_map(self, data: bytes, *, version: int, progress: Callable[[int, int], None] | None = None,
                   timeout_s: float = 30.0) -> regs.MapSlot:
-        """Write a map table into the inactive slot, read it back, and only then activate it.
+        """Write a map table into the inactive slot, have the device verify it, and only then activate it.
 
         Resumable: if the device already holds an open write of exactly these bytes (same length and
         CRC-32), it continues from the device's progress counter instead of starting again. An
@@ -289,19 +303,36 @@ class Device:
         self.write("map_command", "verify")
         result = self._wait_map_op(timeout_s)
         if result != regs.MapOpStatus.VERIFY_OK:
-            raise DeviceError(f"map verify failed on the device ({result.name.lower()}); the old map stays active")
-        target = self._written_slot(len(data), crc)
-        back = self.read_map(target, len(data))
-        if back != data:
-            bad = next(i for i, (a, b) in enumerate(zip(back, data)) if a != b) if len(back) == len(data) else len(back)
+            raise DeviceError(f"map verify failed on the device ({getattr(result, 'name', result)}); "
+                              "the old map stays active")
+        # The device's verify read the written flash back and checked its CRC-32. Where the firmware
+        # also lets us read the not-yet-active slot, compare every byte before activating.
+        old_active = self.read("map_active_slot")
+        target = regs.MapSlot.B if old_active == regs.MapSlot.A else regs.MapSlot.A
+        try:
+            back = self.read_map(target, len(data))
+        except ModbusExceptionReply:
+            back = None  # this firmware serves only valid (activated) slots: check right after activation
+        if back is not None and back != data:
             self.write("map_command", "abort")
-            raise DeviceError(f"map read-back differs at byte {bad}; not activated, the old map stays active")
+            raise DeviceError(f"map read-back differs at byte {_first_difference(back, data)}; not activated, "
+                              "the old map stays active")
         self.write("map_command", "activate")
         result = self._wait_map_op(timeout_s)
         active = self.read("map_active_slot")
         if result != regs.MapOpStatus.ACTIVATED or active != target:
             raise DeviceError(f"map activation failed ({getattr(result, 'name', result)}, active slot "
                               f"{getattr(active, 'name', active)})")
+        status = self.map_status()
+        key = target.name.lower()
+        if status[f"map_slot_{key}_length"] != len(data) or status[f"map_slot_{key}_crc32"] != crc:
+            raise DeviceError(f"slot {target.name} reports length {status[f'map_slot_{key}_length']} / CRC-32 "
+                              f"0x{status[f'map_slot_{key}_crc32']:08X} after activation, expected {len(data)} / 0x{crc:08X}")
+        if back is None:
+            back = self.read_map(target, len(data))
+            if back != data:
+                raise DeviceError(f"map read-back after activation differs at byte {_first_difference(back, data)}: "
+                                  "flash the table again")
         return target
 
     def _begin_write(self, length: int, crc: int, version: int) -> None:
@@ -323,16 +354,6 @@ class Device:
             if status != regs.MapOpStatus.WRITING or self._clock() >= deadline:
                 return status
             self._sleep(0.01)
-
-    def _written_slot(self, length: int, crc: int) -> regs.MapSlot:
-        status = self.map_status()
-        active = status["map_active_slot"]
-        for slot in (regs.MapSlot.A, regs.MapSlot.B):
-            key = slot.name.lower()
-            if slot != active and status[f"map_slot_{key}_valid"] and status[f"map_slot_{key}_length"] == length \
-                    and status[f"map_slot_{key}_crc32"] == crc:
-                return slot
-        raise DeviceError("after verify no inactive slot holds the written map")
 
     def read_map(self, slot: regs.MapSlot | str, length: int | None = None,
                  progress: Callable[[int, int], None] | None = None) -> bytes:

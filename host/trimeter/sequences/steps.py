@@ -90,6 +90,8 @@ class Timing:
     motion_wall_s: float = 0.0      # wall time spent waiting for the slider / shutters to settle
     acquire_wall_s: float = 0.0     # wall time of the exposures (incl. readout + transfer)
     wait_wall_s: float = 0.0        # warm-up waits
+    motion_device_s: float = 0.0    # device-clock time of moves + shutter/LED settles (needs a device clock)
+    wait_device_s: float = 0.0      # device-clock time of warm-up waits
     steps: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
@@ -100,12 +102,16 @@ class Runner:
     """Executes plans against a Device and a Spectrometer."""
 
     def __init__(self, device, spectrometer, *, on_progress: Callable[[float, str], None] | None = None,
-                 move_timeout_s: float = 60.0, sleep: Callable[[float], None] = time.sleep):
+                 move_timeout_s: float = 60.0, sleep: Callable[[float], None] = time.sleep,
+                 device_clock: Callable[[], float] | None = None):
+        """`device_clock`: the device's own time in seconds with sub-second resolution, if there is one
+        (the twin's simulated clock); it splits physical time (motion, settling) from host overhead."""
         self.device = device
         self.spectrometer = spectrometer
         self.on_progress = on_progress
         self.move_timeout_s = move_timeout_s
         self._sleep = sleep
+        self._device_clock = device_clock
         self.timing = Timing()
         self._lights: tuple[bool, bool] | None = None
         self._slot: str | None = None
@@ -149,6 +155,19 @@ class Runner:
 
     # ------------------------------------------------------------------------------- execute
     def execute(self, step):
+        dev, spec = self.device, self.spectrometer
+        if isinstance(step, (Move, Lights, Wait)) and self._device_clock is not None:
+            d0 = self._device_clock()
+            result = self._execute(step)
+            spent = self._device_clock() - d0
+            if isinstance(step, Wait):
+                self.timing.wait_device_s += spent
+            else:
+                self.timing.motion_device_s += spent
+            return result
+        return self._execute(step)
+
+    def _execute(self, step):
         dev, spec = self.device, self.spectrometer
         if isinstance(step, Move):
             t0 = time.monotonic()

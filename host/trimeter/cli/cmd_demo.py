@@ -1,0 +1,131 @@
+"""`trimeter demo` (`make demo`): the whole instrument on the twin, end to end, in a couple of minutes.
+
+Starts the twin (the real firmware core built for the `sim` port, plant, optics, spectrometer) with an
+empty holder, runs the press-button service exactly as `trimeter serve` does, presses the button
+(warm-up + calibration), inserts a virtual ink, presses again (capture + fit + results), then prints
+α, σt, g at a few wavelengths beside the twin's truth, the timing split (physical vs. host overhead)
+and the path of the figure."""
+
+from __future__ import annotations
+
+import os
+import queue
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from trimeter.errors import DeviceError
+from trimeter.paths import REPO_ROOT
+
+SHOW_NM = (450, 500, 550, 600, 650, 700)
+
+
+def _wait_for(events: "queue.Queue", kind: str, timeout_s: float, log):
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            event = events.get(timeout=max(0.01, deadline - time.monotonic()))
+        except queue.Empty:
+            raise DeviceError(f"demo: no '{kind}' from the service within {timeout_s:g} s") from None
+        log(event)
+        if event.kind == kind:
+            return event
+        if event.kind == "failed":
+            raise DeviceError(f"demo: the service reported: {event.message}")
+
+
+def run(args):
+    from trimeter.device import Device
+    from trimeter.results.figure import plot_parameters
+    from trimeter.sequences.measure import map_for_thickness
+    from trimeter.sequences.service import Service
+    from trimeter.sequences.settings import HostSettings
+    from trimeter.spectrometer import open_spectrometer
+    from trimeter.twin import Twin
+
+    wall_start = time.monotonic()
+    amap = map_for_thickness(args.thickness, args.map)
+    out = Path(args.out or REPO_ROOT / "out" / "demo") / time.strftime("%Y%m%dT%H%M%S")
+    out.mkdir(parents=True, exist_ok=True)
+    os.environ["TRIMETER_DATA_DIR"] = str(out)  # the demo's calibration never touches the user's
+    settings = HostSettings()
+    settings.set("results_dir", str(out / "results"))
+    settings.set("thickness_mm", args.thickness)
+    settings.set("method", args.method)
+    settings.set("timeout_s", 0.3)
+
+    def log(event):
+        print(f"  [{event.kind}] {event.message}", flush=True)
+
+    print(f"demo: twin with '{args.sample}' ℓ = {args.thickness:g} mm, map {amap.name}, time scale {args.time_scale:g}×")
+    with Twin(sample=None, thickness_mm=args.thickness, time_scale=args.time_scale, appearance_map=amap,
+              state_dir=out / "twin", seed=args.seed) as twin:
+        settings.set("port", twin.modbus_port)
+        settings.set("spectrometer", twin.spectrometer_url)
+        events: queue.Queue = queue.Queue()
+        service = Service(lambda: Device.open(settings.port, timeout_s=settings.timeout_s),
+                          lambda: open_spectrometer(settings.spectrometer), settings, on_event=events.put,
+                          device_clock=twin.sim_time, label=args.sample)
+        stop = threading.Event()
+        thread = threading.Thread(target=service.serve, kwargs={"stop": stop.is_set}, daemon=True)
+        thread.start()
+        try:
+            _wait_for(events, "connected", 30, log)
+            print("1. holder empty → press the button: warm-up + calibration")
+            twin.control.press_button()
+            _wait_for(events, "calibrated", 600, log)
+            print(f"2. insert '{args.sample}' → press the button: measurement")
+            twin.control.insert_sample(args.sample, args.thickness)
+            sim0, wall0 = twin.sim_time(), time.monotonic()
+            twin.control.press_button()
+            measured = _wait_for(events, "measured", 600, log)
+            cycle_wall, cycle_sim = time.monotonic() - wall0, twin.sim_time() - sim0
+            truth = twin.control.truth()
+        finally:
+            stop.set()
+            thread.join(timeout=10)
+
+    params, timing = measured.data["parameters"], measured.data["timing"]
+    print("\nα, σt [1/mm], g — measured (± 1σ) beside the twin's truth")
+    print(f"{'λ nm':>6} {'α':>16} {'truth':>7} {'σt':>18} {'truth':>7} {'g':>15} {'truth':>6}")
+    tw = np.asarray(truth["wavelengths_nm"])
+    for w in SHOW_NM:
+        i = int(np.argmin(np.abs(params.wavelengths_nm - w)))
+        t = {k: float(np.interp(params.wavelengths_nm[i], tw, np.asarray(truth[k]))) for k in ("alpha", "sigma_t", "g")}
+        print(f"{params.wavelengths_nm[i]:6.1f} {params.alpha[i]:8.4f}±{params.alpha_std[i]:<7.4f} {t['alpha']:7.4f} "
+              f"{params.sigma_t[i]:9.3f}±{params.sigma_t_std[i]:<8.3f} {t['sigma_t']:7.3f} "
+              f"{params.g[i]:7.3f}±{params.g_std[i]:<7.3f} {t['g']:6.3f}")
+    valid = np.isfinite(params.alpha)
+    truth_on = {k: np.interp(params.wavelengths_nm, tw, np.asarray(truth[k])) for k in ("alpha", "sigma_t", "g")}
+    band = valid & (params.wavelengths_nm >= 420) & (params.wavelengths_nm <= 720)
+    if band.any():
+        print(f"over 420-720 nm ({band.sum()} bins): |Δα| p95 {np.nanpercentile(np.abs(params.alpha - truth_on['alpha'])[band], 95):.4f}, "
+              f"|Δσt|/σt p95 {np.nanpercentile(np.abs(params.sigma_t / truth_on['sigma_t'] - 1)[band], 95):.2%}, "
+              f"|Δg| p95 {np.nanpercentile(np.abs(params.g - truth_on['g'])[band], 95):.3f}")
+    figure = plot_parameters(out / "demo-vs-truth.png", params, title=f"{args.sample}, ℓ = {args.thickness:g} mm (twin)",
+                             truth={"wavelengths_nm": tw, **{k: np.asarray(truth[k]) for k in ("alpha", "sigma_t", "g")}})
+    physical = timing["motion_device_s"] + timing["exposure_s"]
+    overhead = timing["wall_s"] - physical / args.time_scale
+    print(f"\nmeasurement cycle (press → results written): {cycle_wall:.2f} s wall, {cycle_sim:.1f} s on the twin's clock")
+    print(f"  sequence: {timing['wall_s']:.2f} s wall = physical {physical:.1f} s device time "
+          f"(motion+settling {timing['motion_device_s']:.1f} s, exposures {timing['exposure_s']:.1f} s) / {args.time_scale:g} "
+          f"+ host & protocol overhead {overhead:.2f} s = {overhead / physical:.1%} of the physical time")
+    print(f"  fit {timing['fit_wall_s'] * 1e3:.0f} ms; Modbus requests {measured.data.get('link', {}).get('requests', '—')}")
+    print(f"results: {measured.data['path']}")
+    print(f"figure:  {measured.data['path'] / 'figure.png'}")
+    print(f"figure vs truth: {figure}")
+    print(f"demo wall time: {time.monotonic() - wall_start:.1f} s")
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("demo", help="run the whole instrument on the twin, end to end", description=__doc__)
+    p.add_argument("--sample", default="cyan-ink", help="virtual material (trimeter sim --list-materials)")
+    p.add_argument("--thickness", type=float, default=0.4, help="sample thickness in mm (a map must exist for it)")
+    p.add_argument("--map", help="appearance map (default: the shipped map of that thickness)")
+    p.add_argument("--method", default="lut", choices=("lut", "mlp", "paper"))
+    p.add_argument("--time-scale", type=float, default=20.0, help="twin time runs this many times faster")
+    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--out", help="output directory (default: out/demo)")
+    p.set_defaults(func=run)

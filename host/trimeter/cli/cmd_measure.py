@@ -1,0 +1,71 @@
+"""`trimeter measure [--thickness MM [--thickness MM2]]`: capture the inserted sample (I_b, I_w, I_c),
+fit α, σt, g through the map of its thickness and write a results directory (printed at the end).
+With two thicknesses you are asked to swap the samples in between; both are fitted and combined."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from trimeter.cli._instrument import add_instrument_args, open_device, open_spectrometer, progress_bar, settings_from
+from trimeter.errors import InputError
+from trimeter.sequences.measure import map_for_thickness
+from trimeter.sequences.service import Service, calibration_is_stale
+
+SHOW_NM = (450, 550, 650)
+
+
+def summary(parameters, wavelengths=SHOW_NM, truth=None) -> str:
+    lines = [f"{'λ [nm]':>8} {'α':>8} {'σt [1/mm]':>11} {'g':>7}" + ("   truth: α      σt      g" if truth else "")]
+    for w in wavelengths:
+        i = int(np.argmin(np.abs(parameters.wavelengths_nm - w)))
+        row = f"{parameters.wavelengths_nm[i]:8.1f} {parameters.alpha[i]:8.4f} {parameters.sigma_t[i]:11.4f} {parameters.g[i]:7.3f}"
+        if truth:
+            j = int(np.argmin(np.abs(np.asarray(truth["wavelengths_nm"]) - w)))
+            row += f"   {truth['alpha'][j]:9.4f} {truth['sigma_t'][j]:7.3f} {truth['g'][j]:6.3f}"
+        lines.append(row)
+    return "\n".join(lines)
+
+
+def run(args):
+    settings = settings_from(args)
+    for key in ("method",):
+        if getattr(args, key):
+            settings.set(key, getattr(args, key))
+    thicknesses = args.thickness or [settings.thickness_mm]
+    if len(thicknesses) > 2 or any(t <= 0 for t in thicknesses):
+        raise InputError("thickness: give one or two positive thicknesses in mm")
+    if args.map and len(args.map) != len(thicknesses):
+        raise InputError("map: give one --map per --thickness")
+    maps = [map_for_thickness(t, m) for t, m in zip(thicknesses, args.map or [None] * len(thicknesses))]
+    if args.results:
+        settings.set("results_dir", args.results)
+    service = Service(lambda: open_device(settings), lambda: open_spectrometer(settings), settings)
+    service.connect()
+    try:
+        reason = calibration_is_stale(service.calibration, service.device.read("uptime_s"),
+                                      settings.calibration_max_age_s)
+        if reason:
+            raise InputError(f"calibration: {reason}; run `trimeter calibrate` with the holder empty")
+
+        def swap(thickness):
+            input(f"insert the {thickness:g} mm sample and press Enter ")
+
+        with progress_bar("measurement") as update:
+            service.on_progress = update
+            path = service.measure(thicknesses, maps=maps, between=swap, label=args.label)
+    finally:
+        service.close()
+    p = service.last_parameters
+    print(summary(p))
+    print(f"results: {path}")
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("measure", help="measure the inserted sample", description=__doc__)
+    add_instrument_args(p)
+    p.add_argument("--thickness", type=float, action="append", help="sample thickness in mm (twice for two samples)")
+    p.add_argument("--map", action="append", help="appearance map per thickness (default: the shipped one)")
+    p.add_argument("--method", choices=("lut", "mlp", "paper"), help="inversion method (default: host config)")
+    p.add_argument("--label", help="a name for the results directory")
+    p.add_argument("--results", help="results root directory (default: host config / data dir)")
+    p.set_defaults(func=run)

@@ -1,0 +1,41 @@
+"""`trimeter serve`: press-button standalone mode. Waits for the instrument's front button; a press
+warms up + calibrates when the calibration is missing, stale or the device was reset (holder empty),
+otherwise measures the inserted sample and writes a results directory. Status LED: steady = ready,
+slow blink = working, fast blink = the last press failed. Survives device resets and reconnects.
+Stop with Ctrl-C."""
+
+from __future__ import annotations
+
+import threading
+from datetime import datetime
+
+from trimeter.cli._instrument import add_instrument_args, open_device, open_spectrometer, settings_from
+from trimeter.sequences.service import Service
+
+
+def run(args):
+    settings = settings_from(args)
+    if args.thickness:
+        settings.set("thickness_mm", args.thickness)
+    stop = threading.Event()
+
+    def show(event):
+        print(f"{datetime.now():%H:%M:%S} {event.kind:<12} {event.message}", flush=True)
+
+    service = Service(lambda: open_device(settings), lambda: open_spectrometer(settings), settings,
+                      on_event=show, label=args.label)
+    print(f"serving the instrument on {settings.port}; results in {settings.results_path} (Ctrl-C stops)", flush=True)
+    try:
+        service.serve(stop=stop.is_set)
+    except KeyboardInterrupt:
+        stop.set()
+    finally:
+        service.close()
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("serve", help="press-button standalone mode", description=__doc__)
+    add_instrument_args(p)
+    p.add_argument("--thickness", type=float, help="sample thickness in mm (default: host config)")
+    p.add_argument("--label", help="a name for the results directories")
+    p.set_defaults(func=run)

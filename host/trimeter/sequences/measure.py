@@ -1,0 +1,67 @@
+"""From reflectances to parameters (through `trimeter.fit`), and the map that belongs to a thickness.
+
+Kept apart from the plans: this is pure computation on files and arrays, used identically by
+`trimeter measure`, `trimeter serve`, `trimeter demo` and offline re-fits of saved raw data.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from trimeter.errors import InputError
+from trimeter.forward.collimated import beer_lambert_sigma_t
+from trimeter.maps.appearance import AppearanceMap, find_map, shipped_maps
+from trimeter.results.writer import Parameters
+from trimeter.sequences.reflectance import Reflectances
+
+
+def map_for_thickness(thickness_mm: float, explicit: str | Path | None = None,
+                      search: list[Path] | None = None) -> AppearanceMap:
+    """The map named/pathed explicitly, else the shipped map (device geometry first) of this thickness."""
+    if explicit:
+        amap = AppearanceMap.load(find_map(explicit))
+        if abs(amap.thickness_mm - thickness_mm) > 1e-6:
+            raise InputError(f"map {amap.name} is for ℓ = {amap.thickness_mm:g} mm, not the sample's {thickness_mm:g} mm")
+        return amap
+    candidates = []
+    for path in (search if search is not None else shipped_maps()):
+        try:
+            amap = AppearanceMap.load(path)
+        except Exception:  # a broken map file must not hide the good ones; `trimeter map info` names it
+            continue
+        if abs(amap.thickness_mm - thickness_mm) <= 1e-6:
+            candidates.append(amap)
+    if not candidates:
+        raise InputError(f"thickness: no appearance map for ℓ = {thickness_mm:g} mm (give one with --map, or build "
+                         "one with `trimeter map build`)")
+    candidates.sort(key=lambda m: (m.recipe.get("geometry") != "device", m.name))
+    return candidates[0]
+
+
+def beer_sigma_t(refl: Reflectances, amap: AppearanceMap) -> np.ndarray:
+    """Paper Eq. 2 (with the same Fresnel stack as the map): the consistency check drawn beside σt."""
+    return beer_lambert_sigma_t(refl.I_c, amap.thickness_mm, amap.n, amap.cover_slide_n)
+
+
+def fit_reflectances(refls: list[Reflectances], maps: list[AppearanceMap], *, method: str = "lut"
+                     ) -> tuple[Parameters, list[Parameters]]:
+    """trimeter.fit over one or two thicknesses; returns (combined, per-thickness estimates)."""
+    import trimeter
+
+    if len(refls) != len(maps) or not refls:
+        raise InputError("need one map per measured thickness")
+    wl = refls[0].wavelengths_nm
+    per = []
+    for refl, amap in zip(refls, maps):
+        result = trimeter.fit(amap, refl.I_b, refl.I_w, refl.I_c, rho_b=refl.rho_b, rho_w=refl.rho_w, method=method)
+        per.append(Parameters.from_fit(wl, result, sigma_t_beer=beer_sigma_t(refl, amap),
+                                       thickness_mm=amap.thickness_mm))
+    if len(refls) == 1:
+        return per[0], []
+    result = trimeter.fit(maps, [r.I_b for r in refls], [r.I_w for r in refls], [r.I_c for r in refls],
+                          rho_b=[r.rho_b for r in refls], rho_w=[r.rho_w for r in refls], method=method)
+    with np.errstate(all="ignore"):
+        beer = np.nanmean(np.stack([p.sigma_t_beer for p in per]), axis=0)
+    return Parameters.from_fit(wl, result, sigma_t_beer=beer), per

@@ -1,0 +1,230 @@
+"""Press-button mode (`trimeter serve`): the instrument on its own, driven by its front button.
+
+Per press (the device's `button_events` counter changes):
+- calibration missing, older than `calibration_max_age_s`, or the device was reset since: warm-up
+  (until the lamps are stable) + calibration — the holder must be empty; then the LED goes steady and
+  the next press measures;
+- otherwise: capture the sample, fit, write the results directory.
+Status LED: steady on = ready (press to measure) · slow blink = working · fast blink = the last
+press failed (see the log) · the firmware's own slow blink at power-up = not yet connected.
+A device reset or a lost link never ends the service: it reconnects, re-arms, marks the calibration
+stale, and a measurement the reset interrupted leaves no result directory.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+from trimeter.device import Device
+from trimeter.errors import DeviceError, TrimeterError
+from trimeter.results import Measurement, write_measurement
+from trimeter.sequences.measure import fit_reflectances, map_for_thickness
+from trimeter.sequences.plans import calibration as calibration_plan
+from trimeter.sequences.plans import sample_capture, warm_up
+from trimeter.sequences.reflectance import Calibration, reflectances
+from trimeter.sequences.settings import HostSettings
+from trimeter.sequences.steps import Runner
+
+READY, WORKING, FAILED = "on", "slow_blink", "fast_blink"
+
+
+@dataclass
+class Event:
+    kind: str      # connected | press | warmed_up | calibrated | measured | failed | reconnecting
+    message: str
+    data: dict = field(default_factory=dict)
+
+
+def lamps_on(device: Device) -> None:
+    """Both LEDs on at full level with every shutter closed: the warm idle state."""
+    device.write("led_panels_level", 1.0)
+    device.write("led_collimated_level", 1.0)
+    device.set_lights(panels=False, collimated=False)
+
+
+def calibration_is_stale(calibration: Calibration | None, uptime_s: float, max_age_s: float) -> str | None:
+    """Why the calibration can't be used now (None = usable)."""
+    if calibration is None:
+        return "no calibration yet"
+    if uptime_s < calibration.device_time_s:
+        return "the device was reset since the calibration"
+    if uptime_s - calibration.device_time_s > max_age_s:
+        return f"the calibration is {uptime_s - calibration.device_time_s:.0f} s old (max {max_age_s:g} s)"
+    return None
+
+
+class Service:
+    """The press-button loop. `open_device()` / `open_spectrometer()` are factories so it can reconnect."""
+
+    def __init__(self, open_device: Callable[[], Device], open_spectrometer: Callable[[], object],
+                 settings: HostSettings, *, on_event: Callable[[Event], None] | None = None,
+                 on_progress: Callable[[float, str], None] | None = None, label: str | None = None,
+                 device_clock: Callable[[], float] | None = None):
+        self._open_device = open_device
+        self._open_spectrometer = open_spectrometer
+        self.settings = settings
+        self.on_event = on_event or (lambda e: None)
+        self.on_progress = on_progress
+        self.label = label
+        self.device_clock = device_clock
+        self.device: Device | None = None
+        self.spectrometer = None
+        self.calibration: Calibration | None = None
+        self._button: int | None = None
+        self._uptime = -1
+        self.last_result: Path | None = None
+        self.last_parameters = None
+        self.last_timing: dict = {}
+        self._status = READY   # what the LED shows between presses (kept across reconnects)
+        try:
+            self.calibration = Calibration.load(settings.calibration_path)
+        except TrimeterError:
+            self.calibration = None
+
+    # --------------------------------------------------------------------------- connection
+    def connect(self) -> None:
+        self.close()
+        self.device = self._open_device()
+        if self.spectrometer is None:
+            self.spectrometer = self._open_spectrometer()
+        button, uptime = self.device.read_many("button_events", "uptime_s").values()
+        self._button, self._uptime = button, uptime
+        lamps_on(self.device)
+        self.device.write("status_pattern", self._status)
+        self._emit("connected", f"connected (firmware {'.'.join(map(str, self.device.identity.firmware_version))})")
+
+    def close(self) -> None:
+        if self.device is not None:
+            try:
+                self.device.close()
+            except Exception:
+                pass
+            self.device = None
+
+    def _emit(self, kind, message, **data):
+        self.on_event(Event(kind, message, data))
+
+    # --------------------------------------------------------------------------------- loop
+    def serve(self, stop: Callable[[], bool] = lambda: False, poll_s: float = 0.05,
+              reconnect_s: float = 0.5) -> None:
+        """Run until `stop()` is true. Survives resets, lost links and failed measurements."""
+        while not stop():
+            try:
+                if self.device is None:
+                    self.connect()
+                self.poll_once()
+            except DeviceError as exc:
+                self._emit("reconnecting", f"device link problem: {exc}; reconnecting")
+                self.close()
+                time.sleep(reconnect_s)
+                continue
+            time.sleep(poll_s)
+        self.close()
+
+    def poll_once(self) -> str | None:
+        """Check the button once; run whatever a press asks for. Returns what was done, if anything."""
+        button, uptime = self.device.read_many("button_events", "uptime_s").values()
+        if uptime < self._uptime:  # a reset: counters restart, lamps went dark
+            self._emit("reset", f"device reset detected (uptime {self._uptime} → {uptime} s); lamps back on")
+            self._button, self._uptime = button, uptime
+            lamps_on(self.device)
+            self.device.write("status_pattern", self._status)
+            return "reset"
+        self._uptime = uptime
+        if button == self._button:
+            return None
+        self._button = button
+        self._emit("press", "button pressed")
+        return self.handle_press()
+
+    def handle_press(self) -> str:
+        dev = self.device
+        try:
+            dev.write("status_pattern", WORKING)
+            reason = calibration_is_stale(self.calibration, dev.read("uptime_s"), self.settings.calibration_max_age_s)
+            if reason:
+                self._emit("calibrating", f"{reason}: warming up and calibrating (the holder must be empty)")
+                self.calibrate()
+                outcome = "calibrated"
+            else:
+                self.measure([self.settings.thickness_mm])
+                outcome = "measured"
+            self._status = READY
+            dev.write("status_pattern", READY)
+            return outcome
+        except DeviceError as exc:
+            self._status = FAILED
+            self._emit("failed", str(exc))
+            self._safe_status(FAILED)
+            raise
+        except TrimeterError as exc:
+            self._status = FAILED
+            self._emit("failed", str(exc))
+            self._safe_status(FAILED)
+            return "failed"
+
+    def _safe_status(self, pattern: str) -> None:
+        try:
+            self.device.write("status_pattern", pattern)
+        except TrimeterError:
+            pass
+
+    # ------------------------------------------------------------------------------ actions
+    def _runner(self) -> Runner:
+        return Runner(self.device, self.spectrometer, on_progress=self.on_progress, device_clock=self.device_clock)
+
+    def calibrate(self, *, warm: bool = True) -> Calibration:
+        s = self.settings
+        runner = self._runner()
+        lamps_on(self.device)
+        if warm:
+            result = runner.run(warm_up(threshold=s.warmup_threshold, interval_s=s.warmup_interval_s,
+                                        timeout_s=s.warmup_timeout_s, frames=s.frames))
+            self._emit("warmed_up", f"lamps stable after {result.elapsed_s:.0f} s (drift {result.drift:.2%})")
+        cal = runner.run(calibration_plan(white_reference_reflectance=s.white_reference, frames=s.frames))
+        cal.save(s.calibration_path)
+        self.calibration = cal
+        self.last_timing = runner.timing.to_dict()
+        self._emit("calibrated", "calibrated: insert the sample and press the button to measure",
+                   timing=self.last_timing)
+        self.device.write("status_pattern", READY)
+        return cal
+
+    def measure(self, thicknesses: list[float], *, maps=None, between: Callable[[float], None] | None = None,
+                label: str | None = None) -> Path:
+        """Capture each thickness (calling `between(ℓ)` before the 2nd, to swap samples), fit, write."""
+        s = self.settings
+        if self.calibration is None:
+            raise DeviceError("no calibration: run a calibration with the holder empty first")
+        maps = maps or [map_for_thickness(t, s.map or None) for t in thicknesses]
+        runner = self._runner()
+        raws, refls = [], []
+        for i, thickness in enumerate(thicknesses):
+            if i and between:
+                between(thickness)
+            raw = runner.run(sample_capture(frames=s.frames, hdr_decades=s.hdr_decades,
+                                            label=f"sample ℓ = {thickness:g} mm"))
+            raws.append(raw)
+            refls.append(reflectances(self.calibration, raw))
+        t0 = time.monotonic()
+        combined, per = fit_reflectances(refls, maps, method=s.method)
+        fit_s = time.monotonic() - t0
+        timing = runner.timing.to_dict()
+        timing["fit_wall_s"] = round(fit_s, 4)
+        meta = {"label": label or self.label, "method": s.method, "maps": [m.name for m in maps],
+                "map_checksums": [m.checksum for m in maps], "timing": timing,
+                "device": {"firmware": list(self.device.identity.firmware_version),
+                           "regmap_hash": f"0x{self.device.identity.regmap_hash:08X}"},
+                "calibration_created_utc": self.calibration.created_utc,
+                "link": vars(self.device.transport.stats).copy() if hasattr(self.device.transport, "stats") else {}}
+        path = write_measurement(s.results_path, Measurement(self.calibration, raws, refls, thicknesses, combined,
+                                                             per, meta=meta), label=label or self.label)
+        self.last_result = path
+        self.last_parameters = combined
+        self.last_timing = timing
+        self._emit("measured", f"results written to {path}", path=path, parameters=combined, timing=timing,
+                   link=meta["link"])
+        return path

@@ -1,0 +1,126 @@
+"""Host configuration: a TOML file in the platformdirs config directory (`trimeter config … --host`).
+
+The device's own configuration lives in the device (holding registers, `save_config`); this file
+holds what only the host knows: where the instrument and spectrometer are, where results go, the
+sequence parameters. `TRIMETER_CONFIG_DIR` / `TRIMETER_DATA_DIR` override the directories (tests,
+the demo, several instruments on one host).
+"""
+
+from __future__ import annotations
+
+import os
+import tomllib
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+
+import platformdirs
+
+from trimeter.errors import InputError
+from trimeter.geometry import load_geometry
+
+CONFIG_FILE_NAME = "config.toml"
+
+
+def config_dir() -> Path:
+    return Path(os.environ.get("TRIMETER_CONFIG_DIR") or platformdirs.user_config_dir("trimeter"))
+
+
+def data_dir() -> Path:
+    return Path(os.environ.get("TRIMETER_DATA_DIR") or platformdirs.user_data_dir("trimeter"))
+
+
+@dataclass
+class HostSettings:
+    port: str = ""                     # serial port of the instrument (e.g. /dev/ttyUSB0)
+    address: int = 1                   # Modbus slave address
+    baudrate: int = 19200
+    timeout_s: float = 0.5             # per Modbus request
+    attempts: int = 4                  # per Modbus request
+    spectrometer: str = ""             # spectrometer URL (sim:/dev/pts/N, seabreeze:, i2c:1)
+    results_dir: str = ""              # default: <data dir>/results
+    white_reference_reflectance: float = 0.0  # 0 = hardware/geometry.toml's value
+    warmup_threshold: float = 0.001    # relative lamp change per warmup_interval_s that counts as stable
+    warmup_interval_s: float = 10.0
+    warmup_timeout_s: float = 900.0
+    calibration_max_age_s: float = 1800.0  # device seconds; older calibrations are redone by `serve`
+    frames: int = 2                    # exposures averaged per spectrum
+    hdr_decades: int = 2               # extra exposures ×10, ×100 … for I_c
+    method: str = "lut"                # inversion method (trimeter.fit)
+    thickness_mm: float = 0.4          # default sample thickness for `serve`
+    map: str = ""                      # appearance map name/path; empty = the shipped map of that thickness
+
+    # ---------------------------------------------------------------------------------------
+    @property
+    def white_reference(self) -> float:
+        if self.white_reference_reflectance > 0:
+            return self.white_reference_reflectance
+        return float(load_geometry("device")["calibration"]["white_reference_reflectance"])
+
+    @property
+    def results_path(self) -> Path:
+        return Path(self.results_dir) if self.results_dir else data_dir() / "results"
+
+    @property
+    def calibration_path(self) -> Path:
+        return data_dir() / "calibration"
+
+    @classmethod
+    def path(cls) -> Path:
+        return config_dir() / CONFIG_FILE_NAME
+
+    @classmethod
+    def load(cls) -> "HostSettings":
+        path = cls.path()
+        if not path.exists():
+            return cls()
+        try:
+            data = tomllib.loads(path.read_text())
+        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+            raise InputError(f"{path}: not valid TOML ({exc}); fix or delete it") from None
+        settings = cls()
+        for key, value in data.items():
+            settings.set(key, value, source=str(path))
+        return settings
+
+    def set(self, key: str, value, source: str = "host config") -> None:
+        types = {f.name: f.type for f in fields(self)}
+        if key not in types:
+            raise InputError(f"{key}: no such host setting ({', '.join(types)})")
+        kind = {"str": str, "int": int, "float": float}[types[key]]
+        try:
+            if kind is int and isinstance(value, float) and not value.is_integer():
+                raise ValueError
+            converted = kind(value) if kind is not int else int(float(value))
+        except (TypeError, ValueError):
+            raise InputError(f"{key}: {value!r} is not a {kind.__name__} ({source})") from None
+        if kind is float and converted != converted:
+            raise InputError(f"{key}: NaN is not a value ({source})")
+        if key in ("frames", "attempts") and converted < 1 or key == "hdr_decades" and not 0 <= converted <= 4:
+            raise InputError(f"{key}: {value!r} is out of range ({source})")
+        if key in ("timeout_s", "warmup_interval_s", "warmup_timeout_s", "warmup_threshold", "thickness_mm",
+                   "calibration_max_age_s") and converted <= 0:
+            raise InputError(f"{key}: must be > 0, got {value!r} ({source})")
+        setattr(self, key, converted)
+
+    def save(self) -> Path:
+        """Write only what differs from the defaults, so new defaults reach old installs."""
+        path = self.path()
+        path.parent.mkdir(parents=True, exist_ok=True)
+        defaults = asdict(HostSettings())
+        lines = ["# trimeter host configuration (`trimeter config set --host KEY VALUE`)"]
+        for key, value in asdict(self).items():
+            if value != defaults[key]:
+                lines.append(f"{key} = {_toml_value(value)}")
+        tmp = path.with_suffix(".tmp")
+        tmp.write_text("\n".join(lines) + "\n")
+        os.replace(tmp, path)
+        return path
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+def _toml_value(value) -> str:
+    if isinstance(value, str):
+        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    return repr(value)
