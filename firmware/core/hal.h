@@ -58,6 +58,9 @@ typedef struct hal {
     void (*stepper_dir)(void *ctx, bool positive);             /* [ISR] */
     void (*stepper_step)(void *ctx);                           /* [ISR] */
     bool (*endstop_active)(void *ctx);                         /* [ISR] */
+    /* The driver's stall output (e.g. TMC2209 StallGuard on DIAG): true while the motor is being
+     * stepped against a jam. NULL when the board has none (then only the endstop checks remain). */
+    bool (*stepper_stalled)(void *ctx);                        /* [ISR] */
 
     /* Step timer: after step_timer_start(first_us) the port calls app_step_isr() once the
      * interval has elapsed; the ISR returns the next interval in µs, 0 stops the timer.

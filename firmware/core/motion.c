@@ -7,12 +7,13 @@
  * Moves too short to reach v are triangles (no cruise). Each ISR call computes one T(k) with one
  * integer square root; intervals are differences of exact times, so rounding never accumulates.
  *
- * Stall detection without an encoder uses the only sensor there is, the endstop:
+ * Stall detection without an encoder: the driver's stall output (hal->stepper_stalled, checked
+ * before every pulse) catches a jam anywhere; the endstop adds two checks that need no driver help:
  *   - leaving home: after the homing back-off (and during any move away from home) the endstop
  *     must be released; still active means the carriage did not move;
  *   - re-homing: when the position was known, the endstop must trigger within
  *     stall_tolerance_steps of the believed position; elsewhere steps were lost.
- * A carriage jammed between slots is invisible until the next homing; the README says so. */
+ * Without a stall output, a carriage jammed between slots is invisible until the next homing. */
 #include "motion.h"
 
 #define US_PER_S 1000000ull
@@ -171,9 +172,12 @@ void motion_poll(motion_t *m, uint32_t now_us)
     }
 }
 
+static bool driver_stalled(const hal_t *h) { return h->stepper_stalled && h->stepper_stalled(h->ctx); }
+
 static uint32_t seek_isr(motion_t *m)
 {
     const hal_t *h = m->hal;
+    if (driver_stalled(h)) return latch_fault(m, MOTION_FAULT_STALL);
     if (h->endstop_active(h->ctx)) {
         if (m->was_homed) {
             int32_t error = m->seek_steps - m->believed_position;
@@ -194,6 +198,7 @@ static uint32_t seek_isr(motion_t *m)
 static uint32_t profile_isr(motion_t *m)
 {
     const hal_t *h = m->hal;
+    if (driver_stalled(h)) return latch_fault(m, MOTION_FAULT_STALL);
     if (h->endstop_active(h->ctx)) {
         /* The back-off starts on the switch: it must have let go by the time the carriage is
          * half-way out; a normal move must never see it at all. */

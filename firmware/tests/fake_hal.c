@@ -34,6 +34,7 @@ static void f_step(void *ctx)
     if (f->record_pulses && f->pulses < FAKE_MAX_PULSES) f->pulse_times_us[f->pulses] = f->now_us;
     f->pulses++;
     if (f->enabled && !f->stuck) f->carriage_steps += f->dir_away ? 1 : -1;
+    f->stalled = f->enabled && f->stuck;
     if (f->carriage_steps < f->hard_stop_steps) f->carriage_steps = f->hard_stop_steps;
 }
 
@@ -41,6 +42,12 @@ static bool f_endstop(void *ctx)
 {
     fake_hal_t *f = ctx;
     return !f->endstop_broken && f->carriage_steps <= f->endstop_steps;
+}
+
+static bool f_stalled(void *ctx)
+{
+    fake_hal_t *f = ctx;
+    return f->has_stall_output && f->stalled;
 }
 
 static void f_timer_start(void *ctx, uint32_t first_us)
@@ -138,6 +145,7 @@ fake_hal_t *fake_hal_new(void)
         .stepper_dir = f_dir,
         .stepper_step = f_step,
         .endstop_active = f_endstop,
+        .stepper_stalled = f_stalled,
         .step_timer_start = f_timer_start,
         .step_timer_stop = f_timer_stop,
         .servo_pulse_us = f_servo,

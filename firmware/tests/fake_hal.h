@@ -27,6 +27,8 @@ typedef struct fake_hal {
     int32_t endstop_steps;
     int32_t hard_stop_steps;    /* the carriage can't go below this (mechanical end); pulses lost */
     bool stuck;                 /* pulses don't move the carriage */
+    bool has_stall_output;      /* the driver reports stepping against a jam (hal.stepper_stalled) */
+    bool stalled;
     bool endstop_broken;        /* endstop never active */
     uint32_t pulses;
     uint64_t *pulse_times_us;   /* FAKE_MAX_PULSES entries, one per pulse while recording */

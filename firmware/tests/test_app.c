@@ -213,6 +213,15 @@ static void test_stuck_slider_is_a_stall(void)
     CHECK_EQ_INT(command(TRIMETER_COMMAND_GOTO_OPEN), MB_OK);
     CHECK(run_until_idle(30000));
     CHECK_EQ_INT(ir(REG_IR_FAULT_CODE), TRIMETER_FAULT_STALL);
+    /* jammed between slots: only the driver's stall output can tell */
+    fresh_device();
+    f->has_stall_output = true;
+    home_device();
+    f->stuck = true;
+    CHECK_EQ_INT(command(TRIMETER_COMMAND_GOTO_WHITE), MB_OK);
+    CHECK(run_until_idle(30000));
+    CHECK_EQ_INT(ir(REG_IR_FAULT_CODE), TRIMETER_FAULT_STALL);
+    CHECK(di(REG_DI_FAULT));
 }
 
 static void test_config_validation(void)

@@ -168,6 +168,29 @@ static void test_rehoming_detects_lost_steps(void)
     CHECK(m.homed);
 }
 
+static void test_driver_stall_output_catches_a_jam_mid_travel(void)
+{
+    setup(5000);
+    motion_home(&m);
+    run(30000000);
+    CHECK_EQ_INT(motion_move_to(&m, 6000), MOTION_OK);
+    run(30000000);
+    /* without a stall output a jam between slots goes unnoticed ... */
+    f->stuck = true;
+    CHECK_EQ_INT(motion_move_to(&m, 8000), MOTION_OK);
+    run(30000000);
+    CHECK_EQ_INT(m.fault, MOTION_FAULT_NONE);
+    CHECK_EQ_INT(f->carriage_steps, 6000);
+    /* ... with one, the first pulse after the jam stops the move */
+    f->has_stall_output = true;
+    uint32_t pulses = f->pulses;
+    CHECK_EQ_INT(motion_move_to(&m, 9000), MOTION_OK);
+    run(30000000);
+    CHECK_EQ_INT(m.fault, MOTION_FAULT_STALL);
+    CHECK(f->pulses - pulses <= 1); /* at the latest on the first pulse after the jam */
+    CHECK(!m.homed);
+}
+
 static void test_stop_during_homing_leaves_unhomed(void)
 {
     setup(5000);
@@ -189,6 +212,7 @@ int main(void)
     RUN_TEST(test_endstop_hit_outside_homing);
     RUN_TEST(test_stuck_carriage_on_the_endstop_is_a_stall);
     RUN_TEST(test_rehoming_detects_lost_steps);
+    RUN_TEST(test_driver_stall_output_catches_a_jam_mid_travel);
     RUN_TEST(test_stop_during_homing_leaves_unhomed);
     fake_hal_free(f);
     return CHECK_SUMMARY();

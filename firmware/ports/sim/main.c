@@ -103,6 +103,7 @@ static void h_enable(void *ctx, bool on) { (void)ctx; sim.plant.stepper_enabled 
 static void h_dir(void *ctx, bool positive) { (void)ctx; sim.plant.dir_positive = positive; }
 static void h_step(void *ctx) { (void)ctx; plant_step(&sim.plant); }
 static bool h_endstop(void *ctx) { (void)ctx; return plant_endstop(&sim.plant); }
+static bool h_stalled(void *ctx) { (void)ctx; return sim.plant.driver_stalled; }
 
 static void h_timer_start(void *ctx, uint32_t first_us)
 {
@@ -177,6 +178,7 @@ static const hal_t sim_hal = {
     .stepper_dir = h_dir,
     .stepper_step = h_step,
     .endstop_active = h_endstop,
+    .stepper_stalled = h_stalled,
     .step_timer_start = h_timer_start,
     .step_timer_stop = h_timer_stop,
     .servo_pulse_us = h_servo,

@@ -43,6 +43,7 @@ void plant_update(plant_t *p, uint64_t now_us)
 
 void plant_step(plant_t *p)
 {
+    p->driver_stalled = p->stepper_enabled && p->stuck_slider;
     if (!p->stepper_enabled || p->stuck_slider) return;
     int64_t next = p->position_steps + (p->dir_positive ? 1 : -1);
     if (next >= p->min_steps && next <= p->max_steps) p->position_steps = next; /* else: against the end */

@@ -24,6 +24,7 @@ typedef struct plant {
     bool button_held;          /* set{"button":true} */
     uint64_t button_release_us;/* press_button: pressed until this time */
     bool stuck_slider;
+    bool driver_stalled;       /* the driver's stall output: stepping against the jam */
     bool endstop_broken;
     uint64_t last_update_us;
 } plant_t;

@@ -83,6 +83,7 @@ static void gpio_init(void)
     PIN_INIT(STEPPER_DIR, MODE_OUTPUT);
     PIN_INIT(STEPPER_ENABLE, MODE_OUTPUT);
     PIN_INIT(ENDSTOP, MODE_INPUT);
+    PIN_INIT(STEPPER_DIAG, MODE_INPUT);
     PIN_INIT(BUTTON, MODE_INPUT);
     PIN_INIT(STATUS_LED, MODE_OUTPUT);
     PIN_INIT(SERVO_PANEL_LEFT, MODE_AF);
@@ -289,6 +290,7 @@ static void h_step(void *ctx)
 }
 
 static bool h_endstop(void *ctx) { (void)ctx; return PIN_ASSERTED(ENDSTOP); }
+static bool h_stalled(void *ctx) { (void)ctx; return PIN_ASSERTED(STEPPER_DIAG); }
 static bool h_button(void *ctx) { (void)ctx; return PIN_ASSERTED(BUTTON); }
 static void h_status(void *ctx, bool on) { (void)ctx; PIN_SET(STATUS_LED, on); }
 static void h_kick(void *ctx) { (void)ctx; IWDG_KR = 0xAAAAu; }
@@ -311,6 +313,7 @@ static const hal_t board_hal = {
     .stepper_dir = h_dir,
     .stepper_step = h_step,
     .endstop_active = h_endstop,
+    .stepper_stalled = h_stalled,
     .step_timer_start = h_timer_start,
     .step_timer_stop = h_timer_stop,
     .servo_pulse_us = h_servo,
