@@ -29,7 +29,7 @@ enum hal_led {
 
 /* Storage regions. Semantics are NOR flash: erase sets a whole region to 0xFF, a write can only
  * clear bits, and a power cut may stop an erase or a write after any byte. Sizes are fixed so the
- * layout is the same on every port (the STM32 maps them onto flash sectors 2, 3, 6, 7). */
+ * layout is the same on every port (the STM32 maps them onto flash sectors 2, 3, 5, 6). */
 enum hal_region {
     HAL_REGION_CONFIG_A = 0,
     HAL_REGION_CONFIG_B = 1,
@@ -44,7 +44,8 @@ typedef struct hal {
     void *ctx;
 
     /* Modbus UART. read returns the bytes available now (0 if none); write queues up to len
-     * bytes and returns how many it took (the core retries the rest on the next poll). */
+     * bytes and returns how many it took. The port must be able to queue one whole reply
+     * (MB_ADU_MAX = 256 bytes) at once: the core hands over each reply in a single call. */
     size_t (*uart_read)(void *ctx, uint8_t *buf, size_t max);
     size_t (*uart_write)(void *ctx, const uint8_t *buf, size_t len);
 

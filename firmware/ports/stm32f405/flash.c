@@ -7,7 +7,7 @@
 
 #include "regs.h"
 
-#define FLASH_BUSY_LIMIT 50000000u /* loop turns: longer than a worst-case 128 KiB erase (4 s) */
+#define FLASH_BUSY_LIMIT 50000000u /* loop turns: longer than a worst-case 128 KiB erase (2 s at x32) */
 
 static const struct {
     uint32_t address;
@@ -78,7 +78,8 @@ int flash_region_erase(void *ctx, enum hal_region r)
     if ((unsigned)r >= HAL_REGION_COUNT) return -1;
     int rc = wait_idle();
     unlock();
-    FLASH_CR = FLASH_CR_PSIZE_X8 | FLASH_CR_SER | ((uint32_t)regions[r].sector << FLASH_CR_SNB_SHIFT);
+    /* x32 parallelism erases twice as fast as x8 (needs 2.7-3.6 V, as the board has) */
+    FLASH_CR = FLASH_CR_PSIZE_X32 | FLASH_CR_SER | ((uint32_t)regions[r].sector << FLASH_CR_SNB_SHIFT);
     FLASH_CR |= FLASH_CR_STRT;
     if (rc == 0) rc = wait_idle();
     lock();

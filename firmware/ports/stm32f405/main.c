@@ -190,6 +190,9 @@ void TIM5_IRQHandler(void)
     } else {
         /* The counter restarted at 0 on this update; ARR (not preloaded) applies to this period. */
         TIM_ARR(TIM5_BASE) = (next < 2u ? 2u : next) - 1u;
+        /* Already past it (the ISR itself took longer than the interval)? Without this the
+         * counter would run on to 2^32 µs: fire the update now instead. */
+        if (TIM_CNT(TIM5_BASE) >= TIM_ARR(TIM5_BASE)) TIM_EGR(TIM5_BASE) = TIM_EGR_UG;
     }
 }
 
@@ -299,7 +302,8 @@ static void watchdog_init(void)
 {
     IWDG_KR = 0x5555u; /* unlock PR/RLR */
     IWDG_PR = 4u;      /* LSI 32 kHz / 64 = 500 Hz */
-    IWDG_RLR = 1000u;  /* 2 s: covers a 128 KiB sector erase (1-2 s typ.), kicked around it */
+    IWDG_RLR = 2000u;  /* 4 s: longer than a 128 KiB sector erase at x32 (1 s typ., 2 s max), during
+                        * which the CPU stalls and can't kick it */
     IWDG_KR = 0xAAAAu;
     IWDG_KR = 0xCCCCu; /* start; it can't be stopped again */
 }

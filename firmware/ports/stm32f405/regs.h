@@ -42,6 +42,7 @@
 #define FLASH_CR_SER (1u << 1)
 #define FLASH_CR_SNB_SHIFT 3
 #define FLASH_CR_PSIZE_X8 (0u << 8)
+#define FLASH_CR_PSIZE_X32 (2u << 8)
 #define FLASH_CR_STRT (1u << 16)
 #define FLASH_CR_LOCK (1u << 31)
 
