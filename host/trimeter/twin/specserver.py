@@ -68,7 +68,7 @@ class SpectrometerServer:
         return f"ERR unknown command or wrong arguments: {line.strip()[:40]!r}"
 
     def _serve(self) -> None:
-        buffer = b""
+        buffer, discarding = b"", False
         while True:
             ready, _, _ = select.select([self._master, self._wake_r], [], [])
             if self._wake_r in ready:
@@ -79,12 +79,16 @@ class SpectrometerServer:
             buffer += data
             while b"\n" in buffer:
                 raw, _, buffer = buffer.partition(b"\n")
-                line = raw.decode("ascii", errors="replace")
-                reply = "ERR line too long" if len(raw) > MAX_LINE else self.handle(line)
-                write_all(self._master, reply.encode("ascii") + b"\n")
-            if len(buffer) > MAX_LINE:  # garbage without a newline: drop it, answer once
-                buffer = b""
+                if discarding:  # the tail of an over-long line, already answered
+                    discarding = False
+                    continue
+                reply = "ERR line too long" if len(raw) > MAX_LINE else self.handle(raw.decode("ascii", "replace"))
+                write_all(self._master, reply.encode("ascii", "backslashreplace") + b"\n")
+            if len(buffer) > MAX_LINE and not discarding:  # garbage without a newline: answer once, skip to "\n"
+                buffer, discarding = b"", True
                 write_all(self._master, b"ERR line too long\n")
+            elif discarding:
+                buffer = b""
 
     def close(self) -> None:
         if self._wake_w is None:
