@@ -144,6 +144,18 @@ void USART1_IRQHandler(void)
     }
 }
 
+/* Also push bytes from the main loop: QEMU's USART never raises the TXE interrupt (only RXNE), and
+ * on the board this merely refills the data register early. IRQs off so the ISR can't pop too. */
+static void uart_tx_pump(void)
+{
+    __asm__ volatile("cpsid i" ::: "memory");
+    while (tx_tail != tx_head && (USART1_SR & USART_SR_TXE)) {
+        USART1_DR = tx_buf[tx_tail];
+        tx_tail = (tx_tail + 1u) % UART_BUF;
+    }
+    __asm__ volatile("cpsie i" ::: "memory");
+}
+
 static void uart_init(uint32_t baud)
 {
     RCC_APB2ENR |= RCC_APB2ENR_USART1;
@@ -341,5 +353,8 @@ int main(void)
     const app_t *app = app_get();
     pwm_setup(app->cfg.led_pwm_hz);
     uart_init(app->cfg.modbus_baud);
-    for (;;) app_poll();
+    for (;;) {
+        app_poll();
+        uart_tx_pump();
+    }
 }
