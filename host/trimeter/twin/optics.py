@@ -4,7 +4,7 @@ Everything is vectorised over the spectrometer's pixels. The data (materials, ba
 sources, spectrometer) is declared once in host/trimeter/data/materials.toml.
 
 What the spectrometer sees for a plant state (counts/s per pixel, before noise):
-    panels  = n_open_panel_shutters/2 · panel_level · E_d(λ, heat)        (diffuse light)
+    panels  = Σ_{left,right} shutter_open · led_level / 2 · E_d(λ, heat)   (diffuse light)
     beam    = collimated_shutter_open · collimated_level · E_c(λ, heat)
     black slot (or between slots):  panels · (I_b  | ρ_black without a sample)
     white slot:                     panels · (I_w  | ρ_white)
@@ -234,10 +234,12 @@ class Optics:
     def rate(self, plant: dict, lamp_failure: str | None = None) -> np.ndarray:
         """Light on the spectrometer (counts/s per pixel, before noise) for one plant state."""
         shutters, leds = plant.get("shutters", {}), plant.get("leds", {})
-        open_panels = sum(bool(shutters.get(k, {}).get("open")) for k in ("panel_left", "panel_right"))
-        panel_level = 0.0 if lamp_failure in ("panels", "both") else float(leds.get("panels", 0.0))
+        # Each panel lights the sample through its own shutter; both open at full level = the diffuse spectrum.
+        panels_lit = 0.0 if lamp_failure in ("panels", "both") else sum(
+            float(bool(shutters.get(k, {}).get("open"))) * float(leds.get(k, leds.get("panels", 0.0)))
+            for k in ("panel_left", "panel_right")) / 2.0
         beam_level = 0.0 if lamp_failure in ("collimated", "both") else float(leds.get("collimated", 0.0))
-        diffuse = (open_panels / 2.0) * panel_level * self.panels.spectrum()
+        diffuse = panels_lit * self.panels.spectrum()
         beam = float(bool(shutters.get("collimated", {}).get("open"))) * beam_level * self.collimated.spectrum()
         slot, s = plant.get("slot"), self.sample
         if slot == "white":

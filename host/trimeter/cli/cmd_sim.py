@@ -1,0 +1,77 @@
+"""`trimeter sim`: run the twin (simulated instrument) and print the ports to use, until Ctrl-C.
+
+Contract: host/trimeter/twin/README.md. In another terminal:
+    trimeter measure --port /dev/pts/N --spectrometer sim:/dev/pts/M
+and drive the virtual instrument through its control socket (trimeter.twin.TwinClient).
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+import sys
+import threading
+
+from trimeter.errors import InputError
+
+
+def run(args) -> int:
+    from trimeter.twin import FaultConfig, Twin
+    from trimeter.twin.optics import material_names
+
+    if args.list_materials:
+        for name, description in material_names().items():
+            print(f"{name:14s} {description}")
+        return 0
+    if args.thickness <= 0:
+        raise InputError(f"--thickness must be positive, got {args.thickness:g}")
+    faults = FaultConfig.parse(args.faults or "")
+    state_dir = args.state_dir
+    if state_dir is None:
+        import platformdirs
+
+        state_dir = platformdirs.user_state_dir("trimeter") + "/twin"
+
+    stop = threading.Event()
+    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        with Twin(sample=args.sample, thickness_mm=args.thickness, time_scale=args.time_scale, faults=faults,
+                  state_dir=state_dir, appearance_map=args.map, seed=args.seed, white=args.white) as twin:
+            ports = twin.control.ports()
+            if args.json:
+                print(json.dumps(ports), flush=True)
+            else:
+                print(f"modbus:       {ports['modbus_port']}")
+                print(f"spectrometer: {ports['spectrometer_url']}")
+                print(f"control:      {ports['control_path']}")
+                print(f"sample:       {args.sample or 'none'}  time scale {args.time_scale:g}x  state {twin.state_dir}")
+                print("running; Ctrl-C to stop", flush=True)
+            while not stop.wait(0.5):
+                if not twin.running:
+                    print("trimeter sim: the firmware sim exited; see firmware.log in the state directory",
+                          file=sys.stderr)
+                    return 1
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    return 0
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("sim", help="run the simulated instrument (twin) and print its ports",
+                              description=__doc__)
+    p.add_argument("--sample", metavar="MATERIAL", default=None,
+                   help="virtual sample inserted at start (default: none; see --list-materials)")
+    p.add_argument("--thickness", type=float, default=0.4, metavar="MM", help="sample thickness (default 0.4)")
+    p.add_argument("--faults", metavar="LIST", default="",
+                   help="e.g. corrupt=0.01,drop=0.02,late=0.01,reset_at=STEP,stuck_slider,lamp_failure")
+    p.add_argument("--time-scale", type=float, default=1.0, metavar="K", help="simulated time runs K× wall time")
+    p.add_argument("--state-dir", default=None, metavar="DIR",
+                   help="firmware storage + links (default: the platformdirs state directory); reuse it to keep config")
+    p.add_argument("--map", default=None, metavar="PATH",
+                   help="appearance map for the sample's thickness (default: the shipped device maps)")
+    p.add_argument("--white", default="white", choices=("white", "ptfe"), help="white background material")
+    p.add_argument("--seed", type=int, default=None, help="noise seed (reproducible spectra)")
+    p.add_argument("--json", action="store_true", help="print the ports as one JSON line")
+    p.add_argument("--list-materials", action="store_true", help="list the virtual samples and exit")
+    p.set_defaults(func=run)

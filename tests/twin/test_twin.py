@@ -1,0 +1,225 @@
+"""The whole twin: the real firmware sim behind the fault proxy, the spectrometer pty, the control socket.
+
+Modbus is spoken with hand-built RTU frames here (no pymodbus: the twin is tested below the device client).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import struct
+import subprocess
+import sys
+import threading
+import time
+import tty
+
+import numpy as np
+import pytest
+
+from trimeter import registers
+from trimeter.errors import DeviceError, InputError
+from trimeter.spectrometer import open_spectrometer
+from trimeter.twin import FaultConfig, Twin, TwinClient
+
+
+def crc16(frame: bytes) -> bytes:
+    crc = 0xFFFF
+    for byte in frame:
+        crc ^= byte
+        for _ in range(8):
+            crc = (crc >> 1) ^ 0xA001 if crc & 1 else crc >> 1
+    return struct.pack("<H", crc)
+
+
+class Rtu:
+    """Minimal RTU master over the twin's Modbus pty."""
+
+    def __init__(self, port, timeout=1.0):
+        self.timeout = timeout
+        self.fd = os.open(port, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+        tty.setraw(self.fd)
+
+    def transact(self, pdu: bytes, reply_len: int) -> bytes | None:
+        frame = b"\x01" + pdu
+        os.write(self.fd, frame + crc16(frame))
+        data, deadline = b"", time.monotonic() + self.timeout
+        while len(data) < reply_len + 3 and time.monotonic() < deadline:
+            try:
+                data += os.read(self.fd, 256)
+            except BlockingIOError:
+                time.sleep(0.001)
+        time.sleep(0.005)  # inter-frame silence, so the proxy sees the next request as new
+        if len(data) != reply_len + 3 or crc16(data[:-2]) != data[-2:]:
+            return None
+        return data[1:-2]
+
+    def read_input(self, address: int, count: int) -> list[int] | None:
+        reply = self.transact(struct.pack(">BHH", 4, address, count), 2 + 2 * count)
+        return list(struct.unpack(f">{count}H", reply[2:])) if reply else None
+
+    def write_coils(self, address: int, values: list[bool]) -> bool:
+        bits = sum(int(v) << i for i, v in enumerate(values))
+        nbytes = (len(values) + 7) // 8
+        pdu = struct.pack(">BHHB", 15, address, len(values), nbytes) + bits.to_bytes(nbytes, "little")
+        return self.transact(pdu, 5) is not None
+
+    def close(self):
+        os.close(self.fd)
+
+
+def _find(name):
+    """A register's address, from the generated register map."""
+    for value in vars(registers).values():
+        if isinstance(value, (list, tuple)):
+            for r in value:
+                if getattr(r, "name", None) == name:
+                    return r.address
+    raise KeyError(name)
+
+
+def _children():
+    """PIDs of our live child processes (zombies excluded)."""
+    me, kids = os.getpid(), []
+    for pid in filter(str.isdigit, os.listdir("/proc")):
+        try:
+            with open(f"/proc/{pid}/stat") as f:
+                fields = f.read().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == me and fields[0] != "Z":
+            kids.append(int(pid))
+    return kids
+
+
+def test_start_stop_leaves_no_process_thread_fd_or_link(ideal_map, tmp_path):
+    fds_before, threads_before = set(os.listdir("/proc/self/fd")), threading.active_count()
+    starts, stops = [], []
+    for i in range(3):
+        t0 = time.perf_counter()
+        twin = Twin(time_scale=20, appearance_map=ideal_map, state_dir=tmp_path / "twin").start()
+        starts.append(time.perf_counter() - t0)
+        pid = twin._process.pid
+        assert os.path.realpath(tmp_path / "twin" / "modbus") == twin.modbus_port
+        t0 = time.perf_counter()
+        twin.close()
+        stops.append(time.perf_counter() - t0)
+        assert twin._process.poll() == 0  # exited cleanly on SIGTERM, and reaped
+        assert not os.path.exists(f"/proc/{pid}")
+    assert _children() == []
+    assert threading.active_count() == threads_before
+    assert set(os.listdir("/proc/self/fd")) == fds_before
+    assert not (tmp_path / "twin" / "modbus").exists() and not (tmp_path / "twin" / "spectrometer").exists()
+    assert (tmp_path / "twin" / "storage.bin").exists()  # kept: config persists across restarts
+    print(f"twin start {np.median(starts) * 1e3:.0f} ms, stop {np.median(stops) * 1e3:.0f} ms (median of 3)")
+
+
+def test_a_bad_sample_fails_before_anything_is_launched(ideal_map):
+    with pytest.raises(InputError, match="sample must be one of"):
+        Twin(sample="unobtainium", appearance_map=ideal_map).start()
+    assert _children() == []
+
+
+def test_modbus_through_the_proxy_and_the_spectrometer_follow_the_plant(ideal_map):
+    with Twin(time_scale=20, appearance_map=ideal_map, seed=3) as twin:
+        rtu = Rtu(twin.modbus_port)
+        try:
+            ident = rtu.read_input(_find("vendor_id"), 5)
+            assert ident == [registers.VENDOR_ID, registers.MODEL_ID, *registers.FIRMWARE_VERSION]
+            with open_spectrometer(twin.spectrometer_url) as spec:
+                spec.integration_time_us = 200_000
+                dark = spec.intensities()
+                # open both panel shutters and light both panels (coils 0,1 and 3,4)
+                assert rtu.write_coils(_find("shutter_panel_left_open"), [True, True, False, True, True, False])
+                deadline = time.monotonic() + 5
+                while not all(twin.control.state()["plant"]["shutters"][k]["open"] for k in ("panel_left", "panel_right")):
+                    assert time.monotonic() < deadline, "shutters never opened"
+                    time.sleep(0.02)
+                lit = spec.intensities()
+                state = twin.control.state()
+                assert state["plant"]["slot"] is None  # unhomed carriage between slots: the black slider body
+                expected = twin.optics.panels.spectrum() * twin.optics.rho_black * 0.2
+                band = expected > 1000
+                np.testing.assert_allclose((lit - dark)[band] / expected[band], 1.0, atol=0.1)
+                assert state["spectrometer"]["acquisitions"] == 2
+                twin.control.set_fault(lamp_failure="panels")
+                failed = spec.intensities()
+                assert np.abs(failed - dark)[band].mean() < 10  # the lamp failure leaves only dark counts
+        finally:
+            rtu.close()
+
+
+def test_reset_at_reboots_the_firmware_at_that_request(ideal_map):
+    with Twin(time_scale=20, appearance_map=ideal_map, faults=FaultConfig(reset_at=4)) as twin:
+        rtu = Rtu(twin.modbus_port)
+        try:
+            frames = [rtu.read_input(_find("modbus_frames_ok"), 1)[0] for _ in range(6)]
+        finally:
+            rtu.close()
+        # frames_ok counts up, then restarts from zero: RAM state was lost at the 4th request
+        assert frames[:3] == sorted(frames[:3]) and frames[3] < frames[2]
+        assert twin.control.state()["counters"]["requests"] == 6
+
+
+def test_corrupted_link_fails_some_transactions_and_counts_the_bytes(ideal_map):
+    with Twin(time_scale=20, appearance_map=ideal_map, faults=FaultConfig(corrupt=0.05), seed=7) as twin:
+        rtu = Rtu(twin.modbus_port, timeout=0.15)
+        try:
+            ok = sum(rtu.read_input(_find("vendor_id"), 1) == [registers.VENDOR_ID] for _ in range(40))
+        finally:
+            rtu.close()
+        counters = twin.control.state()["counters"]
+        # 8-byte request + 7-byte reply at 5 % per byte: ~46 % of transactions survive
+        assert 5 < ok < 35 and counters["bytes_corrupted"] > 0
+
+
+def test_control_socket_mirrors_the_python_api(ideal_map):
+    with Twin(sample="cyan-ink", time_scale=20, appearance_map=ideal_map) as twin:
+        with TwinClient(twin.control_path) as client:
+            assert client.ports()["modbus_port"] == twin.modbus_port
+            truth = client.truth()
+            np.testing.assert_allclose(truth["alpha"], twin.control.truth()["alpha"])
+            assert truth["name"] == "cyan-ink" and len(truth["wavelengths_nm"]) == 1024
+            client.insert_sample("milk", 0.4)
+            assert twin.control.state()["sample"] == "milk"
+            t0 = client.sim_time()
+            time.sleep(0.1)
+            assert client.sim_time() > t0 + 0.5  # 20x: 0.1 s wall is ~2 s simulated
+            assert client.set_fault(drop=0.5)["drop"] == 0.5 and twin.faults.drop == 0.5
+            with pytest.raises(DeviceError, match="drop must be a probability"):
+                client.set_fault(drop=7)
+            with pytest.raises(DeviceError, match="unknown fault"):
+                client.set_fault(gremlins=True)
+            assert twin.faults.drop == 0.5  # refused requests change nothing
+            client.press_button()
+            client.remove_sample()
+            assert client.truth() is None
+            raw = client._sock
+            raw.sendall(b"{not json\n")
+            assert json.loads(client._file.readline())["ok"] is False
+            raw.sendall(b'{"cmd":"insert_sample","name":"milk","thickness_mm":0.4,"extra":1}\n')
+            assert "extra" in json.loads(client._file.readline())["error"]
+            assert client.state()["sample"] is None
+
+
+def test_trimeter_sim_prints_ports_and_stops_cleanly_on_sigint(ideal_map, tmp_path):
+    proc = subprocess.Popen([sys.executable, "-m", "trimeter", "sim", "--json", "--time-scale", "20",
+                             "--sample", "magenta-ink", "--map", str(ideal_map.path), "--state-dir", str(tmp_path)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        ports = json.loads(proc.stdout.readline())
+        with TwinClient(ports["control_path"]) as client:
+            assert client.state()["sample"] == "magenta-ink"
+        with open_spectrometer(ports["spectrometer_url"]) as spec:
+            assert spec.description.pixels == 1024
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=10) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert not os.path.exists(ports["control_path"])
+    fw_pids = [p for p in filter(str.isdigit, os.listdir("/proc"))
+               if str(tmp_path) in open(f"/proc/{p}/cmdline", "rb").read().decode(errors="replace")]
+    assert fw_pids == []  # the firmware went with it
