@@ -22,6 +22,7 @@
 #include "plant.h"
 
 #define SLICE_US 1000u           /* the main loop runs at least once per simulated ms */
+#define MAX_CATCH_UP_US 200000u  /* per loop turn; beyond it simulated time slips behind wall × K */
 #define MAX_CLIENTS 8
 #define LINE_MAX_BYTES 4096
 #define STORAGE_BYTES (2u * HAL_CONFIG_REGION_SIZE + 2u * HAL_MAP_REGION_SIZE)
@@ -38,11 +39,13 @@ static struct sim {
     double time_scale;
     struct timespec wall_start;
     uint64_t now_us;     /* simulated, what the HAL reports */
+    uint64_t slipped_us; /* simulated time given up because the host couldn't keep up */
     /* step timer */
     bool timer_running;
     uint64_t timer_due_us;
     /* I/O */
     int pty_master, pty_slave_keepalive;
+    bool pty_readable;   /* poll() saw input; cleared once a read drains it (saves a syscall per slice) */
     int listen_fd;
     client_t clients[MAX_CLIENTS];
     /* storage */
@@ -71,7 +74,9 @@ static void die(const char *what)
 static size_t h_uart_read(void *ctx, uint8_t *buf, size_t max)
 {
     (void)ctx;
+    if (!sim.pty_readable) return 0;
     ssize_t n = read(sim.pty_master, buf, max);
+    if (n <= 0 || (size_t)n < max) sim.pty_readable = false;
     return n > 0 ? (size_t)n : 0;
 }
 
@@ -251,7 +256,14 @@ static uint64_t wall_target_us(void)
     struct timespec t;
     clock_gettime(CLOCK_MONOTONIC, &t);
     double wall_s = (double)(t.tv_sec - sim.wall_start.tv_sec) + (t.tv_nsec - sim.wall_start.tv_nsec) * 1e-9;
-    return (uint64_t)(wall_s * sim.time_scale * 1e6);
+    uint64_t target = (uint64_t)(wall_s * sim.time_scale * 1e6) - sim.slipped_us;
+    /* A slow host (or a huge --time-scale) must not make the loop chase an ever-growing backlog
+     * and stop serving its sockets: let simulated time slip instead. */
+    if (target > sim.now_us + MAX_CATCH_UP_US) {
+        sim.slipped_us += target - (sim.now_us + MAX_CATCH_UP_US);
+        target = sim.now_us + MAX_CATCH_UP_US;
+    }
+    return target;
 }
 
 /* Advances simulated time to `target`, slice by slice, as the MCU would live through it. */
@@ -428,6 +440,7 @@ int main(int argc, char **argv)
             if (sim.clients[i].fd >= 0) fds[nfds++] = (struct pollfd){.fd = sim.clients[i].fd, .events = POLLIN};
         /* Modbus bytes are read by app_poll (mb_poll) in the next slice; only wake up for them here. */
         if (poll(fds, (nfds_t)nfds, 1) < 0 && errno != EINTR) break;
+        if (fds[0].revents & POLLIN) sim.pty_readable = true;
         advance_to(wall_target_us());
         if (fds[1].revents & POLLIN) accept_clients();
         for (int i = 0; i < MAX_CLIENTS; i++) {
