@@ -41,7 +41,7 @@ class ForwardGrid:
                 v[1, 1, 0] - v[1, 0, 0] - v[0, 1, 0] + v[0, 0, 0], v[1, 0, 1] - v[1, 0, 0] - v[0, 0, 1] + v[0, 0, 0],
                 v[0, 1, 1] - v[0, 1, 0] - v[0, 0, 1] + v[0, 0, 0],
                 v[1, 1, 1] - v[1, 1, 0] - v[1, 0, 1] - v[0, 1, 1] + v[1, 0, 0] + v[0, 1, 0] + v[0, 0, 1] - v[0, 0, 0]]
-        self._poly = np.ascontiguousarray(np.stack(poly, axis=-2).reshape(-1, 8, 3))
+        self._poly = np.ascontiguousarray(np.stack(poly, axis=-2).reshape(-1, 24))  # (cell, term·3 + coef)
         self._inv_da = 1.0 / np.diff(self.alpha)
         self._inv_ds = 1.0 / np.diff(self.log_sigma_t)
         self._inv_dg = 1.0 / np.diff(self.g)
@@ -65,8 +65,9 @@ class ForwardGrid:
     # ---------------------------------------------------------------------------------- helpers
     @staticmethod
     def _cell(axis, inv_d, x):
-        i = np.clip(np.searchsorted(axis, x, side="right") - 1, 0, len(axis) - 2)
-        w = np.clip((x - axis[i]) * inv_d[i], 0.0, 1.0)
+        # np.minimum/maximum: np.clip's Python wrapper costs more than the work at N ≈ 1000
+        i = np.minimum(np.maximum(np.searchsorted(axis, x, side="right") - 1, 0), len(axis) - 2)
+        w = np.minimum(np.maximum((x - axis[i]) * inv_d[i], 0.0), 1.0)
         return i, w
 
     def sigma_cell(self, sigma_t) -> SigmaCell:
@@ -81,38 +82,44 @@ class ForwardGrid:
         return collimated_transmittance(sigma_t, self.thickness_mm, self.n, self.cover_slide_n)
 
     def coefficients(self, alpha, cell: SigmaCell, g, with_sigma_derivative=False):
-        """A, B, C (stacked (N, 3)) and their derivatives in α and g (and ln σt if asked)."""
+        """A, B, C stacked (3, N) and their derivatives in α and g (and ln σt if asked), each (3, N).
+        Component-major layout: every operation below runs on contiguous rows of N."""
         ia, wa = self._cell(self.alpha, self._inv_da, alpha)
         ig, wg = self._cell(self.g, self._inv_dg, g)
         ns, ng = self.shape[1] - 1, self.shape[2] - 1
-        P = self._poly[(ia * ns + cell.index) * ng + ig]  # (N, 8, 3)
-        ws, wa_, wg_ = cell.weight[:, None], wa[:, None], wg[:, None]
-        p0 = P[:, 0] + P[:, 2] * ws
-        p1 = P[:, 1] + P[:, 4] * ws
-        p3 = P[:, 3] + P[:, 6] * ws
-        p5 = P[:, 5] + P[:, 7] * ws
-        value = p0 + p1 * wa_ + (p3 + p5 * wa_) * wg_
-        d_alpha = (p1 + p5 * wg_) * self._inv_da[ia][:, None]
-        d_g = (p3 + p5 * wa_) * self._inv_dg[ig][:, None]
+        P = self._poly[(ia * ns + cell.index) * ng + ig].T.copy().reshape(8, 3, -1)  # (term, coef, N)
+        ws = cell.weight
+        p0 = P[0] + P[2] * ws
+        p1 = P[1] + P[4] * ws
+        p3 = P[3] + P[6] * ws
+        p5 = P[5] + P[7] * ws
+        value = p0 + p1 * wa + (p3 + p5 * wa) * wg
+        d_alpha = (p1 + p5 * wg) * self._inv_da[ia]
+        d_g = (p3 + p5 * wa) * self._inv_dg[ig]
         if not with_sigma_derivative:
             return value, d_alpha, d_g
-        d_ws = P[:, 2] + P[:, 4] * wa_ + P[:, 6] * wg_ + P[:, 7] * wa_ * wg_
-        return value, d_alpha, d_g, d_ws * self._inv_ds[cell.index][:, None]
+        d_ws = P[2] + P[4] * wa + (P[6] + P[7] * wa) * wg
+        return value, d_alpha, d_g, d_ws * self._inv_ds[cell.index]
 
     @staticmethod
     def diffuse(coef, rho):
-        """I(ρ) = A + Bρ/(1 − Cρ) and its gradient in (A, B, C), for coef (N, 3) and ρ (N,)."""
-        A, B, C = coef[:, 0], coef[:, 1], coef[:, 2]
-        inv = 1.0 / (1.0 - C * rho)
-        I = A + B * rho * inv
-        return I, np.stack([np.ones_like(A), rho * inv, B * rho * rho * inv * inv], axis=1)
+        """I(ρ) = A + Bρ/(1 − Cρ) and its gradient in (A, B, C) as (dI/dB, dI/dC), coef (3, N)."""
+        A, B, C = coef
+        f = rho / (1.0 - C * rho)
+        return A + B * f, f, B * f * f
+
+    @staticmethod
+    def directional(grad_B, grad_C, d):
+        """dI along one parameter from the (A, B, C) derivatives d (3, N)."""
+        return d[0] + grad_B * d[1] + grad_C * d[2]
 
     def intensities(self, alpha, sigma_t, g, rho_b, rho_w):
         """(I_b, I_w, I_c) by the kernel (for training data and checks; σt clamped to the grid)."""
         cell = self.sigma_cell(sigma_t)
-        coef, _, _ = self.coefficients(np.asarray(alpha, float), cell, np.asarray(g, float))
-        I_b, _ = self.diffuse(coef, np.asarray(rho_b, float))
-        I_w, _ = self.diffuse(coef, np.asarray(rho_w, float))
+        alpha, g = np.broadcast_arrays(np.asarray(alpha, float), np.asarray(g, float))
+        coef, _, _ = self.coefficients(alpha.ravel(), cell, g.ravel())
+        I_b = self.diffuse(coef, np.asarray(rho_b, float))[0]
+        I_w = self.diffuse(coef, np.asarray(rho_w, float))[0]
         return I_b, I_w, self.collimated(sigma_t)
 
     # ----------------------------------------------------------------------------------- solving
@@ -124,17 +131,17 @@ class ForwardGrid:
         for _ in range(iterations):  # fixed count: a vectorised step over all bins, not a per-bin loop
             alpha, g, res = self._newton_step(I_b, I_w, cell, rho_b, rho_w, alpha, g)
         coef, _, _ = self.coefficients(alpha, cell, g)
-        rb, _ = self.diffuse(coef, rho_b)
-        rw, _ = self.diffuse(coef, rho_w)
-        return alpha, g, np.hypot(rb - I_b, rw - I_w)
+        rb = self.diffuse(coef, rho_b)[0] - I_b
+        rw = self.diffuse(coef, rho_w)[0] - I_w
+        return alpha, g, np.sqrt(rb * rb + rw * rw)
 
     def _newton_step(self, I_b, I_w, cell, rho_b, rho_w, alpha, g):
         coef, d_a, d_g = self.coefficients(alpha, cell, g)
-        Ib, grad_b = self.diffuse(coef, rho_b)
-        Iw, grad_w = self.diffuse(coef, rho_w)
+        Ib, fb, hb = self.diffuse(coef, rho_b)
+        Iw, fw, hw = self.diffuse(coef, rho_w)
         rb, rw = Ib - I_b, Iw - I_w
-        j11 = np.einsum("ij,ij->i", grad_b, d_a); j12 = np.einsum("ij,ij->i", grad_b, d_g)
-        j21 = np.einsum("ij,ij->i", grad_w, d_a); j22 = np.einsum("ij,ij->i", grad_w, d_g)
+        j11 = self.directional(fb, hb, d_a); j12 = self.directional(fb, hb, d_g)
+        j21 = self.directional(fw, hw, d_a); j22 = self.directional(fw, hw, d_g)
         # Levenberg-Marquardt on the 2×2 normal equations: stays finite where ∂I/∂g → 0 (α → 0).
         h11 = j11 * j11 + j21 * j21; h22 = j12 * j12 + j22 * j22; h12 = j11 * j12 + j21 * j22
         mu = 1e-9 + 1e-6 * (h11 + h22)
@@ -144,10 +151,11 @@ class ForwardGrid:
         step_a = -(h22 * b1 - h12 * b2) / det
         step_g = -(h11 * b2 - h12 * b1) / det
         # Trust region: a piecewise-trilinear map is only locally linear; cap the step at a few cells.
-        step_a = np.clip(step_a, -0.25, 0.25)
-        step_g = np.clip(step_g, -0.5, 0.5)
-        return (np.clip(alpha + step_a, *self.alpha_range), np.clip(g + step_g, *self.g_range),
-                np.hypot(rb, rw))
+        step_a = np.minimum(np.maximum(step_a, -0.25), 0.25)
+        step_g = np.minimum(np.maximum(step_g, -0.5), 0.5)
+        (a_lo, a_hi), (g_lo, g_hi) = self.alpha_range, self.g_range
+        return (np.minimum(np.maximum(alpha + step_a, a_lo), a_hi), np.minimum(np.maximum(g + step_g, g_lo), g_hi),
+                np.sqrt(rb * rb + rw * rw))
 
     # ------------------------------------------------------------------------------- uncertainty
     def jacobian(self, alpha, sigma_t, g, rho_b, rho_w):
@@ -158,10 +166,10 @@ class ForwardGrid:
         s = np.exp(cell.log_sigma_t)
         J = np.zeros((len(s), 3, 3))
         for row, rho in ((0, rho_b), (1, rho_w)):
-            _, grad = self.diffuse(coef, rho)
-            J[:, row, 0] = np.einsum("ij,ij->i", grad, d_a)
-            J[:, row, 1] = np.einsum("ij,ij->i", grad, d_ls) / s
-            J[:, row, 2] = np.einsum("ij,ij->i", grad, d_g)
+            _, f, h = self.diffuse(coef, rho)
+            J[:, row, 0] = self.directional(f, h, d_a)
+            J[:, row, 1] = self.directional(f, h, d_ls) / s
+            J[:, row, 2] = self.directional(f, h, d_g)
         h = 1e-4
         J[:, 2, 1] = (self.collimated(s * (1 + h)) - self.collimated(s * (1 - h))) / (2 * h * s)
         return J

@@ -23,30 +23,31 @@ class TableInverter:
         self._shape = (ns, ny, nx)
         v = np.stack([table.inverse_alpha, table.inverse_g], -1)  # (ns, ny, nx, 2)
         v00, v01, v10, v11 = v[:, :-1, :-1], v[:, :-1, 1:], v[:, 1:, :-1], v[:, 1:, 1:]
-        # Per inverse cell the bilinear polynomial q0 + q1·fu + q2·fv + q3·fu·fv: one gather per slice.
+        # Per inverse cell the bilinear polynomial q0 + q1·fu + q2·fv + q3·fu·fv (for α and g): one
+        # gather per slice, then component-major rows.
         self._cells = np.ascontiguousarray(
-            np.stack([v00, v01 - v00, v10 - v00, v11 - v10 - v01 + v00], axis=-2).reshape(-1, 4, 2))
+            np.stack([v00, v01 - v00, v10 - v00, v11 - v10 - v01 + v00], axis=-2).reshape(-1, 8))
         f = table.inv_frame.astype(np.float64)
-        self._origin = f[:, :2]
-        self._mu = f[:, 2:4] * (nx - 1)   # row of the frame for u, pre-scaled to grid units
-        self._mv = f[:, 4:6] * (ny - 1)
+        self._ox, self._oy = f[:, 0].copy(), f[:, 1].copy()
+        self._m = [f[:, 2] * (nx - 1), f[:, 3] * (nx - 1), f[:, 4] * (ny - 1), f[:, 5] * (ny - 1)]
 
     def initial_guess(self, I_b, I_w, cell: SigmaCell):
         ns, ny, nx = self._shape
-        x = np.sqrt(np.clip(I_b, 0.0, 1.0))
-        y = np.sqrt(np.clip(I_w, 0.0, 1.0))
+        x = np.sqrt(np.minimum(np.maximum(I_b, 0.0), 1.0))
+        y = np.sqrt(np.minimum(np.maximum(I_w, 0.0), 1.0))
         out = 0.0
+        m00, m01, m10, m11 = self._m
         for dk, wk in ((0, 1.0 - cell.weight), (1, cell.weight)):  # the two bracketing σt nodes
             k = cell.index + dk
-            dx, dy = x - self._origin[k, 0], y - self._origin[k, 1]
-            u = np.clip(self._mu[k, 0] * dx + self._mu[k, 1] * dy, 0.0, nx - 1.0)
-            v = np.clip(self._mv[k, 0] * dx + self._mv[k, 1] * dy, 0.0, ny - 1.0)
+            dx, dy = x - self._ox[k], y - self._oy[k]
+            u = np.minimum(np.maximum(m00[k] * dx + m01[k] * dy, 0.0), nx - 1.0)
+            v = np.minimum(np.maximum(m10[k] * dx + m11[k] * dy, 0.0), ny - 1.0)
             iu = np.minimum(u.astype(np.intp), nx - 2)
             iv = np.minimum(v.astype(np.intp), ny - 2)
-            fu, fv = (u - iu)[:, None], (v - iv)[:, None]
-            q = self._cells[(k * (ny - 1) + iv) * (nx - 1) + iu]
-            out = out + (q[:, 0] + q[:, 1] * fu + (q[:, 2] + q[:, 3] * fu) * fv) * wk[:, None]
-        return out[:, 0], out[:, 1]
+            fu, fv = u - iu, v - iv
+            q = self._cells[(k * (ny - 1) + iv) * (nx - 1) + iu].T.copy().reshape(4, 2, -1)
+            out = out + (q[0] + q[1] * fu + (q[2] + q[3] * fu) * fv) * wk
+        return out[0], out[1]
 
     def invert(self, I_b, I_w, sigma_t, rho_b, rho_w, polish_iterations=3):
         """(α, g, residual) for bins with σt already known (from I_c)."""
@@ -54,7 +55,7 @@ class TableInverter:
         alpha, g = self.initial_guess(I_b, I_w, cell)
         if polish_iterations <= 0:
             coef, _, _ = self.grid.coefficients(alpha, cell, g)
-            rb, _ = self.grid.diffuse(coef, rho_b)
-            rw, _ = self.grid.diffuse(coef, rho_w)
-            return alpha, g, np.hypot(rb - I_b, rw - I_w)
+            rb = self.grid.diffuse(coef, rho_b)[0] - I_b
+            rw = self.grid.diffuse(coef, rho_w)[0] - I_w
+            return alpha, g, np.sqrt(rb * rb + rw * rw)
         return self.grid.solve_alpha_g(I_b, I_w, cell, rho_b, rho_w, alpha, g, iterations=polish_iterations)

@@ -284,8 +284,7 @@ def build_from_map(amap, n_xy: int | None = None, budget: int = MAX_TABLE_BYTES,
     for k in range(ns):  # one KD-tree per σt node (build time only)
         cell = grid.sigma_cell(np.full(aa.shape, amap.sigma_t[k]))
         coef, _, _ = grid.coefficients(aa, cell, gg)
-        xy = np.sqrt(np.clip(np.column_stack([grid.diffuse(coef, np.full(aa.shape, rho_b))[0],
-                                              grid.diffuse(coef, np.full(aa.shape, rho_w))[0]]), 0, None))
+        xy = np.sqrt(np.clip(np.column_stack([grid.diffuse(coef, rho_b)[0], grid.diffuse(coef, rho_w)[0]]), 0, None))
         frame = _gamut_frame(xy)
         frames[k] = frame
         uu, vv = np.meshgrid(uv, uv)  # (n_y, n_x): u along x-index, v along y-index

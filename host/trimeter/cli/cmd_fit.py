@@ -1,0 +1,141 @@
+"""`trimeter fit`: measured intensities (CSV) → α, σt [1/mm], g per wavelength (CSV or JSON).
+
+    trimeter fit --map MAP [--map MAP2] --input meas.csv [--method lut|mlp|paper] [-o params.csv] [--json]
+
+Input columns: wavelength_nm, I_b, I_w, I_c; optional rho_b, rho_w (per-wavelength backgrounds;
+default: the map's reference backgrounds) and thickness_mm (required with two maps: tells which rows
+belong to which map; both thicknesses must cover the same wavelengths). Empty cells and "nan" are
+missing values: those bins come back flagged with NaN results, the others are unaffected.
+Output columns: wavelength_nm, alpha, sigma_t, g, alpha_std, sigma_t_std, g_std, flags, sigma_t_beer
+(flags: trimeter.inversion.flags.FitFlag bits; the JSON form also names them).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from trimeter.errors import InputError
+
+REQUIRED = ("wavelength_nm", "I_b", "I_w", "I_c")
+OPTIONAL = ("rho_b", "rho_w", "thickness_mm")
+OUTPUT = ("wavelength_nm", "alpha", "sigma_t", "g", "alpha_std", "sigma_t_std", "g_std", "flags", "sigma_t_beer")
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("fit", help="invert measured I_b, I_w, I_c to alpha, sigma_t, g per wavelength",
+                              description=__doc__.split("\n\n")[0])
+    p.add_argument("--map", dest="maps", action="append", required=True,
+                   help="appearance map (file or shipped name); give twice for two thicknesses")
+    p.add_argument("--input", required=True, type=Path, help="CSV with wavelength_nm,I_b,I_w,I_c[,rho_b,rho_w,thickness_mm]")
+    p.add_argument("--method", choices=("lut", "mlp", "paper"), default="lut")
+    p.add_argument("-o", "--output", type=Path, help="output CSV (default: stdout)")
+    p.add_argument("--json", action="store_true", help="print JSON instead of CSV")
+    p.set_defaults(func=run)
+
+
+def read_measurements(path: Path) -> dict[str, np.ndarray]:
+    try:
+        text = path.read_text(encoding="utf-8-sig")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"--input {path}: cannot read ({getattr(exc, 'strerror', None) or exc})") from None
+    reader = csv.DictReader(line for line in text.splitlines() if line.strip() and not line.lstrip().startswith("#"))
+    header = [h.strip() for h in (reader.fieldnames or [])]
+    missing = [c for c in REQUIRED if c not in header]
+    if missing:
+        raise InputError(f"--input {path}: missing column(s) {', '.join(missing)} (have: {', '.join(header) or 'none'})")
+    columns = {c: [] for c in REQUIRED + OPTIONAL if c in header}
+    for row_no, row in enumerate(reader, start=2):
+        row = {(k or "").strip(): v for k, v in row.items()}
+        for c in columns:
+            cell = (row.get(c) or "").strip()
+            try:
+                columns[c].append(float(cell) if cell else math.nan)
+            except ValueError:
+                raise InputError(f"--input {path}: line {row_no}, column {c}: {cell!r} is not a number") from None
+    data = {c: np.array(v, dtype=float) for c, v in columns.items()}
+    if not len(data["wavelength_nm"]):
+        raise InputError(f"--input {path}: no data rows")
+    if not np.all(np.isfinite(data["wavelength_nm"])):
+        raise InputError(f"--input {path}: column wavelength_nm has an empty or non-finite value")
+    return data
+
+
+def _split_thicknesses(data, amaps, path):
+    """Per map, the row indices that belong to it (sorted by wavelength)."""
+    n = len(data["wavelength_nm"])
+    if len(amaps) == 1:
+        if "thickness_mm" in data:
+            t = data["thickness_mm"]
+            if np.any(np.isfinite(t) & (np.abs(t - amaps[0].thickness_mm) > 1e-6 * max(1.0, amaps[0].thickness_mm))):
+                raise InputError(f"--input {path}: column thickness_mm has rows not matching the map's "
+                                 f"thickness {amaps[0].thickness_mm:g} mm")
+        return [np.argsort(data["wavelength_nm"], kind="stable")]
+    if "thickness_mm" not in data:
+        raise InputError(f"--input {path}: with {len(amaps)} maps the column thickness_mm must say which rows belong to which")
+    groups, used = [], np.zeros(n, bool)
+    for amap in amaps:
+        rows = np.flatnonzero(np.abs(data["thickness_mm"] - amap.thickness_mm) <= 1e-6 * max(1.0, amap.thickness_mm))
+        if not len(rows):
+            raise InputError(f"--input {path}: no rows with thickness_mm = {amap.thickness_mm:g} (map {amap.name})")
+        used[rows] = True
+        groups.append(rows[np.argsort(data["wavelength_nm"][rows], kind="stable")])
+    if not used.all():
+        raise InputError(f"--input {path}: {int((~used).sum())} row(s) have a thickness_mm matching none of the maps")
+    ref = data["wavelength_nm"][groups[0]]
+    for rows, amap in zip(groups[1:], amaps[1:]):
+        if len(rows) != len(ref) or not np.allclose(data["wavelength_nm"][rows], ref):
+            raise InputError(f"--input {path}: thickness {amap.thickness_mm:g} mm does not cover the same "
+                             f"wavelengths as {amaps[0].thickness_mm:g} mm")
+    return groups
+
+
+def run(args) -> int:
+    from trimeter.inversion.api import _load_map, fit
+    from trimeter.inversion.flags import describe
+
+    amaps = [_load_map(m) for m in args.maps]
+    if len({round(m.thickness_mm, 9) for m in amaps}) != len(amaps):
+        raise InputError("--map: the maps must be for different thicknesses")
+    data = read_measurements(args.input)
+    groups = _split_thicknesses(data, amaps, args.input)
+    stack = lambda name: np.stack([data[name][rows] for rows in groups])  # noqa: E731
+    rho_b = stack("rho_b") if "rho_b" in data else None
+    rho_w = stack("rho_w") if "rho_w" in data else None
+    result = fit(amaps, stack("I_b"), stack("I_w"), stack("I_c"), rho_b, rho_w, method=args.method)
+    columns = {"wavelength_nm": data["wavelength_nm"][groups[0]], **result.as_dict()}
+    if args.json:
+        doc = {"method": args.method, "maps": [{"name": m.name, "thickness_mm": m.thickness_mm,
+                                                "sha256": m.checksum} for m in amaps],
+               "columns": {k: [_json_number(v) for v in columns[k]] for k in OUTPUT},
+               "flag_names": [describe(f) for f in result.flags]}
+        text = json.dumps(doc, indent=1, allow_nan=False)
+        _write(args.output, text + "\n")
+        return 0
+    lines = [",".join(OUTPUT)]
+    for i in range(len(columns["wavelength_nm"])):
+        lines.append(",".join(str(int(columns[k][i])) if k == "flags" else f"{columns[k][i]:.6g}" for k in OUTPUT))
+    _write(args.output, "\n".join(lines) + "\n")
+    return 0
+
+
+def _json_number(v):
+    v = float(v)
+    return v if math.isfinite(v) else None
+
+
+def _write(path: Path | None, text: str) -> None:
+    if path is None:
+        sys.stdout.write(text)
+        return
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(text)
+    except OSError as exc:
+        raise InputError(f"-o {path}: cannot write ({exc.strerror or exc})") from None
+    print(f"wrote {path}", file=sys.stderr)

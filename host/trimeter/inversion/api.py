@@ -1,0 +1,333 @@
+"""`trimeter.fit`: one entry point for every inversion method and for one or two thicknesses.
+
+Flow per map (thickness): validate the inputs into flags (never an exception for bad values) →
+σt from I_c (exact Beer-Lambert incl. Fresnel; a lower bound under the noise floor) → (α, g) by the
+method → flags for g undefined / outside the map / not converged → per-bin standard deviations by
+first-order propagation of the intensity noise through the forward map's Jacobian. Several
+thicknesses are then combined by inverse-variance weighting (the paper's method pools its samples
+and takes the median, as written) and checked against each other.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from trimeter.errors import InputError, MapFileError
+from trimeter.forward.collimated import beer_lambert_sigma_t
+from trimeter.inversion.flags import UNUSABLE, FitFlag
+from trimeter.inversion.kernel import ForwardGrid
+
+METHODS = ("lut", "mlp", "paper")
+_INPUT_TOLERANCE = 1e-3   # intensities this far below 0 / above 1 are still taken as noise around the limit
+_DISAGREE_SIGMAS = 3.0
+
+
+@dataclass
+class FitResult:
+    """α, σt [1/mm], g with per-bin standard deviations and FitFlag words, over the input bins."""
+    alpha: np.ndarray
+    sigma_t: np.ndarray
+    g: np.ndarray
+    alpha_std: np.ndarray
+    sigma_t_std: np.ndarray
+    g_std: np.ndarray
+    flags: np.ndarray
+    sigma_t_beer: np.ndarray        # the consistency column: σt from I_c alone (paper Eq. 2)
+    method: str
+    per_thickness: list = field(default_factory=list)  # FitResult per map when several were given
+
+    COLUMNS = ("alpha", "sigma_t", "g", "alpha_std", "sigma_t_std", "g_std", "flags", "sigma_t_beer")
+
+    def __len__(self) -> int:
+        return len(self.alpha)
+
+    def as_dict(self) -> dict:
+        return {name: getattr(self, name) for name in self.COLUMNS}
+
+
+# ------------------------------------------------------------------------------------ map handling
+_TABLES: dict = {}
+_GRIDS: dict = {}
+
+
+def _load_map(spec):
+    from trimeter.maps.appearance import AppearanceMap, find_map
+
+    if isinstance(spec, AppearanceMap):
+        return spec
+    return AppearanceMap.load(find_map(spec))
+
+
+def _key(amap):
+    return amap.checksum or id(amap)
+
+
+def _forward_grid(amap) -> ForwardGrid:
+    key = _key(amap)
+    if key not in _GRIDS:
+        _GRIDS[key] = ForwardGrid.from_map(amap)
+    return _GRIDS[key]
+
+
+def table_inverter(amap):
+    """The map's table inverter: maps/<name>.tlut if it exists (refused if built from another map),
+    else built in memory from the map (≈0.5 s, cached)."""
+    from trimeter.inversion.lut import TableInverter
+    from trimeter.inversion.table import MapTable, build_from_map, table_path_for
+
+    key = _key(amap)
+    if key not in _TABLES:
+        path = table_path_for(amap.path) if amap.path else None
+        if path is not None and path.is_file():
+            table = MapTable.load(path)
+            if amap.checksum and table.source_checksum != amap.checksum:
+                raise MapFileError(f"{path}: built from map {table.source_checksum[:12]}…, not from "
+                                   f"{amap.path.name} ({amap.checksum[:12]}…); rebuild it with tools/build_table.py")
+        else:
+            table = build_from_map(amap)
+        _TABLES[key] = TableInverter(table)
+    return _TABLES[key]
+
+
+# ---------------------------------------------------------------------------------------- the fit
+def fit(maps, I_b, I_w, I_c, rho_b=None, rho_w=None, method: str = "lut", *,
+        noise_rel: float = 0.005, noise_abs: float = 2e-4, ic_floor: float = 1e-4,
+        alpha_min_g: float = 0.02, polish: int = 4, samples: int = 250, epsilon: float = 0.01,
+        seed: int = 0, mlp_model: str | Path | None = None) -> FitResult:
+    """Invert measured intensities (arrays over wavelength bins) to α, σt [1/mm], g.
+
+    maps: an AppearanceMap, a map path or shipped-map name, or a list of them (the same material at
+    several thicknesses); with k maps, I_b, I_w, I_c (and ρ's, if per-thickness) have shape (k, N).
+    rho_b, rho_w: per-bin background reflectances (default: each map's reference backgrounds).
+    noise_rel, noise_abs: the intensity noise model σ_I = noise_rel·I + noise_abs (for the stds and
+    the convergence tolerance); ic_floor: I_c below it bounds σt from below only.
+    polish: Newton iterations after the lut/mlp guess (0 = the raw table/network).
+    samples, epsilon, seed: the paper method's ε-median (samples=0: plain interpolation).
+    """
+    if method not in METHODS:
+        raise InputError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
+    map_list = list(maps) if isinstance(maps, (list, tuple)) else [maps]
+    if not map_list:
+        raise InputError("maps must name at least one map")
+    amaps = [_load_map(m) for m in map_list]
+    k = len(amaps)
+    arrays = _shape_inputs(k, I_b, I_w, I_c, rho_b, rho_w, amaps)
+    opts = dict(noise_rel=noise_rel, noise_abs=noise_abs, ic_floor=ic_floor, alpha_min_g=alpha_min_g)
+    if method == "paper":
+        return _fit_paper(amaps, arrays, samples=samples, epsilon=epsilon, seed=seed, **opts)
+    singles = [_fit_one(amap, *arrays[i], method=method, polish=polish, mlp_model=mlp_model, **opts)
+               for i, amap in enumerate(amaps)]
+    return singles[0] if k == 1 else combine(singles, method)
+
+
+def _shape_inputs(k, I_b, I_w, I_c, rho_b, rho_w, amaps):
+    try:
+        I_b, I_w, I_c = (np.atleast_1d(np.asarray(v, dtype=float)) for v in (I_b, I_w, I_c))
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"I_b, I_w, I_c must be numeric arrays ({exc})") from None
+    if not (I_b.shape == I_w.shape == I_c.shape):
+        raise InputError(f"I_b, I_w, I_c must have one shape, got {I_b.shape}, {I_w.shape}, {I_c.shape}")
+    if k == 1 and I_b.ndim == 1:
+        I_b, I_w, I_c = I_b[None], I_w[None], I_c[None]
+    if I_b.ndim != 2 or I_b.shape[0] != k:
+        raise InputError(f"with {k} map(s) the intensities must have shape ({k}, bins), got {I_b.shape}")
+    n = I_b.shape[1]
+    rhos = []
+    for name, rho, ref_key in (("rho_b", rho_b, "reference_rho_b"), ("rho_w", rho_w, "reference_rho_w")):
+        if rho is None:
+            default = {"reference_rho_b": 0.0, "reference_rho_w": 1.0}[ref_key]
+            rho = np.array([[float(m.recipe.get(ref_key, default))] * n for m in amaps])
+        try:
+            rho = np.broadcast_to(np.asarray(rho, dtype=float), (k, n))
+        except (TypeError, ValueError) as exc:
+            raise InputError(f"{name} must be a number or an array over the bins ({exc})") from None
+        rhos.append(rho)
+    return [(I_b[i], I_w[i], I_c[i], rhos[0][i], rhos[1][i]) for i in range(k)]
+
+
+def _input_flags(I_b, I_w, I_c, rho_b, rho_w):
+    flags = np.zeros(I_b.shape, dtype=np.int64)
+    with np.errstate(invalid="ignore"):
+        finite = np.isfinite(I_b) & np.isfinite(I_w) & np.isfinite(I_c) & np.isfinite(rho_b) & np.isfinite(rho_w)
+        flags |= np.where(~finite, int(FitFlag.NONFINITE_INPUT), 0)
+        negative = (I_b < -_INPUT_TOLERANCE) | (I_w < -_INPUT_TOLERANCE) | (I_c < -_INPUT_TOLERANCE)
+        flags |= np.where(negative, int(FitFlag.NEGATIVE_INPUT), 0)
+        above = (I_b > 1 + _INPUT_TOLERANCE) | (I_w > 1 + _INPUT_TOLERANCE) | (I_c > 1 + _INPUT_TOLERANCE)
+        flags |= np.where(above, int(FitFlag.ABOVE_ONE), 0)
+        bad_bg = ~((rho_b >= 0) & (rho_b < rho_w) & (rho_w <= 1))
+        flags |= np.where(finite & bad_bg, int(FitFlag.BAD_BACKGROUND), 0)
+        flags |= np.where(finite & (I_b >= I_w), int(FitFlag.BLACK_NOT_BELOW_WHITE), 0)
+    return flags
+
+
+def _sanitize(x, lo, hi, fill):
+    return np.clip(np.where(np.isfinite(x), x, fill), lo, hi)
+
+
+def _fit_one(amap, I_b, I_w, I_c, rho_b, rho_w, *, method, polish, mlp_model, noise_rel, noise_abs,
+             ic_floor, alpha_min_g) -> FitResult:
+    flags = _input_flags(I_b, I_w, I_c, rho_b, rho_w)
+    usable = (flags & int(UNUSABLE)) == 0
+    grid = _forward_grid(amap)
+    # Unusable bins are computed on harmless stand-ins and blanked at the end: no branch per bin.
+    ib = _sanitize(I_b, 0.0, 1.0, 0.0)
+    iw = _sanitize(I_w, 0.0, 1.0, 1.0)
+    ic = _sanitize(I_c, 0.0, 1.0, 1.0)
+    rb = np.where(usable, rho_b, grid_ref(amap)[0])
+    rw = np.where(usable, rho_w, grid_ref(amap)[1])
+
+    sigma_beer = beer_lambert_sigma_t(I_c, amap.thickness_mm, amap.n, amap.cover_slide_n)
+    below = ic < ic_floor
+    flags |= np.where(below & usable, int(FitFlag.IC_BELOW_FLOOR), 0)
+    t_max = float(grid.collimated(0.0))
+    sigma_t = beer_lambert_sigma_t(np.clip(np.maximum(ic, ic_floor), None, t_max), amap.thickness_mm,
+                                   amap.n, amap.cover_slide_n)
+    s_lo, s_hi = grid.sigma_t_range
+    flags |= np.where(usable & ((sigma_t < s_lo * (1 - 1e-6)) | (sigma_t > s_hi * (1 + 1e-6))),
+                      int(FitFlag.OUTSIDE_MAP), 0)
+
+    if method == "lut":
+        inverter = table_inverter(amap)
+        alpha, g, residual = inverter.invert(ib, iw, sigma_t, rb, rw, polish_iterations=polish)
+    else:  # mlp
+        from trimeter.inversion.mlp import mlp_inverter
+
+        net = mlp_inverter(amap, mlp_model)
+        alpha0, g0 = net.predict(ib, iw, sigma_t, rb, rw)
+        cell = grid.sigma_cell(sigma_t)
+        alpha, g, residual = grid.solve_alpha_g(ib, iw, cell, rb, rw, alpha0, g0, iterations=polish)
+
+    result = _finish(amap, grid, flags, usable, ib, iw, ic, rb, rw, alpha, sigma_t, g, residual, sigma_beer,
+                     method=method, noise_rel=noise_rel, noise_abs=noise_abs, alpha_min_g=alpha_min_g)
+    return result
+
+
+def grid_ref(amap):
+    return float(amap.recipe.get("reference_rho_b", 0.0)), float(amap.recipe.get("reference_rho_w", 1.0))
+
+
+def _finish(amap, grid, flags, usable, ib, iw, ic, rb, rw, alpha, sigma_t, g, residual, sigma_beer, *,
+            method, noise_rel, noise_abs, alpha_min_g) -> FitResult:
+    sigma_I = np.column_stack([noise_rel * ib + noise_abs, noise_rel * iw + noise_abs, noise_rel * ic + noise_abs])
+    sigma_I[:, :2] = np.hypot(sigma_I[:, :2], grid.mc_stderr)
+    tolerance = 3.0 * np.hypot(sigma_I[:, 0], sigma_I[:, 1]) + 1e-4
+    with np.errstate(invalid="ignore"):
+        not_conv = ~(residual <= tolerance)
+    flags |= np.where(usable & not_conv, int(FitFlag.NOT_CONVERGED), 0)
+    g_lo, g_hi = grid.g_range
+    at_edge = ((g <= g_lo + 1e-9) & (g_lo > -1 + 1e-6)) | ((g >= g_hi - 1e-9) & (g_hi < 1 - 1e-6))
+    flags |= np.where(usable & not_conv & at_edge, int(FitFlag.OUTSIDE_MAP), 0)
+
+    alpha = np.clip(np.where(np.isfinite(alpha), alpha, np.nan), 0.0, 1.0)
+    g = np.clip(np.where(np.isfinite(g), g, np.nan), -1.0, 1.0)
+    sigma_t = np.maximum(sigma_t, 0.0)
+    J = grid.jacobian(np.nan_to_num(alpha), sigma_t, np.nan_to_num(g), rb, rw)
+    std_a, std_s, std_g = grid.propagate(J, sigma_I)
+    below = (flags & int(FitFlag.IC_BELOW_FLOOR)) != 0
+    std_s = np.where(below, np.inf, std_s)
+    g_undef = usable & ~(alpha >= alpha_min_g)
+    flags |= np.where(g_undef, int(FitFlag.G_UNDEFINED), 0)
+    g = np.where(g_undef, np.nan, g)
+    std_g = np.where(g_undef, np.nan, std_g)
+    blank = ~usable
+    nan = np.nan
+    return FitResult(alpha=np.where(blank, nan, alpha), sigma_t=np.where(blank, nan, sigma_t),
+                     g=np.where(blank, nan, g), alpha_std=np.where(blank, nan, std_a),
+                     sigma_t_std=np.where(blank, nan, std_s), g_std=np.where(blank, nan, std_g),
+                     flags=flags.astype(np.int64), sigma_t_beer=np.where(blank, nan, sigma_beer), method=method)
+
+
+# --------------------------------------------------------------------------------- thicknesses
+def combine(results: list[FitResult], method: str) -> FitResult:
+    """Inverse-variance combination of per-thickness fits; THICKNESS_DISAGREE where two finite
+    estimates differ by more than 3 combined standard deviations (α, σt, or g)."""
+    out = {}
+    flags = np.zeros(len(results[0]), dtype=np.int64)
+    for r in results:
+        flags |= r.flags
+    # A thickness whose bins were unusable drops out; its UNUSABLE bits stay only if all dropped.
+    all_unusable = np.logical_and.reduce([(r.flags & int(UNUSABLE)) != 0 for r in results])
+    flags = np.where(all_unusable, flags, flags & ~int(UNUSABLE))
+    for name in ("alpha", "sigma_t", "g", "sigma_t_beer"):
+        std_name = "sigma_t_std" if name == "sigma_t_beer" else f"{name}_std"
+        vals = np.stack([getattr(r, name) for r in results])
+        stds = np.stack([getattr(r, std_name) for r in results])
+        value, std = _weighted(vals, stds)
+        out[name] = value
+        if name != "sigma_t_beer":
+            out[std_name] = std
+            disagree = _disagree(vals, stds)
+            flags |= np.where(disagree, int(FitFlag.THICKNESS_DISAGREE), 0)
+    return FitResult(alpha=out["alpha"], sigma_t=out["sigma_t"], g=out["g"], alpha_std=out["alpha_std"],
+                     sigma_t_std=out["sigma_t_std"], g_std=out["g_std"], flags=flags,
+                     sigma_t_beer=out["sigma_t_beer"], method=method, per_thickness=results)
+
+
+def _weighted(vals, stds):
+    finite = np.isfinite(vals)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        w = np.where(finite & np.isfinite(stds) & (stds > 0), 1.0 / stds ** 2, 0.0)
+        wsum = w.sum(axis=0)
+        weighted = (np.where(finite, vals, 0.0) * w).sum(axis=0) / wsum
+        plain = np.nanmean(np.where(finite, vals, np.nan), axis=0) if vals.size else vals
+        value = np.where(wsum > 0, weighted, plain)
+        std = np.where(wsum > 0, 1.0 / np.sqrt(wsum), np.nanmin(np.where(finite, stds, np.nan), axis=0))
+    return value, std
+
+
+def _disagree(vals, stds):
+    with np.errstate(invalid="ignore"):
+        diff = np.abs(vals[:, None, :] - vals[None, :, :])
+        scale = np.sqrt(stds[:, None, :] ** 2 + stds[None, :, :] ** 2)
+        bad = diff > _DISAGREE_SIGMAS * scale
+    return np.any(bad.reshape(-1, vals.shape[1]), axis=0)
+
+
+# ---------------------------------------------------------------------------------- paper method
+def _fit_paper(amaps, arrays, *, samples, epsilon, seed, noise_rel, noise_abs, ic_floor, alpha_min_g):
+    import warnings
+
+    from trimeter.inversion.paper import paper_samples
+
+    pooled, singles = [], []
+    for i, (amap, (I_b, I_w, I_c, rho_b, rho_w)) in enumerate(zip(amaps, arrays)):
+        flags = _input_flags(I_b, I_w, I_c, rho_b, rho_w)
+        usable = (flags & int(UNUSABLE)) == 0
+        s = paper_samples(amap, np.where(usable, I_b, np.nan), I_w, I_c, rho_b, rho_w,
+                          samples=samples, epsilon=epsilon, seed=seed + i)
+        pooled.append(s)
+        singles.append((amap, flags, usable, I_b, I_w, I_c, rho_b, rho_w))
+    allsamples = np.concatenate(pooled, axis=1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN bins: outside the hull, flagged below
+        med = np.nanmedian(allsamples, axis=1)
+    results = []
+    for amap, flags, usable, I_b, I_w, I_c, rho_b, rho_w in singles:
+        grid = _forward_grid(amap)
+        ib, iw, ic = _sanitize(I_b, 0, 1, 0), _sanitize(I_w, 0, 1, 1), _sanitize(I_c, 0, 1, 1)
+        ref = grid_ref(amap)
+        rb, rw = np.where(usable, rho_b, ref[0]), np.where(usable, rho_w, ref[1])
+        flags = flags | np.where(usable & (ic < ic_floor), int(FitFlag.IC_BELOW_FLOOR), 0)
+        outside = usable & ~np.all(np.isfinite(med), axis=1)
+        flags |= np.where(outside, int(FitFlag.OUTSIDE_MAP) | int(FitFlag.NOT_CONVERGED), 0)
+        alpha, sigma_t, g = med[:, 0], med[:, 1], med[:, 2]
+        coef_in = np.isfinite(alpha)
+        I_model = grid.intensities(np.nan_to_num(alpha), np.nan_to_num(sigma_t, nan=1.0), np.nan_to_num(g), rb, rw)
+        residual = np.where(coef_in, np.hypot(I_model[0] - ib, I_model[1] - iw), np.inf)
+        sigma_beer = beer_lambert_sigma_t(I_c, amap.thickness_mm, amap.n, amap.cover_slide_n)
+        r = _finish(amap, grid, flags, usable, ib, iw, ic, rb, rw, alpha, np.nan_to_num(sigma_t, nan=np.nan),
+                    g, residual, sigma_beer, method="paper", noise_rel=noise_rel, noise_abs=noise_abs,
+                    alpha_min_g=alpha_min_g)
+        for name in ("alpha", "sigma_t", "g", "alpha_std", "sigma_t_std", "g_std"):
+            getattr(r, name)[outside] = np.nan
+        results.append(r)
+    if len(results) == 1:
+        return results[0]
+    combined = combine(results, "paper")
+    # As written: the pooled median is the estimate; the stds come from the inverse-variance combination.
+    combined.alpha, combined.sigma_t, combined.g = med[:, 0], med[:, 1], med[:, 2]
+    combined.g = np.where((combined.flags & int(FitFlag.G_UNDEFINED)) != 0, np.nan, combined.g)
+    return combined

@@ -1,0 +1,91 @@
+"""`mlp`: a small network (trained by tools/train_mlp.py, shipped as maps/<map-name>.onnx) gives the
+initial (α, g); the forward-map Newton polish (trimeter.inversion.kernel) refines it at the bins'
+true backgrounds. Inference through onnxruntime only (no scikit-learn at run time).
+
+Model contract (checked on load; a mismatch is a MapFileError, never a silent wrong answer):
+- metadata `trimeter.kind` = "mlp-inverse", `trimeter.map_sha256` = the SHA-256 of the map it was
+  trained on, `trimeter.features` = FEATURES (comma-separated), `trimeter.format` = "1";
+- one float32 input (N, 5) in the order FEATURES, one float32 output (N, 2) = (α, g).
+σt is not a network output: it comes exactly from I_c (see trimeter.inversion.api).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from trimeter.errors import MapFileError
+
+MODEL_SUFFIX = ".onnx"
+MODEL_KIND = "mlp-inverse"
+FEATURES = ("sqrt_I_b", "sqrt_I_w", "ln_sigma_t", "rho_b", "rho_w")
+_CACHE: dict = {}
+
+
+def features(I_b, I_w, sigma_t, rho_b, rho_w, log_sigma_range) -> np.ndarray:
+    """The network input (N, 5) float32; ln σt clamped to the map's range."""
+    ls = np.log(np.maximum(np.asarray(sigma_t, float), 1e-30))
+    ls = np.minimum(np.maximum(ls, log_sigma_range[0]), log_sigma_range[1])
+    x = np.empty((len(ls), 5), dtype=np.float32)
+    x[:, 0] = np.sqrt(np.minimum(np.maximum(I_b, 0.0), 1.0))
+    x[:, 1] = np.sqrt(np.minimum(np.maximum(I_w, 0.0), 1.0))
+    x[:, 2] = ls
+    x[:, 3] = rho_b
+    x[:, 4] = rho_w
+    return x
+
+
+def model_path_for(map_path: str | Path) -> Path:
+    return Path(map_path).with_suffix(MODEL_SUFFIX)
+
+
+class MlpInverter:
+    def __init__(self, path: str | Path, map_checksum: str, log_sigma_range, alpha_range, g_range):
+        import onnxruntime as ort
+
+        path = Path(path)
+        opts = ort.SessionOptions()
+        opts.intra_op_num_threads = 1   # one core: the benchmark's unit, and the machine is shared
+        opts.inter_op_num_threads = 1
+        try:
+            self.session = ort.InferenceSession(str(path), sess_options=opts, providers=["CPUExecutionProvider"])
+        except Exception as exc:  # onnxruntime raises its own exception types for corrupt files
+            raise MapFileError(f"{path}: not a loadable ONNX model ({str(exc).splitlines()[0]})") from None
+        meta = self.session.get_modelmeta().custom_metadata_map
+        if meta.get("trimeter.kind") != MODEL_KIND:
+            raise MapFileError(f"{path}: not a trimeter MLP inverse model")
+        if meta.get("trimeter.features") != ",".join(FEATURES):
+            raise MapFileError(f"{path}: model features {meta.get('trimeter.features')!r} are not {','.join(FEATURES)!r}")
+        if map_checksum and meta.get("trimeter.map_sha256") != map_checksum:
+            raise MapFileError(f"{path}: trained on map {str(meta.get('trimeter.map_sha256'))[:12]}…, not on this "
+                               f"map ({map_checksum[:12]}…); retrain it with tools/train_mlp.py")
+        self.path = path
+        self.input_name = self.session.get_inputs()[0].name
+        out_shape = self.session.get_outputs()[0].shape
+        if len(self.session.get_inputs()) != 1 or len(out_shape) != 2 or out_shape[1] != 2:
+            raise MapFileError(f"{path}: model must map (N, {len(FEATURES)}) to (N, 2), declares output {out_shape}")
+        self.log_sigma_range = log_sigma_range
+        self.alpha_range, self.g_range = alpha_range, g_range
+
+    def predict(self, I_b, I_w, sigma_t, rho_b, rho_w):
+        x = features(I_b, I_w, sigma_t, rho_b, rho_w, self.log_sigma_range)
+        y = self.session.run(None, {self.input_name: x})[0].astype(np.float64)
+        return (np.minimum(np.maximum(y[:, 0], self.alpha_range[0]), self.alpha_range[1]),
+                np.minimum(np.maximum(y[:, 1], self.g_range[0]), self.g_range[1]))
+
+
+def mlp_inverter(amap, model: str | Path | None = None) -> MlpInverter:
+    """The MLP for `amap`: `model` if given, else maps/<map-name>.onnx next to the map."""
+    if model is None:
+        if amap.path is None:
+            raise MapFileError("method mlp needs a model file: pass mlp_model=… for a map without a path")
+        model = model_path_for(amap.path)
+    model = Path(model)
+    if not model.is_file():
+        raise MapFileError(f"no MLP model {model} for map {amap.name}; train one with tools/train_mlp.py")
+    key = (str(model), model.stat().st_mtime_ns, amap.checksum)
+    if key not in _CACHE:
+        _CACHE[key] = MlpInverter(model, amap.checksum, (float(np.log(amap.sigma_t[0])), float(np.log(amap.sigma_t[-1]))),
+                                  (float(amap.alpha[0]), float(amap.alpha[-1])), (float(amap.g[0]), float(amap.g[-1])))
+    return _CACHE[key]

@@ -1,0 +1,109 @@
+#!/usr/bin/env python3
+"""Train the `mlp` inverse for an appearance map and export it to ONNX next to the map.
+
+    .venv/bin/python tools/train_mlp.py maps/device-l0.4.tmap [-o maps/device-l0.4.onnx]
+        [--hidden 64,64] [--samples 60000] [--epochs 80] [--seed 0]
+
+Training data: random materials (α denser towards 1, ln σt uniform, g uniform over the map's range)
+and random backgrounds (ρ_b ∈ [0, 0.1], ρ_w ∈ [0.85, 1]) pushed through the map's own forward
+kernel (trilinear A, B, C; the same one the polish uses). Features and targets: trimeter.inversion.mlp.
+scikit-learn trains (StandardScaler + MLPRegressor), skl2onnx exports; the map's SHA-256 is stored
+in the model's metadata and inference refuses a model used with any other map.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def training_set(amap, n: int, rng: np.random.Generator):
+    from trimeter.inversion.kernel import ForwardGrid
+    from trimeter.inversion.mlp import features
+
+    grid = ForwardGrid.from_map(amap)
+    a_lo, a_hi = grid.alpha_range
+    u = rng.uniform(0, 1, n)
+    alpha = np.where(rng.uniform(0, 1, n) < 0.5, a_lo + (a_hi - a_lo) * u, a_hi - (a_hi - a_lo) * u ** 2)
+    log_s = rng.uniform(grid.log_sigma_t[0], grid.log_sigma_t[-1], n)
+    g = rng.uniform(*grid.g_range, n)
+    rho_b = rng.uniform(0.0, 0.1, n)
+    rho_w = rng.uniform(0.85, 1.0, n)
+    sigma_t = np.exp(log_s)
+    I_b, I_w, _ = grid.intensities(alpha, sigma_t, g, rho_b, rho_w)
+    x = features(I_b, I_w, sigma_t, rho_b, rho_w, (grid.log_sigma_t[0], grid.log_sigma_t[-1]))
+    return x, np.column_stack([alpha, g]).astype(np.float32)
+
+
+def train(amap, hidden=(64, 64), samples=60000, epochs=80, seed=0):
+    from sklearn.neural_network import MLPRegressor
+    from sklearn.pipeline import make_pipeline
+    from sklearn.preprocessing import StandardScaler
+
+    rng = np.random.default_rng(seed)
+    x, y = training_set(amap, samples, rng)
+    model = make_pipeline(StandardScaler(), MLPRegressor(hidden_layer_sizes=hidden, activation="tanh",
+                                                         max_iter=epochs, batch_size=256, learning_rate_init=2e-3,
+                                                         tol=1e-7, n_iter_no_change=15, random_state=seed))
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # ConvergenceWarning at max_iter is expected: epochs are a budget
+        model.fit(x, y)
+    xv, yv = training_set(amap, 20000, np.random.default_rng(seed + 1))
+    err = np.abs(model.predict(xv) - yv)
+    return model, {"alpha_abs_p95": float(np.percentile(err[:, 0], 95)),
+                   "g_abs_p95": float(np.percentile(err[:, 1], 95))}
+
+
+def export(model, amap, path: Path, hidden, stats: dict) -> Path:
+    from skl2onnx import to_onnx
+    from skl2onnx.common.data_types import FloatTensorType
+
+    from trimeter.inversion.mlp import FEATURES, MODEL_KIND
+
+    # final_types: without it skl2onnx declares a single-target regressor and reshapes (N, 2) to (2N, 1)
+    onx = to_onnx(model, np.zeros((1, len(FEATURES)), dtype=np.float32), target_opset=17,
+                  final_types=[("alpha_g", FloatTensorType([None, 2]))])
+    meta = {"trimeter.kind": MODEL_KIND, "trimeter.format": "1", "trimeter.map_sha256": amap.checksum,
+            "trimeter.map_name": amap.name, "trimeter.features": ",".join(FEATURES), "trimeter.outputs": "alpha,g",
+            "trimeter.hidden": ",".join(map(str, hidden)), "trimeter.producer": "tools/train_mlp.py",
+            "trimeter.validation": ",".join(f"{k}={v:.4g}" for k, v in stats.items())}
+    for key, value in meta.items():
+        prop = onx.metadata_props.add()
+        prop.key, prop.value = key, value
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_bytes(onx.SerializeToString())
+    tmp.replace(path)
+    return path
+
+
+def main(argv=None) -> int:
+    from trimeter.inversion.mlp import model_path_for
+    from trimeter.maps.appearance import AppearanceMap, find_map
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("map", help="map file or shipped map name")
+    ap.add_argument("-o", "--output", type=Path, help="default: next to the map, <name>.onnx")
+    ap.add_argument("--hidden", default="64,64", help="hidden layer sizes, comma-separated")
+    ap.add_argument("--samples", type=int, default=60000)
+    ap.add_argument("--epochs", type=int, default=80)
+    ap.add_argument("--seed", type=int, default=0)
+    args = ap.parse_args(argv)
+    amap = AppearanceMap.load(find_map(args.map))
+    hidden = tuple(int(h) for h in args.hidden.split(","))
+    t0 = time.perf_counter()
+    model, stats = train(amap, hidden, args.samples, args.epochs, args.seed)
+    out = export(model, amap, args.output or model_path_for(amap.path), hidden, stats)
+    print(f"{out}: {out.stat().st_size} bytes, hidden {hidden}, trained in {time.perf_counter() - t0:.1f} s; "
+          f"raw network on fresh map samples: α abs p95 {stats['alpha_abs_p95']:.4f}, g abs p95 {stats['g_abs_p95']:.4f}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
