@@ -9,6 +9,15 @@ Russian roulette and rare long paths. Seeds are deterministic: batch b of seed s
 
 Scenes are loaded once per (variant, geometry, n, ℓ) and the material and background are updated in
 place (mi.traverse): a new scene would otherwise re-JIT the whole kernel (~0.5 s) for each material.
+
+Russian roulette (see `integrator_for`): volpath continues a path with probability
+min(throughput·η², 0.95). At α > 0.95 a path's throughput hardly falls, so survivors gain 1/0.95 per
+event and the long paths of thick, high-albedo samples carry weights like 0.95^−1000: measured at
+α = 0.9989, σt = 27/mm, ℓ = 0.5 mm, ρ = 0.99 it gave 0.77 ± 0.06 against adding-doubling's 0.869;
+without roulette 0.8688 ± 0.0003. So above α = 0.95 there is no roulette and paths are cut at a depth
+D where α^(D/16) ≤ 1e-6 (16 interactions per scattering event leave room for Fresnel and background
+bounces), which bounds the truncation bias per path by ~1e-6; at α ≤ 0.95 roulette weights never
+grow and volpath's default (from depth 5, no depth cap) is unbiased and fast.
 """
 
 from __future__ import annotations
@@ -27,6 +36,33 @@ from trimeter.validation import require_material, require_number, require_reflec
 
 BATCHES = 16
 DEFAULT_SPP = 262144
+
+
+ROULETTE_MAX_ALPHA = 0.95
+TRUNCATION = 1e-6
+EVENTS_PER_SCATTERING = 16
+
+
+def integrator_for(alpha: float) -> dict:
+    """The volpath settings for albedo α (see the module doc): roulette up to α = 0.95, above it none
+    and a power-of-two depth cap D ≥ 16·ln(1e-6)/ln α (bucketed so that few kernels get compiled)."""
+    if alpha <= ROULETTE_MAX_ALPHA:
+        return {"type": "volpath", "max_depth": -1, "rr_depth": 5}
+    if alpha >= 1.0:
+        return {"type": "volpath", "max_depth": -1, "rr_depth": 1 << 30}
+    depth = EVENTS_PER_SCATTERING * math.log(TRUNCATION) / math.log(alpha)
+    return {"type": "volpath", "max_depth": 1 << max(8, math.ceil(math.log2(depth))), "rr_depth": 1 << 30}
+
+
+_integrators: dict[tuple, object] = {}
+
+
+def _integrator(mi, alpha: float):
+    spec = integrator_for(alpha)
+    key = (mi.variant(), spec["max_depth"], spec["rr_depth"])
+    if key not in _integrators:
+        _integrators[key] = mi.load_dict(spec)
+    return _integrators[key], spec
 
 
 @dataclass
@@ -75,8 +111,10 @@ def render_diffuse(geometry, alpha: float, sigma_t: float, g: float, n: float, t
     for name, value in (("alpha", alpha), ("sigma_t", sigma_t), ("g", g), ("rho", rho)):
         p[PARAM_KEYS[name]] = value
     p.update()
+    integrator, _ = _integrator(mi, alpha)
     per_batch = math.ceil(spp / BATCHES)
-    means = np.array([float(np.asarray(mi.render(loaded.scene, spp=per_batch, seed=seed * BATCHES + b)).ravel()[0])
+    means = np.array([float(np.asarray(mi.render(loaded.scene, integrator=integrator, spp=per_batch,
+                                                 seed=seed * BATCHES + b)).ravel()[0])
                       for b in range(BATCHES)]) * loaded.scale
     return float(means.mean()), float(means.std(ddof=1) / math.sqrt(BATCHES))
 
@@ -96,6 +134,7 @@ def forward(geometry, alpha: float, sigma_t: float, g: float, thickness_mm: floa
     I_c = float(collimated_transmittance(sigma_t, thickness_mm, n, cover_n))
     mi = mitsuba()
     return {"I_b": I_b, "I_w": I_w, "I_c": I_c, "stderr": {"I_b": s_b, "I_w": s_w},
-            "provenance": {"geometry": name, "engine": "volpath", "variant": mi.variant(),
+            "provenance": {"geometry": name, "engine": "volpath", "integrator": integrator_for(alpha),
+                           "variant": mi.variant(),
                            "mitsuba_version": mi.__version__, "spp": BATCHES * math.ceil(spp / BATCHES),
                            "seed": seed, "seconds": round(time.perf_counter() - start, 3)}}
