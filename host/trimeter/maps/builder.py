@@ -19,6 +19,7 @@ import os
 import shutil
 import tempfile
 import time
+import zipfile
 from dataclasses import dataclass
 from importlib import metadata
 from pathlib import Path
@@ -124,7 +125,7 @@ class Checkpoint:
                              n_paths=int(z["n_paths"]), truncated=int(z["truncated"]),
                              truncation_bound=float(z["truncation_bound"]), seconds=float(z["seconds"]),
                              path_events=int(z["path_events"]))
-        except (OSError, ValueError, KeyError):
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
             return None            # a damaged column is simply traced again (deterministically)
         if any(getattr(col, f).shape != (len(self.recipe.alpha),) for f in _COLUMN_FIELDS):
             return None

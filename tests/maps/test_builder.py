@@ -1,0 +1,103 @@
+"""The builder: deterministic, checkpointed (an interrupted build resumes without re-tracing finished
+columns and gives the same map), refuses a foreign checkpoint, and the map it writes is self-describing."""
+
+import json
+
+import numpy as np
+import pytest
+
+from trimeter.errors import InputError
+from trimeter.maps.appearance import AppearanceMap
+from trimeter.maps.builder import build_map, default_checkpoint_dir, validation_report
+from trimeter.maps.recipe import parse_recipe
+from trimeter.maps.tracer import trace
+
+FIELDS = ("A", "B", "C", "std_b", "std_w")
+
+
+class Interrupt(Exception):
+    pass
+
+
+def counting_tracer(calls):
+    def tracer(stack, sigma_t, g, n_paths, seed, k_max):
+        calls.append((sigma_t, g, seed))
+        return trace(stack, sigma_t, g, n_paths, seed, k_max)
+    return tracer
+
+
+@pytest.fixture(scope="module")
+def reference_build(tmp_path_factory, tiny_recipe):
+    return build_map(tiny_recipe, tmp_path_factory.mktemp("ref") / "tiny.tmap", progress=False)
+
+
+def test_same_recipe_same_map_and_self_describing(tmp_path, tiny_recipe, reference_build):
+    again = build_map(tiny_recipe, tmp_path / "again.tmap", progress=False)
+    for f in FIELDS:
+        np.testing.assert_array_equal(getattr(again, f), getattr(reference_build, f))
+    assert again.recipe == tiny_recipe.to_dict()
+    prov = again.provenance
+    assert prov["mitsuba_version"] and prov["drjit_version"] and prov["trace_seconds"] > 0
+    assert prov["paths_per_column"]["min"] == 8192
+    assert len(again.checksum) == 64
+    assert not default_checkpoint_dir(tmp_path / "again.tmap").exists()   # removed after success
+
+
+def test_other_seed_gives_another_map(tmp_path, tiny_data, reference_build):
+    other = build_map(parse_recipe({**tiny_data(), "seed": 4}), tmp_path / "o.tmap", progress=False)
+    assert not np.array_equal(other.A, reference_build.A)
+
+
+def test_interrupted_build_resumes_without_retracing(tmp_path, tiny_recipe, reference_build):
+    out = tmp_path / "tiny.tmap"
+    first = []
+
+    def stop_after_two(j, k):
+        first.append((j, k))
+        if len(first) == 2:
+            raise Interrupt
+
+    with pytest.raises(Interrupt):
+        build_map(tiny_recipe, out, progress=False, on_column=stop_after_two)
+    assert not out.exists()
+    ckpt = default_checkpoint_dir(out)
+    assert len(list(ckpt.glob("col_*.npz"))) == 2
+
+    with pytest.raises(InputError, match="--resume"):
+        build_map(tiny_recipe, out, progress=False)          # never silently discards finished work
+
+    calls = []
+    resumed = build_map(tiny_recipe, out, progress=False, resume=True, tracer=counting_tracer(calls))
+    n_columns = len(tiny_recipe.sigma_t) * len(tiny_recipe.g)
+    assert len(calls) == n_columns - 2                         # only the unfinished columns traced
+    assert resumed.provenance["columns_resumed"] == 2
+    for f in FIELDS:
+        np.testing.assert_array_equal(getattr(resumed, f), getattr(reference_build, f))
+
+
+def test_checkpoint_of_another_recipe_is_refused(tmp_path, tiny_recipe, tiny_data):
+    out = tmp_path / "m.tmap"
+    with pytest.raises(Interrupt):
+        build_map(tiny_recipe, out, progress=False, on_column=lambda j, k: (_ for _ in ()).throw(Interrupt()))
+    other = parse_recipe({**tiny_data(), "n": 1.4})
+    with pytest.raises(InputError, match="different recipe"):
+        build_map(other, out, progress=False, resume=True)
+
+
+def test_damaged_checkpoint_column_is_traced_again(tmp_path, tiny_recipe, reference_build):
+    out = tmp_path / "m.tmap"
+    with pytest.raises(Interrupt):
+        build_map(tiny_recipe, out, progress=False, on_column=lambda j, k: (_ for _ in ()).throw(Interrupt()))
+    col = next(default_checkpoint_dir(out).glob("col_*.npz"))
+    col.write_bytes(col.read_bytes()[:50])
+    calls = []
+    resumed = build_map(tiny_recipe, out, progress=False, resume=True, tracer=counting_tracer(calls))
+    assert len(calls) == len(tiny_recipe.sigma_t) * len(tiny_recipe.g)
+    np.testing.assert_array_equal(resumed.A, reference_build.A)
+
+
+def test_validation_report_on_a_built_map(reference_build):
+    report = validation_report(reference_build)
+    assert report["energy_ok"] and report["I_b_le_I_w"] and report["g_no_effect_at_alpha0"]
+    assert json.dumps(report)
+    assert isinstance(reference_build, AppearanceMap)

@@ -1,0 +1,55 @@
+"""Recipes: valid ones parse (the shipped ones included); impossible values name their field."""
+
+import numpy as np
+import pytest
+
+from trimeter.errors import InputError
+from trimeter.maps.recipe import load_recipe, parse_recipe
+from trimeter.paths import MAPS_DIR
+
+
+def test_shipped_recipes_parse_with_the_documented_axes():
+    paths = sorted((MAPS_DIR / "recipes").glob("*.toml"))
+    assert len(paths) >= 3
+    for path in paths:
+        r = load_recipe(path)
+        assert r.alpha[0] == 0 and r.alpha[-1] == pytest.approx(0.999)
+        assert np.all(np.diff(np.diff(r.alpha)) < 0)        # denser near α = 1
+        assert r.sigma_t[0] == pytest.approx(0.05) and r.sigma_t[-1] == pytest.approx(50)
+        assert r.g[0] == 0 and r.g[-1] == pytest.approx(0.9)
+        assert r.to_dict()["geometry_params"]["cover_slides"] == (r.geometry == "device")
+
+
+@pytest.mark.parametrize("change, field", [
+    ({"n": 0.9}, "n"),
+    ({"thickness_mm": 0.0}, "thickness_mm"),
+    ({"thickness_mm": "thick"}, "thickness_mm"),
+    ({"reference_rho_w": -0.1}, "reference_rho_w"),
+    ({"reference_rho_b": 1.5}, "reference_rho_b"),
+    ({"geometry": "lab"}, "geometry"),
+    ({"colour": "red"}, "colour"),
+    ({"grid": {"alpha": {"max": 1.0, "count": 5}, "sigma_t": [1, 2], "g": [0, 0.5]}}, "grid.alpha"),
+    ({"grid": {"alpha": [0.0, 1.2], "sigma_t": [1, 2], "g": [0, 0.5]}}, "grid.alpha"),
+    ({"grid": {"alpha": [0.0, 0.5], "sigma_t": [-1, 2], "g": [0, 0.5]}}, "grid.sigma_t"),
+    ({"grid": {"alpha": [0.0, 0.5], "sigma_t": [2, 1], "g": [0, 0.5]}}, "grid.sigma_t"),
+    ({"grid": {"alpha": [0.0, 0.5], "sigma_t": [1, 2], "g": [0, 1.0]}}, "grid.g"),
+    ({"grid": {"alpha": [0.0, 0.5], "sigma_t": [1, 2], "g": [float("nan"), 0.5]}}, "grid.g"),
+    ({"grid": {"alpha": [0.0, 0.5], "sigma_t": {"min": 1, "max": 2, "count": 1}, "g": [0, 0.5]}}, "grid.sigma_t.count"),
+    ({"sampling": {"target_stderr": 0}}, "sampling.target_stderr"),
+    ({"sampling": {"min_paths": 65536, "max_paths": 4096}}, "sampling.max_paths"),
+    ({"sampling": {"truncation": 2}}, "sampling.truncation"),
+])
+def test_impossible_values_are_refused_naming_the_field(change, field, tiny_data):
+    data = tiny_data()
+    data.update(change)
+    with pytest.raises(InputError, match=field.replace(".", r"\.")):
+        parse_recipe(data)
+
+
+def test_unreadable_recipe_file_is_an_input_error(tmp_path):
+    bad = tmp_path / "bad.toml"
+    bad.write_text("n = [unclosed\n")
+    with pytest.raises(InputError, match="not valid TOML"):
+        load_recipe(bad)
+    with pytest.raises(InputError, match="cannot read"):
+        load_recipe(tmp_path / "missing.toml")
