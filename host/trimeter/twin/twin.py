@@ -300,7 +300,7 @@ class TwinControl:
 
     def state(self) -> dict:
         t = self._twin
-        plant = t.plant.state()
+        plant = {k: v for k, v in t.plant.state().items() if k != "ok"}
         with t._optics_lock:
             sample = t.optics.sample
             lamps = {"panels": t.optics.panels.heat, "collimated": t.optics.collimated.heat}
