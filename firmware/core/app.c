@@ -126,7 +126,7 @@ static uint8_t run_command(uint16_t command)
         return start_motion(command);
     case TRIMETER_COMMAND_STOP:
         app.pending_command = 0;
-        motion_stop(&app.motion);
+        motion_stop_smooth(&app.motion); /* ramps down: no lost steps, position stays true */
         return MB_OK;
     case TRIMETER_COMMAND_CLEAR_FAULT:
         motion_clear_fault(&app.motion);

@@ -101,6 +101,7 @@ static void setup_profile(motion_t *m, int8_t dir, uint32_t steps, uint32_t spee
     m->t_accel_end_us = ramp_time_us(na, accel);
     m->t_end_us = 0; /* T(N) needs T(decel_start) first */
     m->t_end_us = motion_profile_time_us(m, m->decel_start) + ramp_time_us(na, accel);
+    m->stop_requested = false;
     m->state = state;
     m->hal->stepper_enable(m->hal->ctx, true);
     m->hal->stepper_dir(m->hal->ctx, (dir > 0) != m->cfg.home_is_positive);
@@ -153,6 +154,26 @@ void motion_stop(motion_t *m)
     m->hal->step_timer_stop(m->hal->ctx);
     if (m->state == MOTION_HOMING_SEEK || m->state == MOTION_HOMING_BACKOFF) m->homed = false;
     if (motion_busy(m)) m->state = MOTION_IDLE;
+}
+
+void motion_stop_smooth(motion_t *m)
+{
+    if (m->state == MOTION_MOVING) m->stop_requested = true; /* the ISR owns the profile */
+    else motion_stop(m);
+}
+
+/* ISR: after pulse k, end the profile with the shortest ramp-down from the current speed.
+ * The ramp is the mirror of the acceleration, so the pulses before k keep their times. */
+static void shorten_profile(motion_t *m, uint32_t k)
+{
+    m->stop_requested = false;
+    if (k >= m->decel_start) return;                 /* already ramping down */
+    uint32_t ramp = k < m->accel_steps ? k : m->accel_steps; /* steps the current speed needs */
+    uint64_t t_k = motion_profile_time_us(m, k);
+    m->steps_total = k + ramp;
+    m->decel_start = k;
+    if (k < m->accel_steps) m->accel_steps = k;
+    m->t_end_us = t_k + ramp_time_us(ramp, m->accel_sps2);
 }
 
 void motion_clear_fault(motion_t *m)
@@ -209,6 +230,7 @@ static uint32_t profile_isr(motion_t *m)
     h->stepper_step(h->ctx);
     m->position += m->dir;
     uint32_t k = ++m->steps_done;
+    if (m->stop_requested && m->state == MOTION_MOVING) shorten_profile(m, k);
     if (k >= m->steps_total) {
         if (m->state == MOTION_HOMING_BACKOFF) {
             if (h->endstop_active(h->ctx)) return latch_fault(m, MOTION_FAULT_STALL);

@@ -71,6 +71,7 @@ typedef struct motion {
     uint64_t t_next_us;      /* T(k+1): when the pending pulse fires */
     uint64_t t_accel_end_us; /* T(accel_steps) */
     uint64_t t_end_us;       /* T(N) */
+    volatile bool stop_requested; /* thread → ISR: ramp down now */
 
     /* Homing bookkeeping. */
     uint32_t homing_started_us;
@@ -90,6 +91,9 @@ int motion_home(motion_t *m);
 int motion_move_to(motion_t *m, int32_t target_steps);
 /* Immediate stop (no ramp): the position stays counted, a running homing leaves it unhomed. */
 void motion_stop(motion_t *m);
+/* Decelerating stop of a move: the ISR shortens the profile at its next pulse so the carriage
+ * ramps down at the configured deceleration (no lost steps); homing stops at once as above. */
+void motion_stop_smooth(motion_t *m);
 void motion_clear_fault(motion_t *m);
 /* Thread-context housekeeping: the homing timeout. Call often. */
 void motion_poll(motion_t *m, uint32_t now_us);

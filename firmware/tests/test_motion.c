@@ -124,6 +124,37 @@ static void test_move_back_and_direction(void)
     CHECK_EQ_INT(f->carriage_steps, 2000);
 }
 
+/* A smooth stop ramps down at the configured deceleration from wherever the move is. */
+static void check_smooth_stop(uint64_t after_us, bool cruising)
+{
+    setup_at(1000, config());
+    uint64_t t0 = f->now_us;
+    CHECK_EQ_INT(motion_move_to(&m, 9000), MOTION_OK);
+    fake_hal_run_until(f, t0 + after_us, isr, &m);
+    uint32_t at_stop = f->pulses;
+    motion_stop_smooth(&m);
+    CHECK(motion_busy(&m)); /* still ramping down */
+    CHECK(fake_hal_run_idle(f, 10000000, isr, &m));
+    uint32_t extra = f->pulses - at_stop;
+    /* ramping down takes as many steps as the current speed took to reach: v²/2a = 400 from
+     * cruise, or the steps done so far while still accelerating (±1 for the pulse in flight) */
+    uint32_t expected = cruising ? 400 : at_stop;
+    CHECK(extra + 1 >= expected && extra <= expected + 1);
+    CHECK_EQ_INT(m.position, 1000 + (int32_t)f->pulses); /* every pulse counted */
+    CHECK(m.homed);
+    /* the last intervals grow (deceleration), the very last one is the first ramp step's */
+    uint64_t *t = f->pulse_times_us;
+    uint32_t n = f->pulses;
+    CHECK(t[n - 1] - t[n - 2] > t[n - 2] - t[n - 3]);
+    CHECK(llabs((long long)(t[n - 1] - t[n - 2]) - (long long)motion_profile_time_us(&m, 1)) <= 2);
+}
+
+static void test_smooth_stop(void)
+{
+    check_smooth_stop(500000, true);  /* cruising */
+    check_smooth_stop(100000, false); /* still accelerating, ~100 steps in */
+}
+
 static void test_commands_refused(void)
 {
     setup_at(1000, config());
@@ -169,6 +200,7 @@ int main(void)
     RUN_TEST(test_short_move_never_reaches_cruise);
     RUN_TEST(test_tiny_moves);
     RUN_TEST(test_move_back_and_direction);
+    RUN_TEST(test_smooth_stop);
     RUN_TEST(test_commands_refused);
     RUN_TEST(test_config_validation);
     fake_hal_free(f);
