@@ -136,10 +136,11 @@ static void check_smooth_stop(uint64_t after_us, bool cruising)
     CHECK(motion_busy(&m)); /* still ramping down */
     CHECK(fake_hal_run_idle(f, 10000000, isr, &m));
     uint32_t extra = f->pulses - at_stop;
-    /* ramping down takes as many steps as the current speed took to reach: v²/2a = 400 from
-     * cruise, or the steps done so far while still accelerating (±1 for the pulse in flight) */
-    uint32_t expected = cruising ? 400 : at_stop;
-    CHECK(extra + 1 >= expected && extra <= expected + 1);
+    /* The request is seen at the pulse in flight (k = at_stop + 1); ramping down from there takes
+     * as many steps as reaching that speed took: min(k, v²/2a = 400). */
+    uint32_t k = at_stop + 1;
+    CHECK_EQ_INT(extra, 1 + (k < 400 ? k : 400));
+    CHECK(cruising == (k > 400));
     CHECK_EQ_INT(m.position, 1000 + (int32_t)f->pulses); /* every pulse counted */
     CHECK(m.homed);
     /* the last intervals grow (deceleration), the very last one is the first ramp step's */
