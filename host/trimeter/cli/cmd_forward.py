@@ -82,7 +82,7 @@ def _validate(args) -> int:
 
     if args.materials < 1:
         raise InputError("--materials must be >= 1")
-    say = (lambda *a: print(*a, file=sys.stderr)) if args.json else print
+    say = (lambda *a, **k: print(*a, file=sys.stderr, **k)) if args.json else print
     report = {}
     materials = val.random_materials(args.materials, args.seed)
     iad = val.iad_agreement(materials, spp=args.spp, seed=args.seed,
