@@ -1,10 +1,11 @@
 #!/usr/bin/env bash
 # Idempotent set-up of a fresh machine: Debian packages (only if missing) and the venv in .venv.
 # Re-running it is cheap: the venv is reinstalled only when pyproject.toml changes.
+# libclang-rt-14-dev carries libFuzzer + the sanitizer runtimes (only a recommend of clang).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-APT_PACKAGES=(gcc-arm-none-eabi libnewlib-arm-none-eabi libllvm19 mbpoll clang qemu-system-arm)
+APT_PACKAGES=(gcc-arm-none-eabi libnewlib-arm-none-eabi libllvm19 mbpoll clang libclang-rt-14-dev qemu-system-arm)
 missing=()
 for p in "${APT_PACKAGES[@]}"; do
   dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")
