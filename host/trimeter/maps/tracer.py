@@ -194,7 +194,7 @@ def _fresnel(dr, cos_i, eta):
     return F, cos_t
 
 
-def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max: int) -> Tally:
+def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max: int, wave: int = 48) -> Tally:
     """Trace `n_paths` adjoint paths from the detector at extinction σt [1/mm] and HG anisotropy g."""
     import time
 
@@ -358,13 +358,40 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
         alive = alive & ~done
         return (x, y, z, new_dx, new_dy, new_dz, dr.select(out_top, li, new_li), k, m, it, alive, hit, rng)
 
-    state = dr.while_loop((x, y, z, dx, dy, dz, li, k, m, it, alive, hit, rng), cond, body,
-                          mode=os.environ.get('TRIMETER_LOOP_MODE', 'symbolic'), compress=bool(os.environ.get('TRIMETER_COMPRESS')))
-    k, m, it, hit = state[7], state[8], state[9], state[11]
-    k_np = np.asarray(k, dtype=np.int64)
-    m_np = np.asarray(m, dtype=np.int64)
-    hit_np = np.asarray(hit, dtype=bool)
-    it_np = np.asarray(it, dtype=np.int64)
+    # Waves: a symbolic loop runs each SIMD packet until its *slowest* lane is done, and path lengths
+    # are heavy-tailed; so run WAVE iterations at a time, then keep only the live paths (the kernel
+    # is compiled once: the wave limit is an opaque input). A lane's random stream is its own, so
+    # the result does not depend on the wave length.
+    state = [x, y, z, dx, dy, dz, li, k, m, it, alive, hit, rng]
+    lane = dr.arange(UInt32, n_paths)
+    k_np = np.zeros(n_paths, dtype=np.int64)
+    m_np = np.zeros(n_paths, dtype=np.int64)
+    it_np = np.zeros(n_paths, dtype=np.int64)
+    hit_np = np.zeros(n_paths, dtype=bool)
+    limit = 0
+    while True:
+        limit += wave
+        wave_limit = dr.opaque(UInt32, limit)
+        state = list(dr.while_loop(tuple(state), lambda *s: s[10] & (s[9] < wave_limit), body))
+        dr.eval(state)
+        alive_now = np.asarray(state[10], dtype=bool)
+        lane_np = np.asarray(lane, dtype=np.int64)
+        done = ~alive_now
+        ids = lane_np[done]
+        k_np[ids] = np.asarray(state[7])[done]
+        m_np[ids] = np.asarray(state[8])[done]
+        it_np[ids] = np.asarray(state[9])[done]
+        hit_np[ids] = np.asarray(state[11], dtype=bool)[done]
+        if not alive_now.any():
+            break
+        keep = UInt32(np.flatnonzero(alive_now).astype(np.uint32))
+        rng_old = state[12]
+        rng_new = B.PCG32(rng_old)
+        rng_new.state = dr.gather(B.UInt64, rng_old.state, keep)
+        rng_new.inc = dr.gather(B.UInt64, rng_old.inc, keep)
+        state = [dr.gather(type(v), v, keep) for v in state[:12]] + [rng_new]
+        lane = dr.gather(UInt32, lane, keep)
+
     truncated = int(np.count_nonzero((k_np >= k_max) | (it_np >= max_iter)))
     sel = hit_np & (m_np < N_BACKGROUND_ORDERS)
     counts = np.zeros((N_BACKGROUND_ORDERS, int(k_np[sel].max(initial=0)) + 1))

@@ -1,0 +1,85 @@
+"""The shipped maps: present, ≤ 5 MB, built from their recipe as it stands, physically sane, and their
+interpolation error at off-grid points measured against independent references:
+- ideal: Prahl's adding-doubling (iadpython, quad_pts = 32) at 40 random off-grid materials;
+- device: direct volpath renders of the forward scene (black panels, see test_tracer) — slow.
+Run with -s to see the figures."""
+
+import math
+
+import numpy as np
+import pytest
+
+from trimeter.maps.appearance import AppearanceMap, shipped_maps
+from trimeter.maps.builder import recipe_fingerprint, validation_report
+from trimeter.maps.recipe import load_recipe
+from trimeter.paths import MAPS_DIR
+
+from maps_direct_render import render_black_panels
+
+SHIPPED = ("ideal-n1.5-l0.5", "device-n1.5-l0.4", "device-n1.5-l0.8")
+
+
+def load(name):
+    path = MAPS_DIR / f"{name}.tmap"
+    if not path.exists():
+        pytest.fail(f"shipped map {path} is missing: trimeter map build maps/recipes/{name}.toml --out {path}")
+    return AppearanceMap.load(path)
+
+
+@pytest.mark.parametrize("name", SHIPPED)
+def test_shipped_map_is_current_small_and_sane(name):
+    amap = load(name)
+    assert amap.path.stat().st_size <= 5e6
+    recipe = load_recipe(MAPS_DIR / "recipes" / f"{name}.toml")
+    assert amap.provenance["recipe_fingerprint"] == recipe_fingerprint(recipe), "map is stale: rebuild it"
+    report = validation_report(amap)
+    assert report["energy_ok"] and report["I_b_le_I_w"] and report["g_no_effect_at_alpha0"], report
+    assert amap.provenance["truncation"]["max_error_bound"] < 1e-4
+    print(f"\n{name}: {amap.path.stat().st_size / 1e6:.2f} MB, trace {amap.provenance['trace_seconds']:.0f} s, "
+          f"std-error median {amap.info()['mc_stderr']['median']:.1e} max {amap.info()['mc_stderr']['max']:.1e}")
+
+
+def test_map_list_names_the_shipped_maps():
+    assert {p.stem for p in shipped_maps()} >= set(SHIPPED)
+
+
+def off_grid_points(amap, count, seed):
+    rng = np.random.default_rng(seed)
+    pts = []
+    while len(pts) < count:
+        i, j, k = (int(rng.integers(len(ax) - 1)) for ax in (amap.alpha, amap.sigma_t, amap.g))
+        t = rng.uniform(0.2, 0.8, 3)      # strictly inside a cell
+        pts.append((amap.alpha[i] + t[0] * (amap.alpha[i + 1] - amap.alpha[i]),
+                    math.exp(math.log(amap.sigma_t[j]) + t[1] * math.log(amap.sigma_t[j + 1] / amap.sigma_t[j])),
+                    amap.g[k] + t[2] * (amap.g[k + 1] - amap.g[k])))
+    return pts
+
+
+def test_ideal_map_interpolation_error_against_adding_doubling():
+    iad = pytest.importorskip("iadpython")
+    amap = load("ideal-n1.5-l0.5")
+    abs_err, rel_err = [], []
+    for alpha, sigma_t, g in off_grid_points(amap, 40, 1):
+        s = iad.Sample(a=alpha, b=sigma_t * 0.5, g=g, d=0.5, n=1.5, n_above=1, n_below=1)
+        s.quad_pts = 32
+        ur1, ut1, uru, utu = s.rt()
+        for rho in (0.02, 0.9):
+            ref = ur1 + ut1 * rho * utu / (1 - rho * uru)
+            got = float(amap.diffuse(alpha, sigma_t, g, rho))
+            abs_err.append(abs(got - ref))
+            rel_err.append(abs(got - ref) / ref)
+    print(f"\nideal map vs adding-doubling at 40 off-grid materials × 2 ρ: |ΔI| median {np.median(abs_err):.1e} "
+          f"max {np.max(abs_err):.1e}; relative median {np.median(rel_err):.2%} max {np.max(rel_err):.2%}")
+    assert np.median(rel_err) < 0.01
+    assert np.max(abs_err) < 0.03
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name, ell", [("device-n1.5-l0.4", 0.4), ("device-n1.5-l0.8", 0.8)])
+def test_device_map_interpolation_error_against_direct_renders(name, ell):
+    amap = load(name)
+    for alpha, sigma_t, g in off_grid_points(amap, 2, 5):
+        got = float(amap.diffuse(alpha, sigma_t, g, 0.9))
+        ref, s = render_black_panels("device", alpha, sigma_t, g, 1.5, ell, 0.9, spp=1 << 18)
+        print(f"\n{name} α={alpha:.4f} σt={sigma_t:.3g} g={g:.2f} ρ=0.9: map {got:.4f}, direct {ref:.4f} ± {s:.4f}")
+        assert abs(got - ref) < 4 * s + 0.02 * ref
