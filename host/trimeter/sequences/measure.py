@@ -11,7 +11,6 @@ from pathlib import Path
 import numpy as np
 
 from trimeter.errors import InputError
-from trimeter.forward.collimated import beer_lambert_sigma_t
 from trimeter.maps.appearance import AppearanceMap, find_map, shipped_maps
 from trimeter.results.writer import Parameters
 from trimeter.sequences.reflectance import Reflectances
@@ -40,11 +39,6 @@ def map_for_thickness(thickness_mm: float, explicit: str | Path | None = None,
     return candidates[0]
 
 
-def beer_sigma_t(refl: Reflectances, amap: AppearanceMap) -> np.ndarray:
-    """Paper Eq. 2 (with the same Fresnel stack as the map): the consistency check drawn beside σt."""
-    return beer_lambert_sigma_t(refl.I_c, amap.thickness_mm, amap.n, amap.cover_slide_n)
-
-
 def fit_reflectances(refls: list[Reflectances], maps: list[AppearanceMap], *, method: str = "lut"
                      ) -> tuple[Parameters, list[Parameters]]:
     """trimeter.fit over one or two thicknesses; returns (combined, per-thickness estimates)."""
@@ -53,15 +47,13 @@ def fit_reflectances(refls: list[Reflectances], maps: list[AppearanceMap], *, me
     if len(refls) != len(maps) or not refls:
         raise InputError("need one map per measured thickness")
     wl = refls[0].wavelengths_nm
-    per = []
-    for refl, amap in zip(refls, maps):
-        result = trimeter.fit(amap, refl.I_b, refl.I_w, refl.I_c, rho_b=refl.rho_b, rho_w=refl.rho_w, method=method)
-        per.append(Parameters.from_fit(wl, result, sigma_t_beer=beer_sigma_t(refl, amap),
-                                       thickness_mm=amap.thickness_mm))
     if len(refls) == 1:
-        return per[0], []
-    result = trimeter.fit(maps, [r.I_b for r in refls], [r.I_w for r in refls], [r.I_c for r in refls],
-                          rho_b=[r.rho_b for r in refls], rho_w=[r.rho_w for r in refls], method=method)
-    with np.errstate(all="ignore"):
-        beer = np.nanmean(np.stack([p.sigma_t_beer for p in per]), axis=0)
-    return Parameters.from_fit(wl, result, sigma_t_beer=beer), per
+        r = refls[0]
+        result = trimeter.fit(maps[0], r.I_b, r.I_w, r.I_c, rho_b=r.rho_b, rho_w=r.rho_w, method=method)
+        return Parameters.from_fit(wl, result, thickness_mm=maps[0].thickness_mm), []
+    stack = {k: np.stack([getattr(r, k) for r in refls]) for k in ("I_b", "I_w", "I_c", "rho_b", "rho_w")}
+    result = trimeter.fit(maps, stack["I_b"], stack["I_w"], stack["I_c"], rho_b=stack["rho_b"], rho_w=stack["rho_w"],
+                          method=method)
+    per = [Parameters.from_fit(wl, single, thickness_mm=amap.thickness_mm)
+           for single, amap in zip(result.per_thickness, maps)]
+    return Parameters.from_fit(wl, result), per

@@ -1,0 +1,121 @@
+"""The instrument the HIL suite runs against: the twin (default), or a real trimeter with
+--port/--spectrometer. Tests that inject faults or read the virtual sample's truth need the twin and
+skip on hardware; on hardware, sample changes and button presses are asked of the operator."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from trimeter.maps import AppearanceMap
+
+TIME_SCALE = 50.0
+THICKNESS_MM = 0.4
+SAMPLE = "cyan-ink"
+
+
+def build_hil_map(path, thickness_mm: float = THICKNESS_MM, n: float = 1.5) -> AppearanceMap:
+    """A small exact `ideal` map from adding-doubling (iadpython, test-only): the twin's optics and the
+    host's inversion share it, so what the suite measures is the instrument chain, not map error."""
+    from iadpython import Sample
+
+    alpha = 1.0 - (1.0 - np.linspace(0.0, 1.0, 9)) ** 2
+    sigma_t = np.geomspace(0.3, 30.0, 9)
+    g = np.linspace(0.0, 0.9, 5)
+    shape = (len(alpha), len(sigma_t), len(g))
+    A, B, C = (np.empty(shape) for _ in range(3))
+    for i, a in enumerate(alpha):
+        for j, s in enumerate(sigma_t):
+            for k, gk in enumerate(g):
+                ur1, ut1, uru, utu = Sample(a=float(a), b=float(s) * thickness_mm, g=float(gk), d=thickness_mm, n=n,
+                                            n_above=1, n_below=1).rt()
+                A[i, j, k], B[i, j, k], C[i, j, k] = ur1, ut1 * utu, uru
+    recipe = {"name": f"hil-ideal-l{thickness_mm:g}", "geometry": "ideal", "n": n, "thickness_mm": thickness_mm}
+    AppearanceMap(recipe=recipe, alpha=alpha, sigma_t=sigma_t, g=g, A=A, B=B, C=C, std_b=np.zeros(shape),
+                  std_w=np.zeros(shape)).save(path)
+    return AppearanceMap.load(path)
+
+
+HIL_MAP = Path(__file__).resolve().parent / "data" / "hil-ideal-l0.4.tmap"
+
+
+@pytest.fixture(scope="session")
+def hil_map() -> AppearanceMap:
+    """Committed (built by `python tests/hil/conftest.py`, ~5 s); rebuilt if missing."""
+    if not HIL_MAP.exists():
+        return build_hil_map(HIL_MAP)
+    return AppearanceMap.load(HIL_MAP)
+
+
+class TwinRig:
+    is_twin = True
+
+    def __init__(self, twin):
+        self.twin = twin
+        self.port = twin.modbus_port
+        self.spectrometer_url = twin.spectrometer_url
+
+    def press_button(self):
+        self.twin.control.press_button()
+
+    def insert_sample(self, name=SAMPLE, thickness_mm=THICKNESS_MM):
+        self.twin.control.insert_sample(name, thickness_mm)
+
+    def remove_sample(self):
+        self.twin.control.remove_sample()
+
+    def device_clock(self):
+        return self.twin.sim_time()
+
+
+class HardwareRig:
+    is_twin = False
+
+    def __init__(self, port, spectrometer_url):
+        self.port, self.spectrometer_url = port, spectrometer_url
+
+    def press_button(self):
+        input("HIL: press the instrument's button, then Enter ")
+
+    def insert_sample(self, name=SAMPLE, thickness_mm=THICKNESS_MM):
+        input(f"HIL: insert the {name} sample ({thickness_mm} mm), then Enter ")
+
+    def remove_sample(self):
+        input("HIL: empty the sample holder, then Enter ")
+
+    device_clock = None
+
+
+@pytest.fixture
+def start_twin(request, tmp_path, hil_map):
+    """Factory: a twin with the given faults (skips on hardware). Closed at the end of the test."""
+    if request.config.getoption("--port"):
+        pytest.skip("needs the twin (fault injection / virtual sample)")
+    from trimeter.twin import FaultConfig, Twin
+
+    twins = []
+
+    def start(*, sample=None, faults=None, state_dir=None, time_scale=TIME_SCALE):
+        twin = Twin(sample=sample, thickness_mm=THICKNESS_MM, time_scale=time_scale,
+                    faults=FaultConfig(**(faults or {})), appearance_map=hil_map,
+                    state_dir=state_dir or tmp_path / f"twin{len(twins)}", seed=len(twins) + 1).start()
+        twins.append(twin)
+        return twin
+
+    yield start
+    for twin in twins:
+        twin.close()
+
+
+@pytest.fixture
+def rig(request):
+    port = request.config.getoption("--port")
+    if port:
+        return HardwareRig(port, request.config.getoption("--spectrometer"))
+    return TwinRig(request.getfixturevalue("start_twin")())
+
+
+if __name__ == "__main__":
+    print(build_hil_map(HIL_MAP).path)
