@@ -123,3 +123,13 @@ def test_fault_config_parsing_and_validation():
                        ("lamp_failure=sun", "lamp_failure"), ("gremlins=1", "gremlins")):
         with pytest.raises(InputError, match=field):
             FaultConfig.parse(bad)
+
+
+def test_a_request_right_after_a_reply_counts_as_new(rig):
+    r = rig(FaultConfig())
+    for i in range(5):  # no pause between a reply and the next request
+        os.write(r.host, bytes([1, 4, 0, i]))
+        assert len(r.read(r.dev_master, 4)) == 4
+        os.write(r.dev_master, bytes([1, 4, 2, i]))
+        assert len(r.read(r.host, 4)) == 4
+    assert r.requests == [1, 2, 3, 4, 5]

@@ -1,7 +1,7 @@
 """Fault injection: the configuration and the Modbus proxy that corrupts, drops and delays bytes.
 
 The proxy sits between the host's pty and the firmware's pty. A *request* is a burst of host bytes
-after ≥ REQUEST_GAP_S of silence; each request's reply gets one fate (forward, drop, late), decided
+after ≥ REQUEST_GAP_S of silence or after the device's last reply; each request's reply gets one fate (forward, drop, late), decided
 when the request arrives. Byte corruption (one random bit flipped) applies to every byte, both ways.
 """
 
@@ -100,6 +100,7 @@ class ModbusProxy:
         self._last_host_byte = -1e9
         self._held: list[tuple[float, bytes]] = []
         self._late_release = 0.0
+        self._replied = False
         self._wake_r, self._wake_w = os.pipe()
         self._thread = threading.Thread(target=self._run, name="twin-modbus-proxy", daemon=True)
         self._thread.start()
@@ -117,7 +118,10 @@ class ModbusProxy:
 
     def _from_host(self, data: bytes) -> None:
         faults, now = self._faults(), time.monotonic()
-        if now - self._last_host_byte >= REQUEST_GAP_S:
+        # A new request: after a silence, or as soon as the device has answered the previous one (at high
+        # time scales a host may send its next request within the gap).
+        if now - self._last_host_byte >= REQUEST_GAP_S or self._replied:
+            self._replied = False
             self.counters["requests"] += 1
             if self._on_request is not None:
                 self._on_request(self.counters["requests"])
@@ -131,6 +135,7 @@ class ModbusProxy:
 
     def _from_device(self, data: bytes) -> None:
         faults = self._faults()
+        self._replied = True
         if self._fate == "drop":
             return
         data = self._corrupt(data, faults.corrupt)

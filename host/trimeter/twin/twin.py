@@ -159,7 +159,9 @@ class Twin:
         self._process = subprocess.Popen(
             [str(binary), "--storage", str(self.state_dir / "storage.bin"), "--modbus-link", str(fw_modbus),
              "--plant-link", str(plant_path), "--time-scale", repr(self.time_scale)],
-            stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=log, preexec_fn=_die_with_parent)
+            stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=log,
+            # PDEATHSIG fires when the *thread* that forked exits: only safe from the main thread.
+            preexec_fn=_die_with_parent if threading.current_thread() is threading.main_thread() else None)
         self._closers.append(self._stop_firmware)
         deadline, seen = time.monotonic() + READY_TIMEOUT_S, b""
         while b"ready" not in seen:
