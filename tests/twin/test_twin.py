@@ -192,6 +192,8 @@ def test_control_socket_mirrors_the_python_api(ideal_map):
             with pytest.raises(DeviceError, match="unknown fault"):
                 client.set_fault(gremlins=True)
             assert twin.faults.drop == 0.5  # refused requests change nothing
+            client.set_fault(stuck_slider=True)
+            assert twin.control.state()["plant"]["stuck_slider"] is True  # passed on to the firmware's plant
             client.press_button()
             client.remove_sample()
             assert client.truth() is None

@@ -103,6 +103,13 @@ def test_led_warm_up_settles_exponentially(optics):
     assert led.heat < 1e-6  # cools down when switched off
 
 
+def test_ptfe_white_option(ideal_map):
+    ptfe = Optics(ideal_map, white="ptfe")
+    assert ptfe.rho_white.min() < 0.975 < 0.985 < ptfe.rho_white.max() < 1.0  # dips in the near UV
+    with pytest.raises(InputError, match="background must be one of"):
+        Optics(ideal_map, white="snow")
+
+
 def test_backgrounds_black_rises_above_650nm():
     lam = np.array([450.0, 550.0, 640.0, 750.0, 900.0])
     rho = background_reflectance("black", lam)
