@@ -142,3 +142,23 @@ def test_bad_samples_are_refused_clearly(optics, ideal_map, tmp_path):
     with pytest.raises(InputError, match="sigma_t spans"):
         Optics(narrow).insert_sample("cyan-ink", 0.4)
     assert optics.sample is None  # a refused insertion changes nothing
+
+
+def test_every_material_fits_every_device_map_recipe():
+    """The twin refuses a sample outside its map; so the catalogue must fit the shipped maps' grids."""
+    import tomllib
+
+    from trimeter.paths import MAPS_DIR
+
+    recipes = [tomllib.loads(p.read_text()) for p in sorted((MAPS_DIR / "recipes").glob("*.toml"))]
+    recipes = [r for r in recipes if r.get("geometry") == "device" and "grid" in r]
+    if not recipes:
+        pytest.skip("no device map recipes in maps/recipes")
+    lam = np.linspace(345, 1000, 300)
+    for recipe in recipes:
+        grid = recipe["grid"]
+        for name in material_names():
+            s = material_spectra(name, lam)
+            assert s["alpha"].max() <= grid["alpha"]["max"], (recipe["name"], name)
+            assert grid["sigma_t"]["min"] <= s["sigma_t"].min() and s["sigma_t"].max() <= grid["sigma_t"]["max"]
+            assert grid["g"]["min"] <= s["g"].min() and s["g"].max() <= grid["g"]["max"], (recipe["name"], name)
