@@ -4,6 +4,7 @@ inversion can be developed and tested without Mitsuba. Test fixture / tool only 
 test-only dependency and never the source of a shipped map.
 
     python tests/inversion/ideal_map.py            # (re)builds tests/inversion/data/ideal-l0.5.tmap
+    python tests/inversion/ideal_map.py --second   # ... and the coarse 1.0 mm one (two-thickness tests)
 
 Per material, `Sample(a=α, b=σt·ℓ, g, d=ℓ, n, n_above=1, n_below=1).rt()` → (UR1, UT1, URU, UTU),
 and I(ρ) = A + Bρ/(1 − Cρ) with A = UR1, B = UT1·UTU, C = URU (see trimeter.maps.appearance).
@@ -45,12 +46,12 @@ def ideal_abc(alpha, sigma_t, g, thickness_mm=THICKNESS_MM, n=N):
     return out
 
 
-def build_ideal_map(path: Path = IDEAL_MAP, **axes) -> AppearanceMap:
+def build_ideal_map(path: Path = IDEAL_MAP, thickness_mm: float = THICKNESS_MM, **axes) -> AppearanceMap:
     alpha, sigma_t, g = ideal_axes(**axes)
     aa, ss, gg = np.meshgrid(alpha, sigma_t, g, indexing="ij")
     t0 = time.perf_counter()
-    abc = ideal_abc(aa.ravel(), ss.ravel(), gg.ravel()).reshape(*aa.shape, 3)
-    recipe = {"name": path.stem, "geometry": "ideal", "n": N, "thickness_mm": THICKNESS_MM,
+    abc = ideal_abc(aa.ravel(), ss.ravel(), gg.ravel(), thickness_mm=thickness_mm).reshape(*aa.shape, 3)
+    recipe = {"name": path.stem, "geometry": "ideal", "n": N, "thickness_mm": thickness_mm,
               "reference_rho_b": REF_RHO_B, "reference_rho_w": REF_RHO_W}
     provenance = {"builder": "tests/inversion/ideal_map.py (iadpython adding-doubling, exact)",
                   "seconds": round(time.perf_counter() - t0, 1)}
@@ -61,6 +62,11 @@ def build_ideal_map(path: Path = IDEAL_MAP, **axes) -> AppearanceMap:
     return AppearanceMap.load(path)
 
 
+IDEAL_MAP_THICK = DATA_DIR / "ideal-l1.0.tmap"
+
 if __name__ == "__main__":
-    m = build_ideal_map(Path(sys.argv[1]) if len(sys.argv) > 1 else IDEAL_MAP)
+    if "--second" in sys.argv:
+        m = build_ideal_map(IDEAL_MAP_THICK, thickness_mm=1.0, n_alpha=13, n_sigma=12, n_g=7)
+    else:
+        m = build_ideal_map(IDEAL_MAP)
     print(m.path, m.A.shape, m.checksum, m.provenance)

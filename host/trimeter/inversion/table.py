@@ -178,6 +178,10 @@ class MapTable:
         if not (n >= 1 and thickness > 0 and 0 <= rho_b < rho_w <= 1 and arrays["alpha"][0] >= 0
                 and arrays["alpha"][-1] <= 1 and arrays["g"][0] > -1 and arrays["g"][-1] < 1):
             raise MapFileError(f"{source}: impossible sample set-up or axis range in the header")
+        if _reserved or any(_pad) or b"\0" in name.rstrip(b"\0"):
+            raise MapFileError(f"{source}: reserved header bytes are not zero (written by a newer or broken tool)")
+        if not (cover_n == 0 or cover_n >= 1) or mc_stderr < 0:
+            raise MapFileError(f"{source}: impossible cover-slide index or MC std-error in the header")
         try:
             name_str = name.rstrip(b"\0").decode()
         except UnicodeDecodeError:

@@ -1,0 +1,36 @@
+"""Fixtures: the iadpython `ideal` maps (exact for their geometry; see ideal_map.py), their map
+table and MLP, all committed under tests/inversion/data so no test renders or trains."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from trimeter.maps.appearance import AppearanceMap
+
+DATA = Path(__file__).resolve().parent / "data"
+
+
+@pytest.fixture(scope="session")
+def ideal_map() -> AppearanceMap:
+    return AppearanceMap.load(DATA / "ideal-l0.5.tmap")
+
+
+@pytest.fixture(scope="session")
+def thick_map() -> AppearanceMap:
+    return AppearanceMap.load(DATA / "ideal-l1.0.tmap")
+
+
+@pytest.fixture(scope="session")
+def ideal_model() -> Path:
+    return DATA / "ideal-l0.5.onnx"
+
+
+def well_conditioned(amap, n, rng, alpha=(0.3, 0.995), tau=(0.2, 4.0), g=(0.0, 0.8)):
+    """Random off-grid materials where all three parameters are observable: scattering enough for g,
+    optically thick enough for α and thin enough for I_c."""
+    a = rng.uniform(*alpha, n)
+    s = np.exp(rng.uniform(np.log(tau[0]), np.log(tau[1]), n)) / amap.thickness_mm
+    return a, s, rng.uniform(*g, n)
