@@ -202,6 +202,8 @@ def test_control_socket_mirrors_the_python_api(ideal_map):
             assert json.loads(client._file.readline())["ok"] is False
             raw.sendall(b'{"cmd":"insert_sample","name":"milk","thickness_mm":0.4,"extra":1}\n')
             assert "extra" in json.loads(client._file.readline())["error"]
+            raw.sendall(b"x" * 200_000 + b"\n")
+            assert "longer than" in json.loads(client._file.readline())["error"]
             assert client.state()["sample"] is None
 
 

@@ -35,6 +35,7 @@ FIRMWARE_BINARY = FIRMWARE_DIR / "build" / "sim" / "trimeter-fw-sim"
 READY_TIMEOUT_S = 20.0
 POLL_INTERVAL_S = 0.05
 _UNIX_PATH_MAX = 100  # sun_path is 108 bytes; keep a margin
+MAX_REQUEST = 65536  # control-socket line limit
 
 
 def _die_with_parent() -> None:
@@ -383,9 +384,11 @@ class ControlServer:
     def _serve(self, conn: socket.socket) -> None:
         try:
             with conn.makefile("rb") as stream:
-                for line in stream:
-                    if len(line) > 65536:
-                        reply = {"ok": False, "error": "request line too long"}
+                while line := stream.readline(MAX_REQUEST + 1):
+                    if len(line) > MAX_REQUEST and not line.endswith(b"\n"):
+                        while (rest := stream.readline(MAX_REQUEST)) and not rest.endswith(b"\n"):
+                            pass  # skip the rest of the over-long line without holding it in memory
+                        reply = {"ok": False, "error": f"request line longer than {MAX_REQUEST} bytes"}
                     else:
                         reply = dispatch(self._control, line)
                     conn.sendall(json.dumps(reply).encode() + b"\n")
