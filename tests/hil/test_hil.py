@@ -212,3 +212,34 @@ def test_press_button_measurement_recovers_the_virtual_sample(rig, hil_map, host
     # noise-free; g gets 2× for the spectrometer noise).
     assert clear["bins"] >= 100, clear
     assert clear["alpha"] < 0.01 and clear["sigma_t"] < 0.01 and clear["g"] < 0.03, clear
+
+
+def test_flash_the_map_table_then_measure_with_it(start_twin, hil_map, host_dirs, tmp_path):
+    from trimeter.inversion.api import table_inverter
+
+    twin = start_twin()
+    rig = TwinRig(twin)
+    table = tmp_path / "hil.tlut"
+    table.write_bytes(table_inverter(hil_map).table.to_bytes())
+    assert main(["map", "flash", str(table), "--version", "4", "--port", twin.modbus_port]) == 0
+    service, events = calibrated_service(rig, host_dirs, hil_map)
+    rig.insert_sample(SAMPLE, THICKNESS_MM)
+    event = press_and_wait(rig, service, events, "measured")
+    assert event.kind == "measured", event.message
+    used = event.data["device_map_table"]
+    assert used["matches_fit_table"] and used["version"] == 4 and used["map"] == hil_map.name
+    errors = _parameter_errors(event.data["parameters"], twin.control.truth())
+    assert errors["nan"] == 0 and errors["sigma_t"] < 0.01, errors
+    # a table of another map in the device: the measurement says so instead of pretending
+    other = bytearray(table.read_bytes())
+    import struct
+    import zlib
+
+    other[300:304] = b"\x01\x02\x03\x04"
+    other[-4:] = struct.pack("<I", zlib.crc32(bytes(other[:-4])))
+    with Device.open(twin.modbus_port) as dev:
+        dev.flash_map(bytes(other), version=5)
+    event = press_and_wait(rig, service, events, "measured")
+    service.close()
+    assert not event.data["device_map_table"]["matches_fit_table"], event.data["device_map_table"]
+    assert any(e.kind == "warning" and "not the table of map" in e.message for e in events)

@@ -28,6 +28,12 @@ def _read_table(path: str) -> bytes:
     return data
 
 
+def _table_crc(data: bytes) -> int:
+    """The table's own CRC-32 (its last 4 bytes, little-endian). The slot register's CRC-32 over the whole
+    file is the same constant (0x2144DF1C, the CRC residue) for every valid table, so it names nothing."""
+    return int.from_bytes(data[-4:], "little") if len(data) >= 4 else zlib.crc32(data)
+
+
 def _bar(description):
     from rich.progress import BarColumn, DownloadColumn, Progress, TransferSpeedColumn
 
@@ -40,7 +46,7 @@ def cmd_flash(args):
         task = bar.add_task(f"writing {Path(args.table).name}", total=len(data) + len(data) % 2)
         slot = dev.flash_map(data, version=args.version,
                              progress=lambda done, total: bar.update(task, completed=done))
-    print(f"map table {Path(args.table).name} ({len(data)} bytes, CRC-32 0x{zlib.crc32(data):08X}) verified and "
+    print(f"map table {Path(args.table).name} ({len(data)} bytes, table CRC-32 0x{_table_crc(data):08X}) verified and "
           f"active in slot {slot.name}")
 
 
@@ -53,8 +59,8 @@ def cmd_verify(args):
             raise DeviceError("the device has no active map table")
         back = dev.read_map(slot)
     if back != data:
-        raise DeviceError(f"slot {slot.upper()} differs from {args.table} ({len(back)} vs {len(data)} bytes, CRC-32 "
-                          f"0x{zlib.crc32(back):08X} vs 0x{zlib.crc32(data):08X})")
+        raise DeviceError(f"slot {slot.upper()} differs from {args.table} ({len(back)} vs {len(data)} bytes, table "
+                          f"CRC-32 0x{_table_crc(back):08X} vs 0x{_table_crc(data):08X})")
     print(f"slot {slot.upper()} matches {args.table} byte for byte ({len(data)} bytes)")
 
 

@@ -355,18 +355,20 @@ class Device:
                 return status
             self._sleep(0.01)
 
-    def read_map(self, slot: regs.MapSlot | str, length: int | None = None,
+    def read_map(self, slot: regs.MapSlot | str, length: int | None = None, *, offset: int = 0,
                  progress: Callable[[int, int], None] | None = None) -> bytes:
-        """Read a slot's bytes back through file records (map_read_slot selects the slot)."""
+        """Read `length` bytes of a slot from `offset` (even) through file records (map_read_slot selects it)."""
         slot = regs.MapSlot[slot.upper()] if isinstance(slot, str) else regs.MapSlot(slot)
+        if offset % 2:
+            raise InputError("map read offset must be even (16-bit records)")
         if length is None:
-            length = self.read(f"map_slot_{slot.name.lower()}_length")
+            length = self.read(f"map_slot_{slot.name.lower()}_length") - offset
         self.write("map_read_slot", slot)
         out = bytearray()
         total = length + length % 2
         try:
             while len(out) < total:
-                record = len(out) // 2
+                record = (offset + len(out)) // 2
                 file_number, record_number = record // regs.MAP_RECORDS_PER_FILE + 1, record % regs.MAP_RECORDS_PER_FILE
                 words = min(MAX_FILE_RECORD_WORDS, regs.MAP_RECORDS_PER_FILE - record_number, (total - len(out)) // 2)
                 out += self.transport.read_file_records(file_number, record_number, words)

@@ -193,6 +193,36 @@ class Service:
         self.device.write("status_pattern", READY)
         return cal
 
+    def device_table(self, amap) -> dict:
+        """Is the map table active in the device the very table this host fits `amap` with?
+
+        Not by the slot's CRC-32: a table ends with its own CRC-32, so the CRC-32 over a whole valid
+        table is always the CRC residue 0x2144DF1C. Compared instead: length, the 128-byte header (map
+        name, source-map SHA-256, grid) and the table's trailing CRC-32 (which covers every other byte)."""
+        from trimeter import registers as regs
+
+        status = self.device.map_status()
+        active = status["map_active_slot"]
+        if active == regs.MapSlot.NONE:
+            return {"slot": None, "matches_fit_table": False}
+        key = active.name.lower()
+        info = {"slot": active.name, "crc32": f"0x{status[f'map_slot_{key}_crc32']:08X}",
+                "length": status[f"map_slot_{key}_length"], "version": status[f"map_slot_{key}_version"]}
+        if self.settings.method != "lut":
+            return {**info, "matches_fit_table": False}
+        from trimeter.inversion.api import table_inverter
+
+        table = table_inverter(amap).table.to_bytes()
+        same = len(table) == info["length"] and len(table) > 132
+        if same:
+            head = self.device.read_map(active, 128)
+            tail_at = (len(table) - 4) & ~1
+            tail = self.device.read_map(active, len(table) - tail_at, offset=tail_at)
+            same = head == table[:128] and tail == table[tail_at:]
+        info["matches_fit_table"] = bool(same)
+        info["map"] = amap.name
+        return info
+
     def measure(self, thicknesses: list[float], *, maps=None, between: Callable[[float], None] | None = None,
                 label: str | None = None) -> Path:
         """Capture each thickness (calling `between(ℓ)` before the 2nd, to swap samples), fit, write."""
@@ -200,6 +230,10 @@ class Service:
         if self.calibration is None:
             raise DeviceError("no calibration: run a calibration with the holder empty first")
         maps = maps or [map_for_thickness(t, s.map or None) for t in thicknesses]
+        table = self.device_table(maps[0])
+        if table["slot"] and not table["matches_fit_table"]:
+            self._emit("warning", f"the device's active map table (slot {table['slot']}, CRC-32 {table['crc32']}) is "
+                                  f"not the table of map {maps[0].name}; `trimeter map flash` the right one")
         runner = self._runner()
         raws, refls = [], []
         for i, thickness in enumerate(thicknesses):
@@ -219,6 +253,7 @@ class Service:
                 "device": {"firmware": list(self.device.identity.firmware_version),
                            "regmap_hash": f"0x{self.device.identity.regmap_hash:08X}"},
                 "calibration_created_utc": self.calibration.created_utc,
+                "device_map_table": table,
                 "link": vars(self.device.transport.stats).copy() if hasattr(self.device.transport, "stats") else {}}
         path = write_measurement(s.results_path, Measurement(self.calibration, raws, refls, thicknesses, combined,
                                                              per, meta=meta), label=label or self.label)
@@ -226,5 +261,5 @@ class Service:
         self.last_parameters = combined
         self.last_timing = timing
         self._emit("measured", f"results written to {path}", path=path, parameters=combined, timing=timing,
-                   link=meta["link"])
+                   link=meta["link"], device_map_table=table)
         return path
