@@ -1,6 +1,6 @@
 """The whole twin: the real firmware sim behind the fault proxy, the spectrometer pty, the control socket.
 
-Modbus is spoken with hand-built RTU frames here (no pymodbus: the twin is tested below the device client).
+Modbus is spoken with hand-built RTU frames (trimeter.twin._rtu; the twin is tested below the device client).
 """
 
 from __future__ import annotations
@@ -8,12 +8,10 @@ from __future__ import annotations
 import json
 import os
 import signal
-import struct
 import subprocess
 import sys
 import threading
 import time
-import tty
 
 import numpy as np
 import pytest
@@ -22,51 +20,11 @@ from trimeter import registers
 from trimeter.errors import DeviceError, InputError
 from trimeter.spectrometer import open_spectrometer
 from trimeter.twin import FaultConfig, Twin, TwinClient
+from trimeter.twin._rtu import RtuMaster
 
 
-def crc16(frame: bytes) -> bytes:
-    crc = 0xFFFF
-    for byte in frame:
-        crc ^= byte
-        for _ in range(8):
-            crc = (crc >> 1) ^ 0xA001 if crc & 1 else crc >> 1
-    return struct.pack("<H", crc)
-
-
-class Rtu:
-    """Minimal RTU master over the twin's Modbus pty."""
-
-    def __init__(self, port, timeout=1.0):
-        self.timeout = timeout
-        self.fd = os.open(port, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
-        tty.setraw(self.fd)
-
-    def transact(self, pdu: bytes, reply_len: int) -> bytes | None:
-        frame = b"\x01" + pdu
-        os.write(self.fd, frame + crc16(frame))
-        data, deadline = b"", time.monotonic() + self.timeout
-        while len(data) < reply_len + 3 and time.monotonic() < deadline:
-            try:
-                data += os.read(self.fd, 256)
-            except BlockingIOError:
-                time.sleep(0.001)
-        time.sleep(0.005)  # inter-frame silence, so the proxy sees the next request as new
-        if len(data) != reply_len + 3 or crc16(data[:-2]) != data[-2:]:
-            return None
-        return data[1:-2]
-
-    def read_input(self, address: int, count: int) -> list[int] | None:
-        reply = self.transact(struct.pack(">BHH", 4, address, count), 2 + 2 * count)
-        return list(struct.unpack(f">{count}H", reply[2:])) if reply else None
-
-    def write_coils(self, address: int, values: list[bool]) -> bool:
-        bits = sum(int(v) << i for i, v in enumerate(values))
-        nbytes = (len(values) + 7) // 8
-        pdu = struct.pack(">BHHB", 15, address, len(values), nbytes) + bits.to_bytes(nbytes, "little")
-        return self.transact(pdu, 5) is not None
-
-    def close(self):
-        os.close(self.fd)
+def Rtu(port, timeout=1.0):
+    return RtuMaster(port, timeout_s=timeout)
 
 
 def _find(name):
