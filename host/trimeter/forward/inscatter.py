@@ -12,11 +12,11 @@ Estimators (numpy, vectorised over photons; weights: α per scattering, Fresnel 
   analytic I_c, which checks the tracer;
 - scattered light by next-event estimation: at every scattering event, the HG phase function towards the
   aperture × the aperture's solid angle (converted inside the sample, n²) × Beer-Lambert to the front ×
-  the stack's Fresnel transmittance; paths that reach the aperture after an internal reflection since
+  the stack's Fresnel transmittance (a random point of the aperture per event); paths that reach the aperture after an internal reflection since
   their last scattering event are tallied when they exit (the NEE covers only straight exits).
 Approximations: the 0.15 mm cover slides are folded into the boundaries (incoherent composite Fresnel,
-their lateral offset neglected), the stack is laterally infinite, the aperture small (solid angle
-πr²cosθ/D²). Weights below 1e-3 go through Russian roulette (unbiased; weights only shrink).
+their lateral offset neglected), the stack is laterally infinite, the refraction of the NEE ray
+is computed as if it left from the scattering point's lateral position (≤ ℓ·tanθ_in ≈ µm off). Weights below 1e-3 go through Russian roulette (unbiased; weights only shrink).
 """
 
 from __future__ import annotations
@@ -65,8 +65,9 @@ def _rotate(d, cos_t, phi):
 
 
 def collimated_with_inscatter(alpha: float, sigma_t: float, g: float, thickness_mm: float, n: float,
-                              photons: int = 200_000, seed: int = 0, geometry=None) -> dict:
-    """Trace the collimated measurement: {'unscattered', 'inscattered', 'analytic', ...}."""
+                              photons: int = 200_000, seed: int = 0, geometry=None, nee: bool = True) -> dict:
+    """Trace the collimated measurement: {'unscattered', 'inscattered', 'analytic', ...}. With
+    `nee=False` scattered light is tallied only as photons exit (analog: the check of the NEE)."""
     params = geometry or load_geometry("device")
     coll = params["collimated"]
     n_slide = float(params["cover_slide_n"]) if params.get("cover_slides") else None
@@ -105,7 +106,7 @@ def collimated_with_inscatter(alpha: float, sigma_t: float, g: float, thickness_
         front = leave[d[leave, 2] > 0]
         # Unscattered photons go straight along the axis: all pass the aperture.
         unscattered_tally += w[front[~scattered[front]]].sum()
-        late = front[scattered[front] & reflected_since_scatter[front]]
+        late = front[scattered[front] & (reflected_since_scatter[front] | (not nee))]
         if len(late):
             sin_air = n * np.sqrt(np.clip(1 - d[late, 2] ** 2, 0, 1))
             ok = sin_air < 1
@@ -123,10 +124,13 @@ def collimated_with_inscatter(alpha: float, sigma_t: float, g: float, thickness_
         w[sc] *= alpha
         scattered[sc] = True
         reflected_since_scatter[sc] = False
-        if len(sc):
-            # Next-event estimate towards the aperture centre, straight out through the front face.
+        if len(sc) and nee:
+            # Next-event estimate towards a uniformly chosen point of the aperture, straight out through
+            # the front face (a point, not the centre: HG g = 0.9 changes across a wide aperture).
             p = pos[sc]
-            to_ap = np.column_stack([-p[:, 0], -p[:, 1], np.full(len(sc), z_ap - p[:, 2])])
+            r_q, phi_q = r_ap * np.sqrt(rng.random(len(sc))), 2 * math.pi * rng.random(len(sc))
+            to_ap = np.column_stack([r_q * np.cos(phi_q) - p[:, 0], r_q * np.sin(phi_q) - p[:, 1],
+                                     np.full(len(sc), z_ap - p[:, 2])])
             dist = np.linalg.norm(to_ap, axis=1)
             cos_air = to_ap[:, 2] / dist
             sin_in = np.sqrt(1 - cos_air**2) / n
@@ -140,6 +144,7 @@ def collimated_with_inscatter(alpha: float, sigma_t: float, g: float, thickness_
             beer = np.exp(-sigma_t * (thickness_mm - p[:, 2]) / cos_in)
             cos_scatter = np.einsum("ij,ij->i", d[sc], d_in)
             inscatter_tally += float(np.sum(w[sc] * _hg_pdf(g, cos_scatter) * omega_in * beer * t_out))
+        if len(sc):
             d[sc] = _rotate(d[sc], _hg_sample(g, rng.random(len(sc))), 2 * math.pi * rng.random(len(sc)))
         # --- roulette on small weights (unbiased: weights only shrink)
         small = alive & (w < 1e-3)
