@@ -79,6 +79,7 @@ class Service:
         self.last_parameters = None
         self.last_timing: dict = {}
         self._status = READY   # what the LED shows between presses (kept across reconnects)
+        self.calibration_stale_reason: str | None = None  # set when a reset was seen
         try:
             self.calibration = Calibration.load(settings.calibration_path)
         except TrimeterError:
@@ -92,6 +93,9 @@ class Service:
             self.spectrometer = self._open_spectrometer()
         button, uptime = self.device.read_many("button_events", "uptime_s").values()
         self._button, self._uptime = button, uptime
+        if not self.device.read("led_panel_left_on"):
+            # This service keeps the lamps on: off means a reset or power-up, so they are cold.
+            self.calibration_stale_reason = "the lamps were off (device reset or power-up) and must warm up again"
         lamps_on(self.device)
         self.device.write("status_pattern", self._status)
         self._emit("connected", f"connected (firmware {'.'.join(map(str, self.device.identity.firmware_version))})")
@@ -127,8 +131,13 @@ class Service:
     def poll_once(self) -> str | None:
         """Check the button once; run whatever a press asks for. Returns what was done, if anything."""
         button, uptime = self.device.read_many("button_events", "uptime_s").values()
-        if uptime < self._uptime:  # a reset: counters restart, lamps went dark
-            self._emit("reset", f"device reset detected (uptime {self._uptime} → {uptime} s); lamps back on")
+        lamps = self.device.read("led_panel_left_on")
+        # A reset restarts the counters and darkens the lamps (which this service keeps on); uptime alone
+        # misses a reset within a second of the last poll.
+        if uptime < self._uptime or not lamps:
+            self._emit("reset", f"device reset detected (uptime {self._uptime} → {uptime} s, lamps "
+                                f"{'on' if lamps else 'off'}); lamps back on, calibration marked stale")
+            self.calibration_stale_reason = "the device was reset since the calibration"
             self._button, self._uptime = button, uptime
             lamps_on(self.device)
             self.device.write("status_pattern", self._status)
@@ -144,7 +153,8 @@ class Service:
         dev = self.device
         try:
             dev.write("status_pattern", WORKING)
-            reason = calibration_is_stale(self.calibration, dev.read("uptime_s"), self.settings.calibration_max_age_s)
+            reason = self.calibration_stale_reason or calibration_is_stale(
+                self.calibration, dev.read("uptime_s"), self.settings.calibration_max_age_s)
             if reason:
                 self._emit("calibrating", f"{reason}: warming up and calibrating (the holder must be empty)")
                 self.calibrate()
@@ -187,6 +197,7 @@ class Service:
         cal = runner.run(calibration_plan(white_reference_reflectance=s.white_reference, frames=s.frames))
         cal.save(s.calibration_path)
         self.calibration = cal
+        self.calibration_stale_reason = None
         self.last_timing = runner.timing.to_dict()
         self._emit("calibrated", "calibrated: insert the sample and press the button to measure",
                    timing=self.last_timing)
@@ -255,8 +266,10 @@ class Service:
                 "calibration_created_utc": self.calibration.created_utc,
                 "device_map_table": table,
                 "link": vars(self.device.transport.stats).copy() if hasattr(self.device.transport, "stats") else {}}
+        t0 = time.monotonic()
         path = write_measurement(s.results_path, Measurement(self.calibration, raws, refls, thicknesses, combined,
                                                              per, meta=meta), label=label or self.label)
+        timing["write_wall_s"] = round(time.monotonic() - t0, 4)
         self.last_result = path
         self.last_parameters = combined
         self.last_timing = timing

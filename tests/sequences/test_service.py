@@ -1,0 +1,98 @@
+"""The press-button service against fakes: first press calibrates, the next measures and writes a
+results directory; a device reset makes the calibration stale; a failed measurement writes nothing
+and the LED says so."""
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fakes import FakeInstrument, FakeOptics, FakeSpectrometer
+from trimeter import registers as regs
+from trimeter.device.client import Device
+from trimeter.maps import AppearanceMap
+from trimeter.sequences.service import Service, calibration_is_stale  # noqa: F401
+from trimeter.sequences.settings import HostSettings
+
+HIL_MAP = Path(__file__).resolve().parents[1] / "hil" / "data" / "hil-ideal-l0.4.tmap"
+WL = np.linspace(420, 720, 61)
+
+
+@pytest.fixture
+def rig(tmp_path, monkeypatch):
+    monkeypatch.setenv("TRIMETER_DATA_DIR", str(tmp_path / "data"))
+    amap = AppearanceMap.load(HIL_MAP)
+    fake = FakeInstrument(busy_polls=1)
+    rho_b = 0.03 + 0.05 * (WL > 650)
+    optics = FakeOptics(WL, diffuse=np.full(WL.size, 3e6), collimated=np.full(WL.size, 5e6), rho_black=rho_b,
+                        rho_white=0.99)
+    spec = FakeSpectrometer(fake, optics)
+    settings = HostSettings()
+    settings.set("results_dir", str(tmp_path / "results"))
+    settings.set("map", str(amap.path))
+    settings.set("warmup_interval_s", 2)
+    events = []
+    service = Service(lambda: Device(fake), lambda: spec, settings, on_event=events.append)
+    truth = (np.linspace(0.6, 0.99, WL.size), np.linspace(2, 5, WL.size), np.full(WL.size, 0.5))
+    sample = amap.query(*truth, rho_b, 0.99)
+    return service, fake, optics, events, truth, sample, tmp_path
+
+
+def test_press_calibrates_then_measures_and_writes_results(rig):
+    service, fake, optics, events, truth, sample, tmp = rig
+    service.connect()
+    assert service.poll_once() is None  # no press yet
+    fake.press_button()
+    assert service.poll_once() == "calibrated"
+    assert fake.get("status_pattern") == regs.StatusPattern.ON
+    service.close()
+    service.connect()  # a reconnect with the lamps still on keeps the calibration
+    optics.sample = sample
+    fake.press_button()
+    assert service.poll_once() == "measured"
+    out = service.last_result
+    assert out.parent == tmp / "results" and (out / "parameters.csv").exists()
+    p = service.last_parameters
+    np.testing.assert_allclose(p.alpha, truth[0], atol=0.01)
+    np.testing.assert_allclose(p.sigma_t, truth[1], rtol=0.01)
+    np.testing.assert_allclose(p.g, truth[2], atol=0.02)
+    assert [e.kind for e in events if e.kind in ("calibrating", "warmed_up", "calibrated", "measured")] == \
+        ["calibrating", "warmed_up", "calibrated", "measured"]
+
+
+def test_reset_makes_the_calibration_stale_and_is_not_a_press(rig):
+    service, fake, optics, events, truth, sample, tmp = rig
+    service.connect()
+    fake.press_button()
+    service.poll_once()
+    fake.reset()
+    assert service.poll_once() == "reset"
+    assert fake.get("led_panel_left_on")  # lamps switched back on
+    fake.press_button()
+    assert service.poll_once() == "calibrated"
+    assert any(e.kind == "calibrating" and "reset" in e.message for e in events)
+
+
+def test_failed_measurement_writes_nothing_and_shows_fast_blink(rig):
+    service, fake, optics, events, truth, sample, tmp = rig
+    service.connect()
+    fake.press_button()
+    service.poll_once()
+    optics.sample = sample
+    service.settings.set("map", str(tmp / "missing.tmap"))  # an impossible set-up: refused, not crashed
+    fake.press_button()
+    assert service.poll_once() == "failed"
+    assert fake.get("status_pattern") == regs.StatusPattern.FAST_BLINK
+    assert not (tmp / "results").exists()
+    assert events[-1].kind == "failed" and "missing.tmap" in events[-1].message
+
+
+def test_calibration_staleness_rules():
+    from trimeter.sequences.reflectance import Calibration
+
+    cal = Calibration(WL, WL, WL, WL, 0.99, np.zeros(WL.size, np.int32), device_time_s=100.0)
+    assert calibration_is_stale(None, 5, 1800) == "no calibration yet"
+    assert calibration_is_stale(cal, 50, 1800) == "the device was reset since the calibration"
+    assert calibration_is_stale(cal, 1000, 1800) is None
+    assert "old" in calibration_is_stale(cal, 2000, 1800)
