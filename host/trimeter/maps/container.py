@@ -58,6 +58,9 @@ def write_container(path: str | os.PathLike, kind: str, meta: dict, arrays: dict
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
+        umask = os.umask(0)
+        os.umask(umask)
+        os.fchmod(fd, 0o666 & ~umask)      # mkstemp's 0600 would make shipped maps unreadable to others
         with os.fdopen(fd, "wb") as f:
             f.write(body + digest)
             f.flush()
