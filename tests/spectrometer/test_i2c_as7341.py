@@ -84,3 +84,12 @@ def test_close_powers_down_and_description_is_declarative():
     assert d.model == "AS7341" and d.pixels == 9 and d.dark_pixels == ()
     sensor.close()
     assert bus.regs[0x80] == 0
+
+
+def test_i2c_urls_are_checked_before_touching_a_bus():
+    from trimeter.spectrometer import open_spectrometer
+
+    with pytest.raises(InputError, match="i2c:<bus number>"):
+        open_spectrometer("i2c:one")
+    with pytest.raises(DeviceError, match="/dev/i2c-99"):
+        open_spectrometer("i2c:99")  # no such adapter on this machine (nor on most)

@@ -185,3 +185,11 @@ def test_trimeter_sim_prints_ports_and_stops_cleanly_on_sigint(ideal_map, tmp_pa
     fw_pids = [p for p in filter(str.isdigit, os.listdir("/proc"))
                if str(tmp_path) in open(f"/proc/{p}/cmdline", "rb").read().decode(errors="replace")]
     assert fw_pids == []  # the firmware went with it
+
+
+def test_impossible_twin_settings_are_refused_up_front():
+    for bad in (0, -1, float("nan"), "fast"):
+        with pytest.raises(InputError, match="time_scale"):
+            Twin(time_scale=bad)
+    with pytest.raises(InputError, match="faults must be a FaultConfig"):
+        Twin(faults={"drop": 0.1})
