@@ -78,8 +78,8 @@ class ScriptedSlave(threading.Thread):
 def slave_factory():
     slaves = []
 
-    def make(script=None):
-        slave = ScriptedSlave(script)
+    def make(script=None, cls=None):
+        slave = (cls or ScriptedSlave)(script)
         slave.start()
         slaves.append(slave)
         return slave
@@ -163,4 +163,33 @@ def test_reopens_after_the_adapter_disappears_and_returns(slave_factory, tmp_pat
     threading.Timer(0.3, link_path.symlink_to, (second.port,)).start()
     assert link.read_words("holding_register", 1, 1)[0] % 100 == 1
     assert link.stats.reconnects >= 1
+    link.close()
+
+
+class EchoingSlave(ScriptedSlave):
+    """An RS-485 adapter without echo suppression: the master hears its own request before the reply."""
+
+    def run(self):
+        buffer = b""
+        while not self.stop:
+            ready, _, _ = select.select([self.master], [], [], 0.01)
+            if ready:
+                try:
+                    buffer += os.read(self.master, 512)
+                except OSError:
+                    return
+                continue
+            if len(buffer) < 8:
+                continue
+            frame, buffer = buffer[:8], b""
+            self.requests += 1
+            address, fc, start, count = struct.unpack(">BBHH", frame[:6])
+            body = bytes([address, fc, 2 * count]) + struct.pack(f">{count}H", *[start + i for i in range(count)])
+            os.write(self.master, frame + body + crc16(body))
+
+
+def test_rs485_local_echo_is_stripped_when_configured(slave_factory):
+    slave = slave_factory(cls=EchoingSlave)
+    link = RtuTransport(slave.port, timeout_s=0.2, local_echo=True)
+    assert link.read_words("holding_register", 3, 2) == [3, 4]
     link.close()

@@ -96,3 +96,20 @@ def test_calibration_staleness_rules():
     assert calibration_is_stale(cal, 50, 1800) == "the device was reset since the calibration"
     assert calibration_is_stale(cal, 1000, 1800) is None
     assert "old" in calibration_is_stale(cal, 2000, 1800)
+
+
+def test_two_thicknesses_are_captured_in_turn_fitted_and_combined(rig):
+    service, fake, optics, events, truth, sample, tmp = rig
+    service.connect()
+    fake.press_button()
+    service.poll_once()
+    optics.sample = sample
+    amap = AppearanceMap.load(HIL_MAP)
+    swaps = []
+    # the same map twice stands in for two thicknesses: what is tested is the plumbing around trimeter.fit
+    path = service.measure([0.4, 0.4], maps=[amap, amap], between=swaps.append, label="two")
+    assert swaps == [0.4]
+    names = {p.name for p in path.iterdir()}
+    assert {"raw_black_1_0.4mm.csv", "raw_black_2_0.4mm.csv", "reflectances_2_0.4mm.csv", "parameters_1_0.4mm.csv",
+            "parameters_2_0.4mm.csv", "parameters.csv"} <= names
+    np.testing.assert_allclose(service.last_parameters.sigma_t, truth[1], rtol=0.01)

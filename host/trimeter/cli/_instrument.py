@@ -31,7 +31,7 @@ def open_device(settings: HostSettings):
     if not settings.port:
         raise InputError("port: no instrument port given (use --port or `trimeter config set --host port PATH`)")
     return Device.open(settings.port, address=settings.address, baudrate=settings.baudrate,
-                       timeout_s=settings.timeout_s, attempts=settings.attempts)
+                       timeout_s=settings.timeout_s, attempts=settings.attempts, local_echo=bool(settings.local_echo))
 
 
 def open_spectrometer(settings: HostSettings):

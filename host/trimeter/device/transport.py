@@ -82,7 +82,10 @@ class RtuTransport:
     """Modbus RTU master on one serial port, for one slave address."""
 
     def __init__(self, port: str, *, address: int = 1, baudrate: int = 19200, timeout_s: float = 0.5,
-                 attempts: int = 4, late_reply_window_s: float | None = None, reconnect_timeout_s: float = 10.0):
+                 attempts: int = 4, late_reply_window_s: float | None = None, reconnect_timeout_s: float = 10.0,
+                 local_echo: bool = False):
+        """local_echo: an RS-485 adapter that hears its own transmission (half duplex without echo
+        suppression); pymodbus then strips the echoed request before framing the reply."""
         if not 1 <= address <= 247:
             raise DeviceError(f"Modbus address {address} is outside 1..247")
         self.port = port
@@ -94,7 +97,8 @@ class RtuTransport:
         self.stats = LinkStats()
         # retries=0: we retry ourselves, so every retry drains + flushes and checks the reply's shape.
         self._client = ModbusSerialClient(port, framer=FramerType.RTU, baudrate=baudrate, timeout=timeout_s,
-                                          retries=0, reconnect_delay=0, name=f"trimeter@{port}")
+                                          retries=0, reconnect_delay=0, name=f"trimeter@{port}",
+                                          handle_local_echo=local_echo)
         self._open(deadline=time.monotonic() + reconnect_timeout_s)
 
     # ------------------------------------------------------------------------------------ link care

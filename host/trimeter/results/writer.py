@@ -133,17 +133,24 @@ def write_measurement(root: str | Path, measurement: Measurement, *, label: str 
     return final
 
 
+def _tags(thicknesses) -> list[str]:
+    """File-name suffixes per sample: none for one, `_0.4mm` per thickness, `_2_0.4mm` if one repeats."""
+    if len(thicknesses) < 2:
+        return [""] * len(thicknesses)
+    unique = len(set(thicknesses)) == len(thicknesses)
+    return [f"_{t:g}mm" if unique else f"_{i + 1}_{t:g}mm" for i, t in enumerate(thicknesses)]
+
+
 def _write_all(out: Path, m: Measurement, *, figure: bool, medium: bool) -> None:
-    two = len(m.raw) > 1
+    tags = _tags(m.thicknesses_mm)
     m.calibration.save(out)
-    for raw, refl, thickness in zip(m.raw, m.reflectances, m.thicknesses_mm):
-        tag = f"_{thickness:g}mm" if two else ""
+    for raw, refl, tag in zip(m.raw, m.reflectances, tags):
         for setup in ("black", "white", "collimated"):
             write_csv(out / f"raw_{setup}{tag}.csv", _raw_columns(raw.wavelengths_nm, getattr(raw, setup)))
         write_csv(out / f"reflectances{tag}.csv", refl.as_columns())
     write_csv(out / "parameters.csv", m.parameters.columns())
-    for p in m.per_thickness:
-        write_csv(out / f"parameters_{p.thickness_mm:g}mm.csv", p.columns())
+    for p, tag in zip(m.per_thickness, _tags([p.thickness_mm for p in m.per_thickness])):
+        write_csv(out / f"parameters{tag}.csv", p.columns())
     (out / "parameters.json").write_text(json.dumps(
         {"combined": m.parameters.to_json(), "per_thickness": [p.to_json() for p in m.per_thickness]}, indent=1))
     meta = dict(m.meta)

@@ -36,6 +36,7 @@ class HostSettings:
     baudrate: int = 19200
     timeout_s: float = 0.5             # per Modbus request
     attempts: int = 4                  # per Modbus request
+    local_echo: int = 0                # 1: the RS-485 adapter echoes what it sends (pymodbus strips it)
     spectrometer: str = ""             # spectrometer URL (sim:/dev/pts/N, seabreeze:, i2c:1)
     results_dir: str = ""              # default: <data dir>/results
     white_reference_reflectance: float = 0.0  # 0 = hardware/geometry.toml's value
