@@ -162,3 +162,13 @@ def test_every_material_fits_every_device_map_recipe():
             assert s["alpha"].max() <= grid["alpha"]["max"], (recipe["name"], name)
             assert grid["sigma_t"]["min"] <= s["sigma_t"].min() and s["sigma_t"].max() <= grid["sigma_t"]["max"]
             assert grid["g"]["min"] <= s["g"].min() and s["g"].max() <= grid["g"]["max"], (recipe["name"], name)
+
+
+def test_map_choice_by_thickness_device_geometry_first(ideal_map):
+    import dataclasses
+
+    device = dataclasses.replace(ideal_map, recipe={**ideal_map.recipe, "geometry": "device", "name": "dev"}, path=None)
+    thicker = dataclasses.replace(ideal_map, recipe={**ideal_map.recipe, "thickness_mm": 0.8, "name": "thick"}, path=None)
+    optics = Optics([ideal_map, device, thicker])
+    assert optics.insert_sample("milk", 0.4).map_name == "dev"
+    assert optics.insert_sample("milk", 0.8).map_name == "thick"

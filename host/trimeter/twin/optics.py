@@ -164,8 +164,7 @@ def _load_maps(appearance_map) -> list:
     from trimeter.maps import AppearanceMap, shipped_maps
 
     if appearance_map is None:
-        maps = [AppearanceMap.load(p) for p in shipped_maps()]
-        return [m for m in maps if m.recipe.get("geometry") == "device"] or maps
+        return [AppearanceMap.load(p) for p in shipped_maps()]
     items = appearance_map if isinstance(appearance_map, (list, tuple)) else [appearance_map]
     return [m if isinstance(m, AppearanceMap) else AppearanceMap.load(m) for m in items]
 
@@ -192,9 +191,9 @@ class Optics:
     def _map_for(self, thickness_mm: float):
         if self._maps is None:
             self._maps = _load_maps(self._map_source)
-        for m in self._maps:
-            if abs(m.thickness_mm - thickness_mm) <= 1e-6:
-                return m
+        matching = [m for m in self._maps if abs(m.thickness_mm - thickness_mm) <= 1e-6]
+        if matching:  # the instrument's own geometry first: it is what a real device would show
+            return next((m for m in matching if m.recipe.get("geometry") == "device"), matching[0])
         have = ", ".join(f"{m.name} ({m.thickness_mm:g} mm)" for m in self._maps) or "none"
         raise InputError(f"thickness_mm={thickness_mm:g}: no appearance map for that thickness (available: {have}); "
                          "pass appearance_map= / --map")
