@@ -97,3 +97,28 @@ def test_urls_choose_the_backend_and_bad_ones_are_refused():
         open_spectrometer("sim")
     with pytest.raises(DeviceError, match="cannot open sim spectrometer"):
         open_spectrometer("sim:/dev/does-not-exist")
+    with pytest.raises(InputError, match="option 'speed' is not one of sim's: timeout_s"):
+        open_spectrometer("sim:/dev/pts/0?speed=3")
+    with pytest.raises(InputError, match="must be key=value"):
+        open_spectrometer("sim:/dev/pts/0?timeout_s")
+
+
+def test_a_late_reply_is_not_taken_for_the_next_answer(server):
+    import threading
+
+    release = threading.Event()
+    slow_counts = np.full(1024, 7, dtype=np.uint16)
+
+    def slow(it_us):
+        release.wait(5)
+        return slow_counts, 1.0
+
+    with open_spectrometer(f"sim:{server.port}?timeout_s=0.2") as spec:
+        server._expose = slow
+        with pytest.raises(DeviceError, match="no reply to 'ACQ'"):
+            spec.intensities()
+        release.set()  # the ACQ reply now arrives, late
+        spec.integration_time_us = 3000  # its own replies, not the stale ACQ payload
+        assert spec.integration_time_us == 3000
+        server._expose = lambda it_us: (np.full(1024, 9, dtype=np.uint16), 2.0)
+        np.testing.assert_array_equal(spec.intensities(), 9)

@@ -13,6 +13,8 @@ from trimeter.spectrometer.base import Spectrometer, SpectrometerDescription
 __all__ = ["Spectrometer", "SpectrometerDescription", "open_spectrometer", "BACKENDS"]
 
 BACKENDS = ("sim", "i2c", "seabreeze")
+OPTIONS = {"sim": ("timeout_s",), "i2c": ("address", "gain", "integration_time_us", "valid_timeout_s"),
+           "seabreeze": ("integration_time_us",)}
 
 
 def open_spectrometer(url: str, **options) -> Spectrometer:
@@ -26,6 +28,9 @@ def open_spectrometer(url: str, **options) -> Spectrometer:
         if not eq:
             raise InputError(f"spectrometer option {item!r} in {url!r} must be key=value")
         options.setdefault(key, value)
+    unknown = sorted(set(options) - set(OPTIONS.get(backend, options)))
+    if unknown:
+        raise InputError(f"spectrometer option {unknown[0]!r} is not one of {backend}'s: {', '.join(OPTIONS[backend])}")
     if backend == "sim":
         from trimeter.spectrometer.sim import SimSpectrometer
 

@@ -68,7 +68,10 @@ class AS7341:
                  sleep: Callable[[float], None] = time.sleep, owns_bus: bool = False):
         self._bus, self.address, self._clock, self._sleep = bus, int(address), clock, sleep
         self._owns_bus = owns_bus
-        self._valid_timeout_s = valid_timeout_s
+        try:
+            self._valid_timeout_s = None if valid_timeout_s is None else float(valid_timeout_s)
+        except ValueError:
+            raise InputError(f"valid_timeout_s must be a number of seconds, got {valid_timeout_s!r}") from None
         self.last_clear: float | None = None
         self.last_saturated = False
         chip_id = self._read(ID)

@@ -22,7 +22,7 @@ def _import_seabreeze():
 
 
 class SeaBreezeSpectrometer:
-    def __init__(self, serial: str | None = None, integration_time_us: int = 100_000, **_ignored):
+    def __init__(self, serial: str | None = None, integration_time_us: int = 100_000):
         Spectrometer, list_devices = _import_seabreeze()
         try:
             self._spec = Spectrometer.from_serial_number(serial) if serial else Spectrometer.from_first_available()
@@ -37,7 +37,7 @@ class SeaBreezeSpectrometer:
         except Exception:  # not every model exposes its electrically dark pixels
             self._dark = ()
         self._it_us = 0
-        self.integration_time_us = max(self._limits[0], min(self._limits[1], integration_time_us))
+        self.integration_time_us = max(self._limits[0], min(self._limits[1], int(float(integration_time_us))))
 
     @property
     def description(self) -> SpectrometerDescription:

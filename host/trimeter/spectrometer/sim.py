@@ -14,7 +14,7 @@ import time
 
 import numpy as np
 
-from trimeter.errors import DeviceError
+from trimeter.errors import DeviceError, InputError
 from trimeter.spectrometer.base import SpectrometerDescription, check_integration_time
 
 # A reply must come within this much wall time plus the exposure itself (at time scale 1).
@@ -22,7 +22,7 @@ REPLY_TIMEOUT_S = 5.0
 
 
 class SimSpectrometer:
-    def __init__(self, port: str, timeout_s: float = REPLY_TIMEOUT_S, **_ignored):
+    def __init__(self, port: str, timeout_s: float = REPLY_TIMEOUT_S):
         import serial  # pyserial: a pty opens like any serial port
 
         if not port:
@@ -32,8 +32,14 @@ class SimSpectrometer:
         except (OSError, serial.SerialException) as exc:
             raise DeviceError(f"cannot open sim spectrometer at {port}: {exc}") from None
         self.port = port
-        self._timeout_s = float(timeout_s)
+        try:
+            self._timeout_s = float(timeout_s)
+        except ValueError:
+            self._serial.close()
+            raise InputError(f"spectrometer option timeout_s must be a number, got {timeout_s!r}") from None
         self._buffer = b""
+        self._owed = 0  # replies owed by the server to commands that timed out
+        self._serial.reset_input_buffer()
         try:
             self._description = self._describe()
             self._wavelengths = np.array([float(x) for x in self._command("WL?").split(",")])
@@ -48,16 +54,21 @@ class SimSpectrometer:
 
     # ------------------------------------------------------------------------------ transport
     def _command(self, line: str, extra_timeout_s: float = 0.0) -> str:
-        self._serial.reset_input_buffer()  # a late reply to an earlier command must not pass for this one
-        self._buffer = b""
+        # The server answers every command exactly once, in order: replies still owed to commands that
+        # timed out are skipped, so a late reply is never taken as the answer to this command.
         self._serial.write(line.encode("ascii") + b"\n")
         deadline = time.monotonic() + self._timeout_s + extra_timeout_s
-        while b"\n" not in self._buffer:
-            if time.monotonic() > deadline:
-                raise DeviceError(f"sim spectrometer at {self.port}: no reply to {line.split()[0]!r} "
-                                  f"within {self._timeout_s + extra_timeout_s:.1f} s")
-            self._buffer += self._serial.read(max(1, self._serial.in_waiting))
-        reply, _, self._buffer = self._buffer.partition(b"\n")
+        while True:
+            while b"\n" not in self._buffer:
+                if time.monotonic() > deadline:
+                    self._owed += 1
+                    raise DeviceError(f"sim spectrometer at {self.port}: no reply to {line.split()[0]!r} "
+                                      f"within {self._timeout_s + extra_timeout_s:.1f} s")
+                self._buffer += self._serial.read(max(1, self._serial.in_waiting))
+            reply, _, self._buffer = self._buffer.partition(b"\n")
+            if not self._owed:
+                break
+            self._owed -= 1
         text = reply.decode("ascii", errors="replace").strip()
         if text.startswith("ERR"):
             raise DeviceError(f"sim spectrometer refused {line.split()[0]!r}: {text[3:].strip()}")
