@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 from trimeter import registers
+from trimeter.cli import main
 from trimeter.errors import DeviceError, InputError
 from trimeter.spectrometer import open_spectrometer
 from trimeter.twin import FaultConfig, Twin, TwinClient
@@ -165,7 +166,7 @@ def test_control_socket_mirrors_the_python_api(ideal_map):
             assert client.state()["sample"] is None
 
 
-def test_trimeter_sim_prints_ports_and_stops_cleanly_on_sigint(ideal_map, tmp_path):
+def test_trimeter_sim_prints_ports_and_stops_cleanly_on_sigint(ideal_map, tmp_path, capsys):
     proc = subprocess.Popen([sys.executable, "-m", "trimeter", "sim", "--json", "--time-scale", "20",
                              "--sample", "magenta-ink", "--map", str(ideal_map.path), "--state-dir", str(tmp_path)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
@@ -175,13 +176,20 @@ def test_trimeter_sim_prints_ports_and_stops_cleanly_on_sigint(ideal_map, tmp_pa
             assert client.state()["sample"] == "magenta-ink"
         with open_spectrometer(ports["spectrometer_url"]) as spec:
             assert spec.description.pixels == 1024
+        ctl = ["sim", "--state-dir", str(tmp_path), "--ctl"]  # in-process: finds the twin via ports.json
+        assert main(ctl + ["insert_sample", "name=milk", "thickness_mm=0.4"]) == 0
+        capsys.readouterr()
+        assert main(ctl + ["truth"]) == 0
+        assert json.loads(capsys.readouterr().out)["truth"]["name"] == "milk"
+        assert main(ctl + ["insert_sample", "name=unobtainium"]) == 2
+        assert "sample must be one of" in capsys.readouterr().err
         proc.send_signal(signal.SIGINT)
         assert proc.wait(timeout=10) == 0
     finally:
         if proc.poll() is None:
             proc.kill()
             proc.wait()
-    assert not os.path.exists(ports["control_path"])
+    assert not os.path.exists(ports["control_path"]) and not (tmp_path / "ports.json").exists()
     fw_pids = [p for p in filter(str.isdigit, os.listdir("/proc"))
                if str(tmp_path) in open(f"/proc/{p}/cmdline", "rb").read().decode(errors="replace")]
     assert fw_pids == []  # the firmware went with it

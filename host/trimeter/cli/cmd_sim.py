@@ -2,7 +2,11 @@
 
 Contract: host/trimeter/twin/README.md. In another terminal:
     trimeter measure --port /dev/pts/N --spectrometer sim:/dev/pts/M
-and drive the virtual instrument through its control socket (trimeter.twin.TwinClient).
+and drive the virtual instrument through its control socket:
+    trimeter sim --ctl insert_sample name=milk thickness_mm=0.4
+    trimeter sim --ctl press_button
+    trimeter sim --ctl state
+(`--ctl` finds the running twin through ports.json in the same --state-dir, or take --control PATH).
 """
 
 from __future__ import annotations
@@ -15,10 +19,49 @@ import threading
 from trimeter.errors import InputError
 
 
+def _default_state_dir() -> str:
+    import platformdirs
+
+    return platformdirs.user_state_dir("trimeter") + "/twin"
+
+
+def _ctl(args) -> int:
+    """Send one control request to a running twin and print the reply as JSON."""
+    from pathlib import Path
+
+    from trimeter.errors import DeviceError
+    from trimeter.twin import TwinClient
+
+    command, *pairs = args.ctl
+    fields = {}
+    for pair in pairs:
+        key, eq, value = pair.partition("=")
+        if not eq or not key:
+            raise InputError(f"--ctl fields must be FIELD=VALUE, got {pair!r}")
+        try:
+            fields[key] = json.loads(value)
+        except ValueError:
+            fields[key] = value  # a bare word: a string (material names)
+    control = args.control
+    if control is None:
+        ports_file = Path(args.state_dir or _default_state_dir()) / "ports.json"
+        try:
+            control = json.loads(ports_file.read_text())["control_path"]
+        except (OSError, ValueError, KeyError):
+            raise DeviceError(f"no running twin found ({ports_file} missing or unreadable); give --control PATH") from None
+    with TwinClient(control) as client:
+        reply = client._call(command, **fields)
+    reply.pop("ok", None)
+    print(json.dumps(reply, indent=1 if command == "state" else None))
+    return 0
+
+
 def run(args) -> int:
     from trimeter.twin import FaultConfig, Twin
     from trimeter.twin.optics import material_names
 
+    if args.ctl:
+        return _ctl(args)
     if args.list_materials:
         for name, description in material_names().items():
             print(f"{name:14s} {description}")
@@ -26,11 +69,7 @@ def run(args) -> int:
     if args.thickness <= 0:
         raise InputError(f"--thickness must be positive, got {args.thickness:g}")
     faults = FaultConfig.parse(args.faults or "")
-    state_dir = args.state_dir
-    if state_dir is None:
-        import platformdirs
-
-        state_dir = platformdirs.user_state_dir("trimeter") + "/twin"
+    state_dir = args.state_dir or _default_state_dir()
 
     stop = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
@@ -74,4 +113,9 @@ def register(subparsers) -> None:
     p.add_argument("--seed", type=int, default=None, help="noise seed (reproducible spectra)")
     p.add_argument("--json", action="store_true", help="print the ports as one JSON line")
     p.add_argument("--list-materials", action="store_true", help="list the virtual samples and exit")
+    p.add_argument("--ctl", nargs="+", metavar="ARG",
+                   help="send COMMAND [FIELD=VALUE ...] to a running twin instead of starting one "
+                        "(ports, state, sim_time, insert_sample, remove_sample, press_button, reset_firmware, "
+                        "set_fault, truth, materials)")
+    p.add_argument("--control", default=None, metavar="PATH", help="with --ctl: the twin's control socket")
     p.set_defaults(func=run)

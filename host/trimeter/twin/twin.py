@@ -147,6 +147,9 @@ class Twin:
         self.control_path = str(socket_dir / "control.sock")
         self._control_server = ControlServer(self.control_path, self.control)
         self._closers.append(self._control_server.close)
+        ports_file = self.state_dir / "ports.json"  # how `trimeter sim --ctl` finds this twin
+        ports_file.write_text(json.dumps(self.control.ports()) + "\n")
+        self._closers.append(lambda: ports_file.unlink(missing_ok=True))
         for name, target in (("modbus", self.modbus_port), ("spectrometer", self.spectrometer_port)):
             link = self.state_dir / name
             if link.is_symlink() or link.exists():
