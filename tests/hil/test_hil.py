@@ -266,3 +266,36 @@ def test_cli_calibrate_then_measure(start_twin, hil_map, host_dirs, capsys):
     # the plumbing is what is tested here; the loose warm-up (0.3 % per 10 s, to keep it short) leaves
     # ~1 % lamp drift between calibration and capture, hence 2 %
     assert np.nanpercentile(np.abs(table["sigma_t"] / want - 1)[band], 95) < 0.02
+
+
+def test_slots_shutters_and_button_counter(rig):
+    """The basics any instrument must pass: identity, homing, the three slots, the button counter."""
+    with Device.open(rig.port, timeout_s=0.25) as dev:
+        for slot, want in (("open", regs.Slot.OPEN), ("black", regs.Slot.BLACK), ("white", regs.Slot.WHITE)):
+            dev.goto(slot)
+            assert dev.read("position_slot") == want and not dev.read("fault")
+        before = dev.read("button_events")
+        rig.press_button()
+        deadline = time.monotonic() + 10
+        while dev.read("button_events") == before and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert dev.read("button_events") == (before + 1) % 65536
+
+
+@pytest.mark.hardware
+def test_real_instrument_is_light_tight(request):
+    """With every shutter closed and the LEDs on, the spectrometer must read dark: stray light would bias
+    every I_c. Only meaningful on a real instrument (the twin's shutters are ideal)."""
+    from trimeter.sequences.service import lamps_on
+
+    with Device.open(request.config.getoption("--port")) as dev:
+        spec = open_spectrometer(request.config.getoption("--spectrometer"))
+        lamps_on(dev)
+        dev.wait_idle(10)
+        spec.integration_time_us = spec.integration_time_us_limits[1] // 10
+        lit = spec.intensities()
+        dev.set_lights(panels=False, collimated=False, leds=False)
+        dev.wait_idle(10)
+        dark = spec.intensities()
+        spec.close()
+    assert np.nanmax(lit - dark) < 0.01 * spec.saturation_counts
