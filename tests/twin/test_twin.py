@@ -201,3 +201,18 @@ def test_impossible_twin_settings_are_refused_up_front():
             Twin(time_scale=bad)
     with pytest.raises(InputError, match="faults must be a FaultConfig"):
         Twin(faults={"drop": 0.1})
+
+
+def test_a_crashed_firmware_is_reported_and_cleaned_up(ideal_map, tmp_path):
+    twin = Twin(time_scale=20, appearance_map=ideal_map, state_dir=tmp_path).start()
+    try:
+        with open_spectrometer(twin.spectrometer_url) as spec:
+            twin._process.kill()  # a crash, not a clean exit
+            twin._process.wait()
+            assert not twin.running
+            with pytest.raises(DeviceError, match="plant"):
+                spec.intensities()  # the spectrometer says why instead of hanging
+    finally:
+        twin.close()
+    assert _children() == []
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["firmware.log", "storage.bin"]

@@ -52,7 +52,7 @@ def _ctl(args) -> int:
     with TwinClient(control) as client:
         reply = client._call(command, **fields)
     reply.pop("ok", None)
-    print(json.dumps(reply, indent=1 if command == "state" else None))
+    print(json.dumps(reply, indent=1 if command == "state" else None) if reply else "ok")
     return 0
 
 

@@ -124,6 +124,8 @@ class Twin:
         binary = ensure_firmware(self._firmware)
         fw_modbus = self.state_dir / "firmware-modbus"
         plant_path = socket_dir / "plant.sock"
+        # The firmware removes these on a clean exit; after a crash (SIGKILL) the twin does.
+        self._closers.append(lambda: [p.unlink(missing_ok=True) for p in (fw_modbus, plant_path)])
         self._launch(binary, fw_modbus, plant_path)
         self.plant = PlantClient(str(plant_path))
         self._closers.append(self.plant.close)
