@@ -48,8 +48,12 @@ def test_integration_time_and_gain_round_trip_through_the_registers():
     assert sensor.integration_time_us == before
     sensor.gain = 64
     assert bus.regs[0xAA] & 0x1F == 7 and sensor.gain == 64
-    with pytest.raises(InputError, match="gain must be one of"):
-        sensor.gain = 3
+    for bad in (3, 64.5, "lots", None):
+        with pytest.raises(InputError, match="gain must be one of"):
+            sensor.gain = bad
+    sensor.gain = "0.5"  # as it comes from a URL query
+    assert bus.regs[0xAA] & 0x1F == 0
+    sensor.gain = 64
     assert sensor.gain == 64
 
 

@@ -57,7 +57,7 @@ CHANNEL_NM = {"F1": 415.0, "F2": 445.0, "F3": 480.0, "F4": 515.0, "F5": 555.0, "
 
 def _code_for_gain(gain) -> int:
     try:
-        return GAINS.index(float(gain) if float(gain) == 0.5 else int(float(gain)))
+        return GAINS.index(float(gain))  # 64.0 == 64: exact values only, 64.5 is refused
     except (ValueError, TypeError):
         raise InputError(f"gain must be one of {', '.join(f'{g:g}' for g in GAINS)}, got {gain!r}") from None
 
