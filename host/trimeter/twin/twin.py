@@ -84,6 +84,7 @@ class Twin:
         self._optics_lock = threading.Lock()
         self._closers: list = []
         self._process: subprocess.Popen | None = None
+        self._drain_thread: threading.Thread | None = None
         self.control = TwinControl(self)
         self.modbus_port = self.spectrometer_port = self.control_path = None
         self.last_plant_state: dict | None = None
@@ -184,6 +185,7 @@ class Twin:
         drain = threading.Thread(target=self._drain, args=(self._process.stdout, log), name="twin-fw-stdout",
                                  daemon=True)
         drain.start()
+        self._drain_thread = drain  # joined by _stop_firmware, once stdout is at EOF
 
     @staticmethod
     def _drain(stream, log) -> None:
@@ -196,14 +198,15 @@ class Twin:
 
     def _stop_firmware(self) -> None:
         process = self._process
-        if process is None or process.poll() is not None:
-            return
-        process.send_signal(signal.SIGTERM)
-        try:
-            process.wait(timeout=3)
-        except subprocess.TimeoutExpired:
-            process.kill()
-            process.wait(timeout=3)
+        if process is not None and process.poll() is None:
+            process.send_signal(signal.SIGTERM)
+            try:
+                process.wait(timeout=3)
+            except subprocess.TimeoutExpired:
+                process.kill()
+                process.wait(timeout=3)
+        if self._drain_thread is not None:
+            self._drain_thread.join(timeout=5)
 
     def close(self) -> None:
         self._stop.set()
