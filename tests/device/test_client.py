@@ -116,3 +116,17 @@ def test_oversized_map_is_refused_before_touching_the_device():
     with pytest.raises(InputError, match="slot holds 131072"):
         Device(fake).flash_map(b"\0" * (regs.MAP_SLOT_CAPACITY_BYTES + 1), version=1)
     assert fake.file_writes == 0
+
+
+def test_identity_is_checked_again_after_the_transport_reopened_the_port():
+    from trimeter.device.transport import LinkStats
+
+    fake = FakeInstrument()
+    fake.stats = LinkStats()
+    dev = Device(fake)
+    assert dev.read("led_panels_level") == pytest.approx(1.0)
+    # the adapter was re-plugged and something with other firmware answers now
+    fake._set("ir", regs.BY_NAME["regmap_hash"], 0x12345678)
+    fake.stats.reconnects += 1
+    with pytest.raises(DeviceError, match="register map mismatch"):
+        dev.read("led_panels_level")

@@ -299,3 +299,44 @@ def test_real_instrument_is_light_tight(request):
         dark = spec.intensities()
         spec.close()
     assert np.nanmax(lit - dark) < 0.01 * spec.saturation_counts
+
+
+def test_service_survives_the_instrument_going_away_and_coming_back(start_twin, hil_map, host_dirs, tmp_path):
+    """`serve` on stable port names (the twin's state-dir links, like /dev/serial/by-id): the twin is
+    shut down and restarted on new ptys (a power cycle with the USB adapters re-enumerated)."""
+    import threading
+
+    state = tmp_path / "twin-state"
+    twin = start_twin(state_dir=state)
+    settings = HostSettings()
+    settings.set("results_dir", str(host_dirs / "results"))
+    settings.set("map", str(hil_map.path))
+    settings.set("warmup_threshold", 0.003)
+    events = []
+    service = Service(lambda: Device.open(str(state / "modbus"), timeout_s=0.1, reconnect_timeout_s=1.0),
+                      lambda: open_spectrometer(f"sim:{state / 'spectrometer'}"), settings, on_event=events.append)
+    stop = threading.Event()
+    thread = threading.Thread(target=service.serve, kwargs={"stop": stop.is_set, "reconnect_s": 0.1}, daemon=True)
+    thread.start()
+    try:
+        deadline = time.monotonic() + 20
+        while not any(e.kind == "connected" for e in events) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        twin.close()
+        time.sleep(0.5)
+        twin = start_twin(state_dir=state)
+        # the link reopens by itself (same port name); the service sees lamps off = a reset
+        deadline = time.monotonic() + 30
+        while not any(e.kind in ("reset", "reconnecting") for e in events) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert any(e.kind in ("reset", "reconnecting") for e in events), [(e.kind, e.message) for e in events]
+        twin.control.press_button()  # the restarted instrument answers presses: cold lamps → calibrate
+        deadline = time.monotonic() + 60
+        while not any(e.kind in ("calibrated", "failed") for e in events) and time.monotonic() < deadline:
+            time.sleep(0.05)
+    finally:
+        stop.set()
+        thread.join(10)
+    kinds = [e.kind for e in events]
+    assert "calibrated" in kinds, [(e.kind, e.message) for e in events]
+    assert any(e.kind == "calibrating" and ("lamps were off" in e.message or "reset" in e.message) for e in events)

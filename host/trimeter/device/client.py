@@ -124,6 +124,8 @@ class Device:
         self.transport = transport
         self._clock = clock
         self._sleep = sleep
+        self._reconnects_checked = getattr(getattr(transport, "stats", None), "reconnects", 0)
+        self.identity = None
         self.identity = self.check_identity() if check else None
 
     @classmethod
@@ -178,6 +180,7 @@ class Device:
             reg = _lookup(name)
             by_table.setdefault(reg.table, []).append(reg)
         out = {}
+        self._after_reconnect()
         for table, items in by_table.items():
             lo = min(r.address for r in items)
             hi = max(r.address + r.words for r in items)
@@ -187,7 +190,16 @@ class Device:
                     out.update(self._read_block(table, reg.address, reg.address + reg.words, [reg]))
             else:
                 out.update(self._read_block(table, lo, hi, items))
+        self._after_reconnect()
         return {name: out[name] for name in names}
+
+    def _after_reconnect(self) -> None:
+        """The transport reopened the port: whatever answers now may not be the device we checked."""
+        stats = getattr(self.transport, "stats", None)
+        if stats is not None and stats.reconnects != self._reconnects_checked:
+            self._reconnects_checked = stats.reconnects
+            if self.identity is not None:
+                self.identity = self.check_identity()
 
     def _read_block(self, table, lo, hi, items):
         if table in ("coil", "discrete_input"):

@@ -89,8 +89,11 @@ class Service:
     def connect(self) -> None:
         self.close()
         self.device = self._open_device()
-        if self.spectrometer is None:
-            self.spectrometer = self._open_spectrometer()
+        try:
+            self.spectrometer = self._open_spectrometer()  # reopened too: it may have been re-plugged
+        except BaseException:
+            self.close()
+            raise
         button, uptime = self.device.read_many("button_events", "uptime_s").values()
         self._button, self._uptime = button, uptime
         if not self.device.read("led_panel_left_on"):
@@ -101,12 +104,14 @@ class Service:
         self._emit("connected", f"connected (firmware {'.'.join(map(str, self.device.identity.firmware_version))})")
 
     def close(self) -> None:
-        if self.device is not None:
-            try:
-                self.device.close()
-            except Exception:
-                pass
-            self.device = None
+        for name in ("device", "spectrometer"):
+            thing = getattr(self, name)
+            if thing is not None:
+                try:
+                    thing.close()
+                except Exception:
+                    pass  # closing a link that is already gone
+                setattr(self, name, None)
 
     def _emit(self, kind, message, **data):
         self.on_event(Event(kind, message, data))
@@ -138,6 +143,13 @@ class Service:
             self._emit("reset", f"device reset detected (uptime {self._uptime} → {uptime} s, lamps "
                                 f"{'on' if lamps else 'off'}); lamps back on, calibration marked stale")
             self.calibration_stale_reason = "the device was reset since the calibration"
+            # a power cycle re-enumerates the spectrometer too: reopen it before it is needed
+            if self.spectrometer is not None:
+                try:
+                    self.spectrometer.close()
+                except Exception:
+                    pass  # it is gone already
+            self.spectrometer = self._open_spectrometer()
             self._button, self._uptime = button, uptime
             lamps_on(self.device)
             self.device.write("status_pattern", self._status)
