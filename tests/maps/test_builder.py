@@ -10,7 +10,7 @@ from trimeter.errors import InputError
 from trimeter.maps.appearance import AppearanceMap
 from trimeter.maps.builder import build_map, default_checkpoint_dir, validation_report
 from trimeter.maps.recipe import parse_recipe
-from trimeter.maps.tracer import trace
+from trimeter.maps.tracer import trace_column
 
 FIELDS = ("A", "B", "C", "std_b", "std_w")
 
@@ -22,7 +22,7 @@ class Interrupt(Exception):
 def counting_tracer(calls):
     def tracer(stack, sigma_t, g, n_paths, seed, k_max):
         calls.append((sigma_t, g, seed))
-        return trace(stack, sigma_t, g, n_paths, seed, k_max)
+        return trace_column(stack, sigma_t, g, n_paths, seed, k_max)
     return tracer
 
 

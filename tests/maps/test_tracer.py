@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from trimeter.geometry import load_geometry
-from trimeter.maps.tracer import Stack, Tally, k_max_for, trace
+from trimeter.maps.tracer import ColumnTally, Stack, Tally, k_max_for
+from trimeter.maps.tracer import trace_column as trace
 
 from maps_direct_render import render_black_panels
 
@@ -32,21 +33,33 @@ def adding_doubling(alpha, sigma_t, g, rho, n=N, ell=ELL):
 
 
 def test_polynomial_bookkeeping_equals_per_path_sums():
-    """c_m(α) = w/N Σ_k H[m,k] α^k and its std-error equal the explicit per-path computation."""
+    """A = c0(α), B = c1(α), C = returned-from-below(α) and the std-error of I(ρ) equal the explicit
+    per-path computation (each detector path contributes once; C's error propagated)."""
     rng = np.random.default_rng(1)
-    n_paths = 500
+    n_paths, n_below = 500, 300
     k = rng.integers(0, 40, n_paths)
-    m = rng.integers(0, 4, n_paths)          # m = 3: cut paths, contribute nothing
+    m = rng.integers(0, 3, n_paths)          # m = 2: stopped at the 2nd background hit, contributes nothing
     hit = rng.random(n_paths) < 0.7
-    sel = hit & (m < 3)
-    counts = np.zeros((3, 40))
+    sel = hit & (m < 2)
+    counts = np.zeros((2, 40))
     np.add.at(counts, (m[sel], k[sel]), 1.0)
-    tally = Tally(counts=counts, n_paths=n_paths, weight=0.8, specular=0.04, truncated=0, k_max=100)
+    kb = rng.integers(0, 30, n_below)
+    back = rng.random(n_below) < 0.3
+    below = Tally(counts=np.bincount(kb[back], minlength=1)[None, :].astype(float), n_paths=n_below, weight=1.0,
+                  specular=0.0, truncated=0, k_max=100)
+    tally = ColumnTally(Tally(counts=counts, n_paths=n_paths, weight=0.8, specular=0.04, truncated=0, k_max=100),
+                        below)
     alpha, rho = np.array([0.0, 0.3, 0.95]), 0.7
-    per_path = 0.8 * np.where(sel[:, None], alpha[None, :] ** k[:, None] * rho ** m[:, None], 0.0)
-    np.testing.assert_allclose(rho ** np.arange(3) @ tally.orders(alpha), per_path.mean(axis=0) + 0.04, rtol=1e-12)
-    np.testing.assert_allclose(tally.stderr(alpha, rho), per_path.std(axis=0, ddof=1) / math.sqrt(n_paths),
-                               rtol=1e-10)
+    A, B, C = tally.abc(alpha)
+    powers = alpha[None, :] ** k[:, None]
+    np.testing.assert_allclose(A, 0.04 + 0.8 * np.mean(np.where((sel & (m == 0))[:, None], powers, 0), axis=0))
+    np.testing.assert_allclose(B, 0.8 * np.mean(np.where((sel & (m == 1))[:, None], powers, 0), axis=0))
+    per_below = np.where(back[:, None], alpha[None, :] ** kb[:, None], 0.0)
+    np.testing.assert_allclose(C, per_below.mean(axis=0))
+    q = rho / (1 - C * rho)
+    per_path = 0.8 * np.where(sel[:, None], powers * np.where(m[:, None] == 0, 1.0, q[None, :]), 0.0)
+    var = per_path.var(axis=0, ddof=1) / n_paths + (B * q * q) ** 2 * per_below.var(axis=0, ddof=1) / n_below
+    np.testing.assert_allclose(tally.stderr(alpha, rho), np.sqrt(var), rtol=1e-10)
 
 
 def test_alpha_zero_is_beer_lambert_with_fresnel_and_g_has_no_effect(ideal):
@@ -56,7 +69,8 @@ def test_alpha_zero_is_beer_lambert_with_fresnel_and_g_has_no_effect(ideal):
     sigma_t = 1.0
     t0 = trace(ideal, sigma_t, 0.0, 1 << 17, 5, K_MAX)
     t9 = trace(ideal, sigma_t, 0.9, 1 << 17, 5, K_MAX)
-    np.testing.assert_array_equal(t0.orders([0.0]), t9.orders([0.0]))
+    np.testing.assert_array_equal(t0.above.orders([0.0]), t9.above.orders([0.0]))
+    np.testing.assert_array_equal(t0.below.orders([0.0]), t9.below.orders([0.0]))
 
     def fresnel(mu, n):
         sin2 = (1 - mu * mu) / (n * n)
@@ -81,8 +95,9 @@ def test_same_seed_same_tally_other_seed_other_tally(ideal):
     a = trace(ideal, 3.0, 0.5, 1 << 15, 11, K_MAX)
     b = trace(ideal, 3.0, 0.5, 1 << 15, 11, K_MAX)
     c = trace(ideal, 3.0, 0.5, 1 << 15, 12, K_MAX)
-    np.testing.assert_array_equal(a.counts, b.counts)
-    assert not np.array_equal(a.counts, c.counts)
+    np.testing.assert_array_equal(a.above.counts, b.above.counts)
+    np.testing.assert_array_equal(a.below.counts, b.below.counts)
+    assert not np.array_equal(a.above.counts, c.above.counts)
 
 
 def test_one_trace_per_column_matches_adding_doubling_for_every_alpha_and_rho(ideal):

@@ -30,9 +30,10 @@ import numpy as np
 from trimeter.errors import InputError, MapFileError
 from trimeter.maps.appearance import AppearanceMap
 from trimeter.maps.recipe import Recipe
-from trimeter.maps.tracer import Stack, Tally, k_max_for, trace
+from trimeter.maps.tracer import ColumnTally, Stack, k_max_for
+from trimeter.maps.tracer import trace_column as trace_pair
 
-BUILDER = "trimeter.maps.tracer: (k, m)-tally path tracer, Dr.Jit LLVM symbolic loop"
+BUILDER = "trimeter.maps.tracer: (k, m)-tally path tracer (detector + background paths), Dr.Jit LLVM symbolic loop"
 _COLUMN_FIELDS = ("A", "B", "C", "std_b", "std_w")
 _BATCH_QUANTUM = 4096
 
@@ -56,11 +57,11 @@ def column_seed(seed: int, j: int, k: int, batch: int) -> int:
     return int(np.random.SeedSequence([seed, j, k, batch]).generate_state(1, np.uint64)[0] >> np.uint64(1))
 
 
-def trace_column(recipe: Recipe, stack: Stack, j: int, k: int, tracer: Callable = trace) -> Column:
+def trace_column(recipe: Recipe, stack: Stack, j: int, k: int, tracer: Callable = trace_pair) -> Column:
     s = recipe.sampling
     k_max = k_max_for(float(recipe.alpha[-1]), s.truncation)
     sigma_t, g = float(recipe.sigma_t[j]), float(recipe.g[k])
-    tally: Tally | None = None
+    tally: ColumnTally | None = None
     batch, n_next = 0, s.min_paths
     while n_next > 0:
         part = tracer(stack, sigma_t, g, n_next, column_seed(recipe.seed, j, k, batch), k_max)
@@ -82,7 +83,7 @@ def trace_column(recipe: Recipe, stack: Stack, j: int, k: int, tracer: Callable 
                   seconds=tally.seconds, path_events=tally.path_events)
 
 
-def _worst_stderr(tally: Tally, recipe: Recipe) -> float:
+def _worst_stderr(tally: ColumnTally, recipe: Recipe) -> float:
     return float(max(tally.stderr(recipe.alpha, recipe.reference_rho_b).max(),
                      tally.stderr(recipe.alpha, recipe.reference_rho_w).max()))
 
@@ -159,7 +160,7 @@ def default_checkpoint_dir(out: Path) -> Path:
 
 
 def build_map(recipe: Recipe, out: str | Path, *, checkpoint_dir: str | Path | None = None, resume: bool = False,
-              progress: bool = True, keep_checkpoint: bool = False, tracer: Callable = trace,
+              progress: bool = True, keep_checkpoint: bool = False, tracer: Callable = trace_pair,
               on_column: Callable[[int, int], None] | None = None) -> AppearanceMap:
     """Build the map for `recipe` into `out` (atomically). `on_column(j, k)` is called after each
     column is traced (not for columns reloaded from the checkpoint) — used by tests to interrupt."""

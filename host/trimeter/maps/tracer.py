@@ -7,10 +7,12 @@ light after k scattering events and m background bounces contributes w·α^k·ρ
 paths from the detector without α, record each path's final (k, m, reached-the-light), and histogram
 them. Then for every α on the map's axis
 
-    c_m(α) = w/N · Σ_k H[m, k] α^k          and    I(ρ) = Σ_m c_m ρ^m = A + Bρ/(1 − Cρ)
+    c_m(α) = w/N · Σ_k H[m, k] α^k,     A = c0(α),  B = c1(α)
 
-with A = c0, B = c1, C = c2/c1 (exact for the ideal geometry, where the Lambertian background forgets
-directions). Paths therefore stop at their 3rd background hit — no long ρ tail to trace.
+so a detector path stops at its 2nd background hit. I(ρ) = A + Bρ/(1 − Cρ) needs C, the slab's
+reflectance seen from the (Lambertian) background: a second set of paths starts on the background,
+cosine-distributed upward, and tallies by k those that come back to it, C(α) = Σ_k R[k] α^k / N_b.
+(Exact for the ideal geometry, where the background forgets directions; see ColumnTally.)
 
 No Russian roulette on α (it would break the polynomial): a path is traced until it escapes, is lost
 (sides, past the background), or has K scattering events, where α_max^K ≤ `truncation`. The
@@ -35,7 +37,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-N_BACKGROUND_ORDERS = 3  # m = 0, 1, 2 → A, B, C
+N_BACKGROUND_ORDERS = 2  # detector paths stop at their 2nd background hit: m = 0 → A, m = 1 → B
 
 
 @dataclass(frozen=True)
@@ -128,7 +130,7 @@ class Tally:
         return self
 
     def _moments(self, alpha):
-        """Per-order first and second raw moments of one path's value, shape (3, len(alpha))."""
+        """Per-row first and second raw moments of one path's value, shape (rows, len(alpha))."""
         alpha = np.atleast_1d(np.asarray(alpha, dtype=float))
         k = np.arange(self.counts.shape[1])
         with np.errstate(under="ignore"):
@@ -138,31 +140,86 @@ class Tally:
         return first, second
 
     def orders(self, alpha):
-        """c_m(α) for m = 0, 1, 2 (m = 0 includes the specular reflection)."""
+        """Per-row first moments (rows: m = 0, 1 from above; 'returned' from below), the specular
+        reflection added to row 0."""
         first, _ = self._moments(alpha)
         first[0] += self.specular
         return first
 
-    def abc(self, alpha):
-        c = self.orders(alpha)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            C = np.where(c[1] > 0, c[2] / c[1], 0.0)
-        return c[0], c[1], np.clip(C, 0.0, 0.999)
-
-    def stderr(self, alpha, rho):
-        """MC standard error of I(ρ) (the m ≤ 2 series; each path contributes once, so per-path
-        variance follows from the histograms of α^k and α^2k)."""
-        first, second = self._moments(alpha)
-        powers = rho ** np.arange(N_BACKGROUND_ORDERS)
-        mean = powers @ first
-        mean_sq = (powers**2) @ second
-        n = self.n_paths
-        var = np.maximum(mean_sq - mean * mean, 0.0) * n / max(n - 1, 1)
-        return np.sqrt(var / n)
-
     def truncation_bound(self, alpha_max: float) -> float:
         """Upper bound on the truncation error of any I (ρ ≤ 1, α ≤ α_max)."""
         return self.weight * alpha_max**self.k_max * self.truncated / self.n_paths
+
+
+@dataclass
+class ColumnTally:
+    """One (σt, g) column: paths from the detector (`above`: rows m = 0, 1) and paths leaving the
+    background upward (`below`: row 0 = came back to the background).
+
+        A = c0(α),  B = c1(α)  (above),   C = the slab's reflectance seen from the background (below)
+
+    C from its own paths rather than as c2/c1: the ratio is noisy and biased where few detector paths
+    reach the background at all (thick slabs), and 1/(1 − Cρ) amplifies that. For the ideal geometry
+    both are URU exactly; for the device, C is the stack's response around the optical axis."""
+
+    above: Tally
+    below: Tally
+
+    def __iadd__(self, other: "ColumnTally") -> "ColumnTally":
+        self.above += other.above
+        self.below += other.below
+        return self
+
+    @property
+    def n_paths(self) -> int:
+        return self.above.n_paths
+
+    @property
+    def seconds(self) -> float:
+        return self.above.seconds + self.below.seconds
+
+    @property
+    def path_events(self) -> int:
+        return self.above.path_events + self.below.path_events
+
+    @property
+    def truncated(self) -> int:
+        return self.above.truncated + self.below.truncated
+
+    def abc(self, alpha):
+        c = self.above.orders(alpha)
+        C = np.clip(self.below.orders(alpha)[0], 0.0, 0.999)
+        return c[0], c[1], C
+
+    def stderr(self, alpha, rho):
+        """MC standard error of I(ρ) = A + Bρ/(1 − Cρ): each detector path contributes once (its m
+        decides whether it counts towards A or, × ρ/(1 − Cρ), towards B), plus C's own error
+        propagated through ∂I/∂C = Bρ²/(1 − Cρ)²."""
+        A, B, C = self.abc(alpha)
+        q = rho / (1 - C * rho)
+        f1, f2 = self.above._moments(alpha)
+        mean = f1[0] + q * f1[1]
+        mean_sq = f2[0] + q * q * f2[1]
+        n = self.above.n_paths
+        var_above = np.maximum(mean_sq - mean * mean, 0.0) / max(n - 1, 1)
+        g1, g2 = self.below._moments(alpha)
+        nb = self.below.n_paths
+        var_c = np.maximum(g2[0] - g1[0] ** 2, 0.0) / max(nb - 1, 1)
+        return np.sqrt(var_above + (B * q * q) ** 2 * var_c)
+
+    def truncation_bound(self, alpha_max: float) -> float:
+        """Bound on the truncation error of I (ρ ≤ 0.99, α ≤ α_max): A and B directly, C amplified."""
+        amplify = 1 / (1 - 0.999 * 0.99) ** 2
+        return self.above.truncation_bound(alpha_max) * 101 + self.below.truncation_bound(alpha_max) * amplify
+
+
+def trace_column(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max: int,
+                 below_fraction: float = 1.0) -> ColumnTally:
+    """Detector paths and (a fraction as many) background paths for one (σt, g); seeds derived from `seed`."""
+    above = trace(stack, sigma_t, g, n_paths, seed, k_max)
+    n_below = max(1024, int(n_paths * below_fraction))
+    below = trace(stack, sigma_t, g, n_below, seed ^ (1 << 62), k_max, from_below=True)
+    return ColumnTally(above, below)
 
 
 def k_max_for(alpha_max: float, truncation: float) -> int:
@@ -194,8 +251,11 @@ def _fresnel(dr, cos_i, eta):
     return F, cos_t
 
 
-def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max: int, wave: int = 48) -> Tally:
-    """Trace `n_paths` adjoint paths from the detector at extinction σt [1/mm] and HG anisotropy g."""
+def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max: int, wave: int = 48,
+          from_below: bool = False) -> Tally:
+    """Trace `n_paths` adjoint paths from the detector at extinction σt [1/mm] and HG anisotropy g;
+    or, `from_below`, paths leaving the background (under the detector spot) cosine-distributed
+    upward, tallying those that come back to the background (row 0) — the C coefficient."""
     import time
 
     dr, B = _drjit()
@@ -242,11 +302,21 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
         y = stack.detector_half_side * (2 * rng.next_float32() - 1)
     else:
         x, y = dr.zeros(Float, n_paths), dr.zeros(Float, n_paths)
-    z = dr.full(Float, planes[0], n_paths)
-    dx, dy, dz = dr.zeros(Float, n_paths), dr.zeros(Float, n_paths), dr.full(Float, -1.0, n_paths)
-    li = dr.zeros(UInt32, n_paths)
     k = dr.zeros(UInt32, n_paths)
-    m = dr.zeros(UInt32, n_paths)
+    if from_below:
+        z = dr.full(Float, stack.background_z, n_paths)
+        u1, u2 = rng.next_float32(), rng.next_float32()
+        r_l, phi0 = dr.sqrt(u1), 2 * math.pi * u2
+        dx, dy, dz = r_l * dr.cos(phi0), r_l * dr.sin(phi0), dr.safe_sqrt(1 - u1)
+        li = dr.full(UInt32, L, n_paths)
+        m = dr.full(UInt32, 1, n_paths)          # has left the background once
+        orders = 2                                # … and stops when it comes back
+    else:
+        z = dr.full(Float, planes[0], n_paths)
+        dx, dy, dz = dr.zeros(Float, n_paths), dr.zeros(Float, n_paths), dr.full(Float, -1.0, n_paths)
+        li = dr.zeros(UInt32, n_paths)
+        m = dr.zeros(UInt32, n_paths)
+        orders = N_BACKGROUND_ORDERS
     it = dr.zeros(UInt32, n_paths)
     alive = dr.full(Bool, True, n_paths)
     hit = dr.full(Bool, False, n_paths)
@@ -352,9 +422,10 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
         escaped_up = gap_up & ~under_stack
         # (a ray leaving a side face downward could still reach the background's rim: neglected)
         reach_light = (out_top | escaped_up | wall_exit) & light(x, y, z, new_dx, new_dy, new_dz)
-        lost = (gap_down & ~on_bg) | (on_bg & (m >= N_BACKGROUND_ORDERS))
+        cut = on_bg & (m >= orders)
+        lost = (gap_down & ~on_bg) | cut
         done = out_top | escaped_up | wall_exit | lost | (k >= k_max) | (it >= max_iter)
-        hit = hit | (alive & reach_light)
+        hit = hit | (alive & (cut if from_below else reach_light))
         alive = alive & ~done
         return (x, y, z, new_dx, new_dy, new_dz, dr.select(out_top, li, new_li), k, m, it, alive, hit, rng)
 
@@ -393,6 +464,10 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
         lane = dr.gather(UInt32, lane, keep)
 
     truncated = int(np.count_nonzero((k_np >= k_max) | (it_np >= max_iter)))
+    if from_below:
+        counts = np.bincount(k_np[hit_np], minlength=1)[None, :].astype(float)
+        return Tally(counts=counts, n_paths=n_paths, weight=1.0, specular=0.0, truncated=truncated, k_max=k_max,
+                     seconds=time.perf_counter() - t0, path_events=int(it_np.sum()))
     sel = hit_np & (m_np < N_BACKGROUND_ORDERS)
     counts = np.zeros((N_BACKGROUND_ORDERS, int(k_np[sel].max(initial=0)) + 1))
     np.add.at(counts, (m_np[sel], k_np[sel]), 1.0)
