@@ -175,4 +175,8 @@ def inscatter_report(seed: int = 0, photons: int = 100_000, say=print) -> list[d
                 rows.append(r)
                 say(f"  l={ell} st={sigma_t:6.2f} a={alpha}: I_c {r['analytic']:.3e} (traced unscattered "
                     f"{r['unscattered']:.3e}, {r['photons']} photons), in-scattered {r['inscattered']:.2e} = {100 * r['ratio']:.3g} % of I_c")
+    for floor in (0.1, 0.01, SIXTEEN_BIT_FLOOR):
+        worst = max((r["ratio"] for r in rows if r["analytic"] >= floor), default=float("nan"))
+        say(f"  where I_c >= {floor:.3g}: in-scattered light <= {100 * worst:.3g} % of I_c")
+    say(f"  largest in-scattered signal: {max(r['inscattered'] for r in rows):.2e} of the open-slot beam")
     return rows
