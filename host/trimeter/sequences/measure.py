@@ -47,13 +47,17 @@ def fit_reflectances(refls: list[Reflectances], maps: list[AppearanceMap], *, me
     if len(refls) != len(maps) or not refls:
         raise InputError("need one map per measured thickness")
     wl = refls[0].wavelengths_nm
+    # The fit's noise model σ_I = noise_rel·I + noise_abs, with noise_rel measured from the frame spread
+    # (so the reported uncertainties are this measurement's, not a default's).
+    measured = [r.noise_rel() for r in refls]
+    noise = {"noise_rel": float(np.clip(max(measured), 1e-4, 0.2))} if all(m is not None for m in measured) else {}
     if len(refls) == 1:
         r = refls[0]
-        result = trimeter.fit(maps[0], r.I_b, r.I_w, r.I_c, rho_b=r.rho_b, rho_w=r.rho_w, method=method)
+        result = trimeter.fit(maps[0], r.I_b, r.I_w, r.I_c, rho_b=r.rho_b, rho_w=r.rho_w, method=method, **noise)
         return Parameters.from_fit(wl, result, thickness_mm=maps[0].thickness_mm), []
     stack = {k: np.stack([getattr(r, k) for r in refls]) for k in ("I_b", "I_w", "I_c", "rho_b", "rho_w")}
     result = trimeter.fit(maps, stack["I_b"], stack["I_w"], stack["I_c"], rho_b=stack["rho_b"], rho_w=stack["rho_w"],
-                          method=method)
+                          method=method, **noise)
     per = [Parameters.from_fit(wl, single, thickness_mm=amap.thickness_mm)
            for single, amap in zip(result.per_thickness, maps)]
     return Parameters.from_fit(wl, result), per

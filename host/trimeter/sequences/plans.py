@@ -90,7 +90,7 @@ def capture(slot: str, *, panels: bool = False, collimated: bool = False, frames
     signals = {}
     for wanted in times:
         actual = yield Expose(wanted)
-        signals[actual] = yield Acquire(frames)
+        signals[actual] = yield Acquire(frames, spread=True)
     return signals, peak
 
 
@@ -100,24 +100,29 @@ def dark_frames(times, *, frames: int = 2):
     darks = {}
     for wanted in sorted(set(times)):
         actual = yield Expose(wanted)
-        darks[wanted] = yield Acquire(frames)
+        darks[wanted] = yield Acquire(frames, spread=True)
     return darks
 
 
 def combine(signals: dict, darks: dict, saturation_counts: float, lit: np.ndarray) -> Capture:
-    """HDR merge: rate = Σ(S − D) / Σ t over every exposure in which the bin did not saturate."""
+    """HDR merge: rate = Σ(S − D) / Σ t over every exposure in which the bin did not saturate; its
+    standard error from the frame-to-frame spread of S and D. `signals`/`darks`: t → (mean, sem)."""
     times = sorted(signals)
-    signal = np.stack([signals[t][lit] for t in times])
-    dark = np.stack([darks[t][lit] for t in times])
+    signal = np.stack([signals[t][0][lit] for t in times])
+    signal_sem = np.stack([signals[t][1][lit] for t in times])
+    dark = np.stack([darks[t][0][lit] for t in times])
+    dark_sem = np.stack([darks[t][1][lit] for t in times])
     seconds = np.asarray(times, float)[:, None] * 1e-6
     usable = np.isfinite(signal) & np.isfinite(dark) & (signal < SATURATION_FRACTION * saturation_counts)
     net = np.where(usable, signal - dark, 0.0).sum(axis=0)
+    variance = np.where(usable, signal_sem ** 2 + dark_sem ** 2, 0.0).sum(axis=0)
     exposure = np.where(usable, seconds, 0.0).sum(axis=0)
     with np.errstate(invalid="ignore", divide="ignore"):
         rate = np.where(exposure > 0, net / exposure, np.nan)
+        rate_std = np.where(exposure > 0, np.sqrt(variance) / exposure, np.nan)
     saturated = ~usable.any(axis=0) & np.isfinite(signal).any(axis=0)
     return Capture(rate=rate, saturated=saturated, integration_times_us=np.asarray(times, float),
-                   signals=signal, darks=dark)
+                   signals=signal, darks=dark, rate_std=rate_std)
 
 
 def _check_light(capture: Capture, saturation_counts: float, what: str) -> None:

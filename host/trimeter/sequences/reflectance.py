@@ -44,6 +44,13 @@ class Capture:
     integration_times_us: np.ndarray
     signals: np.ndarray = field(repr=False)   # (exposures, bins) mean counts
     darks: np.ndarray = field(repr=False)
+    rate_std: np.ndarray | None = field(default=None, repr=False)  # standard error of `rate` (frame spread)
+
+    def relative_std(self) -> np.ndarray:
+        if self.rate_std is None:
+            return np.full_like(self.rate, np.nan)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.abs(self.rate_std / self.rate)
 
     def flags(self) -> np.ndarray:
         out = np.where(self.saturated, int(CaptureFlag.SATURATED), 0)
@@ -79,6 +86,8 @@ class Calibration:
     device_time_s: float = 0.0    # device uptime when it finished (staleness, reset detection)
     created_utc: str = ""
     spectrometer: dict = field(default_factory=dict)
+    diffuse_rel_std: np.ndarray | None = None     # relative standard errors (frame spread)
+    collimated_rel_std: np.ndarray | None = None
 
     @classmethod
     def from_captures(cls, wavelengths_nm, captures: dict, *, white_reference_reflectance: float,
@@ -93,7 +102,8 @@ class Calibration:
         return cls(np.asarray(wavelengths_nm, float), np.where(no_light, np.nan, diffuse),
                    np.where(no_light, np.nan, coll.rate), rho_black, float(white_reference_reflectance),
                    flags.astype(np.int32), float(device_time_s),
-                   datetime.now(timezone.utc).isoformat(timespec="seconds"), dict(spectrometer or {}))
+                   datetime.now(timezone.utc).isoformat(timespec="seconds"), dict(spectrometer or {}),
+                   white.relative_std(), coll.relative_std())
 
     # -------------------------------------------------------------------------------- files
     def save(self, directory: str | Path) -> Path:
@@ -104,9 +114,14 @@ class Calibration:
                 "device_time_s": self.device_time_s, "created_utc": self.created_utc,
                 "spectrometer": self.spectrometer, "bins": int(len(self.wavelengths_nm))}
         (directory / "calibration.json").write_text(json.dumps(meta, indent=2))
-        table = np.column_stack([self.wavelengths_nm, self.diffuse, self.collimated, self.rho_black, self.flags])
-        np.savetxt(directory / "calibration.csv", table, delimiter=",", fmt=["%.4f", "%.8g", "%.8g", "%.8g", "%d"],
-                   header="wavelength_nm,diffuse_counts_per_s,collimated_counts_per_s,rho_black,flags", comments="")
+        nan = np.full_like(self.diffuse, np.nan)
+        table = np.column_stack([self.wavelengths_nm, self.diffuse, self.collimated, self.rho_black, self.flags,
+                                 nan if self.diffuse_rel_std is None else self.diffuse_rel_std,
+                                 nan if self.collimated_rel_std is None else self.collimated_rel_std])
+        np.savetxt(directory / "calibration.csv", table, delimiter=",",
+                   fmt=["%.4f", "%.8g", "%.8g", "%.8g", "%d", "%.4g", "%.4g"],
+                   header="wavelength_nm,diffuse_counts_per_s,collimated_counts_per_s,rho_black,flags,"
+                          "diffuse_rel_std,collimated_rel_std", comments="")
         return directory
 
     @classmethod
@@ -119,12 +134,12 @@ class Calibration:
             raise InputError(f"no calibration in {directory}: run `trimeter calibrate` with the holder empty") from None
         except (ValueError, json.JSONDecodeError) as exc:
             raise InputError(f"calibration in {directory} is corrupt ({exc}); run `trimeter calibrate` again") from None
-        if meta.get("format_version") != CALIBRATION_FORMAT_VERSION or table.shape[1] != 5 \
+        if meta.get("format_version") != CALIBRATION_FORMAT_VERSION or table.shape[1] != 7 \
                 or table.shape[0] != meta.get("bins"):
             raise InputError(f"calibration in {directory} has an unknown format or is truncated; calibrate again")
         return cls(table[:, 0], table[:, 1], table[:, 2], table[:, 3], float(meta["rho_white"]),
                    table[:, 4].astype(np.int32), float(meta.get("device_time_s", 0.0)), meta.get("created_utc", ""),
-                   meta.get("spectrometer", {}))
+                   meta.get("spectrometer", {}), table[:, 5], table[:, 6])
 
 
 @dataclass
@@ -136,10 +151,26 @@ class Reflectances:
     rho_b: np.ndarray
     rho_w: np.ndarray
     flags: np.ndarray   # CaptureFlag per bin
+    I_b_std: np.ndarray | None = None   # standard errors from the frame-to-frame spread (sample and reference)
+    I_w_std: np.ndarray | None = None
+    I_c_std: np.ndarray | None = None
 
     def as_columns(self) -> dict:
-        return {"wavelength_nm": self.wavelengths_nm, "I_b": self.I_b, "I_w": self.I_w, "I_c": self.I_c,
+        cols = {"wavelength_nm": self.wavelengths_nm, "I_b": self.I_b, "I_w": self.I_w, "I_c": self.I_c,
                 "rho_b": self.rho_b, "rho_w": self.rho_w, "capture_flags": self.flags}
+        for name in ("I_b_std", "I_w_std", "I_c_std"):
+            if getattr(self, name) is not None:
+                cols[name] = getattr(self, name)
+        return cols
+
+    def noise_rel(self) -> float | None:
+        """Median relative standard error of I_b and I_w over the usable bins (for the fit's noise model)."""
+        if self.I_w_std is None or self.I_b_std is None:
+            return None
+        with np.errstate(invalid="ignore", divide="ignore"):
+            rel = np.concatenate([self.I_b_std / self.I_b, self.I_w_std / self.I_w])
+        rel = rel[np.isfinite(rel)]
+        return float(np.median(rel)) if rel.size else None
 
 
 def reflectances(calibration: Calibration, sample: RawSample) -> Reflectances:
@@ -154,6 +185,16 @@ def reflectances(calibration: Calibration, sample: RawSample) -> Reflectances:
         i_c = sample.collimated.rate / calibration.collimated
     bad = flags != 0
     nan = np.float64("nan")
+
+    def std(value, capture, reference_rel):
+        if reference_rel is None or capture.rate_std is None:
+            return None
+        with np.errstate(invalid="ignore"):
+            return np.where(bad, nan, np.abs(value) * np.hypot(capture.relative_std(), reference_rel))
+
     return Reflectances(calibration.wavelengths_nm.copy(), np.where(bad, nan, i_b), np.where(bad, nan, i_w),
                         np.where(bad, nan, i_c), calibration.rho_black.copy(),
-                        np.full_like(calibration.rho_black, calibration.rho_white), flags.astype(np.int32))
+                        np.full_like(calibration.rho_black, calibration.rho_white), flags.astype(np.int32),
+                        std(i_b, sample.black, calibration.diffuse_rel_std),
+                        std(i_w, sample.white, calibration.diffuse_rel_std),
+                        std(i_c, sample.collimated, calibration.collimated_rel_std))

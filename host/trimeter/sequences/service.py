@@ -277,6 +277,7 @@ class Service:
                            "regmap_hash": f"0x{self.device.identity.regmap_hash:08X}"},
                 "calibration_created_utc": self.calibration.created_utc,
                 "device_map_table": table,
+                "noise_rel_measured": [r.noise_rel() for r in refls],
                 "link": vars(self.device.transport.stats).copy() if hasattr(self.device.transport, "stats") else {}}
         t0 = time.monotonic()
         path = write_measurement(s.results_path, Measurement(self.calibration, raws, refls, thicknesses, combined,

@@ -45,9 +45,11 @@ class Expose:
 
 @dataclass(frozen=True)
 class Acquire:
-    """Average `frames` exposures; returns raw counts (float64, dark not subtracted)."""
+    """Average `frames` exposures; returns raw counts (float64, dark not subtracted). With `spread`,
+    returns (mean, standard error of the mean) — NaN errors for a single frame."""
 
     frames: int = 1
+    spread: bool = False
 
 
 @dataclass(frozen=True)
@@ -195,7 +197,12 @@ class Runner:
             self.timing.acquire_wall_s += time.monotonic() - t0
             self.timing.exposure_s += spec.integration_time_us * 1e-6 * len(frames)
             self._check_not_reset()
-            return np.mean(frames, axis=0)
+            mean = np.mean(frames, axis=0)
+            if not step.spread:
+                return mean
+            if len(frames) < 2:
+                return mean, np.full_like(mean, np.nan)
+            return mean, np.std(frames, axis=0, ddof=1) / np.sqrt(len(frames))
         if isinstance(step, Describe):
             return spec.description, np.asarray(spec.wavelengths_nm(), dtype=np.float64)
         if isinstance(step, DeviceTime):
