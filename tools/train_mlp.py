@@ -60,15 +60,41 @@ def train(amap, hidden=(64, 64), samples=60000, epochs=80, seed=0):
                    "g_abs_p95": float(np.percentile(err[:, 1], 95))}
 
 
+def fix_multi_output(onx, n_outputs: int):
+    """skl2onnx (1.19) ends every MLPRegressor graph with Reshape(·, [-1, 1]) and declares (N, 1)
+    even for several targets, which interleaves (α, g) into one column. Point that Reshape at
+    [-1, n_outputs] and declare the output (N, n_outputs)."""
+    from onnx import numpy_helper
+
+    reshapes = [node for node in onx.graph.node if node.op_type == "Reshape"]
+    if not reshapes:
+        raise RuntimeError("unexpected skl2onnx graph: no final Reshape")
+    last = reshapes[-1]
+    shape_name = last.input[1]
+    for i, init in enumerate(onx.graph.initializer):
+        if init.name == shape_name:
+            onx.graph.initializer[i].CopyFrom(numpy_helper.from_array(np.array([-1, n_outputs], dtype=np.int64), shape_name))
+            break
+    else:
+        raise RuntimeError("unexpected skl2onnx graph: the Reshape's shape is not a constant")
+    dims = onx.graph.output[0].type.tensor_type.shape.dim
+    dims[1].ClearField("dim_param")
+    dims[1].dim_value = n_outputs
+    return onx
+
+
 def export(model, amap, path: Path, hidden, stats: dict) -> Path:
     from skl2onnx import to_onnx
-    from skl2onnx.common.data_types import FloatTensorType
 
     from trimeter.inversion.mlp import FEATURES, MODEL_KIND
 
-    # final_types: without it skl2onnx declares a single-target regressor and reshapes (N, 2) to (2N, 1)
-    onx = to_onnx(model, np.zeros((1, len(FEATURES)), dtype=np.float32), target_opset=17,
-                  final_types=[("alpha_g", FloatTensorType([None, 2]))])
+    onx = fix_multi_output(to_onnx(model, np.zeros((1, len(FEATURES)), dtype=np.float32), target_opset=17), 2)
+    check = np.random.default_rng(0).uniform(0, 1, (64, len(FEATURES))).astype(np.float32)
+    import onnxruntime as ort
+
+    got = ort.InferenceSession(onx.SerializeToString()).run(None, {onx.graph.input[0].name: check})[0]
+    if got.shape != (64, 2) or not np.allclose(got, model.predict(check), atol=1e-4):
+        raise RuntimeError("exported ONNX model does not reproduce scikit-learn's predictions")
     meta = {"trimeter.kind": MODEL_KIND, "trimeter.format": "1", "trimeter.map_sha256": amap.checksum,
             "trimeter.map_name": amap.name, "trimeter.features": ",".join(FEATURES), "trimeter.outputs": "alpha,g",
             "trimeter.hidden": ",".join(map(str, hidden)), "trimeter.producer": "tools/train_mlp.py",

@@ -300,12 +300,13 @@ def _fit_paper(amaps, arrays, *, samples, epsilon, seed, noise_rel, noise_abs, i
                           samples=samples, epsilon=epsilon, seed=seed + i)
         pooled.append(s)
         singles.append((amap, flags, usable, I_b, I_w, I_c, rho_b, rho_w))
-    allsamples = np.concatenate(pooled, axis=1)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN bins: outside the hull, flagged below
-        med = np.nanmedian(allsamples, axis=1)
+        pooled_median = np.nanmedian(np.concatenate(pooled, axis=1), axis=1)
+        own_medians = [np.nanmedian(p, axis=1) for p in pooled]
     results = []
-    for amap, flags, usable, I_b, I_w, I_c, rho_b, rho_w in singles:
+    # Each thickness on its own median (the consistency check), the estimate on the pooled one.
+    for med, (amap, flags, usable, I_b, I_w, I_c, rho_b, rho_w) in zip(own_medians, singles):
         grid = _forward_grid(amap)
         ib, iw, ic = _sanitize(I_b, 0, 1, 0), _sanitize(I_w, 0, 1, 1), _sanitize(I_c, 0, 1, 1)
         ref = grid_ref(amap)
@@ -328,6 +329,7 @@ def _fit_paper(amaps, arrays, *, samples, epsilon, seed, noise_rel, noise_abs, i
         return results[0]
     combined = combine(results, "paper")
     # As written: the pooled median is the estimate; the stds come from the inverse-variance combination.
+    med = pooled_median
     combined.alpha, combined.sigma_t, combined.g = med[:, 0], med[:, 1], med[:, 2]
     combined.g = np.where((combined.flags & int(FitFlag.G_UNDEFINED)) != 0, np.nan, combined.g)
     return combined

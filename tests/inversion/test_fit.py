@@ -1,0 +1,165 @@
+"""trimeter.fit: round trips through every method, per-wavelength backgrounds, two thicknesses,
+and every kind of bad input becoming a flag (never an exception)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import trimeter
+from trimeter.errors import InputError, MapFileError
+from trimeter.inversion import FitFlag
+from trimeter.inversion.flags import UNUSABLE, describe
+
+from conftest import well_conditioned
+
+
+def _assert_bounds(r):
+    with np.errstate(invalid="ignore"):
+        for name, lo, hi in (("alpha", 0, 1), ("sigma_t", 0, np.inf), ("g", -1, 1)):
+            v = getattr(r, name)
+            assert np.all(np.isnan(v) | ((v >= lo) & (v <= hi))), name
+            assert np.all(np.isfinite(v) | (r.flags != 0)), f"{name}: NaN without a flag"
+
+
+@pytest.mark.parametrize("method, tol", [("lut", 2e-3), ("mlp", 2e-3), ("paper", 0.08)])
+def test_round_trip_on_the_map(ideal_map, ideal_model, method, tol):
+    """Intensities from the map itself at off-grid materials come back (paper: within its
+    interpolation error, the baseline's known weakness)."""
+    rng = np.random.default_rng(1)
+    a, s, g = well_conditioned(ideal_map, 400, rng)
+    I_b, I_w, I_c = ideal_map.query(a, s, g, 0.02, 0.99)
+    kw = {"mlp_model": ideal_model} if method == "mlp" else {"samples": 0} if method == "paper" else {}
+    r = trimeter.fit(ideal_map, I_b, I_w, I_c, method=method, **kw)
+    _assert_bounds(r)
+    ok = np.isfinite(r.alpha)
+    assert ok.mean() > 0.97
+    assert np.percentile(np.abs(r.alpha - a)[ok], 95) < tol
+    assert np.percentile(np.abs(r.g - g)[ok & (a > 0.5)], 95) < 2 * tol
+    assert np.percentile(np.abs(r.sigma_t / s - 1)[ok], 95) < max(tol, 1e-6)
+    assert np.all(np.isfinite(r.alpha_std[ok])) and np.all(r.alpha_std[ok] > 0)
+
+
+@pytest.mark.parametrize("method", ["lut", "mlp", "paper"])
+def test_per_wavelength_backgrounds_are_honoured(ideal_map, ideal_model, method):
+    rng = np.random.default_rng(2)
+    n = 300
+    a, s, g = well_conditioned(ideal_map, n, rng)
+    # paper: a handful of distinct background pairs (one triangulation each); lut/mlp: every bin its own
+    k = 2 if method == "paper" else n
+    rho_b = rng.uniform(0.0, 0.08, k)[rng.integers(0, k, n)] if method == "paper" else rng.uniform(0, 0.08, n)
+    rho_w = rng.uniform(0.85, 0.99, k)[rng.integers(0, k, n)] if method == "paper" else rng.uniform(0.85, 0.99, n)
+    I_b, I_w, I_c = ideal_map.query(a, s, g, rho_b, rho_w)
+    kw = {"mlp_model": ideal_model} if method == "mlp" else {"samples": 0} if method == "paper" else {}
+    right = trimeter.fit(ideal_map, I_b, I_w, I_c, rho_b, rho_w, method=method, **kw)
+    wrong = trimeter.fit(ideal_map, I_b, I_w, I_c, method=method, **kw)  # the reference ρ's instead
+    err_right = np.nanpercentile(np.abs(right.alpha - a), 90)
+    err_wrong = np.nanpercentile(np.abs(wrong.alpha - a), 90)
+    assert err_right < 0.5 * err_wrong
+    if method != "paper":
+        assert err_right < 2e-3
+
+
+def test_two_thicknesses_combine_and_disagree(ideal_map, thick_map):
+    rng = np.random.default_rng(3)
+    a, s, g = well_conditioned(thick_map, 200, rng, tau=(0.5, 3.0))
+    thin = ideal_map.query(a, s, g, 0.02, 0.99)
+    thick = thick_map.query(a, s, g, 0.02, 0.99)
+    stack = [np.stack([x, y]) for x, y in zip(thin, thick)]
+    r = trimeter.fit([ideal_map, thick_map], *stack)
+    assert len(r.per_thickness) == 2
+    one = r.per_thickness[0]
+    assert np.all(r.alpha_std <= one.alpha_std * (1 + 1e-9))  # combining never loses precision
+    agree = (r.flags & FitFlag.THICKNESS_DISAGREE) == 0
+    assert agree.mean() > 0.9
+    assert np.percentile(np.abs(r.alpha - a)[agree], 95) < 0.01
+    # The same bins with the thick sample's σt doubled: the thicknesses must now disagree.
+    bad = thick_map.query(a, 2 * s, g, 0.02, 0.99)
+    stack = [np.stack([x, y]) for x, y in zip(thin, bad)]
+    r2 = trimeter.fit([ideal_map, thick_map], *stack)
+    assert ((r2.flags & FitFlag.THICKNESS_DISAGREE) != 0).mean() > 0.9
+    # The paper's pooled median runs on the same input and is flagged the same way.
+    rp = trimeter.fit([ideal_map, thick_map], *stack, method="paper", samples=20)
+    assert ((rp.flags & FitFlag.THICKNESS_DISAGREE) != 0).mean() > 0.5
+
+
+def test_beer_lambert_consistency_column(ideal_map):
+    s = np.geomspace(0.1, 10, 50)
+    I_b, I_w, I_c = ideal_map.query(np.full(50, 0.9), s, np.full(50, 0.4), 0.02, 0.99)
+    r = trimeter.fit(ideal_map, I_b, I_w, I_c, method="paper", samples=0)
+    np.testing.assert_allclose(r.sigma_t_beer, s, rtol=1e-9)
+
+
+CASES = {
+    "nan": ((np.nan, 0.5, 0.1), FitFlag.NONFINITE_INPUT, True),
+    "inf": ((0.1, np.inf, 0.1), FitFlag.NONFINITE_INPUT, True),
+    "negative": ((-0.2, 0.5, 0.1), FitFlag.NEGATIVE_INPUT, True),
+    "above one": ((0.1, 1.5, 0.1), FitFlag.ABOVE_ONE, True),
+    "black above white": ((0.4, 0.3, 0.1), FitFlag.BLACK_NOT_BELOW_WHITE, False),
+    "ic under floor": ((0.3, 0.32, 1e-7), FitFlag.IC_BELOW_FLOOR, False),
+    "ic zero": ((0.3, 0.32, 0.0), FitFlag.IC_BELOW_FLOOR, False),
+}
+
+
+@pytest.mark.parametrize("method", ["lut", "mlp", "paper"])
+@pytest.mark.parametrize("case", sorted(CASES))
+def test_bad_input_is_a_flag_never_an_exception(ideal_map, ideal_model, method, case):
+    (ib, iw, ic), flag, blank = CASES[case]
+    good = ideal_map.query(0.9, 1.0, 0.4, 0.02, 0.99)
+    I_b, I_w, I_c = (np.array([float(v), float(x)]) for v, x in zip(good, (ib, iw, ic)))
+    kw = {"mlp_model": ideal_model} if method == "mlp" else {"samples": 10} if method == "paper" else {}
+    r = trimeter.fit(ideal_map, I_b, I_w, I_c, method=method, **kw)
+    _assert_bounds(r)
+    assert r.flags[1] & flag, describe(r.flags[1])
+    assert r.flags[0] & int(UNUSABLE) == 0 and np.isfinite(r.alpha[0])  # the good bin is untouched
+    if blank:
+        assert np.isnan(r.alpha[1]) and np.isnan(r.sigma_t[1]) and np.isnan(r.g[1])
+    elif method != "paper":
+        assert np.isfinite(r.alpha[1]) and np.isfinite(r.sigma_t[1])
+    if flag == FitFlag.IC_BELOW_FLOOR and method != "paper":
+        assert np.isinf(r.sigma_t_std[1])  # σt is only a lower bound
+
+
+def test_albedo_zero_leaves_g_undefined(ideal_map):
+    I_b, I_w, I_c = ideal_map.query(np.array([0.0, 0.005, 0.9]), 2.0, 0.5, 0.02, 0.99)
+    r = trimeter.fit(ideal_map, I_b, I_w, I_c)
+    assert np.all(r.flags[:2] & FitFlag.G_UNDEFINED) and np.all(np.isnan(r.g[:2]))
+    assert np.all(r.alpha[:2] < 0.02) and np.isfinite(r.g[2])
+
+
+def test_bad_backgrounds_are_flagged(ideal_map):
+    I_b, I_w, I_c = ideal_map.query(np.full(3, 0.9), 1.0, 0.4, 0.02, 0.99)
+    r = trimeter.fit(ideal_map, I_b, I_w, I_c, rho_b=[0.02, 0.5, np.nan], rho_w=[0.99, 0.4, 0.99])
+    assert r.flags[0] == 0
+    assert r.flags[1] & FitFlag.BAD_BACKGROUND and np.isnan(r.alpha[1])
+    assert r.flags[2] & FitFlag.NONFINITE_INPUT and np.isnan(r.alpha[2])
+
+
+def test_structural_errors_are_input_errors(ideal_map, thick_map):
+    with pytest.raises(InputError, match="method"):
+        trimeter.fit(ideal_map, [0.1], [0.5], [0.3], method="magic")
+    with pytest.raises(InputError, match="one shape"):
+        trimeter.fit(ideal_map, [0.1, 0.2], [0.5], [0.3])
+    with pytest.raises(InputError, match="shape"):
+        trimeter.fit([ideal_map, thick_map], [0.1], [0.5], [0.3])
+    with pytest.raises(InputError, match="maps"):
+        trimeter.fit([], [0.1], [0.5], [0.3])
+
+
+def test_mlp_refuses_a_model_trained_on_another_map(thick_map, ideal_model):
+    with pytest.raises(MapFileError, match="trained on map"):
+        trimeter.fit(thick_map, [0.1], [0.5], [0.3], method="mlp", mlp_model=ideal_model)
+
+
+def test_lut_refuses_a_table_built_from_another_map(ideal_map, thick_map, tmp_path):
+    import shutil
+
+    from trimeter.inversion import api
+    from trimeter.maps.appearance import AppearanceMap
+
+    shutil.copy(thick_map.path, tmp_path / "x.tmap")
+    shutil.copy(ideal_map.path.with_suffix(".tlut"), tmp_path / "x.tlut")
+    other = AppearanceMap.load(tmp_path / "x.tmap")
+    api._TABLES.pop(other.checksum, None)
+    with pytest.raises(MapFileError, match="built from map"):
+        trimeter.fit(other, [0.1], [0.5], [0.3])
