@@ -10,7 +10,7 @@ import pytest
 
 from trimeter.errors import InputError
 from trimeter.forward.nonscattering import _panel_directions
-from trimeter.forward.scenes import panel_corners, panel_irradiance, reflectance_scale, scene_dict
+from trimeter.forward.scenes import integrator_for, panel_corners, panel_irradiance, reflectance_scale, scene_dict
 from trimeter.geometry import load_geometry
 
 
@@ -30,7 +30,7 @@ def test_ideal_scene_is_slab_background_sky_radiancemeter():
     sensors = [v for v in scene.values() if isinstance(v, dict) and v["type"] == "radiancemeter"]
     assert len(sensors) == 1 and sensors[0]["direction"] == [0.0, 0.0, -1.0]
     assert [v["type"] for v in scene.values() if isinstance(v, dict) and v["type"] == "constant"] == ["constant"]
-    assert scene["integrator"] == {"type": "volpath", "max_depth": -1}
+    assert scene["integrator"] == {"type": "volpath", "max_depth": -1, "rr_depth": 5}
     medium = scene["sample_medium"]
     assert (medium["albedo"], medium["sigma_t"], medium["phase"]) == (0.9, 2.0, {"type": "hg", "g": 0.5})
     assert scene["background"]["bsdf"]["reflectance"]["value"] == 0.3
@@ -80,3 +80,13 @@ def test_white_reference_normalisation_closed_form_matches_quadrature():
 def test_unknown_geometry_is_an_input_error():
     with pytest.raises(InputError, match="geometry"):
         scene_dict("fridge", 0.5, 1.0, 0.0, 1.5, 0.5, 0.5)
+
+
+def test_no_roulette_at_high_albedo_and_a_depth_cap_that_bounds_the_truncation():
+    for alpha in (0.951, 0.99, 0.999, 0.9999):
+        spec = integrator_for(alpha)
+        assert spec["rr_depth"] >= 1 << 30
+        assert alpha ** (spec["max_depth"] / 16) <= 1e-6
+    assert integrator_for(1.0)["max_depth"] == -1
+    assert integrator_for(0.5) == {"type": "volpath", "max_depth": -1, "rr_depth": 5}
+    assert scene_dict("ideal", 0.999, 1.0, 0.0, 1.5, 0.5, 0.5)["integrator"] == integrator_for(0.999)

@@ -10,14 +10,8 @@ Russian roulette and rare long paths. Seeds are deterministic: batch b of seed s
 Scenes are loaded once per (variant, geometry, n, ℓ) and the material and background are updated in
 place (mi.traverse): a new scene would otherwise re-JIT the whole kernel (~0.5 s) for each material.
 
-Russian roulette (see `integrator_for`): volpath continues a path with probability
-min(throughput·η², 0.95). At α > 0.95 a path's throughput hardly falls, so survivors gain 1/0.95 per
-event and the long paths of thick, high-albedo samples carry weights like 0.95^−1000: measured at
-α = 0.9989, σt = 27/mm, ℓ = 0.5 mm, ρ = 0.99 it gave 0.77 ± 0.06 against adding-doubling's 0.869;
-without roulette 0.8688 ± 0.0003. So above α = 0.95 there is no roulette and paths are cut at a depth
-D where α^(D/16) ≤ 1e-6 (16 interactions per scattering event leave room for Fresnel and background
-bounces), which bounds the truncation bias per path by ~1e-6; at α ≤ 0.95 roulette weights never
-grow and volpath's default (from depth 5, no depth cap) is unbiased and fast.
+Russian roulette: none above α = 0.95, where it made the estimate heavy-tailed; see
+trimeter.forward.scenes.integrator_for. The integrator is passed per render (scenes are cached).
 """
 
 from __future__ import annotations
@@ -31,27 +25,12 @@ import numpy as np
 
 from trimeter.forward.collimated import collimated_transmittance
 from trimeter.forward.mitsuba_env import mitsuba
-from trimeter.forward.scenes import PARAM_KEYS, _Transform, reflectance_scale, resolve_geometry, scene_dict
+from trimeter.forward.scenes import (PARAM_KEYS, _Transform, integrator_for, reflectance_scale, resolve_geometry,
+                                     scene_dict)
 from trimeter.validation import require_material, require_number, require_reflectance, require_sample
 
 BATCHES = 16
 DEFAULT_SPP = 262144
-
-
-ROULETTE_MAX_ALPHA = 0.95
-TRUNCATION = 1e-6
-EVENTS_PER_SCATTERING = 16
-
-
-def integrator_for(alpha: float) -> dict:
-    """The volpath settings for albedo α (see the module doc): roulette up to α = 0.95, above it none
-    and a power-of-two depth cap D ≥ 16·ln(1e-6)/ln α (bucketed so that few kernels get compiled)."""
-    if alpha <= ROULETTE_MAX_ALPHA:
-        return {"type": "volpath", "max_depth": -1, "rr_depth": 5}
-    if alpha >= 1.0:
-        return {"type": "volpath", "max_depth": -1, "rr_depth": 1 << 30}
-    depth = EVENTS_PER_SCATTERING * math.log(TRUNCATION) / math.log(alpha)
-    return {"type": "volpath", "max_depth": 1 << max(8, math.ceil(math.log2(depth))), "rr_depth": 1 << 30}
 
 
 _integrators: dict[tuple, object] = {}

@@ -63,10 +63,26 @@ def resolve_geometry(geometry) -> tuple[str, dict]:
     raise InputError(f"geometry must be a preset name or a preset dict, got {type(geometry).__name__}")
 
 
-def default_integrator() -> dict:
-    # max_depth −1: no path is cut short (thick, high-albedo samples have long paths); volpath's
-    # Russian roulette (from depth 5) is unbiased.
-    return {"type": "volpath", "max_depth": -1}
+ROULETTE_MAX_ALPHA = 0.95
+TRUNCATION = 1e-6
+EVENTS_PER_SCATTERING = 16
+
+
+def integrator_for(alpha: float) -> dict:
+    """The volpath settings for albedo α. Volpath continues a path with probability
+    min(throughput·η², 0.95): at α > 0.95 a path's throughput hardly falls, so survivors gain 1/0.95
+    per event and the long paths of thick, high-albedo samples carry weights like 0.95^−1000
+    (measured at α = 0.9989, σt = 27/mm, ℓ = 0.5 mm, ρ = 0.99: 0.77 ± 0.06 against adding-doubling's
+    0.869; without roulette 0.8688 ± 0.0003). So above α = 0.95: no roulette, and paths are cut at a
+    power-of-two depth D ≥ 16·ln(1e-6)/ln α (16 interactions per scattering event leave room for
+    Fresnel and background bounces; the cut path's remaining weight is ≤ α^(D/16) ≤ 1e-6; bucketed
+    so few kernels get compiled). At α ≤ 0.95 roulette weights never grow: volpath's default."""
+    if alpha <= ROULETTE_MAX_ALPHA:
+        return {"type": "volpath", "max_depth": -1, "rr_depth": 5}
+    if alpha >= 1.0:
+        return {"type": "volpath", "max_depth": -1, "rr_depth": 1 << 30}
+    depth = EVENTS_PER_SCATTERING * math.log(TRUNCATION) / math.log(alpha)
+    return {"type": "volpath", "max_depth": 1 << max(8, math.ceil(math.log2(depth))), "rr_depth": 1 << 30}
 
 
 def scene_dict(geometry, alpha: float, sigma_t: float, g: float, n: float, thickness_mm: float,
@@ -76,7 +92,7 @@ def scene_dict(geometry, alpha: float, sigma_t: float, g: float, n: float, thick
     name, params = resolve_geometry(geometry)
     medium = {"type": "homogeneous", "id": MEDIUM_ID, "albedo": float(alpha), "sigma_t": float(sigma_t),
               "scale": 1.0, "phase": {"type": "hg", "g": float(g)}}
-    scene = {"type": "scene", "integrator": integrator or default_integrator(), MEDIUM_ID: medium}
+    scene = {"type": "scene", "integrator": integrator or integrator_for(float(alpha)), MEDIUM_ID: medium}
     if name == "ideal":
         scene.update(_ideal(params, float(n), float(thickness_mm), float(rho), int(spp)))
     else:
@@ -104,9 +120,9 @@ def _ideal(p: dict, n: float, ell: float, rho: float, spp: int) -> dict:
     medium = {"type": "ref", "id": MEDIUM_ID}
     boundary = _interface(n, 1.0)
     # Top face at z = 0. The side faces are perfect mirrors: by the method of images a mirror-walled
-    # slab under uniform light IS the infinite slab. Open (refracting) sides let light that total
-    # internal reflection carries hundreds of mm sideways leak in from the emitter: +15 % at
-    # α = 0.99, σt = 0.5/mm, ℓ = 1 mm, g = 0.8 for a 1000 mm slab with dielectric sides.
+    # slab under uniform light is the infinite slab, at any width. (Light that total internal
+    # reflection traps travels ~1/(σt(1 − α)) sideways — 100 mm at α = 0.99, σt = 1/mm — and would
+    # otherwise leave, or the sky enter, through open sides.)
     shapes = {
         "illumination": {"type": "constant", "radiance": {"type": "uniform", "value": 1.0}},
         "slab_top": _rect([0, 0, 0.0], [0, 0, 1], [half, half], boundary, interior=medium),
