@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 import trimeter
 from trimeter.inversion.flags import FitFlag
 
-from conftest import well_conditioned
+from conftest import forward, well_conditioned
 
 EDGES = np.array([0.0, 1.0, 1e-300, 5e-324, 1e300, np.nan, np.inf, -np.inf, -0.5, -1e-12, 1 - 1e-16,
                   1 + 1e-12, 2.0, 0.5, 1e-7])
@@ -74,7 +74,7 @@ def test_a_million_random_and_edge_inputs(ideal_map, ideal_model, method, batche
 
 def _perturbation_ratio(amap, method, kw, rng, n=2000, h=1e-6):
     a, s, g = well_conditioned(amap, n, rng)
-    I = np.stack(amap.query(a, s, g, 0.02, 0.99))
+    I = np.stack(forward(amap, a, s, g, 0.02, 0.99))
     r0 = trimeter.fit(amap, *I, method=method, **kw)
     d = rng.standard_normal(I.shape)
     d *= h / np.linalg.norm(d, axis=0)
@@ -108,7 +108,7 @@ def test_noise_propagation_matches_first_order(ideal_map, ideal_model, method):
     rng = np.random.default_rng(6)
     n, draws, level = 300, 60, 0.002
     a, s, g = well_conditioned(ideal_map, n, rng)
-    I = np.stack(ideal_map.query(a, s, g, 0.02, 0.99))
+    I = np.stack(forward(ideal_map, a, s, g, 0.02, 0.99))
     clean = trimeter.fit(ideal_map, *I, method=method, noise_rel=level, noise_abs=0.0, **kw)
     noisy_I = np.repeat(I, draws, axis=1) * (1 + level * rng.standard_normal((3, n * draws)))
     r = trimeter.fit(ideal_map, *noisy_I, method=method, noise_rel=level, noise_abs=0.0, **kw)

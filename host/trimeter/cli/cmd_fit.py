@@ -119,7 +119,7 @@ def run(args) -> int:
         return 0
     lines = [",".join(OUTPUT)]
     for i in range(len(columns["wavelength_nm"])):
-        lines.append(",".join(str(int(columns[k][i])) if k == "flags" else f"{columns[k][i]:.6g}" for k in OUTPUT))
+        lines.append(",".join(str(int(columns[k][i])) if k == "flags" else f"{columns[k][i]:.9g}" for k in OUTPUT))
     _write(args.output, "\n".join(lines) + "\n")
     return 0
 

@@ -50,7 +50,6 @@ class FitResult:
 
 # ------------------------------------------------------------------------------------ map handling
 _TABLES: dict = {}
-_GRIDS: dict = {}
 
 
 def _load_map(spec):
@@ -66,10 +65,9 @@ def _key(amap):
 
 
 def _forward_grid(amap) -> ForwardGrid:
-    key = _key(amap)
-    if key not in _GRIDS:
-        _GRIDS[key] = ForwardGrid.from_map(amap)
-    return _GRIDS[key]
+    """One forward model per map for every method's polish and Jacobian: the map table's (the map
+    resampled onto refined axes with cubic splines, evaluated trilinearly)."""
+    return table_inverter(amap).grid
 
 
 def table_inverter(amap):
