@@ -19,12 +19,14 @@ No Russian roulette on α (it would break the polynomial): a path is traced unti
 truncated remainder of a path is worth at most w·α^K per path, so the truncation error of I is
 bounded by w·α^K·(fraction of paths truncated); the tally reports that bound.
 
-The loop is a Dr.Jit symbolic loop (compiled once per batch, all cores via the LLVM backend). The
+The loop is a Dr.Jit symbolic loop (compiled once, material and seed are opaque inputs; all cores
+via the LLVM backend), run in waves that drop finished paths (see `trace`). The
 geometry is a layer stack with closed-form plane intersections, which is exact for both presets of
 hardware/geometry.toml: `ideal` (one slab, background right under it, light from the whole upper
 hemisphere) and `device` (cover slide | sample | cover slide, an air gap, a finite background, two
 rectangular Lambertian LED panels, a 2 mm detector spot; reflectance factor normalised by the white
-reference: I = π·L / E with E the panels' irradiance at the sample centre).
+reference: I = π·L / E with E the panels' irradiance at the background plane, as
+trimeter.forward.scenes computes it; panels emit radiance 1 and reflect nothing).
 The stack's side faces are dielectric (as in the direct-render scene); a ray leaving one counts if it
 reaches a panel (one leaving downward towards the background's rim is neglected).
 """
