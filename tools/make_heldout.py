@@ -7,9 +7,9 @@ as a committed data file (so the benchmark never re-renders): maps/heldout/<reci
 
 Materials are random and OFF the map grid (α, σt, g all drawn continuously; any draw within 1e-3 of a
 grid node on every axis is redrawn), rendered directly — never interpolated from a map:
-- device/recipe maps: the builder's Dr.Jit tracer (trimeter.maps.tracer.trace, validated against
-  Mitsuba volpath by the map helpers) at each random (σt, g), with `--paths` paths; one trace serves
-  several random α. Records A, B, C per material and their MC std-error at the reference backgrounds.
+- device/recipe maps: the builder's Dr.Jit tracer (trimeter.maps.tracer.trace_column: detector and
+  background paths, validated against Mitsuba volpath by the map helpers) at each random (σt, g),
+  with `--paths` paths; one trace serves several random α. Records A, B, C per material and their MC std-error at the reference backgrounds.
 - --ideal: Prahl's adding-doubling (iadpython), exact for the ideal geometry.
 I_b, I_w at any ρ follow from A, B, C; I_c is analytic (trimeter.forward.collimated).
 """
@@ -46,7 +46,7 @@ def from_recipe(recipe_path, pairs, alphas, paths, seed):
 
     os.environ.setdefault("DRJIT_LIBLLVM_PATH", "/usr/lib/x86_64-linux-gnu/libLLVM-19.so")
     from trimeter.maps.recipe import load_recipe
-    from trimeter.maps.tracer import Stack, k_max_for, trace
+    from trimeter.maps.tracer import Stack, k_max_for, trace_column
 
     r = load_recipe(recipe_path)
     rng = np.random.default_rng(seed)
@@ -62,14 +62,14 @@ def from_recipe(recipe_path, pairs, alphas, paths, seed):
         u = rng.uniform(0, 1, alphas)
         al = np.where(np.arange(alphas) % 2 == 0, a_lo + (a_hi - a_lo) * u, a_hi - (a_hi - a_lo) * u ** 2)
         al = _off_grid(al, r.alpha, rng, a_lo, a_hi)
-        tally = trace(stack, float(s), float(g), int(paths), int(rng.integers(1 << 31)), k_max)
+        tally = trace_column(stack, float(s), float(g), int(paths), int(rng.integers(1 << 31)), k_max)
         A, B, C = tally.abc(al)
         sb, sw = tally.stderr(al, r.reference_rho_b), tally.stderr(al, r.reference_rho_w)
         for j in range(alphas):
             rows.append((al[j], s, g, A[j], B[j], C[j], sb[j], sw[j]))
         print(f"\r{i + 1}/{pairs} (σt, g) traced, {time.perf_counter() - t0:.0f} s", end="", file=sys.stderr, flush=True)
     print(file=sys.stderr)
-    meta = {"recipe": r.to_dict(), "source": f"trimeter.maps.tracer.trace, {paths} paths per (sigma_t, g), off-grid",
+    meta = {"recipe": r.to_dict(), "source": f"trimeter.maps.tracer.trace_column, {paths} paths per (sigma_t, g), off-grid",
             "seed": seed, "seconds": round(time.perf_counter() - t0, 1)}
     return r.name, meta, np.array(rows)
 

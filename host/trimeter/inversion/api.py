@@ -177,29 +177,31 @@ def _fit_one(amap, I_b, I_w, I_c, rho_b, rho_w, *, method, polish, mlp_model, no
     rb = np.where(usable, rho_b, grid_ref(amap)[0])
     rw = np.where(usable, rho_w, grid_ref(amap)[1])
 
-    sigma_beer = beer_lambert_sigma_t(I_c, amap.thickness_mm, amap.n, amap.cover_slide_n)
     below = ic < ic_floor
     flags |= np.where(below & usable, int(FitFlag.IC_BELOW_FLOOR), 0)
     t_max = float(grid.collimated(0.0))
-    sigma_t = beer_lambert_sigma_t(np.clip(np.maximum(ic, ic_floor), None, t_max), amap.thickness_mm,
+    # σt from I_c; under the floor, the floor's σt (a lower bound); above T(σt = 0), σt = 0
+    sigma_t = beer_lambert_sigma_t(np.minimum(np.maximum(ic, ic_floor), t_max), amap.thickness_mm,
                                    amap.n, amap.cover_slide_n)
+    sigma_beer = np.where(np.isfinite(I_c) & (I_c >= ic_floor) & (I_c <= t_max), sigma_t,
+                          beer_lambert_sigma_t(I_c, amap.thickness_mm, amap.n, amap.cover_slide_n))
     s_lo, s_hi = grid.sigma_t_range
     flags |= np.where(usable & ((sigma_t < s_lo * (1 - 1e-6)) | (sigma_t > s_hi * (1 + 1e-6))),
                       int(FitFlag.OUTSIDE_MAP), 0)
 
     if method == "lut":
         inverter = table_inverter(amap)
-        alpha, g, residual = inverter.invert(ib, iw, sigma_t, rb, rw, polish_iterations=polish)
+        alpha, g, residual, J = inverter.invert(ib, iw, sigma_t, rb, rw, polish_iterations=polish)
     else:  # mlp
         from trimeter.inversion.mlp import mlp_inverter
 
         net = mlp_inverter(amap, mlp_model)
         alpha0, g0 = net.predict(ib, iw, sigma_t, rb, rw)
         cell = grid.sigma_cell(sigma_t)
-        alpha, g, residual = grid.solve_alpha_g(ib, iw, cell, rb, rw, alpha0, g0, iterations=polish)
+        alpha, g, residual, J = grid.solve_alpha_g(ib, iw, cell, rb, rw, alpha0, g0, iterations=max(polish, 0))
 
     result = _finish(amap, grid, flags, usable, ib, iw, ic, rb, rw, alpha, sigma_t, g, residual, sigma_beer,
-                     method=method, noise_rel=noise_rel, noise_abs=noise_abs, alpha_min_g=alpha_min_g)
+                     method=method, noise_rel=noise_rel, noise_abs=noise_abs, alpha_min_g=alpha_min_g, J=J)
     return result
 
 
@@ -208,7 +210,7 @@ def grid_ref(amap):
 
 
 def _finish(amap, grid, flags, usable, ib, iw, ic, rb, rw, alpha, sigma_t, g, residual, sigma_beer, *,
-            method, noise_rel, noise_abs, alpha_min_g) -> FitResult:
+            method, noise_rel, noise_abs, alpha_min_g, J=None) -> FitResult:
     sigma_I = np.column_stack([noise_rel * ib + noise_abs, noise_rel * iw + noise_abs, noise_rel * ic + noise_abs])
     sigma_I[:, :2] = np.hypot(sigma_I[:, :2], grid.mc_stderr)
     tolerance = 3.0 * np.hypot(sigma_I[:, 0], sigma_I[:, 1]) + 1e-4
@@ -222,7 +224,8 @@ def _finish(amap, grid, flags, usable, ib, iw, ic, rb, rw, alpha, sigma_t, g, re
     alpha = np.clip(np.where(np.isfinite(alpha), alpha, np.nan), 0.0, 1.0)
     g = np.clip(np.where(np.isfinite(g), g, np.nan), -1.0, 1.0)
     sigma_t = np.maximum(sigma_t, 0.0)
-    J = grid.jacobian(np.nan_to_num(alpha), sigma_t, np.nan_to_num(g), rb, rw)
+    if J is None:  # lut/mlp hand over the Jacobian of their last forward evaluation
+        J = grid.jacobian(np.nan_to_num(alpha), sigma_t, np.nan_to_num(g), rb, rw)
     std_a, std_s, std_g = grid.propagate(J, sigma_I)
     below = (flags & int(FitFlag.IC_BELOW_FLOOR)) != 0
     std_s = np.where(below, np.inf, std_s)

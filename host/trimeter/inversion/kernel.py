@@ -130,10 +130,27 @@ class ForwardGrid:
         g = np.clip(g0, *self.g_range)
         for _ in range(iterations):  # fixed count: a vectorised step over all bins, not a per-bin loop
             alpha, g, res = self._newton_step(I_b, I_w, cell, rho_b, rho_w, alpha, g)
-        coef, _, _ = self.coefficients(alpha, cell, g)
-        rb = self.diffuse(coef, rho_b)[0] - I_b
-        rw = self.diffuse(coef, rho_w)[0] - I_w
-        return alpha, g, np.sqrt(rb * rb + rw * rw)
+        residual, J = self.residual_and_jacobian(I_b, I_w, cell, rho_b, rho_w, alpha, g)
+        return alpha, g, residual, J
+
+    def residual_and_jacobian(self, I_b, I_w, cell: SigmaCell, rho_b, rho_w, alpha, g):
+        """|(I_b, I_w) − model| and ∂(I_b, I_w, I_c)/∂(α, σt, g) (N, 3, 3) from one evaluation."""
+        coef, d_a, d_g, d_ls = self.coefficients(alpha, cell, g, with_sigma_derivative=True)
+        s = np.exp(cell.log_sigma_t)
+        J = np.zeros((len(s), 3, 3))
+        res2 = 0.0
+        for row, rho, target in ((0, rho_b, I_b), (1, rho_w, I_w)):
+            I, f, h = self.diffuse(coef, rho)
+            res2 = res2 + (I - target) ** 2
+            J[:, row, 0] = self.directional(f, h, d_a)
+            J[:, row, 1] = self.directional(f, h, d_ls) / s
+            J[:, row, 2] = self.directional(f, h, d_g)
+        J[:, 2, 1] = self.collimated_derivative(s)
+        return np.sqrt(res2), J
+
+    def collimated_derivative(self, s):
+        h = 1e-4
+        return (self.collimated(s * (1 + h)) - self.collimated(s * (1 - h))) / (2 * h * s)
 
     def _newton_step(self, I_b, I_w, cell, rho_b, rho_w, alpha, g):
         coef, d_a, d_g = self.coefficients(alpha, cell, g)
@@ -170,8 +187,7 @@ class ForwardGrid:
             J[:, row, 0] = self.directional(f, h, d_a)
             J[:, row, 1] = self.directional(f, h, d_ls) / s
             J[:, row, 2] = self.directional(f, h, d_g)
-        h = 1e-4
-        J[:, 2, 1] = (self.collimated(s * (1 + h)) - self.collimated(s * (1 - h))) / (2 * h * s)
+        J[:, 2, 1] = self.collimated_derivative(s)
         return J
 
     def propagate(self, J, sigma_I):

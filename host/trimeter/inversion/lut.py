@@ -50,12 +50,7 @@ class TableInverter:
         return out[0], out[1]
 
     def invert(self, I_b, I_w, sigma_t, rho_b, rho_w, polish_iterations=3):
-        """(α, g, residual) for bins with σt already known (from I_c)."""
+        """(α, g, residual, Jacobian at the solution) for bins with σt already known (from I_c)."""
         cell = self.grid.sigma_cell(sigma_t)
         alpha, g = self.initial_guess(I_b, I_w, cell)
-        if polish_iterations <= 0:
-            coef, _, _ = self.grid.coefficients(alpha, cell, g)
-            rb = self.grid.diffuse(coef, rho_b)[0] - I_b
-            rw = self.grid.diffuse(coef, rho_w)[0] - I_w
-            return alpha, g, np.sqrt(rb * rb + rw * rw)
-        return self.grid.solve_alpha_g(I_b, I_w, cell, rho_b, rho_w, alpha, g, iterations=polish_iterations)
+        return self.grid.solve_alpha_g(I_b, I_w, cell, rho_b, rho_w, alpha, g, iterations=max(polish_iterations, 0))

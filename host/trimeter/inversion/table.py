@@ -323,7 +323,7 @@ def build_from_map(amap, n_xy: int | None = None, budget: int = MAX_TABLE_BYTES,
         targets[k] = (np.clip(gxy, 0, 1) ** 2).reshape(nxy, nxy, 2)
     node = np.broadcast_to(np.exp(log_s_axis)[:, None, None], (ns, nxy, nxy)).ravel()
     m = node.size
-    alpha_sol, g_sol, _ = grid.solve_alpha_g(targets[..., 0].ravel(), targets[..., 1].ravel(),
+    alpha_sol, g_sol, _, _ = grid.solve_alpha_g(targets[..., 0].ravel(), targets[..., 1].ravel(),
                                              grid.sigma_cell(node), np.full(m, rho_b), np.full(m, rho_w),
                                              starts_a.ravel(), starts_g.ravel(), iterations=12)
     inv_a = _quantize(alpha_sol, alpha_axis[0], alpha_axis[-1]).reshape(ns, nxy, nxy)
