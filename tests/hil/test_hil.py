@@ -27,7 +27,7 @@ def host_dirs(tmp_path, monkeypatch):
     return tmp_path
 
 
-def make_service(rig, host_dirs, hil_map):
+def make_service(rig, host_dirs, hil_map, late_reply_window_s=None):
     settings = HostSettings()
     settings.set("map", str(hil_map.path))
     settings.set("results_dir", str(host_dirs / "results"))
@@ -35,7 +35,8 @@ def make_service(rig, host_dirs, hil_map):
     settings.set("warmup_threshold", 0.0003)
     events = []
     # a pty answers in milliseconds; 8 attempts ride out 1 % byte corruption (~16 % of frames hit)
-    service = Service(lambda: Device.open(rig.port, timeout_s=0.1, attempts=8), lambda: open_spectrometer(rig.spectrometer_url),
+    service = Service(lambda: Device.open(rig.port, timeout_s=0.1, attempts=8, late_reply_window_s=late_reply_window_s),
+                      lambda: open_spectrometer(rig.spectrometer_url),
                       settings, on_event=events.append, device_clock=rig.device_clock, label="hil")
     return service, events
 
@@ -58,8 +59,8 @@ def press_and_wait(rig, service, events, kind, timeout_s=120.0):
     return serve_until(service, events, kind, timeout_s)
 
 
-def calibrated_service(rig, host_dirs, hil_map):
-    service, events = make_service(rig, host_dirs, hil_map)
+def calibrated_service(rig, host_dirs, hil_map, **options):
+    service, events = make_service(rig, host_dirs, hil_map, **options)
     service.connect()
     rig.remove_sample()
     event = press_and_wait(rig, service, events, "calibrated")
@@ -141,16 +142,21 @@ def test_interrupted_flash_leaves_the_old_map_active_and_resumes(start_twin, hil
     assert "matches" in capsys.readouterr().out
 
 
-def test_one_percent_byte_corruption_still_completes_with_correct_results(start_twin, hil_map, host_dirs):
-    twin = start_twin(faults={"corrupt": 0.01})
+@pytest.mark.parametrize("faults", [{"corrupt": 0.01},
+                                    {"drop": 0.02, "late": 0.02, "late_delay_s": 0.3}], ids=["corrupt", "drop+late"])
+def test_one_percent_byte_corruption_still_completes_with_correct_results(start_twin, hil_map, host_dirs, faults):
+    """Also dropped and late replies: a late reply (0.3 s, inside the 0.5 s late-reply window) must never
+    be taken as the answer to a later request — a stale `busy` or `uptime_s` would corrupt the result."""
+    twin = start_twin(faults=faults)
     rig = TwinRig(twin)
-    service, events = calibrated_service(rig, host_dirs, hil_map)
+    service, events = calibrated_service(rig, host_dirs, hil_map, late_reply_window_s=0.5)
     rig.insert_sample(SAMPLE, THICKNESS_MM)
     event = press_and_wait(rig, service, events, "measured")
     assert event.kind == "measured", event.message
     link = event.data["link"]
     counters = twin.control.state()["counters"]
-    assert counters["bytes_corrupted"] > 20 and link["retries"] > 5  # the faults really happened
+    happened = counters["bytes_corrupted"] if "corrupt" in faults else counters["replies_late"] + counters["replies_dropped"]
+    assert happened > 5, (counters, link)  # the faults really happened (in calibration and/or measurement)
     errors = _parameter_errors(event.data["parameters"], twin.control.truth())
     assert errors["nan"] == 0 and errors["sigma_t"] < 0.01, errors
     assert errors["alpha_within_3std"] > 0.85 and errors["g_within_3std"] > 0.85, errors

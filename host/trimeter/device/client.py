@@ -131,9 +131,10 @@ class Device:
     @classmethod
     def open(cls, port: str, *, address: int = 1, baudrate: int = 19200, timeout_s: float = 0.5,
              attempts: int = 4, reconnect_timeout_s: float = 10.0, check: bool = True,
-             local_echo: bool = False) -> "Device":
+             local_echo: bool = False, late_reply_window_s: float | None = None) -> "Device":
         transport = RtuTransport(port, address=address, baudrate=baudrate, timeout_s=timeout_s,
-                                 attempts=attempts, reconnect_timeout_s=reconnect_timeout_s, local_echo=local_echo)
+                                 attempts=attempts, reconnect_timeout_s=reconnect_timeout_s, local_echo=local_echo,
+                                 late_reply_window_s=late_reply_window_s)
         try:
             return cls(transport, check=check)
         except BaseException:

@@ -7,9 +7,9 @@ What this layer guarantees to the client above it (trimeter.device.client):
   restarts on a clean buffer (garbage, a bad CRC or half a frame never poisons the next request);
 - a reply is only accepted if it answers *this* request: same function code, same address/count
   (writes echo them), same length (reads). RTU has no transaction ids, so a late reply to an earlier
-  request of a different shape is recognised and discarded; one of the *same* shape arriving after
-  the drain window cannot be told apart by any RTU master — the drain window (`late_reply_window_s`)
-  is what bounds that risk;
+  request of a different shape is recognised and discarded, and after any failure everything arriving
+  within `late_reply_window_s` (default: the timeout) is discarded. A reply later than that, of the
+  same shape, cannot be told apart by any RTU master: the window is the documented bound;
 - when the serial adapter disappears (USB unplugged, twin restarted) the port is closed and reopened
   until `reconnect_timeout_s` runs out; a Modbus exception reply is raised at once (never retried)
   as ModbusExceptionReply carrying the exception code.
@@ -114,20 +114,17 @@ class RtuTransport:
         self._open(deadline=time.monotonic() + self.reconnect_timeout_s)
 
     def _drain(self) -> None:
-        """Read until the line has been quiet for a while, then drop everything: a clean start."""
+        """After a failure: discard everything that arrives for the whole late-reply window, then flush.
+        Stopping at the first quiet moment would let a reply that is merely late land in the next
+        request's read — and a stale `busy` or `uptime_s` of the right shape is indistinguishable."""
         sock = self._client.socket
         if sock is None:
             return
-        quiet_needed = min(0.05, self.late_reply_window_s)
         end = time.monotonic() + self.late_reply_window_s
-        last_byte = time.monotonic()
         while time.monotonic() < end:
             waiting = sock.in_waiting
             if waiting:
                 sock.read(waiting)
-                last_byte = time.monotonic()
-            elif time.monotonic() - last_byte >= quiet_needed:
-                break
             time.sleep(0.002)
         sock.reset_input_buffer()
 
