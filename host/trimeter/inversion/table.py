@@ -265,7 +265,7 @@ def _inverse_size_for(na: int, ns: int, ng: int, budget: int, max_xy: int) -> in
 # maps keep their own grid.
 _REFINE_SMOOTH = (1, 2, 1)
 _SMOOTH_STDERR = 5e-4
-_MIN_XY = 10
+_MIN_XY = 9
 
 
 def build_from_map(amap, n_xy: int | None = None, budget: int = MAX_TABLE_BYTES, max_xy: int = 64,
