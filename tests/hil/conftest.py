@@ -21,9 +21,9 @@ def build_hil_map(path, thickness_mm: float = THICKNESS_MM, n: float = 1.5) -> A
     host's inversion share it, so what the suite measures is the instrument chain, not map error."""
     from iadpython import Sample
 
-    alpha = 1.0 - (1.0 - np.linspace(0.0, 1.0, 9)) ** 2
-    sigma_t = np.geomspace(0.3, 30.0, 9)
-    g = np.linspace(0.0, 0.9, 5)
+    alpha = 1.0 - (1.0 - np.linspace(0.0, 1.0, 17)) ** 2
+    sigma_t = np.geomspace(0.3, 30.0, 17)
+    g = np.linspace(0.0, 0.9, 10)
     shape = (len(alpha), len(sigma_t), len(g))
     A, B, C = (np.empty(shape) for _ in range(3))
     for i, a in enumerate(alpha):
@@ -43,7 +43,7 @@ HIL_MAP = Path(__file__).resolve().parent / "data" / "hil-ideal-l0.4.tmap"
 
 @pytest.fixture(scope="session")
 def hil_map() -> AppearanceMap:
-    """Committed (built by `python tests/hil/conftest.py`, ~5 s); rebuilt if missing."""
+    """Committed (built by `python tests/hil/conftest.py`, ~1 min); rebuilt if missing."""
     if not HIL_MAP.exists():
         return build_hil_map(HIL_MAP)
     return AppearanceMap.load(HIL_MAP)

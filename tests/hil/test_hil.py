@@ -149,7 +149,9 @@ def test_one_percent_byte_corruption_still_completes_with_correct_results(start_
     be taken as the answer to a later request — a stale `busy` or `uptime_s` would corrupt the result."""
     twin = start_twin(faults=faults)
     rig = TwinRig(twin)
-    service, events = calibrated_service(rig, host_dirs, hil_map, late_reply_window_s=0.5)
+    # the late-reply window must cover the twin's late delay; with corruption alone a short one will do
+    service, events = calibrated_service(rig, host_dirs, hil_map,
+                                         late_reply_window_s=0.5 if "late" in faults else 0.15)
     rig.insert_sample(SAMPLE, THICKNESS_MM)
     event = press_and_wait(rig, service, events, "measured")
     assert event.kind == "measured", event.message
