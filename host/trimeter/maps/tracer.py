@@ -220,8 +220,16 @@ def trace_column(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int
     """Detector paths and (a fraction as many) background paths for one (σt, g); seeds derived from `seed`."""
     above = trace(stack, sigma_t, g, n_paths, seed, k_max)
     n_below = max(1024, int(n_paths * below_fraction))
-    below = trace(stack, sigma_t, g, n_below, seed ^ (1 << 62), k_max, from_below=True)
+    below = trace(stack, sigma_t, g, n_below, _mix64(seed ^ 0xB0B0B0B0), k_max, from_below=True)
     return ColumnTally(above, below)
+
+
+def _mix64(x: int) -> int:
+    """SplitMix64's finaliser: neighbouring seeds → unrelated 64-bit values."""
+    x = (x + 0x9E3779B97F4A7C15) & 0xFFFFFFFFFFFFFFFF
+    x = ((x ^ (x >> 30)) * 0xBF58476D1CE4E5B9) & 0xFFFFFFFFFFFFFFFF
+    x = ((x ^ (x >> 27)) * 0x94D049BB133111EB) & 0xFFFFFFFFFFFFFFFF
+    return x ^ (x >> 31)
 
 
 def k_max_for(alpha_max: float, truncation: float) -> int:
@@ -296,8 +304,10 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
             seen |= (denom < 0) & (t > 0) & (dr.abs(u) <= p.half_u) & (dr.abs(v) <= p.half_v)
         return seen
 
-    rng = B.PCG32(n_paths, initstate=dr.opaque(B.UInt64, seed & 0xFFFFFFFFFFFF),
-                  initseq=dr.opaque(B.UInt64, 0x9E3779B97F4A7C15 ^ seed))
+    # PCG32 streams whose (state, increment) seeds are close are correlated, and the constructor
+    # adds the lane index to both: so both seeds are scrambled (SplitMix64) from `seed`.
+    rng = B.PCG32(n_paths, initstate=dr.opaque(B.UInt64, _mix64(seed)),
+                  initseq=dr.opaque(B.UInt64, _mix64(_mix64(seed) ^ 0x5EED)))
     # Start: just inside the top layer, straight down (the first interface is done in closed form).
     if stack.detector_half_side > 0:
         x = stack.detector_half_side * (2 * rng.next_float32() - 1)
