@@ -8,10 +8,10 @@ from trimeter.geometry import load_geometry
 
 
 def render_black_panels(geometry, alpha, sigma_t, g, n, ell, rho, spp, seed=0):
-    """A volpath direct render of trimeter.forward.scenes' scene, with the LED panels' surface made
-    black. The scene's panels carry Mitsuba's default diffuse BSDF (reflectance 0.5), which lets
-    light bounce between panels and sample: +1.7 % at σt = 0.5, α = 0, ρ = 0.9 (measured), and the
-    white-reference normalisation E (Lambert's formula) assumes panels of radiance exactly 1."""
+    """A volpath direct render of trimeter.forward.scenes' scene with the LED panels' surface forced
+    black (their reflectance must be 0: the white-reference normalisation E assumes panels of radiance
+    exactly 1; grey panels added +1.7 % at σt = 0.5, α = 0, ρ = 0.9 before forward/ fixed it in 29faea0).
+    Kept explicit so that these tests don't depend on that default."""
     from trimeter.forward.mitsuba_env import mitsuba
     from trimeter.forward.render import to_mitsuba
     from trimeter.forward.scenes import reflectance_scale, scene_dict
