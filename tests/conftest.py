@@ -1,7 +1,14 @@
 """Shared pytest options: the HIL suite runs against the twin unless --port/--spectrometer name a real
 instrument; tests marked `hardware` need one and are skipped on the twin."""
 
+import sys
+from pathlib import Path
+
 import pytest
+
+# tests/fakes.py and tests/hil_support.py are imported by name from several folders; make that work
+# under any --import-mode (prepend adds this folder itself, importlib does not).
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 
 def pytest_addoption(parser):

@@ -1,5 +1,7 @@
 """Hardware-in-the-loop: the host stack against the twin (the real firmware core + plant + optics) or,
-with --port/--spectrometer, a real instrument. Issue 6 §7."""
+with --port/--spectrometer, a real instrument. Issue 6 §7. Tests that inject faults or read the
+virtual sample's truth need the twin and skip on hardware. Shared code: tests/hil_support.py (no
+conftest.py here: `from conftest import` elsewhere would pick this one up)."""
 
 from __future__ import annotations
 
@@ -13,11 +15,50 @@ from trimeter import registers as regs
 from trimeter.cli import main
 from trimeter.device import Device
 from trimeter.errors import DeviceError
+from trimeter.maps import AppearanceMap
 from trimeter.sequences.service import Service
 from trimeter.sequences.settings import HostSettings
 from trimeter.spectrometer import open_spectrometer
 
-from conftest import SAMPLE, THICKNESS_MM, TwinRig
+from hil_support import HIL_MAP, SAMPLE, THICKNESS_MM, TIME_SCALE, HardwareRig, TwinRig, build_hil_map
+
+
+# ------------------------------------------------------------------ the rig (twin or hardware)
+@pytest.fixture(scope="session")
+def hil_map() -> AppearanceMap:
+    """Committed (built by `python tests/hil_support.py`, ~1 min); rebuilt if missing."""
+    if not HIL_MAP.exists():
+        return build_hil_map(HIL_MAP)
+    return AppearanceMap.load(HIL_MAP)
+
+
+@pytest.fixture
+def start_twin(request, tmp_path, hil_map):
+    """Factory: a twin with the given faults (skips on hardware). Closed at the end of the test."""
+    if request.config.getoption("--port"):
+        pytest.skip("needs the twin (fault injection / virtual sample)")
+    from trimeter.twin import FaultConfig, Twin
+
+    twins = []
+
+    def start(*, sample=None, faults=None, state_dir=None, time_scale=TIME_SCALE):
+        twin = Twin(sample=sample, thickness_mm=THICKNESS_MM, time_scale=time_scale,
+                    faults=FaultConfig(**(faults or {})), appearance_map=hil_map,
+                    state_dir=state_dir or tmp_path / f"twin{len(twins)}", seed=len(twins) + 1).start()
+        twins.append(twin)
+        return twin
+
+    yield start
+    for twin in twins:
+        twin.close()
+
+
+@pytest.fixture
+def rig(request):
+    port = request.config.getoption("--port")
+    if port:
+        return HardwareRig(port, request.config.getoption("--spectrometer"))
+    return TwinRig(request.getfixturevalue("start_twin")())
 
 
 @pytest.fixture

@@ -2,20 +2,17 @@
 results directory; a device reset makes the calibration stale; a failed measurement writes nothing
 and the LED says so."""
 
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
 
 from fakes import FakeInstrument, FakeOptics, FakeSpectrometer
+from hil_support import HIL_MAP
 from trimeter import registers as regs
 from trimeter.device.client import Device
 from trimeter.maps import AppearanceMap
 from trimeter.sequences.service import Service, calibration_is_stale  # noqa: F401
 from trimeter.sequences.settings import HostSettings
 
-HIL_MAP = Path(__file__).resolve().parents[1] / "hil" / "data" / "hil-ideal-l0.4.tmap"
 WL = np.linspace(420, 720, 61)
 
 

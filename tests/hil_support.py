@@ -1,16 +1,19 @@
-"""The instrument the HIL suite runs against: the twin (default), or a real trimeter with
---port/--spectrometer. Tests that inject faults or read the virtual sample's truth need the twin and
-skip on hardware; on hardware, sample changes and button presses are asked of the operator."""
+"""What the HIL suite shares, in a uniquely named module (`from conftest import` is ambiguous across
+test folders): the HIL map and the rigs — the twin, or a real trimeter on which sample changes and
+button presses are asked of the operator.
+
+    python tests/hil_support.py      # rebuilds tests/hil/data/hil-ideal-l0.4.tmap (~1 min, iadpython)
+"""
 
 from __future__ import annotations
 
 from pathlib import Path
 
 import numpy as np
-import pytest
 
 from trimeter.maps import AppearanceMap
 
+HIL_MAP = Path(__file__).resolve().parent / "hil" / "data" / "hil-ideal-l0.4.tmap"
 TIME_SCALE = 50.0
 THICKNESS_MM = 0.4
 SAMPLE = "cyan-ink"
@@ -37,16 +40,6 @@ def build_hil_map(path, thickness_mm: float = THICKNESS_MM, n: float = 1.5) -> A
                   std_w=np.zeros(shape)).save(path)
     return AppearanceMap.load(path)
 
-
-HIL_MAP = Path(__file__).resolve().parent / "data" / "hil-ideal-l0.4.tmap"
-
-
-@pytest.fixture(scope="session")
-def hil_map() -> AppearanceMap:
-    """Committed (built by `python tests/hil/conftest.py`, ~1 min); rebuilt if missing."""
-    if not HIL_MAP.exists():
-        return build_hil_map(HIL_MAP)
-    return AppearanceMap.load(HIL_MAP)
 
 
 class TwinRig:
@@ -86,35 +79,6 @@ class HardwareRig:
         input("HIL: empty the sample holder, then Enter ")
 
     device_clock = None
-
-
-@pytest.fixture
-def start_twin(request, tmp_path, hil_map):
-    """Factory: a twin with the given faults (skips on hardware). Closed at the end of the test."""
-    if request.config.getoption("--port"):
-        pytest.skip("needs the twin (fault injection / virtual sample)")
-    from trimeter.twin import FaultConfig, Twin
-
-    twins = []
-
-    def start(*, sample=None, faults=None, state_dir=None, time_scale=TIME_SCALE):
-        twin = Twin(sample=sample, thickness_mm=THICKNESS_MM, time_scale=time_scale,
-                    faults=FaultConfig(**(faults or {})), appearance_map=hil_map,
-                    state_dir=state_dir or tmp_path / f"twin{len(twins)}", seed=len(twins) + 1).start()
-        twins.append(twin)
-        return twin
-
-    yield start
-    for twin in twins:
-        twin.close()
-
-
-@pytest.fixture
-def rig(request):
-    port = request.config.getoption("--port")
-    if port:
-        return HardwareRig(port, request.config.getoption("--spectrometer"))
-    return TwinRig(request.getfixturevalue("start_twin")())
 
 
 if __name__ == "__main__":
