@@ -130,3 +130,11 @@ def test_identity_is_checked_again_after_the_transport_reopened_the_port():
     fake.stats.reconnects += 1
     with pytest.raises(DeviceError, match="register map mismatch"):
         dev.read("led_panels_level")
+
+
+def test_position_in_millimetres_is_derived_from_steps_and_the_configured_scale():
+    fake = FakeInstrument()
+    fake._set("ir", regs.BY_NAME["position_steps"], 4800)
+    dev = Device(fake)
+    dev.write("steps_per_mm", 80)
+    assert dev.read("position_mm") == pytest.approx(60.0)

@@ -104,6 +104,13 @@ GOTO = {"black": regs.Command.GOTO_BLACK, "white": regs.Command.GOTO_WHITE, "ope
 SLOT = {"black": regs.Slot.BLACK, "white": regs.Slot.WHITE, "open": regs.Slot.OPEN}
 
 
+# Quantities computed from registers (declared nowhere else): name -> reader.
+DERIVED: dict[str, Callable[["Device"], object]] = {
+    "position_mm": lambda dev: (lambda v: v["position_steps"] / v["steps_per_mm"])(
+        dev.read_many("position_steps", "steps_per_mm")),
+}
+
+
 @dataclass(frozen=True)
 class Identity:
     vendor_id: int
@@ -172,6 +179,8 @@ class Device:
 
     # ----------------------------------------------------------------------------- read / write
     def read(self, name: str):
+        if name in DERIVED:
+            return DERIVED[name](self)
         return self.read_many(name)[name]
 
     def read_many(self, *names: str) -> dict:
