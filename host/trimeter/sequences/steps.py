@@ -94,6 +94,8 @@ class Timing:
     wait_wall_s: float = 0.0        # warm-up waits
     motion_device_s: float = 0.0    # device-clock time of moves + shutter/LED settles (needs a device clock)
     wait_device_s: float = 0.0      # device-clock time of warm-up waits
+    requests: int = 0               # Modbus requests the run made
+    request_wall_s: float = 0.0     # wall time spent inside them
     steps: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
@@ -122,6 +124,8 @@ class Runner:
 
     def run(self, plan: Plan):
         started = time.monotonic()
+        stats = getattr(self.device.transport, "stats", None)
+        requests0, busy0 = (stats.requests, stats.busy_s) if stats else (0, 0.0)
         reply = None
         try:
             while True:
@@ -135,6 +139,9 @@ class Runner:
                 self.timing.steps[name] = self.timing.steps.get(name, 0.0) + time.monotonic() - t0
         finally:
             self.timing.wall_s += time.monotonic() - started
+            if stats:
+                self.timing.requests += stats.requests - requests0
+                self.timing.request_wall_s += stats.busy_s - busy0
 
     # ------------------------------------------------------------------------------- guarding
     def _check_not_reset(self) -> None:
