@@ -28,9 +28,8 @@ def summary(parameters, wavelengths=SHOW_NM, truth=None) -> str:
 
 def run(args):
     settings = settings_from(args)
-    for key in ("method",):
-        if getattr(args, key):
-            settings.set(key, getattr(args, key))
+    if args.method:
+        settings.set("method", args.method)
     thicknesses = args.thickness or [settings.thickness_mm]
     if len(thicknesses) > 2 or any(t <= 0 for t in thicknesses):
         raise InputError("thickness: give one or two positive thicknesses in mm")
@@ -42,8 +41,8 @@ def run(args):
     service = Service(lambda: open_device(settings), lambda: open_spectrometer(settings), settings)
     service.connect()
     try:
-        reason = calibration_is_stale(service.calibration, service.device.read("uptime_s"),
-                                      settings.calibration_max_age_s)
+        reason = service.calibration_stale_reason or calibration_is_stale(
+            service.calibration, service.device.read("uptime_s"), settings.calibration_max_age_s)
         if reason:
             raise InputError(f"calibration: {reason}; run `trimeter calibrate` with the holder empty")
 
