@@ -41,8 +41,8 @@ def run(args):
     service = Service(lambda: open_device(settings), lambda: open_spectrometer(settings), settings)
     service.connect()
     try:
-        reason = service.calibration_stale_reason or calibration_is_stale(
-            service.calibration, service.device.read("uptime_s"), settings.calibration_max_age_s)
+        reason = calibration_is_stale(service.calibration, service.device.read("uptime_s"),
+                                      settings.calibration_max_age_s) or service.calibration_stale_reason
         if reason:
             raise InputError(f"calibration: {reason}; run `trimeter calibrate` with the holder empty")
 
