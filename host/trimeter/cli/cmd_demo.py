@@ -41,7 +41,7 @@ def _wait_for(events: "queue.Queue", kind: str, timeout_s: float, log):
 def run(args):
     from trimeter.device import Device
     from trimeter.results.figure import plot_parameters
-    from trimeter.sequences.measure import map_for_thickness
+    from trimeter.sequences.measure import map_for_thickness, preflight
     from trimeter.sequences.service import Service
     from trimeter.sequences.settings import HostSettings
     from trimeter.spectrometer import open_spectrometer
@@ -57,6 +57,7 @@ def run(args):
         print(f"demo: no shipped map for ℓ = {args.thickness:g} mm; using the HIL test map {FALLBACK_MAP.name} "
               "(ideal geometry, adding-doubling)")
         amap = map_for_thickness(args.thickness, FALLBACK_MAP)
+    preflight([amap], args.method)  # a stale table or model fails now, not after the warm-up
     out = Path(args.out or REPO_ROOT / "out" / "demo") / time.strftime("%Y%m%dT%H%M%S")
     out.mkdir(parents=True, exist_ok=True)
     os.environ["TRIMETER_DATA_DIR"] = str(out)  # the demo's calibration never touches the user's

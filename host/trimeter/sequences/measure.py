@@ -39,6 +39,15 @@ def map_for_thickness(thickness_mm: float, explicit: str | Path | None = None,
     return candidates[0]
 
 
+def preflight(maps: list[AppearanceMap], method: str) -> None:
+    """Fit one harmless bin with each map before any light is measured: a stale table, a missing model or
+    a bad method then fails in a second, not after a whole capture."""
+    import trimeter
+
+    for amap in maps:
+        trimeter.fit(amap, [0.2], [0.5], [0.1], method=method)
+
+
 def fit_reflectances(refls: list[Reflectances], maps: list[AppearanceMap], *, method: str = "lut"
                      ) -> tuple[Parameters, list[Parameters]]:
     """trimeter.fit over one or two thicknesses; returns (combined, per-thickness estimates)."""

@@ -21,7 +21,7 @@ from typing import Callable
 from trimeter.device import Device
 from trimeter.errors import DeviceError, TrimeterError
 from trimeter.results import Measurement, write_measurement
-from trimeter.sequences.measure import fit_reflectances, map_for_thickness
+from trimeter.sequences.measure import fit_reflectances, map_for_thickness, preflight
 from trimeter.sequences.plans import calibration as calibration_plan
 from trimeter.sequences.plans import sample_capture, warm_up
 from trimeter.sequences.reflectance import Calibration, reflectances
@@ -253,6 +253,7 @@ class Service:
         if self.calibration is None:
             raise DeviceError("no calibration: run a calibration with the holder empty first")
         maps = maps or [map_for_thickness(t, s.map or None) for t in thicknesses]
+        preflight(maps, s.method)
         table = self.device_table(maps[0])
         if table["slot"] and not table["matches_fit_table"]:
             self._emit("warning", f"the device's active map table (slot {table['slot']}, CRC-32 {table['crc32']}) is "
