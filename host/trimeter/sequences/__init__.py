@@ -4,7 +4,7 @@
     cal = runner.run(calibration(white_reference_reflectance=0.99))
     raw = runner.run(sample_capture())
     refl = reflectances(cal, raw)              # the paper's ratios
-    result = fit_sample(refl, maps)            # through trimeter.fit
+    combined, per = fit_reflectances([refl], [amap])   # through trimeter.fit (sequences.measure)
 """
 
 from trimeter.sequences.plans import calibration, sample_capture, warm_up
