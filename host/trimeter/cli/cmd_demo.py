@@ -124,7 +124,7 @@ def run(args):
     print(f"  sequence: {timing['wall_s']:.2f} s wall = physical {physical:.1f} s device time "
           f"(motion+settling {timing['motion_device_s']:.1f} s, exposures {timing['exposure_s']:.1f} s) / {args.time_scale:g} "
           f"+ host & protocol overhead {overhead:.2f} s = {overhead / physical:.1%} of the physical time")
-    print(f"  then fit {timing['fit_wall_s']:.2f} s, results + figure + medium written in {timing['write_wall_s']:.2f} s; "
+    print(f"  then fit {timing['fit_wall_s'] * 1e3:.0f} ms, results + figure + medium written in {timing['write_wall_s']:.2f} s; "
           f"the rest is the button (debounce + polling)")
     print(f"  the sequence made {timing['requests']} Modbus requests ({timing['request_wall_s']:.2f} s inside them, "
           f"most overlapping motion); over a real 19200-baud link (~15 ms each) that is at most "
