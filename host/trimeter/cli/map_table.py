@@ -67,12 +67,19 @@ def cmd_verify(args):
 def cmd_slots(args):
     with open_device(settings_from(args)) as dev:
         s = dev.map_status()
+        own = {}
+        for key in ("a", "b"):
+            length = s[f"map_slot_{key}_length"]
+            if s[f"map_slot_{key}_valid"] and length >= 4:
+                at = (length - 4) & ~1
+                own[key] = _table_crc(dev.read_map(key, length - at, offset=at)[-4:])
     print(f"active slot: {s['map_active_slot'].name}  (last operation: {s['map_op_status'].name.lower()}, "
           f"{s['map_op_bytes_written']} bytes written)")
     for key in ("a", "b"):
         valid = bool(s[f"map_slot_{key}_valid"])
+        table = f", table CRC-32 0x{own[key]:08X}" if key in own else ""
         print(f"slot {key.upper()}: {'valid' if valid else 'empty/invalid'}, {s[f'map_slot_{key}_length']} bytes, "
-              f"CRC-32 0x{s[f'map_slot_{key}_crc32']:08X}, version {s[f'map_slot_{key}_version']}")
+              f"version {s[f'map_slot_{key}_version']}{table}")
 
 
 def register(map_subparsers) -> None:
