@@ -266,7 +266,7 @@ def test_press_button_measurement_recovers_the_virtual_sample(rig, hil_map, host
     assert clear["alpha"] < 0.01 and clear["sigma_t"] < 0.01 and clear["g"] < 0.03, clear
 
 
-def test_flash_the_map_table_then_measure_with_it(start_twin, hil_map, host_dirs, tmp_path):
+def test_flash_the_map_table_then_measure_with_it(start_twin, hil_map, host_dirs, tmp_path, capsys):
     from trimeter.inversion.api import table_inverter
 
     twin = start_twin()
@@ -274,6 +274,10 @@ def test_flash_the_map_table_then_measure_with_it(start_twin, hil_map, host_dirs
     table = tmp_path / "hil.tlut"
     table.write_bytes(table_inverter(hil_map).table.to_bytes())
     assert main(["map", "flash", str(table), "--version", "4", "--port", twin.modbus_port]) == 0
+    capsys.readouterr()
+    assert main(["map", "slots", "--port", twin.modbus_port]) == 0
+    own_crc = int.from_bytes(table.read_bytes()[-4:], "little")
+    assert f"slot A: valid, {table.stat().st_size} bytes, version 4, table CRC-32 0x{own_crc:08X}" in capsys.readouterr().out
     service, events = calibrated_service(rig, host_dirs, hil_map)
     rig.insert_sample(SAMPLE, THICKNESS_MM)
     event = press_and_wait(rig, service, events, "measured")
