@@ -144,6 +144,10 @@ def test_structural_errors_are_input_errors(ideal_map, thick_map):
         trimeter.fit([ideal_map, thick_map], [0.1], [0.5], [0.3])
     with pytest.raises(InputError, match="maps"):
         trimeter.fit([], [0.1], [0.5], [0.3])
+    with pytest.raises(InputError, match="ic_floor"):
+        trimeter.fit(ideal_map, [0.1], [0.5], [0.3], ic_floor=0)
+    with pytest.raises(InputError, match="noise_rel"):
+        trimeter.fit(ideal_map, [0.1], [0.5], [0.3], noise_rel=float("nan"))
 
 
 def test_mlp_refuses_a_model_trained_on_another_map(thick_map, ideal_model):

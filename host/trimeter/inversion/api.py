@@ -107,6 +107,14 @@ def fit(maps, I_b, I_w, I_c, rho_b=None, rho_w=None, method: str = "lut", *,
     """
     if method not in METHODS:
         raise InputError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
+    from trimeter.validation import require_number
+
+    noise_rel = require_number("noise_rel", noise_rel, lo=0.0)
+    noise_abs = require_number("noise_abs", noise_abs, lo=0.0)
+    ic_floor = require_number("ic_floor", ic_floor, lo=0.0, lo_open=True, hi=1.0)
+    alpha_min_g = require_number("alpha_min_g", alpha_min_g, lo=0.0, hi=1.0)
+    epsilon = require_number("epsilon", epsilon, lo=0.0)
+    polish, samples = int(require_number("polish", polish, lo=0)), int(require_number("samples", samples, lo=0))
     map_list = list(maps) if isinstance(maps, (list, tuple)) else [maps]
     if not map_list:
         raise InputError("maps must name at least one map")

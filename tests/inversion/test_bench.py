@@ -1,0 +1,26 @@
+"""`trimeter bench fit` runs end to end on the ideal test map and reports every figure it promises."""
+
+from __future__ import annotations
+
+import json
+
+from trimeter.cli import main
+
+from conftest import DATA
+
+
+def test_bench_fit_reports_figures_and_plot(tmp_path, capsys):
+    out = tmp_path / "bench"
+    rc = main(["bench", "fit", "--map", str(DATA / "ideal-l0.5.tmap"), "--noise", "0,0.01", "--repeats", "1",
+               "--median-bins", "4", "--out", str(out)])
+    assert rc == 0
+    text = capsys.readouterr().out
+    assert "ratio to paper" in text and "Pareto plot" in text
+    rows = json.loads((out / "results.json").read_text())["maps"][0]["rows"]
+    variants = {r["variant"] for r in rows}
+    assert {"paper", "paper-median", "lut p0", "lut p4", "lut-small p4", "mlp p0", "mlp p4"} <= variants
+    for r in rows:
+        assert r["ms_per_1024"] > 0 and 0 <= r["nan_rate"] <= 1
+    clean = {r["variant"]: r for r in rows if r["noise"] == 0}
+    assert clean["lut p4"]["nan_rate"] == 0 and clean["lut p4"]["alpha_p95"] < 0.05
+    assert (out / "pareto-ideal-l0.5.png").stat().st_size > 10_000
