@@ -71,20 +71,27 @@ def _forward_grid(amap) -> ForwardGrid:
 
 
 def table_inverter(amap):
-    """The map's table inverter: maps/<name>.tlut if it exists (refused if built from another map),
-    else built in memory from the map (≈0.5 s, cached)."""
+    """The map's table inverter: maps/<name>.tlut if it exists and was built from this very map;
+    else the table is built in memory from the map (≈0.2-2 s, cached). A stale .tlut (built from an
+    earlier version of the map) is never used: it is rebuilt in memory with a warning, since the map
+    is the source of truth and the file only a cache of it on the host."""
+    import warnings
+
     from trimeter.inversion.lut import TableInverter
     from trimeter.inversion.table import MapTable, build_from_map, table_path_for
 
     key = _key(amap)
     if key not in _TABLES:
         path = table_path_for(amap.path) if amap.path else None
+        table = None
         if path is not None and path.is_file():
-            table = MapTable.load(path)
+            table = MapTable.load(path)  # a damaged file is a MapFileError, never ignored
             if amap.checksum and table.source_checksum != amap.checksum:
-                raise MapFileError(f"{path}: built from map {table.source_checksum[:12]}…, not from "
-                                   f"{amap.path.name} ({amap.checksum[:12]}…); rebuild it with tools/build_table.py")
-        else:
+                warnings.warn(f"{path} was built from map {table.source_checksum[:12]}…, not from {amap.path.name} "
+                              f"({amap.checksum[:12]}…): using a table rebuilt in memory; refresh the file with "
+                              f"tools/build_table.py", stacklevel=3)
+                table = None
+        if table is None:
             table = build_from_map(amap)
         _TABLES[key] = TableInverter(table)
     return _TABLES[key]
