@@ -73,8 +73,16 @@ def _variants(amap):
     variants.append(("lut-small p4", "lut-small", dict(polish=4)))
     if amap.path is not None:
         models = sorted(amap.path.parent.glob(f"{amap.path.stem}*.onnx"))
+        from trimeter.errors import MapFileError
+        from trimeter.inversion.mlp import mlp_inverter
+
         for model in models:
             tag = model.stem[len(amap.path.stem):].lstrip("-.") or "mlp"
+            try:
+                mlp_inverter(amap, model)
+            except MapFileError as exc:  # e.g. the map was rebuilt since: report it, bench the rest
+                print(f"   skipping {model.name}: {exc}")
+                continue
             for polish in (0, 4):
                 variants.append((f"{'mlp' if tag == 'mlp' else 'mlp-' + tag} p{polish}", "mlp",
                                  dict(polish=polish, mlp_model=model)))
