@@ -53,3 +53,12 @@ def test_unreadable_recipe_file_is_an_input_error(tmp_path):
         load_recipe(bad)
     with pytest.raises(InputError, match="cannot read"):
         load_recipe(tmp_path / "missing.toml")
+
+
+def test_g_axis_log_spacing_in_one_minus_g(tiny_data):
+    data = tiny_data()
+    data["grid"] = {**data["grid"], "g": {"min": 0.0, "max": 0.9, "count": 4, "spacing": "log1m"}}
+    np.testing.assert_allclose(parse_recipe(data).g, [0.0, 1 - 10 ** (-1 / 3), 1 - 10 ** (-2 / 3), 0.9])
+    data["grid"]["g"]["spacing"] = "cubic"
+    with pytest.raises(InputError, match=r"grid\.g\.spacing"):
+        parse_recipe(data)

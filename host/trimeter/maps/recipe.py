@@ -11,7 +11,7 @@
     [grid]
     alpha = { max = 0.999, count = 40 }            # 0 … max, log-spaced in 1 − α (finer near 1)
     sigma_t = { min = 0.05, max = 50, count = 24 }  # log-spaced [1/mm] (finer at low σt)
-    g = { min = 0.0, max = 0.9, count = 10 }        # evenly spaced
+    g = { min = 0.0, max = 0.9, count = 10, spacing = "log1m" }  # log-spaced in 1 − g (default: even)
     # any axis may instead be an explicit strictly increasing list: g = [0, 0.3, 0.6, 0.9]
 
     [sampling]
@@ -146,7 +146,7 @@ def _axis(field_name: str, spec, generator) -> np.ndarray:
     if isinstance(spec, list):
         values = np.array([require_number(f"{field_name}[{i}]", v) for i, v in enumerate(spec)], dtype=float)
     elif isinstance(spec, dict):
-        extra = sorted(set(spec) - {"min", "max", "count"})
+        extra = sorted(set(spec) - {"min", "max", "count", "spacing"})
         if extra:
             raise InputError(f"{field_name}: unknown key {extra[0]!r}")
         count = int(require_number(f"{field_name}.count", spec.get("count"), lo=2, hi=10000))
@@ -172,6 +172,15 @@ def _log_axis(field_name, spec, count):
 
 
 def _linear_axis(field_name, spec, count):
+    """Evenly spaced, or with spacing = "log1m" log-spaced in 1 − g: equal steps in the reduced
+    extinction σt(1 − g), so finer towards g → 1 where I changes fastest."""
     lo = require_number(f"{field_name}.min", spec.get("min"))
     hi = require_number(f"{field_name}.max", spec.get("max"), lo=lo, lo_open=True)
-    return np.linspace(lo, hi, count)
+    spacing = spec.get("spacing", "linear")
+    if spacing == "linear":
+        return np.linspace(lo, hi, count)
+    if spacing == "log1m":
+        if hi >= 1:
+            raise InputError(f"{field_name}.max must be < 1 for spacing = 'log1m', got {hi:g}")
+        return 1 - np.geomspace(1 - lo, 1 - hi, count)
+    raise InputError(f"{field_name}.spacing must be 'linear' or 'log1m', got {spacing!r}")
