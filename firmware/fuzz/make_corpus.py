@@ -1,20 +1,12 @@
 #!/usr/bin/env python3
 """Write the fuzzer's seed corpus: valid RTU frames of every function code against the trimeter
-register map (slave 1 and broadcast), plus bad ones. Run from anywhere; output: corpus/."""
+register map (slave 1 and broadcast), plus bad ones. Run with the venv (`make -C firmware/fuzz corpus`); output: corpus/."""
 
 from pathlib import Path
 import struct
+from trimeter.crc import crc16_modbus as crc16
 
 HERE = Path(__file__).resolve().parent
-
-
-def crc16(data: bytes) -> int:
-    crc = 0xFFFF
-    for byte in data:
-        crc ^= byte
-        for _ in range(8):
-            crc = (crc >> 1) ^ 0xA001 if crc & 1 else crc >> 1
-    return crc
 
 
 def frame(*parts) -> bytes:

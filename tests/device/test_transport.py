@@ -12,15 +12,7 @@ import pytest
 
 from trimeter.device.transport import ModbusExceptionReply, RtuTransport
 from trimeter.errors import DeviceError
-
-
-def crc16(data: bytes) -> bytes:
-    crc = 0xFFFF
-    for byte in data:
-        crc ^= byte
-        for _ in range(8):
-            crc = (crc >> 1) ^ 0xA001 if crc & 1 else crc >> 1
-    return struct.pack("<H", crc)
+from trimeter.crc import crc16_modbus_bytes as crc16
 
 
 class ScriptedSlave(threading.Thread):

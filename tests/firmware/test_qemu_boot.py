@@ -19,6 +19,7 @@ from pathlib import Path
 import pytest
 
 from trimeter import registers as R
+from trimeter.crc import crc16_modbus as crc16
 
 ROOT = Path(__file__).resolve().parents[2]
 ELF = ROOT / "firmware" / "build" / "stm32" / "trimeter-fw.elf"
@@ -28,15 +29,6 @@ pytestmark = [
     pytest.mark.skipif(QEMU is None, reason="qemu-system-arm not installed (Debian package qemu-system-arm)"),
     pytest.mark.skipif(not ELF.is_file(), reason=f"STM32 image not built ({ELF}): make -C firmware stm32"),
 ]
-
-
-def crc16(data: bytes) -> int:
-    crc = 0xFFFF
-    for b in data:
-        crc ^= b
-        for _ in range(8):
-            crc = (crc >> 1) ^ 0xA001 if crc & 1 else crc >> 1
-    return crc
 
 
 def free_port() -> int:

@@ -22,21 +22,13 @@ import pytest
 import serial
 
 from trimeter import registers as R
+from trimeter.crc import crc16_modbus as crc16
 
 ROOT = Path(__file__).resolve().parents[2]
 SIM = ROOT / "firmware" / "build" / "sim" / "trimeter-fw-sim"
 TIME_SCALE = 50.0
 
 pytestmark = pytest.mark.skipif(not SIM.is_file(), reason=f"firmware sim not built ({SIM}): make -C firmware sim")
-
-
-def crc16(data: bytes) -> int:
-    crc = 0xFFFF
-    for b in data:
-        crc ^= b
-        for _ in range(8):
-            crc = (crc >> 1) ^ 0xA001 if crc & 1 else crc >> 1
-    return crc
 
 
 class Sim:

@@ -10,15 +10,7 @@ import os
 import struct
 import time
 import tty
-
-
-def crc16(frame: bytes) -> bytes:
-    crc = 0xFFFF
-    for byte in frame:
-        crc ^= byte
-        for _ in range(8):
-            crc = (crc >> 1) ^ 0xA001 if crc & 1 else crc >> 1
-    return struct.pack("<H", crc)
+from trimeter.crc import crc16_modbus_bytes as crc16
 
 
 class RtuMaster:
