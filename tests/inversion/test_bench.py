@@ -6,7 +6,7 @@ import json
 
 from trimeter.cli import main
 
-from conftest import DATA
+from inversion_support import DATA
 
 
 def test_bench_fit_reports_figures_and_plot(tmp_path, capsys):

@@ -11,7 +11,7 @@ import pytest
 
 from trimeter.cli import main
 
-from conftest import DATA, forward, well_conditioned
+from inversion_support import DATA, forward, well_conditioned
 
 
 def _write(path, rows, header):

@@ -11,7 +11,7 @@ from trimeter.errors import InputError, MapFileError
 from trimeter.inversion import FitFlag
 from trimeter.inversion.flags import UNUSABLE, describe
 
-from conftest import forward, well_conditioned
+from inversion_support import forward, well_conditioned
 
 
 def _assert_bounds(r):
@@ -180,7 +180,7 @@ def test_accuracy_on_exact_held_out_materials(ideal_map, ideal_model, method):
     what is left is the map's own interpolation error. Measured: α p95 ≈ 0.018, g p95 ≈ 0.018."""
     from trimeter.maps.container import read_container
 
-    from conftest import DATA
+    from inversion_support import DATA
 
     _, h, _ = read_container(DATA / "ideal-l0.5.held", "heldout-set")
     a, s, g = (np.asarray(h[k], float) for k in ("alpha", "sigma_t", "g"))

@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 import trimeter
 from trimeter.inversion.flags import FitFlag
 
-from conftest import forward, well_conditioned
+from inversion_support import forward, well_conditioned
 
 EDGES = np.array([0.0, 1.0, 1e-300, 5e-324, 1e300, np.nan, np.inf, -np.inf, -0.5, -1e-12, 1 - 1e-16,
                   1 + 1e-12, 2.0, 0.5, 1e-7])
