@@ -6,7 +6,6 @@ import os
 import select
 import struct
 import threading
-import time
 
 import pytest
 
@@ -30,7 +29,8 @@ class ScriptedSlave(threading.Thread):
 
         tty.setraw(slave)
 
-    def run(self):
+    def frames(self):
+        """Each 8-byte request as it completes (the line goes quiet), until stopped or closed."""
         buffer = b""
         while not self.stop:
             ready, _, _ = select.select([self.master], [], [], 0.01)
@@ -44,6 +44,10 @@ class ScriptedSlave(threading.Thread):
                 continue
             frame, buffer = buffer[:8], b""
             self.requests += 1
+            yield frame
+
+    def run(self):
+        for frame in self.frames():
             address, fc, start, count = struct.unpack(">BBHH", frame[:6])
             action = self.script.get(self.requests, "ok")
             if fc not in (3, 4):
@@ -162,19 +166,7 @@ class EchoingSlave(ScriptedSlave):
     """An RS-485 adapter without echo suppression: the master hears its own request before the reply."""
 
     def run(self):
-        buffer = b""
-        while not self.stop:
-            ready, _, _ = select.select([self.master], [], [], 0.01)
-            if ready:
-                try:
-                    buffer += os.read(self.master, 512)
-                except OSError:
-                    return
-                continue
-            if len(buffer) < 8:
-                continue
-            frame, buffer = buffer[:8], b""
-            self.requests += 1
+        for frame in self.frames():
             address, fc, start, count = struct.unpack(">BBHH", frame[:6])
             body = bytes([address, fc, 2 * count]) + struct.pack(f">{count}H", *[start + i for i in range(count)])
             os.write(self.master, frame + body + crc16(body))
