@@ -23,9 +23,10 @@ from pathlib import Path
 
 import numpy as np
 
+from trimeter.inversion.api import FitResult
 from trimeter.sequences.reflectance import Calibration, RawSample, Reflectances
 
-PARAMETER_COLUMNS = ("alpha", "sigma_t", "g", "alpha_std", "sigma_t_std", "g_std", "flags", "sigma_t_beer")
+PARAMETER_COLUMNS = FitResult.COLUMNS  # the fit's output columns, declared once in trimeter.inversion
 
 
 @dataclass
