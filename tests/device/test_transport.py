@@ -52,7 +52,7 @@ class ScriptedSlave(threading.Thread):
             action = self.script.get(self.requests, "ok")
             if fc not in (3, 4):
                 continue
-            if action == "exception":
+            if action in ("exception", "exception-prefix"):
                 body = bytes([address, fc | 0x80, 2])
             else:
                 values = [start + i + 100 * self.requests for i in range(count)]
@@ -62,6 +62,10 @@ class ScriptedSlave(threading.Thread):
                 continue
             if action == "garbage":
                 reply = b"\x55\xaa\x13" + reply
+            if action == "exception-prefix":
+                # What two flipped bits in a read reply can look like (seen in CI: 01 02 01 01 60 48 →
+                # 01 82 01 81 60 48, whose first three bytes + "81 60" check out as an exception frame).
+                reply += b"\x48"
             if action == "badcrc":
                 reply = reply[:-1] + bytes([reply[-1] ^ 0xFF])
             if action.startswith("late"):
@@ -128,6 +132,27 @@ def test_exception_reply_is_raised_at_once_with_its_code(slave_factory):
         link.read_words("holding_register", 999, 1)
     assert info.value.code == 2 and slave.requests == 1
     link.close()
+
+
+def test_a_valid_frame_inside_a_longer_garbled_reply_is_not_taken_as_the_answer(slave_factory):
+    slave = slave_factory({1: "exception-prefix"})
+    link = RtuTransport(slave.port, timeout_s=0.15)
+    assert link.read_words("holding_register", 7, 1) == [7 + 100 * 2]
+    assert slave.requests == 2 and link.stats.garbled_replies == 1
+    link.close()
+
+
+def test_the_whole_frame_check_sees_what_pymodbus_framing_lets_through():
+    from pymodbus.framer.rtu import FramerRTU
+    from pymodbus.pdu import DecodePDU
+
+    from trimeter.device.transport import is_one_whole_frame
+
+    garbled = bytes.fromhex("018201816048")  # 01 02 01 01 60 48 with two bits flipped
+    _, pdu = FramerRTU(DecodePDU(False)).handleFrame(garbled, 1, 0)
+    assert pdu is not None and pdu.isError()  # pymodbus alone would raise "illegal function"
+    assert not is_one_whole_frame(garbled)
+    assert is_one_whole_frame(bytes.fromhex("010201016048"))
 
 
 def test_gives_up_with_a_clear_error_naming_port_and_request(slave_factory):

@@ -5,7 +5,9 @@ What this layer guarantees to the client above it (trimeter.device.client):
   DeviceError names the port, the request and the last failure;
 - after any failure the input is drained until the line is quiet and then flushed, so the framer
   restarts on a clean buffer (garbage, a bad CRC or half a frame never poisons the next request);
-- a reply is only accepted if it answers *this* request: same function code, same address/count
+- a reply is only accepted if its bytes are exactly one frame with a good CRC over all of them (pymodbus
+  alone would also take a shorter frame whose "CRC" happens to match inside a garbled reply), and if
+  it answers *this* request: same function code, same address/count
   (writes echo them), same length (reads). RTU has no transaction ids, so a late reply to an earlier
   request of a different shape is recognised and discarded, and after any failure everything arriving
   within `late_reply_window_s` (default: the timeout) is discarded. A reply later than that, of the
@@ -28,6 +30,7 @@ from pymodbus.client import ModbusSerialClient
 from pymodbus.exceptions import ConnectionException, ModbusException
 from pymodbus.pdu.file_message import FileRecord
 
+from trimeter.crc import crc16_modbus
 from trimeter.errors import DeviceError
 
 # pymodbus logs every timeout at ERROR; our retries make those routine, and our own errors say more.
@@ -54,6 +57,12 @@ _EXCEPTION_TEXT = {1: "illegal function", 2: "illegal data address", 3: "illegal
                    6: "device busy"}
 
 
+def is_one_whole_frame(buffer: bytes) -> bool:
+    """True when `buffer` is exactly one RTU frame: a CRC over everything before its last two bytes
+    (a CRC-16 appended low byte first leaves a residue of 0)."""
+    return len(buffer) >= 4 and crc16_modbus(buffer) == 0
+
+
 class Transport(Protocol):
     """The byte-level contract the typed client needs; tests substitute an in-memory fake."""
 
@@ -73,6 +82,7 @@ class LinkStats:
     requests: int = 0
     retries: int = 0
     stale_replies: int = 0
+    garbled_replies: int = 0  # passed pymodbus's framer but not the whole-frame CRC check
     reconnects: int = 0
     failures: int = 0
     busy_s: float = field(default=0.0)  # wall time spent inside requests (host + protocol overhead)
@@ -98,7 +108,8 @@ class RtuTransport:
         # retries=0: we retry ourselves, so every retry drains + flushes and checks the reply's shape.
         self._client = ModbusSerialClient(port, framer=FramerType.RTU, baudrate=baudrate, timeout=timeout_s,
                                           retries=0, reconnect_delay=0, name=f"trimeter@{port}",
-                                          handle_local_echo=local_echo)
+                                          handle_local_echo=local_echo, trace_packet=self._trace_packet)
+        self._received = b""
         self._open(deadline=time.monotonic() + reconnect_timeout_s)
 
     # ------------------------------------------------------------------------------------ link care
@@ -131,8 +142,14 @@ class RtuTransport:
     def close(self) -> None:
         self._client.close()
 
+    def _trace_packet(self, sending: bool, data: bytes) -> bytes:
+        """pymodbus hands every receive buffer through here: keep the bytes a reply was framed from."""
+        if not sending:
+            self._received = bytes(data)
+        return data
+
     # ------------------------------------------------------------------------------------- requests
-    def _execute(self, what: str, call: Callable[[ModbusSerialClient], object],
+    def _execute(self, what: str, function_code: int, call: Callable[[ModbusSerialClient], object],
                  answers: Callable[[object], bool]):
         started = time.monotonic()
         self.stats.requests += 1
@@ -144,6 +161,7 @@ class RtuTransport:
                 try:
                     if self._client.socket is None:
                         self._reopen()
+                    self._received = b""
                     reply = call(self._client)
                 except (ModbusException, asyncio.TimeoutError, OSError) as exc:
                     # ConnectionException / SerialException (an OSError) = the adapter went away.
@@ -153,9 +171,18 @@ class RtuTransport:
                     else:
                         self._drain()
                     continue
-                if reply.isError():
+                if not is_one_whole_frame(self._received):
+                    # pymodbus's framer also accepts a CRC over a prefix of the buffer (it hunts for frames
+                    # in garbage), so two flipped bits can pass as a shorter frame — e.g. a read reply
+                    # 01 02 01 01 .. turned into the exception 01 82 01 + a matching "CRC". Only a
+                    # buffer that is exactly one frame with its CRC over all of it counts as a reply.
+                    self.stats.garbled_replies += 1
+                    last_failure = f"a garbled reply ({self._received.hex(' ')})"
+                    self._drain()
+                    continue
+                if reply.isError() and reply.function_code & 0x7F == function_code:
                     raise ModbusExceptionReply(what, int(getattr(reply, "exception_code", 0)))
-                if not answers(reply):
+                if reply.isError() or not answers(reply):
                     self.stats.stale_replies += 1
                     last_failure = f"a reply that answers another request ({type(reply).__name__})"
                     self._drain()
@@ -172,7 +199,7 @@ class RtuTransport:
         method = {1: "read_coils", 2: "read_discrete_inputs"}[fc]
         padded = (count + 7) // 8 * 8
         reply = self._execute(
-            f"a read of {count} {table}s at {address}",
+            f"a read of {count} {table}s at {address}", fc,
             lambda c: getattr(c, method)(address, count=count, device_id=self.address),
             lambda r: r.function_code == fc and len(r.bits) == padded)
         return [bool(b) for b in reply.bits[:count]]
@@ -181,27 +208,27 @@ class RtuTransport:
         fc = TABLE_FUNCTION[table]
         method = {3: "read_holding_registers", 4: "read_input_registers"}[fc]
         reply = self._execute(
-            f"a read of {count} {table}s at {address}",
+            f"a read of {count} {table}s at {address}", fc,
             lambda c: getattr(c, method)(address, count=count, device_id=self.address),
             lambda r: r.function_code == fc and len(r.registers) == count)
         return list(reply.registers)
 
     def write_bits(self, address: int, values: list[bool]) -> None:
         self._execute(
-            f"a write of {len(values)} coils at {address}",
+            f"a write of {len(values)} coils at {address}", 0x0F,
             lambda c: c.write_coils(address, list(values), device_id=self.address),
             lambda r: r.function_code == 0x0F and (r.address, r.count) == (address, len(values)))
 
     def write_words(self, address: int, values: list[int]) -> None:
         self._execute(
-            f"a write of {len(values)} holding registers at {address}",
+            f"a write of {len(values)} holding registers at {address}", 0x10,
             lambda c: c.write_registers(address, list(values), device_id=self.address),
             lambda r: r.function_code == 0x10 and (r.address, r.count) == (address, len(values)))
 
     def read_file_records(self, file_number: int, record_number: int, count: int) -> bytes:
         request = [FileRecord(file_number=file_number, record_number=record_number, record_length=2 * count)]
         reply = self._execute(
-            f"a file-record read of file {file_number} record {record_number} (+{count})",
+            f"a file-record read of file {file_number} record {record_number} (+{count})", 0x14,
             lambda c: c.read_file_record(request, device_id=self.address),
             lambda r: r.function_code == 0x14 and len(r.records) == 1 and len(r.records[0].record_data) == 2 * count)
         return bytes(reply.records[0].record_data)
@@ -209,7 +236,7 @@ class RtuTransport:
     def write_file_records(self, file_number: int, record_number: int, data: bytes) -> None:
         request = [FileRecord(file_number=file_number, record_number=record_number, record_data=bytes(data))]
         self._execute(
-            f"a file-record write of file {file_number} record {record_number} (+{len(data) // 2})",
+            f"a file-record write of file {file_number} record {record_number} (+{len(data) // 2})", 0x15,
             lambda c: c.write_file_record(request, device_id=self.address),
             lambda r: r.function_code == 0x15 and len(r.records) == 1
             and (r.records[0].file_number, r.records[0].record_number) == (file_number, record_number))
