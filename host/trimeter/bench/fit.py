@@ -302,7 +302,7 @@ def run(args) -> int:
         _print_table(exact_rows, "map-exact")
         summary = _budget_summary(budget)
         _print_budget(summary, rows, exact_rows)
-        png = _pareto(rows, amap, args.out)
+        png = _pareto(rows, exact_rows, summary, amap, args.out)
         print(f"   Pareto plot: {png}")
         report["maps"].append({"map": amap.name, "heldout": str(path), "rows": rows, "map_exact_rows": exact_rows,
                                "budget": summary})
@@ -349,24 +349,38 @@ def _print_budget(summary, rows, exact_rows):
               f"{r['g_p95_well']:>9.4f} | {e['alpha_p95']:>12.4f}{e['g_p95']:>9.4f}")
 
 
-def _pareto(rows, amap, out: Path) -> Path:
+def _pareto(rows, exact_rows, summary, amap, out: Path) -> Path:
+    """Time against α / g p95, noise-free: rendered references (filled), map-exact (hollow, the
+    method's own error, joined to its rendered point) and the budget's floors (dashed)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     clean = [r for r in rows if r["noise"] == 0] or rows
+    exact = {r["variant"]: r for r in exact_rows}
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
     for ax, key, label in ((axes[0], "alpha_p95", "α abs error p95"), (axes[1], "g_p95", "g abs error p95 (α ≥ 0.5)")):
-        for r in clean:
-            ax.scatter(r["ms_per_1024"], r[key], s=30)
+        for i, r in enumerate(clean):
+            colour = f"C{i % 10}"
+            ax.scatter(r["ms_per_1024"], r[key], s=30, color=colour)
             ax.annotate(r["variant"], (r["ms_per_1024"], r[key]), fontsize=7, xytext=(3, 3), textcoords="offset points")
+            e = exact.get(r["variant"])
+            if e is not None and e[key] > 0:
+                ax.scatter(e["ms_per_1024"], e[key], s=30, facecolors="none", edgecolors=colour)
+                ax.plot([r["ms_per_1024"], e["ms_per_1024"]], [r[key], e[key]], color=colour, lw=0.5, alpha=0.5)
+        for floor, style in (("reference_noise_floor", "--"), ("map_error_floor", ":")):
+            value = summary[floor][key]
+            if np.isfinite(value) and value > 0:
+                ax.axhline(value, color="grey", ls=style, lw=1, label=floor.replace("_", " ") + " (p95)")
         ax.set_xscale("log")
         ax.set_yscale("log")
         ax.set_xlabel("time per 1024 bins [ms] (whole fit(), one core)")
         ax.set_ylabel(label)
         ax.grid(True, which="both", alpha=0.3)
-    fig.suptitle(f"trimeter bench fit — {amap.name}, noise-free held-out set")
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=7, loc="lower right")
+    fig.suptitle(f"trimeter bench fit — {amap.name}, noise-free: rendered held-out (filled), map-exact (hollow)")
     fig.tight_layout()
     png = out / f"pareto-{amap.name}.png"
     fig.savefig(png, dpi=110)
