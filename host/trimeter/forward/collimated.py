@@ -8,6 +8,8 @@ tests/forward checks that it stays negligible over the map's range (paper Fig. 6
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
 
 
@@ -53,17 +55,32 @@ def collimated_transmittance(sigma_t, thickness_mm: float, n: float,
     return stack_transmittance([1.0, cover_slide_n, n, cover_slide_n, 1.0], [1.0, t_sample, 1.0])
 
 
+@lru_cache(maxsize=64)
+def stack_constants(n: float, cover_slide_n: float | None = None) -> tuple[float, float, float]:
+    """(a, b, T(σt=0)) with T = a·x / (1 − b·x²) in x = exp(−σt ℓ).
+
+    Every stack here is E1 · exp(−σt ℓ) · E2 with non-absorbing E1, E2, whose transmittance has
+    that form; a, b follow from two evaluations of the forward stack: t1 at x = 1 and th at x = 1/2."""
+    t1 = float(collimated_transmittance(0.0, 1.0, n, cover_slide_n))
+    th = float(collimated_transmittance(np.log(2.0), 1.0, n, cover_slide_n))
+    b = (2 * th - t1) / (th / 2 - t1)
+    return t1 * (1 - b), b, t1
+
+
+def collimated_derivative(sigma_t, thickness_mm: float, n: float, cover_slide_n: float | None = None):
+    """∂I_c/∂σt, analytic: dT/dσt = −ℓ·a·x·(1 + b·x²)/(1 − b·x²)² with x = exp(−σt ℓ)."""
+    a, b, _ = stack_constants(n, cover_slide_n)
+    x = np.exp(-np.asarray(sigma_t, dtype=float) * thickness_mm)
+    bx2 = b * x * x
+    return -thickness_mm * a * x * (1.0 + bx2) / ((1.0 - bx2) * (1.0 - bx2))
+
+
 def beer_lambert_sigma_t(I_c, thickness_mm: float, n: float, cover_slide_n: float | None = None):
     """Invert collimated_transmittance for σt (paper Eq. 2, with the same Fresnel stack). NaN where
     I_c is not inside (0, T(σt=0)]. Used as the consistency column of a fit."""
     I_c = np.asarray(I_c, dtype=float)
-    # Every stack here is E1 · exp(−σt ℓ) · E2 with non-absorbing E1, E2, whose transmittance is
-    # T = a·x / (1 − b·x²) in x = exp(−σt ℓ); solving b·I·x² + a·x − I = 0 is exact. a, b follow
-    # from two evaluations of the forward stack: t1 at x = 1 and th at x = 1/2.
-    t1 = float(collimated_transmittance(0.0, 1.0, n, cover_slide_n))
-    th = float(collimated_transmittance(np.log(2.0), 1.0, n, cover_slide_n))
-    b = (2 * th - t1) / (th / 2 - t1)
-    a = t1 * (1 - b)
+    # T = a·x / (1 − b·x²) (stack_constants): solving b·I·x² + a·x − I = 0 for x is exact.
+    a, b, t1 = stack_constants(n, cover_slide_n)
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         x = 2 * I_c / (a + np.sqrt(a * a + 4 * b * I_c * I_c))  # the stable root of the quadratic
         sigma = -np.log(x) / thickness_mm

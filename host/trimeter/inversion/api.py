@@ -152,7 +152,7 @@ def _shape_inputs(k, I_b, I_w, I_c, rho_b, rho_w, amaps):
     for name, rho, ref_key in (("rho_b", rho_b, "reference_rho_b"), ("rho_w", rho_w, "reference_rho_w")):
         if rho is None:
             default = {"reference_rho_b": 0.0, "reference_rho_w": 1.0}[ref_key]
-            rho = np.array([[float(m.recipe.get(ref_key, default))] * n for m in amaps])
+            rho = np.array([float(m.recipe.get(ref_key, default)) for m in amaps])[:, None]
         try:
             rho = np.broadcast_to(np.asarray(rho, dtype=float), (k, n))
         except (TypeError, ValueError) as exc:
@@ -198,8 +198,9 @@ def _fit_one(amap, I_b, I_w, I_c, rho_b, rho_w, *, method, polish, mlp_model, no
     # σt from I_c; under the floor, the floor's σt (a lower bound); above T(σt = 0), σt = 0
     sigma_t = beer_lambert_sigma_t(np.minimum(np.maximum(ic, ic_floor), t_max), amap.thickness_mm,
                                    amap.n, amap.cover_slide_n)
-    sigma_beer = np.where(np.isfinite(I_c) & (I_c >= ic_floor) & (I_c <= t_max), sigma_t,
-                          beer_lambert_sigma_t(I_c, amap.thickness_mm, amap.n, amap.cover_slide_n))
+    in_range = np.isfinite(I_c) & (I_c >= ic_floor) & (I_c <= t_max)
+    sigma_beer = sigma_t if in_range.all() else np.where(
+        in_range, sigma_t, beer_lambert_sigma_t(I_c, amap.thickness_mm, amap.n, amap.cover_slide_n))
     s_lo, s_hi = grid.sigma_t_range
     flags |= np.where(usable & ((sigma_t < s_lo * (1 - 1e-6)) | (sigma_t > s_hi * (1 + 1e-6))),
                       int(FitFlag.OUTSIDE_MAP), 0)

@@ -10,11 +10,12 @@ two equations in two unknowns. No Python loop per bin: every step is a gather + 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
-from trimeter.forward.collimated import collimated_transmittance
-
+from trimeter.forward.collimated import collimated_derivative, collimated_transmittance
+from trimeter.inversion import native
 
 
 @dataclass(frozen=True)
@@ -78,6 +79,11 @@ class ForwardGrid:
         i, w = self._cell(self.log_sigma_t, self._inv_ds, ls)
         return SigmaCell(i, w, ls)
 
+    def clamp_sigma_t(self, sigma_t):
+        """σt clamped to the grid as sigma_cell does it (NaN → lowest node), without the cell."""
+        lo, hi = self.sigma_t_range
+        return np.minimum(np.where(sigma_t >= lo, sigma_t, lo), hi)
+
     def collimated(self, sigma_t):
         return collimated_transmittance(sigma_t, self.thickness_mm, self.n, self.cover_slide_n)
 
@@ -123,9 +129,19 @@ class ForwardGrid:
         return I_b, I_w, self.collimated(sigma_t)
 
     # ----------------------------------------------------------------------------------- solving
+    @cached_property
+    def native_solver(self):
+        """The same solve in C (trimeter.inversion.native), or None when the library is not built."""
+        return native.NativeSolver(self) if native.available() else None
+
     def solve_alpha_g(self, I_b, I_w, cell: SigmaCell, rho_b, rho_w, alpha0, g0, iterations=5):
         """Damped Gauss-Newton for (α, g) with I_b, I_w matched at the bins' own ρ_b, ρ_w. Steps are
-        clamped to the map's box; returns (α, g, residual norm)."""
+        clamped to the map's box; returns (α, g, residual norm, Jacobian at the solution)."""
+        if self.native_solver is not None:
+            alpha, g, residual, J = self.native_solver.solve(I_b, I_w, cell.log_sigma_t, rho_b, rho_w,
+                                                             max(int(iterations), 0), alpha0, g0)
+            J[:, 2, 1] = self.collimated_derivative(np.exp(cell.log_sigma_t))
+            return alpha, g, residual, J
         alpha = np.clip(alpha0, *self.alpha_range)
         g = np.clip(g0, *self.g_range)
         for _ in range(iterations):  # fixed count: a vectorised step over all bins, not a per-bin loop
@@ -149,8 +165,7 @@ class ForwardGrid:
         return np.sqrt(res2), J
 
     def collimated_derivative(self, s):
-        h = 1e-4
-        return (self.collimated(s * (1 + h)) - self.collimated(s * (1 - h))) / (2 * h * s)
+        return collimated_derivative(s, self.thickness_mm, self.n, self.cover_slide_n)
 
     def _newton_step(self, I_b, I_w, cell, rho_b, rho_w, alpha, g):
         coef, d_a, d_g = self.coefficients(alpha, cell, g)
@@ -190,9 +205,13 @@ class ForwardGrid:
         J[:, 2, 1] = self.collimated_derivative(s)
         return J
 
-    def propagate(self, J, sigma_I):
+    @staticmethod
+    def propagate(J, sigma_I):
         """Standard deviations of (α, σt, g) from independent intensity noise sigma_I (N, 3), to
-        first order: cov = J⁻¹ Σ J⁻ᵀ, using the block structure (row I_c has only ∂/∂σt)."""
+        first order: cov = J⁻¹ Σ J⁻ᵀ, using the block structure (row I_c has only ∂/∂σt). Infinite
+        where the (α, g) block is singular."""
+        if native.available():
+            return native.propagate(J, sigma_I)
         var_s = (sigma_I[:, 2] / J[:, 2, 1]) ** 2
         # δ(α, g) = J2⁻¹ (δI_bw − J_s δσt), J2 = ∂(I_b, I_w)/∂(α, g)
         a, b, c, d = J[:, 0, 0], J[:, 0, 2], J[:, 1, 0], J[:, 1, 2]
@@ -208,4 +227,4 @@ class ForwardGrid:
             cov = inv @ cov_bw @ np.swapaxes(inv, 1, 2)
             std_a = np.sqrt(np.abs(cov[:, 0, 0]))
             std_g = np.sqrt(np.abs(cov[:, 1, 1]))
-        return (np.nan_to_num(std_a, nan=np.inf), np.sqrt(var_s), np.nan_to_num(std_g, nan=np.inf))
+        return np.where(np.isnan(std_a), np.inf, std_a), np.sqrt(var_s), np.where(np.isnan(std_g), np.inf, std_g)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from trimeter.inversion import native
 from trimeter.inversion.kernel import ForwardGrid, SigmaCell
 from trimeter.inversion.table import MapTable
 
@@ -30,6 +31,8 @@ class TableInverter:
         f = table.inv_frame.astype(np.float64)
         self._ox, self._oy = f[:, 0].copy(), f[:, 1].copy()
         self._m = [f[:, 2] * (nx - 1), f[:, 3] * (nx - 1), f[:, 4] * (ny - 1), f[:, 5] * (ny - 1)]
+        self._native = (native.NativeSolver(self.grid, self._cells, np.column_stack([self._ox, self._oy, *self._m]),
+                                            self._shape) if native.available() else None)
 
     def initial_guess(self, I_b, I_w, cell: SigmaCell):
         ns, ny, nx = self._shape
@@ -51,6 +54,12 @@ class TableInverter:
 
     def invert(self, I_b, I_w, sigma_t, rho_b, rho_w, polish_iterations=3):
         """(α, g, residual, Jacobian at the solution) for bins with σt already known (from I_c)."""
+        if self._native is not None:  # the same guess + polish in C (it clamps ln σt to the grid itself)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                log_sigma_t = np.log(sigma_t)
+            alpha, g, residual, J = self._native.solve(I_b, I_w, log_sigma_t, rho_b, rho_w, max(polish_iterations, 0))
+            J[:, 2, 1] = self.grid.collimated_derivative(self.grid.clamp_sigma_t(sigma_t))
+            return alpha, g, residual, J
         cell = self.grid.sigma_cell(sigma_t)
         alpha, g = self.initial_guess(I_b, I_w, cell)
         return self.grid.solve_alpha_g(I_b, I_w, cell, rho_b, rho_w, alpha, g, iterations=max(polish_iterations, 0))

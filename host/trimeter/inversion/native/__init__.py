@@ -1,0 +1,135 @@
+"""The compiled inversion kernel (invert.c next to this file), bound with ctypes.
+
+`make native` (part of `make setup`, so of `make test` and `make demo`) compiles it into
+libtrimeter_invert.so here. Without it — no C compiler, a plain `pip install`, or
+TRIMETER_NATIVE=0 in the environment — every caller falls back to the numpy kernel
+(trimeter.inversion.kernel), which is the reference the C code is tested against; results agree to
+~1e-12, only the speed differs. `status()` says which one runs (the benchmark prints it).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import os
+from pathlib import Path
+
+import numpy as np
+
+LIBRARY = Path(__file__).with_name("libtrimeter_invert.so")
+ABI_VERSION = 1
+
+_double_p = ctypes.POINTER(ctypes.c_double)
+
+
+class _ForwardGridC(ctypes.Structure):
+    _fields_ = [("na", ctypes.c_int32), ("ns", ctypes.c_int32), ("ng", ctypes.c_int32),
+                ("alpha", _double_p), ("log_sigma_t", _double_p), ("g", _double_p),
+                ("inv_da", _double_p), ("inv_ds", _double_p), ("inv_dg", _double_p),
+                ("poly", _double_p),
+                ("alpha_lo", ctypes.c_double), ("alpha_hi", ctypes.c_double),
+                ("g_lo", ctypes.c_double), ("g_hi", ctypes.c_double)]
+
+
+class _InverseTableC(ctypes.Structure):
+    _fields_ = [("ns", ctypes.c_int32), ("ny", ctypes.c_int32), ("nx", ctypes.c_int32),
+                ("cells", _double_p), ("frame", _double_p)]
+
+
+def _load():
+    if os.environ.get("TRIMETER_NATIVE", "1") == "0":
+        return None, "disabled by TRIMETER_NATIVE=0"
+    if not LIBRARY.is_file():
+        return None, f"{LIBRARY.name} not built (run `make native`)"
+    try:
+        lib = ctypes.CDLL(str(LIBRARY))
+    except OSError as exc:
+        return None, f"{LIBRARY.name} does not load ({exc})"
+    if lib.tm_abi_version() != ABI_VERSION:
+        return None, f"{LIBRARY.name} is stale (ABI {lib.tm_abi_version()}, expected {ABI_VERSION}; run `make native`)"
+    size_t, vp = ctypes.c_size_t, ctypes.c_void_p  # arrays go in as raw addresses (see _addr)
+    lib.tm_solve_alpha_g.restype = ctypes.c_int
+    lib.tm_solve_alpha_g.argtypes = [ctypes.POINTER(_ForwardGridC), ctypes.POINTER(_InverseTableC), size_t,
+                                     vp, vp, vp, vp, vp, ctypes.c_int, vp, vp, vp, vp]
+    lib.tm_propagate.restype = None
+    lib.tm_propagate.argtypes = [size_t, vp, vp, vp, vp, vp]
+    return lib, f"compiled ({LIBRARY.name})"
+
+
+_LIB, _STATUS = _load()
+
+
+def available() -> bool:
+    return _LIB is not None
+
+
+def status() -> str:
+    """'compiled (…)' or why the numpy kernel runs instead."""
+    return _STATUS
+
+
+def _ptr(a: np.ndarray):
+    return a.ctypes.data_as(_double_p)
+
+
+def _addr(a: np.ndarray) -> int:
+    """The data address of a contiguous float64 array: ~10× cheaper per call than `a.ctypes`, which
+    matters at ~14 arrays per ~100 µs kernel call."""
+    return a.__array_interface__["data"][0]
+
+
+def _f64(x, n) -> np.ndarray:
+    """A contiguous float64 array of n values (broadcast scalars), as the C loop reads it."""
+    a = np.ascontiguousarray(x, dtype=np.float64)
+    return a if a.shape == (n,) else np.ascontiguousarray(np.broadcast_to(a, (n,)))
+
+
+class NativeSolver:
+    """One forward grid (and optionally one inverse table) handed to C once; arrays kept alive here."""
+
+    def __init__(self, grid, inverse_cells: np.ndarray | None = None, inverse_frame: np.ndarray | None = None,
+                 inverse_shape: tuple[int, int, int] | None = None):
+        keep = {name: np.ascontiguousarray(value, dtype=np.float64) for name, value in (
+            ("alpha", grid.alpha), ("log_sigma_t", grid.log_sigma_t), ("g", grid.g), ("inv_da", grid._inv_da),
+            ("inv_ds", grid._inv_ds), ("inv_dg", grid._inv_dg), ("poly", grid._poly))}
+        na, ns, ng = grid.shape
+        self._grid = _ForwardGridC(na, ns, ng, *(_ptr(keep[k]) for k in ("alpha", "log_sigma_t", "g", "inv_da",
+                                                                           "inv_ds", "inv_dg", "poly")),
+                                   *grid.alpha_range, *grid.g_range)
+        self._table = None
+        if inverse_cells is not None:
+            keep["cells"] = np.ascontiguousarray(inverse_cells, dtype=np.float64)
+            keep["frame"] = np.ascontiguousarray(inverse_frame, dtype=np.float64)
+            self._table = _InverseTableC(*inverse_shape, _ptr(keep["cells"]), _ptr(keep["frame"]))
+        self._keep = keep
+        self._grid_ref = ctypes.byref(self._grid)
+        self._table_ref = ctypes.byref(self._table) if self._table is not None else None
+
+    def solve(self, I_b, I_w, log_sigma_t, rho_b, rho_w, iterations, alpha0=None, g0=None):
+        """(α, g, residual, J (n, 3, 3) with row I_c zero). ln σt is clamped to the grid in C (NaN →
+        lowest node). Initial guess from the inverse table, or alpha0/g0 when given (then the table
+        is not used)."""
+        n = len(log_sigma_t)
+        args = [_f64(v, n) for v in (I_b, I_w, log_sigma_t, rho_b, rho_w)]
+        use_table = alpha0 is None
+        if use_table and self._table is None:
+            raise ValueError("this solver has no inverse table: pass alpha0 and g0")
+        alpha = np.zeros(n) if use_table else _f64(alpha0, n).copy()
+        g = np.zeros(n) if use_table else _f64(g0, n).copy()
+        residual = np.empty(n)
+        J = np.empty((n, 3, 3))
+        rc = _LIB.tm_solve_alpha_g(self._grid_ref, self._table_ref if use_table else None, n,
+                                   *(_addr(a) for a in args), int(iterations), _addr(alpha), _addr(g),
+                                   _addr(residual), _addr(J))
+        if rc != 0:
+            raise ValueError("native kernel refused the grid (fewer than 2 nodes on an axis, or table/grid mismatch)")
+        return alpha, g, residual, J
+
+
+def propagate(J: np.ndarray, sigma_I: np.ndarray):
+    """(std α, std σt, std g) — ForwardGrid.propagate in C."""
+    n = len(J)
+    J = np.ascontiguousarray(J, dtype=np.float64)
+    sigma_I = np.ascontiguousarray(sigma_I, dtype=np.float64)
+    out = [np.empty(n) for _ in range(3)]
+    _LIB.tm_propagate(n, _addr(J), _addr(sigma_I), *(_addr(o) for o in out))
+    return tuple(out)
