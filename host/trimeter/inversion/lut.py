@@ -5,6 +5,9 @@ table's own forward map at the bins' true ρ_b(λ), ρ_w(λ).
 grid is looked up bilinearly in (√I_b, √I_w) on the two σt nodes bracketing it and blended. The grid
 was built at the reference backgrounds; when a bin's ρ's differ, the polish (a few vectorised
 Gauss-Newton steps) moves the guess to the exact solution of the trilinear forward map.
+
+Guess and polish run in C when the native kernel is built (trimeter.inversion.native, same
+algorithm, tested to agree); the numpy code below is the reference and the fallback.
 """
 
 from __future__ import annotations
