@@ -153,18 +153,31 @@ int tm_solve_alpha_g(const tm_forward_grid *f, const tm_inverse_table *table, si
                      int iterations, double *alpha, double *g, double *residual, double *J) {
     if (!f || f->na < 2 || f->ns < 2 || f->ng < 2) return -1;
     if (table && (table->ns != f->ns || table->nx < 2 || table->ny < 2)) return -1;
+    /* Three passes over the bins rather than one bin at a time: a bin's Newton steps form one long
+     * dependency chain (divisions, table reads), while consecutive bins are independent, so the
+     * CPU overlaps them when the loop over bins is innermost (~2× faster here). alpha/g hold the
+     * iterate; the σt cell is recomputed per pass (a few ns) instead of stored. */
+    for (size_t i = 0; i < n; i++) {
+        double ws;
+        int is = find_cell(f->log_sigma_t, f->inv_ds, f->ns, clamp_log_sigma(f, log_sigma_t[i]), &ws);
+        double a = alpha[i], gg = g[i];
+        if (table) initial_guess(table, is, ws, I_b[i], I_w[i], &a, &gg);
+        alpha[i] = clampd(a, f->alpha_lo, f->alpha_hi);
+        g[i] = clampd(gg, f->g_lo, f->g_hi);
+    }
+    for (int it = 0; it < iterations; it++) {
+        for (size_t i = 0; i < n; i++) {
+            double ws;
+            int is = find_cell(f->log_sigma_t, f->inv_ds, f->ns, clamp_log_sigma(f, log_sigma_t[i]), &ws);
+            newton_step(f, is, ws, I_b[i], I_w[i], rho_b[i], rho_w[i], &alpha[i], &g[i]);
+        }
+    }
     for (size_t i = 0; i < n; i++) {
         double ws;
         double ls = clamp_log_sigma(f, log_sigma_t[i]);
         int is = find_cell(f->log_sigma_t, f->inv_ds, f->ns, ls, &ws);
-        double a, gg;
-        if (table) initial_guess(table, is, ws, I_b[i], I_w[i], &a, &gg);
-        else { a = alpha[i]; gg = g[i]; }
-        a = clampd(a, f->alpha_lo, f->alpha_hi);
-        gg = clampd(gg, f->g_lo, f->g_hi);
-        for (int it = 0; it < iterations; it++) newton_step(f, is, ws, I_b[i], I_w[i], rho_b[i], rho_w[i], &a, &gg);
         abc_t c;
-        coefficients(f, is, ws, a, gg, 1, &c);
+        coefficients(f, is, ws, alpha[i], g[i], 1, &c);
         double s = exp(ls);
         double res2 = 0.0;
         double *Ji = J + i * 9u;
@@ -178,8 +191,6 @@ int tm_solve_alpha_g(const tm_forward_grid *f, const tm_inverse_table *table, si
             Ji[row * 3 + 2] = directional(fr, hr, c.dg);
         }
         Ji[6] = Ji[7] = Ji[8] = 0.0;
-        alpha[i] = a;
-        g[i] = gg;
         residual[i] = sqrt(res2);
     }
     return 0;
