@@ -87,8 +87,9 @@ def test_reference_noise_floor_is_the_std_of_noisy_solves(amap):
 
 
 def test_bench_map_exact_rows_equal_rendered_rows_when_the_references_are_the_map(amap, tmp_path):
-    shutil.copy(DATA / "ideal-l0.5.tmap", tmp_path / "ideal-l0.5.tmap")  # no .onnx next to it: no mlp rows
-    h = synthetic_heldout(amap)
+    for suffix in (".tmap", ".tlut"):  # no .onnx next to it: no mlp rows
+        shutil.copy(DATA / f"ideal-l0.5{suffix}", tmp_path / f"ideal-l0.5{suffix}")
+    h = synthetic_heldout(amap, n=60)  # few: the paper ε-median (250 interpolations each) dominates the cost
     write_container(tmp_path / "ideal-l0.5.held", "heldout-set", {"source": "synthetic: the map's forward model"}, h)
     out = tmp_path / "bench"
     rc = main(["bench", "fit", "--map", str(tmp_path / "ideal-l0.5.tmap"), "--noise", "0", "--repeats", "1",
