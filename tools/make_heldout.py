@@ -3,7 +3,7 @@
 as a committed data file (so the benchmark never re-renders): maps/heldout/<recipe-name>.held.
 
     nice taskset -c 1 .venv/bin/python tools/make_heldout.py maps/recipes/device-n1.5-l0.4.toml \
-        [--pairs 24 --alphas 10 --paths 16777216]        # ≈ 10 min (l0.4) / ≈ 20 min (l0.8) on one core
+        [--pairs 24 --alphas 10 --paths 16777216]   # 14-18 min per device map on one shared core
     .venv/bin/python tools/make_heldout.py --ideal tests/inversion/data/ideal-l0.5.tmap [--count 300]
 
 Materials are random and OFF the map grid (α, σt, g all drawn continuously; any draw within 1e-3 of a
