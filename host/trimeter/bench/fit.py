@@ -275,9 +275,13 @@ def run(args) -> int:
     from trimeter.inversion.lut import TableInverter
     from trimeter.inversion.table import build_from_map
 
+    from trimeter.inversion import native
+
     noise_levels = [float(x) for x in args.noise.split(",")]
     args.out.mkdir(parents=True, exist_ok=True)
-    report = {"maps": []}
+    # lut/mlp timings depend on it: the C kernel, or the numpy reference when the library is missing
+    print(f"inversion kernel: {native.status()}")
+    report = {"maps": [], "kernel": native.status()}
     for amap in _maps(args.maps):
         path, meta, h = heldout_for(amap)
         rb, rw = float(amap.recipe.get("reference_rho_b", 0.0)), float(amap.recipe.get("reference_rho_w", 1.0))
