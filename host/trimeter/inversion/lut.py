@@ -60,9 +60,7 @@ class TableInverter:
         if self._native is not None:  # the same guess + polish in C (it clamps ln σt to the grid itself)
             with np.errstate(divide="ignore", invalid="ignore"):
                 log_sigma_t = np.log(sigma_t)
-            alpha, g, residual, J = self._native.solve(I_b, I_w, log_sigma_t, rho_b, rho_w, max(polish_iterations, 0))
-            J[:, 2, 1] = self.grid.collimated_derivative(self.grid.clamp_sigma_t(sigma_t))
-            return alpha, g, residual, J
+            return self._native.solve(I_b, I_w, log_sigma_t, rho_b, rho_w, max(polish_iterations, 0))
         cell = self.grid.sigma_cell(sigma_t)
         alpha, g = self.initial_guess(I_b, I_w, cell)
         return self.grid.solve_alpha_g(I_b, I_w, cell, rho_b, rho_w, alpha, g, iterations=max(polish_iterations, 0))

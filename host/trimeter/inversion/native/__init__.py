@@ -101,13 +101,14 @@ class NativeSolver:
             keep["frame"] = np.ascontiguousarray(inverse_frame, dtype=np.float64)
             self._table = _InverseTableC(*inverse_shape, _ptr(keep["cells"]), _ptr(keep["frame"]))
         self._keep = keep
+        self._forward = grid
         self._grid_ref = ctypes.byref(self._grid)
         self._table_ref = ctypes.byref(self._table) if self._table is not None else None
 
     def solve(self, I_b, I_w, log_sigma_t, rho_b, rho_w, iterations, alpha0=None, g0=None):
-        """(α, g, residual, J (n, 3, 3) with row I_c zero). ln σt is clamped to the grid in C (NaN →
-        lowest node). Initial guess from the inverse table, or alpha0/g0 when given (then the table
-        is not used)."""
+        """(α, g, residual, J (n, 3, 3)) as ForwardGrid.solve_alpha_g returns them. ln σt is clamped to
+        the grid in C (NaN → lowest node). Initial guess from the inverse table, or alpha0/g0 when
+        given (then the table is not used)."""
         n = len(log_sigma_t)
         args = [_f64(v, n) for v in (I_b, I_w, log_sigma_t, rho_b, rho_w)]
         use_table = alpha0 is None
@@ -122,6 +123,9 @@ class NativeSolver:
                                    _addr(residual), _addr(J))
         if rc != 0:
             raise ValueError("native kernel refused the grid (fewer than 2 nodes on an axis, or table/grid mismatch)")
+        # Row I_c depends on σt alone (the analytic Fresnel stack): filled here, at the clamped σt.
+        with np.errstate(over="ignore"):
+            J[:, 2, 1] = self._forward.collimated_derivative(self._forward.clamp_sigma_t(np.exp(args[2])))
         return alpha, g, residual, J
 
 
