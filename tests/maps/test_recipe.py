@@ -62,3 +62,26 @@ def test_g_axis_log_spacing_in_one_minus_g(tiny_data):
     data["grid"]["g"]["spacing"] = "cubic"
     with pytest.raises(InputError, match=r"grid\.g\.spacing"):
         parse_recipe(data)
+
+
+def test_the_fingerprint_ignores_last_bit_noise_in_generated_axes_but_not_a_real_change():
+    """numpy releases generate geomspace axes that differ in the last bit; a map built with one must
+    still count as current under the other, while any real change of the recipe makes it stale."""
+    import copy
+
+    import numpy as np
+
+    from trimeter.maps.builder import recipe_fingerprint
+    from trimeter.maps.recipe import load_recipe
+    from trimeter.paths import MAPS_DIR
+
+    stored = load_recipe(MAPS_DIR / "recipes" / "device-n1.5-l0.4.toml").to_dict()
+    noisy = copy.deepcopy(stored)
+    noisy["grid"]["alpha"] = [float(np.nextafter(a, 2.0)) for a in noisy["grid"]["alpha"]]
+    assert noisy != stored and recipe_fingerprint(noisy) == recipe_fingerprint(stored)
+    for change in (lambda d: d["grid"]["alpha"].__setitem__(5, d["grid"]["alpha"][5] + 1e-6),
+                   lambda d: d["sampling"].__setitem__("max_paths", d["sampling"]["max_paths"] * 2),
+                   lambda d: d.__setitem__("thickness_mm", 0.41)):
+        changed = copy.deepcopy(stored)
+        change(changed)
+        assert recipe_fingerprint(changed) != recipe_fingerprint(stored)

@@ -88,8 +88,24 @@ def _worst_stderr(tally: ColumnTally, recipe: Recipe) -> float:
                      tally.stderr(recipe.alpha, recipe.reference_rho_w).max()))
 
 
-def recipe_fingerprint(recipe: Recipe) -> str:
-    return hashlib.sha256(json.dumps(recipe.to_dict(), sort_keys=True).encode()).hexdigest()
+def recipe_fingerprint(recipe: Recipe | dict) -> str:
+    """SHA-256 of the recipe (a Recipe, or the dict a map stores) with every float rounded to 1e-10.
+    Why rounded: the grid axes are generated (np.geomspace), and numpy releases differ in their
+    last bit (numpy 2.4 vs the release the shipped maps were built with), which must not make a
+    current map look stale. (Absolute, not significant digits: 0.0 and its 1-ulp neighbour 5e-324
+    must agree too.)"""
+    data = recipe.to_dict() if isinstance(recipe, Recipe) else recipe
+    return hashlib.sha256(json.dumps(_canonical(data), sort_keys=True).encode()).hexdigest()
+
+
+def _canonical(value):
+    if isinstance(value, float):
+        return round(value, 10) + 0.0  # + 0.0: -0.0 → 0.0
+    if isinstance(value, dict):
+        return {str(k): _canonical(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_canonical(v) for v in value]
+    return value
 
 
 class Checkpoint:
