@@ -18,9 +18,9 @@ def test_bench_fit_reports_figures_and_plot(tmp_path, capsys):
     assert "ratio to paper" in text and "Pareto plot" in text
     rows = json.loads((out / "results.json").read_text())["maps"][0]["rows"]
     variants = {r["variant"] for r in rows}
-    assert {"paper", "paper-median", "lut p0", "lut p4", "lut-small p4", "mlp p0", "mlp p4"} <= variants
+    assert {"paper", "paper-median", "lut p0", "lut p≤8", "lut-small p≤8", "mlp p0", "mlp p≤8"} <= variants
     for r in rows:
         assert r["ms_per_1024"] > 0 and 0 <= r["nan_rate"] <= 1
     clean = {r["variant"]: r for r in rows if r["noise"] == 0}
-    assert clean["lut p4"]["nan_rate"] == 0 and clean["lut p4"]["alpha_p95"] < 0.05
+    assert clean["lut p≤8"]["nan_rate"] == 0 and clean["lut p≤8"]["alpha_p95"] < 0.05
     assert (out / "pareto-ideal-l0.5.png").stat().st_size > 10_000

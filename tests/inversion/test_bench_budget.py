@@ -98,7 +98,7 @@ def test_bench_map_exact_rows_equal_rendered_rows_when_the_references_are_the_ma
     result = json.loads((out / "results.json").read_text())["maps"][0]
     rendered = {r["variant"]: r for r in result["rows"]}
     exact = {r["variant"]: r for r in result["map_exact_rows"]}
-    assert set(rendered) == set(exact) and {"paper", "lut p4"} <= set(rendered)
+    assert set(rendered) == set(exact) and {"paper", "lut p≤8"} <= set(rendered)
     for name, r in rendered.items():
         for key in ("alpha_p50", "alpha_p95", "sigma_rel_p95", "g_p95", "alpha_p95_well", "nan_rate", "flag_rate"):
             assert exact[name][key] == pytest.approx(r[key], rel=1e-6, abs=1e-9), (name, key)

@@ -90,6 +90,28 @@ def test_beer_lambert_consistency_column(ideal_map):
     np.testing.assert_allclose(r.sigma_t_beer, s, rtol=1e-9)
 
 
+@pytest.mark.parametrize("kernel", ["compiled", "numpy"])
+def test_a_clear_sample_gives_sigma_t_zero_not_nan(monkeypatch, kernel):
+    """I_c at or just above T(σt = 0) (noise on a clear sample): σt = 0, flagged as below the map's
+    range. (It came out NaN when T(σt = 0) was taken from the table's float32 set-up but σt from the
+    map's float64 one.)"""
+    from trimeter.inversion import native
+    from trimeter.maps.appearance import AppearanceMap
+    from trimeter.paths import MAPS_DIR
+    import trimeter.inversion.api as api
+
+    if kernel == "numpy":
+        monkeypatch.setattr(native, "_LIB", None)
+        monkeypatch.setattr(api, "_TABLES", {})
+    elif not native.available():
+        pytest.skip(native.status())
+    amap = AppearanceMap.load(MAPS_DIR / "device-n1.5-l0.4.tmap")
+    t0 = float(amap.collimated(0.0))
+    r = trimeter.fit(amap, np.full(3, 0.1), np.full(3, 0.5), [t0, min(1.0, t0 * 1.0005), 1.0005])
+    assert np.all((r.sigma_t >= 0.0) & (r.sigma_t < 1e-6)), r.sigma_t  # 0, or ~1e-8 from the float32 set-up
+    assert np.all(r.flags & FitFlag.OUTSIDE_MAP) and not np.any(r.flags & UNUSABLE)
+
+
 CASES = {
     "nan": ((np.nan, 0.5, 0.1), FitFlag.NONFINITE_INPUT, True),
     "inf": ((0.1, np.inf, 0.1), FitFlag.NONFINITE_INPUT, True),

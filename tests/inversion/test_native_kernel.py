@@ -79,3 +79,81 @@ def test_a_missing_or_disabled_library_falls_back_with_a_reason(monkeypatch):
     monkeypatch.setattr(native, "LIBRARY", native.LIBRARY.with_name("no-such-library.so"))
     lib, reason = native._load()
     assert lib is None and "make native" in reason
+
+
+def _fit_inputs(rng, n=4000):
+    """Measurements over the whole input space: inside the gamut, at and past every validity edge."""
+    I_b = rng.uniform(0.0, 0.6, n)
+    I_w = I_b + rng.uniform(0.0, 0.9, n)
+    I_c = np.exp(rng.uniform(np.log(1e-6), np.log(0.95), n))
+    rho_b = rng.uniform(0.0, 0.1, n)
+    rho_w = rng.uniform(0.8, 1.0, n)
+    edges = {"I_b": [np.nan, np.inf, -0.5, 1.5, 0.4, 0.0, 1e-310, 0.2, 0.2, 0.2, 0.2, 0.1, 0.1, 0.1, 0.1, -5e-4],
+             "I_w": [0.5, 0.5, 0.5, 0.5, 0.3, 0.0, 1e-300, -np.inf, 0.5, 0.5, 0.5, 0.6, 0.6, 0.6, 1.0005, 0.3],
+             "I_c": [0.1, 0.1, 0.1, 0.1, 0.1, 0.0, 1.0, 0.1, np.nan, 1e-9, 0.99, 1.0005, -0.01, 1.01, 0.3, -5e-4],
+             "rho_b": [0.02] * 8 + [0.02, 0.5, -0.1, 0.02, 0.02, 0.02, 0.02, 0.02],
+             "rho_w": [0.9] * 8 + [0.9, 0.4, 0.9, 1.2, 0.9, 0.9, 0.9, 0.9]}
+    k = len(edges["I_b"])
+    for name, values in edges.items():
+        locals()[name][:k] = values
+    return I_b, I_w, I_c, rho_b, rho_w
+
+
+@pytest.mark.skipif(not native.available(), reason=native.status())
+@pytest.mark.parametrize("method, polish, polish_tol", [("lut", 0, 0.0), ("lut", 8, 1e-6), ("lut", 3, 0.0),
+                                                         ("mlp", 8, 1e-6)])
+def test_the_whole_fit_in_c_matches_the_numpy_reference_bin_for_bin(monkeypatch, method, polish, polish_tol):
+    """tm_fit (flags, σt from I_c, guess, adaptive polish, stds, blanking) against api's numpy path."""
+    import trimeter.inversion.api as api
+    from trimeter.maps.appearance import AppearanceMap
+
+    amap = AppearanceMap.load(MAPS_DIR / "device-n1.5-l0.4.tmap")
+    args = _fit_inputs(np.random.default_rng(polish))
+    kw = dict(method=method, polish=polish, polish_tol=polish_tol)
+    compiled = api.fit(amap, *args[:3], rho_b=args[3], rho_w=args[4], **kw)
+    monkeypatch.setattr(native, "_LIB", None)
+    monkeypatch.setattr(api, "_TABLES", {})
+    assert api.table_inverter(amap).native_solver is None
+    reference = api.fit(amap, *args[:3], rho_b=args[3], rho_w=args[4], **kw)
+    np.testing.assert_array_equal(compiled.flags, reference.flags)
+    for name in FitResultColumns:
+        np.testing.assert_allclose(getattr(compiled, name), getattr(reference, name), rtol=1e-8, atol=1e-11,
+                                   err_msg=name)
+    # the edges took every validity branch, and most bins are clean fits
+    from trimeter.inversion.flags import FitFlag
+
+    seen = np.bitwise_or.reduce(compiled.flags)
+    for flag in FitFlag:
+        if flag not in (FitFlag.NONE, FitFlag.THICKNESS_DISAGREE):
+            assert seen & flag, flag.name
+
+
+FitResultColumns = ("alpha", "sigma_t", "g", "alpha_std", "sigma_t_std", "g_std", "sigma_t_beer")
+
+
+@pytest.mark.skipif(not native.available(), reason=native.status())
+def test_the_adaptive_polish_stops_converged_bins_early_with_the_same_result():
+    from trimeter.inversion.api import table_inverter
+    from trimeter.maps.appearance import AppearanceMap
+
+    amap = AppearanceMap.load(MAPS_DIR / "device-n1.5-l0.4.tmap")
+    rng = np.random.default_rng(3)
+    alpha, g = rng.uniform(0.3, 0.99, 2000), rng.uniform(0.0, 0.85, 2000)
+    sigma_t = np.exp(rng.uniform(np.log(0.1), np.log(20), 2000))
+    inverter = table_inverter(amap)
+    I_b, I_w, _ = inverter.grid.intensities(alpha, sigma_t, g, 0.02, 0.9)
+    rho_b, rho_w = np.full(2000, 0.02), np.full(2000, 0.9)
+    fixed = inverter.invert(I_b, I_w, sigma_t, rho_b, rho_w, polish_iterations=12, step_tol=0.0)
+    adaptive = inverter.invert(I_b, I_w, sigma_t, rho_b, rho_w, polish_iterations=12, step_tol=1e-6)
+    np.testing.assert_allclose(adaptive[0], fixed[0], atol=1e-6)
+    np.testing.assert_allclose(adaptive[1], fixed[1], atol=1e-6)
+    from trimeter.inversion.api import _t_max, grid_ref
+
+    a, b, t_valid = inverter.grid.stack_constants
+    out = inverter.native_solver.fit(I_b, I_w, inverter.grid.collimated(sigma_t), rho_b, rho_w, noise_rel=0.005,
+                                     noise_abs=2e-4, mc_stderr=0.0, ic_floor=1e-4, alpha_min_g=0.02,
+                                     input_tolerance=1e-3, ref_rho=grid_ref(amap), t_max=_t_max(inverter.grid),
+                                     t_valid=t_valid * (1 + 1e-12), iterations=12, step_tol=1e-6)
+    # converged bins left early: fewer steps than 12 per bin on average, the same α to the tolerance
+    assert 1.0 < out["steps"] / 2000 < 8.0
+    np.testing.assert_allclose(out["alpha"], np.clip(fixed[0], 0, 1), atol=1e-6)

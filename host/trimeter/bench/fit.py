@@ -41,6 +41,7 @@ MEASURABLE_IC = 1e-3
 # std is below half of them (the well-conditioned subset).
 ALPHA_TARGET, G_TARGET = 0.01, 0.015
 G_MIN_ALPHA = 0.5  # g is scored over α ≥ 0.5 only (below, g barely changes the intensities)
+DEFAULT_POLISH = dict(polish=8, polish_tol=1e-6)  # trimeter.fit's defaults
 
 
 def register(bench_subparsers) -> None:
@@ -85,9 +86,12 @@ def _variants(amap):
     from trimeter.inversion.mlp import model_path_for
 
     variants = [("paper", "paper", dict(samples=0)), ("paper-median", "paper", dict(samples=250, epsilon=0.01))]
-    for polish in (0, 2, 4):
-        variants.append((f"lut p{polish}", "lut", dict(polish=polish)))
-    variants.append(("lut-small p4", "lut-small", dict(polish=4)))
+    # p0/p2: the raw table and two fixed Newton steps; p≤8: fit()'s default, up to 8 steps, a bin
+    # stopping once its step is ≤ 1e-6 (the adaptive polish)
+    for polish in (0, 2):
+        variants.append((f"lut p{polish}", "lut", dict(polish=polish, polish_tol=0.0)))
+    variants.append(("lut p≤8", "lut", DEFAULT_POLISH))
+    variants.append(("lut-small p≤8", "lut-small", DEFAULT_POLISH))
     if amap.path is not None:
         models = sorted(amap.path.parent.glob(f"{amap.path.stem}*.onnx"))
         from trimeter.errors import MapFileError
@@ -100,9 +104,9 @@ def _variants(amap):
             except MapFileError as exc:  # e.g. the map was rebuilt since: report it, bench the rest
                 print(f"   skipping {model.name}: {exc}")
                 continue
-            for polish in (0, 4):
-                variants.append((f"{'mlp' if tag == 'mlp' else 'mlp-' + tag} p{polish}", "mlp",
-                                 dict(polish=polish, mlp_model=model)))
+            for suffix, polish in (("p0", dict(polish=0)), ("p≤8", DEFAULT_POLISH)):
+                variants.append((f"{'mlp' if tag == 'mlp' else 'mlp-' + tag} {suffix}", "mlp",
+                                 dict(**polish, mlp_model=model)))
     return variants
 
 
@@ -133,10 +137,10 @@ def _core(amap, kind, kw, I_b, I_w, I_c, rb, rw, small_table):
     n = len(I_b)
     rho_b, rho_w = np.full(n, rb), np.full(n, rw)
     inv = small_table if kind == "lut-small" else table_inverter(amap)
-    polish = kw.get("polish", 4)
+    polish, tol = kw.get("polish", DEFAULT_POLISH["polish"]), kw.get("polish_tol", DEFAULT_POLISH["polish_tol"])
     sigma = lambda: beer_lambert_sigma_t(I_c, amap.thickness_mm, amap.n, amap.cover_slide_n)  # noqa: E731
     if kind in ("lut", "lut-small"):
-        return lambda: inv.invert(I_b, I_w, sigma(), rho_b, rho_w, polish_iterations=polish)
+        return lambda: inv.invert(I_b, I_w, sigma(), rho_b, rho_w, polish_iterations=polish, step_tol=tol)
     from trimeter.inversion.mlp import mlp_inverter
 
     net = mlp_inverter(amap, kw["mlp_model"])
@@ -144,7 +148,8 @@ def _core(amap, kind, kw, I_b, I_w, I_c, rb, rw, small_table):
     def run():
         s = sigma()
         a0, g0 = net.predict(I_b, I_w, s, rho_b, rho_w)
-        return inv.grid.solve_alpha_g(I_b, I_w, inv.grid.sigma_cell(s), rho_b, rho_w, a0, g0, iterations=polish)
+        return inv.grid.solve_alpha_g(I_b, I_w, inv.grid.sigma_cell(s), rho_b, rho_w, a0, g0, iterations=polish,
+                                      step_tol=tol)
     return run
 
 

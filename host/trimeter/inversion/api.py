@@ -6,6 +6,9 @@ method → flags for g undefined / outside the map / not converged → per-bin s
 first-order propagation of the intensity noise through the forward map's Jacobian. Several
 thicknesses are then combined by inverse-variance weighting (the paper's method pools its samples
 and takes the median, as written) and checked against each other.
+
+For lut and mlp, one thickness's whole flow runs in one C call when the native kernel is built
+(trimeter.inversion.native, `tm_fit`); `_prepare` + the solve + `_finish` below are its reference.
 """
 
 from __future__ import annotations
@@ -100,7 +103,8 @@ def table_inverter(amap):
 # ---------------------------------------------------------------------------------------- the fit
 def fit(maps, I_b, I_w, I_c, rho_b=None, rho_w=None, method: str = "lut", *,
         noise_rel: float = 0.005, noise_abs: float = 2e-4, ic_floor: float = 1e-4,
-        alpha_min_g: float = 0.02, polish: int = 4, samples: int = 250, epsilon: float = 0.01,
+        alpha_min_g: float = 0.02, polish: int = 8, polish_tol: float = 1e-6, samples: int = 250,
+        epsilon: float = 0.01,
         seed: int = 0, mlp_model: str | Path | None = None) -> FitResult:
     """Invert measured intensities (arrays over wavelength bins) to α, σt [1/mm], g.
 
@@ -109,7 +113,8 @@ def fit(maps, I_b, I_w, I_c, rho_b=None, rho_w=None, method: str = "lut", *,
     rho_b, rho_w: per-bin background reflectances (default: each map's reference backgrounds).
     noise_rel, noise_abs: the intensity noise model σ_I = noise_rel·I + noise_abs (for the stds and
     the convergence tolerance); ic_floor: I_c below it bounds σt from below only.
-    polish: Newton iterations after the lut/mlp guess (0 = the raw table/network).
+    polish, polish_tol: at most `polish` Newton iterations after the lut/mlp guess (0 = the raw
+    table/network); a bin stops once a step moved α and g by at most polish_tol.
     samples, epsilon, seed: the paper method's ε-median (samples=0: plain interpolation).
     """
     if method not in METHODS:
@@ -122,6 +127,7 @@ def fit(maps, I_b, I_w, I_c, rho_b=None, rho_w=None, method: str = "lut", *,
     alpha_min_g = require_number("alpha_min_g", alpha_min_g, lo=0.0, hi=1.0)
     epsilon = require_number("epsilon", epsilon, lo=0.0)
     polish, samples = int(require_number("polish", polish, lo=0)), int(require_number("samples", samples, lo=0))
+    polish_tol = require_number("polish_tol", polish_tol, lo=0.0)
     map_list = list(maps) if isinstance(maps, (list, tuple)) else [maps]
     if not map_list:
         raise InputError("maps must name at least one map")
@@ -131,7 +137,8 @@ def fit(maps, I_b, I_w, I_c, rho_b=None, rho_w=None, method: str = "lut", *,
     opts = dict(noise_rel=noise_rel, noise_abs=noise_abs, ic_floor=ic_floor, alpha_min_g=alpha_min_g)
     if method == "paper":
         return _fit_paper(amaps, arrays, samples=samples, epsilon=epsilon, seed=seed, **opts)
-    singles = [_fit_one(amap, *arrays[i], method=method, polish=polish, mlp_model=mlp_model, **opts)
+    singles = [_fit_one(amap, *arrays[i], method=method, polish=polish, polish_tol=polish_tol, mlp_model=mlp_model,
+                        **opts)
                for i, amap in enumerate(amaps)]
     return singles[0] if k == 1 else combine(singles, method)
 
@@ -180,11 +187,59 @@ def _sanitize(x, lo, hi, fill):
     return np.clip(np.where(np.isfinite(x), x, fill), lo, hi)
 
 
-def _fit_one(amap, I_b, I_w, I_c, rho_b, rho_w, *, method, polish, mlp_model, noise_rel, noise_abs,
+def _fit_one(amap, I_b, I_w, I_c, rho_b, rho_w, *, method, polish, polish_tol, mlp_model, noise_rel, noise_abs,
              ic_floor, alpha_min_g) -> FitResult:
+    inverter = table_inverter(amap)
+    grid = inverter.grid
+    alpha0 = g0 = None
+    if method == "mlp":  # the network's guess needs σt and the sanitized inputs first
+        from trimeter.inversion.mlp import mlp_inverter
+
+        p = _prepare(amap, grid, I_b, I_w, I_c, rho_b, rho_w, ic_floor)
+        alpha0, g0 = mlp_inverter(amap, mlp_model).predict(p.ib, p.iw, p.sigma_t, p.rb, p.rw)
+    solver = inverter.native_solver
+    if solver is not None:  # the whole fit in one C call (invert.c tm_fit); the code below is its reference
+        a, b, t_valid = grid.stack_constants
+        out = solver.fit(I_b, I_w, I_c, rho_b, rho_w, noise_rel=noise_rel, noise_abs=noise_abs,
+                         mc_stderr=grid.mc_stderr, ic_floor=ic_floor, alpha_min_g=alpha_min_g,
+                         input_tolerance=_INPUT_TOLERANCE, ref_rho=grid_ref(amap), t_max=_t_max(grid),
+                         t_valid=t_valid * (1 + 1e-12), iterations=polish, step_tol=polish_tol, alpha0=alpha0, g0=g0)
+        out.pop("steps")
+        return FitResult(**out, method=method)
+    if method != "mlp":
+        p = _prepare(amap, grid, I_b, I_w, I_c, rho_b, rho_w, ic_floor)
+    if method == "lut":
+        alpha, g, residual, J = inverter.invert(p.ib, p.iw, p.sigma_t, p.rb, p.rw, polish_iterations=polish,
+                                                step_tol=polish_tol)
+    else:  # mlp
+        alpha, g, residual, J = grid.solve_alpha_g(p.ib, p.iw, grid.sigma_cell(p.sigma_t), p.rb, p.rw, alpha0, g0,
+                                                   iterations=max(polish, 0), step_tol=polish_tol)
+    return _finish(amap, grid, p.flags, p.usable, p.ib, p.iw, p.ic, p.rb, p.rw, alpha, p.sigma_t, g, residual,
+                   p.sigma_beer, method=method, noise_rel=noise_rel, noise_abs=noise_abs, alpha_min_g=alpha_min_g,
+                   J=J)
+
+
+@dataclass
+class _Prepared:
+    """One thickness's bins before the (α, g) solve: flags, the sanitized stand-ins, σt from I_c."""
+    flags: np.ndarray
+    usable: np.ndarray
+    ib: np.ndarray
+    iw: np.ndarray
+    ic: np.ndarray
+    rb: np.ndarray
+    rw: np.ndarray
+    sigma_t: np.ndarray
+    sigma_beer: np.ndarray
+
+
+def _t_max(grid) -> float:
+    return float(grid.collimated(0.0))
+
+
+def _prepare(amap, grid, I_b, I_w, I_c, rho_b, rho_w, ic_floor) -> _Prepared:
     flags = _input_flags(I_b, I_w, I_c, rho_b, rho_w)
     usable = (flags & int(UNUSABLE)) == 0
-    grid = _forward_grid(amap)
     # Unusable bins are computed on harmless stand-ins and blanked at the end: no branch per bin.
     ib = _sanitize(I_b, 0.0, 1.0, 0.0)
     iw = _sanitize(I_w, 0.0, 1.0, 1.0)
@@ -194,31 +249,18 @@ def _fit_one(amap, I_b, I_w, I_c, rho_b, rho_w, *, method, polish, mlp_model, no
 
     below = ic < ic_floor
     flags |= np.where(below & usable, int(FitFlag.IC_BELOW_FLOOR), 0)
-    t_max = float(grid.collimated(0.0))
+    t_max = _t_max(grid)
     # σt from I_c; under the floor, the floor's σt (a lower bound); above T(σt = 0), σt = 0
-    sigma_t = beer_lambert_sigma_t(np.minimum(np.maximum(ic, ic_floor), t_max), amap.thickness_mm,
-                                   amap.n, amap.cover_slide_n)
+    # The grid's sample set-up (the table's, stored as float32), not the map's: with the map's, T(σt = 0)
+    # of the two differed in the last digits and I_c at T(σt = 0) came out as σt = NaN.
+    sample = (grid.thickness_mm, grid.n, grid.cover_slide_n)
+    sigma_t = beer_lambert_sigma_t(np.minimum(np.maximum(ic, ic_floor), t_max), *sample)
     in_range = np.isfinite(I_c) & (I_c >= ic_floor) & (I_c <= t_max)
-    sigma_beer = sigma_t if in_range.all() else np.where(
-        in_range, sigma_t, beer_lambert_sigma_t(I_c, amap.thickness_mm, amap.n, amap.cover_slide_n))
+    sigma_beer = sigma_t if in_range.all() else np.where(in_range, sigma_t, beer_lambert_sigma_t(I_c, *sample))
     s_lo, s_hi = grid.sigma_t_range
     flags |= np.where(usable & ((sigma_t < s_lo * (1 - 1e-6)) | (sigma_t > s_hi * (1 + 1e-6))),
                       int(FitFlag.OUTSIDE_MAP), 0)
-
-    if method == "lut":
-        inverter = table_inverter(amap)
-        alpha, g, residual, J = inverter.invert(ib, iw, sigma_t, rb, rw, polish_iterations=polish)
-    else:  # mlp
-        from trimeter.inversion.mlp import mlp_inverter
-
-        net = mlp_inverter(amap, mlp_model)
-        alpha0, g0 = net.predict(ib, iw, sigma_t, rb, rw)
-        cell = grid.sigma_cell(sigma_t)
-        alpha, g, residual, J = grid.solve_alpha_g(ib, iw, cell, rb, rw, alpha0, g0, iterations=max(polish, 0))
-
-    result = _finish(amap, grid, flags, usable, ib, iw, ic, rb, rw, alpha, sigma_t, g, residual, sigma_beer,
-                     method=method, noise_rel=noise_rel, noise_abs=noise_abs, alpha_min_g=alpha_min_g, J=J)
-    return result
+    return _Prepared(flags, usable, ib, iw, ic, rb, rw, sigma_t, sigma_beer)
 
 
 def grid_ref(amap):

@@ -14,7 +14,7 @@ from functools import cached_property
 
 import numpy as np
 
-from trimeter.forward.collimated import collimated_derivative, collimated_transmittance
+from trimeter.forward.collimated import collimated_derivative, collimated_transmittance, stack_constants
 from trimeter.inversion import native
 
 
@@ -87,6 +87,11 @@ class ForwardGrid:
     def collimated(self, sigma_t):
         return collimated_transmittance(sigma_t, self.thickness_mm, self.n, self.cover_slide_n)
 
+    @property
+    def stack_constants(self) -> tuple[float, float, float]:
+        """(a, b, T(σt = 0)) of I_c = a·x / (1 − b·x²), x = exp(−σt ℓ)."""
+        return stack_constants(self.n, self.cover_slide_n)
+
     def coefficients(self, alpha, cell: SigmaCell, g, with_sigma_derivative=False):
         """A, B, C stacked (3, N) and their derivatives in α and g (and ln σt if asked), each (3, N).
         Component-major layout: every operation below runs on contiguous rows of N."""
@@ -134,16 +139,24 @@ class ForwardGrid:
         """The same solve in C (trimeter.inversion.native), or None when the library is not built."""
         return native.NativeSolver(self) if native.available() else None
 
-    def solve_alpha_g(self, I_b, I_w, cell: SigmaCell, rho_b, rho_w, alpha0, g0, iterations=5):
+    def solve_alpha_g(self, I_b, I_w, cell: SigmaCell, rho_b, rho_w, alpha0, g0, iterations=5, step_tol=0.0):
         """Damped Gauss-Newton for (α, g) with I_b, I_w matched at the bins' own ρ_b, ρ_w. Steps are
-        clamped to the map's box; returns (α, g, residual norm, Jacobian at the solution)."""
+        clamped to the map's box. At most `iterations` steps; a bin stops once a step was at most
+        `step_tol` in both α and g (0: every bin takes all of them). Returns (α, g, residual norm,
+        Jacobian at the solution)."""
         if self.native_solver is not None:
             return self.native_solver.solve(I_b, I_w, cell.log_sigma_t, rho_b, rho_w, max(int(iterations), 0),
-                                            alpha0, g0)
+                                            alpha0, g0, step_tol=step_tol)
         alpha = np.clip(alpha0, *self.alpha_range)
         g = np.clip(g0, *self.g_range)
-        for _ in range(iterations):  # fixed count: a vectorised step over all bins, not a per-bin loop
-            alpha, g, res = self._newton_step(I_b, I_w, cell, rho_b, rho_w, alpha, g)
+        active = np.ones(alpha.shape, dtype=bool)
+        for _ in range(iterations):  # a vectorised step over all bins, not a per-bin loop
+            if not active.any():
+                break
+            new_alpha, new_g, step_a, step_g = self._newton_step(I_b, I_w, cell, rho_b, rho_w, alpha, g)
+            # converged bins keep their value: exactly what the C loop does by dropping them
+            alpha, g = np.where(active, new_alpha, alpha), np.where(active, new_g, g)
+            active &= ~((np.abs(step_a) <= step_tol) & (np.abs(step_g) <= step_tol))
         residual, J = self.residual_and_jacobian(I_b, I_w, cell, rho_b, rho_w, alpha, g)
         return alpha, g, residual, J
 
@@ -185,7 +198,7 @@ class ForwardGrid:
         step_g = np.minimum(np.maximum(step_g, -0.5), 0.5)
         (a_lo, a_hi), (g_lo, g_hi) = self.alpha_range, self.g_range
         return (np.minimum(np.maximum(alpha + step_a, a_lo), a_hi), np.minimum(np.maximum(g + step_g, g_lo), g_hi),
-                np.sqrt(rb * rb + rw * rw))
+                step_a, step_g)
 
     # ------------------------------------------------------------------------------- uncertainty
     def jacobian(self, alpha, sigma_t, g, rho_b, rho_w):

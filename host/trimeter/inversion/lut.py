@@ -37,6 +37,11 @@ class TableInverter:
         self._native = (native.NativeSolver(self.grid, self._cells, np.column_stack([self._ox, self._oy, *self._m]),
                                             self._shape) if native.available() else None)
 
+    @property
+    def native_solver(self):
+        """The table and its forward grid in C (trimeter.inversion.native), or None without the library."""
+        return self._native
+
     def initial_guess(self, I_b, I_w, cell: SigmaCell):
         ns, ny, nx = self._shape
         x = np.sqrt(np.minimum(np.maximum(I_b, 0.0), 1.0))
@@ -55,12 +60,15 @@ class TableInverter:
             out = out + (q[0] + q[1] * fu + (q[2] + q[3] * fu) * fv) * wk
         return out[0], out[1]
 
-    def invert(self, I_b, I_w, sigma_t, rho_b, rho_w, polish_iterations=3):
-        """(α, g, residual, Jacobian at the solution) for bins with σt already known (from I_c)."""
+    def invert(self, I_b, I_w, sigma_t, rho_b, rho_w, polish_iterations=3, step_tol=0.0):
+        """(α, g, residual, Jacobian at the solution) for bins with σt already known (from I_c);
+        polish as in ForwardGrid.solve_alpha_g."""
         if self._native is not None:  # the same guess + polish in C (it clamps ln σt to the grid itself)
             with np.errstate(divide="ignore", invalid="ignore"):
                 log_sigma_t = np.log(sigma_t)
-            return self._native.solve(I_b, I_w, log_sigma_t, rho_b, rho_w, max(polish_iterations, 0))
+            return self._native.solve(I_b, I_w, log_sigma_t, rho_b, rho_w, max(polish_iterations, 0),
+                                      step_tol=step_tol)
         cell = self.grid.sigma_cell(sigma_t)
         alpha, g = self.initial_guess(I_b, I_w, cell)
-        return self.grid.solve_alpha_g(I_b, I_w, cell, rho_b, rho_w, alpha, g, iterations=max(polish_iterations, 0))
+        return self.grid.solve_alpha_g(I_b, I_w, cell, rho_b, rho_w, alpha, g, iterations=max(polish_iterations, 0),
+                                       step_tol=step_tol)

@@ -4,7 +4,8 @@
 libtrimeter_invert.so here. Without it — no C compiler, a plain `pip install`, or
 TRIMETER_NATIVE=0 in the environment — every caller falls back to the numpy kernel
 (trimeter.inversion.kernel), which is the reference the C code is tested against; results agree to
-~1e-12, only the speed differs. `status()` says which one runs (the benchmark prints it).
+~1e-9 (flags bit for bit), only the speed differs. `status()` says which one runs (the benchmark
+prints it).
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 LIBRARY = Path(__file__).with_name("libtrimeter_invert.so")
-ABI_VERSION = 1
+ABI_VERSION = 2
 
 _double_p = ctypes.POINTER(ctypes.c_double)
 
@@ -27,12 +28,29 @@ class _ForwardGridC(ctypes.Structure):
                 ("inv_da", _double_p), ("inv_ds", _double_p), ("inv_dg", _double_p),
                 ("poly", _double_p),
                 ("alpha_lo", ctypes.c_double), ("alpha_hi", ctypes.c_double),
-                ("g_lo", ctypes.c_double), ("g_hi", ctypes.c_double)]
+                ("g_lo", ctypes.c_double), ("g_hi", ctypes.c_double),
+                ("thickness_mm", ctypes.c_double), ("stack_a", ctypes.c_double), ("stack_b", ctypes.c_double)]
 
 
 class _InverseTableC(ctypes.Structure):
     _fields_ = [("ns", ctypes.c_int32), ("ny", ctypes.c_int32), ("nx", ctypes.c_int32),
                 ("cells", _double_p), ("frame", _double_p)]
+
+
+class _FitOptionsC(ctypes.Structure):
+    _fields_ = [(name, ctypes.c_double) for name in (
+        "noise_rel", "noise_abs", "mc_stderr", "ic_floor", "alpha_min_g", "input_tolerance", "ref_rho_b",
+        "ref_rho_w", "t_max", "t_valid", "step_tol")] + [("iterations", ctypes.c_int32)]
+
+
+class _FitOutputsC(ctypes.Structure):
+    _fields_ = [(name, ctypes.c_void_p) for name in (
+        "alpha", "sigma_t", "g", "alpha_std", "sigma_t_std", "g_std", "sigma_t_beer", "flags")]
+
+
+# tm_flag_bits order; the library is refused if its bits differ from FitFlag's
+_FLAG_ORDER = ("NONFINITE_INPUT", "NEGATIVE_INPUT", "ABOVE_ONE", "BLACK_NOT_BELOW_WHITE", "IC_BELOW_FLOOR",
+               "G_UNDEFINED", "OUTSIDE_MAP", "NOT_CONVERGED", "BAD_BACKGROUND")
 
 
 def _load():
@@ -49,9 +67,19 @@ def _load():
     size_t, vp = ctypes.c_size_t, ctypes.c_void_p  # arrays go in as raw addresses (see _addr)
     lib.tm_solve_alpha_g.restype = ctypes.c_int
     lib.tm_solve_alpha_g.argtypes = [ctypes.POINTER(_ForwardGridC), ctypes.POINTER(_InverseTableC), size_t,
-                                     vp, vp, vp, vp, vp, ctypes.c_int, vp, vp, vp, vp]
+                                     vp, vp, vp, vp, vp, ctypes.c_int, ctypes.c_double, vp, vp, vp, vp]
     lib.tm_propagate.restype = None
     lib.tm_propagate.argtypes = [size_t, vp, vp, vp, vp, vp]
+    lib.tm_fit.restype = ctypes.c_longlong
+    lib.tm_fit.argtypes = [ctypes.POINTER(_ForwardGridC), ctypes.POINTER(_InverseTableC),
+                           ctypes.POINTER(_FitOptionsC), size_t, vp, vp, vp, vp, vp, vp, vp,
+                           ctypes.POINTER(_FitOutputsC)]
+    from trimeter.inversion.flags import FitFlag
+
+    bits = (ctypes.c_int64 * len(_FLAG_ORDER))()
+    lib.tm_flag_bits(bits)
+    if list(bits) != [int(FitFlag[name]) for name in _FLAG_ORDER]:
+        return None, f"{LIBRARY.name} declares other flag bits than trimeter.inversion.flags (run `make native`)"
     return lib, f"compiled ({LIBRARY.name})"
 
 
@@ -94,7 +122,7 @@ class NativeSolver:
         na, ns, ng = grid.shape
         self._grid = _ForwardGridC(na, ns, ng, *(_ptr(keep[k]) for k in ("alpha", "log_sigma_t", "g", "inv_da",
                                                                            "inv_ds", "inv_dg", "poly")),
-                                   *grid.alpha_range, *grid.g_range)
+                                   *grid.alpha_range, *grid.g_range, grid.thickness_mm, *grid.stack_constants[:2])
         self._table = None
         if inverse_cells is not None:
             keep["cells"] = np.ascontiguousarray(inverse_cells, dtype=np.float64)
@@ -105,7 +133,7 @@ class NativeSolver:
         self._grid_ref = ctypes.byref(self._grid)
         self._table_ref = ctypes.byref(self._table) if self._table is not None else None
 
-    def solve(self, I_b, I_w, log_sigma_t, rho_b, rho_w, iterations, alpha0=None, g0=None):
+    def solve(self, I_b, I_w, log_sigma_t, rho_b, rho_w, iterations, alpha0=None, g0=None, step_tol=0.0):
         """(α, g, residual, J (n, 3, 3)) as ForwardGrid.solve_alpha_g returns them. ln σt is clamped to
         the grid in C (NaN → lowest node). Initial guess from the inverse table, or alpha0/g0 when
         given (then the table is not used)."""
@@ -119,14 +147,39 @@ class NativeSolver:
         residual = np.empty(n)
         J = np.empty((n, 3, 3))
         rc = _LIB.tm_solve_alpha_g(self._grid_ref, self._table_ref if use_table else None, n,
-                                   *(_addr(a) for a in args), int(iterations), _addr(alpha), _addr(g),
-                                   _addr(residual), _addr(J))
-        if rc != 0:
-            raise ValueError("native kernel refused the grid (fewer than 2 nodes on an axis, or table/grid mismatch)")
-        # Row I_c depends on σt alone (the analytic Fresnel stack): filled here, at the clamped σt.
-        with np.errstate(over="ignore"):
-            J[:, 2, 1] = self._forward.collimated_derivative(self._forward.clamp_sigma_t(np.exp(args[2])))
+                                   *(_addr(a) for a in args), int(iterations), float(step_tol), _addr(alpha),
+                                   _addr(g), _addr(residual), _addr(J))
+        _check(rc)
         return alpha, g, residual, J
+
+    def fit(self, I_b, I_w, I_c, rho_b, rho_w, *, noise_rel, noise_abs, mc_stderr, ic_floor, alpha_min_g,
+            input_tolerance, ref_rho, t_max, t_valid, iterations, step_tol, alpha0=None, g0=None):
+        """One thickness's whole fit in one call (invert.c `tm_fit`, api._fit_one's reference path
+        operation for operation): a dict of the FitResult columns and `steps`, the Newton steps taken."""
+        n = len(I_b)
+        args = [_f64(v, n) for v in (I_b, I_w, I_c, rho_b, rho_w)]
+        guess = [None, None] if alpha0 is None else [_f64(alpha0, n), _f64(g0, n)]
+        if alpha0 is None and self._table is None:
+            raise ValueError("this solver has no inverse table: pass alpha0 and g0")
+        out = {name: np.empty(n) for name in ("alpha", "sigma_t", "g", "alpha_std", "sigma_t_std", "g_std",
+                                              "sigma_t_beer")}
+        out["flags"] = np.empty(n, dtype=np.int64)
+        options = _FitOptionsC(noise_rel, noise_abs, mc_stderr, ic_floor, alpha_min_g, input_tolerance, *ref_rho,
+                               t_max, t_valid, step_tol, iterations)
+        outputs = _FitOutputsC(*(_addr(out[name]) for name, _ in _FitOutputsC._fields_))
+        steps = _LIB.tm_fit(self._grid_ref, self._table_ref if alpha0 is None else None, ctypes.byref(options), n,
+                            *(_addr(a) for a in args), *(None if v is None else _addr(v) for v in guess),
+                            ctypes.byref(outputs))
+        _check(steps)
+        out["steps"] = int(steps)
+        return out
+
+
+def _check(rc: int) -> None:
+    if rc == -2:
+        raise MemoryError("native kernel: out of memory for its scratch arrays")
+    if rc < 0:
+        raise ValueError("native kernel refused the grid (fewer than 2 nodes on an axis, or table/grid mismatch)")
 
 
 def propagate(J: np.ndarray, sigma_I: np.ndarray):

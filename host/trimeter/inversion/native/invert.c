@@ -1,13 +1,15 @@
-/* The inversion hot path in C: the map table's initial guess, the damped Gauss-Newton polish of
- * (α, g) at a known σt on the trilinear forward map, the Jacobian at the solution and the
- * first-order uncertainty. One pass per bin, everything in registers.
+/* The inversion hot path in C: a whole single-thickness fit (tm_fit: input flags, σt from I_c, the
+ * map table's initial guess or a given one, the damped Gauss-Newton polish of (α, g) at that σt on
+ * the trilinear forward map, stopping each bin once converged, the Jacobian at the solution, the
+ * first-order uncertainty and the validity flags), and its parts for the numpy-side callers
+ * (tm_solve_alpha_g, tm_propagate). One pass per bin, everything in registers.
  *
- * Why C: the numpy kernel (trimeter.inversion.kernel / lut) spends its time in ~100 array
+ * Why C: the numpy kernel (trimeter.inversion.kernel / lut / api) spends its time in ~100 array
  * operations per Newton step, each a few µs of interpreter and allocation overhead at ~1000 bins;
  * the arithmetic itself is ~200 flops per bin and step. This file is the same algorithm, operation
- * for operation, so the numpy kernel stays the reference: tests/inversion/test_native_kernel.py
- * checks that both agree to ~1e-12. Loaded with ctypes (trimeter.inversion.native); no Python API,
- * no dependency beyond libm. Build: `make native` (cc -O2 -shared -fPIC).
+ * for operation, so the numpy code stays the reference: tests/inversion/test_native_kernel.py
+ * checks that both agree to ~1e-9, flags bit for bit. Loaded with ctypes (trimeter.inversion.native);
+ * no Python API, no dependency beyond libm. Build: `make native` (cc -O2 -shared -fPIC).
  *
  * Data layouts are those of the numpy kernel (C order, float64):
  *   poly  [(na-1)(ns-1)(ng-1)][8 terms][3 coefs]  trilinear polynomial per forward cell, terms
@@ -18,8 +20,9 @@
 #include <math.h>
 #include <stddef.h>
 #include <stdint.h>
+#include <stdlib.h>
 
-#define TM_ABI_VERSION 1
+#define TM_ABI_VERSION 2
 
 typedef struct {
     int32_t na, ns, ng;
@@ -27,6 +30,8 @@ typedef struct {
     const double *inv_da, *inv_ds, *inv_dg; /* 1 / axis spacing, per interval */
     const double *poly;
     double alpha_lo, alpha_hi, g_lo, g_hi;
+    /* I_c = a·x / (1 − b·x²), x = exp(−σt ℓ) (trimeter.forward.collimated.stack_constants) */
+    double thickness_mm, stack_a, stack_b;
 } tm_forward_grid;
 
 typedef struct {
@@ -119,9 +124,10 @@ static void initial_guess(const tm_inverse_table *t, int is, double ws, double I
     *g = out_g;
 }
 
-/* One Levenberg-Marquardt step on the 2×2 normal equations (ForwardGrid._newton_step). */
-static void newton_step(const tm_forward_grid *f, int is, double ws, double I_b, double I_w, double rho_b,
-                        double rho_w, double *alpha, double *g) {
+/* One Levenberg-Marquardt step on the 2×2 normal equations (ForwardGrid._newton_step). Returns 1
+ * when the step just taken was at most step_tol in both α and g (the bin has converged). */
+static int newton_step(const tm_forward_grid *f, int is, double ws, double I_b, double I_w, double rho_b,
+                       double rho_w, double step_tol, double *alpha, double *g) {
     abc_t c;
     coefficients(f, is, ws, *alpha, *g, 0, &c);
     double fb, hb, fw, hw;
@@ -142,80 +148,283 @@ static void newton_step(const tm_forward_grid *f, int is, double ws, double I_b,
     step_g = clampd(step_g, -0.5, 0.5);
     *alpha = clampd(*alpha + step_a, f->alpha_lo, f->alpha_hi);
     *g = clampd(*g + step_g, f->g_lo, f->g_hi);
+    return fabs(step_a) <= step_tol && fabs(step_g) <= step_tol;
 }
 
-/* For each bin (σt given as ln σt, clamped to the grid here): the initial (α, g) from `table` (or from alpha/g on entry when table is NULL),
- * `iterations` Newton steps, then the residual |(I_b, I_w) − model| and the rows I_b, I_w of
- * ∂(I_b, I_w, I_c)/∂(α, σt, g) at the solution (J: n × 3 × 3; row I_c is left to the caller,
- * it depends on σt alone). Returns 0, or -1 on a malformed grid. */
+/* Where a bin's ln σt sits on the grid; fixed while its (α, g) are solved. */
+typedef struct {
+    int32_t is;
+    double ws;
+    double sigma_t; /* σt clamped to the grid, as ForwardGrid.clamp_sigma_t (≈ exp of sigma_cell's ln σt) */
+} sigma_cell_t;
+
+/* σt from ln σt, or directly when the caller has it (sigma_t > 0 and finite): one exp/log less per bin. */
+static inline sigma_cell_t sigma_cell(const tm_forward_grid *f, double log_sigma_t, double sigma_t) {
+    sigma_cell_t c;
+    double ls = clamp_log_sigma(f, log_sigma_t);
+    c.is = find_cell(f->log_sigma_t, f->inv_ds, f->ns, ls, &c.ws);
+    c.sigma_t = ls != log_sigma_t || !(sigma_t > 0.0 && isfinite(sigma_t)) ? exp(ls) : sigma_t;
+    return c;
+}
+
+/* ∂I_c/∂σt at the clamped σt (ForwardGrid.collimated_derivative ∘ clamp_sigma_t). */
+static inline double collimated_derivative(const tm_forward_grid *f, double sigma_t) {
+    double x = exp(-sigma_t * f->thickness_mm), bx2 = f->stack_b * x * x;
+    return -f->thickness_mm * f->stack_a * x * (1.0 + bx2) / ((1.0 - bx2) * (1.0 - bx2));
+}
+
+/* Up to `iterations` Newton steps per bin; a bin leaves once a step was at most step_tol in α and
+ * g (step_tol = 0: a fixed count). The loop over bins is innermost: a bin's steps form one long
+ * dependency chain (divisions, table reads) while consecutive bins are independent, so the CPU
+ * overlaps them (~2× faster here than bin by bin). `active` is scratch for n indices; returns the
+ * number of steps taken over all bins. */
+static size_t polish(const tm_forward_grid *f, size_t n, const sigma_cell_t *cells, const double *I_b,
+                     const double *I_w, const double *rho_b, const double *rho_w, int iterations,
+                     double step_tol, double *alpha, double *g, uint32_t *active) {
+    size_t m = n, steps = 0;
+    for (size_t i = 0; i < n; i++) active[i] = (uint32_t)i;
+    for (int it = 0; it < iterations && m > 0; it++) {
+        size_t kept = 0;
+        steps += m;
+        for (size_t j = 0; j < m; j++) {
+            uint32_t i = active[j];
+            int done = newton_step(f, cells[i].is, cells[i].ws, I_b[i], I_w[i], rho_b[i], rho_w[i], step_tol,
+                                   &alpha[i], &g[i]);
+            active[kept] = i;
+            kept += !done;
+        }
+        m = kept;
+    }
+    return steps;
+}
+
+/* |(I_b, I_w) − model| at (α, g) and the bin's ∂(I_b, I_w, I_c)/∂(α, σt, g) (Ji: 3 × 3, row I_c has
+ * only ∂/∂σt) from one evaluation (ForwardGrid.residual_and_jacobian). */
+static double residual_and_jacobian(const tm_forward_grid *f, sigma_cell_t c, double alpha, double g,
+                                    double I_b, double I_w, double rho_b, double rho_w, double *Ji) {
+    abc_t abc;
+    coefficients(f, c.is, c.ws, alpha, g, 1, &abc);
+    double s = c.sigma_t, res2 = 0.0;
+    for (int row = 0; row < 2; row++) {
+        double fr, hr;
+        double d = diffuse(abc.v, row ? rho_w : rho_b, &fr, &hr) - (row ? I_w : I_b);
+        res2 += d * d;
+        Ji[row * 3 + 0] = directional(fr, hr, abc.da);
+        Ji[row * 3 + 1] = directional(fr, hr, abc.ds) / s;
+        Ji[row * 3 + 2] = directional(fr, hr, abc.dg);
+    }
+    Ji[6] = Ji[8] = 0.0;
+    Ji[7] = collimated_derivative(f, c.sigma_t);
+    return sqrt(res2);
+}
+
+/* First-order standard deviations of (α, σt, g) from independent intensity noise s (3) through one
+ * bin's J, using its block structure (ForwardGrid.propagate). Infinite where the (α, g) block is
+ * singular. */
+static inline void propagate_one(const double *Ji, const double *s, double *std_a, double *std_s, double *std_g) {
+    double var_s = (s[2] / Ji[7]) * (s[2] / Ji[7]);
+    double a = Ji[0], b = Ji[2], c = Ji[3], d = Ji[5];
+    double det = a * d - b * c;
+    /* inv = [[d, -b], [-c, a]] / det */
+    double i00 = d / det, i01 = -b / det, i10 = -c / det, i11 = a / det;
+    double c00 = s[0] * s[0] + Ji[1] * Ji[1] * var_s;
+    double c11 = s[1] * s[1] + Ji[4] * Ji[4] * var_s;
+    double c01 = Ji[1] * Ji[4] * var_s;
+    double va = i00 * (i00 * c00 + i01 * c01) + i01 * (i00 * c01 + i01 * c11);
+    double vg = i10 * (i10 * c00 + i11 * c01) + i11 * (i10 * c01 + i11 * c11);
+    double sa = sqrt(fabs(va)), sg = sqrt(fabs(vg));
+    *std_a = isnan(sa) ? INFINITY : sa;
+    *std_g = isnan(sg) ? INFINITY : sg;
+    *std_s = sqrt(var_s);
+}
+
+static int grid_ok(const tm_forward_grid *f, const tm_inverse_table *table) {
+    if (!f || f->na < 2 || f->ns < 2 || f->ng < 2) return 0;
+    return !table || (table->ns == f->ns && table->nx >= 2 && table->ny >= 2);
+}
+
+/* For each bin (σt given as ln σt, clamped to the grid here): the initial (α, g) from `table` (or
+ * from alpha/g on entry when table is NULL), up to `iterations` Newton steps (see polish), then the
+ * residual |(I_b, I_w) − model| and ∂(I_b, I_w, I_c)/∂(α, σt, g) at the solution (J: n × 3 × 3).
+ * Returns 0, -1 on a malformed grid, -2 when out of memory. */
 int tm_solve_alpha_g(const tm_forward_grid *f, const tm_inverse_table *table, size_t n, const double *I_b,
                      const double *I_w, const double *log_sigma_t, const double *rho_b, const double *rho_w,
-                     int iterations, double *alpha, double *g, double *residual, double *J) {
-    if (!f || f->na < 2 || f->ns < 2 || f->ng < 2) return -1;
-    if (table && (table->ns != f->ns || table->nx < 2 || table->ny < 2)) return -1;
-    /* Three passes over the bins rather than one bin at a time: a bin's Newton steps form one long
-     * dependency chain (divisions, table reads), while consecutive bins are independent, so the
-     * CPU overlaps them when the loop over bins is innermost (~2× faster here). alpha/g hold the
-     * iterate; the σt cell is recomputed per pass (a few ns) instead of stored. */
+                     int iterations, double step_tol, double *alpha, double *g, double *residual, double *J) {
+    if (!grid_ok(f, table)) return -1;
+    sigma_cell_t *cells = calloc(n ? n : 1, sizeof *cells); /* calloc: gcc cannot see that n = 0 reads none */
+    uint32_t *active = malloc((n ? n : 1) * sizeof *active);
+    if (!cells || !active || n > UINT32_MAX) {
+        free(cells);
+        free(active);
+        return -2;
+    }
     for (size_t i = 0; i < n; i++) {
-        double ws;
-        int is = find_cell(f->log_sigma_t, f->inv_ds, f->ns, clamp_log_sigma(f, log_sigma_t[i]), &ws);
+        cells[i] = sigma_cell(f, log_sigma_t[i], NAN);
         double a = alpha[i], gg = g[i];
-        if (table) initial_guess(table, is, ws, I_b[i], I_w[i], &a, &gg);
+        if (table) initial_guess(table, cells[i].is, cells[i].ws, I_b[i], I_w[i], &a, &gg);
         alpha[i] = clampd(a, f->alpha_lo, f->alpha_hi);
         g[i] = clampd(gg, f->g_lo, f->g_hi);
     }
-    for (int it = 0; it < iterations; it++) {
-        for (size_t i = 0; i < n; i++) {
-            double ws;
-            int is = find_cell(f->log_sigma_t, f->inv_ds, f->ns, clamp_log_sigma(f, log_sigma_t[i]), &ws);
-            newton_step(f, is, ws, I_b[i], I_w[i], rho_b[i], rho_w[i], &alpha[i], &g[i]);
-        }
-    }
-    for (size_t i = 0; i < n; i++) {
-        double ws;
-        double ls = clamp_log_sigma(f, log_sigma_t[i]);
-        int is = find_cell(f->log_sigma_t, f->inv_ds, f->ns, ls, &ws);
-        abc_t c;
-        coefficients(f, is, ws, alpha[i], g[i], 1, &c);
-        double s = exp(ls);
-        double res2 = 0.0;
-        double *Ji = J + i * 9u;
-        for (int row = 0; row < 2; row++) {
-            double fr, hr;
-            double I = diffuse(c.v, row ? rho_w[i] : rho_b[i], &fr, &hr);
-            double d = I - (row ? I_w[i] : I_b[i]);
-            res2 += d * d;
-            Ji[row * 3 + 0] = directional(fr, hr, c.da);
-            Ji[row * 3 + 1] = directional(fr, hr, c.ds) / s;
-            Ji[row * 3 + 2] = directional(fr, hr, c.dg);
-        }
-        Ji[6] = Ji[7] = Ji[8] = 0.0;
-        residual[i] = sqrt(res2);
-    }
+    polish(f, n, cells, I_b, I_w, rho_b, rho_w, iterations, step_tol, alpha, g, active);
+    for (size_t i = 0; i < n; i++)
+        residual[i] = residual_and_jacobian(f, cells[i], alpha[i], g[i], I_b[i], I_w[i], rho_b[i], rho_w[i], J + i * 9u);
+    free(cells);
+    free(active);
     return 0;
 }
 
-/* First-order standard deviations of (α, σt, g) from independent intensity noise sigma_I (n × 3),
- * using the block structure of J (row I_c has only ∂/∂σt) — ForwardGrid.propagate. Infinite where
- * the 2×2 block is singular. */
+/* First-order standard deviations for n bins (ForwardGrid.propagate); sigma_I is n × 3. */
 void tm_propagate(size_t n, const double *J, const double *sigma_I, double *std_a, double *std_s, double *std_g) {
-    for (size_t i = 0; i < n; i++) {
-        const double *Ji = J + i * 9u;
-        const double *s = sigma_I + i * 3u;
-        double var_s = (s[2] / Ji[7]) * (s[2] / Ji[7]);
-        double a = Ji[0], b = Ji[2], c = Ji[3], d = Ji[5];
-        double det = a * d - b * c;
-        /* inv = [[d, -b], [-c, a]] / det */
-        double i00 = d / det, i01 = -b / det, i10 = -c / det, i11 = a / det;
-        double c00 = s[0] * s[0] + Ji[1] * Ji[1] * var_s;
-        double c11 = s[1] * s[1] + Ji[4] * Ji[4] * var_s;
-        double c01 = Ji[1] * Ji[4] * var_s;
-        double va = i00 * (i00 * c00 + i01 * c01) + i01 * (i00 * c01 + i01 * c11);
-        double vg = i10 * (i10 * c00 + i11 * c01) + i11 * (i10 * c01 + i11 * c11);
-        double sa = sqrt(fabs(va)), sg = sqrt(fabs(vg));
-        std_a[i] = isnan(sa) ? INFINITY : sa;
-        std_g[i] = isnan(sg) ? INFINITY : sg;
-        std_s[i] = sqrt(var_s);
+    for (size_t i = 0; i < n; i++) propagate_one(J + i * 9u, sigma_I + i * 3u, &std_a[i], &std_s[i], &std_g[i]);
+}
+
+/* ------------------------------------------------------------------------------ the whole fit
+ * trimeter.inversion.api._fit_one + _finish for one thickness, bin by bin: input flags → σt from
+ * I_c (exact inverse of the Fresnel stack; the floor's σt, a lower bound, under ic_floor) → (α, g)
+ * by guess + polish → flags for not converged / outside the map / g undefined → first-order stds →
+ * NaN for unusable bins. The numpy path in api.py is the reference (same operations, same order);
+ * tests/inversion/test_native_kernel.py checks both bin for bin, flags included. */
+
+/* FitFlag bits (trimeter.inversion.flags). tm_flag_bits hands them to Python, which refuses the
+ * library if they differ from FitFlag, so the two declarations cannot drift apart silently. */
+enum {
+    FLAG_NONFINITE_INPUT = 1 << 0,
+    FLAG_NEGATIVE_INPUT = 1 << 1,
+    FLAG_ABOVE_ONE = 1 << 2,
+    FLAG_BLACK_NOT_BELOW_WHITE = 1 << 3,
+    FLAG_IC_BELOW_FLOOR = 1 << 4,
+    FLAG_G_UNDEFINED = 1 << 5,
+    FLAG_OUTSIDE_MAP = 1 << 6,
+    FLAG_NOT_CONVERGED = 1 << 7,
+    FLAG_BAD_BACKGROUND = 1 << 9,
+    FLAG_UNUSABLE = FLAG_NONFINITE_INPUT | FLAG_NEGATIVE_INPUT | FLAG_ABOVE_ONE | FLAG_BAD_BACKGROUND,
+};
+
+void tm_flag_bits(int64_t out[9]) {
+    const int64_t bits[9] = {FLAG_NONFINITE_INPUT, FLAG_NEGATIVE_INPUT, FLAG_ABOVE_ONE, FLAG_BLACK_NOT_BELOW_WHITE,
+                             FLAG_IC_BELOW_FLOOR, FLAG_G_UNDEFINED, FLAG_OUTSIDE_MAP, FLAG_NOT_CONVERGED,
+                             FLAG_BAD_BACKGROUND};
+    for (int k = 0; k < 9; k++) out[k] = bits[k];
+}
+
+typedef struct {
+    double noise_rel, noise_abs; /* intensity noise σ_I = noise_rel·I + noise_abs */
+    double mc_stderr;            /* the map's MC std-error, added to σ_I of I_b and I_w in quadrature */
+    double ic_floor, alpha_min_g;
+    double input_tolerance;      /* intensities this far outside [0, 1] are still taken as noise */
+    double ref_rho_b, ref_rho_w; /* stand-in backgrounds for unusable bins */
+    double t_max;                /* I_c at σt = 0 */
+    double t_valid;              /* the Beer-Lambert inverse is defined for 0 < I_c ≤ t_valid */
+    double step_tol;
+    int32_t iterations;
+} tm_fit_options;
+
+typedef struct {
+    double *alpha, *sigma_t, *g, *alpha_std, *sigma_t_std, *g_std, *sigma_t_beer;
+    int64_t *flags;
+} tm_fit_outputs;
+
+/* beer_lambert_sigma_t: solve b·I·x² + a·x − I = 0 for x = exp(−σt ℓ) (the stable root); NaN where
+ * I_c is not in (0, t_valid]. */
+static inline double beer_lambert(const tm_forward_grid *f, const tm_fit_options *o, double I_c) {
+    if (!(isfinite(I_c) && I_c > 0.0 && I_c <= o->t_valid)) return NAN;
+    double a = f->stack_a;
+    double x = 2.0 * I_c / (a + sqrt(a * a + 4.0 * f->stack_b * I_c * I_c));
+    double sigma = -log(x) / f->thickness_mm;
+    return sigma > 0.0 ? sigma : 0.0;
+}
+
+static inline double sanitize(double x, double fill) { return isfinite(x) ? clampd(x, 0.0, 1.0) : fill; }
+
+/* Returns the number of Newton steps taken (≥ 0), -1 on a malformed grid, -2 when out of memory.
+ * alpha0/g0: the initial guess (the MLP's), or NULL to take it from `table`. */
+long long tm_fit(const tm_forward_grid *f, const tm_inverse_table *table, const tm_fit_options *o, size_t n,
+                 const double *I_b, const double *I_w, const double *I_c, const double *rho_b, const double *rho_w,
+                 const double *alpha0, const double *g0, const tm_fit_outputs *out) {
+    if (!grid_ok(f, table) || (!table && (!alpha0 || !g0))) return -1;
+    /* scratch: the sanitized inputs and σt cell per bin, and the polish's index list */
+    double *ib = malloc((n ? n : 1) * 4 * sizeof(double));
+    sigma_cell_t *cells = calloc(n ? n : 1, sizeof *cells); /* calloc: gcc cannot see that n = 0 reads none */
+    uint32_t *active = malloc((n ? n : 1) * sizeof *active);
+    if (!ib || !cells || !active || n > UINT32_MAX) {
+        free(ib);
+        free(cells);
+        free(active);
+        return -2;
     }
+    double *iw = ib + n, *rb = ib + 2 * n, *rw = ib + 3 * n;
+    double *alpha = out->alpha, *g = out->g, *sigma_t = out->sigma_t;
+    const double tol = o->input_tolerance;
+    const double s_lo = exp(f->log_sigma_t[0]) * (1 - 1e-6), s_hi = exp(f->log_sigma_t[f->ns - 1]) * (1 + 1e-6);
+    for (size_t i = 0; i < n; i++) {
+        double Ib = I_b[i], Iw = I_w[i], Ic = I_c[i], Rb = rho_b[i], Rw = rho_w[i];
+        int64_t fl = 0;
+        int finite = isfinite(Ib) && isfinite(Iw) && isfinite(Ic) && isfinite(Rb) && isfinite(Rw);
+        if (!finite) fl |= FLAG_NONFINITE_INPUT;
+        if (Ib < -tol || Iw < -tol || Ic < -tol) fl |= FLAG_NEGATIVE_INPUT;
+        if (Ib > 1 + tol || Iw > 1 + tol || Ic > 1 + tol) fl |= FLAG_ABOVE_ONE;
+        if (finite && !(Rb >= 0 && Rb < Rw && Rw <= 1)) fl |= FLAG_BAD_BACKGROUND;
+        if (finite && Ib >= Iw) fl |= FLAG_BLACK_NOT_BELOW_WHITE;
+        int usable = !(fl & FLAG_UNUSABLE);
+        /* unusable bins are computed on harmless stand-ins and blanked at the end */
+        ib[i] = sanitize(Ib, 0.0);
+        iw[i] = sanitize(Iw, 1.0);
+        double ic = sanitize(Ic, 1.0);
+        rb[i] = usable ? Rb : o->ref_rho_b;
+        rw[i] = usable ? Rw : o->ref_rho_w;
+        if (usable && ic < o->ic_floor) fl |= FLAG_IC_BELOW_FLOOR;
+        /* σt from I_c; under the floor the floor's σt (a lower bound); above T(σt = 0), σt = 0 */
+        double s = beer_lambert(f, o, fmin(fmax(ic, o->ic_floor), o->t_max));
+        int in_range = isfinite(Ic) && Ic >= o->ic_floor && Ic <= o->t_max;
+        out->sigma_t_beer[i] = in_range ? s : beer_lambert(f, o, Ic);
+        if (usable && (s < s_lo || s > s_hi)) fl |= FLAG_OUTSIDE_MAP;
+        sigma_t[i] = s;
+        cells[i] = sigma_cell(f, log(s), s);
+        double a = alpha0 ? alpha0[i] : 0.0, gg = g0 ? g0[i] : 0.0;
+        if (!alpha0) initial_guess(table, cells[i].is, cells[i].ws, ib[i], iw[i], &a, &gg);
+        alpha[i] = clampd(a, f->alpha_lo, f->alpha_hi);
+        g[i] = clampd(gg, f->g_lo, f->g_hi);
+        out->flags[i] = fl;
+    }
+    size_t steps = polish(f, n, cells, ib, iw, rb, rw, o->iterations, o->step_tol, alpha, g, active);
+    const int g_lo_is_edge = f->g_lo > -1 + 1e-6, g_hi_is_edge = f->g_hi < 1 - 1e-6;
+    for (size_t i = 0; i < n; i++) {
+        double Ji[9];
+        int64_t fl = out->flags[i];
+        int usable = !(fl & FLAG_UNUSABLE);
+        double residual = residual_and_jacobian(f, cells[i], alpha[i], g[i], ib[i], iw[i], rb[i], rw[i], Ji);
+        double ic = sanitize(I_c[i], 1.0);
+        /* sqrt(x² + y²), not hypot: these are small positive numbers (nothing to guard), hypot is slower */
+        const double mc2 = o->mc_stderr * o->mc_stderr;
+        double sb = o->noise_rel * ib[i] + o->noise_abs, sw = o->noise_rel * iw[i] + o->noise_abs;
+        double sI[3] = {sqrt(sb * sb + mc2), sqrt(sw * sw + mc2), o->noise_rel * ic + o->noise_abs};
+        double tolerance = 3.0 * sqrt(sI[0] * sI[0] + sI[1] * sI[1]) + 1e-4;
+        int not_conv = !(residual <= tolerance);
+        int at_edge = (g[i] <= f->g_lo + 1e-9 && g_lo_is_edge) || (g[i] >= f->g_hi - 1e-9 && g_hi_is_edge);
+        if (usable && not_conv) fl |= FLAG_NOT_CONVERGED;
+        if (usable && not_conv && at_edge) fl |= FLAG_OUTSIDE_MAP;
+        double a = isfinite(alpha[i]) ? clampd(alpha[i], 0.0, 1.0) : NAN;
+        double gg = isfinite(g[i]) ? clampd(g[i], -1.0, 1.0) : NAN;
+        double sa, ss, sg;
+        propagate_one(Ji, sI, &sa, &ss, &sg);
+        if (fl & FLAG_IC_BELOW_FLOOR) ss = INFINITY;
+        if (usable && !(a >= o->alpha_min_g)) {
+            fl |= FLAG_G_UNDEFINED;
+            gg = sg = NAN;
+        }
+        if (!usable) {
+            a = gg = sa = ss = sg = NAN;
+            sigma_t[i] = out->sigma_t_beer[i] = NAN;
+        }
+        alpha[i] = a;
+        g[i] = gg;
+        out->alpha_std[i] = sa;
+        out->sigma_t_std[i] = ss;
+        out->g_std[i] = sg;
+        out->flags[i] = fl;
+    }
+    free(ib);
+    free(cells);
+    free(active);
+    return (long long)steps;
 }
