@@ -24,3 +24,24 @@ def test_bench_fit_reports_figures_and_plot(tmp_path, capsys):
     clean = {r["variant"]: r for r in rows if r["noise"] == 0}
     assert clean["lut p≤8"]["nan_rate"] == 0 and clean["lut p≤8"]["alpha_p95"] < 0.05
     assert (out / "pareto-ideal-l0.5.png").stat().st_size > 10_000
+
+
+def test_per_wavelength_backgrounds_case_scores_the_fit_at_the_bins_own_backgrounds():
+    """The opt-in ρ(λ) case (its paper row takes minutes, so only lut runs here): intensities at the
+    bins' own backgrounds, fitted with them, score like the reference-background case."""
+    import numpy as np
+
+    from trimeter.bench.fit import DEFAULT_POLISH, _bench_backgrounds, error_budget, heldout_for
+    from trimeter.maps.appearance import AppearanceMap
+
+    amap = AppearanceMap.load(DATA / "ideal-l0.5.tmap")
+    _, _, h = heldout_for(amap)
+    h = {k: v[:40] for k, v in h.items()}
+    rb, rw = float(amap.recipe["reference_rho_b"]), float(amap.recipe["reference_rho_w"])
+    budget = error_budget(amap, h, rb, rw)
+    budget["rho"] = (rb, rw)
+    rows = _bench_backgrounds(amap, h, budget, [("lut p≤8", "lut", DEFAULT_POLISH)], None)
+    assert [r["variant"] for r in rows] == ["lut p≤8"]
+    row = rows[0]
+    assert row["background_pairs"] > 20 and row["ms_per_1024"] > 0
+    assert row["nan_rate_measurable"] == 0 and row["alpha_p95"] < 0.05 and np.isfinite(row["g_p95"])
