@@ -10,6 +10,9 @@ LIBLLVM := /usr/lib/x86_64-linux-gnu/libLLVM-19.so
 ifneq ($(wildcard $(LIBLLVM)),)
 export DRJIT_LIBLLVM_PATH ?= $(LIBLLVM)
 endif
+# One BLAS thread: the host code is single-core by design (benchmarks state "one core"), and on this
+# 2-core machine idle OpenBLAS threads spin-wait under load, which stalled scipy's Delaunay for minutes.
+export OPENBLAS_NUM_THREADS ?= 1
 
 .PHONY: help setup native gen check-gen firmware firmware-test fuzz pytest test demo bench clean
 
