@@ -1,5 +1,5 @@
 """`trimeter bench fit`'s error budget on synthetic held-out sets whose answers are known:
-- intensities that ARE the map's forward model → map error floor 0, map-exact rows = rendered rows;
+- intensities that ARE the forward model lut/mlp polish on (the table's, refined in σt) → map error floor 0, map-exact rows = rendered rows;
 - the map's forward model + a known offset → the map error floor is the first-order error an exact
   inversion makes (checked against a Newton solve of the offset intensities);
 - MC std-errors → the reference noise floor is the std of Newton solves of noisy draws."""
@@ -28,13 +28,19 @@ def amap():
     return AppearanceMap.load(DATA / "ideal-l0.5.tmap")
 
 
+def model(amap) -> ForwardGrid:
+    from trimeter.inversion.api import table_inverter
+
+    return table_inverter(amap).grid
+
+
 def synthetic_heldout(amap, n=200, seed=7, offset_A=0.0, std=1e-3):
-    """Off-grid interior materials whose A, B, C are the map's own trilinear coefficients."""
+    """Off-grid interior materials whose A, B, C are those of the forward model the budget uses."""
     rng = np.random.default_rng(seed)
     a = rng.uniform(0.2, 0.97, n)
     s = np.exp(rng.uniform(np.log(0.3), np.log(6.0), n))
     g = rng.uniform(0.05, 0.8, n)
-    grid = ForwardGrid.from_map(amap)
+    grid = model(amap)
     coef = grid.coefficients(a, grid.sigma_cell(s), g)[0]
     return {"alpha": a, "sigma_t": s, "g": g, "A": coef[0] + offset_A, "B": coef[1], "C": coef[2],
             "std_b": np.full(n, std), "std_w": np.full(n, std)}
@@ -49,7 +55,7 @@ def test_heldout_equal_to_the_map_has_no_map_error(amap):
 def test_map_error_floor_is_the_exact_inversions_first_order_error(amap):
     h = synthetic_heldout(amap, offset_A=2e-4)
     b = error_budget(amap, h, RHO_B, RHO_W)
-    grid = ForwardGrid.from_map(amap)
+    grid = model(amap)
     I_b, I_w = heldout_intensities(h, RHO_B, RHO_W)
     n = len(I_b)
     alpha, g, _, _ = grid.solve_alpha_g(I_b, I_w, grid.sigma_cell(h["sigma_t"]), np.full(n, RHO_B),
@@ -66,7 +72,7 @@ def test_reference_noise_floor_is_the_std_of_noisy_solves(amap):
     std = 2e-4
     h = synthetic_heldout(amap, n=60, std=std)
     b = error_budget(amap, h, RHO_B, RHO_W)
-    grid = ForwardGrid.from_map(amap)
+    grid = model(amap)
     draws = 400
     rng = np.random.default_rng(1)
     I_b, I_w = (np.repeat(x, draws) + std * rng.standard_normal(len(x) * draws)

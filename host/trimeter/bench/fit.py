@@ -19,9 +19,10 @@ error budget per map (noise-free, measurable gamut) separates them, all to first
 map's Jacobian (trimeter.inversion.kernel.ForwardGrid):
 - reference noise floor: the α / g standard deviation implied by the held-out renders' own MC
   std-error (std_b, std_w per material) — how precisely the references can check any method;
-- map error floor: the α / g error implied by map-forward − held-out intensities (the map's MC noise
-  plus its trilinear interpolation) — what even an exact inversion of the map gets wrong;
-- map-exact rows: every variant on the same off-grid materials with I_b, I_w, I_c from the map's own
+- map error floor: the α / g error implied by model-forward − held-out intensities, where the model
+  is the forward map lut and mlp polish on (the table's, refined in σt with cubic splines): the map's
+  MC noise plus its interpolation — what even an exact inversion of that model gets wrong;
+- map-exact rows: every variant on the same off-grid materials with I_b, I_w, I_c from that same
   forward model, which isolates the inversion method's error (what the lut/mlp targets measure about
   the method);
 - well-conditioned columns: α / g p95 over the materials whose reference noise floor is below half
@@ -182,12 +183,13 @@ def error_budget(amap, h, rho_b, rho_w):
     (first-order signed α / g error of an exact map inversion: map forward − rendered intensities),
     the map-exact intensities (I_b, I_w, I_c from the map's own forward model) and the masks
     (measurable gamut, g scored, well-conditioned for α and for g)."""
+    from trimeter.inversion.api import table_inverter
     from trimeter.inversion.kernel import ForwardGrid
 
     a, s, g = h["alpha"], h["sigma_t"], h["g"]
     n = len(a)
     rb, rw = np.full(n, rho_b), np.full(n, rho_w)
-    grid = ForwardGrid.from_map(amap)
+    grid = table_inverter(amap).grid  # the forward model lut and mlp polish on
     I_b, I_w = heldout_intensities(h, rho_b, rho_w)
     map_b, map_w, map_c = grid.intensities(a, s, g, rb, rw)
     J = grid.jacobian(a, s, g, rb, rw)

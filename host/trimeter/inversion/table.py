@@ -56,6 +56,7 @@ from pathlib import Path
 import numpy as np
 
 from trimeter.errors import MapFileError
+from trimeter.inversion.kernel import cubic_resample, refine_axis
 from trimeter.registers import MAP_SLOT_CAPACITY_BYTES
 
 TABLE_MAGIC = b"\x89TRLUT\r\n"
@@ -282,7 +283,7 @@ def build_from_map(amap, n_xy: int | None = None, budget: int = MAX_TABLE_BYTES,
         dims = [(n - 1) * r + 1 for n, r in zip((na0, ns0, ng0), _REFINE_SMOOTH)]
         smooth_fits = mc < _SMOOTH_STDERR and _total_size(*dims, _MIN_XY, _MIN_XY) <= budget
         refine = _REFINE_SMOOTH if smooth_fits else (1, 1, 1)
-    alpha_axis, log_s_axis, g_axis = (_refine(ax, r) if min(len(ax), 4) == 4 else ax for ax, r in
+    alpha_axis, log_s_axis, g_axis = (refine_axis(ax, r) if min(len(ax), 4) == 4 else ax for ax, r in
                                       zip((amap.alpha, np.log(amap.sigma_t), amap.g), refine))
     coef = _resample(amap, alpha_axis, log_s_axis, g_axis)
     na, ns, ng = coef.shape[1:]
@@ -304,7 +305,7 @@ def build_from_map(amap, n_xy: int | None = None, budget: int = MAX_TABLE_BYTES,
 
     grid = ForwardGrid(alpha_axis, log_s_axis, g_axis, np.moveaxis(coef, 0, -1), n=amap.n,
                        thickness_mm=amap.thickness_mm, cover_slide_n=amap.cover_slide_n)
-    aa, gg = (v.ravel() for v in np.meshgrid(_refine(alpha_axis, 2), _refine(g_axis, 2), indexing="ij"))
+    aa, gg = (v.ravel() for v in np.meshgrid(refine_axis(alpha_axis, 2), refine_axis(g_axis, 2), indexing="ij"))
     frames = np.zeros((ns, 6), dtype=np.float32)
     starts_a = np.zeros((ns, nxy, nxy)); starts_g = np.zeros((ns, nxy, nxy))
     targets = np.zeros((ns, nxy, nxy, 2))
@@ -340,28 +341,17 @@ def build_from_map(amap, n_xy: int | None = None, budget: int = MAX_TABLE_BYTES,
 def _resample(amap, alpha_axis, log_s_axis, g_axis) -> np.ndarray:
     """A, B, C (3, na, ns, ng) on the refined axes: cubic splines through the map's nodes (which
     they reproduce exactly), linear along an axis with fewer than 4 nodes."""
-    from scipy.interpolate import make_interp_spline
-
     out = []
     for table in (amap.A, amap.B, amap.C):
         v = np.asarray(table, dtype=np.float64)
         for axis, (old, new) in enumerate(((amap.alpha, alpha_axis), (np.log(amap.sigma_t), log_s_axis),
                                            (amap.g, g_axis))):
             if len(new) != len(old):
-                x = np.array(old, dtype=np.float64)  # a copy: container arrays can be unaligned (scipy refuses those)
-                front = np.moveaxis(v, axis, 0)
-                flat = np.array(front.reshape(len(x), -1))
-                spline = make_interp_spline(x, flat, k=3 if len(x) >= 4 else 1)
-                v = np.moveaxis(spline(np.asarray(new, dtype=np.float64)).reshape(len(new), *front.shape[1:]), 0, axis)
+                v = cubic_resample(v, old, new, axis)
         out.append(v)
     coef = np.stack(out)
     coef[2] = np.clip(coef[2], 0.0, 0.999)  # C: a reflectance, and 1 − Cρ must stay positive
     return coef
-
-
-def _refine(axis: np.ndarray, factor: int) -> np.ndarray:
-    t = np.linspace(0, len(axis) - 1, (len(axis) - 1) * factor + 1)
-    return np.interp(t, np.arange(len(axis)), axis)
 
 
 def _gamut_frame(xy: np.ndarray) -> np.ndarray:

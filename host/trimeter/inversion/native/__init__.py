@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 LIBRARY = Path(__file__).with_name("libtrimeter_invert.so")
-ABI_VERSION = 2
+ABI_VERSION = 3
 
 _double_p = ctypes.POINTER(ctypes.c_double)
 
@@ -34,7 +34,7 @@ class _ForwardGridC(ctypes.Structure):
 
 class _InverseTableC(ctypes.Structure):
     _fields_ = [("ns", ctypes.c_int32), ("ny", ctypes.c_int32), ("nx", ctypes.c_int32),
-                ("cells", _double_p), ("frame", _double_p)]
+                ("cells", _double_p), ("frame", _double_p), ("log_sigma_t", _double_p), ("inv_ds", _double_p)]
 
 
 class _FitOptionsC(ctypes.Structure):
@@ -115,7 +115,9 @@ class NativeSolver:
     """One forward grid (and optionally one inverse table) handed to C once; arrays kept alive here."""
 
     def __init__(self, grid, inverse_cells: np.ndarray | None = None, inverse_frame: np.ndarray | None = None,
-                 inverse_shape: tuple[int, int, int] | None = None):
+                 inverse_shape: tuple[int, int, int] | None = None, inverse_log_sigma_t: np.ndarray | None = None):
+        """grid: the forward grid the polish runs on; inverse_*: the table's guess slices, at its own σt
+        nodes inverse_log_sigma_t (the forward grid may be finer in σt)."""
         keep = {name: np.ascontiguousarray(value, dtype=np.float64) for name, value in (
             ("alpha", grid.alpha), ("log_sigma_t", grid.log_sigma_t), ("g", grid.g), ("inv_da", grid._inv_da),
             ("inv_ds", grid._inv_ds), ("inv_dg", grid._inv_dg), ("poly", grid._poly))}
@@ -127,7 +129,12 @@ class NativeSolver:
         if inverse_cells is not None:
             keep["cells"] = np.ascontiguousarray(inverse_cells, dtype=np.float64)
             keep["frame"] = np.ascontiguousarray(inverse_frame, dtype=np.float64)
-            self._table = _InverseTableC(*inverse_shape, _ptr(keep["cells"]), _ptr(keep["frame"]))
+            keep["table_log_sigma_t"] = np.ascontiguousarray(inverse_log_sigma_t, dtype=np.float64)
+            keep["table_inv_ds"] = 1.0 / np.diff(keep["table_log_sigma_t"])
+            if len(keep["table_log_sigma_t"]) != inverse_shape[0]:
+                raise ValueError("the table's σt axis must have one node per slice")
+            self._table = _InverseTableC(*inverse_shape, _ptr(keep["cells"]), _ptr(keep["frame"]),
+                                         _ptr(keep["table_log_sigma_t"]), _ptr(keep["table_inv_ds"]))
         self._keep = keep
         self._forward = grid
         self._grid_ref = ctypes.byref(self._grid)

@@ -22,7 +22,7 @@
 #include <stdint.h>
 #include <stdlib.h>
 
-#define TM_ABI_VERSION 2
+#define TM_ABI_VERSION 3
 
 typedef struct {
     int32_t na, ns, ng;
@@ -38,6 +38,8 @@ typedef struct {
     int32_t ns, ny, nx;
     const double *cells;
     const double *frame;
+    /* the table's own σt nodes (its slices); the forward grid may be finer (refined in σt at load) */
+    const double *log_sigma_t, *inv_ds;
 } tm_inverse_table;
 
 int tm_abi_version(void) { return TM_ABI_VERSION; }
@@ -136,8 +138,12 @@ static inline double directional(double grad_b, double grad_c, const double *d) 
     return d[0] + grad_b * d[1] + grad_c * d[2];
 }
 
-static void initial_guess(const tm_inverse_table *t, int is, double ws, double I_b, double I_w,
+/* The table's guess at ln σt (already clamped to the forward grid, whose range is the table's):
+ * bilinear in the two slices bracketing it, blended linearly in ln σt (TableInverter.initial_guess). */
+static void initial_guess(const tm_inverse_table *t, double log_sigma_t, double I_b, double I_w,
                           double *alpha, double *g) {
+    double ws;
+    int is = find_cell(t->log_sigma_t, t->inv_ds, t->ns, log_sigma_t, &ws);
     double x = sqrt(clampd(I_b, 0.0, 1.0)), y = sqrt(clampd(I_w, 0.0, 1.0));
     double out_a = 0.0, out_g = 0.0;
     for (int dk = 0; dk < 2; dk++) {
@@ -258,7 +264,7 @@ static inline void propagate_one(const double *Ji, const double *s, double *std_
 
 static int grid_ok(const tm_forward_grid *f, const tm_inverse_table *table) {
     if (!f || f->na < 2 || f->ns < 2 || f->ng < 2) return 0;
-    return !table || (table->ns == f->ns && table->nx >= 2 && table->ny >= 2);
+    return !table || (table->ns >= 2 && table->nx >= 2 && table->ny >= 2);
 }
 
 /* For each bin (σt given as ln σt, clamped to the grid here): the initial (α, g) from `table` (or
@@ -279,7 +285,7 @@ int tm_solve_alpha_g(const tm_forward_grid *f, const tm_inverse_table *table, si
     for (size_t i = 0; i < n; i++) {
         cells[i] = sigma_cell(f, log_sigma_t[i], NAN);
         double a = alpha[i], gg = g[i];
-        if (table) initial_guess(table, cells[i].is, cells[i].ws, I_b[i], I_w[i], &a, &gg);
+        if (table) initial_guess(table, clamp_log_sigma(f, log_sigma_t[i]), I_b[i], I_w[i], &a, &gg);
         alpha[i] = clampd(a, f->alpha_lo, f->alpha_hi);
         g[i] = clampd(gg, f->g_lo, f->g_hi);
     }
@@ -397,9 +403,10 @@ long long tm_fit(const tm_forward_grid *f, const tm_inverse_table *table, const 
         out->sigma_t_beer[i] = in_range ? s : beer_lambert(f, o, Ic);
         if (usable && (s < s_lo || s > s_hi)) fl |= FLAG_OUTSIDE_MAP;
         sigma_t[i] = s;
-        cells[i] = sigma_cell(f, log(s), s);
+        double ls = log(s);
+        cells[i] = sigma_cell(f, ls, s);
         double a = alpha0 ? alpha0[i] : 0.0, gg = g0 ? g0[i] : 0.0;
-        if (!alpha0) initial_guess(table, cells[i].is, cells[i].ws, ib[i], iw[i], &a, &gg);
+        if (!alpha0) initial_guess(table, clamp_log_sigma(f, ls), ib[i], iw[i], &a, &gg);
         alpha[i] = clampd(a, f->alpha_lo, f->alpha_hi);
         g[i] = clampd(gg, f->g_lo, f->g_hi);
         out->flags[i] = fl;
