@@ -64,17 +64,22 @@ class ForwardGrid:
         return cls(table.alpha, table.log_sigma_t, table.g, table.coefficients_grid, n=table.n,
                    thickness_mm=table.thickness_mm, cover_slide_n=table.cover_slide_n, mc_stderr=table.mc_stderr)
 
-    def refined_in_sigma(self, factor: int) -> "ForwardGrid":
-        """The same map on an ln σt axis `factor`× finer, resampled with cubic splines through the
-        nodes (which it reproduces). Why: between σt nodes ×1.26-1.6 apart, trilinear interpolation
-        in ln σt was what made the device maps' error (bench fit's error budget), not their MC noise."""
-        if factor <= 1:
+    def refined(self, alpha: int = 1, sigma: int = 1, g: int = 1) -> "ForwardGrid":
+        """The same map on axes refined by these factors: cubic splines through the nodes along α
+        and ln σt (smooth there: α^k polynomials per traced column; σt nodes dense), shape-preserving
+        PCHIP along g (7 noisy nodes, steep towards g → 1: a cubic spline overshoots between them).
+        Both reproduce the nodes. The trilinear kernel then follows the map's curvature."""
+        coef, axes = self.coefficients_grid, [self.alpha, self.log_sigma_t, self.g]
+        for axis, (factor, kind) in enumerate(((alpha, "cubic"), (sigma, "cubic"), (g, "pchip"))):
+            if factor > 1:
+                new = refine_axis(axes[axis], factor)
+                coef = cubic_resample(coef, axes[axis], new, axis, kind=kind)
+                axes[axis] = new
+        if coef is self.coefficients_grid:
             return self
-        ls = refine_axis(self.log_sigma_t, factor)
-        coef = cubic_resample(self.coefficients_grid, self.log_sigma_t, ls, axis=1)
         coef[..., 2] = np.clip(coef[..., 2], 0.0, 0.999)  # C: a reflectance, and 1 − Cρ must stay positive
-        return ForwardGrid(self.alpha, ls, self.g, coef, n=self.n, thickness_mm=self.thickness_mm,
-                           cover_slide_n=self.cover_slide_n, mc_stderr=self.mc_stderr)
+        return ForwardGrid(*axes, coef, n=self.n, thickness_mm=self.thickness_mm, cover_slide_n=self.cover_slide_n,
+                           mc_stderr=self.mc_stderr)
 
     @property
     def coefficients_grid(self) -> np.ndarray:
@@ -265,13 +270,17 @@ def refine_axis(axis: np.ndarray, factor: int) -> np.ndarray:
     return np.interp(t, np.arange(len(axis)), np.asarray(axis, dtype=np.float64))
 
 
-def cubic_resample(values: np.ndarray, old: np.ndarray, new: np.ndarray, axis: int) -> np.ndarray:
-    """`values` along `axis` from nodes `old` onto `new`: a cubic spline through the nodes (which it
-    reproduces exactly), linear with fewer than 4 nodes."""
-    from scipy.interpolate import make_interp_spline
+def cubic_resample(values: np.ndarray, old: np.ndarray, new: np.ndarray, axis: int, kind: str = "cubic") -> np.ndarray:
+    """`values` along `axis` from nodes `old` onto `new`: a cubic spline ("cubic") or PCHIP ("pchip")
+    through the nodes (both reproduce them exactly); linear with fewer than 4 nodes."""
+    from scipy.interpolate import PchipInterpolator, make_interp_spline
 
     x = np.array(old, dtype=np.float64)  # a copy: container arrays can be unaligned (scipy refuses those)
     front = np.moveaxis(np.asarray(values, dtype=np.float64), axis, 0)
-    spline = make_interp_spline(x, np.array(front.reshape(len(x), -1)), k=3 if len(x) >= 4 else 1)
-    out = spline(np.asarray(new, dtype=np.float64)).reshape(len(new), *front.shape[1:])
+    flat = np.array(front.reshape(len(x), -1))
+    if kind == "pchip" and len(x) >= 3:
+        curve = PchipInterpolator(x, flat, axis=0)
+    else:
+        curve = make_interp_spline(x, flat, k=3 if len(x) >= 4 else 1)
+    out = curve(np.asarray(new, dtype=np.float64)).reshape(len(new), *front.shape[1:])
     return np.moveaxis(out, 0, axis)
