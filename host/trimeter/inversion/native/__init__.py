@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 LIBRARY = Path(__file__).with_name("libtrimeter_invert.so")
-ABI_VERSION = 3
+ABI_VERSION = 4
 
 _double_p = ctypes.POINTER(ctypes.c_double)
 
@@ -29,12 +29,14 @@ class _ForwardGridC(ctypes.Structure):
                 ("poly", _double_p),
                 ("alpha_lo", ctypes.c_double), ("alpha_hi", ctypes.c_double),
                 ("g_lo", ctypes.c_double), ("g_hi", ctypes.c_double),
-                ("thickness_mm", ctypes.c_double), ("stack_a", ctypes.c_double), ("stack_b", ctypes.c_double)]
+                ("thickness_mm", ctypes.c_double), ("stack_a", ctypes.c_double), ("stack_b", ctypes.c_double),
+                ("uniform_ds", ctypes.c_double)]
 
 
 class _InverseTableC(ctypes.Structure):
     _fields_ = [("ns", ctypes.c_int32), ("ny", ctypes.c_int32), ("nx", ctypes.c_int32),
-                ("cells", _double_p), ("frame", _double_p), ("log_sigma_t", _double_p), ("inv_ds", _double_p)]
+                ("cells", _double_p), ("frame", _double_p), ("log_sigma_t", _double_p), ("inv_ds", _double_p),
+                ("uniform_ds", ctypes.c_double)]
 
 
 class _FitOptionsC(ctypes.Structure):
@@ -124,7 +126,8 @@ class NativeSolver:
         na, ns, ng = grid.shape
         self._grid = _ForwardGridC(na, ns, ng, *(_ptr(keep[k]) for k in ("alpha", "log_sigma_t", "g", "inv_da",
                                                                            "inv_ds", "inv_dg", "poly")),
-                                   *grid.alpha_range, *grid.g_range, grid.thickness_mm, *grid.stack_constants[:2])
+                                   *grid.alpha_range, *grid.g_range, grid.thickness_mm, *grid.stack_constants[:2],
+                                   _uniform_step(keep["log_sigma_t"]))
         self._table = None
         if inverse_cells is not None:
             keep["cells"] = np.ascontiguousarray(inverse_cells, dtype=np.float64)
@@ -134,7 +137,8 @@ class NativeSolver:
             if len(keep["table_log_sigma_t"]) != inverse_shape[0]:
                 raise ValueError("the table's σt axis must have one node per slice")
             self._table = _InverseTableC(*inverse_shape, _ptr(keep["cells"]), _ptr(keep["frame"]),
-                                         _ptr(keep["table_log_sigma_t"]), _ptr(keep["table_inv_ds"]))
+                                         _ptr(keep["table_log_sigma_t"]), _ptr(keep["table_inv_ds"]),
+                                         _uniform_step(keep["table_log_sigma_t"]))
         self._keep = keep
         self._forward = grid
         self._grid_ref = ctypes.byref(self._grid)
@@ -180,6 +184,14 @@ class NativeSolver:
         _check(steps)
         out["steps"] = int(steps)
         return out
+
+
+def _uniform_step(axis: np.ndarray) -> float:
+    """1 / the step of an evenly spaced axis (the C side then finds cells without a search), else 0.
+    "Evenly" to 1e-4: the stored axes are float32, and the C side corrects the estimated index by
+    walking, so this only decides speed, never the cell."""
+    d = np.diff(axis)
+    return float(1.0 / d.mean()) if len(d) and np.all(np.abs(d - d.mean()) <= 1e-4 * abs(d.mean())) else 0.0
 
 
 def _check(rc: int) -> None:

@@ -22,7 +22,7 @@
 #include <stdint.h>
 #include <stdlib.h>
 
-#define TM_ABI_VERSION 3
+#define TM_ABI_VERSION 4
 
 typedef struct {
     int32_t na, ns, ng;
@@ -32,6 +32,7 @@ typedef struct {
     double alpha_lo, alpha_hi, g_lo, g_hi;
     /* I_c = a·x / (1 − b·x²), x = exp(−σt ℓ) (trimeter.forward.collimated.stack_constants) */
     double thickness_mm, stack_a, stack_b;
+    double uniform_ds; /* 1 / the ln σt step when that axis is evenly spaced (as generated), else 0 */
 } tm_forward_grid;
 
 typedef struct {
@@ -40,6 +41,7 @@ typedef struct {
     const double *frame;
     /* the table's own σt nodes (its slices); the forward grid may be finer (refined in σt at load) */
     const double *log_sigma_t, *inv_ds;
+    double uniform_ds; /* as in tm_forward_grid */
 } tm_inverse_table;
 
 int tm_abi_version(void) { return TM_ABI_VERSION; }
@@ -58,6 +60,20 @@ static inline int find_cell(const double *axis, const double *inv_d, int n, doub
         len -= half;
     }
     int i = (int)(base - axis);
+    if (i > n - 2) i = n - 2;
+    *w = clampd((x - axis[i]) * inv_d[i], 0.0, 1.0);
+    return i;
+}
+
+/* find_cell on an evenly spaced axis (inv_step = 1 / its step; 0: not evenly spaced, binary search):
+ * the index straight from x, then at most a step either way for rounding at a node. Same result
+ * as find_cell for every x. */
+static inline int find_cell_on(const double *axis, const double *inv_d, int n, double inv_step, double x, double *w) {
+    if (!(inv_step > 0.0) || !isfinite(x)) return find_cell(axis, inv_d, n, x, w);
+    double t = (x - axis[0]) * inv_step;
+    int i = t <= 0.0 ? 0 : (t >= n - 1 ? n - 1 : (int)t);
+    while (i > 0 && x < axis[i]) i--;
+    while (i < n - 1 && axis[i + 1] <= x) i++;
     if (i > n - 2) i = n - 2;
     *w = clampd((x - axis[i]) * inv_d[i], 0.0, 1.0);
     return i;
@@ -97,7 +113,7 @@ typedef struct {
 static inline sigma_cell_t sigma_cell(const tm_forward_grid *f, double log_sigma_t, double sigma_t) {
     sigma_cell_t c;
     double ls = clamp_log_sigma(f, log_sigma_t);
-    c.is = find_cell(f->log_sigma_t, f->inv_ds, f->ns, ls, &c.ws);
+    c.is = find_cell_on(f->log_sigma_t, f->inv_ds, f->ns, f->uniform_ds, ls, &c.ws);
     c.ia = c.ig = -1;
     c.sigma_t = ls != log_sigma_t || !(sigma_t > 0.0 && isfinite(sigma_t)) ? exp(ls) : sigma_t;
     return c;
@@ -143,7 +159,7 @@ static inline double directional(double grad_b, double grad_c, const double *d) 
 static void initial_guess(const tm_inverse_table *t, double log_sigma_t, double I_b, double I_w,
                           double *alpha, double *g) {
     double ws;
-    int is = find_cell(t->log_sigma_t, t->inv_ds, t->ns, log_sigma_t, &ws);
+    int is = find_cell_on(t->log_sigma_t, t->inv_ds, t->ns, t->uniform_ds, log_sigma_t, &ws);
     double x = sqrt(clampd(I_b, 0.0, 1.0)), y = sqrt(clampd(I_w, 0.0, 1.0));
     double out_a = 0.0, out_g = 0.0;
     for (int dk = 0; dk < 2; dk++) {
