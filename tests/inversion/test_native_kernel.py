@@ -67,8 +67,10 @@ def test_polish_from_a_given_guess_and_the_propagated_uncertainty_match(monkeypa
     for got, want in zip(compiled, expected):
         np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-12)
     expected_std = reference.propagate(expected[3], sigma_I)
+    # the two evaluate J2⁻¹ Σ J2⁻ᵀ in a different order: where J2 is near-singular (stds ~1e5) its
+    # condition number amplifies the rounding difference, hence 1e-5 rather than 1e-9
     for got, want in zip(compiled_std, expected_std):
-        np.testing.assert_allclose(got, want, rtol=1e-7, atol=1e-12)
+        np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-12)
 
 
 def test_a_missing_or_disabled_library_falls_back_with_a_reason(monkeypatch):
