@@ -16,7 +16,10 @@ def test_bench_fit_reports_figures_and_plot(tmp_path, capsys):
     assert rc == 0
     text = capsys.readouterr().out
     assert "ratio to paper" in text and "Pareto plot" in text
-    rows = json.loads((out / "results.json").read_text())["maps"][0]["rows"]
+    report = json.loads((out / "results.json").read_text())["maps"][0]
+    rows = report["rows"]
+    hull = report["paper_hull_split"]  # the paper's time inside its hull alone, next to the whole set
+    assert 0 <= hull["outside_hull"] < hull["of"] and hull["lut_ms"] > 0 and hull["paper_core_ms"] > 0
     variants = {r["variant"] for r in rows}
     assert {"paper", "paper-median", "lut p0", "lut p≤8", "lut-small p≤8", "mlp p0", "mlp p≤8"} <= variants
     for r in rows:
