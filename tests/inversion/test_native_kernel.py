@@ -159,3 +159,22 @@ def test_the_adaptive_polish_stops_converged_bins_early_with_the_same_result():
     # converged bins left early: fewer steps than 12 per bin on average, the same α to the tolerance
     assert 1.0 < out["steps"] / 2000 < 8.0
     np.testing.assert_allclose(out["alpha"], np.clip(fixed[0], 0, 1), atol=1e-5)
+
+
+@pytest.mark.skipif(not native.available(), reason=native.status())
+def test_the_mlp_guess_inputs_from_c_match_the_numpy_preparation():
+    """tm_prepare (sanitized I_b, I_w, ρ's and σt, what the MLP guesses from) against api._prepare."""
+    import trimeter.inversion.api as api
+    from trimeter.maps.appearance import AppearanceMap
+
+    amap = AppearanceMap.load(MAPS_DIR / "device-n1.5-l0.4.tmap")
+    args = _fit_inputs(np.random.default_rng(11))
+    inverter = api.table_inverter(amap)
+    grid = inverter.grid
+    compiled = inverter.native_solver.prepare(
+        *args, noise_rel=0.005, noise_abs=2e-4, mc_stderr=grid.mc_stderr, ic_floor=1e-4, alpha_min_g=0.02,
+        input_tolerance=api._INPUT_TOLERANCE, ref_rho=api.grid_ref(amap), t_max=api._t_max(grid),
+        t_valid=grid.stack_constants[2] * (1 + 1e-12), iterations=0, step_tol=0.0)
+    p = api._prepare(amap, grid, *args, 1e-4)
+    for got, want, name in zip(compiled, (p.ib, p.iw, p.sigma_t, p.rb, p.rw), ("ib", "iw", "sigma_t", "rb", "rw")):
+        np.testing.assert_allclose(got, want, rtol=1e-12, atol=0, err_msg=name)

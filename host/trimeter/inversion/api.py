@@ -191,19 +191,24 @@ def _fit_one(amap, I_b, I_w, I_c, rho_b, rho_w, *, method, polish, polish_tol, m
              ic_floor, alpha_min_g) -> FitResult:
     inverter = table_inverter(amap)
     grid = inverter.grid
+    solver = inverter.native_solver  # the whole fit in C (invert.c tm_fit); the numpy code below is its reference
+    if solver is not None:
+        options = dict(noise_rel=noise_rel, noise_abs=noise_abs, mc_stderr=grid.mc_stderr, ic_floor=ic_floor,
+                       alpha_min_g=alpha_min_g, input_tolerance=_INPUT_TOLERANCE, ref_rho=grid_ref(amap),
+                       t_max=_t_max(grid), t_valid=grid.stack_constants[2] * (1 + 1e-12), iterations=polish,
+                       step_tol=polish_tol)
     alpha0 = g0 = None
     if method == "mlp":  # the network's guess needs σt and the sanitized inputs first
         from trimeter.inversion.mlp import mlp_inverter
 
-        p = _prepare(amap, grid, I_b, I_w, I_c, rho_b, rho_w, ic_floor)
-        alpha0, g0 = mlp_inverter(amap, mlp_model).predict(p.ib, p.iw, p.sigma_t, p.rb, p.rw)
-    solver = inverter.native_solver
-    if solver is not None:  # the whole fit in one C call (invert.c tm_fit); the code below is its reference
-        a, b, t_valid = grid.stack_constants
-        out = solver.fit(I_b, I_w, I_c, rho_b, rho_w, noise_rel=noise_rel, noise_abs=noise_abs,
-                         mc_stderr=grid.mc_stderr, ic_floor=ic_floor, alpha_min_g=alpha_min_g,
-                         input_tolerance=_INPUT_TOLERANCE, ref_rho=grid_ref(amap), t_max=_t_max(grid),
-                         t_valid=t_valid * (1 + 1e-12), iterations=polish, step_tol=polish_tol, alpha0=alpha0, g0=g0)
+        if solver is not None:
+            guess_inputs = solver.prepare(I_b, I_w, I_c, rho_b, rho_w, **options)
+        else:
+            p = _prepare(amap, grid, I_b, I_w, I_c, rho_b, rho_w, ic_floor)
+            guess_inputs = (p.ib, p.iw, p.sigma_t, p.rb, p.rw)
+        alpha0, g0 = mlp_inverter(amap, mlp_model).predict(*guess_inputs)
+    if solver is not None:
+        out = solver.fit(I_b, I_w, I_c, rho_b, rho_w, alpha0=alpha0, g0=g0, **options)
         out.pop("steps")
         return FitResult(**out, method=method)
     if method != "mlp":

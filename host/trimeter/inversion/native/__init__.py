@@ -72,6 +72,9 @@ def _load():
                                      vp, vp, vp, vp, vp, ctypes.c_int, ctypes.c_double, vp, vp, vp, vp]
     lib.tm_propagate.restype = None
     lib.tm_propagate.argtypes = [size_t, vp, vp, vp, vp, vp]
+    lib.tm_prepare.restype = None
+    lib.tm_prepare.argtypes = [ctypes.POINTER(_ForwardGridC), ctypes.POINTER(_FitOptionsC), size_t,
+                               vp, vp, vp, vp, vp, vp, vp, vp, vp, vp]
     lib.tm_fit.restype = ctypes.c_longlong
     lib.tm_fit.argtypes = [ctypes.POINTER(_ForwardGridC), ctypes.POINTER(_InverseTableC),
                            ctypes.POINTER(_FitOptionsC), size_t, vp, vp, vp, vp, vp, vp, vp,
@@ -163,10 +166,11 @@ class NativeSolver:
         _check(rc)
         return alpha, g, residual, J
 
-    def fit(self, I_b, I_w, I_c, rho_b, rho_w, *, noise_rel, noise_abs, mc_stderr, ic_floor, alpha_min_g,
-            input_tolerance, ref_rho, t_max, t_valid, iterations, step_tol, alpha0=None, g0=None):
+    def fit(self, I_b, I_w, I_c, rho_b, rho_w, *, alpha0=None, g0=None, **options):
         """One thickness's whole fit in one call (invert.c `tm_fit`, api._fit_one's reference path
-        operation for operation): a dict of the FitResult columns and `steps`, the Newton steps taken."""
+        operation for operation): a dict of the FitResult columns and `steps`, the Newton steps taken.
+        options: those of _FitOptionsC (noise_rel, noise_abs, mc_stderr, ic_floor, alpha_min_g,
+        input_tolerance, ref_rho, t_max, t_valid, iterations, step_tol)."""
         n = len(I_b)
         args = [_f64(v, n) for v in (I_b, I_w, I_c, rho_b, rho_w)]
         guess = [None, None] if alpha0 is None else [_f64(alpha0, n), _f64(g0, n)]
@@ -175,15 +179,30 @@ class NativeSolver:
         out = {name: np.empty(n) for name in ("alpha", "sigma_t", "g", "alpha_std", "sigma_t_std", "g_std",
                                               "sigma_t_beer")}
         out["flags"] = np.empty(n, dtype=np.int64)
-        options = _FitOptionsC(noise_rel, noise_abs, mc_stderr, ic_floor, alpha_min_g, input_tolerance, *ref_rho,
-                               t_max, t_valid, step_tol, iterations)
         outputs = _FitOutputsC(*(_addr(out[name]) for name, _ in _FitOutputsC._fields_))
-        steps = _LIB.tm_fit(self._grid_ref, self._table_ref if alpha0 is None else None, ctypes.byref(options), n,
-                            *(_addr(a) for a in args), *(None if v is None else _addr(v) for v in guess),
-                            ctypes.byref(outputs))
+        steps = _LIB.tm_fit(self._grid_ref, self._table_ref if alpha0 is None else None,
+                            ctypes.byref(_fit_options(**options)), n, *(_addr(a) for a in args),
+                            *(None if v is None else _addr(v) for v in guess), ctypes.byref(outputs))
         _check(steps)
         out["steps"] = int(steps)
         return out
+
+    def prepare(self, I_b, I_w, I_c, rho_b, rho_w, **options):
+        """The sanitized I_b, I_w, ρ_b, ρ_w and σt from I_c that tm_fit starts from (invert.c
+        `tm_prepare`, api._prepare): (ib, iw, sigma_t, rb, rw), the inputs of an MLP guess."""
+        n = len(I_b)
+        args = [_f64(v, n) for v in (I_b, I_w, I_c, rho_b, rho_w)]
+        out = [np.empty(n) for _ in range(5)]  # ib, iw, rb, rw, σt
+        _LIB.tm_prepare(self._grid_ref, ctypes.byref(_fit_options(**options)), n, *(_addr(a) for a in args),
+                        *(_addr(o) for o in out))
+        ib, iw, rb, rw, sigma_t = out
+        return ib, iw, sigma_t, rb, rw
+
+
+def _fit_options(*, noise_rel, noise_abs, mc_stderr, ic_floor, alpha_min_g, input_tolerance, ref_rho, t_max, t_valid,
+                 iterations, step_tol) -> _FitOptionsC:
+    return _FitOptionsC(noise_rel, noise_abs, mc_stderr, ic_floor, alpha_min_g, input_tolerance, *ref_rho, t_max,
+                        t_valid, step_tol, iterations)
 
 
 def _uniform_step(axis: np.ndarray) -> float:

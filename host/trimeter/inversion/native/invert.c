@@ -376,6 +376,55 @@ static inline double beer_lambert(const tm_forward_grid *f, const tm_fit_options
 
 static inline double sanitize(double x, double fill) { return isfinite(x) ? clampd(x, 0.0, 1.0) : fill; }
 
+/* One bin's input flags, sanitized stand-ins (unusable bins are computed on harmless stand-ins and
+ * blanked at the end), σt from I_c (under the floor the floor's σt, a lower bound; above
+ * T(σt = 0), σt = 0) and the Beer-Lambert consistency column: api._prepare. Returns the flags. */
+typedef struct { double lo, hi; } sigma_bounds_t; /* the grid's σt range, widened by 1e-6 for rounding */
+
+static sigma_bounds_t sigma_bounds(const tm_forward_grid *f) {
+    sigma_bounds_t b = {exp(f->log_sigma_t[0]) * (1 - 1e-6), exp(f->log_sigma_t[f->ns - 1]) * (1 + 1e-6)};
+    return b;
+}
+
+static int64_t prepare_bin(const tm_forward_grid *f, const tm_fit_options *o, sigma_bounds_t bounds, double Ib,
+                           double Iw, double Ic, double Rb, double Rw, double *ib, double *iw, double *rb, double *rw,
+                           double *sigma_t, double *sigma_beer) {
+    const double tol = o->input_tolerance;
+    int64_t fl = 0;
+    int finite = isfinite(Ib) && isfinite(Iw) && isfinite(Ic) && isfinite(Rb) && isfinite(Rw);
+    if (!finite) fl |= FLAG_NONFINITE_INPUT;
+    if (Ib < -tol || Iw < -tol || Ic < -tol) fl |= FLAG_NEGATIVE_INPUT;
+    if (Ib > 1 + tol || Iw > 1 + tol || Ic > 1 + tol) fl |= FLAG_ABOVE_ONE;
+    if (finite && !(Rb >= 0 && Rb < Rw && Rw <= 1)) fl |= FLAG_BAD_BACKGROUND;
+    if (finite && Ib >= Iw) fl |= FLAG_BLACK_NOT_BELOW_WHITE;
+    int usable = !(fl & FLAG_UNUSABLE);
+    *ib = sanitize(Ib, 0.0);
+    *iw = sanitize(Iw, 1.0);
+    double ic = sanitize(Ic, 1.0);
+    *rb = usable ? Rb : o->ref_rho_b;
+    *rw = usable ? Rw : o->ref_rho_w;
+    if (usable && ic < o->ic_floor) fl |= FLAG_IC_BELOW_FLOOR;
+    double s = beer_lambert(f, o, fmin(fmax(ic, o->ic_floor), o->t_max));
+    int in_range = isfinite(Ic) && Ic >= o->ic_floor && Ic <= o->t_max;
+    *sigma_beer = in_range ? s : beer_lambert(f, o, Ic);
+    if (usable && (s < bounds.lo || s > bounds.hi)) fl |= FLAG_OUTSIDE_MAP;
+    *sigma_t = s;
+    return fl;
+}
+
+/* prepare_bin for n bins: what the MLP needs for its guess (sanitized I_b, I_w, ρ_b, ρ_w and σt)
+ * before tm_fit runs with that guess. */
+void tm_prepare(const tm_forward_grid *f, const tm_fit_options *o, size_t n, const double *I_b, const double *I_w,
+                const double *I_c, const double *rho_b, const double *rho_w, double *ib, double *iw, double *rb,
+                double *rw, double *sigma_t) {
+    const sigma_bounds_t bounds = sigma_bounds(f);
+    for (size_t i = 0; i < n; i++) {
+        double beer;
+        prepare_bin(f, o, bounds, I_b[i], I_w[i], I_c[i], rho_b[i], rho_w[i], &ib[i], &iw[i], &rb[i], &rw[i], &sigma_t[i],
+                    &beer);
+    }
+}
+
 /* Returns the number of Newton steps taken (≥ 0), -1 on a malformed grid, -2 when out of memory.
  * alpha0/g0: the initial guess (the MLP's), or NULL to take it from `table`. */
 long long tm_fit(const tm_forward_grid *f, const tm_inverse_table *table, const tm_fit_options *o, size_t n,
@@ -394,30 +443,12 @@ long long tm_fit(const tm_forward_grid *f, const tm_inverse_table *table, const 
     }
     double *iw = ib + n, *rb = ib + 2 * n, *rw = ib + 3 * n;
     double *alpha = out->alpha, *g = out->g, *sigma_t = out->sigma_t;
-    const double tol = o->input_tolerance;
-    const double s_lo = exp(f->log_sigma_t[0]) * (1 - 1e-6), s_hi = exp(f->log_sigma_t[f->ns - 1]) * (1 + 1e-6);
+    const sigma_bounds_t bounds = sigma_bounds(f);
     for (size_t i = 0; i < n; i++) {
-        double Ib = I_b[i], Iw = I_w[i], Ic = I_c[i], Rb = rho_b[i], Rw = rho_w[i];
-        int64_t fl = 0;
-        int finite = isfinite(Ib) && isfinite(Iw) && isfinite(Ic) && isfinite(Rb) && isfinite(Rw);
-        if (!finite) fl |= FLAG_NONFINITE_INPUT;
-        if (Ib < -tol || Iw < -tol || Ic < -tol) fl |= FLAG_NEGATIVE_INPUT;
-        if (Ib > 1 + tol || Iw > 1 + tol || Ic > 1 + tol) fl |= FLAG_ABOVE_ONE;
-        if (finite && !(Rb >= 0 && Rb < Rw && Rw <= 1)) fl |= FLAG_BAD_BACKGROUND;
-        if (finite && Ib >= Iw) fl |= FLAG_BLACK_NOT_BELOW_WHITE;
-        int usable = !(fl & FLAG_UNUSABLE);
-        /* unusable bins are computed on harmless stand-ins and blanked at the end */
-        ib[i] = sanitize(Ib, 0.0);
-        iw[i] = sanitize(Iw, 1.0);
-        double ic = sanitize(Ic, 1.0);
-        rb[i] = usable ? Rb : o->ref_rho_b;
-        rw[i] = usable ? Rw : o->ref_rho_w;
-        if (usable && ic < o->ic_floor) fl |= FLAG_IC_BELOW_FLOOR;
-        /* σt from I_c; under the floor the floor's σt (a lower bound); above T(σt = 0), σt = 0 */
-        double s = beer_lambert(f, o, fmin(fmax(ic, o->ic_floor), o->t_max));
-        int in_range = isfinite(Ic) && Ic >= o->ic_floor && Ic <= o->t_max;
-        out->sigma_t_beer[i] = in_range ? s : beer_lambert(f, o, Ic);
-        if (usable && (s < s_lo || s > s_hi)) fl |= FLAG_OUTSIDE_MAP;
+        double s, beer;
+        out->flags[i] = prepare_bin(f, o, bounds, I_b[i], I_w[i], I_c[i], rho_b[i], rho_w[i], &ib[i], &iw[i], &rb[i],
+                                    &rw[i], &s, &beer);
+        out->sigma_t_beer[i] = beer;
         sigma_t[i] = s;
         double ls = log(s);
         cells[i] = sigma_cell(f, ls, s);
@@ -425,7 +456,6 @@ long long tm_fit(const tm_forward_grid *f, const tm_inverse_table *table, const 
         if (!alpha0) initial_guess(table, clamp_log_sigma(f, ls), ib[i], iw[i], &a, &gg);
         alpha[i] = clampd(a, f->alpha_lo, f->alpha_hi);
         g[i] = clampd(gg, f->g_lo, f->g_hi);
-        out->flags[i] = fl;
     }
     size_t steps = polish(f, n, cells, ib, iw, rb, rw, o->iterations, o->step_tol, alpha, g, active);
     const int g_lo_is_edge = f->g_lo > -1 + 1e-6, g_hi_is_edge = f->g_hi < 1 - 1e-6;
