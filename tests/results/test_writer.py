@@ -8,6 +8,7 @@ import pytest
 
 from fakes import FakeInstrument, FakeOptics, FakeSpectrometer
 from trimeter.device.client import Device
+from trimeter.inversion.api import FitResult
 from trimeter.results import Measurement, Parameters, write_measurement
 from trimeter.results.medium import medium_dict
 from trimeter.sequences import Runner, calibration, reflectances, sample_capture
@@ -27,10 +28,10 @@ def measurement():
     refl = reflectances(cal, raw)
     alpha = np.linspace(0.5, 0.99, 31)
     alpha[3] = np.nan  # an unusable bin must survive every writer
-    result = {"alpha": alpha, "sigma_t": np.linspace(1, 5, 31), "g": np.full(31, 0.4),
-              "alpha_std": np.full(31, 0.01), "sigma_t_std": np.full(31, 0.1), "g_std": np.full(31, 0.05),
-              "flags": np.where(np.isnan(alpha), 1, 0)}
-    params = Parameters.from_fit(WL, result, sigma_t_beer=np.linspace(1, 5, 31))
+    result = FitResult(alpha=alpha, sigma_t=np.linspace(1, 5, 31), g=np.full(31, 0.4), alpha_std=np.full(31, 0.01),
+                       sigma_t_std=np.full(31, 0.1), g_std=np.full(31, 0.05), flags=np.where(np.isnan(alpha), 1, 0),
+                       sigma_t_beer=np.linspace(1, 5, 31), method="lut")
+    params = Parameters.from_fit(WL, result)
     return Measurement(cal, [raw], [refl], [0.4], params, meta={"sample": "test ink", "method": "lut"})
 
 
@@ -76,3 +77,9 @@ def test_medium_loads_in_mitsuba_with_the_measured_spectra(measurement):
     np.testing.assert_allclose(np.array(params["albedo.value.values"]),
                                np.interp(wl, p.wavelengths_nm[valid], p.alpha[valid]), rtol=1e-5)
     assert params["phase_function.g"] == pytest.approx(0.4, abs=1e-6)
+
+
+def test_parameters_refuse_a_fit_over_other_bins():
+    result = FitResult(*(np.zeros(3) for _ in range(7)), sigma_t_beer=np.zeros(3), method="lut")
+    with pytest.raises(ValueError, match="3 fitted bins for 31 wavelengths"):
+        Parameters.from_fit(WL, result)

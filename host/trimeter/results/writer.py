@@ -46,22 +46,14 @@ class Parameters:
     extra: dict = field(default_factory=dict)
 
     @classmethod
-    def from_fit(cls, wavelengths_nm, result, *, sigma_t_beer=None, thickness_mm=None) -> "Parameters":
-        """Adapt trimeter.fit's result (attributes or mapping with the issue's column names)."""
-        get = (lambda k: result[k]) if isinstance(result, dict) else (lambda k: getattr(result, k))
-        n = len(wavelengths_nm)
-
-        def column(name, default=np.nan):
-            try:
-                value = get(name)
-            except (KeyError, AttributeError):
-                value = None
-            return np.full(n, default, float) if value is None else np.asarray(value, dtype=float).reshape(n)
-
-        beer = column("sigma_t_beer") if sigma_t_beer is None else np.asarray(sigma_t_beer, float)
-        return cls(np.asarray(wavelengths_nm, float), column("alpha"), column("sigma_t"), column("g"),
-                   column("alpha_std"), column("sigma_t_std"), column("g_std"), column("flags", 0).astype(np.int64),
-                   beer, thickness_mm)
+    def from_fit(cls, wavelengths_nm, result: FitResult, *, thickness_mm=None) -> "Parameters":
+        """trimeter.fit's result over these wavelengths."""
+        wavelengths_nm = np.asarray(wavelengths_nm, float)
+        if len(result) != len(wavelengths_nm):
+            raise ValueError(f"{len(result)} fitted bins for {len(wavelengths_nm)} wavelengths")
+        columns = {name: np.asarray(value, dtype=np.int64 if name == "flags" else float)
+                   for name, value in result.as_dict().items()}
+        return cls(wavelengths_nm, **columns, thickness_mm=thickness_mm)
 
     def columns(self) -> dict:
         out = {"wavelength_nm": self.wavelengths_nm}
