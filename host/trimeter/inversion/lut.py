@@ -19,32 +19,12 @@ from trimeter.inversion.kernel import ForwardGrid, SigmaCell
 from trimeter.inversion.table import MapTable
 
 
-# The polish runs on the table's forward map refined at load (ForwardGrid.refined: cubic in α and
-# ln σt, PCHIP in g, through the table's own nodes; the stored table is unchanged): α 2×, σt to about
-# POLISH_SIGMA_NODES nodes, g 2×. Measured with `trimeter bench fit` on the 16-node device maps,
-# noise-free rendered held-out, lut p≤8 (l0.4 / l0.8): α p95 0.034 / 0.058 → 0.024 / 0.018, g p95
-# 0.060 / 0.064 → 0.044 / 0.034; over the well-conditioned subset α 0.033 / 0.058 → 0.010 / 0.010,
-# g 0.032 / 0.066 → 0.008 / 0.007; fit() time unchanged (0.30 ms per 1024 bins). Trilinear interpolation between the nodes (ln σt ×1.6 apart, 7 g)
-# was the maps' main error, not their MC noise. (Chosen on that same held-out set, among σt ×2/×4
-# cubic or PCHIP and g ×2/×3/×4: PCHIP in g gave the same figures at every factor, a cubic spline
-# in g did not. Checked on independent sets of 16 columns × 10 α, 8M paths, with the 8M-path maps:
-# each refinement step lowered α and g p95 there too, to α 0.013 / 0.008 and g 0.010 / 0.008.)
-POLISH_SIGMA_NODES = 61
-POLISH_REFINE_ALPHA = 2
-POLISH_REFINE_G = 2
-
-
-def sigma_refine_factor(n_sigma: int) -> int:
-    """The refinement that brings n_sigma nodes to about POLISH_SIGMA_NODES (1: no refinement)."""
-    return max(1, round((POLISH_SIGMA_NODES - 1) / max(n_sigma - 1, 1)))
-
-
 class TableInverter:
     def __init__(self, table: MapTable):
         self.table = table
         self.table_grid = ForwardGrid.from_table(table)  # the table's own nodes: its guess slices
-        self.grid = self.table_grid.refined(POLISH_REFINE_ALPHA, sigma_refine_factor(len(table.log_sigma_t)),
-                                            POLISH_REFINE_G)
+        # the polish model: the table's forward map between its nodes as everywhere (kernel.BETWEEN_NODES_*)
+        self.grid = self.table_grid.between_nodes()
         ns, ny, nx = table.inv_alpha_q.shape
         self._shape = (ns, ny, nx)
         v = np.stack([table.inverse_alpha, table.inverse_g], -1)  # (ns, ny, nx, 2)

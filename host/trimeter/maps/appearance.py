@@ -12,7 +12,8 @@ Representation (one concept, one place):
 - I_c is analytic (trimeter.forward.collimated) from σt, ℓ, n and the cover slides.
 - Std-errors: `std_b`, `std_w` — the Monte Carlo standard error of I at the recipe's reference
   backgrounds `reference_rho_b`, `reference_rho_w`.
-Axes are strictly increasing; interpolation is trilinear in (α, ln σt, g).
+Axes are strictly increasing. Between the nodes the map is evaluated as the inversion polishes on it
+(AppearanceMap.between_nodes: cubic in α and ln σt, PCHIP in g, refined, then trilinear).
 
 File: a trimeter container (trimeter.maps.container) of kind "appearance-map" whose meta holds the
 recipe (geometry preset + its parameters, n, thickness_mm, reference ρ's, sampling), provenance
@@ -23,6 +24,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -125,26 +127,23 @@ class AppearanceMap:
         }
 
     # -------------------------------------------------------------------------------- evaluation
+    @cached_property
+    def between_nodes(self):
+        """The map as evaluated between its nodes, the same way the inversion's polish does
+        (trimeter.inversion.kernel.ForwardGrid.between_nodes: cubic in α and ln σt, PCHIP in g)."""
+        from trimeter.inversion.kernel import ForwardGrid
+
+        return ForwardGrid.from_map(self).between_nodes()
+
     def coefficients(self, alpha, sigma_t, g):
-        """Trilinear interpolation of (A, B, C) in (α, ln σt, g); NaN outside the map's range."""
+        """(A, B, C) at materials between the nodes (see between_nodes); NaN outside the map's range."""
         alpha, sigma_t, g = np.broadcast_arrays(*(np.asarray(v, dtype=float) for v in (alpha, sigma_t, g)))
-        with np.errstate(divide="ignore", invalid="ignore"):
-            log_s = np.log(sigma_t)
-        idx_w = [_bracket(axis, x) for axis, x in ((self.alpha, alpha), (np.log(self.sigma_t), log_s), (self.g, g))]
-        (ia, wa, oka), (is_, ws, oks), (ig, wg, okg) = idx_w
-        inside = oka & oks & okg
-        out = []
-        for table in (self.A, self.B, self.C):
-            acc = np.zeros(alpha.shape)
-            for da in (0, 1):
-                fa = wa if da else 1 - wa
-                for ds in (0, 1):
-                    fs = ws if ds else 1 - ws
-                    for dg in (0, 1):
-                        fg = wg if dg else 1 - wg
-                        acc += fa * fs * fg * table[ia + da, is_ + ds, ig + dg]
-            out.append(np.where(inside, acc, np.nan))
-        return tuple(out)
+        with np.errstate(invalid="ignore"):
+            inside = ((alpha >= self.alpha[0]) & (alpha <= self.alpha[-1]) & (sigma_t >= self.sigma_t[0])
+                      & (sigma_t <= self.sigma_t[-1]) & (g >= self.g[0]) & (g <= self.g[-1]))
+        model = self.between_nodes
+        values = model.coefficients(alpha.ravel(), model.sigma_cell(sigma_t.ravel()), g.ravel())[0]
+        return tuple(np.where(inside, v.reshape(alpha.shape), np.nan) for v in values)
 
     def diffuse(self, alpha, sigma_t, g, rho):
         """I(ρ) = A + Bρ/(1 − Cρ) at interpolated coefficients."""
@@ -163,15 +162,6 @@ class AppearanceMap:
         I_w = A + B * rho_w / (1.0 - C * rho_w)
         I_c = np.where(np.isnan(A), np.nan, self.collimated(np.asarray(sigma_t, dtype=float)))
         return I_b, I_w, I_c
-
-
-def _bracket(axis: np.ndarray, x: np.ndarray):
-    """Cell index and weight of x on a strictly increasing axis, plus an inside-range mask."""
-    inside = (x >= axis[0]) & (x <= axis[-1])
-    i = np.clip(np.searchsorted(axis, x, side="right") - 1, 0, len(axis) - 2)
-    with np.errstate(invalid="ignore"):
-        w = (x - axis[i]) / (axis[i + 1] - axis[i])
-    return i, np.where(inside, w, 0.0), inside
 
 
 def shipped_maps() -> list[Path]:
