@@ -30,7 +30,11 @@ def _interpolator(amap, rho_b: float, rho_w: float):
         _CACHE.move_to_end(key)
         return _CACHE[key]
     aa, ss, gg = (v.ravel() for v in np.meshgrid(amap.alpha, amap.sigma_t, amap.g, indexing="ij"))
-    I_b, I_w, I_c = amap.query(aa, ss, gg, rho_b, rho_w)
+    # the map's own nodes, straight from its arrays (not evaluated through AppearanceMap.query: the
+    # Delaunay of these nearly coplanar points changes with their last bits)
+    A, B, C = (v.ravel() for v in (amap.A, amap.B, amap.C))
+    I_b, I_w = (A + B * rho / (1.0 - C * rho) for rho in (rho_b, rho_w))
+    I_c = amap.collimated(ss)
     points = np.column_stack([I_b, I_w, np.log10(np.maximum(I_c, _LOG_IC_FLOOR))])
     interp = LinearNDInterpolator(points, np.column_stack([aa, ss, gg]))
     _CACHE[key] = interp
