@@ -68,8 +68,8 @@ def _key(amap):
 
 
 def _forward_grid(amap) -> ForwardGrid:
-    """One forward model per map for every method's polish and Jacobian: the map table's (the map
-    resampled onto refined axes with cubic splines, evaluated trilinearly)."""
+    """One forward model per map for every method's polish and Jacobian: the map table's forward
+    map between its nodes (ForwardGrid.between_nodes)."""
     return table_inverter(amap).grid
 
 

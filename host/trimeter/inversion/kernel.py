@@ -1,5 +1,6 @@
-"""The forward map as a fast, vectorised kernel shared by every method: trilinear A, B, C on the
-map's (α, ln σt, g) grid with analytic derivatives, a batched 2×2 Newton (Levenberg-Marquardt)
+"""The forward map as a fast, vectorised kernel shared by every method: trilinear A, B, C on a
+(α, ln σt, g) grid (the map's, refined between its nodes: ForwardGrid.between_nodes) with analytic
+derivatives, a batched 2×2 Newton (Levenberg-Marquardt)
 solve of (I_b, I_w) for (α, g) at a known σt, and first-order uncertainty propagation.
 
 Why (α, g) at known σt: I_c depends on σt alone (trimeter.forward.collimated), so the square 3×3

@@ -1,10 +1,11 @@
 """`lut`: the map table's inverse grid for the initial guess, then an optional Newton polish on the
-table's own forward map at the bins' true ρ_b(λ), ρ_w(λ).
+table's own forward map (refined between its nodes at load) at the bins' true ρ_b(λ), ρ_w(λ).
 
 σt comes from I_c directly (exact Beer-Lambert with Fresnel: I_c depends on σt alone); the inverse
 grid is looked up bilinearly in (√I_b, √I_w) on the two σt nodes bracketing it and blended. The grid
 was built at the reference backgrounds; when a bin's ρ's differ, the polish (a few vectorised
-Gauss-Newton steps) moves the guess to the exact solution of the trilinear forward map.
+Gauss-Newton steps, each bin stopping once converged) moves the guess to the exact solution of
+that forward map.
 
 Guess and polish run in C when the native kernel is built (trimeter.inversion.native, same
 algorithm, tested to agree); the numpy code below is the reference and the fallback.
