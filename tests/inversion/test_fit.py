@@ -214,3 +214,34 @@ def test_accuracy_on_exact_held_out_materials(ideal_map, ideal_model, method):
     assert np.percentile(np.abs(r.alpha - a)[measurable], 95) < 0.03
     assert np.percentile(np.abs(r.g - g)[measurable & (a >= 0.5)], 95) < 0.03
     assert np.percentile(np.abs(r.sigma_t / s - 1)[measurable], 95) < 1e-9
+
+
+def test_optically_thick_samples_are_flagged_underdetermined():
+    """Where the background no longer shows through (I_b ≈ I_w), only a combination of α and g is
+    determined: the fit says so with UNDERDETERMINED and a large α std; a moderate sample is clean."""
+    from trimeter.maps.appearance import AppearanceMap
+    from trimeter.paths import MAPS_DIR
+
+    amap = AppearanceMap.load(MAPS_DIR / "device-n1.5-l0.8.tmap")
+    tau = np.array([1.0, 6.0])  # σt·ℓ
+    I_b, I_w, I_c = amap.query(np.full(2, 0.5), tau / amap.thickness_mm, np.full(2, 0.5), 0.02, 0.9)
+    assert I_w[1] - I_b[1] < 1e-3 < I_w[0] - I_b[0]
+    for method in ("lut", "paper"):
+        r = trimeter.fit(amap, I_b, I_w, I_c, method=method, **({"samples": 0} if method == "paper" else {}))
+        underdetermined = (r.flags & FitFlag.UNDERDETERMINED) != 0
+        assert underdetermined.tolist() == [False, True], (method, r.flags, r.alpha_std, r.g_std)
+        assert r.alpha_std[1] > 0.1 > r.alpha_std[0]
+
+
+def test_a_second_thickness_that_determines_the_material_clears_underdetermined():
+    """σt 7.5/mm: underdetermined at 0.8 mm (σt·ℓ 6), well determined at 0.4 mm; combined, the
+    material is determined, so the flag is judged on the combined stds, not OR-ed from one thickness."""
+    from trimeter.maps.appearance import AppearanceMap
+    from trimeter.paths import MAPS_DIR
+
+    maps = [AppearanceMap.load(MAPS_DIR / f"device-n1.5-l{ell}.tmap") for ell in ("0.4", "0.8")]
+    I = [m.query(np.array([0.5]), np.array([7.5]), np.array([0.5]), 0.02, 0.9) for m in maps]
+    r = trimeter.fit(maps, *(np.stack([I[0][k], I[1][k]]) for k in range(3)))
+    thin, thick = r.per_thickness
+    assert not thin.flags[0] & FitFlag.UNDERDETERMINED and thick.flags[0] & FitFlag.UNDERDETERMINED
+    assert not r.flags[0] & FitFlag.UNDERDETERMINED and r.alpha_std[0] < 0.05

@@ -243,12 +243,19 @@ def _stats(res, truth, budget):
     es = np.abs(res.sigma_t / s - 1)[measurable]
     eg = np.abs(res.g - g)
     nan_meas = float(np.mean(~np.isfinite(res.alpha[measurable]) | ~np.isfinite(res.sigma_t[measurable])))
+    # the bins the fit itself calls determined (no FitFlag.UNDERDETERMINED)
+    from trimeter.inversion.flags import FitFlag
+
+    determined = (res.flags & int(FitFlag.UNDERDETERMINED)) == 0
     return {"alpha_p50": _pct(ea[measurable], 50), "alpha_p95": _pct(ea[measurable], 95), "sigma_rel_p50": _pct(es, 50),
             "sigma_rel_p95": _pct(es, 95), "g_p50": _pct(eg[budget["g_scored"]], 50),
             "g_p95": _pct(eg[budget["g_scored"]], 95),
             "nan_rate": float(np.mean(~np.isfinite(res.alpha))), "nan_rate_measurable": nan_meas,
             "flag_rate": float(np.mean(res.flags != 0)),
-            "alpha_p95_well": _pct(ea[budget["well_alpha"]], 95), "g_p95_well": _pct(eg[budget["well_g"]], 95)}
+            "alpha_p95_well": _pct(ea[budget["well_alpha"]], 95), "g_p95_well": _pct(eg[budget["well_g"]], 95),
+            "alpha_p95_determined": _pct(ea[measurable & determined], 95),
+            "g_p95_determined": _pct(eg[budget["g_scored"] & determined], 95),
+            "determined_rate": float(np.mean(determined[measurable]))}
 
 
 def _bench_case(amap, variants, truth, budget, intensities, label, level, args, small):
@@ -451,12 +458,14 @@ def _print_budget(summary, rows, exact_rows):
           f"{wc['alpha_count']}/{wc['alpha_of']} materials, g std < {wc['g_floor_std_below']:g} for "
           f"{wc['g_count']}/{wc['g_of']}")
     print(f"\n   noise-free p95 {'':<5}{'rendered α':>11}{'g':>9} | {'well-cond. α':>12}{'g':>9} | "
-          f"{'map-exact α':>12}{'g':>9}   (targets α {ALPHA_TARGET:g}, g {G_TARGET:g})")
+          f"{'map-exact α':>12}{'g':>9} | {'determined α':>12}{'g':>9}{'share':>7}   "
+          f"(targets α {ALPHA_TARGET:g}, g {G_TARGET:g}; determined: no UNDERDETERMINED flag)")
     exact = {r["variant"]: r for r in exact_rows}
     for r in (r for r in rows if r["noise"] == 0):
         e = exact[r["variant"]]
         print(f"   {r['variant']:<20}{r['alpha_p95']:>11.4f}{r['g_p95']:>9.4f} | {r['alpha_p95_well']:>12.4f}"
-              f"{r['g_p95_well']:>9.4f} | {e['alpha_p95']:>12.4f}{e['g_p95']:>9.4f}")
+              f"{r['g_p95_well']:>9.4f} | {e['alpha_p95']:>12.4f}{e['g_p95']:>9.4f} | "
+              f"{r['alpha_p95_determined']:>12.4f}{r['g_p95_determined']:>9.4f}{r['determined_rate']:>7.0%}")
 
 
 def _pareto(rows, exact_rows, summary, amap, out: Path) -> Path:

@@ -26,6 +26,7 @@ from trimeter.inversion.kernel import ForwardGrid
 METHODS = ("lut", "mlp", "paper")
 _INPUT_TOLERANCE = 1e-3   # intensities this far below 0 / above 1 are still taken as noise around the limit
 _DISAGREE_SIGMAS = 3.0
+UNDERDETERMINED_ALPHA_STD, UNDERDETERMINED_G_STD = 0.1, 0.2  # FitFlag.UNDERDETERMINED above these stds
 
 
 @dataclass
@@ -196,7 +197,7 @@ def _fit_one(amap, I_b, I_w, I_c, rho_b, rho_w, *, method, polish, polish_tol, m
         options = dict(noise_rel=noise_rel, noise_abs=noise_abs, mc_stderr=grid.mc_stderr, ic_floor=ic_floor,
                        alpha_min_g=alpha_min_g, input_tolerance=_INPUT_TOLERANCE, ref_rho=grid_ref(amap),
                        t_max=_t_max(grid), t_valid=grid.stack_constants[2] * (1 + 1e-12), iterations=polish,
-                       step_tol=polish_tol)
+                       step_tol=polish_tol, underdetermined_std=(UNDERDETERMINED_ALPHA_STD, UNDERDETERMINED_G_STD))
     alpha0 = g0 = None
     if method == "mlp":  # the network's guess needs σt and the sanitized inputs first
         from trimeter.inversion.mlp import mlp_inverter
@@ -268,6 +269,11 @@ def _prepare(amap, grid, I_b, I_w, I_c, rho_b, rho_w, ic_floor) -> _Prepared:
     return _Prepared(flags, usable, ib, iw, ic, rb, rw, sigma_t, sigma_beer)
 
 
+def _underdetermined(std_a, std_g):
+    with np.errstate(invalid="ignore"):  # NaN std_g (g undefined) does not count
+        return (std_a > UNDERDETERMINED_ALPHA_STD) | (std_g > UNDERDETERMINED_G_STD)
+
+
 def grid_ref(amap):
     return float(amap.recipe.get("reference_rho_b", 0.0)), float(amap.recipe.get("reference_rho_w", 1.0))
 
@@ -296,6 +302,7 @@ def _finish(amap, grid, flags, usable, ib, iw, ic, rb, rw, alpha, sigma_t, g, re
     flags |= np.where(g_undef, int(FitFlag.G_UNDEFINED), 0)
     g = np.where(g_undef, np.nan, g)
     std_g = np.where(g_undef, np.nan, std_g)
+    flags |= np.where(usable & _underdetermined(std_a, std_g), int(FitFlag.UNDERDETERMINED), 0)
     blank = ~usable
     nan = np.nan
     return FitResult(alpha=np.where(blank, nan, alpha), sigma_t=np.where(blank, nan, sigma_t),
@@ -315,6 +322,7 @@ def combine(results: list[FitResult], method: str) -> FitResult:
     # A thickness whose bins were unusable drops out; its UNUSABLE bits stay only if all dropped.
     all_unusable = np.logical_and.reduce([(r.flags & int(UNUSABLE)) != 0 for r in results])
     flags = np.where(all_unusable, flags, flags & ~int(UNUSABLE))
+    flags &= ~int(FitFlag.UNDERDETERMINED)  # judged again on the combined stds below
     for name in ("alpha", "sigma_t", "g", "sigma_t_beer"):
         std_name = "sigma_t_std" if name == "sigma_t_beer" else f"{name}_std"
         vals = np.stack([getattr(r, name) for r in results])
@@ -325,6 +333,8 @@ def combine(results: list[FitResult], method: str) -> FitResult:
             out[std_name] = std
             disagree = _disagree(vals, stds)
             flags |= np.where(disagree, int(FitFlag.THICKNESS_DISAGREE), 0)
+    usable = (flags & int(UNUSABLE)) == 0
+    flags |= np.where(usable & _underdetermined(out["alpha_std"], out["g_std"]), int(FitFlag.UNDERDETERMINED), 0)
     return FitResult(alpha=out["alpha"], sigma_t=out["sigma_t"], g=out["g"], alpha_std=out["alpha_std"],
                      sigma_t_std=out["sigma_t_std"], g_std=out["g_std"], flags=flags,
                      sigma_t_beer=out["sigma_t_beer"], method=method, per_thickness=results)

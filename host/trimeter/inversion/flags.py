@@ -21,6 +21,11 @@ class FitFlag(enum.IntFlag):
     NOT_CONVERGED = 1 << 7        # the forward-map residual stayed above tolerance (outside the measurable gamut)
     THICKNESS_DISAGREE = 1 << 8   # two thicknesses disagree beyond their combined uncertainty
     BAD_BACKGROUND = 1 << 9       # ρ_b, ρ_w not in [0, 1] with ρ_b < ρ_w                    → NaN outputs
+    # The measurement barely constrains α or g (first-order std of α > 0.1 or of g > 0.2 under the fit's
+    # noise model): an optically thick sample (I_b ≈ I_w, the background no longer shows through, so only
+    # a combination of α and g is determined) or a very thin one. The value solves the map, but so would
+    # others; the stds say by how much.
+    UNDERDETERMINED = 1 << 10
 
 
 UNUSABLE = FitFlag.NONFINITE_INPUT | FitFlag.NEGATIVE_INPUT | FitFlag.ABOVE_ONE | FitFlag.BAD_BACKGROUND

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 LIBRARY = Path(__file__).with_name("libtrimeter_invert.so")
-ABI_VERSION = 4
+ABI_VERSION = 5
 
 _double_p = ctypes.POINTER(ctypes.c_double)
 
@@ -42,7 +42,8 @@ class _InverseTableC(ctypes.Structure):
 class _FitOptionsC(ctypes.Structure):
     _fields_ = [(name, ctypes.c_double) for name in (
         "noise_rel", "noise_abs", "mc_stderr", "ic_floor", "alpha_min_g", "input_tolerance", "ref_rho_b",
-        "ref_rho_w", "t_max", "t_valid", "step_tol")] + [("iterations", ctypes.c_int32)]
+        "ref_rho_w", "t_max", "t_valid", "step_tol", "underdetermined_alpha_std", "underdetermined_g_std")] + [
+        ("iterations", ctypes.c_int32)]
 
 
 class _FitOutputsC(ctypes.Structure):
@@ -52,7 +53,7 @@ class _FitOutputsC(ctypes.Structure):
 
 # tm_flag_bits order; the library is refused if its bits differ from FitFlag's
 _FLAG_ORDER = ("NONFINITE_INPUT", "NEGATIVE_INPUT", "ABOVE_ONE", "BLACK_NOT_BELOW_WHITE", "IC_BELOW_FLOOR",
-               "G_UNDEFINED", "OUTSIDE_MAP", "NOT_CONVERGED", "BAD_BACKGROUND")
+               "G_UNDEFINED", "OUTSIDE_MAP", "NOT_CONVERGED", "BAD_BACKGROUND", "UNDERDETERMINED")
 
 
 def _load():
@@ -170,7 +171,7 @@ class NativeSolver:
         """One thickness's whole fit in one call (invert.c `tm_fit`, api._fit_one's reference path
         operation for operation): a dict of the FitResult columns and `steps`, the Newton steps taken.
         options: those of _FitOptionsC (noise_rel, noise_abs, mc_stderr, ic_floor, alpha_min_g,
-        input_tolerance, ref_rho, t_max, t_valid, iterations, step_tol)."""
+        input_tolerance, ref_rho, t_max, t_valid, iterations, step_tol, underdetermined_std)."""
         n = len(I_b)
         args = [_f64(v, n) for v in (I_b, I_w, I_c, rho_b, rho_w)]
         guess = [None, None] if alpha0 is None else [_f64(alpha0, n), _f64(g0, n)]
@@ -200,9 +201,9 @@ class NativeSolver:
 
 
 def _fit_options(*, noise_rel, noise_abs, mc_stderr, ic_floor, alpha_min_g, input_tolerance, ref_rho, t_max, t_valid,
-                 iterations, step_tol) -> _FitOptionsC:
+                 iterations, step_tol, underdetermined_std=(np.inf, np.inf)) -> _FitOptionsC:
     return _FitOptionsC(noise_rel, noise_abs, mc_stderr, ic_floor, alpha_min_g, input_tolerance, *ref_rho, t_max,
-                        t_valid, step_tol, iterations)
+                        t_valid, step_tol, *underdetermined_std, iterations)
 
 
 def _uniform_step(axis: np.ndarray) -> float:

@@ -22,7 +22,7 @@
 #include <stdint.h>
 #include <stdlib.h>
 
-#define TM_ABI_VERSION 4
+#define TM_ABI_VERSION 5
 
 typedef struct {
     int32_t na, ns, ng;
@@ -337,14 +337,15 @@ enum {
     FLAG_OUTSIDE_MAP = 1 << 6,
     FLAG_NOT_CONVERGED = 1 << 7,
     FLAG_BAD_BACKGROUND = 1 << 9,
+    FLAG_UNDERDETERMINED = 1 << 10,
     FLAG_UNUSABLE = FLAG_NONFINITE_INPUT | FLAG_NEGATIVE_INPUT | FLAG_ABOVE_ONE | FLAG_BAD_BACKGROUND,
 };
 
-void tm_flag_bits(int64_t out[9]) {
-    const int64_t bits[9] = {FLAG_NONFINITE_INPUT, FLAG_NEGATIVE_INPUT, FLAG_ABOVE_ONE, FLAG_BLACK_NOT_BELOW_WHITE,
-                             FLAG_IC_BELOW_FLOOR, FLAG_G_UNDEFINED, FLAG_OUTSIDE_MAP, FLAG_NOT_CONVERGED,
-                             FLAG_BAD_BACKGROUND};
-    for (int k = 0; k < 9; k++) out[k] = bits[k];
+void tm_flag_bits(int64_t out[10]) {
+    const int64_t bits[10] = {FLAG_NONFINITE_INPUT, FLAG_NEGATIVE_INPUT, FLAG_ABOVE_ONE, FLAG_BLACK_NOT_BELOW_WHITE,
+                              FLAG_IC_BELOW_FLOOR, FLAG_G_UNDEFINED, FLAG_OUTSIDE_MAP, FLAG_NOT_CONVERGED,
+                              FLAG_BAD_BACKGROUND, FLAG_UNDERDETERMINED};
+    for (int k = 0; k < 10; k++) out[k] = bits[k];
 }
 
 typedef struct {
@@ -356,6 +357,7 @@ typedef struct {
     double t_max;                /* I_c at σt = 0 */
     double t_valid;              /* the Beer-Lambert inverse is defined for 0 < I_c ≤ t_valid */
     double step_tol;
+    double underdetermined_alpha_std, underdetermined_g_std; /* FLAG_UNDERDETERMINED above these stds */
     int32_t iterations;
 } tm_fit_options;
 
@@ -483,6 +485,7 @@ long long tm_fit(const tm_forward_grid *f, const tm_inverse_table *table, const 
             fl |= FLAG_G_UNDEFINED;
             gg = sg = NAN;
         }
+        if (usable && (sa > o->underdetermined_alpha_std || sg > o->underdetermined_g_std)) fl |= FLAG_UNDERDETERMINED;
         if (!usable) {
             a = gg = sa = ss = sg = NAN;
             sigma_t[i] = out->sigma_t_beer[i] = NAN;
