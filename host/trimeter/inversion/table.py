@@ -56,7 +56,7 @@ from pathlib import Path
 import numpy as np
 
 from trimeter.errors import MapFileError
-from trimeter.inversion.kernel import cubic_resample, refine_axis
+from trimeter.inversion.kernel import ForwardGrid, refine_axis
 from trimeter.registers import MAP_SLOT_CAPACITY_BYTES
 
 TABLE_MAGIC = b"\x89TRLUT\r\n"
@@ -273,7 +273,7 @@ def build_from_map(amap, n_xy: int | None = None, budget: int = MAX_TABLE_BYTES,
                    refine: tuple[int, int, int] | None = None) -> MapTable:
     """The map table of an AppearanceMap.
 
-    The forward section is the map resampled with cubic splines onto its axes refined by `refine`
+    The forward section is the map resampled onto its axes refined by `refine` (ForwardGrid.refined)
     (default: _REFINE_SMOOTH for a map whose MC std-error is below _SMOOTH_STDERR and that still
     fits, else the map's own grid), so the run-time trilinear evaluation follows the map's curvature
     between its nodes (exact ideal map: I_w error p95 3.7e-3 trilinear vs 1.4e-4 cubic). `n_xy` (the inverse grid's side) defaults to the largest that fits `budget` bytes."""
@@ -283,9 +283,11 @@ def build_from_map(amap, n_xy: int | None = None, budget: int = MAX_TABLE_BYTES,
         dims = [(n - 1) * r + 1 for n, r in zip((na0, ns0, ng0), _REFINE_SMOOTH)]
         smooth_fits = mc < _SMOOTH_STDERR and _total_size(*dims, _MIN_XY, _MIN_XY) <= budget
         refine = _REFINE_SMOOTH if smooth_fits else (1, 1, 1)
-    alpha_axis, log_s_axis, g_axis = (refine_axis(ax, r) if min(len(ax), 4) == 4 else ax for ax, r in
-                                      zip((amap.alpha, np.log(amap.sigma_t), amap.g), refine))
-    coef = _resample(amap, alpha_axis, log_s_axis, g_axis)
+    # the map between its nodes (ForwardGrid.refined); an axis with fewer than 4 nodes stays as it is
+    factors = [r if len(ax) >= 4 else 1 for ax, r in zip((amap.alpha, amap.sigma_t, amap.g), refine)]
+    grid = ForwardGrid.from_map(amap).refined(*factors)
+    alpha_axis, log_s_axis, g_axis = grid.alpha, grid.log_sigma_t, grid.g
+    coef = np.moveaxis(grid.coefficients_grid, -1, 0)  # (A, B, C) first
     na, ns, ng = coef.shape[1:]
     nxy = n_xy if n_xy is not None else _inverse_size_for(na, ns, ng, budget, max_xy)
     if _total_size(na, ns, ng, nxy, nxy) > budget:
@@ -301,10 +303,6 @@ def build_from_map(amap, n_xy: int | None = None, budget: int = MAX_TABLE_BYTES,
     # (projected onto the gamut where a grid point lies outside it).
     from scipy.spatial import cKDTree
 
-    from trimeter.inversion.kernel import ForwardGrid
-
-    grid = ForwardGrid(alpha_axis, log_s_axis, g_axis, np.moveaxis(coef, 0, -1), n=amap.n,
-                       thickness_mm=amap.thickness_mm, cover_slide_n=amap.cover_slide_n)
     aa, gg = (v.ravel() for v in np.meshgrid(refine_axis(alpha_axis, 2), refine_axis(g_axis, 2), indexing="ij"))
     frames = np.zeros((ns, 6), dtype=np.float32)
     starts_a = np.zeros((ns, nxy, nxy)); starts_g = np.zeros((ns, nxy, nxy))
@@ -336,22 +334,6 @@ def build_from_map(amap, n_xy: int | None = None, budget: int = MAX_TABLE_BYTES,
                     alpha=alpha_axis.astype(np.float32), log_sigma_t=log_s_axis.astype(np.float32),
                     g=g_axis.astype(np.float32), coef_quant=quant, coef_q=coef_q, inv_frame=frames,
                     inv_alpha_q=inv_a, inv_g_q=inv_g)
-
-
-def _resample(amap, alpha_axis, log_s_axis, g_axis) -> np.ndarray:
-    """A, B, C (3, na, ns, ng) on the refined axes: cubic splines through the map's nodes (which
-    they reproduce exactly), linear along an axis with fewer than 4 nodes."""
-    out = []
-    for table in (amap.A, amap.B, amap.C):
-        v = np.asarray(table, dtype=np.float64)
-        for axis, (old, new) in enumerate(((amap.alpha, alpha_axis), (np.log(amap.sigma_t), log_s_axis),
-                                           (amap.g, g_axis))):
-            if len(new) != len(old):
-                v = cubic_resample(v, old, new, axis)
-        out.append(v)
-    coef = np.stack(out)
-    coef[2] = np.clip(coef[2], 0.0, 0.999)  # C: a reflectance, and 1 − Cρ must stay positive
-    return coef
 
 
 def _gamut_frame(xy: np.ndarray) -> np.ndarray:
