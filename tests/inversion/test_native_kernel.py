@@ -149,13 +149,11 @@ def test_the_adaptive_polish_stops_converged_bins_early_with_the_same_result():
     adaptive = inverter.invert(I_b, I_w, sigma_t, rho_b, rho_w, polish_iterations=12, step_tol=1e-6)
     np.testing.assert_allclose(adaptive[0], fixed[0], atol=1e-5)  # a step ≤ 1e-6 leaves at most a few of it
     np.testing.assert_allclose(adaptive[1], fixed[1], atol=1e-5)
-    from trimeter.inversion.api import _t_max, grid_ref
+    from trimeter.inversion.api import native_options
 
-    a, b, t_valid = inverter.grid.stack_constants
-    out = inverter.native_solver.fit(I_b, I_w, inverter.grid.collimated(sigma_t), rho_b, rho_w, noise_rel=0.005,
-                                     noise_abs=2e-4, mc_stderr=0.0, ic_floor=1e-4, alpha_min_g=0.02,
-                                     input_tolerance=1e-3, ref_rho=grid_ref(amap), t_max=_t_max(inverter.grid),
-                                     t_valid=t_valid * (1 + 1e-12), iterations=12, step_tol=1e-6)
+    options = native_options(amap, inverter.grid, polish=12, polish_tol=1e-6, noise_rel=0.005, noise_abs=2e-4,
+                             ic_floor=1e-4, alpha_min_g=0.02)
+    out = inverter.native_solver.fit(I_b, I_w, inverter.grid.collimated(sigma_t), rho_b, rho_w, **options)
     # converged bins left early: fewer steps than 12 per bin on average, the same α to the tolerance
     assert 1.0 < out["steps"] / 2000 < 8.0
     np.testing.assert_allclose(out["alpha"], np.clip(fixed[0], 0, 1), atol=1e-5)
@@ -171,10 +169,8 @@ def test_the_mlp_guess_inputs_from_c_match_the_numpy_preparation():
     args = _fit_inputs(np.random.default_rng(11))
     inverter = api.table_inverter(amap)
     grid = inverter.grid
-    compiled = inverter.native_solver.prepare(
-        *args, noise_rel=0.005, noise_abs=2e-4, mc_stderr=grid.mc_stderr, ic_floor=1e-4, alpha_min_g=0.02,
-        input_tolerance=api._INPUT_TOLERANCE, ref_rho=api.grid_ref(amap), t_max=api._t_max(grid),
-        t_valid=grid.stack_constants[2] * (1 + 1e-12), iterations=0, step_tol=0.0)
+    compiled = inverter.native_solver.prepare(*args, **api.native_options(
+        amap, grid, polish=0, polish_tol=0.0, noise_rel=0.005, noise_abs=2e-4, ic_floor=1e-4, alpha_min_g=0.02))
     p = api._prepare(amap, grid, *args, 1e-4)
     for got, want, name in zip(compiled, (p.ib, p.iw, p.sigma_t, p.rb, p.rw), ("ib", "iw", "sigma_t", "rb", "rw")):
         np.testing.assert_allclose(got, want, rtol=1e-12, atol=0, err_msg=name)

@@ -75,14 +75,19 @@ def collimated_derivative(sigma_t, thickness_mm: float, n: float, cover_slide_n:
     return -thickness_mm * a * x * (1.0 + bx2) / ((1.0 - bx2) * (1.0 - bx2))
 
 
+def beer_lambert_limit(n: float, cover_slide_n: float | None = None) -> float:
+    """The largest I_c beer_lambert_sigma_t inverts: T(σt = 0), widened by 1e-12 for rounding."""
+    return stack_constants(n, cover_slide_n)[2] * (1 + 1e-12)
+
+
 def beer_lambert_sigma_t(I_c, thickness_mm: float, n: float, cover_slide_n: float | None = None):
     """Invert collimated_transmittance for σt (paper Eq. 2, with the same Fresnel stack). NaN where
     I_c is not inside (0, T(σt=0)]. Used as the consistency column of a fit."""
     I_c = np.asarray(I_c, dtype=float)
     # T = a·x / (1 − b·x²) (stack_constants): solving b·I·x² + a·x − I = 0 for x is exact.
-    a, b, t1 = stack_constants(n, cover_slide_n)
+    a, b, _ = stack_constants(n, cover_slide_n)
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         x = 2 * I_c / (a + np.sqrt(a * a + 4 * b * I_c * I_c))  # the stable root of the quadratic
         sigma = -np.log(x) / thickness_mm
-    ok = np.isfinite(I_c) & (I_c > 0) & (I_c <= t1 * (1 + 1e-12))
+    ok = np.isfinite(I_c) & (I_c > 0) & (I_c <= beer_lambert_limit(n, cover_slide_n))
     return np.where(ok, np.maximum(sigma, 0.0), np.nan)

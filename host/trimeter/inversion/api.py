@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from trimeter.errors import InputError, MapFileError
-from trimeter.forward.collimated import beer_lambert_sigma_t
+from trimeter.forward.collimated import beer_lambert_limit, beer_lambert_sigma_t
 from trimeter.inversion.flags import UNUSABLE, FitFlag
 from trimeter.inversion.kernel import ForwardGrid
 
@@ -194,10 +194,8 @@ def _fit_one(amap, I_b, I_w, I_c, rho_b, rho_w, *, method, polish, polish_tol, m
     grid = inverter.grid
     solver = inverter.native_solver  # the whole fit in C (invert.c tm_fit); the numpy code below is its reference
     if solver is not None:
-        options = dict(noise_rel=noise_rel, noise_abs=noise_abs, mc_stderr=grid.mc_stderr, ic_floor=ic_floor,
-                       alpha_min_g=alpha_min_g, input_tolerance=_INPUT_TOLERANCE, ref_rho=grid_ref(amap),
-                       t_max=_t_max(grid), t_valid=grid.stack_constants[2] * (1 + 1e-12), iterations=polish,
-                       step_tol=polish_tol, underdetermined_std=(UNDERDETERMINED_ALPHA_STD, UNDERDETERMINED_G_STD))
+        options = native_options(amap, grid, polish=polish, polish_tol=polish_tol, noise_rel=noise_rel,
+                                 noise_abs=noise_abs, ic_floor=ic_floor, alpha_min_g=alpha_min_g)
     alpha0 = g0 = None
     if method == "mlp":  # the network's guess needs σt and the sanitized inputs first
         from trimeter.inversion.mlp import mlp_inverter
@@ -223,6 +221,15 @@ def _fit_one(amap, I_b, I_w, I_c, rho_b, rho_w, *, method, polish, polish_tol, m
     return _finish(amap, grid, p.flags, p.usable, p.ib, p.iw, p.ic, p.rb, p.rw, alpha, p.sigma_t, g, residual,
                    p.sigma_beer, method=method, noise_rel=noise_rel, noise_abs=noise_abs, alpha_min_g=alpha_min_g,
                    J=J)
+
+
+def native_options(amap, grid, *, polish, polish_tol, noise_rel, noise_abs, ic_floor, alpha_min_g) -> dict:
+    """The C kernel's options for one thickness (NativeSolver.fit / prepare): fit()'s parameters plus
+    what the numpy path below takes from the map and its grid."""
+    return dict(noise_rel=noise_rel, noise_abs=noise_abs, mc_stderr=grid.mc_stderr, ic_floor=ic_floor,
+                alpha_min_g=alpha_min_g, input_tolerance=_INPUT_TOLERANCE, ref_rho=grid_ref(amap),
+                t_max=_t_max(grid), t_valid=beer_lambert_limit(grid.n, grid.cover_slide_n), iterations=polish,
+                step_tol=polish_tol, underdetermined_std=(UNDERDETERMINED_ALPHA_STD, UNDERDETERMINED_G_STD))
 
 
 @dataclass

@@ -144,7 +144,6 @@ class NativeSolver:
                                          _ptr(keep["table_log_sigma_t"]), _ptr(keep["table_inv_ds"]),
                                          _uniform_step(keep["table_log_sigma_t"]))
         self._keep = keep
-        self._forward = grid
         self._grid_ref = ctypes.byref(self._grid)
         self._table_ref = ctypes.byref(self._table) if self._table is not None else None
 
@@ -170,8 +169,7 @@ class NativeSolver:
     def fit(self, I_b, I_w, I_c, rho_b, rho_w, *, alpha0=None, g0=None, **options):
         """One thickness's whole fit in one call (invert.c `tm_fit`, api._fit_one's reference path
         operation for operation): a dict of the FitResult columns and `steps`, the Newton steps taken.
-        options: those of _FitOptionsC (noise_rel, noise_abs, mc_stderr, ic_floor, alpha_min_g,
-        input_tolerance, ref_rho, t_max, t_valid, iterations, step_tol, underdetermined_std)."""
+        options: trimeter.inversion.api.native_options(…)."""
         n = len(I_b)
         args = [_f64(v, n) for v in (I_b, I_w, I_c, rho_b, rho_w)]
         guess = [None, None] if alpha0 is None else [_f64(alpha0, n), _f64(g0, n)]
@@ -201,7 +199,7 @@ class NativeSolver:
 
 
 def _fit_options(*, noise_rel, noise_abs, mc_stderr, ic_floor, alpha_min_g, input_tolerance, ref_rho, t_max, t_valid,
-                 iterations, step_tol, underdetermined_std=(np.inf, np.inf)) -> _FitOptionsC:
+                 iterations, step_tol, underdetermined_std) -> _FitOptionsC:
     return _FitOptionsC(noise_rel, noise_abs, mc_stderr, ic_floor, alpha_min_g, input_tolerance, *ref_rho, t_max,
                         t_valid, step_tol, *underdetermined_std, iterations)
 
