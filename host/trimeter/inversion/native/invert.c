@@ -65,32 +65,27 @@ static inline int find_cell(const double *axis, const double *inv_d, int n, doub
     return i;
 }
 
-/* find_cell on an evenly spaced axis (inv_step = 1 / its step; 0: not evenly spaced, binary search):
- * the index straight from x, then at most a step either way for rounding at a node. Same result
- * as find_cell for every x. */
-static inline int find_cell_on(const double *axis, const double *inv_d, int n, double inv_step, double x, double *w) {
-    if (!(inv_step > 0.0) || !isfinite(x)) return find_cell(axis, inv_d, n, x, w);
-    double t = (x - axis[0]) * inv_step;
-    int i = t <= 0.0 ? 0 : (t >= n - 1 ? n - 1 : (int)t);
+/* find_cell from a starting cell i in [0, n-2]: walk down while x is below the cell, up while the
+ * next node is ≤ x. Same result as find_cell for every non-NaN x; cheap when i is near the answer. */
+static inline int walk_from(const double *axis, const double *inv_d, int n, double x, int i, double *w) {
     while (i > 0 && x < axis[i]) i--;
-    while (i < n - 1 && axis[i + 1] <= x) i++;
-    if (i > n - 2) i = n - 2;
+    while (i < n - 2 && axis[i + 1] <= x) i++;
     *w = clampd((x - axis[i]) * inv_d[i], 0.0, 1.0);
     return i;
 }
 
+/* find_cell on an evenly spaced axis (inv_step = 1 / its step; 0: not evenly spaced, binary search):
+ * the index straight from x, then a step either way for rounding at a node. */
+static inline int find_cell_on(const double *axis, const double *inv_d, int n, double inv_step, double x, double *w) {
+    if (!(inv_step > 0.0) || !isfinite(x)) return find_cell(axis, inv_d, n, x, w);
+    double t = (x - axis[0]) * inv_step;
+    return walk_from(axis, inv_d, n, x, t <= 0.0 ? 0 : (t >= n - 2 ? n - 2 : (int)t), w);
+}
+
 /* find_cell starting from the cell found last time (*hint; < 0: none yet): Newton iterates move a
- * cell or two at most, so a short walk replaces the ~6 dependent loads of the binary search. Same
- * result as find_cell for every x (NaN goes to find_cell). */
+ * cell or two at most, so a short walk replaces the ~6 dependent loads of the binary search. */
 static inline int walk_cell(const double *axis, const double *inv_d, int n, double x, int32_t *hint, double *w) {
-    int i = *hint;
-    if (i < 0 || isnan(x)) {
-        i = find_cell(axis, inv_d, n, x, w);
-    } else {
-        while (i > 0 && x < axis[i]) i--;
-        while (i < n - 2 && axis[i + 1] <= x) i++;
-        *w = clampd((x - axis[i]) * inv_d[i], 0.0, 1.0);
-    }
+    int i = (*hint < 0 || isnan(x)) ? find_cell(axis, inv_d, n, x, w) : walk_from(axis, inv_d, n, x, *hint, w);
     *hint = i;
     return i;
 }
