@@ -37,6 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
+from trimeter.inversion.flags import FitFlag
 from trimeter.paths import MAPS_DIR, REPO_ROOT
 
 HELDOUT_DIR = MAPS_DIR / "heldout"
@@ -138,10 +139,10 @@ def _core(amap, kind, kw, I_b, I_w, I_c, rb, rw, small_table):
     from trimeter.inversion.api import table_inverter
 
     if kind == "paper":
-        from trimeter.inversion.paper import _LOG_IC_FLOOR, _interpolator
+        from trimeter.inversion.paper import _interpolator, coordinates
 
         interp = _interpolator(amap, round(rb, 3), round(rw, 3))
-        return lambda: interp(np.column_stack([I_b, I_w, np.log10(np.maximum(I_c, _LOG_IC_FLOOR))]))
+        return lambda: interp(coordinates(I_b, I_w, I_c))
     n = len(I_b)
     rho_b, rho_w = np.full(n, rb), np.full(n, rw)
     inv = small_table if kind == "lut-small" else table_inverter(amap)
@@ -244,8 +245,6 @@ def _stats(res, truth, budget):
     eg = np.abs(res.g - g)
     nan_meas = float(np.mean(~np.isfinite(res.alpha[measurable]) | ~np.isfinite(res.sigma_t[measurable])))
     # the bins the fit itself calls determined (no FitFlag.UNDERDETERMINED)
-    from trimeter.inversion.flags import FitFlag
-
     determined = (res.flags & int(FitFlag.UNDERDETERMINED)) == 0
     return {"alpha_p50": _pct(ea[measurable], 50), "alpha_p95": _pct(ea[measurable], 95), "sigma_rel_p50": _pct(es, 50),
             "sigma_rel_p95": _pct(es, 95), "g_p50": _pct(eg[budget["g_scored"]], 50),
@@ -286,9 +285,7 @@ def _bench_case(amap, variants, truth, budget, intensities, label, level, args, 
         for st, key, fn, scale in timers:
             if st["variant"] == "paper-median" and round_no > 0:
                 continue
-            t = time.perf_counter()
-            fn()
-            st[key] = min(st[key], (time.perf_counter() - t) * 1e3 * scale)
+            st[key] = min(st[key], _timed(fn) * scale)
     return rows
 
 
@@ -298,10 +295,10 @@ def hull_split(amap, I_b, I_w, I_c, rb, rw, repeats):
     a brute-force pass over every simplex (~0.3 ms). So: paper core and whole fit() against lut's
     default fit() on the inputs inside the hull alone (tiled to 1024), next to the whole set."""
     import trimeter
-    from trimeter.inversion.paper import _LOG_IC_FLOOR, _interpolator
+    from trimeter.inversion.paper import _interpolator, coordinates
 
     interp = _interpolator(amap, round(rb, 3), round(rw, 3))
-    pts = np.column_stack([I_b, I_w, np.log10(np.maximum(I_c, _LOG_IC_FLOOR))])
+    pts = coordinates(I_b, I_w, I_c)
     inside = interp.tri.find_simplex(pts) >= 0
     out = {"outside_hull": int((~inside).sum()), "of": len(inside)}
     if not inside.any():

@@ -22,6 +22,11 @@ _CACHE: "OrderedDict[tuple, object]" = OrderedDict()
 _CACHE_SIZE = 16
 
 
+def coordinates(I_b, I_w, I_c) -> np.ndarray:
+    """The space the paper triangulates and interpolates in: (I_b, I_w, log10 I_c), shape (N, 3)."""
+    return np.column_stack([I_b, I_w, np.log10(np.maximum(I_c, _LOG_IC_FLOOR))])
+
+
 def _interpolator(amap, rho_b: float, rho_w: float):
     from scipy.interpolate import LinearNDInterpolator
 
@@ -35,8 +40,7 @@ def _interpolator(amap, rho_b: float, rho_w: float):
     A, B, C = (v.ravel() for v in (amap.A, amap.B, amap.C))
     I_b, I_w = (A + B * rho / (1.0 - C * rho) for rho in (rho_b, rho_w))
     I_c = amap.collimated(ss)
-    points = np.column_stack([I_b, I_w, np.log10(np.maximum(I_c, _LOG_IC_FLOOR))])
-    interp = LinearNDInterpolator(points, np.column_stack([aa, ss, gg]))
+    interp = LinearNDInterpolator(coordinates(I_b, I_w, I_c), np.column_stack([aa, ss, gg]))
     _CACHE[key] = interp
     if len(_CACHE) > _CACHE_SIZE:
         _CACHE.popitem(last=False)
@@ -49,7 +53,7 @@ def paper_samples(amap, I_b, I_w, I_c, rho_b, rho_w, samples=250, epsilon=0.01, 
     n = len(I_b)
     k = max(int(samples), 1)
     out = np.full((n, k, 3), np.nan)
-    coords = np.column_stack([I_b, I_w, np.log10(np.maximum(I_c, _LOG_IC_FLOOR))])
+    coords = coordinates(I_b, I_w, I_c)
     ok = np.all(np.isfinite(coords), axis=1) & np.isfinite(rho_b) & np.isfinite(rho_w)
     if not ok.any():
         return out
