@@ -47,12 +47,13 @@ def _off_grid(values, axis, rng, lo, hi, log=False):
     return values
 
 
-def from_recipe(recipe_path, pairs, alphas, paths, seed):
+def from_recipe(recipe_path, pairs, alphas, paths, seed, alpha_stderr=None, max_paths=None):
     import os
 
     os.environ.setdefault("DRJIT_LIBLLVM_PATH", "/usr/lib/x86_64-linux-gnu/libLLVM-19.so")
     from trimeter.maps.recipe import load_recipe
-    from trimeter.maps.tracer import Stack, k_max_for, trace_column
+    from trimeter.maps.builder import worst_alpha_stderr
+    from trimeter.maps.tracer import Stack, _mix64, k_max_for, trace_column
 
     r = load_recipe(recipe_path)
     rng = np.random.default_rng(seed)
@@ -68,14 +69,24 @@ def from_recipe(recipe_path, pairs, alphas, paths, seed):
         u = rng.uniform(0, 1, alphas)
         al = np.where(np.arange(alphas) % 2 == 0, a_lo + (a_hi - a_lo) * u, a_hi - (a_hi - a_lo) * u ** 2)
         al = _off_grid(al, r.alpha, rng, a_lo, a_hi)
-        tally = trace_column(stack, float(s), float(g), int(paths), int(rng.integers(1 << 31)), k_max)
+        col_seed = int(rng.integers(1 << 31))
+        tally = trace_column(stack, float(s), float(g), int(paths), col_seed, k_max)
+        # top up (once) until α's std-error (g held) at these α meets --alpha-stderr: a reference
+        # must be several times more precise than the target it checks, wherever it is thin
+        if alpha_stderr is not None:
+            short = worst_alpha_stderr(tally, al, r.reference_rho_b, r.reference_rho_w) / alpha_stderr
+            more = min(int(max_paths or paths), int(paths * short ** 2 * 1.1)) - tally.n_paths
+            if short > 1 and more > 0:
+                tally += trace_column(stack, float(s), float(g), int(more), _mix64(col_seed), k_max)
         A, B, C = tally.abc(al)
         sb, sw = tally.stderr(al, r.reference_rho_b), tally.stderr(al, r.reference_rho_w)
         for j in range(alphas):
             rows.append((al[j], s, g, A[j], B[j], C[j], sb[j], sw[j]))
         print(f"\r{i + 1}/{pairs} (σt, g) traced, {time.perf_counter() - t0:.0f} s", end="", file=sys.stderr, flush=True)
     print(file=sys.stderr)
-    meta = {"recipe": r.to_dict(), "source": f"trimeter.maps.tracer.trace_column, {paths} paths per (sigma_t, g), off-grid",
+    budget = (f"{paths} paths per (sigma_t, g)" if alpha_stderr is None else
+              f"{paths}-{max_paths} paths per (sigma_t, g) (α std-error ≤ {alpha_stderr:g} where reachable)")
+    meta = {"recipe": r.to_dict(), "source": f"trimeter.maps.tracer.trace_column, {budget}, off-grid",
             "seed": seed, "seconds": round(time.perf_counter() - t0, 1)}
     return r.name, meta, np.array(rows)
 
@@ -131,6 +142,10 @@ def main(argv=None) -> int:
     ap.add_argument("--pairs", type=int, default=64, help="random (σt, g) columns traced (recipe source)")
     ap.add_argument("--alphas", type=int, default=5, help="random α per column (recipe source)")
     ap.add_argument("--paths", type=int, default=16777216, help="paths per column (recipe source)")
+    # thin columns need far more paths than the rest for the same α precision (see the map recipes)
+    ap.add_argument("--alpha-stderr", type=float, default=7e-4,
+                    help="top a column up until α's MC std-error (g held) is this small (0: off)")
+    ap.add_argument("--max-paths", type=int, default=1 << 27, help="cap per column for --alpha-stderr")
     ap.add_argument("--count", type=int, default=300)
     ap.add_argument("--seed", type=int, default=2027)
     ap.add_argument("-o", "--output", type=Path)
@@ -138,7 +153,8 @@ def main(argv=None) -> int:
     if args.ideal:
         name, meta, rows = from_ideal(args.ideal, args.count, args.seed)
     elif args.recipe:
-        name, meta, rows = from_recipe(args.recipe, args.pairs, args.alphas, args.paths, args.seed)
+        name, meta, rows = from_recipe(args.recipe, args.pairs, args.alphas, args.paths, args.seed,
+                                       args.alpha_stderr or None, args.max_paths)
     else:
         ap.error("give a recipe or --ideal MAP")
     out = save(name, meta, rows, args.output)

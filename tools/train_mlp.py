@@ -5,8 +5,8 @@
         [--hidden 64,64] [--samples 60000] [--epochs 80] [--seed 0]
 
 Training data: random materials (α denser towards 1, ln σt uniform, g uniform over the map's range)
-and random backgrounds (ρ_b ∈ [0, 0.1], ρ_w ∈ [0.85, 1]) pushed through the map's own forward
-kernel (trilinear A, B, C; the same one the polish uses). Features and targets: trimeter.inversion.mlp.
+and random backgrounds (ρ_b ∈ [0, 0.1], ρ_w ∈ [0.85, 1]) pushed through the map as it is evaluated
+between its nodes (AppearanceMap.between_nodes: the model the polish refines the guess on). Features and targets: trimeter.inversion.mlp.
 scikit-learn trains (StandardScaler + MLPRegressor), skl2onnx exports; the map's SHA-256 is stored
 in the model's metadata and inference refuses a model used with any other map.
 """
@@ -22,10 +22,9 @@ import numpy as np
 
 
 def training_set(amap, n: int, rng: np.random.Generator):
-    from trimeter.inversion.kernel import ForwardGrid
     from trimeter.inversion.mlp import features
 
-    grid = ForwardGrid.from_map(amap)
+    grid = amap.between_nodes
     a_lo, a_hi = grid.alpha_range
     u = rng.uniform(0, 1, n)
     alpha = np.where(rng.uniform(0, 1, n) < 0.5, a_lo + (a_hi - a_lo) * u, a_hi - (a_hi - a_lo) * u ** 2)

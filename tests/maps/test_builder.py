@@ -101,3 +101,39 @@ def test_validation_report_on_a_built_map(reference_build):
     assert report["energy_ok"] and report["I_b_le_I_w"] and report["g_no_effect_at_alpha0"]
     assert json.dumps(report)
     assert isinstance(reference_build, AppearanceMap)
+
+
+def test_alpha_target_spends_paths_where_alpha_is_noisy(tmp_path, tiny_data):
+    """target_alpha_stderr: the thin column (σt·ℓ = 0.25, I barely changes with α) is traced with
+    more paths than the dense one (2.5) and ends nearer its α target; without the option every
+    column stops at min_paths, as before."""
+    from trimeter.maps.builder import worst_alpha_stderr
+    from trimeter.maps.tracer import Stack
+
+    paths = {}
+
+    def tracer(stack, sigma_t, g, n_paths, seed, k_max):
+        paths[(sigma_t, g)] = paths.get((sigma_t, g), 0) + n_paths
+        return trace_column(stack, sigma_t, g, n_paths, seed, k_max)
+
+    plain = parse_recipe(tiny_data(max_paths=1 << 18))
+    build_map(plain, tmp_path / "plain.tmap", progress=False, tracer=tracer)
+    assert set(paths.values()) == {8192}
+    paths.clear()
+    recipe = parse_recipe(tiny_data(max_paths=1 << 18, target_alpha_stderr=0.004))
+    amap = build_map(recipe, tmp_path / "alpha.tmap", progress=False, tracer=tracer)
+    thin, dense = paths[(0.5, 0.0)], paths[(5.0, 0.0)]
+    assert thin > 2 * dense, paths
+    assert amap.recipe["sampling"]["target_alpha_stderr"] == 0.004
+    # the criterion the builder used, re-measured on fresh traces of the path counts it chose
+    stack = Stack.from_recipe(recipe.geometry, recipe.geometry_params, recipe.n, recipe.thickness_mm)
+    for (s, g), n in paths.items():
+        t = trace_column(stack, s, g, n, 77, 200)
+        got = worst_alpha_stderr(t, recipe.alpha, recipe.reference_rho_b, recipe.reference_rho_w)
+        assert got < 0.004 * 1.3 or n >= recipe.sampling.max_paths, (s, g, n, got)
+
+
+def test_alpha_target_is_validated_and_absent_by_default(tiny_data):
+    with pytest.raises(InputError, match="target_alpha_stderr"):
+        parse_recipe(tiny_data(target_alpha_stderr=-1))
+    assert "target_alpha_stderr" not in parse_recipe(tiny_data()).to_dict()["sampling"]

@@ -37,12 +37,12 @@ from pathlib import Path
 
 import numpy as np
 
+from trimeter.forward.collimated import MEASURABLE_IC
 from trimeter.inversion.flags import FitFlag
 from trimeter.paths import MAPS_DIR, REPO_ROOT
 
 HELDOUT_DIR = MAPS_DIR / "heldout"
 IDEAL_FALLBACK = REPO_ROOT / "tests" / "inversion" / "data" / "ideal-l0.5.tmap"
-MEASURABLE_IC = 1e-3
 # Issue 4 §5 noise-free p95 targets for lut/mlp; a reference resolves them where its own first-order
 # std is below half of them (the well-conditioned subset).
 ALPHA_TARGET, G_TARGET = 0.01, 0.015

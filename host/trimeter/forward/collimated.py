@@ -13,6 +13,11 @@ from functools import lru_cache
 import numpy as np
 
 
+# The measurable gamut: below this collimated transmittance the spectrometer's I_c is noise, σt only
+# a lower bound (FitFlag.SIGMA_LOWER_BOUND territory); benchmarks score and maps refine only above it.
+MEASURABLE_IC = 1e-3
+
+
 def _fresnel_normal(n1: float, n2: float) -> float:
     return ((n1 - n2) / (n1 + n2)) ** 2
 

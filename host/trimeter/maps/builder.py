@@ -2,9 +2,10 @@
 
 - Deterministic: the random stream of column (j, k) batch b is seeded from (recipe seed, j, k, b) only,
   so the same recipe gives the same map whatever the order, interruptions or thread count.
-- Adaptive: a column is traced with `min_paths`, then topped up once or twice to reach
-  `target_stderr` (the max over α of the std-error of I at both reference backgrounds), capped at
-  `max_paths`; the std-error reached is stored per point either way.
+- Adaptive: a column is traced with `min_paths`, then topped up (at most three times) to reach
+  `target_stderr` (the max over α of the std-error of I at both reference backgrounds) and, if the
+  recipe sets it, `target_alpha_stderr` (the max over α ∈ [0.02, 0.99] of α's std-error, g held),
+  capped at `max_paths`; the std-error reached is stored per point either way.
 - Checkpointed: each finished column is written (atomically, plain .npz, no pickle) into a checkpoint
   directory next to the output, with the recipe's fingerprint; `resume=True` reloads finished columns
   instead of re-tracing them. The final file is written atomically by AppearanceMap.save.
@@ -28,6 +29,7 @@ from typing import Callable
 import numpy as np
 
 from trimeter.errors import InputError, MapFileError
+from trimeter.forward.collimated import MEASURABLE_IC, collimated_transmittance
 from trimeter.maps.appearance import AppearanceMap
 from trimeter.maps.recipe import Recipe
 from trimeter.maps.tracer import ColumnTally, Stack, k_max_for
@@ -70,11 +72,11 @@ def trace_column(recipe: Recipe, stack: Stack, j: int, k: int, tracer: Callable 
         else:
             tally += part
         batch += 1
-        err = _worst_stderr(tally, recipe)
-        if err <= s.target_stderr or tally.n_paths >= s.max_paths or batch >= 3:
+        shortfall = _shortfall(tally, recipe, sigma_t)  # (std-error reached / target) for the worse criterion
+        if shortfall <= 1.0 or tally.n_paths >= s.max_paths or batch >= 4:
             break
         # std-error ∝ 1/√N: ask for what the target needs (+10 %), within the cap
-        wanted = min(s.max_paths, math.ceil(tally.n_paths * (err / s.target_stderr) ** 2 * 1.1))
+        wanted = min(s.max_paths, math.ceil(tally.n_paths * shortfall ** 2 * 1.1))
         n_next = math.ceil((wanted - tally.n_paths) / _BATCH_QUANTUM) * _BATCH_QUANTUM
     A, B, C = tally.abc(recipe.alpha)
     return Column(A=A, B=B, C=C, std_b=tally.stderr(recipe.alpha, recipe.reference_rho_b),
@@ -83,9 +85,30 @@ def trace_column(recipe: Recipe, stack: Stack, j: int, k: int, tracer: Callable 
                   seconds=tally.seconds, path_events=tally.path_events)
 
 
-def _worst_stderr(tally: ColumnTally, recipe: Recipe) -> float:
-    return float(max(tally.stderr(recipe.alpha, recipe.reference_rho_b).max(),
-                     tally.stderr(recipe.alpha, recipe.reference_rho_w).max()))
+def _shortfall(tally: ColumnTally, recipe: Recipe, sigma_t: float) -> float:
+    s = recipe.sampling
+    worst = max(tally.stderr(recipe.alpha, recipe.reference_rho_b).max(),
+                tally.stderr(recipe.alpha, recipe.reference_rho_w).max())
+    ratio = float(worst / s.target_stderr)
+    if s.target_alpha_stderr is not None and _measurable(recipe, sigma_t):
+        ratio = max(ratio, worst_alpha_stderr(tally, recipe.alpha, recipe.reference_rho_b,
+                                              recipe.reference_rho_w) / s.target_alpha_stderr)
+    return ratio
+
+
+def _measurable(recipe: Recipe, sigma_t: float) -> bool:
+    """Whether the instrument sees this σt at all (I_c above its floor): denser columns are only
+    reached by the table's edges, so α precision there buys nothing."""
+    cover = recipe.geometry_params["cover_slide_n"] if recipe.geometry_params.get("cover_slides") else None
+    return float(collimated_transmittance(sigma_t, recipe.thickness_mm, recipe.n, cover)) >= MEASURABLE_IC
+
+
+def worst_alpha_stderr(tally: ColumnTally, alpha, rho_b: float, rho_w: float) -> float:
+    """The column's largest α std-error over the albedos the instrument resolves (α ∈ [0.02, 0.99]:
+    below, α is 0 within any noise; above, the nodes crowd towards 0.999 where ∂I/∂α is steepest)."""
+    alpha = np.asarray(alpha, dtype=np.float64)
+    scored = alpha[(alpha >= 0.02) & (alpha <= 0.99)]
+    return float(np.max(tally.alpha_stderr(scored if len(scored) else alpha, rho_b, rho_w)))
 
 
 def recipe_fingerprint(recipe: Recipe | dict) -> str:

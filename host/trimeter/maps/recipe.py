@@ -18,6 +18,7 @@
     target_stderr = 5e-4     # per (σt, g) column: max over α of the std-error of I at both reference ρ
     min_paths = 131072       # first batch
     max_paths = 2097152      # cap per column (the std-error reached is recorded either way)
+    target_alpha_stderr = 1e-3  # optional: also trace until the α std-error (g held) is this small
     truncation = 1e-5        # paths stop after K scatterings with α_max^K ≤ truncation
 
 The recipe dict stored in a map (`Recipe.to_dict`) holds all of this plus `geometry_params`, the
@@ -47,6 +48,14 @@ class Sampling:
     min_paths: int = 131072
     max_paths: int = 2097152
     truncation: float = 1e-5
+    # Optional second criterion in α units: what the inversion sees. A uniform intensity target
+    # leaves clear samples (σt·ℓ ≪ 1, where I barely changes with α) 10× noisier in α than
+    # optically dense ones; this one spends the paths where they change the answer.
+    target_alpha_stderr: float | None = None
+
+    def to_dict(self) -> dict:
+        # unset options are left out, so recipes that do not use them keep their fingerprint
+        return {k: v for k, v in asdict(self).items() if v is not None}
 
 
 @dataclass(frozen=True)
@@ -70,7 +79,7 @@ class Recipe:
         return {"name": self.name, "description": self.description, "geometry": self.geometry,
                 "geometry_params": self.geometry_params, "n": self.n, "thickness_mm": self.thickness_mm,
                 "reference_rho_b": self.reference_rho_b, "reference_rho_w": self.reference_rho_w,
-                "seed": self.seed, "sampling": asdict(self.sampling),
+                "seed": self.seed, "sampling": self.sampling.to_dict(),
                 "grid": {"alpha": self.alpha.tolist(), "sigma_t": self.sigma_t.tolist(), "g": self.g.tolist()}}
 
     @property
@@ -124,7 +133,7 @@ def parse_recipe(data: dict, default_name: str = "map") -> Recipe:
     s = data.get("sampling", {})
     if not isinstance(s, dict):
         raise InputError("sampling must be a table")
-    extra = sorted(set(s) - set(_SAMPLING_DEFAULTS))
+    extra = sorted(set(s) - set(_SAMPLING_DEFAULTS) - {"target_alpha_stderr"})
     if extra:
         raise InputError(f"sampling: unknown key {extra[0]!r}")
     s = {**_SAMPLING_DEFAULTS, **s}
@@ -132,7 +141,10 @@ def parse_recipe(data: dict, default_name: str = "map") -> Recipe:
         target_stderr=require_number("sampling.target_stderr", s["target_stderr"], lo=0.0, lo_open=True),
         min_paths=int(require_number("sampling.min_paths", s["min_paths"], lo=1024)),
         max_paths=int(require_number("sampling.max_paths", s["max_paths"], lo=1024)),
-        truncation=require_number("sampling.truncation", s["truncation"], lo=0.0, hi=0.1, lo_open=True))
+        truncation=require_number("sampling.truncation", s["truncation"], lo=0.0, hi=0.1, lo_open=True),
+        target_alpha_stderr=(None if s.get("target_alpha_stderr") is None else
+                             require_number("sampling.target_alpha_stderr", s["target_alpha_stderr"], lo=0.0,
+                                            hi=1.0, lo_open=True)))
     if sampling.max_paths < sampling.min_paths:
         raise InputError(f"sampling.max_paths ({sampling.max_paths}) must be >= sampling.min_paths ({sampling.min_paths})")
     return Recipe(name=name, geometry=geometry, geometry_params=load_geometry(geometry), n=n, thickness_mm=thickness,

@@ -209,6 +209,21 @@ class ColumnTally:
         var_c = np.maximum(g2[0] - g1[0] ** 2, 0.0) / max(nb - 1, 1)
         return np.sqrt(var_above + (B * q * q) ** 2 * var_c)
 
+    def alpha_stderr(self, alpha, rho_b, rho_w):
+        """MC standard error of α read from I(ρ_b), I(ρ_w) at this column's σt and g (g held: the
+        column alone has no g derivative): 1/√(Σ_ρ (∂I_ρ/∂α / stderr_ρ)²), ∂/∂α by a central
+        difference of the α-polynomials. inf where I does not change with α."""
+        alpha = np.asarray(alpha, dtype=np.float64)
+        h = 1e-4
+        lo, hi = np.maximum(alpha - h, 0.0), np.minimum(alpha + h, float(np.max(alpha)))
+        info = 0.0
+        for rho in (rho_b, rho_w):
+            (A0, B0, C0), (A1, B1, C1) = self.abc(lo), self.abc(hi)
+            slope = (A1 + B1 * rho / (1 - C1 * rho) - A0 - B0 * rho / (1 - C0 * rho)) / (hi - lo)
+            info = info + (slope / np.maximum(self.stderr(alpha, rho), 1e-300)) ** 2
+        with np.errstate(divide="ignore"):
+            return 1.0 / np.sqrt(info)
+
     def truncation_bound(self, alpha_max: float) -> float:
         """Bound on the truncation error of I (ρ ≤ 0.99, α ≤ α_max): A and B directly, C amplified."""
         amplify = 1 / (1 - 0.999 * 0.99) ** 2
