@@ -230,13 +230,29 @@ class ColumnTally:
         return self.above.truncation_bound(alpha_max) * 101 + self.below.truncation_bound(alpha_max) * amplify
 
 
+# Paths per Dr.Jit launch: its path state costs ~140 bytes per path (a 128M-path launch held 19 GB),
+# so larger requests are traced in chunks of this many and summed. The first chunk keeps the
+# request's seed, so any trace of at most this many paths is what it was before chunking.
+TRACE_CHUNK = 1 << 24
+
+
 def trace_column(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max: int,
                  below_fraction: float = 1.0) -> ColumnTally:
-    """Detector paths and (a fraction as many) background paths for one (σt, g); seeds derived from `seed`."""
-    above = trace(stack, sigma_t, g, n_paths, seed, k_max)
-    n_below = max(1024, int(n_paths * below_fraction))
-    below = trace(stack, sigma_t, g, n_below, _mix64(seed ^ 0xB0B0B0B0), k_max, from_below=True)
-    return ColumnTally(above, below)
+    """Detector paths and (a fraction as many) background paths for one (σt, g); seeds derived from
+    `seed`; in chunks of at most TRACE_CHUNK paths (memory), chunk i > 0 seeded with _mix64(seed + i)."""
+    total: ColumnTally | None = None
+    for i, start in enumerate(range(0, max(int(n_paths), 1), TRACE_CHUNK)):
+        n = min(TRACE_CHUNK, int(n_paths) - start) if n_paths > 0 else n_paths
+        s = seed if i == 0 else _mix64(seed + i)
+        above = trace(stack, sigma_t, g, n, s, k_max)
+        n_below = max(1024, int(n * below_fraction))
+        below = trace(stack, sigma_t, g, n_below, _mix64(s ^ 0xB0B0B0B0), k_max, from_below=True)
+        part = ColumnTally(above, below)
+        if total is None:
+            total = part
+        else:
+            total += part
+    return total
 
 
 def _mix64(x: int) -> int:
