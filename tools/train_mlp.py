@@ -2,7 +2,7 @@
 """Train the `mlp` inverse for an appearance map and export it to ONNX next to the map.
 
     .venv/bin/python tools/train_mlp.py maps/device-l0.4.tmap [-o maps/device-l0.4.onnx]
-        [--hidden 64,64] [--samples 60000] [--epochs 80] [--seed 0]
+        [--hidden 32,32] [--activation relu] [--samples 60000] [--epochs 80] [--seed 0]
 
 Training data: random materials (α denser towards 1, ln σt uniform, g uniform over the map's range)
 and random backgrounds (ρ_b ∈ [0, 0.1], ρ_w ∈ [0.85, 1]) pushed through the map as it is evaluated
@@ -38,14 +38,14 @@ def training_set(amap, n: int, rng: np.random.Generator):
     return x, np.column_stack([alpha, g]).astype(np.float32)
 
 
-def train(amap, hidden=(64, 64), samples=60000, epochs=80, seed=0):
+def train(amap, hidden=(32, 32), samples=60000, epochs=80, seed=0, activation="relu"):
     from sklearn.neural_network import MLPRegressor
     from sklearn.pipeline import make_pipeline
     from sklearn.preprocessing import StandardScaler
 
     rng = np.random.default_rng(seed)
     x, y = training_set(amap, samples, rng)
-    model = make_pipeline(StandardScaler(), MLPRegressor(hidden_layer_sizes=hidden, activation="tanh",
+    model = make_pipeline(StandardScaler(), MLPRegressor(hidden_layer_sizes=hidden, activation=activation,
                                                          max_iter=epochs, batch_size=256, learning_rate_init=2e-3,
                                                          tol=1e-7, n_iter_no_change=15, random_state=seed))
     import warnings
@@ -115,15 +115,19 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("map", help="map file or shipped map name")
     ap.add_argument("-o", "--output", type=Path, help="default: next to the map, <name>.onnx")
-    ap.add_argument("--hidden", default="64,64", help="hidden layer sizes, comma-separated")
+    ap.add_argument("--hidden", default="32,32", help="hidden layer sizes, comma-separated")
     ap.add_argument("--samples", type=int, default=60000)
     ap.add_argument("--epochs", type=int, default=80)
     ap.add_argument("--seed", type=int, default=0)
+    # ReLU 32-32 (was tanh 64-64): the polish ends where it would from a tanh 64-64 guess (both ~4.5
+    # Newton steps per bin; the network's guess, like the table's, is ~0.1 off in α at p95), and the
+    # ONNX call is ~0.07 ms per 1024 bins cheaper (whole mlp fit 0.495 → 0.426 ms on l0.4)
+    ap.add_argument("--activation", default="relu", choices=("tanh", "relu"))
     args = ap.parse_args(argv)
     amap = AppearanceMap.load(find_map(args.map))
     hidden = tuple(int(h) for h in args.hidden.split(","))
     t0 = time.perf_counter()
-    model, stats = train(amap, hidden, args.samples, args.epochs, args.seed)
+    model, stats = train(amap, hidden, args.samples, args.epochs, args.seed, args.activation)
     out = export(model, amap, args.output or model_path_for(amap.path), hidden, stats)
     print(f"{out}: {out.stat().st_size} bytes, hidden {hidden}, trained in {time.perf_counter() - t0:.1f} s; "
           f"raw network on fresh map samples: α abs p95 {stats['alpha_abs_p95']:.4f}, g abs p95 {stats['g_abs_p95']:.4f}")
