@@ -3,7 +3,7 @@
 as a committed data file (so the benchmark never re-renders): maps/heldout/<recipe-name>.held.
 
     nice taskset -c 1 .venv/bin/python tools/make_heldout.py maps/recipes/device-n1.5-l0.4.toml \
-        [--pairs 64 --alphas 5 --paths 16777216 --seed 2027]   # ~6-7 min per device map on 2 cores
+        [--pairs 64 --alphas 5 --paths 16777216 --seed 2027]   # ~12-14 min per device map on 2 cores
     .venv/bin/python tools/make_heldout.py --ideal tests/inversion/data/ideal-l0.5.tmap [--count 300]
 
 Materials are random and OFF the map grid (α, σt, g all drawn continuously; any draw within 1e-3 of a
@@ -18,6 +18,9 @@ Why 16M paths per (σt, g): the references must be precise enough to check the i
 (α p95 0.01, g p95 0.015). At 1M paths their own MC noise alone, propagated through the map's
 Jacobian, was α std p95 ≈ 0.037 and g std p95 ≈ 0.13 (`trimeter bench fit` prints this as the
 "reference noise floor"); the std-error falls as 1/√paths, so 16× the paths give ≈ 4× less.
+At 16M that floor was still α p95 0.0124 on l0.4, nearly all from clear samples (σt·ℓ < 0.1, where
+I_b, I_w barely change with α), so such columns are topped up (once, to at most --max-paths) until
+α's std-error with g held is ≤ --alpha-stderr: floor 0.0050, ~14 min per device set.
 """
 
 from __future__ import annotations
