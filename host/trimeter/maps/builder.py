@@ -1,7 +1,8 @@
 """The map builder: a recipe → an AppearanceMap, one (k, m)-tally trace per (σt, g) column.
 
 - Deterministic: the random stream of column (j, k) batch b is seeded from (recipe seed, j, k, b) only,
-  so the same recipe gives the same map whatever the order, interruptions or thread count.
+  so the same recipe gives the same map whatever the order, interruptions or thread count (the
+  shipped device maps' columns re-trace to within 1.5e-8, not bit for bit: see maps/README.md).
 - Adaptive: a column is traced with `min_paths`, then topped up (at most three times) to reach
   `target_stderr` (the max over α of the std-error of I at both reference backgrounds) and, if the
   recipe sets it, `target_alpha_stderr` (the max over α ∈ [0.02, 0.99] of α's std-error, g held),
