@@ -48,3 +48,29 @@ def test_per_wavelength_backgrounds_case_scores_the_fit_at_the_bins_own_backgrou
     row = rows[0]
     assert row["background_pairs"] > 20 and row["ms_per_1024"] > 0
     assert row["nan_rate_measurable"] == 0 and row["alpha_p95"] < 0.05 and np.isfinite(row["g_p95"])
+
+
+def test_two_thicknesses_case_fits_the_shipped_pair_together(capsys, monkeypatch):
+    """The paper's procedure on the device pair (whose held-out sets hold the same materials): the
+    joint fit resolves what l0.8 alone cannot (its optically thick samples), and sets of different
+    materials are refused rather than scored together."""
+    from trimeter.bench import fit as bench
+    from trimeter.maps.appearance import AppearanceMap, find_map
+
+    pair = [AppearanceMap.load(find_map(n)) for n in ("device-n1.5-l0.4", "device-n1.5-l0.8")]
+    report = bench.two_thicknesses(pair, repeats=1)
+    rows = {r["variant"]: r for r in report["rows"]}
+    assert set(rows) == {"paper", "lut p≤8", "mlp p≤8"}
+    lut = rows["lut p≤8"]
+    assert lut["ms_per_1024"] > 0
+    assert lut["alpha_p95"] < 0.01 and lut["g_p95"] < 0.015
+    assert lut["alpha_p95"] < lut["alone"]["device-n1.5-l0.8"]["alpha_p95"] / 2
+    real = bench.heldout_for
+
+    def shuffled(amap):
+        path, meta, h = real(amap)
+        return path, meta, ({**h, "g": h["g"][::-1].copy()} if amap.name.endswith("l0.8") else h)
+
+    monkeypatch.setattr(bench, "heldout_for", shuffled)
+    assert bench.two_thicknesses(pair, repeats=1) == {}
+    assert "different materials" in capsys.readouterr().out

@@ -157,6 +157,18 @@ def test_bad_backgrounds_are_flagged(ideal_map):
     assert r.flags[2] & FitFlag.NONFINITE_INPUT and np.isnan(r.alpha[2])
 
 
+def test_a_bin_unusable_at_every_thickness_is_nan_without_numpy_warnings(ideal_map, thick_map):
+    import warnings
+
+    I = [np.array([[0.1, np.nan], [0.1, np.nan]]), np.array([[0.5, np.nan], [0.5, np.nan]]),
+         np.array([[0.3, np.nan], [0.2, np.nan]])]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the CLI and `serve` must not print RuntimeWarnings
+        r = trimeter.fit([ideal_map, thick_map], *I)
+    assert np.isfinite(r.alpha[0]) and np.isnan(r.alpha[1]) and np.isnan(r.g_std[1])
+    assert r.flags[1] & FitFlag.NONFINITE_INPUT
+
+
 def test_structural_errors_are_input_errors(ideal_map, thick_map):
     with pytest.raises(InputError, match="method"):
         trimeter.fit(ideal_map, [0.1], [0.5], [0.3], method="magic")

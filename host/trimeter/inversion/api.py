@@ -348,8 +348,12 @@ def combine(results: list[FitResult], method: str) -> FitResult:
 
 
 def _weighted(vals, stds):
+    import warnings
+
     finite = np.isfinite(vals)
-    with np.errstate(divide="ignore", invalid="ignore"):
+    # a bin unusable at every thickness is all-NaN here: NaN out, as intended, without numpy's warning
+    with np.errstate(divide="ignore", invalid="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
         w = np.where(finite & np.isfinite(stds) & (stds > 0), 1.0 / stds ** 2, 0.0)
         wsum = w.sum(axis=0)
         weighted = (np.where(finite, vals, 0.0) * w).sum(axis=0) / wsum
