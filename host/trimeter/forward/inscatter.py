@@ -27,7 +27,7 @@ import numpy as np
 
 from trimeter.forward.collimated import collimated_transmittance
 from trimeter.forward.nonscattering import fresnel_unpolarized
-from trimeter.geometry import load_geometry
+from trimeter.geometry import cover_slide_n, load_geometry
 
 SIXTEEN_BIT_FLOOR = 2.0**-16
 
@@ -70,7 +70,7 @@ def collimated_with_inscatter(alpha: float, sigma_t: float, g: float, thickness_
     `nee=False` scattered light is tallied only as photons exit (analog: the check of the NEE)."""
     params = geometry or load_geometry("device")
     coll = params["collimated"]
-    n_slide = float(params["cover_slide_n"]) if params.get("cover_slides") else None
+    n_slide = cover_slide_n(params)
     slide_t = float(params["cover_slide_thickness_mm"]) if n_slide else 0.0
     r_beam = float(coll["beam_diameter_mm"]) / 2
     r_ap = float(coll["aperture_diameter_mm"]) / 2

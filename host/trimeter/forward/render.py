@@ -27,6 +27,7 @@ from trimeter.forward.collimated import collimated_transmittance
 from trimeter.forward.mitsuba_env import mitsuba
 from trimeter.forward.scenes import (PARAM_KEYS, _Transform, integrator_for, reflectance_scale, resolve_geometry,
                                      scene_dict)
+from trimeter.geometry import cover_slide_n
 from trimeter.validation import require_material, require_number, require_reflectance, require_sample
 
 BATCHES = 16
@@ -109,8 +110,7 @@ def forward(geometry, alpha: float, sigma_t: float, g: float, thickness_mm: floa
     start = time.perf_counter()
     I_b, s_b = render_diffuse(params, alpha, sigma_t, g, n, thickness_mm, rho_b, spp, seed)
     I_w, s_w = render_diffuse(params, alpha, sigma_t, g, n, thickness_mm, rho_w, spp, seed)
-    cover_n = float(params["cover_slide_n"]) if params.get("cover_slides") else None
-    I_c = float(collimated_transmittance(sigma_t, thickness_mm, n, cover_n))
+    I_c = float(collimated_transmittance(sigma_t, thickness_mm, n, cover_slide_n(params)))
     mi = mitsuba()
     return {"I_b": I_b, "I_w": I_w, "I_c": I_c, "stderr": {"I_b": s_b, "I_w": s_w},
             "provenance": {"geometry": name, "engine": "volpath", "integrator": integrator_for(alpha),

@@ -31,6 +31,7 @@ import numpy as np
 
 from trimeter.errors import InputError, MapFileError
 from trimeter.forward.collimated import collimated_transmittance
+from trimeter.geometry import cover_slide_n
 from trimeter.maps.container import read_container, write_container
 from trimeter.paths import MAPS_DIR
 
@@ -85,8 +86,7 @@ class AppearanceMap:
 
     @property
     def cover_slide_n(self) -> float | None:
-        geometry = self.recipe.get("geometry_params", {})
-        return float(geometry["cover_slide_n"]) if geometry.get("cover_slides") else None
+        return cover_slide_n(self.recipe.get("geometry_params", {}))
 
     def save(self, path: str | Path) -> str:
         meta = {"map_format_version": MAP_FORMAT_VERSION, "recipe": self.recipe, "provenance": self.provenance}

@@ -31,6 +31,7 @@ import numpy as np
 
 from trimeter.errors import InputError, MapFileError
 from trimeter.forward.collimated import MEASURABLE_IC, collimated_transmittance
+from trimeter.geometry import cover_slide_n
 from trimeter.maps.appearance import AppearanceMap
 from trimeter.maps.recipe import Recipe
 from trimeter.maps.tracer import ColumnTally, Stack, k_max_for
@@ -100,7 +101,7 @@ def _shortfall(tally: ColumnTally, recipe: Recipe, sigma_t: float) -> float:
 def _measurable(recipe: Recipe, sigma_t: float) -> bool:
     """Whether the instrument sees this σt at all (I_c above its floor): denser columns are only
     reached by the table's edges, so α precision there buys nothing."""
-    cover = recipe.geometry_params["cover_slide_n"] if recipe.geometry_params.get("cover_slides") else None
+    cover = cover_slide_n(recipe.geometry_params)
     return float(collimated_transmittance(sigma_t, recipe.thickness_mm, recipe.n, cover)) >= MEASURABLE_IC
 
 
