@@ -39,7 +39,8 @@ from trimeter.validation import require_number, require_reflectance, require_sam
 
 _TOP_KEYS = {"name", "geometry", "n", "thickness_mm", "reference_rho_b", "reference_rho_w", "seed", "grid",
              "sampling", "description"}
-_SAMPLING_DEFAULTS = {"target_stderr": 5e-4, "min_paths": 131072, "max_paths": 2097152, "truncation": 1e-5}
+_SAMPLING_DEFAULTS = {"target_stderr": 5e-4, "min_paths": 131072, "max_paths": 2097152, "truncation": 1e-5,
+                      "target_alpha_stderr": None}
 
 
 @dataclass(frozen=True)
@@ -133,7 +134,7 @@ def parse_recipe(data: dict, default_name: str = "map") -> Recipe:
     s = data.get("sampling", {})
     if not isinstance(s, dict):
         raise InputError("sampling must be a table")
-    extra = sorted(set(s) - set(_SAMPLING_DEFAULTS) - {"target_alpha_stderr"})
+    extra = sorted(set(s) - set(_SAMPLING_DEFAULTS))
     if extra:
         raise InputError(f"sampling: unknown key {extra[0]!r}")
     s = {**_SAMPLING_DEFAULTS, **s}
@@ -142,7 +143,7 @@ def parse_recipe(data: dict, default_name: str = "map") -> Recipe:
         min_paths=int(require_number("sampling.min_paths", s["min_paths"], lo=1024)),
         max_paths=int(require_number("sampling.max_paths", s["max_paths"], lo=1024)),
         truncation=require_number("sampling.truncation", s["truncation"], lo=0.0, hi=0.1, lo_open=True),
-        target_alpha_stderr=(None if s.get("target_alpha_stderr") is None else
+        target_alpha_stderr=(None if s["target_alpha_stderr"] is None else
                              require_number("sampling.target_alpha_stderr", s["target_alpha_stderr"], lo=0.0,
                                             hi=1.0, lo_open=True)))
     if sampling.max_paths < sampling.min_paths:

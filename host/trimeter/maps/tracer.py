@@ -216,9 +216,9 @@ class ColumnTally:
         alpha = np.asarray(alpha, dtype=np.float64)
         h = 1e-4
         lo, hi = np.maximum(alpha - h, 0.0), np.minimum(alpha + h, float(np.max(alpha)))
+        (A0, B0, C0), (A1, B1, C1) = self.abc(lo), self.abc(hi)
         info = 0.0
         for rho in (rho_b, rho_w):
-            (A0, B0, C0), (A1, B1, C1) = self.abc(lo), self.abc(hi)
             slope = (A1 + B1 * rho / (1 - C1 * rho) - A0 - B0 * rho / (1 - C0 * rho)) / (hi - lo)
             info = info + (slope / np.maximum(self.stderr(alpha, rho), 1e-300)) ** 2
         with np.errstate(divide="ignore"):
@@ -240,18 +240,18 @@ def trace_column(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int
                  below_fraction: float = 1.0) -> ColumnTally:
     """Detector paths and (a fraction as many) background paths for one (σt, g); seeds derived from
     `seed`; in chunks of at most TRACE_CHUNK paths (memory), chunk i > 0 seeded with _mix64(seed + i)."""
-    total: ColumnTally | None = None
-    for i, start in enumerate(range(0, max(int(n_paths), 1), TRACE_CHUNK)):
-        n = min(TRACE_CHUNK, int(n_paths) - start) if n_paths > 0 else n_paths
+    n_paths = int(n_paths)
+    total = None
+    for i, start in enumerate(range(0, max(n_paths, 1), TRACE_CHUNK)):
+        n = min(TRACE_CHUNK, n_paths - start)
         s = seed if i == 0 else _mix64(seed + i)
         above = trace(stack, sigma_t, g, n, s, k_max)
-        n_below = max(1024, int(n * below_fraction))
-        below = trace(stack, sigma_t, g, n_below, _mix64(s ^ 0xB0B0B0B0), k_max, from_below=True)
-        part = ColumnTally(above, below)
+        below = trace(stack, sigma_t, g, max(1024, int(n * below_fraction)), _mix64(s ^ 0xB0B0B0B0), k_max,
+                      from_below=True)
         if total is None:
-            total = part
+            total = ColumnTally(above, below)
         else:
-            total += part
+            total += ColumnTally(above, below)
     return total
 
 
