@@ -195,24 +195,32 @@ class ForwardGrid:
         """The same solve in C (trimeter.inversion.native), or None when the library is not built."""
         return native.NativeSolver(self) if native.available() else None
 
-    def solve_alpha_g(self, I_b, I_w, cell: SigmaCell, rho_b, rho_w, alpha0, g0, iterations=5, step_tol=0.0):
+    def solve_alpha_g(self, I_b, I_w, cell: SigmaCell, rho_b, rho_w, alpha0, g0, iterations=5, step_tol=0.0,
+                      step_var=None):
         """Damped Gauss-Newton for (α, g) with I_b, I_w matched at the bins' own ρ_b, ρ_w. Steps are
-        clamped to the map's box. At most `iterations` steps; a bin stops once a step was at most
-        `step_tol` in both α and g (0: every bin takes all of them). Returns (α, g, residual norm,
-        Jacobian at the solution)."""
+        clamped to the map's box. At most `iterations` steps; a bin stops once a step was small in
+        both α and g: at most `step_tol`, or (with step_var, per bin (κ σ_I)², see
+        polish_step_var) below κ of that parameter's noise std, where further steps only move it
+        along what the data cannot tell apart. step_tol 0 and no step_var: every bin takes every
+        step. Returns (α, g, residual norm, Jacobian at the solution)."""
         if self.native_solver is not None:
             return self.native_solver.solve(I_b, I_w, cell.log_sigma_t, rho_b, rho_w, max(int(iterations), 0),
-                                            alpha0, g0, step_tol=step_tol)
+                                            alpha0, g0, step_tol=step_tol, step_var=step_var)
         alpha = np.clip(alpha0, *self.alpha_range)
         g = np.clip(g0, *self.g_range)
         active = np.ones(alpha.shape, dtype=bool)
         for _ in range(iterations):  # a vectorised step over all bins, not a per-bin loop
             if not active.any():
                 break
-            new_alpha, new_g, step_a, step_g = self._newton_step(I_b, I_w, cell, rho_b, rho_w, alpha, g)
+            new_alpha, new_g, step_a, step_g, (det, h11, h22) = self._newton_step(I_b, I_w, cell, rho_b, rho_w,
+                                                                                  alpha, g)
             # converged bins keep their value: exactly what the C loop does by dropping them
             alpha, g = np.where(active, new_alpha, alpha), np.where(active, new_g, g)
-            active &= ~((np.abs(step_a) <= step_tol) & (np.abs(step_g) <= step_tol))
+            small_a, small_g = np.abs(step_a) <= step_tol, np.abs(step_g) <= step_tol
+            if step_var is not None:  # var(α) = σ²·h22/det, var(g) = σ²·h11/det, multiplied out as in C
+                small_a |= (det > 0) & (step_a * step_a * det <= step_var * h22)
+                small_g |= (det > 0) & (step_g * step_g * det <= step_var * h11)
+            active &= ~(small_a & small_g)
         residual, J = self.residual_and_jacobian(I_b, I_w, cell, rho_b, rho_w, alpha, g)
         return alpha, g, residual, J
 
@@ -254,7 +262,7 @@ class ForwardGrid:
         step_g = np.minimum(np.maximum(step_g, -0.5), 0.5)
         (a_lo, a_hi), (g_lo, g_hi) = self.alpha_range, self.g_range
         return (np.minimum(np.maximum(alpha + step_a, a_lo), a_hi), np.minimum(np.maximum(g + step_g, g_lo), g_hi),
-                step_a, step_g)
+                step_a, step_g, (det, h11, h22))
 
     # ------------------------------------------------------------------------------- uncertainty
     def jacobian(self, alpha, sigma_t, g, rho_b, rho_w):
@@ -295,6 +303,13 @@ class ForwardGrid:
             std_a = np.sqrt(np.abs(cov[:, 0, 0]))
             std_g = np.sqrt(np.abs(cov[:, 1, 1]))
         return np.where(np.isnan(std_a), np.inf, std_a), np.sqrt(var_s), np.where(np.isnan(std_g), np.inf, std_g)
+
+
+def polish_step_var(I_b, I_w, noise_rel, noise_abs, mc_stderr, kappa):
+    """solve_alpha_g's step_var: (κ σ)² per bin, σ² the mean of I_b's and I_w's variance under the
+    noise model σ_I = noise_rel·I + noise_abs, with the map's MC std-error in quadrature."""
+    sb, sw = noise_rel * I_b + noise_abs, noise_rel * I_w + noise_abs
+    return kappa * kappa * (0.5 * (sb * sb + sw * sw + 2.0 * mc_stderr * mc_stderr))
 
 
 def refine_axis(axis: np.ndarray, factor: int) -> np.ndarray:

@@ -65,14 +65,14 @@ class TableInverter:
             out = out + (q[0] + q[1] * fu + (q[2] + q[3] * fu) * fv) * wk
         return out[0], out[1]
 
-    def invert(self, I_b, I_w, sigma_t, rho_b, rho_w, polish_iterations=3, step_tol=0.0):
+    def invert(self, I_b, I_w, sigma_t, rho_b, rho_w, polish_iterations=3, step_tol=0.0, step_var=None):
         """(α, g, residual, Jacobian at the solution) for bins with σt already known (from I_c);
         polish as in ForwardGrid.solve_alpha_g."""
         if self._native is not None:  # the same guess + polish in C (it clamps ln σt to the grid itself)
             with np.errstate(divide="ignore", invalid="ignore"):
                 log_sigma_t = np.log(sigma_t)
             return self._native.solve(I_b, I_w, log_sigma_t, rho_b, rho_w, max(polish_iterations, 0),
-                                      step_tol=step_tol)
+                                      step_tol=step_tol, step_var=step_var)
         alpha, g = self.initial_guess(I_b, I_w, self.table_grid.sigma_cell(sigma_t))
         return self.grid.solve_alpha_g(I_b, I_w, self.grid.sigma_cell(sigma_t), rho_b, rho_w, alpha, g,
-                                       iterations=max(polish_iterations, 0), step_tol=step_tol)
+                                       iterations=max(polish_iterations, 0), step_tol=step_tol, step_var=step_var)

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 LIBRARY = Path(__file__).with_name("libtrimeter_invert.so")
-ABI_VERSION = 5
+ABI_VERSION = 6
 
 _double_p = ctypes.POINTER(ctypes.c_double)
 
@@ -42,7 +42,7 @@ class _InverseTableC(ctypes.Structure):
 class _FitOptionsC(ctypes.Structure):
     _fields_ = [(name, ctypes.c_double) for name in (
         "noise_rel", "noise_abs", "mc_stderr", "ic_floor", "alpha_min_g", "input_tolerance", "ref_rho_b",
-        "ref_rho_w", "t_max", "t_valid", "step_tol", "underdetermined_alpha_std", "underdetermined_g_std")] + [
+        "ref_rho_w", "t_max", "t_valid", "step_tol", "step_tol_std", "underdetermined_alpha_std", "underdetermined_g_std")] + [
         ("iterations", ctypes.c_int32)]
 
 
@@ -70,7 +70,7 @@ def _load():
     size_t, vp = ctypes.c_size_t, ctypes.c_void_p  # arrays go in as raw addresses (see _addr)
     lib.tm_solve_alpha_g.restype = ctypes.c_int
     lib.tm_solve_alpha_g.argtypes = [ctypes.POINTER(_ForwardGridC), ctypes.POINTER(_InverseTableC), size_t,
-                                     vp, vp, vp, vp, vp, ctypes.c_int, ctypes.c_double, vp, vp, vp, vp]
+                                     vp, vp, vp, vp, vp, ctypes.c_int, ctypes.c_double, vp, vp, vp, vp, vp]
     lib.tm_propagate.restype = None
     lib.tm_propagate.argtypes = [size_t, vp, vp, vp, vp, vp]
     lib.tm_prepare.restype = None
@@ -147,7 +147,8 @@ class NativeSolver:
         self._grid_ref = ctypes.byref(self._grid)
         self._table_ref = ctypes.byref(self._table) if self._table is not None else None
 
-    def solve(self, I_b, I_w, log_sigma_t, rho_b, rho_w, iterations, alpha0=None, g0=None, step_tol=0.0):
+    def solve(self, I_b, I_w, log_sigma_t, rho_b, rho_w, iterations, alpha0=None, g0=None, step_tol=0.0,
+              step_var=None):
         """(α, g, residual, J (n, 3, 3)) as ForwardGrid.solve_alpha_g returns them. ln σt is clamped to
         the grid in C (NaN → lowest node). Initial guess from the inverse table, or alpha0/g0 when
         given (then the table is not used)."""
@@ -160,8 +161,10 @@ class NativeSolver:
         g = np.zeros(n) if use_table else _f64(g0, n).copy()
         residual = np.empty(n)
         J = np.empty((n, 3, 3))
+        step_var = None if step_var is None else _f64(step_var, n)  # kept alive through the call
         rc = _LIB.tm_solve_alpha_g(self._grid_ref, self._table_ref if use_table else None, n,
-                                   *(_addr(a) for a in args), int(iterations), float(step_tol), _addr(alpha),
+                                   *(_addr(a) for a in args), int(iterations), float(step_tol),
+                                   None if step_var is None else _addr(step_var), _addr(alpha),
                                    _addr(g), _addr(residual), _addr(J))
         _check(rc)
         return alpha, g, residual, J
@@ -199,9 +202,9 @@ class NativeSolver:
 
 
 def _fit_options(*, noise_rel, noise_abs, mc_stderr, ic_floor, alpha_min_g, input_tolerance, ref_rho, t_max, t_valid,
-                 iterations, step_tol, underdetermined_std) -> _FitOptionsC:
+                 iterations, step_tol, step_tol_std, underdetermined_std) -> _FitOptionsC:
     return _FitOptionsC(noise_rel, noise_abs, mc_stderr, ic_floor, alpha_min_g, input_tolerance, *ref_rho, t_max,
-                        t_valid, step_tol, *underdetermined_std, iterations)
+                        t_valid, step_tol, step_tol_std, *underdetermined_std, iterations)
 
 
 def _uniform_step(axis: np.ndarray) -> float:

@@ -22,7 +22,7 @@
 #include <stdint.h>
 #include <stdlib.h>
 
-#define TM_ABI_VERSION 5
+#define TM_ABI_VERSION 6
 
 typedef struct {
     int32_t na, ns, ng;
@@ -177,9 +177,11 @@ static void initial_guess(const tm_inverse_table *t, double log_sigma_t, double 
 }
 
 /* One Levenberg-Marquardt step on the 2×2 normal equations (ForwardGrid._newton_step). Returns 1
- * when the step just taken was at most step_tol in both α and g (the bin has converged). */
+ * when the step just taken was small in both α and g (the bin has converged): at most step_tol, or
+ * its square at most step_var times that parameter's variance per unit intensity variance,
+ * (JᵀJ)⁻¹ (step_var = (κ σ_I)²: the step is below κ of the bin's own noise std). */
 static int newton_step(const tm_forward_grid *f, sigma_cell_t *cell, double I_b, double I_w, double rho_b,
-                       double rho_w, double step_tol, double *alpha, double *g) {
+                       double rho_w, double step_tol, double step_var, double *alpha, double *g) {
     abc_t c;
     coefficients(f, cell, *alpha, *g, 0, &c);
     double fb, hb, fw, hw;
@@ -200,7 +202,10 @@ static int newton_step(const tm_forward_grid *f, sigma_cell_t *cell, double I_b,
     step_g = clampd(step_g, -0.5, 0.5);
     *alpha = clampd(*alpha + step_a, f->alpha_lo, f->alpha_hi);
     *g = clampd(*g + step_g, f->g_lo, f->g_hi);
-    return fabs(step_a) <= step_tol && fabs(step_g) <= step_tol;
+    /* var(α) = σ²·h22/det, var(g) = σ²·h11/det: compared multiplied out (no division, no sqrt) */
+    int small_a = fabs(step_a) <= step_tol || (det > 0.0 && step_a * step_a * det <= step_var * h22);
+    int small_g = fabs(step_g) <= step_tol || (det > 0.0 && step_g * step_g * det <= step_var * h11);
+    return small_a && small_g;
 }
 
 /* ∂I_c/∂σt at the clamped σt (ForwardGrid.collimated_derivative ∘ clamp_sigma_t). */
@@ -209,14 +214,14 @@ static inline double collimated_derivative(const tm_forward_grid *f, double sigm
     return -f->thickness_mm * f->stack_a * x * (1.0 + bx2) / ((1.0 - bx2) * (1.0 - bx2));
 }
 
-/* Up to `iterations` Newton steps per bin; a bin leaves once a step was at most step_tol in α and
- * g (step_tol = 0: a fixed count). The loop over bins is innermost: a bin's steps form one long
+/* Up to `iterations` Newton steps per bin; a bin leaves once a step was small (newton_step; step_tol
+ * = 0 and step_var NULL: a fixed count; step_var: per bin, or NULL for none). The loop over bins is innermost: a bin's steps form one long
  * dependency chain (divisions, table reads) while consecutive bins are independent, so the CPU
  * overlaps them (~2× faster here than bin by bin). `active` is scratch for n indices; returns the
  * number of steps taken over all bins. */
 static size_t polish(const tm_forward_grid *f, size_t n, sigma_cell_t *cells, const double *I_b,
                      const double *I_w, const double *rho_b, const double *rho_w, int iterations,
-                     double step_tol, double *alpha, double *g, uint32_t *active) {
+                     double step_tol, const double *step_var, double *alpha, double *g, uint32_t *active) {
     size_t m = n, steps = 0;
     for (size_t i = 0; i < n; i++) active[i] = (uint32_t)i;
     for (int it = 0; it < iterations && m > 0; it++) {
@@ -224,7 +229,8 @@ static size_t polish(const tm_forward_grid *f, size_t n, sigma_cell_t *cells, co
         steps += m;
         for (size_t j = 0; j < m; j++) {
             uint32_t i = active[j];
-            int done = newton_step(f, &cells[i], I_b[i], I_w[i], rho_b[i], rho_w[i], step_tol, &alpha[i], &g[i]);
+            int done = newton_step(f, &cells[i], I_b[i], I_w[i], rho_b[i], rho_w[i], step_tol,
+                                   step_var ? step_var[i] : 0.0, &alpha[i], &g[i]);
             active[kept] = i;
             kept += !done;
         }
@@ -279,12 +285,14 @@ static int grid_ok(const tm_forward_grid *f, const tm_inverse_table *table) {
 }
 
 /* For each bin (σt given as ln σt, clamped to the grid here): the initial (α, g) from `table` (or
- * from alpha/g on entry when table is NULL), up to `iterations` Newton steps (see polish), then the
+ * from alpha/g on entry when table is NULL), up to `iterations` Newton steps (see polish; step_var
+ * may be NULL), then the
  * residual |(I_b, I_w) − model| and ∂(I_b, I_w, I_c)/∂(α, σt, g) at the solution (J: n × 3 × 3).
  * Returns 0, -1 on a malformed grid, -2 when out of memory. */
 int tm_solve_alpha_g(const tm_forward_grid *f, const tm_inverse_table *table, size_t n, const double *I_b,
                      const double *I_w, const double *log_sigma_t, const double *rho_b, const double *rho_w,
-                     int iterations, double step_tol, double *alpha, double *g, double *residual, double *J) {
+                     int iterations, double step_tol, const double *step_var, double *alpha, double *g,
+                     double *residual, double *J) {
     if (!grid_ok(f, table)) return -1;
     sigma_cell_t *cells = calloc(n ? n : 1, sizeof *cells); /* calloc: gcc cannot see that n = 0 reads none */
     uint32_t *active = malloc((n ? n : 1) * sizeof *active);
@@ -300,7 +308,7 @@ int tm_solve_alpha_g(const tm_forward_grid *f, const tm_inverse_table *table, si
         alpha[i] = clampd(a, f->alpha_lo, f->alpha_hi);
         g[i] = clampd(gg, f->g_lo, f->g_hi);
     }
-    polish(f, n, cells, I_b, I_w, rho_b, rho_w, iterations, step_tol, alpha, g, active);
+    polish(f, n, cells, I_b, I_w, rho_b, rho_w, iterations, step_tol, step_var, alpha, g, active);
     for (size_t i = 0; i < n; i++)
         residual[i] = residual_and_jacobian(f, &cells[i], alpha[i], g[i], I_b[i], I_w[i], rho_b[i], rho_w[i], J + i * 9u);
     free(cells);
@@ -352,6 +360,7 @@ typedef struct {
     double t_max;                /* I_c at σt = 0 */
     double t_valid;              /* the Beer-Lambert inverse is defined for 0 < I_c ≤ t_valid */
     double step_tol;
+    double step_tol_std;         /* κ: a polish step below κ of the bin's noise std also counts as converged */
     double underdetermined_alpha_std, underdetermined_g_std; /* FLAG_UNDERDETERMINED above these stds */
     int32_t iterations;
 } tm_fit_options;
@@ -429,7 +438,7 @@ long long tm_fit(const tm_forward_grid *f, const tm_inverse_table *table, const 
                  const double *alpha0, const double *g0, const tm_fit_outputs *out) {
     if (!grid_ok(f, table) || (!table && (!alpha0 || !g0))) return -1;
     /* scratch: the sanitized inputs and σt cell per bin, and the polish's index list */
-    double *ib = malloc((n ? n : 1) * 4 * sizeof(double));
+    double *ib = malloc((n ? n : 1) * 5 * sizeof(double));
     sigma_cell_t *cells = calloc(n ? n : 1, sizeof *cells); /* calloc: gcc cannot see that n = 0 reads none */
     uint32_t *active = malloc((n ? n : 1) * sizeof *active);
     if (!ib || !cells || !active || n > UINT32_MAX) {
@@ -438,7 +447,8 @@ long long tm_fit(const tm_forward_grid *f, const tm_inverse_table *table, const 
         free(active);
         return -2;
     }
-    double *iw = ib + n, *rb = ib + 2 * n, *rw = ib + 3 * n;
+    double *iw = ib + n, *rb = ib + 2 * n, *rw = ib + 3 * n, *step_var = ib + 4 * n;
+    const double mc2 = o->mc_stderr * o->mc_stderr, kappa2 = o->step_tol_std * o->step_tol_std;
     double *alpha = out->alpha, *g = out->g, *sigma_t = out->sigma_t;
     const sigma_bounds_t bounds = sigma_bounds(f);
     for (size_t i = 0; i < n; i++) {
@@ -447,6 +457,8 @@ long long tm_fit(const tm_forward_grid *f, const tm_inverse_table *table, const 
                                     &rw[i], &s, &beer);
         out->sigma_t_beer[i] = beer;
         sigma_t[i] = s;
+        double sb = o->noise_rel * ib[i] + o->noise_abs, sw = o->noise_rel * iw[i] + o->noise_abs;
+        step_var[i] = kappa2 * 0.5 * (sb * sb + sw * sw + 2.0 * mc2); /* (κ σ)², σ² the mean of I_b's and I_w's */
         double ls = log(s);
         cells[i] = sigma_cell(f, ls, s);
         double a = alpha0 ? alpha0[i] : 0.0, gg = g0 ? g0[i] : 0.0;
@@ -454,7 +466,7 @@ long long tm_fit(const tm_forward_grid *f, const tm_inverse_table *table, const 
         alpha[i] = clampd(a, f->alpha_lo, f->alpha_hi);
         g[i] = clampd(gg, f->g_lo, f->g_hi);
     }
-    size_t steps = polish(f, n, cells, ib, iw, rb, rw, o->iterations, o->step_tol, alpha, g, active);
+    size_t steps = polish(f, n, cells, ib, iw, rb, rw, o->iterations, o->step_tol, step_var, alpha, g, active);
     const int g_lo_is_edge = f->g_lo > -1 + 1e-6, g_hi_is_edge = f->g_hi < 1 - 1e-6;
     for (size_t i = 0; i < n; i++) {
         double Ji[9];
@@ -463,7 +475,6 @@ long long tm_fit(const tm_forward_grid *f, const tm_inverse_table *table, const 
         double residual = residual_and_jacobian(f, &cells[i], alpha[i], g[i], ib[i], iw[i], rb[i], rw[i], Ji);
         double ic = sanitize(I_c[i], 1.0);
         /* sqrt(x² + y²), not hypot: these are small positive numbers (nothing to guard), hypot is slower */
-        const double mc2 = o->mc_stderr * o->mc_stderr;
         double sb = o->noise_rel * ib[i] + o->noise_abs, sw = o->noise_rel * iw[i] + o->noise_abs;
         double sI[3] = {sqrt(sb * sb + mc2), sqrt(sw * sw + mc2), o->noise_rel * ic + o->noise_abs};
         double tolerance = 3.0 * sqrt(sI[0] * sI[0] + sI[1] * sI[1]) + 1e-4;
