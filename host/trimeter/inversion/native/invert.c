@@ -208,6 +208,26 @@ static int newton_step(const tm_forward_grid *f, sigma_cell_t *cell, double I_b,
     return small_a && small_g;
 }
 
+/* Every bin's first forward cell, found (kept as walk_cell's hints) and prefetched in one pass before
+ * the polish: a bin's cell is a random 192 B in a ~22 MB grid, so in a cold cache each first visit
+ * is a memory round trip that the polish would otherwise wait on bin by bin. Measured (l0.8 held-out,
+ * 1024 bins, tm_fit): 0.25 → 0.235 ms warm, 0.43 → 0.39 ms right after a paper fit. Prefetching the
+ * table's guess cells the same way gained nothing. */
+static void prefetch_cells(const tm_forward_grid *f, size_t n, sigma_cell_t *cells, const double *alpha,
+                           const double *g) {
+    for (size_t i = 0; i < n; i++) {
+        double w;
+        int ia = find_cell(f->alpha, f->inv_da, f->na, alpha[i], &w);
+        int ig = find_cell(f->g, f->inv_dg, f->ng, g[i], &w);
+        cells[i].ia = ia;
+        cells[i].ig = ig;
+        const double *P = f->poly + (((size_t)ia * (size_t)(f->ns - 1) + (size_t)cells[i].is) * (size_t)(f->ng - 1) + (size_t)ig) * 24u;
+        __builtin_prefetch(P);
+        __builtin_prefetch(P + 8);
+        __builtin_prefetch(P + 16);
+    }
+}
+
 /* ∂I_c/∂σt at the clamped σt (ForwardGrid.collimated_derivative ∘ clamp_sigma_t). */
 static inline double collimated_derivative(const tm_forward_grid *f, double sigma_t) {
     double x = exp(-sigma_t * f->thickness_mm), bx2 = f->stack_b * x * x;
@@ -308,6 +328,7 @@ int tm_solve_alpha_g(const tm_forward_grid *f, const tm_inverse_table *table, si
         alpha[i] = clampd(a, f->alpha_lo, f->alpha_hi);
         g[i] = clampd(gg, f->g_lo, f->g_hi);
     }
+    prefetch_cells(f, n, cells, alpha, g);
     polish(f, n, cells, I_b, I_w, rho_b, rho_w, iterations, step_tol, step_var, alpha, g, active);
     for (size_t i = 0; i < n; i++)
         residual[i] = residual_and_jacobian(f, &cells[i], alpha[i], g[i], I_b[i], I_w[i], rho_b[i], rho_w[i], J + i * 9u);
@@ -466,6 +487,7 @@ long long tm_fit(const tm_forward_grid *f, const tm_inverse_table *table, const 
         alpha[i] = clampd(a, f->alpha_lo, f->alpha_hi);
         g[i] = clampd(gg, f->g_lo, f->g_hi);
     }
+    prefetch_cells(f, n, cells, alpha, g);
     size_t steps = polish(f, n, cells, ib, iw, rb, rw, o->iterations, o->step_tol, step_var, alpha, g, active);
     const int g_lo_is_edge = f->g_lo > -1 + 1e-6, g_hi_is_edge = f->g_hi < 1 - 1e-6;
     for (size_t i = 0; i < n; i++) {
