@@ -211,12 +211,13 @@ def _fit_one(amap, I_b, I_w, I_c, rho_b, rho_w, *, method, polish, polish_tol, m
     if method == "mlp":  # the network's guess needs σt and the sanitized inputs first
         from trimeter.inversion.mlp import mlp_inverter
 
-        if solver is not None:
-            guess_inputs = solver.prepare(I_b, I_w, I_c, rho_b, rho_w, **options)
+        mlp = mlp_inverter(amap, mlp_model)
+        if solver is not None:  # features from C; tm_fit clamps the guess to the map's box itself
+            guess = mlp.run(solver.mlp_features(I_b, I_w, I_c, rho_b, rho_w, mlp.log_sigma_range, **options))
+            alpha0, g0 = guess[:, 0], guess[:, 1]
         else:
             p = _prepare(amap, grid, I_b, I_w, I_c, rho_b, rho_w, ic_floor)
-            guess_inputs = (p.ib, p.iw, p.sigma_t, p.rb, p.rw)
-        alpha0, g0 = mlp_inverter(amap, mlp_model).predict(*guess_inputs)
+            alpha0, g0 = mlp.predict(p.ib, p.iw, p.sigma_t, p.rb, p.rw)
     if solver is not None:
         out = solver.fit(I_b, I_w, I_c, rho_b, rho_w, alpha0=alpha0, g0=g0, **options)
         out.pop("steps")

@@ -69,10 +69,13 @@ class MlpInverter:
         self.alpha_range, self.g_range = alpha_range, g_range
 
     def predict(self, I_b, I_w, sigma_t, rho_b, rho_w):
-        x = features(I_b, I_w, sigma_t, rho_b, rho_w, self.log_sigma_range)
-        y = self.session.run(None, {self.input_name: x})[0].astype(np.float64)
+        y = self.run(features(I_b, I_w, sigma_t, rho_b, rho_w, self.log_sigma_range)).astype(np.float64)
         return (np.minimum(np.maximum(y[:, 0], self.alpha_range[0]), self.alpha_range[1]),
                 np.minimum(np.maximum(y[:, 1], self.g_range[0]), self.g_range[1]))
+
+    def run(self, x: np.ndarray) -> np.ndarray:
+        """The network's raw (α, g) (N, 2) float32 for features x (N, 5) float32, unclamped."""
+        return self.session.run(None, {self.input_name: x})[0]
 
 
 def mlp_inverter(amap, model: str | Path | None = None) -> MlpInverter:

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 LIBRARY = Path(__file__).with_name("libtrimeter_invert.so")
-ABI_VERSION = 6
+ABI_VERSION = 7
 
 _double_p = ctypes.POINTER(ctypes.c_double)
 
@@ -73,9 +73,9 @@ def _load():
                                      vp, vp, vp, vp, vp, ctypes.c_int, ctypes.c_double, vp, vp, vp, vp, vp]
     lib.tm_propagate.restype = None
     lib.tm_propagate.argtypes = [size_t, vp, vp, vp, vp, vp]
-    lib.tm_prepare.restype = None
-    lib.tm_prepare.argtypes = [ctypes.POINTER(_ForwardGridC), ctypes.POINTER(_FitOptionsC), size_t,
-                               vp, vp, vp, vp, vp, vp, vp, vp, vp, vp]
+    lib.tm_mlp_features.restype = None
+    lib.tm_mlp_features.argtypes = [ctypes.POINTER(_ForwardGridC), ctypes.POINTER(_FitOptionsC), size_t,
+                                    vp, vp, vp, vp, vp, ctypes.c_double, ctypes.c_double, vp]
     lib.tm_fit.restype = ctypes.c_longlong
     lib.tm_fit.argtypes = [ctypes.POINTER(_ForwardGridC), ctypes.POINTER(_InverseTableC),
                            ctypes.POINTER(_FitOptionsC), size_t, vp, vp, vp, vp, vp, vp, vp,
@@ -189,16 +189,15 @@ class NativeSolver:
         out["steps"] = int(steps)
         return out
 
-    def prepare(self, I_b, I_w, I_c, rho_b, rho_w, **options):
-        """The sanitized I_b, I_w, ρ_b, ρ_w and σt from I_c that tm_fit starts from (invert.c
-        `tm_prepare`, api._prepare): (ib, iw, sigma_t, rb, rw), the inputs of an MLP guess."""
+    def mlp_features(self, I_b, I_w, I_c, rho_b, rho_w, log_sigma_range, **options):
+        """The MLP's input (n, 5) float32 (trimeter.inversion.mlp.features) of the sanitized I_b, I_w,
+        ρ_b, ρ_w and σt from I_c that tm_fit starts from (invert.c `tm_mlp_features`, api._prepare)."""
         n = len(I_b)
         args = [_f64(v, n) for v in (I_b, I_w, I_c, rho_b, rho_w)]
-        out = [np.empty(n) for _ in range(5)]  # ib, iw, rb, rw, σt
-        _LIB.tm_prepare(self._grid_ref, ctypes.byref(_fit_options(**options)), n, *(_addr(a) for a in args),
-                        *(_addr(o) for o in out))
-        ib, iw, rb, rw, sigma_t = out
-        return ib, iw, sigma_t, rb, rw
+        x = np.empty((n, 5), dtype=np.float32)
+        _LIB.tm_mlp_features(self._grid_ref, ctypes.byref(_fit_options(**options)), n, *(_addr(a) for a in args),
+                             *map(float, log_sigma_range), _addr(x))
+        return x
 
 
 def _fit_options(*, noise_rel, noise_abs, mc_stderr, ic_floor, alpha_min_g, input_tolerance, ref_rho, t_max, t_valid,

@@ -22,7 +22,7 @@
 #include <stdint.h>
 #include <stdlib.h>
 
-#define TM_ABI_VERSION 6
+#define TM_ABI_VERSION 7
 
 typedef struct {
     int32_t na, ns, ng;
@@ -439,16 +439,22 @@ static int64_t prepare_bin(const tm_forward_grid *f, const tm_fit_options *o, si
     return fl;
 }
 
-/* prepare_bin for n bins: what the MLP needs for its guess (sanitized I_b, I_w, ρ_b, ρ_w and σt)
- * before tm_fit runs with that guess. */
-void tm_prepare(const tm_forward_grid *f, const tm_fit_options *o, size_t n, const double *I_b, const double *I_w,
-                const double *I_c, const double *rho_b, const double *rho_w, double *ib, double *iw, double *rb,
-                double *rw, double *sigma_t) {
+/* prepare_bin for n bins, written as the MLP's input (trimeter.inversion.mlp.features of the
+ * sanitized I_b, I_w, ρ_b, ρ_w and σt; x: n × 5 float32, ln σt clamped to [log_lo, log_hi]): the
+ * network's guess then goes to tm_fit. */
+void tm_mlp_features(const tm_forward_grid *f, const tm_fit_options *o, size_t n, const double *I_b,
+                     const double *I_w, const double *I_c, const double *rho_b, const double *rho_w, double log_lo,
+                     double log_hi, float *x) {
     const sigma_bounds_t bounds = sigma_bounds(f);
     for (size_t i = 0; i < n; i++) {
-        double beer;
-        prepare_bin(f, o, bounds, I_b[i], I_w[i], I_c[i], rho_b[i], rho_w[i], &ib[i], &iw[i], &rb[i], &rw[i], &sigma_t[i],
-                    &beer);
+        double ib, iw, rb, rw, s, beer;
+        prepare_bin(f, o, bounds, I_b[i], I_w[i], I_c[i], rho_b[i], rho_w[i], &ib, &iw, &rb, &rw, &s, &beer);
+        float *xi = x + i * 5u;
+        xi[0] = (float)sqrt(ib); /* ib, iw: already in [0, 1] */
+        xi[1] = (float)sqrt(iw);
+        xi[2] = (float)clampd(log(fmax(s, 1e-30)), log_lo, log_hi);
+        xi[3] = (float)rb;
+        xi[4] = (float)rw;
     }
 }
 
