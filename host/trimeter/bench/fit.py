@@ -31,6 +31,7 @@ map's Jacobian (trimeter.inversion.kernel.ForwardGrid):
 
 from __future__ import annotations
 
+import inspect
 import json
 import time
 from pathlib import Path
@@ -135,8 +136,10 @@ def _fit_variant(amap, kind, kw, I_b, I_w, I_c, small_table, rho_b=None, rho_w=N
 def _core(amap, kind, kw, I_b, I_w, I_c, rb, rw, small_table):
     """The inversion kernel alone, without input validation, flags and uncertainty: paper = the
     scipy interpolator call; lut = σt from I_c + table guess + polish; mlp = σt + network + polish."""
+    import trimeter.inversion.api as api
     from trimeter.forward.collimated import beer_lambert_sigma_t
     from trimeter.inversion.api import table_inverter
+    from trimeter.inversion.kernel import polish_step_var
 
     if kind == "paper":
         from trimeter.inversion.paper import _interpolator, coordinates
@@ -148,8 +151,14 @@ def _core(amap, kind, kw, I_b, I_w, I_c, rb, rw, small_table):
     inv = small_table if kind == "lut-small" else table_inverter(amap)
     polish, tol = kw.get("polish", DEFAULT_POLISH["polish"]), kw.get("polish_tol", DEFAULT_POLISH["polish_tol"])
     sigma = lambda: beer_lambert_sigma_t(I_c, amap.thickness_mm, amap.n, amap.cover_slide_n)  # noqa: E731
+    # the polish stops bins as fit() does: step_tol, or a step below POLISH_TOL_STD of the noise std
+    # under fit()'s default noise model
+    fit_defaults = {k: p.default for k, p in inspect.signature(api.fit).parameters.items()}
+    step_var = lambda: polish_step_var(I_b, I_w, fit_defaults["noise_rel"], fit_defaults["noise_abs"],  # noqa: E731
+                                       inv.grid.mc_stderr, api._polish_tol_std(tol))
     if kind in ("lut", "lut-small"):
-        return lambda: inv.invert(I_b, I_w, sigma(), rho_b, rho_w, polish_iterations=polish, step_tol=tol)
+        return lambda: inv.invert(I_b, I_w, sigma(), rho_b, rho_w, polish_iterations=polish, step_tol=tol,
+                                  step_var=step_var())
     from trimeter.inversion.mlp import mlp_inverter
 
     net = mlp_inverter(amap, kw["mlp_model"])
@@ -158,7 +167,7 @@ def _core(amap, kind, kw, I_b, I_w, I_c, rb, rw, small_table):
         s = sigma()
         a0, g0 = net.predict(I_b, I_w, s, rho_b, rho_w)
         return inv.grid.solve_alpha_g(I_b, I_w, inv.grid.sigma_cell(s), rho_b, rho_w, a0, g0, iterations=polish,
-                                      step_tol=tol)
+                                      step_tol=tol, step_var=step_var())
     return run
 
 
