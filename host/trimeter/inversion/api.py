@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from trimeter.errors import InputError, MapFileError
-from trimeter.forward.collimated import beer_lambert_limit, beer_lambert_sigma_t
+from trimeter.forward.collimated import beer_lambert_sigma_t
 from trimeter.inversion.flags import UNUSABLE, FitFlag
 from trimeter.inversion.kernel import ForwardGrid, polish_step_var
 
@@ -172,11 +172,12 @@ def _shape_inputs(k, I_b, I_w, I_c, rho_b, rho_w, amaps):
         if rho is None:
             default = {"reference_rho_b": 0.0, "reference_rho_w": 1.0}[ref_key]
             rho = np.array([float(m.recipe.get(ref_key, default)) for m in amaps])[:, None]
+        full = np.empty((k, n))  # contiguous rows, as the C kernel reads them (broadcast_to: a copy later)
         try:
-            rho = np.broadcast_to(np.asarray(rho, dtype=float), (k, n))
+            full[...] = rho
         except (TypeError, ValueError) as exc:
             raise InputError(f"{name} must be a number or an array over the bins ({exc})") from None
-        rhos.append(rho)
+        rhos.append(full)
     return [(I_b[i], I_w[i], I_c[i], rhos[0][i], rhos[1][i]) for i in range(k)]
 
 
@@ -241,7 +242,7 @@ def native_options(amap, grid, *, polish, polish_tol, noise_rel, noise_abs, ic_f
     what the numpy path below takes from the map and its grid."""
     return dict(noise_rel=noise_rel, noise_abs=noise_abs, mc_stderr=grid.mc_stderr, ic_floor=ic_floor,
                 alpha_min_g=alpha_min_g, input_tolerance=_INPUT_TOLERANCE, ref_rho=grid_ref(amap),
-                t_max=_t_max(grid), t_valid=beer_lambert_limit(grid.n, grid.cover_slide_n), iterations=polish,
+                t_max=grid.transmittance_limits[0], t_valid=grid.transmittance_limits[1], iterations=polish,
                 step_tol=polish_tol, step_tol_std=_polish_tol_std(polish_tol),
                 underdetermined_std=(UNDERDETERMINED_ALPHA_STD, UNDERDETERMINED_G_STD))
 
@@ -260,10 +261,6 @@ class _Prepared:
     sigma_beer: np.ndarray
 
 
-def _t_max(grid) -> float:
-    return float(grid.collimated(0.0))
-
-
 def _prepare(amap, grid, I_b, I_w, I_c, rho_b, rho_w, ic_floor) -> _Prepared:
     flags = _input_flags(I_b, I_w, I_c, rho_b, rho_w)
     usable = (flags & int(UNUSABLE)) == 0
@@ -276,7 +273,7 @@ def _prepare(amap, grid, I_b, I_w, I_c, rho_b, rho_w, ic_floor) -> _Prepared:
 
     below = ic < ic_floor
     flags |= np.where(below & usable, int(FitFlag.IC_BELOW_FLOOR), 0)
-    t_max = _t_max(grid)
+    t_max = grid.transmittance_limits[0]
     # σt from I_c; under the floor, the floor's σt (a lower bound); above T(σt = 0), σt = 0
     # The grid's sample set-up (the table's, stored as float32), not the map's: with the map's, T(σt = 0)
     # of the two differed in the last digits and I_c at T(σt = 0) came out as σt = NaN.

@@ -15,7 +15,8 @@ from functools import cached_property
 
 import numpy as np
 
-from trimeter.forward.collimated import collimated_derivative, collimated_transmittance, stack_constants
+from trimeter.forward.collimated import (beer_lambert_limit, collimated_derivative, collimated_transmittance,
+                                         stack_constants)
 from trimeter.inversion import native
 
 
@@ -142,6 +143,12 @@ class ForwardGrid:
 
     def collimated(self, sigma_t):
         return collimated_transmittance(sigma_t, self.thickness_mm, self.n, self.cover_slide_n)
+
+    @cached_property
+    def transmittance_limits(self) -> tuple[float, float]:
+        """(T(σt = 0), the largest I_c the Beer-Lambert inverse takes) of this grid's sample set-up:
+        computed once (a Fresnel stack each), not per fit."""
+        return float(self.collimated(0.0)), float(beer_lambert_limit(self.n, self.cover_slide_n))
 
     @property
     def stack_constants(self) -> tuple[float, float, float]:

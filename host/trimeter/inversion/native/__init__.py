@@ -178,10 +178,12 @@ class NativeSolver:
         guess = [None, None] if alpha0 is None else [_f64(alpha0, n), _f64(g0, n)]
         if alpha0 is None and self._table is None:
             raise ValueError("this solver has no inverse table: pass alpha0 and g0")
-        out = {name: np.empty(n) for name in ("alpha", "sigma_t", "g", "alpha_std", "sigma_t_std", "g_std",
-                                              "sigma_t_beer")}
-        out["flags"] = np.empty(n, dtype=np.int64)
-        outputs = _FitOutputsC(*(_addr(out[name]) for name, _ in _FitOutputsC._fields_))
+        # one block, a row per output (flags: int64 in the last row): one allocation, one address
+        block = np.empty((len(_FitOutputsC._fields_), n))
+        base, row = _addr(block), 8 * n
+        outputs = _FitOutputsC(*(base + k * row for k in range(len(_FitOutputsC._fields_))))
+        out = {name: block[k] for k, (name, _) in enumerate(_FitOutputsC._fields_)}
+        out["flags"] = out["flags"].view(np.int64)
         steps = _LIB.tm_fit(self._grid_ref, self._table_ref if alpha0 is None else None,
                             ctypes.byref(_fit_options(**options)), n, *(_addr(a) for a in args),
                             *(None if v is None else _addr(v) for v in guess), ctypes.byref(outputs))
