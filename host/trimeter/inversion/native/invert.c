@@ -259,9 +259,9 @@ static size_t polish(const tm_forward_grid *f, size_t n, sigma_cell_t *cells, co
     return steps;
 }
 
-/* |(I_b, I_w) − model| at (α, g) and the bin's ∂(I_b, I_w, I_c)/∂(α, σt, g) (Ji: 3 × 3, row I_c has
- * only ∂/∂σt) from one evaluation (ForwardGrid.residual_and_jacobian). */
-static double residual_and_jacobian(const tm_forward_grid *f, sigma_cell_t *c, double alpha, double g,
+/* |(I_b, I_w) − model|² at (α, g) and the bin's ∂(I_b, I_w, I_c)/∂(α, σt, g) (Ji: 3 × 3, row I_c has
+ * only ∂/∂σt) from one evaluation (ForwardGrid.residual_and_jacobian, which returns the norm). */
+static double residual2_and_jacobian(const tm_forward_grid *f, sigma_cell_t *c, double alpha, double g,
                                     double I_b, double I_w, double rho_b, double rho_w, double *Ji) {
     abc_t abc;
     coefficients(f, c, alpha, g, 1, &abc);
@@ -276,27 +276,29 @@ static double residual_and_jacobian(const tm_forward_grid *f, sigma_cell_t *c, d
     }
     Ji[6] = Ji[8] = 0.0;
     Ji[7] = collimated_derivative(f, c->sigma_t);
-    return sqrt(res2);
+    return res2;
 }
 
-/* First-order standard deviations of (α, σt, g) from independent intensity noise s (3) through one
- * bin's J, using its block structure (ForwardGrid.propagate). Infinite where the (α, g) block is
- * singular. */
-static inline void propagate_one(const double *Ji, const double *s, double *std_a, double *std_s, double *std_g) {
-    double var_s = (s[2] / Ji[7]) * (s[2] / Ji[7]);
+/* First-order standard deviations of (α, σt, g) from independent intensity noise (variances var_b,
+ * var_w of I_b, I_w; std sd_c of I_c) through one bin's J, using its block structure
+ * (ForwardGrid.propagate). Infinite where the (α, g) block is singular. */
+static inline void propagate_one(const double *Ji, double var_b, double var_w, double sd_c, double *std_a,
+                                 double *std_s, double *std_g) {
+    double ds = sd_c / Ji[7]; /* σt's std, signed */
+    double var_s = ds * ds;
     double a = Ji[0], b = Ji[2], c = Ji[3], d = Ji[5];
-    double det = a * d - b * c;
+    double inv_det = 1.0 / (a * d - b * c);
     /* inv = [[d, -b], [-c, a]] / det */
-    double i00 = d / det, i01 = -b / det, i10 = -c / det, i11 = a / det;
-    double c00 = s[0] * s[0] + Ji[1] * Ji[1] * var_s;
-    double c11 = s[1] * s[1] + Ji[4] * Ji[4] * var_s;
+    double i00 = d * inv_det, i01 = -b * inv_det, i10 = -c * inv_det, i11 = a * inv_det;
+    double c00 = var_b + Ji[1] * Ji[1] * var_s;
+    double c11 = var_w + Ji[4] * Ji[4] * var_s;
     double c01 = Ji[1] * Ji[4] * var_s;
     double va = i00 * (i00 * c00 + i01 * c01) + i01 * (i00 * c01 + i01 * c11);
     double vg = i10 * (i10 * c00 + i11 * c01) + i11 * (i10 * c01 + i11 * c11);
     double sa = sqrt(fabs(va)), sg = sqrt(fabs(vg));
     *std_a = isnan(sa) ? INFINITY : sa;
     *std_g = isnan(sg) ? INFINITY : sg;
-    *std_s = sqrt(var_s);
+    *std_s = fabs(ds);
 }
 
 static int grid_ok(const tm_forward_grid *f, const tm_inverse_table *table) {
@@ -331,7 +333,8 @@ int tm_solve_alpha_g(const tm_forward_grid *f, const tm_inverse_table *table, si
     prefetch_cells(f, n, cells, alpha, g);
     polish(f, n, cells, I_b, I_w, rho_b, rho_w, iterations, step_tol, step_var, alpha, g, active);
     for (size_t i = 0; i < n; i++)
-        residual[i] = residual_and_jacobian(f, &cells[i], alpha[i], g[i], I_b[i], I_w[i], rho_b[i], rho_w[i], J + i * 9u);
+        residual[i] = sqrt(residual2_and_jacobian(f, &cells[i], alpha[i], g[i], I_b[i], I_w[i], rho_b[i], rho_w[i],
+                                                  J + i * 9u));
     free(cells);
     free(active);
     return 0;
@@ -339,7 +342,10 @@ int tm_solve_alpha_g(const tm_forward_grid *f, const tm_inverse_table *table, si
 
 /* First-order standard deviations for n bins (ForwardGrid.propagate); sigma_I is n × 3. */
 void tm_propagate(size_t n, const double *J, const double *sigma_I, double *std_a, double *std_s, double *std_g) {
-    for (size_t i = 0; i < n; i++) propagate_one(J + i * 9u, sigma_I + i * 3u, &std_a[i], &std_s[i], &std_g[i]);
+    for (size_t i = 0; i < n; i++) {
+        const double *s = sigma_I + i * 3u;
+        propagate_one(J + i * 9u, s[0] * s[0], s[1] * s[1], s[2], &std_a[i], &std_s[i], &std_g[i]);
+    }
 }
 
 /* ------------------------------------------------------------------------------ the whole fit
@@ -500,20 +506,21 @@ long long tm_fit(const tm_forward_grid *f, const tm_inverse_table *table, const 
         double Ji[9];
         int64_t fl = out->flags[i];
         int usable = !(fl & FLAG_UNUSABLE);
-        double residual = residual_and_jacobian(f, &cells[i], alpha[i], g[i], ib[i], iw[i], rb[i], rw[i], Ji);
+        double residual2 = residual2_and_jacobian(f, &cells[i], alpha[i], g[i], ib[i], iw[i], rb[i], rw[i], Ji);
         double ic = sanitize(I_c[i], 1.0);
-        /* sqrt(x² + y²), not hypot: these are small positive numbers (nothing to guard), hypot is slower */
+        /* variances, not stds: only their sums are needed (sqrt(x² + y²), not hypot: these are small
+         * positive numbers, nothing to guard, and hypot is slower) */
         double sb = o->noise_rel * ib[i] + o->noise_abs, sw = o->noise_rel * iw[i] + o->noise_abs;
-        double sI[3] = {sqrt(sb * sb + mc2), sqrt(sw * sw + mc2), o->noise_rel * ic + o->noise_abs};
-        double tolerance = 3.0 * sqrt(sI[0] * sI[0] + sI[1] * sI[1]) + 1e-4;
-        int not_conv = !(residual <= tolerance);
+        double var_b = sb * sb + mc2, var_w = sw * sw + mc2;
+        double tolerance = 3.0 * sqrt(var_b + var_w) + 1e-4;
+        int not_conv = !(residual2 <= tolerance * tolerance); /* |residual| ≤ tolerance, squared */
         int at_edge = (g[i] <= f->g_lo + 1e-9 && g_lo_is_edge) || (g[i] >= f->g_hi - 1e-9 && g_hi_is_edge);
         if (usable && not_conv) fl |= FLAG_NOT_CONVERGED;
         if (usable && not_conv && at_edge) fl |= FLAG_OUTSIDE_MAP;
         double a = isfinite(alpha[i]) ? clampd(alpha[i], 0.0, 1.0) : NAN;
         double gg = isfinite(g[i]) ? clampd(g[i], -1.0, 1.0) : NAN;
         double sa, ss, sg;
-        propagate_one(Ji, sI, &sa, &ss, &sg);
+        propagate_one(Ji, var_b, var_w, o->noise_rel * ic + o->noise_abs, &sa, &ss, &sg);
         if (fl & FLAG_IC_BELOW_FLOOR) ss = INFINITY;
         if (usable && !(a >= o->alpha_min_g)) {
             fl |= FLAG_G_UNDEFINED;
