@@ -7,7 +7,8 @@
 Training data: random materials (α denser towards 1, ln σt uniform, g uniform over the map's range)
 and random backgrounds (ρ_b ∈ [0, 0.1], ρ_w ∈ [0.85, 1]) pushed through the map as it is evaluated
 between its nodes (AppearanceMap.between_nodes: the model the polish refines the guess on). Features and targets: trimeter.inversion.mlp.
-scikit-learn trains (StandardScaler + MLPRegressor), skl2onnx exports; the map's SHA-256 is stored
+scikit-learn trains (StandardScaler + MLPRegressor); the network is written as a plain ONNX graph
+(network_graph: Gemm layers, the scaler folded in) with the map's SHA-256 stored
 in the model's metadata and inference refuses a model used with any other map.
 """
 
@@ -59,39 +60,57 @@ def train(amap, hidden=(32, 32), samples=60000, epochs=80, seed=0, activation="r
                    "g_abs_p95": float(np.percentile(err[:, 1], 95))}
 
 
-def fix_multi_output(onx, n_outputs: int):
-    """skl2onnx (1.19) ends every MLPRegressor graph with Reshape(·, [-1, 1]) and declares (N, 1)
-    even for several targets, which interleaves (α, g) into one column. Point that Reshape at
-    [-1, n_outputs] and declare the output (N, n_outputs)."""
-    from onnx import numpy_helper
+def network_graph(model):
+    """The fitted StandardScaler + MLPRegressor pipeline as a plain ONNX graph: Gemm, activation, …,
+    Gemm, with the scaler folded into the first layer (W₁' = diag(1/scale)·W₁, b₁' = b₁ − (mean/scale)·W₁).
+    Why not skl2onnx: its graph (an ai.onnx.ml Scaler, a Cast, MatMul + Add per layer, a final
+    Reshape that interleaved the two outputs) ran 0.059 ms per 1024 bins in onnxruntime; this one
+    0.029 ms, the same predictions to float32 rounding."""
+    from onnx import TensorProto, helper, numpy_helper
 
-    reshapes = [node for node in onx.graph.node if node.op_type == "Reshape"]
-    if not reshapes:
-        raise RuntimeError("unexpected skl2onnx graph: no final Reshape")
-    last = reshapes[-1]
-    shape_name = last.input[1]
-    for i, init in enumerate(onx.graph.initializer):
-        if init.name == shape_name:
-            onx.graph.initializer[i].CopyFrom(numpy_helper.from_array(np.array([-1, n_outputs], dtype=np.int64), shape_name))
-            break
-    else:
-        raise RuntimeError("unexpected skl2onnx graph: the Reshape's shape is not a constant")
-    dims = onx.graph.output[0].type.tensor_type.shape.dim
-    dims[1].ClearField("dim_param")
-    dims[1].dim_value = n_outputs
+    from trimeter.inversion.mlp import FEATURES
+
+    scaler, net = model.steps[0][1], model.steps[-1][1]
+    activation = {"relu": "Relu", "tanh": "Tanh"}.get(net.activation)
+    if activation is None or net.out_activation_ != "identity":
+        raise ValueError(f"unsupported network: activation {net.activation!r}, output {net.out_activation_!r}")
+    weights = [np.asarray(w, dtype=np.float64) for w in net.coefs_]
+    biases = [np.asarray(b, dtype=np.float64) for b in net.intercepts_]
+    mean = np.zeros(weights[0].shape[0]) if scaler.mean_ is None else scaler.mean_
+    scale = np.ones(weights[0].shape[0]) if scaler.scale_ is None else scaler.scale_
+    biases[0] = biases[0] - (mean / scale) @ weights[0]
+    weights[0] = weights[0] / scale[:, None]
+    nodes, inits, x = [], [], "features"
+    for k, (w, b) in enumerate(zip(weights, biases)):
+        inits += [numpy_helper.from_array(w.astype(np.float32), f"W{k}"),
+                  numpy_helper.from_array(b.astype(np.float32), f"b{k}")]
+        last = k == len(weights) - 1
+        y = "alpha_g" if last else f"z{k}"
+        nodes.append(helper.make_node("Gemm", [x, f"W{k}", f"b{k}"], [y]))
+        if not last:
+            nodes.append(helper.make_node(activation, [y], [f"h{k}"]))
+            x = f"h{k}"
+    graph = helper.make_graph(nodes, "trimeter-mlp-inverse",
+                              [helper.make_tensor_value_info("features", TensorProto.FLOAT, [None, len(FEATURES)])],
+                              [helper.make_tensor_value_info("alpha_g", TensorProto.FLOAT, [None, weights[-1].shape[1]])],
+                              inits)
+    onx = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)], producer_name="tools/train_mlp.py")
+    onx.ir_version = 8  # onnxruntime ≥ 1.17 reads IR 8 / opset 17
     return onx
 
 
 def export(model, amap, path: Path, hidden, stats: dict) -> Path:
-    from skl2onnx import to_onnx
+    import onnx
 
     from trimeter.inversion.mlp import FEATURES, MODEL_KIND
 
-    onx = fix_multi_output(to_onnx(model, np.zeros((1, len(FEATURES)), dtype=np.float32), target_opset=17), 2)
+    onx = network_graph(model)
+    onnx.checker.check_model(onx)
     check = np.random.default_rng(0).uniform(0, 1, (64, len(FEATURES))).astype(np.float32)
     import onnxruntime as ort
 
-    got = ort.InferenceSession(onx.SerializeToString()).run(None, {onx.graph.input[0].name: check})[0]
+    got = ort.InferenceSession(onx.SerializeToString(), providers=["CPUExecutionProvider"]).run(
+        None, {onx.graph.input[0].name: check})[0]
     if got.shape != (64, 2) or not np.allclose(got, model.predict(check), atol=1e-4):
         raise RuntimeError("exported ONNX model does not reproduce scikit-learn's predictions")
     meta = {"trimeter.kind": MODEL_KIND, "trimeter.format": "1", "trimeter.map_sha256": amap.checksum,

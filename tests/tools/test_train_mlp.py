@@ -1,0 +1,54 @@
+"""tools/train_mlp.py's export: the fitted pipeline as a plain Gemm graph (scaler folded into the
+first layer) that onnxruntime runs to scikit-learn's predictions and trimeter's loader accepts."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+pytest.importorskip("sklearn")
+onnx = pytest.importorskip("onnx")
+_spec = importlib.util.spec_from_file_location("train_mlp", ROOT / "tools" / "train_mlp.py")
+train_mlp = importlib.util.module_from_spec(_spec)
+sys.modules["train_mlp"] = train_mlp
+_spec.loader.exec_module(train_mlp)
+
+
+@pytest.mark.parametrize("activation", ["relu", "tanh"])
+def test_the_exported_graph_is_gemm_layers_that_reproduce_the_pipeline(tmp_path, activation):
+    from trimeter.inversion.mlp import MlpInverter, features
+    from trimeter.maps.appearance import AppearanceMap
+
+    amap = AppearanceMap.load(ROOT / "tests" / "inversion" / "data" / "ideal-l0.5.tmap")
+    model, stats = train_mlp.train(amap, hidden=(8, 6), samples=2000, epochs=3, activation=activation)
+    path = train_mlp.export(model, amap, tmp_path / "m.onnx", (8, 6), stats)
+
+    ops = [node.op_type for node in onnx.load(path).graph.node]
+    assert ops == ["Gemm", activation.capitalize(), "Gemm", activation.capitalize(), "Gemm"]
+    inverter = MlpInverter(path, amap.checksum, (float(np.log(amap.sigma_t[0])), float(np.log(amap.sigma_t[-1]))),
+                           (0.0, 1.0), (-1.0, 1.0))
+    rng = np.random.default_rng(5)
+    n = 500
+    x = features(rng.uniform(0, 0.5, n), rng.uniform(0.3, 1, n), np.exp(rng.uniform(-3, 3, n)),
+                 rng.uniform(0, 0.1, n), rng.uniform(0.85, 1, n), inverter.log_sigma_range)
+    np.testing.assert_allclose(inverter.run(x), model.predict(x), atol=2e-5)
+
+
+def test_a_network_the_graph_cannot_express_is_refused():
+    from sklearn.neural_network import MLPRegressor
+    from sklearn.pipeline import make_pipeline
+    from sklearn.preprocessing import StandardScaler
+
+    model = make_pipeline(StandardScaler(), MLPRegressor(hidden_layer_sizes=(4,), activation="logistic", max_iter=2))
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model.fit(np.random.default_rng(0).uniform(size=(50, 5)), np.random.default_rng(1).uniform(size=(50, 2)))
+    with pytest.raises(ValueError, match="unsupported network"):
+        train_mlp.network_graph(model)
