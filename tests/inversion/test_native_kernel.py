@@ -168,7 +168,7 @@ def test_the_adaptive_polish_stops_converged_bins_early_with_the_same_result():
 
 @pytest.mark.skipif(not native.available(), reason=native.status())
 def test_the_mlp_features_from_c_match_the_numpy_preparation():
-    """tm_mlp_features (the network input from the sanitized I_b, I_w, ρ's and σt) against
+    """tm_fit_prepare's features (the network input from the sanitized I_b, I_w, ρ's and σt) against
     mlp.features of api._prepare, on inputs with every kind of bad value."""
     import trimeter.inversion.api as api
     from trimeter.inversion.mlp import features
@@ -179,9 +179,31 @@ def test_the_mlp_features_from_c_match_the_numpy_preparation():
     inverter = api.table_inverter(amap)
     grid = inverter.grid
     log_range = (float(np.log(amap.sigma_t[0])), float(np.log(amap.sigma_t[-1])))
-    compiled = inverter.native_solver.mlp_features(*args, log_range, **api.native_options(
+    seen = []
+
+    def guess(x):
+        seen.append(x.copy())
+        return np.column_stack([np.full(len(x), 0.5), np.full(len(x), 0.3)])
+
+    compiled = inverter.native_solver.fit_guessed(*args, guess, log_range, **api.native_options(
         amap, grid, polish=0, polish_tol=0.0, noise_rel=0.005, noise_abs=2e-4, ic_floor=1e-4, alpha_min_g=0.02))
+    assert len(seen) == 1 and np.array_equal(seen[0], compiled["features"])
+    compiled = compiled["features"]
     p = api._prepare(amap, grid, *args, 1e-4)
     want = features(p.ib, p.iw, p.sigma_t, p.rb, p.rw, log_range)
     assert compiled.dtype == np.float32 and compiled.shape == want.shape
     np.testing.assert_allclose(compiled, want, rtol=2e-7, atol=0)  # float32: one rounding step apart at most
+
+
+@pytest.mark.skipif(not native.available(), reason=native.status())
+def test_a_guess_of_the_wrong_shape_is_refused():
+    import trimeter.inversion.api as api
+    from trimeter.maps.appearance import AppearanceMap
+
+    amap = AppearanceMap.load(MAPS_DIR / "device-n1.5-l0.4.tmap")
+    inverter = api.table_inverter(amap)
+    args = _fit_inputs(np.random.default_rng(2))
+    options = api.native_options(amap, inverter.grid, polish=2, polish_tol=1e-6, noise_rel=0.005, noise_abs=2e-4,
+                                 ic_floor=1e-4, alpha_min_g=0.02)
+    with pytest.raises(ValueError, match="guess must be"):
+        inverter.native_solver.fit_guessed(*args, lambda x: x[:, :1], (-3.0, 4.0), **options)

@@ -204,32 +204,29 @@ def _fit_one(amap, I_b, I_w, I_c, rho_b, rho_w, *, method, polish, polish_tol, m
              ic_floor, alpha_min_g) -> FitResult:
     inverter = table_inverter(amap)
     grid = inverter.grid
+    mlp = None
+    if method == "mlp":
+        from trimeter.inversion.mlp import mlp_inverter
+
+        mlp = mlp_inverter(amap, mlp_model)
     solver = inverter.native_solver  # the whole fit in C (invert.c tm_fit); the numpy code below is its reference
     if solver is not None:
         options = native_options(amap, grid, polish=polish, polish_tol=polish_tol, noise_rel=noise_rel,
                                  noise_abs=noise_abs, ic_floor=ic_floor, alpha_min_g=alpha_min_g)
-    alpha0 = g0 = None
-    if method == "mlp":  # the network's guess needs σt and the sanitized inputs first
-        from trimeter.inversion.mlp import mlp_inverter
-
-        mlp = mlp_inverter(amap, mlp_model)
-        if solver is not None:  # features from C; tm_fit clamps the guess to the map's box itself
-            guess = mlp.run(solver.mlp_features(I_b, I_w, I_c, rho_b, rho_w, mlp.log_sigma_range, **options))
-            alpha0, g0 = guess[:, 0], guess[:, 1]
-        else:
-            p = _prepare(amap, grid, I_b, I_w, I_c, rho_b, rho_w, ic_floor)
-            alpha0, g0 = mlp.predict(p.ib, p.iw, p.sigma_t, p.rb, p.rw)
-    if solver is not None:
-        out = solver.fit(I_b, I_w, I_c, rho_b, rho_w, alpha0=alpha0, g0=g0, **options)
+        if mlp is None:
+            out = solver.fit(I_b, I_w, I_c, rho_b, rho_w, **options)
+        else:  # the network guesses from the features C prepares; tm_fit_solve clamps its guess to the map's box
+            out = solver.fit_guessed(I_b, I_w, I_c, rho_b, rho_w, mlp.run, mlp.log_sigma_range, **options)
+            out.pop("features")
         out.pop("steps")
         return FitResult(**out, method=method)
-    if method != "mlp":
-        p = _prepare(amap, grid, I_b, I_w, I_c, rho_b, rho_w, ic_floor)
+    p = _prepare(amap, grid, I_b, I_w, I_c, rho_b, rho_w, ic_floor)
     step_var = polish_step_var(p.ib, p.iw, noise_rel, noise_abs, grid.mc_stderr, _polish_tol_std(polish_tol))
-    if method == "lut":
+    if mlp is None:
         alpha, g, residual, J = inverter.invert(p.ib, p.iw, p.sigma_t, p.rb, p.rw, polish_iterations=polish,
                                                 step_tol=polish_tol, step_var=step_var)
-    else:  # mlp
+    else:
+        alpha0, g0 = mlp.predict(p.ib, p.iw, p.sigma_t, p.rb, p.rw)
         alpha, g, residual, J = grid.solve_alpha_g(p.ib, p.iw, grid.sigma_cell(p.sigma_t), p.rb, p.rw, alpha0, g0,
                                                    iterations=max(polish, 0), step_tol=polish_tol, step_var=step_var)
     return _finish(amap, grid, p.flags, p.usable, p.ib, p.iw, p.ic, p.rb, p.rw, alpha, p.sigma_t, g, residual,

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 LIBRARY = Path(__file__).with_name("libtrimeter_invert.so")
-ABI_VERSION = 7
+ABI_VERSION = 8
 
 _double_p = ctypes.POINTER(ctypes.c_double)
 
@@ -73,9 +73,15 @@ def _load():
                                      vp, vp, vp, vp, vp, ctypes.c_int, ctypes.c_double, vp, vp, vp, vp, vp]
     lib.tm_propagate.restype = None
     lib.tm_propagate.argtypes = [size_t, vp, vp, vp, vp, vp]
-    lib.tm_mlp_features.restype = None
-    lib.tm_mlp_features.argtypes = [ctypes.POINTER(_ForwardGridC), ctypes.POINTER(_FitOptionsC), size_t,
-                                    vp, vp, vp, vp, vp, ctypes.c_double, ctypes.c_double, vp]
+    lib.tm_fit_scratch_size.restype = size_t
+    lib.tm_fit_scratch_size.argtypes = [size_t]
+    lib.tm_fit_prepare.restype = None
+    lib.tm_fit_prepare.argtypes = [ctypes.POINTER(_ForwardGridC), ctypes.POINTER(_FitOptionsC), size_t,
+                                   vp, vp, vp, vp, vp, vp, ctypes.POINTER(_FitOutputsC), ctypes.c_double,
+                                   ctypes.c_double, vp]
+    lib.tm_fit_solve.restype = ctypes.c_longlong
+    lib.tm_fit_solve.argtypes = [ctypes.POINTER(_ForwardGridC), ctypes.POINTER(_InverseTableC),
+                                 ctypes.POINTER(_FitOptionsC), size_t, vp, vp, vp, vp, ctypes.POINTER(_FitOutputsC)]
     lib.tm_fit.restype = ctypes.c_longlong
     lib.tm_fit.argtypes = [ctypes.POINTER(_ForwardGridC), ctypes.POINTER(_InverseTableC),
                            ctypes.POINTER(_FitOptionsC), size_t, vp, vp, vp, vp, vp, vp, vp,
@@ -178,12 +184,7 @@ class NativeSolver:
         guess = [None, None] if alpha0 is None else [_f64(alpha0, n), _f64(g0, n)]
         if alpha0 is None and self._table is None:
             raise ValueError("this solver has no inverse table: pass alpha0 and g0")
-        # one block, a row per output (flags: int64 in the last row): one allocation, one address
-        block = np.empty((len(_FitOutputsC._fields_), n))
-        base, row = _addr(block), 8 * n
-        outputs = _FitOutputsC(*(base + k * row for k in range(len(_FitOutputsC._fields_))))
-        out = {name: block[k] for k, (name, _) in enumerate(_FitOutputsC._fields_)}
-        out["flags"] = out["flags"].view(np.int64)
+        out, outputs = _fit_outputs(n)
         steps = _LIB.tm_fit(self._grid_ref, self._table_ref if alpha0 is None else None,
                             ctypes.byref(_fit_options(**options)), n, *(_addr(a) for a in args),
                             *(None if v is None else _addr(v) for v in guess), ctypes.byref(outputs))
@@ -191,15 +192,39 @@ class NativeSolver:
         out["steps"] = int(steps)
         return out
 
-    def mlp_features(self, I_b, I_w, I_c, rho_b, rho_w, log_sigma_range, **options):
-        """The MLP's input (n, 5) float32 (trimeter.inversion.mlp.features) of the sanitized I_b, I_w,
-        ρ_b, ρ_w and σt from I_c that tm_fit starts from (invert.c `tm_mlp_features`, api._prepare)."""
+    def fit_guessed(self, I_b, I_w, I_c, rho_b, rho_w, guess, log_sigma_range, **options):
+        """fit() with the initial (α, g) from guess(features) → (n, 2), e.g. the MLP: the bins are
+        prepared once (invert.c `tm_fit_prepare`, which also writes the features, mlp.features with
+        ln σt clamped to log_sigma_range), then solved from that guess (`tm_fit_solve`)."""
         n = len(I_b)
         args = [_f64(v, n) for v in (I_b, I_w, I_c, rho_b, rho_w)]
-        x = np.empty((n, 5), dtype=np.float32)
-        _LIB.tm_mlp_features(self._grid_ref, ctypes.byref(_fit_options(**options)), n, *(_addr(a) for a in args),
-                             *map(float, log_sigma_range), _addr(x))
-        return x
+        out, outputs = _fit_outputs(n)
+        scratch = np.empty(_LIB.tm_fit_scratch_size(n), dtype=np.uint8)
+        features = np.empty((n, 5), dtype=np.float32)
+        opts = ctypes.byref(_fit_options(**options))
+        _LIB.tm_fit_prepare(self._grid_ref, opts, n, *(_addr(a) for a in args), _addr(scratch), ctypes.byref(outputs),
+                            *map(float, log_sigma_range), _addr(features))
+        guessed = np.asarray(guess(features))
+        if guessed.shape != (n, 2):
+            raise ValueError(f"the guess must be (n, 2) = ({n}, 2), got {guessed.shape}")
+        alpha0, g0 = _f64(guessed[:, 0], n), _f64(guessed[:, 1], n)
+        steps = _LIB.tm_fit_solve(self._grid_ref, None, opts, n, _addr(args[2]), _addr(alpha0), _addr(g0),
+                                  _addr(scratch), ctypes.byref(outputs))
+        _check(steps)
+        out["steps"] = int(steps)
+        out["features"] = features
+        return out
+
+
+def _fit_outputs(n: int):
+    """The FitResult columns as rows of one block (flags: int64 in the last row): one allocation, one
+    address; and the C struct pointing at them."""
+    block = np.empty((len(_FitOutputsC._fields_), n))
+    base, row = _addr(block), 8 * n
+    outputs = _FitOutputsC(*(base + k * row for k in range(len(_FitOutputsC._fields_))))
+    out = {name: block[k] for k, (name, _) in enumerate(_FitOutputsC._fields_)}
+    out["flags"] = out["flags"].view(np.int64)
+    return out, outputs
 
 
 def _fit_options(*, noise_rel, noise_abs, mc_stderr, ic_floor, alpha_min_g, input_tolerance, ref_rho, t_max, t_valid,

@@ -22,7 +22,7 @@
 #include <stdint.h>
 #include <stdlib.h>
 
-#define TM_ABI_VERSION 7
+#define TM_ABI_VERSION 8
 
 typedef struct {
     int32_t na, ns, ng;
@@ -102,6 +102,7 @@ typedef struct {
     int32_t ia, ig; /* the α and g cells of the last evaluation: walk_cell's hints (-1: none yet) */
     double ws;
     double sigma_t; /* σt clamped to the grid, as ForwardGrid.clamp_sigma_t (≈ exp of sigma_cell's ln σt) */
+    double log_sigma_t; /* ln σt clamped to the grid */
 } sigma_cell_t;
 
 /* σt from ln σt, or directly when the caller has it (sigma_t > 0 and finite): one exp/log less per bin. */
@@ -110,6 +111,7 @@ static inline sigma_cell_t sigma_cell(const tm_forward_grid *f, double log_sigma
     double ls = clamp_log_sigma(f, log_sigma_t);
     c.is = find_cell_on(f->log_sigma_t, f->inv_ds, f->ns, f->uniform_ds, ls, &c.ws);
     c.ia = c.ig = -1;
+    c.log_sigma_t = ls;
     c.sigma_t = ls != log_sigma_t || !(sigma_t > 0.0 && isfinite(sigma_t)) ? exp(ls) : sigma_t;
     return c;
 }
@@ -445,62 +447,84 @@ static int64_t prepare_bin(const tm_forward_grid *f, const tm_fit_options *o, si
     return fl;
 }
 
-/* prepare_bin for n bins, written as the MLP's input (trimeter.inversion.mlp.features of the
- * sanitized I_b, I_w, ρ_b, ρ_w and σt; x: n × 5 float32, ln σt clamped to [log_lo, log_hi]): the
- * network's guess then goes to tm_fit. */
-void tm_mlp_features(const tm_forward_grid *f, const tm_fit_options *o, size_t n, const double *I_b,
-                     const double *I_w, const double *I_c, const double *rho_b, const double *rho_w, double log_lo,
-                     double log_hi, float *x) {
-    const sigma_bounds_t bounds = sigma_bounds(f);
-    for (size_t i = 0; i < n; i++) {
-        double ib, iw, rb, rw, s, beer;
-        prepare_bin(f, o, bounds, I_b[i], I_w[i], I_c[i], rho_b[i], rho_w[i], &ib, &iw, &rb, &rw, &s, &beer);
-        float *xi = x + i * 5u;
-        xi[0] = (float)sqrt(ib); /* ib, iw: already in [0, 1] */
-        xi[1] = (float)sqrt(iw);
-        xi[2] = (float)clampd(log(fmax(s, 1e-30)), log_lo, log_hi);
-        xi[3] = (float)rb;
-        xi[4] = (float)rw;
-    }
+/* A fit's per-bin working state between its two halves (tm_fit_prepare, tm_fit_solve): the
+ * sanitized inputs, the polish's step tolerance, the σt cell and the polish's index list. One
+ * caller-owned block of tm_fit_scratch_size(n) bytes, carved here. */
+typedef struct {
+    double *ib, *iw, *rb, *rw, *step_var;
+    sigma_cell_t *cells;
+    uint32_t *active;
+} fit_scratch_t;
+
+size_t tm_fit_scratch_size(size_t n) {
+    return (n ? n : 1) * (5 * sizeof(double) + sizeof(sigma_cell_t) + sizeof(uint32_t)) + 16;
 }
 
-/* Returns the number of Newton steps taken (≥ 0), -1 on a malformed grid, -2 when out of memory.
- * alpha0/g0: the initial guess (the MLP's), or NULL to take it from `table`. */
-long long tm_fit(const tm_forward_grid *f, const tm_inverse_table *table, const tm_fit_options *o, size_t n,
-                 const double *I_b, const double *I_w, const double *I_c, const double *rho_b, const double *rho_w,
-                 const double *alpha0, const double *g0, const tm_fit_outputs *out) {
-    if (!grid_ok(f, table) || (!table && (!alpha0 || !g0))) return -1;
-    /* scratch: the sanitized inputs and σt cell per bin, and the polish's index list */
-    double *ib = malloc((n ? n : 1) * 5 * sizeof(double));
-    sigma_cell_t *cells = calloc(n ? n : 1, sizeof *cells); /* calloc: gcc cannot see that n = 0 reads none */
-    uint32_t *active = malloc((n ? n : 1) * sizeof *active);
-    if (!ib || !cells || !active || n > UINT32_MAX) {
-        free(ib);
-        free(cells);
-        free(active);
-        return -2;
-    }
-    double *iw = ib + n, *rb = ib + 2 * n, *rw = ib + 3 * n, *step_var = ib + 4 * n;
+static fit_scratch_t carve_scratch(void *mem, size_t n) {
+    fit_scratch_t sc;
+    double *d = mem; /* doubles first, then the cells (8-byte members), then the indices: all aligned */
+    sc.ib = d;
+    sc.iw = d + n;
+    sc.rb = d + 2 * n;
+    sc.rw = d + 3 * n;
+    sc.step_var = d + 4 * n;
+    sc.cells = (sigma_cell_t *)(d + 5 * n);
+    sc.active = (uint32_t *)(sc.cells + n);
+    return sc;
+}
+
+/* The first half of a fit: input flags, σt from I_c and the Beer-Lambert column into `out`, the
+ * sanitized inputs and σt cells into `scratch`; with `features` (n × 5 float32, else NULL) also the
+ * MLP's input (trimeter.inversion.mlp.features; ln σt clamped to [log_lo, log_hi]), so that the
+ * network's guess can go to tm_fit_solve without preparing the bins twice. */
+void tm_fit_prepare(const tm_forward_grid *f, const tm_fit_options *o, size_t n, const double *I_b, const double *I_w,
+                    const double *I_c, const double *rho_b, const double *rho_w, void *scratch,
+                    const tm_fit_outputs *out, double log_lo, double log_hi, float *features) {
+    fit_scratch_t sc = carve_scratch(scratch, n);
     const double mc2 = o->mc_stderr * o->mc_stderr, kappa2 = o->step_tol_std * o->step_tol_std;
-    double *alpha = out->alpha, *g = out->g, *sigma_t = out->sigma_t;
     const sigma_bounds_t bounds = sigma_bounds(f);
     for (size_t i = 0; i < n; i++) {
         double s, beer;
-        out->flags[i] = prepare_bin(f, o, bounds, I_b[i], I_w[i], I_c[i], rho_b[i], rho_w[i], &ib[i], &iw[i], &rb[i],
-                                    &rw[i], &s, &beer);
+        out->flags[i] = prepare_bin(f, o, bounds, I_b[i], I_w[i], I_c[i], rho_b[i], rho_w[i], &sc.ib[i], &sc.iw[i],
+                                    &sc.rb[i], &sc.rw[i], &s, &beer);
         out->sigma_t_beer[i] = beer;
-        sigma_t[i] = s;
-        double sb = o->noise_rel * ib[i] + o->noise_abs, sw = o->noise_rel * iw[i] + o->noise_abs;
-        step_var[i] = kappa2 * 0.5 * (sb * sb + sw * sw + 2.0 * mc2); /* (κ σ)², σ² the mean of I_b's and I_w's */
+        out->sigma_t[i] = s;
+        double sb = o->noise_rel * sc.ib[i] + o->noise_abs, sw = o->noise_rel * sc.iw[i] + o->noise_abs;
+        sc.step_var[i] = kappa2 * 0.5 * (sb * sb + sw * sw + 2.0 * mc2); /* (κ σ)², σ² the mean of I_b's and I_w's */
         double ls = log(s);
-        cells[i] = sigma_cell(f, ls, s);
+        sc.cells[i] = sigma_cell(f, ls, s);
+        if (features) {
+            float *xi = features + i * 5u;
+            xi[0] = (float)sqrt(sc.ib[i]); /* ib, iw: already in [0, 1] */
+            xi[1] = (float)sqrt(sc.iw[i]);
+            xi[2] = (float)clampd(s > 1e-30 ? ls : log(1e-30), log_lo, log_hi); /* as mlp.features */
+            xi[3] = (float)sc.rb[i];
+            xi[4] = (float)sc.rw[i];
+        }
+    }
+}
+
+/* The second half: the initial (α, g) from `table`, or alpha0/g0 (the MLP's; NULL: the table's),
+ * the polish, then flags for not converged / outside the map / g undefined / underdetermined,
+ * first-order stds and NaN for unusable bins. Returns the number of Newton steps taken (≥ 0), -1
+ * on a malformed grid or a missing guess. */
+long long tm_fit_solve(const tm_forward_grid *f, const tm_inverse_table *table, const tm_fit_options *o, size_t n,
+                       const double *I_c, const double *alpha0, const double *g0, void *scratch,
+                       const tm_fit_outputs *out) {
+    if (!grid_ok(f, table) || (!alpha0 && !table) || (alpha0 && !g0) || n > UINT32_MAX) return -1;
+    fit_scratch_t sc = carve_scratch(scratch, n);
+    const double *ib = sc.ib, *iw = sc.iw, *rb = sc.rb, *rw = sc.rw;
+    sigma_cell_t *cells = sc.cells;
+    const double mc2 = o->mc_stderr * o->mc_stderr;
+    double *alpha = out->alpha, *g = out->g, *sigma_t = out->sigma_t;
+    for (size_t i = 0; i < n; i++) {
         double a = alpha0 ? alpha0[i] : 0.0, gg = g0 ? g0[i] : 0.0;
-        if (!alpha0) initial_guess(table, clamp_log_sigma(f, ls), ib[i], iw[i], &a, &gg);
+        if (!alpha0) initial_guess(table, cells[i].log_sigma_t, ib[i], iw[i], &a, &gg);
         alpha[i] = clampd(a, f->alpha_lo, f->alpha_hi);
         g[i] = clampd(gg, f->g_lo, f->g_hi);
     }
     prefetch_cells(f, n, cells, alpha, g);
-    size_t steps = polish(f, n, cells, ib, iw, rb, rw, o->iterations, o->step_tol, step_var, alpha, g, active);
+    size_t steps = polish(f, n, cells, ib, iw, rb, rw, o->iterations, o->step_tol, sc.step_var, alpha, g, sc.active);
     const int g_lo_is_edge = f->g_lo > -1 + 1e-6, g_hi_is_edge = f->g_hi < 1 - 1e-6;
     for (size_t i = 0; i < n; i++) {
         double Ji[9];
@@ -538,8 +562,18 @@ long long tm_fit(const tm_forward_grid *f, const tm_inverse_table *table, const 
         out->g_std[i] = sg;
         out->flags[i] = fl;
     }
-    free(ib);
-    free(cells);
-    free(active);
     return (long long)steps;
+}
+
+/* Both halves with the table's guess (or alpha0/g0): -1 on a malformed grid, -2 when out of memory. */
+long long tm_fit(const tm_forward_grid *f, const tm_inverse_table *table, const tm_fit_options *o, size_t n,
+                 const double *I_b, const double *I_w, const double *I_c, const double *rho_b, const double *rho_w,
+                 const double *alpha0, const double *g0, const tm_fit_outputs *out) {
+    if (!grid_ok(f, table) || (!alpha0 && !table) || (alpha0 && !g0)) return -1;
+    void *scratch = n > UINT32_MAX ? NULL : malloc(tm_fit_scratch_size(n));
+    if (!scratch) return -2;
+    tm_fit_prepare(f, o, n, I_b, I_w, I_c, rho_b, rho_w, scratch, out, 0.0, 0.0, NULL);
+    long long steps = tm_fit_solve(f, table, o, n, I_c, alpha0, g0, scratch, out);
+    free(scratch);
+    return steps;
 }
