@@ -11,6 +11,8 @@ Model contract (checked on load; a mismatch is a MapFileError, never a silent wr
 
 from __future__ import annotations
 
+import os
+import stat
 from pathlib import Path
 
 import numpy as np
@@ -85,9 +87,13 @@ def mlp_inverter(amap, model: str | Path | None = None) -> MlpInverter:
             raise MapFileError("method mlp needs a model file: pass mlp_model=… for a map without a path")
         model = model_path_for(amap.path)
     model = Path(model)
-    if not model.is_file():
+    try:
+        info = os.stat(model)  # one system call: exists, is a file, and its mtime (a changed file reloads)
+    except OSError:
+        info = None
+    if info is None or not stat.S_ISREG(info.st_mode):
         raise MapFileError(f"no MLP model {model} for map {amap.name}; train one with tools/train_mlp.py")
-    key = (str(model), model.stat().st_mtime_ns, amap.checksum)
+    key = (str(model), info.st_mtime_ns, amap.checksum)
     if key not in _CACHE:
         _CACHE[key] = MlpInverter(model, amap.checksum, (float(np.log(amap.sigma_t[0])), float(np.log(amap.sigma_t[-1]))),
                                   (float(amap.alpha[0]), float(amap.alpha[-1])), (float(amap.g[0]), float(amap.g[-1])))
