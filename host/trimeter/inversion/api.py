@@ -356,18 +356,21 @@ def combine(results: list[FitResult], method: str) -> FitResult:
 
 
 def _weighted(vals, stds):
-    import warnings
-
+    """Inverse-variance mean over the thicknesses (axis 0) and its std. Where no thickness has a
+    usable std: the plain mean of the finite values and the smallest of their stds; NaN where no
+    value is finite (a bin unusable at every thickness). Written out, not with nanmean/nanmin: those
+    warn on all-NaN columns and cost more than the arithmetic here."""
     finite = np.isfinite(vals)
-    # a bin unusable at every thickness is all-NaN here: NaN out, as intended, without numpy's warning
-    with np.errstate(divide="ignore", invalid="ignore"), warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        w = np.where(finite & np.isfinite(stds) & (stds > 0), 1.0 / stds ** 2, 0.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        w = np.where(finite & np.isfinite(stds) & (stds > 0), 1.0 / (stds * stds), 0.0)
         wsum = w.sum(axis=0)
-        weighted = (np.where(finite, vals, 0.0) * w).sum(axis=0) / wsum
-        plain = np.nanmean(np.where(finite, vals, np.nan), axis=0) if vals.size else vals
+        v0 = np.where(finite, vals, 0.0)
+        weighted = (v0 * w).sum(axis=0) / wsum
+        count = finite.sum(axis=0)
+        plain = np.where(count > 0, v0.sum(axis=0) / count, np.nan)
+        smallest = np.fmin.reduce(np.where(finite, stds, np.inf), axis=0)  # fmin: a NaN std does not win
         value = np.where(wsum > 0, weighted, plain)
-        std = np.where(wsum > 0, 1.0 / np.sqrt(wsum), np.nanmin(np.where(finite, stds, np.nan), axis=0))
+        std = np.where(wsum > 0, 1.0 / np.sqrt(wsum), np.where(count > 0, smallest, np.nan))
     return value, std
 
 
