@@ -1,8 +1,9 @@
 /* The inversion hot path in C: a whole single-thickness fit (tm_fit: input flags, σt from I_c, the
  * map table's initial guess or a given one, the damped Gauss-Newton polish of (α, g) at that σt on
  * the trilinear forward map, stopping each bin once converged, the Jacobian at the solution, the
- * first-order uncertainty and the validity flags), and its parts for the numpy-side callers
- * (tm_solve_alpha_g, tm_propagate). One pass per bin, everything in registers.
+ * first-order uncertainty and the validity flags; or its two halves tm_fit_prepare / tm_fit_solve
+ * with an MLP's guess in between), and its parts for the numpy-side callers (tm_solve_alpha_g,
+ * tm_propagate). One pass per bin, everything in registers.
  *
  * Why C: the numpy kernel (trimeter.inversion.kernel / lut / api) spends its time in ~100 array
  * operations per Newton step, each a few µs of interpreter and allocation overhead at ~1000 bins;
@@ -242,10 +243,10 @@ static inline double collimated_derivative(const tm_forward_grid *f, double sigm
     return -f->thickness_mm * f->stack_a * x * (1.0 + bx2) / ((1.0 - bx2) * (1.0 - bx2));
 }
 
-/* Up to `iterations` Newton steps per bin; a bin leaves once a step was small (newton_step; step_tol
- * = 0 and step_var NULL: a fixed count; step_var: per bin, or NULL for none). The loop over bins is innermost: a bin's steps form one long
- * dependency chain (divisions, table reads) while consecutive bins are independent, so the CPU
- * overlaps them (~2× faster here than bin by bin). `active` is scratch for n indices; returns the
+/* Up to `iterations` Newton steps per bin; a bin leaves once a step was small (newton_step;
+ * step_var: per bin, or NULL for none; step_tol = 0 and no step_var: a fixed count). The loop over
+ * bins is innermost: a bin's steps form one long dependency chain (divisions, table reads) while
+ * consecutive bins are independent, so the CPU overlaps them (~2× faster here than bin by bin). `active` is scratch for n indices; returns the
  * number of steps taken over all bins. */
 static size_t polish(const tm_forward_grid *f, size_t n, sigma_cell_t *cells, const double *I_b,
                      const double *I_w, const double *rho_b, const double *rho_w, int iterations,
@@ -316,8 +317,8 @@ static int grid_ok(const tm_forward_grid *f, const tm_inverse_table *table) {
 
 /* For each bin (σt given as ln σt, clamped to the grid here): the initial (α, g) from `table` (or
  * from alpha/g on entry when table is NULL), up to `iterations` Newton steps (see polish; step_var
- * may be NULL), then the
- * residual |(I_b, I_w) − model| and ∂(I_b, I_w, I_c)/∂(α, σt, g) at the solution (J: n × 3 × 3).
+ * may be NULL), then the residual |(I_b, I_w) − model| and ∂(I_b, I_w, I_c)/∂(α, σt, g) at the
+ * solution (J: n × 3 × 3).
  * Returns 0, -1 on a malformed grid, -2 when out of memory. */
 int tm_solve_alpha_g(const tm_forward_grid *f, const tm_inverse_table *table, size_t n, const double *I_b,
                      const double *I_w, const double *log_sigma_t, const double *rho_b, const double *rho_w,
@@ -463,7 +464,7 @@ typedef struct {
 } fit_scratch_t;
 
 size_t tm_fit_scratch_size(size_t n) {
-    return (n ? n : 1) * (5 * sizeof(double) + sizeof(sigma_cell_t) + sizeof(uint32_t)) + 16;
+    return (n ? n : 1) * (5 * sizeof(double) + sizeof(sigma_cell_t) + sizeof(uint32_t));
 }
 
 static fit_scratch_t carve_scratch(void *mem, size_t n) {
