@@ -42,7 +42,8 @@ class _InverseTableC(ctypes.Structure):
 class _FitOptionsC(ctypes.Structure):
     _fields_ = [(name, ctypes.c_double) for name in (
         "noise_rel", "noise_abs", "mc_stderr", "ic_floor", "alpha_min_g", "input_tolerance", "ref_rho_b",
-        "ref_rho_w", "t_max", "t_valid", "step_tol", "step_tol_std", "underdetermined_alpha_std", "underdetermined_g_std")] + [
+        "ref_rho_w", "t_max", "t_valid", "step_tol", "step_tol_std", "underdetermined_alpha_std",
+        "underdetermined_g_std")] + [
         ("iterations", ctypes.c_int32)]
 
 
