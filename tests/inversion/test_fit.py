@@ -189,6 +189,36 @@ def test_mlp_refuses_a_model_trained_on_another_map(thick_map, ideal_model):
         trimeter.fit(thick_map, [0.1], [0.5], [0.3], method="mlp", mlp_model=ideal_model)
 
 
+@pytest.mark.parametrize("native_kernel", ["1", "0"])
+def test_a_model_that_outputs_nan_costs_only_its_guess(ideal_map, ideal_model, tmp_path, monkeypatch, native_kernel):
+    """A model file that loads and passes its checks but whose weights went bad (NaN out): every
+    bin starts from the table's guess instead, so the mlp fit equals the lut fit (C kernel and numpy
+    reference alike)."""
+    onnx = pytest.importorskip("onnx")
+    from onnx import numpy_helper
+
+    from trimeter.inversion import api, native
+
+    if native_kernel == "1" and not native.available():
+        pytest.skip(native.status())
+    model = onnx.load(ideal_model)
+    last = model.graph.initializer[-1]  # a bias
+    last.CopyFrom(numpy_helper.from_array(np.full_like(numpy_helper.to_array(last), np.nan), last.name))
+    broken = tmp_path / "broken.onnx"
+    onnx.save(model, broken)
+    if native_kernel == "0":  # the numpy reference throughout, as test_native_kernel sets it up
+        monkeypatch.setattr(native, "_LIB", None)
+        monkeypatch.setattr(api, "_TABLES", {})
+        assert api.table_inverter(ideal_map).native_solver is None
+    I_b, I_w, I_c = forward(ideal_map, np.array([0.9, 0.6, 0.95]), np.array([1.0, 3.0, 0.5]),
+                            np.array([0.3, 0.5, 0.1]), *api.grid_ref(ideal_map))
+    got = trimeter.fit(ideal_map, I_b, I_w, I_c, method="mlp", mlp_model=broken)
+    want = trimeter.fit(ideal_map, I_b, I_w, I_c, method="lut")
+    np.testing.assert_allclose(got.alpha, want.alpha, rtol=1e-12)
+    np.testing.assert_allclose(got.g, want.g, rtol=1e-12)
+    np.testing.assert_array_equal(got.flags, want.flags)
+
+
 def test_lut_never_uses_a_table_built_from_another_map(ideal_map, thick_map, tmp_path):
     import shutil
 

@@ -207,3 +207,31 @@ def test_a_guess_of_the_wrong_shape_is_refused():
                                  ic_floor=1e-4, alpha_min_g=0.02)
     with pytest.raises(ValueError, match="guess must be"):
         inverter.native_solver.fit_guessed(*args, lambda x: x[:, :1], (-3.0, 4.0), **options)
+
+
+@pytest.mark.skipif(not native.available(), reason=native.status())
+def test_a_guess_that_is_not_finite_falls_back_to_the_table():
+    """A broken network (NaN or inf out) costs nothing but its guess: those bins start from the
+    table's, so they come out exactly as the lut fit's; the other bins keep the network's guess."""
+    import trimeter.inversion.api as api
+    from trimeter.maps.appearance import AppearanceMap
+
+    amap = AppearanceMap.load(MAPS_DIR / "device-n1.5-l0.4.tmap")
+    inverter = api.table_inverter(amap)
+    args = _fit_inputs(np.random.default_rng(4))
+    n = len(args[0])
+    options = api.native_options(amap, inverter.grid, polish=8, polish_tol=1e-6, noise_rel=0.005, noise_abs=2e-4,
+                                 ic_floor=1e-4, alpha_min_g=0.02)
+    bad = np.arange(n) % 3 == 0
+
+    def broken(x):
+        y = np.column_stack([np.full(n, 0.7), np.full(n, 0.4)])
+        y[bad, 0] = np.nan
+        y[bad & (np.arange(n) % 2 == 0), 1] = np.inf
+        return y
+
+    guessed = inverter.native_solver.fit_guessed(*args, broken, (-3.0, 4.0), **options)
+    lut = inverter.native_solver.fit(*args, **options)
+    for name in ("alpha", "sigma_t", "g", "alpha_std", "g_std", "flags"):
+        np.testing.assert_array_equal(guessed[name][bad], lut[name][bad], err_msg=name)
+    assert np.all(np.isfinite(guessed["alpha"][~bad]) | (guessed["flags"][~bad] != 0))

@@ -227,6 +227,10 @@ def _fit_one(amap, I_b, I_w, I_c, rho_b, rho_w, *, method, polish, polish_tol, m
                                                 step_tol=polish_tol, step_var=step_var)
     else:
         alpha0, g0 = mlp.predict(p.ib, p.iw, p.sigma_t, p.rb, p.rw)
+        broken = ~(np.isfinite(alpha0) & np.isfinite(g0))  # a network gone bad: the table guesses there
+        if broken.any():
+            table_a, table_g = inverter.initial_guess(p.ib, p.iw, inverter.table_grid.sigma_cell(p.sigma_t))
+            alpha0, g0 = np.where(broken, table_a, alpha0), np.where(broken, table_g, g0)
         alpha, g, residual, J = grid.solve_alpha_g(p.ib, p.iw, grid.sigma_cell(p.sigma_t), p.rb, p.rw, alpha0, g0,
                                                    iterations=max(polish, 0), step_tol=polish_tol, step_var=step_var)
     return _finish(amap, grid, p.flags, p.usable, p.ib, p.iw, p.ic, p.rb, p.rw, alpha, p.sigma_t, g, residual,

@@ -196,7 +196,8 @@ class NativeSolver:
     def fit_guessed(self, I_b, I_w, I_c, rho_b, rho_w, guess, log_sigma_range, **options):
         """fit() with the initial (α, g) from guess(features) → (n, 2), e.g. the MLP: the bins are
         prepared once (invert.c `tm_fit_prepare`, which also writes the features, mlp.features with
-        ln σt clamped to log_sigma_range), then solved from that guess (`tm_fit_solve`)."""
+        ln σt clamped to log_sigma_range), then solved from that guess (`tm_fit_solve`; where the
+        guess is not finite, from the table's)."""
         n = len(I_b)
         args = [_f64(v, n) for v in (I_b, I_w, I_c, rho_b, rho_w)]
         out, outputs = _fit_outputs(n)
@@ -209,8 +210,8 @@ class NativeSolver:
         if guessed.shape != (n, 2):
             raise ValueError(f"the guess must be (n, 2) = ({n}, 2), got {guessed.shape}")
         alpha0, g0 = _f64(guessed[:, 0], n), _f64(guessed[:, 1], n)
-        steps = _LIB.tm_fit_solve(self._grid_ref, None, opts, n, _addr(args[2]), _addr(alpha0), _addr(g0),
-                                  _addr(scratch), ctypes.byref(outputs))
+        steps = _LIB.tm_fit_solve(self._grid_ref, self._table_ref, opts, n, _addr(args[2]), _addr(alpha0),
+                                  _addr(g0), _addr(scratch), ctypes.byref(outputs))
         _check(steps)
         out["steps"] = int(steps)
         out["features"] = features

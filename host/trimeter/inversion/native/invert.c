@@ -511,10 +511,11 @@ void tm_fit_prepare(const tm_forward_grid *f, const tm_fit_options *o, size_t n,
     }
 }
 
-/* The second half: the initial (α, g) from `table`, or alpha0/g0 (the MLP's; NULL: the table's),
- * the polish, then flags for not converged / outside the map / g undefined / underdetermined,
- * first-order stds and NaN for unusable bins. Returns the number of Newton steps taken (≥ 0), -1
- * on a malformed grid or a missing guess. */
+/* The second half: the initial (α, g) from alpha0/g0 (the MLP's) or, where those are NULL or not
+ * finite (a broken network), from `table` (without one: the middle of the map's box); the polish,
+ * then flags for not converged / outside the map / g undefined / underdetermined, first-order stds
+ * and NaN for unusable bins. Returns the number of Newton steps taken (≥ 0), -1 on a malformed grid
+ * or a missing guess. */
 long long tm_fit_solve(const tm_forward_grid *f, const tm_inverse_table *table, const tm_fit_options *o, size_t n,
                        const double *I_c, const double *alpha0, const double *g0, void *scratch,
                        const tm_fit_outputs *out) {
@@ -525,8 +526,12 @@ long long tm_fit_solve(const tm_forward_grid *f, const tm_inverse_table *table, 
     const double mc2 = o->mc_stderr * o->mc_stderr;
     double *alpha = out->alpha, *g = out->g, *sigma_t = out->sigma_t;
     for (size_t i = 0; i < n; i++) {
-        double a = alpha0 ? alpha0[i] : 0.0, gg = g0 ? g0[i] : 0.0;
-        if (!alpha0) initial_guess(table, cells[i].log_sigma_t, ib[i], iw[i], &a, &gg);
+        double a = alpha0 ? alpha0[i] : NAN, gg = g0 ? g0[i] : NAN;
+        if (!(isfinite(a) && isfinite(gg))) {
+            a = 0.5 * (f->alpha_lo + f->alpha_hi);
+            gg = 0.5 * (f->g_lo + f->g_hi);
+            if (table) initial_guess(table, cells[i].log_sigma_t, ib[i], iw[i], &a, &gg);
+        }
         alpha[i] = clampd(a, f->alpha_lo, f->alpha_hi);
         g[i] = clampd(gg, f->g_lo, f->g_hi);
     }
