@@ -11,6 +11,7 @@ Model contract (checked on load; a mismatch is a MapFileError, never a silent wr
 
 from __future__ import annotations
 
+import functools
 import os
 import stat
 from pathlib import Path
@@ -80,21 +81,29 @@ class MlpInverter:
         return self.session.run(None, {self.input_name: x})[0]
 
 
+@functools.lru_cache(maxsize=64)
+def _default_model(map_path: Path) -> str:
+    return os.fspath(model_path_for(map_path))
+
+
 def mlp_inverter(amap, model: str | Path | None = None) -> MlpInverter:
-    """The MLP for `amap`: `model` if given, else maps/<map-name>.onnx next to the map."""
+    """The MLP for `amap`: `model` if given, else maps/<map-name>.onnx next to the map. Called once
+    per fit: one stat() and a dict lookup when the model is loaded already (Path arithmetic cost
+    more than that)."""
     if model is None:
         if amap.path is None:
             raise MapFileError("method mlp needs a model file: pass mlp_model=… for a map without a path")
-        model = model_path_for(amap.path)
-    model = Path(model)
+        model = _default_model(amap.path)
+    path = os.fspath(model)
     try:
-        info = os.stat(model)  # one system call: exists, is a file, and its mtime (a changed file reloads)
+        info = os.stat(path)  # one system call: exists, is a file, and its mtime (a changed file reloads)
     except OSError:
         info = None
     if info is None or not stat.S_ISREG(info.st_mode):
-        raise MapFileError(f"no MLP model {model} for map {amap.name}; train one with tools/train_mlp.py")
-    key = (str(model), info.st_mtime_ns, amap.checksum)
+        raise MapFileError(f"no MLP model {path} for map {amap.name}; train one with tools/train_mlp.py")
+    key = (path, info.st_mtime_ns, amap.checksum)
     if key not in _CACHE:
-        _CACHE[key] = MlpInverter(model, amap.checksum, (float(np.log(amap.sigma_t[0])), float(np.log(amap.sigma_t[-1]))),
+        _CACHE[key] = MlpInverter(Path(path), amap.checksum,
+                                  (float(np.log(amap.sigma_t[0])), float(np.log(amap.sigma_t[-1]))),
                                   (float(amap.alpha[0]), float(amap.alpha[-1])), (float(amap.g[0]), float(amap.g[-1])))
     return _CACHE[key]
