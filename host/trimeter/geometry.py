@@ -30,3 +30,8 @@ def cover_slide_n(params: dict) -> float | None:
     """The cover slides' refractive index for a geometry's parameters, None without slides (the
     argument trimeter.forward.collimated takes)."""
     return float(params["cover_slide_n"]) if params.get("cover_slides") else None
+
+
+def cover_slide_thickness_mm(params: dict) -> float:
+    """Each cover slide's thickness for a geometry's parameters, 0 without slides."""
+    return float(params["cover_slide_thickness_mm"]) if params.get("cover_slides") else 0.0

@@ -27,7 +27,7 @@ import numpy as np
 
 from trimeter.forward.collimated import collimated_transmittance
 from trimeter.forward.nonscattering import fresnel_unpolarized
-from trimeter.geometry import cover_slide_n, load_geometry
+from trimeter.geometry import cover_slide_n, cover_slide_thickness_mm, load_geometry
 
 SIXTEEN_BIT_FLOOR = 2.0**-16
 
@@ -71,7 +71,7 @@ def collimated_with_inscatter(alpha: float, sigma_t: float, g: float, thickness_
     params = geometry or load_geometry("device")
     coll = params["collimated"]
     n_slide = cover_slide_n(params)
-    slide_t = float(params["cover_slide_thickness_mm"]) if n_slide else 0.0
+    slide_t = cover_slide_thickness_mm(params)
     r_beam = float(coll["beam_diameter_mm"]) / 2
     r_ap = float(coll["aperture_diameter_mm"]) / 2
     z_ap = thickness_mm + slide_t + float(coll["aperture_distance_mm"])   # from the sample's back face

@@ -22,6 +22,7 @@ from __future__ import annotations
 import numpy as np
 
 from trimeter.forward.scenes import panel_corners, resolve_geometry
+from trimeter.geometry import cover_slide_n
 
 _MU, _MU_W = np.polynomial.legendre.leggauss(256)
 _MU, _MU_W = (_MU + 1) / 2, _MU_W / 2           # nodes and weights on [0, 1]
@@ -71,8 +72,8 @@ def _combine(a, b):
 def _stack(params: dict, n: float, thickness_mm: float, sigma_t):
     sigma_t = np.asarray(sigma_t, dtype=float)
     tau = sigma_t * thickness_mm
-    if params.get("cover_slides"):
-        ns = float(params["cover_slide_n"])
+    ns = cover_slide_n(params)
+    if ns is not None:
         return [1.0, ns, n, ns, 1.0], [np.zeros_like(tau), tau, np.zeros_like(tau)]
     return [1.0, n, 1.0], [tau]
 

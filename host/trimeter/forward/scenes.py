@@ -40,7 +40,7 @@ import math
 import numpy as np
 
 from trimeter.errors import InputError
-from trimeter.geometry import load_geometry
+from trimeter.geometry import cover_slide_n, cover_slide_thickness_mm, load_geometry
 
 MEDIUM_ID = "sample_medium"
 MIN_GAP_MM = 1e-3
@@ -146,9 +146,10 @@ def _gap(p: dict) -> float:
 
 def _device(p: dict, n: float, ell: float, rho: float, spp: int) -> dict:
     half = float(p["sample_width_mm"]) / 2
-    slides = bool(p.get("cover_slides"))
-    t_s = float(p["cover_slide_thickness_mm"]) if slides else 0.0
-    n_s = float(p["cover_slide_n"]) if slides else 1.0
+    n_slides = cover_slide_n(p)
+    slides = n_slides is not None
+    t_s = cover_slide_thickness_mm(p)
+    n_s = n_slides if slides else 1.0
     z_back, z_front = t_s, t_s + ell                 # the sample's own faces
     medium = {"type": "ref", "id": MEDIUM_ID}
     shapes = {}

@@ -77,10 +77,12 @@ class Stack:
         if geometry != "device":
             raise ValueError(f"unknown geometry {geometry!r}")
         from trimeter.forward.scenes import panel_corners, reflectance_scale
+        from trimeter.geometry import cover_slide_n, cover_slide_thickness_mm
 
         p = geometry_params
-        if p.get("cover_slides"):
-            s, ng = float(p["cover_slide_thickness_mm"]), float(p["cover_slide_n"])
+        ng = cover_slide_n(p)
+        if ng is not None:
+            s = cover_slide_thickness_mm(p)
             layers, planes, sample = (ng, n, ng), (2 * s + thickness_mm, s + thickness_mm, s, 0.0), 1
         else:
             layers, planes, sample = (n,), (thickness_mm, 0.0), 0
