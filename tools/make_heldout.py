@@ -55,7 +55,7 @@ def from_recipe(recipe_path, pairs, alphas, paths, seed, alpha_stderr=None, max_
 
     os.environ.setdefault("DRJIT_LIBLLVM_PATH", "/usr/lib/x86_64-linux-gnu/libLLVM-19.so")
     from trimeter.maps.recipe import load_recipe
-    from trimeter.maps.builder import worst_alpha_stderr
+    from trimeter.maps.builder import paths_to_reach, worst_alpha_stderr
     from trimeter.maps.tracer import Stack, _mix64, k_max_for, trace_column
 
     r = load_recipe(recipe_path)
@@ -78,7 +78,7 @@ def from_recipe(recipe_path, pairs, alphas, paths, seed, alpha_stderr=None, max_
         # must be several times more precise than the target it checks, wherever it is thin
         if alpha_stderr is not None:
             short = worst_alpha_stderr(tally, al, r.reference_rho_b, r.reference_rho_w) / alpha_stderr
-            more = min(int(max_paths or paths), int(paths * short ** 2 * 1.1)) - tally.n_paths
+            more = paths_to_reach(tally.n_paths, short, int(max_paths or paths)) - tally.n_paths
             if short > 1 and more > 0:
                 tally += trace_column(stack, float(s), float(g), int(more), _mix64(col_seed), k_max)
         A, B, C = tally.abc(al)

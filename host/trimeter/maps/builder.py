@@ -77,14 +77,19 @@ def trace_column(recipe: Recipe, stack: Stack, j: int, k: int, tracer: Callable 
         shortfall = _shortfall(tally, recipe, sigma_t)  # (std-error reached / target) for the worse criterion
         if shortfall <= 1.0 or tally.n_paths >= s.max_paths or batch >= 4:
             break
-        # std-error ∝ 1/√N: ask for what the target needs (+10 %), within the cap
-        wanted = min(s.max_paths, math.ceil(tally.n_paths * shortfall ** 2 * 1.1))
+        wanted = paths_to_reach(tally.n_paths, shortfall, s.max_paths)
         n_next = math.ceil((wanted - tally.n_paths) / _BATCH_QUANTUM) * _BATCH_QUANTUM
     A, B, C = tally.abc(recipe.alpha)
     return Column(A=A, B=B, C=C, std_b=tally.stderr(recipe.alpha, recipe.reference_rho_b),
                   std_w=tally.stderr(recipe.alpha, recipe.reference_rho_w), n_paths=tally.n_paths,
                   truncated=tally.truncated, truncation_bound=tally.truncation_bound(float(recipe.alpha[-1])),
                   seconds=tally.seconds, path_events=tally.path_events)
+
+
+def paths_to_reach(n_paths: int, shortfall: float, cap: int) -> int:
+    """How many paths in all a column needs whose std-error is `shortfall` × its target after
+    n_paths: std-error ∝ 1/√N, so n_paths·shortfall² (+10 %), within the cap."""
+    return min(int(cap), math.ceil(n_paths * shortfall ** 2 * 1.1))
 
 
 def _shortfall(tally: ColumnTally, recipe: Recipe, sigma_t: float) -> float:
