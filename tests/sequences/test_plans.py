@@ -9,7 +9,8 @@ from fakes import FakeInstrument, FakeOptics, FakeSpectrometer
 from trimeter.device.client import Device
 from trimeter.errors import DeviceError
 from trimeter.sequences import CaptureFlag, Runner, calibration, reflectances, sample_capture, warm_up
-from trimeter.sequences.steps import Acquire, Lights, Move
+from trimeter.sequences.plans import dark_frames
+from trimeter.sequences.steps import Acquire, Expose, Lights, Move
 
 N = 64
 WL = np.linspace(400, 700, N)
@@ -101,7 +102,7 @@ def test_plan_yields_the_three_references_in_order_without_hardware():
 
 def test_reset_mid_sequence_is_a_clear_error():
     fake, opt, spec, runner = rig()
-    cal = runner.run(calibration(white_reference_reflectance=0.99))
+    runner.run(calibration(white_reference_reflectance=0.99))
     opt.sample = known_sample()
     count = {"n": 0}
 
@@ -131,3 +132,17 @@ def test_warm_up_stops_when_drift_is_under_threshold_not_after_a_fixed_time():
     opt2.brightness = lambda t: 1 - 0.5 * t / 1000  # never settles
     with pytest.raises(DeviceError, match="did not stabilise within 60 s"):
         runner2.run(warm_up(threshold=0.002, interval_s=10, timeout_s=60))
+
+
+def test_a_dark_at_another_integration_time_than_its_signal_is_an_error():
+    """Darks are taken at the times the spectrometer granted the signals; if it then sets another
+    time for a dark, subtracting it would pair the wrong exposures: a clear error instead."""
+    plan = dark_frames([1000.0, 20000.0])
+    assert isinstance(next(plan), Lights)
+    step = plan.send(None)
+    assert isinstance(step, Expose) and step.integration_time_us == 1000.0
+    assert isinstance(plan.send(1000.0), Acquire)  # granted as asked: on to its frames
+    step = plan.send((np.zeros(N), np.zeros(N)))
+    assert isinstance(step, Expose) and step.integration_time_us == 20000.0
+    with pytest.raises(DeviceError, match="darks would not match the signals"):
+        plan.send(20480.0)

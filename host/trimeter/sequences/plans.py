@@ -100,6 +100,11 @@ def dark_frames(times, *, frames: int = 2):
     darks = {}
     for wanted in sorted(set(times)):
         actual = yield Expose(wanted)
+        # `times` are integration times the spectrometer already granted for the signals; a dark
+        # at any other time would be subtracted from the wrong exposure
+        if not abs(actual - wanted) <= 1e-9 * max(abs(wanted), 1.0):
+            raise DeviceError(f"the spectrometer set {actual:g} µs for a dark frame at {wanted:g} µs, an "
+                              f"integration time it had granted before; the darks would not match the signals")
         darks[wanted] = yield Acquire(frames, spread=True)
     return darks
 
