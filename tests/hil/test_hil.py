@@ -14,7 +14,6 @@ import pytest
 from trimeter import registers as regs
 from trimeter.cli import main
 from trimeter.device import Device
-from trimeter.errors import DeviceError
 from trimeter.maps import AppearanceMap
 from trimeter.sequences.service import Service
 from trimeter.sequences.settings import HostSettings

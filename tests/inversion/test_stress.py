@@ -10,7 +10,6 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import trimeter
-from trimeter.inversion.flags import FitFlag
 
 from inversion_support import forward, well_conditioned
 

@@ -94,8 +94,6 @@ def heldout_for(amap):
 
 
 def _variants(amap):
-    from trimeter.inversion.mlp import model_path_for
-
     variants = [("paper", "paper", dict(samples=0)), ("paper-median", "paper", dict(samples=250, epsilon=0.01))]
     # p0/p2: the raw table and two fixed Newton steps; p≤8: fit()'s default, up to 8 steps, a bin
     # stopping once its step is ≤ 1e-6 (the adaptive polish)

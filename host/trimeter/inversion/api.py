@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from trimeter.errors import InputError, MapFileError
+from trimeter.errors import InputError
 from trimeter.forward.collimated import beer_lambert_sigma_t
 from trimeter.inversion.flags import UNUSABLE, FitFlag
 from trimeter.inversion.kernel import ForwardGrid, polish_step_var

@@ -22,7 +22,6 @@ recipe (geometry preset + its parameters, n, thickness_mm, reference ρ's, sampl
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path

@@ -18,7 +18,6 @@ from typing import Callable, Generator
 
 import numpy as np
 
-from trimeter import registers as regs
 from trimeter.device.client import light_coils
 from trimeter.errors import DeviceError
 
@@ -164,7 +163,6 @@ class Runner:
 
     # ------------------------------------------------------------------------------- execute
     def execute(self, step):
-        dev, spec = self.device, self.spectrometer
         if isinstance(step, (Move, Lights, Wait)) and self._device_clock is not None:
             d0 = self._device_clock()
             result = self._execute(step)
