@@ -211,7 +211,7 @@ def test_a_model_that_outputs_nan_costs_only_its_guess(ideal_map, ideal_model, t
         monkeypatch.setattr(api, "_TABLES", {})
         assert api.table_inverter(ideal_map).native_solver is None
     I_b, I_w, I_c = forward(ideal_map, np.array([0.9, 0.6, 0.95]), np.array([1.0, 3.0, 0.5]),
-                            np.array([0.3, 0.5, 0.1]), *api.grid_ref(ideal_map))
+                            np.array([0.3, 0.5, 0.1]), *ideal_map.reference_rhos)
     got = trimeter.fit(ideal_map, I_b, I_w, I_c, method="mlp", mlp_model=broken)
     want = trimeter.fit(ideal_map, I_b, I_w, I_c, method="lut")
     np.testing.assert_allclose(got.alpha, want.alpha, rtol=1e-12)

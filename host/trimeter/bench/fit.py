@@ -172,8 +172,9 @@ def _core(amap, kind, kw, I_b, I_w, I_c, rb, rw, small_table):
 
 def heldout_intensities(h, rho_b, rho_w):
     """(I_b, I_w) of the held-out materials at the backgrounds, from their rendered A, B, C."""
-    f = lambda rho: h["A"] + h["B"] * rho / (1 - h["C"] * rho)  # noqa: E731
-    return f(rho_b), f(rho_w)
+    from trimeter.maps.appearance import background_response
+
+    return background_response(h["A"], h["B"], h["C"], rho_b), background_response(h["A"], h["B"], h["C"], rho_w)
 
 
 def _solve_alpha_g(J, d_b, d_w):
@@ -337,14 +338,14 @@ def two_thicknesses(amaps, repeats):
     mlp p≤8 — time per 1024 bins of the whole multi-map fit(), α / g p95, and each map alone over its
     own measurable gamut for comparison."""
     import trimeter
+    from trimeter.inversion.mlp import model_path_for
 
     sets = [heldout_for(m)[2] for m in amaps]
     if not all(np.array_equal(sets[0][k], h[k]) for h in sets[1:] for k in ("alpha", "sigma_t", "g")):
         print("\n   two thicknesses: the held-out sets hold different materials, not scored together")
         return {}
     a, s, g = (sets[0][k] for k in ("alpha", "sigma_t", "g"))
-    rhos = [(float(m.recipe.get("reference_rho_b", 0.0)), float(m.recipe.get("reference_rho_w", 1.0))) for m in amaps]
-    inten = [heldout_intensities(h, *rho) for h, rho in zip(sets, rhos)]
+    inten = [heldout_intensities(h, *m.reference_rhos) for h, m in zip(sets, amaps)]
     I_b, I_w = np.stack([i[0] for i in inten]), np.stack([i[1] for i in inten])
     I_c = np.stack([m.collimated(s) for m in amaps])
     measurable = np.any(I_c >= MEASURABLE_IC, axis=0)
@@ -353,21 +354,22 @@ def two_thicknesses(amaps, repeats):
     print(f"\n== two thicknesses: {names} — {len(a)} materials, {int(measurable.sum())} measurable at either thickness")
     print(f"   {'variant':22s} {'ms_per_1024':>12s} {'alpha_p95':>10s} {'g_p95':>8s}   alone: " +
           "  ".join(f"{m.name.rsplit('-', 1)[-1]} α / g" for m in amaps))
+    def p95(r, scored):
+        return {"alpha_p95": _pct(np.abs(r.alpha - a)[scored], 95),
+                "g_p95": _pct(np.abs(r.g - g)[scored & (a >= G_MIN_ALPHA)], 95)}
+
     rows = []
     for name, method, kw in (("paper", "paper", dict(samples=0)), ("lut p≤8", "lut", DEFAULT_POLISH),
                              ("mlp p≤8", "mlp", DEFAULT_POLISH)):
-        if method == "mlp" and not all(m.path and m.path.with_suffix(".onnx").is_file() for m in amaps):
+        if method == "mlp" and not all(m.path and model_path_for(m.path).is_file() for m in amaps):
             continue
         res = trimeter.fit(list(amaps), I_b, I_w, I_c, method=method, **kw)
         alone = [trimeter.fit(m, I_b[i], I_w[i], I_c[i], method=method, **kw) for i, m in enumerate(amaps)]
         fn = lambda: trimeter.fit(list(amaps), I_b[:, tile], I_w[:, tile], I_c[:, tile], method=method, **kw)  # noqa: E731
         fn()
         ms = min(_timed(fn) for _ in range(repeats))
-        def p95(r, scored):
-            return _pct(np.abs(r.alpha - a)[scored], 95), _pct(np.abs(r.g - g)[scored & (a >= G_MIN_ALPHA)], 95)
-
-        row = {"variant": name, "ms_per_1024": ms, **dict(zip(("alpha_p95", "g_p95"), p95(res, measurable))),
-               "alone": {m.name: dict(zip(("alpha_p95", "g_p95"), p95(r, I_c[i] >= MEASURABLE_IC)))
+        row = {"variant": name, "ms_per_1024": ms, **p95(res, measurable),
+               "alone": {m.name: p95(r, I_c[i] >= MEASURABLE_IC)
                          for i, (m, r) in enumerate(zip(amaps, alone))}}
         rows.append(row)
         print(f"   {name:22s} {ms:12.4g} {row['alpha_p95']:10.4f} {row['g_p95']:8.4f}   " +
@@ -445,7 +447,7 @@ def run(args) -> int:
     amaps = _maps(args.maps)  # loaded once: the two-thickness case below reuses them (and their refined grids)
     for amap in amaps:
         path, meta, h = heldout_for(amap)
-        rb, rw = float(amap.recipe.get("reference_rho_b", 0.0)), float(amap.recipe.get("reference_rho_w", 1.0))
+        rb, rw = amap.reference_rhos
         a, s, g = h["alpha"], h["sigma_t"], h["g"]
         I_b0, I_w0 = heldout_intensities(h, rb, rw)
         I_c0 = amap.collimated(s)

@@ -15,6 +15,7 @@ import time
 import numpy as np
 
 from trimeter.forward.render import render_diffuse
+from trimeter.maps.appearance import background_response
 
 # Adding-doubling with its default 4 quadrature points is off by up to 1.7 % at g = 0.5 (measured);
 # 32 points converge to < 0.05 % over the map's range (16 → 32 → 64 checked).
@@ -77,9 +78,7 @@ def fit_closed_form(rhos, values):
 
 
 def closed_form(abc, rho):
-    a, b, c = abc
-    rho = np.asarray(rho, dtype=float)
-    return a + b * rho / (1.0 - c * rho)
+    return background_response(*abc, rho)
 
 
 def rho_closed_form(geometry, alpha, sigma_t, g, n: float, thickness_mm: float, fit_rhos=(0.0, 0.5, 0.99),

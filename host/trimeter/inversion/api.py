@@ -170,10 +170,9 @@ def _shape_inputs(k, I_b, I_w, I_c, rho_b, rho_w, amaps):
         raise InputError(f"with {k} map(s) the intensities must have shape ({k}, bins), got {I_b.shape}")
     n = I_b.shape[1]
     rhos = []
-    for name, rho, ref_key in (("rho_b", rho_b, "reference_rho_b"), ("rho_w", rho_w, "reference_rho_w")):
+    for i, (name, rho) in enumerate((("rho_b", rho_b), ("rho_w", rho_w))):
         if rho is None:
-            default = {"reference_rho_b": 0.0, "reference_rho_w": 1.0}[ref_key]
-            rho = np.array([float(m.recipe.get(ref_key, default)) for m in amaps])[:, None]
+            rho = np.array([m.reference_rhos[i] for m in amaps])[:, None]
         full = np.empty((k, n))  # contiguous rows, as the C kernel reads them (broadcast_to: a copy later)
         try:
             full[...] = rho
@@ -244,7 +243,7 @@ def native_options(amap, grid, *, polish, polish_tol, noise_rel, noise_abs, ic_f
     """The C kernel's options for one thickness (NativeSolver.fit / prepare): fit()'s parameters plus
     what the numpy path below takes from the map and its grid."""
     return dict(noise_rel=noise_rel, noise_abs=noise_abs, mc_stderr=grid.mc_stderr, ic_floor=ic_floor,
-                alpha_min_g=alpha_min_g, input_tolerance=_INPUT_TOLERANCE, ref_rho=grid_ref(amap),
+                alpha_min_g=alpha_min_g, input_tolerance=_INPUT_TOLERANCE, ref_rho=amap.reference_rhos,
                 t_max=grid.transmittance_limits[0], t_valid=grid.transmittance_limits[1], iterations=polish,
                 step_tol=polish_tol, step_tol_std=_polish_tol_std(polish_tol),
                 underdetermined_std=(UNDERDETERMINED_ALPHA_STD, UNDERDETERMINED_G_STD))
@@ -271,8 +270,8 @@ def _prepare(amap, grid, I_b, I_w, I_c, rho_b, rho_w, ic_floor) -> _Prepared:
     ib = _sanitize(I_b, 0.0, 1.0, 0.0)
     iw = _sanitize(I_w, 0.0, 1.0, 1.0)
     ic = _sanitize(I_c, 0.0, 1.0, 1.0)
-    rb = np.where(usable, rho_b, grid_ref(amap)[0])
-    rw = np.where(usable, rho_w, grid_ref(amap)[1])
+    rb = np.where(usable, rho_b, amap.reference_rhos[0])
+    rw = np.where(usable, rho_w, amap.reference_rhos[1])
 
     below = ic < ic_floor
     flags |= np.where(below & usable, int(FitFlag.IC_BELOW_FLOOR), 0)
@@ -293,10 +292,6 @@ def _prepare(amap, grid, I_b, I_w, I_c, rho_b, rho_w, ic_floor) -> _Prepared:
 def _underdetermined(std_a, std_g):
     with np.errstate(invalid="ignore"):  # NaN std_g (g undefined) does not count
         return (std_a > UNDERDETERMINED_ALPHA_STD) | (std_g > UNDERDETERMINED_G_STD)
-
-
-def grid_ref(amap):
-    return float(amap.recipe.get("reference_rho_b", 0.0)), float(amap.recipe.get("reference_rho_w", 1.0))
 
 
 def _finish(amap, grid, flags, usable, ib, iw, ic, rb, rw, alpha, sigma_t, g, residual, sigma_beer, *,
@@ -411,7 +406,7 @@ def _fit_paper(amaps, arrays, *, samples, epsilon, seed, noise_rel, noise_abs, i
     for med, (amap, flags, usable, I_b, I_w, I_c, rho_b, rho_w) in zip(own_medians, singles):
         grid = _forward_grid(amap)
         ib, iw, ic = _sanitize(I_b, 0, 1, 0), _sanitize(I_w, 0, 1, 1), _sanitize(I_c, 0, 1, 1)
-        ref = grid_ref(amap)
+        ref = amap.reference_rhos
         rb, rw = np.where(usable, rho_b, ref[0]), np.where(usable, rho_w, ref[1])
         flags = flags | np.where(usable & (ic < ic_floor), int(FitFlag.IC_BELOW_FLOOR), 0)
         outside = usable & ~np.all(np.isfinite(med), axis=1)

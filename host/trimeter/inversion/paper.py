@@ -16,6 +16,8 @@ from collections import OrderedDict
 
 import numpy as np
 
+from trimeter.maps.appearance import background_response
+
 _LOG_IC_FLOOR = 1e-12   # I_c below this is treated as this, so log10 stays finite
 _RHO_DECIMALS = 3
 _CACHE: "OrderedDict[tuple, object]" = OrderedDict()
@@ -38,7 +40,7 @@ def _interpolator(amap, rho_b: float, rho_w: float):
     # the map's own nodes, straight from its arrays (not evaluated through AppearanceMap.query: the
     # Delaunay of these nearly coplanar points changes with their last bits)
     A, B, C = (v.ravel() for v in (amap.A, amap.B, amap.C))
-    I_b, I_w = (A + B * rho / (1.0 - C * rho) for rho in (rho_b, rho_w))
+    I_b, I_w = (background_response(A, B, C, rho) for rho in (rho_b, rho_w))
     I_c = amap.collimated(ss)
     interp = LinearNDInterpolator(coordinates(I_b, I_w, I_c), np.column_stack([aa, ss, gg]))
     _CACHE[key] = interp

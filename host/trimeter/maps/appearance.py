@@ -87,6 +87,12 @@ class AppearanceMap:
     def cover_slide_n(self) -> float | None:
         return cover_slide_n(self.recipe.get("geometry_params", {}))
 
+    @property
+    def reference_rhos(self) -> tuple[float, float]:
+        """(ρ_b, ρ_w) the map was traced at and its std-errors refer to (a map without them in its
+        recipe, e.g. a hand-made ideal test map: black and white, 0 and 1)."""
+        return float(self.recipe.get("reference_rho_b", 0.0)), float(self.recipe.get("reference_rho_w", 1.0))
+
     def save(self, path: str | Path) -> str:
         meta = {"map_format_version": MAP_FORMAT_VERSION, "recipe": self.recipe, "provenance": self.provenance}
         arrays = {name: np.asarray(getattr(self, name), dtype=np.float64 if name in ("alpha", "sigma_t", "g")
@@ -146,9 +152,7 @@ class AppearanceMap:
 
     def diffuse(self, alpha, sigma_t, g, rho):
         """I(ρ) = A + Bρ/(1 − Cρ) at interpolated coefficients."""
-        A, B, C = self.coefficients(alpha, sigma_t, g)
-        rho = np.asarray(rho, dtype=float)
-        return A + B * rho / (1.0 - C * rho)
+        return background_response(*self.coefficients(alpha, sigma_t, g), rho)
 
     def collimated(self, sigma_t):
         return collimated_transmittance(sigma_t, self.thickness_mm, self.n, self.cover_slide_n)
@@ -161,6 +165,13 @@ class AppearanceMap:
         I_w = A + B * rho_w / (1.0 - C * rho_w)
         I_c = np.where(np.isnan(A), np.nan, self.collimated(np.asarray(sigma_t, dtype=float)))
         return I_b, I_w, I_c
+
+
+def background_response(A, B, C, rho):
+    """I(ρ) = A + B·ρ / (1 − C·ρ): the diffuse observable against a background of reflectance ρ
+    from the response coefficients (the map's representation, see the module docstring)."""
+    rho = np.asarray(rho, dtype=float)
+    return A + B * rho / (1.0 - C * rho)
 
 
 def shipped_maps() -> list[Path]:

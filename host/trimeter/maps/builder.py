@@ -32,7 +32,7 @@ import numpy as np
 from trimeter.errors import InputError, MapFileError
 from trimeter.forward.collimated import MEASURABLE_IC, collimated_transmittance
 from trimeter.geometry import cover_slide_n
-from trimeter.maps.appearance import AppearanceMap
+from trimeter.maps.appearance import AppearanceMap, background_response
 from trimeter.maps.recipe import Recipe
 from trimeter.maps.tracer import ColumnTally, Stack, k_max_for
 from trimeter.maps.tracer import trace_column as trace_pair
@@ -291,10 +291,7 @@ class _progress:
 def validation_report(amap: AppearanceMap) -> dict:
     """Physical checks the builder prints: energy conservation at the reference backgrounds, g has no
     effect at α = 0 (within MC error), and the largest std-errors."""
-    r = amap.recipe
-    rho_b, rho_w = float(r.get("reference_rho_b", 0.02)), float(r.get("reference_rho_w", 0.9))
-    I_b = amap.A + amap.B * rho_b / (1 - amap.C * rho_b)
-    I_w = amap.A + amap.B * rho_w / (1 - amap.C * rho_w)
+    I_b, I_w = (background_response(amap.A, amap.B, amap.C, rho) for rho in amap.reference_rhos)
     tol = 4 * np.maximum(amap.std_b, amap.std_w) + 1e-6
     report = {
         "max_I_w": float(I_w.max()),

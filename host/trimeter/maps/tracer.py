@@ -39,6 +39,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from trimeter.maps.appearance import background_response
+
 N_BACKGROUND_ORDERS = 2  # detector paths stop at their 2nd background hit: m = 0 → A, m = 1 → B
 
 
@@ -218,10 +220,10 @@ class ColumnTally:
         alpha = np.asarray(alpha, dtype=np.float64)
         h = 1e-4
         lo, hi = np.maximum(alpha - h, 0.0), np.minimum(alpha + h, float(np.max(alpha)))
-        (A0, B0, C0), (A1, B1, C1) = self.abc(lo), self.abc(hi)
+        abc_lo, abc_hi = self.abc(lo), self.abc(hi)
         info = 0.0
         for rho in (rho_b, rho_w):
-            slope = (A1 + B1 * rho / (1 - C1 * rho) - A0 - B0 * rho / (1 - C0 * rho)) / (hi - lo)
+            slope = (background_response(*abc_hi, rho) - background_response(*abc_lo, rho)) / (hi - lo)
             info = info + (slope / np.maximum(self.stderr(alpha, rho), 1e-300)) ** 2
         with np.errstate(divide="ignore"):
             return 1.0 / np.sqrt(info)
