@@ -209,27 +209,49 @@ class ForwardGrid:
         both α and g: at most `step_tol`, or (with step_var, per bin (κ σ_I)², see
         polish_step_var) below κ of that parameter's noise std, where further steps only move it
         along what the data cannot tell apart. step_tol 0 and no step_var: every bin takes every
-        step. Returns (α, g, residual norm, Jacobian at the solution)."""
+        step. Returns (α, g, residual norm, Jacobian at the solution). Where a bin's polish ended on
+        a small step within one cell of the map, these come from that step's evaluation (no
+        evaluation more): its Jacobian, a step below κ of the noise std from the solution, and its
+        residuals carried along the step taken (after the clamps) to first order; elsewhere (out of
+        steps, none, or the last step crossed into another cell, where the derivatives jump) they are
+        evaluated at the solution. invert.c does the same."""
         if self.native_solver is not None:
             return self.native_solver.solve(I_b, I_w, cell.log_sigma_t, rho_b, rho_w, max(int(iterations), 0),
                                             alpha0, g0, step_tol=step_tol, step_var=step_var)
         alpha = np.clip(alpha0, *self.alpha_range)
         g = np.clip(g0, *self.g_range)
         active = np.ones(alpha.shape, dtype=bool)
+        last_a = last_g = np.zeros(alpha.shape)
+        step_var = 0.0 if step_var is None else step_var
+        J = np.zeros((len(alpha), 3, 3))
+        residual2 = np.zeros(len(alpha))
+        evaluated = np.zeros(len(alpha), dtype=bool)
         for _ in range(iterations):  # a vectorised step over all bins, not a per-bin loop
             if not active.any():
                 break
-            new_alpha, new_g, step_a, step_g, (det, h11, h22) = self._newton_step(I_b, I_w, cell, rho_b, rho_w,
-                                                                                  alpha, g)
+            new_alpha, new_g, step_a, step_g, (det, h11, h22), (r, J_step) = self._newton_step(
+                I_b, I_w, cell, rho_b, rho_w, alpha, g)
             # converged bins keep their value: exactly what the C loop does by dropping them
+            d_alpha, d_g = np.where(active, new_alpha - alpha, 0.0), np.where(active, new_g - g, 0.0)
+            # the map's derivatives jump between cells: a step that left its cell is evaluated again
+            same_cell = ((self._cell(self.alpha, self._inv_da, alpha)[0] == self._cell(self.alpha, self._inv_da,
+                                                                                      new_alpha)[0])
+                         & (self._cell(self.g, self._inv_dg, g)[0] == self._cell(self.g, self._inv_dg, new_g)[0]))
             alpha, g = np.where(active, new_alpha, alpha), np.where(active, new_g, g)
-            small_a, small_g = np.abs(step_a) <= step_tol, np.abs(step_g) <= step_tol
-            if step_var is not None:  # var(α) = σ²·h22/det, var(g) = σ²·h11/det, multiplied out as in C
-                small_a |= (det > 0) & (step_a * step_a * det <= step_var * h22)
-                small_g |= (det > 0) & (step_g * step_g * det <= step_var * h11)
-            active &= ~(small_a & small_g)
-        residual, J = self.residual_and_jacobian(I_b, I_w, cell, rho_b, rho_w, alpha, g)
-        return alpha, g, residual, J
+            # var(α) = σ²·h22/det, var(g) = σ²·h11/det
+            small = (step_is_small(step_a, last_a, step_tol, step_var, h22, det)
+                     & step_is_small(step_g, last_g, step_tol, step_var, h11, det))
+            last_a, last_g = np.abs(step_a), np.abs(step_g)
+            done = active & small & same_cell
+            carried = r + J_step[:, :, 0] * d_alpha[:, None] + J_step[:, :, 2] * d_g[:, None]
+            residual2 = np.where(done, carried[:, 0] ** 2 + carried[:, 1] ** 2, residual2)
+            J[:, :2] = np.where(done[:, None, None], J_step, J[:, :2])
+            evaluated |= done
+            active &= ~small
+        residual, J_end = self.residual_and_jacobian(I_b, I_w, cell, rho_b, rho_w, alpha, g)
+        J[:, 2, 1] = J_end[:, 2, 1]
+        J = np.where(evaluated[:, None, None], J, J_end)
+        return alpha, g, np.where(evaluated, np.sqrt(residual2), residual), J
 
     def residual_and_jacobian(self, I_b, I_w, cell: SigmaCell, rho_b, rho_w, alpha, g):
         """|(I_b, I_w) − model| and ∂(I_b, I_w, I_c)/∂(α, σt, g) (N, 3, 3) from one evaluation."""
@@ -250,7 +272,9 @@ class ForwardGrid:
         return collimated_derivative(s, self.thickness_mm, self.n, self.cover_slide_n)
 
     def _newton_step(self, I_b, I_w, cell, rho_b, rho_w, alpha, g):
-        coef, d_a, d_g = self.coefficients(alpha, cell, g)
+        """One damped Gauss-Newton step from (α, g): the new (α, g), the steps, (det, h11, h22) of the
+        normal equations, and this evaluation's residuals (N, 2) and ∂(I_b, I_w)/∂(α, σt, g) (N, 2, 3)."""
+        coef, d_a, d_g, d_ls = self.coefficients(alpha, cell, g, with_sigma_derivative=True)
         Ib, fb, hb = self.diffuse(coef, rho_b)
         Iw, fw, hw = self.diffuse(coef, rho_w)
         rb, rw = Ib - I_b, Iw - I_w
@@ -268,8 +292,11 @@ class ForwardGrid:
         step_a = np.minimum(np.maximum(step_a, -0.25), 0.25)
         step_g = np.minimum(np.maximum(step_g, -0.5), 0.5)
         (a_lo, a_hi), (g_lo, g_hi) = self.alpha_range, self.g_range
+        s = np.exp(cell.log_sigma_t)
+        J_step = np.stack([np.stack([j11, self.directional(fb, hb, d_ls) / s, j12], axis=-1),
+                           np.stack([j21, self.directional(fw, hw, d_ls) / s, j22], axis=-1)], axis=1)
         return (np.minimum(np.maximum(alpha + step_a, a_lo), a_hi), np.minimum(np.maximum(g + step_g, g_lo), g_hi),
-                step_a, step_g, (det, h11, h22))
+                step_a, step_g, (det, h11, h22), (np.stack([rb, rw], axis=-1), J_step))
 
     # ------------------------------------------------------------------------------- uncertainty
     def jacobian(self, alpha, sigma_t, g, rho_b, rho_w):
@@ -310,6 +337,20 @@ class ForwardGrid:
             std_a = np.sqrt(np.abs(cov[:, 0, 0]))
             std_g = np.sqrt(np.abs(cov[:, 1, 1]))
         return np.where(np.isnan(std_a), np.inf, std_a), np.sqrt(var_s), np.where(np.isnan(std_g), np.inf, std_g)
+
+
+def step_is_small(step, last, step_tol, step_var, h, det):
+    """Whether a polish step in one parameter ends that parameter's polish (invert.c step_is_small,
+    operation for operation): |step| ≤ step_tol; or below κ of its noise std (step² ≤ step_var·h/det,
+    step_var = (κ σ_I)², h/det its variance per unit intensity variance); or at most native.STEP_RATIO of
+    the previous step `last` with the next one, ≈ |step|·|step/last|, below κ of that std. The last
+    rule saves the step that would only confirm convergence. Multiplied out: no division."""
+    a = np.abs(step)
+    with np.errstate(invalid="ignore", over="ignore"):
+        d2 = a * a * det
+        lim = step_var * h
+        tail = (a <= native.STEP_RATIO * last) & (d2 * a * a <= lim * last * last)
+        return (a <= step_tol) | ((det > 0) & ((d2 <= lim) | tail))
 
 
 def polish_step_var(I_b, I_w, noise_rel, noise_abs, mc_stderr, kappa):

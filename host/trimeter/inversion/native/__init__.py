@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 LIBRARY = Path(__file__).with_name("libtrimeter_invert.so")
-ABI_VERSION = 8
+ABI_VERSION = 10
 
 _double_p = ctypes.POINTER(ctypes.c_double)
 
@@ -47,10 +47,14 @@ class _FitOptionsC(ctypes.Structure):
         ("iterations", ctypes.c_int32)]
 
 
-class _FitOutputsC(ctypes.Structure):
-    _fields_ = [(name, ctypes.c_void_p) for name in (
-        "alpha", "sigma_t", "g", "alpha_std", "sigma_t_std", "g_std", "sigma_t_beer", "flags")]
+# The rows of tm_fit's output block (invert.c tm_fit_outputs), in order; flags are int64.
+_OUTPUT_ROWS = ("alpha", "sigma_t", "g", "alpha_std", "sigma_t_std", "g_std", "sigma_t_beer", "flags")
 
+
+# A polish step at most this fraction of the one before it also ends a bin's polish when the next
+# step, extrapolated at that rate, would be below κ of the noise std (kernel.step_is_small, invert.c
+# STEP_RATIO; the library is refused if its value differs).
+STEP_RATIO = 0.25
 
 # tm_flag_bits order; the library is refused if its bits differ from FitFlag's
 _FLAG_ORDER = ("NONFINITE_INPUT", "NEGATIVE_INPUT", "ABOVE_ONE", "BLACK_NOT_BELOW_WHITE", "IC_BELOW_FLOOR",
@@ -78,21 +82,24 @@ def _load():
     lib.tm_fit_scratch_size.argtypes = [size_t]
     lib.tm_fit_prepare.restype = None
     lib.tm_fit_prepare.argtypes = [ctypes.POINTER(_ForwardGridC), ctypes.POINTER(_FitOptionsC), size_t,
-                                   vp, vp, vp, vp, vp, vp, ctypes.POINTER(_FitOutputsC), ctypes.c_double,
+                                   vp, vp, vp, vp, vp, vp, vp, ctypes.c_double,
                                    ctypes.c_double, vp]
     lib.tm_fit_solve.restype = ctypes.c_longlong
     lib.tm_fit_solve.argtypes = [ctypes.POINTER(_ForwardGridC), ctypes.POINTER(_InverseTableC),
-                                 ctypes.POINTER(_FitOptionsC), size_t, vp, vp, vp, vp, ctypes.POINTER(_FitOutputsC)]
+                                 ctypes.POINTER(_FitOptionsC), size_t, vp, vp, vp, vp, vp]
     lib.tm_fit.restype = ctypes.c_longlong
     lib.tm_fit.argtypes = [ctypes.POINTER(_ForwardGridC), ctypes.POINTER(_InverseTableC),
                            ctypes.POINTER(_FitOptionsC), size_t, vp, vp, vp, vp, vp, vp, vp,
-                           ctypes.POINTER(_FitOutputsC)]
+                           vp]
     from trimeter.inversion.flags import FitFlag
 
     bits = (ctypes.c_int64 * len(_FLAG_ORDER))()
     lib.tm_flag_bits(bits)
     if list(bits) != [int(FitFlag[name]) for name in _FLAG_ORDER]:
         return None, f"{LIBRARY.name} declares other flag bits than trimeter.inversion.flags (run `make native`)"
+    lib.tm_step_ratio.restype = ctypes.c_double
+    if lib.tm_step_ratio() != STEP_RATIO:
+        return None, f"{LIBRARY.name} stops the polish at another step ratio than trimeter (run `make native`)"
     return lib, f"compiled ({LIBRARY.name})"
 
 
@@ -155,6 +162,7 @@ class NativeSolver:
                                          _ptr(keep["table_log_sigma_t"]), _ptr(keep["table_inv_ds"]),
                                          _uniform_step(keep["table_log_sigma_t"]))
         self._keep = keep
+        self._fit_options: dict = {}
         self._grid_ref = ctypes.byref(self._grid)
         self._table_ref = ctypes.byref(self._table) if self._table is not None else None
 
@@ -180,6 +188,18 @@ class NativeSolver:
         _check(rc)
         return alpha, g, residual, J
 
+    def _options(self, options: dict):
+        """The C options struct for fit()'s options, built once per distinct set: a ctypes struct
+        costs ~1 µs to build warm, ~10 µs right after the caches were flushed (one press-button
+        measurement), where a dict lookup costs neither."""
+        key = tuple(options.items())
+        ref = self._fit_options.get(key)
+        if ref is None:
+            if len(self._fit_options) >= 64:  # a caller sweeping parameters: keep it bounded
+                self._fit_options.clear()
+            ref = self._fit_options[key] = ctypes.byref(_fit_options(**options))
+        return ref
+
     def fit(self, I_b, I_w, I_c, rho_b, rho_w, *, alpha0=None, g0=None, **options):
         """One thickness's whole fit in one call (invert.c `tm_fit`, api._fit_one's reference path
         operation for operation): a dict of the FitResult columns and `steps`, the Newton steps taken.
@@ -189,10 +209,10 @@ class NativeSolver:
         guess = [None, None] if alpha0 is None else [_f64(alpha0, n), _f64(g0, n)]
         if alpha0 is None and self._table is None:
             raise ValueError("this solver has no inverse table: pass alpha0 and g0")
-        out, outputs = _fit_outputs(n)
-        steps = _LIB.tm_fit(self._grid_ref, self._table_ref if alpha0 is None else None,
-                            ctypes.byref(_fit_options(**options)), n, *(_addr(a) for a in args),
-                            *(None if v is None else _addr(v) for v in guess), ctypes.byref(outputs))
+        block, out = _fit_outputs(n)
+        steps = _LIB.tm_fit(self._grid_ref, self._table_ref if alpha0 is None else None, self._options(options), n,
+                            *(_addr(a) for a in args), *(None if v is None else _addr(v) for v in guess),
+                            _addr(block))
         _check(steps)
         out["steps"] = int(steps)
         return out
@@ -204,18 +224,18 @@ class NativeSolver:
         guess is not finite, from the table's)."""
         n = len(I_b)
         args = [_f64(v, n) for v in (I_b, I_w, I_c, rho_b, rho_w)]
-        out, outputs = _fit_outputs(n)
+        block, out = _fit_outputs(n)
         scratch = np.empty(_LIB.tm_fit_scratch_size(n), dtype=np.uint8)
         features = np.empty((n, 5), dtype=np.float32)
-        opts = ctypes.byref(_fit_options(**options))
-        _LIB.tm_fit_prepare(self._grid_ref, opts, n, *(_addr(a) for a in args), _addr(scratch), ctypes.byref(outputs),
+        opts = self._options(options)
+        _LIB.tm_fit_prepare(self._grid_ref, opts, n, *(_addr(a) for a in args), _addr(scratch), _addr(block),
                             *map(float, log_sigma_range), _addr(features))
         guessed = np.asarray(guess(features))
         if guessed.shape != (n, 2):
             raise ValueError(f"the guess must be (n, 2) = ({n}, 2), got {guessed.shape}")
         alpha0, g0 = _f64(guessed[:, 0], n), _f64(guessed[:, 1], n)
         steps = _LIB.tm_fit_solve(self._grid_ref, self._table_ref, opts, n, _addr(args[2]), _addr(alpha0),
-                                  _addr(g0), _addr(scratch), ctypes.byref(outputs))
+                                  _addr(g0), _addr(scratch), _addr(block))
         _check(steps)
         out["steps"] = int(steps)
         out["features"] = features
@@ -223,14 +243,12 @@ class NativeSolver:
 
 
 def _fit_outputs(n: int):
-    """The FitResult columns as rows of one block (flags: int64 in the last row): one allocation, one
-    address; and the C struct pointing at them."""
-    block = np.empty((len(_FitOutputsC._fields_), n))
-    base, row = _addr(block), 8 * n
-    outputs = _FitOutputsC(*(base + k * row for k in range(len(_FitOutputsC._fields_))))
-    out = {name: block[k] for k, (name, _) in enumerate(_FitOutputsC._fields_)}
+    """tm_fit's output block (rows _OUTPUT_ROWS; flags int64 in the last): one allocation, one
+    address; and the FitResult columns as its rows."""
+    block = np.empty((len(_OUTPUT_ROWS), n))
+    out = dict(zip(_OUTPUT_ROWS, block))
     out["flags"] = out["flags"].view(np.int64)
-    return out, outputs
+    return block, out
 
 
 def _fit_options(*, noise_rel, noise_abs, mc_stderr, ic_floor, alpha_min_g, input_tolerance, ref_rho, t_max, t_valid,
