@@ -229,8 +229,9 @@ class ForwardGrid:
         for _ in range(iterations):  # a vectorised step over all bins, not a per-bin loop
             if not active.any():
                 break
-            new_alpha, new_g, step_a, step_g, (det, h11, h22), (r, J_step) = self._newton_step(
-                I_b, I_w, cell, rho_b, rho_w, alpha, g)
+            with np.errstate(invalid="ignore", over="ignore"):  # non-finite intensities: NaN, as in C
+                new_alpha, new_g, step_a, step_g, (det, h11, h22), (r, J_step) = self._newton_step(
+                    I_b, I_w, cell, rho_b, rho_w, alpha, g)
             # converged bins keep their value: exactly what the C loop does by dropping them
             d_alpha, d_g = np.where(active, new_alpha - alpha, 0.0), np.where(active, new_g - g, 0.0)
             # the map's derivatives jump between cells: a step that left its cell is evaluated again

@@ -49,8 +49,9 @@ class TableInverter:
     def initial_guess(self, I_b, I_w, cell: SigmaCell):
         """The table's (α, g) guess; `cell` on the table's own σt nodes (self.table_grid.sigma_cell)."""
         ns, ny, nx = self._shape
-        x = np.sqrt(np.minimum(np.maximum(I_b, 0.0), 1.0))
-        y = np.sqrt(np.minimum(np.maximum(I_w, 0.0), 1.0))
+        # a NaN intensity counts as 0 here (it would index outside the table); the polish then returns NaN
+        x = np.sqrt(np.minimum(np.where(I_b > 0.0, I_b, 0.0), 1.0))
+        y = np.sqrt(np.minimum(np.where(I_w > 0.0, I_w, 0.0), 1.0))
         out = 0.0
         m00, m01, m10, m11 = self._m
         for dk, wk in ((0, 1.0 - cell.weight), (1, cell.weight)):  # the two bracketing σt nodes

@@ -176,7 +176,8 @@ static void initial_guess(const tm_inverse_table *t, double log_sigma_t, double 
                           double *alpha, double *g) {
     double ws;
     int is = find_cell_on(t->log_sigma_t, t->inv_ds, t->ns, t->uniform_ds, log_sigma_t, &ws);
-    double x = sqrt(clampd(I_b, 0.0, 1.0)), y = sqrt(clampd(I_w, 0.0, 1.0));
+    /* a NaN intensity counts as 0 here (it would index outside the table); the polish then returns NaN */
+    double x = sqrt(I_b > 0.0 ? fmin(I_b, 1.0) : 0.0), y = sqrt(I_w > 0.0 ? fmin(I_w, 1.0) : 0.0);
     double out_a = 0.0, out_g = 0.0;
     for (int dk = 0; dk < 2; dk++) {
         int k = is + dk;
