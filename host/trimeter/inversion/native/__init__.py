@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 LIBRARY = Path(__file__).with_name("libtrimeter_invert.so")
-ABI_VERSION = 10
+ABI_VERSION = 11
 
 _double_p = ctypes.POINTER(ctypes.c_double)
 
@@ -97,13 +97,23 @@ def _load():
     lib.tm_flag_bits(bits)
     if list(bits) != [int(FitFlag[name]) for name in _FLAG_ORDER]:
         return None, f"{LIBRARY.name} declares other flag bits than trimeter.inversion.flags (run `make native`)"
+    lib.tm_set_simd.restype = ctypes.c_int
+    lib.tm_set_simd.argtypes = [ctypes.c_int]
     lib.tm_step_ratio.restype = ctypes.c_double
     if lib.tm_step_ratio() != STEP_RATIO:
         return None, f"{LIBRARY.name} stops the polish at another step ratio than trimeter (run `make native`)"
-    return lib, f"compiled ({LIBRARY.name})"
+    lanes = "AVX2, 4 bins per Newton step" if lib.tm_set_simd(1) else "scalar"
+    return lib, f"compiled ({LIBRARY.name}, {lanes})"
 
 
 _LIB, _STATUS = _load()
+
+
+def set_simd(enabled: bool) -> bool:
+    """Let the polish take four bins per Newton step with AVX2 (the default where the CPU has it) or
+    only the scalar loop: the results are bit for bit the same (tests compare them). Returns whether
+    the four-lane step is in use."""
+    return bool(_LIB.tm_set_simd(1 if enabled else 0)) if _LIB is not None else False
 
 
 def available() -> bool:
