@@ -128,6 +128,9 @@ class ForwardGrid:
         w = np.minimum(np.maximum((x - axis[i]) * inv_d[i], 0.0), 1.0)
         return i, w
 
+    def _alpha_g_cells(self, alpha, g):
+        return self._cell(self.alpha, self._inv_da, alpha)[0], self._cell(self.g, self._inv_dg, g)[0]
+
     def sigma_cell(self, sigma_t) -> SigmaCell:
         with np.errstate(divide="ignore", invalid="ignore"):
             ls = np.log(np.asarray(sigma_t, dtype=np.float64))
@@ -235,9 +238,8 @@ class ForwardGrid:
             # converged bins keep their value: exactly what the C loop does by dropping them
             d_alpha, d_g = np.where(active, new_alpha - alpha, 0.0), np.where(active, new_g - g, 0.0)
             # the map's derivatives jump between cells: a step that left its cell is evaluated again
-            same_cell = ((self._cell(self.alpha, self._inv_da, alpha)[0] == self._cell(self.alpha, self._inv_da,
-                                                                                      new_alpha)[0])
-                         & (self._cell(self.g, self._inv_dg, g)[0] == self._cell(self.g, self._inv_dg, new_g)[0]))
+            (ia, ig), (ia_new, ig_new) = self._alpha_g_cells(alpha, g), self._alpha_g_cells(new_alpha, new_g)
+            same_cell = (ia == ia_new) & (ig == ig_new)
             alpha, g = np.where(active, new_alpha, alpha), np.where(active, new_g, g)
             # var(α) = σ²·h22/det, var(g) = σ²·h11/det
             small = (step_is_small(step_a, last_a, step_tol, step_var, h22, det)
