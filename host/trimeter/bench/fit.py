@@ -96,7 +96,7 @@ def heldout_for(amap):
 def _variants(amap):
     variants = [("paper", "paper", dict(samples=0)), ("paper-median", "paper", dict(samples=250, epsilon=0.01))]
     # p0/p2: the raw table and two fixed Newton steps; p≤8: fit()'s default, up to 8 steps, a bin
-    # stopping once its step is ≤ 1e-6 (the adaptive polish)
+    # stopping once its steps are small (the adaptive polish, kernel.step_is_small)
     for polish in (0, 2):
         variants.append((f"lut p{polish}", "lut", dict(polish=polish, polish_tol=0.0)))
     variants.append(("lut p≤8", "lut", DEFAULT_POLISH))

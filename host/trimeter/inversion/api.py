@@ -129,7 +129,8 @@ def fit(maps, I_b, I_w, I_c, rho_b=None, rho_w=None, method: str = "lut", *,
     the convergence tolerance); ic_floor: I_c below it bounds σt from below only.
     polish, polish_tol: at most `polish` Newton iterations after the lut/mlp guess (0 = the raw
     table/network); a bin stops once a step moved α and g by at most polish_tol, or by less than
-    POLISH_TOL_STD of their noise std (polish_tol = 0: every bin takes `polish` steps).
+    POLISH_TOL_STD of their noise std, or by a quarter of the step before with the next one,
+    extrapolated, below that (polish_tol = 0: every bin takes `polish` steps).
     samples, epsilon, seed: the paper method's ε-median (samples=0: plain interpolation).
     """
     if method not in METHODS:
