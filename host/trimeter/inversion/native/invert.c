@@ -447,8 +447,6 @@ static int use_simd(void) {
     }
     return simd_enabled;
 }
-#else
-static int use_simd(void) { return 0; }
 #endif
 
 /* 0: the scalar loop only (tests compare both), 1: AVX2 where the CPU has it. Returns whether the
