@@ -61,6 +61,11 @@ static void poll_status(actuators_t *a, uint32_t now_us)
     case STATUS_ON: lit = true; break;
     case STATUS_SLOW_BLINK: lit = (now_us / 500000u) & 1u; break;  /* 1 Hz */
     case STATUS_FAST_BLINK: lit = (now_us / 100000u) & 1u; break;  /* 5 Hz */
+    case STATUS_DOUBLE_BLINK: {                                      /* two 150 ms flashes per 1.5 s */
+        uint32_t phase = (now_us / 150000u) % 10u;
+        lit = phase == 0u || phase == 2u;
+        break;
+    }
     default: lit = false; break;
     }
     if (lit != a->status_lit) {

@@ -8,10 +8,18 @@
 #include <stdint.h>
 
 #include "hal.h"
+#include "registers_gen.h"
 
 #define ACTUATORS_DEBOUNCE_MS 20u /* the button must read the same for this long */
 
-enum status_pattern { STATUS_OFF = 0, STATUS_ON = 1, STATUS_SLOW_BLINK = 2, STATUS_FAST_BLINK = 3 };
+/* the status_pattern register's values (hardware/registers.toml), so that app.c can hand it over as is */
+enum status_pattern {
+    STATUS_OFF = TRIMETER_STATUS_PATTERN_OFF,
+    STATUS_ON = TRIMETER_STATUS_PATTERN_ON,
+    STATUS_SLOW_BLINK = TRIMETER_STATUS_PATTERN_SLOW_BLINK,
+    STATUS_FAST_BLINK = TRIMETER_STATUS_PATTERN_FAST_BLINK,
+    STATUS_DOUBLE_BLINK = TRIMETER_STATUS_PATTERN_DOUBLE_BLINK,
+};
 
 typedef struct actuators {
     const hal_t *hal;

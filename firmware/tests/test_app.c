@@ -341,6 +341,17 @@ static void test_status_led_patterns(void)
         if (f->status_led != last) toggles++, last = f->status_led;
     }
     CHECK(toggles >= 3 && toggles <= 5); /* 1 Hz over 2 s */
+    CHECK_EQ_INT(write_reg(REG_HR_STATUS_PATTERN, TRIMETER_STATUS_PATTERN_DOUBLE_BLINK), MB_OK);
+    int flashes = 0, lit_ms = 0;
+    last = f->status_led;
+    for (int i = 0; i < 3000; i++) {
+        run_ms(1);
+        lit_ms += f->status_led;
+        if (f->status_led && !last) flashes++;
+        last = f->status_led;
+    }
+    CHECK(flashes >= 3 && flashes <= 5);      /* two per 1.5 s over 3 s */
+    CHECK(lit_ms >= 500 && lit_ms <= 700);    /* short flashes: 600 ms lit in 3 s */
     CHECK_EQ_INT(write_reg(REG_HR_STATUS_PATTERN, 9), MB_EX_ILLEGAL_DATA_VALUE);
 }
 
