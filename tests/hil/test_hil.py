@@ -265,6 +265,32 @@ def test_press_button_measurement_recovers_the_virtual_sample(rig, hil_map, host
     assert clear["alpha"] < 0.01 and clear["sigma_t"] < 0.01 and clear["g"] < 0.03, clear
 
 
+def test_two_samples_per_press_swap_on_the_double_blink(rig, hil_map, host_dirs):
+    """`serve` with a second thickness: the firmware double-blinks for the next sample (it accepts the
+    pattern), the next press captures it, and both are fitted together."""
+    service, events = calibrated_service(rig, host_dirs, hil_map)
+    service.settings.set("second_thickness_mm", THICKNESS_MM)
+    # the twin has one map, so the same sample twice: what is under test is the press-button flow
+    service.settings.set("second_map", service.settings.map)
+    rig.insert_sample(SAMPLE, THICKNESS_MM)
+    log = service.on_event
+
+    def on_event(event):
+        log(event)
+        if event.kind == "next_sample":
+            rig.insert_sample(SAMPLE, THICKNESS_MM)
+            rig.press_button()
+
+    service.on_event = on_event
+    event = press_and_wait(rig, service, events, "measured")
+    assert event.kind == "measured", event.message
+    assert [e.kind for e in events].count("next_sample") == 1
+    assert {"parameters_1_0.4mm.csv", "parameters_2_0.4mm.csv", "parameters.csv"} <= {
+        p.name for p in event.data["path"].iterdir()}
+    # (that the swap press starts no second measurement is tested against the fake, where the loop
+    # can be stepped: tests/sequences/test_service.py)
+
+
 def test_flash_the_map_table_then_measure_with_it(start_twin, hil_map, host_dirs, tmp_path, capsys):
     from trimeter.inversion.api import table_inverter
 

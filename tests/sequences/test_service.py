@@ -110,3 +110,91 @@ def test_two_thicknesses_are_captured_in_turn_fitted_and_combined(rig):
     assert {"raw_black_1_0.4mm.csv", "raw_black_2_0.4mm.csv", "reflectances_2_0.4mm.csv", "parameters_1_0.4mm.csv",
             "parameters_2_0.4mm.csv", "parameters.csv"} <= names
     np.testing.assert_allclose(service.last_parameters.sigma_t, truth[1], rtol=0.01)
+
+
+def _second_sample_on_press(fake, optics, second, *, press=True, reset=False):
+    """When the service double-blinks for the next sample: swap the optics to `second` and press (or
+    reset the device) once, as a user would."""
+    done = []
+
+    def on_request(f):
+        if not done and f.get("status_pattern") == regs.StatusPattern.DOUBLE_BLINK:
+            done.append(True)
+            optics.sample = second
+            if reset:
+                f.reset()
+            elif press:
+                f.press_button()
+    fake.on_request = on_request
+    return done
+
+
+def test_serve_with_two_samples_waits_for_the_second_press_and_combines(rig):
+    service, fake, optics, events, truth, sample, tmp = rig
+    amap = AppearanceMap.load(HIL_MAP)
+    # the same map twice stands in for two thicknesses: what is tested is the press-button flow
+    service.settings.set("second_thickness_mm", 0.4)
+    service.settings.set("second_map", str(amap.path))
+    service.connect()
+    fake.press_button()
+    assert service.poll_once() == "calibrated"
+    optics.sample = sample
+    swapped = _second_sample_on_press(fake, optics, sample)
+    fake.press_button()
+    assert service.poll_once() == "measured"
+    assert swapped and fake.get("status_pattern") == regs.StatusPattern.ON
+    names = {p.name for p in service.last_result.iterdir()}
+    assert {"parameters_1_0.4mm.csv", "parameters_2_0.4mm.csv", "parameters.csv"} <= names
+    np.testing.assert_allclose(service.last_parameters.alpha, truth[0], atol=0.01)
+    assert [e.kind for e in events][-4:] == ["press", "next_sample", "press", "measured"]
+    assert service.poll_once() is None  # the second sample's press was consumed, not a new measurement
+
+
+def test_serve_drops_a_two_sample_measurement_when_no_second_press_comes(rig):
+    service, fake, optics, events, truth, sample, tmp = rig
+    service.settings.set("second_thickness_mm", 0.4)
+    service.settings.set("second_map", service.settings.map)
+    service.settings.set("swap_timeout_s", 0.2)
+    service.connect()
+    fake.press_button()
+    service.poll_once()
+    optics.sample = sample
+    _second_sample_on_press(fake, optics, sample, press=False)
+    fake.press_button()
+    assert service.poll_once() == "failed"
+    assert fake.get("status_pattern") == regs.StatusPattern.FAST_BLINK
+    assert not (tmp / "results").exists()
+    assert "no press within 0.2 s" in events[-1].message
+
+
+def test_a_reset_while_waiting_for_the_second_sample_drops_it_and_reconnects(rig):
+    from trimeter.errors import DeviceError
+
+    service, fake, optics, events, truth, sample, tmp = rig
+    service.settings.set("second_thickness_mm", 0.4)
+    service.settings.set("second_map", service.settings.map)
+    service.connect()
+    fake.press_button()
+    service.poll_once()
+    _second_sample_on_press(fake, optics, sample, reset=True)
+    fake.press_button()
+    with pytest.raises(DeviceError, match="reset while waiting"):
+        service.poll_once()  # serve() reconnects on a DeviceError; the reset makes the calibration stale
+    assert not (tmp / "results").exists()
+    service.connect()
+    fake.press_button()
+    assert service.poll_once() == "calibrated"
+
+
+def test_second_sample_settings_are_checked():
+    from trimeter.errors import InputError
+
+    s = HostSettings()
+    assert s.serve_samples == [(0.4, None)]
+    with pytest.raises(InputError, match="second_thickness_mm"):
+        s.set("second_thickness_mm", -0.8)
+    with pytest.raises(InputError, match="swap_timeout_s"):
+        s.set("swap_timeout_s", 0)
+    s.set("second_thickness_mm", 0.8)
+    s.set("map", "a.tmap")
+    assert s.serve_samples == [(0.4, "a.tmap"), (0.8, None)]

@@ -1,8 +1,11 @@
 """`trimeter serve`: press-button standalone mode. Waits for the instrument's front button; a press
 warms up + calibrates when the calibration is missing, stale or the device was reset (holder empty),
-otherwise measures the inserted sample and writes a results directory. Status LED: steady = ready,
-slow blink = working, fast blink = the last press failed. Survives device resets and reconnects.
-Stop with Ctrl-C."""
+otherwise measures the inserted sample and writes a results directory. With a second thickness
+(`--second-thickness`, or host config second_thickness_mm) a press measures the first sample, then
+the LED double-blinks until the second is in and the button pressed again; both are fitted together
+(the paper's procedure, which thick samples need for α and g). Status LED: steady = ready, slow
+blink = working, double blink = put the next sample in and press, fast blink = the last press
+failed. Survives device resets and reconnects. Stop with Ctrl-C."""
 
 from __future__ import annotations
 
@@ -17,6 +20,8 @@ def run(args):
     settings = settings_from(args)
     if args.thickness:
         settings.set("thickness_mm", args.thickness)
+    if args.second_thickness is not None:
+        settings.set("second_thickness_mm", args.second_thickness)
     stop = threading.Event()
 
     def show(event):
@@ -37,5 +42,8 @@ def register(subparsers) -> None:
     p = subparsers.add_parser("serve", help="press-button standalone mode", description=__doc__)
     add_instrument_args(p)
     p.add_argument("--thickness", type=float, help="sample thickness in mm (default: host config)")
+    p.add_argument("--second-thickness", type=float,
+                   help="a second sample's thickness in mm, measured after the first on each press (0: none; "
+                        "default: host config)")
     p.add_argument("--label", help="a name for the results directories")
     p.set_defaults(func=run)

@@ -29,6 +29,7 @@ from trimeter.sequences.settings import HostSettings
 from trimeter.sequences.steps import Runner
 
 READY, WORKING, FAILED = "on", "slow_blink", "fast_blink"
+NEXT_SAMPLE = "double_blink"  # two samples: the first is captured, put the second in and press
 
 
 @dataclass
@@ -172,7 +173,9 @@ class Service:
                 self.calibrate()
                 outcome = "calibrated"
             else:
-                self.measure([self.settings.thickness_mm])
+                samples = self.settings.serve_samples
+                self.measure([t for t, _ in samples], maps=[map_for_thickness(t, m) for t, m in samples],
+                             between=self._await_next_sample)
                 outcome = "measured"
             self._status = READY
             dev.write("status_pattern", READY)
@@ -187,6 +190,29 @@ class Service:
             self._emit("failed", str(exc))
             self._safe_status(FAILED)
             return "failed"
+
+    def _await_next_sample(self, thickness: float, poll_s: float = 0.05) -> None:
+        """measure()'s `between` under `serve`: the LED double-blinks until the button is pressed again
+        (the next sample is in); that press is consumed here, not taken as a new measurement. No press
+        within swap_timeout_s, or a device reset meanwhile, drops the measurement (nothing is written)."""
+        dev = self.device
+        self._emit("next_sample", f"insert the {thickness:g} mm sample and press the button", thickness_mm=thickness)
+        dev.write("status_pattern", NEXT_SAMPLE)
+        deadline = time.monotonic() + self.settings.swap_timeout_s
+        while True:
+            button, uptime = dev.read_many("button_events", "uptime_s").values()
+            if uptime < self._uptime:  # left for poll_once to handle as a reset: lamps, calibration
+                raise DeviceError(f"the device was reset while waiting for the {thickness:g} mm sample; "
+                                  f"the measurement is dropped")
+            if button != self._button:
+                self._button = button
+                self._emit("press", f"button pressed: measuring the {thickness:g} mm sample")
+                dev.write("status_pattern", WORKING)
+                return
+            if time.monotonic() >= deadline:
+                raise TrimeterError(f"no press within {self.settings.swap_timeout_s:g} s for the {thickness:g} mm "
+                                 f"sample; the measurement is dropped (press again to start over)")
+            time.sleep(poll_s)
 
     def _safe_status(self, pattern: str) -> None:
         try:

@@ -49,6 +49,11 @@ class HostSettings:
     method: str = "lut"                # inversion method (trimeter.fit)
     thickness_mm: float = 0.4          # default sample thickness for `serve`
     map: str = ""                      # appearance map name/path; empty = the shipped map of that thickness
+    # `serve` with two samples (the paper's procedure; thick samples need it for α and g): after the
+    # first sample the status LED double-blinks until the second is in and the button pressed
+    second_thickness_mm: float = 0.0   # 0: one sample per press
+    second_map: str = ""               # its map; empty = the shipped map of that thickness
+    swap_timeout_s: float = 600.0      # no press for the second sample within this: the measurement is dropped
 
     # ---------------------------------------------------------------------------------------
     @property
@@ -56,6 +61,14 @@ class HostSettings:
         if self.white_reference_reflectance > 0:
             return self.white_reference_reflectance
         return float(load_geometry("device")["calibration"]["white_reference_reflectance"])
+
+    @property
+    def serve_samples(self) -> list[tuple[float, str | None]]:
+        """(thickness, map or None for the shipped one) per sample `serve` measures on a press."""
+        samples = [(self.thickness_mm, self.map or None)]
+        if self.second_thickness_mm > 0:
+            samples.append((self.second_thickness_mm, self.second_map or None))
+        return samples
 
     @property
     def results_path(self) -> Path:
@@ -99,8 +112,10 @@ class HostSettings:
         if key in ("frames", "attempts") and converted < 1 or key == "hdr_decades" and not 0 <= converted <= 4:
             raise InputError(f"{key}: {value!r} is out of range ({source})")
         if key in ("timeout_s", "warmup_interval_s", "warmup_timeout_s", "warmup_threshold", "thickness_mm",
-                   "calibration_max_age_s") and converted <= 0:
+                   "calibration_max_age_s", "swap_timeout_s") and converted <= 0:
             raise InputError(f"{key}: must be > 0, got {value!r} ({source})")
+        if key == "second_thickness_mm" and converted < 0:
+            raise InputError(f"{key}: must be ≥ 0 (0: one sample), got {value!r} ({source})")
         setattr(self, key, converted)
 
     def save(self) -> Path:
