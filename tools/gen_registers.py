@@ -250,6 +250,15 @@ def render_c_header(m: dict) -> str:
         for vname, v in sorted(values.items(), key=lambda kv: kv[1]):
             out.append(f"    TRIMETER_{ename.upper()}_{vname.upper()} = {v},")
         out.append(f"}} trimeter_{ename}_t;")
+        # inline: only a build that names values (the sim's state dump) carries the strings, not the MCU's
+        out.append(f"static inline const char *trimeter_{ename}_name(unsigned value) /* else \"unknown\" */")
+        out.append("{")
+        out.append("    switch (value) {")
+        for vname, v in sorted(values.items(), key=lambda kv: kv[1]):
+            out.append(f"    case {v}u: return \"{vname}\";")
+        out.append("    default: return \"unknown\";")
+        out.append("    }")
+        out.append("}")
     out.append("")
     sp = spans(items)
     for table, (_, short, _) in TABLES.items():

@@ -32,6 +32,17 @@ typedef enum {
     TRIMETER_STATE_SETTLING = 3,
     TRIMETER_STATE_FAULT = 4,
 } trimeter_state_t;
+static inline const char *trimeter_state_name(unsigned value) /* else "unknown" */
+{
+    switch (value) {
+    case 0u: return "idle";
+    case 1u: return "homing";
+    case 2u: return "moving";
+    case 3u: return "settling";
+    case 4u: return "fault";
+    default: return "unknown";
+    }
+}
 typedef enum {
     TRIMETER_FAULT_NONE = 0,
     TRIMETER_FAULT_HOMING_TIMEOUT = 1,
@@ -40,12 +51,34 @@ typedef enum {
     TRIMETER_FAULT_SOFT_LIMIT = 4,
     TRIMETER_FAULT_STORAGE = 5,
 } trimeter_fault_t;
+static inline const char *trimeter_fault_name(unsigned value) /* else "unknown" */
+{
+    switch (value) {
+    case 0u: return "none";
+    case 1u: return "homing_timeout";
+    case 2u: return "endstop_hit";
+    case 3u: return "stall";
+    case 4u: return "soft_limit";
+    case 5u: return "storage";
+    default: return "unknown";
+    }
+}
 typedef enum {
     TRIMETER_SLOT_UNKNOWN = 0,
     TRIMETER_SLOT_BLACK = 1,
     TRIMETER_SLOT_WHITE = 2,
     TRIMETER_SLOT_OPEN = 3,
 } trimeter_slot_t;
+static inline const char *trimeter_slot_name(unsigned value) /* else "unknown" */
+{
+    switch (value) {
+    case 0u: return "unknown";
+    case 1u: return "black";
+    case 2u: return "white";
+    case 3u: return "open";
+    default: return "unknown";
+    }
+}
 typedef enum {
     TRIMETER_COMMAND_NONE = 0,
     TRIMETER_COMMAND_HOME = 1,
@@ -57,6 +90,21 @@ typedef enum {
     TRIMETER_COMMAND_SAVE_CONFIG = 7,
     TRIMETER_COMMAND_LOAD_DEFAULTS = 8,
 } trimeter_command_t;
+static inline const char *trimeter_command_name(unsigned value) /* else "unknown" */
+{
+    switch (value) {
+    case 0u: return "none";
+    case 1u: return "home";
+    case 2u: return "goto_black";
+    case 3u: return "goto_white";
+    case 4u: return "goto_open";
+    case 5u: return "stop";
+    case 6u: return "clear_fault";
+    case 7u: return "save_config";
+    case 8u: return "load_defaults";
+    default: return "unknown";
+    }
+}
 typedef enum {
     TRIMETER_STATUS_PATTERN_OFF = 0,
     TRIMETER_STATUS_PATTERN_ON = 1,
@@ -64,11 +112,31 @@ typedef enum {
     TRIMETER_STATUS_PATTERN_FAST_BLINK = 3,
     TRIMETER_STATUS_PATTERN_DOUBLE_BLINK = 4,
 } trimeter_status_pattern_t;
+static inline const char *trimeter_status_pattern_name(unsigned value) /* else "unknown" */
+{
+    switch (value) {
+    case 0u: return "off";
+    case 1u: return "on";
+    case 2u: return "slow_blink";
+    case 3u: return "fast_blink";
+    case 4u: return "double_blink";
+    default: return "unknown";
+    }
+}
 typedef enum {
     TRIMETER_MAP_SLOT_NONE = 0,
     TRIMETER_MAP_SLOT_A = 1,
     TRIMETER_MAP_SLOT_B = 2,
 } trimeter_map_slot_t;
+static inline const char *trimeter_map_slot_name(unsigned value) /* else "unknown" */
+{
+    switch (value) {
+    case 0u: return "none";
+    case 1u: return "a";
+    case 2u: return "b";
+    default: return "unknown";
+    }
+}
 typedef enum {
     TRIMETER_MAP_COMMAND_NONE = 0,
     TRIMETER_MAP_COMMAND_BEGIN_WRITE = 1,
@@ -76,6 +144,17 @@ typedef enum {
     TRIMETER_MAP_COMMAND_ACTIVATE = 3,
     TRIMETER_MAP_COMMAND_ABORT = 4,
 } trimeter_map_command_t;
+static inline const char *trimeter_map_command_name(unsigned value) /* else "unknown" */
+{
+    switch (value) {
+    case 0u: return "none";
+    case 1u: return "begin_write";
+    case 2u: return "verify";
+    case 3u: return "activate";
+    case 4u: return "abort";
+    default: return "unknown";
+    }
+}
 typedef enum {
     TRIMETER_MAP_OP_STATUS_IDLE = 0,
     TRIMETER_MAP_OP_STATUS_WRITING = 1,
@@ -85,6 +164,19 @@ typedef enum {
     TRIMETER_MAP_OP_STATUS_ERROR_STATE = 5,
     TRIMETER_MAP_OP_STATUS_ERROR_STORAGE = 6,
 } trimeter_map_op_status_t;
+static inline const char *trimeter_map_op_status_name(unsigned value) /* else "unknown" */
+{
+    switch (value) {
+    case 0u: return "idle";
+    case 1u: return "writing";
+    case 2u: return "verify_ok";
+    case 3u: return "verify_failed";
+    case 4u: return "activated";
+    case 5u: return "error_state";
+    case 6u: return "error_storage";
+    default: return "unknown";
+    }
+}
 
 /* ---- coils */
 #define REG_COIL_SPAN 6u /* one past the highest used address */

@@ -275,9 +275,17 @@ def test_two_samples_per_press_swap_on_the_double_blink(rig, hil_map, host_dirs)
     rig.insert_sample(SAMPLE, THICKNESS_MM)
     log = service.on_event
 
+    patterns = []
+
     def on_event(event):
         log(event)
         if event.kind == "next_sample":
+            if rig.is_twin:  # what the LED shows now, as the firmware sim reports it
+                deadline = time.monotonic() + 2.0
+                while time.monotonic() < deadline:
+                    patterns.append(rig.twin.control.state()["plant"]["status_pattern"])
+                    if patterns[-1] == "double_blink":
+                        break
             rig.insert_sample(SAMPLE, THICKNESS_MM)
             rig.press_button()
 
@@ -285,6 +293,7 @@ def test_two_samples_per_press_swap_on_the_double_blink(rig, hil_map, host_dirs)
     event = press_and_wait(rig, service, events, "measured")
     assert event.kind == "measured", event.message
     assert [e.kind for e in events].count("next_sample") == 1
+    assert not rig.is_twin or patterns[-1] == "double_blink", patterns
     assert {"parameters_1_0.4mm.csv", "parameters_2_0.4mm.csv", "parameters.csv"} <= {
         p.name for p in event.data["path"].iterdir()}
     # (that the swap press starts no second measurement is tested against the fake, where the loop

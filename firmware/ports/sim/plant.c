@@ -150,18 +150,6 @@ static const char *fault_name(trimeter_fault_t f)
     }
 }
 
-static const char *state_name(trimeter_state_t s)
-{
-    static const char *const names[] = {"idle", "homing", "moving", "settling", "fault"};
-    return (unsigned)s < sizeof names / sizeof names[0] ? names[s] : "unknown";
-}
-
-static const char *pattern_name(enum status_pattern p)
-{
-    static const char *const names[] = {"off", "on", "slow_blink", "fast_blink"};
-    return (unsigned)p < sizeof names / sizeof names[0] ? names[p] : "unknown";
-}
-
 static const char *slot_name(const plant_t *p)
 {
     static const float slots_mm[3] = {REG_HR_SLOT_BLACK_MM_DEFAULT, REG_HR_SLOT_WHITE_MM_DEFAULT,
@@ -197,11 +185,11 @@ static size_t reply_state(const plant_t *p, uint64_t now_us, char *out, size_t c
            (left + right) / 2, left, right, p->led_permille[HAL_LED_COLLIMATED] / 1000.0);
     const char *fault = fault_name(app_fault());
     APPEND("\"status_led\":%s,\"status_pattern\":\"%s\",\"button\":%s,", p->status_led ? "true" : "false",
-           pattern_name(a->act.pattern), plant_button(p, now_us) ? "true" : "false");
+           trimeter_status_pattern_name(a->act.pattern), plant_button(p, now_us) ? "true" : "false");
     if (fault) APPEND("\"fault\":\"%s\",", fault);
     else APPEND("\"fault\":null,");
     APPEND("\"fault_code\":%d,\"state\":\"%s\",\"homed\":%s,\"slot\":%s,\"stuck_slider\":%s,\"endstop_broken\":%s}\n",
-           (int)app_fault(), state_name(app_state()), a->motion.homed ? "true" : "false", slot_name(p),
+           (int)app_fault(), trimeter_state_name(app_state()), a->motion.homed ? "true" : "false", slot_name(p),
            p->stuck_slider ? "true" : "false", p->endstop_broken ? "true" : "false");
 #undef APPEND
     return n < cap ? n : cap - 1;

@@ -196,8 +196,8 @@ class Service:
         (the next sample is in); that press is consumed here, not taken as a new measurement. No press
         within swap_timeout_s, or a device reset meanwhile, drops the measurement (nothing is written)."""
         dev = self.device
-        self._emit("next_sample", f"insert the {thickness:g} mm sample and press the button", thickness_mm=thickness)
         dev.write("status_pattern", NEXT_SAMPLE)
+        self._emit("next_sample", f"insert the {thickness:g} mm sample and press the button", thickness_mm=thickness)
         deadline = time.monotonic() + self.settings.swap_timeout_s
         while True:
             button, uptime = dev.read_many("button_events", "uptime_s").values()
