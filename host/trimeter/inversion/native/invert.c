@@ -1,9 +1,10 @@
 /* The inversion hot path in C: a whole single-thickness fit (tm_fit: input flags, σt from I_c, the
  * map table's initial guess or a given one, the damped Gauss-Newton polish of (α, g) at that σt on
  * the trilinear forward map, stopping each bin once converged, the Jacobian at the solution (from
- * the converging step's evaluation), the first-order uncertainty and the validity flags; or its two halves tm_fit_prepare / tm_fit_solve
- * with an MLP's guess in between), and its parts for the numpy-side callers (tm_solve_alpha_g,
- * tm_propagate). One pass per bin, everything in registers.
+ * the converging step's evaluation), the first-order uncertainty and the validity flags; or its two
+ * halves tm_fit_prepare / tm_fit_solve with an MLP's guess in between), and its parts for the
+ * numpy-side callers (tm_solve_alpha_g, tm_propagate). One pass per bin, everything in registers;
+ * the polish takes four bins per step with AVX2 where the CPU has it (newton_step4).
  *
  * Why C: the numpy kernel (trimeter.inversion.kernel / lut / api) spends its time in ~100 array
  * operations per Newton step, each a few µs of interpreter and allocation overhead at ~1000 bins;
@@ -492,8 +493,9 @@ static inline double collimated_derivative(const tm_forward_grid *f, double sigm
 /* Up to `iterations` Newton steps per bin; a bin leaves once a step was small (newton_step;
  * step_var: per bin, or NULL for none; step_tol = 0 and no step_var: a fixed count). The loop over
  * bins is innermost: a bin's steps form one long dependency chain (divisions, table reads) while
- * consecutive bins are independent, so the CPU overlaps them (~2× faster here than bin by bin). `active` is scratch for n indices; returns the
- * number of steps taken over all bins. */
+ * consecutive bins are independent, so the CPU overlaps them (~2× faster here than bin by bin), and
+ * with AVX2 four of them share each instruction (newton_step4; the rest of a round bin by bin).
+ * `active` is scratch for n indices; returns the number of steps taken over all bins. */
 static size_t polish(const tm_forward_grid *f, size_t n, sigma_cell_t *cells, const double *I_b,
                      const double *I_w, const double *rho_b, const double *rho_w, int iterations,
                      double step_tol, const double *step_var, double *alpha, double *g, uint32_t *active,
@@ -752,7 +754,9 @@ size_t tm_fit_scratch_size(size_t n) {
 
 static fit_scratch_t carve_scratch(void *mem, size_t n) {
     fit_scratch_t sc;
-    double *d = mem; /* doubles first, then the cells and the final evaluations (8-byte members), then the indices: all aligned */
+    /* doubles first, then the cells and the final evaluations (8-byte members), then the indices:
+     * all aligned */
+    double *d = mem;
     sc.ib = d;
     sc.iw = d + n;
     sc.rb = d + 2 * n;
