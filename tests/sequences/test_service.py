@@ -195,6 +195,9 @@ def test_second_sample_settings_are_checked():
         s.set("second_thickness_mm", -0.8)
     with pytest.raises(InputError, match="swap_timeout_s"):
         s.set("swap_timeout_s", 0)
+    for bad in ("inf", "nan", float("-inf")):  # no thickness or time is infinite
+        with pytest.raises(InputError, match="not a finite number"):
+            s.set("second_thickness_mm", bad)
     s.set("second_thickness_mm", 0.8)
     s.set("map", "a.tmap")
     assert s.serve_samples == [(0.4, "a.tmap"), (0.8, None)]

@@ -8,6 +8,7 @@ the demo, several instruments on one host).
 
 from __future__ import annotations
 
+import math
 import os
 import tomllib
 from dataclasses import asdict, dataclass, fields
@@ -107,8 +108,8 @@ class HostSettings:
             converted = kind(value) if kind is not int else int(float(value))
         except (TypeError, ValueError):
             raise InputError(f"{key}: {value!r} is not a {kind.__name__} ({source})") from None
-        if kind is float and converted != converted:
-            raise InputError(f"{key}: NaN is not a value ({source})")
+        if kind is float and not math.isfinite(converted):
+            raise InputError(f"{key}: {value!r} is not a finite number ({source})")
         if key in ("frames", "attempts") and converted < 1 or key == "hdr_decades" and not 0 <= converted <= 4:
             raise InputError(f"{key}: {value!r} is out of range ({source})")
         if key in ("timeout_s", "warmup_interval_s", "warmup_timeout_s", "warmup_threshold", "thickness_mm",
