@@ -150,7 +150,18 @@ def test_serve_with_two_samples_waits_for_the_second_press_and_combines(rig):
     assert service.poll_once() is None  # the second sample's press was consumed, not a new measurement
 
 
-def test_serve_drops_a_two_sample_measurement_when_no_second_press_comes(rig):
+def _written_alone(service, truth):
+    """The last result holds the first sample only, fitted, and says why."""
+    import json
+
+    names = {p.name for p in service.last_result.iterdir()}
+    assert "parameters.csv" in names and not any(n.startswith("parameters_2") for n in names)
+    meta = json.loads((service.last_result / "measurement.json").read_text())
+    assert meta["thicknesses_mm"] == [0.4] and "only 1 of 2 samples" in meta["incomplete"]
+    np.testing.assert_allclose(service.last_parameters.sigma_t, truth[1], rtol=0.01)
+
+
+def test_serve_keeps_the_first_sample_when_no_second_press_comes(rig):
     service, fake, optics, events, truth, sample, tmp = rig
     service.settings.set("second_thickness_mm", 0.4)
     service.settings.set("second_map", service.settings.map)
@@ -161,13 +172,13 @@ def test_serve_drops_a_two_sample_measurement_when_no_second_press_comes(rig):
     optics.sample = sample
     _second_sample_on_press(fake, optics, sample, press=False)
     fake.press_button()
-    assert service.poll_once() == "failed"
+    assert service.poll_once() == "incomplete"  # written, but not what was asked for
     assert fake.get("status_pattern") == regs.StatusPattern.FAST_BLINK
-    assert not (tmp / "results").exists()
-    assert "no press within 0.2 s" in events[-1].message
+    assert events[-1].kind == "failed" and "no press within 0.2 s" in events[-1].message
+    _written_alone(service, truth)
 
 
-def test_a_reset_while_waiting_for_the_second_sample_drops_it_and_reconnects(rig):
+def test_a_reset_while_waiting_for_the_second_sample_keeps_the_first_and_reconnects(rig):
     from trimeter.errors import DeviceError
 
     service, fake, optics, events, truth, sample, tmp = rig
@@ -176,11 +187,12 @@ def test_a_reset_while_waiting_for_the_second_sample_drops_it_and_reconnects(rig
     service.connect()
     fake.press_button()
     service.poll_once()
+    optics.sample = sample
     _second_sample_on_press(fake, optics, sample, reset=True)
     fake.press_button()
     with pytest.raises(DeviceError, match="reset while waiting"):
         service.poll_once()  # serve() reconnects on a DeviceError; the reset makes the calibration stale
-    assert not (tmp / "results").exists()
+    _written_alone(service, truth)
     service.connect()
     fake.press_button()
     assert service.poll_once() == "calibrated"

@@ -3,7 +3,8 @@ warms up + calibrates when the calibration is missing, stale or the device was r
 otherwise measures the inserted sample and writes a results directory. With a second thickness
 (`--second-thickness`, or host config second_thickness_mm) a press measures the first sample, then
 the LED double-blinks until the second is in and the button pressed again; both are fitted together
-(the paper's procedure, which thick samples need for α and g). Status LED: steady = ready, slow
+(the paper's procedure, which thick samples need for α and g); if the second never comes (host
+config swap_timeout_s) the first is written alone, marked incomplete. Status LED: steady = ready, slow
 blink = working, double blink = put the next sample in and press, fast blink = the last press
 failed. Survives device resets and reconnects. Stop with Ctrl-C."""
 

@@ -79,6 +79,7 @@ class Service:
         self.last_result: Path | None = None
         self.last_parameters = None
         self.last_timing: dict = {}
+        self.last_incomplete: str | None = None  # why the last measurement has fewer samples than asked
         self._status = READY   # what the LED shows between presses (kept across reconnects)
         self.calibration_stale_reason: str | None = None  # set when a reset was seen
         try:
@@ -177,6 +178,11 @@ class Service:
                 self.measure([t for t, _ in samples], maps=[map_for_thickness(t, m) for t, m in samples],
                              between=self._await_next_sample)
                 outcome = "measured"
+                if self.last_incomplete:  # written, but not what was asked for: the LED says so
+                    self._status = FAILED
+                    self._emit("failed", self.last_incomplete)
+                    dev.write("status_pattern", FAILED)
+                    return "incomplete"
             self._status = READY
             dev.write("status_pattern", READY)
             return outcome
@@ -194,7 +200,7 @@ class Service:
     def _await_next_sample(self, thickness: float, poll_s: float = 0.05) -> None:
         """measure()'s `between` under `serve`: the LED double-blinks until the button is pressed again
         (the next sample is in); that press is consumed here, not taken as a new measurement. No press
-        within swap_timeout_s, or a device reset meanwhile, drops the measurement (nothing is written)."""
+        within swap_timeout_s, or a device reset meanwhile, raises: measure() then writes what it has."""
         dev = self.device
         dev.write("status_pattern", NEXT_SAMPLE)
         self._emit("next_sample", f"insert the {thickness:g} mm sample and press the button", thickness_mm=thickness)
@@ -202,8 +208,7 @@ class Service:
         while True:
             button, uptime = dev.read_many("button_events", "uptime_s").values()
             if uptime < self._uptime:  # left for poll_once to handle as a reset: lamps, calibration
-                raise DeviceError(f"the device was reset while waiting for the {thickness:g} mm sample; "
-                                  f"the measurement is dropped")
+                raise DeviceError(f"the device was reset while waiting for the {thickness:g} mm sample")
             if button != self._button:
                 self._button = button
                 self._emit("press", f"button pressed: measuring the {thickness:g} mm sample")
@@ -211,7 +216,7 @@ class Service:
                 return
             if time.monotonic() >= deadline:
                 raise TrimeterError(f"no press within {self.settings.swap_timeout_s:g} s for the {thickness:g} mm "
-                                 f"sample; the measurement is dropped (press again to start over)")
+                                 f"sample")
             time.sleep(poll_s)
 
     def _safe_status(self, pattern: str) -> None:
@@ -274,7 +279,10 @@ class Service:
 
     def measure(self, thicknesses: list[float], *, maps=None, between: Callable[[float], None] | None = None,
                 label: str | None = None) -> Path:
-        """Capture each thickness (calling `between(ℓ)` before the 2nd, to swap samples), fit, write."""
+        """Capture each thickness (calling `between(ℓ)` before the 2nd, to swap samples), fit, write.
+        When `between` raises a TrimeterError (the next sample never came: a timeout, a reset, a lost
+        link), what was captured is still fitted and written, marked incomplete (last_incomplete, and
+        "incomplete" in measurement.json); a DeviceError is raised again after that."""
         s = self.settings
         if self.calibration is None:
             raise DeviceError("no calibration: run a calibration with the holder empty first")
@@ -286,9 +294,17 @@ class Service:
                                   f"not the table of map {maps[0].name}; `trimeter map flash` the right one")
         runner = self._runner()
         raws, refls = [], []
+        self.last_incomplete, stopped = None, None
         for i, thickness in enumerate(thicknesses):
             if i and between:
-                between(thickness)
+                try:
+                    between(thickness)
+                except TrimeterError as exc:
+                    stopped = exc
+                    self.last_incomplete = (f"only {i} of {len(thicknesses)} samples measured ({exc}); the "
+                                            f"results hold {'it' if i == 1 else 'them'} alone")
+                    thicknesses, maps = thicknesses[:i], maps[:i]
+                    break
             raw = runner.run(sample_capture(frames=s.frames, hdr_decades=s.hdr_decades,
                                             label=f"sample ℓ = {thickness:g} mm"))
             raws.append(raw)
@@ -305,6 +321,7 @@ class Service:
                 "calibration_created_utc": self.calibration.created_utc,
                 "device_map_table": table,
                 "noise_rel_measured": [r.noise_rel() for r in refls],
+                "incomplete": self.last_incomplete,
                 "link": vars(self.device.transport.stats).copy() if hasattr(self.device.transport, "stats") else {}}
         t0 = time.monotonic()
         path = write_measurement(s.results_path, Measurement(self.calibration, raws, refls, thicknesses, combined,
@@ -315,4 +332,6 @@ class Service:
         self.last_timing = timing
         self._emit("measured", f"results written to {path}", path=path, parameters=combined, timing=timing,
                    link=meta["link"], device_map_table=table)
+        if isinstance(stopped, DeviceError):
+            raise stopped
         return path

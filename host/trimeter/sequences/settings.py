@@ -54,7 +54,7 @@ class HostSettings:
     # first sample the status LED double-blinks until the second is in and the button pressed
     second_thickness_mm: float = 0.0   # 0: one sample per press
     second_map: str = ""               # its map; empty = the shipped map of that thickness
-    swap_timeout_s: float = 600.0      # no press for the second sample within this: the measurement is dropped
+    swap_timeout_s: float = 600.0      # no press for the second sample within this: the first is written alone
 
     # ---------------------------------------------------------------------------------------
     @property
