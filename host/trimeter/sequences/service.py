@@ -34,7 +34,7 @@ NEXT_SAMPLE = "double_blink"  # two samples: the first is captured, put the seco
 
 @dataclass
 class Event:
-    kind: str      # connected | press | warmed_up | calibrated | measured | failed | reconnecting
+    kind: str      # connected | press | warmed_up | calibrated | next_sample | measured | failed | reconnecting
     message: str
     data: dict = field(default_factory=dict)
 
@@ -177,14 +177,11 @@ class Service:
                 samples = self.settings.serve_samples
                 self.measure([t for t, _ in samples], maps=[map_for_thickness(t, m) for t, m in samples],
                              between=self._await_next_sample)
-                outcome = "measured"
-                if self.last_incomplete:  # written, but not what was asked for: the LED says so
-                    self._status = FAILED
-                    self._emit("failed", self.last_incomplete)
-                    dev.write("status_pattern", FAILED)
-                    return "incomplete"
-            self._status = READY
-            dev.write("status_pattern", READY)
+                outcome = "incomplete" if self.last_incomplete else "measured"
+            if outcome == "incomplete":  # written, but not what was asked for: the LED says so
+                self._emit("failed", self.last_incomplete)
+            self._status = FAILED if outcome == "incomplete" else READY
+            dev.write("status_pattern", self._status)
             return outcome
         except DeviceError as exc:
             self._status = FAILED
