@@ -112,6 +112,21 @@ def test_two_thicknesses_are_captured_in_turn_fitted_and_combined(rig):
     np.testing.assert_allclose(service.last_parameters.sigma_t, truth[1], rtol=0.01)
 
 
+def _two_sample_service(rig, **settings):
+    """The rig's service set to two samples (the same map twice stands in for two thicknesses: what is
+    tested is the press-button flow), calibrated, with the sample in the optics."""
+    service, fake, optics, events, truth, sample, tmp = rig
+    service.settings.set("second_thickness_mm", 0.4)
+    service.settings.set("second_map", service.settings.map)
+    for key, value in settings.items():
+        service.settings.set(key, value)
+    service.connect()
+    fake.press_button()
+    assert service.poll_once() == "calibrated"
+    optics.sample = sample
+    return rig
+
+
 def _second_sample_on_press(fake, optics, second, *, press=True, reset=False):
     """When the service double-blinks for the next sample: swap the optics to `second` and press (or
     reset the device) once, as a user would."""
@@ -130,15 +145,7 @@ def _second_sample_on_press(fake, optics, second, *, press=True, reset=False):
 
 
 def test_serve_with_two_samples_waits_for_the_second_press_and_combines(rig):
-    service, fake, optics, events, truth, sample, tmp = rig
-    amap = AppearanceMap.load(HIL_MAP)
-    # the same map twice stands in for two thicknesses: what is tested is the press-button flow
-    service.settings.set("second_thickness_mm", 0.4)
-    service.settings.set("second_map", str(amap.path))
-    service.connect()
-    fake.press_button()
-    assert service.poll_once() == "calibrated"
-    optics.sample = sample
+    service, fake, optics, events, truth, sample, tmp = _two_sample_service(rig)
     swapped = _second_sample_on_press(fake, optics, sample)
     fake.press_button()
     assert service.poll_once() == "measured"
@@ -162,14 +169,7 @@ def _written_alone(service, truth):
 
 
 def test_serve_keeps_the_first_sample_when_no_second_press_comes(rig):
-    service, fake, optics, events, truth, sample, tmp = rig
-    service.settings.set("second_thickness_mm", 0.4)
-    service.settings.set("second_map", service.settings.map)
-    service.settings.set("swap_timeout_s", 0.2)
-    service.connect()
-    fake.press_button()
-    service.poll_once()
-    optics.sample = sample
+    service, fake, optics, events, truth, sample, tmp = _two_sample_service(rig, swap_timeout_s=0.2)
     _second_sample_on_press(fake, optics, sample, press=False)
     fake.press_button()
     assert service.poll_once() == "incomplete"  # written, but not what was asked for
@@ -181,13 +181,7 @@ def test_serve_keeps_the_first_sample_when_no_second_press_comes(rig):
 def test_a_reset_while_waiting_for_the_second_sample_keeps_the_first_and_reconnects(rig):
     from trimeter.errors import DeviceError
 
-    service, fake, optics, events, truth, sample, tmp = rig
-    service.settings.set("second_thickness_mm", 0.4)
-    service.settings.set("second_map", service.settings.map)
-    service.connect()
-    fake.press_button()
-    service.poll_once()
-    optics.sample = sample
+    service, fake, optics, events, truth, sample, tmp = _two_sample_service(rig)
     _second_sample_on_press(fake, optics, sample, reset=True)
     fake.press_button()
     with pytest.raises(DeviceError, match="reset while waiting"):
