@@ -588,6 +588,37 @@ static int grid_ok(const tm_forward_grid *f, const tm_inverse_table *table) {
     return !table || (table->ns >= 2 && table->nx >= 2 && table->ny >= 2);
 }
 
+/* A fit's per-bin working state between its two halves (tm_fit_prepare, tm_fit_solve): the
+ * sanitized inputs, the polish's step tolerance, the σt cell, the final evaluations and the polish's
+ * index list. One caller-owned block of tm_fit_scratch_size(n) bytes, carved here; tm_solve_alpha_g
+ * uses the same block for its cells, evaluations and indices. */
+typedef struct {
+    double *ib, *iw, *rb, *rw, *step_var;
+    sigma_cell_t *cells;
+    final_eval_t *evals;
+    uint32_t *active;
+} fit_scratch_t;
+
+size_t tm_fit_scratch_size(size_t n) {
+    return (n ? n : 1) * (5 * sizeof(double) + sizeof(sigma_cell_t) + sizeof(final_eval_t) + sizeof(uint32_t));
+}
+
+static fit_scratch_t carve_scratch(void *mem, size_t n) {
+    fit_scratch_t sc;
+    /* doubles first, then the cells and the final evaluations (8-byte members), then the indices:
+     * all aligned */
+    double *d = mem;
+    sc.ib = d;
+    sc.iw = d + n;
+    sc.rb = d + 2 * n;
+    sc.rw = d + 3 * n;
+    sc.step_var = d + 4 * n;
+    sc.cells = (sigma_cell_t *)(d + 5 * n);
+    sc.evals = (final_eval_t *)(sc.cells + n);
+    sc.active = (uint32_t *)(sc.evals + n);
+    return sc;
+}
+
 /* For each bin (σt given as ln σt, clamped to the grid here): the initial (α, g) from `table` (or
  * from alpha/g on entry when table is NULL), up to `iterations` Newton steps (see polish; step_var
  * may be NULL), then the residual |(I_b, I_w) − model| and ∂(I_b, I_w, I_c)/∂(α, σt, g) at the
@@ -598,15 +629,10 @@ int tm_solve_alpha_g(const tm_forward_grid *f, const tm_inverse_table *table, si
                      int iterations, double step_tol, const double *step_var, double *alpha, double *g,
                      double *residual, double *J) {
     if (!grid_ok(f, table)) return -1;
-    sigma_cell_t *cells = calloc(n ? n : 1, sizeof *cells); /* calloc: gcc cannot see that n = 0 reads none */
-    uint32_t *active = malloc((n ? n : 1) * sizeof *active);
-    final_eval_t *evals = malloc((n ? n : 1) * sizeof *evals);
-    if (!cells || !active || !evals || n > UINT32_MAX) {
-        free(cells);
-        free(active);
-        free(evals);
-        return -2;
-    }
+    void *scratch = n > UINT32_MAX ? NULL : malloc(tm_fit_scratch_size(n)); /* tm_fit's, its inputs unused */
+    if (!scratch) return -2;
+    fit_scratch_t sc = carve_scratch(scratch, n);
+    sigma_cell_t *cells = sc.cells;
     for (size_t i = 0; i < n; i++) {
         cells[i] = sigma_cell(f, log_sigma_t[i], NAN);
         double a = alpha[i], gg = g[i];
@@ -615,13 +641,11 @@ int tm_solve_alpha_g(const tm_forward_grid *f, const tm_inverse_table *table, si
         g[i] = clampd(gg, f->g_lo, f->g_hi);
     }
     prefetch_cells(f, n, cells, alpha, g);
-    polish(f, n, cells, I_b, I_w, rho_b, rho_w, iterations, step_tol, step_var, alpha, g, active, evals);
+    polish(f, n, cells, I_b, I_w, rho_b, rho_w, iterations, step_tol, step_var, alpha, g, sc.active, sc.evals);
     for (size_t i = 0; i < n; i++)
-        residual[i] = sqrt(final_residual2_and_jacobian(f, &cells[i], &evals[i], alpha[i], g[i], I_b[i], I_w[i],
+        residual[i] = sqrt(final_residual2_and_jacobian(f, &cells[i], &sc.evals[i], alpha[i], g[i], I_b[i], I_w[i],
                                                         rho_b[i], rho_w[i], J + i * 9u));
-    free(cells);
-    free(active);
-    free(evals);
+    free(scratch);
     return 0;
 }
 
@@ -736,36 +760,6 @@ static int64_t prepare_bin(const tm_forward_grid *f, const tm_fit_options *o, si
     if (usable && (s < bounds.lo || s > bounds.hi)) fl |= FLAG_OUTSIDE_MAP;
     *sigma_t = s;
     return fl;
-}
-
-/* A fit's per-bin working state between its two halves (tm_fit_prepare, tm_fit_solve): the
- * sanitized inputs, the polish's step tolerance, the σt cell and the polish's index list. One
- * caller-owned block of tm_fit_scratch_size(n) bytes, carved here. */
-typedef struct {
-    double *ib, *iw, *rb, *rw, *step_var;
-    sigma_cell_t *cells;
-    final_eval_t *evals;
-    uint32_t *active;
-} fit_scratch_t;
-
-size_t tm_fit_scratch_size(size_t n) {
-    return (n ? n : 1) * (5 * sizeof(double) + sizeof(sigma_cell_t) + sizeof(final_eval_t) + sizeof(uint32_t));
-}
-
-static fit_scratch_t carve_scratch(void *mem, size_t n) {
-    fit_scratch_t sc;
-    /* doubles first, then the cells and the final evaluations (8-byte members), then the indices:
-     * all aligned */
-    double *d = mem;
-    sc.ib = d;
-    sc.iw = d + n;
-    sc.rb = d + 2 * n;
-    sc.rw = d + 3 * n;
-    sc.step_var = d + 4 * n;
-    sc.cells = (sigma_cell_t *)(d + 5 * n);
-    sc.evals = (final_eval_t *)(sc.cells + n);
-    sc.active = (uint32_t *)(sc.evals + n);
-    return sc;
 }
 
 /* The first half of a fit: input flags, σt from I_c and the Beer-Lambert column into `outputs`, the
