@@ -274,16 +274,16 @@ class Service:
         info["map"] = amap.name
         return info
 
-    def measure(self, thicknesses: list[float], *, maps=None, between: Callable[[float], None] | None = None,
+    def measure(self, thicknesses: list[float], *, maps: list, between: Callable[[float], None] | None = None,
                 label: str | None = None) -> Path:
-        """Capture each thickness (calling `between(ℓ)` before the 2nd, to swap samples), fit, write.
+        """Capture each thickness (calling `between(ℓ)` before the 2nd, to swap samples), fit with its
+        map (maps[i], e.g. sequences.measure.map_for_thickness), write.
         When `between` raises a TrimeterError (the next sample never came: a timeout, a reset, a lost
         link), what was captured is still fitted and written, marked incomplete (last_incomplete, and
         "incomplete" in measurement.json); a DeviceError is raised again after that."""
         s = self.settings
         if self.calibration is None:
             raise DeviceError("no calibration: run a calibration with the holder empty first")
-        maps = maps or [map_for_thickness(t, s.map or None) for t in thicknesses]
         preflight(maps, s.method)
         table = self.device_table(maps[0])
         if table["slot"] and not table["matches_fit_table"]:
