@@ -29,31 +29,28 @@ from trimeter.sequences.reflectance import Calibration, RawSample, Reflectances
 PARAMETER_COLUMNS = FitResult.COLUMNS  # the fit's output columns, declared once in trimeter.inversion
 
 
-@dataclass
+@dataclass(frozen=True)
 class Parameters:
-    """Per-bin fitted parameters (σt in 1/mm); NaN where the fit flags a bin unusable."""
+    """trimeter.fit's result over the wavelengths it was fitted at (σt in 1/mm; NaN where the fit
+    flags a bin unusable). The columns (alpha, sigma_t, g, their stds, flags, sigma_t_beer) are the
+    FitResult's own, read through: they are declared once, in trimeter.inversion."""
 
     wavelengths_nm: np.ndarray
-    alpha: np.ndarray
-    sigma_t: np.ndarray
-    g: np.ndarray
-    alpha_std: np.ndarray
-    sigma_t_std: np.ndarray
-    g_std: np.ndarray
-    flags: np.ndarray
-    sigma_t_beer: np.ndarray
+    fit: FitResult
     thickness_mm: float | None = None   # None for a combined estimate
-    extra: dict = field(default_factory=dict)
 
     @classmethod
     def from_fit(cls, wavelengths_nm, result: FitResult, *, thickness_mm=None) -> "Parameters":
-        """trimeter.fit's result over these wavelengths."""
         wavelengths_nm = np.asarray(wavelengths_nm, float)
         if len(result) != len(wavelengths_nm):
             raise ValueError(f"{len(result)} fitted bins for {len(wavelengths_nm)} wavelengths")
-        columns = {name: np.asarray(value, dtype=np.int64 if name == "flags" else float)
-                   for name, value in result.as_dict().items()}
-        return cls(wavelengths_nm, **columns, thickness_mm=thickness_mm)
+        return cls(wavelengths_nm, result, thickness_mm)
+
+    def __getattr__(self, name):
+        # only called for names not found otherwise; the guard keeps copy/replace (no `fit` yet) finite
+        if name in PARAMETER_COLUMNS and "fit" in self.__dict__:
+            return getattr(self.fit, name)
+        raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
 
     def columns(self) -> dict:
         out = {"wavelength_nm": self.wavelengths_nm}
