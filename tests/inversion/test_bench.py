@@ -24,6 +24,10 @@ def test_bench_fit_reports_figures_and_plot(tmp_path, capsys):
     assert {"paper", "paper-median", "lut p0", "lut p≤8", "lut-small p≤8", "mlp p0", "mlp p≤8"} <= variants
     for r in rows:
         assert r["ms_per_1024"] > 0 and 0 <= r["nan_rate"] <= 1
+        assert 0 <= r["alpha_misses_flagged"] <= r["alpha_misses"] <= r["measurable"]
+    noisy = {r["variant"]: r for r in rows if r["noise"] == 0.01}
+    assert noisy["lut p0"]["alpha_misses"] > 0  # 1 % noise puts some bins over 0.01: the count is live
+    assert "flags UNDERDETERMINED" in text
     clean = {r["variant"]: r for r in rows if r["noise"] == 0}
     assert clean["lut p≤8"]["nan_rate"] == 0 and clean["lut p≤8"]["alpha_p95"] < 0.05
     assert (out / "pareto-ideal-l0.5.png").stat().st_size > 10_000

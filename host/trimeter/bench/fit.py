@@ -255,6 +255,9 @@ def _stats(res, truth, budget):
     nan_meas = float(np.mean(~np.isfinite(res.alpha[measurable]) | ~np.isfinite(res.sigma_t[measurable])))
     # the bins the fit itself calls determined (no FitFlag.UNDERDETERMINED)
     determined = (res.flags & int(FitFlag.UNDERDETERMINED)) == 0
+    # the bins over the α target (NaN included): does the fit itself say it does not know α there?
+    miss = measurable & ~(ea <= ALPHA_TARGET)
+    miss_std = res.alpha_std[miss & np.isfinite(res.alpha_std)]
     return {"alpha_p50": _pct(ea[measurable], 50), "alpha_p95": _pct(ea[measurable], 95), "sigma_rel_p50": _pct(es, 50),
             "sigma_rel_p95": _pct(es, 95), "g_p50": _pct(eg[budget["g_scored"]], 50),
             "g_p95": _pct(eg[budget["g_scored"]], 95),
@@ -263,7 +266,10 @@ def _stats(res, truth, budget):
             "alpha_p95_well": _pct(ea[budget["well_alpha"]], 95), "g_p95_well": _pct(eg[budget["well_g"]], 95),
             "alpha_p95_determined": _pct(ea[measurable & determined], 95),
             "g_p95_determined": _pct(eg[budget["g_scored"] & determined], 95),
-            "determined_rate": float(np.mean(determined[measurable]))}
+            "determined_rate": float(np.mean(determined[measurable])),
+            "alpha_misses": int(miss.sum()), "alpha_misses_flagged": int((miss & ~determined).sum()),
+            "alpha_misses_min_std": float(miss_std.min()) if len(miss_std) else float("nan"),
+            "measurable": int(measurable.sum())}
 
 
 def _bench_case(amap, variants, truth, budget, intensities, label, level, args, small):
@@ -542,6 +548,14 @@ def _print_budget(summary, rows, exact_rows):
         print(f"   {r['variant']:<20}{r['alpha_p95']:>11.4f}{r['g_p95']:>9.4f} | {r['alpha_p95_well']:>12.4f}"
               f"{r['g_p95_well']:>9.4f} | {e['alpha_p95']:>12.4f}{e['g_p95']:>9.4f} | "
               f"{r['alpha_p95_determined']:>12.4f}{r['g_p95_determined']:>9.4f}{r['determined_rate']:>7.0%}")
+    print(f"\n   noise-free, rendered: bins over the α target ({ALPHA_TARGET:g}), and how many of them the fit "
+          f"itself flags UNDERDETERMINED")
+    for r in (r for r in rows if r["noise"] == 0 and r["variant"] != "paper-median"):
+        line = f"   {r['variant']:<20}{r['alpha_misses']:>4} of {r['measurable']:<4}"
+        if r["alpha_misses"]:
+            line += (f" {r['alpha_misses_flagged']:>4} flagged; smallest fit α std among them "
+                     f"{r['alpha_misses_min_std']:.3g}")
+        print(line)
 
 
 def _pareto(rows, exact_rows, summary, amap, out: Path) -> Path:
