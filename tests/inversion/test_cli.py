@@ -50,6 +50,24 @@ def test_fit_csv_round_trip(ideal_map, truth, tmp_path, capsys):
     assert np.percentile(np.abs(col("alpha") - a)[ok], 95) < 3e-3
     np.testing.assert_allclose(col("sigma_t")[ok], s[ok], rtol=1e-4)
     assert np.isnan(col("alpha")[3]) and int(got[3]["flags"]) & 1
+    assert capsys.readouterr().err.startswith("note: 1 of 40 bins have unusable input (NaN, negative, above 1 or "
+                                              "a bad background reflectance) and are NaN: check the capture")
+
+
+def test_fit_says_what_to_do_about_underdetermined_bins(ideal_map, tmp_path, capsys):
+    """Optically thick, dark samples determine only a combination of α and g: the fit flags them and
+    says, on stderr (stdout may be the CSV) and in the JSON, that a second thickness is the remedy."""
+    a, s, g = np.array([0.2, 0.3, 0.9, 0.6]), np.array([12.0, 12.0, 2.0, 1.0]), np.array([0.5, 0.6, 0.3, 0.2])
+    I_b, I_w, I_c = forward(ideal_map, a, s, g, 0.02, 0.99)
+    inp = _write(tmp_path / "thick.csv", zip([500, 510, 520, 530], I_b, I_w, I_c, [0.02] * 4, [0.99] * 4),
+                 ["wavelength_nm", "I_b", "I_w", "I_c", "rho_b", "rho_w"])
+    assert main(["fit", "--map", str(ideal_map.path), "--input", str(inp), "--json"]) == 0
+    out = capsys.readouterr()
+    doc = json.loads(out.out)
+    assert doc["flag_names"] == ["UNDERDETERMINED", "UNDERDETERMINED", "NONE", "NONE"]
+    assert len(doc["advice"]) == 1 and doc["advice"][0].startswith("2 of 4 bins are UNDERDETERMINED")
+    assert "second thickness" in doc["advice"][0]
+    assert out.err == f"note: {doc['advice'][0]}\n"
 
 
 def test_fit_json_and_two_thicknesses(ideal_map, thick_map, truth, tmp_path, capsys):

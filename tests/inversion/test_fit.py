@@ -287,3 +287,17 @@ def test_a_second_thickness_that_determines_the_material_clears_underdetermined(
     thin, thick = r.per_thickness
     assert not thin.flags[0] & FitFlag.UNDERDETERMINED and thick.flags[0] & FitFlag.UNDERDETERMINED
     assert not r.flags[0] & FitFlag.UNDERDETERMINED and r.alpha_std[0] < 0.05
+
+
+def test_advice_names_each_problem_once_with_its_count():
+    from trimeter.inversion.flags import FitFlag, advice
+
+    F = FitFlag
+    flags = np.array([0, F.UNDERDETERMINED, F.UNDERDETERMINED | F.IC_BELOW_FLOOR, F.NONFINITE_INPUT,
+                      F.BAD_BACKGROUND, F.OUTSIDE_MAP, F.THICKNESS_DISAGREE, F.G_UNDEFINED])
+    notes = advice(flags)
+    assert [n.split(" bins")[0] for n in notes] == ["2 of 8"] * 2 + ["1 of 8"] * 3
+    assert "unusable input" in notes[0] and "second thickness" in notes[1] and "lower bound" in notes[2]
+    assert "outside the map's range" in notes[3] and "disagree" in notes[4]
+    assert "even with 2 thicknesses" in advice(flags, thicknesses=2)[1]
+    assert advice(np.array([0, F.G_UNDEFINED])) == []  # g = NaN at α ≈ 0 needs no action

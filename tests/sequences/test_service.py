@@ -56,6 +56,32 @@ def test_press_calibrates_then_measures_and_writes_results(rig):
     np.testing.assert_allclose(p.g, truth[2], atol=0.02)
     assert [e.kind for e in events if e.kind in ("calibrating", "warmed_up", "calibrated", "measured")] == \
         ["calibrating", "warmed_up", "calibrated", "measured"]
+    assert service.last_advice == []  # a well-conditioned sample: nothing to advise
+
+
+def test_a_thick_dark_sample_gets_advice_in_the_log_and_the_results(rig):
+    """Bins the fit flags UNDERDETERMINED come with what to do about them: logged before the results
+    line, and kept in measurement.json."""
+    import json
+
+    service, fake, optics, events, truth, sample, tmp = rig
+    amap = AppearanceMap.load(HIL_MAP)
+    red = WL > 600  # dark and optically thick there (σt·ℓ = 5); well-conditioned elsewhere (the rig's truth)
+    optics.sample = amap.query(np.where(red, 0.2, truth[0]), np.where(red, 5 / amap.thickness_mm, truth[1]),
+                               truth[2], 0.03 + 0.05 * (WL > 650), 0.99)
+    service.connect()
+    fake.press_button()
+    service.poll_once()
+    fake.press_button()
+    assert service.poll_once() == "measured"
+    flagged = int(np.count_nonzero(service.last_parameters.flags & 1024))
+    assert flagged >= np.count_nonzero(WL > 620)  # the dark bins, nearly all of them
+    # (with the capture's noise some of those bins also reach the map's α = 0 edge: a second note)
+    assert service.last_advice[0].startswith(f"{flagged} of {WL.size} bins are UNDERDETERMINED")
+    n = len(service.last_advice)
+    assert [e.kind for e in events][-n - 1:] == ["advice"] * n + ["measured"]
+    meta = json.loads((service.last_result / "measurement.json").read_text())
+    assert meta["advice"] == service.last_advice
 
 
 def test_reset_makes_the_calibration_stale_and_is_not_a_press(rig):

@@ -97,7 +97,7 @@ def _split_thicknesses(data, amaps, path):
 
 def run(args) -> int:
     from trimeter.inversion.api import _load_map, fit
-    from trimeter.inversion.flags import describe
+    from trimeter.inversion.flags import advice, describe
 
     amaps = [_load_map(m) for m in args.maps]
     if len({round(m.thickness_mm, 9) for m in amaps}) != len(amaps):
@@ -109,11 +109,14 @@ def run(args) -> int:
     rho_w = stack("rho_w") if "rho_w" in data else None
     result = fit(amaps, stack("I_b"), stack("I_w"), stack("I_c"), rho_b, rho_w, method=args.method)
     columns = {"wavelength_nm": data["wavelength_nm"][groups[0]], **result.as_dict()}
+    notes = advice(result.flags, len(amaps))
+    for note in notes:  # stderr: stdout may be the CSV
+        print(f"note: {note}", file=sys.stderr)
     if args.json:
         doc = {"method": args.method, "maps": [{"name": m.name, "thickness_mm": m.thickness_mm,
                                                 "sha256": m.checksum} for m in amaps],
                "columns": {k: [_json_number(v) for v in columns[k]] for k in OUTPUT},
-               "flag_names": [describe(f) for f in result.flags]}
+               "flag_names": [describe(f) for f in result.flags], "advice": notes}
         text = json.dumps(doc, indent=1, allow_nan=False)
         _write(args.output, text + "\n")
         return 0

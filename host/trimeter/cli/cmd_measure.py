@@ -56,6 +56,8 @@ def run(args):
         service.close()
     p = service.last_parameters
     print(summary(p))
+    for note in service.last_advice:
+        print(f"note: {note}")
     print(f"results: {path}")
 
 

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import enum
 
+import numpy as np
+
 
 class FitFlag(enum.IntFlag):
     NONE = 0
@@ -35,3 +37,38 @@ def describe(value: int) -> str:
     """'IC_BELOW_FLOOR|G_UNDEFINED' for a flag word (or 'NONE')."""
     names = [f.name for f in FitFlag if f and (int(value) & f)]
     return "|".join(names) if names else "NONE"
+
+
+def advice(flags, thicknesses: int = 1) -> list[str]:
+    """What a person should do about a fit's flagged bins: one sentence per kind of problem, with how
+    many of the bins it concerns (empty when nothing needs doing). `thicknesses`: how many samples
+    were fitted together."""
+    flags = np.asarray(flags, dtype=np.int64)
+    n = len(flags)
+
+    def count(flag) -> int:
+        return int(np.count_nonzero(flags & int(flag)))
+
+    notes = []
+    if k := count(UNUSABLE):
+        notes.append(f"{k} of {n} bins have unusable input (NaN, negative, above 1 or a bad background "
+                     f"reflectance) and are NaN: check the capture and the calibration")
+    if k := count(FitFlag.UNDERDETERMINED):
+        if thicknesses < 2:
+            notes.append(f"{k} of {n} bins are UNDERDETERMINED: at this thickness α and g are not told apart "
+                         f"(see their stds); measure a second thickness of the same material (thinner if it is "
+                         f"nearly opaque, thicker if nearly clear) and fit both (fit: a second --map; measure: "
+                         f"--thickness twice; serve: --second-thickness)")
+        else:
+            notes.append(f"{k} of {n} bins are UNDERDETERMINED even with {thicknesses} thicknesses "
+                         f"(see their stds); a further thickness would constrain them")
+    if k := count(FitFlag.IC_BELOW_FLOOR):
+        notes.append(f"{k} of {n} bins: I_c is under the noise floor, so σt there is only a lower bound; "
+                     f"a thinner sample would measure it")
+    if k := count(FitFlag.OUTSIDE_MAP | FitFlag.NOT_CONVERGED):
+        notes.append(f"{k} of {n} bins fall outside the map's range (values clamped to its edge or not "
+                     f"converged): a map for another thickness may cover them")
+    if k := count(FitFlag.THICKNESS_DISAGREE):
+        notes.append(f"{k} of {n} bins: the thicknesses disagree beyond their uncertainty; check the stated "
+                     f"thicknesses and that both samples are the same material")
+    return notes

@@ -20,6 +20,7 @@ from typing import Callable
 
 from trimeter.device import Device
 from trimeter.errors import DeviceError, TrimeterError
+from trimeter.inversion.flags import advice
 from trimeter.results import Measurement, write_measurement
 from trimeter.sequences.measure import fit_reflectances, map_for_thickness, preflight
 from trimeter.sequences.plans import calibration as calibration_plan
@@ -78,6 +79,7 @@ class Service:
         self._uptime = -1
         self.last_result: Path | None = None
         self.last_parameters = None
+        self.last_advice: list[str] = []  # trimeter.inversion.flags.advice on the last measurement's fit
         self.last_timing: dict = {}
         self.last_incomplete: str | None = None  # why the last measurement has fewer samples than asked
         self._status = READY   # what the LED shows between presses (kept across reconnects)
@@ -319,6 +321,7 @@ class Service:
                 "device_map_table": table,
                 "noise_rel_measured": [r.noise_rel() for r in refls],
                 "incomplete": self.last_incomplete,
+                "advice": advice(combined.flags, len(thicknesses)),
                 "link": vars(self.device.transport.stats).copy() if hasattr(self.device.transport, "stats") else {}}
         t0 = time.monotonic()
         path = write_measurement(s.results_path, Measurement(self.calibration, raws, refls, thicknesses, combined,
@@ -327,6 +330,9 @@ class Service:
         self.last_result = path
         self.last_parameters = combined
         self.last_timing = timing
+        self.last_advice = meta["advice"]
+        for note in self.last_advice:
+            self._emit("advice", note)
         self._emit("measured", f"results written to {path}", path=path, parameters=combined, timing=timing,
                    link=meta["link"], device_map_table=table)
         if isinstance(stopped, DeviceError):
