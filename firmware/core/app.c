@@ -138,12 +138,14 @@ static uint8_t run_command(uint16_t command)
             app.app_fault = TRIMETER_FAULT_STORAGE;
             return MB_EX_SERVER_DEVICE_FAILURE;
         }
+        app.config_source = TRIMETER_CONFIG_SOURCE_SAVED;
         return MB_OK;
     case TRIMETER_COMMAND_LOAD_DEFAULTS: {
         static uint16_t defaults[REG_HR_SPAN];
         config_defaults(defaults);
         memcpy(&app.hr[STORAGE_CONFIG_FIRST], &defaults[STORAGE_CONFIG_FIRST], STORAGE_CONFIG_WORDS * sizeof(uint16_t));
         config_decode(app.hr, &app.cfg);
+        app.config_source = TRIMETER_CONFIG_SOURCE_DEFAULTS;
         return MB_OK;
     }
     default: return MB_EX_ILLEGAL_DATA_VALUE;
@@ -263,6 +265,7 @@ static void fill_input_registers(uint16_t *ir)
     ir[REG_IR_MODBUS_FRAMES_OK] = (uint16_t)c->frames_ok;
     ir[REG_IR_MODBUS_CRC_ERRORS] = (uint16_t)(c->crc_errors + c->overruns);
     ir[REG_IR_MODBUS_EXCEPTIONS] = (uint16_t)c->exceptions;
+    ir[REG_IR_CONFIG_SOURCE] = (uint16_t)app.config_source;
     int active = storage_map_active(&app.storage);
     ir[REG_IR_MAP_ACTIVE_SLOT] = (uint16_t)(active < 0 ? TRIMETER_MAP_SLOT_NONE : TRIMETER_MAP_SLOT_A + active);
     static const uint16_t base[STORAGE_MAP_SLOTS] = {REG_IR_MAP_SLOT_A_VALID, REG_IR_MAP_SLOT_B_VALID};
@@ -385,7 +388,7 @@ void app_init(const hal_t *hal)
     hal->step_timer_stop(hal->ctx);
 
     storage_load(&app.storage, hal);
-    app.config_from_storage = config_load(app.hr, &app.storage);
+    app.config_source = config_load(app.hr, &app.storage);
     config_decode(app.hr, &app.cfg);
 
     motion_config_t mc;

@@ -33,7 +33,7 @@ typedef struct app {
     const hal_t *hal;
     uint16_t hr[REG_HR_SPAN];   /* holding registers, the live values */
     config_t cfg;               /* decoded from hr */
-    bool config_from_storage;   /* boot found a valid saved config */
+    trimeter_config_source_t config_source; /* input register config_source */
     motion_t motion;
     actuators_t act;
     storage_t storage;

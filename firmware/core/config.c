@@ -93,8 +93,11 @@ static bool saved_words_in_range(const uint16_t hr[REG_HR_SPAN])
     return true;
 }
 
-bool config_load(uint16_t hr[REG_HR_SPAN], storage_t *st)
+trimeter_config_source_t config_load(uint16_t hr[REG_HR_SPAN], storage_t *st)
 {
+    trimeter_config_source_t source =
+        st->config_valid ? TRIMETER_CONFIG_SOURCE_REFUSED
+        : st->config_other_map ? TRIMETER_CONFIG_SOURCE_OTHER_REGISTER_MAP : TRIMETER_CONFIG_SOURCE_DEFAULTS;
     config_defaults(hr);
     if (st->config_valid) {
         static uint16_t candidate[REG_HR_SPAN];
@@ -104,11 +107,11 @@ bool config_load(uint16_t hr[REG_HR_SPAN], storage_t *st)
         config_decode(candidate, &c);
         if (saved_words_in_range(candidate) && config_check(&c, NULL)) {
             memcpy(hr, candidate, sizeof candidate);
-            return true;
+            return TRIMETER_CONFIG_SOURCE_SAVED;
         }
     }
     memcpy(st->config, &hr[STORAGE_CONFIG_FIRST], sizeof st->config);
-    return false;
+    return source;
 }
 
 int config_save(const uint16_t hr[REG_HR_SPAN], storage_t *st)

@@ -54,8 +54,9 @@ int32_t config_slot_steps(const config_t *c, enum config_slot slot);
 
 /* Boot: the saved configuration if storage has a valid one that passes config_check, else the
  * register-map defaults (storage->config is set to what is used, so a later commit is sound).
- * Returns true when the saved one was used. */
-bool config_load(uint16_t hr[REG_HR_SPAN], storage_t *st);
+ * Returns where the configuration came from (saved, or defaults and why: input register
+ * config_source). */
+trimeter_config_source_t config_load(uint16_t hr[REG_HR_SPAN], storage_t *st);
 /* Persists the configuration part of hr; on failure the previous saved copy stays valid. */
 int config_save(const uint16_t hr[REG_HR_SPAN], storage_t *st);
 

@@ -30,6 +30,7 @@ const regmap_entry_t regmap_entries[REGMAP_ENTRY_COUNT] = {
     {"modbus_frames_ok", 26, REGMAP_INPUT_REGISTER, REGMAP_U16, 1, 0, 0, 0, 0LL, 65535LL, 0LL, 0.0f, 0.0f, 0.0f},
     {"modbus_crc_errors", 27, REGMAP_INPUT_REGISTER, REGMAP_U16, 1, 0, 0, 0, 0LL, 65535LL, 0LL, 0.0f, 0.0f, 0.0f},
     {"modbus_exceptions", 28, REGMAP_INPUT_REGISTER, REGMAP_U16, 1, 0, 0, 0, 0LL, 65535LL, 0LL, 0.0f, 0.0f, 0.0f},
+    {"config_source", 29, REGMAP_INPUT_REGISTER, REGMAP_U16, 1, 0, 0, 0, 0LL, 3LL, 0LL, 0.0f, 0.0f, 0.0f},
     {"map_active_slot", 32, REGMAP_INPUT_REGISTER, REGMAP_U16, 1, 0, 0, 0, 0LL, 2LL, 0LL, 0.0f, 0.0f, 0.0f},
     {"map_slot_a_valid", 33, REGMAP_INPUT_REGISTER, REGMAP_U16, 1, 0, 0, 0, 0LL, 1LL, 0LL, 0.0f, 0.0f, 0.0f},
     {"map_slot_a_length", 34, REGMAP_INPUT_REGISTER, REGMAP_U32, 2, 0, 0, 0, 0LL, 4294967295LL, 0LL, 0.0f, 0.0f, 0.0f},

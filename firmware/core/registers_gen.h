@@ -8,7 +8,7 @@
 #include <stdint.h>
 
 /* ---- identity */
-#define TRIMETER_REGMAP_HASH 0xA48B07C4u
+#define TRIMETER_REGMAP_HASH 0xBF9DDD39u
 #define TRIMETER_FIRMWARE_VERSION "0.1.0"
 #define TRIMETER_FIRMWARE_VERSION_MAJOR 0u
 #define TRIMETER_FIRMWARE_VERSION_MINOR 1u
@@ -124,6 +124,22 @@ static inline const char *trimeter_status_pattern_name(unsigned value) /* else "
     }
 }
 typedef enum {
+    TRIMETER_CONFIG_SOURCE_DEFAULTS = 0,
+    TRIMETER_CONFIG_SOURCE_SAVED = 1,
+    TRIMETER_CONFIG_SOURCE_OTHER_REGISTER_MAP = 2,
+    TRIMETER_CONFIG_SOURCE_REFUSED = 3,
+} trimeter_config_source_t;
+static inline const char *trimeter_config_source_name(unsigned value) /* else "unknown" */
+{
+    switch (value) {
+    case 0u: return "defaults";
+    case 1u: return "saved";
+    case 2u: return "other_register_map";
+    case 3u: return "refused";
+    default: return "unknown";
+    }
+}
+typedef enum {
     TRIMETER_MAP_SLOT_NONE = 0,
     TRIMETER_MAP_SLOT_A = 1,
     TRIMETER_MAP_SLOT_B = 2,
@@ -230,6 +246,7 @@ static inline const char *trimeter_map_op_status_name(unsigned value) /* else "u
 #define REG_IR_MODBUS_FRAMES_OK 26u
 #define REG_IR_MODBUS_CRC_ERRORS 27u
 #define REG_IR_MODBUS_EXCEPTIONS 28u
+#define REG_IR_CONFIG_SOURCE 29u
 #define REG_IR_MAP_ACTIVE_SLOT 32u
 #define REG_IR_MAP_SLOT_A_VALID 33u
 #define REG_IR_MAP_SLOT_A_LENGTH 34u
@@ -378,7 +395,7 @@ typedef struct {
     float min_f, max_f, def_f; /* f32 */
 } regmap_entry_t;
 
-#define REGMAP_ENTRY_COUNT 66u
+#define REGMAP_ENTRY_COUNT 67u
 extern const regmap_entry_t regmap_entries[REGMAP_ENTRY_COUNT];
 
 #endif

@@ -41,8 +41,9 @@ static uint32_t read_record(const hal_t *hal, int region, storage_t *out)
             .length = get32(m), .crc32 = get32(m + 4), .seq = get32(m + 8), .version = get16(m + 12)};
         if (out->map[s].length > map_region_size()) out->map[s].length = 0;
     }
-    out->config_valid = (get16(buf + 16) & FLAG_CONFIG_VALID) && get32(buf + 12) == TRIMETER_REGMAP_HASH &&
-                        words == STORAGE_CONFIG_WORDS;
+    bool has_config = get16(buf + 16) & FLAG_CONFIG_VALID;
+    out->config_valid = has_config && get32(buf + 12) == TRIMETER_REGMAP_HASH && words == STORAGE_CONFIG_WORDS;
+    out->config_other_map = has_config && !out->config_valid;
     if (out->config_valid)
         for (unsigned i = 0; i < STORAGE_CONFIG_WORDS; i++) out->config[i] = get16(buf + RECORD_HEADER_BYTES + 2 * i);
     return seq;

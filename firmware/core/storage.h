@@ -14,7 +14,8 @@
  *
  * The configuration words are the holding registers from STORAGE_CONFIG_FIRST up to the end of
  * the register map; a record written by firmware with a different register-map hash keeps its
- * map table but its configuration is ignored (defaults apply). */
+ * map table but its configuration is ignored (defaults apply; input register config_source says
+ * so, and the host restores a backup by name: `trimeter config import`). */
 #ifndef TRIMETER_STORAGE_H
 #define TRIMETER_STORAGE_H
 
@@ -40,6 +41,7 @@ typedef struct storage {
     uint32_t seq;          /* of the newest valid system record; 0 = none found */
     int region;            /* config region holding it, -1 = none */
     bool config_valid;     /* the record carried configuration for this register map */
+    bool config_other_map; /* it carried configuration, but written for another register map */
     uint16_t config[STORAGE_CONFIG_WORDS];
     storage_map_slot_t map[STORAGE_MAP_SLOTS];
     bool map_valid[STORAGE_MAP_SLOTS];

@@ -259,7 +259,8 @@ static void test_config_persists_across_reboot(void)
     CHECK_EQ_INT(command(TRIMETER_COMMAND_SAVE_CONFIG), MB_OK);
     boot();
     CHECK(read_f32_hr(REG_HR_SLOT_WHITE_MM) == 70.0f);
-    CHECK(app_get()->config_from_storage);
+    CHECK_EQ_INT(app_get()->config_source, TRIMETER_CONFIG_SOURCE_SAVED);
+    CHECK_EQ_INT(ir(REG_IR_CONFIG_SOURCE), TRIMETER_CONFIG_SOURCE_SAVED);
     CHECK_EQ_INT(command(TRIMETER_COMMAND_LOAD_DEFAULTS), MB_OK);
     CHECK(read_f32_hr(REG_HR_SLOT_WHITE_MM) == 60.0f);
     boot(); /* defaults were not saved: the saved 70 comes back */
@@ -272,6 +273,51 @@ static void test_config_persists_across_reboot(void)
     fake_hal_power_on(f);
     boot();
     CHECK(read_f32_hr(REG_HR_SLOT_WHITE_MM) == 70.0f);
+}
+
+/* Edits every saved system record in the fake flash as another firmware could have left it: the
+ * register-map hash (hash != 0) and/or one configuration word (word >= 0), the CRC-32 fixed so it
+ * stays a valid record. Layout: storage.c (little-endian; hash at 12, words at 6, config at 52). */
+static void edit_saved_records(uint32_t hash, int word, uint16_t value)
+{
+    for (int r = 0; r < 2; r++) {
+        uint8_t *b = f->config[r];
+        if (!(b[0] == 0x4D && b[1] == 0x53 && b[2] == 0x54 && b[3] == 0x52)) continue; /* "MSTR" */
+        uint32_t size = 52u + 2u * (uint32_t)(b[6] | b[7] << 8) + 4u;
+        if (hash)
+            for (int i = 0; i < 4; i++) b[12 + i] = (uint8_t)(hash >> (8 * i));
+        if (word >= 0) {
+            b[52 + 2 * word] = (uint8_t)value;
+            b[53 + 2 * word] = (uint8_t)(value >> 8);
+        }
+        uint32_t crc = crc32_update(0, b, size - 4);
+        for (int i = 0; i < 4; i++) b[size - 4 + i] = (uint8_t)(crc >> (8 * i));
+    }
+}
+
+static void test_config_source_says_why_defaults_run(void)
+{
+    fresh_device();
+    CHECK_EQ_INT(ir(REG_IR_CONFIG_SOURCE), TRIMETER_CONFIG_SOURCE_DEFAULTS); /* nothing saved yet */
+    CHECK_EQ_INT(write_f32(REG_HR_SLOT_WHITE_MM, 70.0f), MB_OK);
+    CHECK_EQ_INT(command(TRIMETER_COMMAND_SAVE_CONFIG), MB_OK);
+    CHECK_EQ_INT(ir(REG_IR_CONFIG_SOURCE), TRIMETER_CONFIG_SOURCE_SAVED);
+    /* a firmware update that changed the register map: the saved words can't be read, defaults run */
+    edit_saved_records(TRIMETER_REGMAP_HASH ^ 0x1u, -1, 0);
+    boot();
+    CHECK_EQ_INT(ir(REG_IR_CONFIG_SOURCE), TRIMETER_CONFIG_SOURCE_OTHER_REGISTER_MAP);
+    CHECK(read_f32_hr(REG_HR_SLOT_WHITE_MM) == 60.0f);
+    CHECK_EQ_INT(command(TRIMETER_COMMAND_SAVE_CONFIG), MB_OK); /* saving anew makes it this map's */
+    CHECK_EQ_INT(ir(REG_IR_CONFIG_SOURCE), TRIMETER_CONFIG_SOURCE_SAVED);
+    boot();
+    CHECK_EQ_INT(ir(REG_IR_CONFIG_SOURCE), TRIMETER_CONFIG_SOURCE_SAVED);
+    /* a saved record of this map that fails the checks (homing_direction 0): refused, defaults run */
+    edit_saved_records(0, REG_HR_HOMING_DIRECTION - STORAGE_CONFIG_FIRST, 0);
+    boot();
+    CHECK_EQ_INT(ir(REG_IR_CONFIG_SOURCE), TRIMETER_CONFIG_SOURCE_REFUSED);
+    CHECK_EQ_INT((int16_t)app_get()->hr[REG_HR_HOMING_DIRECTION], (int16_t)REG_HR_HOMING_DIRECTION_DEFAULT);
+    CHECK_EQ_INT(command(TRIMETER_COMMAND_LOAD_DEFAULTS), MB_OK);
+    CHECK_EQ_INT(ir(REG_IR_CONFIG_SOURCE), TRIMETER_CONFIG_SOURCE_DEFAULTS);
 }
 
 static void test_shutters_leds_settle(void)
@@ -479,6 +525,7 @@ int main(void)
     RUN_TEST(test_stuck_slider_is_a_stall);
     RUN_TEST(test_config_validation);
     RUN_TEST(test_config_persists_across_reboot);
+    RUN_TEST(test_config_source_says_why_defaults_run);
     RUN_TEST(test_shutters_leds_settle);
     RUN_TEST(test_button_debounce_and_events);
     RUN_TEST(test_status_led_patterns);

@@ -9,7 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from enum import IntEnum
 
-REGMAP_HASH = 0xA48B07C4
+REGMAP_HASH = 0xBF9DDD39
 FIRMWARE_VERSION = (0, 1, 0)
 VENDOR_NAME = 'trimeter project'
 PRODUCT_CODE = 'TRIMETER-1'
@@ -72,6 +72,13 @@ class StatusPattern(IntEnum):
     DOUBLE_BLINK = 4
 
 
+class ConfigSource(IntEnum):
+    DEFAULTS = 0
+    SAVED = 1
+    OTHER_REGISTER_MAP = 2
+    REFUSED = 3
+
+
 class MapSlot(IntEnum):
     NONE = 0
     A = 1
@@ -102,6 +109,7 @@ ENUMS: dict[str, type[IntEnum]] = {
     'slot': Slot,
     'command': Command,
     'status_pattern': StatusPattern,
+    'config_source': ConfigSource,
     'map_slot': MapSlot,
     'map_command': MapCommand,
     'map_op_status': MapOpStatus,
@@ -181,6 +189,8 @@ REGISTERS: tuple[Register, ...] = (
              'Frames dropped for a bad CRC or overrun, wraps.'),
     Register('modbus_exceptions', 'input_register', 28, 'u16', 1, 'r', 1.0, '', 0, 65535, 0, None, (),
              'Exception replies sent, wraps.'),
+    Register('config_source', 'input_register', 29, 'u16', 1, 'r', 1.0, '', 0, 3, 0, 'config_source', (),
+             'Where the configuration in use came from. other_register_map / refused: the saved one was ignored at boot and the defaults run; restore a backup (`trimeter config import`) and save.'),
     Register('map_active_slot', 'input_register', 32, 'u16', 1, 'r', 1.0, '', 0, 2, 0, 'map_slot', (),
              'The map slot in use (none when no valid map).'),
     Register('map_slot_a_valid', 'input_register', 33, 'u16', 1, 'r', 1.0, '', 0, 1, 0, None, (),
