@@ -84,6 +84,17 @@ def test_a_thick_dark_sample_gets_advice_in_the_log_and_the_results(rig):
     assert meta["advice"] == service.last_advice
 
 
+def test_connect_warns_when_the_device_ignored_its_saved_configuration(rig):
+    service, fake, optics, events, truth, sample, tmp = rig
+    service.connect()
+    assert not [e for e in events if e.kind == "warning"]
+    service.close()
+    fake._set("ir", regs.BY_NAME["config_source"], regs.ConfigSource.OTHER_REGISTER_MAP)
+    service.connect()
+    warnings = [e.message for e in events if e.kind == "warning"]
+    assert len(warnings) == 1 and "another register map" in warnings[0] and "config import" in warnings[0]
+
+
 def test_reset_makes_the_calibration_stale_and_is_not_a_press(rig):
     service, fake, optics, events, truth, sample, tmp = rig
     service.connect()

@@ -1,15 +1,24 @@
-"""`trimeter config list|get|set|save`: device configuration over Modbus, host configuration as TOML.
+"""`trimeter config list|get|set|save|export|import`: device configuration over Modbus, host
+configuration as TOML.
 
 A NAME from the register map (hardware/registers.md, e.g. speed_mm_s, slot_white_mm, led_panels_level)
 is read/written on the device — `config save` makes device changes survive a power cycle. Any other
 NAME (or --host) is a host setting stored in the platformdirs config directory.
+
+`config export [-o FILE]` backs the device configuration up by name; `config import FILE [--save]`
+restores it, e.g. after a firmware update that changed the register map (the device then ignores its
+saved configuration and runs on defaults; `config list` and `serve` say so).
 """
 
 from __future__ import annotations
 
+import sys
 from enum import IntEnum
+from pathlib import Path
 
 from trimeter import registers as regs
+from trimeter.device.backup import config_source_warning, dump_config, parse_config
+from trimeter.device.client import CONFIG_NAMES
 from trimeter.cli._instrument import add_instrument_args, open_device, settings_from
 from trimeter.errors import InputError
 from trimeter.sequences.settings import HostSettings
@@ -38,6 +47,10 @@ def cmd_list(args):
     if not args.host:
         with open_device(settings) as dev:
             print(f"# device ({settings.port}, firmware {'.'.join(map(str, dev.identity.firmware_version))})")
+            source = dev.read("config_source")
+            print(f"# configuration source: {source.name.lower()}")
+            if warning := config_source_warning(source):
+                print(f"# warning: {warning}")
             for name, value in dev.config().items():
                 reg = regs.BY_NAME[name]
                 print(f"{name} = {_show(value)}{(' ' + reg.unit) if reg.unit and reg.unit != '1' else ''}")
@@ -76,6 +89,41 @@ def cmd_save(args):
         print("device configuration saved")
 
 
+def cmd_export(args):
+    settings = settings_from(args)
+    with open_device(settings) as dev:
+        text = dump_config(dev.config(), dev.identity, settings.port)
+    if args.output is None:
+        print(text, end="")
+        return
+    try:
+        args.output.write_text(text)
+    except OSError as exc:
+        raise InputError(f"-o {args.output}: cannot write ({exc.strerror or exc})") from None
+    print(f"device configuration written to {args.output}")
+
+
+def cmd_import(args):
+    try:
+        text = args.file.read_text()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"{args.file}: cannot read ({getattr(exc, 'strerror', None) or exc})") from None
+    values, unknown = parse_config(text, str(args.file))
+    if unknown:  # e.g. items a newer or older firmware had: the rest is still restored
+        print(f"skipped, not in this firmware's register map: {', '.join(unknown)}", file=sys.stderr)
+    with open_device(settings_from(args)) as dev:
+        dev.write_config(values)
+        kept = [n for n in CONFIG_NAMES if n not in values]
+        print(f"restored {len(values)} device configuration items"
+              + (f"; kept as they were: {', '.join(kept)}" if kept else ""))
+        if args.save:
+            dev.command("save_config")
+            dev.wait_idle(10.0)
+            print("device configuration saved")
+        else:
+            print("not saved: `trimeter config save` to keep it after a reset")
+
+
 def register(subparsers) -> None:
     parser = subparsers.add_parser("config", help="device (Modbus) and host (TOML) configuration",
                                    description=__doc__)
@@ -101,3 +149,12 @@ def register(subparsers) -> None:
     p = sub.add_parser("save", help="store the device configuration in its flash (survives resets)")
     add_instrument_args(p, spectrometer=False)
     p.set_defaults(func=cmd_save)
+    p = sub.add_parser("export", help="back the device configuration up as TOML (by name)")
+    p.add_argument("-o", "--output", type=Path, help="file to write (default: stdout)")
+    add_instrument_args(p, spectrometer=False)
+    p.set_defaults(func=cmd_export)
+    p = sub.add_parser("import", help="restore a device configuration backup (`config export`)")
+    p.add_argument("file", type=Path)
+    p.add_argument("--save", action="store_true", help="also store it in the device's flash")
+    add_instrument_args(p, spectrometer=False)
+    p.set_defaults(func=cmd_import)

@@ -240,6 +240,34 @@ class Device:
         for name, value in values.items():
             self.write(name, value)
 
+    def write_config(self, values: dict) -> None:
+        """Set device configuration items (CONFIG_NAMES; the others keep their value) so that the
+        firmware judges them together: every run of contiguous registers goes in one request, which
+        the firmware takes whole or refuses whole (its cross-checks, e.g. a slot inside the homing
+        back-off, see the run as one). Everything is range-checked before anything is sent."""
+        unknown = [n for n in values if n not in CONFIG_NAMES]
+        if unknown:
+            raise InputError(f"not device configuration items: {', '.join(unknown)}")
+        merged = self.read_many(*CONFIG_NAMES)
+        merged.update(values)
+        items = sorted((_lookup(n) for n in CONFIG_NAMES), key=lambda r: r.address)
+        words = {r.name: encode(r, merged[r.name]) for r in items}
+        runs: list[list[regs.Register]] = []
+        for r in items:
+            if runs and runs[-1][-1].address + runs[-1][-1].words == r.address:
+                runs[-1].append(r)
+            else:
+                runs.append([r])
+        for run in runs:
+            try:
+                self.transport.write_words(run[0].address, [w for r in run for w in words[r.name]])
+            except ModbusExceptionReply as exc:
+                if exc.code == 3:
+                    raise InputError(f"the device refused the configuration of {', '.join(r.name for r in run)} "
+                                     f"as a whole (inconsistent, e.g. a slot inside the homing back-off); "
+                                     f"those items are unchanged") from None
+                raise
+
     # ---------------------------------------------------------------------------------- actions
     def command(self, action: str, argument: str | None = None) -> None:
         """`command("home")`, `command("goto_slot", "white")`, `command("clear_fault")`, `command("save_config")`."""

@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Callable
 
 from trimeter.device import Device
+from trimeter.device.backup import config_source_warning
 from trimeter.errors import DeviceError, TrimeterError
 from trimeter.inversion.flags import advice
 from trimeter.results import Measurement, write_measurement
@@ -106,6 +107,8 @@ class Service:
         lamps_on(self.device)
         self.device.write("status_pattern", self._status)
         self._emit("connected", f"connected (firmware {'.'.join(map(str, self.device.identity.firmware_version))})")
+        if warning := config_source_warning(self.device.read("config_source")):
+            self._emit("warning", warning)  # slot positions, steps/mm … may be wrong for this instrument
 
     def close(self) -> None:
         for name in ("device", "spectrometer"):
