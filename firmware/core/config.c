@@ -17,6 +17,8 @@ void config_decode(const uint16_t hr[REG_HR_SPAN], config_t *c)
     c->accel_mm_s2 = regmap_get_f32(&hr[REG_HR_ACCEL_MM_S2]);
     c->homing_direction = (int16_t)hr[REG_HR_HOMING_DIRECTION];
     c->homing_timeout_ms = hr[REG_HR_HOMING_TIMEOUT_MS];
+    c->homing_speed_mm_s = regmap_get_f32(&hr[REG_HR_HOMING_SPEED_MM_S]);
+    c->homing_backoff_mm = regmap_get_f32(&hr[REG_HR_HOMING_BACKOFF_MM]);
     c->servo_open_us[HAL_SHUTTER_PANEL_LEFT] = hr[REG_HR_SERVO_PANEL_LEFT_OPEN_US];
     c->servo_closed_us[HAL_SHUTTER_PANEL_LEFT] = hr[REG_HR_SERVO_PANEL_LEFT_CLOSED_US];
     c->servo_open_us[HAL_SHUTTER_PANEL_RIGHT] = hr[REG_HR_SERVO_PANEL_RIGHT_OPEN_US];
@@ -37,9 +39,14 @@ static int32_t mm_to_steps(float mm, float steps_per_mm)
     return (int32_t)(s < 0 ? s - 0.5f : s + 0.5f);
 }
 
+static float homing_speed(const config_t *c)
+{
+    return c->homing_speed_mm_s < c->speed_mm_s ? c->homing_speed_mm_s : c->speed_mm_s;
+}
+
 void config_motion(const config_t *c, motion_config_t *m)
 {
-    float homing = CONFIG_HOMING_SPEED_MM_S < c->speed_mm_s ? CONFIG_HOMING_SPEED_MM_S : c->speed_mm_s;
+    float homing = homing_speed(c);
     float spm = c->steps_per_mm;
     *m = (motion_config_t){
         .max_speed_sps = (uint32_t)(c->speed_mm_s * spm + 0.5f),
@@ -47,8 +54,8 @@ void config_motion(const config_t *c, motion_config_t *m)
         .homing_speed_sps = (uint32_t)(homing * spm + 0.5f),
         .homing_timeout_ms = c->homing_timeout_ms,
         .max_travel_steps = mm_to_steps(CONFIG_TRAVEL_MM + CONFIG_SEEK_MARGIN_MM, spm),
-        .backoff_steps = mm_to_steps(CONFIG_BACKOFF_MM, spm),
-        .soft_min_steps = mm_to_steps(CONFIG_BACKOFF_MM, spm),
+        .backoff_steps = mm_to_steps(c->homing_backoff_mm, spm),
+        .soft_min_steps = mm_to_steps(c->homing_backoff_mm, spm),
         .soft_max_steps = mm_to_steps(CONFIG_TRAVEL_MM, spm),
         .stall_tolerance_steps = mm_to_steps(CONFIG_STALL_TOLERANCE_MM, spm),
         .home_is_positive = c->homing_direction > 0,
@@ -72,10 +79,13 @@ bool config_check(const config_t *c, const char **field)
     else if (m.max_speed_sps == 0 || motion_config_valid(&m) != MOTION_OK) bad = "speed_mm_s";
     else if (m.accel_sps2 == 0) bad = "accel_mm_s2";
     else if (c->modbus_address < 1 || c->modbus_address > 247) bad = "modbus_address";
+    /* a seek over the whole travel that can't end before the timeout would fail every homing */
+    else if (!((CONFIG_TRAVEL_MM + CONFIG_SEEK_MARGIN_MM) / homing_speed(c) * 1000.0f < (float)c->homing_timeout_ms))
+        bad = "homing_timeout_ms";
     for (int s = 0; !bad && s < CONFIG_SLOT_COUNT; s++) {
         /* inside the back-off the endstop would trip a normal move */
         int32_t steps = config_slot_steps(c, (enum config_slot)s);
-        if (!(c->slot_mm[s] >= CONFIG_BACKOFF_MM) || steps < m.soft_min_steps || steps > m.soft_max_steps)
+        if (!(c->slot_mm[s] >= c->homing_backoff_mm) || steps < m.soft_min_steps || steps > m.soft_max_steps)
             bad = slot_names[s];
     }
     if (field) *field = bad;

@@ -17,9 +17,8 @@
 #include "registers_gen.h"
 #include "storage.h"
 
-/* Mechanics not in registers.toml: see the report / registers.toml follow-up. */
-#define CONFIG_HOMING_SPEED_MM_S 20.0f  /* seek speed (capped at speed_mm_s): 130 mm in 6.5 s < the 10 s default timeout */
-#define CONFIG_BACKOFF_MM 2.0f          /* after the endstop: the soft lower limit too       */
+/* Mechanics fixed by the slider's design rather than tuned per instrument (homing speed and
+ * back-off are registers). */
 #define CONFIG_TRAVEL_MM REG_HR_SLOT_OPEN_MM_MAX /* usable travel = the slot positions' range */
 #define CONFIG_SEEK_MARGIN_MM 10.0f     /* homing gives up after travel + margin             */
 #define CONFIG_STALL_TOLERANCE_MM 1.0f  /* re-homing: endstop this far off = lost steps       */
@@ -34,6 +33,8 @@ typedef struct config {
     float accel_mm_s2;
     int homing_direction; /* -1 or +1 */
     uint16_t homing_timeout_ms;
+    float homing_speed_mm_s; /* capped at speed_mm_s */
+    float homing_backoff_mm; /* also the soft lower limit */
     uint16_t servo_open_us[HAL_SHUTTER_COUNT];
     uint16_t servo_closed_us[HAL_SHUTTER_COUNT];
     uint16_t shutter_settle_ms;

@@ -8,7 +8,7 @@
 #include <stdint.h>
 
 /* ---- identity */
-#define TRIMETER_REGMAP_HASH 0xBF9DDD39u
+#define TRIMETER_REGMAP_HASH 0xEC47805Cu
 #define TRIMETER_FIRMWARE_VERSION "0.1.0"
 #define TRIMETER_FIRMWARE_VERSION_MAJOR 0u
 #define TRIMETER_FIRMWARE_VERSION_MINOR 1u
@@ -260,7 +260,7 @@ static inline const char *trimeter_map_op_status_name(unsigned value) /* else "u
 #define REG_IR_MAP_OP_BYTES_WRITTEN 50u
 
 /* ---- holding_registers */
-#define REG_HR_SPAN 92u /* one past the highest used address */
+#define REG_HR_SPAN 96u /* one past the highest used address */
 #define REG_HR_COMMAND 0u
 #define REG_HR_COMMAND_DEFAULT 0u
 #define REG_HR_COMMAND_MIN 0u
@@ -377,6 +377,14 @@ static inline const char *trimeter_map_op_status_name(unsigned value) /* else "u
 #define REG_HR_MODBUS_BAUD_DEFAULT 19200u
 #define REG_HR_MODBUS_BAUD_MIN 9600u
 #define REG_HR_MODBUS_BAUD_MAX 115200u
+#define REG_HR_HOMING_SPEED_MM_S 92u
+#define REG_HR_HOMING_SPEED_MM_S_DEFAULT 20.0f
+#define REG_HR_HOMING_SPEED_MM_S_MIN 0.5f
+#define REG_HR_HOMING_SPEED_MM_S_MAX 200.0f
+#define REG_HR_HOMING_BACKOFF_MM 94u
+#define REG_HR_HOMING_BACKOFF_MM_DEFAULT 2.0f
+#define REG_HR_HOMING_BACKOFF_MM_MIN 0.5f
+#define REG_HR_HOMING_BACKOFF_MM_MAX 10.0f
 
 /* ---- descriptor table (registers_gen.c), sorted by table then address */
 typedef enum { REGMAP_COIL = 0, REGMAP_DISCRETE_INPUT = 1, REGMAP_INPUT_REGISTER = 3,
@@ -395,7 +403,7 @@ typedef struct {
     float min_f, max_f, def_f; /* f32 */
 } regmap_entry_t;
 
-#define REGMAP_ENTRY_COUNT 67u
+#define REGMAP_ENTRY_COUNT 69u
 extern const regmap_entry_t regmap_entries[REGMAP_ENTRY_COUNT];
 
 #endif

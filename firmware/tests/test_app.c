@@ -247,6 +247,34 @@ static void test_config_validation(void)
     CHECK(read_f32_hr(REG_HR_SLOT_WHITE_MM) == 60.0f);
     /* half a wide value: address error */
     CHECK_EQ_INT(write_reg(REG_HR_SLOT_BLACK_MM, 0x4200), MB_EX_ILLEGAL_DATA_ADDRESS);
+    /* the back-off is the soft lower limit: a slot inside a longer one is refused */
+    CHECK_EQ_INT(write_f32(REG_HR_SLOT_BLACK_MM, 4.0f), MB_OK);
+    CHECK_EQ_INT(write_f32(REG_HR_HOMING_BACKOFF_MM, 5.0f), MB_EX_ILLEGAL_DATA_VALUE);
+    CHECK_EQ_INT(write_f32(REG_HR_HOMING_BACKOFF_MM, 3.5f), MB_OK);
+    /* a seek over the whole travel (130 mm) must end within homing_timeout_ms (10 s) */
+    CHECK_EQ_INT(write_f32(REG_HR_HOMING_SPEED_MM_S, 14.0f), MB_OK);  /* 9.3 s */
+    CHECK_EQ_INT(write_f32(REG_HR_HOMING_SPEED_MM_S, 12.0f), MB_EX_ILLEGAL_DATA_VALUE); /* 10.8 s */
+    CHECK_EQ_INT(write_f32(REG_HR_SPEED_MM_S, 12.0f), MB_EX_ILLEGAL_DATA_VALUE); /* caps the seek speed too */
+    CHECK_EQ_INT(write_reg(REG_HR_HOMING_TIMEOUT_MS, 30000), MB_OK);
+    CHECK_EQ_INT(write_f32(REG_HR_HOMING_SPEED_MM_S, 5.0f), MB_OK);
+    CHECK(read_f32_hr(REG_HR_HOMING_SPEED_MM_S) == 5.0f);
+}
+
+static void test_homing_uses_the_configured_speed_and_back_off(void)
+{
+    fresh_device();
+    run_ms(REG_HR_SHUTTER_SETTLE_MS_DEFAULT + 2);
+    CHECK_EQ_INT(write_f32(REG_HR_HOMING_BACKOFF_MM, 4.0f), MB_OK);
+    CHECK_EQ_INT(write_f32(REG_HR_HOMING_SPEED_MM_S, 25.0f), MB_OK);
+    /* seeking from 3000 steps at 25 mm/s = 2000 steps/s: 2000 steps nearer the endstop after 1 s */
+    CHECK_EQ_INT(command(TRIMETER_COMMAND_HOME), MB_OK);
+    run_ms(1000);
+    CHECK(f->carriage_steps > 3000 - 2000 - 60 && f->carriage_steps < 3000 - 2000 + 60);
+    CHECK(run_until_idle(30000));
+    CHECK(di(REG_DI_HOMED));
+    /* then backed off 4 mm = 320 steps */
+    CHECK_EQ_INT(ir32(REG_IR_POSITION_STEPS), 320);
+    CHECK_EQ_INT(f->carriage_steps, 320);
 }
 
 static void test_config_persists_across_reboot(void)
@@ -524,6 +552,7 @@ int main(void)
     RUN_TEST(test_fault_latches_until_cleared);
     RUN_TEST(test_stuck_slider_is_a_stall);
     RUN_TEST(test_config_validation);
+    RUN_TEST(test_homing_uses_the_configured_speed_and_back_off);
     RUN_TEST(test_config_persists_across_reboot);
     RUN_TEST(test_config_source_says_why_defaults_run);
     RUN_TEST(test_shutters_leds_settle);
