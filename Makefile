@@ -14,11 +14,11 @@ endif
 # 2-core machine idle OpenBLAS threads spin-wait under load, which stalled scipy's Delaunay for minutes.
 export OPENBLAS_NUM_THREADS ?= 1
 
-.PHONY: help setup native native-portable gen check-gen firmware firmware-test fuzz pytest test demo bench clean
+.PHONY: help setup native native-portable gen check-gen lint firmware firmware-test fuzz pytest test demo bench clean
 
 help:
 	@echo "make demo   - set up, start the twin with a virtual sample, run a press-button measurement, plot it"
-	@echo "make test   - set up, build firmware (sim + stm32f405), run C unit tests, fuzz, and pytest"
+	@echo "make test   - set up, lint, build firmware (sim + stm32f405), run C unit tests, fuzz, and pytest"
 	@echo "make bench  - the speed/accuracy benchmarks (map building, inversion)"
 
 setup:
@@ -47,6 +47,10 @@ gen: setup
 check-gen: setup
 	$(PY) tools/gen_registers.py --check
 
+# pycodestyle + pyflakes rules (configured in pyproject.toml): unused names, undefined names, long lines
+lint: setup
+	$(VENV)/bin/ruff check host tools tests
+
 firmware: setup
 	$(MAKE) -C firmware all
 
@@ -59,7 +63,7 @@ fuzz: setup
 pytest: setup firmware native
 	$(PY) -m pytest -q
 
-test: setup check-gen firmware firmware-test native-portable fuzz pytest
+test: setup check-gen lint firmware firmware-test native-portable fuzz pytest
 
 demo: setup firmware native
 	$(PY) -m trimeter demo

@@ -59,7 +59,8 @@ class FakeInstrument:
 
     def get(self, name):
         reg = regs.BY_NAME[name]
-        table = {"coil": "coils", "discrete_input": "inputs", "input_register": "ir", "holding_register": "hr"}[reg.table]
+        table = {"coil": "coils", "discrete_input": "inputs", "input_register": "ir",
+                 "holding_register": "hr"}[reg.table]
         if reg.type == "bool":
             return getattr(self, table)[reg.address]
         words = getattr(self, table)[reg.address:reg.address + reg.words]

@@ -10,7 +10,8 @@ Materials are random and OFF the map grid (α, σt, g all drawn continuously; an
 grid node on every axis is redrawn), rendered directly — never interpolated from a map:
 - device/recipe maps: the builder's Dr.Jit tracer (trimeter.maps.tracer.trace_column: detector and
   background paths, validated against Mitsuba volpath by the map helpers) at each random (σt, g),
-  with `--paths` paths; one trace serves several random α. Records A, B, C per material and their MC std-error at the reference backgrounds.
+  with `--paths` paths; one trace serves several random α. Records A, B, C per material and their MC
+  std-error at the reference backgrounds.
 - --ideal: Prahl's adding-doubling (iadpython), exact for the ideal geometry.
 I_b, I_w at any ρ follow from A, B, C; I_c is analytic (trimeter.forward.collimated).
 
@@ -85,7 +86,8 @@ def from_recipe(recipe_path, pairs, alphas, paths, seed, alpha_stderr=None, max_
         sb, sw = tally.stderr(al, r.reference_rho_b), tally.stderr(al, r.reference_rho_w)
         for j in range(alphas):
             rows.append((al[j], s, g, A[j], B[j], C[j], sb[j], sw[j]))
-        print(f"\r{i + 1}/{pairs} (σt, g) traced, {time.perf_counter() - t0:.0f} s", end="", file=sys.stderr, flush=True)
+        print(f"\r{i + 1}/{pairs} (σt, g) traced, {time.perf_counter() - t0:.0f} s", end="", file=sys.stderr,
+              flush=True)
     print(file=sys.stderr)
     budget = (f"{paths} paths per (sigma_t, g)" if alpha_stderr is None else
               f"{paths}-{max_paths} paths per (sigma_t, g) (α std-error ≤ {alpha_stderr:g} where reachable)")

@@ -6,7 +6,8 @@
 
 Training data: random materials (α denser towards 1, ln σt uniform, g uniform over the map's range)
 and random backgrounds (ρ_b ∈ [0, 0.1], ρ_w ∈ [0.85, 1]) pushed through the map as it is evaluated
-between its nodes (AppearanceMap.between_nodes: the model the polish refines the guess on). Features and targets: trimeter.inversion.mlp.
+between its nodes (AppearanceMap.between_nodes: the model the polish refines the guess on). Features
+and targets: trimeter.inversion.mlp.
 scikit-learn trains (StandardScaler + MLPRegressor); the network is written as a plain ONNX graph
 (network_graph: Gemm layers, the scaler folded in) with the map's SHA-256 stored
 in the model's metadata and inference refuses a model used with any other map.
@@ -154,7 +155,8 @@ def main(argv=None) -> int:
     model, stats = train(amap, hidden, args.samples, args.epochs, args.seed, args.activation)
     out = export(model, amap, args.output or model_path_for(amap.path), hidden, stats)
     print(f"{out}: {out.stat().st_size} bytes, hidden {hidden}, trained in {time.perf_counter() - t0:.1f} s; "
-          f"raw network on fresh map samples: α abs p95 {stats['alpha_abs_p95']:.4f}, g abs p95 {stats['g_abs_p95']:.4f}")
+          f"raw network on fresh map samples: α abs p95 {stats['alpha_abs_p95']:.4f}, g abs p95 "
+          f"{stats['g_abs_p95']:.4f}")
     return 0
 
 

@@ -60,7 +60,8 @@ def test_panels_are_where_geometry_toml_puts_them():
     for quad in panel_corners(p):
         centre = quad.mean(axis=0)
         assert np.linalg.norm(centre) == pytest.approx(p["panels"]["distance_mm"])
-        assert math.degrees(math.acos(centre[2] / np.linalg.norm(centre))) == pytest.approx(p["panels"]["elevation_deg"])
+        elevation = math.degrees(math.acos(centre[2] / np.linalg.norm(centre)))
+        assert elevation == pytest.approx(p["panels"]["elevation_deg"])
         sides = sorted([np.linalg.norm(quad[1] - quad[0]), np.linalg.norm(quad[3] - quad[0])])
         assert sides == pytest.approx(sorted([p["panels"]["width_mm"], p["panels"]["height_mm"]]))
 

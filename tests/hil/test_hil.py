@@ -255,7 +255,8 @@ def test_one_percent_byte_corruption_still_completes_with_correct_results(start_
     assert event.kind == "measured", event.message
     link = event.data["link"]
     counters = twin.control.state()["counters"]
-    happened = counters["bytes_corrupted"] if "corrupt" in faults else counters["replies_late"] + counters["replies_dropped"]
+    happened = (counters["bytes_corrupted"] if "corrupt" in faults
+                else counters["replies_late"] + counters["replies_dropped"])
     assert happened > 5, (counters, link)  # the faults really happened (in calibration and/or measurement)
     errors = _parameter_errors(event.data["parameters"], twin.control.truth())
     assert errors["nan"] == 0 and errors["sigma_t"] < 0.01, errors
@@ -368,7 +369,8 @@ def test_flash_the_map_table_then_measure_with_it(start_twin, hil_map, host_dirs
     capsys.readouterr()
     assert main(["map", "slots", "--port", twin.modbus_port]) == 0
     own_crc = int.from_bytes(table.read_bytes()[-4:], "little")
-    assert f"slot A: valid, {table.stat().st_size} bytes, version 4, table CRC-32 0x{own_crc:08X}" in capsys.readouterr().out
+    expected = f"slot A: valid, {table.stat().st_size} bytes, version 4, table CRC-32 0x{own_crc:08X}"
+    assert expected in capsys.readouterr().out
     service, events = calibrated_service(rig, host_dirs, hil_map)
     rig.insert_sample(SAMPLE, THICKNESS_MM)
     event = press_and_wait(rig, service, events, "measured")
@@ -493,7 +495,8 @@ def test_demo_runs_end_to_end_and_reports_against_the_truth(start_twin, hil_map,
     monkeypatch.setenv("TRIMETER_CONFIG_DIR", str(tmp_path / "config"))
     assert main(["demo", "--map", str(hil_map.path), "--time-scale", "50", "--out", str(tmp_path / "demo")]) == 0
     out = capsys.readouterr().out
-    figure = Path(next(line.split(":", 1)[1].strip() for line in out.splitlines() if line.startswith("figure vs truth:")))
+    figure = Path(next(line.split(":", 1)[1].strip() for line in out.splitlines()
+                       if line.startswith("figure vs truth:")))
     assert figure.is_file() and figure.read_bytes()[:4] == b"\x89PNG"
     p95 = next(line for line in out.splitlines() if line.startswith("over 420-720 nm"))
     alpha_p95 = float(p95.split("|Δα| p95 ")[1].split(",")[0])

@@ -1,5 +1,6 @@
 """`trimeter bench fit`'s error budget on synthetic held-out sets whose answers are known:
-- intensities that ARE the forward model lut/mlp polish on (the table's, refined in σt) → map error floor 0, map-exact rows = rendered rows;
+- intensities that ARE the forward model lut/mlp polish on (the table's, refined in σt) → map error
+  floor 0, map-exact rows = rendered rows;
 - the map's forward model + a known offset → the map error floor is the first-order error an exact
   inversion makes (checked against a Newton solve of the offset intensities);
 - MC std-errors → the reference noise floor is the std of Newton solves of noisy draws."""

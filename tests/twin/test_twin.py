@@ -92,7 +92,8 @@ def test_modbus_through_the_proxy_and_the_spectrometer_follow_the_plant(ideal_ma
                 # open both panel shutters and light both panels (coils 0,1 and 3,4)
                 assert rtu.write_coils(_find("shutter_panel_left_open"), [True, True, False, True, True, False])
                 deadline = time.monotonic() + 5
-                while not all(twin.control.state()["plant"]["shutters"][k]["open"] for k in ("panel_left", "panel_right")):
+                shutters = lambda: twin.control.state()["plant"]["shutters"]  # noqa: E731
+                while not all(shutters()[k]["open"] for k in ("panel_left", "panel_right")):
                     assert time.monotonic() < deadline, "shutters never opened"
                     time.sleep(0.02)
                 lit = spec.intensities()

@@ -116,7 +116,8 @@ def test_reset_at_fires_on_the_nth_request_and_faults_can_change_live(rig):
 
 def test_fault_config_parsing_and_validation():
     f = FaultConfig.parse("corrupt=0.01,drop=0.02,late=0.01,reset_at=40,stuck_slider,lamp_failure")
-    assert (f.corrupt, f.drop, f.late, f.reset_at, f.stuck_slider, f.lamp_failure) == (0.01, 0.02, 0.01, 40, True, "panels")
+    assert (f.corrupt, f.drop, f.late, f.reset_at, f.stuck_slider, f.lamp_failure) == \
+        (0.01, 0.02, 0.01, 40, True, "panels")
     assert FaultConfig.parse("lamp_failure=collimated").lamp_failure == "collimated"
     assert FaultConfig.parse("") == FaultConfig()
     for bad, field in (("corrupt=2", "corrupt"), ("drop=x", "drop"), ("reset_at=0", "reset_at"),

@@ -25,7 +25,8 @@ def test_no_sample_white_slot_counts_follow_the_diffuse_spectrum(optics):
     model = optics.spectrometer
     it_us = 50_000
     frames = np.stack([model.expose(optics.rate(plant("white")), it_us, rng) for _ in range(20)]).astype(float)
-    dark = np.stack([model.expose(optics.rate(plant("white", panels=0.0)), it_us, rng) for _ in range(20)]).astype(float)
+    dark_rate = optics.rate(plant("white", panels=0.0))
+    dark = np.stack([model.expose(dark_rate, it_us, rng) for _ in range(20)]).astype(float)
     signal = frames.mean(0) - dark.mean(0)
     expected = optics.panels.spectrum() * optics.rho_white * it_us * 1e-6
     lit = expected > 2000  # well above read and shot noise
@@ -168,7 +169,8 @@ def test_map_choice_by_thickness_device_geometry_first(ideal_map):
     import dataclasses
 
     device = dataclasses.replace(ideal_map, recipe={**ideal_map.recipe, "geometry": "device", "name": "dev"}, path=None)
-    thicker = dataclasses.replace(ideal_map, recipe={**ideal_map.recipe, "thickness_mm": 0.8, "name": "thick"}, path=None)
+    thicker = dataclasses.replace(ideal_map, recipe={**ideal_map.recipe, "thickness_mm": 0.8, "name": "thick"},
+                                  path=None)
     optics = Optics([ideal_map, device, thicker])
     assert optics.insert_sample("milk", 0.4).map_name == "dev"
     assert optics.insert_sample("milk", 0.8).map_name == "thick"

@@ -6,7 +6,8 @@ off-grid (α, σt, g) rendered directly, never map grid points). Per noise level
 noise on I_b, I_w, I_c) and method variant it reports: time per 1024 bins of the whole `fit()` call
 (best of several runs; validation, flags and per-bin uncertainty included), warm (right after an
 untimed call) and cold (after evicting the caches: `ms_per_1024_cold`), and of the inversion
-kernel alone ("core": the paper's scipy interpolator call against the lut/mlp guess + polish), α abs error p50/p95, σt relative error p50/p95, g abs error p50/p95 over
+kernel alone ("core": the paper's scipy interpolator call against the lut/mlp guess + polish), α abs
+error p50/p95, σt relative error p50/p95, g abs error p50/p95 over
 α ≥ 0.5, NaN rate and flag rate. Errors are taken over the measurable gamut (I_c ≥ 1e-3, so σt is
 not just a lower bound); NaN and flag rates over every held-out material. A Pareto plot (time
 against α and g p95, noise-free) is written as a PNG whose path is printed.
@@ -234,7 +235,8 @@ def _budget_summary(b):
         return {f"{key.split('_')[0]}_p50": _pct(x, 50), f"{key.split('_')[0]}_p95": _pct(x, 95)}
 
     return {
-        "reference_noise_floor": {**p50_p95("alpha_floor_std", b["measurable"]), **p50_p95("g_floor_std", b["g_scored"])},
+        "reference_noise_floor": {**p50_p95("alpha_floor_std", b["measurable"]),
+                                  **p50_p95("g_floor_std", b["g_scored"])},
         "map_error_floor": {**p50_p95("alpha_map_err", b["measurable"]), **p50_p95("g_map_err", b["g_scored"])},
         "map_noise_floor": {**p50_p95("alpha_map_std", b["measurable"]), **p50_p95("g_map_std", b["g_scored"])},
         # what is left of the rendered well-conditioned figures once the references are precise
@@ -479,16 +481,19 @@ def run(args) -> int:
             rows += _bench_case(amap, variants, (a, s, g), budget, (scale(I_b0), scale(I_w0), scale(I_c0)),
                                 "rendered", level, args, small)
         exact_rows = _bench_case(amap, variants, (a, s, g), budget, budget["map_exact"], "map-exact", 0.0, args, small)
-        background_rows = _bench_backgrounds(amap, h, budget, variants, small) if args.per_wavelength_backgrounds else []
+        background_rows = (_bench_backgrounds(amap, h, budget, variants, small)
+                           if args.per_wavelength_backgrounds else [])
         hull = hull_split(amap, I_b0, I_w0, I_c0, rb, rw, args.repeats)
         for level in noise_levels:
             _print_table([r for r in rows if r["noise"] == level], f"noise {level * 100:g} %")
         _print_table(exact_rows, "map-exact")
-        print(f"\n   paper's inputs: {hull['outside_hull']} of {hull['of']} noise-free held-out materials fall outside the "
+        print(f"\n   paper's inputs: {hull['outside_hull']} of {hull['of']} noise-free held-out materials fall "
+              f"outside the "
               f"Delaunay hull of the map's nodes (NaN); scipy searches every simplex (~0.3 ms) for each that is "
               f"inside the hull's bounding box, so the paper rows' time depends on them.")
         if "lut_ms" in hull:
-            print(f"   inside the hull only: paper {hull['paper_ms']:.3g} ms (core {hull['paper_core_ms']:.3g}), lut p≤8 "
+            print(f"   inside the hull only: paper {hull['paper_ms']:.3g} ms (core {hull['paper_core_ms']:.3g}), lut "
+                  f"p≤8 "
                   f"{hull['lut_ms']:.3g} ms per 1024 bins → ×{hull['paper_ms'] / hull['lut_ms']:.1f} "
                   f"(core: ×{hull['paper_core_ms'] / hull['lut_ms']:.1f} against lut's whole fit)")
         if background_rows:
@@ -534,7 +539,8 @@ def _print_budget(summary, rows, exact_rows):
     for label, d in (("reference noise floor (held-out MC std-error → std)", ref),
                      ("map error floor (map forward − held-out I → error)", err),
                      ("  its MC part (map nodes' std-error → std, ≤)", summary["map_noise_floor"]),
-                     ("  map error floor over the well-conditioned subset", summary["map_error_floor_well_conditioned"])):
+                     ("  map error floor over the well-conditioned subset",
+                      summary["map_error_floor_well_conditioned"])):
         print(f"   {label:<52}" + "".join(f"{d[k]:>9.4f}" for k in ("alpha_p50", "alpha_p95", "g_p50", "g_p95")))
     print(f"   well-conditioned (reference floor below half the target): α std < {wc['alpha_floor_std_below']:g} for "
           f"{wc['alpha_count']}/{wc['alpha_of']} materials, g std < {wc['g_floor_std_below']:g} for "

@@ -53,7 +53,8 @@ def run(args) -> int:
     rng = np.random.default_rng(args.seed)
     picks = [(int(rng.integers(na)), int(rng.integers(ns)), int(rng.integers(ng)), int(rng.integers(len(rhos))))
              for _ in range(args.naive_renders)]
-    print(f"map: ideal, n = 1.5, ℓ = 0.5 mm; α {na} × σt {ns} × g {ng} × ρ {len(rhos)} = {n_points} (α, σt, g, ρ) points")
+    print(f"map: ideal, n = 1.5, ℓ = 0.5 mm; α {na} × σt {ns} × g {ng} × ρ {len(rhos)} = {n_points} "
+          f"(α, σt, g, ρ) points")
     print(f"naive: volpath direct render per point at {args.spp} spp; measuring {len(picks)} random points")
     render_diffuse("ideal", 0.5, 1.0, 0.5, 1.5, 0.5, 0.5, spp=4096, seed=0)   # load + JIT outside the timing
     naive = []
@@ -69,7 +70,8 @@ def run(args) -> int:
     naive_per = float(seconds.mean())
     naive_total = naive_per * n_points
     print(f"naive: {naive_per:.2f} ± {seconds.std(ddof=1) / math.sqrt(len(seconds)):.2f} s per render → "
-          f"{naive_total:.0f} s for the map (extrapolated from {len(seconds)} renders); median std-error {naive_err:.2e}")
+          f"{naive_total:.0f} s for the map (extrapolated from {len(seconds)} renders); median std-error "
+          f"{naive_err:.2e}")
 
     recipe = bench_recipe(naive_err)
     with tempfile.TemporaryDirectory() as tmp:
@@ -79,7 +81,8 @@ def run(args) -> int:
     std = np.concatenate([amap.std_b.ravel(), amap.std_w.ravel()])
     print(f"new:   {new_total:.1f} s for the whole map ({ns * ng} traces, "
           f"{amap.provenance['paths_per_column']['total']} paths); std-error median {np.median(std):.2e}, "
-          f"max {std.max():.2e} (target {naive_err:.2e}); truncation ≤ {amap.provenance['truncation']['max_error_bound']:.1e}")
+          f"max {std.max():.2e} (target {naive_err:.2e}); truncation ≤ "
+          f"{amap.provenance['truncation']['max_error_bound']:.1e}")
 
     # Same points, both ways: grid points, so no interpolation is involved.
     z = []
@@ -91,6 +94,7 @@ def run(args) -> int:
     print(f"agreement at the rendered points: |z| median {np.median(np.abs(z)):.2f}, max {np.abs(z).max():.2f} "
           f"(z = (map − direct) / combined std-error)")
     matched = np.median(std) <= naive_err * 1.05
-    print(f"matched error: new median std-error {'≤' if matched else '>'} naive ({np.median(std):.2e} vs {naive_err:.2e})")
+    print(f"matched error: new median std-error {'≤' if matched else '>'} naive ({np.median(std):.2e} vs "
+          f"{naive_err:.2e})")
     print(f"ratio: {naive_total / new_total:.1f}")
     return 0

@@ -38,7 +38,8 @@ def open_spectrometer(settings: HostSettings):
     from trimeter.spectrometer import open_spectrometer as open_url
 
     if not settings.spectrometer:
-        raise InputError("spectrometer: none given (use --spectrometer or `trimeter config set --host spectrometer URL`)")
+        raise InputError("spectrometer: none given (use --spectrometer or `trimeter config set --host spectrometer "
+                         "URL`)")
     return open_url(settings.spectrometer)
 
 

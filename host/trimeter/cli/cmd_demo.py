@@ -71,7 +71,8 @@ def run(args):
     def log(event):
         print(f"  [{event.kind}] {event.message}", flush=True)
 
-    print(f"demo: twin with '{args.sample}' ℓ = {args.thickness:g} mm, map {amap.name}, time scale {args.time_scale:g}×")
+    print(f"demo: twin with '{args.sample}' ℓ = {args.thickness:g} mm, map {amap.name}, time scale "
+          f"{args.time_scale:g}×")
     with Twin(sample=None, thickness_mm=args.thickness, time_scale=args.time_scale, appearance_map=amap,
               state_dir=out / "twin", seed=args.seed) as twin:
         settings.set("port", twin.modbus_port)
@@ -113,18 +114,24 @@ def run(args):
     truth_on = {k: np.interp(params.wavelengths_nm, tw, np.asarray(truth[k])) for k in ("alpha", "sigma_t", "g")}
     band = valid & (params.wavelengths_nm >= 420) & (params.wavelengths_nm <= 720)
     if band.any():
-        print(f"over 420-720 nm ({band.sum()} bins): |Δα| p95 {np.nanpercentile(np.abs(params.alpha - truth_on['alpha'])[band], 95):.4f}, "
+        print(f"over 420-720 nm ({band.sum()} bins): |Δα| p95 "
+              f"{np.nanpercentile(np.abs(params.alpha - truth_on['alpha'])[band], 95):.4f}, "
               f"|Δσt|/σt p95 {np.nanpercentile(np.abs(params.sigma_t / truth_on['sigma_t'] - 1)[band], 95):.2%}, "
               f"|Δg| p95 {np.nanpercentile(np.abs(params.g - truth_on['g'])[band], 95):.3f}")
-    figure = plot_parameters(out / "demo-vs-truth.png", params, title=f"{args.sample}, ℓ = {args.thickness:g} mm (twin)",
-                             truth={"wavelengths_nm": tw, **{k: np.asarray(truth[k]) for k in ("alpha", "sigma_t", "g")}})
+    figure = plot_parameters(out / "demo-vs-truth.png", params,
+                             title=f"{args.sample}, ℓ = {args.thickness:g} mm (twin)",
+                             truth={"wavelengths_nm": tw,
+                                    **{k: np.asarray(truth[k]) for k in ("alpha", "sigma_t", "g")}})
     physical = timing["motion_device_s"] + timing["exposure_s"]
     overhead = timing["wall_s"] - physical / args.time_scale
-    print(f"\nmeasurement cycle (press → results written): {cycle_wall:.2f} s wall, {cycle_sim:.1f} s on the twin's clock")
+    print(f"\nmeasurement cycle (press → results written): {cycle_wall:.2f} s wall, "
+          f"{cycle_sim:.1f} s on the twin's clock")
     print(f"  sequence: {timing['wall_s']:.2f} s wall = physical {physical:.1f} s device time "
-          f"(motion+settling {timing['motion_device_s']:.1f} s, exposures {timing['exposure_s']:.1f} s) / {args.time_scale:g} "
+          f"(motion+settling {timing['motion_device_s']:.1f} s, exposures {timing['exposure_s']:.1f} s) / "
+          f"{args.time_scale:g} "
           f"+ host & protocol overhead {overhead:.2f} s = {overhead / physical:.1%} of the physical time")
-    print(f"  then fit {timing['fit_wall_s'] * 1e3:.0f} ms, results + figure + medium written in {timing['write_wall_s']:.2f} s; "
+    print(f"  then fit {timing['fit_wall_s'] * 1e3:.0f} ms, results + figure + medium written in "
+          f"{timing['write_wall_s']:.2f} s; "
           f"the rest is the button (debounce + polling)")
     print(f"  the sequence made {timing['requests']} Modbus requests ({timing['request_wall_s']:.2f} s inside them, "
           f"most overlapping motion); over a real 19200-baud link (~15 ms each) that is at most "

@@ -32,7 +32,8 @@ def register(subparsers) -> None:
                               description=__doc__.split("\n\n")[0])
     p.add_argument("--map", dest="maps", action="append", required=True,
                    help="appearance map (file or shipped name); give twice for two thicknesses")
-    p.add_argument("--input", required=True, type=Path, help="CSV with wavelength_nm,I_b,I_w,I_c[,rho_b,rho_w,thickness_mm]")
+    p.add_argument("--input", required=True, type=Path,
+                   help="CSV with wavelength_nm,I_b,I_w,I_c[,rho_b,rho_w,thickness_mm]")
     p.add_argument("--method", choices=("lut", "mlp", "paper"), default="lut")
     p.add_argument("-o", "--output", type=Path, help="output CSV (default: stdout)")
     p.add_argument("--json", action="store_true", help="print JSON instead of CSV")
@@ -48,7 +49,8 @@ def read_measurements(path: Path) -> dict[str, np.ndarray]:
     header = [h.strip() for h in (reader.fieldnames or [])]
     missing = [c for c in REQUIRED if c not in header]
     if missing:
-        raise InputError(f"--input {path}: missing column(s) {', '.join(missing)} (have: {', '.join(header) or 'none'})")
+        raise InputError(f"--input {path}: missing column(s) {', '.join(missing)} (have: "
+                         f"{', '.join(header) or 'none'})")
     columns = {c: [] for c in REQUIRED + OPTIONAL if c in header}
     for row_no, row in enumerate(reader, start=2):
         row = {(k or "").strip(): v for k, v in row.items()}
@@ -77,7 +79,8 @@ def _split_thicknesses(data, amaps, path):
                                  f"thickness {amaps[0].thickness_mm:g} mm")
         return [np.argsort(data["wavelength_nm"], kind="stable")]
     if "thickness_mm" not in data:
-        raise InputError(f"--input {path}: with {len(amaps)} maps the column thickness_mm must say which rows belong to which")
+        raise InputError(f"--input {path}: with {len(amaps)} maps the column thickness_mm must say which rows belong "
+                         f"to which")
     groups, used = [], np.zeros(n, bool)
     for amap in amaps:
         rows = np.flatnonzero(np.abs(data["thickness_mm"] - amap.thickness_mm) <= 1e-6 * max(1.0, amap.thickness_mm))

@@ -32,7 +32,8 @@ def register(subparsers) -> None:
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=_run)
     sub = p.add_subparsers(dest="forward_command", metavar="SUBCOMMAND")
-    v = sub.add_parser("validate", help="physics report: ideal vs adding-doubling, device I(ρ) closed form, I_c in-scattering",
+    v = sub.add_parser("validate", help="physics report: ideal vs adding-doubling, device I(ρ) closed form, I_c "
+                                        "in-scattering",
                        description="Checks of the direct renders (issue 2 §3, §7). Prints figures; exit 1 if "
                                    "the ideal geometry misses the 0.5 % median agreement.")
     v.add_argument("--materials", type=int, default=30, help="random materials for the adding-doubling check")
@@ -96,7 +97,8 @@ def _validate(args) -> int:
             f"l={iad['thickness_mm']} mm, {iad['spp']} spp):")
         for r in iad["rows"]:
             say(f"  a={r['alpha']:.4f} st={r['sigma_t']:8.3f} g={r['g']:.2f} rho={r['rho']:.2f}: mitsuba "
-                f"{r['mitsuba']:.5f} ± {r['stderr']:.5f}  iad {r['iad']:.5f}  {r['rel_err_pct']:+.3f} %  z={r['z']:+.1f}")
+                f"{r['mitsuba']:.5f} ± {r['stderr']:.5f}  iad {r['iad']:.5f}  {r['rel_err_pct']:+.3f} %  "
+                f"z={r['z']:+.1f}")
         say(f"  median |err| {iad['median_abs_err_pct']:.3f} %, max {iad['max_abs_err_pct']:.3f} %, "
             f"median MC stderr {iad['median_rel_stderr_pct']:.3f} %, {iad['seconds_per_render']:.2f} s per render")
     if args.device_materials > 0:

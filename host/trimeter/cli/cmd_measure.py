@@ -18,7 +18,8 @@ def summary(parameters, wavelengths=SHOW_NM, truth=None) -> str:
     lines = [f"{'λ [nm]':>8} {'α':>8} {'σt [1/mm]':>11} {'g':>7}" + ("   truth: α      σt      g" if truth else "")]
     for w in wavelengths:
         i = int(np.argmin(np.abs(parameters.wavelengths_nm - w)))
-        row = f"{parameters.wavelengths_nm[i]:8.1f} {parameters.alpha[i]:8.4f} {parameters.sigma_t[i]:11.4f} {parameters.g[i]:7.3f}"
+        row = (f"{parameters.wavelengths_nm[i]:8.1f} {parameters.alpha[i]:8.4f} {parameters.sigma_t[i]:11.4f} "
+               f"{parameters.g[i]:7.3f}")
         if truth:
             j = int(np.argmin(np.abs(np.asarray(truth["wavelengths_nm"]) - w)))
             row += f"   {truth['alpha'][j]:9.4f} {truth['sigma_t'][j]:7.3f} {truth['g'][j]:6.3f}"

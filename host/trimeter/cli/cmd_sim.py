@@ -48,7 +48,8 @@ def _ctl(args) -> int:
         try:
             control = json.loads(ports_file.read_text())["control_path"]
         except (OSError, ValueError, KeyError):
-            raise DeviceError(f"no running twin found ({ports_file} missing or unreadable); give --control PATH") from None
+            raise DeviceError(f"no running twin found ({ports_file} missing or unreadable); "
+                              f"give --control PATH") from None
     with TwinClient(control) as client:
         reply = client._call(command, **fields)
     reply.pop("ok", None)

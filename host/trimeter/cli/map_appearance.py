@@ -107,7 +107,8 @@ def cmd_list(args) -> int:
             continue
         r, gr = info["recipe"], info["grid"]
         print(f"{info['name']:<24} {r['geometry']:<7} n={r['n']:<5g} ℓ={r['thickness_mm']:g} mm  "
-              f"{gr['alpha']}×{gr['sigma_t']}×{gr['g']}  σt {info['range']['sigma_t'][0]:g}…{info['range']['sigma_t'][1]:g}/mm  "
+              f"{gr['alpha']}×{gr['sigma_t']}×{gr['g']}  σt "
+              f"{info['range']['sigma_t'][0]:g}…{info['range']['sigma_t'][1]:g}/mm  "
               f"stderr med {info['mc_stderr']['median']:.1e}  {info['size_bytes'] / 1e6:.2f} MB")
     return 0
 

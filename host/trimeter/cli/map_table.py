@@ -83,7 +83,8 @@ def cmd_slots(args):
 
 
 def register(map_subparsers) -> None:
-    p = map_subparsers.add_parser("flash", help="write a map table into the device (A/B, verified)", description=__doc__)
+    p = map_subparsers.add_parser("flash", help="write a map table into the device (A/B, verified)",
+                                  description=__doc__)
     p.add_argument("table", help="map table file (maps/<name>.tlut)")
     p.add_argument("--version", type=int, default=1, help="version number stamped on the slot (0-65535)")
     add_instrument_args(p, spectrometer=False)

@@ -60,7 +60,8 @@ def encode(reg: regs.Register, value) -> list[int]:
             raw = int(round(raw))
         lo, hi = reg.min, reg.max
         if not lo <= raw <= hi:
-            raise InputError(f"{reg.name}: {value} is outside {lo * reg.scale:g}..{hi * reg.scale:g} {reg.unit}".rstrip())
+            raise InputError(f"{reg.name}: {value} is outside {lo * reg.scale:g}..{hi * reg.scale:g} "
+                             f"{reg.unit}".rstrip())
         if reg.allowed and raw not in reg.allowed:
             raise InputError(f"{reg.name}: {value} is not one of {', '.join(map(str, reg.allowed))}")
     packed = struct.pack(_STRUCT[reg.type], raw)
@@ -378,7 +379,8 @@ class Device:
         key = target.name.lower()
         if status[f"map_slot_{key}_length"] != len(data) or status[f"map_slot_{key}_crc32"] != crc:
             raise DeviceError(f"slot {target.name} reports length {status[f'map_slot_{key}_length']} / CRC-32 "
-                              f"0x{status[f'map_slot_{key}_crc32']:08X} after activation, expected {len(data)} / 0x{crc:08X}")
+                              f"0x{status[f'map_slot_{key}_crc32']:08X} after activation, expected {len(data)} / "
+                              f"0x{crc:08X}")
         if back is None:
             back = self.read_map(target, len(data))
             if back != data:

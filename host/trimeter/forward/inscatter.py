@@ -12,11 +12,13 @@ Estimators (numpy, vectorised over photons; weights: α per scattering, Fresnel 
   analytic I_c, which checks the tracer;
 - scattered light by next-event estimation: at every scattering event, the HG phase function towards the
   aperture × the aperture's solid angle (converted inside the sample, n²) × Beer-Lambert to the front ×
-  the stack's Fresnel transmittance (a random point of the aperture per event); paths that reach the aperture after an internal reflection since
-  their last scattering event are tallied when they exit (the NEE covers only straight exits).
+  the stack's Fresnel transmittance (a random point of the aperture per event); paths that reach the
+  aperture after an internal reflection since their last scattering event are tallied when they exit
+  (the NEE covers only straight exits).
 Approximations: the 0.15 mm cover slides are folded into the boundaries (incoherent composite Fresnel,
 their lateral offset neglected), the stack is laterally infinite, the refraction of the NEE ray
-is computed as if it left from the scattering point's lateral position (≤ ℓ·tanθ_in ≈ µm off). Weights below 1e-3 go through Russian roulette (unbiased; weights only shrink).
+is computed as if it left from the scattering point's lateral position (≤ ℓ·tanθ_in ≈ µm off). Weights
+below 1e-3 go through Russian roulette (unbiased; weights only shrink).
 """
 
 from __future__ import annotations
@@ -164,7 +166,8 @@ def inscatter_report(seed: int = 0, photons: int = 100_000, say=print) -> list[d
     """Worst cases over the shipped maps' range: ℓ = 0.4 and 0.8 mm, g = 0.9 (most forward), α up to
     0.999, σt from 0.05 to 50/mm. Prints the in-scattered light against I_c and the 16-bit floor."""
     rows = []
-    say(f"I_c in-scattering (device collimated set-up, g = 0.9, ≤ {photons} photons; 16-bit floor {SIXTEEN_BIT_FLOOR:.1e}):")
+    say(f"I_c in-scattering (device collimated set-up, g = 0.9, ≤ {photons} photons; 16-bit floor "
+        f"{SIXTEEN_BIT_FLOOR:.1e}):")
     for ell in (0.4, 0.8):
         for sigma_t in (0.05, 0.5, 2.0, 5.0, 15.0, 50.0):
             for alpha in (0.9, 0.999):
@@ -174,7 +177,8 @@ def inscatter_report(seed: int = 0, photons: int = 100_000, say=print) -> list[d
                 r["ratio"] = r["inscattered"] / r["analytic"] if r["analytic"] > 0 else math.inf
                 rows.append(r)
                 say(f"  l={ell} st={sigma_t:6.2f} a={alpha}: I_c {r['analytic']:.3e} (traced unscattered "
-                    f"{r['unscattered']:.3e}, {r['photons']} photons), in-scattered {r['inscattered']:.2e} = {100 * r['ratio']:.3g} % of I_c")
+                    f"{r['unscattered']:.3e}, {r['photons']} photons), in-scattered {r['inscattered']:.2e} = "
+                    f"{100 * r['ratio']:.3g} % of I_c")
     for floor in (0.1, 0.01, SIXTEEN_BIT_FLOOR):
         worst = max((r["ratio"] for r in rows if r["analytic"] >= floor), default=float("nan"))
         say(f"  where I_c >= {floor:.3g}: in-scattered light <= {100 * worst:.3g} % of I_c")

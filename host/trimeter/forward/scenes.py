@@ -172,7 +172,8 @@ def _device(p: dict, n: float, ell: float, rho: float, spp: int) -> dict:
         # Black: pure Lambertian emitters, as the closed-form normalisation assumes. (Mitsuba's default
         # diffuse 0.5 lets each panel reflect the other's light onto the sample: +1.6 % on the white
         # reference.) The calibration divides any such stray light out anyway.
-        shapes[f"panel{i}"] = {**_rect(centre, list(-centre / np.linalg.norm(centre)), size, _BLACK, up=[0.0, 1.0, 0.0]),
+        facing = list(-centre / np.linalg.norm(centre))
+        shapes[f"panel{i}"] = {**_rect(centre, facing, size, _BLACK, up=[0.0, 1.0, 0.0]),
                                "emitter": {"type": "area", "radiance": {"type": "uniform", "value": 1.0}}}
     det = p["detector"]
     side = float(det["spot_diameter_mm"]) * math.sqrt(math.pi) / 2  # square of the spot's area

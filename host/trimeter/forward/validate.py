@@ -27,7 +27,8 @@ def random_materials(count: int, seed: int = 0) -> np.ndarray:
     uniform in [0, 0.9], α half uniform in [0, 0.999] and half crowded towards 1 (1 − 10^U(−3, −1)),
     where the map is finest and the maps are used most."""
     rng = np.random.default_rng(seed)
-    alpha = np.where(np.arange(count) % 2 == 0, rng.uniform(0.0, 0.999, count), 1.0 - 10.0 ** rng.uniform(-3, -1, count))
+    alpha = np.where(np.arange(count) % 2 == 0, rng.uniform(0.0, 0.999, count),
+                     1.0 - 10.0 ** rng.uniform(-3, -1, count))
     sigma_t = 10.0 ** rng.uniform(math.log10(0.05), math.log10(50.0), count)
     g = rng.uniform(0.0, 0.9, count)
     return np.column_stack([alpha, sigma_t, g])

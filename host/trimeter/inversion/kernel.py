@@ -281,13 +281,13 @@ class ForwardGrid:
         Ib, fb, hb = self.diffuse(coef, rho_b)
         Iw, fw, hw = self.diffuse(coef, rho_w)
         rb, rw = Ib - I_b, Iw - I_w
-        j11 = self.directional(fb, hb, d_a); j12 = self.directional(fb, hb, d_g)
-        j21 = self.directional(fw, hw, d_a); j22 = self.directional(fw, hw, d_g)
+        j11, j12 = self.directional(fb, hb, d_a), self.directional(fb, hb, d_g)
+        j21, j22 = self.directional(fw, hw, d_a), self.directional(fw, hw, d_g)
         # Levenberg-Marquardt on the 2×2 normal equations: stays finite where ∂I/∂g → 0 (α → 0).
-        h11 = j11 * j11 + j21 * j21; h22 = j12 * j12 + j22 * j22; h12 = j11 * j12 + j21 * j22
+        h11, h22, h12 = j11 * j11 + j21 * j21, j12 * j12 + j22 * j22, j11 * j12 + j21 * j22
         mu = 1e-9 + 1e-6 * (h11 + h22)
-        h11 = h11 + mu; h22 = h22 + mu
-        b1 = j11 * rb + j21 * rw; b2 = j12 * rb + j22 * rw
+        h11, h22 = h11 + mu, h22 + mu
+        b1, b2 = j11 * rb + j21 * rw, j12 * rb + j22 * rw
         det = h11 * h22 - h12 * h12
         step_a = -(h22 * b1 - h12 * b2) / det
         step_g = -(h11 * b2 - h12 * b1) / det

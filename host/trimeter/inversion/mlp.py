@@ -59,7 +59,8 @@ class MlpInverter:
         if meta.get("trimeter.kind") != MODEL_KIND:
             raise MapFileError(f"{path}: not a trimeter MLP inverse model")
         if meta.get("trimeter.features") != ",".join(FEATURES):
-            raise MapFileError(f"{path}: model features {meta.get('trimeter.features')!r} are not {','.join(FEATURES)!r}")
+            raise MapFileError(f"{path}: model features {meta.get('trimeter.features')!r} are not "
+                               f"{','.join(FEATURES)!r}")
         if map_checksum and meta.get("trimeter.map_sha256") != map_checksum:
             raise MapFileError(f"{path}: trained on map {str(meta.get('trimeter.map_sha256'))[:12]}…, not on this "
                                f"map ({map_checksum[:12]}…); retrain it with tools/train_mlp.py")

@@ -276,7 +276,8 @@ def build_from_map(amap, n_xy: int | None = None, budget: int = MAX_TABLE_BYTES,
     The forward section is the map resampled onto its axes refined by `refine` (ForwardGrid.refined)
     (default: _REFINE_SMOOTH for a map whose MC std-error is below _SMOOTH_STDERR and that still
     fits, else the map's own grid), so the run-time trilinear evaluation follows the map's curvature
-    between its nodes (exact ideal map: I_w error p95 3.7e-3 trilinear vs 1.4e-4 cubic). `n_xy` (the inverse grid's side) defaults to the largest that fits `budget` bytes."""
+    between its nodes (exact ideal map: I_w error p95 3.7e-3 trilinear vs 1.4e-4 cubic). `n_xy` (the
+    inverse grid's side) defaults to the largest that fits `budget` bytes."""
     na0, ns0, ng0 = amap.A.shape
     if refine is None:
         mc = float(np.median(np.concatenate([np.ravel(amap.std_b), np.ravel(amap.std_w)])))
@@ -291,7 +292,8 @@ def build_from_map(amap, n_xy: int | None = None, budget: int = MAX_TABLE_BYTES,
     na, ns, ng = coef.shape[1:]
     nxy = n_xy if n_xy is not None else _inverse_size_for(na, ns, ng, budget, max_xy)
     if _total_size(na, ns, ng, nxy, nxy) > budget:
-        raise MapFileError(f"map table would be {_total_size(na, ns, ng, nxy, nxy)} bytes, over the {budget}-byte budget")
+        raise MapFileError(f"map table would be {_total_size(na, ns, ng, nxy, nxy)} bytes, over the {budget}-byte "
+                           f"budget")
     rho_b, rho_w = amap.reference_rhos
     quant = np.array([[c.min(), (c.max() - c.min()) / _Q or 1.0] for c in coef], dtype=np.float32)
     coef_q = np.stack([_quantize(c, float(q[0]), float(q[0]) + float(q[1]) * _Q) for c, q in zip(coef, quant)])
@@ -304,7 +306,7 @@ def build_from_map(amap, n_xy: int | None = None, budget: int = MAX_TABLE_BYTES,
 
     aa, gg = (v.ravel() for v in np.meshgrid(refine_axis(alpha_axis, 2), refine_axis(g_axis, 2), indexing="ij"))
     frames = np.zeros((ns, 6), dtype=np.float32)
-    starts_a = np.zeros((ns, nxy, nxy)); starts_g = np.zeros((ns, nxy, nxy))
+    starts_a, starts_g = np.zeros((ns, nxy, nxy)), np.zeros((ns, nxy, nxy))
     targets = np.zeros((ns, nxy, nxy, 2))
     uv = np.linspace(0.0, 1.0, nxy)
     for k in range(ns):  # one KD-tree per σt node (build time only)

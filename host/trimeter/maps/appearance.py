@@ -105,7 +105,8 @@ class AppearanceMap:
         meta, arrays, checksum = read_container(path, MAP_KIND)
         version = meta.get("map_format_version")
         if version != MAP_FORMAT_VERSION:
-            raise MapFileError(f"{path}: map format version {version!r} is not supported (expected {MAP_FORMAT_VERSION})")
+            raise MapFileError(f"{path}: map format version {version!r} is not supported (expected "
+                               f"{MAP_FORMAT_VERSION})")
         missing = [name for name in _REQUIRED if name not in arrays]
         if missing:
             raise MapFileError(f"{path}: map lacks arrays {', '.join(missing)}")

@@ -85,7 +85,8 @@ def read_container(path: str | os.PathLike, kind: str) -> tuple[dict, dict[str, 
     if magic != MAGIC:
         raise MapFileError(f"{path}: not a trimeter data file (bad magic)")
     if version != FORMAT_VERSION:
-        raise MapFileError(f"{path}: container version {version} is not supported (this trimeter reads {FORMAT_VERSION})")
+        raise MapFileError(f"{path}: container version {version} is not supported (this trimeter reads "
+                           f"{FORMAT_VERSION})")
     body, digest = data[:-_DIGEST], data[-_DIGEST:]
     if hashlib.sha256(body).digest() != digest:
         raise MapFileError(f"{path}: checksum mismatch — the file is truncated or was modified")

@@ -147,7 +147,8 @@ def parse_recipe(data: dict, default_name: str = "map") -> Recipe:
                              require_number("sampling.target_alpha_stderr", s["target_alpha_stderr"], lo=0.0,
                                             hi=1.0, lo_open=True)))
     if sampling.max_paths < sampling.min_paths:
-        raise InputError(f"sampling.max_paths ({sampling.max_paths}) must be >= sampling.min_paths ({sampling.min_paths})")
+        raise InputError(f"sampling.max_paths ({sampling.max_paths}) must be >= sampling.min_paths "
+                         f"({sampling.min_paths})")
     return Recipe(name=name, geometry=geometry, geometry_params=load_geometry(geometry), n=n, thickness_mm=thickness,
                   reference_rho_b=rho_b, reference_rho_w=rho_w, alpha=alpha, sigma_t=sigma_t, g=g, seed=seed,
                   sampling=sampling, description=str(data.get("description", "")))

@@ -8,7 +8,8 @@ from pathlib import Path
 import numpy as np
 
 
-def plot_parameters(path: str | Path, combined, per_thickness=(), *, title: str = "", truth: dict | None = None) -> Path:
+def plot_parameters(path: str | Path, combined, per_thickness=(), *, title: str = "",
+                    truth: dict | None = None) -> Path:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -16,7 +17,8 @@ def plot_parameters(path: str | Path, combined, per_thickness=(), *, title: str 
 
     wl = combined.wavelengths_nm
     fig, axes = plt.subplots(1, 3, figsize=(13, 3.8), constrained_layout=True)
-    panels = (("alpha", "albedo α", (0, 1.0)), ("sigma_t", "extinction σt [1/mm]", None), ("g", "anisotropy g", (-1, 1)))
+    panels = (("alpha", "albedo α", (0, 1.0)), ("sigma_t", "extinction σt [1/mm]", None),
+              ("g", "anisotropy g", (-1, 1)))
     for ax, (name, label, ylim) in zip(axes, panels):
         value, std = getattr(combined, name), getattr(combined, f"{name}_std")
         ax.plot(wl, value, color="k", lw=2.2, label="combined" if per_thickness else "estimate")

@@ -20,7 +20,8 @@ OPTIONS = {"sim": ("timeout_s",), "i2c": ("address", "gain", "integration_time_u
 def open_spectrometer(url: str, **options) -> Spectrometer:
     """Open the spectrometer named by `url` (`<backend>:<address>[?key=value&...]`)."""
     if not isinstance(url, str) or ":" not in url:
-        raise InputError(f"spectrometer must be '<backend>:<address>' with backend one of {', '.join(BACKENDS)}, got {url!r}")
+        raise InputError(f"spectrometer must be '<backend>:<address>' with backend one of {', '.join(BACKENDS)}, got "
+                         f"{url!r}")
     backend, _, rest = url.partition(":")
     address, _, query = rest.partition("?")
     for item in filter(None, query.split("&")):

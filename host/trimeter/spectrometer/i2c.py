@@ -91,7 +91,8 @@ class AS7341:
         try:
             number, addr = int(bus_number), int(str(address), 0)
         except ValueError:
-            raise InputError(f"i2c spectrometer must be i2c:<bus number>[?address=0x39], got i2c:{bus_number}") from None
+            raise InputError(f"i2c spectrometer must be i2c:<bus number>[?address=0x39], "
+                             f"got i2c:{bus_number}") from None
         try:
             bus = smbus2.SMBus(number)
         except OSError as exc:

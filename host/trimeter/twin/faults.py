@@ -1,8 +1,9 @@
 """Fault injection: the configuration and the Modbus proxy that corrupts, drops and delays bytes.
 
 The proxy sits between the host's pty and the firmware's pty. A *request* is a burst of host bytes
-after ≥ REQUEST_GAP_S of silence or after the device's last reply; each request's reply gets one fate (forward, drop, late), decided
-when the request arrives. Byte corruption (one random bit flipped) applies to every byte, both ways.
+after ≥ REQUEST_GAP_S of silence or after the device's last reply; each request's reply gets one
+fate (forward, drop, late), decided when the request arrives. Byte corruption (one random bit
+flipped) applies to every byte, both ways.
 """
 
 from __future__ import annotations
@@ -53,7 +54,8 @@ class FaultConfig:
     def replace(self, **changes) -> "FaultConfig":
         unknown = set(changes) - {f.name for f in dataclasses.fields(self)}
         if unknown:
-            raise InputError(f"unknown fault {sorted(unknown)[0]!r} (known: {', '.join(f.name for f in dataclasses.fields(self))})")
+            raise InputError(f"unknown fault {sorted(unknown)[0]!r} (known: "
+                             f"{', '.join(f.name for f in dataclasses.fields(self))})")
         return dataclasses.replace(self, **changes)
 
     def to_dict(self) -> dict:

@@ -57,7 +57,8 @@ def ensure_firmware(binary: Path = FIRMWARE_BINARY) -> Path:
             run = subprocess.run(["make", "-C", str(FIRMWARE_DIR), "sim"], capture_output=True, text=True)
             if run.returncode != 0 or not binary.is_file():
                 tail = (run.stdout + run.stderr).strip().splitlines()[-3:]
-                raise DeviceError(f"cannot build the firmware sim ({binary}): {' | '.join(tail) or 'make gave no output'}")
+                raise DeviceError(f"cannot build the firmware sim ({binary}): "
+                                  f"{' | '.join(tail) or 'make gave no output'}")
     return binary
 
 
