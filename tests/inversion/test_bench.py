@@ -28,6 +28,14 @@ def test_bench_fit_reports_figures_and_plot(tmp_path, capsys):
     noisy = {r["variant"]: r for r in rows if r["noise"] == 0.01}
     assert noisy["lut p0"]["alpha_misses"] > 0  # 1 % noise puts some bins over 0.01: the count is live
     assert "flags UNDERDETERMINED" in text
+    # every target judged from this run's figures: speed-ups at least, the rest at most their limit
+    assert set(report["targets"]) == {"lut p≤8", "mlp p≤8"} and "issue 4 targets" in text
+    lut = report["targets"]["lut p≤8"]
+    clean_lut = next(r for r in rows if r["noise"] == 0 and r["variant"] == "lut p≤8")
+    assert len(lut) == 7 and lut["α p95"]["value"] == clean_lut["alpha_p95"]
+    for checks in report["targets"].values():
+        for name, c in checks.items():
+            assert c["met"] == (c["value"] >= c["limit"] if name.startswith("×") else c["value"] <= c["limit"])
     clean = {r["variant"]: r for r in rows if r["noise"] == 0}
     assert clean["lut p≤8"]["nan_rate"] == 0 and clean["lut p≤8"]["alpha_p95"] < 0.05
     assert (out / "pareto-ideal-l0.5.png").stat().st_size > 10_000

@@ -49,6 +49,8 @@ IDEAL_FALLBACK = REPO_ROOT / "tests" / "inversion" / "data" / "ideal-l0.5.tmap"
 # Issue 4 §5 noise-free p95 targets for lut/mlp; a reference resolves them where its own first-order
 # std is below half of them (the well-conditioned subset).
 ALPHA_TARGET, G_TARGET = 0.01, 0.015
+# the rest of issue 4 §2/§5: ≥ 50× paper's plain interpolation, ms per 1024 bins, σt relative p95
+SPEEDUP_TARGET, MS_TARGET, SIGMA_REL_TARGET = 50.0, {"lut": 1.0, "mlp": 2.0}, 0.01
 G_MIN_ALPHA = 0.5  # g is scored over α ≥ 0.5 only (below, g barely changes the intensities)
 DEFAULT_POLISH = dict(polish=8, polish_tol=1e-6)  # trimeter.fit's defaults
 
@@ -384,7 +386,8 @@ def two_thicknesses(amaps, repeats):
               "  ".join(f"{v['alpha_p95']:.4f} / {v['g_p95']:.4f}" for v in row["alone"].values()))
     print("   (α, g p95 over the materials measurable at either thickness; 'alone': each map by itself over its own "
           "measurable gamut, as in its table above)")
-    return {"maps": [m.name for m in amaps], "measurable": int(measurable.sum()), "rows": rows}
+    targets = _print_targets("two thicknesses fitted together", rows)
+    return {"maps": [m.name for m in amaps], "measurable": int(measurable.sum()), "rows": rows, "targets": targets}
 
 
 _EVICT: list = []
@@ -503,10 +506,12 @@ def run(args) -> int:
                   f"fit after the calibration, timed once)")
         summary = _budget_summary(budget)
         _print_budget(summary, rows, exact_rows)
+        targets = _print_targets(amap.name, [r for r in rows if r["noise"] == 0])
         png = _pareto(rows, exact_rows, summary, amap, args.out)
         print(f"   Pareto plot: {png}")
         report["maps"].append({"map": amap.name, "heldout": str(path), "rows": rows, "map_exact_rows": exact_rows,
-                               "background_rows": background_rows, "paper_hull_split": hull, "budget": summary})
+                               "background_rows": background_rows, "paper_hull_split": hull, "budget": summary,
+                               "targets": targets})
     if len(report["maps"]) >= 2:
         report["two_thicknesses"] = two_thicknesses(amaps, args.repeats)
     (args.out / "results.json").write_text(json.dumps(report, indent=1, default=float))
@@ -562,6 +567,47 @@ def _print_budget(summary, rows, exact_rows):
             line += (f" {r['alpha_misses_flagged']:>4} flagged; smallest fit α std among them "
                      f"{r['alpha_misses_min_std']:.3g}")
         print(line)
+
+
+def target_checks(row, paper) -> dict:
+    """Issue 4's targets for one lut/mlp row (noise-free, rendered references) against the paper row
+    of the same run: {target: {"value", "limit", "met"}}. Figures a row lacks (the two-thickness rows
+    have no cold time, σt or NaN figures) are not checked."""
+    kind = row["variant"].split()[0]  # "lut" / "mlp"
+    checks = {}
+
+    def check(name, value, limit, met):
+        checks[name] = {"value": value, "limit": limit, "met": bool(met)}
+
+    for key, label in (("ms_per_1024", "× paper, warm"), ("ms_per_1024_cold", "× paper, cold")):
+        if key in row and key in paper:
+            ratio = paper[key] / row[key]
+            check(label, ratio, SPEEDUP_TARGET, ratio >= SPEEDUP_TARGET)
+    check("ms per 1024 bins", row["ms_per_1024"], MS_TARGET[kind], row["ms_per_1024"] <= MS_TARGET[kind])
+    check("α p95", row["alpha_p95"], ALPHA_TARGET, row["alpha_p95"] <= ALPHA_TARGET)
+    if "sigma_rel_p95" in row:
+        check("σt relative p95", row["sigma_rel_p95"], SIGMA_REL_TARGET, row["sigma_rel_p95"] <= SIGMA_REL_TARGET)
+    check("g p95 (α ≥ 0.5)", row["g_p95"], G_TARGET, row["g_p95"] <= G_TARGET)
+    if "nan_rate_measurable" in row:
+        check("NaN in the gamut", row["nan_rate_measurable"], 0.0, row["nan_rate_measurable"] == 0)
+    return checks
+
+
+def _print_targets(title, rows):
+    """One line per lut/mlp p≤8 variant: every issue 4 target, met or MISSED, from this run."""
+    paper = next(r for r in rows if r["variant"] == "paper")
+    print(f"\n   issue 4 targets, {title} (noise-free, rendered references; ratios to paper in this run):")
+    verdicts = {}
+    for r in rows:
+        if r["variant"] not in ("lut p≤8", "mlp p≤8"):
+            continue
+        checks = target_checks(r, paper)
+        verdicts[r["variant"]] = checks
+        missed = [k for k, c in checks.items() if not c["met"]]
+        print(f"   {r['variant']:<10}" + "; ".join(
+            f"{k} {c['value']:.3g}{'' if c['met'] else ' MISSED'}" for k, c in checks.items())
+            + ("" if missed else "  — all met"))
+    return verdicts
 
 
 def _pareto(rows, exact_rows, summary, amap, out: Path) -> Path:
