@@ -36,6 +36,7 @@ def test_bench_fit_reports_figures_and_plot(tmp_path, capsys):
     for checks in report["targets"].values():
         for name, c in checks.items():
             assert c["met"] == (c["value"] >= c["limit"] if name.startswith("×") else c["value"] <= c["limit"])
+            assert c["issue_target"] == (name != "× paper cold")
     clean = {r["variant"]: r for r in rows if r["noise"] == 0}
     assert clean["lut p≤8"]["nan_rate"] == 0 and clean["lut p≤8"]["alpha_p95"] < 0.05
     assert (out / "pareto-ideal-l0.5.png").stat().st_size > 10_000
