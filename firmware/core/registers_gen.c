@@ -69,8 +69,8 @@ const regmap_entry_t regmap_entries[REGMAP_ENTRY_COUNT] = {
     {"motion_settle_ms", 85, REGMAP_HOLDING_REGISTER, REGMAP_U16, 1, 1, 0, 0, 0LL, 10000LL, 200LL, 0.0f, 0.0f, 0.0f},
     {"led_settle_ms", 86, REGMAP_HOLDING_REGISTER, REGMAP_U16, 1, 1, 0, 0, 0LL, 10000LL, 50LL, 0.0f, 0.0f, 0.0f},
     {"led_pwm_hz", 87, REGMAP_HOLDING_REGISTER, REGMAP_U16, 1, 1, 0, 0, 100LL, 40000LL, 20000LL, 0.0f, 0.0f, 0.0f},
-    {"modbus_address", 88, REGMAP_HOLDING_REGISTER, REGMAP_U16, 1, 1, 0, 0, 1LL, 247LL, 1LL, 0.0f, 0.0f, 0.0f},
-    {"modbus_baud", 90, REGMAP_HOLDING_REGISTER, REGMAP_U32, 2, 1, 5, allowed_modbus_baud, 9600LL, 115200LL, 19200LL, 0.0f, 0.0f, 0.0f},
-    {"homing_speed_mm_s", 92, REGMAP_HOLDING_REGISTER, REGMAP_F32, 2, 1, 0, 0, 0, 0, 0, 0.5f, 200.0f, 20.0f},
-    {"homing_backoff_mm", 94, REGMAP_HOLDING_REGISTER, REGMAP_F32, 2, 1, 0, 0, 0, 0, 0, 0.5f, 10.0f, 2.0f},
+    {"homing_speed_mm_s", 88, REGMAP_HOLDING_REGISTER, REGMAP_F32, 2, 1, 0, 0, 0, 0, 0, 0.5f, 200.0f, 20.0f},
+    {"homing_backoff_mm", 90, REGMAP_HOLDING_REGISTER, REGMAP_F32, 2, 1, 0, 0, 0, 0, 0, 0.5f, 10.0f, 2.0f},
+    {"modbus_address", 92, REGMAP_HOLDING_REGISTER, REGMAP_U16, 1, 1, 0, 0, 1LL, 247LL, 1LL, 0.0f, 0.0f, 0.0f},
+    {"modbus_baud", 93, REGMAP_HOLDING_REGISTER, REGMAP_U32, 2, 1, 5, allowed_modbus_baud, 9600LL, 115200LL, 19200LL, 0.0f, 0.0f, 0.0f},
 };

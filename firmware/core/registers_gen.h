@@ -8,7 +8,7 @@
 #include <stdint.h>
 
 /* ---- identity */
-#define TRIMETER_REGMAP_HASH 0xEC47805Cu
+#define TRIMETER_REGMAP_HASH 0x8FF0D4C7u
 #define TRIMETER_FIRMWARE_VERSION "0.1.0"
 #define TRIMETER_FIRMWARE_VERSION_MAJOR 0u
 #define TRIMETER_FIRMWARE_VERSION_MINOR 1u
@@ -260,7 +260,7 @@ static inline const char *trimeter_map_op_status_name(unsigned value) /* else "u
 #define REG_IR_MAP_OP_BYTES_WRITTEN 50u
 
 /* ---- holding_registers */
-#define REG_HR_SPAN 96u /* one past the highest used address */
+#define REG_HR_SPAN 95u /* one past the highest used address */
 #define REG_HR_COMMAND 0u
 #define REG_HR_COMMAND_DEFAULT 0u
 #define REG_HR_COMMAND_MIN 0u
@@ -369,22 +369,22 @@ static inline const char *trimeter_map_op_status_name(unsigned value) /* else "u
 #define REG_HR_LED_PWM_HZ_DEFAULT 20000u
 #define REG_HR_LED_PWM_HZ_MIN 100u
 #define REG_HR_LED_PWM_HZ_MAX 40000u
-#define REG_HR_MODBUS_ADDRESS 88u
-#define REG_HR_MODBUS_ADDRESS_DEFAULT 1u
-#define REG_HR_MODBUS_ADDRESS_MIN 1u
-#define REG_HR_MODBUS_ADDRESS_MAX 247u
-#define REG_HR_MODBUS_BAUD 90u
-#define REG_HR_MODBUS_BAUD_DEFAULT 19200u
-#define REG_HR_MODBUS_BAUD_MIN 9600u
-#define REG_HR_MODBUS_BAUD_MAX 115200u
-#define REG_HR_HOMING_SPEED_MM_S 92u
+#define REG_HR_HOMING_SPEED_MM_S 88u
 #define REG_HR_HOMING_SPEED_MM_S_DEFAULT 20.0f
 #define REG_HR_HOMING_SPEED_MM_S_MIN 0.5f
 #define REG_HR_HOMING_SPEED_MM_S_MAX 200.0f
-#define REG_HR_HOMING_BACKOFF_MM 94u
+#define REG_HR_HOMING_BACKOFF_MM 90u
 #define REG_HR_HOMING_BACKOFF_MM_DEFAULT 2.0f
 #define REG_HR_HOMING_BACKOFF_MM_MIN 0.5f
 #define REG_HR_HOMING_BACKOFF_MM_MAX 10.0f
+#define REG_HR_MODBUS_ADDRESS 92u
+#define REG_HR_MODBUS_ADDRESS_DEFAULT 1u
+#define REG_HR_MODBUS_ADDRESS_MIN 1u
+#define REG_HR_MODBUS_ADDRESS_MAX 247u
+#define REG_HR_MODBUS_BAUD 93u
+#define REG_HR_MODBUS_BAUD_DEFAULT 19200u
+#define REG_HR_MODBUS_BAUD_MIN 9600u
+#define REG_HR_MODBUS_BAUD_MAX 115200u
 
 /* ---- descriptor table (registers_gen.c), sorted by table then address */
 typedef enum { REGMAP_COIL = 0, REGMAP_DISCRETE_INPUT = 1, REGMAP_INPUT_REGISTER = 3,

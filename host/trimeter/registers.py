@@ -9,7 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from enum import IntEnum
 
-REGMAP_HASH = 0xEC47805C
+REGMAP_HASH = 0x8FF0D4C7
 FIRMWARE_VERSION = (0, 1, 0)
 VENDOR_NAME = 'trimeter project'
 PRODUCT_CODE = 'TRIMETER-1'
@@ -267,14 +267,14 @@ REGISTERS: tuple[Register, ...] = (
              'Busy stays set this long after an LED is switched (thermal/driver settle).'),
     Register('led_pwm_hz', 'holding_register', 87, 'u16', 1, 'rw', 1.0, 'Hz', 100, 40000, 20000, None, (),
              "LED PWM frequency (above the spectrometer's integration ripple)."),
-    Register('modbus_address', 'holding_register', 88, 'u16', 1, 'rw', 1.0, '', 1, 247, 1, None, (),
-             'Modbus slave address; takes effect after save_config, at the next boot.'),
-    Register('modbus_baud', 'holding_register', 90, 'u32', 2, 'rw', 1.0, 'baud', 9600, 115200, 19200, None, (9600, 19200, 38400, 57600, 115200),
-             'UART baud rate, 8N1 (one of the allowed values); takes effect after save_config and reboot.'),
-    Register('homing_speed_mm_s', 'holding_register', 92, 'f32', 2, 'rw', 1.0, 'mm/s', 0.5, 200.0, 20.0, None, (),
+    Register('homing_speed_mm_s', 'holding_register', 88, 'f32', 2, 'rw', 1.0, 'mm/s', 0.5, 200.0, 20.0, None, (),
              "Endstop seek speed (capped at speed_mm_s). A seek over the whole travel must fit in homing_timeout_ms: the firmware refuses a configuration where it can't."),
-    Register('homing_backoff_mm', 'holding_register', 94, 'f32', 2, 'rw', 1.0, 'mm', 0.5, 10.0, 2.0, None, (),
+    Register('homing_backoff_mm', 'holding_register', 90, 'f32', 2, 'rw', 1.0, 'mm', 0.5, 10.0, 2.0, None, (),
              'After the endstop triggers the slider backs off this far; it is also the soft lower limit, so no slot may lie inside it.'),
+    Register('modbus_address', 'holding_register', 92, 'u16', 1, 'rw', 1.0, '', 1, 247, 1, None, (),
+             'Modbus slave address; takes effect after save_config, at the next boot.'),
+    Register('modbus_baud', 'holding_register', 93, 'u32', 2, 'rw', 1.0, 'baud', 9600, 115200, 19200, None, (9600, 19200, 38400, 57600, 115200),
+             'UART baud rate, 8N1 (one of the allowed values); takes effect after save_config and reboot.'),
 )
 
 BY_NAME: dict[str, Register] = {r.name: r for r in REGISTERS}
@@ -282,4 +282,4 @@ COILS: dict[str, Register] = {r.name: r for r in REGISTERS if r.table == 'coil'}
 DISCRETE_INPUTS: dict[str, Register] = {r.name: r for r in REGISTERS if r.table == 'discrete_input'}
 INPUT_REGISTERS: dict[str, Register] = {r.name: r for r in REGISTERS if r.table == 'input_register'}
 HOLDING_REGISTERS: dict[str, Register] = {r.name: r for r in REGISTERS if r.table == 'holding_register'}
-SPANS: dict[str, int] = {'coil': 6, 'discrete_input': 5, 'input_register': 52, 'holding_register': 96}
+SPANS: dict[str, int] = {'coil': 6, 'discrete_input': 5, 'input_register': 52, 'holding_register': 95}

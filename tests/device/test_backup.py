@@ -56,3 +56,12 @@ def test_only_an_ignored_saved_configuration_is_warned_about():
     assert config_source_warning(regs.ConfigSource.DEFAULTS) is None  # nothing was ever saved
     assert "another register map" in config_source_warning(regs.ConfigSource.OTHER_REGISTER_MAP)
     assert "fails the firmware's checks" in config_source_warning(regs.ConfigSource.REFUSED)
+
+
+def test_the_configuration_block_has_no_holes():
+    """Device.write_config restores a backup in one request, which the firmware cross-checks as a
+    whole, only because the block is contiguous: a write over an unmapped address is refused."""
+    block = sorted((regs.BY_NAME[n] for n in CONFIG_NAMES), key=lambda r: r.address)
+    assert block[0].address == 64 and block[-1].address + block[-1].words == regs.SPANS["holding_register"]
+    for a, b in zip(block, block[1:]):
+        assert a.address + a.words == b.address, (a.name, b.name)

@@ -243,9 +243,10 @@ class Device:
 
     def write_config(self, values: dict) -> None:
         """Set device configuration items (CONFIG_NAMES; the others keep their value) so that the
-        firmware judges them together: every run of contiguous registers goes in one request, which
-        the firmware takes whole or refuses whole (its cross-checks, e.g. a slot inside the homing
-        back-off, see the run as one). Everything is range-checked before anything is sent."""
+        firmware judges them together: each run of contiguous registers goes in one request, which the
+        firmware takes or refuses whole (its cross-checks, e.g. a slot inside the homing back-off, see
+        the run as one). The configuration block has no holes (registers.toml), so that is one request.
+        Everything is range-checked before anything is sent."""
         unknown = [n for n in values if n not in CONFIG_NAMES]
         if unknown:
             raise InputError(f"not device configuration items: {', '.join(unknown)}")
