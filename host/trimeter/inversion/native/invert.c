@@ -222,6 +222,18 @@ static inline int step_is_small(double step, double last, double step_tol, doubl
 
 /* One Levenberg-Marquardt step on the 2×2 normal equations (ForwardGrid._newton_step). Returns 1
  * when the step just taken ends the bin's polish in both α and g (step_is_small). */
+/* A converged bin's final evaluation, taken from its last Newton step when that step stayed in the
+ * cell (the map's derivatives jump between cells, by up to ~50 % in an ill-conditioned bin's std):
+ * the Jacobian there, one step below κ of the noise std away, and the residuals carried along the
+ * step actually taken (after the clamps). Otherwise the finish evaluates at the solution. */
+static inline void keep_final_eval(const tm_forward_grid *f, sigma_cell_t *cell, double alpha, double g,
+                                   double residual2, const double J[6], final_eval_t *last) {
+    if (!in_cell(f->alpha, f->na, cell->ia, alpha) || !in_cell(f->g, f->ng, cell->ig, g)) return;
+    last->residual2 = residual2;
+    for (int k = 0; k < 6; k++) last->J[k] = J[k];
+    cell->evaluated = 1;
+}
+
 static int newton_step(const tm_forward_grid *f, sigma_cell_t *cell, double I_b, double I_w, double rho_b,
                        double rho_w, double step_tol, double step_var, double *alpha, double *g,
                        final_eval_t *last) {
@@ -252,17 +264,11 @@ static int newton_step(const tm_forward_grid *f, sigma_cell_t *cell, double I_b,
     cell->last_step_a = fabs(step_a);
     cell->last_step_g = fabs(step_g);
     int done = small_a && small_g;
-    /* The bin's final evaluation, from this one, when the step stayed in the cell (the map's
-     * derivatives jump between cells, by up to ~50 % in an ill-conditioned bin's std): the Jacobian
-     * here, one step below κ of the noise std away, and the residuals carried along the step actually
-     * taken (after the clamps). Otherwise the finish evaluates at the solution. */
-    if (done && in_cell(f->alpha, f->na, cell->ia, *alpha) && in_cell(f->g, f->ng, cell->ig, *g)) {
+    if (done) {
         double da = *alpha - alpha0, dg = *g - g0, s = cell->sigma_t;
         double ra = rb + j11 * da + j12 * dg, rwn = rw + j21 * da + j22 * dg;
-        last->residual2 = ra * ra + rwn * rwn;
-        last->J[0] = j11, last->J[1] = directional(fb, hb, c.ds) / s, last->J[2] = j12;
-        last->J[3] = j21, last->J[4] = directional(fw, hw, c.ds) / s, last->J[5] = j22;
-        cell->evaluated = 1;
+        const double J[6] = {j11, directional(fb, hb, c.ds) / s, j12, j21, directional(fw, hw, c.ds) / s, j22};
+        keep_final_eval(f, cell, *alpha, *g, ra * ra + rwn * rwn, J, last);
     }
     return done;
 }
@@ -431,10 +437,9 @@ __attribute__((target("avx2"))) static void newton_step4(const tm_forward_grid *
         c->last_step_a = sa[l];
         c->last_step_g = sg[l];
         done[l] = (mask >> l) & 1;
-        if (done[l] && in_cell(f->alpha, f->na, c->ia, out_a[l]) && in_cell(f->g, f->ng, c->ig, out_g[l])) {
-            evals[i].residual2 = r2[l];
-            for (int k = 0; k < 6; k++) evals[i].J[k] = J[k][l];
-            c->evaluated = 1;
+        if (done[l]) {
+            const double Jl[6] = {J[0][l], J[1][l], J[2][l], J[3][l], J[4][l], J[5][l]};
+            keep_final_eval(f, c, out_a[l], out_g[l], r2[l], Jl, &evals[i]);
         }
     }
 }
