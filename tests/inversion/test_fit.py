@@ -297,7 +297,7 @@ def test_advice_names_each_problem_once_with_its_count():
                       F.BAD_BACKGROUND, F.OUTSIDE_MAP, F.THICKNESS_DISAGREE, F.G_UNDEFINED])
     notes = advice(flags)
     assert [n.split(" bins")[0] for n in notes] == ["2 of 8"] * 2 + ["1 of 8"] * 3
-    assert "unusable input" in notes[0] and "second thickness" in notes[1] and "lower bound" in notes[2]
+    assert "input unusable" in notes[0] and "second thickness" in notes[1] and "lower bound" in notes[2]
     assert "outside the map's range" in notes[3] and "disagree" in notes[4]
     assert "even with 2 thicknesses" in advice(flags, thicknesses=2)[1]
     assert advice(np.array([0, F.G_UNDEFINED])) == []  # g = NaN at α ≈ 0 needs no action

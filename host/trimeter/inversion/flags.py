@@ -51,8 +51,9 @@ def advice(flags, thicknesses: int = 1) -> list[str]:
 
     notes = []
     if k := count(UNUSABLE):
-        notes.append(f"{k} of {n} bins have unusable input (NaN, negative, above 1 or a bad background "
-                     f"reflectance) and are NaN: check the capture and the calibration")
+        notes.append(f"{k} of {n} bins are NaN, their input unusable (NaN, negative or above 1, typically where "
+                     f"the lamps give too little light to measure; or a bad background reflectance); if that is "
+                     f"more than the spectrum's edges, check the capture and the calibration")
     if k := count(FitFlag.UNDERDETERMINED):
         if thicknesses < 2:
             notes.append(f"{k} of {n} bins are UNDERDETERMINED: at this thickness α and g are not told apart "
