@@ -39,7 +39,9 @@ def test_dump_then_parse_gives_the_same_register_words():
     ("[device]\nuptime_s = 5\n", "uptime_s is not a configuration item"),
     ("[device]\ncommand = 1\n", "command is not a configuration item"),
     ("[device]\nspeed_mm_s = true\n", "is not a number or a name"),
-    ("[device]\nspeed_mm_s = [1, 2]\n", "is not a number or a name"),
+    ("[device]\nspeed_mm_s = [1, 2]\n", "speed_mm_s is a list, not a value"),
+    ("[device]\n[device.sub]\nx = 1\n", "sub is a dict, not a value"),
+    ("[device]\nlaser_power_mw = 3\n", "none of its items \\(laser_power_mw\\) is in this firmware's"),
 ])
 def test_what_a_backup_may_not_hold_is_one_clear_error(text, message):
     with pytest.raises(InputError, match=message.replace("[", r"\[")):

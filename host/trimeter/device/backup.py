@@ -55,6 +55,8 @@ def parse_config(text: str, source: str) -> tuple[dict, list[str]]:
         raise InputError(f"{source}: no [device] table with configuration items")
     values, unknown = {}, []
     for name, value in device.items():
+        if isinstance(value, (dict, list)):
+            raise InputError(f"{source}: [device] {name} is a {type(value).__name__}, not a value")
         if name in CONFIG_NAMES:
             if not isinstance(value, (int, float, str)) or isinstance(value, bool):
                 raise InputError(f"{source}: {name} = {value!r} is not a number or a name")
@@ -63,6 +65,8 @@ def parse_config(text: str, source: str) -> tuple[dict, list[str]]:
             raise InputError(f"{source}: {name} is not a configuration item (read-only, a command or a live output)")
         else:
             unknown.append(name)
+    if not values:
+        raise InputError(f"{source}: none of its items ({', '.join(unknown)}) is in this firmware's register map")
     return values, unknown
 
 

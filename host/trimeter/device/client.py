@@ -250,10 +250,11 @@ class Device:
         unknown = [n for n in values if n not in CONFIG_NAMES]
         if unknown:
             raise InputError(f"not device configuration items: {', '.join(unknown)}")
-        merged = self.read_many(*CONFIG_NAMES)
-        merged.update(values)
+        current = self.read_many(*CONFIG_NAMES)
+        merged = {**current, **values}
         items = sorted((_lookup(n) for n in CONFIG_NAMES), key=lambda r: r.address)
         words = {r.name: encode(r, merged[r.name]) for r in items}
+        changed = [r.name for r in items if words[r.name] != encode(r, current[r.name])]
         runs: list[list[regs.Register]] = []
         for r in items:
             if runs and runs[-1][-1].address + runs[-1][-1].words == r.address:
@@ -265,9 +266,11 @@ class Device:
                 self.transport.write_words(run[0].address, [w for r in run for w in words[r.name]])
             except ModbusExceptionReply as exc:
                 if exc.code == 3:
-                    raise InputError(f"the device refused the configuration of {', '.join(r.name for r in run)} "
-                                     f"as a whole (inconsistent, e.g. a slot inside the homing back-off); "
-                                     f"those items are unchanged") from None
+                    new = [r.name for r in run if r.name in changed]
+                    raise InputError(f"the device refused the new values of {', '.join(new) or 'nothing'} as "
+                                     f"inconsistent with the rest of its configuration (e.g. a slot inside the "
+                                     f"homing back-off, a homing seek longer than its timeout); nothing in "
+                                     f"{run[0].name}..{run[-1].name} was changed") from None
                 raise
 
     # ---------------------------------------------------------------------------------- actions
