@@ -3,6 +3,7 @@ analog tallies, and in-scattering stays small against I_c where I_c is measurabl
 
 import math
 
+import numpy as np
 import pytest
 
 from trimeter.forward.inscatter import collimated_with_inscatter
@@ -31,3 +32,17 @@ def test_inscattering_is_negligible_where_ic_is_measurable(thickness):
     # Worst case for forward scattering: g = 0.9, α = 0.999, σt·ℓ = 1.6 (I_c ≈ 0.2).
     r = collimated_with_inscatter(0.999, 1.6 / thickness, 0.9, thickness, 1.5, photons=20_000, seed=4)
     assert r["inscattered"] < 0.01 * r["analytic"]
+
+
+def test_one_trace_serves_every_albedo():
+    """Light by scattering order: α = 0 leaves only the unscattered beam, and the in-scattered light grows
+    with α as a polynomial with non-negative coefficients; a separate trace agrees within its noise."""
+    from trimeter.forward.inscatter import _trace_orders
+
+    unscattered, tally, _ = _trace_orders(5.0, 0.9, 0.8, 1.5, 20_000, 7, None, nee=True)
+    assert tally[0] == 0.0 and np.all(tally >= 0) and tally[1:].sum() > 0
+    at = [collimated_with_inscatter(a, 5.0, 0.9, 0.8, 1.5, photons=20_000, seed=7)["inscattered"]
+          for a in (0.0, 0.5, 0.9, 0.999)]
+    assert at[0] == 0.0 and at[1] < at[2] < at[3]
+    other = collimated_with_inscatter(0.9, 5.0, 0.9, 0.8, 1.5, photons=20_000, seed=8)["inscattered"]
+    assert other == pytest.approx(at[2], rel=0.1)

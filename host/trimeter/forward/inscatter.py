@@ -7,7 +7,10 @@ small volumetric light tracer for the device's `collimated` set-up (hardware/geo
 front and passes a disk of `aperture_diameter_mm` at `aperture_distance_mm` on the axis; the open-slot
 reference (no sample) passes the whole beam, so tallies are already normalised like I_c.
 
-Estimators (numpy, vectorised over photons; weights: α per scattering, Fresnel by choice):
+Absorption only scales a path's weight by α per scattering event, so the tracer follows the paths an
+α = 1 medium would take and tallies light by scattering order k: the in-scattered light at any albedo
+is Σ_k tally[k]·α^k, from one trace (`_trace_orders`). Fresnel reflection is sampled.
+Estimators (numpy, vectorised over photons):
 - unscattered photons are tallied as they exit (they all pass the aperture) — this reproduces the
   analytic I_c, which checks the tracer;
 - scattered light by next-event estimation: at every scattering event, the HG phase function towards the
@@ -17,8 +20,7 @@ Estimators (numpy, vectorised over photons; weights: α per scattering, Fresnel 
   (the NEE covers only straight exits).
 Approximations: the 0.15 mm cover slides are folded into the boundaries (incoherent composite Fresnel,
 their lateral offset neglected), the stack is laterally infinite, the refraction of the NEE ray
-is computed as if it left from the scattering point's lateral position (≤ ℓ·tanθ_in ≈ µm off). Weights
-below 1e-3 go through Russian roulette (unbiased; weights only shrink).
+is computed as if it left from the scattering point's lateral position (≤ ℓ·tanθ_in ≈ µm off).
 """
 
 from __future__ import annotations
@@ -66,10 +68,14 @@ def _rotate(d, cos_t, phi):
     return (cos_t[:, None] * d + (sin_t * np.cos(phi))[:, None] * u + (sin_t * np.sin(phi))[:, None] * v)
 
 
-def collimated_with_inscatter(alpha: float, sigma_t: float, g: float, thickness_mm: float, n: float,
-                              photons: int = 200_000, seed: int = 0, geometry=None, nee: bool = True) -> dict:
-    """Trace the collimated measurement: {'unscattered', 'inscattered', 'analytic', ...}. With
-    `nee=False` scattered light is tallied only as photons exit (analog: the check of the NEE)."""
+MAX_ORDER = 4096  # scattering orders tallied apart; later ones (never seen within the gamut) are added to it
+
+
+def _trace_orders(sigma_t: float, g: float, thickness_mm: float, n: float, photons: int, seed: int, geometry,
+                  nee: bool):
+    """The collimated measurement's light by scattering order: (unscattered, tally) with the in-scattered
+    light at albedo α = Σ_k tally[k]·α^k. Absorption only scales a path's weight by α per scattering
+    event, so one trace without it (the paths an α = 1 medium would take) serves every α."""
     params = geometry or load_geometry("device")
     coll = params["collimated"]
     n_slide = cover_slide_n(params)
@@ -85,15 +91,14 @@ def collimated_with_inscatter(alpha: float, sigma_t: float, g: float, thickness_
     phi = 2 * math.pi * rng.random(photons)
     pos = np.column_stack([radius * np.cos(phi), radius * np.sin(phi), np.zeros(photons)])
     d = np.tile([0.0, 0.0, 1.0], (photons, 1))
-    w = np.full(photons, t_in)
-    scattered = np.zeros(photons, dtype=bool)
+    order = np.zeros(photons, dtype=np.int64)  # scattering events so far
     reflected_since_scatter = np.zeros(photons, dtype=bool)
     unscattered_tally = 0.0
-    inscatter_tally = 0.0
+    tally = np.zeros(MAX_ORDER + 1)
     events = 0
-    while len(w):
-        events += len(w)
-        step = -np.log1p(-rng.random(len(w))) / sigma_t if sigma_t > 0 else np.full(len(w), np.inf)
+    while len(order):
+        events += len(order)
+        step = -np.log1p(-rng.random(len(order))) / sigma_t if sigma_t > 0 else np.full(len(order), np.inf)
         with np.errstate(divide="ignore"):
             to_face = np.where(d[:, 2] > 0, (thickness_mm - pos[:, 2]) / d[:, 2], -pos[:, 2] / d[:, 2])
         hits = step >= to_face
@@ -107,8 +112,8 @@ def collimated_with_inscatter(alpha: float, sigma_t: float, g: float, thickness_
         leave = hit_idx[~reflect]
         front = leave[d[leave, 2] > 0]
         # Unscattered photons go straight along the axis: all pass the aperture.
-        unscattered_tally += w[front[~scattered[front]]].sum()
-        late = front[scattered[front] & (reflected_since_scatter[front] | (not nee))]
+        unscattered_tally += t_in * np.count_nonzero(order[front] == 0)
+        late = front[(order[front] > 0) & (reflected_since_scatter[front] | (not nee))]
         if len(late):
             sin_air = n * np.sqrt(np.clip(1 - d[late, 2] ** 2, 0, 1))
             ok = sin_air < 1
@@ -117,14 +122,14 @@ def collimated_with_inscatter(alpha: float, sigma_t: float, g: float, thickness_
             lateral = np.linalg.norm(d[late, :2], axis=1)
             unit = np.where(lateral[:, None] > 0, d[late, :2] / np.maximum(lateral, 1e-300)[:, None], 0.0)
             at_ap = pos[late, :2] + unit * tan_air[:, None] * (z_ap - thickness_mm)
-            inscatter_tally += w[late[np.linalg.norm(at_ap, axis=1) <= r_ap]].sum()
-        alive = np.ones(len(w), dtype=bool)
+            through = late[np.linalg.norm(at_ap, axis=1) <= r_ap]
+            np.add.at(tally, np.minimum(order[through], MAX_ORDER), t_in)
+        alive = np.ones(len(order), dtype=bool)
         alive[leave] = False
         # --- scattering
         sc = np.flatnonzero(~hits)
         pos[sc] += step[sc, None] * d[sc]
-        w[sc] *= alpha
-        scattered[sc] = True
+        order[sc] += 1
         reflected_since_scatter[sc] = False
         if len(sc) and nee:
             # Next-event estimate towards a uniformly chosen point of the aperture, straight out through
@@ -145,21 +150,26 @@ def collimated_with_inscatter(alpha: float, sigma_t: float, g: float, thickness_
             t_out = 1.0 - _boundary_reflectance(cos_in, n, n_slide)
             beer = np.exp(-sigma_t * (thickness_mm - p[:, 2]) / cos_in)
             cos_scatter = np.einsum("ij,ij->i", d[sc], d_in)
-            inscatter_tally += float(np.sum(w[sc] * _hg_pdf(g, cos_scatter) * omega_in * beer * t_out))
+            np.add.at(tally, np.minimum(order[sc], MAX_ORDER),
+                      t_in * _hg_pdf(g, cos_scatter) * omega_in * beer * t_out)
         if len(sc):
             d[sc] = _rotate(d[sc], _hg_sample(g, rng.random(len(sc))), 2 * math.pi * rng.random(len(sc)))
-        # --- roulette on small weights (unbiased: weights only shrink)
-        small = alive & (w < 1e-3)
-        survive = rng.random(len(w)) < 0.1
-        alive &= ~small | survive
-        w = np.where(small & survive, w * 10.0, w)
         keep = np.flatnonzero(alive)
-        pos, d, w = pos[keep], d[keep], w[keep]
-        scattered, reflected_since_scatter = scattered[keep], reflected_since_scatter[keep]
-    analytic = float(collimated_transmittance(sigma_t, thickness_mm, n, n_slide))
+        pos, d, order, reflected_since_scatter = pos[keep], d[keep], order[keep], reflected_since_scatter[keep]
+    return unscattered_tally / photons, tally / photons, events
+
+
+def collimated_with_inscatter(alpha: float, sigma_t: float, g: float, thickness_mm: float, n: float,
+                              photons: int = 200_000, seed: int = 0, geometry=None, nee: bool = True) -> dict:
+    """Trace the collimated measurement: {'unscattered', 'inscattered', 'analytic', ...}. With
+    `nee=False` scattered light is tallied only as photons exit (analog: the check of the NEE)."""
+    unscattered, tally, events = _trace_orders(sigma_t, g, thickness_mm, n, photons, seed, geometry, nee)
+    analytic = float(collimated_transmittance(sigma_t, thickness_mm, n, cover_slide_n(geometry or
+                                                                                       load_geometry("device"))))
     return {"alpha": alpha, "sigma_t": sigma_t, "g": g, "thickness_mm": thickness_mm, "n": n,
-            "analytic": analytic, "unscattered": unscattered_tally / photons,
-            "inscattered": inscatter_tally / photons, "photons": photons, "events": events}
+            "analytic": analytic, "unscattered": unscattered,
+            "inscattered": float(np.polynomial.polynomial.polyval(alpha, tally)), "photons": photons,
+            "events": events}
 
 
 def inscatter_report(seed: int = 0, photons: int = 100_000, say=print) -> list[dict]:
@@ -176,15 +186,19 @@ def inscatter_report(seed: int = 0, photons: int = 100_000, say=print) -> list[d
         for tau in (0.1, 0.5, 1.0, 2.0, 4.0, edge, 15.0):
             sigma_t = tau / ell
             for g in (0.5, 0.9):
-                for alpha in (0.9, 0.999):
-                    # Work per photon grows like τ²; the NEE tally converges fast, so deep slabs get fewer.
-                    budget = max(2000, int(photons * min(1.0, (8.0 / tau) ** 2)))
-                    r = collimated_with_inscatter(alpha, sigma_t, g, ell, 1.5, photons=budget, seed=seed)
-                    r["ratio"] = r["inscattered"] / r["analytic"] if r["analytic"] > 0 else math.inf
+                # Work per photon grows like τ²; the NEE tally converges fast, so deep slabs get fewer.
+                budget = max(2000, int(photons * min(1.0, (8.0 / tau) ** 2)))
+                unscattered, tally, _ = _trace_orders(sigma_t, g, ell, 1.5, budget, seed, None, nee=True)
+                analytic = float(collimated_transmittance(sigma_t, ell, 1.5, cover_slide_n(load_geometry("device"))))
+                for alpha in (0.9, 0.999):  # one trace serves both
+                    inscattered = float(np.polynomial.polynomial.polyval(alpha, tally))
+                    r = {"alpha": alpha, "sigma_t": sigma_t, "g": g, "thickness_mm": ell, "analytic": analytic,
+                         "unscattered": unscattered, "inscattered": inscattered, "photons": budget,
+                         "ratio": inscattered / analytic if analytic > 0 else math.inf}
                     r["sigma_t_bias"] = -math.log1p(r["ratio"]) / tau  # relative, < 0: σt read too low
                     rows.append(r)
-                    say(f"  l={ell} st={sigma_t:6.2f} (σt·ℓ {tau:4.1f}) g={g} a={alpha}: I_c {r['analytic']:.3e}, "
-                        f"in-scattered {r['inscattered']:.2e} = {100 * r['ratio']:.3g} % of it → σt "
+                    say(f"  l={ell} st={sigma_t:6.2f} (σt·ℓ {tau:4.1f}) g={g} a={alpha}: I_c {analytic:.3e}, "
+                        f"in-scattered {inscattered:.2e} = {100 * r['ratio']:.3g} % of it → σt "
                         f"{100 * r['sigma_t_bias']:+.2f} %")
     for floor in (0.1, 0.01, MEASURABLE_IC, SIXTEEN_BIT_FLOOR):
         inside = [r for r in rows if r["analytic"] >= floor]
