@@ -13,7 +13,10 @@ grid node on every axis is redrawn), rendered directly — never interpolated fr
   with `--paths` paths; one trace serves several random α. Records A, B, C per material and their MC
   std-error at the reference backgrounds.
 - --ideal: Prahl's adding-doubling (iadpython), exact for the ideal geometry.
-I_b, I_w at any ρ follow from A, B, C; I_c is analytic (trimeter.forward.collimated).
+I_b, I_w at any ρ follow from A, B, C; I_c is analytic (trimeter.forward.collimated), times
+e^inscatter_log1p for device sets: the light scattered into the detector's aperture, traced per
+material (`--inscatter SET`: trimeter.forward.inscatter, one trace per (σt, g) column for all its α,
+independent of the map's own in-scattering table).
 
 Why 16M paths per (σt, g): the references must be precise enough to check the inversion targets
 (α p95 0.01, g p95 0.015). At 1M paths their own MC noise alone, propagated through the map's
@@ -129,6 +132,33 @@ def save(name, meta, rows, out=None) -> Path:
     return out
 
 
+def add_inscatter(path: Path, photons: int, seed: int) -> Path:
+    """Trace the in-scattered light of every material of a device held-out set and store
+    ln(1 + in-scattered / unscattered) as its array inscatter_log1p (the rest of the file unchanged)."""
+    from trimeter.forward.collimated import collimated_transmittance
+    from trimeter.forward.inscatter import _trace_orders
+    from trimeter.geometry import cover_slide_n
+    from trimeter.maps.container import write_container
+
+    meta, arrays = load_heldout(path)
+    recipe = meta["recipe"]
+    geometry, n, ell = recipe["geometry_params"], float(recipe["n"]), float(recipe["thickness_mm"])
+    L = np.zeros(len(arrays["alpha"]))
+    columns = np.unique(np.stack([arrays["sigma_t"], arrays["g"]], axis=1), axis=0)
+    t0 = time.perf_counter()
+    for j, (sigma_t, g) in enumerate(columns):
+        rows = (arrays["sigma_t"] == sigma_t) & (arrays["g"] == g)
+        _, tally, _ = _trace_orders(sigma_t, g, ell, n, photons, seed + j, geometry, nee=True)
+        unscattered = float(collimated_transmittance(sigma_t, ell, n, cover_slide_n(geometry)))
+        L[rows] = np.log1p(np.polynomial.polynomial.polyval(arrays["alpha"][rows], tally) / unscattered)
+        print(f"\r{j + 1}/{len(columns)} (σt, g) columns traced", end="", file=sys.stderr, flush=True)
+    print(file=sys.stderr)
+    meta = {**meta, "inscatter": {"tracer": "trimeter.forward.inscatter._trace_orders", "photons": photons,
+                                  "seed": seed, "seconds": round(time.perf_counter() - t0, 1)}}
+    write_container(path, HELDOUT_KIND, meta, {**arrays, "inscatter_log1p": L})
+    return path
+
+
 def load_heldout(path) -> tuple[dict, dict]:
     """(meta, arrays) of a held-out set."""
     from trimeter.maps.container import read_container
@@ -154,7 +184,14 @@ def main(argv=None) -> int:
     ap.add_argument("--count", type=int, default=300)
     ap.add_argument("--seed", type=int, default=2027)
     ap.add_argument("-o", "--output", type=Path)
+    ap.add_argument("--inscatter", type=Path, metavar="SET",
+                    help="add the traced in-scattered light to an existing device set (.held), in place")
+    ap.add_argument("--photons", type=int, default=200_000, help="photons per (σt, g) column for --inscatter")
     args = ap.parse_args(argv)
+    if args.inscatter:
+        out = add_inscatter(args.inscatter, args.photons, args.seed)
+        print(f"{out}: in-scattered light added")
+        return 0
     if args.ideal:
         name, meta, rows = from_ideal(args.ideal, args.count, args.seed)
     elif args.recipe:

@@ -46,3 +46,35 @@ def test_one_trace_serves_every_albedo():
     assert at[0] == 0.0 and at[1] < at[2] < at[3]
     other = collimated_with_inscatter(0.9, 5.0, 0.9, 0.8, 1.5, photons=20_000, seed=8)["inscattered"]
     assert other == pytest.approx(at[2], rel=0.1)
+
+
+def test_the_inscatter_table_round_trips_and_refuses_another_map(tmp_path):
+    """A small table: its nodes come back as traced, the file round-trips with its checksum, a damaged
+    file is refused, and a map refuses a table traced for another thickness or geometry."""
+    import shutil
+
+    from trimeter.errors import MapFileError
+    from trimeter.forward.inscatter import InscatterTable
+    from trimeter.maps.appearance import AppearanceMap, find_map
+
+    geometry = load_geometry("device")
+    table = InscatterTable.build(1.5, 0.8, geometry, photons=3000, shape=(4, 3, 3))
+    alphas, taus, gs = InscatterTable.axes(4, 3, 3)
+    a, t, g = np.meshgrid(alphas, taus, gs, indexing="ij")
+    np.testing.assert_allclose(table.log1p_ratio(a, t / 0.8, g), table.L, atol=1e-12)
+    assert np.all(table.L[:, 0] == 0) and np.all(table.L[0] == 0)  # nothing scatters at τ = 0 or α = 0
+    assert table.L[-1, -1, -1] > table.L[-1, -1, 0] > 0  # forward scattering sends more into the aperture
+    path = tmp_path / "t.tins"
+    checksum = table.save(path)
+    back = InscatterTable.load(path)
+    assert back.checksum == checksum and np.array_equal(back.L, table.L) and back.tau_max == table.tau_max
+    data = bytearray(path.read_bytes())
+    data[200] ^= 0xFF
+    path.write_bytes(bytes(data))
+    with pytest.raises(MapFileError):
+        InscatterTable.load(path)
+    shipped = AppearanceMap.load(find_map("device-n1.5-l0.4"))
+    shutil.copy(shipped.path, tmp_path / "m.tmap")
+    table.save(tmp_path / "m.tins")  # traced for ℓ = 0.8 mm, not the map's 0.4
+    with pytest.raises(MapFileError, match="does not belong to map"):
+        AppearanceMap.load(tmp_path / "m.tmap").inscatter

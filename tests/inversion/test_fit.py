@@ -228,12 +228,12 @@ def test_lut_never_uses_a_table_built_from_another_map(ideal_map, thick_map, tmp
     shutil.copy(thick_map.path, tmp_path / "x.tmap")
     shutil.copy(ideal_map.path.with_suffix(".tlut"), tmp_path / "x.tlut")
     other = AppearanceMap.load(tmp_path / "x.tmap")
-    api._TABLES.pop(other.checksum, None)
+    api._TABLES.pop(api._key(other), None)
     with pytest.warns(UserWarning, match="built from map"):
         inverter = api.table_inverter(other)
     assert inverter.table.source_checksum == other.checksum  # rebuilt from the map itself
     (tmp_path / "x.tlut").write_bytes(b"garbage")
-    api._TABLES.pop(other.checksum, None)
+    api._TABLES.pop(api._key(other), None)
     with pytest.raises(MapFileError):
         api.table_inverter(other)
 
@@ -301,3 +301,35 @@ def test_advice_names_each_problem_once_with_its_count():
     assert "outside the map's range" in notes[3] and "disagree" in notes[4]
     assert "even with 2 thicknesses" in advice(flags, thicknesses=2)[1]
     assert advice(np.array([0, F.G_UNDEFINED])) == []  # g = NaN at α ≈ 0 needs no action
+
+
+def test_light_scattered_into_the_aperture_no_longer_reads_as_a_lower_sigma_t():
+    """Forward-scattering white samples send light into the collimated detector's aperture: read as
+    unscattered, I_c gives σt too low (by ln(1 + r)/(σt·ℓ)). With the map's in-scattering table the fit
+    takes it out; I_c here is traced independently of that table (another trace, another seed)."""
+    from trimeter.forward.inscatter import _trace_orders
+    from trimeter.inversion.api import table_inverter
+    from trimeter.maps.appearance import AppearanceMap
+    from trimeter.paths import MAPS_DIR
+
+    amap = AppearanceMap.load(MAPS_DIR / "device-n1.5-l0.8.tmap")
+    plain = AppearanceMap.load(MAPS_DIR / "device-n1.5-l0.8.tmap")
+    plain.__dict__["inscatter"] = None
+    assert amap.inscatter is not None
+    alpha, g = np.full(3, 0.995), np.full(3, 0.85)
+    sigma_t = np.array([1.0, 3.0, 5.5]) / amap.thickness_mm
+    I_b, I_w, _ = table_inverter(plain).grid.intensities(alpha, sigma_t, g, 0.02, 0.9)
+    ratio = []
+    for s in sigma_t:
+        _, tally, _ = _trace_orders(s, 0.85, amap.thickness_mm, amap.n, 40_000, 99, amap.recipe["geometry_params"],
+                                    nee=True)
+        ratio.append(np.polynomial.polynomial.polyval(0.995, tally) / float(amap.collimated(s)))
+    I_c = amap.collimated(sigma_t) * (1 + np.array(ratio))
+    before = trimeter.fit(plain, I_b, I_w, I_c, 0.02, 0.9)
+    after = trimeter.fit(amap, I_b, I_w, I_c, 0.02, 0.9)
+    bias = before.sigma_t / sigma_t - 1
+    assert np.all(bias < -0.0015) and bias[-1] < -0.007  # ≥ 0.15 % low, 0.8 % at σt·ℓ = 5.5 (measured 0.19-0.85 %)
+    np.testing.assert_allclose(after.sigma_t, sigma_t, rtol=2e-3)
+    np.testing.assert_allclose(after.alpha, alpha, atol=2e-3)
+    np.testing.assert_allclose(after.g, g, atol=0.01)
+    assert np.all(after.sigma_t_beer == before.sigma_t_beer)  # the Beer's-law column stays I_c's own

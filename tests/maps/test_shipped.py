@@ -40,6 +40,21 @@ def test_shipped_map_is_current_small_and_sane(name):
           f"std-error median {amap.info()['mc_stderr']['median']:.1e} max {amap.info()['mc_stderr']['max']:.1e}")
 
 
+@pytest.mark.parametrize("name", [n for n in SHIPPED if n.startswith("device")])
+def test_device_maps_ship_their_inscattering_table(name):
+    """Each device map has its in-scattering table (`trimeter map inscatter`), traced for its n, ℓ and
+    the instrument's geometry as it stands (AppearanceMap.inscatter refuses one that is not), and
+    sane: no light at α = 0 or σt = 0, more of it as α, σt and g grow."""
+    amap = load(name)
+    table = amap.inscatter
+    assert table is not None, f"missing: trimeter map inscatter {name}"
+    L = table.L
+    assert np.all(L[0] == 0) and np.all(L[:, 0] == 0)
+    assert np.all(np.diff(L[:, 1:], axis=0) >= 0) and np.all(np.diff(L[-1], axis=0) > 0)
+    assert L[-1, -1, -1] > L[-1, -1, 0]
+    assert amap.path.with_suffix(".tins").stat().st_size < 100_000
+
+
 def test_map_list_names_the_shipped_maps():
     assert {p.stem for p in shipped_maps()} >= set(SHIPPED)
 

@@ -180,6 +180,13 @@ def heldout_intensities(h, rho_b, rho_w):
     return background_response(h["A"], h["B"], h["C"], rho_b), background_response(h["A"], h["B"], h["C"], rho_w)
 
 
+def heldout_collimated(amap, h, index=slice(None)):
+    """I_c of the held-out materials: the unscattered beam, and the light scattered into the detector's
+    aperture where the set has it traced (tools/make_heldout.py --inscatter)."""
+    unscattered = amap.collimated(h["sigma_t"][index])
+    return unscattered * np.exp(h["inscatter_log1p"][index]) if "inscatter_log1p" in h else unscattered
+
+
 def _solve_alpha_g(J, d_b, d_w):
     """First-order (δα, δg) from intensity offsets (δI_b, δI_w) at known σt: J2⁻¹ δI with J2 =
     ∂(I_b, I_w)/∂(α, g) (Cramer's rule, vectorized); ±inf where J2 is singular."""
@@ -357,8 +364,8 @@ def two_thicknesses(amaps, repeats):
     a, s, g = (sets[0][k] for k in ("alpha", "sigma_t", "g"))
     inten = [heldout_intensities(h, *m.reference_rhos) for h, m in zip(sets, amaps)]
     I_b, I_w = np.stack([i[0] for i in inten]), np.stack([i[1] for i in inten])
-    I_c = np.stack([m.collimated(s) for m in amaps])
-    measurable = np.any(I_c >= MEASURABLE_IC, axis=0)
+    I_c = np.stack([heldout_collimated(m, h) for m, h in zip(amaps, sets)])
+    measurable = np.any(np.stack([m.collimated(s) for m in amaps]) >= MEASURABLE_IC, axis=0)  # as error_budget
     tile = np.resize(np.arange(len(a)), 1024)
     names = " + ".join(m.name for m in amaps)
     print(f"\n== two thicknesses: {names} — {len(a)} materials, {int(measurable.sum())} measurable at either thickness")
@@ -426,7 +433,7 @@ def _bench_backgrounds(amap, h, budget, variants, small):
     idx = np.tile(np.arange(len(h["alpha"])), 4)
     rho_b, rho_w = per_wavelength_backgrounds(len(idx), *budget["rho"])
     I_b, I_w = heldout_intensities({k: h[k][idx] for k in ("A", "B", "C")}, rho_b, rho_w)
-    I_c = amap.collimated(h["sigma_t"][idx])
+    I_c = heldout_collimated(amap, h, idx)
     truth = tuple(h[k][idx] for k in ("alpha", "sigma_t", "g"))
     tiled = {k: budget[k][idx] for k in ("measurable", "g_scored", "well_alpha", "well_g")}
     pairs = len(np.unique(np.round(np.column_stack([rho_b, rho_w]), 3), axis=0))
@@ -461,7 +468,7 @@ def run(args) -> int:
         rb, rw = amap.reference_rhos
         a, s, g = h["alpha"], h["sigma_t"], h["g"]
         I_b0, I_w0 = heldout_intensities(h, rb, rw)
-        I_c0 = amap.collimated(s)
+        I_c0 = heldout_collimated(amap, h)
         budget = error_budget(amap, h, rb, rw)
         budget["rho"] = (rb, rw)
         measurable = budget["measurable"]
@@ -470,7 +477,7 @@ def run(args) -> int:
         print(f"   held-out: {path} — {len(a)} materials, {int(measurable.sum())} in the measurable gamut "
               f"(I_c ≥ {MEASURABLE_IC:g}); source: {meta.get('source')}; their own MC std-error median {mc:.1e}")
         t0 = time.perf_counter()
-        small = TableInverter(build_from_map(amap, n_xy=16, refine=(1, 1, 1)))
+        small = TableInverter(build_from_map(amap, n_xy=16, refine=(1, 1, 1)), inscatter=amap.inscatter)
         print(f"   small table (map grid unrefined, 16×16 inverse) built in {time.perf_counter() - t0:.1f} s, "
               f"{small.table.size_bytes} bytes; full table: ", end="")
         from trimeter.inversion.api import table_inverter

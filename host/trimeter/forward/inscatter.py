@@ -1,7 +1,9 @@
 """How much scattered light the collimated measurement picks up besides the unscattered beam (paper Fig. 6).
 
-I_c is modelled analytically as the unscattered transmittance (trimeter.forward.collimated). A real
-detector accepts a finite solid angle, so light scattered forward near the beam adds to it. This is a
+The unscattered transmittance is analytic (trimeter.forward.collimated). A real detector accepts a
+finite solid angle, so light scattered forward near the beam adds to it: I_c = T(σt)·(1 + r), and read
+as unscattered it gives σt too low by ln(1 + r)/(σt·ℓ). InscatterTable tabulates L = ln(1 + r) per map
+(`trimeter map inscatter`, <map>.tins); the fit takes it out (ForwardGrid.correct_inscatter). This is a
 small volumetric light tracer for the device's `collimated` set-up (hardware/geometry.toml): a beam of
 `beam_diameter_mm` enters the stack at normal incidence from behind; a photon counts if it leaves the
 front and passes a disk of `aperture_diameter_mm` at `aperture_distance_mm` on the axis; the open-slot
@@ -29,6 +31,7 @@ import math
 
 import numpy as np
 
+from trimeter.errors import MapFileError
 from trimeter.forward.collimated import MEASURABLE_IC, beer_lambert_sigma_t, collimated_transmittance
 from trimeter.forward.nonscattering import fresnel_unpolarized
 from trimeter.geometry import cover_slide_n, cover_slide_thickness_mm, load_geometry
@@ -209,3 +212,122 @@ def inscatter_report(seed: int = 0, photons: int = 100_000, say=print) -> list[d
                 f"g {worst['g']})")
     say(f"  largest in-scattered signal: {max(r['inscattered'] for r in rows):.2e} of the open-slot beam")
     return rows
+
+
+# ------------------------------------------------------------------ the table the inversion corrects with
+INSCATTER_KIND = "inscatter-table"
+INSCATTER_FORMAT_VERSION = 1
+TAU_MAX = 10.0  # beyond, I_c is far under any noise floor (e^-10): σt is only a lower bound there anyway
+
+
+class InscatterTable:
+    """L = ln(1 + r), r the in-scattered over the unscattered collimated light, on a regular grid in
+    u = −ln(1 − α) (α 0 … 0.999), τ = σt·ℓ (0 … TAU_MAX) and v = −ln(1 − g) (g 0 … 0.9), for one sample
+    index n, thickness ℓ and the device's collimated geometry. A measured I_c is T(σt)·e^L; the fit
+    (invert.c tm_fit_solve, api._fit_one) takes σt from I_c·e^−L. Evaluation: trilinear, clamped to
+    the grid, the same operations as invert.c's inscatter_log1p."""
+
+    def __init__(self, L, *, u_max, tau_max, v_max, n, thickness_mm, geometry_params, provenance=None):
+        self.L = np.ascontiguousarray(L, dtype=np.float64)
+        if self.L.ndim != 3 or min(self.L.shape) < 2 or not np.all(np.isfinite(self.L)) or self.L.min() < 0:
+            raise MapFileError("in-scatter table: L must be a finite, non-negative (u, τ, g) grid, ≥ 2 per axis")
+        self.u_max, self.tau_max, self.v_max = float(u_max), float(tau_max), float(v_max)
+        self.n, self.thickness_mm = float(n), float(thickness_mm)
+        self.geometry_params = geometry_params
+        self.provenance = provenance or {}
+        self.checksum = None  # the file's SHA-256 once saved or loaded
+        nu, nt, nv = self.L.shape
+        self.inv_du, self.inv_dt, self.inv_dv = (nu - 1) / self.u_max, (nt - 1) / self.tau_max, (nv - 1) / self.v_max
+
+    @staticmethod
+    def axes(nu: int = 25, nt: int = 21, nv: int = 13, u_max: float = math.log(1000.0), tau_max: float = TAU_MAX,
+             v_max: float = math.log(10.0)):
+        """(α nodes, τ nodes, g nodes) of a table with these sizes."""
+        return (-np.expm1(-np.linspace(0.0, u_max, nu)), np.linspace(0.0, tau_max, nt),
+                -np.expm1(-np.linspace(0.0, v_max, nv)))
+
+    @classmethod
+    def build(cls, n: float, thickness_mm: float, geometry_params: dict, *, photons: int = 30_000, seed: int = 0,
+              shape=(25, 21, 13), progress=None) -> "InscatterTable":
+        """Trace every (τ, g) column once (`_trace_orders`: all α from one trace)."""
+        import time
+
+        alphas, taus, gs = cls.axes(*shape)
+        L = np.zeros(shape)
+        t0 = time.perf_counter()
+        n_slide = cover_slide_n(geometry_params)
+        for j, tau in enumerate(taus):
+            if tau == 0.0:
+                continue  # nothing scatters: L = 0
+            sigma_t = tau / thickness_mm
+            unscattered = float(collimated_transmittance(sigma_t, thickness_mm, n, n_slide))
+            for k, g in enumerate(gs):
+                _, tally, _ = _trace_orders(sigma_t, g, thickness_mm, n, photons, seed + 1000 * j + k,
+                                            geometry_params, nee=True)
+                L[:, j, k] = np.log1p(np.polynomial.polynomial.polyval(alphas, tally) / unscattered)
+            if progress:
+                progress(j, len(taus))
+        provenance = {"builder": "trimeter.forward.inscatter.InscatterTable.build", "photons": photons, "seed": seed,
+                      "seconds": round(time.perf_counter() - t0, 1)}
+        return cls(L, u_max=-math.log1p(-alphas[-1]), tau_max=taus[-1], v_max=-math.log1p(-gs[-1]), n=n,
+                   thickness_mm=thickness_mm, geometry_params=geometry_params, provenance=provenance)
+
+    def log1p_ratio(self, alpha, sigma_t, g):
+        """L at materials (arrays broadcast), clamped to the grid."""
+        alpha, sigma_t, g = np.broadcast_arrays(*(np.asarray(x, dtype=np.float64) for x in (alpha, sigma_t, g)))
+        alpha, sigma_t, g = (np.where(np.isfinite(x), x, 0.0) for x in (alpha, sigma_t, g))  # NaN: 0, as in C
+        nu, nt, nv = self.L.shape
+
+        def cell(p, n):
+            i = np.clip(np.floor(p), 0, n - 2)
+            return i.astype(np.intp), np.clip(p - i, 0.0, 1.0)
+
+        iu, wu = cell(-np.log1p(-np.clip(alpha, 0.0, 0.999)) * self.inv_du, nu)
+        it, wt = cell(np.clip(sigma_t * self.thickness_mm, 0.0, self.tau_max) * self.inv_dt, nt)
+        iv, wv = cell(-np.log1p(-np.clip(g, 0.0, 0.9)) * self.inv_dv, nv)
+        L = self.L
+
+        def lerp(a, b, w):
+            return a + (b - a) * w
+
+        def along_v(i, j):
+            return lerp(L[i, j, iv], L[i, j, iv + 1], wv)
+
+        return lerp(lerp(along_v(iu, it), along_v(iu, it + 1), wt),
+                    lerp(along_v(iu + 1, it), along_v(iu + 1, it + 1), wt), wu)
+
+    def save(self, path) -> str:
+        from trimeter.maps.container import write_container
+
+        meta = {"format_version": INSCATTER_FORMAT_VERSION, "u_max": self.u_max, "tau_max": self.tau_max,
+                "v_max": self.v_max, "n": self.n, "thickness_mm": self.thickness_mm,
+                "geometry_params": self.geometry_params, "provenance": self.provenance}
+        self.checksum = write_container(path, INSCATTER_KIND, meta, {"L": self.L})
+        return self.checksum
+
+    @classmethod
+    def load(cls, path) -> "InscatterTable":
+        from trimeter.maps.container import read_container
+
+        meta, arrays, checksum = read_container(path, INSCATTER_KIND)
+        if meta.get("format_version") != INSCATTER_FORMAT_VERSION or "L" not in arrays:
+            raise MapFileError(f"{path}: not an in-scatter table of format {INSCATTER_FORMAT_VERSION}")
+        try:
+            table = cls(arrays["L"], **{k: meta[k] for k in ("u_max", "tau_max", "v_max", "n", "thickness_mm",
+                                                             "geometry_params")},
+                        provenance=meta.get("provenance"))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise MapFileError(f"{path}: in-scatter table header incomplete ({exc})") from None
+        except MapFileError as exc:
+            raise MapFileError(f"{path}: {exc}") from None
+        table.checksum = checksum
+        return table
+
+    def matches(self, amap) -> str | None:
+        """Why this table does not belong to the map (None when it does)."""
+        if abs(self.n - amap.n) > 1e-9 or abs(self.thickness_mm - amap.thickness_mm) > 1e-9:
+            return f"it is for n = {self.n:g}, ℓ = {self.thickness_mm:g} mm, the map for n = {amap.n:g}, " \
+                   f"ℓ = {amap.thickness_mm:g} mm"
+        if self.geometry_params != amap.recipe.get("geometry_params"):
+            return "it was traced for another instrument geometry than the map's"
+        return None

@@ -78,7 +78,8 @@ def _load_map(spec):
 
 
 def _key(amap):
-    return amap.checksum or id(amap)
+    inscatter = amap.inscatter
+    return (amap.checksum or id(amap)), (inscatter.checksum if inscatter is not None else None)
 
 
 def _forward_grid(amap) -> ForwardGrid:
@@ -110,7 +111,7 @@ def table_inverter(amap):
                 table = None
         if table is None:
             table = build_from_map(amap)
-        _TABLES[key] = TableInverter(table)
+        _TABLES[key] = TableInverter(table, inscatter=amap.inscatter)
     return _TABLES[key]
 
 
@@ -236,7 +237,12 @@ def _fit_one(amap, I_b, I_w, I_c, rho_b, rho_w, *, method, polish, polish_tol, m
             alpha0, g0 = np.where(broken, table_a, alpha0), np.where(broken, table_g, g0)
         alpha, g, residual, J = grid.solve_alpha_g(p.ib, p.iw, grid.sigma_cell(p.sigma_t), p.rb, p.rw, alpha0, g0,
                                                    iterations=max(polish, 0), step_tol=polish_tol, step_var=step_var)
-    return _finish(amap, grid, p.flags, p.usable, p.ib, p.iw, p.ic, p.rb, p.rw, alpha, p.sigma_t, g, residual,
+    sigma_t = p.sigma_t
+    if grid.inscatter_grid is not None:  # the in-scattered light out of I_c (invert.c correct_inscatter)
+        eligible = (p.flags & int(UNUSABLE | FitFlag.IC_BELOW_FLOOR | FitFlag.OUTSIDE_MAP)) == 0
+        a, s, gg = grid.correct_inscatter(alpha, sigma_t, g, J)
+        alpha, sigma_t, g = np.where(eligible, a, alpha), np.where(eligible, s, sigma_t), np.where(eligible, gg, g)
+    return _finish(amap, grid, p.flags, p.usable, p.ib, p.iw, p.ic, p.rb, p.rw, alpha, sigma_t, g, residual,
                    p.sigma_beer, method=method, noise_rel=noise_rel, noise_abs=noise_abs, alpha_min_g=alpha_min_g,
                    J=J)
 

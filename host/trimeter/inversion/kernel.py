@@ -3,9 +3,13 @@
 derivatives, a batched 2×2 Newton (Levenberg-Marquardt)
 solve of (I_b, I_w) for (α, g) at a known σt, and first-order uncertainty propagation.
 
-Why (α, g) at known σt: I_c depends on σt alone (trimeter.forward.collimated), so the square 3×3
-system's exact solution takes σt from I_c (Beer-Lambert with Fresnel, exact inverse) and leaves
-two equations in two unknowns. No Python loop per bin: every step is a gather + array arithmetic.
+Why (α, g) at known σt: the unscattered beam, I_c's main part, depends on σt alone
+(trimeter.forward.collimated), so the square 3×3 system's solution takes σt from I_c (Beer-Lambert with
+Fresnel, exact inverse) and leaves two equations in two unknowns. The light scattered into the
+detector's aperture (up to ~20 % of I_c at the measurable gamut's edge, trimeter.forward.inscatter)
+depends on α and g too: with a map's in-scattering table, σt and then (α, g) are corrected for it
+once (α, g) are solved, to first order (ForwardGrid.correct_inscatter). No Python loop per bin:
+every step is a gather + array arithmetic.
 """
 
 from __future__ import annotations
@@ -82,6 +86,9 @@ class ForwardGrid:
         self.alpha_range = (float(self.alpha[0]), float(self.alpha[-1]))
         self.g_range = (float(self.g[0]), float(self.g[-1]))
         self.sigma_t_range = (float(np.exp(self.log_sigma_t[0])), float(np.exp(self.log_sigma_t[-1])))
+        # in-scattering into I_c (attach_inscatter): None means I_c is the unscattered beam alone
+        self.inscatter = None
+        self.inscatter_grid = None
 
     @classmethod
     def from_map(cls, amap) -> "ForwardGrid":
@@ -147,6 +154,79 @@ class ForwardGrid:
     def collimated(self, sigma_t):
         return collimated_transmittance(sigma_t, self.thickness_mm, self.n, self.cover_slide_n)
 
+    def attach_inscatter(self, table) -> None:
+        """Take in-scattered light into I_c into account (a trimeter.forward.inscatter.InscatterTable,
+        or None): the table resampled onto this grid's own α and g nodes, at its evenly spaced optical
+        depths, so that a bin's lookup reuses the polish's α and g cells (no logarithms per bin)."""
+        self.inscatter = table
+        if table is None:
+            self.inscatter_grid = None
+            return
+        nt = table.L.shape[1]
+        tau = np.linspace(0.0, table.tau_max, nt)
+        a, t, g = np.meshgrid(self.alpha, tau, self.g, indexing="ij")
+        L = np.ascontiguousarray(table.log1p_ratio(a, t / table.thickness_mm, g))
+        self.inscatter_grid = (L, (nt - 1) / table.tau_max, float(table.tau_max))
+
+    def inscatter_log1p(self, alpha, sigma_t, g):
+        """L = ln(1 + r) at (α, σt, g) from inscatter_grid (invert.c inscatter_log1p, operation for
+        operation): trilinear on the α and g nodes and the optical depths σt·ℓ (clamped to the table)."""
+        L, inv_dt, tau_max = self.inscatter_grid
+        ia, wa = self._cell(self.alpha, self._inv_da, alpha)
+        ig, wg = self._cell(self.g, self._inv_dg, g)
+        tau = np.asarray(sigma_t * self.thickness_mm, dtype=np.float64)
+        tau = np.where(np.isfinite(tau), tau, 0.0)  # an unusable bin's NaN: any index will do, not a wild one
+        p = np.minimum(np.maximum(tau, 0.0), tau_max) * inv_dt
+        fi = np.minimum(np.floor(p), L.shape[1] - 2)
+        it, wt = fi.astype(np.intp), np.minimum(np.maximum(p - fi, 0.0), 1.0)
+
+        def along_g(i, j):
+            return L[i, j, ig] + (L[i, j, ig + 1] - L[i, j, ig]) * wg
+
+        def lerp(a, b, w):
+            return a + (b - a) * w
+
+        return lerp(lerp(along_g(ia, it), along_g(ia, it + 1), wt), lerp(along_g(ia + 1, it), along_g(ia + 1, it + 1),
+                                                                          wt), wa)
+
+    def correct_inscatter(self, alpha, sigma_t, g, J):
+        """(α, σt, g) once the in-scattered light is taken out of I_c (invert.c correct_inscatter,
+        operation for operation): σt up by L/ℓ (ln T falls by ℓ per unit σt; the Fresnel stack's share
+        of that slope is ~1e-3 of it), L taken again at the moved σt, and (α, g) following to first order
+        so that (I_b, I_w) stay fitted: J2·δ(α, g) = −∂I/∂σt·δσt, solved as the Newton step solves its
+        normal equations (damped, clamped). J: (N, 3, 3) at the solution; it stays that of the result."""
+        from trimeter.inversion.native import INSCATTER_ONCE
+
+        s0 = sigma_t
+        L = self.inscatter_log1p(alpha, s0, g)
+        s = s0 + L / self.thickness_mm
+        with np.errstate(invalid="ignore"):
+            # L again at the moved σt: it changes σt by ~L·dL/dτ, below 1e-6 of σt where L ≤ INSCATTER_ONCE
+            again = L > INSCATTER_ONCE
+            s = np.where(again, s0 + self.inscatter_log1p(alpha, s, g) / self.thickness_mm, s)
+            ds = np.where((L > 0.0) & (s - s0 > 0.0), s - s0, 0.0)  # nothing scattered in (or a NaN): no move
+        j11, j12, j21, j22 = J[:, 0, 0], J[:, 0, 2], J[:, 1, 0], J[:, 1, 2]
+        rb, rw = J[:, 0, 1] * ds, J[:, 1, 1] * ds
+        h11, h22, h12 = j11 * j11 + j21 * j21, j12 * j12 + j22 * j22, j11 * j12 + j21 * j22
+        mu = 1e-9 + 1e-6 * (h11 + h22)
+        h11, h22 = h11 + mu, h22 + mu
+        b1, b2 = j11 * rb + j21 * rw, j12 * rb + j22 * rw
+        inv_det = 1.0 / (h11 * h22 - h12 * h12)
+        step_a = np.minimum(np.maximum(-(h22 * b1 - h12 * b2) * inv_det, -0.25), 0.25)
+        step_g = np.minimum(np.maximum(-(h11 * b2 - h12 * b1) * inv_det, -0.5), 0.5)
+        moved = ds > 0.0
+        alpha = np.where(moved, np.minimum(np.maximum(alpha + step_a, self.alpha_range[0]), self.alpha_range[1]), alpha)
+        g = np.where(moved, np.minimum(np.maximum(g + step_g, self.g_range[0]), self.g_range[1]), g)
+        return alpha, np.where(moved, s, s0), g
+
+    def collimated_measured(self, alpha, sigma_t, g):
+        """I_c as the instrument reads it: the unscattered beam and, with an in-scattering table, the
+        light scattered into the detector's aperture."""
+        unscattered = self.collimated(sigma_t)
+        if self.inscatter_grid is None:
+            return unscattered
+        return unscattered * np.exp(self.inscatter_log1p(alpha, sigma_t, g))
+
     @cached_property
     def transmittance_limits(self) -> tuple[float, float]:
         """(T(σt = 0), the largest I_c the Beer-Lambert inverse takes) of this grid's sample set-up:
@@ -197,7 +277,7 @@ class ForwardGrid:
         coef, _, _ = self.coefficients(alpha.ravel(), cell, g.ravel())
         I_b = self.diffuse(coef, np.asarray(rho_b, float))[0]
         I_w = self.diffuse(coef, np.asarray(rho_w, float))[0]
-        return I_b, I_w, self.collimated(sigma_t)
+        return I_b, I_w, self.collimated_measured(alpha, sigma_t, g)
 
     # ----------------------------------------------------------------------------------- solving
     @cached_property

@@ -1,11 +1,12 @@
 """`lut`: the map table's inverse grid for the initial guess, then an optional Newton polish on the
 table's own forward map (refined between its nodes at load) at the bins' true ρ_b(λ), ρ_w(λ).
 
-σt comes from I_c directly (exact Beer-Lambert with Fresnel: I_c depends on σt alone); the inverse
-grid is looked up bilinearly in (√I_b, √I_w) on the two σt nodes bracketing it and blended. The grid
-was built at the reference backgrounds; when a bin's ρ's differ, the polish (a few vectorised
-Gauss-Newton steps, each bin stopping once converged) moves the guess to the exact solution of
-that forward map.
+σt comes from I_c directly (exact Beer-Lambert with Fresnel), and where the map has an in-scattering
+table, is corrected at the end for the light scattered into the detector's aperture (to first order,
+ForwardGrid.correct_inscatter); the inverse grid is looked up bilinearly in (√I_b, √I_w) on the two σt
+nodes bracketing it and blended. The grid was built at the reference backgrounds; when a bin's ρ's
+differ, the polish (a few vectorised Gauss-Newton steps, each bin stopping once converged) moves the
+guess to the exact solution of that forward map.
 
 Guess and polish run in C when the native kernel is built (trimeter.inversion.native, same
 algorithm, tested to agree); the numpy code below is the reference and the fallback.
@@ -21,11 +22,13 @@ from trimeter.inversion.table import MapTable
 
 
 class TableInverter:
-    def __init__(self, table: MapTable):
+    def __init__(self, table: MapTable, inscatter=None):
+        """inscatter: the map's in-scattering table (AppearanceMap.inscatter), or None."""
         self.table = table
         self.table_grid = ForwardGrid.from_table(table)  # the table's own nodes: its guess slices
         # the polish model: the table's forward map between its nodes as everywhere (kernel.BETWEEN_NODES_*)
         self.grid = self.table_grid.between_nodes()
+        self.grid.attach_inscatter(inscatter)
         ns, ny, nx = table.inv_alpha_q.shape
         self._shape = (ns, ny, nx)
         v = np.stack([table.inverse_alpha, table.inverse_g], -1)  # (ns, ny, nx, 2)

@@ -32,7 +32,8 @@ def coordinates(I_b, I_w, I_c) -> np.ndarray:
 def _interpolator(amap, rho_b: float, rho_w: float):
     from scipy.interpolate import LinearNDInterpolator
 
-    key = (amap.checksum or id(amap), rho_b, rho_w)
+    inscatter = amap.inscatter  # the nodes' I_c include it
+    key = (amap.checksum or id(amap), inscatter.checksum if inscatter is not None else None, rho_b, rho_w)
     if key in _CACHE:
         _CACHE.move_to_end(key)
         return _CACHE[key]
@@ -41,7 +42,7 @@ def _interpolator(amap, rho_b: float, rho_w: float):
     # Delaunay of these nearly coplanar points changes with their last bits)
     A, B, C = (v.ravel() for v in (amap.A, amap.B, amap.C))
     I_b, I_w = (background_response(A, B, C, rho) for rho in (rho_b, rho_w))
-    I_c = amap.collimated(ss)
+    I_c = amap.collimated_measured(aa, ss, gg)
     interp = LinearNDInterpolator(coordinates(I_b, I_w, I_c), np.column_stack([aa, ss, gg]))
     _CACHE[key] = interp
     if len(_CACHE) > _CACHE_SIZE:

@@ -156,7 +156,31 @@ class AppearanceMap:
         return background_response(*self.coefficients(alpha, sigma_t, g), rho)
 
     def collimated(self, sigma_t):
+        """The unscattered collimated beam through the sample (Beer-Lambert with the Fresnel stack)."""
         return collimated_transmittance(sigma_t, self.thickness_mm, self.n, self.cover_slide_n)
+
+    @cached_property
+    def inscatter(self):
+        """The in-scattering table traced for this map (`<map>.tins` next to it, `trimeter map inscatter`),
+        or None: then I_c is modelled as the unscattered beam alone. A table that does not belong to
+        the map (another n, ℓ or geometry) is an error, not ignored."""
+        from trimeter.forward.inscatter import InscatterTable
+
+        if self.path is None or not self.path.with_suffix(".tins").is_file():
+            return None
+        path = self.path.with_suffix(".tins")
+        table = InscatterTable.load(path)
+        if why := table.matches(self):
+            raise MapFileError(f"{path} does not belong to map {self.name}: {why}")
+        return table
+
+    def collimated_measured(self, alpha, sigma_t, g):
+        """I_c as the instrument reads it: the unscattered beam and the light scattered into the
+        detector's aperture (with an in-scattering table)."""
+        unscattered = self.collimated(sigma_t)
+        if self.inscatter is None:
+            return unscattered
+        return unscattered * np.exp(self.inscatter.log1p_ratio(alpha, sigma_t, g))
 
     def query(self, alpha, sigma_t, g, rho_b, rho_w):
         """(I_b, I_w, I_c) for materials and backgrounds (arrays broadcast; NaN outside the map)."""
@@ -164,7 +188,7 @@ class AppearanceMap:
         rho_b, rho_w = np.asarray(rho_b, dtype=float), np.asarray(rho_w, dtype=float)
         I_b = A + B * rho_b / (1.0 - C * rho_b)
         I_w = A + B * rho_w / (1.0 - C * rho_w)
-        I_c = np.where(np.isnan(A), np.nan, self.collimated(np.asarray(sigma_t, dtype=float)))
+        I_c = np.where(np.isnan(A), np.nan, self.collimated_measured(alpha, np.asarray(sigma_t, dtype=float), g))
         return I_b, I_w, I_c
 
 

@@ -9,7 +9,8 @@ What the spectrometer sees for a plant state (counts/s per pixel, before noise):
     black slot (or between slots):  panels · (I_b  | ρ_black without a sample)
     white slot:                     panels · (I_w  | ρ_white)
     open slot:                      panels · (I(ρ=0) | 0) + beam · (I_c | 1)
-with (I_b, I_w, I_c) = AppearanceMap.query(α, σt, g, ρ_black, ρ_white) for the inserted sample.
+with (I_b, I_w, I_c) = AppearanceMap.query(α, σt, g, ρ_black, ρ_white) for the inserted sample (I_c with
+the light scattered into the detector's aperture where the map has an in-scattering table).
 """
 
 from __future__ import annotations

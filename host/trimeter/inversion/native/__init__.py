@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 LIBRARY = Path(__file__).with_name("libtrimeter_invert.so")
-ABI_VERSION = 11
+ABI_VERSION = 12
 
 _double_p = ctypes.POINTER(ctypes.c_double)
 
@@ -30,7 +30,10 @@ class _ForwardGridC(ctypes.Structure):
                 ("alpha_lo", ctypes.c_double), ("alpha_hi", ctypes.c_double),
                 ("g_lo", ctypes.c_double), ("g_hi", ctypes.c_double),
                 ("thickness_mm", ctypes.c_double), ("stack_a", ctypes.c_double), ("stack_b", ctypes.c_double),
-                ("uniform_ds", ctypes.c_double)]
+                ("uniform_ds", ctypes.c_double),
+                # in-scattering into I_c on this grid's α and g nodes (ForwardGrid.inscatter_grid), or NULL
+                ("in_nt", ctypes.c_int32), ("inscatter_L", _double_p), ("in_inv_dt", ctypes.c_double),
+                ("in_tau_max", ctypes.c_double)]
 
 
 class _InverseTableC(ctypes.Structure):
@@ -55,6 +58,9 @@ _OUTPUT_ROWS = ("alpha", "sigma_t", "g", "alpha_std", "sigma_t_std", "g_std", "s
 # step, extrapolated at that rate, would be below κ of the noise std (kernel.step_is_small, invert.c
 # STEP_RATIO; the library is refused if its value differs).
 STEP_RATIO = 0.25
+# The in-scattering correction takes L = ln(1 + r) a second time, at the moved σt, only where the first
+# is above this (ForwardGrid.correct_inscatter, invert.c INSCATTER_ONCE; checked like STEP_RATIO).
+INSCATTER_ONCE = 1e-3
 
 # tm_flag_bits order; the library is refused if its bits differ from FitFlag's
 _FLAG_ORDER = ("NONFINITE_INPUT", "NEGATIVE_INPUT", "ABOVE_ONE", "BLACK_NOT_BELOW_WHITE", "IC_BELOW_FLOOR",
@@ -102,6 +108,9 @@ def _load():
     lib.tm_step_ratio.restype = ctypes.c_double
     if lib.tm_step_ratio() != STEP_RATIO:
         return None, f"{LIBRARY.name} stops the polish at another step ratio than trimeter (run `make native`)"
+    lib.tm_inscatter_once.restype = ctypes.c_double
+    if lib.tm_inscatter_once() != INSCATTER_ONCE:
+        return None, f"{LIBRARY.name} corrects in-scattering otherwise than trimeter (run `make native`)"
     lanes = "AVX2, 4 bins per Newton step" if lib.tm_set_simd(1) else "scalar"
     return lib, f"compiled ({LIBRARY.name}, {lanes})"
 
@@ -160,6 +169,11 @@ class NativeSolver:
                                                                            "inv_ds", "inv_dg", "poly")),
                                    *grid.alpha_range, *grid.g_range, grid.thickness_mm, *grid.stack_constants[:2],
                                    _uniform_step(keep["log_sigma_t"]))
+        if grid.inscatter_grid is not None:
+            keep["inscatter_L"], inv_dt, tau_max = grid.inscatter_grid
+            self._grid.in_nt = keep["inscatter_L"].shape[1]
+            self._grid.inscatter_L = _ptr(keep["inscatter_L"])
+            self._grid.in_inv_dt, self._grid.in_tau_max = inv_dt, tau_max
         self._table = None
         if inverse_cells is not None:
             keep["cells"] = np.ascontiguousarray(inverse_cells, dtype=np.float64)

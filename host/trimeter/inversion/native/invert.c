@@ -1,7 +1,8 @@
 /* The inversion hot path in C: a whole single-thickness fit (tm_fit: input flags, σt from I_c, the
  * map table's initial guess or a given one, the damped Gauss-Newton polish of (α, g) at that σt on
  * the trilinear forward map, stopping each bin once converged, the Jacobian at the solution (from
- * the converging step's evaluation), the first-order uncertainty and the validity flags; or its two
+ * the converging step's evaluation), the in-scattering correction of σt (where the map has a table),
+ * the first-order uncertainty and the validity flags; or its two
  * halves tm_fit_prepare / tm_fit_solve with an MLP's guess in between), and its parts for the
  * numpy-side callers (tm_solve_alpha_g, tm_propagate). One pass per bin, everything in registers;
  * the polish takes four bins per step with AVX2 where the CPU has it (newton_step4).
@@ -24,7 +25,7 @@
 #include <stdint.h>
 #include <stdlib.h>
 
-#define TM_ABI_VERSION 11
+#define TM_ABI_VERSION 12
 
 typedef struct {
     int32_t na, ns, ng;
@@ -35,6 +36,11 @@ typedef struct {
     /* I_c = a·x / (1 − b·x²), x = exp(−σt ℓ) (trimeter.forward.collimated.stack_constants) */
     double thickness_mm, stack_a, stack_b;
     double uniform_ds; /* 1 / the ln σt step when that axis is evenly spaced (as generated), else 0 */
+    /* In-scattering into I_c (ForwardGrid.inscatter_log1p), or inscatter_L = NULL: L = ln(1 + r) on
+     * this grid's α and g nodes and in_nt evenly spaced optical depths τ = σt·ℓ from 0 to in_tau_max. */
+    int32_t in_nt;
+    const double *inscatter_L; /* [na][in_nt][ng] */
+    double in_inv_dt, in_tau_max;
 } tm_forward_grid;
 
 typedef struct {
@@ -495,6 +501,26 @@ static inline double collimated_derivative(const tm_forward_grid *f, double sigm
     return -f->thickness_mm * f->stack_a * x * (1.0 + bx2) / ((1.0 - bx2) * (1.0 - bx2));
 }
 
+static inline double lerp(double a, double b, double w) { return a + (b - a) * w; }
+
+/* L = ln(1 + r) of the in-scattered light at (α cell ia/wa, σt, g cell ig/wg):
+ * ForwardGrid.inscatter_log1p, operation for operation. Trilinear; τ clamped to [0, in_tau_max]. */
+static double inscatter_log1p(const tm_forward_grid *f, int ia, double wa, double sigma_t, int ig, double wg) {
+    double p = clampd(sigma_t * f->thickness_mm, 0.0, f->in_tau_max) * f->in_inv_dt;
+    double fi = floor(p);
+    fi = fi > f->in_nt - 2 ? f->in_nt - 2 : fi;
+    int it = (int)fi;
+    double wt = clampd(p - fi, 0.0, 1.0);
+    const size_t nt = (size_t)f->in_nt, ng = (size_t)f->ng;
+#define L_AT(i, j, k) f->inscatter_L[((size_t)(i) * nt + (size_t)(j)) * ng + (size_t)(k)]
+#define ALONG_G(i, j) lerp(L_AT(i, j, ig), L_AT(i, j, ig + 1), wg)
+    double value = lerp(lerp(ALONG_G(ia, it), ALONG_G(ia, it + 1), wt),
+                        lerp(ALONG_G(ia + 1, it), ALONG_G(ia + 1, it + 1), wt), wa);
+#undef ALONG_G
+#undef L_AT
+    return value;
+}
+
 /* Up to `iterations` Newton steps per bin; a bin leaves once a step was small (newton_step;
  * step_var: per bin, or NULL for none; step_tol = 0 and no step_var: a fixed count). The loop over
  * bins is innermost: a bin's steps form one long dependency chain (divisions, table reads) while
@@ -799,6 +825,42 @@ void tm_fit_prepare(const tm_forward_grid *f, const tm_fit_options *o, size_t n,
     }
 }
 
+/* In-scattered light in I_c (ForwardGrid.correct_inscatter, operation for operation): a measured I_c
+ * is T(σt)·e^L(α, σt, g), so with (α, g) solved, σt moves up by L/ℓ (ln T falls by ℓ per unit σt;
+ * the Fresnel stack's share of that slope is ~1e-3 of it), L taken again at the moved σt (it grows
+ * with σt), and (α, g) follow to first order so that (I_b, I_w) stay fitted: J2·δ(α, g) = −∂I/∂σt·δσt,
+ * solved as the Newton step solves its normal equations (damped, clamped). One bin; Ji its 3 × 3
+ * Jacobian at the solution, which stays that of the result (first order). */
+#define INSCATTER_ONCE 1e-3
+double tm_inscatter_once(void) { return INSCATTER_ONCE; } /* Python refuses the library unless it is native's */
+
+static void correct_inscatter(const tm_forward_grid *f, const sigma_cell_t *c, const double *Ji, double *alpha,
+                              double *sigma_t, double *g) {
+    double wa, wg, s0 = *sigma_t;
+    int ia = c->ia < 0 ? find_cell(f->alpha, f->inv_da, f->na, *alpha, &wa)
+                       : walk_from(f->alpha, f->inv_da, f->na, *alpha, c->ia, &wa);
+    int ig = c->ig < 0 ? find_cell(f->g, f->inv_dg, f->ng, *g, &wg) : walk_from(f->g, f->inv_dg, f->ng, *g, c->ig, &wg);
+    double L = inscatter_log1p(f, ia, wa, s0, ig, wg);
+    if (!(L > 0.0)) return; /* nothing scattered in */
+    double s = s0 + L / f->thickness_mm;
+    /* L again at the moved σt: it changes σt by ~L·dL/dτ, below 1e-6 of σt where L ≤ INSCATTER_ONCE */
+    if (L > INSCATTER_ONCE) s = s0 + inscatter_log1p(f, ia, wa, s, ig, wg) / f->thickness_mm;
+    double ds = s - s0;
+    double j11 = Ji[0], j12 = Ji[2], j21 = Ji[3], j22 = Ji[5];
+    double rb = Ji[1] * ds, rw = Ji[4] * ds; /* what the σt move alone would do to (I_b, I_w) */
+    double h11 = j11 * j11 + j21 * j21, h22 = j12 * j12 + j22 * j22, h12 = j11 * j12 + j21 * j22;
+    double mu = 1e-9 + 1e-6 * (h11 + h22);
+    h11 += mu;
+    h22 += mu;
+    double b1 = j11 * rb + j21 * rw, b2 = j12 * rb + j22 * rw;
+    double inv_det = 1.0 / (h11 * h22 - h12 * h12);
+    double step_a = clampd(-(h22 * b1 - h12 * b2) * inv_det, -0.25, 0.25);
+    double step_g = clampd(-(h11 * b2 - h12 * b1) * inv_det, -0.5, 0.5);
+    *alpha = clampd(*alpha + step_a, f->alpha_lo, f->alpha_hi);
+    *g = clampd(*g + step_g, f->g_lo, f->g_hi);
+    *sigma_t = s;
+}
+
 /* The second half: the initial (α, g) from alpha0/g0 (the MLP's) or, where those are NULL or not
  * finite (a broken network), from `table` (without one: the middle of the map's box); the polish,
  * then flags for not converged / outside the map / g undefined / underdetermined, first-order stds
@@ -834,6 +896,8 @@ long long tm_fit_solve(const tm_forward_grid *f, const tm_inverse_table *table, 
         int usable = !(fl & FLAG_UNUSABLE);
         double residual2 = final_residual2_and_jacobian(f, &cells[i], &sc.evals[i], alpha[i], g[i], ib[i], iw[i], rb[i],
                                                         rw[i], Ji);
+        if (f->inscatter_L && !(fl & (FLAG_UNUSABLE | FLAG_IC_BELOW_FLOOR | FLAG_OUTSIDE_MAP)))
+            correct_inscatter(f, &cells[i], Ji, &alpha[i], &sigma_t[i], &g[i]);
         double ic = sanitize(I_c[i], 1.0);
         /* variances, not stds: only their sums are needed (sqrt(x² + y²), not hypot: these are small
          * positive numbers, nothing to guard, and hypot is slower) */
