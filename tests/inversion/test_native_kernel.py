@@ -153,6 +153,7 @@ def test_the_whole_fit_in_c_matches_the_numpy_reference_bin_for_bin(monkeypatch,
     from trimeter.maps.appearance import AppearanceMap
 
     amap = AppearanceMap.load(MAPS_DIR / "device-n1.5-l0.4.tmap")
+    assert amap.inscatter is not None  # so the in-scattering correction is compared too
     args = _fit_inputs(np.random.default_rng(polish))
     kw = dict(method=method, polish=polish, polish_tol=polish_tol)
     compiled = api.fit(amap, *args[:3], rho_b=args[3], rho_w=args[4], **kw)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import math
 from pathlib import Path
@@ -82,6 +83,8 @@ def cmd_build(args) -> int:
           f"paths per column {prov['paths_per_column']['min']}…{prov['paths_per_column']['max']}; "
           f"truncation error ≤ {prov['truncation']['max_error_bound']:.1e} (K = {prov['truncation']['k_max']})")
     print("validation:", json.dumps(validation_report(amap)))
+    if recipe.geometry == "device":  # I_c's in-scattered light, which the fit takes out (maps/README)
+        cmd_inscatter(argparse.Namespace(map=str(out), photons=30_000, seed=0, out=None))
     return 0
 
 
