@@ -192,7 +192,7 @@ class ForwardGrid:
     def correct_inscatter(self, alpha, sigma_t, g, J):
         """(α, σt, g) once the in-scattered light is taken out of I_c (invert.c correct_inscatter,
         operation for operation): σt up by L/ℓ (ln T falls by ℓ per unit σt; the Fresnel stack adds at
-        most ~3e-3 of that slope), L taken again at the moved σt, and (α, g) following to first order
+        most 3.6e-3 of that slope), L taken again at the moved σt, and (α, g) following to first order
         so that (I_b, I_w) stay fitted: J2·δ(α, g) = −∂I/∂σt·δσt, solved as the Newton step solves its
         normal equations (damped, clamped). J: (N, 3, 3) at the solution; it stays that of the result."""
         from trimeter.inversion.native import INSCATTER_ONCE

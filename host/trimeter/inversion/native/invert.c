@@ -827,7 +827,7 @@ void tm_fit_prepare(const tm_forward_grid *f, const tm_fit_options *o, size_t n,
 
 /* In-scattered light in I_c (ForwardGrid.correct_inscatter, operation for operation): a measured I_c
  * is T(σt)·e^L(α, σt, g), so with (α, g) solved, σt moves up by L/ℓ (ln T falls by ℓ per unit σt;
- * the Fresnel stack adds at most ~3e-3 of that slope), L taken again at the moved σt (it grows
+ * the Fresnel stack adds at most 3.6e-3 of that slope), L taken again at the moved σt (it grows
  * with σt), and (α, g) follow to first order so that (I_b, I_w) stay fitted: J2·δ(α, g) = −∂I/∂σt·δσt,
  * solved as the Newton step solves its normal equations (damped, clamped). One bin; Ji its 3 × 3
  * Jacobian at the solution, which stays that of the result (first order). */
