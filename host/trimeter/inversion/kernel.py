@@ -193,8 +193,8 @@ class ForwardGrid:
         """(α, σt, g) once the in-scattered light is taken out of I_c (invert.c correct_inscatter,
         operation for operation): σt up by L/ℓ (ln T falls by ℓ per unit σt; the Fresnel stack adds at
         most 3.6e-3 of that slope), L taken again at the moved σt, and (α, g) following to first order
-        so that (I_b, I_w) stay fitted: J2·δ(α, g) = −∂I/∂σt·δσt, solved as the Newton step solves its
-        normal equations (damped, clamped). J: (N, 3, 3) at the solution; it stays that of the result."""
+        so that (I_b, I_w) stay fitted: J2·δ(α, g) = −∂I/∂σt·δσt, solved as a Newton step (_lm_step).
+        J: (N, 3, 3) at the solution; it stays that of the result."""
         from trimeter.inversion.native import INSCATTER_ONCE
 
         s0 = sigma_t
@@ -205,15 +205,9 @@ class ForwardGrid:
             again = L > INSCATTER_ONCE
             s = np.where(again, s0 + self.inscatter_log1p(alpha, s, g) / self.thickness_mm, s)
             ds = np.where((L > 0.0) & (s - s0 > 0.0), s - s0, 0.0)  # nothing scattered in (or a NaN): no move
-        j11, j12, j21, j22 = J[:, 0, 0], J[:, 0, 2], J[:, 1, 0], J[:, 1, 2]
-        rb, rw = J[:, 0, 1] * ds, J[:, 1, 1] * ds
-        h11, h22, h12 = j11 * j11 + j21 * j21, j12 * j12 + j22 * j22, j11 * j12 + j21 * j22
-        mu = 1e-9 + 1e-6 * (h11 + h22)
-        h11, h22 = h11 + mu, h22 + mu
-        b1, b2 = j11 * rb + j21 * rw, j12 * rb + j22 * rw
-        inv_det = 1.0 / (h11 * h22 - h12 * h12)
-        step_a = np.minimum(np.maximum(-(h22 * b1 - h12 * b2) * inv_det, -0.25), 0.25)
-        step_g = np.minimum(np.maximum(-(h11 * b2 - h12 * b1) * inv_det, -0.5), 0.5)
+        # the residual the σt move alone would leave in (I_b, I_w), taken out by one step in (α, g)
+        step_a, step_g = self._lm_step(J[:, 0, 0], J[:, 0, 2], J[:, 1, 0], J[:, 1, 2], J[:, 0, 1] * ds,
+                                       J[:, 1, 1] * ds)[:2]
         moved = ds > 0.0
         alpha = np.where(moved, np.minimum(np.maximum(alpha + step_a, self.alpha_range[0]), self.alpha_range[1]), alpha)
         g = np.where(moved, np.minimum(np.maximum(g + step_g, self.g_range[0]), self.g_range[1]), g)
@@ -354,6 +348,22 @@ class ForwardGrid:
     def collimated_derivative(self, s):
         return collimated_derivative(s, self.thickness_mm, self.n, self.cover_slide_n)
 
+    @staticmethod
+    def _lm_step(j11, j12, j21, j22, rb, rw):
+        """(step_a, step_g, h11, h22, det): the damped Gauss-Newton (Levenberg-Marquardt) step on the
+        2×2 normal equations of (I_b, I_w) in (α, g) for residuals (rb, rw), capped to a trust region
+        (invert.c lm_step)."""
+        # The damping keeps it finite where ∂I/∂g → 0 (α → 0).
+        h11, h22, h12 = j11 * j11 + j21 * j21, j12 * j12 + j22 * j22, j11 * j12 + j21 * j22
+        mu = 1e-9 + 1e-6 * (h11 + h22)
+        h11, h22 = h11 + mu, h22 + mu
+        b1, b2 = j11 * rb + j21 * rw, j12 * rb + j22 * rw
+        det = h11 * h22 - h12 * h12
+        # Trust region: a piecewise-trilinear map is only locally linear; cap the step at a few cells.
+        step_a = np.minimum(np.maximum(-(h22 * b1 - h12 * b2) / det, -0.25), 0.25)
+        step_g = np.minimum(np.maximum(-(h11 * b2 - h12 * b1) / det, -0.5), 0.5)
+        return step_a, step_g, h11, h22, det
+
     def _newton_step(self, I_b, I_w, cell, rho_b, rho_w, alpha, g):
         """One damped Gauss-Newton step from (α, g): the new (α, g), the steps, (det, h11, h22) of the
         normal equations, and this evaluation's residuals (N, 2) and ∂(I_b, I_w)/∂(α, σt, g) (N, 2, 3)."""
@@ -363,17 +373,7 @@ class ForwardGrid:
         rb, rw = Ib - I_b, Iw - I_w
         j11, j12 = self.directional(fb, hb, d_a), self.directional(fb, hb, d_g)
         j21, j22 = self.directional(fw, hw, d_a), self.directional(fw, hw, d_g)
-        # Levenberg-Marquardt on the 2×2 normal equations: stays finite where ∂I/∂g → 0 (α → 0).
-        h11, h22, h12 = j11 * j11 + j21 * j21, j12 * j12 + j22 * j22, j11 * j12 + j21 * j22
-        mu = 1e-9 + 1e-6 * (h11 + h22)
-        h11, h22 = h11 + mu, h22 + mu
-        b1, b2 = j11 * rb + j21 * rw, j12 * rb + j22 * rw
-        det = h11 * h22 - h12 * h12
-        step_a = -(h22 * b1 - h12 * b2) / det
-        step_g = -(h11 * b2 - h12 * b1) / det
-        # Trust region: a piecewise-trilinear map is only locally linear; cap the step at a few cells.
-        step_a = np.minimum(np.maximum(step_a, -0.25), 0.25)
-        step_g = np.minimum(np.maximum(step_g, -0.5), 0.5)
+        step_a, step_g, h11, h22, det = self._lm_step(j11, j12, j21, j22, rb, rw)
         (a_lo, a_hi), (g_lo, g_hi) = self.alpha_range, self.g_range
         s = np.exp(cell.log_sigma_t)
         J_step = np.stack([np.stack([j11, self.directional(fb, hb, d_ls) / s, j12], axis=-1),

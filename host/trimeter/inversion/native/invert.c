@@ -240,6 +240,28 @@ static inline void keep_final_eval(const tm_forward_grid *f, sigma_cell_t *cell,
     cell->evaluated = 1;
 }
 
+/* The damped Gauss-Newton (Levenberg-Marquardt) step on the 2×2 normal equations of (I_b, I_w) in
+ * (α, g) for residuals (rb, rw), capped to a trust region (ForwardGrid._lm_step); h11, h22 and det
+ * also give the step's variance (step_is_small). newton_step4 does the same lane by lane. */
+typedef struct { double step_a, step_g, h11, h22, det; } lm_step_t;
+
+static inline lm_step_t lm_step(double j11, double j12, double j21, double j22, double rb, double rw) {
+    lm_step_t st;
+    double h11 = j11 * j11 + j21 * j21, h22 = j12 * j12 + j22 * j22, h12 = j11 * j12 + j21 * j22;
+    double mu = 1e-9 + 1e-6 * (h11 + h22); /* stays finite where ∂I/∂g → 0 (α → 0) */
+    h11 += mu;
+    h22 += mu;
+    double b1 = j11 * rb + j21 * rw, b2 = j12 * rb + j22 * rw;
+    double det = h11 * h22 - h12 * h12;
+    /* trust region: a piecewise-trilinear map is only locally linear */
+    st.step_a = clampd(-(h22 * b1 - h12 * b2) / det, -0.25, 0.25);
+    st.step_g = clampd(-(h11 * b2 - h12 * b1) / det, -0.5, 0.5);
+    st.h11 = h11;
+    st.h22 = h22;
+    st.det = det;
+    return st;
+}
+
 static int newton_step(const tm_forward_grid *f, sigma_cell_t *cell, double I_b, double I_w, double rho_b,
                        double rho_w, double step_tol, double step_var, double *alpha, double *g,
                        final_eval_t *last) {
@@ -250,17 +272,8 @@ static int newton_step(const tm_forward_grid *f, sigma_cell_t *cell, double I_b,
     double rw = diffuse(c.v, rho_w, &fw, &hw) - I_w;
     double j11 = directional(fb, hb, c.da), j12 = directional(fb, hb, c.dg);
     double j21 = directional(fw, hw, c.da), j22 = directional(fw, hw, c.dg);
-    double h11 = j11 * j11 + j21 * j21, h22 = j12 * j12 + j22 * j22, h12 = j11 * j12 + j21 * j22;
-    double mu = 1e-9 + 1e-6 * (h11 + h22); /* stays finite where ∂I/∂g → 0 (α → 0) */
-    h11 += mu;
-    h22 += mu;
-    double b1 = j11 * rb + j21 * rw, b2 = j12 * rb + j22 * rw;
-    double det = h11 * h22 - h12 * h12;
-    double step_a = -(h22 * b1 - h12 * b2) / det;
-    double step_g = -(h11 * b2 - h12 * b1) / det;
-    /* trust region: a piecewise-trilinear map is only locally linear */
-    step_a = clampd(step_a, -0.25, 0.25);
-    step_g = clampd(step_g, -0.5, 0.5);
+    lm_step_t st = lm_step(j11, j12, j21, j22, rb, rw);
+    double step_a = st.step_a, step_g = st.step_g, h11 = st.h11, h22 = st.h22, det = st.det;
     double alpha0 = *alpha, g0 = *g;
     *alpha = clampd(*alpha + step_a, f->alpha_lo, f->alpha_hi);
     *g = clampd(*g + step_g, f->g_lo, f->g_hi);
@@ -829,7 +842,7 @@ void tm_fit_prepare(const tm_forward_grid *f, const tm_fit_options *o, size_t n,
  * is T(σt)·e^L(α, σt, g), so with (α, g) solved, σt moves up by L/ℓ (ln T falls by ℓ per unit σt;
  * the Fresnel stack adds at most 3.6e-3 of that slope), L taken again at the moved σt (it grows
  * with σt), and (α, g) follow to first order so that (I_b, I_w) stay fitted: J2·δ(α, g) = −∂I/∂σt·δσt,
- * solved as the Newton step solves its normal equations (damped, clamped). One bin; Ji its 3 × 3
+ * solved as a Newton step (lm_step). One bin; Ji its 3 × 3
  * Jacobian at the solution, which stays that of the result (first order). */
 #define INSCATTER_ONCE 1e-3
 double tm_inscatter_once(void) { return INSCATTER_ONCE; } /* Python refuses the library unless it is native's */
@@ -846,18 +859,10 @@ static void correct_inscatter(const tm_forward_grid *f, const sigma_cell_t *c, c
     /* L again at the moved σt: it changes σt by ~L·dL/dτ, below 1e-6 of σt where L ≤ INSCATTER_ONCE */
     if (L > INSCATTER_ONCE) s = s0 + inscatter_log1p(f, ia, wa, s, ig, wg) / f->thickness_mm;
     double ds = s - s0;
-    double j11 = Ji[0], j12 = Ji[2], j21 = Ji[3], j22 = Ji[5];
-    double rb = Ji[1] * ds, rw = Ji[4] * ds; /* what the σt move alone would do to (I_b, I_w) */
-    double h11 = j11 * j11 + j21 * j21, h22 = j12 * j12 + j22 * j22, h12 = j11 * j12 + j21 * j22;
-    double mu = 1e-9 + 1e-6 * (h11 + h22);
-    h11 += mu;
-    h22 += mu;
-    double b1 = j11 * rb + j21 * rw, b2 = j12 * rb + j22 * rw;
-    double inv_det = 1.0 / (h11 * h22 - h12 * h12);
-    double step_a = clampd(-(h22 * b1 - h12 * b2) * inv_det, -0.25, 0.25);
-    double step_g = clampd(-(h11 * b2 - h12 * b1) * inv_det, -0.5, 0.5);
-    *alpha = clampd(*alpha + step_a, f->alpha_lo, f->alpha_hi);
-    *g = clampd(*g + step_g, f->g_lo, f->g_hi);
+    /* the residual the σt move alone would leave in (I_b, I_w), taken out by one step in (α, g) */
+    lm_step_t st = lm_step(Ji[0], Ji[2], Ji[3], Ji[5], Ji[1] * ds, Ji[4] * ds);
+    *alpha = clampd(*alpha + st.step_a, f->alpha_lo, f->alpha_hi);
+    *g = clampd(*g + st.step_g, f->g_lo, f->g_hi);
     *sigma_t = s;
 }
 
