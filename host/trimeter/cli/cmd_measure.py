@@ -39,7 +39,8 @@ def run(args):
     maps = [map_for_thickness(t, m) for t, m in zip(thicknesses, args.map or [None] * len(thicknesses))]
     if args.results:
         settings.set("results_dir", args.results)
-    service = Service(lambda: open_device(settings), lambda: open_spectrometer(settings), settings)
+    service = Service(lambda: open_device(settings), lambda: open_spectrometer(settings), settings,
+                      on_event=lambda e: print(f"warning: {e.message}") if e.kind == "warning" else None)
     service.connect()
     try:
         reason = calibration_is_stale(service.calibration, service.device.read("uptime_s"),
