@@ -220,6 +220,25 @@ INSCATTER_FORMAT_VERSION = 1
 TAU_MAX = 10.0  # beyond, I_c is far under any noise floor (e^-10): σt is only a lower bound there anyway
 
 
+def regular_cell(p, n: int):
+    """(cell, weight) on an evenly spaced axis of n nodes at p = (x − x0)/step, clamped to the axis
+    (invert.c inscatter_log1p's τ cell)."""
+    i = np.clip(np.floor(p), 0, n - 2)
+    return i.astype(np.intp), np.clip(p - i, 0.0, 1.0)
+
+
+def trilinear(L, i, wi, j, wj, k, wk):
+    """L (3-D) between its nodes: cells i, j, k with weights wi, wj, wk, interpolated along the last axis,
+    then the middle, then the first (invert.c inscatter_log1p, operation for operation)."""
+    def along_k(a, b):
+        return L[a, b, k] + (L[a, b, k + 1] - L[a, b, k]) * wk
+
+    def lerp(a, b, w):
+        return a + (b - a) * w
+
+    return lerp(lerp(along_k(i, j), along_k(i, j + 1), wj), lerp(along_k(i + 1, j), along_k(i + 1, j + 1), wj), wi)
+
+
 class InscatterTable:
     """L = ln(1 + r), r the in-scattered over the unscattered collimated light, on a regular grid in
     u = −ln(1 − α) (α 0 … 0.999), τ = σt·ℓ (0 … TAU_MAX) and v = −ln(1 − g) (g 0 … 0.9), for one sample
@@ -277,24 +296,10 @@ class InscatterTable:
         alpha, sigma_t, g = np.broadcast_arrays(*(np.asarray(x, dtype=np.float64) for x in (alpha, sigma_t, g)))
         alpha, sigma_t, g = (np.where(np.isfinite(x), x, 0.0) for x in (alpha, sigma_t, g))  # NaN: 0, as in C
         nu, nt, nv = self.L.shape
-
-        def cell(p, n):
-            i = np.clip(np.floor(p), 0, n - 2)
-            return i.astype(np.intp), np.clip(p - i, 0.0, 1.0)
-
-        iu, wu = cell(-np.log1p(-np.clip(alpha, 0.0, 0.999)) * self.inv_du, nu)
-        it, wt = cell(np.clip(sigma_t * self.thickness_mm, 0.0, self.tau_max) * self.inv_dt, nt)
-        iv, wv = cell(-np.log1p(-np.clip(g, 0.0, 0.9)) * self.inv_dv, nv)
-        L = self.L
-
-        def lerp(a, b, w):
-            return a + (b - a) * w
-
-        def along_v(i, j):
-            return lerp(L[i, j, iv], L[i, j, iv + 1], wv)
-
-        return lerp(lerp(along_v(iu, it), along_v(iu, it + 1), wt),
-                    lerp(along_v(iu + 1, it), along_v(iu + 1, it + 1), wt), wu)
+        iu, wu = regular_cell(-np.log1p(-np.clip(alpha, 0.0, 0.999)) * self.inv_du, nu)
+        it, wt = regular_cell(np.clip(sigma_t * self.thickness_mm, 0.0, self.tau_max) * self.inv_dt, nt)
+        iv, wv = regular_cell(-np.log1p(-np.clip(g, 0.0, 0.9)) * self.inv_dv, nv)
+        return trilinear(self.L, iu, wu, it, wt, iv, wv)
 
     def save(self, path) -> str:
         from trimeter.maps.container import write_container

@@ -21,6 +21,7 @@ import numpy as np
 
 from trimeter.forward.collimated import (beer_lambert_limit, collimated_derivative, collimated_transmittance,
                                          stack_constants)
+from trimeter.forward.inscatter import regular_cell, trilinear
 from trimeter.inversion import native
 
 
@@ -87,7 +88,6 @@ class ForwardGrid:
         self.g_range = (float(self.g[0]), float(self.g[-1]))
         self.sigma_t_range = (float(np.exp(self.log_sigma_t[0])), float(np.exp(self.log_sigma_t[-1])))
         # in-scattering into I_c (attach_inscatter): None means I_c is the unscattered beam alone
-        self.inscatter = None
         self.inscatter_grid = None
 
     @classmethod
@@ -158,7 +158,6 @@ class ForwardGrid:
         """Take in-scattered light into I_c into account (a trimeter.forward.inscatter.InscatterTable,
         or None): the table resampled onto this grid's own α and g nodes, at its evenly spaced optical
         depths, so that a bin's lookup reuses the polish's α and g cells (no logarithms per bin)."""
-        self.inscatter = table
         if table is None:
             self.inscatter_grid = None
             return
@@ -176,18 +175,8 @@ class ForwardGrid:
         ig, wg = self._cell(self.g, self._inv_dg, g)
         tau = np.asarray(sigma_t * self.thickness_mm, dtype=np.float64)
         tau = np.where(np.isfinite(tau), tau, 0.0)  # an unusable bin's NaN: any index will do, not a wild one
-        p = np.minimum(np.maximum(tau, 0.0), tau_max) * inv_dt
-        fi = np.minimum(np.floor(p), L.shape[1] - 2)
-        it, wt = fi.astype(np.intp), np.minimum(np.maximum(p - fi, 0.0), 1.0)
-
-        def along_g(i, j):
-            return L[i, j, ig] + (L[i, j, ig + 1] - L[i, j, ig]) * wg
-
-        def lerp(a, b, w):
-            return a + (b - a) * w
-
-        return lerp(lerp(along_g(ia, it), along_g(ia, it + 1), wt), lerp(along_g(ia + 1, it), along_g(ia + 1, it + 1),
-                                                                          wt), wa)
+        it, wt = regular_cell(np.minimum(np.maximum(tau, 0.0), tau_max) * inv_dt, L.shape[1])
+        return trilinear(L, ia, wa, it, wt, ig, wg)
 
     def correct_inscatter(self, alpha, sigma_t, g, J):
         """(α, σt, g) once the in-scattered light is taken out of I_c (invert.c correct_inscatter,
@@ -195,14 +184,12 @@ class ForwardGrid:
         most 3.6e-3 of that slope), L taken again at the moved σt, and (α, g) following to first order
         so that (I_b, I_w) stay fitted: J2·δ(α, g) = −∂I/∂σt·δσt, solved as a Newton step (_lm_step).
         J: (N, 3, 3) at the solution; it stays that of the result."""
-        from trimeter.inversion.native import INSCATTER_ONCE
-
         s0 = sigma_t
         L = self.inscatter_log1p(alpha, s0, g)
         s = s0 + L / self.thickness_mm
         with np.errstate(invalid="ignore"):
             # L again at the moved σt: it changes σt by ~L·dL/dτ, below 1e-6 of σt where L ≤ INSCATTER_ONCE
-            again = L > INSCATTER_ONCE
+            again = L > native.INSCATTER_ONCE
             s = np.where(again, s0 + self.inscatter_log1p(alpha, s, g) / self.thickness_mm, s)
             ds = np.where((L > 0.0) & (s - s0 > 0.0), s - s0, 0.0)  # nothing scattered in (or a NaN): no move
         # the residual the σt move alone would leave in (I_b, I_w), taken out by one step in (α, g)

@@ -226,8 +226,6 @@ static inline int step_is_small(double step, double last, double step_tol, doubl
     return d2 <= lim || (a <= STEP_RATIO * last && d2 * a * a <= lim * last * last);
 }
 
-/* One Levenberg-Marquardt step on the 2×2 normal equations (ForwardGrid._newton_step). Returns 1
- * when the step just taken ends the bin's polish in both α and g (step_is_small). */
 /* A converged bin's final evaluation, taken from its last Newton step when that step stayed in the
  * cell (the map's derivatives jump between cells, by up to ~50 % in an ill-conditioned bin's std):
  * the Jacobian there, one step below κ of the noise std away, and the residuals carried along the
@@ -262,6 +260,8 @@ static inline lm_step_t lm_step(double j11, double j12, double j21, double j22, 
     return st;
 }
 
+/* One Levenberg-Marquardt step on the 2×2 normal equations (ForwardGrid._newton_step). Returns 1
+ * when the step just taken ends the bin's polish in both α and g (step_is_small). */
 static int newton_step(const tm_forward_grid *f, sigma_cell_t *cell, double I_b, double I_w, double rho_b,
                        double rho_w, double step_tol, double step_var, double *alpha, double *g,
                        final_eval_t *last) {
