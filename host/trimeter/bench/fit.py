@@ -498,13 +498,11 @@ def run(args) -> int:
             _print_table([r for r in rows if r["noise"] == level], f"noise {level * 100:g} %")
         _print_table(exact_rows, "map-exact")
         print(f"\n   paper's inputs: {hull['outside_hull']} of {hull['of']} noise-free held-out materials fall "
-              f"outside the "
-              f"Delaunay hull of the map's nodes (NaN); scipy searches every simplex (~0.3 ms) for each that is "
-              f"inside the hull's bounding box, so the paper rows' time depends on them.")
+              f"outside the Delaunay hull of the map's nodes (NaN); scipy searches every simplex (~0.3 ms) for "
+              f"each that is inside the hull's bounding box, so the paper rows' time depends on them.")
         if "lut_ms" in hull:
-            print(f"   inside the hull only: paper {hull['paper_ms']:.3g} ms (core {hull['paper_core_ms']:.3g}), lut "
-                  f"p≤8 "
-                  f"{hull['lut_ms']:.3g} ms per 1024 bins → ×{hull['paper_ms'] / hull['lut_ms']:.1f} "
+            print(f"   inside the hull only: paper {hull['paper_ms']:.3g} ms (core {hull['paper_core_ms']:.3g}), "
+                  f"lut p≤8 {hull['lut_ms']:.3g} ms per 1024 bins → ×{hull['paper_ms'] / hull['lut_ms']:.1f} "
                   f"(core: ×{hull['paper_core_ms'] / hull['lut_ms']:.1f} against lut's whole fit)")
         if background_rows:
             _print_table(background_rows, "ρ(λ) per bin, cold")
@@ -604,6 +602,11 @@ def target_checks(row, paper) -> dict:
     return checks
 
 
+def _show_check(name, c) -> str:
+    verdict = "" if c["met"] else (" MISSED" if c["issue_target"] else " (below 50)")
+    return f"{name} {c['value']:.3g}{verdict}" + ("" if c["issue_target"] else " [not an issue target]")
+
+
 def _print_targets(title, rows):
     """One line per lut/mlp p≤8 variant: every issue 4 target, met or MISSED, from this run."""
     paper = next(r for r in rows if r["variant"] == "paper")
@@ -615,11 +618,7 @@ def _print_targets(title, rows):
         checks = target_checks(r, paper)
         verdicts[r["variant"]] = checks
         missed = [k for k, c in checks.items() if c["issue_target"] and not c["met"]]
-
-        def show(k, c):
-            verdict = "" if c["met"] else (" MISSED" if c["issue_target"] else " (below 50)")
-            return f"{k} {c['value']:.3g}{verdict}" + ("" if c["issue_target"] else " [not an issue target]")
-        print(f"   {r['variant']:<10}" + "; ".join(show(k, c) for k, c in checks.items())
+        print(f"   {r['variant']:<10}" + "; ".join(_show_check(k, c) for k, c in checks.items())
               + (f"  — MISSED: {', '.join(missed)}" if missed else "  — all issue targets met"))
     return verdicts
 

@@ -21,8 +21,8 @@ def run(args):
     finally:
         service.close()
     ok = cal.flags == 0
-    print(f"calibration: {ok.sum()}/{len(ok)} usable bins, {cal.wavelengths_nm[0]:.0f}-{cal.wavelengths_nm[-1]:.0f} "
-          f"nm, "
+    print(f"calibration: {ok.sum()}/{len(ok)} usable bins, "
+          f"{cal.wavelengths_nm[0]:.0f}-{cal.wavelengths_nm[-1]:.0f} nm, "
           f"ρ_black median {np.nanmedian(cal.rho_black):.3f}; saved in {settings.calibration_path}")
 
 

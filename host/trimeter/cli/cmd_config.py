@@ -74,8 +74,8 @@ def cmd_set(args):
             raise InputError(f"{args.name} is read-only (or a command: use the dedicated sub-command)")
         with open_device(settings_from(args)) as dev:
             dev.write(args.name, args.value)
-            print(f"{args.name} = {_show(dev.read(args.name))} (device; `trimeter config save` to keep it after a "
-                  f"reset)")
+            print(f"{args.name} = {_show(dev.read(args.name))} "
+                  f"(device; `trimeter config save` to keep it after a reset)")
     else:
         settings = HostSettings.load()
         settings.set(args.name, args.value, source="command line")

@@ -79,8 +79,8 @@ def _split_thicknesses(data, amaps, path):
                                  f"thickness {amaps[0].thickness_mm:g} mm")
         return [np.argsort(data["wavelength_nm"], kind="stable")]
     if "thickness_mm" not in data:
-        raise InputError(f"--input {path}: with {len(amaps)} maps the column thickness_mm must say which rows belong "
-                         f"to which")
+        raise InputError(f"--input {path}: with {len(amaps)} maps the column thickness_mm must say "
+                         f"which rows belong to which")
     groups, used = [], np.zeros(n, bool)
     for amap in amaps:
         rows = np.flatnonzero(np.abs(data["thickness_mm"] - amap.thickness_mm) <= 1e-6 * max(1.0, amap.thickness_mm))

@@ -292,8 +292,8 @@ def build_from_map(amap, n_xy: int | None = None, budget: int = MAX_TABLE_BYTES,
     na, ns, ng = coef.shape[1:]
     nxy = n_xy if n_xy is not None else _inverse_size_for(na, ns, ng, budget, max_xy)
     if _total_size(na, ns, ng, nxy, nxy) > budget:
-        raise MapFileError(f"map table would be {_total_size(na, ns, ng, nxy, nxy)} bytes, over the {budget}-byte "
-                           f"budget")
+        raise MapFileError(f"map table would be {_total_size(na, ns, ng, nxy, nxy)} bytes, "
+                           f"over the {budget}-byte budget")
     rho_b, rho_w = amap.reference_rhos
     quant = np.array([[c.min(), (c.max() - c.min()) / _Q or 1.0] for c in coef], dtype=np.float32)
     coef_q = np.stack([_quantize(c, float(q[0]), float(q[0]) + float(q[1]) * _Q) for c, q in zip(coef, quant)])

@@ -22,8 +22,8 @@ def map_for_thickness(thickness_mm: float, explicit: str | Path | None = None,
     if explicit:
         amap = AppearanceMap.load(find_map(explicit))
         if abs(amap.thickness_mm - thickness_mm) > 1e-6:
-            raise InputError(f"map {amap.name} is for ℓ = {amap.thickness_mm:g} mm, not the sample's {thickness_mm:g} "
-                             f"mm")
+            raise InputError(f"map {amap.name} is for ℓ = {amap.thickness_mm:g} mm, "
+                             f"not the sample's {thickness_mm:g} mm")
         return amap
     candidates = []
     for path in (search if search is not None else shipped_maps()):

@@ -217,8 +217,8 @@ class Service:
                 dev.write("status_pattern", WORKING)
                 return
             if time.monotonic() >= deadline:
-                raise TrimeterError(f"no press within {self.settings.swap_timeout_s:g} s for the {thickness:g} mm "
-                                 f"sample")
+                raise TrimeterError(f"no press within {self.settings.swap_timeout_s:g} s "
+                                    f"for the {thickness:g} mm sample")
             time.sleep(poll_s)
 
     def _safe_status(self, pattern: str) -> None:
