@@ -603,7 +603,7 @@ def target_checks(row, paper) -> dict:
 
 
 def _show_check(name, c) -> str:
-    verdict = "" if c["met"] else (" MISSED" if c["issue_target"] else " (below 50)")
+    verdict = "" if c["met"] else (" MISSED" if c["issue_target"] else f" (below {c['limit']:g})")
     return f"{name} {c['value']:.3g}{verdict}" + ("" if c["issue_target"] else " [not an issue target]")
 
 

@@ -7,7 +7,7 @@ NAME (or --host) is a host setting stored in the platformdirs config directory.
 
 `config export [-o FILE]` backs the device configuration up by name; `config import FILE [--save]`
 restores it, e.g. after a firmware update that changed the register map (the device then ignores its
-saved configuration and runs on defaults; `config list` and `serve` say so).
+saved configuration and runs on defaults; `config list`, `serve`, `measure` and `calibrate` say so).
 """
 
 from __future__ import annotations

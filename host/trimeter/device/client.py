@@ -242,36 +242,25 @@ class Device:
             self.write(name, value)
 
     def write_config(self, values: dict) -> None:
-        """Set device configuration items (CONFIG_NAMES; the others keep their value) so that the
-        firmware judges them together: each run of contiguous registers goes in one request, which the
-        firmware takes or refuses whole (its cross-checks, e.g. a slot inside the homing back-off, see
-        the run as one). The configuration block has no holes (registers.toml), so that is one request.
-        Everything is range-checked before anything is sent."""
+        """Set device configuration items (CONFIG_NAMES; the others keep their value) in one request,
+        which the firmware cross-checks and takes or refuses whole (e.g. a slot inside the homing
+        back-off): the configuration block has no holes (registers.toml; tests/device/test_backup.py
+        keeps it so). Everything is range-checked before anything is sent."""
         unknown = [n for n in values if n not in CONFIG_NAMES]
         if unknown:
             raise InputError(f"not device configuration items: {', '.join(unknown)}")
         current = self.read_many(*CONFIG_NAMES)
-        merged = {**current, **values}
-        items = sorted((_lookup(n) for n in CONFIG_NAMES), key=lambda r: r.address)
-        words = {r.name: encode(r, merged[r.name]) for r in items}
-        changed = [r.name for r in items if words[r.name] != encode(r, current[r.name])]
-        runs: list[list[regs.Register]] = []
-        for r in items:
-            if runs and runs[-1][-1].address + runs[-1][-1].words == r.address:
-                runs[-1].append(r)
-            else:
-                runs.append([r])
-        for run in runs:
-            try:
-                self.transport.write_words(run[0].address, [w for r in run for w in words[r.name]])
-            except ModbusExceptionReply as exc:
-                if exc.code == 3:
-                    new = [r.name for r in run if r.name in changed]
-                    raise InputError(f"the device refused the new values of {', '.join(new) or 'nothing'} as "
-                                     f"inconsistent with the rest of its configuration (e.g. a slot inside the "
-                                     f"homing back-off, a homing seek longer than its timeout); nothing in "
-                                     f"{run[0].name}..{run[-1].name} was changed") from None
-                raise
+        block = sorted((_lookup(n) for n in CONFIG_NAMES), key=lambda r: r.address)
+        words = {r.name: encode(r, values.get(r.name, current[r.name])) for r in block}
+        try:
+            self.transport.write_words(block[0].address, [w for r in block for w in words[r.name]])
+        except ModbusExceptionReply as exc:
+            if exc.code == 3:
+                changed = [r.name for r in block if words[r.name] != encode(r, current[r.name])]
+                raise InputError(f"the device refused the new values of {', '.join(changed) or 'nothing'} as "
+                                 f"inconsistent with the rest of its configuration (e.g. a slot inside the homing "
+                                 f"back-off, a homing seek longer than its timeout); nothing was changed") from None
+            raise
 
     # ---------------------------------------------------------------------------------- actions
     def command(self, action: str, argument: str | None = None) -> None:
