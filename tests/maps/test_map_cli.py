@@ -96,3 +96,26 @@ def test_list_names_the_shipped_maps(capsys):
     rows = json.loads(capsys.readouterr().out)
     assert [r["name"] for r in rows] == [p.stem for p in shipped_maps()]
     assert all("error" not in r for r in rows)
+
+
+def test_map_inscatter_traces_a_device_maps_table_and_refuses_an_ideal_map(tmp_path, capsys, monkeypatch):
+    """`trimeter map inscatter`: the table lands next to the map, where loading the map finds it; a map
+    without the device's collimated set-up, or too few photons, is one clear error. (A 4 × 3 × 3 table:
+    the full one takes 90 s; tests/forward/test_inscatter.py checks the tracing itself.)"""
+    import shutil
+
+    from trimeter.forward.inscatter import InscatterTable
+    from trimeter.paths import MAPS_DIR
+
+    build = InscatterTable.build.__func__
+    monkeypatch.setattr(InscatterTable, "build",
+                        classmethod(lambda cls, *a, **kw: build(cls, *a, **{**kw, "shape": (4, 3, 3)})))
+
+    shutil.copy(MAPS_DIR / "device-n1.5-l0.8.tmap", tmp_path / "d.tmap")
+    assert main(["map", "inscatter", str(tmp_path / "d.tmap"), "--photons", "1000"]) == 0
+    table = AppearanceMap.load(tmp_path / "d.tmap").inscatter
+    assert table is not None and table.provenance["photons"] == 1000 and table.L.max() > 0
+    assert main(["map", "inscatter", str(tmp_path / "d.tmap"), "--photons", "10"]) == 2
+    assert "--photons" in capsys.readouterr().err
+    assert main(["map", "inscatter", str(MAPS_DIR / "ideal-n1.5-l0.5.tmap")]) == 2
+    assert "collimated set-up" in capsys.readouterr().err

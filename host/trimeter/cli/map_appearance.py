@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 from pathlib import Path
@@ -84,29 +83,36 @@ def cmd_build(args) -> int:
           f"truncation error ≤ {prov['truncation']['max_error_bound']:.1e} (K = {prov['truncation']['k_max']})")
     print("validation:", json.dumps(validation_report(amap)))
     if recipe.geometry == "device":  # I_c's in-scattered light, which the fit takes out (maps/README)
-        cmd_inscatter(argparse.Namespace(map=str(out), photons=30_000, seed=0, out=None))
+        trace_inscatter(amap, out=out.with_suffix(".tins"))
     return 0
 
 
 def cmd_inscatter(args) -> int:
     from trimeter.errors import InputError
-    from trimeter.forward.inscatter import InscatterTable
 
     amap = load_appearance_map(args.map)
     if amap.recipe["geometry"] != "device" or "collimated" not in amap.recipe.get("geometry_params", {}):
         raise InputError(f"map {amap.name}: in-scattering needs the device geometry's collimated set-up")
     if args.photons < 1000:
         raise InputError("--photons: at least 1000")
-    out = Path(args.out) if args.out else amap.path.with_suffix(".tins")
+    trace_inscatter(amap, photons=args.photons, seed=args.seed, out=Path(args.out) if args.out else None)
+    return 0
+
+
+def trace_inscatter(amap, *, photons: int = 30_000, seed: int = 0, out: Path | None = None) -> Path:
+    """Trace a device map's in-scattering table and write it (default: next to the map, .tins)."""
+    from trimeter.forward.inscatter import InscatterTable
+
+    out = out or amap.path.with_suffix(".tins")
     print(f"tracing the in-scattering table of {amap.name} (n = {amap.n:g}, ℓ = {amap.thickness_mm:g} mm, "
-          f"{args.photons} photons per column) → {out}")
-    table = InscatterTable.build(amap.n, amap.thickness_mm, amap.recipe["geometry_params"], photons=args.photons,
-                                 seed=args.seed,
+          f"{photons} photons per column) → {out}")
+    table = InscatterTable.build(amap.n, amap.thickness_mm, amap.recipe["geometry_params"], photons=photons,
+                                 seed=seed,
                                  progress=lambda j, n: print(f"\r  σt·ℓ column {j + 1}/{n}", end="", flush=True))
     checksum = table.save(out)
     print(f"\nwrote {out} ({out.stat().st_size} bytes, sha256 {checksum[:16]}…) in "
           f"{table.provenance['seconds']:.0f} s; largest ln(1 + r) {table.L.max():.3f}")
-    return 0
+    return out
 
 
 def _describe(amap) -> dict:
