@@ -135,9 +135,7 @@ def save(name, meta, rows, out=None) -> Path:
 def add_inscatter(path: Path, photons: int, seed: int) -> Path:
     """Trace the in-scattered light of every material of a device held-out set and store
     ln(1 + in-scattered / unscattered) as its array inscatter_log1p (the rest of the file unchanged)."""
-    from trimeter.forward.collimated import collimated_transmittance
-    from trimeter.forward.inscatter import _trace_orders
-    from trimeter.geometry import cover_slide_n
+    from trimeter.forward.inscatter import traced_log1p_ratio
     from trimeter.maps.container import write_container
 
     meta, arrays = load_heldout(path)
@@ -148,12 +146,10 @@ def add_inscatter(path: Path, photons: int, seed: int) -> Path:
     t0 = time.perf_counter()
     for j, (sigma_t, g) in enumerate(columns):
         rows = (arrays["sigma_t"] == sigma_t) & (arrays["g"] == g)
-        _, tally, _ = _trace_orders(sigma_t, g, ell, n, photons, seed + j, geometry, nee=True)
-        unscattered = float(collimated_transmittance(sigma_t, ell, n, cover_slide_n(geometry)))
-        L[rows] = np.log1p(np.polynomial.polynomial.polyval(arrays["alpha"][rows], tally) / unscattered)
+        L[rows] = traced_log1p_ratio(arrays["alpha"][rows], sigma_t, g, ell, n, geometry, photons, seed + j)
         print(f"\r{j + 1}/{len(columns)} (σt, g) columns traced", end="", file=sys.stderr, flush=True)
     print(file=sys.stderr)
-    meta = {**meta, "inscatter": {"tracer": "trimeter.forward.inscatter._trace_orders", "photons": photons,
+    meta = {**meta, "inscatter": {"tracer": "trimeter.forward.inscatter.traced_log1p_ratio", "photons": photons,
                                   "seed": seed, "seconds": round(time.perf_counter() - t0, 1)}}
     write_container(path, HELDOUT_KIND, meta, {**arrays, "inscatter_log1p": L})
     return path

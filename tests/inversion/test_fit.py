@@ -307,7 +307,7 @@ def test_light_scattered_into_the_aperture_no_longer_reads_as_a_lower_sigma_t():
     """Forward-scattering white samples send light into the collimated detector's aperture: read as
     unscattered, I_c gives σt too low (by ln(1 + r)/(σt·ℓ)). With the map's in-scattering table the fit
     takes it out; I_c here is traced independently of that table (another trace, another seed)."""
-    from trimeter.forward.inscatter import _trace_orders
+    from trimeter.forward.inscatter import traced_log1p_ratio
     from trimeter.inversion.api import table_inverter
     from trimeter.maps.appearance import AppearanceMap
     from trimeter.paths import MAPS_DIR
@@ -319,12 +319,9 @@ def test_light_scattered_into_the_aperture_no_longer_reads_as_a_lower_sigma_t():
     alpha, g = np.full(3, 0.995), np.full(3, 0.85)
     sigma_t = np.array([1.0, 3.0, 5.5]) / amap.thickness_mm
     I_b, I_w, _ = table_inverter(plain).grid.intensities(alpha, sigma_t, g, 0.02, 0.9)
-    ratio = []
-    for s in sigma_t:
-        _, tally, _ = _trace_orders(s, 0.85, amap.thickness_mm, amap.n, 40_000, 99, amap.recipe["geometry_params"],
-                                    nee=True)
-        ratio.append(np.polynomial.polynomial.polyval(0.995, tally) / float(amap.collimated(s)))
-    I_c = amap.collimated(sigma_t) * (1 + np.array(ratio))
+    L = [traced_log1p_ratio(0.995, s, 0.85, amap.thickness_mm, amap.n, amap.recipe["geometry_params"], 40_000, 99)
+         for s in sigma_t]
+    I_c = amap.collimated(sigma_t) * np.exp(L)
     before = trimeter.fit(plain, I_b, I_w, I_c, 0.02, 0.9)
     after = trimeter.fit(amap, I_b, I_w, I_c, 0.02, 0.9)
     bias = before.sigma_t / sigma_t - 1

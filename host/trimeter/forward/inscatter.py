@@ -220,6 +220,14 @@ INSCATTER_FORMAT_VERSION = 1
 TAU_MAX = 10.0  # beyond, I_c is far under any noise floor (e^-10): σt is only a lower bound there anyway
 
 
+def traced_log1p_ratio(alphas, sigma_t: float, g: float, thickness_mm: float, n: float, geometry: dict,
+                       photons: int, seed: int) -> np.ndarray:
+    """L = ln(1 + in-scattered / unscattered) at each of `alphas`, for one (σt, g), from one trace."""
+    _, tally, _ = _trace_orders(sigma_t, g, thickness_mm, n, photons, seed, geometry, nee=True)
+    unscattered = float(collimated_transmittance(sigma_t, thickness_mm, n, cover_slide_n(geometry)))
+    return np.log1p(np.polynomial.polynomial.polyval(np.asarray(alphas, dtype=float), tally) / unscattered)
+
+
 def regular_cell(p, n: int):
     """(cell, weight) on an evenly spaced axis of n nodes at p = (x − x0)/step, clamped to the axis
     (invert.c inscatter_log1p's τ cell)."""
@@ -274,16 +282,12 @@ class InscatterTable:
         alphas, taus, gs = cls.axes(*shape)
         L = np.zeros(shape)
         t0 = time.perf_counter()
-        n_slide = cover_slide_n(geometry_params)
         for j, tau in enumerate(taus):
             if tau == 0.0:
                 continue  # nothing scatters: L = 0
-            sigma_t = tau / thickness_mm
-            unscattered = float(collimated_transmittance(sigma_t, thickness_mm, n, n_slide))
             for k, g in enumerate(gs):
-                _, tally, _ = _trace_orders(sigma_t, g, thickness_mm, n, photons, seed + 1000 * j + k,
-                                            geometry_params, nee=True)
-                L[:, j, k] = np.log1p(np.polynomial.polynomial.polyval(alphas, tally) / unscattered)
+                L[:, j, k] = traced_log1p_ratio(alphas, tau / thickness_mm, g, thickness_mm, n, geometry_params,
+                                                photons, seed + 1000 * j + k)
             if progress:
                 progress(j, len(taus))
         provenance = {"builder": "trimeter.forward.inscatter.InscatterTable.build", "photons": photons, "seed": seed,
