@@ -66,6 +66,11 @@ static void poll_status(actuators_t *a, uint32_t now_us)
         lit = phase == 0u || phase == 2u;
         break;
     }
+    case STATUS_TRIPLE_BLINK: {                                      /* three 150 ms flashes per 2.1 s */
+        uint32_t phase = (now_us / 150000u) % 14u;
+        lit = phase == 0u || phase == 2u || phase == 4u;
+        break;
+    }
     default: lit = false; break;
     }
     if (lit != a->status_lit) {

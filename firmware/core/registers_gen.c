@@ -45,7 +45,7 @@ const regmap_entry_t regmap_entries[REGMAP_ENTRY_COUNT] = {
     {"command", 0, REGMAP_HOLDING_REGISTER, REGMAP_U16, 1, 1, 0, 0, 0LL, 8LL, 0LL, 0.0f, 0.0f, 0.0f},
     {"led_panels_level", 2, REGMAP_HOLDING_REGISTER, REGMAP_U16, 1, 1, 0, 0, 0LL, 1000LL, 1000LL, 0.0f, 0.0f, 0.0f},
     {"led_collimated_level", 3, REGMAP_HOLDING_REGISTER, REGMAP_U16, 1, 1, 0, 0, 0LL, 1000LL, 1000LL, 0.0f, 0.0f, 0.0f},
-    {"status_pattern", 4, REGMAP_HOLDING_REGISTER, REGMAP_U16, 1, 1, 0, 0, 0LL, 4LL, 2LL, 0.0f, 0.0f, 0.0f},
+    {"status_pattern", 4, REGMAP_HOLDING_REGISTER, REGMAP_U16, 1, 1, 0, 0, 0LL, 5LL, 2LL, 0.0f, 0.0f, 0.0f},
     {"map_expected_length", 16, REGMAP_HOLDING_REGISTER, REGMAP_U32, 2, 1, 0, 0, 1LL, 131072LL, 1LL, 0.0f, 0.0f, 0.0f},
     {"map_expected_crc32", 18, REGMAP_HOLDING_REGISTER, REGMAP_U32, 2, 1, 0, 0, 0LL, 4294967295LL, 0LL, 0.0f, 0.0f, 0.0f},
     {"map_version", 20, REGMAP_HOLDING_REGISTER, REGMAP_U16, 1, 1, 0, 0, 0LL, 65535LL, 0LL, 0.0f, 0.0f, 0.0f},

@@ -8,7 +8,7 @@
 #include <stdint.h>
 
 /* ---- identity */
-#define TRIMETER_REGMAP_HASH 0x8FF0D4C7u
+#define TRIMETER_REGMAP_HASH 0xECAA8000u
 #define TRIMETER_FIRMWARE_VERSION "0.1.0"
 #define TRIMETER_FIRMWARE_VERSION_MAJOR 0u
 #define TRIMETER_FIRMWARE_VERSION_MINOR 1u
@@ -111,6 +111,7 @@ typedef enum {
     TRIMETER_STATUS_PATTERN_SLOW_BLINK = 2,
     TRIMETER_STATUS_PATTERN_FAST_BLINK = 3,
     TRIMETER_STATUS_PATTERN_DOUBLE_BLINK = 4,
+    TRIMETER_STATUS_PATTERN_TRIPLE_BLINK = 5,
 } trimeter_status_pattern_t;
 static inline const char *trimeter_status_pattern_name(unsigned value) /* else "unknown" */
 {
@@ -120,6 +121,7 @@ static inline const char *trimeter_status_pattern_name(unsigned value) /* else "
     case 2u: return "slow_blink";
     case 3u: return "fast_blink";
     case 4u: return "double_blink";
+    case 5u: return "triple_blink";
     default: return "unknown";
     }
 }
@@ -276,7 +278,7 @@ static inline const char *trimeter_map_op_status_name(unsigned value) /* else "u
 #define REG_HR_STATUS_PATTERN 4u
 #define REG_HR_STATUS_PATTERN_DEFAULT 2u
 #define REG_HR_STATUS_PATTERN_MIN 0u
-#define REG_HR_STATUS_PATTERN_MAX 4u
+#define REG_HR_STATUS_PATTERN_MAX 5u
 #define REG_HR_MAP_EXPECTED_LENGTH 16u
 #define REG_HR_MAP_EXPECTED_LENGTH_DEFAULT 1u
 #define REG_HR_MAP_EXPECTED_LENGTH_MIN 1u

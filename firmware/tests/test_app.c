@@ -426,6 +426,17 @@ static void test_status_led_patterns(void)
     }
     CHECK(flashes >= 3 && flashes <= 5);      /* two per 1.5 s over 3 s */
     CHECK(lit_ms >= 500 && lit_ms <= 700);    /* short flashes: 600 ms lit in 3 s */
+    CHECK_EQ_INT(write_reg(REG_HR_STATUS_PATTERN, TRIMETER_STATUS_PATTERN_TRIPLE_BLINK), MB_OK);
+    flashes = 0, lit_ms = 0;
+    last = f->status_led;
+    for (int i = 0; i < 4200; i++) {
+        run_ms(1);
+        lit_ms += f->status_led;
+        if (f->status_led && !last) flashes++;
+        last = f->status_led;
+    }
+    CHECK(flashes >= 5 && flashes <= 7);      /* three per 2.1 s over 4.2 s */
+    CHECK(lit_ms >= 800 && lit_ms <= 1000);   /* six 150 ms flashes: 900 ms lit */
     CHECK_EQ_INT(write_reg(REG_HR_STATUS_PATTERN, 9), MB_EX_ILLEGAL_DATA_VALUE);
 }
 

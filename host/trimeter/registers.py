@@ -9,7 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from enum import IntEnum
 
-REGMAP_HASH = 0x8FF0D4C7
+REGMAP_HASH = 0xECAA8000
 FIRMWARE_VERSION = (0, 1, 0)
 VENDOR_NAME = 'trimeter project'
 PRODUCT_CODE = 'TRIMETER-1'
@@ -70,6 +70,7 @@ class StatusPattern(IntEnum):
     SLOW_BLINK = 2
     FAST_BLINK = 3
     DOUBLE_BLINK = 4
+    TRIPLE_BLINK = 5
 
 
 class ConfigSource(IntEnum):
@@ -219,7 +220,7 @@ REGISTERS: tuple[Register, ...] = (
              'PWM duty of both diffuse panels while on, permille.'),
     Register('led_collimated_level', 'holding_register', 3, 'u16', 1, 'rw', 0.001, '1', 0, 1000, 1000, None, (),
              'PWM duty of the collimated LED while on, permille.'),
-    Register('status_pattern', 'holding_register', 4, 'u16', 1, 'rw', 1.0, '', 0, 4, 2, 'status_pattern', (),
+    Register('status_pattern', 'holding_register', 4, 'u16', 1, 'rw', 1.0, '', 0, 5, 2, 'status_pattern', (),
              'Status LED pattern.'),
     Register('map_expected_length', 'holding_register', 16, 'u32', 2, 'rw', 1.0, 'bytes', 1, 131072, 1, None, (),
              "Parameter of begin_write: the map's length in bytes (<= map_transfer.slot_capacity_bytes)."),
