@@ -13,5 +13,9 @@ class MapFileError(TrimeterError):
     """A map or map-table file that is truncated, tampered with, or of an unknown version."""
 
 
+class OutputError(TrimeterError):
+    """A file or directory that cannot be written (full disk, read-only, no permission). The message names it."""
+
+
 class DeviceError(TrimeterError):
     """The instrument did not answer, answered wrongly, or refused (firmware/register-map mismatch)."""

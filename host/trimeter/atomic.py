@@ -1,0 +1,88 @@
+"""Files that are either the old version or the complete new one, never a truncated mix.
+
+`atomic_output(path)` hands out a temporary file next to `path` (same file system, so the final
+rename is atomic); on a clean exit it is flushed, fsynced and renamed over `path`, and the directory
+is fsynced so the rename survives a power cut. On any error the temporary file is removed and the
+previous `path`, if any, is untouched. `atomic_write(path, data)` is the one-shot form.
+
+Errors come out as OutputError naming the path and the reason (full disk, read-only, no permission).
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from contextlib import contextmanager
+from pathlib import Path
+from typing import BinaryIO, Iterator
+
+from trimeter.errors import OutputError
+
+TEMP_SUFFIX = ".tmp"
+
+
+def _default_mode() -> int:
+    # mkstemp creates 0600; an output should get the permissions a plain open() would give it
+    umask = os.umask(0)
+    os.umask(umask)
+    return 0o666 & ~umask
+
+
+def fsync_directory(directory: str | os.PathLike) -> None:
+    """Make a rename or a new entry in `directory` durable (a no-op where directories can't be fsynced)."""
+    try:
+        fd = os.open(directory, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass  # some file systems refuse fsync on a directory; the rename itself is still atomic
+    finally:
+        os.close(fd)
+
+
+def describe_os_error(exc: OSError) -> str:
+    return exc.strerror or str(exc)
+
+
+@contextmanager
+def atomic_output(path: str | os.PathLike, *, make_parents: bool = True) -> Iterator[BinaryIO]:
+    """Yield a binary file; when the block ends without an exception it replaces `path` atomically."""
+    path = Path(path)
+    try:
+        if make_parents:
+            path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=TEMP_SUFFIX)
+    except OSError as exc:
+        raise OutputError(f"cannot write {path}: {describe_os_error(exc)}") from None
+    try:
+        with os.fdopen(fd, "wb") as f:
+            os.fchmod(f.fileno(), _default_mode())
+            yield f
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException as exc:
+        Path(tmp).unlink(missing_ok=True)
+        if isinstance(exc, OSError):
+            raise OutputError(f"cannot write {path}: {describe_os_error(exc)}") from exc
+        raise
+    fsync_directory(path.parent)
+
+
+def atomic_write(path: str | os.PathLike, data: bytes | str, *, make_parents: bool = True) -> Path:
+    """Write `data` (str as UTF-8) to `path` atomically; return the path."""
+    if isinstance(data, str):
+        data = data.encode("utf-8")
+    with atomic_output(path, make_parents=make_parents) as f:
+        f.write(data)
+    return Path(path)
+
+
+def same_file(a: str | os.PathLike, b: str | os.PathLike) -> bool:
+    """True if `a` and `b` name one file (the same path, a symlink to it, or a hard link)."""
+    try:
+        return os.path.samefile(a, b)
+    except OSError:  # one of them does not exist (yet): compare where they would be
+        return Path(a).resolve() == Path(b).resolve()
