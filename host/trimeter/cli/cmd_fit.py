@@ -20,7 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
-from trimeter.errors import InputError
+from trimeter.atomic import atomic_write, same_file
+from trimeter.errors import InputError, OutputError
 
 REQUIRED = ("wavelength_nm", "I_b", "I_w", "I_c")
 OPTIONAL = ("rho_b", "rho_w", "thickness_mm")
@@ -103,6 +104,7 @@ def run(args) -> int:
     from trimeter.inversion.flags import advice, describe
 
     amaps = [_load_map(m) for m in args.maps]
+    refuse_output_onto_inputs(args.output, [args.input, *(m.path for m in amaps if m.path is not None)])
     if len({round(m.thickness_mm, 9) for m in amaps}) != len(amaps):
         raise InputError("--map: the maps must be for different thicknesses")
     data = read_measurements(args.input)
@@ -135,13 +137,21 @@ def _json_number(v):
     return v if math.isfinite(v) else None
 
 
+def refuse_output_onto_inputs(output: Path | None, inputs) -> None:
+    """-o naming one of the inputs (itself, a symlink or a hard link to it) would destroy it: refuse up front."""
+    if output is None:
+        return
+    for source in inputs:
+        if Path(source).exists() and same_file(output, source):
+            raise InputError(f"-o {output}: is the input {source}; choose another output file")
+
+
 def _write(path: Path | None, text: str) -> None:
     if path is None:
         sys.stdout.write(text)
         return
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(text)
-    except OSError as exc:
-        raise InputError(f"-o {path}: cannot write ({exc.strerror or exc})") from None
+        atomic_write(path, text)
+    except OutputError as exc:
+        raise OutputError(f"-o: {exc}") from None
     print(f"wrote {path}", file=sys.stderr)
