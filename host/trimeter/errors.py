@@ -19,3 +19,8 @@ class OutputError(TrimeterError):
 
 class DeviceError(TrimeterError):
     """The instrument did not answer, answered wrongly, or refused (firmware/register-map mismatch)."""
+
+
+class CheckError(TrimeterError):
+    """A check refused a calibration or a measurement (a sample in the holder at calibration, a lamp that
+    failed since): nothing was saved as one. The message says what was seen and what to do."""
