@@ -8,7 +8,7 @@
 #include <stdint.h>
 
 /* ---- identity */
-#define TRIMETER_REGMAP_HASH 0xECAA8000u
+#define TRIMETER_REGMAP_HASH 0x0AFB548Fu
 #define TRIMETER_FIRMWARE_VERSION "0.1.0"
 #define TRIMETER_FIRMWARE_VERSION_MAJOR 0u
 #define TRIMETER_FIRMWARE_VERSION_MINOR 1u
@@ -181,6 +181,9 @@ typedef enum {
     TRIMETER_MAP_OP_STATUS_ACTIVATED = 4,
     TRIMETER_MAP_OP_STATUS_ERROR_STATE = 5,
     TRIMETER_MAP_OP_STATUS_ERROR_STORAGE = 6,
+    TRIMETER_MAP_OP_STATUS_ERROR_LOCKED = 7,
+    TRIMETER_MAP_OP_STATUS_ERROR_BUSY = 8,
+    TRIMETER_MAP_OP_STATUS_ERROR_TABLE = 9,
 } trimeter_map_op_status_t;
 static inline const char *trimeter_map_op_status_name(unsigned value) /* else "unknown" */
 {
@@ -192,6 +195,21 @@ static inline const char *trimeter_map_op_status_name(unsigned value) /* else "u
     case 4u: return "activated";
     case 5u: return "error_state";
     case 6u: return "error_storage";
+    case 7u: return "error_locked";
+    case 8u: return "error_busy";
+    case 9u: return "error_table";
+    default: return "unknown";
+    }
+}
+typedef enum {
+    TRIMETER_UNLOCK_LOCKED = 0,
+    TRIMETER_UNLOCK_KEY = 23294,
+} trimeter_unlock_t;
+static inline const char *trimeter_unlock_name(unsigned value) /* else "unknown" */
+{
+    switch (value) {
+    case 0u: return "locked";
+    case 23294u: return "key";
     default: return "unknown";
     }
 }
@@ -232,7 +250,7 @@ static inline const char *trimeter_map_op_status_name(unsigned value) /* else "u
 #define REG_DI_HOMED 4u
 
 /* ---- input_registers */
-#define REG_IR_SPAN 52u /* one past the highest used address */
+#define REG_IR_SPAN 65u /* one past the highest used address */
 #define REG_IR_VENDOR_ID 0u
 #define REG_IR_MODEL_ID 1u
 #define REG_IR_FIRMWARE_VERSION_MAJOR 2u
@@ -260,6 +278,11 @@ static inline const char *trimeter_map_op_status_name(unsigned value) /* else "u
 #define REG_IR_MAP_SLOT_B_VERSION 46u
 #define REG_IR_MAP_OP_STATUS 48u
 #define REG_IR_MAP_OP_BYTES_WRITTEN 50u
+#define REG_IR_ERASE_COUNT_CONFIG_A 56u
+#define REG_IR_ERASE_COUNT_CONFIG_B 58u
+#define REG_IR_ERASE_COUNT_MAP_A 60u
+#define REG_IR_ERASE_COUNT_MAP_B 62u
+#define REG_IR_ERASE_REFUSALS 64u
 
 /* ---- holding_registers */
 #define REG_HR_SPAN 95u /* one past the highest used address */
@@ -267,6 +290,10 @@ static inline const char *trimeter_map_op_status_name(unsigned value) /* else "u
 #define REG_HR_COMMAND_DEFAULT 0u
 #define REG_HR_COMMAND_MIN 0u
 #define REG_HR_COMMAND_MAX 8u
+#define REG_HR_UNLOCK 1u
+#define REG_HR_UNLOCK_DEFAULT 0u
+#define REG_HR_UNLOCK_MIN 0u
+#define REG_HR_UNLOCK_MAX 23294u
 #define REG_HR_LED_PANELS_LEVEL 2u
 #define REG_HR_LED_PANELS_LEVEL_DEFAULT 1000u
 #define REG_HR_LED_PANELS_LEVEL_MIN 0u
@@ -405,7 +432,7 @@ typedef struct {
     float min_f, max_f, def_f; /* f32 */
 } regmap_entry_t;
 
-#define REGMAP_ENTRY_COUNT 69u
+#define REGMAP_ENTRY_COUNT 75u
 extern const regmap_entry_t regmap_entries[REGMAP_ENTRY_COUNT];
 
 #endif

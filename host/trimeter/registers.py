@@ -9,7 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from enum import IntEnum
 
-REGMAP_HASH = 0xECAA8000
+REGMAP_HASH = 0x0AFB548F
 FIRMWARE_VERSION = (0, 1, 0)
 VENDOR_NAME = 'trimeter project'
 PRODUCT_CODE = 'TRIMETER-1'
@@ -102,6 +102,14 @@ class MapOpStatus(IntEnum):
     ACTIVATED = 4
     ERROR_STATE = 5
     ERROR_STORAGE = 6
+    ERROR_LOCKED = 7
+    ERROR_BUSY = 8
+    ERROR_TABLE = 9
+
+
+class Unlock(IntEnum):
+    LOCKED = 0
+    KEY = 23294
 
 
 ENUMS: dict[str, type[IntEnum]] = {
@@ -114,6 +122,7 @@ ENUMS: dict[str, type[IntEnum]] = {
     'map_slot': MapSlot,
     'map_command': MapCommand,
     'map_op_status': MapOpStatus,
+    'unlock': Unlock,
 }
 
 
@@ -195,7 +204,7 @@ REGISTERS: tuple[Register, ...] = (
     Register('map_active_slot', 'input_register', 32, 'u16', 1, 'r', 1.0, '', 0, 2, 0, 'map_slot', (),
              'The map slot in use (none when no valid map).'),
     Register('map_slot_a_valid', 'input_register', 33, 'u16', 1, 'r', 1.0, '', 0, 1, 0, None, (),
-             'Slot A holds a complete map whose CRC-32 matches.'),
+             'Slot A holds a complete map whose CRC-32 matches and whose table header the firmware accepts (magic, version, sizes, grid and sample set-up).'),
     Register('map_slot_a_length', 'input_register', 34, 'u32', 2, 'r', 1.0, 'bytes', 0, 4294967295, 0, None, (),
              'Length of the map in slot A.'),
     Register('map_slot_a_crc32', 'input_register', 36, 'u32', 2, 'r', 1.0, '', 0, 4294967295, 0, None, (),
@@ -203,19 +212,31 @@ REGISTERS: tuple[Register, ...] = (
     Register('map_slot_a_version', 'input_register', 38, 'u16', 1, 'r', 1.0, '', 0, 65535, 0, None, (),
              'Map version stamped by the host at begin_write (slot A).'),
     Register('map_slot_b_valid', 'input_register', 41, 'u16', 1, 'r', 1.0, '', 0, 1, 0, None, (),
-             'Slot B holds a complete map whose CRC-32 matches.'),
+             'Slot B holds a complete map whose CRC-32 matches and whose table header the firmware accepts.'),
     Register('map_slot_b_length', 'input_register', 42, 'u32', 2, 'r', 1.0, 'bytes', 0, 4294967295, 0, None, (),
              ''),
     Register('map_slot_b_crc32', 'input_register', 44, 'u32', 2, 'r', 1.0, '', 0, 4294967295, 0, None, (),
              ''),
     Register('map_slot_b_version', 'input_register', 46, 'u16', 1, 'r', 1.0, '', 0, 65535, 0, None, (),
              ''),
-    Register('map_op_status', 'input_register', 48, 'u16', 1, 'r', 1.0, '', 0, 6, 0, 'map_op_status', (),
+    Register('map_op_status', 'input_register', 48, 'u16', 1, 'r', 1.0, '', 0, 9, 0, 'map_op_status', (),
              'Result of the last map operation.'),
     Register('map_op_bytes_written', 'input_register', 50, 'u32', 2, 'r', 1.0, 'bytes', 0, 4294967295, 0, None, (),
              'Highest byte offset written in the open write (progress).'),
+    Register('erase_count_config_a', 'input_register', 56, 'u32', 2, 'r', 1.0, '', 0, 4294967295, 0, None, (),
+             'Erases of configuration region A (flash sector; ~10k erase cycles rated).'),
+    Register('erase_count_config_b', 'input_register', 58, 'u32', 2, 'r', 1.0, '', 0, 4294967295, 0, None, (),
+             'Erases of configuration region B.'),
+    Register('erase_count_map_a', 'input_register', 60, 'u32', 2, 'r', 1.0, '', 0, 4294967295, 0, None, (),
+             'Erases of map slot A.'),
+    Register('erase_count_map_b', 'input_register', 62, 'u32', 2, 'r', 1.0, '', 0, 4294967295, 0, None, (),
+             'Erases of map slot B.'),
+    Register('erase_refusals', 'input_register', 64, 'u16', 1, 'r', 1.0, '', 0, 65535, 0, None, (),
+             'Erases refused by the rate limit since boot (save_config answered exception 06, begin_write error_busy), wraps.'),
     Register('command', 'holding_register', 0, 'u16', 1, 'rw', 1.0, '', 0, 8, 0, 'command', (),
-             'Write to start an action; reads back the last accepted command. Motion commands only set a target.'),
+             'Write to start an action; reads back the last accepted command. Motion commands only set a target. save_config and load_defaults need `unlock` first (else exception 01); a save refused by the erase rate limit: exception 06.'),
+    Register('unlock', 'holding_register', 1, 'u16', 1, 'rw', 1.0, '', 0, 23294, 0, 'unlock', (0, 23294),
+             "Write key (0x5AFE) to allow ONE destructive command (save_config, load_defaults, map begin_write / activate) within the next 2 s; written alone, from this device's address (a broadcast never unlocks), it is a request of its own before the command. A repeat of the same command in the window (a retry after a lost reply) is acknowledged, not run twice. Reads 0."),
     Register('led_panels_level', 'holding_register', 2, 'u16', 1, 'rw', 0.001, '1', 0, 1000, 1000, None, (),
              'PWM duty of both diffuse panels while on, permille.'),
     Register('led_collimated_level', 'holding_register', 3, 'u16', 1, 'rw', 0.001, '1', 0, 1000, 1000, None, (),
@@ -283,4 +304,4 @@ COILS: dict[str, Register] = {r.name: r for r in REGISTERS if r.table == 'coil'}
 DISCRETE_INPUTS: dict[str, Register] = {r.name: r for r in REGISTERS if r.table == 'discrete_input'}
 INPUT_REGISTERS: dict[str, Register] = {r.name: r for r in REGISTERS if r.table == 'input_register'}
 HOLDING_REGISTERS: dict[str, Register] = {r.name: r for r in REGISTERS if r.table == 'holding_register'}
-SPANS: dict[str, int] = {'coil': 6, 'discrete_input': 5, 'input_register': 52, 'holding_register': 95}
+SPANS: dict[str, int] = {'coil': 6, 'discrete_input': 5, 'input_register': 65, 'holding_register': 95}
