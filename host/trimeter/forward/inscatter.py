@@ -247,6 +247,20 @@ def trilinear(L, i, wi, j, wj, k, wk):
     return lerp(lerp(along_k(i, j), along_k(i, j + 1), wj), lerp(along_k(i + 1, j), along_k(i + 1, j + 1), wj), wi)
 
 
+def _inscatter_schema():
+    """What an in-scatter table file must hold (trimeter.maps.schema), checked before it is used."""
+    from trimeter.maps.schema import GEOMETRY_PARAMS, PROVENANCE, SAMPLE_N, THICKNESS_MM, ArraySpec, ContainerSchema, \
+        Number, Table
+
+    extent = Number(lo=0.0, lo_open=True, hi=50.0)  # u_max, v_max: −ln(1 − 0.999) ≈ 6.9; τ_max: TAU_MAX
+    return ContainerSchema(
+        version=("format_version", "in-scatter table format version", INSCATTER_FORMAT_VERSION),
+        meta=Table({"u_max": extent, "tau_max": extent, "v_max": extent, "n": SAMPLE_N, "thickness_mm": THICKNESS_MM,
+                    "geometry_params": GEOMETRY_PARAMS, "provenance": PROVENANCE},
+                   required=("format_version", "u_max", "tau_max", "v_max", "n", "thickness_mm", "geometry_params")),
+        arrays={"L": ArraySpec(("n_u", "n_tau", "n_g"), min_len=2, lo=0.0, hi=50.0)})
+
+
 class InscatterTable:
     """L = ln(1 + r), r the in-scattered over the unscattered collimated light, on a regular grid in
     u = −ln(1 − α) (α 0 … 0.999), τ = σt·ℓ (0 … TAU_MAX) and v = −ln(1 − g) (g 0 … 0.9), for one sample
@@ -318,9 +332,7 @@ class InscatterTable:
     def load(cls, path) -> "InscatterTable":
         from trimeter.maps.container import read_container
 
-        meta, arrays, checksum = read_container(path, INSCATTER_KIND)
-        if meta.get("format_version") != INSCATTER_FORMAT_VERSION or "L" not in arrays:
-            raise MapFileError(f"{path}: not an in-scatter table of format {INSCATTER_FORMAT_VERSION}")
+        meta, arrays, checksum = read_container(path, INSCATTER_KIND, _inscatter_schema())
         try:
             table = cls(arrays["L"], **{k: meta[k] for k in ("u_max", "tau_max", "v_max", "n", "thickness_mm",
                                                              "geometry_params")},

@@ -19,9 +19,12 @@ from pathlib import Path
 import numpy as np
 
 from trimeter.errors import MapFileError
+from trimeter.maps.schema import shown
 
 MODEL_SUFFIX = ".onnx"
 MODEL_KIND = "mlp-inverse"
+MODEL_FORMAT = "1"
+MAX_MODEL_BYTES = 64 * 2**20  # the shipped models are ~6 KB; onnxruntime would parse anything given
 FEATURES = ("sqrt_I_b", "sqrt_I_w", "ln_sigma_t", "rho_b", "rho_w")
 _CACHE: dict = {}
 
@@ -47,28 +50,40 @@ class MlpInverter:
     def __init__(self, path: str | Path, map_checksum: str, log_sigma_range, alpha_range, g_range):
         import onnxruntime as ort
 
+        from trimeter.maps.container import read_bounded
+
         path = Path(path)
+        model = read_bounded(path, MAX_MODEL_BYTES, "MLP model")
         opts = ort.SessionOptions()
         opts.intra_op_num_threads = 1   # one core: the benchmark's unit, and the machine is shared
         opts.inter_op_num_threads = 1
         try:
-            self.session = ort.InferenceSession(str(path), sess_options=opts, providers=["CPUExecutionProvider"])
+            self.session = ort.InferenceSession(model, sess_options=opts, providers=["CPUExecutionProvider"])
         except Exception as exc:  # onnxruntime raises its own exception types for corrupt files
             raise MapFileError(f"{path}: not a loadable ONNX model ({str(exc).splitlines()[0]})") from None
         meta = self.session.get_modelmeta().custom_metadata_map
+        meta = self.session.get_modelmeta().custom_metadata_map
         if meta.get("trimeter.kind") != MODEL_KIND:
-            raise MapFileError(f"{path}: not a trimeter MLP inverse model")
+            raise MapFileError(f"{path}: not a trimeter MLP inverse model (metadata trimeter.kind is "
+                               f"{shown(meta.get('trimeter.kind'))})")
+        if meta.get("trimeter.format", MODEL_FORMAT) != MODEL_FORMAT:
+            raise MapFileError(f"{path}: metadata trimeter.format {shown(meta.get('trimeter.format'))} is not "
+                               f"supported (expected {MODEL_FORMAT!r})")
         if meta.get("trimeter.features") != ",".join(FEATURES):
-            raise MapFileError(f"{path}: model features {meta.get('trimeter.features')!r} are not "
+            raise MapFileError(f"{path}: metadata trimeter.features {shown(meta.get('trimeter.features'))} is not "
                                f"{','.join(FEATURES)!r}")
         if map_checksum and meta.get("trimeter.map_sha256") != map_checksum:
-            raise MapFileError(f"{path}: trained on map {str(meta.get('trimeter.map_sha256'))[:12]}…, not on this "
+            raise MapFileError(f"{path}: trained on map {shown(meta.get('trimeter.map_sha256'), 12)}, not on this "
                                f"map ({map_checksum[:12]}…); retrain it with tools/train_mlp.py")
         self.path = path
-        self.input_name = self.session.get_inputs()[0].name
-        out_shape = self.session.get_outputs()[0].shape
-        if len(self.session.get_inputs()) != 1 or len(out_shape) != 2 or out_shape[1] != 2:
-            raise MapFileError(f"{path}: model must map (N, {len(FEATURES)}) to (N, 2), declares output {out_shape}")
+        inputs, outputs = self.session.get_inputs(), self.session.get_outputs()
+        wanted = ((inputs, len(FEATURES)), (outputs, 2))
+        if any(len(io) != 1 or io[0].type != "tensor(float)" or len(io[0].shape) != 2 or io[0].shape[1] != width
+               for io, width in wanted):
+            declared = [(x.type, x.shape) for x in inputs + outputs]
+            raise MapFileError(f"{path}: model must map float32 (N, {len(FEATURES)}) to float32 (N, 2), declares "
+                               f"{shown(declared)}")
+        self.input_name = inputs[0].name
         self.log_sigma_range = log_sigma_range
         self.alpha_range, self.g_range = alpha_range, g_range
 

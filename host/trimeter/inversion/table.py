@@ -176,12 +176,12 @@ class MapTable:
         if not (np.all(np.isfinite(floats)) and np.all(np.isfinite(arrays["coef_quant"]))
                 and np.all(np.isfinite(arrays["inv_frame"]))):
             raise MapFileError(f"{source}: non-finite number in the header or payload")
-        if not (n >= 1 and thickness > 0 and 0 <= rho_b < rho_w <= 1 and arrays["alpha"][0] >= 0
+        if not (1 <= n <= 3 and 0 < thickness <= 100 and 0 <= rho_b < rho_w <= 1 and arrays["alpha"][0] >= 0
                 and arrays["alpha"][-1] <= 1 and arrays["g"][0] > -1 and arrays["g"][-1] < 1):
             raise MapFileError(f"{source}: impossible sample set-up or axis range in the header")
         if _reserved or any(_pad) or b"\0" in name.rstrip(b"\0"):
             raise MapFileError(f"{source}: reserved header bytes are not zero (written by a newer or broken tool)")
-        if not (cover_n == 0 or cover_n >= 1) or mc_stderr < 0:
+        if not (cover_n == 0 or 1 <= cover_n <= 3) or mc_stderr < 0:
             raise MapFileError(f"{source}: impossible cover-slide index or MC std-error in the header")
         try:
             name_str = name.rstrip(b"\0").decode()
@@ -201,12 +201,10 @@ class MapTable:
 
     @classmethod
     def load(cls, path: str | Path) -> "MapTable":
+        from trimeter.maps.container import read_bounded
+
         path = Path(path)
-        try:
-            data = path.read_bytes()
-        except OSError as exc:
-            raise MapFileError(f"{path}: cannot read ({exc.strerror or exc})") from None
-        table = cls.from_bytes(data, source=str(path))
+        table = cls.from_bytes(read_bounded(path, MAX_TABLE_BYTES, "map table"), source=str(path))
         object.__setattr__(table, "path", path)
         return table
 

@@ -32,6 +32,8 @@ from trimeter.errors import InputError, MapFileError
 from trimeter.forward.collimated import collimated_transmittance
 from trimeter.geometry import cover_slide_n
 from trimeter.maps.container import read_container, write_container
+from trimeter.maps.schema import (GEOMETRY_PARAMS, PROVENANCE, REFLECTANCE, SAMPLE_N, THICKNESS_MM, ArraySpec,
+                                  ContainerSchema, Table, Text)
 from trimeter.paths import MAPS_DIR
 
 MAP_KIND = "appearance-map"
@@ -39,6 +41,26 @@ MAP_FORMAT_VERSION = 1
 MAP_SUFFIX = ".tmap"
 _COEFFS = ("A", "B", "C")
 _REQUIRED = ("alpha", "sigma_t", "g", *_COEFFS, "std_b", "std_w")
+_GRID = ("n_alpha", "n_sigma_t", "n_g")
+# What a map file must hold, checked before it is used (trimeter.maps.schema). A, B, C are fractions of
+# light (Monte Carlo noise aside, in [0, 1]); C < 1 keeps I(ρ) finite for every ρ ≤ 1.
+MAP_SCHEMA = ContainerSchema(
+    version=("map_format_version", "map format version", MAP_FORMAT_VERSION),
+    meta=Table({"recipe": Table({"geometry": Text(max_len=64), "n": SAMPLE_N, "thickness_mm": THICKNESS_MM,
+                                 "name": Text(max_len=256), "description": Text(max_len=4096),
+                                 "reference_rho_b": REFLECTANCE, "reference_rho_w": REFLECTANCE,
+                                 "geometry_params": GEOMETRY_PARAMS},
+                                required=("geometry", "n", "thickness_mm"),
+                                rules=((lambda r: r.get("reference_rho_b", 0.0) < r.get("reference_rho_w", 1.0),
+                                        "reference_rho_b must be below reference_rho_w"),)),
+                "provenance": PROVENANCE},
+               required=("map_format_version", "recipe")),
+    arrays={"alpha": ArraySpec(_GRID[:1], min_len=2, increasing=True, lo=0.0, hi=1.0),
+            "sigma_t": ArraySpec(_GRID[1:2], min_len=2, increasing=True, lo=0.0, lo_open=True, hi=1e6),
+            "g": ArraySpec(_GRID[2:], min_len=2, increasing=True, lo=-1.0, hi=1.0, lo_open=True, hi_open=True),
+            "A": ArraySpec(_GRID, lo=-0.05, hi=1.0), "B": ArraySpec(_GRID, lo=-0.05, hi=1.0),
+            "C": ArraySpec(_GRID, lo=-0.05, hi=1.0, hi_open=True),
+            "std_b": ArraySpec(_GRID, lo=0.0, hi=1.0), "std_w": ArraySpec(_GRID, lo=0.0, hi=1.0)})
 
 
 @dataclass(frozen=True)
@@ -102,14 +124,7 @@ class AppearanceMap:
     @classmethod
     def load(cls, path: str | Path) -> "AppearanceMap":
         path = Path(path)
-        meta, arrays, checksum = read_container(path, MAP_KIND)
-        version = meta.get("map_format_version")
-        if version != MAP_FORMAT_VERSION:
-            raise MapFileError(f"{path}: map format version {version!r} is not supported (expected "
-                               f"{MAP_FORMAT_VERSION})")
-        missing = [name for name in _REQUIRED if name not in arrays]
-        if missing:
-            raise MapFileError(f"{path}: map lacks arrays {', '.join(missing)}")
+        meta, arrays, checksum = read_container(path, MAP_KIND, MAP_SCHEMA)
         try:
             return cls(recipe=meta.get("recipe", {}), provenance=meta.get("provenance", {}), checksum=checksum,
                        path=path, **{name: np.asarray(arrays[name], dtype=np.float64) for name in _REQUIRED})
