@@ -7,6 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
+from trimeter.atomic import atomic_output
+
 
 def plot_parameters(path: str | Path, combined, per_thickness=(), *, title: str = "",
                     truth: dict | None = None) -> Path:
@@ -42,6 +44,9 @@ def plot_parameters(path: str | Path, combined, per_thickness=(), *, title: str 
     axes[1].legend(fontsize=8, loc="best")
     if title:
         fig.suptitle(title)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    try:
+        with atomic_output(path) as f:
+            fig.savefig(f, dpi=110, format=Path(path).suffix.lstrip(".") or "png")
+    finally:
+        plt.close(fig)
     return Path(path)

@@ -14,6 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
+from trimeter.atomic import atomic_write
+
 
 def medium_spectra(parameters, step_nm: float = 5.0):
     wl = parameters.wavelengths_nm
@@ -65,6 +67,6 @@ def write_medium(directory: str | Path, parameters, *, scale: float = 1.0) -> di
         f'    <float name="scale" value="{scale:g}"/>\n'
         f'    <phase type="hg">\n        <float name="g" value="{g:.6g}"/>\n    </phase>\n'
         "</medium>\n")
-    (directory / "medium.xml").write_text(xml)
-    (directory / "medium.json").write_text(json.dumps(medium_dict(parameters, scale=scale), indent=1))
+    atomic_write(directory / "medium.xml", xml)
+    atomic_write(directory / "medium.json", json.dumps(medium_dict(parameters, scale=scale), indent=1))
     return {"written": True, "files": ["medium.xml", "medium.json"], "g_mean": g, "bins": len(grid)}

@@ -8,8 +8,9 @@
         parameters.csv/.json  α, σt, g with std, flags, the Beer's-law σt (per thickness too, if two)
         figure.png            like the paper's Fig. 10
         medium.xml / .json    a spectral Mitsuba 3 homogeneous medium, ready to render
-A crash, a reset or Ctrl-C at any point leaves at most a `.partial-*` directory, never a result that
-looks complete (the rename is the commit).
+A crash, a reset or Ctrl-C at any point leaves at most a `.partial-<pid>-<name>` directory, never a
+result that looks complete (the rename is the commit; every file is fsynced before it, so the renamed
+directory survives a power cut whole). trimeter.results.spool recovers such leftovers.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from trimeter.atomic import atomic_output, atomic_write, fsync_directory
 from trimeter.inversion.api import FitResult
 from trimeter.sequences.reflectance import Calibration, RawSample, Reflectances
 
@@ -71,7 +73,8 @@ def write_csv(path: Path, columns: dict) -> None:
     table = np.column_stack([np.asarray(columns[n], dtype=float) for n in names])
     fmt = ["%d" if "flags" in n else "%.8g" for n in names]
     fmt[0] = "%.4f"
-    np.savetxt(path, table, delimiter=",", header=",".join(names), comments="", fmt=fmt)
+    with atomic_output(path) as f:
+        np.savetxt(f, table, delimiter=",", header=",".join(names), comments="", fmt=fmt)
 
 
 def _raw_columns(wavelengths, capture) -> dict:
@@ -101,9 +104,17 @@ def new_name(label: str | None = None) -> str:
     return f"{stamp}-{label}" if label else stamp
 
 
+PARTIAL_PREFIX = ".partial-"
+
+
+def partial_name(final_name: str, pid: int | None = None) -> str:
+    """The in-progress name of a results directory; the writer's pid tells a live write from a leftover."""
+    return f"{PARTIAL_PREFIX}{os.getpid() if pid is None else pid}-{final_name}"
+
+
 def write_measurement(root: str | Path, measurement: Measurement, *, label: str | None = None,
                       figure: bool = True, medium: bool = True) -> Path:
-    """Write under `root/.partial-<name>`, then rename to `root/<name>` (unique); return the final path."""
+    """Write under `root/.partial-<pid>-<name>`, then rename to `root/<name>` (unique); return the final path."""
     root = Path(root)
     root.mkdir(parents=True, exist_ok=True)
     name = new_name(label)
@@ -112,15 +123,48 @@ def write_measurement(root: str | Path, measurement: Measurement, *, label: str 
     while final.exists():
         suffix += 1
         final = root / f"{name}-{suffix}"
-    partial = root / f".partial-{final.name}"
+    partial = root / partial_name(final.name)
     partial.mkdir()
     try:
         _write_all(partial, measurement, figure=figure, medium=medium)
+        _fsync_tree(partial)
         os.rename(partial, final)
     except BaseException:
         shutil.rmtree(partial, ignore_errors=True)
         raise
+    fsync_directory(root)
     return final
+
+
+def _fsync_tree(directory: Path) -> None:
+    """Flush every file of a finished directory (some, like the calibration's, are written by others)."""
+    for path in directory.iterdir():
+        if path.is_file():
+            fd = os.open(path, os.O_RDONLY)
+            try:
+                os.fsync(fd)
+            finally:
+                os.close(fd)
+    fsync_directory(directory)
+
+
+# Upper bounds per file kind for `expected_size_bytes`: a CSV cell is at most ~16 characters, a raw CSV has
+# two columns per exposure (at most five with hdr_decades ≤ 4) plus wavelength and rate, and every file
+# takes at least one file-system block.
+_CELL_BYTES = 16
+_BLOCK_BYTES = 4096
+_RAW_COLUMNS = 2 * 5 + 2
+_FIGURE_BYTES = 2_500_000
+
+
+def expected_size_bytes(n_bins: int, n_samples: int) -> int:
+    """A generous estimate of one results directory's size (`n_samples` thicknesses, `n_bins` wavelengths)."""
+    columns = (7                                            # calibration.csv
+               + n_samples * (3 * _RAW_COLUMNS + 10)         # raw_*.csv, reflectances*.csv
+               + (1 + n_samples) * 9 * 2                     # parameters*.csv, parameters.json
+               + 2 * 3)                                      # medium.xml / .json
+    files = 6 + 4 * n_samples + n_samples
+    return _CELL_BYTES * n_bins * columns + files * _BLOCK_BYTES + _FIGURE_BYTES
 
 
 def _tags(thicknesses) -> list[str]:
@@ -141,7 +185,7 @@ def _write_all(out: Path, m: Measurement, *, figure: bool, medium: bool) -> None
     write_csv(out / "parameters.csv", m.parameters.columns())
     for p, tag in zip(m.per_thickness, _tags([p.thickness_mm for p in m.per_thickness])):
         write_csv(out / f"parameters{tag}.csv", p.columns())
-    (out / "parameters.json").write_text(json.dumps(
+    atomic_write(out / "parameters.json", json.dumps(
         {"combined": m.parameters.to_json(), "per_thickness": [p.to_json() for p in m.per_thickness]}, indent=1))
     meta = dict(m.meta)
     meta.setdefault("written_utc", datetime.now(timezone.utc).isoformat(timespec="seconds"))
@@ -156,4 +200,4 @@ def _write_all(out: Path, m: Measurement, *, figure: bool, medium: bool) -> None
         from trimeter.results.medium import write_medium
 
         meta["medium"] = write_medium(out, m.parameters)
-    (out / "measurement.json").write_text(json.dumps(meta, indent=2, default=str))
+    atomic_write(out / "measurement.json", json.dumps(meta, indent=2, default=str))
