@@ -22,7 +22,8 @@ from trimeter.device import Device
 from trimeter.device.backup import config_source_warning
 from trimeter.errors import DeviceError, TrimeterError
 from trimeter.inversion.flags import advice
-from trimeter.results import Measurement, write_measurement
+from trimeter.results import Measurement
+from trimeter.results.spool import CaptureSpooled, prepare_results_dir, write_or_spool
 from trimeter.sequences.measure import fit_reflectances, map_for_thickness, preflight
 from trimeter.sequences.plans import calibration as calibration_plan
 from trimeter.sequences.plans import sample_capture, warm_up
@@ -290,6 +291,9 @@ class Service:
         if self.calibration is None:
             raise DeviceError("no calibration: run a calibration with the holder empty first")
         preflight(maps, s.method)
+        for note in prepare_results_dir(s.results_path, n_bins=len(self.calibration.wavelengths_nm),
+                                        n_samples=len(thicknesses)):
+            self._emit("warning", note)  # leftovers of interrupted writes, moved to the spool
         table = self.device_table(maps[0])
         if table["slot"] and not table["matches_fit_table"]:
             self._emit("warning", f"the device's active map table (slot {table['slot']}, CRC-32 {table['crc32']}) is "
@@ -327,8 +331,12 @@ class Service:
                 "advice": advice(combined.flags, len(thicknesses)),
                 "link": vars(self.device.transport.stats).copy() if hasattr(self.device.transport, "stats") else {}}
         t0 = time.monotonic()
-        path = write_measurement(s.results_path, Measurement(self.calibration, raws, refls, thicknesses, combined,
-                                                             per, meta=meta), label=label or self.label)
+        try:
+            path = write_or_spool(s.results_path, Measurement(self.calibration, raws, refls, thicknesses, combined,
+                                                              per, meta=meta), label=label or self.label)
+        except CaptureSpooled as exc:
+            self.last_result, self.last_parameters = exc.path, combined
+            raise
         timing["write_wall_s"] = round(time.monotonic() - t0, 4)
         self.last_result = path
         self.last_parameters = combined
