@@ -67,11 +67,11 @@ def test_a_thick_dark_sample_gets_advice_in_the_log_and_the_results(rig):
     service, fake, optics, events, truth, sample, tmp = rig
     amap = AppearanceMap.load(HIL_MAP)
     red = WL > 600  # dark and optically thick there (σt·ℓ = 5); well-conditioned elsewhere (the rig's truth)
-    optics.sample = amap.query(np.where(red, 0.2, truth[0]), np.where(red, 5 / amap.thickness_mm, truth[1]),
-                               truth[2], 0.03 + 0.05 * (WL > 650), 0.99)
     service.connect()
     fake.press_button()
-    service.poll_once()
+    assert service.poll_once() == "calibrated"
+    optics.sample = amap.query(np.where(red, 0.2, truth[0]), np.where(red, 5 / amap.thickness_mm, truth[1]),
+                               truth[2], 0.03 + 0.05 * (WL > 650), 0.99)
     fake.press_button()
     assert service.poll_once() == "measured"
     flagged = int(np.count_nonzero(service.last_parameters.flags & 1024))
@@ -225,6 +225,10 @@ def test_a_reset_while_waiting_for_the_second_sample_keeps_the_first_and_reconne
         service.poll_once()  # serve() reconnects on a DeviceError; the reset makes the calibration stale
     _written_alone(service, truth)
     service.connect()
+    assert fake.get("status_pattern") == regs.StatusPattern.TRIPLE_BLINK  # the reset: empty the holder and press
+    fake.press_button()
+    assert service.poll_once() == "refused"  # the second sample is still in the holder
+    optics.sample = None
     fake.press_button()
     assert service.poll_once() == "calibrated"
 

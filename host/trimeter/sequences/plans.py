@@ -4,6 +4,8 @@
   two consecutive spectra is under `threshold` — not a fixed wait; a timeout names the drift left.
 - `calibration`: the three references *without a sample*: white → diffuse spectrum = white / ρ_white_ref;
   black → ρ_black(λ) = black / diffuse; open slot + collimated LED → collimated spectrum.
+- `holder_check`: a quick capture of the three references before a calibration, to refuse a sample in the
+  holder (trimeter.sequences.checks) before the warm-up.
 - `sample_capture`: the sample against black, white and the collimated beam (HDR across decades for I_c).
 Every capture: auto-exposure, `frames` averaged exposures, dark frames at every integration time used
 (all shutters closed), rates in counts/s. Bins that saturate at every exposure, or read NaN, become NaN
@@ -16,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from trimeter.errors import DeviceError
+from trimeter.errors import CheckError, DeviceError
 from trimeter.sequences.reflectance import Calibration, Capture, RawSample
 from trimeter.sequences.steps import Acquire, Describe, DeviceTime, Expose, Lights, Move, Progress, Status, Wait
 
@@ -130,11 +132,15 @@ def combine(signals: dict, darks: dict, saturation_counts: float, lit: np.ndarra
                    signals=signal, darks=dark, rate_std=rate_std)
 
 
-def _check_light(capture: Capture, saturation_counts: float, what: str) -> None:
+def _light_seen(capture: Capture, saturation_counts: float) -> bool:
     """Dark-subtracted brightest bin at the longest exposure: (almost) nothing means no light."""
     net = capture.signals[-1] - capture.darks[-1]
     net = net[np.isfinite(net)]
-    if net.size == 0 or float(np.max(net)) < NO_LIGHT_FRACTION * saturation_counts:
+    return net.size > 0 and float(np.max(net)) >= NO_LIGHT_FRACTION * saturation_counts
+
+
+def _check_light(capture: Capture, saturation_counts: float, what: str) -> None:
+    if not _light_seen(capture, saturation_counts):
         raise DeviceError(f"no light from the {what} at the longest exposure (lamp failure, or a shutter stuck "
                           "closed?); nothing was measured")
 
@@ -169,6 +175,25 @@ def calibration(*, white_reference_reflectance: float, frames: int = 2):
     captures, wavelengths, description = yield from _captures(setups, frames, 0.0, 1.0, "calibration")
     device_time = yield DeviceTime()
     yield Progress(1.0, "calibration done")
+    return Calibration.from_captures(wavelengths, captures, white_reference_reflectance=white_reference_reflectance,
+                                     device_time_s=device_time, spectrometer=description.to_dict())
+
+
+def holder_check(*, white_reference_reflectance: float, frames: int = 1):
+    """A quick look at the three references before a calibration (lamps possibly still cold): returns a
+    provisional Calibration for checks.calibration_problems. A reference without light is a CheckError
+    here, not a lamp failure: a sample or anything else in the holder may be what blocks it."""
+    setups = [("white", "white", True, False, 0, None),
+              ("black", "black", True, False, 0, None),
+              ("collimated", "open", False, True, 0, None)]
+    captures, wavelengths, description = yield from _captures(setups, frames, 0.0, 1.0, "holder check")
+    if not _light_seen(captures["white"], description.saturation_counts):
+        raise CheckError("no light from the diffuse panels on the white slot: something opaque covers the holder, "
+                         "a panel lamp failed or its shutter stuck closed")
+    if not _light_seen(captures["collimated"], description.saturation_counts):
+        raise CheckError("no light through the open slot: a sample in the holder blocks the collimated beam — "
+                         "remove it (if the holder is empty: the collimated LED or its shutter failed)")
+    device_time = yield DeviceTime()
     return Calibration.from_captures(wavelengths, captures, white_reference_reflectance=white_reference_reflectance,
                                      device_time_s=device_time, spectrometer=description.to_dict())
 

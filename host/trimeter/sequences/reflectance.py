@@ -88,10 +88,13 @@ class Calibration:
     spectrometer: dict = field(default_factory=dict)
     diffuse_rel_std: np.ndarray | None = None     # relative standard errors (frame spread)
     collimated_rel_std: np.ndarray | None = None
+    dark_counts: float = float("nan")   # median dark frame (every shutter closed), counts
+    device: dict = field(default_factory=dict)    # identity of the instrument it was taken on
 
     @classmethod
     def from_captures(cls, wavelengths_nm, captures: dict, *, white_reference_reflectance: float,
-                      device_time_s: float = 0.0, spectrometer: dict | None = None) -> "Calibration":
+                      device_time_s: float = 0.0, spectrometer: dict | None = None,
+                      device: dict | None = None) -> "Calibration":
         white, black, coll = captures["white"], captures["black"], captures["collimated"]
         flags = white.flags() | black.flags() | coll.flags()
         diffuse = white.rate / white_reference_reflectance
@@ -99,11 +102,13 @@ class Calibration:
         flags |= np.where(no_light, int(CaptureFlag.NO_REFERENCE_LIGHT), 0).astype(np.int32)
         with np.errstate(invalid="ignore", divide="ignore"):
             rho_black = np.where(no_light, np.nan, black.rate / diffuse)
+        darks = np.concatenate([c.darks.ravel() for c in (white, black, coll)])
+        dark_counts = float(np.nanmedian(darks)) if np.isfinite(darks).any() else float("nan")
         return cls(np.asarray(wavelengths_nm, float), np.where(no_light, np.nan, diffuse),
                    np.where(no_light, np.nan, coll.rate), rho_black, float(white_reference_reflectance),
                    flags.astype(np.int32), float(device_time_s),
                    datetime.now(timezone.utc).isoformat(timespec="seconds"), dict(spectrometer or {}),
-                   white.relative_std(), coll.relative_std())
+                   white.relative_std(), coll.relative_std(), dark_counts, dict(device or {}))
 
     # -------------------------------------------------------------------------------- files
     def save(self, directory: str | Path) -> Path:
@@ -112,7 +117,8 @@ class Calibration:
         directory.mkdir(parents=True, exist_ok=True)
         meta = {"format_version": CALIBRATION_FORMAT_VERSION, "rho_white": self.rho_white,
                 "device_time_s": self.device_time_s, "created_utc": self.created_utc,
-                "spectrometer": self.spectrometer, "bins": int(len(self.wavelengths_nm))}
+                "spectrometer": self.spectrometer, "bins": int(len(self.wavelengths_nm)),
+                "dark_counts": None if not np.isfinite(self.dark_counts) else self.dark_counts, "device": self.device}
         (directory / "calibration.json").write_text(json.dumps(meta, indent=2))
         nan = np.full_like(self.diffuse, np.nan)
         table = np.column_stack([self.wavelengths_nm, self.diffuse, self.collimated, self.rho_black, self.flags,
@@ -134,12 +140,17 @@ class Calibration:
             raise InputError(f"no calibration in {directory}: run `trimeter calibrate` with the holder empty") from None
         except (ValueError, json.JSONDecodeError) as exc:
             raise InputError(f"calibration in {directory} is corrupt ({exc}); run `trimeter calibrate` again") from None
-        if meta.get("format_version") != CALIBRATION_FORMAT_VERSION or table.shape[1] != 7 \
-                or table.shape[0] != meta.get("bins"):
+        if not isinstance(meta, dict) or meta.get("format_version") != CALIBRATION_FORMAT_VERSION \
+                or table.shape[1] != 7 or table.shape[0] != meta.get("bins"):
             raise InputError(f"calibration in {directory} has an unknown format or is truncated; calibrate again")
-        return cls(table[:, 0], table[:, 1], table[:, 2], table[:, 3], float(meta["rho_white"]),
-                   table[:, 4].astype(np.int32), float(meta.get("device_time_s", 0.0)), meta.get("created_utc", ""),
-                   meta.get("spectrometer", {}), table[:, 5], table[:, 6])
+        try:
+            dark = meta.get("dark_counts")
+            return cls(table[:, 0], table[:, 1], table[:, 2], table[:, 3], float(meta["rho_white"]),
+                       table[:, 4].astype(np.int32), float(meta.get("device_time_s", 0.0)),
+                       str(meta.get("created_utc", "")), dict(meta.get("spectrometer") or {}), table[:, 5],
+                       table[:, 6], float("nan") if dark is None else float(dark), dict(meta.get("device") or {}))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise InputError(f"calibration in {directory} has a bad field ({exc}); calibrate again") from None
 
 
 @dataclass

@@ -1,12 +1,16 @@
 """Press-button mode (`trimeter serve`): the instrument on its own, driven by its front button.
 
-Per press (the device's `button_events` counter changes):
-- calibration missing, older than `calibration_max_age_s`, or the device was reset since: warm-up
-  (until the lamps are stable) + calibration — the holder must be empty; then the LED goes steady and
-  the next press measures;
-- otherwise: capture the sample, fit, write the results directory.
-Status LED: steady on = ready (press to measure) · slow blink = working · fast blink = the last
-press failed (see the log) · the firmware's own slow blink at power-up = not yet connected.
+Calibration missing, older than `calibration_max_age_s`, or the device was reset since: the LED
+triple-blinks ("empty the holder and press") as soon as that is seen, and a press then checks that the
+holder is empty (a sample or swapped slots are refused with what was seen; the LED keeps asking),
+warms up (until the lamps are stable) and calibrates; the calibration is checked (physical bounds,
+agreement with the previous good one) before it is saved; then the LED goes steady. A press while the
+LED does not ask is never taken for an empty holder: it only starts the asking.
+Otherwise a press captures the sample, checks the shot against the calibration and the map (a failed
+lamp refuses it: nothing is written), fits and writes the results directory.
+Status LED: steady on = ready (press to measure) · slow blink = working · triple blink = empty the
+holder and press (to calibrate) · double blink = put the next sample in and press · fast blink = the
+last press failed (see the log) · the firmware's own slow blink at power-up = not yet connected.
 A device reset or a lost link never ends the service: it reconnects, re-arms, marks the calibration
 stale, and a measurement the reset interrupted leaves no result directory.
 """
@@ -20,24 +24,28 @@ from typing import Callable
 
 from trimeter.device import Device
 from trimeter.device.backup import config_source_warning
-from trimeter.errors import DeviceError, TrimeterError
+from trimeter.errors import CheckError, DeviceError, InputError, TrimeterError
 from trimeter.inversion.flags import advice
 from trimeter.results import Measurement
 from trimeter.results.spool import CaptureSpooled, prepare_results_dir, write_or_spool
 from trimeter.sequences.measure import fit_reflectances, map_for_thickness, preflight
 from trimeter.sequences.plans import calibration as calibration_plan
-from trimeter.sequences.plans import sample_capture, warm_up
+from trimeter.sequences.checks import calibration_problems, fit_problems, shot_problems, usable_bins
+from trimeter.sequences.plans import holder_check, sample_capture, warm_up
 from trimeter.sequences.reflectance import Calibration, reflectances
 from trimeter.sequences.settings import HostSettings
 from trimeter.sequences.steps import Runner
 
 READY, WORKING, FAILED = "on", "slow_blink", "fast_blink"
 NEXT_SAMPLE = "double_blink"  # two samples: the first is captured, put the second in and press
+EMPTY_HOLDER = "triple_blink"  # a calibration is due: empty the holder and press
 
 
 @dataclass
 class Event:
-    kind: str      # connected | press | warmed_up | calibrated | next_sample | measured | failed | reconnecting
+    # connected | press | empty_holder | calibrating | refused | warmed_up | calibrated | next_sample | advice |
+    # measured | failed | warning | reset | reconnecting
+    kind: str
     message: str
     data: dict = field(default_factory=dict)
 
@@ -110,6 +118,8 @@ class Service:
         self._emit("connected", f"connected (firmware {'.'.join(map(str, self.device.identity.firmware_version))})")
         if warning := config_source_warning(self.device.read("config_source")):
             self._emit("warning", warning)  # slot positions, steps/mm … may be wrong for this instrument
+        if self._status != EMPTY_HOLDER and (reason := self.calibration_due(uptime)):
+            self._ask_empty_holder(reason)
 
     def close(self) -> None:
         for name in ("device", "spectrometer"):
@@ -161,23 +171,46 @@ class Service:
             self._button, self._uptime = button, uptime
             lamps_on(self.device)
             self.device.write("status_pattern", self._status)
+            self._ask_empty_holder(self.calibration_stale_reason)
             return "reset"
         self._uptime = uptime
+        if self._status != EMPTY_HOLDER and button == self._button and (reason := self.calibration_due(uptime)):
+            self._ask_empty_holder(reason)  # before anyone presses to measure with a stale calibration
         if button == self._button:
             return None
         self._button = button
         self._emit("press", "button pressed")
         return self.handle_press()
 
+    def calibration_due(self, uptime_s: float) -> str | None:
+        """Why a calibration is needed before the next measurement (None: the one held is usable)."""
+        return self.calibration_stale_reason or calibration_is_stale(self.calibration, uptime_s,
+                                                                     self.settings.calibration_max_age_s)
+
+    def _ask_empty_holder(self, reason: str) -> None:
+        self._status = EMPTY_HOLDER
+        self.device.write("status_pattern", EMPTY_HOLDER)
+        self._emit("empty_holder", f"{reason}: empty the sample holder and press the button to calibrate",
+                   reason=reason)
+
     def handle_press(self) -> str:
         dev = self.device
         try:
+            reason = self.calibration_due(dev.read("uptime_s"))
+            if reason and self._status != EMPTY_HOLDER:
+                # this press was meant to measure, with a sample in: it must not calibrate
+                self._ask_empty_holder(reason)
+                return "asked"
             dev.write("status_pattern", WORKING)
-            reason = self.calibration_stale_reason or calibration_is_stale(
-                self.calibration, dev.read("uptime_s"), self.settings.calibration_max_age_s)
             if reason:
-                self._emit("calibrating", f"{reason}: warming up and calibrating (the holder must be empty)")
-                self.calibrate()
+                self._emit("calibrating", f"{reason}: checking that the holder is empty, then warming up and "
+                                          f"calibrating")
+                try:
+                    self.calibrate()
+                except CheckError as exc:
+                    self._emit("refused", f"{exc}; then press the button again")
+                    self._ask_empty_holder(reason)
+                    return "refused"
                 outcome = "calibrated"
             else:
                 samples = self.settings.serve_samples
@@ -232,15 +265,37 @@ class Service:
     def _runner(self) -> Runner:
         return Runner(self.device, self.spectrometer, on_progress=self.on_progress, device_clock=self.device_clock)
 
-    def calibrate(self, *, warm: bool = True) -> Calibration:
+    def previous_calibration(self) -> Calibration | None:
+        """The last good calibration on disk (every saved one passed its checks), or None."""
+        try:
+            return Calibration.load(self.settings.calibration_path)
+        except TrimeterError:
+            return None
+
+    def calibrate(self, *, warm: bool = True, force: bool = False) -> Calibration:
+        """Holder check, warm-up, calibration, checks, save. CheckError (nothing saved) when the holder is
+        not empty, the slots are swapped or the result is implausible. `force` accepts a calibration that
+        disagrees with the previous good one (a replaced lamp); the physical bounds still apply."""
         s = self.settings
         runner = self._runner()
         lamps_on(self.device)
+        identity = self.device.identity
+        device = {} if identity is None else {
+            "vendor_id": identity.vendor_id, "model_id": identity.model_id,
+            "firmware": list(identity.firmware_version), "regmap_hash": f"0x{identity.regmap_hash:08X}"}
+        previous = None if force else self.previous_calibration()
+        quick = runner.run(holder_check(white_reference_reflectance=s.white_reference))
+        quick.device = device
+        if problems := calibration_problems(quick, previous):
+            raise CheckError("the holder does not look empty, nothing was calibrated: " + "; ".join(problems))
         if warm:
             result = runner.run(warm_up(threshold=s.warmup_threshold, interval_s=s.warmup_interval_s,
                                         timeout_s=s.warmup_timeout_s, frames=s.frames))
             self._emit("warmed_up", f"lamps stable after {result.elapsed_s:.0f} s (drift {result.drift:.2%})")
         cal = runner.run(calibration_plan(white_reference_reflectance=s.white_reference, frames=s.frames))
+        cal.device = device
+        if problems := calibration_problems(cal, previous):
+            raise CheckError("calibration refused, the previous one is kept: " + "; ".join(problems))
         cal.save(s.calibration_path)
         self.calibration = cal
         self.calibration_stale_reason = None
@@ -290,6 +345,13 @@ class Service:
         s = self.settings
         if self.calibration is None:
             raise DeviceError("no calibration: run a calibration with the holder empty first")
+        if problems := calibration_problems(self.calibration):
+            raise CheckError("the calibration fails its checks (" + "; ".join(problems) + "); calibrate again "
+                             "with the holder empty")
+        for thickness, amap in zip(thicknesses, maps):
+            if abs(amap.thickness_mm - thickness) > 1e-6 * max(1.0, thickness):
+                raise InputError(f"thickness: map {amap.name} is for ℓ = {amap.thickness_mm:g} mm, not the declared "
+                                 f"{thickness:g} mm")
         preflight(maps, s.method)
         for note in prepare_results_dir(s.results_path, n_bins=len(self.calibration.wavelengths_nm),
                                         n_samples=len(thicknesses)):
@@ -313,14 +375,24 @@ class Service:
                     break
             raw = runner.run(sample_capture(frames=s.frames, hdr_decades=s.hdr_decades,
                                             label=f"sample ℓ = {thickness:g} mm"))
+            refl = reflectances(self.calibration, raw)
+            if problems := shot_problems(refl, maps[i]):
+                raise CheckError(f"the {thickness:g} mm capture was refused, nothing was written: "
+                                 + "; ".join(problems))
             raws.append(raw)
-            refls.append(reflectances(self.calibration, raw))
+            refls.append(refl)
         t0 = time.monotonic()
         combined, per = fit_reflectances(refls, maps, method=s.method)
         fit_s = time.monotonic() - t0
+        for thickness, refl, params in zip(thicknesses, refls, per or [combined]):
+            if problems := fit_problems(params.flags, usable_bins(refl)):
+                raise CheckError(f"the {thickness:g} mm capture was refused, nothing was written: "
+                                 + "; ".join(problems))
         timing = runner.timing.to_dict()
         timing["fit_wall_s"] = round(fit_s, 4)
         meta = {"label": label or self.label, "method": s.method, "maps": [m.name for m in maps],
+                "declared_thicknesses_mm": list(thicknesses),
+                "map_thicknesses_mm": [m.thickness_mm for m in maps],
                 "map_checksums": [m.checksum for m in maps], "timing": timing,
                 "device": {"firmware": list(self.device.identity.firmware_version),
                            "regmap_hash": f"0x{self.device.identity.regmap_hash:08X}"},
