@@ -3,18 +3,24 @@
 What this layer guarantees to the client above it (trimeter.device.client):
 - every request has an explicit timeout and a bounded number of attempts; after the last one a
   DeviceError names the port, the request and the last failure;
-- after any failure the input is drained until the line is quiet and then flushed, so the framer
-  restarts on a clean buffer (garbage, a bad CRC or half a frame never poisons the next request);
+- after any failure the input is drained and then flushed, so the framer restarts on a clean buffer
+  (garbage, a bad CRC or half a frame never poisons the next request);
+- a garbled reply is given up on as soon as the bytes of a whole reply of the expected length are in
+  (bit flips do not change a frame's length), not after the timeout: on a noisy line most failed
+  attempts are garbled replies, and each would otherwise cost a full timeout;
 - a reply is only accepted if its bytes are exactly one frame with a good CRC over all of them (pymodbus
   alone would also take a shorter frame whose "CRC" happens to match inside a garbled reply), and if
   it answers *this* request: same function code, same address/count
   (writes echo them), same length (reads). RTU has no transaction ids, so a late reply to an earlier
-  request of a different shape is recognised and discarded, and after any failure everything arriving
-  within `late_reply_window_s` (default: the timeout) is discarded. A reply later than that, of the
+  request of a different shape is recognised and discarded, and after a request went unanswered
+  everything arriving within `late_reply_window_s` (default: the timeout) is discarded (after a garbled
+  reply, which was this request's answer, until the line is quiet). A reply later than that, of the
   same shape, cannot be told apart by any RTU master: the window is the documented bound;
 - when the serial adapter disappears (USB unplugged, twin restarted) the port is closed and reopened
   until `reconnect_timeout_s` runs out; a Modbus exception reply is raised at once (never retried)
-  as ModbusExceptionReply carrying the exception code.
+  as ModbusExceptionReply carrying the exception code;
+- when every attempt failed, the error is a LinkError: the line, not the device, let the request down,
+  so the layer above may try its step again later (trimeter.sequences.steps does, with a reopen).
 """
 
 from __future__ import annotations
@@ -27,7 +33,7 @@ from typing import Callable, Protocol
 
 from pymodbus import FramerType
 from pymodbus.client import ModbusSerialClient
-from pymodbus.exceptions import ConnectionException, ModbusException
+from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOException
 from pymodbus.pdu.file_message import FileRecord
 
 from trimeter.crc import crc16_modbus
@@ -43,6 +49,15 @@ MAX_READ_WORDS = 125
 MAX_WRITE_WORDS = 123
 MAX_READ_BITS = 2000
 MAX_FILE_RECORD_WORDS = 120  # FC 0x15: 1 + 7 + 2n <= 253 (one sub-request per frame)
+
+
+class LinkError(DeviceError):
+    """Every attempt at one request failed (no reply, garbled replies, replies to other requests): the
+    link is noisy or gone. Unlike a ModbusExceptionReply (a refusal) the request may succeed if tried again."""
+
+
+class _GarbledReply(Exception):
+    """Raised from the receive hook: a whole reply's worth of bytes arrived and they are not one frame."""
 
 
 class ModbusExceptionReply(DeviceError):
@@ -82,7 +97,8 @@ class LinkStats:
     requests: int = 0
     retries: int = 0
     stale_replies: int = 0
-    garbled_replies: int = 0  # passed pymodbus's framer but not the whole-frame CRC check
+    garbled_replies: int = 0  # bytes of a whole reply arrived but were not exactly one frame with a good CRC
+    timeouts: int = 0         # attempts that got no reply within the timeout
     reconnects: int = 0
     failures: int = 0
     busy_s: float = field(default=0.0)  # wall time spent inside requests (host + protocol overhead)
@@ -110,6 +126,8 @@ class RtuTransport:
                                           retries=0, reconnect_delay=0, name=f"trimeter@{port}",
                                           handle_local_echo=local_echo, trace_packet=self._trace_packet)
         self._received = b""
+        self._expected_reply_bytes = 0  # length of the normal reply to the request in flight (0: unknown)
+        self._quiet_s = max(0.02, 10 * 11 / baudrate)  # line quiet this long after a garbled reply: it is over
         self._open(deadline=time.monotonic() + reconnect_timeout_s)
 
     # ------------------------------------------------------------------------------------ link care
@@ -119,23 +137,29 @@ class RtuTransport:
                 raise DeviceError(f"cannot open serial port {self.port} (no such device, or it is in use)")
             time.sleep(0.05)
 
-    def _reopen(self) -> None:
+    def reopen(self) -> None:
+        """Close and open the port again (a wedged USB adapter recovers this way); counted in stats.reconnects,
+        which makes trimeter.device.Device check the identity of whatever answers next."""
         self._client.close()
         self.stats.reconnects += 1
         self._open(deadline=time.monotonic() + self.reconnect_timeout_s)
 
-    def _drain(self) -> None:
+    def _drain(self, *, answered: bool = False) -> None:
         """After a failure: discard everything that arrives for the whole late-reply window, then flush.
         Stopping at the first quiet moment would let a reply that is merely late land in the next
-        request's read — and a stale `busy` or `uptime_s` of the right shape is indistinguishable."""
+        request's read — and a stale `busy` or `uptime_s` of the right shape is indistinguishable.
+        `answered`: the request's reply did arrive (garbled), so nothing of it is still on its way and
+        draining until the line is quiet suffices."""
         sock = self._client.socket
         if sock is None:
             return
-        end = time.monotonic() + self.late_reply_window_s
-        while time.monotonic() < end:
+        now = time.monotonic()
+        end, quiet_until = now + self.late_reply_window_s, now + self._quiet_s
+        while time.monotonic() < (quiet_until if answered else end):
             waiting = sock.in_waiting
             if waiting:
                 sock.read(waiting)
+                quiet_until = min(end, time.monotonic() + self._quiet_s)
             time.sleep(0.002)
         sock.reset_input_buffer()
 
@@ -143,14 +167,19 @@ class RtuTransport:
         self._client.close()
 
     def _trace_packet(self, sending: bool, data: bytes) -> bytes:
-        """pymodbus hands every receive buffer through here: keep the bytes a reply was framed from."""
+        """pymodbus hands every receive buffer through here (all bytes since the request: its RTU framer
+        consumes nothing until it finds a frame): keep them, and stop waiting as soon as they are as long
+        as the expected reply without being one frame — pymodbus would wait out the timeout for more."""
         if not sending:
             self._received = bytes(data)
+            if self._expected_reply_bytes and len(data) >= self._expected_reply_bytes and not is_one_whole_frame(data):
+                raise _GarbledReply()
         return data
 
     # ------------------------------------------------------------------------------------- requests
     def _execute(self, what: str, function_code: int, call: Callable[[ModbusSerialClient], object],
-                 answers: Callable[[object], bool]):
+                 answers: Callable[[object], bool], reply_bytes: int):
+        """`reply_bytes`: the length of the normal (non-exception) reply frame, address and CRC included."""
         started = time.monotonic()
         self.stats.requests += 1
         last_failure = "no attempt"
@@ -160,14 +189,27 @@ class RtuTransport:
                     self.stats.retries += 1
                 try:
                     if self._client.socket is None:
-                        self._reopen()
+                        self.reopen()
                     self._received = b""
+                    self._expected_reply_bytes = reply_bytes
                     reply = call(self._client)
+                except _GarbledReply:
+                    self.stats.garbled_replies += 1
+                    last_failure = f"a garbled reply ({self._received.hex(' ')})"
+                    self._drain(answered=True)
+                    continue
                 except (ModbusException, asyncio.TimeoutError, OSError) as exc:
                     # ConnectionException / SerialException (an OSError) = the adapter went away.
-                    last_failure = str(exc).strip() or type(exc).__name__
+                    if isinstance(exc, ModbusIOException) and "No response" in str(exc):
+                        # pymodbus's own wording ("… CLOSING CONNECTION") describes a close it does not do
+                        # on a serial client; what happened is that no whole reply came back in time.
+                        self.stats.timeouts += 1
+                        last_failure = (f"no reply within {self.timeout_s:g} s" if not self._received else
+                                        f"an incomplete reply within {self.timeout_s:g} s ({self._received.hex(' ')})")
+                    else:
+                        last_failure = str(exc).strip() or type(exc).__name__
                     if isinstance(exc, (ConnectionException, OSError)) or self._client.socket is None:
-                        self._reopen()
+                        self.reopen()
                     else:
                         self._drain()
                     continue
@@ -178,7 +220,7 @@ class RtuTransport:
                     # buffer that is exactly one frame with its CRC over all of it counts as a reply.
                     self.stats.garbled_replies += 1
                     last_failure = f"a garbled reply ({self._received.hex(' ')})"
-                    self._drain()
+                    self._drain(answered=True)
                     continue
                 if reply.isError() and reply.function_code & 0x7F == function_code:
                     raise ModbusExceptionReply(what, int(getattr(reply, "exception_code", 0)))
@@ -189,9 +231,10 @@ class RtuTransport:
                     continue
                 return reply
             self.stats.failures += 1
-            raise DeviceError(f"no valid reply from the device on {self.port} to {what} "
-                              f"after {self.attempts} attempts (last: {last_failure})")
+            raise LinkError(f"no valid reply from the device on {self.port} to {what} "
+                            f"after {self.attempts} attempts (last: {last_failure})")
         finally:
+            self._expected_reply_bytes = 0
             self.stats.busy_s += time.monotonic() - started
 
     def read_bits(self, table: str, address: int, count: int) -> list[bool]:
@@ -201,7 +244,7 @@ class RtuTransport:
         reply = self._execute(
             f"a read of {count} {table}s at {address}", fc,
             lambda c: getattr(c, method)(address, count=count, device_id=self.address),
-            lambda r: r.function_code == fc and len(r.bits) == padded)
+            lambda r: r.function_code == fc and len(r.bits) == padded, 5 + padded // 8)
         return [bool(b) for b in reply.bits[:count]]
 
     def read_words(self, table: str, address: int, count: int) -> list[int]:
@@ -210,27 +253,28 @@ class RtuTransport:
         reply = self._execute(
             f"a read of {count} {table}s at {address}", fc,
             lambda c: getattr(c, method)(address, count=count, device_id=self.address),
-            lambda r: r.function_code == fc and len(r.registers) == count)
+            lambda r: r.function_code == fc and len(r.registers) == count, 5 + 2 * count)
         return list(reply.registers)
 
     def write_bits(self, address: int, values: list[bool]) -> None:
         self._execute(
             f"a write of {len(values)} coils at {address}", 0x0F,
             lambda c: c.write_coils(address, list(values), device_id=self.address),
-            lambda r: r.function_code == 0x0F and (r.address, r.count) == (address, len(values)))
+            lambda r: r.function_code == 0x0F and (r.address, r.count) == (address, len(values)), 8)
 
     def write_words(self, address: int, values: list[int]) -> None:
         self._execute(
             f"a write of {len(values)} holding registers at {address}", 0x10,
             lambda c: c.write_registers(address, list(values), device_id=self.address),
-            lambda r: r.function_code == 0x10 and (r.address, r.count) == (address, len(values)))
+            lambda r: r.function_code == 0x10 and (r.address, r.count) == (address, len(values)), 8)
 
     def read_file_records(self, file_number: int, record_number: int, count: int) -> bytes:
         request = [FileRecord(file_number=file_number, record_number=record_number, record_length=2 * count)]
         reply = self._execute(
             f"a file-record read of file {file_number} record {record_number} (+{count})", 0x14,
             lambda c: c.read_file_record(request, device_id=self.address),
-            lambda r: r.function_code == 0x14 and len(r.records) == 1 and len(r.records[0].record_data) == 2 * count)
+            lambda r: r.function_code == 0x14 and len(r.records) == 1 and len(r.records[0].record_data) == 2 * count,
+            7 + 2 * count)
         return bytes(reply.records[0].record_data)
 
     def write_file_records(self, file_number: int, record_number: int, data: bytes) -> None:
@@ -239,4 +283,5 @@ class RtuTransport:
             f"a file-record write of file {file_number} record {record_number} (+{len(data) // 2})", 0x15,
             lambda c: c.write_file_record(request, device_id=self.address),
             lambda r: r.function_code == 0x15 and len(r.records) == 1
-            and (r.records[0].file_number, r.records[0].record_number) == (file_number, record_number))
+            and (r.records[0].file_number, r.records[0].record_number) == (file_number, record_number),
+            12 + len(data))
