@@ -24,6 +24,7 @@ from trimeter.twin._pty import open_raw_pty, read_some, write_all
 
 REQUEST_GAP_S = 0.003
 LAMP_FAILURES = ("panels", "collimated", "both")
+SHUTTERS = ("panel_left", "panel_right", "collimated")
 
 
 @dataclass(frozen=True)
@@ -35,6 +36,8 @@ class FaultConfig:
     reset_at: int | None = None
     stuck_slider: bool = False
     lamp_failure: str | None = None
+    stuck_shutter_open: str | None = None   # a shutter whose blade lets light through whatever it is told
+    endstop_broken: bool = False
 
     def __post_init__(self):
         for name in ("corrupt", "drop", "late"):
@@ -50,6 +53,11 @@ class FaultConfig:
             raise InputError(f"fault stuck_slider must be true/false, got {self.stuck_slider!r}")
         if self.lamp_failure is not None and self.lamp_failure not in LAMP_FAILURES:
             raise InputError(f"fault lamp_failure must be one of {', '.join(LAMP_FAILURES)}, got {self.lamp_failure!r}")
+        if self.stuck_shutter_open is not None and self.stuck_shutter_open not in SHUTTERS:
+            raise InputError(f"fault stuck_shutter_open must be one of {', '.join(SHUTTERS)}, got "
+                             f"{self.stuck_shutter_open!r}")
+        if not isinstance(self.endstop_broken, bool):
+            raise InputError(f"fault endstop_broken must be true/false, got {self.endstop_broken!r}")
 
     def replace(self, **changes) -> "FaultConfig":
         unknown = set(changes) - {f.name for f in dataclasses.fields(self)}
@@ -63,7 +71,8 @@ class FaultConfig:
 
     @classmethod
     def parse(cls, text: str) -> "FaultConfig":
-        """`corrupt=0.01,drop=0.02,late=0.01,reset_at=STEP,stuck_slider,lamp_failure[=panels]`."""
+        """`corrupt=0.01,drop=0.02,late=0.01,reset_at=STEP,stuck_slider,lamp_failure[=panels],
+        stuck_shutter_open=SHUTTER,endstop_broken`."""
         changes: dict = {}
         for item in filter(None, (s.strip() for s in (text or "").split(","))):
             key, eq, value = item.partition("=")
@@ -73,7 +82,7 @@ class FaultConfig:
                     changes[key] = float(value)
                 elif key == "reset_at":
                     changes[key] = int(value)
-                elif key == "stuck_slider":
+                elif key in ("stuck_slider", "endstop_broken"):
                     changes[key] = (not eq) or value.lower() in ("1", "true", "yes", "on")
                 elif key == "lamp_failure":
                     changes[key] = value if eq else "panels"
@@ -82,6 +91,15 @@ class FaultConfig:
             except ValueError:
                 raise InputError(f"fault {key} has a malformed value {value!r}") from None
         return cls().replace(**changes)
+
+
+def as_optics_see_it(plant_state: dict, faults: FaultConfig) -> dict:
+    """The plant state with the faults the firmware cannot know about applied (a shutter stuck open)."""
+    if faults.stuck_shutter_open is None:
+        return plant_state
+    shutters = dict(plant_state.get("shutters", {}))
+    shutters[faults.stuck_shutter_open] = {**shutters.get(faults.stuck_shutter_open, {}), "open": True}
+    return {**plant_state, "shutters": shutters}
 
 
 class ModbusProxy:

@@ -25,7 +25,7 @@ import numpy as np
 
 from trimeter.errors import DeviceError, InputError, TrimeterError
 from trimeter.paths import REPO_ROOT
-from trimeter.twin.faults import FaultConfig, ModbusProxy
+from trimeter.twin.faults import FaultConfig, ModbusProxy, as_optics_see_it
 from trimeter.twin.optics import Optics, material_names
 from trimeter.twin.plant import PlantClient
 from trimeter.twin.specserver import SpectrometerServer
@@ -133,6 +133,8 @@ class Twin:
         self._closers.append(self.plant.close)
         if self.faults.stuck_slider:
             self.plant.request(cmd="set", stuck_slider=True)
+        if self.faults.endstop_broken:
+            self.plant.request(cmd="set", endstop_broken=True)
         self._poll_once()
 
         poller = threading.Thread(target=self._poll, name="twin-plant-poller", daemon=True)
@@ -234,7 +236,7 @@ class Twin:
         return float(self.plant.state()["time_s"])
 
     def _poll_once(self) -> dict:
-        state = self.plant.state()
+        state = as_optics_see_it(self.plant.state(), self.faults)
         with self._optics_lock:
             self.optics.advance(state, self.faults.lamp_failure)
             self.last_plant_state = state
@@ -292,6 +294,8 @@ class TwinControl:
         new = twin.faults.replace(**changes)
         if "stuck_slider" in changes:
             twin.plant.request(cmd="set", stuck_slider=new.stuck_slider)
+        if "endstop_broken" in changes:
+            twin.plant.request(cmd="set", endstop_broken=new.endstop_broken)
         twin.faults = new
         return new.to_dict()
 
