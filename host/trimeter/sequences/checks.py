@@ -101,7 +101,7 @@ def agreement_problems(calibration: Calibration, previous: Calibration) -> list[
     both = (calibration.flags == 0) & (previous.flags == 0)
     since = f"the previous good calibration ({previous.created_utc or 'undated'})"
     problems = []
-    for what, new, old in (("diffuse light (panels)", calibration.diffuse, previous.diffuse),
+    for what, new, old in (("panels' diffuse light", calibration.diffuse, previous.diffuse),
                            ("collimated beam", calibration.collimated, previous.collimated)):
         with np.errstate(invalid="ignore", divide="ignore"):
             ratio = new[both] / old[both]
@@ -114,7 +114,7 @@ def agreement_problems(calibration: Calibration, previous: Calibration) -> list[
             problems.append(f"the {what} is {level - 1:+.0%} against {since} (bound ±{LAMP_LEVEL_BOUND:.0%}): a "
                             f"sample in the holder, or a changed lamp (then `trimeter calibrate --force` accepts it)")
         elif spread > LAMP_SHAPE_BOUND:
-            problems.append(f"the {what}'s spectrum changed shape against {since} (spread {spread:.0%}, bound "
+            problems.append(f"the {what} changed the shape of its spectrum against {since} (spread {spread:.0%}, bound "
                             f"{LAMP_SHAPE_BOUND:.0%}): a coloured sample in the holder, or a changed lamp (then "
                             f"`trimeter calibrate --force` accepts it)")
     delta = _median(np.abs(calibration.rho_black - previous.rho_black)[both])
