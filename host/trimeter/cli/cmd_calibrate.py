@@ -1,5 +1,10 @@
 """`trimeter calibrate`: warm the lamps up and measure the three references with the holder EMPTY
-(paper Sec. 4.2). The calibration is stored in the host's data directory and used by `measure`."""
+(paper Sec. 4.2). The calibration is stored in the host's data directory and used by `measure`.
+
+A quick look first refuses a sample in the holder or swapped slots (before the warm-up); the result is
+checked against physical bounds and against the previous good calibration of this instrument and
+spectrometer (lamp spectra, ρ_black). After replacing a lamp, `--force` accepts a calibration that
+disagrees with the previous one (the physical bounds still apply)."""
 
 from __future__ import annotations
 
@@ -17,7 +22,7 @@ def run(args):
     try:
         with progress_bar("calibration") as update:
             service.on_progress = update
-            cal = service.calibrate(warm=not args.no_warm_up)
+            cal = service.calibrate(warm=not args.no_warm_up, force=args.force)
     finally:
         service.close()
     ok = cal.flags == 0
@@ -30,4 +35,6 @@ def register(subparsers) -> None:
     p = subparsers.add_parser("calibrate", help="warm up and calibrate (holder empty)", description=__doc__)
     add_instrument_args(p)
     p.add_argument("--no-warm-up", action="store_true", help="skip the warm-up (lamps already stable)")
+    p.add_argument("--force", action="store_true",
+                   help="accept a calibration that disagrees with the previous good one (e.g. after replacing a lamp)")
     p.set_defaults(func=run)

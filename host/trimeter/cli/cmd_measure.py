@@ -32,11 +32,14 @@ def run(args):
     if args.method:
         settings.set("method", args.method)
     thicknesses = args.thickness or [settings.thickness_mm]
-    if len(thicknesses) > 2 or any(t <= 0 for t in thicknesses):
+    if len(thicknesses) > 2 or any(not t > 0 or t == float("inf") for t in thicknesses):
         raise InputError("thickness: give one or two positive thicknesses in mm")
     if args.map and len(args.map) != len(thicknesses):
         raise InputError("map: give one --map per --thickness")
     maps = [map_for_thickness(t, m) for t, m in zip(thicknesses, args.map or [None] * len(thicknesses))]
+    source = "--thickness" if args.thickness else "host config thickness_mm"
+    for t, amap in zip(thicknesses, maps):  # never assumed silently
+        print(f"thickness: {t:g} mm ({source}), map {amap.name} (ℓ = {amap.thickness_mm:g} mm)")
     if args.results:
         settings.set("results_dir", args.results)
     service = Service(lambda: open_device(settings), lambda: open_spectrometer(settings), settings,
