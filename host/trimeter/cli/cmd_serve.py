@@ -29,7 +29,8 @@ def run(args):
         settings.set("second_thickness_mm", args.second_thickness)
     for number, (thickness, map_name) in enumerate(settings.serve_samples, start=1):  # never assumed silently
         amap = map_for_thickness(thickness, map_name)  # a map of another thickness is an error, before serving
-        source = "--thickness" if (args.thickness if number == 1 else args.second_thickness) else "host config"
+        option = "--thickness" if number == 1 else "--second-thickness"
+        source = option if getattr(args, option[2:].replace("-", "_")) else "host config"
         print(f"sample {number}: thickness {thickness:g} mm ({source}), map {amap.name}", flush=True)
     stop = threading.Event()
 
