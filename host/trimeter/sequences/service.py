@@ -27,7 +27,7 @@ from trimeter.device.backup import config_source_warning
 from trimeter.errors import CheckError, DeviceError, InputError, TrimeterError
 from trimeter.inversion.flags import advice
 from trimeter.results import Measurement
-from trimeter.results.spool import CaptureSpooled, prepare_results_dir, write_or_spool
+from trimeter.results.spool import CaptureSpooled, prepare_results_dir, recover_partials, write_or_spool
 from trimeter.sequences.measure import fit_reflectances, map_for_thickness, preflight
 from trimeter.sequences.plans import calibration as calibration_plan
 from trimeter.sequences.checks import calibration_problems, fit_problems, shot_problems, usable_bins
@@ -138,6 +138,8 @@ class Service:
     def serve(self, stop: Callable[[], bool] = lambda: False, poll_s: float = 0.05,
               reconnect_s: float = 0.5) -> None:
         """Run until `stop()` is true. Survives resets, lost links and failed measurements."""
+        for note in recover_partials(self.settings.results_path):
+            self._emit("warning", note)  # before any press: what interrupted writes left behind
         while not stop():
             try:
                 if self.device is None:
