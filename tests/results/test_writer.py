@@ -6,34 +6,9 @@ import json
 import numpy as np
 import pytest
 
-from fakes import FakeInstrument, FakeOptics, FakeSpectrometer
-from trimeter.device.client import Device
 from trimeter.inversion.api import FitResult
-from trimeter.results import Measurement, Parameters, write_measurement
+from trimeter.results import Parameters, write_measurement
 from trimeter.results.medium import medium_dict
-from trimeter.sequences import Runner, calibration, reflectances, sample_capture
-
-WL = np.linspace(400, 700, 31)
-
-
-@pytest.fixture(scope="module")
-def measurement():
-    fake = FakeInstrument(busy_polls=1)
-    optics = FakeOptics(WL, diffuse=np.full(31, 1e6), collimated=np.full(31, 2e6), rho_black=np.full(31, 0.03),
-                        rho_white=0.99)
-    runner = Runner(Device(fake), FakeSpectrometer(fake, optics), sleep=lambda s: None)
-    cal = runner.run(calibration(white_reference_reflectance=0.99))
-    optics.sample = (np.full(31, 0.2), np.full(31, 0.5), np.full(31, 0.1))
-    raw = runner.run(sample_capture(hdr_decades=1))
-    refl = reflectances(cal, raw)
-    alpha = np.linspace(0.5, 0.99, 31)
-    alpha[3] = np.nan  # an unusable bin must survive every writer
-    result = FitResult(alpha=alpha, sigma_t=np.linspace(1, 5, 31), g=np.full(31, 0.4), alpha_std=np.full(31, 0.01),
-                       sigma_t_std=np.full(31, 0.1), g_std=np.full(31, 0.05), flags=np.where(np.isnan(alpha), 1, 0),
-                       sigma_t_beer=np.linspace(1, 5, 31), method="lut")
-    params = Parameters.from_fit(WL, result)
-    return Measurement(cal, [raw], [refl], [0.4], params, meta={"sample": "test ink", "method": "lut"})
-
 
 def test_writes_a_complete_directory(tmp_path, measurement):
     out = write_measurement(tmp_path, measurement, label="ink")
@@ -82,4 +57,4 @@ def test_medium_loads_in_mitsuba_with_the_measured_spectra(measurement):
 def test_parameters_refuse_a_fit_over_other_bins():
     result = FitResult(*(np.zeros(3) for _ in range(7)), sigma_t_beer=np.zeros(3), method="lut")
     with pytest.raises(ValueError, match="3 fitted bins for 31 wavelengths"):
-        Parameters.from_fit(WL, result)
+        Parameters.from_fit(np.linspace(400, 700, 31), result)
