@@ -8,18 +8,27 @@ trimeter.device.Device and a Spectrometer (the pattern of bluesky plans, without
 The runner also guards the measurement: before every exposure it checks that the device has not been
 reset (uptime went backwards, homed lost, light set-up lost), so a reset mid-sequence is a clear
 DeviceError instead of a silently dark spectrum.
+
+A step whose request found no valid reply after all of the transport's attempts (a LinkError: a noisy
+or briefly lost line) is tried again, after a backoff and a reopen of the port (RetryPolicy), instead of
+abandoning the whole sequence. Every step is safe to repeat: it sets a state (a slot, shutters, an
+integration time, a status pattern) or reads one, and a Wait resumes from its original start. A reset
+(uptime went back) and a refusal (a Modbus exception reply) are not link failures and are never retried.
 """
 
 from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from typing import Callable, Generator
+from typing import Callable, Generator, TypeVar
 
 import numpy as np
 
 from trimeter.device.client import light_coils
-from trimeter.errors import DeviceError
+from trimeter.device.transport import LinkError
+from trimeter.errors import DeviceError, InputError
+
+T = TypeVar("T")
 
 
 @dataclass(frozen=True)
@@ -82,6 +91,26 @@ class Progress:
 Plan = Generator[object, object, object]
 
 
+@dataclass(frozen=True)
+class RetryPolicy:
+    """How often a step is tried when the link fails it, and how long to back off in between."""
+
+    attempts: int = 5            # tries per step (1: a link failure abandons the sequence at once)
+    backoff_s: float = 0.2       # before the 2nd try; doubled before each further one
+    max_backoff_s: float = 2.0
+
+    def __post_init__(self):
+        if isinstance(self.attempts, bool) or not isinstance(self.attempts, int) or self.attempts < 1:
+            raise InputError(f"step attempts must be an integer ≥ 1, got {self.attempts!r}")
+        if not 0.0 <= self.backoff_s <= self.max_backoff_s <= 60.0:
+            raise InputError(f"step backoff must satisfy 0 ≤ backoff_s ≤ max_backoff_s ≤ 60 s, got "
+                             f"{self.backoff_s!r} / {self.max_backoff_s!r}")
+
+    def backoff(self, failures: int) -> float:
+        """Seconds to wait after the `failures`-th failed try."""
+        return min(self.max_backoff_s, self.backoff_s * 2 ** (failures - 1))
+
+
 @dataclass
 class Timing:
     """Where a run's wall time went: exposures and waits for the device (physical) vs. everything else."""
@@ -95,6 +124,9 @@ class Timing:
     wait_device_s: float = 0.0      # device-clock time of warm-up waits
     requests: int = 0               # Modbus requests the run made
     request_wall_s: float = 0.0     # wall time spent inside them
+    request_retries: int = 0        # transport-level repeats of a request (garbled, dropped, stale replies)
+    step_retries: int = 0           # steps tried again after a link failure
+    retry_wall_s: float = 0.0       # wall time the failed step tries, backoffs and reopens cost
     steps: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
@@ -106,7 +138,7 @@ class Runner:
 
     def __init__(self, device, spectrometer, *, on_progress: Callable[[float, str], None] | None = None,
                  move_timeout_s: float = 60.0, sleep: Callable[[float], None] = time.sleep,
-                 device_clock: Callable[[], float] | None = None):
+                 device_clock: Callable[[], float] | None = None, retry: RetryPolicy = RetryPolicy()):
         """`device_clock`: the device's own time in seconds with sub-second resolution, if there is one
         (the twin's simulated clock); it splits physical time (motion, settling) from host overhead."""
         self.device = device
@@ -120,11 +152,13 @@ class Runner:
         self._slot: str | None = None
         self._uptime: int | None = None
         self._homed_seen = False
+        self.retry = retry
+        self._wait_start: int | None = None  # a Wait's start, kept across its retries
 
     def run(self, plan: Plan):
         started = time.monotonic()
         stats = getattr(self.device.transport, "stats", None)
-        requests0, busy0 = (stats.requests, stats.busy_s) if stats else (0, 0.0)
+        requests0, busy0, retries0 = (stats.requests, stats.busy_s, stats.retries) if stats else (0, 0.0, 0)
         reply = None
         try:
             while True:
@@ -133,7 +167,7 @@ class Runner:
                 except StopIteration as stop:
                     return stop.value
                 t0 = time.monotonic()
-                reply = self.execute(step)
+                reply = self.retrying(lambda: self.execute(step), _describe(step))
                 name = type(step).__name__
                 self.timing.steps[name] = self.timing.steps.get(name, 0.0) + time.monotonic() - t0
         finally:
@@ -141,6 +175,31 @@ class Runner:
             if stats:
                 self.timing.requests += stats.requests - requests0
                 self.timing.request_wall_s += stats.busy_s - busy0
+                self.timing.request_retries += stats.retries - retries0
+
+    def retrying(self, action: Callable[[], T], what: str) -> T:
+        """`action()`, tried again (RetryPolicy) while it fails with a LinkError: after each failure a
+        backoff, then the port is reopened (the device's identity is checked again on the next read).
+        Any other error — a reset, a refusal, a fault — propagates at once. Also for what a sequence's
+        owner does on the device outside a plan (e.g. switching the lamps on), so it shares the policy."""
+        failures = 0
+        self._wait_start = None
+        while True:
+            t0 = time.monotonic()
+            try:
+                return action()
+            except LinkError as exc:
+                failures += 1
+                if failures >= self.retry.attempts:
+                    self.timing.retry_wall_s += time.monotonic() - t0
+                    raise LinkError(f"{what} failed {failures} times on a bad link; the sequence was abandoned "
+                                    f"(last: {exc})") from None
+                self._sleep(self.retry.backoff(failures))
+                reopen = getattr(self.device.transport, "reopen", None)
+                if reopen is not None:
+                    reopen()
+                self.timing.step_retries += 1
+                self.timing.retry_wall_s += time.monotonic() - t0
 
     # ------------------------------------------------------------------------------- guarding
     def _check_not_reset(self) -> None:
@@ -214,10 +273,14 @@ class Runner:
             return float(dev.read("uptime_s"))
         if isinstance(step, Wait):
             t0 = time.monotonic()
-            start = dev.read("uptime_s")
-            while dev.read("uptime_s") - start < step.seconds:
+            if self._wait_start is None:
+                self._wait_start = dev.read("uptime_s")
+            while (now := dev.read("uptime_s")) - self._wait_start < step.seconds:
+                if now < self._wait_start:
+                    break  # a reset: _check_not_reset says so
                 self._sleep(0.02)
             self._check_not_reset()
+            self._wait_start = None
             self.timing.wait_wall_s += time.monotonic() - t0
             return None
         if isinstance(step, Status):
@@ -230,3 +293,18 @@ class Runner:
         raise TypeError(f"unknown step {step!r}")
 
 
+
+
+def _describe(step) -> str:
+    """A step as the operator would say it, for errors."""
+    if isinstance(step, Move):
+        return f"moving to the {step.slot} slot"
+    if isinstance(step, Lights):
+        return "setting the shutters"
+    if isinstance(step, Acquire):
+        return "an exposure"
+    if isinstance(step, Wait):
+        return f"a {step.seconds:g} s wait"
+    if isinstance(step, Status):
+        return "setting the status LED"
+    return f"the {type(step).__name__} step"
