@@ -42,7 +42,8 @@ def test_fit_csv_round_trip(ideal_map, truth, tmp_path, capsys):
     with open(out) as f:
         got = list(csv.DictReader(f))
     assert list(got[0]) == ["wavelength_nm", "alpha", "sigma_t", "g", "alpha_std", "sigma_t_std", "g_std", "flags",
-                            "sigma_t_beer"]
+                            "sigma_t_beer", "thickness_mm"]
+    assert {r["thickness_mm"] for r in got} == {"0.5"}  # the thickness the fit used, stated
     assert len(got) == 40
     col = lambda k: np.array([float(r[k]) for r in got])  # noqa: E731
     np.testing.assert_allclose(col("wavelength_nm"), wl, rtol=1e-6)  # sorted by wavelength
@@ -67,7 +68,8 @@ def test_fit_says_what_to_do_about_underdetermined_bins(ideal_map, tmp_path, cap
     assert doc["flag_names"] == ["UNDERDETERMINED", "UNDERDETERMINED", "NONE", "NONE"]
     assert len(doc["advice"]) == 1 and doc["advice"][0].startswith("2 of 4 bins are UNDERDETERMINED")
     assert "second thickness" in doc["advice"][0]
-    assert out.err == f"note: {doc['advice'][0]}\n"
+    assert out.err == f"note: {doc['advice'][0]}\nthickness: 0.5 mm (not declared: the map's; map ideal-l0.5)\n"
+    assert doc["thickness_mm"] == 0.5 and doc["thickness_declared"] is False
 
 
 def test_fit_json_and_two_thicknesses(ideal_map, thick_map, truth, tmp_path, capsys):
@@ -85,6 +87,23 @@ def test_fit_json_and_two_thicknesses(ideal_map, thick_map, truth, tmp_path, cap
     alpha = np.array([np.nan if v is None else v for v in doc["columns"]["alpha"]])
     assert np.nanmedian(np.abs(alpha - a)) < 0.05
     assert len(doc["flag_names"]) == 40
+    assert doc["thickness_mm"] == [0.5, 1.0]
+
+
+def test_a_declared_thickness_other_than_the_maps_is_an_error(ideal_map, thick_map, truth, tmp_path, capsys):
+    """0.5 mm data through a 1 mm map would give σt exactly −50 %: with the thickness declared it is refused;
+    the matching map is accepted and says the thickness was declared."""
+    wl, a, s, g, rho_b, rho_w = truth
+    I_b, I_w, I_c = forward(ideal_map, a, s, g, 0.02, 0.99)
+    inp = _write(tmp_path / "m.csv", zip(wl, I_b, I_w, I_c), ["wavelength_nm", "I_b", "I_w", "I_c"])
+    assert main(["fit", "--map", str(thick_map.path), "--input", str(inp), "--thickness", "0.5"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("trimeter: error: --thickness 0.5: map ") and "is for ℓ = 1 mm" in err and "×0.5" in err
+    assert main(["fit", "--map", str(ideal_map.path), "--input", str(inp), "--thickness", "0.5", "--thickness",
+                 "1"]) == 2
+    assert "give one per --map" in capsys.readouterr().err
+    assert main(["fit", "--map", str(ideal_map.path), "--input", str(inp), "--thickness", "0.5"]) == 0
+    assert "thickness: 0.5 mm (declared with --thickness; map ideal-l0.5)" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("content, message", [

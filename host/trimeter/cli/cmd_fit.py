@@ -1,13 +1,18 @@
 """`trimeter fit`: measured intensities (CSV) → α, σt [1/mm], g per wavelength (CSV or JSON).
 
-    trimeter fit --map MAP [--map MAP2] --input meas.csv [--method lut|mlp|paper] [-o params.csv] [--json]
+    trimeter fit --map MAP [--map MAP2] --input meas.csv [--thickness MM …] [--method lut|mlp|paper] [-o params.csv]
+                 [--json]
 
 Input columns: wavelength_nm, I_b, I_w, I_c; optional rho_b, rho_w (per-wavelength backgrounds;
 default: the map's reference backgrounds) and thickness_mm (required with two maps: tells which rows
 belong to which map; both thicknesses must cover the same wavelengths). Empty cells and "nan" are
 missing values: those bins come back flagged with NaN results, the others are unaffected.
-Output columns: wavelength_nm, alpha, sigma_t, g, alpha_std, sigma_t_std, g_std, flags, sigma_t_beer
-(flags: trimeter.inversion.flags.FitFlag bits; the JSON form also names them).
+Output columns: wavelength_nm, alpha, sigma_t, g, alpha_std, sigma_t_std, g_std, flags, sigma_t_beer,
+thickness_mm (flags: trimeter.inversion.flags.FitFlag bits; the JSON form also names them).
+The thickness is never assumed silently: σt scales as 1/ℓ, so a map of another thickness than the
+sample's gives σt off by their ratio. The output states the thickness the fit used (the map's; with
+two maps "0.4+0.8"), and so does a line on stderr; `--thickness` declares the sample's, and a map of
+another thickness is then an error.
 """
 
 from __future__ import annotations
@@ -25,7 +30,8 @@ from trimeter.errors import InputError, OutputError
 
 REQUIRED = ("wavelength_nm", "I_b", "I_w", "I_c")
 OPTIONAL = ("rho_b", "rho_w", "thickness_mm")
-OUTPUT = ("wavelength_nm", "alpha", "sigma_t", "g", "alpha_std", "sigma_t_std", "g_std", "flags", "sigma_t_beer")
+OUTPUT = ("wavelength_nm", "alpha", "sigma_t", "g", "alpha_std", "sigma_t_std", "g_std", "flags", "sigma_t_beer",
+          "thickness_mm")
 
 
 def register(subparsers) -> None:
@@ -35,6 +41,8 @@ def register(subparsers) -> None:
                    help="appearance map (file or shipped name); give twice for two thicknesses")
     p.add_argument("--input", required=True, type=Path,
                    help="CSV with wavelength_nm,I_b,I_w,I_c[,rho_b,rho_w,thickness_mm]")
+    p.add_argument("--thickness", type=float, action="append",
+                   help="the sample's thickness in mm (once per --map); a map of another thickness is an error")
     p.add_argument("--method", choices=("lut", "mlp", "paper"), default="lut")
     p.add_argument("-o", "--output", type=Path, help="output CSV (default: stdout)")
     p.add_argument("--json", action="store_true", help="print JSON instead of CSV")
@@ -107,6 +115,7 @@ def run(args) -> int:
     refuse_output_onto_inputs(args.output, [args.input, *(m.path for m in amaps if m.path is not None)])
     if len({round(m.thickness_mm, 9) for m in amaps}) != len(amaps):
         raise InputError("--map: the maps must be for different thicknesses")
+    check_declared_thickness(args.thickness, amaps)
     data = read_measurements(args.input)
     groups = _split_thicknesses(data, amaps, args.input)
     stack = lambda name: np.stack([data[name][rows] for rows in groups])  # noqa: E731
@@ -117,19 +126,41 @@ def run(args) -> int:
     notes = advice(result.flags, len(amaps))
     for note in notes:  # stderr: stdout may be the CSV
         print(f"note: {note}", file=sys.stderr)
+    used = "+".join(f"{m.thickness_mm:g}" for m in amaps)
+    source = "declared with --thickness" if args.thickness else "not declared: the map's" if len(amaps) == 1 \
+        else "not declared: the maps'"
+    print(f"thickness: {used} mm ({source}; map {', '.join(m.name for m in amaps)})", file=sys.stderr)
     if args.json:
-        doc = {"method": args.method, "maps": [{"name": m.name, "thickness_mm": m.thickness_mm,
-                                                "sha256": m.checksum} for m in amaps],
-               "columns": {k: [_json_number(v) for v in columns[k]] for k in OUTPUT},
+        doc = {"method": args.method, "thickness_mm": [m.thickness_mm for m in amaps] if len(amaps) > 1
+               else amaps[0].thickness_mm, "thickness_declared": bool(args.thickness),
+               "maps": [{"name": m.name, "thickness_mm": m.thickness_mm, "sha256": m.checksum} for m in amaps],
+               "columns": {k: [_json_number(v) for v in columns[k]] for k in OUTPUT if k != "thickness_mm"},
                "flag_names": [describe(f) for f in result.flags], "advice": notes}
         text = json.dumps(doc, indent=1, allow_nan=False)
         _write(args.output, text + "\n")
         return 0
     lines = [",".join(OUTPUT)]
     for i in range(len(columns["wavelength_nm"])):
-        lines.append(",".join(str(int(columns[k][i])) if k == "flags" else f"{columns[k][i]:.9g}" for k in OUTPUT))
+        lines.append(",".join([*(str(int(columns[k][i])) if k == "flags" else f"{columns[k][i]:.9g}"
+                                 for k in OUTPUT[:-1]), used]))
     _write(args.output, "\n".join(lines) + "\n")
     return 0
+
+
+def check_declared_thickness(declared: list[float] | None, amaps) -> None:
+    """Each declared thickness must be a map's ℓ, one per map: a map of another thickness scales σt."""
+    if not declared:
+        return
+    if len(declared) != len(amaps):
+        raise InputError(f"--thickness: give one per --map ({len(amaps)}), got {len(declared)}")
+    for thickness in declared:
+        if not (math.isfinite(thickness) and thickness > 0):
+            raise InputError(f"--thickness: {thickness:g} is not a positive thickness in mm")
+    for thickness, amap in zip(sorted(declared), sorted(amaps, key=lambda m: m.thickness_mm)):
+        if abs(thickness - amap.thickness_mm) > 1e-6 * max(1.0, thickness):
+            raise InputError(f"--thickness {thickness:g}: map {amap.name} is for ℓ = {amap.thickness_mm:g} mm, not "
+                             f"the sample's {thickness:g} mm (σt would come out ×{thickness / amap.thickness_mm:.3g}); "
+                             f"use a map built for {thickness:g} mm")
 
 
 def _json_number(v):
