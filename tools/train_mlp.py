@@ -104,6 +104,7 @@ def network_graph(model):
 def export(model, amap, path: Path, hidden, stats: dict) -> Path:
     import onnx
 
+    from trimeter.atomic import atomic_write
     from trimeter.inversion.mlp import FEATURES, MODEL_KIND
 
     onx = network_graph(model)
@@ -122,11 +123,7 @@ def export(model, amap, path: Path, hidden, stats: dict) -> Path:
     for key, value in meta.items():
         prop = onx.metadata_props.add()
         prop.key, prop.value = key, value
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_bytes(onx.SerializeToString())
-    tmp.replace(path)
-    return path
+    return atomic_write(path, onx.SerializeToString())
 
 
 def main(argv=None) -> int:

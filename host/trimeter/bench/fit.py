@@ -40,6 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
+from trimeter.atomic import atomic_output, atomic_write
 from trimeter.forward.collimated import MEASURABLE_IC
 from trimeter.inversion.flags import FitFlag
 from trimeter.paths import MAPS_DIR, REPO_ROOT
@@ -519,7 +520,7 @@ def run(args) -> int:
                                "targets": targets})
     if len(report["maps"]) >= 2:
         report["two_thicknesses"] = two_thicknesses(amaps, args.repeats)
-    (args.out / "results.json").write_text(json.dumps(report, indent=1, default=float))
+    atomic_write(args.out / "results.json", json.dumps(report, indent=1, default=float))
     print(f"\nall figures: {args.out / 'results.json'}")
     return 0
 
@@ -657,6 +658,7 @@ def _pareto(rows, exact_rows, summary, amap, out: Path) -> Path:
     fig.suptitle(f"trimeter bench fit — {amap.name}, noise-free: rendered held-out (filled), map-exact (hollow)")
     fig.tight_layout()
     png = out / f"pareto-{amap.name}.png"
-    fig.savefig(png, dpi=110)
+    with atomic_output(png) as f:
+        fig.savefig(f, dpi=110, format="png")
     plt.close(fig)
     return png

@@ -17,9 +17,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-import os
 import shutil
-import tempfile
 import time
 import zipfile
 from dataclasses import dataclass
@@ -29,6 +27,7 @@ from typing import Callable
 
 import numpy as np
 
+from trimeter.atomic import atomic_output, atomic_write
 from trimeter.errors import InputError, MapFileError
 from trimeter.forward.collimated import MEASURABLE_IC, collimated_transmittance
 from trimeter.geometry import cover_slide_n
@@ -157,7 +156,7 @@ class Checkpoint:
             if stored != fingerprint:
                 raise InputError(f"checkpoint {self.dir} was made for a different recipe; delete it to start over")
         self.dir.mkdir(parents=True, exist_ok=True)
-        _atomic_write(stamp, json.dumps({"fingerprint": fingerprint, "recipe": recipe.to_dict()}).encode())
+        atomic_write(stamp, json.dumps({"fingerprint": fingerprint, "recipe": recipe.to_dict()}).encode())
 
     def path(self, j: int, k: int) -> Path:
         return self.dir / f"col_{j:03d}_{k:03d}.npz"
@@ -179,26 +178,13 @@ class Checkpoint:
         return col
 
     def save(self, j: int, k: int, col: Column) -> None:
-        fd, tmp = tempfile.mkstemp(dir=self.dir, prefix=".col", suffix=".npz")
-        try:
-            with os.fdopen(fd, "wb") as f:
-                np.savez(f, **{name: getattr(col, name) for name in _COLUMN_FIELDS}, n_paths=col.n_paths,
-                         truncated=col.truncated, truncation_bound=col.truncation_bound, seconds=col.seconds,
-                         path_events=col.path_events)
-            os.replace(tmp, self.path(j, k))
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
+        with atomic_output(self.path(j, k), make_parents=False) as f:
+            np.savez(f, **{name: getattr(col, name) for name in _COLUMN_FIELDS}, n_paths=col.n_paths,
+                     truncated=col.truncated, truncation_bound=col.truncation_bound, seconds=col.seconds,
+                     path_events=col.path_events)
 
     def remove(self) -> None:
         shutil.rmtree(self.dir, ignore_errors=True)
-
-
-def _atomic_write(path: Path, data: bytes) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
-    with os.fdopen(fd, "wb") as f:
-        f.write(data)
-    os.replace(tmp, path)
 
 
 def default_checkpoint_dir(out: Path) -> Path:
