@@ -264,3 +264,18 @@ def test_serve_reports_and_spools_leftovers_at_start(rig):
     assert warnings[0] == f"1 interrupted results write(s) found in {tmp / 'results'}"
     assert f"moved to {tmp / 'data' / 'spool' / '20260101T000000Z-interrupted'}" in warnings[1]
     assert _names(tmp / "results") == []
+
+
+def test_ctrl_c_mid_write_leaves_the_partial_for_the_next_start(tmp_path, measurement, monkeypatch):
+    def interrupt(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(figure, "plot_parameters", interrupt)
+    with pytest.raises(KeyboardInterrupt):
+        write_measurement(tmp_path, measurement)
+    (partial,) = tmp_path.iterdir()
+    assert partial.name.startswith(partial_name(""))
+    assert spool.find_partials(tmp_path) == []          # this process's own write: still in progress
+    later = time.time() + 2 * spool.IN_PROGRESS_MAX_AGE_S
+    (left,) = spool.find_partials(tmp_path, now=later)  # once no write can still be running, a leftover
+    assert left.path == partial and left.files >= 5

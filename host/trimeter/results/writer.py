@@ -129,7 +129,9 @@ def write_measurement(root: str | Path, measurement: Measurement, *, label: str 
         _write_all(partial, measurement, figure=figure, medium=medium)
         _fsync_tree(partial)
         os.rename(partial, final)
-    except BaseException:
+    except Exception:
+        # A failed write is removed: the caller still holds the measurement (results.spool keeps it). Ctrl-C
+        # leaves the partial directory, which the next start moves to the spool.
         shutil.rmtree(partial, ignore_errors=True)
         raise
     fsync_directory(root)
