@@ -1,4 +1,4 @@
-/* Flash storage for the HAL: the four storage regions on their own sectors (see stm32f405.ld). */
+/* Flash storage for the HAL: the four storage regions, each one whole sector (flash_layout.h). */
 #ifndef TRIMETER_STM32F405_FLASH_H
 #define TRIMETER_STM32F405_FLASH_H
 

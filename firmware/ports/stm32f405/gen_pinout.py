@@ -10,6 +10,9 @@ import tomllib
 
 PORTS = "ABCDEFGHI"
 PULLS = {"none": 0, "up": 1, "down": 2}
+# PC13-PC15 are supplied through the backup domain's power switch: it sinks only 3 mA, and the
+# datasheet forbids them as a current source (e.g. an LED). None is assigned here.
+BACKUP_DOMAIN_PINS = {("C", 13), ("C", 14), ("C", 15)}
 
 
 def main(src: str, out: str) -> int:
@@ -30,6 +33,9 @@ def main(src: str, out: str) -> int:
         port, number = pin.get("port"), pin.get("pin")
         if port not in PORTS or not isinstance(number, int) or not 0 <= number <= 15:
             sys.exit(f"{src}: [{name}] needs port A..I and pin 0..15")
+        if (port, number) in BACKUP_DOMAIN_PINS:
+            sys.exit(f"{src}: [{name}] P{port}{number} is a backup-domain pin (PC13-PC15: 3 mA, must not source "
+                     "current); use another pin")
         if (port, number) in used:
             sys.exit(f"{src}: [{name}] P{port}{number} is already [{used[port, number]}]")
         used[port, number] = name

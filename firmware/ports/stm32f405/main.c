@@ -4,7 +4,10 @@
  *
  * Clock: HSE 8 MHz → PLL 168 MHz when the crystal starts; every ready-wait has a timeout and falls
  * back to HSI 16 MHz (QEMU reads RCC as 0, so it runs on the fallback). The actual bus clocks are
- * kept in variables and every divider is computed from them. */
+ * kept in variables and every divider is computed from them.
+ *
+ * The step timer's ISR, the other ISRs and the HAL hooks the step timer calls are RAMFUNC, and the
+ * hal_t they are reached through is in RAM: they keep running while the flash programs (flash.c). */
 #include <stdbool.h>
 #include <stddef.h>
 #include <stdint.h>
@@ -12,7 +15,9 @@
 #include "app.h"
 #include "flash.h"
 #include "pinout_gen.h"
+#include "ramfunc.h"
 #include "regs.h"
+#include "timebase.h"
 
 #define READY_TIMEOUT 200000u /* loop turns: ~10 ms at 16 MHz; generous for HSE and PLL */
 #define SERVO_PERIOD_US 20000u
@@ -38,7 +43,7 @@ static void clock_init(void)
     RCC_PLLCFGR = 8u | (336u << 6) | (0u << 16) | (1u << 22) | (7u << 24);
     RCC_CR |= RCC_CR_PLLON;
     if (!wait_set(&RCC_CR, RCC_CR_PLLRDY, RCC_CR_PLLRDY)) return;
-    FLASH_ACR = (1u << 8) | (1u << 9) | (1u << 10) | 5u; /* prefetch, I/D cache, 5 wait states */
+    FLASH_ACR = FLASH_ACR_PRFTEN | FLASH_ACR_ICEN | FLASH_ACR_DCEN | 5u; /* 5 wait states at 168 MHz, 3.3 V */
     RCC_CFGR = (5u << 10) | (4u << 13) | RCC_CFGR_SW_PLL; /* APB1 /4 = 42 MHz, APB2 /2 = 84 MHz */
     if (!wait_set(&RCC_CFGR, RCC_CFGR_SWS_MASK, RCC_CFGR_SWS_PLL)) {
         RCC_CFGR = 0; /* back to HSI, undivided */
@@ -64,8 +69,13 @@ static void pin_mode(uint32_t port, uint32_t pin, uint32_t mode, int af, uint32_
     }
 }
 
-static void pin_write(uint32_t port, uint32_t pin, bool high) { GPIO_BSRR(port) = high ? 1u << pin : 1u << (pin + 16); }
-static bool pin_read(uint32_t port, uint32_t pin) { return (GPIO_IDR(port) >> pin) & 1u; }
+/* Always inlined: the RAM hooks use them, and a copy in flash would stall them. */
+#define ALWAYS_INLINE inline __attribute__((always_inline))
+static ALWAYS_INLINE void pin_write(uint32_t port, uint32_t pin, bool high)
+{
+    GPIO_BSRR(port) = high ? 1u << pin : 1u << (pin + 16);
+}
+static ALWAYS_INLINE bool pin_read(uint32_t port, uint32_t pin) { return (GPIO_IDR(port) >> pin) & 1u; }
 
 #define PIN_INIT(name, mode) \
     pin_mode(PIN_##name##_PORT, PIN_##name##_PIN, (mode), PIN_##name##_AF, PIN_##name##_PULL)
@@ -96,7 +106,7 @@ static void gpio_init(void)
 
 /* ---------------------------------------------------------------- time base */
 
-void SysTick_Handler(void) { ms_ticks++; }
+RAMFUNC void SysTick_Handler(void) { ms_ticks++; }
 
 static void systick_init(void)
 {
@@ -106,16 +116,14 @@ static void systick_init(void)
     SYST_CSR = 7u;                                          /* core clock, interrupt, enable */
 }
 
+static uint32_t read_ms_ticks(void) { return ms_ticks; }
+static uint32_t read_counter(void) { return SYST_CVR; }
+static bool read_wrap_pending(void) { return (SCB_ICSR & SCB_ICSR_PENDSTSET) != 0; }
+
 static uint32_t now_us(void)
 {
-    /* ms_ticks and the down-counter must come from the same millisecond: retry across a wrap. */
-    uint32_t ms, cvr;
-    do {
-        ms = ms_ticks;
-        cvr = SYST_CVR;
-    } while (ms != ms_ticks);
-    uint32_t reload = SYST_RVR + 1u;
-    return ms * 1000u + (reload - 1u - cvr) / (reload / 1000u);
+    static const systick_source_t systick = {read_ms_ticks, read_counter, read_wrap_pending};
+    return systick_now_us(&systick, SYST_RVR + 1u);
 }
 
 /* ---------------------------------------------------------------- USART1 (interrupt-driven rings) */
@@ -123,7 +131,7 @@ static uint32_t now_us(void)
 static volatile uint8_t rx_buf[UART_BUF], tx_buf[UART_BUF];
 static volatile uint32_t rx_head, rx_tail, tx_head, tx_tail;
 
-void USART1_IRQHandler(void)
+RAMFUNC void USART1_IRQHandler(void)
 {
     uint32_t sr = USART1_SR;
     if (sr & (USART_SR_RXNE | USART_SR_ORE)) {
@@ -193,7 +201,7 @@ static size_t h_uart_write(void *ctx, const uint8_t *buf, size_t len)
 
 /* ---------------------------------------------------------------- step timer (TIM5, 32-bit, 1 MHz) */
 
-void TIM5_IRQHandler(void)
+RAMFUNC void TIM5_IRQHandler(void)
 {
     TIM_SR(TIM5_BASE) = ~TIM_SR_UIF;
     uint32_t next = app_step_isr();
@@ -290,10 +298,10 @@ static uint32_t h_now_us(void *ctx)
     return now_us();
 }
 
-static void h_enable(void *ctx, bool on) { (void)ctx; PIN_SET(STEPPER_ENABLE, on); }
-static void h_dir(void *ctx, bool positive) { (void)ctx; PIN_SET(STEPPER_DIR, positive); }
+static RAMFUNC void h_enable(void *ctx, bool on) { (void)ctx; PIN_SET(STEPPER_ENABLE, on); }
+static RAMFUNC void h_dir(void *ctx, bool positive) { (void)ctx; PIN_SET(STEPPER_DIR, positive); }
 
-static void h_step(void *ctx)
+static RAMFUNC void h_step(void *ctx)
 {
     (void)ctx;
     PIN_SET(STEPPER_STEP, true);
@@ -304,8 +312,8 @@ static void h_step(void *ctx)
     PIN_SET(STEPPER_STEP, false);
 }
 
-static bool h_endstop(void *ctx) { (void)ctx; return PIN_ASSERTED(ENDSTOP); }
-static bool h_stalled(void *ctx) { (void)ctx; return PIN_ASSERTED(STEPPER_DIAG); }
+static RAMFUNC bool h_endstop(void *ctx) { (void)ctx; return PIN_ASSERTED(ENDSTOP); }
+static RAMFUNC bool h_stalled(void *ctx) { (void)ctx; return PIN_ASSERTED(STEPPER_DIAG); }
 static bool h_button(void *ctx) { (void)ctx; return PIN_ASSERTED(BUTTON); }
 static void h_status(void *ctx, bool on) { (void)ctx; PIN_SET(STATUS_LED, on); }
 static void h_kick(void *ctx) { (void)ctx; IWDG_KR = 0xAAAAu; }
@@ -320,7 +328,8 @@ static void watchdog_init(void)
     IWDG_KR = 0xCCCCu; /* start; it can't be stopped again */
 }
 
-static const hal_t board_hal = {
+/* Not const: the step timer's ISR reads its hooks from here, and .rodata is in flash. */
+static hal_t board_hal = {
     .ctx = NULL,
     .uart_read = h_uart_read,
     .uart_write = h_uart_write,

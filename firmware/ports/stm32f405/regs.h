@@ -34,6 +34,12 @@
 #define FLASH_KEYR REG32(FLASH_BASE_R + 0x04)
 #define FLASH_SR REG32(FLASH_BASE_R + 0x0C)
 #define FLASH_CR REG32(FLASH_BASE_R + 0x10)
+#define FLASH_ACR_LATENCY_MASK 0xFu
+#define FLASH_ACR_PRFTEN (1u << 8)
+#define FLASH_ACR_ICEN (1u << 9)
+#define FLASH_ACR_DCEN (1u << 10)
+#define FLASH_ACR_ICRST (1u << 11)
+#define FLASH_ACR_DCRST (1u << 12)
 #define FLASH_KEY1 0x45670123u
 #define FLASH_KEY2 0xCDEF89ABu
 #define FLASH_SR_BSY (1u << 16)
@@ -41,6 +47,8 @@
 #define FLASH_CR_PG (1u << 0)
 #define FLASH_CR_SER (1u << 1)
 #define FLASH_CR_SNB_SHIFT 3
+#define FLASH_CR_SNB_MASK (0xFu << FLASH_CR_SNB_SHIFT)
+#define FLASH_CR_PSIZE_MASK (3u << 8)
 #define FLASH_CR_PSIZE_X8 (0u << 8)
 #define FLASH_CR_PSIZE_X32 (2u << 8)
 #define FLASH_CR_STRT (1u << 16)
@@ -108,6 +116,9 @@
 #define SCB_SHPR3 REG32(0xE000ED20u)
 #define SCB_CPACR REG32(0xE000ED88u)
 #define SCB_AIRCR REG32(0xE000ED0Cu)
+#define SCB_ICSR REG32(0xE000ED04u)
+#define SCB_ICSR_PENDSTSET (1u << 26)
+#define SCB_VTOR REG32(0xE000ED08u)
 
 #define IRQ_USART1 37u
 #define IRQ_TIM5 50u
