@@ -21,11 +21,14 @@ from trimeter.errors import OutputError
 TEMP_SUFFIX = ".tmp"
 
 
-def _default_mode() -> int:
-    # mkstemp creates 0600; an output should get the permissions a plain open() would give it
-    umask = os.umask(0)
-    os.umask(umask)
-    return 0o666 & ~umask
+def _mode_for(path: Path) -> int:
+    """A replaced file keeps its permissions; a new one gets what open() would give it (not mkstemp's 0600)."""
+    try:
+        return path.stat().st_mode & 0o7777
+    except OSError:
+        umask = os.umask(0)
+        os.umask(umask)
+        return 0o666 & ~umask
 
 
 def fsync_directory(directory: str | os.PathLike) -> None:
@@ -58,7 +61,7 @@ def atomic_output(path: str | os.PathLike, *, make_parents: bool = True) -> Iter
         raise OutputError(f"cannot write {path}: {describe_os_error(exc)}") from None
     try:
         with os.fdopen(fd, "wb") as f:
-            os.fchmod(f.fileno(), _default_mode())
+            os.fchmod(f.fileno(), _mode_for(path))
             yield f
             f.flush()
             os.fsync(f.fileno())

@@ -29,6 +29,9 @@ def test_atomic_write_replaces_the_file_and_leaves_no_temporary(tmp_path):
     assert target.read_text() == "new\n"
     assert [p.name for p in target.parent.iterdir()] == ["out.csv"]
     assert target.stat().st_mode & 0o777 == 0o666 & ~_umask()  # what open() would have given, not mkstemp's 0600
+    target.chmod(0o640)
+    atomic_write(target, "newer\n")
+    assert target.stat().st_mode & 0o777 == 0o640               # a replaced file keeps its permissions
 
 
 def _umask() -> int:
