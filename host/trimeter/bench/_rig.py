@@ -1,0 +1,56 @@
+"""What the link and soak benchmarks share: a twin and an in-process Service opened the way `trimeter
+serve` opens the instrument (host settings → Device.open), with the host's directories in a temporary
+place so a benchmark never touches the user's calibration or results."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import tempfile
+from pathlib import Path
+
+from trimeter.cli._instrument import open_device, open_spectrometer
+from trimeter.errors import InputError
+from trimeter.sequences.service import Service
+from trimeter.sequences.settings import HostSettings
+from trimeter.twin import FaultConfig, Twin
+
+
+@contextlib.contextmanager
+def host_dirs(root: Path):
+    """TRIMETER_DATA_DIR / TRIMETER_CONFIG_DIR under `root` while the benchmark runs (the calibration
+    path is read from them), restored afterwards."""
+    saved = {key: os.environ.get(key) for key in ("TRIMETER_DATA_DIR", "TRIMETER_CONFIG_DIR")}
+    os.environ["TRIMETER_DATA_DIR"] = str(root / "data")
+    os.environ["TRIMETER_CONFIG_DIR"] = str(root / "config")
+    try:
+        yield
+    finally:
+        for key, value in saved.items():
+            if value is None:
+                os.environ.pop(key, None)
+            else:
+                os.environ[key] = value
+
+
+@contextlib.contextmanager
+def twin_and_service(*, time_scale: float, seed: int, faults: FaultConfig | None = None,
+                     settings: dict | None = None, on_event=None, root: Path | None = None):
+    """Yields (twin, service, settings): a twin with no sample, and a Service for it (not yet connected)."""
+    if not 0 < time_scale <= 1000:
+        raise InputError(f"--time-scale must be within (0, 1000], got {time_scale:g}")
+    with contextlib.ExitStack() as stack:
+        if root is None:
+            root = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="trimeter-bench-")))
+        stack.enter_context(host_dirs(root))
+        twin = stack.enter_context(Twin(time_scale=time_scale, faults=faults, state_dir=root / "twin", seed=seed))
+        host = HostSettings()
+        host.set("port", twin.modbus_port)
+        host.set("spectrometer", twin.spectrometer_url)
+        host.set("results_dir", str(root / "results"))
+        for key, value in (settings or {}).items():
+            host.set(key, value, source="benchmark")
+        service = Service(lambda: open_device(host), lambda: open_spectrometer(host), host, on_event=on_event,
+                          device_clock=twin.sim_time, label="bench")
+        stack.callback(service.close)
+        yield twin, service, host
