@@ -51,8 +51,11 @@ def describe_os_error(exc: OSError) -> str:
 
 @contextmanager
 def atomic_output(path: str | os.PathLike, *, make_parents: bool = True) -> Iterator[BinaryIO]:
-    """Yield a binary file; when the block ends without an exception it replaces `path` atomically."""
+    """Yield a binary file; when the block ends without an exception it replaces `path` atomically
+    (through a symlink: the file it points to is replaced, the link stays)."""
     path = Path(path)
+    if path.is_symlink():
+        path = path.resolve()
     try:
         if make_parents:
             path.parent.mkdir(parents=True, exist_ok=True)

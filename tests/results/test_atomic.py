@@ -34,6 +34,14 @@ def test_atomic_write_replaces_the_file_and_leaves_no_temporary(tmp_path):
     assert target.stat().st_mode & 0o777 == 0o640               # a replaced file keeps its permissions
 
 
+def test_atomic_write_through_a_symlink_replaces_its_target(tmp_path):
+    target, link = tmp_path / "real.csv", tmp_path / "link.csv"
+    target.write_text("old")
+    link.symlink_to(target)
+    atomic_write(link, "new")
+    assert link.is_symlink() and target.read_text() == "new"
+
+
 def _umask() -> int:
     mask = os.umask(0)
     os.umask(mask)
