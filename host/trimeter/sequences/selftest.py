@@ -180,11 +180,16 @@ class _Bench:
         return 2 * expected + MOVE_MARGIN_S
 
     def lights(self, on: tuple[str, ...] = (), open_: tuple[str, ...] = ()) -> None:
-        """LEDs `on` and shutters `open_` (names from LIGHTS); everything else off/closed."""
-        for light in LIGHTS:
-            coil_led = "led_collimated_on" if light == "collimated" else f"led_{light}_on"
-            self.device.write(coil_led, light in on)
-            self.device.write(f"shutter_{light}_open", light in open_)
+        """LEDs `on` and shutters `open_` (names from LIGHTS), everything else off/closed: one request over
+        every coil, so the set-up changes at once."""
+        wanted = {**{f"led_{light}_on": light in on for light in LIGHTS},
+                  **{f"shutter_{light}_open": light in open_ for light in LIGHTS}}
+        if set(wanted) != set(regs.COILS):  # a coil this code does not know must not be switched blindly
+            raise AssertionError("the register map's coils are no longer exactly the light coils")
+        coils = [False] * regs.SPANS["coil"]
+        for name, value in wanted.items():
+            coils[regs.COILS[name].address] = value
+        self.device.transport.write_bits(0, coils)
         finished, fault = self.wait_idle(self.move_timeout_s())
         if fault is not None:
             raise _CheckFailed(f"the device latched a {_enum_name(fault)} fault while switching lights")
