@@ -44,6 +44,7 @@ class FakeInstrument:
         self.file_writes = 0
         self.fail_file_write_at: int | None = None  # raise a link failure on this file-record write
         self.commands: list[str] = []
+        self.unlocked = False      # like the firmware: one destructive command per unlock write
         self.time_s = 0.0          # device clock: advances tick_s per request (what a real link costs)
         self.tick_s = 0.05
         self.on_request = None     # callable(fake) run on every request (fault injection in tests)
@@ -119,13 +120,29 @@ class FakeInstrument:
 
     def write_words(self, address, values):
         self._tick()
+        unlocked = self.unlocked  # an unlock in this same request serves only later ones
         for i, value in enumerate(values):
             self.hr[address + i] = value
         if address <= regs.BY_NAME["command"].address < address + len(values):
-            self._on_command(regs.Command(self.hr[regs.BY_NAME["command"].address]))
+            cmd = regs.Command(self.hr[regs.BY_NAME["command"].address])
+            if cmd in (regs.Command.SAVE_CONFIG, regs.Command.LOAD_DEFAULTS):
+                if not unlocked:
+                    raise ModbusExceptionReply(f"{cmd.name.lower()} without unlock", 1)
+                self.unlocked = False
+            self._on_command(cmd)
         cmd_reg = regs.BY_NAME["map_command"]
         if address <= cmd_reg.address < address + len(values):
-            self._on_map_command(regs.MapCommand(self.hr[cmd_reg.address]))
+            cmd = regs.MapCommand(self.hr[cmd_reg.address])
+            destructive = cmd in (regs.MapCommand.BEGIN_WRITE, regs.MapCommand.ACTIVATE)
+            if destructive and not unlocked:
+                self._set("ir", regs.BY_NAME["map_op_status"], regs.MapOpStatus.ERROR_LOCKED)
+            else:
+                self.unlocked = self.unlocked and not destructive
+                self._on_map_command(cmd)
+        unlock = regs.BY_NAME["unlock"].address
+        if address <= unlock < address + len(values):
+            self.unlocked = self.hr[unlock] == regs.Unlock.KEY
+            self.hr[unlock] = 0
 
     def _on_command(self, cmd):
         self.commands.append(cmd.name.lower())

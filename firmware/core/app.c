@@ -87,6 +87,46 @@ static void set_shutter(enum hal_shutter s, bool open)
     actuators_set_shutter(&app.act, s, open, pulse, app.cfg.shutter_settle_ms, now());
 }
 
+/* ---------------------------------------------------------------- unlock window */
+
+/* The destructive write of this window was the last write before the one being handled. */
+static bool retry_candidate;
+
+static bool unlock_window_open(void) { return app.unlock_open && now() - app.unlock_us < APP_UNLOCK_WINDOW_US; }
+
+/* This destructive write just ran in the open window: a retry, acknowledged without running it. */
+static bool unlock_repeat(uint16_t reg, uint16_t value)
+{
+    bool repeat = retry_candidate && unlock_window_open() && app.unlock_spent && app.spent_reg == reg &&
+                  app.spent_value == value;
+    if (repeat) app.spent_was_last = true;
+    return repeat;
+}
+
+/* May this destructive write run now? Consumes the window. */
+static bool unlock_take(uint16_t reg, uint16_t value)
+{
+    if (!unlock_window_open() || app.unlock_spent || mb_request_is_broadcast(&app.mb)) return false;
+    app.unlock_spent = app.spent_was_last = true;
+    app.spent_reg = reg;
+    app.spent_value = value;
+    return true;
+}
+
+static void unlock_close(void) { app.unlock_open = app.unlock_spent = app.spent_was_last = false; }
+
+/* Every write the device takes starts here: only a write right after the destructive one can be its retry. */
+static void write_arrives(void)
+{
+    retry_candidate = app.spent_was_last;
+    app.spent_was_last = false;
+}
+
+static bool destructive_command(uint16_t command)
+{
+    return command == TRIMETER_COMMAND_SAVE_CONFIG || command == TRIMETER_COMMAND_LOAD_DEFAULTS;
+}
+
 /* ---------------------------------------------------------------- commands */
 
 static uint8_t start_motion(int command)
@@ -132,15 +172,23 @@ static uint8_t run_command(uint16_t command)
         motion_clear_fault(&app.motion);
         app.app_fault = TRIMETER_FAULT_NONE;
         return MB_OK;
-    case TRIMETER_COMMAND_SAVE_CONFIG:
+    case TRIMETER_COMMAND_SAVE_CONFIG: {
+        if (unlock_repeat(REG_HR_COMMAND, command)) return MB_OK;
         if (motion_busy(&app.motion)) return MB_EX_ILLEGAL_FUNCTION;
-        if (config_save(app.hr, &app.storage) != STORAGE_OK) {
+        if (!unlock_take(REG_HR_COMMAND, command)) return MB_EX_ILLEGAL_FUNCTION;
+        int rc = config_save(app.hr, &app.storage);
+        if (rc != STORAGE_OK) unlock_close();
+        if (rc == STORAGE_ERR_BUSY) return MB_EX_SERVER_DEVICE_BUSY; /* nothing erased: not a fault */
+        if (rc != STORAGE_OK) {
             app.app_fault = TRIMETER_FAULT_STORAGE;
             return MB_EX_SERVER_DEVICE_FAILURE;
         }
         app.config_source = TRIMETER_CONFIG_SOURCE_SAVED;
         return MB_OK;
+    }
     case TRIMETER_COMMAND_LOAD_DEFAULTS: {
+        if (unlock_repeat(REG_HR_COMMAND, command)) return MB_OK;
+        if (!unlock_take(REG_HR_COMMAND, command)) return MB_EX_ILLEGAL_FUNCTION;
         static uint16_t defaults[REG_HR_SPAN];
         config_defaults(defaults);
         memcpy(&app.hr[STORAGE_CONFIG_FIRST], &defaults[STORAGE_CONFIG_FIRST], STORAGE_CONFIG_WORDS * sizeof(uint16_t));
@@ -158,14 +206,22 @@ static void run_map_command(uint16_t command)
     int rc;
     switch (command) {
     case TRIMETER_MAP_COMMAND_BEGIN_WRITE:
+        if (unlock_repeat(REG_HR_MAP_COMMAND, command)) return;
         /* Flash erase stalls the CPU on the MCU: never while the step timer must run. */
         if (motion_busy(&app.motion)) {
             app.map_op_status = TRIMETER_MAP_OP_STATUS_ERROR_STATE;
             return;
         }
+        if (!unlock_take(REG_HR_MAP_COMMAND, command)) {
+            app.map_op_status = TRIMETER_MAP_OP_STATUS_ERROR_LOCKED;
+            return;
+        }
         rc = storage_map_begin(st, &app.upload, regmap_get_u32(&app.hr[REG_HR_MAP_EXPECTED_LENGTH]),
                                regmap_get_u32(&app.hr[REG_HR_MAP_EXPECTED_CRC32]), app.hr[REG_HR_MAP_VERSION]);
-        app.map_op_status = rc == STORAGE_OK ? TRIMETER_MAP_OP_STATUS_WRITING : TRIMETER_MAP_OP_STATUS_ERROR_STORAGE;
+        if (rc != STORAGE_OK) unlock_close();
+        app.map_op_status = rc == STORAGE_OK         ? TRIMETER_MAP_OP_STATUS_WRITING
+                            : rc == STORAGE_ERR_BUSY ? TRIMETER_MAP_OP_STATUS_ERROR_BUSY
+                                                     : TRIMETER_MAP_OP_STATUS_ERROR_STORAGE;
         return;
     case TRIMETER_MAP_COMMAND_VERIFY:
         if (!app.upload.open) {
@@ -175,15 +231,24 @@ static void run_map_command(uint16_t command)
         rc = storage_map_verify(st, &app.upload);
         app.map_op_status = rc == STORAGE_OK             ? TRIMETER_MAP_OP_STATUS_VERIFY_OK
                             : rc == STORAGE_ERR_MISMATCH ? TRIMETER_MAP_OP_STATUS_VERIFY_FAILED
+                            : rc == STORAGE_ERR_FORMAT   ? TRIMETER_MAP_OP_STATUS_ERROR_TABLE
                                                          : TRIMETER_MAP_OP_STATUS_ERROR_STORAGE;
         return;
     case TRIMETER_MAP_COMMAND_ACTIVATE:
+        if (unlock_repeat(REG_HR_MAP_COMMAND, command)) return;
         if (!app.upload.open || !app.upload.verified || motion_busy(&app.motion)) {
             app.map_op_status = TRIMETER_MAP_OP_STATUS_ERROR_STATE;
             return;
         }
+        if (!unlock_take(REG_HR_MAP_COMMAND, command)) {
+            app.map_op_status = TRIMETER_MAP_OP_STATUS_ERROR_LOCKED;
+            return;
+        }
         rc = storage_map_activate(st, &app.upload);
-        app.map_op_status = rc == STORAGE_OK ? TRIMETER_MAP_OP_STATUS_ACTIVATED : TRIMETER_MAP_OP_STATUS_ERROR_STORAGE;
+        if (rc != STORAGE_OK) unlock_close();
+        app.map_op_status = rc == STORAGE_OK         ? TRIMETER_MAP_OP_STATUS_ACTIVATED
+                            : rc == STORAGE_ERR_BUSY ? TRIMETER_MAP_OP_STATUS_ERROR_BUSY
+                                                     : TRIMETER_MAP_OP_STATUS_ERROR_STORAGE;
         return;
     case TRIMETER_MAP_COMMAND_ABORT:
         storage_map_abort(&app.upload);
@@ -229,6 +294,7 @@ uint8_t app_write_bits(void *ctx, uint16_t addr, uint16_t n, const uint8_t *bits
     (void)ctx;
     uint8_t ex = regmap_check_write_bits(addr, n);
     if (ex) return ex;
+    write_arrives();
     bool want[HAL_LED_COUNT];
     for (int l = 0; l < HAL_LED_COUNT; l++) want[l] = app.act.led_on[l];
     for (unsigned i = 0; i < n; i++) {
@@ -279,6 +345,10 @@ static void fill_input_registers(uint16_t *ir)
         ir[base[s] + (REG_IR_MAP_SLOT_A_VERSION - REG_IR_MAP_SLOT_A_VALID)] = valid ? m->version : 0;
     }
     ir[REG_IR_MAP_OP_STATUS] = app.map_op_status;
+    static const uint16_t wear[HAL_REGION_COUNT] = {REG_IR_ERASE_COUNT_CONFIG_A, REG_IR_ERASE_COUNT_CONFIG_B,
+                                                    REG_IR_ERASE_COUNT_MAP_A, REG_IR_ERASE_COUNT_MAP_B};
+    for (int r = 0; r < HAL_REGION_COUNT; r++) regmap_put_u32(&ir[wear[r]], app.storage.erase_count[r]);
+    ir[REG_IR_ERASE_REFUSALS] = app.storage.erase_refusals;
     regmap_put_u32(&ir[REG_IR_MAP_OP_BYTES_WRITTEN], app.upload.open ? app.upload.bytes_written : 0);
 }
 
@@ -299,12 +369,22 @@ uint8_t app_read_regs(void *ctx, mb_table_t table, uint16_t addr, uint16_t n, ui
 
 static bool covers(uint16_t addr, uint16_t n, uint16_t reg) { return reg >= addr && reg < addr + n; }
 
+/* What a broadcast may never do (storage, unlocking); vals is the request's words from addr. */
+static bool broadcast_forbidden(uint16_t addr, uint16_t n, const uint16_t *vals)
+{
+    if (covers(addr, n, REG_HR_UNLOCK)) return true;
+    if (covers(addr, n, REG_HR_COMMAND) && destructive_command(vals[REG_HR_COMMAND - addr])) return true;
+    return covers(addr, n, REG_HR_MAP_COMMAND) && vals[REG_HR_MAP_COMMAND - addr] != TRIMETER_MAP_COMMAND_NONE;
+}
+
 uint8_t app_write_regs(void *ctx, uint16_t addr, uint16_t n, const uint16_t *vals)
 {
     (void)ctx;
     static uint16_t before[REG_HR_SPAN];
     uint8_t ex = regmap_check_write_regs(addr, n, vals);
     if (ex) return ex;
+    if (mb_request_is_broadcast(&app.mb) && broadcast_forbidden(addr, n, vals)) return MB_EX_ILLEGAL_FUNCTION;
+    write_arrives();
     memcpy(before, app.hr, sizeof before);
     memcpy(&app.hr[addr], vals, n * sizeof *vals);
     config_t candidate;
@@ -322,6 +402,15 @@ uint8_t app_write_regs(void *ctx, uint16_t addr, uint16_t n, const uint16_t *val
         return ex;
     }
     if (covers(addr, n, REG_HR_MAP_COMMAND)) run_map_command(app.hr[REG_HR_MAP_COMMAND]);
+    if (covers(addr, n, REG_HR_UNLOCK)) {
+        /* after this write's commands: an unlock serves the requests that follow it */
+        unlock_close();
+        if (app.hr[REG_HR_UNLOCK] == TRIMETER_UNLOCK_KEY) {
+            app.unlock_open = true;
+            app.unlock_us = now();
+        }
+        app.hr[REG_HR_UNLOCK] = TRIMETER_UNLOCK_LOCKED; /* the key is not left readable */
+    }
     if (covers(addr, n, REG_HR_LED_PANELS_LEVEL) || covers(addr, n, REG_HR_LED_COLLIMATED_LEVEL) ||
         app.cfg.led_settle_ms != previous.led_settle_ms)
         refresh_leds();
@@ -361,7 +450,8 @@ uint8_t app_write_file(void *ctx, uint16_t file, uint16_t record, uint16_t n, co
     (void)ctx;
     static uint8_t bytes[2 * 125];
     uint32_t offset;
-    if (!app.upload.open) return MB_EX_ILLEGAL_FUNCTION; /* no begin_write: wrong state */
+    if (!app.upload.open || mb_request_is_broadcast(&app.mb)) return MB_EX_ILLEGAL_FUNCTION; /* no begin_write */
+    write_arrives();
     if (n > 125 || !record_span(file, record, n, app.upload.expected_length, &offset))
         return MB_EX_ILLEGAL_DATA_ADDRESS;
     for (unsigned i = 0; i < n; i++) {
@@ -425,6 +515,8 @@ void app_poll(void)
     uint32_t t = now();
     mb_poll(&app.mb);
     motion_poll(&app.motion, t);
+    storage_poll(&app.storage, t);
+    if (app.unlock_open && t - app.unlock_us >= APP_UNLOCK_WINDOW_US) unlock_close(); /* before the clock wraps */
 
     bool moving = motion_busy(&app.motion);
     if (app.was_moving && !moving && app.motion.state != MOTION_FAULT)

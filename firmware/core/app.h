@@ -14,7 +14,20 @@
  *   - a value write that fails the register map (02/03) or the cross-checks in config.c (03)
  *     changes nothing, including the command in the same write.
  * Map upload (map_command): always answered OK when the value is valid; the outcome is in
- * map_op_status (error_state when not allowed now, error_storage on a flash failure). */
+ * map_op_status (error_state when not allowed now, error_storage on a flash failure).
+ *
+ * Safeguards (the bus is shared and flash wears out):
+ *   - destructive commands (save_config, load_defaults, map begin_write / activate) run only inside
+ *     an unlock window: a write of `unlock` = key, in an earlier request, opens it for
+ *     APP_UNLOCK_WINDOW_US and for ONE such command (else exception 01 / map_op_status error_locked).
+ *     The same command again in that window with no other write in between (a master's retry after
+ *     a lost reply) is acknowledged and not run twice; a failed one closes the window.
+ *   - a broadcast write that would unlock, run a destructive command, send any map command or
+ *     write map file records changes nothing.
+ *   - save_config with nothing changed writes nothing; erases are rate-limited and counted
+ *     (storage.h): a refused save answers exception 06, a refused begin_write / activate sets
+ *     map_op_status error_busy.
+ *   - verify accepts only a map table whose header the firmware accepts (map_table.h): error_table. */
 #ifndef TRIMETER_APP_H
 #define TRIMETER_APP_H
 
@@ -29,6 +42,8 @@
 #include "registers_gen.h"
 #include "storage.h"
 
+#define APP_UNLOCK_WINDOW_US 2000000u /* an unlock allows one destructive command this long */
+
 typedef struct app {
     const hal_t *hal;
     uint16_t hr[REG_HR_SPAN];   /* holding registers, the live values */
@@ -41,6 +56,11 @@ typedef struct app {
     uint16_t map_op_status;
     trimeter_fault_t app_fault; /* faults not from motion (storage) */
     int pending_command;        /* TRIMETER_COMMAND_* queued behind a running motion, 0 = none */
+    bool unlock_open;           /* an unlock window is open (since unlock_us) */
+    bool unlock_spent;          /* ... and ran the destructive write spent_reg = spent_value */
+    bool spent_was_last;        /* ... which is the last write the device took (so a repeat is a retry) */
+    uint32_t unlock_us;
+    uint16_t spent_reg, spent_value;
     bool was_moving;
     uint32_t boot_us;
     uint32_t uptime_s;

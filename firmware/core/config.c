@@ -121,11 +121,14 @@ trimeter_config_source_t config_load(uint16_t hr[REG_HR_SPAN], storage_t *st)
         }
     }
     memcpy(st->config, &hr[STORAGE_CONFIG_FIRST], sizeof st->config);
+    st->config_stored = false; /* what runs is not what is saved */
     return source;
 }
 
 int config_save(const uint16_t hr[REG_HR_SPAN], storage_t *st)
 {
+    /* the saved copy already says this: no erase, no program (flash wears out by erases) */
+    if (st->config_stored && memcmp(st->config, &hr[STORAGE_CONFIG_FIRST], sizeof st->config) == 0) return STORAGE_OK;
     uint16_t previous[STORAGE_CONFIG_WORDS];
     memcpy(previous, st->config, sizeof previous);
     memcpy(st->config, &hr[STORAGE_CONFIG_FIRST], sizeof st->config);

@@ -58,7 +58,8 @@ int32_t config_slot_steps(const config_t *c, enum config_slot slot);
  * Returns where the configuration came from (saved, or defaults and why: input register
  * config_source). */
 trimeter_config_source_t config_load(uint16_t hr[REG_HR_SPAN], storage_t *st);
-/* Persists the configuration part of hr; on failure the previous saved copy stays valid. */
+/* Persists the configuration part of hr; on failure the previous saved copy stays valid. Nothing is
+ * written (STORAGE_OK) when the newest saved copy already holds exactly these words. */
 int config_save(const uint16_t hr[REG_HR_SPAN], storage_t *st);
 
 #endif

@@ -53,6 +53,8 @@ void mb_set_address(mb_slave_t *s, uint8_t address) {
 
 const mb_counters_t *mb_counters(const mb_slave_t *s) { return &s->counters; }
 
+int mb_request_is_broadcast(const mb_slave_t *s) { return s->in_broadcast; }
+
 void mb_init(mb_slave_t *s, uint8_t address, uint32_t baud, const mb_io_t *io, const mb_app_t *app) {
     memset(s, 0, sizeof *s);
     s->io = io;
@@ -365,7 +367,9 @@ void mb_handle_adu(mb_slave_t *s, const uint8_t *adu, size_t len) {
         /* Execute writes, never answer (not even with an exception); ignore everything else. */
         if (broadcast_allowed(pdu[0])) {
             s->counters.broadcasts++;
+            s->in_broadcast = 1;
             (void)dispatch(s, pdu, pdu_len, s->tx + 1);
+            s->in_broadcast = 0;
         }
         return;
     }

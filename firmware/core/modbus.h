@@ -10,7 +10,9 @@
  * type 6), 2B/0E (device identification: basic + regular objects, stream and individual access).
  * Anything else: exception 01. Quantities are limited as the spec says (e.g. FC03 1..125) and
  * checked before any callback runs (exception 03); address + quantity past 65536: exception 02.
- * Broadcast (address 0): write codes are executed and never answered; reads are ignored.
+ * Broadcast (address 0): write codes are executed and never answered; reads are ignored. While a
+ * callback runs, mb_request_is_broadcast() tells the app which (it refuses what a broadcast must
+ * never do, e.g. destructive commands).
  * Frames for other addresses, bad CRC, overlong (> 256 bytes) and truncated frames are dropped.
  * A request whose function code is >= 0x80 is answered with exception 01 like any unknown code.
  *
@@ -37,6 +39,7 @@
 #define MB_EX_ILLEGAL_DATA_ADDRESS 0x02u
 #define MB_EX_ILLEGAL_DATA_VALUE 0x03u
 #define MB_EX_SERVER_DEVICE_FAILURE 0x04u
+#define MB_EX_SERVER_DEVICE_BUSY 0x06u    /* "retry later": e.g. a rate limit */
 
 #define MB_ADDRESS_BROADCAST 0u
 #define MB_ADDRESS_MAX 247u
@@ -106,6 +109,7 @@ typedef struct {
     uint8_t rx[MB_ADU_MAX];
     uint8_t tx[MB_ADU_MAX];
     uint16_t regs[125];     /* scratch for register/record payloads (largest: FC03/04/17 read) */
+    uint8_t in_broadcast;   /* the request being dispatched was broadcast */
     mb_counters_t counters;
 } mb_slave_t;
 
@@ -119,6 +123,8 @@ void mb_poll(mb_slave_t *s);
 void mb_set_address(mb_slave_t *s, uint8_t address);
 void mb_set_baud(mb_slave_t *s, uint32_t baud);
 const mb_counters_t *mb_counters(const mb_slave_t *s);
+/* True while the app callbacks run for a broadcast request (address 0). */
+int mb_request_is_broadcast(const mb_slave_t *s);
 
 /* Handle one complete ADU (address .. CRC) as if it had arrived after a silence; writes the reply
  * (if any) through io->write. Exposed for tests and the fuzzer; mb_poll() calls it. */

@@ -9,8 +9,15 @@
  *   - the map tables: raw bytes in the map regions A/B (a whole 128 KiB sector each, no header, so
  *     a full-size map fits). A map is written into the slot that is not active, checked, and made
  *     active by committing a system record that names it (the commit record). A slot is valid
- *     only if a record names it AND its bytes still have the recorded CRC-32, so a cut while
- *     erasing or writing a slot can only invalidate that (inactive) slot.
+ *     only if a record names it AND its bytes still have the recorded CRC-32 AND they form a map
+ *     table whose header the firmware accepts (map_table.h), so a cut while erasing or writing a
+ *     slot can only invalidate that (inactive) slot, and junk never becomes a valid map.
+ *
+ * Flash wear: every erase goes through one gate that counts it per region (the counts travel in
+ * each system record, so they survive reboots; an erase not followed by a commit before a power
+ * cut is lost from the count) and rate-limits all erases together: a burst of
+ * STORAGE_ERASE_BURST, then one per STORAGE_ERASE_REFILL_US (refused: STORAGE_ERR_BUSY, counted in
+ * erase_refusals). The budget refills with time, starting full at boot.
  *
  * The configuration words are the holding registers from STORAGE_CONFIG_FIRST up to the end of
  * the register map; a record written by firmware with a different register-map hash keeps its
@@ -28,6 +35,8 @@
 #define STORAGE_CONFIG_FIRST REG_HR_STEPS_PER_MM /* first persisted holding register */
 #define STORAGE_CONFIG_WORDS (REG_HR_SPAN - STORAGE_CONFIG_FIRST)
 #define STORAGE_MAP_SLOTS 2
+#define STORAGE_ERASE_BURST 8u                   /* erases allowed back to back */
+#define STORAGE_ERASE_REFILL_US (60u * 1000000u) /* then one more per minute */
 
 typedef struct storage_map_slot {
     uint32_t length; /* bytes; 0 = nothing committed */
@@ -42,9 +51,14 @@ typedef struct storage {
     int region;            /* config region holding it, -1 = none */
     bool config_valid;     /* the record carried configuration for this register map */
     bool config_other_map; /* it carried configuration, but written for another register map */
+    bool config_stored;    /* `config` is exactly what the newest record holds (a save would change nothing) */
     uint16_t config[STORAGE_CONFIG_WORDS];
     storage_map_slot_t map[STORAGE_MAP_SLOTS];
     bool map_valid[STORAGE_MAP_SLOTS];
+    uint32_t erase_count[HAL_REGION_COUNT]; /* erases per region, ever (as persisted + since) */
+    uint16_t erase_refusals;                /* erases refused by the rate limit since boot, wraps */
+    uint32_t erase_budget;                  /* erases allowed now, <= STORAGE_ERASE_BURST */
+    uint32_t erase_refill_mark_us;          /* when the budget last gained one (or was full) */
 } storage_t;
 
 enum storage_error {
@@ -53,6 +67,8 @@ enum storage_error {
     STORAGE_ERR_RANGE = -2,    /* offset/length outside the slot or the expected length */
     STORAGE_ERR_STATE = -3,    /* no write open / not verified */
     STORAGE_ERR_MISMATCH = -4, /* verify: the bytes' CRC-32 is not the expected one */
+    STORAGE_ERR_BUSY = -5,     /* an erase refused by the rate limit: nothing changed, retry later */
+    STORAGE_ERR_FORMAT = -6,   /* verify: the CRC-32 matches but the bytes are no acceptable map table */
 };
 
 /* One map upload: begin (erase the inactive slot) → writes → verify → activate (commit). */
@@ -69,6 +85,10 @@ typedef struct storage_map_session {
 /* Scans both config regions and both map slots. Never fails: with no valid record the storage is
  * empty (config_valid false, no valid map). */
 void storage_load(storage_t *st, const hal_t *hal);
+
+/* Refills the erase budget as time passes; call it from the main loop (a gap > 71 min between
+ * calls only delays the refill). */
+void storage_poll(storage_t *st, uint32_t now_us);
 
 /* Commits `st->config` (marking it valid) and `st->map` as a new system record. On error the
  * previous record stays the valid one (and st->seq/region are unchanged). */
@@ -89,6 +109,8 @@ int storage_map_begin(storage_t *st, storage_map_session_t *w, uint32_t length, 
 /* Bytes at `offset`; refused (RANGE) past the expected length, (STATE) with no upload open. */
 int storage_map_session_write(storage_t *st, storage_map_session_t *w, uint32_t offset, const uint8_t *data,
                               uint32_t len);
+/* OK when the bytes have the expected CRC-32 (else MISMATCH) and form an acceptable map table
+ * (else FORMAT); only then can the upload be activated. */
 int storage_map_verify(storage_t *st, storage_map_session_t *w);
 /* Commits the verified slot as the newest map; the previous one stays valid as the fallback. */
 int storage_map_activate(storage_t *st, storage_map_session_t *w);

@@ -7,6 +7,7 @@
 #include "../core/regmap.h"
 #include "check.h"
 #include "fake_hal.h"
+#include "table_fixture.h"
 
 static fake_hal_t *f;
 
@@ -43,6 +44,14 @@ static void boot(void)
 
 static uint8_t write_reg(uint16_t addr, uint16_t v) { return app_write_regs(NULL, addr, 1, &v); }
 static uint8_t command(uint16_t c) { return write_reg(REG_HR_COMMAND, c); }
+static void send_frame(const uint8_t *adu, size_t len);
+static void unlock(void) { CHECK_EQ_INT(write_reg(REG_HR_UNLOCK, TRIMETER_UNLOCK_KEY), MB_OK); }
+/* A destructive command, unlocked right before as the host does. */
+static uint8_t unlocked_command(uint16_t c)
+{
+    unlock();
+    return command(c);
+}
 
 static uint8_t write_f32(uint16_t addr, float v)
 {
@@ -284,19 +293,19 @@ static void test_config_persists_across_reboot(void)
     boot(); /* not saved: lost */
     CHECK(read_f32_hr(REG_HR_SLOT_WHITE_MM) == 60.0f);
     CHECK_EQ_INT(write_f32(REG_HR_SLOT_WHITE_MM, 70.0f), MB_OK);
-    CHECK_EQ_INT(command(TRIMETER_COMMAND_SAVE_CONFIG), MB_OK);
+    CHECK_EQ_INT(unlocked_command(TRIMETER_COMMAND_SAVE_CONFIG), MB_OK);
     boot();
     CHECK(read_f32_hr(REG_HR_SLOT_WHITE_MM) == 70.0f);
     CHECK_EQ_INT(app_get()->config_source, TRIMETER_CONFIG_SOURCE_SAVED);
     CHECK_EQ_INT(ir(REG_IR_CONFIG_SOURCE), TRIMETER_CONFIG_SOURCE_SAVED);
-    CHECK_EQ_INT(command(TRIMETER_COMMAND_LOAD_DEFAULTS), MB_OK);
+    CHECK_EQ_INT(unlocked_command(TRIMETER_COMMAND_LOAD_DEFAULTS), MB_OK);
     CHECK(read_f32_hr(REG_HR_SLOT_WHITE_MM) == 60.0f);
     boot(); /* defaults were not saved: the saved 70 comes back */
     CHECK(read_f32_hr(REG_HR_SLOT_WHITE_MM) == 70.0f);
     /* flash refuses the save: storage fault, exception 04, old copy still loads */
     f->power_budget = f->bytes_programmed + 10;
     CHECK_EQ_INT(write_f32(REG_HR_SLOT_WHITE_MM, 80.0f), MB_OK);
-    CHECK_EQ_INT(command(TRIMETER_COMMAND_SAVE_CONFIG), MB_EX_SERVER_DEVICE_FAILURE);
+    CHECK_EQ_INT(unlocked_command(TRIMETER_COMMAND_SAVE_CONFIG), MB_EX_SERVER_DEVICE_FAILURE);
     CHECK_EQ_INT(ir(REG_IR_FAULT_CODE), TRIMETER_FAULT_STORAGE);
     fake_hal_power_on(f);
     boot();
@@ -305,18 +314,20 @@ static void test_config_persists_across_reboot(void)
 
 /* Edits every saved system record in the fake flash as another firmware could have left it: the
  * register-map hash (hash != 0) and/or one configuration word (word >= 0), the CRC-32 fixed so it
- * stays a valid record. Layout: storage.c (little-endian; hash at 12, words at 6, config at 52). */
+ * stays a valid record. Layout: storage.c (little-endian; format at 4, words at 6, hash at 12,
+ * config after a 52-byte header in format 1, after the erase counts (68 bytes) in format 2). */
 static void edit_saved_records(uint32_t hash, int word, uint16_t value)
 {
     for (int r = 0; r < 2; r++) {
         uint8_t *b = f->config[r];
         if (!(b[0] == 0x4D && b[1] == 0x53 && b[2] == 0x54 && b[3] == 0x52)) continue; /* "MSTR" */
-        uint32_t size = 52u + 2u * (uint32_t)(b[6] | b[7] << 8) + 4u;
+        uint32_t header = b[4] == 1 ? 52u : 52u + 4u * HAL_REGION_COUNT;
+        uint32_t size = header + 2u * (uint32_t)(b[6] | b[7] << 8) + 4u;
         if (hash)
             for (int i = 0; i < 4; i++) b[12 + i] = (uint8_t)(hash >> (8 * i));
         if (word >= 0) {
-            b[52 + 2 * word] = (uint8_t)value;
-            b[53 + 2 * word] = (uint8_t)(value >> 8);
+            b[header + 2 * word] = (uint8_t)value;
+            b[header + 1 + 2 * word] = (uint8_t)(value >> 8);
         }
         uint32_t crc = crc32_update(0, b, size - 4);
         for (int i = 0; i < 4; i++) b[size - 4 + i] = (uint8_t)(crc >> (8 * i));
@@ -328,14 +339,14 @@ static void test_config_source_says_why_defaults_run(void)
     fresh_device();
     CHECK_EQ_INT(ir(REG_IR_CONFIG_SOURCE), TRIMETER_CONFIG_SOURCE_DEFAULTS); /* nothing saved yet */
     CHECK_EQ_INT(write_f32(REG_HR_SLOT_WHITE_MM, 70.0f), MB_OK);
-    CHECK_EQ_INT(command(TRIMETER_COMMAND_SAVE_CONFIG), MB_OK);
+    CHECK_EQ_INT(unlocked_command(TRIMETER_COMMAND_SAVE_CONFIG), MB_OK);
     CHECK_EQ_INT(ir(REG_IR_CONFIG_SOURCE), TRIMETER_CONFIG_SOURCE_SAVED);
     /* a firmware update that changed the register map: the saved words can't be read, defaults run */
     edit_saved_records(TRIMETER_REGMAP_HASH ^ 0x1u, -1, 0);
     boot();
     CHECK_EQ_INT(ir(REG_IR_CONFIG_SOURCE), TRIMETER_CONFIG_SOURCE_OTHER_REGISTER_MAP);
     CHECK(read_f32_hr(REG_HR_SLOT_WHITE_MM) == 60.0f);
-    CHECK_EQ_INT(command(TRIMETER_COMMAND_SAVE_CONFIG), MB_OK); /* saving anew makes it this map's */
+    CHECK_EQ_INT(unlocked_command(TRIMETER_COMMAND_SAVE_CONFIG), MB_OK); /* saving anew makes it this map's */
     CHECK_EQ_INT(ir(REG_IR_CONFIG_SOURCE), TRIMETER_CONFIG_SOURCE_SAVED);
     boot();
     CHECK_EQ_INT(ir(REG_IR_CONFIG_SOURCE), TRIMETER_CONFIG_SOURCE_SAVED);
@@ -344,7 +355,7 @@ static void test_config_source_says_why_defaults_run(void)
     boot();
     CHECK_EQ_INT(ir(REG_IR_CONFIG_SOURCE), TRIMETER_CONFIG_SOURCE_REFUSED);
     CHECK_EQ_INT((int16_t)app_get()->hr[REG_HR_HOMING_DIRECTION], (int16_t)REG_HR_HOMING_DIRECTION_DEFAULT);
-    CHECK_EQ_INT(command(TRIMETER_COMMAND_LOAD_DEFAULTS), MB_OK);
+    CHECK_EQ_INT(unlocked_command(TRIMETER_COMMAND_LOAD_DEFAULTS), MB_OK);
     CHECK_EQ_INT(ir(REG_IR_CONFIG_SOURCE), TRIMETER_CONFIG_SOURCE_DEFAULTS);
 }
 
@@ -440,13 +451,42 @@ static void test_status_led_patterns(void)
     CHECK_EQ_INT(write_reg(REG_HR_STATUS_PATTERN, 9), MB_EX_ILLEGAL_DATA_VALUE);
 }
 
-#define MAP_BYTES 1001
+#define MAP_GRID 4 /* a fixture table of 940 bytes */
+#define MAP_BYTES 940
 static uint8_t map_data[MAP_BYTES];
+
+/* Writes `len` bytes of `data` into the open upload through file records, 100 records a request. */
+static void upload_bytes(const uint8_t *data, uint32_t len)
+{
+    uint16_t regs[100];
+    for (uint32_t rec = 0; rec < (len + 1) / 2; rec += 100) {
+        uint32_t n = (len + 1) / 2 - rec < 100 ? (len + 1) / 2 - rec : 100;
+        for (uint32_t i = 0; i < n; i++) {
+            uint32_t b = 2 * (rec + i);
+            regs[i] = (uint16_t)(data[b] << 8 | (b + 1 < len ? data[b + 1] : 0));
+        }
+        CHECK_EQ_INT(app_write_file(NULL, 1, (uint16_t)rec, (uint16_t)n, regs), MB_OK);
+    }
+}
+
+/* begin_write (unlocked) of `len` bytes with their CRC; returns map_op_status. */
+static uint16_t begin_upload(const uint8_t *data, uint32_t len, uint16_t version)
+{
+    uint16_t params[7];
+    regmap_put_u32(&params[0], len);
+    regmap_put_u32(&params[2], crc32_update(0, data, len));
+    params[4] = version;
+    params[5] = 0;
+    params[6] = TRIMETER_MAP_COMMAND_BEGIN_WRITE;
+    unlock();
+    CHECK_EQ_INT(app_write_regs(NULL, REG_HR_MAP_EXPECTED_LENGTH, 7, params), MB_OK);
+    return ir(REG_IR_MAP_OP_STATUS);
+}
 
 static void test_map_upload_over_file_records(void)
 {
     fresh_device();
-    for (int i = 0; i < MAP_BYTES; i++) map_data[i] = (uint8_t)(i * 31 + 7);
+    CHECK_EQ_INT(fixture_table(map_data, MAP_BYTES, MAP_GRID, 9), MAP_BYTES);
     uint16_t regs[120];
     CHECK_EQ_INT(app_write_file(NULL, 1, 0, 1, regs), MB_EX_ILLEGAL_FUNCTION); /* no begin_write */
     uint16_t params[7];
@@ -456,22 +496,24 @@ static void test_map_upload_over_file_records(void)
     params[5] = 0;                                /* read slot: active */
     params[6] = TRIMETER_MAP_COMMAND_BEGIN_WRITE; /* acts after the parameters */
     CHECK_EQ_INT(app_write_regs(NULL, REG_HR_MAP_EXPECTED_LENGTH, 7, params), MB_OK);
+    CHECK_EQ_INT(ir(REG_IR_MAP_OP_STATUS), TRIMETER_MAP_OP_STATUS_ERROR_LOCKED); /* no unlock: nothing erased */
+    CHECK_EQ_INT(ir32(REG_IR_ERASE_COUNT_MAP_A), 0);
+    unlock();
+    CHECK_EQ_INT(app_write_regs(NULL, REG_HR_MAP_EXPECTED_LENGTH, 7, params), MB_OK);
     CHECK_EQ_INT(ir(REG_IR_MAP_OP_STATUS), TRIMETER_MAP_OP_STATUS_WRITING);
+    CHECK_EQ_INT(ir32(REG_IR_ERASE_COUNT_MAP_A), 1);
     CHECK_EQ_INT(write_reg(REG_HR_MAP_COMMAND, TRIMETER_MAP_COMMAND_ACTIVATE), MB_OK);
     CHECK_EQ_INT(ir(REG_IR_MAP_OP_STATUS), TRIMETER_MAP_OP_STATUS_ERROR_STATE); /* not verified */
-    for (uint32_t rec = 0; rec < (MAP_BYTES + 1) / 2; rec += 100) {
-        uint32_t n = (MAP_BYTES + 1) / 2 - rec < 100 ? (MAP_BYTES + 1) / 2 - rec : 100;
-        for (uint32_t i = 0; i < n; i++) {
-            uint32_t b = 2 * (rec + i);
-            regs[i] = (uint16_t)(map_data[b] << 8 | (b + 1 < MAP_BYTES ? map_data[b + 1] : 0));
-        }
-        CHECK_EQ_INT(app_write_file(NULL, 1, (uint16_t)rec, (uint16_t)n, regs), MB_OK);
-    }
-    CHECK_EQ_INT(app_write_file(NULL, 1, 501, 1, regs), MB_EX_ILLEGAL_DATA_ADDRESS); /* past the length */
+    upload_bytes(map_data, MAP_BYTES);
+    CHECK_EQ_INT(app_write_file(NULL, 1, 470, 1, regs), MB_EX_ILLEGAL_DATA_ADDRESS); /* past the length */
     CHECK_EQ_INT(ir32(REG_IR_MAP_OP_BYTES_WRITTEN), MAP_BYTES);
     CHECK_EQ_INT(write_reg(REG_HR_MAP_COMMAND, TRIMETER_MAP_COMMAND_VERIFY), MB_OK);
     CHECK_EQ_INT(ir(REG_IR_MAP_OP_STATUS), TRIMETER_MAP_OP_STATUS_VERIFY_OK);
     CHECK_EQ_INT(ir(REG_IR_MAP_ACTIVE_SLOT), TRIMETER_MAP_SLOT_NONE);
+    CHECK_EQ_INT(write_reg(REG_HR_MAP_COMMAND, TRIMETER_MAP_COMMAND_ACTIVATE), MB_OK);
+    CHECK_EQ_INT(ir(REG_IR_MAP_OP_STATUS), TRIMETER_MAP_OP_STATUS_ERROR_LOCKED); /* verified, but locked */
+    CHECK_EQ_INT(ir(REG_IR_MAP_ACTIVE_SLOT), TRIMETER_MAP_SLOT_NONE);
+    unlock();
     CHECK_EQ_INT(write_reg(REG_HR_MAP_COMMAND, TRIMETER_MAP_COMMAND_ACTIVATE), MB_OK);
     CHECK_EQ_INT(ir(REG_IR_MAP_OP_STATUS), TRIMETER_MAP_OP_STATUS_ACTIVATED);
     CHECK_EQ_INT(ir(REG_IR_MAP_ACTIVE_SLOT), TRIMETER_MAP_SLOT_A);
@@ -481,24 +523,191 @@ static void test_map_upload_over_file_records(void)
     boot(); /* survives a reboot, and reads back record by record */
     CHECK_EQ_INT(ir(REG_IR_MAP_ACTIVE_SLOT), TRIMETER_MAP_SLOT_A);
     uint16_t back[1];
-    CHECK_EQ_INT(app_read_file(NULL, 1, 500, 1, back), MB_OK); /* the odd tail: low byte padded */
-    CHECK_EQ_INT(back[0], map_data[1000] << 8);
+    CHECK_EQ_INT(app_read_file(NULL, 1, 469, 1, back), MB_OK); /* the last record */
+    CHECK_EQ_INT(back[0], map_data[938] << 8 | map_data[939]);
     CHECK_EQ_INT(app_read_file(NULL, 1, 10, 1, back), MB_OK);
     CHECK_EQ_INT(back[0], map_data[20] << 8 | map_data[21]);
-    CHECK_EQ_INT(app_read_file(NULL, 1, 501, 1, back), MB_EX_ILLEGAL_DATA_ADDRESS);
+    CHECK_EQ_INT(app_read_file(NULL, 1, 470, 1, back), MB_EX_ILLEGAL_DATA_ADDRESS);
     CHECK_EQ_INT(write_reg(REG_HR_MAP_READ_SLOT, TRIMETER_MAP_SLOT_B), MB_OK);
     CHECK_EQ_INT(app_read_file(NULL, 1, 0, 1, back), MB_EX_ILLEGAL_DATA_ADDRESS); /* B is empty */
     /* a wrong CRC never activates */
     regmap_put_u32(&params[2], 0x12345678u);
     params[5] = 0;
+    unlock();
     CHECK_EQ_INT(app_write_regs(NULL, REG_HR_MAP_EXPECTED_LENGTH, 7, params), MB_OK);
     regs[0] = 0x0102;
     CHECK_EQ_INT(app_write_file(NULL, 1, 0, 1, regs), MB_OK);
     CHECK_EQ_INT(write_reg(REG_HR_MAP_COMMAND, TRIMETER_MAP_COMMAND_VERIFY), MB_OK);
     CHECK_EQ_INT(ir(REG_IR_MAP_OP_STATUS), TRIMETER_MAP_OP_STATUS_VERIFY_FAILED);
+    unlock();
     CHECK_EQ_INT(write_reg(REG_HR_MAP_COMMAND, TRIMETER_MAP_COMMAND_ACTIVATE), MB_OK);
     CHECK_EQ_INT(ir(REG_IR_MAP_OP_STATUS), TRIMETER_MAP_OP_STATUS_ERROR_STATE);
     CHECK_EQ_INT(ir(REG_IR_MAP_ACTIVE_SLOT), TRIMETER_MAP_SLOT_A);
+}
+
+/* The attack: 64 junk bytes with their right CRC-32, uploaded and activated. */
+static void test_junk_bytes_never_become_a_valid_map(void)
+{
+    fresh_device();
+    static uint8_t junk[64];
+    for (int i = 0; i < 64; i++) junk[i] = (uint8_t)(i * 37 + 1);
+    CHECK_EQ_INT(begin_upload(junk, sizeof junk, 1), TRIMETER_MAP_OP_STATUS_WRITING);
+    upload_bytes(junk, sizeof junk);
+    CHECK_EQ_INT(write_reg(REG_HR_MAP_COMMAND, TRIMETER_MAP_COMMAND_VERIFY), MB_OK);
+    CHECK_EQ_INT(ir(REG_IR_MAP_OP_STATUS), TRIMETER_MAP_OP_STATUS_ERROR_TABLE);
+    unlock();
+    CHECK_EQ_INT(write_reg(REG_HR_MAP_COMMAND, TRIMETER_MAP_COMMAND_ACTIVATE), MB_OK);
+    CHECK_EQ_INT(ir(REG_IR_MAP_OP_STATUS), TRIMETER_MAP_OP_STATUS_ERROR_STATE);
+    CHECK_EQ_INT(ir(REG_IR_MAP_ACTIVE_SLOT), TRIMETER_MAP_SLOT_NONE);
+    CHECK_EQ_INT(ir(REG_IR_MAP_SLOT_A_VALID), 0);
+    /* a real table whose header claims another geometry (n_g 5 with the size of 4): refused too */
+    CHECK_EQ_INT(fixture_table(map_data, MAP_BYTES, MAP_GRID, 3), MAP_BYTES);
+    map_data[76] = 5;
+    fixture_table_fix_crc(map_data, MAP_BYTES);
+    CHECK_EQ_INT(begin_upload(map_data, MAP_BYTES, 2), TRIMETER_MAP_OP_STATUS_WRITING);
+    upload_bytes(map_data, MAP_BYTES);
+    CHECK_EQ_INT(write_reg(REG_HR_MAP_COMMAND, TRIMETER_MAP_COMMAND_VERIFY), MB_OK);
+    CHECK_EQ_INT(ir(REG_IR_MAP_OP_STATUS), TRIMETER_MAP_OP_STATUS_ERROR_TABLE);
+    CHECK_EQ_INT(ir(REG_IR_MAP_ACTIVE_SLOT), TRIMETER_MAP_SLOT_NONE);
+}
+
+static uint32_t erases(void)
+{
+    return ir32(REG_IR_ERASE_COUNT_CONFIG_A) + ir32(REG_IR_ERASE_COUNT_CONFIG_B) + ir32(REG_IR_ERASE_COUNT_MAP_A) +
+           ir32(REG_IR_ERASE_COUNT_MAP_B);
+}
+
+static void test_destructive_commands_need_an_unlock_right_before(void)
+{
+    fresh_device();
+    CHECK_EQ_INT(write_f32(REG_HR_SLOT_WHITE_MM, 70.0f), MB_OK);
+    CHECK_EQ_INT(command(TRIMETER_COMMAND_SAVE_CONFIG), MB_EX_ILLEGAL_FUNCTION);
+    CHECK_EQ_INT(command(TRIMETER_COMMAND_LOAD_DEFAULTS), MB_EX_ILLEGAL_FUNCTION);
+    CHECK(read_f32_hr(REG_HR_SLOT_WHITE_MM) == 70.0f);
+    CHECK_EQ_INT(erases(), 0);
+    CHECK_EQ_INT(write_reg(REG_HR_UNLOCK, 0x1234), MB_EX_ILLEGAL_DATA_VALUE); /* a wrong key */
+    CHECK_EQ_INT(command(TRIMETER_COMMAND_SAVE_CONFIG), MB_EX_ILLEGAL_FUNCTION);
+    /* unlock and command in one request: the unlock serves only later requests */
+    uint16_t both[2] = {TRIMETER_COMMAND_SAVE_CONFIG, TRIMETER_UNLOCK_KEY};
+    CHECK_EQ_INT(app_write_regs(NULL, REG_HR_COMMAND, 2, both), MB_EX_ILLEGAL_FUNCTION);
+    CHECK_EQ_INT(erases(), 0);
+    /* the window: one command, within APP_UNLOCK_WINDOW_US */
+    unlock();
+    uint16_t key_read = 0xFFFF;
+    app_read_regs(NULL, MB_TABLE_HOLDING_REGISTERS, REG_HR_UNLOCK, 1, &key_read);
+    CHECK_EQ_INT(key_read, TRIMETER_UNLOCK_LOCKED); /* the key is not left readable */
+    run_ms(APP_UNLOCK_WINDOW_US / 1000 - 10);
+    CHECK_EQ_INT(command(TRIMETER_COMMAND_SAVE_CONFIG), MB_OK);
+    CHECK_EQ_INT(erases(), 1);
+    CHECK_EQ_INT(command(TRIMETER_COMMAND_SAVE_CONFIG), MB_OK); /* a retry at once: acknowledged, not run */
+    CHECK_EQ_INT(erases(), 1);
+    CHECK_EQ_INT(write_f32(REG_HR_SLOT_WHITE_MM, 75.0f), MB_OK);
+    CHECK_EQ_INT(command(TRIMETER_COMMAND_SAVE_CONFIG), MB_EX_ILLEGAL_FUNCTION); /* not a retry: spent */
+    CHECK_EQ_INT(command(TRIMETER_COMMAND_LOAD_DEFAULTS), MB_EX_ILLEGAL_FUNCTION);
+    unlock();
+    run_ms(APP_UNLOCK_WINDOW_US / 1000 + 1);
+    CHECK_EQ_INT(command(TRIMETER_COMMAND_SAVE_CONFIG), MB_EX_ILLEGAL_FUNCTION); /* the window closed */
+    unlock();
+    CHECK_EQ_INT(write_reg(REG_HR_UNLOCK, TRIMETER_UNLOCK_LOCKED), MB_OK);    /* closed by hand */
+    CHECK_EQ_INT(command(TRIMETER_COMMAND_SAVE_CONFIG), MB_EX_ILLEGAL_FUNCTION);
+    CHECK_EQ_INT(unlocked_command(TRIMETER_COMMAND_SAVE_CONFIG), MB_OK);
+    CHECK_EQ_INT(erases(), 2);
+    boot();
+    CHECK(read_f32_hr(REG_HR_SLOT_WHITE_MM) == 75.0f);
+    /* save_config with nothing changed: acknowledged, no erase, no byte programmed */
+    long programmed = f->bytes_programmed;
+    CHECK_EQ_INT(unlocked_command(TRIMETER_COMMAND_SAVE_CONFIG), MB_OK);
+    CHECK_EQ_INT(erases(), 2);
+    CHECK_EQ_INT(f->bytes_programmed, programmed);
+    CHECK_EQ_INT(ir(REG_IR_CONFIG_SOURCE), TRIMETER_CONFIG_SOURCE_SAVED);
+    CHECK_EQ_INT(unlocked_command(TRIMETER_COMMAND_LOAD_DEFAULTS), MB_OK); /* changed words: saved */
+    CHECK_EQ_INT(unlocked_command(TRIMETER_COMMAND_SAVE_CONFIG), MB_OK);
+    CHECK_EQ_INT(erases(), 3);
+    /* the saved copy refused at boot: the defaults run, and saving them is no no-op */
+    edit_saved_records(0, REG_HR_HOMING_DIRECTION - STORAGE_CONFIG_FIRST, 0);
+    boot();
+    CHECK_EQ_INT(ir(REG_IR_CONFIG_SOURCE), TRIMETER_CONFIG_SOURCE_REFUSED);
+    CHECK_EQ_INT(unlocked_command(TRIMETER_COMMAND_SAVE_CONFIG), MB_OK);
+    CHECK_EQ_INT(erases(), 4);
+    boot();
+    CHECK_EQ_INT(ir(REG_IR_CONFIG_SOURCE), TRIMETER_CONFIG_SOURCE_SAVED);
+}
+
+/* A frame through the UART from `address` (0 = broadcast): FC 0x06 write single register. */
+static void send_write_reg(uint8_t address, uint16_t reg, uint16_t value)
+{
+    uint8_t adu[6] = {address, 0x06, (uint8_t)(reg >> 8), (uint8_t)reg, (uint8_t)(value >> 8), (uint8_t)value};
+    send_frame(adu, sizeof adu);
+}
+
+static void test_a_broadcast_never_unlocks_nor_runs_a_destructive_command(void)
+{
+    fresh_device();
+    CHECK_EQ_INT(write_f32(REG_HR_SLOT_WHITE_MM, 70.0f), MB_OK);
+    send_write_reg(0, REG_HR_UNLOCK, TRIMETER_UNLOCK_KEY);
+    send_write_reg(1, REG_HR_COMMAND, TRIMETER_COMMAND_SAVE_CONFIG);
+    CHECK_EQ_INT(f->tx_len, 5); /* exception reply */
+    CHECK_EQ_INT(f->tx[2], MB_EX_ILLEGAL_FUNCTION);
+    send_write_reg(1, REG_HR_UNLOCK, TRIMETER_UNLOCK_KEY);
+    CHECK_EQ_INT(f->tx_len, 8); /* echo */
+    send_write_reg(0, REG_HR_COMMAND, TRIMETER_COMMAND_LOAD_DEFAULTS);
+    send_write_reg(0, REG_HR_COMMAND, TRIMETER_COMMAND_SAVE_CONFIG);
+    CHECK_EQ_INT(f->tx_len, 0); /* never answered */
+    CHECK(read_f32_hr(REG_HR_SLOT_WHITE_MM) == 70.0f);
+    CHECK_EQ_INT(erases(), 0);
+    send_write_reg(0, REG_HR_MAP_COMMAND, TRIMETER_MAP_COMMAND_BEGIN_WRITE);
+    CHECK_EQ_INT(ir(REG_IR_MAP_OP_STATUS), TRIMETER_MAP_OP_STATUS_IDLE);
+    CHECK_EQ_INT(erases(), 0);
+    /* the unicast window is still there for the master that opened it */
+    send_write_reg(1, REG_HR_COMMAND, TRIMETER_COMMAND_SAVE_CONFIG);
+    CHECK_EQ_INT(f->tx_len, 8);
+    CHECK_EQ_INT(erases(), 1);
+    /* harmless broadcasts still work */
+    send_write_reg(0, REG_HR_LED_PANELS_LEVEL, 300);
+    CHECK_EQ_INT(app_get()->hr[REG_HR_LED_PANELS_LEVEL], 300);
+    /* and file records of an open upload can't be written by broadcast */
+    CHECK_EQ_INT(fixture_table(map_data, MAP_BYTES, MAP_GRID, 4), MAP_BYTES);
+    CHECK_EQ_INT(begin_upload(map_data, MAP_BYTES, 1), TRIMETER_MAP_OP_STATUS_WRITING);
+    uint8_t fc15[] = {0, 0x15, 9, 6, 0, 1, 0, 0, 0, 1, 0xAB, 0xCD};
+    send_frame(fc15, sizeof fc15);
+    CHECK_EQ_INT(ir32(REG_IR_MAP_OP_BYTES_WRITTEN), 0);
+}
+
+static void test_erases_are_rate_limited_and_counted(void)
+{
+    fresh_device();
+    run_ms(500);
+    /* a flood of changed, unlocked saves: a burst goes through, then one per refill interval */
+    unsigned ok = 0, busy = 0;
+    for (int i = 0; i < 12; i++) {
+        CHECK_EQ_INT(write_f32(REG_HR_SLOT_WHITE_MM, 61.0f + (float)i), MB_OK);
+        uint8_t rc = unlocked_command(TRIMETER_COMMAND_SAVE_CONFIG);
+        ok += rc == MB_OK;
+        busy += rc == MB_EX_SERVER_DEVICE_BUSY;
+    }
+    CHECK_EQ_INT(ok, STORAGE_ERASE_BURST);
+    CHECK_EQ_INT(busy, 12 - STORAGE_ERASE_BURST);
+    CHECK_EQ_INT(ir(REG_IR_ERASE_REFUSALS), 12 - STORAGE_ERASE_BURST);
+    CHECK_EQ_INT(erases(), STORAGE_ERASE_BURST);
+    CHECK(!di(REG_DI_FAULT)); /* a refused erase is no storage fault */
+    CHECK_EQ_INT(app_get()->config_source, TRIMETER_CONFIG_SOURCE_SAVED);
+    /* a refused save changes nothing: the refused value is back to the last one written */
+    CHECK(read_f32_hr(REG_HR_SLOT_WHITE_MM) == 72.0f);
+    /* begin_write is refused the same way, with its own status */
+    CHECK_EQ_INT(fixture_table(map_data, MAP_BYTES, MAP_GRID, 5), MAP_BYTES);
+    CHECK_EQ_INT(begin_upload(map_data, MAP_BYTES, 1), TRIMETER_MAP_OP_STATUS_ERROR_BUSY);
+    run_ms(STORAGE_ERASE_REFILL_US / 1000 + 10);
+    CHECK_EQ_INT(begin_upload(map_data, MAP_BYTES, 1), TRIMETER_MAP_OP_STATUS_WRITING);
+    CHECK_EQ_INT(unlocked_command(TRIMETER_COMMAND_SAVE_CONFIG), MB_EX_SERVER_DEVICE_BUSY);
+    /* the counts are in flash: the next save carries them, and a reboot reads them back */
+    run_ms(STORAGE_ERASE_REFILL_US / 1000 + 10);
+    CHECK_EQ_INT(unlocked_command(TRIMETER_COMMAND_SAVE_CONFIG), MB_OK);
+    uint32_t before = erases();
+    CHECK_EQ_INT(before, STORAGE_ERASE_BURST + 2);
+    boot();
+    CHECK_EQ_INT(erases(), before);
+    CHECK_EQ_INT(ir32(REG_IR_ERASE_COUNT_MAP_A), 1);
+    CHECK_EQ_INT(ir(REG_IR_ERASE_REFUSALS), 0); /* since boot */
 }
 
 /* Random requests through the real UART path (framer + dispatcher + these callbacks), under the
@@ -570,6 +779,10 @@ int main(void)
     RUN_TEST(test_button_debounce_and_events);
     RUN_TEST(test_status_led_patterns);
     RUN_TEST(test_map_upload_over_file_records);
+    RUN_TEST(test_junk_bytes_never_become_a_valid_map);
+    RUN_TEST(test_destructive_commands_need_an_unlock_right_before);
+    RUN_TEST(test_a_broadcast_never_unlocks_nor_runs_a_destructive_command);
+    RUN_TEST(test_erases_are_rate_limited_and_counted);
     RUN_TEST(test_random_requests_never_break_the_app);
     fake_hal_free(f);
     return CHECK_SUMMARY();

@@ -21,7 +21,7 @@ static void test_find_covers_both_words(void) {
     const regmap_entry_t *e = regmap_find(REGMAP_HOLDING_REGISTER, REG_HR_STEPS_PER_MM + 1);
     CHECK(e && e->address == REG_HR_STEPS_PER_MM && e->words == 2);
     CHECK(regmap_find(REGMAP_INPUT_REGISTER, REG_IR_REGMAP_HASH + 1) != NULL);
-    CHECK(regmap_find(REGMAP_HOLDING_REGISTER, 1) == NULL); /* a gap */
+    CHECK(regmap_find(REGMAP_HOLDING_REGISTER, REG_HR_STATUS_PATTERN + 1) == NULL); /* a gap */
     CHECK(regmap_find(REGMAP_COIL, REG_COIL_SPAN) == NULL);
 }
 
@@ -69,7 +69,7 @@ static void test_ranges_and_allowed_values(void) {
 static void test_addresses_before_values(void) {
     /* A write spanning a gap is 02 even if a value is also bad (02 is checked first). */
     uint16_t w[2] = {0xFFFF, 0};
-    CHECK_EQ_INT(regmap_check_write_regs(REG_HR_COMMAND, 2, w), MB_EX_ILLEGAL_DATA_ADDRESS);
+    CHECK_EQ_INT(regmap_check_write_regs(REG_HR_STATUS_PATTERN, 2, w), MB_EX_ILLEGAL_DATA_ADDRESS);
     CHECK_EQ_INT(regmap_check_write_regs(REG_HR_SPAN, 1, w), MB_EX_ILLEGAL_DATA_ADDRESS);
     CHECK_EQ_INT(regmap_check_write_regs(0xFFFF, 1, w), MB_EX_ILLEGAL_DATA_ADDRESS);
 }

@@ -7,6 +7,7 @@
 #include "../core/storage.h"
 #include "check.h"
 #include "fake_hal.h"
+#include "table_fixture.h"
 
 static fake_hal_t *f;
 static storage_t st;
@@ -122,7 +123,8 @@ static void test_power_loss_at_every_byte_of_a_config_save(void)
     cut_config_save_everywhere(3);
 }
 
-#define MAP_LEN 601 /* odd on purpose */
+#define MAP_GRID 5 /* a fixture table of 1586 bytes */
+#define MAP_LEN 1586u
 static uint8_t map_bytes[2][MAP_LEN];
 
 static int upload(int which)
@@ -179,10 +181,8 @@ static void cut_map_upload_everywhere(int old_map, uint16_t cfg_tag)
 
 static void test_power_loss_at_every_byte_of_a_map_upload(void)
 {
-    for (int i = 0; i < MAP_LEN; i++) {
-        map_bytes[0][i] = (uint8_t)(i * 7 + 1);
-        map_bytes[1][i] = (uint8_t)(i * 13 + 5);
-    }
+    CHECK_EQ_INT(fixture_table(map_bytes[0], MAP_LEN, MAP_GRID, 1), MAP_LEN);
+    CHECK_EQ_INT(fixture_table(map_bytes[1], MAP_LEN, MAP_GRID, 2), MAP_LEN);
     memset(f->config, 0xFF, sizeof f->config);
     memset(f->map, 0xFF, sizeof f->map);
     fake_hal_power_on(f);
@@ -217,9 +217,89 @@ static void test_map_session_rules(void)
     CHECK_EQ_INT(storage_map_session_write(&st, &w, 0, b, 3), STORAGE_OK);
     CHECK_EQ_INT(storage_map_verify(&st, &w), STORAGE_ERR_MISMATCH);
     CHECK_EQ_INT(storage_map_session_write(&st, &w, 3, b + 3, 1), STORAGE_OK);
+    /* the right CRC, but four bytes are no map table: never activatable */
+    CHECK_EQ_INT(storage_map_verify(&st, &w), STORAGE_ERR_FORMAT);
+    CHECK_EQ_INT(storage_map_activate(&st, &w), STORAGE_ERR_STATE);
+    static uint8_t table[MAP_LEN];
+    CHECK_EQ_INT(fixture_table(table, MAP_LEN, MAP_GRID, 3), MAP_LEN);
+    CHECK_EQ_INT(storage_map_begin(&st, &w, MAP_LEN, crc32_update(0, table, MAP_LEN), 1), STORAGE_OK);
+    CHECK_EQ_INT(storage_map_session_write(&st, &w, 0, table, MAP_LEN), STORAGE_OK);
     CHECK_EQ_INT(storage_map_verify(&st, &w), STORAGE_OK);
     CHECK_EQ_INT(storage_map_activate(&st, &w), STORAGE_OK);
     CHECK_EQ_INT(storage_map_active(&st), w.slot);
+}
+
+/* A slot committed by older firmware that held junk with the right CRC: not a valid map at boot. */
+static void test_a_committed_slot_that_is_no_table_is_invalid_at_boot(void)
+{
+    storage_load(&st, &f->hal);
+    static uint8_t junk[64];
+    for (int i = 0; i < 64; i++) junk[i] = (uint8_t)(i * 37 + 1);
+    int slot = storage_map_active(&st) == 0 ? 1 : 0;
+    CHECK_EQ_INT(storage_map_erase(&st, slot), STORAGE_OK);
+    CHECK_EQ_INT(storage_map_write(&st, slot, 0, junk, sizeof junk), STORAGE_OK);
+    st.map[slot] = (storage_map_slot_t){.length = sizeof junk, .crc32 = crc32_update(0, junk, sizeof junk),
+                                        .seq = 1000, .version = 9};
+    CHECK_EQ_INT(storage_commit(&st), STORAGE_OK); /* as if activated without the header check */
+    storage_load(&st, &f->hal);
+    CHECK(!st.map_valid[slot]);
+    CHECK(storage_map_active(&st) != slot);
+}
+
+static void test_erases_are_counted_persisted_and_rate_limited(void)
+{
+    memset(f->config, 0xFF, sizeof f->config);
+    fake_hal_power_on(f);
+    storage_load(&st, &f->hal);
+    CHECK_EQ_INT(st.erase_count[HAL_REGION_CONFIG_A] + st.erase_count[HAL_REGION_CONFIG_B], 0);
+    uint32_t map_a = st.erase_count[HAL_REGION_MAP_A];
+    for (unsigned i = 0; i < STORAGE_ERASE_BURST - 1; i++) save_config((uint16_t)(10 + i));
+    CHECK_EQ_INT(storage_map_erase(&st, 0), STORAGE_OK); /* the 8th erase of the burst */
+    fill_config(st.config, 40);
+    CHECK_EQ_INT(storage_commit(&st), STORAGE_ERR_BUSY); /* the 9th: refused, nothing touched */
+    CHECK_EQ_INT(storage_map_erase(&st, 1), STORAGE_ERR_BUSY);
+    CHECK_EQ_INT(st.erase_refusals, 2);
+    CHECK_EQ_INT(st.seq, STORAGE_ERASE_BURST - 1);
+    CHECK_EQ_INT(st.erase_count[HAL_REGION_CONFIG_A], 4);
+    CHECK_EQ_INT(st.erase_count[HAL_REGION_CONFIG_B], 3);
+    CHECK_EQ_INT(st.erase_count[HAL_REGION_MAP_A], map_a + 1);
+    /* one more per refill interval */
+    f->now_us += STORAGE_ERASE_REFILL_US - 1000;
+    CHECK_EQ_INT(storage_commit(&st), STORAGE_ERR_BUSY);
+    f->now_us += 1000;
+    CHECK_EQ_INT(storage_commit(&st), STORAGE_OK);
+    CHECK_EQ_INT(storage_commit(&st), STORAGE_ERR_BUSY);
+    /* the counts come back at boot, the map erase included (this commit carried it) */
+    storage_load(&st, &f->hal);
+    CHECK(config_is(&st, 40));
+    CHECK_EQ_INT(st.erase_count[HAL_REGION_CONFIG_A], 4);
+    CHECK_EQ_INT(st.erase_count[HAL_REGION_CONFIG_B], 4); /* the saves alternate regions */
+    CHECK_EQ_INT(st.erase_count[HAL_REGION_MAP_A], map_a + 1);
+    CHECK_EQ_INT(st.erase_budget, STORAGE_ERASE_BURST); /* full again after a boot */
+}
+
+/* A record of format 1 (before the erase counts) is still read: config and map table kept. */
+static void test_a_format_1_record_is_still_read(void)
+{
+    memset(f->config, 0xFF, sizeof f->config);
+    fake_hal_power_on(f);
+    storage_load(&st, &f->hal);
+    save_config(6);
+    int region = st.region;
+    uint8_t *b = f->config[region];
+    uint32_t words = (uint32_t)(b[6] | b[7] << 8), v2_header = 52u + 4u * HAL_REGION_COUNT;
+    static uint8_t v1[HAL_CONFIG_REGION_SIZE];
+    memset(v1, 0xFF, sizeof v1);
+    memcpy(v1, b, 52);
+    v1[4] = 1;
+    memcpy(v1 + 52, b + v2_header, 2 * words);
+    uint32_t size = 52u + 2u * words + 4u, crc = crc32_update(0, v1, size - 4);
+    for (int i = 0; i < 4; i++) v1[size - 4 + i] = (uint8_t)(crc >> (8 * i));
+    memcpy(b, v1, sizeof v1);
+    storage_load(&st, &f->hal);
+    CHECK(config_is(&st, 6));
+    CHECK_EQ_INT(st.region, region);
+    CHECK_EQ_INT(st.erase_count[HAL_REGION_CONFIG_A] + st.erase_count[HAL_REGION_CONFIG_B], 0);
 }
 
 int main(void)
@@ -230,6 +310,9 @@ int main(void)
     RUN_TEST(test_power_loss_at_every_byte_of_a_config_save);
     RUN_TEST(test_power_loss_at_every_byte_of_a_map_upload);
     RUN_TEST(test_map_session_rules);
+    RUN_TEST(test_a_committed_slot_that_is_no_table_is_invalid_at_boot);
+    RUN_TEST(test_erases_are_counted_persisted_and_rate_limited);
+    RUN_TEST(test_a_format_1_record_is_still_read);
     fake_hal_free(f);
     return CHECK_SUMMARY();
 }

@@ -10,6 +10,7 @@ from hypothesis import given, strategies as st
 from fakes import FakeInstrument
 from trimeter import registers as regs
 from trimeter.device.client import Device, decode, encode
+from trimeter.device.transport import ModbusExceptionReply
 from trimeter.errors import DeviceError, InputError
 
 
@@ -138,3 +139,73 @@ def test_position_in_millimetres_is_derived_from_steps_and_the_configured_scale(
     dev = Device(fake)
     dev.write("steps_per_mm", 80)
     assert dev.read("position_mm") == pytest.approx(60.0)
+
+
+def test_destructive_commands_are_unlocked_right_before_and_only_those():
+    fake = FakeInstrument()
+    dev = Device(fake)
+    with pytest.raises(ModbusExceptionReply) as refused:  # what the firmware does without an unlock
+        dev.write("command", "save_config")
+    assert refused.value.code == 1
+    sent = []
+    real = fake.write_words
+    fake.write_words = lambda address, values: (sent.append((address, list(values))), real(address, values))[1]
+    dev.command("save_config")
+    dev.command("load_defaults")
+    dev.command("home")
+    unlock, command = regs.BY_NAME["unlock"].address, regs.BY_NAME["command"].address
+    assert sent == [(unlock, [regs.Unlock.KEY]), (command, [regs.Command.SAVE_CONFIG]),
+                    (unlock, [regs.Unlock.KEY]), (command, [regs.Command.LOAD_DEFAULTS]),
+                    (command, [regs.Command.HOME])]
+    assert fake.commands == ["save_config", "load_defaults", "home"]
+
+
+def test_a_window_that_closed_under_a_retried_request_is_reopened_once():
+    fake = FakeInstrument()
+    dev = Device(fake)
+    real = fake.write_words
+    closes = iter([True])  # the first destructive request finds the window closed, the next one open
+
+    def slow_link(address, values):
+        if address == regs.BY_NAME["command"].address and next(closes, False):
+            fake.unlocked = False
+        return real(address, values)
+
+    fake.write_words = slow_link
+    dev.command("save_config")
+    assert fake.commands == ["save_config"]
+    fake.write_words = lambda address, values: (setattr(fake, "unlocked", False), real(address, values))[1]
+    with pytest.raises(DeviceError, match="save_config: the device refused it right after an unlock"):
+        dev.command("save_config")
+
+
+def test_rate_limited_erases_and_rejected_tables_get_clear_messages():
+    fake = FakeInstrument()
+    dev = Device(fake)
+
+    def busy(address, values):
+        raise ModbusExceptionReply("write", 6)
+
+    real = fake.write_words
+    fake.write_words = lambda address, values: (busy if address == regs.BY_NAME["command"].address
+                                                else real)(address, values)
+    with pytest.raises(DeviceError, match="save_config: the device's flash erase budget is used up"):
+        dev.command("save_config")
+    fake.write_words = real
+    # begin_write refused by the erase rate limit
+    status = regs.BY_NAME["map_op_status"]
+    real_map = fake._on_map_command
+    fake._on_map_command = lambda cmd: fake._set("ir", status, regs.MapOpStatus.ERROR_BUSY)
+    with pytest.raises(DeviceError, match="map flash: the device's flash erase budget"):
+        dev.flash_map(b"table" * 100, version=1)
+    # verify: the CRC matched but the firmware does not take the bytes for a map table
+
+    def not_a_table(cmd):
+        real_map(cmd)
+        if cmd == regs.MapCommand.VERIFY:
+            fake._set("ir", status, regs.MapOpStatus.ERROR_TABLE)
+
+    fake._on_map_command = not_a_table
+    with pytest.raises(DeviceError, match="does not accept these bytes as a map table"):
+        dev.flash_map(b"table" * 100, version=1)
+    assert fake.active == regs.MapSlot.NONE

@@ -214,6 +214,8 @@ def test_saved_config_survives_a_restart_and_bad_values_are_refused(tmp_path):
     try:
         assert first.write_regs("slot_white_mm", f32_words(70.0)) == 0
         assert first.write_regs("slot_white_mm", f32_words(1.0)) == 3  # inside the homing back-off
+        assert first.command("save_config") == 1  # destructive: refused without an unlock first
+        assert first.write_regs("unlock", [R.Unlock.KEY]) == 0
         assert first.command("save_config") == 0
     finally:
         assert first.stop() == 0

@@ -140,7 +140,8 @@ def _as_another_register_map_saved_it(storage: Path) -> None:
         record = memoryview(image)[region:region + 16 * 1024]
         if bytes(record[:4]) != b"MSTR":
             continue
-        size = 52 + 2 * struct.unpack_from("<H", record, 6)[0] + 4
+        header = 52 if struct.unpack_from("<H", record, 4)[0] == 1 else 68  # format 2 adds the erase counts
+        size = header + 2 * struct.unpack_from("<H", record, 6)[0] + 4
         struct.pack_into("<I", record, 12, regs.REGMAP_HASH ^ 1)
         struct.pack_into("<I", record, size - 4, zlib.crc32(bytes(record[:size - 4])))
     storage.write_bytes(bytes(image))

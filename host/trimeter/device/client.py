@@ -6,6 +6,9 @@
     dev.command("goto_slot", "white"); dev.wait_idle(timeout_s=10)
     dev.flash_map(table_bytes, version=3)         # chunked file records, resumable, read-back verified
 
+Destructive commands (save_config, load_defaults, map begin_write / activate) are unlocked right before
+they are sent (holding register `unlock`, see hardware/registers.md): the firmware refuses them otherwise.
+
 Nothing here knows an address or a type by heart: every name, address, width, scale, range and enum
 comes from trimeter.registers (generated from hardware/registers.toml).
 """
@@ -100,6 +103,12 @@ def light_coils(*, panels: bool, collimated: bool, leds: bool = True) -> list[bo
         raise AssertionError("the light coils are no longer coils 0..N in the register map")
     return [bool(want[name]) for name in sorted(want, key=lambda n: regs.COILS[n].address)]
 
+
+# Commands the firmware runs only right after an unlock write (hardware/registers.toml, enums.command).
+DESTRUCTIVE_COMMANDS = {"save_config": regs.Command.SAVE_CONFIG, "load_defaults": regs.Command.LOAD_DEFAULTS}
+# Erases are rate-limited by the firmware (a burst, then about one a minute); what a refusal means.
+_ERASE_LIMITED = ("the device's flash erase budget is used up for now (erases are rate-limited to spare the "
+                  "flash; input register erase_refusals counts refusals): try again in a minute")
 
 GOTO = {"black": regs.Command.GOTO_BLACK, "white": regs.Command.GOTO_WHITE, "open": regs.Command.GOTO_OPEN}
 SLOT = {"black": regs.Slot.BLACK, "white": regs.Slot.WHITE, "open": regs.Slot.OPEN}
@@ -265,6 +274,9 @@ class Device:
     # ---------------------------------------------------------------------------------- actions
     def command(self, action: str, argument: str | None = None) -> None:
         """`command("home")`, `command("goto_slot", "white")`, `command("clear_fault")`, `command("save_config")`."""
+        if action in DESTRUCTIVE_COMMANDS:
+            self._destructive_command(action)
+            return
         if action == "goto_slot":
             if argument not in GOTO:
                 raise InputError(f"goto_slot: slot {argument!r} is not one of {', '.join(GOTO)}")
@@ -272,6 +284,26 @@ class Device:
         else:
             cmd = action
         self.write("command", cmd)
+
+    def unlock(self) -> None:
+        """Open the firmware's short window for ONE destructive command (sent next, as its own request)."""
+        self.write("unlock", regs.Unlock.KEY)
+
+    def _destructive_command(self, action: str) -> None:
+        # A refusal as locked can be a window that closed while a lost request was retried: unlock once more.
+        for attempt in (1, 2):
+            self.unlock()
+            try:
+                self.write("command", DESTRUCTIVE_COMMANDS[action])
+                return
+            except ModbusExceptionReply as exc:
+                if exc.code == 6:
+                    raise DeviceError(f"{action}: {_ERASE_LIMITED}") from None
+                if exc.code != 1:
+                    raise
+                if attempt == 2:
+                    raise DeviceError(f"{action}: the device refused it right after an unlock (is the slider "
+                                      "moving, or another master writing to it?)") from None
 
     def set_lights(self, *, panels: bool, collimated: bool, leds: bool = True) -> None:
         """Shutters for one of the set-ups, LEDs kept on (warm) — one FC 0x0F over coils 0..5."""
@@ -347,6 +379,9 @@ class Device:
                 progress(offset, total)
         self.write("map_command", "verify")
         result = self._wait_map_op(timeout_s)
+        if result == regs.MapOpStatus.ERROR_TABLE:
+            raise DeviceError("the device does not accept these bytes as a map table (its header: magic, version, "
+                              "sizes, grid or sample set-up, or its own CRC-32); the old map stays active")
         if result != regs.MapOpStatus.VERIFY_OK:
             raise DeviceError(f"map verify failed on the device ({getattr(result, 'name', result)}); "
                               "the old map stays active")
@@ -362,8 +397,7 @@ class Device:
             self.write("map_command", "abort")
             raise DeviceError(f"map read-back differs at byte {_first_difference(back, data)}; not activated, "
                               "the old map stays active")
-        self.write("map_command", "activate")
-        result = self._wait_map_op(timeout_s)
+        result = self._unlocked_map_command("activate", timeout_s)
         active = self.read("map_active_slot")
         if result != regs.MapOpStatus.ACTIVATED or active != target:
             raise DeviceError(f"map activation failed ({getattr(result, 'name', result)}, active slot "
@@ -389,9 +423,28 @@ class Device:
                             ("map_version", version), ("map_read_slot", 0), ("map_command", "begin_write")):
             reg = regs.BY_NAME[name]
             words[reg.address - first:reg.address - first + reg.words] = encode(reg, value)
-        self.transport.write_words(first, words)
-        if self.read("map_op_status") != regs.MapOpStatus.WRITING:
-            raise DeviceError(f"device did not open a map write (status {self.read('map_op_status').name.lower()})")
+        status = self._unlocked_map_command(lambda: self.transport.write_words(first, words))
+        if status != regs.MapOpStatus.WRITING:
+            raise DeviceError(f"device did not open a map write (status {getattr(status, 'name', status)})")
+
+    def _unlocked_map_command(self, send, timeout_s: float = 0.0):
+        """Unlock, send a destructive map command (a map_command name, or a callable that writes it), and
+        return map_op_status; refused as locked (the window closed while a request was retried): once more."""
+        for _attempt in (1, 2):
+            self.unlock()
+            if callable(send):
+                send()
+            else:
+                self.write("map_command", send)
+            status = self._wait_map_op(timeout_s) if timeout_s else self.read("map_op_status")
+            if status != regs.MapOpStatus.ERROR_LOCKED:
+                break
+        if status == regs.MapOpStatus.ERROR_BUSY:
+            raise DeviceError(f"map flash: {_ERASE_LIMITED}; the old map stays active")
+        if status == regs.MapOpStatus.ERROR_LOCKED:
+            raise DeviceError("the device refused the map command as locked twice right after an unlock "
+                              "(is another master writing to it?); the old map stays active")
+        return status
 
     def _wait_map_op(self, timeout_s: float):
         deadline = self._clock() + timeout_s
