@@ -468,7 +468,7 @@ def _check_shutter(light: str):
         if found["rise"] < MIN_RISE_FRACTION:
             return _outcome(SKIP, f"not judged: no light from the {_LABEL[light]} LED to block (see "
                                   f"{_check_name('LED', light)}); a shutter stuck closed looks the same", **figures)
-        leak = found["leak"] / found["rise"]
+        leak = max(found["leak"] / found["rise"], 0.0)  # noise can make a perfect blade read slightly negative
         figures.update(transmitted_when_closed=leak)
         closed_us = bench.config[f"servo_{light}_closed_us"]
         if leak > MAX_SHUTTER_LEAK:
