@@ -323,7 +323,7 @@ static void watchdog_init(void)
     IWDG_KR = 0x5555u; /* unlock PR/RLR */
     IWDG_PR = 4u;      /* LSI 32 kHz / 64 = 500 Hz */
     IWDG_RLR = 2000u;  /* 4 s: longer than a 128 KiB sector erase at x32 (1 s typ., 2 s max), during
-                        * which the CPU stalls and can't kick it */
+                        * which the main loop waits in the flash driver and can't kick it */
     IWDG_KR = 0xAAAAu;
     IWDG_KR = 0xCCCCu; /* start; it can't be stopped again */
 }
