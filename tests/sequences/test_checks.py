@@ -211,3 +211,16 @@ def test_a_map_for_another_thickness_than_the_declared_one_is_an_error(rig):
     path = service.measure([0.4], maps=[amap])
     meta = json.loads((path / "measurement.json").read_text())
     assert meta["declared_thicknesses_mm"] == [0.4] and meta["map_thicknesses_mm"] == [0.4]
+
+
+def test_a_saved_calibration_failing_its_checks_is_not_used(rig):
+    """E.g. one taken with a sample in the holder before these checks existed: serve asks for a new one."""
+    service, fake, optics, events, amap, tmp = rig
+    bad = Calibration(WL, np.full(WL.size, 3e6), np.full(WL.size, 5e6), np.full(WL.size, 0.27), 0.99,
+                      np.zeros(WL.size, np.int32), device_time_s=0.0)
+    bad.save(service.settings.calibration_path)
+    service = Service(service._open_device, service._open_spectrometer, service.settings, on_event=events.append)
+    service.connect()
+    assert fake.get("status_pattern") == regs.StatusPattern.TRIPLE_BLINK
+    assert events[-1].kind == "empty_holder" and "the saved calibration fails its checks (ρ_black 0.27" in \
+        events[-1].message

@@ -98,6 +98,8 @@ class Service:
             self.calibration = Calibration.load(settings.calibration_path)
         except TrimeterError:
             self.calibration = None
+        if self.calibration is not None and (problems := calibration_problems(self.calibration)):
+            self.calibration_stale_reason = "the saved calibration fails its checks (" + "; ".join(problems) + ")"
 
     # --------------------------------------------------------------------------- connection
     def connect(self) -> None:
@@ -112,7 +114,8 @@ class Service:
         self._button, self._uptime = button, uptime
         if not self.device.read("led_panel_left_on"):
             # This service keeps the lamps on: off means a reset or power-up, so they are cold.
-            self.calibration_stale_reason = "the lamps were off (device reset or power-up) and must warm up again"
+            self.calibration_stale_reason = self.calibration_stale_reason or \
+                "the lamps were off (device reset or power-up) and must warm up again"
         lamps_on(self.device)
         self.device.write("status_pattern", self._status)
         self._emit("connected", f"connected (firmware {'.'.join(map(str, self.device.identity.firmware_version))})")
