@@ -1,6 +1,7 @@
 #!/usr/bin/env python3
-"""Write the fuzzer's seed corpus: valid RTU frames of every function code against the trimeter
-register map (slave 1 and broadcast), plus bad ones. Run with the venv (`make -C firmware/fuzz corpus`); output: corpus/."""
+"""Write the fuzzers' seed corpora. corpus/ (fuzz_modbus): valid RTU frames of every function code against
+the trimeter register map (slave 1 and broadcast), plus bad ones. corpus_app/ (fuzz_app): short programs
+of its operations (fuzz_app.c, run_op). Run with the venv (`make -C firmware/fuzz corpus`)."""
 
 from pathlib import Path
 import struct
@@ -54,12 +55,37 @@ SEEDS = {
 }
 
 
+# fuzz_app programs: one byte picks the operation (run_op: value % 10), its arguments follow.
+FRAME, WRITE_HOLDING, RAW, TIME, REBOOT, POWER_CUT, PLANT, UNLOCKED_COMMAND, UPLOAD = range(9)
+UNICAST, BROADCAST = 1, 0
+UNLOCK_KEY = (0x5A, 0xFE)
+SAVE, LOAD_DEFAULTS, HOME = 0x00, 0x01, 0x02
+NO_UNLOCK, TWICE = 0x40, 0x20
+SLOT_WHITE_70 = bytes([WRITE_HOLDING, UNICAST, 68, 1, 0x42, 0x8C, 0, 0])  # f32 70.0 = 0x428C0000
+APP_SEEDS = {
+    "upload_valid_table": bytes([UPLOAD, 0x0B, 1, 0, REBOOT]),
+    "upload_table_bad_magic": bytes([UPLOAD, 0x0B, 2, 1, 0x00, 0x05, 0x77]),
+    "upload_junk_with_fixed_crc": bytes([UPLOAD, 0x08 | 0x02, 3, 2, 0x00, 0x48, 0x09, 0x00, 0x50, 0x01]),
+    "upload_activate_without_unlock": bytes([UPLOAD, 0x1B, 4, 0]),
+    "unlock_save_reboot": SLOT_WHITE_70 + bytes([UNLOCKED_COMMAND, SAVE, REBOOT]),
+    "save_retry_then_save_again": SLOT_WHITE_70 + bytes([UNLOCKED_COMMAND, SAVE | TWICE, UNLOCKED_COMMAND, NO_UNLOCK]),
+    "broadcast_unlock_then_save": bytes([WRITE_HOLDING, BROADCAST, 1, 1, *UNLOCK_KEY, UNLOCKED_COMMAND, NO_UNLOCK]),
+    "save_flood": SLOT_WHITE_70 + bytes([UNLOCKED_COMMAND, SAVE] * 12) + bytes([TIME, 0xFF]),
+    "power_cut_in_a_save": SLOT_WHITE_70 + bytes([POWER_CUT, 3, UNLOCKED_COMMAND, SAVE, REBOOT]),
+    "home_and_wait": bytes([UNLOCKED_COMMAND, HOME, TIME, 0x7F, TIME, 0x7F, PLANT, 0x01, TIME, 0x20]),
+    "raw_two_frames": bytes([RAW, 16]) + frame(1, 0x03, u16(0, 2)) + frame(1, 0x06, u16(2, 10)),
+    "unlock_window_expires": bytes([WRITE_HOLDING, UNICAST, 1, 1, *UNLOCK_KEY, TIME, 0x83,
+                                    UNLOCKED_COMMAND, NO_UNLOCK]),
+}
+
+
 def main() -> None:
-    out = HERE / "corpus"
-    out.mkdir(exist_ok=True)
-    for name, data in SEEDS.items():
-        (out / name).write_bytes(data)
-    print(f"wrote {len(SEEDS)} seeds to {out}")
+    for directory, seeds in (("corpus", SEEDS), ("corpus_app", APP_SEEDS)):
+        out = HERE / directory
+        out.mkdir(exist_ok=True)
+        for name, data in seeds.items():
+            (out / name).write_bytes(data)
+        print(f"wrote {len(seeds)} seeds to {out}")
 
 
 if __name__ == "__main__":

@@ -1,0 +1,345 @@
+/* libFuzzer target over the whole request path: the real application (app.c with modbus, regmap,
+ * config, motion, actuators, storage, map_table) on the fake HAL of firmware/tests (simulated time,
+ * plant, NOR flash that can lose power). State is kept across inputs, as on a device that runs for
+ * months: the configuration, the map slots, the erase counters, the unlock window and the clock
+ * carry over, so the fuzzer can build up a state over many inputs (and a finding may need the inputs
+ * before it: libFuzzer keeps them in its corpus).
+ *
+ * An input is a program of operations (see `run_op`): Modbus frames (CRC fixed, unicast, broadcast
+ * or another address), raw byte streams for the framer, time steps and jumps, reboots, power cuts
+ * during flash work, plant events, and two macros that reach deep states fast: unlock + a
+ * destructive command, and a whole map upload of a (mutated) map table.
+ *
+ * Invariants (abort = a finding), besides the sanitizers':
+ *   - a reply is one whole frame from our address with a good CRC, echoing the function code, an
+ *     exception only with code 01..04 or 06; a broadcast is never answered;
+ *   - a broadcast never erases or programs flash;
+ *   - an erase happens only in a request that arrived while an unlock window was open, at most one
+ *     per unlock; erases since boot never exceed the rate limit's budget;
+ *   - a valid map slot always holds a table whose header map_table_check accepts;
+ *   - state and fault stay inside their enums. */
+#include <stdbool.h>
+#include <stdlib.h>
+#include <string.h>
+
+#include "../core/app.h"
+#include "../core/crc.h"
+#include "../core/map_table.h"
+#include "../core/regmap.h"
+#include "../tests/fake_hal.h"
+#include "../tests/table_fixture.h"
+
+static fake_hal_t *f;
+static int (*real_erase)(void *ctx, enum hal_region region);
+static int (*real_write)(void *ctx, enum hal_region region, uint32_t offset, const void *buf, size_t len);
+static uint64_t erases, writes;   /* successful or not: every attempt reaches the flash */
+static uint64_t boot_us, erases_at_boot;
+static bool erased_in_window;     /* an erase already used the unlock window opened at window_us */
+static uint32_t window_us;
+static uint32_t checked_crc[STORAGE_MAP_SLOTS];
+static bool checked_valid[STORAGE_MAP_SLOTS];
+
+static int counting_erase(void *ctx, enum hal_region region)
+{
+    erases++;
+    return real_erase(ctx, region);
+}
+
+static int counting_write(void *ctx, enum hal_region region, uint32_t offset, const void *buf, size_t len)
+{
+    writes++;
+    return real_write(ctx, region, offset, buf, len);
+}
+
+static uint32_t isr(void *ctx)
+{
+    (void)ctx;
+    return app_step_isr();
+}
+
+static void run_ms(uint32_t ms)
+{
+    for (uint32_t i = 0; i < ms; i++) {
+        fake_hal_run_until(f, f->now_us + 1000, isr, NULL);
+        app_poll();
+    }
+}
+
+static void boot(void)
+{
+    fake_hal_power_on(f);
+    app_init(&f->hal);
+    boot_us = f->now_us;
+    erases_at_boot = erases;
+    erased_in_window = false;
+    memset(checked_valid, 0, sizeof checked_valid);
+    run_ms(1);
+}
+
+static uint8_t our_address(void) { return app_get()->mb.address; }
+
+/* ---------------------------------------------------------------- invariants */
+
+static bool window_open(const app_t *a)
+{
+    return a->unlock_open && (uint32_t)f->now_us - a->unlock_us < APP_UNLOCK_WINDOW_US;
+}
+
+static void check_reply(const uint8_t *adu)
+{
+    if (adu[0] == MB_ADDRESS_BROADCAST || adu[0] != our_address()) {
+        if (f->tx_len) abort();
+        return;
+    }
+    if (f->tx_len == 0) return; /* e.g. a request the framer dropped */
+    const uint8_t *r = f->tx;
+    if (f->tx_len < 4 || f->tx_len > MB_ADU_MAX || crc16_modbus(r, f->tx_len) != 0 || r[0] != our_address()) abort();
+    if (r[1] & 0x80u) {
+        if (f->tx_len != 5 || r[1] != (adu[1] | 0x80u)) abort();
+        if (!((r[2] >= 1 && r[2] <= 4) || r[2] == MB_EX_SERVER_DEVICE_BUSY)) abort();
+    } else if (r[1] != adu[1]) {
+        abort();
+    }
+}
+
+/* Erases in one request: only with an unlock window open before it, one per window; never broadcast. */
+static void check_erases(const uint8_t *adu, uint64_t erases_before, uint64_t writes_before, bool open_before,
+                         uint32_t unlock_us_before)
+{
+    uint64_t n = erases - erases_before;
+    if (adu[0] == MB_ADDRESS_BROADCAST && (n || writes != writes_before)) abort();
+    if (!n) return;
+    if (!open_before || n > 1) abort();
+    if (erased_in_window && window_us == unlock_us_before) abort();
+    erased_in_window = true;
+    window_us = unlock_us_before;
+}
+
+static void check_state(void)
+{
+    if ((unsigned)app_state() > TRIMETER_STATE_FAULT || (unsigned)app_fault() > TRIMETER_FAULT_STORAGE) abort();
+    /* the rate limit: a burst, then one per refill interval */
+    uint64_t budget = STORAGE_ERASE_BURST + (f->now_us - boot_us) / STORAGE_ERASE_REFILL_US;
+    if (erases - erases_at_boot > budget) abort();
+    const storage_t *st = &app_get()->storage;
+    for (int s = 0; s < STORAGE_MAP_SLOTS; s++) {
+        if (!st->map_valid[s] || (checked_valid[s] && checked_crc[s] == st->map[s].crc32)) continue;
+        uint32_t len = st->map[s].length;
+        const uint8_t *bytes = f->map[s];
+        if (len < 4 || len > HAL_MAP_REGION_SIZE) abort();
+        uint32_t stored = (uint32_t)(bytes[len - 4] | bytes[len - 3] << 8 | bytes[len - 2] << 16 |
+                                     (uint32_t)bytes[len - 1] << 24);
+        if (map_table_check(bytes, len, crc32_update(0, bytes, len - 4), stored) != MAP_TABLE_OK) abort();
+        checked_valid[s] = true;
+        checked_crc[s] = st->map[s].crc32;
+    }
+}
+
+/* ---------------------------------------------------------------- frames */
+
+/* One ADU (address .. PDU; the CRC is appended here) through the UART, then silence. */
+static void deliver(uint8_t *adu, size_t len)
+{
+    uint16_t crc = crc16_modbus(adu, len);
+    adu[len] = (uint8_t)crc;
+    adu[len + 1] = (uint8_t)(crc >> 8);
+    const app_t *a = app_get();
+    bool open_before = window_open(a);
+    uint32_t unlock_us_before = a->unlock_us;
+    uint64_t erases_before = erases, writes_before = writes;
+    memcpy(f->rx, adu, len + 2);
+    f->rx_len = len + 2;
+    f->rx_pos = 0;
+    f->tx_len = 0;
+    run_ms(6); /* > t3.5 at the slowest allowed baud rate (9600: 4 ms) */
+    check_reply(adu);
+    check_erases(adu, erases_before, writes_before, open_before, unlock_us_before);
+}
+
+static void write_regs(uint8_t address, uint16_t reg, uint16_t n, const uint16_t *vals)
+{
+    uint8_t adu[MB_ADU_MAX + 2] = {address, 0x10, (uint8_t)(reg >> 8), (uint8_t)reg, 0, (uint8_t)n, (uint8_t)(2 * n)};
+    for (uint16_t i = 0; i < n; i++) {
+        adu[7 + 2 * i] = (uint8_t)(vals[i] >> 8);
+        adu[8 + 2 * i] = (uint8_t)vals[i];
+    }
+    deliver(adu, 7u + 2u * n);
+}
+
+static void write_reg(uint16_t reg, uint16_t v) { write_regs(our_address(), reg, 1, &v); }
+
+static void unlock(void) { write_reg(REG_HR_UNLOCK, TRIMETER_UNLOCK_KEY); }
+
+/* FC 0x15: `n` records (<= 120) of the open upload from linear record index k. */
+static void write_records(uint32_t k, const uint8_t *bytes, uint32_t nbytes)
+{
+    uint8_t adu[MB_ADU_MAX + 2];
+    uint16_t n = (uint16_t)((nbytes + 1) / 2);
+    uint16_t file = (uint16_t)(k / TRIMETER_MAP_RECORDS_PER_FILE + 1), rec = (uint16_t)(k % TRIMETER_MAP_RECORDS_PER_FILE);
+    uint8_t head[] = {our_address(), 0x15, (uint8_t)(7 + 2 * n), 6, (uint8_t)(file >> 8), (uint8_t)file,
+                      (uint8_t)(rec >> 8), (uint8_t)rec, (uint8_t)(n >> 8), (uint8_t)n};
+    memcpy(adu, head, sizeof head);
+    memset(adu + sizeof head, 0, 2u * n);
+    memcpy(adu + sizeof head, bytes, nbytes);
+    deliver(adu, sizeof head + 2u * n);
+}
+
+/* ---------------------------------------------------------------- the input program */
+
+typedef struct {
+    const uint8_t *p;
+    size_t n;
+} cursor_t;
+
+static uint8_t take(cursor_t *c)
+{
+    if (!c->n) return 0;
+    c->n--;
+    return *c->p++;
+}
+
+static uint16_t take16(cursor_t *c) { return (uint16_t)(take(c) << 8 | take(c)); }
+
+static uint8_t pick_address(uint8_t sel)
+{
+    switch (sel & 3u) {
+    case 0: return MB_ADDRESS_BROADCAST;
+    case 3: return (uint8_t)(our_address() % 247u + 1u); /* another slave */
+    default: return our_address();
+    }
+}
+
+static void op_frame(cursor_t *c)
+{
+    uint8_t adu[MB_ADU_MAX + 2];
+    adu[0] = pick_address(take(c));
+    size_t len = 2u + take(c) % 90u; /* address + PDU */
+    for (size_t i = 1; i < len; i++) adu[i] = take(c);
+    deliver(adu, len);
+}
+
+static void op_write_holding(cursor_t *c)
+{
+    uint16_t vals[16];
+    uint8_t address = pick_address(take(c));
+    uint16_t reg = take(c) % REG_HR_SPAN, n = (uint16_t)(1u + take(c) % 16u);
+    for (uint16_t i = 0; i < n; i++) vals[i] = take16(c);
+    write_regs(address, reg, n, vals);
+}
+
+static void op_raw(cursor_t *c)
+{
+    size_t len = take(c);
+    if (len > FAKE_UART_SIZE) len = FAKE_UART_SIZE;
+    size_t i = 0;
+    for (; i < len && c->n; i++) f->rx[i] = take(c);
+    f->rx_len = i;
+    f->rx_pos = 0;
+    f->tx_len = 0;
+    run_ms(6);
+}
+
+static void op_time(cursor_t *c)
+{
+    uint8_t t = take(c);
+    if (t & 0x80u && !f->timer_running) {
+        f->now_us += (uint64_t)(t & 0x7Fu) * 1000000u; /* idle: jump (the unlock window, the erase refill) */
+        app_poll();
+    } else {
+        run_ms(4u * (t & 0x7Fu));
+    }
+}
+
+static void op_power_cut(cursor_t *c)
+{
+    f->power_budget = f->bytes_programmed + (long)take(c) * 8; /* power returns at the next reboot */
+}
+
+static void op_plant(cursor_t *c)
+{
+    uint8_t b = take(c);
+    f->button = b & 1u;
+    f->endstop_broken = b & 2u;
+    f->stuck = b & 4u;
+    f->has_stall_output = b & 8u;
+}
+
+static void op_unlocked_command(cursor_t *c)
+{
+    static const uint16_t commands[] = {TRIMETER_COMMAND_SAVE_CONFIG, TRIMETER_COMMAND_LOAD_DEFAULTS,
+                                        TRIMETER_COMMAND_HOME, TRIMETER_COMMAND_CLEAR_FAULT};
+    static const uint16_t map_commands[] = {TRIMETER_MAP_COMMAND_BEGIN_WRITE, TRIMETER_MAP_COMMAND_VERIFY,
+                                            TRIMETER_MAP_COMMAND_ACTIVATE, TRIMETER_MAP_COMMAND_ABORT};
+    uint8_t sel = take(c);
+    if (!(sel & 0x40u)) unlock();
+    if (sel & 0x80u) write_reg(REG_HR_MAP_COMMAND, map_commands[sel % 4u]);
+    else write_reg(REG_HR_COMMAND, commands[sel % 4u]);
+    if (sel & 0x20u) write_reg(REG_HR_COMMAND, commands[sel % 4u]); /* a retry or a second try */
+}
+
+/* A whole upload, as `trimeter map flash` does it, of a fixture table with a few bytes changed. */
+static void op_upload_table(cursor_t *c)
+{
+    static uint8_t table[4096];
+    uint8_t how = take(c);
+    uint32_t len = fixture_table(table, sizeof table, (uint16_t)(2u + how % 5u), take(c));
+    for (uint8_t edits = take(c) % 4u; edits; edits--) {
+        uint16_t at = take16(c) % len;
+        table[at] = take(c);
+    }
+    if (how & 0x08u) fixture_table_fix_crc(table, len);
+    uint16_t params[7];
+    regmap_put_u32(&params[0], len);
+    regmap_put_u32(&params[2], crc32_update(0, table, len));
+    params[4] = how;
+    params[5] = TRIMETER_MAP_SLOT_NONE;
+    params[6] = TRIMETER_MAP_COMMAND_BEGIN_WRITE;
+    unlock();
+    write_regs(our_address(), REG_HR_MAP_EXPECTED_LENGTH, 7, params);
+    for (uint32_t off = 0; off < len; off += 240) write_records(off / 2, table + off, len - off < 240 ? len - off : 240);
+    write_reg(REG_HR_MAP_COMMAND, TRIMETER_MAP_COMMAND_VERIFY);
+    if (!(how & 0x10u)) unlock();
+    write_reg(REG_HR_MAP_COMMAND, TRIMETER_MAP_COMMAND_ACTIVATE);
+}
+
+static void run_op(cursor_t *c)
+{
+    switch (take(c) % 10u) {
+    case 0: op_frame(c); break;
+    case 1: op_write_holding(c); break;
+    case 2: op_raw(c); break;
+    case 3: op_time(c); break;
+    case 4: boot(); break;
+    case 5: op_power_cut(c); break;
+    case 6: op_plant(c); break;
+    case 7: op_unlocked_command(c); break;
+    case 8: op_upload_table(c); break;
+    default: /* factory-fresh flash: lets the fuzzer get out of a state it cannot leave */
+        if (take(c) == 0xA5u) {
+            memset(f->config, 0xFF, sizeof f->config);
+            memset(f->map, 0xFF, sizeof f->map);
+            boot();
+        }
+        break;
+    }
+    check_state();
+}
+
+int LLVMFuzzerTestOneInput(const uint8_t *data, size_t size)
+{
+    if (!f) {
+        f = fake_hal_new();
+        if (!f) abort();
+        f->carriage_steps = 3000;
+        f->endstop_steps = 0;
+        f->hard_stop_steps = -40;
+        real_erase = f->hal.storage_erase;
+        real_write = f->hal.storage_write;
+        f->hal.storage_erase = counting_erase;
+        f->hal.storage_write = counting_write;
+        boot();
+    }
+    cursor_t c = {data, size};
+    for (int ops = 0; c.n && ops < 64; ops++) run_op(&c);
+    return 0;
+}
