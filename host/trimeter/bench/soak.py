@@ -139,7 +139,7 @@ def _reason(message: str) -> str:
 
 
 def run_soak(cycles: int, *, seed: int = 0, time_scale: float = 50.0, calibration_max_age_s: float = 600.0,
-             progress=print, root: Path | None = None) -> SoakReport:
+             progress=lambda line: print(line, flush=True), root: Path | None = None) -> SoakReport:
     """`root`: where the twin's state, the calibration and the results go (default: a temporary directory)."""
     if cycles < 1:
         raise InputError(f"--cycles must be ≥ 1, got {cycles}")
