@@ -14,7 +14,7 @@ endif
 # 2-core machine idle OpenBLAS threads spin-wait under load, which stalled scipy's Delaunay for minutes.
 export OPENBLAS_NUM_THREADS ?= 1
 
-.PHONY: help setup native native-portable gen check-gen lint firmware firmware-test fuzz pytest test demo bench clean
+.PHONY: help setup native native-portable gen check-gen hardware lint firmware firmware-test fuzz pytest test demo bench clean
 
 help:
 	@echo "make demo   - set up, start the twin with a virtual sample, run a press-button measurement, plot it"
@@ -46,6 +46,12 @@ gen: setup
 
 check-gen: setup
 	$(PY) tools/gen_registers.py --check
+	$(PY) tools/gen_hardware.py --check
+
+# The build documentation and printable parts (hardware/README.md): bom.md, wiring.md and the pictures
+# in hardware/img (committed), STLs in build/hardware (not committed), all from hardware/*.toml.
+hardware: setup
+	$(PY) tools/gen_hardware.py --parts
 
 # pycodestyle + pyflakes rules (configured in pyproject.toml): unused names, undefined names, long lines
 lint: setup
