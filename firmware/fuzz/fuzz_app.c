@@ -13,7 +13,7 @@
  * Invariants (abort = a finding), besides the sanitizers':
  *   - a reply is one whole frame from our address with a good CRC, echoing the function code, an
  *     exception only with code 01..04 or 06; a broadcast is never answered;
- *   - a broadcast never erases or programs flash;
+ *   - a broadcast never erases or programs flash, nor opens an unlock window;
  *   - an erase happens only in a request that arrived while an unlock window was open, at most one
  *     per unlock; erases since boot never exceed the rate limit's budget;
  *   - a valid map slot always holds a table whose header map_table_check accepts;
@@ -108,6 +108,9 @@ static void check_erases(const uint8_t *adu, uint64_t erases_before, uint64_t wr
 {
     uint64_t n = erases - erases_before;
     if (adu[0] == MB_ADDRESS_BROADCAST && (n || writes != writes_before)) abort();
+    const app_t *a = app_get();
+    if (adu[0] == MB_ADDRESS_BROADCAST && window_open(a) && (!open_before || a->unlock_us != unlock_us_before))
+        abort();
     if (!n) return;
     if (!open_before || n > 1) abort();
     if (erased_in_window && window_us == unlock_us_before) abort();
@@ -151,7 +154,7 @@ static void deliver(uint8_t *adu, size_t len)
     f->rx_len = len + 2;
     f->rx_pos = 0;
     f->tx_len = 0;
-    run_ms(6); /* > t3.5 at the slowest allowed baud rate (9600: 4 ms) */
+    run_ms(app_get()->mb.t35_us / 1000u + 2u); /* the bytes, then silence > t3.5 */
     check_reply(adu);
     check_erases(adu, erases_before, writes_before, open_before, unlock_us_before);
 }
