@@ -89,15 +89,12 @@ static void set_shutter(enum hal_shutter s, bool open)
 
 /* ---------------------------------------------------------------- unlock window */
 
-/* The destructive write of this window was the last write before the one being handled. */
-static bool retry_candidate;
-
 static bool unlock_window_open(void) { return app.unlock_open && now() - app.unlock_us < APP_UNLOCK_WINDOW_US; }
 
 /* This destructive write just ran in the open window: a retry, acknowledged without running it. */
 static bool unlock_repeat(uint16_t reg, uint16_t value)
 {
-    bool repeat = retry_candidate && unlock_window_open() && app.unlock_spent && app.spent_reg == reg &&
+    bool repeat = app.retry_candidate && unlock_window_open() && app.unlock_spent && app.spent_reg == reg &&
                   app.spent_value == value;
     if (repeat) app.spent_was_last = true;
     return repeat;
@@ -118,7 +115,7 @@ static void unlock_close(void) { app.unlock_open = app.unlock_spent = app.spent_
 /* Every write the device takes starts here: only a write right after the destructive one can be its retry. */
 static void write_arrives(void)
 {
-    retry_candidate = app.spent_was_last;
+    app.retry_candidate = app.spent_was_last;
     app.spent_was_last = false;
 }
 

@@ -59,6 +59,7 @@ typedef struct app {
     bool unlock_open;           /* an unlock window is open (since unlock_us) */
     bool unlock_spent;          /* ... and ran the destructive write spent_reg = spent_value */
     bool spent_was_last;        /* ... which is the last write the device took (so a repeat is a retry) */
+    bool retry_candidate;       /* spent_was_last as the write being handled arrived */
     uint32_t unlock_us;
     uint16_t spent_reg, spent_value;
     bool was_moving;
