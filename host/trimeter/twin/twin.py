@@ -46,14 +46,25 @@ def _die_with_parent() -> None:
         pass
 
 
+def _firmware_is_current(binary: Path) -> bool:
+    """The binary exists and, where the firmware sources are here, `make -q` finds nothing newer: a binary
+    left over from before a register-map change would answer with the old map (and fail its identity check)."""
+    if not binary.is_file():
+        return False
+    if binary != FIRMWARE_BINARY or not (FIRMWARE_DIR / "Makefile").is_file() or not shutil.which("make"):
+        return True
+    return subprocess.run(["make", "-q", "-C", str(FIRMWARE_DIR), "sim"], capture_output=True).returncode == 0
+
+
 def ensure_firmware(binary: Path = FIRMWARE_BINARY) -> Path:
-    """The firmware sim binary, built with `make -C firmware sim` if it is missing (serialised by a lock)."""
-    if binary.is_file():
+    """The firmware sim binary, (re)built with `make -C firmware sim` if it is missing or older than its
+    sources (serialised by a lock)."""
+    if _firmware_is_current(binary):
         return binary
     binary.parent.mkdir(parents=True, exist_ok=True)
     with open(binary.parent / ".build.lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
-        if not binary.is_file():
+        if not _firmware_is_current(binary):
             run = subprocess.run(["make", "-C", str(FIRMWARE_DIR), "sim"], capture_output=True, text=True)
             if run.returncode != 0 or not binary.is_file():
                 tail = (run.stdout + run.stderr).strip().splitlines()[-3:]
