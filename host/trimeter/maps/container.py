@@ -139,7 +139,8 @@ def read_bounded(path: Path, limit: int, what: str) -> bytes:
     """A regular file's bytes, refused before reading when it is larger than `limit` (or not a file:
     a device such as /dev/zero never ends)."""
     try:
-        with open(path, "rb") as f:
+        # O_NONBLOCK: opening a FIFO must not wait for a writer (regular files ignore the flag)
+        with os.fdopen(os.open(path, os.O_RDONLY | os.O_NONBLOCK), "rb") as f:
             info = os.fstat(f.fileno())
             if not stat.S_ISREG(info.st_mode):
                 raise MapFileError(f"{path}: not a regular file")
