@@ -17,6 +17,7 @@ stale, and a measurement the reset interrupted leaves no result directory.
 
 from __future__ import annotations
 
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -94,6 +95,8 @@ class Service:
         self.last_incomplete: str | None = None  # why the last measurement has fewer samples than asked
         self._status = READY   # what the LED shows between presses (kept across reconnects)
         self.calibration_stale_reason: str | None = None  # set when a reset was seen
+        self.calibration_requested: str | None = None  # a calibration asked for by name (the web page)
+        self._next_sample_confirmed = threading.Event()  # the web page's stand-in for the double-blink press
         try:
             self.calibration = Calibration.load(settings.calibration_path)
         except TrimeterError:
@@ -137,17 +140,27 @@ class Service:
     def _emit(self, kind, message, **data):
         self.on_event(Event(kind, message, data))
 
+    @property
+    def pattern(self) -> str:
+        """What the LED shows between presses: READY, EMPTY_HOLDER (asking), FAILED; NEXT_SAMPLE while it waits."""
+        return self._status
+
     # --------------------------------------------------------------------------------- loop
     def serve(self, stop: Callable[[], bool] = lambda: False, poll_s: float = 0.05,
-              reconnect_s: float = 0.5) -> None:
-        """Run until `stop()` is true. Survives resets, lost links and failed measurements."""
+              reconnect_s: float = 0.5, between_polls: Callable[[str | None], None] | None = None) -> None:
+        """Run until `stop()` is true. Survives resets, lost links and failed measurements.
+        `between_polls(outcome of the poll)` runs on this thread after each button poll: work asked for
+        elsewhere (the web page's jobs) shares the device with the button this way; a DeviceError it raises
+        reconnects like the button's."""
         for note in recover_partials(self.settings.results_path):
             self._emit("warning", note)  # before any press: what interrupted writes left behind
         while not stop():
             try:
                 if self.device is None:
                     self.connect()
-                self.poll_once()
+                outcome = self.poll_once()
+                if between_polls is not None:
+                    between_polls(outcome)
             except DeviceError as exc:
                 self._emit("reconnecting", f"device link problem: {exc}; reconnecting")
                 self.close()
@@ -189,8 +202,19 @@ class Service:
 
     def calibration_due(self, uptime_s: float) -> str | None:
         """Why a calibration is needed before the next measurement (None: the one held is usable)."""
-        return self.calibration_stale_reason or calibration_is_stale(self.calibration, uptime_s,
-                                                                     self.settings.calibration_max_age_s)
+        return self.calibration_stale_reason or self.calibration_requested or calibration_is_stale(
+            self.calibration, uptime_s, self.settings.calibration_max_age_s)
+
+    def ask_to_calibrate(self, reason: str) -> None:
+        """A calibration asked for other than by the LED (the web page): the LED asks for an empty holder,
+        and the next press (or its stand-in) runs the same holder check as any calibration."""
+        self.calibration_requested = reason
+        if self._status != EMPTY_HOLDER:
+            self._ask_empty_holder(reason)
+
+    def confirm_next_sample(self) -> None:
+        """The web page's stand-in for the press that says the next sample is in (thread-safe)."""
+        self._next_sample_confirmed.set()
 
     def _ask_empty_holder(self, reason: str) -> None:
         self._status = EMPTY_HOLDER
@@ -198,11 +222,13 @@ class Service:
         self._emit("empty_holder", f"{reason}: empty the sample holder and press the button to calibrate",
                    reason=reason)
 
-    def handle_press(self) -> str:
+    def handle_press(self, samples: list[tuple[float, str | None]] | None = None, label: str | None = None) -> str:
+        """What a press does. `samples` ((thickness, map or None) each) and `label`: a measurement asked for
+        by name (the web page) instead of the host config's; it never calibrates: a due calibration only asks."""
         dev = self.device
         try:
             reason = self.calibration_due(dev.read("uptime_s"))
-            if reason and self._status != EMPTY_HOLDER:
+            if reason and (self._status != EMPTY_HOLDER or samples is not None):
                 # this press was meant to measure, with a sample in: it must not calibrate
                 self._ask_empty_holder(reason)
                 return "asked"
@@ -218,9 +244,9 @@ class Service:
                     return "refused"
                 outcome = "calibrated"
             else:
-                samples = self.settings.serve_samples
+                samples = samples or self.settings.serve_samples
                 self.measure([t for t, _ in samples], maps=[map_for_thickness(t, m) for t, m in samples],
-                             between=self._await_next_sample)
+                             between=self._await_next_sample, label=label)
                 outcome = "incomplete" if self.last_incomplete else "measured"
             if outcome == "incomplete":  # written, but not what was asked for: the LED says so
                 self._emit("failed", self.last_incomplete)
@@ -246,13 +272,17 @@ class Service:
         dev.write("status_pattern", NEXT_SAMPLE)
         self._emit("next_sample", f"insert the {thickness:g} mm sample and press the button", thickness_mm=thickness)
         deadline = time.monotonic() + self.settings.swap_timeout_s
+        self._next_sample_confirmed.clear()  # only a confirm given while this asks counts
         while True:
             button, uptime = dev.read_many("button_events", "uptime_s").values()
             if uptime < self._uptime:  # left for poll_once to handle as a reset: lamps, calibration
                 raise DeviceError(f"the device was reset while waiting for the {thickness:g} mm sample")
-            if button != self._button:
+            confirmed = self._next_sample_confirmed.is_set()
+            if button != self._button or confirmed:
                 self._button = button
-                self._emit("press", f"button pressed: measuring the {thickness:g} mm sample")
+                self._next_sample_confirmed.clear()
+                self._emit("press", f"{'confirmed on the web page' if confirmed else 'button pressed'}: "
+                                    f"measuring the {thickness:g} mm sample")
                 dev.write("status_pattern", WORKING)
                 return
             if time.monotonic() >= deadline:
@@ -296,14 +326,15 @@ class Service:
         if warm:
             result = runner.run(warm_up(threshold=s.warmup_threshold, interval_s=s.warmup_interval_s,
                                         timeout_s=s.warmup_timeout_s, frames=s.frames))
-            self._emit("warmed_up", f"lamps stable after {result.elapsed_s:.0f} s (drift {result.drift:.2%})")
+            self._emit("warmed_up", f"lamps stable after {result.elapsed_s:.0f} s (drift {result.drift:.2%})",
+                       drift=result.drift, elapsed_s=result.elapsed_s)
         cal = runner.run(calibration_plan(white_reference_reflectance=s.white_reference, frames=s.frames))
         cal.device = device
         if problems := calibration_problems(cal, previous):
             raise CheckError("calibration refused, the previous one is kept: " + "; ".join(problems))
         cal.save(s.calibration_path)
         self.calibration = cal
-        self.calibration_stale_reason = None
+        self.calibration_stale_reason = self.calibration_requested = None
         self.last_timing = runner.timing.to_dict()
         self._emit("calibrated", "calibrated: insert the sample and press the button to measure",
                    timing=self.last_timing)
