@@ -24,3 +24,8 @@ class DeviceError(TrimeterError):
 class CheckError(TrimeterError):
     """A check refused a calibration or a measurement (a sample in the holder at calibration, a lamp that
     failed since): nothing was saved as one. The message says what was seen and what to do."""
+
+
+class BuildError(TrimeterError):
+    """A map build that stopped: a column failed on every attempt, or the cluster could not be used. The
+    message names the column and where the finished ones are kept."""
