@@ -118,7 +118,8 @@ def test_the_stds_from_the_converging_step_are_those_at_the_solution():
     assert ok.mean() > 0.8
     J = grid.jacobian(r.alpha[ok], r.sigma_t[ok], r.g[ok], 0.02, 0.9)
     noise = lambda x: 0.005 * x + 2e-4  # noqa: E731  (fit()'s default noise model)
-    sigma_I = np.column_stack([np.hypot(noise(I_b[ok]), grid.mc_stderr), np.hypot(noise(I_w[ok]), grid.mc_stderr),
+    model = grid.model_variance(r.alpha[ok], grid.sigma_cell(r.sigma_t[ok]), r.g[ok])  # the map's own error
+    sigma_I = np.column_stack([np.sqrt(noise(I_b[ok]) ** 2 + model[0]), np.sqrt(noise(I_w[ok]) ** 2 + model[1]),
                                noise(I_c[ok])])
     std_a, std_s, std_g = grid.propagate(J, sigma_I)
     np.testing.assert_allclose(r.alpha_std[ok], std_a, rtol=0.02)

@@ -3,7 +3,10 @@
 Flow per map (thickness): validate the inputs into flags (never an exception for bad values) →
 σt from I_c (exact Beer-Lambert incl. Fresnel; a lower bound under the noise floor) → (α, g) by the
 method → flags for g undefined / outside the map / not converged → per-bin standard deviations by
-first-order propagation of the intensity noise through the forward map's Jacobian. Several
+first-order propagation through the forward map's Jacobian of every known error: the intensities'
+noise (given per bin, else the noise model), the map's own error at the solution (its MC std-error
+and interpolation error, kernel.node_model_variance), the in-scattering correction's and the
+thickness's uncertainty. Several
 thicknesses are then combined by inverse-variance weighting (the paper's method pools its samples
 and takes the median, as written) and checked against each other.
 
@@ -36,6 +39,10 @@ UNDERDETERMINED_ALPHA_STD, UNDERDETERMINED_G_STD = 0.1, 0.2  # FitFlag.UNDERDETE
 # exact solution of the map). A bin also stops when its step shrank at least 4× and the next one would be
 # below that fraction (kernel.step_is_small): ~0.3 steps per bin fewer.
 POLISH_TOL_STD = 3e-3
+# The in-scattering correction's relative std: the map's table (30k photons per node) against the
+# held-out sets' own traces (200k photons) differs by 1-2 % of the correction at p50 and up to 4.4 %
+# at p95 over the measurable gamut; the tracer's approximations (trimeter.forward.inscatter) add to it.
+INSCATTER_REL_STD = 0.05
 
 
 def _polish_tol_std(polish_tol: float) -> float:
@@ -111,8 +118,21 @@ def table_inverter(amap):
                 table = None
         if table is None:
             table = build_from_map(amap)
-        _TABLES[key] = TableInverter(table, inscatter=amap.inscatter)
+        _TABLES[key] = TableInverter(table, inscatter=amap.inscatter, model_variance=map_model_variance(amap))
     return _TABLES[key]
+
+
+def map_model_variance(amap):
+    """The map's own error variance of (I_b, I_w) at its nodes, at its reference backgrounds:
+    (variances (na, ns, ng, 2), α, ln σt, g axes) for ForwardGrid.attach_model_variance."""
+    from trimeter.inversion.kernel import node_model_variance
+    from trimeter.maps.appearance import background_response
+
+    rb, rw = amap.reference_rhos
+    values = np.stack([background_response(amap.A, amap.B, amap.C, rho) for rho in (rb, rw)], axis=-1)
+    axes = (np.asarray(amap.alpha, float), np.log(np.asarray(amap.sigma_t, float)), np.asarray(amap.g, float))
+    var = node_model_variance(values, np.stack([amap.std_b, amap.std_w], axis=-1), *axes)
+    return var, axes
 
 
 # ---------------------------------------------------------------------------------------- the fit
@@ -120,14 +140,21 @@ def fit(maps, I_b, I_w, I_c, rho_b=None, rho_w=None, method: str = "lut", *,
         noise_rel: float = 0.005, noise_abs: float = 2e-4, ic_floor: float = 1e-4,
         alpha_min_g: float = 0.02, polish: int = 8, polish_tol: float = 1e-6, samples: int = 250,
         epsilon: float = 0.01,
-        seed: int = 0, mlp_model: str | Path | None = None) -> FitResult:
+        seed: int = 0, mlp_model: str | Path | None = None, I_b_std=None, I_w_std=None, I_c_std=None,
+        thickness_std_mm=0.0, inscatter_rel_std: float = INSCATTER_REL_STD) -> FitResult:
     """Invert measured intensities (arrays over wavelength bins) to α, σt [1/mm], g.
 
     maps: an AppearanceMap, a map path or shipped-map name, or a list of them (the same material at
     several thicknesses); with k maps, I_b, I_w, I_c (and ρ's, if per-thickness) have shape (k, N).
     rho_b, rho_w: per-bin background reflectances (default: each map's reference backgrounds).
     noise_rel, noise_abs: the intensity noise model σ_I = noise_rel·I + noise_abs (for the stds and
-    the convergence tolerance); ic_floor: I_c below it bounds σt from below only.
+    the convergence tolerance) where the intensities' own stds are not given; ic_floor: I_c below it
+    bounds σt from below only.
+    I_b_std, I_w_std, I_c_std: the intensities' standard deviations (shaped like them, or scalars),
+    e.g. from the capture's frame-to-frame scatter; where one is missing or NaN, the noise model's.
+    thickness_std_mm: the sample thickness's std (one number, or one per map): it widens σt's std
+    by σt·std/ℓ (α and g do not depend on it: the slab's intensities depend on σt·ℓ).
+    inscatter_rel_std: the in-scattering correction's relative std.
     polish, polish_tol: at most `polish` Newton iterations after the lut/mlp guess (0 = the raw
     table/network); a bin stops once a step moved α and g by at most polish_tol, or by less than
     POLISH_TOL_STD of their noise std, or by a quarter of the step before with the next one,
@@ -145,17 +172,21 @@ def fit(maps, I_b, I_w, I_c, rho_b=None, rho_w=None, method: str = "lut", *,
     epsilon = require_number("epsilon", epsilon, lo=0.0)
     polish, samples = int(require_number("polish", polish, lo=0)), int(require_number("samples", samples, lo=0))
     polish_tol = require_number("polish_tol", polish_tol, lo=0.0)
+    inscatter_rel_std = require_number("inscatter_rel_std", inscatter_rel_std, lo=0.0)
     map_list = list(maps) if isinstance(maps, (list, tuple)) else [maps]
     if not map_list:
         raise InputError("maps must name at least one map")
     amaps = [_load_map(m) for m in map_list]
     k = len(amaps)
     arrays = _shape_inputs(k, I_b, I_w, I_c, rho_b, rho_w, amaps)
-    opts = dict(noise_rel=noise_rel, noise_abs=noise_abs, ic_floor=ic_floor, alpha_min_g=alpha_min_g)
+    stds = _shape_stds(k, arrays, (I_b_std, I_w_std, I_c_std), noise_rel, noise_abs)
+    thickness_rel = [t / m.thickness_mm for t, m in zip(_thickness_stds(k, thickness_std_mm), amaps)]
+    opts = dict(noise_rel=noise_rel, noise_abs=noise_abs, ic_floor=ic_floor, alpha_min_g=alpha_min_g,
+                inscatter_rel_std=inscatter_rel_std)
     if method == "paper":
-        return _fit_paper(amaps, arrays, samples=samples, epsilon=epsilon, seed=seed, **opts)
-    singles = [_fit_one(amap, *arrays[i], method=method, polish=polish, polish_tol=polish_tol, mlp_model=mlp_model,
-                        **opts)
+        return _fit_paper(amaps, arrays, stds, thickness_rel, samples=samples, epsilon=epsilon, seed=seed, **opts)
+    singles = [_fit_one(amap, *arrays[i], sd=stds[i], thickness_rel_std=thickness_rel[i], method=method, polish=polish,
+                        polish_tol=polish_tol, mlp_model=mlp_model, **opts)
                for i, amap in enumerate(amaps)]
     return singles[0] if k == 1 else combine(singles, method)
 
@@ -185,6 +216,45 @@ def _shape_inputs(k, I_b, I_w, I_c, rho_b, rho_w, amaps):
     return [(I_b[i], I_w[i], I_c[i], rhos[0][i], rhos[1][i]) for i in range(k)]
 
 
+def _shape_stds(k, arrays, given, noise_rel, noise_abs) -> list:
+    """Per thickness, the intensities' stds as an (N, 3) array, or None when none was given (the
+    noise model then stands everywhere, computed where it is used). A missing column, or a NaN in
+    one, takes the noise model's value at that (sanitized) intensity."""
+    if all(v is None for v in given):
+        return [None] * k
+    n = len(arrays[0][0])
+    out = np.empty((k, n, 3))
+    for j, (name, value) in enumerate(zip(("I_b_std", "I_w_std", "I_c_std"), given)):
+        if value is None:
+            out[:, :, j] = np.nan
+            continue
+        try:
+            v = np.asarray(value, dtype=float)
+            out[:, :, j] = v  # a scalar, one row of N for every thickness, or (k, N)
+        except (TypeError, ValueError) as exc:
+            raise InputError(f"{name} must be a number or an array shaped like the intensities ({exc})") from None
+        with np.errstate(invalid="ignore"):
+            if np.any(out[:, :, j] < 0):
+                raise InputError(f"{name} must not be negative")
+    if np.any(np.isinf(out)):
+        raise InputError("I_b_std, I_w_std, I_c_std must be finite (or NaN: the noise model's there)")
+    for i, (I_b, I_w, I_c, _, _) in enumerate(arrays):
+        for j, (x, fill) in enumerate(((I_b, 0.0), (I_w, 1.0), (I_c, 1.0))):
+            model = noise_rel * _sanitize(x, 0.0, 1.0, fill) + noise_abs
+            out[i, :, j] = np.where(np.isnan(out[i, :, j]), model, out[i, :, j])
+    return list(out)
+
+
+def _thickness_stds(k, thickness_std_mm) -> list[float]:
+    from trimeter.validation import require_number
+
+    values = list(thickness_std_mm) if isinstance(thickness_std_mm, (list, tuple, np.ndarray)) else \
+        [thickness_std_mm] * k
+    if len(values) != k:
+        raise InputError(f"thickness_std_mm: give one value or one per map ({k}), got {len(values)}")
+    return [require_number("thickness_std_mm", 0.0 if v is None else v, lo=0.0) for v in values]
+
+
 def _input_flags(I_b, I_w, I_c, rho_b, rho_w):
     flags = np.zeros(I_b.shape, dtype=np.int64)
     with np.errstate(invalid="ignore"):
@@ -204,8 +274,8 @@ def _sanitize(x, lo, hi, fill):
     return np.clip(np.where(np.isfinite(x), x, fill), lo, hi)
 
 
-def _fit_one(amap, I_b, I_w, I_c, rho_b, rho_w, *, method, polish, polish_tol, mlp_model, noise_rel, noise_abs,
-             ic_floor, alpha_min_g) -> FitResult:
+def _fit_one(amap, I_b, I_w, I_c, rho_b, rho_w, *, sd, thickness_rel_std, method, polish, polish_tol, mlp_model,
+             noise_rel, noise_abs, ic_floor, alpha_min_g, inscatter_rel_std) -> FitResult:
     inverter = table_inverter(amap)
     grid = inverter.grid
     mlp = None
@@ -216,16 +286,18 @@ def _fit_one(amap, I_b, I_w, I_c, rho_b, rho_w, *, method, polish, polish_tol, m
     solver = inverter.native_solver  # the whole fit in C (invert.c tm_fit); the numpy code below is its reference
     if solver is not None:
         options = native_options(amap, grid, polish=polish, polish_tol=polish_tol, noise_rel=noise_rel,
-                                 noise_abs=noise_abs, ic_floor=ic_floor, alpha_min_g=alpha_min_g)
+                                 noise_abs=noise_abs, ic_floor=ic_floor, alpha_min_g=alpha_min_g,
+                                 thickness_rel_std=thickness_rel_std, inscatter_rel_std=inscatter_rel_std)
         if mlp is None:
-            out = solver.fit(I_b, I_w, I_c, rho_b, rho_w, **options)
+            out = solver.fit(I_b, I_w, I_c, rho_b, rho_w, sd=sd, **options)
         else:  # the network guesses from the features C prepares; tm_fit_solve clamps its guess to the map's box
-            out = solver.fit_guessed(I_b, I_w, I_c, rho_b, rho_w, mlp.run, mlp.log_sigma_range, **options)
+            out = solver.fit_guessed(I_b, I_w, I_c, rho_b, rho_w, mlp.run, mlp.log_sigma_range, sd=sd, **options)
             out.pop("features")
         out.pop("steps")
         return FitResult(**out, method=method)
     p = _prepare(amap, grid, I_b, I_w, I_c, rho_b, rho_w, ic_floor)
-    step_var = polish_step_var(p.ib, p.iw, noise_rel, noise_abs, grid.mc_stderr, _polish_tol_std(polish_tol))
+    sd = _noise_model(p, noise_rel, noise_abs) if sd is None else sd
+    step_var = polish_step_var(p.ib, p.iw, noise_rel, noise_abs, grid.mc_stderr, _polish_tol_std(polish_tol), sd=sd)
     if mlp is None:
         alpha, g, residual, J = inverter.invert(p.ib, p.iw, p.sigma_t, p.rb, p.rw, polish_iterations=polish,
                                                 step_tol=polish_tol, step_var=step_var)
@@ -237,24 +309,33 @@ def _fit_one(amap, I_b, I_w, I_c, rho_b, rho_w, *, method, polish, polish_tol, m
             alpha0, g0 = np.where(broken, table_a, alpha0), np.where(broken, table_g, g0)
         alpha, g, residual, J = grid.solve_alpha_g(p.ib, p.iw, grid.sigma_cell(p.sigma_t), p.rb, p.rw, alpha0, g0,
                                                    iterations=max(polish, 0), step_tol=polish_tol, step_var=step_var)
-    sigma_t = p.sigma_t
+    sigma_t, inscatter_ds = p.sigma_t, None
     if grid.inscatter_grid is not None:  # the in-scattered light out of I_c (invert.c correct_inscatter)
         eligible = (p.flags & int(UNUSABLE | FitFlag.IC_BELOW_FLOOR | FitFlag.OUTSIDE_MAP)) == 0
-        a, s, gg = grid.correct_inscatter(alpha, sigma_t, g, J)
+        a, s, gg, ds = grid.correct_inscatter(alpha, sigma_t, g, J)
         alpha, sigma_t, g = np.where(eligible, a, alpha), np.where(eligible, s, sigma_t), np.where(eligible, gg, g)
+        inscatter_ds = np.where(eligible, ds, 0.0)
     return _finish(amap, grid, p.flags, p.usable, p.ib, p.iw, p.ic, p.rb, p.rw, alpha, sigma_t, g, residual,
-                   p.sigma_beer, method=method, noise_rel=noise_rel, noise_abs=noise_abs, alpha_min_g=alpha_min_g,
-                   J=J)
+                   p.sigma_beer, method=method, sd=sd, sigma_t_solved=p.sigma_t, inscatter_ds=inscatter_ds,
+                   inscatter_rel_std=inscatter_rel_std, thickness_rel_std=thickness_rel_std,
+                   alpha_min_g=alpha_min_g, J=J)
 
 
-def native_options(amap, grid, *, polish, polish_tol, noise_rel, noise_abs, ic_floor, alpha_min_g) -> dict:
+def _noise_model(p, noise_rel, noise_abs):
+    """(N, 3) stds of the sanitized I_b, I_w, I_c under σ_I = noise_rel·I + noise_abs."""
+    return np.column_stack([noise_rel * p.ib + noise_abs, noise_rel * p.iw + noise_abs, noise_rel * p.ic + noise_abs])
+
+
+def native_options(amap, grid, *, polish, polish_tol, noise_rel, noise_abs, ic_floor, alpha_min_g,
+                   thickness_rel_std=0.0, inscatter_rel_std=INSCATTER_REL_STD) -> dict:
     """The C kernel's options for one thickness (NativeSolver.fit / prepare): fit()'s parameters plus
     what the numpy path below takes from the map and its grid."""
     return dict(noise_rel=noise_rel, noise_abs=noise_abs, mc_stderr=grid.mc_stderr, ic_floor=ic_floor,
                 alpha_min_g=alpha_min_g, input_tolerance=_INPUT_TOLERANCE, ref_rho=amap.reference_rhos,
                 t_max=grid.transmittance_limits[0], t_valid=grid.transmittance_limits[1], iterations=polish,
                 step_tol=polish_tol, step_tol_std=_polish_tol_std(polish_tol),
-                underdetermined_std=(UNDERDETERMINED_ALPHA_STD, UNDERDETERMINED_G_STD))
+                underdetermined_std=(UNDERDETERMINED_ALPHA_STD, UNDERDETERMINED_G_STD),
+                thickness_rel_std=thickness_rel_std, inscatter_rel_std=inscatter_rel_std)
 
 
 @dataclass
@@ -303,10 +384,17 @@ def _underdetermined(std_a, std_g):
 
 
 def _finish(amap, grid, flags, usable, ib, iw, ic, rb, rw, alpha, sigma_t, g, residual, sigma_beer, *,
-            method, noise_rel, noise_abs, alpha_min_g, J=None) -> FitResult:
-    sigma_I = np.column_stack([noise_rel * ib + noise_abs, noise_rel * iw + noise_abs, noise_rel * ic + noise_abs])
-    sigma_I[:, :2] = np.hypot(sigma_I[:, :2], grid.mc_stderr)
-    tolerance = 3.0 * np.hypot(sigma_I[:, 0], sigma_I[:, 1]) + 1e-4
+            method, sd, sigma_t_solved, inscatter_ds, inscatter_rel_std, thickness_rel_std, alpha_min_g,
+            J=None) -> FitResult:
+    """Flags and stds at the solution. sd: (N, 3) the intensities' stds; sigma_t_solved: the σt
+    (α, g) were solved at (before the in-scattering correction inscatter_ds, None without one)."""
+    var_in = sd * sd
+    mc2 = grid.mc_stderr * grid.mc_stderr
+    tolerance = 3.0 * np.sqrt(var_in[:, 0] + mc2 + var_in[:, 1] + mc2) + 1e-4
+    # the map's own error at the solution (invert.c model_variance), else its median MC std-error
+    model = (grid.model_variance(alpha, grid.sigma_cell(sigma_t_solved), g) if grid.model_var is not None
+             else np.full((2, len(alpha)), mc2))
+    sigma_I = np.column_stack([np.sqrt(var_in[:, 0] + model[0]), np.sqrt(var_in[:, 1] + model[1]), sd[:, 2]])
     with np.errstate(invalid="ignore"):
         not_conv = ~(residual <= tolerance)
     flags |= np.where(usable & not_conv, int(FitFlag.NOT_CONVERGED), 0)
@@ -319,7 +407,9 @@ def _finish(amap, grid, flags, usable, ib, iw, ic, rb, rw, alpha, sigma_t, g, re
     sigma_t = np.maximum(sigma_t, 0.0)
     if J is None:  # lut/mlp hand over the Jacobian of their last forward evaluation
         J = grid.jacobian(np.nan_to_num(alpha), sigma_t, np.nan_to_num(g), rb, rw)
-    std_a, std_s, std_g = grid.propagate(J, sigma_I)
+    inscatter_var = None if inscatter_ds is None else (inscatter_rel_std * inscatter_ds) ** 2
+    std_a, std_s, std_g = grid.propagate(J, sigma_I, inscatter_var)
+    std_s = np.sqrt(std_s * std_s + (thickness_rel_std * sigma_t) ** 2)
     below = (flags & int(FitFlag.IC_BELOW_FLOOR)) != 0
     std_s = np.where(below, np.inf, std_s)
     g_undef = usable & ~(alpha >= alpha_min_g)
@@ -388,26 +478,20 @@ def _disagree(vals, stds):
 
 
 # ---------------------------------------------------------------------------------- paper method
-def _fit_paper(amaps, arrays, *, samples, epsilon, seed, noise_rel, noise_abs, ic_floor, alpha_min_g):
-    import warnings
+def _fit_paper(amaps, arrays, stds, thickness_rel, *, samples, epsilon, seed, noise_rel, noise_abs, ic_floor,
+               alpha_min_g, inscatter_rel_std):
+    from trimeter.inversion.paper import paper_medians
 
-    from trimeter.inversion.paper import paper_samples
-
-    pooled, singles = [], []
-    for i, (amap, (I_b, I_w, I_c, rho_b, rho_w)) in enumerate(zip(amaps, arrays)):
+    inputs, singles = [], []
+    for amap, (I_b, I_w, I_c, rho_b, rho_w) in zip(amaps, arrays):
         flags = _input_flags(I_b, I_w, I_c, rho_b, rho_w)
         usable = (flags & int(UNUSABLE)) == 0
-        s = paper_samples(amap, np.where(usable, I_b, np.nan), I_w, I_c, rho_b, rho_w,
-                          samples=samples, epsilon=epsilon, seed=seed + i)
-        pooled.append(s)
+        inputs.append((np.where(usable, I_b, np.nan), I_w, I_c, rho_b, rho_w))
         singles.append((amap, flags, usable, I_b, I_w, I_c, rho_b, rho_w))
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN bins: outside the hull, flagged below
-        pooled_median = np.nanmedian(np.concatenate(pooled, axis=1), axis=1)
-        own_medians = [np.nanmedian(p, axis=1) for p in pooled]
+    pooled_median, own_medians = paper_medians(amaps, inputs, samples=samples, epsilon=epsilon, seed=seed)
     results = []
     # Each thickness on its own median (the consistency check), the estimate on the pooled one.
-    for med, (amap, flags, usable, I_b, I_w, I_c, rho_b, rho_w) in zip(own_medians, singles):
+    for i, (med, (amap, flags, usable, I_b, I_w, I_c, rho_b, rho_w)) in enumerate(zip(own_medians, singles)):
         grid = _forward_grid(amap)
         ib, iw, ic = _sanitize(I_b, 0, 1, 0), _sanitize(I_w, 0, 1, 1), _sanitize(I_c, 0, 1, 1)
         ref = amap.reference_rhos
@@ -420,9 +504,12 @@ def _fit_paper(amaps, arrays, *, samples, epsilon, seed, noise_rel, noise_abs, i
         I_model = grid.intensities(np.nan_to_num(alpha), np.nan_to_num(sigma_t, nan=1.0), np.nan_to_num(g), rb, rw)
         residual = np.where(coef_in, np.hypot(I_model[0] - ib, I_model[1] - iw), np.inf)
         sigma_beer = beer_lambert_sigma_t(I_c, amap.thickness_mm, amap.n, amap.cover_slide_n)
-        r = _finish(amap, grid, flags, usable, ib, iw, ic, rb, rw, alpha, np.nan_to_num(sigma_t, nan=np.nan),
-                    g, residual, sigma_beer, method="paper", noise_rel=noise_rel, noise_abs=noise_abs,
-                    alpha_min_g=alpha_min_g)
+        sd = stds[i] if stds[i] is not None else np.column_stack(
+            [noise_rel * ib + noise_abs, noise_rel * iw + noise_abs, noise_rel * ic + noise_abs])
+        # the ε-median has no separate in-scattering correction to propagate: its map's I_c holds it
+        r = _finish(amap, grid, flags, usable, ib, iw, ic, rb, rw, alpha, sigma_t, g, residual, sigma_beer,
+                    method="paper", sd=sd, sigma_t_solved=sigma_t, inscatter_ds=None,
+                    inscatter_rel_std=inscatter_rel_std, thickness_rel_std=thickness_rel[i], alpha_min_g=alpha_min_g)
         for name in ("alpha", "sigma_t", "g", "alpha_std", "sigma_t_std", "g_std"):
             getattr(r, name)[outside] = np.nan
         results.append(r)

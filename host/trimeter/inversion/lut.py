@@ -22,13 +22,16 @@ from trimeter.inversion.table import MapTable
 
 
 class TableInverter:
-    def __init__(self, table: MapTable, inscatter=None):
-        """inscatter: the map's in-scattering table (AppearanceMap.inscatter), or None."""
+    def __init__(self, table: MapTable, inscatter=None, model_variance=None):
+        """inscatter: the map's in-scattering table (AppearanceMap.inscatter), or None; model_variance:
+        the map's own error at its nodes (api.map_model_variance), or None."""
         self.table = table
         self.table_grid = ForwardGrid.from_table(table)  # the table's own nodes: its guess slices
         # the polish model: the table's forward map between its nodes as everywhere (kernel.BETWEEN_NODES_*)
         self.grid = self.table_grid.between_nodes()
         self.grid.attach_inscatter(inscatter)
+        if model_variance is not None:
+            self.grid.attach_model_variance(model_variance[0], *model_variance[1])
         ns, ny, nx = table.inv_alpha_q.shape
         self._shape = (ns, ny, nx)
         v = np.stack([table.inverse_alpha, table.inverse_g], -1)  # (ns, ny, nx, 2)

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 LIBRARY = Path(__file__).with_name("libtrimeter_invert.so")
-ABI_VERSION = 12
+ABI_VERSION = 13
 
 _double_p = ctypes.POINTER(ctypes.c_double)
 
@@ -33,7 +33,9 @@ class _ForwardGridC(ctypes.Structure):
                 ("uniform_ds", ctypes.c_double),
                 # in-scattering into I_c on this grid's α and g nodes (ForwardGrid.inscatter_grid), or NULL
                 ("in_nt", ctypes.c_int32), ("inscatter_L", _double_p), ("in_inv_dt", ctypes.c_double),
-                ("in_tau_max", ctypes.c_double)]
+                ("in_tau_max", ctypes.c_double),
+                # the map's error variances of I_b, I_w on the grid's nodes (ForwardGrid.model_var), or NULL
+                ("model_var", _double_p)]
 
 
 class _InverseTableC(ctypes.Structure):
@@ -46,7 +48,7 @@ class _FitOptionsC(ctypes.Structure):
     _fields_ = [(name, ctypes.c_double) for name in (
         "noise_rel", "noise_abs", "mc_stderr", "ic_floor", "alpha_min_g", "input_tolerance", "ref_rho_b",
         "ref_rho_w", "t_max", "t_valid", "step_tol", "step_tol_std", "underdetermined_alpha_std",
-        "underdetermined_g_std")] + [
+        "underdetermined_g_std", "thickness_rel_std", "inscatter_rel_std")] + [
         ("iterations", ctypes.c_int32)]
 
 
@@ -83,19 +85,19 @@ def _load():
     lib.tm_solve_alpha_g.argtypes = [ctypes.POINTER(_ForwardGridC), ctypes.POINTER(_InverseTableC), size_t,
                                      vp, vp, vp, vp, vp, ctypes.c_int, ctypes.c_double, vp, vp, vp, vp, vp]
     lib.tm_propagate.restype = None
-    lib.tm_propagate.argtypes = [size_t, vp, vp, vp, vp, vp]
+    lib.tm_propagate.argtypes = [size_t, vp, vp, vp, vp, vp, vp]
     lib.tm_fit_scratch_size.restype = size_t
     lib.tm_fit_scratch_size.argtypes = [size_t]
     lib.tm_fit_prepare.restype = None
     lib.tm_fit_prepare.argtypes = [ctypes.POINTER(_ForwardGridC), ctypes.POINTER(_FitOptionsC), size_t,
-                                   vp, vp, vp, vp, vp, vp, vp, ctypes.c_double,
+                                   vp, vp, vp, vp, vp, vp, vp, vp, ctypes.c_double,
                                    ctypes.c_double, vp]
     lib.tm_fit_solve.restype = ctypes.c_longlong
     lib.tm_fit_solve.argtypes = [ctypes.POINTER(_ForwardGridC), ctypes.POINTER(_InverseTableC),
-                                 ctypes.POINTER(_FitOptionsC), size_t, vp, vp, vp, vp, vp]
+                                 ctypes.POINTER(_FitOptionsC), size_t, vp, vp, vp, vp]
     lib.tm_fit.restype = ctypes.c_longlong
     lib.tm_fit.argtypes = [ctypes.POINTER(_ForwardGridC), ctypes.POINTER(_InverseTableC),
-                           ctypes.POINTER(_FitOptionsC), size_t, vp, vp, vp, vp, vp, vp, vp,
+                           ctypes.POINTER(_FitOptionsC), size_t, vp, vp, vp, vp, vp, vp, vp, vp,
                            vp]
     from trimeter.inversion.flags import FitFlag
 
@@ -174,6 +176,9 @@ class NativeSolver:
             self._grid.in_nt = keep["inscatter_L"].shape[1]
             self._grid.inscatter_L = _ptr(keep["inscatter_L"])
             self._grid.in_inv_dt, self._grid.in_tau_max = inv_dt, tau_max
+        if grid.model_var is not None:
+            keep["model_var"] = np.ascontiguousarray(grid.model_var, dtype=np.float64)
+            self._grid.model_var = _ptr(keep["model_var"])
         self._table = None
         if inverse_cells is not None:
             keep["cells"] = np.ascontiguousarray(inverse_cells, dtype=np.float64)
@@ -224,42 +229,46 @@ class NativeSolver:
             ref = self._fit_options[key] = ctypes.byref(_fit_options(**options))
         return ref
 
-    def fit(self, I_b, I_w, I_c, rho_b, rho_w, *, alpha0=None, g0=None, **options):
+    def fit(self, I_b, I_w, I_c, rho_b, rho_w, *, sd=None, alpha0=None, g0=None, **options):
         """One thickness's whole fit in one call (invert.c `tm_fit`, api._fit_one's reference path
         operation for operation): a dict of the FitResult columns and `steps`, the Newton steps taken.
-        options: trimeter.inversion.api.native_options(…)."""
+        sd: the intensities' stds (n, 3), or None for the noise model of `options`
+        (trimeter.inversion.api.native_options(…))."""
         n = len(I_b)
         args = [_f64(v, n) for v in (I_b, I_w, I_c, rho_b, rho_w)]
+        sd = _stds(sd, n)
         guess = [None, None] if alpha0 is None else [_f64(alpha0, n), _f64(g0, n)]
         if alpha0 is None and self._table is None:
             raise ValueError("this solver has no inverse table: pass alpha0 and g0")
         block, out = _fit_outputs(n)
         steps = _LIB.tm_fit(self._grid_ref, self._table_ref if alpha0 is None else None, self._options(options), n,
-                            *(_addr(a) for a in args), *(None if v is None else _addr(v) for v in guess),
-                            _addr(block))
+                            *(_addr(a) for a in args), None if sd is None else _addr(sd),
+                            *(None if v is None else _addr(v) for v in guess), _addr(block))
         _check(steps)
         out["steps"] = int(steps)
         return out
 
-    def fit_guessed(self, I_b, I_w, I_c, rho_b, rho_w, guess, log_sigma_range, **options):
+    def fit_guessed(self, I_b, I_w, I_c, rho_b, rho_w, guess, log_sigma_range, *, sd=None, **options):
         """fit() with the initial (α, g) from guess(features) → (n, 2), e.g. the MLP: the bins are
         prepared once (invert.c `tm_fit_prepare`, which also writes the features, mlp.features with
         ln σt clamped to log_sigma_range), then solved from that guess (`tm_fit_solve`; where the
         guess is not finite, from the table's)."""
         n = len(I_b)
         args = [_f64(v, n) for v in (I_b, I_w, I_c, rho_b, rho_w)]
+        sd = _stds(sd, n)
         block, out = _fit_outputs(n)
         scratch = np.empty(_LIB.tm_fit_scratch_size(n), dtype=np.uint8)
         features = np.empty((n, 5), dtype=np.float32)
         opts = self._options(options)
-        _LIB.tm_fit_prepare(self._grid_ref, opts, n, *(_addr(a) for a in args), _addr(scratch), _addr(block),
+        _LIB.tm_fit_prepare(self._grid_ref, opts, n, *(_addr(a) for a in args), None if sd is None else _addr(sd),
+                            _addr(scratch), _addr(block),
                             *map(float, log_sigma_range), _addr(features))
         guessed = np.asarray(guess(features))
         if guessed.shape != (n, 2):
             raise ValueError(f"the guess must be (n, 2) = ({n}, 2), got {guessed.shape}")
         alpha0, g0 = _f64(guessed[:, 0], n), _f64(guessed[:, 1], n)
-        steps = _LIB.tm_fit_solve(self._grid_ref, self._table_ref, opts, n, _addr(args[2]), _addr(alpha0),
-                                  _addr(g0), _addr(scratch), _addr(block))
+        steps = _LIB.tm_fit_solve(self._grid_ref, self._table_ref, opts, n, _addr(alpha0), _addr(g0), _addr(scratch),
+                                  _addr(block))
         _check(steps)
         out["steps"] = int(steps)
         out["features"] = features
@@ -276,9 +285,21 @@ def _fit_outputs(n: int):
 
 
 def _fit_options(*, noise_rel, noise_abs, mc_stderr, ic_floor, alpha_min_g, input_tolerance, ref_rho, t_max, t_valid,
-                 iterations, step_tol, step_tol_std, underdetermined_std) -> _FitOptionsC:
+                 iterations, step_tol, step_tol_std, underdetermined_std, thickness_rel_std,
+                 inscatter_rel_std) -> _FitOptionsC:
     return _FitOptionsC(noise_rel, noise_abs, mc_stderr, ic_floor, alpha_min_g, input_tolerance, *ref_rho, t_max,
-                        t_valid, step_tol, step_tol_std, *underdetermined_std, iterations)
+                        t_valid, step_tol, step_tol_std, *underdetermined_std, thickness_rel_std, inscatter_rel_std,
+                        iterations)
+
+
+def _stds(sd, n):
+    """The intensities' stds as the C side reads them (n × 3, contiguous), or None."""
+    if sd is None:
+        return None
+    sd = np.ascontiguousarray(sd, dtype=np.float64)
+    if sd.shape != (n, 3):
+        raise ValueError(f"the intensities' stds must be (n, 3) = ({n}, 3), got {sd.shape}")
+    return sd
 
 
 def _uniform_step(axis: np.ndarray) -> float:
@@ -296,11 +317,12 @@ def _check(rc: int) -> None:
         raise ValueError("native kernel refused the grid (fewer than 2 nodes on an axis, or table/grid mismatch)")
 
 
-def propagate(J: np.ndarray, sigma_I: np.ndarray):
+def propagate(J: np.ndarray, sigma_I: np.ndarray, sigma_t_var: np.ndarray | None = None):
     """(std α, std σt, std g) — ForwardGrid.propagate in C."""
     n = len(J)
     J = np.ascontiguousarray(J, dtype=np.float64)
     sigma_I = np.ascontiguousarray(sigma_I, dtype=np.float64)
+    extra = None if sigma_t_var is None else _f64(sigma_t_var, n)
     out = [np.empty(n) for _ in range(3)]
-    _LIB.tm_propagate(n, _addr(J), _addr(sigma_I), *(_addr(o) for o in out))
+    _LIB.tm_propagate(n, _addr(J), _addr(sigma_I), None if extra is None else _addr(extra), *(_addr(o) for o in out))
     return tuple(out)

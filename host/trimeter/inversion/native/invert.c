@@ -25,7 +25,7 @@
 #include <stdint.h>
 #include <stdlib.h>
 
-#define TM_ABI_VERSION 12
+#define TM_ABI_VERSION 13
 
 typedef struct {
     int32_t na, ns, ng;
@@ -41,6 +41,9 @@ typedef struct {
     int32_t in_nt;
     const double *inscatter_L; /* [na][in_nt][ng] */
     double in_inv_dt, in_tau_max;
+    /* The map's own error (ForwardGrid.model_var): variances of I_b, I_w on this grid's nodes,
+     * [na][ns][ng][2], or NULL (then the scalar mc_stderr of the options stands in for it). */
+    const double *model_var;
 } tm_forward_grid;
 
 typedef struct {
@@ -606,12 +609,13 @@ static double final_residual2_and_jacobian(const tm_forward_grid *f, sigma_cell_
 }
 
 /* First-order standard deviations of (α, σt, g) from independent intensity noise (variances var_b,
- * var_w of I_b, I_w; std sd_c of I_c) through one bin's J, using its block structure
+ * var_w of I_b, I_w; std sd_c of I_c) and a further variance var_s_extra of σt that (α, g) follow
+ * (the in-scattering correction's) through one bin's J, using its block structure
  * (ForwardGrid.propagate). Infinite where the (α, g) block is singular. */
-static inline void propagate_one(const double *Ji, double var_b, double var_w, double sd_c, double *std_a,
-                                 double *std_s, double *std_g) {
-    double ds = sd_c / Ji[7]; /* σt's std, signed */
-    double var_s = ds * ds;
+static inline void propagate_one(const double *Ji, double var_b, double var_w, double sd_c, double var_s_extra,
+                                 double *std_a, double *std_s, double *std_g) {
+    double ds = sd_c / Ji[7]; /* σt's std from I_c, signed */
+    double var_s = ds * ds + var_s_extra;
     double a = Ji[0], b = Ji[2], c = Ji[3], d = Ji[5];
     double inv_det = 1.0 / (a * d - b * c);
     /* inv = [[d, -b], [-c, a]] / det */
@@ -624,7 +628,7 @@ static inline void propagate_one(const double *Ji, double var_b, double var_w, d
     double sa = sqrt(fabs(va)), sg = sqrt(fabs(vg));
     *std_a = isnan(sa) ? INFINITY : sa;
     *std_g = isnan(sg) ? INFINITY : sg;
-    *std_s = fabs(ds);
+    *std_s = sqrt(var_s);
 }
 
 static int grid_ok(const tm_forward_grid *f, const tm_inverse_table *table) {
@@ -638,13 +642,14 @@ static int grid_ok(const tm_forward_grid *f, const tm_inverse_table *table) {
  * uses the same block for its cells, evaluations and indices. */
 typedef struct {
     double *ib, *iw, *rb, *rw, *step_var;
+    double *var_b, *var_w, *sd_c; /* the intensities' noise: given per bin, or the noise model's */
     sigma_cell_t *cells;
     final_eval_t *evals;
     uint32_t *active;
 } fit_scratch_t;
 
 size_t tm_fit_scratch_size(size_t n) {
-    return (n ? n : 1) * (5 * sizeof(double) + sizeof(sigma_cell_t) + sizeof(final_eval_t) + sizeof(uint32_t));
+    return (n ? n : 1) * (8 * sizeof(double) + sizeof(sigma_cell_t) + sizeof(final_eval_t) + sizeof(uint32_t));
 }
 
 static fit_scratch_t carve_scratch(void *mem, size_t n) {
@@ -657,7 +662,10 @@ static fit_scratch_t carve_scratch(void *mem, size_t n) {
     sc.rb = d + 2 * n;
     sc.rw = d + 3 * n;
     sc.step_var = d + 4 * n;
-    sc.cells = (sigma_cell_t *)(d + 5 * n);
+    sc.var_b = d + 5 * n;
+    sc.var_w = d + 6 * n;
+    sc.sd_c = d + 7 * n;
+    sc.cells = (sigma_cell_t *)(d + 8 * n);
     sc.evals = (final_eval_t *)(sc.cells + n);
     sc.active = (uint32_t *)(sc.evals + n);
     return sc;
@@ -693,11 +701,14 @@ int tm_solve_alpha_g(const tm_forward_grid *f, const tm_inverse_table *table, si
     return 0;
 }
 
-/* First-order standard deviations for n bins (ForwardGrid.propagate); sigma_I is n × 3. */
-void tm_propagate(size_t n, const double *J, const double *sigma_I, double *std_a, double *std_s, double *std_g) {
+/* First-order standard deviations for n bins (ForwardGrid.propagate); sigma_I is n × 3, sigma_t_var
+ * (n, or NULL) a further variance of σt that (α, g) follow. */
+void tm_propagate(size_t n, const double *J, const double *sigma_I, const double *sigma_t_var, double *std_a,
+                  double *std_s, double *std_g) {
     for (size_t i = 0; i < n; i++) {
         const double *s = sigma_I + i * 3u;
-        propagate_one(J + i * 9u, s[0] * s[0], s[1] * s[1], s[2], &std_a[i], &std_s[i], &std_g[i]);
+        propagate_one(J + i * 9u, s[0] * s[0], s[1] * s[1], s[2], sigma_t_var ? sigma_t_var[i] : 0.0, &std_a[i],
+                      &std_s[i], &std_g[i]);
     }
 }
 
@@ -742,6 +753,8 @@ typedef struct {
     double step_tol;
     double step_tol_std;         /* κ: a polish step below κ of the bin's noise std also counts as converged */
     double underdetermined_alpha_std, underdetermined_g_std; /* FLAG_UNDERDETERMINED above these stds */
+    double thickness_rel_std;    /* the sample thickness's relative std: σt's (α and g do not depend on it) */
+    double inscatter_rel_std;    /* the in-scattering correction's relative std */
     int32_t iterations;
 } tm_fit_options;
 
@@ -811,7 +824,7 @@ static int64_t prepare_bin(const tm_forward_grid *f, const tm_fit_options *o, si
  * MLP's input (trimeter.inversion.mlp.features; ln σt clamped to [log_lo, log_hi]), so that the
  * network's guess can go to tm_fit_solve without preparing the bins twice. */
 void tm_fit_prepare(const tm_forward_grid *f, const tm_fit_options *o, size_t n, const double *I_b, const double *I_w,
-                    const double *I_c, const double *rho_b, const double *rho_w, void *scratch,
+                    const double *I_c, const double *rho_b, const double *rho_w, const double *sd_in, void *scratch,
                     double *outputs, double log_lo, double log_hi, float *features) {
     fit_scratch_t sc = carve_scratch(scratch, n);
     const tm_fit_outputs o_ = outputs_in(outputs, n), *out = &o_;
@@ -823,8 +836,19 @@ void tm_fit_prepare(const tm_forward_grid *f, const tm_fit_options *o, size_t n,
                                     &sc.rb[i], &sc.rw[i], &s, &beer);
         out->sigma_t_beer[i] = beer;
         out->sigma_t[i] = s;
-        double sb = o->noise_rel * sc.ib[i] + o->noise_abs, sw = o->noise_rel * sc.iw[i] + o->noise_abs;
-        sc.step_var[i] = kappa2 * 0.5 * (sb * sb + sw * sw + 2.0 * mc2); /* (κ σ)², σ² the mean of I_b's and I_w's */
+        if (sd_in) { /* the intensities' own stds (n × 3; api.fit has put the noise model where they were missing) */
+            const double *sd = sd_in + i * 3u;
+            sc.var_b[i] = sd[0] * sd[0];
+            sc.var_w[i] = sd[1] * sd[1];
+            sc.sd_c[i] = sd[2];
+        } else {
+            double sb = o->noise_rel * sc.ib[i] + o->noise_abs, sw = o->noise_rel * sc.iw[i] + o->noise_abs;
+            sc.var_b[i] = sb * sb;
+            sc.var_w[i] = sw * sw;
+            sc.sd_c[i] = o->noise_rel * sanitize(I_c[i], 1.0) + o->noise_abs;
+        }
+        /* (κ σ)², σ² the mean of I_b's and I_w's */
+        sc.step_var[i] = kappa2 * 0.5 * (sc.var_b[i] + sc.var_w[i] + 2.0 * mc2);
         double ls = log(s);
         sc.cells[i] = sigma_cell(f, ls, s);
         if (features) {
@@ -847,23 +871,51 @@ void tm_fit_prepare(const tm_forward_grid *f, const tm_fit_options *o, size_t n,
 #define INSCATTER_ONCE 1e-3
 double tm_inscatter_once(void) { return INSCATTER_ONCE; } /* Python refuses the library unless it is native's */
 
-static void correct_inscatter(const tm_forward_grid *f, const sigma_cell_t *c, const double *Ji, double *alpha,
-                              double *sigma_t, double *g) {
+static double correct_inscatter(const tm_forward_grid *f, const sigma_cell_t *c, const double *Ji, double *alpha,
+                                double *sigma_t, double *g) {
     double wa, wg, s0 = *sigma_t;
     int ia = c->ia < 0 ? find_cell(f->alpha, f->inv_da, f->na, *alpha, &wa)
                        : walk_from(f->alpha, f->inv_da, f->na, *alpha, c->ia, &wa);
     int ig = c->ig < 0 ? find_cell(f->g, f->inv_dg, f->ng, *g, &wg) : walk_from(f->g, f->inv_dg, f->ng, *g, c->ig, &wg);
     double L = inscatter_log1p(f, ia, wa, s0, ig, wg);
-    if (!(L > 0.0)) return; /* nothing scattered in */
+    if (!(L > 0.0)) return 0.0; /* nothing scattered in */
     double s = s0 + L / f->thickness_mm;
     /* L again at the moved σt: it changes σt by ~L·dL/dτ, below 1e-6 of σt where L ≤ INSCATTER_ONCE */
     if (L > INSCATTER_ONCE) s = s0 + inscatter_log1p(f, ia, wa, s, ig, wg) / f->thickness_mm;
     double ds = s - s0;
+    if (!(ds > 0.0)) return 0.0;
     /* the residual the σt move alone would leave in (I_b, I_w), taken out by one step in (α, g) */
     lm_step_t st = lm_step(Ji[0], Ji[2], Ji[3], Ji[5], Ji[1] * ds, Ji[4] * ds);
     *alpha = clampd(*alpha + st.step_a, f->alpha_lo, f->alpha_hi);
     *g = clampd(*g + st.step_g, f->g_lo, f->g_hi);
     *sigma_t = s;
+    return ds;
+}
+
+/* The map's error variances of I_b, I_w at (α, the bin's σt cell, g): trilinear on model_var's nodes,
+ * along g, then σt, then α (ForwardGrid.model_variance). */
+static void model_variance(const tm_forward_grid *f, const sigma_cell_t *c, double alpha, double g, double *var_b,
+                           double *var_w) {
+    double wa, wg, ws = c->ws;
+    int ia = find_cell(f->alpha, f->inv_da, f->na, alpha, &wa);
+    int ig = find_cell(f->g, f->inv_dg, f->ng, g, &wg);
+    int is = c->is;
+    double out[2];
+    for (int k = 0; k < 2; k++) {
+        double along_s[2];
+        for (int da = 0; da < 2; da++) {
+            double along_g[2];
+            for (int ds = 0; ds < 2; ds++) {
+                const double *v = f->model_var + ((((size_t)(ia + da) * (size_t)f->ns + (size_t)(is + ds)) *
+                                                   (size_t)f->ng + (size_t)ig) * 2u + (size_t)k);
+                along_g[ds] = v[0] + (v[2] - v[0]) * wg;
+            }
+            along_s[da] = along_g[0] + (along_g[1] - along_g[0]) * ws;
+        }
+        out[k] = along_s[0] + (along_s[1] - along_s[0]) * wa;
+    }
+    *var_b = out[0];
+    *var_w = out[1];
 }
 
 /* The second half: the initial (α, g) from alpha0/g0 (the MLP's) or, where those are NULL or not
@@ -872,7 +924,7 @@ static void correct_inscatter(const tm_forward_grid *f, const sigma_cell_t *c, c
  * and NaN for unusable bins. Returns the number of Newton steps taken (≥ 0), -1 on a malformed grid
  * or a missing guess. */
 long long tm_fit_solve(const tm_forward_grid *f, const tm_inverse_table *table, const tm_fit_options *o, size_t n,
-                       const double *I_c, const double *alpha0, const double *g0, void *scratch,
+                       const double *alpha0, const double *g0, void *scratch,
                        double *outputs) {
     if (!grid_ok(f, table) || (!alpha0 && !table) || (alpha0 && !g0) || n > UINT32_MAX) return -1;
     fit_scratch_t sc = carve_scratch(scratch, n);
@@ -901,13 +953,12 @@ long long tm_fit_solve(const tm_forward_grid *f, const tm_inverse_table *table, 
         int usable = !(fl & FLAG_UNUSABLE);
         double residual2 = final_residual2_and_jacobian(f, &cells[i], &sc.evals[i], alpha[i], g[i], ib[i], iw[i], rb[i],
                                                         rw[i], Ji);
+        double ds_in = 0.0; /* the in-scattering correction of σt */
         if (f->inscatter_L && !(fl & (FLAG_UNUSABLE | FLAG_IC_BELOW_FLOOR | FLAG_OUTSIDE_MAP)))
-            correct_inscatter(f, &cells[i], Ji, &alpha[i], &sigma_t[i], &g[i]);
-        double ic = sanitize(I_c[i], 1.0);
+            ds_in = correct_inscatter(f, &cells[i], Ji, &alpha[i], &sigma_t[i], &g[i]);
         /* variances, not stds: only their sums are needed (sqrt(x² + y²), not hypot: these are small
          * positive numbers, nothing to guard, and hypot is slower) */
-        double sb = o->noise_rel * ib[i] + o->noise_abs, sw = o->noise_rel * iw[i] + o->noise_abs;
-        double var_b = sb * sb + mc2, var_w = sw * sw + mc2;
+        double var_b = sc.var_b[i] + mc2, var_w = sc.var_w[i] + mc2;
         double tolerance = 3.0 * sqrt(var_b + var_w) + 1e-4;
         int not_conv = !(residual2 <= tolerance * tolerance); /* |residual| ≤ tolerance, squared */
         int at_edge = (g[i] <= f->g_lo + 1e-9 && g_lo_is_edge) || (g[i] >= f->g_hi - 1e-9 && g_hi_is_edge);
@@ -915,8 +966,13 @@ long long tm_fit_solve(const tm_forward_grid *f, const tm_inverse_table *table, 
         if (usable && not_conv && at_edge) fl |= FLAG_OUTSIDE_MAP;
         double a = isfinite(alpha[i]) ? clampd(alpha[i], 0.0, 1.0) : NAN;
         double gg = isfinite(g[i]) ? clampd(g[i], -1.0, 1.0) : NAN;
-        double sa, ss, sg;
-        propagate_one(Ji, var_b, var_w, o->noise_rel * ic + o->noise_abs, &sa, &ss, &sg);
+        /* the map's own error at the solution, in place of its median MC std-error where the grid has it */
+        double model_b = mc2, model_w = mc2;
+        if (f->model_var) model_variance(f, &cells[i], alpha[i], g[i], &model_b, &model_w);
+        double sa, ss, sg, ds_rel = o->inscatter_rel_std * ds_in;
+        propagate_one(Ji, sc.var_b[i] + model_b, sc.var_w[i] + model_w, sc.sd_c[i], ds_rel * ds_rel, &sa, &ss, &sg);
+        double thick = o->thickness_rel_std * sigma_t[i];
+        ss = sqrt(ss * ss + thick * thick);
         if (fl & FLAG_IC_BELOW_FLOOR) ss = INFINITY;
         if (usable && !(a >= o->alpha_min_g)) {
             fl |= FLAG_G_UNDEFINED;
@@ -940,12 +996,12 @@ long long tm_fit_solve(const tm_forward_grid *f, const tm_inverse_table *table, 
 /* Both halves with the table's guess (or alpha0/g0): -1 on a malformed grid, -2 when out of memory. */
 long long tm_fit(const tm_forward_grid *f, const tm_inverse_table *table, const tm_fit_options *o, size_t n,
                  const double *I_b, const double *I_w, const double *I_c, const double *rho_b, const double *rho_w,
-                 const double *alpha0, const double *g0, double *outputs) {
+                 const double *sd_in, const double *alpha0, const double *g0, double *outputs) {
     if (!grid_ok(f, table) || (!alpha0 && !table) || (alpha0 && !g0)) return -1;
     void *scratch = n > UINT32_MAX ? NULL : malloc(tm_fit_scratch_size(n));
     if (!scratch) return -2;
-    tm_fit_prepare(f, o, n, I_b, I_w, I_c, rho_b, rho_w, scratch, outputs, 0.0, 0.0, NULL);
-    long long steps = tm_fit_solve(f, table, o, n, I_c, alpha0, g0, scratch, outputs);
+    tm_fit_prepare(f, o, n, I_b, I_w, I_c, rho_b, rho_w, sd_in, scratch, outputs, 0.0, 0.0, NULL);
+    long long steps = tm_fit_solve(f, table, o, n, alpha0, g0, scratch, outputs);
     free(scratch);
     return steps;
 }

@@ -1,0 +1,223 @@
+"""`trimeter bench uncertainty`: does the reported ±1σ cover the truth 68 % of the time (±2σ: 95 %)?
+
+Held-out materials (maps/heldout, as `bench fit` loads them: rendered off-grid, never map nodes), each
+drawn several times with relative Gaussian noise of known size on I_b, I_w, I_c, fitted by `lut`
+(fit()'s defaults) per device map and on both thicknesses together. Two ways to fit each draw:
+- given: the noise the draw got is handed to fit() as I_b_std, I_w_std, I_c_std (with the
+  held-out renders' own MC std-error in quadrature on I_b, I_w: it is noise of known size too);
+- fixed: fit()'s fixed noise model alone (σ_I = 0.005·I + 2e-4), whatever the noise was.
+Per row: over the bins that carry no flag, the fraction whose truth lies within ±1σ and ±2σ of the
+estimate, for α, σt and g (goal: 68 % ± 5 and 95 % ± 3); flagged bins counted by flag. A thickness
+case draws each sample's real thickness off the map's by --thickness-rel-std and gives that std to
+fit() (σt's truth is then σt·ℓ/ℓ': a slab's intensities depend on σt·ℓ, α and g only). And the
+map's own error: the noise-free fit's |error| over the σ fit() reports at the lowest noise level
+(median and share above 1) — where that is ≳ 1, the map's error, not the noise, sets the coverage.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from trimeter.atomic import atomic_write
+from trimeter.errors import InputError
+from trimeter.inversion.flags import FitFlag
+
+PARAMS = ("alpha", "sigma_t", "g")
+GOAL_1, GOAL_2 = (0.68, 0.05), (0.95, 0.03)  # coverage goal ± tolerance at 1σ and 2σ
+
+
+def register(bench_subparsers) -> None:
+    p = bench_subparsers.add_parser("uncertainty", help="coverage of the reported ±1σ/±2σ on held-out materials",
+                                    description=__doc__.split("\n\n")[0])
+    p.add_argument("--map", dest="maps", action="append",
+                   help="map(s) (default: the shipped device maps with a held-out set)")
+    p.add_argument("--noise", default="0.002,0.005,0.01", help="relative noise levels, comma-separated")
+    p.add_argument("--draws", type=int, default=4, help="noise draws per held-out material (default 4)")
+    p.add_argument("--thickness-rel-std", type=float, default=0.02,
+                   help="relative std of the sample's thickness in the thickness case (default 0.02; 0: no case)")
+    p.add_argument("--modes", default="given,fixed", help="given (stds handed to fit), fixed (fit's noise model)")
+    p.add_argument("--out", type=Path, default=Path("out/bench-uncertainty"))
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(func=run)
+
+
+def coverage(estimate, std, truth, mask) -> tuple[float, float, int]:
+    """(share within ±1σ, share within ±2σ, bins scored) over `mask` where the truth is finite. A bin
+    with a NaN estimate or std counts as not covered: the fit said nothing usable there."""
+    scored = mask & np.isfinite(truth)
+    n = int(scored.sum())
+    if n == 0:
+        return float("nan"), float("nan"), 0
+    with np.errstate(invalid="ignore", divide="ignore"):
+        z = np.abs(estimate[scored] - truth[scored]) / std[scored]
+    z = np.where(np.isfinite(z) | np.isinf(std[scored]), z, np.inf)  # NaN → not covered; an infinite std covers
+    return float(np.mean(z <= 1.0)), float(np.mean(z <= 2.0)), n
+
+
+def flag_counts(flags) -> dict[str, int]:
+    flags = np.asarray(flags, dtype=np.int64)
+    return {f.name: int(np.count_nonzero(flags & int(f))) for f in FitFlag if f and np.any(flags & int(f))}
+
+
+def goal_met(c1: float, c2: float) -> bool:
+    return abs(c1 - GOAL_1[0]) <= GOAL_1[1] and abs(c2 - GOAL_2[0]) <= GOAL_2[1]
+
+
+def _maps(specs):
+    from trimeter.bench.fit import HELDOUT_DIR
+    from trimeter.maps.appearance import AppearanceMap, find_map, shipped_maps
+
+    if specs:
+        return [AppearanceMap.load(find_map(s)) for s in specs]
+    found = [AppearanceMap.load(p) for p in shipped_maps() if (HELDOUT_DIR / f"{p.stem}.held").is_file()]
+    device = [m for m in found if m.recipe.get("geometry") == "device"]
+    if not device:
+        raise InputError("no shipped device map with a held-out set (maps/heldout/*.held); give --map")
+    return device
+
+
+class Case:
+    """One map's held-out materials, tiled `draws` times: truth and noise-free intensities."""
+
+    def __init__(self, amap, draws: int):
+        from trimeter.bench.fit import heldout_collimated, heldout_for, heldout_intensities
+
+        _, _, h = heldout_for(amap)
+        idx = np.tile(np.arange(len(h["alpha"])), draws)
+        self.amap = amap
+        self.truth = {k: h[k][idx] for k in PARAMS}
+        I_b, I_w = heldout_intensities(h, *amap.reference_rhos)
+        self.I = (I_b[idx], I_w[idx], heldout_collimated(amap, h)[idx])
+        self.render_std = (h["std_b"][idx], h["std_w"][idx], np.zeros(len(idx)))
+
+    def draw(self, level: float, rng):
+        """Noisy intensities at relative noise `level` and the stds of the noise they carry."""
+        noisy = tuple(x * (1.0 + level * rng.standard_normal(x.shape)) for x in self.I)
+        stds = tuple(np.hypot(level * x, r) for x, r in zip(self.I, self.render_std))
+        return noisy, stds
+
+
+def _fit(cases, noisy, stds, mode, thickness_std=None):
+    import trimeter
+
+    amaps = [c.amap for c in cases]
+    I = [np.stack([n[i] for n in noisy]) for i in range(3)]
+    kw = {}
+    if mode == "given":
+        kw = dict(I_b_std=np.stack([s[0] for s in stds]), I_w_std=np.stack([s[1] for s in stds]),
+                  I_c_std=np.stack([s[2] for s in stds]))
+        if thickness_std is not None:
+            kw["thickness_std_mm"] = thickness_std
+    maps = amaps if len(amaps) > 1 else amaps[0]
+    if len(amaps) == 1:
+        I = [x[0] for x in I]
+        kw = {k: (v[0] if isinstance(v, np.ndarray) else v) for k, v in kw.items()}
+    return trimeter.fit(maps, *I, method="lut", **kw)
+
+
+def _row(label, level, mode, result, truth):
+    clean = result.flags == 0
+    row = {"case": label, "noise": level, "mode": mode, "bins": int(len(clean)), "unflagged": int(clean.sum()),
+           "flags": flag_counts(result.flags)}
+    for p in PARAMS:
+        c1, c2, n = coverage(getattr(result, p), getattr(result, f"{p}_std"), truth[p], clean)
+        row[p] = {"within_1sigma": c1, "within_2sigma": c2, "scored": n, "goal_met": goal_met(c1, c2)}
+    return row
+
+
+def run(args) -> int:
+    from trimeter.inversion import native
+
+    try:
+        levels = [float(x) for x in args.noise.split(",") if x.strip()]
+    except ValueError:
+        raise InputError(f"--noise: {args.noise!r} is not a comma-separated list of numbers") from None
+    if not levels or any(not (0 < x < 0.5) for x in levels):
+        raise InputError("--noise: levels must be in (0, 0.5)")
+    modes = [m.strip() for m in args.modes.split(",") if m.strip()]
+    if not modes or any(m not in ("given", "fixed") for m in modes):
+        raise InputError(f"--modes: {args.modes!r}: choose from given, fixed")
+    if args.draws < 1:
+        raise InputError("--draws must be ≥ 1")
+    if not (0 <= args.thickness_rel_std < 0.5):
+        raise InputError("--thickness-rel-std must be in [0, 0.5)")
+    print(f"inversion kernel: {native.status()}")
+    cases = [Case(m, args.draws) for m in _maps(args.maps)]
+    groups = [(c.amap.name, [c]) for c in cases]
+    if len(cases) == 2 and all(np.array_equal(cases[0].truth[k], cases[1].truth[k]) for k in PARAMS):
+        groups.append(("both thicknesses", cases))
+    rng = np.random.default_rng(args.seed)
+    rows, bias = [], []
+    for label, group in groups:
+        truth = group[0].truth
+        clean = _fit(group, [c.I for c in group], [c.render_std for c in group], "fixed")
+        for level in levels:
+            draws = [c.draw(level, rng) for c in group]
+            noisy, stds = [d[0] for d in draws], [d[1] for d in draws]
+            for mode in modes:
+                result = _fit(group, noisy, stds, mode)
+                rows.append(_row(label, level, mode, result, truth))
+                if level == min(levels):
+                    bias.append(_map_error(label, mode, clean, result, truth))
+        if args.thickness_rel_std > 0:
+            level = levels[len(levels) // 2]
+            draws = [c.draw(level, rng) for c in group]
+            noisy, stds = [d[0] for d in draws], [d[1] for d in draws]
+            # each sample's real thickness ℓ' off the map's: the intensities are those of σt·ℓ'/ℓ at ℓ
+            ratio = 1.0 + args.thickness_rel_std * rng.standard_normal(len(truth["sigma_t"]))
+            moved = dict(truth, sigma_t=truth["sigma_t"] / ratio)
+            for mode in modes:
+                thickness_std = [args.thickness_rel_std * c.amap.thickness_mm for c in group]
+                result = _fit(group, noisy, stds, mode, thickness_std if len(group) > 1 else thickness_std[0])
+                rows.append(_row(f"{label}, ℓ ±{args.thickness_rel_std:.0%}", level, mode, result, moved))
+    _print(rows, bias)
+    args.out.mkdir(parents=True, exist_ok=True)
+    path = args.out / "results.json"
+    atomic_write(path, json.dumps({"kernel": native.status(), "draws": args.draws, "rows": rows, "map_error": bias},
+                                  indent=1, default=float))
+    print(f"\nall figures: {path}")
+    return 0
+
+
+def _map_error(label, mode, clean, noisy_result, truth) -> dict:
+    """The noise-free fit's error over the σ reported at the lowest noise level, on unflagged bins."""
+    out = {"case": label, "mode": mode}
+    ok = (clean.flags == 0) & (noisy_result.flags == 0)
+    for p in PARAMS:
+        with np.errstate(invalid="ignore", divide="ignore"):
+            r = np.abs(getattr(clean, p) - truth[p]) / getattr(noisy_result, f"{p}_std")
+        r = r[ok & np.isfinite(r)]
+        out[p] = {"median": float(np.median(r)) if len(r) else float("nan"),
+                  "share_above_1": float(np.mean(r > 1)) if len(r) else float("nan")}
+    return out
+
+
+def _print(rows, bias):
+    print(f"\ncoverage over unflagged bins: share of truths within ±1σ / ±2σ (goal {GOAL_1[0]:.0%} ± {GOAL_1[1]:.0%} / "
+          f"{GOAL_2[0]:.0%} ± {GOAL_2[1]:.0%}; * = met)")
+    head = f"   {'case':<34}{'noise':>6} {'stds':<6}{'unflagged':>10}"
+    print(head + "".join(f"{p + ' 1σ':>11}{'2σ':>7}" for p in ("α", "σt", "g")))
+    for r in rows:
+        line = f"   {r['case']:<34}{r['noise'] * 100:>5.1f}% {r['mode']:<6}{r['unflagged']:>5}/{r['bins']:<4}"
+        for p in PARAMS:
+            c = r[p]
+            mark = "*" if c["goal_met"] else " "
+            line += f"{c['within_1sigma'] * 100:>10.1f}%{c['within_2sigma'] * 100:>6.1f}%{mark}"
+        print(line)
+    print("\nflagged bins (not scored above), per flag:")
+    seen = set()
+    for r in rows:
+        key = (r["case"], r["mode"])
+        if key in seen:
+            continue
+        seen.add(key)
+        flags = ", ".join(f"{k} {v}" for k, v in r["flags"].items()) or "none"
+        print(f"   {r['case']:<34}{r['noise'] * 100:>5.1f}% {r['mode']:<6} {flags}")
+    print("\nthe map's own error: noise-free fit |error| / σ reported at the lowest noise level (unflagged bins)")
+    print(f"   {'case':<34}{'stds':<7}" + "".join(f"{p + ' median':>12}{'>1':>7}" for p in ("α", "σt", "g")))
+    for b in bias:
+        print(f"   {b['case']:<34}{b['mode']:<7}" + "".join(
+            f"{b[p]['median']:>12.2f}{b[p]['share_above_1'] * 100:>6.0f}%" for p in PARAMS))
