@@ -61,6 +61,10 @@ def fit_reflectances(refls: list[Reflectances], maps: list[AppearanceMap], *, me
     # (so the reported uncertainties are this measurement's, not a default's).
     measured = [r.noise_rel() for r in refls]
     noise = {"noise_rel": float(np.clip(max(measured), 1e-4, 0.2))} if all(m is not None for m in measured) else {}
+    # and each bin's own stds from the capture (frame scatter, dark, the calibration's), where it has them
+    for name in ("I_b_std", "I_w_std", "I_c_std"):
+        if all(getattr(r, name) is not None for r in refls):
+            noise[name] = np.stack([getattr(r, name) for r in refls]) if len(refls) > 1 else getattr(refls[0], name)
     if len(refls) == 1:
         r = refls[0]
         result = trimeter.fit(maps[0], r.I_b, r.I_w, r.I_c, rho_b=r.rho_b, rho_w=r.rho_w, method=method, **noise)
