@@ -5,8 +5,11 @@
 
 Input columns: wavelength_nm, I_b, I_w, I_c; optional rho_b, rho_w (per-wavelength backgrounds;
 default: the map's reference backgrounds) and thickness_mm (required with two maps: tells which rows
-belong to which map; both thicknesses must cover the same wavelengths). Empty cells and "nan" are
-missing values: those bins come back flagged with NaN results, the others are unaffected.
+belong to which map; both thicknesses must cover the same wavelengths); I_b_std, I_w_std, I_c_std
+(the intensities' standard deviations, e.g. `measure`'s reflectances.csv: the stds then are those of
+this measurement, not of a default noise model) and thickness_std_mm (the sample thickness's std, one
+value per thickness). Empty cells and "nan" are missing values: those bins come back flagged with NaN
+results, the others are unaffected (a missing std: the default noise model's for that bin).
 Output columns: wavelength_nm, alpha, sigma_t, g, alpha_std, sigma_t_std, g_std, flags, sigma_t_beer,
 thickness_mm (flags: trimeter.inversion.flags.FitFlag bits; the JSON form also names them).
 The thickness is never assumed silently: σt scales as 1/ℓ, so a map of another thickness than the
@@ -29,7 +32,7 @@ from trimeter.atomic import atomic_write, same_file
 from trimeter.errors import InputError, OutputError
 
 REQUIRED = ("wavelength_nm", "I_b", "I_w", "I_c")
-OPTIONAL = ("rho_b", "rho_w", "thickness_mm")
+OPTIONAL = ("rho_b", "rho_w", "thickness_mm", "I_b_std", "I_w_std", "I_c_std", "thickness_std_mm")
 OUTPUT = ("wavelength_nm", "alpha", "sigma_t", "g", "alpha_std", "sigma_t_std", "g_std", "flags", "sigma_t_beer",
           "thickness_mm")
 
@@ -121,7 +124,10 @@ def run(args) -> int:
     stack = lambda name: np.stack([data[name][rows] for rows in groups])  # noqa: E731
     rho_b = stack("rho_b") if "rho_b" in data else None
     rho_w = stack("rho_w") if "rho_w" in data else None
-    result = fit(amaps, stack("I_b"), stack("I_w"), stack("I_c"), rho_b, rho_w, method=args.method)
+    stds = {name: stack(name) for name in ("I_b_std", "I_w_std", "I_c_std") if name in data}
+    if "thickness_std_mm" in data:
+        stds["thickness_std_mm"] = _thickness_std(data["thickness_std_mm"], groups, amaps, args.input)
+    result = fit(amaps, stack("I_b"), stack("I_w"), stack("I_c"), rho_b, rho_w, method=args.method, **stds)
     columns = {"wavelength_nm": data["wavelength_nm"][groups[0]], **result.as_dict()}
     notes = advice(result.flags, len(amaps))
     for note in notes:  # stderr: stdout may be the CSV
@@ -145,6 +151,18 @@ def run(args) -> int:
                                  for k in OUTPUT[:-1]), used]))
     _write(args.output, "\n".join(lines) + "\n")
     return 0
+
+
+def _thickness_std(column, groups, amaps, path) -> list[float]:
+    """One thickness std per map from the column: the same value on every row of that thickness."""
+    out = []
+    for rows, amap in zip(groups, amaps):
+        values = np.unique(column[rows][np.isfinite(column[rows])])
+        if len(values) > 1:
+            raise InputError(f"--input {path}: column thickness_std_mm differs between the rows of thickness "
+                             f"{amap.thickness_mm:g} mm ({values[0]:g}, {values[1]:g}, …): one sample, one std")
+        out.append(float(values[0]) if len(values) else 0.0)
+    return out
 
 
 def check_declared_thickness(declared: list[float] | None, amaps) -> None:
