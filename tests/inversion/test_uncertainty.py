@@ -1,0 +1,186 @@
+"""Uncertainty that means what it says: the machinery of the stds (given intensity stds, the map's own
+error, the thickness's and the in-scattering correction's uncertainty), C against numpy, bad input,
+and `trimeter bench uncertainty`'s coverage count. No statistical threshold at small N here: the
+coverage figures themselves come from the benchmark."""
+
+import numpy as np
+import pytest
+from scipy.stats import norm
+
+import trimeter
+from trimeter.bench.uncertainty import coverage
+from trimeter.cli import main
+from trimeter.errors import InputError
+from trimeter.inversion import native
+from trimeter.inversion.kernel import ForwardGrid, node_model_variance
+from trimeter.paths import MAPS_DIR
+
+DEVICE = MAPS_DIR / "device-n1.5-l0.4.tmap"
+
+
+def _materials(amap, n=400, seed=0):
+    """Clean, well-conditioned bins of the map: intensities from its own forward model."""
+    from trimeter.inversion.api import table_inverter
+
+    rng = np.random.default_rng(seed)
+    alpha, g = rng.uniform(0.5, 0.97, n), rng.uniform(0.1, 0.8, n)
+    sigma_t = np.exp(rng.uniform(np.log(0.5), np.log(5), n))
+    return table_inverter(amap).grid.intensities(alpha, sigma_t, g, *amap.reference_rhos)
+
+
+def test_coverage_counts_the_share_within_one_and_two_sigma():
+    # estimates placed at known multiples of their std: the exact Gaussian shares, by construction
+    z = norm.ppf(np.linspace(0.0005, 0.9995, 1000))
+    std = np.linspace(0.5, 2.0, 1000)
+    truth = np.linspace(-1, 1, 1000)
+    c1, c2, n = coverage(truth + z * std, std, truth, np.ones(1000, bool))
+    assert n == 1000 and c1 == pytest.approx(0.6827, abs=0.002) and c2 == pytest.approx(0.9545, abs=0.002)
+    # a NaN estimate or std covers nothing; an infinite std (σt only bounded) covers; masked bins do not count
+    est, s = truth + z * std, std.copy()
+    est[:10], s[10:20], s[20:30] = np.nan, np.nan, np.inf
+    mask = np.ones(1000, bool)
+    mask[-100:] = False
+    c1b, _, nb = coverage(est, s, truth, mask)
+    inside = np.abs(z[30:900]) <= 1
+    assert nb == 900 and c1b == pytest.approx((inside.sum() + 10) / 900)
+
+
+def test_the_map_error_is_its_mc_error_where_the_splines_are_exact():
+    """Leave-one-out is exact for what the splines reproduce (cubic along α and ln σt, linear along g
+    for PCHIP): only the MC std-error is left. A curved map has interpolation error on top."""
+    alpha, ls, g = np.linspace(0, 1, 9), np.linspace(-2, 3, 8), np.linspace(0, 0.9, 6)
+    A, S, G = np.meshgrid(alpha, ls, g, indexing="ij")
+    exact = np.stack([A**3 - S**2 + 0.5 * G, 0.2 * A * S + G], axis=-1)
+    mc = np.full(exact.shape, 1e-4)
+    np.testing.assert_allclose(node_model_variance(exact, mc, alpha, ls, g), 1e-8, rtol=1e-6)
+    curved = exact + np.exp(3 * S)[..., None] * 1e-3
+    assert np.all(node_model_variance(curved, mc, alpha, ls, g)[:, 2:-2] > 1e-8 * 1.5)
+
+
+def test_given_stds_set_the_uncertainty_and_thickness_widens_sigma_t_only():
+    from trimeter.maps.appearance import AppearanceMap
+
+    amap = AppearanceMap.load(DEVICE)
+    I_b, I_w, I_c = _materials(amap)
+    small = trimeter.fit(amap, I_b, I_w, I_c, I_b_std=1e-4, I_w_std=1e-4, I_c_std=1e-5)
+    large = trimeter.fit(amap, I_b, I_w, I_c, I_b_std=4e-3, I_w_std=4e-3, I_c_std=4e-4)
+    ok = (small.flags == 0) & (large.flags == 0)
+    assert ok.mean() > 0.5
+    for name in ("alpha_std", "sigma_t_std", "g_std"):
+        assert np.all(getattr(large, name)[ok] > getattr(small, name)[ok]), name
+    # the estimate itself does not depend on the stds given (only where the polish stops, to < its tolerance)
+    np.testing.assert_allclose(large.alpha[ok], small.alpha[ok], atol=1e-3)
+    # a NaN std is the noise model's there; thickness: σt's std grows by σt·std/ℓ in quadrature, α's and g's not
+    model = trimeter.fit(amap, I_b, I_w, I_c)
+    nan_given = trimeter.fit(amap, I_b, I_w, I_c, I_b_std=np.full(len(I_b), np.nan))
+    np.testing.assert_allclose(nan_given.alpha_std, model.alpha_std, rtol=1e-12)
+    thick = trimeter.fit(amap, I_b, I_w, I_c, thickness_std_mm=0.02)
+    np.testing.assert_allclose(thick.alpha_std, model.alpha_std, rtol=1e-12)
+    np.testing.assert_allclose(thick.g_std, model.g_std, rtol=1e-12)
+    expected = np.hypot(model.sigma_t_std, model.sigma_t * 0.02 / amap.thickness_mm)
+    np.testing.assert_allclose(thick.sigma_t_std, expected, rtol=1e-9)
+    # the in-scattering correction's uncertainty reaches σt (and α, g) where the correction moved it
+    none = trimeter.fit(amap, I_b, I_w, I_c, inscatter_rel_std=0.0)
+    assert np.all(model.sigma_t_std >= none.sigma_t_std)
+    assert np.any(model.sigma_t_std > none.sigma_t_std * (1 + 1e-6))
+
+
+def test_the_maps_own_error_enters_the_stds():
+    from trimeter.inversion.api import table_inverter
+    from trimeter.maps.appearance import AppearanceMap
+
+    amap = AppearanceMap.load(DEVICE)
+    I_b, I_w, I_c = _materials(amap)
+    grid = table_inverter(amap).grid
+    assert grid.model_var is not None
+    with_map = trimeter.fit(amap, I_b, I_w, I_c, I_b_std=1e-5, I_w_std=1e-5, I_c_std=1e-6)
+    saved = grid.model_var
+    try:  # the numpy path with the map's error detached: the stds of the given noise alone
+        grid.model_var = None
+        import trimeter.inversion.api as api
+
+        solver = api.table_inverter(amap)._native
+        api.table_inverter(amap)._native = None
+        noise_only = trimeter.fit(amap, I_b, I_w, I_c, I_b_std=1e-5, I_w_std=1e-5, I_c_std=1e-6)
+    finally:
+        grid.model_var = saved
+        api.table_inverter(amap)._native = solver
+    ok = (with_map.flags == 0) & (noise_only.flags == 0)
+    assert np.median(with_map.alpha_std[ok] / noise_only.alpha_std[ok]) > 2  # the map's error dominates here
+
+
+@pytest.mark.skipif(not native.available(), reason=native.status())
+@pytest.mark.parametrize("method", ["lut", "mlp"])
+def test_c_and_numpy_agree_with_given_stds_and_thicknesses(monkeypatch, method):
+    import trimeter.inversion.api as api
+    from trimeter.maps.appearance import AppearanceMap
+
+    amap = AppearanceMap.load(DEVICE)
+    I_b, I_w, I_c = _materials(amap, n=600, seed=4)
+    rng = np.random.default_rng(1)
+    stds = dict(I_b_std=rng.uniform(1e-4, 5e-3, 600), I_w_std=rng.uniform(1e-4, 5e-3, 600),
+                I_c_std=np.where(rng.random(600) < 0.2, np.nan, rng.uniform(1e-5, 1e-3, 600)), thickness_std_mm=0.01)
+    compiled = api.fit(amap, I_b, I_w, I_c, method=method, **stds)
+    monkeypatch.setattr(native, "_LIB", None)
+    monkeypatch.setattr(api, "_TABLES", {})
+    reference = api.fit(amap, I_b, I_w, I_c, method=method, **stds)
+    np.testing.assert_array_equal(compiled.flags, reference.flags)
+    for name in ("alpha", "sigma_t", "g", "alpha_std", "sigma_t_std", "g_std"):
+        np.testing.assert_allclose(getattr(compiled, name), getattr(reference, name), rtol=1e-6, atol=1e-11,
+                                   err_msg=name)
+
+
+def test_bad_stds_are_clear_errors(tmp_path, capsys):
+    from trimeter.maps.appearance import AppearanceMap
+
+    amap = AppearanceMap.load(DEVICE)
+    with pytest.raises(InputError, match="I_b_std must not be negative"):
+        trimeter.fit(amap, [0.2], [0.5], [0.1], I_b_std=[-1e-3])
+    with pytest.raises(InputError, match="I_w_std must be"):
+        trimeter.fit(amap, [0.2, 0.3], [0.5, 0.6], [0.1, 0.2], I_w_std=[1e-3, 1e-3, 1e-3])
+    with pytest.raises(InputError, match="must be finite"):
+        trimeter.fit(amap, [0.2], [0.5], [0.1], I_c_std=[np.inf])
+    with pytest.raises(InputError, match="one per map"):
+        trimeter.fit(amap, [0.2], [0.5], [0.1], thickness_std_mm=[0.01, 0.02])
+    with pytest.raises(InputError, match="thickness_std_mm"):
+        trimeter.fit(amap, [0.2], [0.5], [0.1], thickness_std_mm=-0.01)
+    csv = tmp_path / "m.csv"
+    csv.write_text("wavelength_nm,I_b,I_w,I_c,I_b_std\n500,0.2,0.5,0.1,abc\n")
+    assert main(["fit", "--map", str(DEVICE), "--input", str(csv)]) == 2
+    assert "column I_b_std" in capsys.readouterr().err
+    csv.write_text("wavelength_nm,I_b,I_w,I_c,thickness_std_mm\n500,0.2,0.5,0.1,0.01\n510,0.2,0.5,0.1,0.02\n")
+    assert main(["fit", "--map", str(DEVICE), "--input", str(csv)]) == 2
+    assert "one sample, one std" in capsys.readouterr().err
+
+
+def test_the_fit_cli_takes_std_columns(tmp_path, capsys):
+    from trimeter.maps.appearance import AppearanceMap
+
+    amap = AppearanceMap.load(DEVICE)
+    I_b, I_w, I_c = (x[:3] for x in _materials(amap, n=3))
+    rows = ["wavelength_nm,I_b,I_w,I_c,I_b_std,I_w_std,I_c_std,thickness_std_mm"]
+    rows += [f"{500 + i},{I_b[i]},{I_w[i]},{I_c[i]},0.002,0.002,0.0002,0.01" for i in range(3)]
+    csv = tmp_path / "m.csv"
+    csv.write_text("\n".join(rows) + "\n")
+    assert main(["fit", "--map", str(DEVICE), "--input", str(csv), "--json"]) == 0
+    import json
+
+    doc = json.loads(capsys.readouterr().out)
+    expected = trimeter.fit(amap, I_b, I_w, I_c, I_b_std=0.002, I_w_std=0.002, I_c_std=0.0002, thickness_std_mm=0.01)
+    np.testing.assert_allclose(doc["columns"]["sigma_t_std"], expected.sigma_t_std, rtol=1e-8)
+
+
+def test_bench_uncertainty_prints_its_table(tmp_path, capsys):
+    assert main(["bench", "uncertainty", "--map", str(DEVICE), "--noise", "0.01", "--draws", "1",
+                 "--thickness-rel-std", "0", "--out", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "device-n1.5-l0.4" in out and "given" in out and "fixed" in out and "UNDERDETERMINED" in out
+    assert (tmp_path / "results.json").is_file()
+    assert main(["bench", "uncertainty", "--noise", "2"]) == 2
+    assert "--noise" in capsys.readouterr().err
+
+
+def test_forward_grid_without_model_variance_reports_zero():
+    grid = ForwardGrid(np.linspace(0, 1, 3), np.linspace(0, 1, 3), np.linspace(0, 0.9, 3), np.zeros((3, 3, 3, 3)),
+                       n=1.5, thickness_mm=0.4, cover_slide_n=None)
+    assert np.all(grid.model_variance(np.array([0.5]), grid.sigma_cell(np.array([1.5])), np.array([0.3])) == 0)
