@@ -1,28 +1,48 @@
-"""`trimeter map build | list | info | query` — appearance maps (trimeter.maps)."""
+"""`trimeter map build | inscatter | list | info | query` — appearance maps and their children (trimeter.maps)."""
 
 from __future__ import annotations
 
 import json
 import math
+import os
 from pathlib import Path
 
 import numpy as np
 
 from trimeter.errors import InputError, MapFileError
+from trimeter.maps.pipeline import DEFAULT_STAGES, STAGES
 from trimeter.validation import require_material, require_reflectance
 
 
 def register(subparsers) -> None:
-    p = subparsers.add_parser("build", help="build an appearance map from a recipe (maps/recipes/*.toml)")
-    p.add_argument("recipe", help="recipe TOML file")
-    p.add_argument("--out", help="output map file (default: ./<recipe name>.tmap)")
+    p = subparsers.add_parser(
+        "build", help="build maps from recipes and their children: .tmap → .tins → .tlut → .onnx",
+        description="Build appearance maps from recipes (maps/recipes/*.toml), every (σt, g) column of every "
+                    "map a task on a Dask cluster (a local one by default), then each map's children. "
+                    "See maps/README.md.")
+    p.add_argument("recipe", nargs="+", help="recipe TOML file(s); several build a library on one cluster")
+    p.add_argument("--out", help="output map file, one recipe only (default: <out-dir>/<recipe name>.tmap)")
+    p.add_argument("--out-dir", help="directory for the maps of several recipes (default: the current one)")
+    p.add_argument("--stages", default=",".join(DEFAULT_STAGES),
+                   help=f"comma-separated stages of {', '.join(STAGES)} (default: {','.join(DEFAULT_STAGES)}; "
+                        "onnx trains for minutes, so it is opt-in); without tmap the maps must exist")
+    where = p.add_mutually_exclusive_group()
+    where.add_argument("--workers", type=int, help="local Dask cluster of N worker processes, one core each "
+                                                   f"(default: this machine's {os.cpu_count()} cores)")
+    where.add_argument("--scheduler", metavar="ADDRESS", help="run on an existing Dask cluster (tcp://host:8786)")
+    p.add_argument("--retries", type=int, default=2, help="runs of a failed column (worker killed, out of memory, "
+                                                          "error) beyond the first before the build stops "
+                                                          "(default 2)")
     p.add_argument("--resume", action="store_true", help="continue an interrupted build from its checkpoint")
-    p.add_argument("--checkpoint", help="checkpoint directory (default: .<out name>.checkpoint next to the output)")
+    p.add_argument("--checkpoint", help="checkpoint directory, one recipe only (default: .<out name>.checkpoint "
+                                        "next to the output)")
     p.add_argument("--keep-checkpoint", action="store_true", help="keep the checkpoint after a successful build")
+    p.add_argument("--inscatter-photons", type=int, default=30_000, help="tins: photons per (σt, g) column")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_build)
 
-    p = subparsers.add_parser("inscatter", help="trace a device map's in-scattering table (<map>.tins, next to it)")
+    p = subparsers.add_parser("inscatter", help="trace a device map's in-scattering table (<map>.tins, next to it); "
+                                                "the same as `map build RECIPE --stages tins`")
     p.add_argument("map", help="map file or shipped map name (device geometry)")
     p.add_argument("--photons", type=int, default=30_000, help="photons per (σt, g) column (default 30000)")
     p.add_argument("--seed", type=int, default=0)
@@ -63,56 +83,51 @@ def load_appearance_map(name_or_path):
 
 
 def cmd_build(args) -> int:
-    from trimeter.maps.builder import build_map, validation_report
+    from trimeter.maps import pipeline
     from trimeter.maps.recipe import load_recipe
 
-    recipe = load_recipe(args.recipe)
-    out = Path(args.out) if args.out else Path(f"{recipe.name}.tmap")
-    na, ns, ng = recipe.shape
-    print(f"building {recipe.name}: {recipe.geometry}, n = {recipe.n:g}, ℓ = {recipe.thickness_mm:g} mm, "
-          f"grid α×σt×g = {na}×{ns}×{ng} ({na * ns * ng} points, {ns * ng} traces) → {out}")
-    amap = build_map(recipe, out, checkpoint_dir=args.checkpoint, resume=args.resume, progress=not args.quiet,
-                     keep_checkpoint=args.keep_checkpoint)
-    info = amap.info()
-    prov = amap.provenance
-    print(f"wrote {out} ({out.stat().st_size / 1e6:.2f} MB, sha256 {amap.checksum[:16]}…)")
-    print(f"trace time {prov['trace_seconds']:.1f} s (this run: {prov['wall_seconds_last_run']:.1f} s wall, "
-          f"{prov['columns_traced_last_run']} columns traced, {prov['columns_resumed']} resumed)")
-    print(f"MC std-error of I: median {info['mc_stderr']['median']:.2e}, max {info['mc_stderr']['max']:.2e}; "
-          f"paths per column {prov['paths_per_column']['min']}…{prov['paths_per_column']['max']}; "
-          f"truncation error ≤ {prov['truncation']['max_error_bound']:.1e} (K = {prov['truncation']['k_max']})")
-    print("validation:", json.dumps(validation_report(amap)))
-    if recipe.geometry == "device":  # I_c's in-scattered light, which the fit takes out (maps/README)
-        trace_inscatter(amap, out=out.with_suffix(".tins"))
+    stages = pipeline.parse_stages(args.stages)
+    if len(args.recipe) > 1 and (args.out or args.checkpoint):
+        raise InputError("--out and --checkpoint name one map's files: with several recipes use --out-dir")
+    if args.retries is not None and not 0 <= args.retries <= 100:
+        raise InputError(f"--retries must be 0…100, got {args.retries}")
+    if args.workers is not None and not 1 <= args.workers <= 1024:
+        raise InputError(f"--workers must be 1…1024, got {args.workers}")
+    if args.inscatter_photons < 1000:
+        raise InputError("--inscatter-photons: at least 1000")
+    out_dir = Path(args.out_dir) if args.out_dir else Path(".")
+    targets = []
+    for path in args.recipe:
+        recipe = load_recipe(path)
+        out = Path(args.out) if args.out else out_dir / f"{recipe.name}.tmap"
+        targets.append(pipeline.Target(recipe, Path(path), out))
+    for t in targets:
+        na, ns, ng = t.recipe.shape
+        print(f"{t.recipe.name}: {t.recipe.geometry}, n = {t.recipe.n:g}, ℓ = {t.recipe.thickness_mm:g} mm, "
+              f"grid α×σt×g = {na}×{ns}×{ng} ({ns * ng} columns) → {t.out} [{','.join(stages)}]")
+    options = pipeline.Options(inscatter_photons=args.inscatter_photons)
+    run = dict(resume=args.resume, progress=not args.quiet, keep_checkpoint=args.keep_checkpoint,
+               checkpoint_dir=Path(args.checkpoint) if args.checkpoint else None, retries=args.retries,
+               options=options)
+    if "tmap" not in stages and not any(s in ("tins", "onnx") for s in stages):
+        pipeline.run(targets, stages, **run)         # a table or two: not worth starting a cluster
+        return 0
+    from trimeter.maps.distributed import local_client, remote_client
+
+    with (remote_client(args.scheduler) if args.scheduler else local_client(args.workers, args.retries)) as client:
+        pipeline.run(targets, stages, client=client, **run)
     return 0
 
 
 def cmd_inscatter(args) -> int:
-    from trimeter.errors import InputError
+    from trimeter.maps.pipeline import Options, make_child
 
     amap = load_appearance_map(args.map)
-    if amap.recipe["geometry"] != "device" or "collimated" not in amap.recipe.get("geometry_params", {}):
-        raise InputError(f"map {amap.name}: in-scattering needs the device geometry's collimated set-up")
     if args.photons < 1000:
         raise InputError("--photons: at least 1000")
-    trace_inscatter(amap, photons=args.photons, seed=args.seed, out=Path(args.out) if args.out else None)
+    make_child("tins", amap, Options(inscatter_photons=args.photons, inscatter_seed=args.seed),
+               out=Path(args.out) if args.out else None)
     return 0
-
-
-def trace_inscatter(amap, *, photons: int = 30_000, seed: int = 0, out: Path | None = None) -> Path:
-    """Trace a device map's in-scattering table and write it (default: next to the map, .tins)."""
-    from trimeter.forward.inscatter import InscatterTable
-
-    out = out or amap.path.with_suffix(".tins")
-    print(f"tracing the in-scattering table of {amap.name} (n = {amap.n:g}, ℓ = {amap.thickness_mm:g} mm, "
-          f"{photons} photons per column) → {out}")
-    table = InscatterTable.build(amap.n, amap.thickness_mm, amap.recipe["geometry_params"], photons=photons,
-                                 seed=seed,
-                                 progress=lambda j, n: print(f"\r  σt·ℓ column {j + 1}/{n}", end="", flush=True))
-    checksum = table.save(out)
-    print(f"\nwrote {out} ({out.stat().st_size} bytes, sha256 {checksum[:16]}…) in "
-          f"{table.provenance['seconds']:.0f} s; largest ln(1 + r) {table.L.max():.3f}")
-    return out
 
 
 def _describe(amap) -> dict:

@@ -249,14 +249,15 @@ def trilinear(L, i, wi, j, wj, k, wk):
 
 def _inscatter_schema():
     """What an in-scatter table file must hold (trimeter.maps.schema), checked before it is used."""
-    from trimeter.maps.schema import GEOMETRY_PARAMS, PROVENANCE, SAMPLE_N, THICKNESS_MM, ArraySpec, ContainerSchema, \
-        Number, Table
+    from trimeter.maps.schema import GEOMETRY_PARAMS, PARENT_SHA256, PRODUCER, PROVENANCE, SAMPLE_N, THICKNESS_MM, \
+        ArraySpec, ContainerSchema, Number, Table
 
     extent = Number(lo=0.0, lo_open=True, hi=50.0)  # u_max, v_max: −ln(1 − 0.999) ≈ 6.9; τ_max: TAU_MAX
     return ContainerSchema(
         version=("format_version", "in-scatter table format version", INSCATTER_FORMAT_VERSION),
         meta=Table({"u_max": extent, "tau_max": extent, "v_max": extent, "n": SAMPLE_N, "thickness_mm": THICKNESS_MM,
-                    "geometry_params": GEOMETRY_PARAMS, "provenance": PROVENANCE},
+                    "geometry_params": GEOMETRY_PARAMS, "provenance": PROVENANCE, "parent_sha256": PARENT_SHA256,
+                    "producer": PRODUCER},
                    required=("format_version", "u_max", "tau_max", "v_max", "n", "thickness_mm", "geometry_params")),
         arrays={"L": ArraySpec(("n_u", "n_tau", "n_g"), min_len=2, lo=0.0, hi=50.0)})
 
@@ -268,7 +269,8 @@ class InscatterTable:
     (invert.c tm_fit_solve, api._fit_one) takes σt from I_c·e^−L. Evaluation: trilinear, clamped to
     the grid, the same operations as invert.c's inscatter_log1p."""
 
-    def __init__(self, L, *, u_max, tau_max, v_max, n, thickness_mm, geometry_params, provenance=None):
+    def __init__(self, L, *, u_max, tau_max, v_max, n, thickness_mm, geometry_params, provenance=None,
+                 parent_sha256: str | None = None, producer: dict | None = None):
         self.L = np.ascontiguousarray(L, dtype=np.float64)
         if self.L.ndim != 3 or min(self.L.shape) < 2 or not np.all(np.isfinite(self.L)) or self.L.min() < 0:
             raise MapFileError("in-scatter table: L must be a finite, non-negative (u, τ, g) grid, ≥ 2 per axis")
@@ -276,6 +278,8 @@ class InscatterTable:
         self.n, self.thickness_mm = float(n), float(thickness_mm)
         self.geometry_params = geometry_params
         self.provenance = provenance or {}
+        # the map it was traced for (its SHA-256) and what traced it: trimeter.maps.pipeline stamps both
+        self.parent_sha256, self.producer = parent_sha256, producer
         self.checksum = None  # the file's SHA-256 once saved or loaded
         nu, nt, nv = self.L.shape
         self.inv_du, self.inv_dt, self.inv_dv = (nu - 1) / self.u_max, (nt - 1) / self.tau_max, (nv - 1) / self.v_max
@@ -325,6 +329,8 @@ class InscatterTable:
         meta = {"format_version": INSCATTER_FORMAT_VERSION, "u_max": self.u_max, "tau_max": self.tau_max,
                 "v_max": self.v_max, "n": self.n, "thickness_mm": self.thickness_mm,
                 "geometry_params": self.geometry_params, "provenance": self.provenance}
+        if self.parent_sha256 is not None:
+            meta.update(parent_sha256=self.parent_sha256, producer=self.producer)
         self.checksum = write_container(path, INSCATTER_KIND, meta, {"L": self.L})
         return self.checksum
 
@@ -336,7 +342,8 @@ class InscatterTable:
         try:
             table = cls(arrays["L"], **{k: meta[k] for k in ("u_max", "tau_max", "v_max", "n", "thickness_mm",
                                                              "geometry_params")},
-                        provenance=meta.get("provenance"))
+                        provenance=meta.get("provenance"), parent_sha256=meta.get("parent_sha256"),
+                        producer=meta.get("producer"))
         except (KeyError, TypeError, ValueError) as exc:
             raise MapFileError(f"{path}: in-scatter table header incomplete ({exc})") from None
         except MapFileError as exc:
@@ -345,10 +352,18 @@ class InscatterTable:
         return table
 
     def matches(self, amap) -> str | None:
-        """Why this table does not belong to the map (None when it does)."""
+        """Why this table does not belong to the map (None when it does): another n, ℓ or geometry, or
+        a parent stamp that is not this map's SHA-256 (a table is only as good as the map it was made for)."""
         if abs(self.n - amap.n) > 1e-9 or abs(self.thickness_mm - amap.thickness_mm) > 1e-9:
             return f"it is for n = {self.n:g}, ℓ = {self.thickness_mm:g} mm, the map for n = {amap.n:g}, " \
                    f"ℓ = {amap.thickness_mm:g} mm"
         if self.geometry_params != amap.recipe.get("geometry_params"):
             return "it was traced for another instrument geometry than the map's"
+        if amap.checksum and self.parent_sha256 != amap.checksum:
+            from trimeter.maps.pipeline import rebuild_command
+
+            made_for = (f"it was made for map {self.parent_sha256[:12]}…" if self.parent_sha256 else
+                        "it does not record the map it was made for")
+            return (f"{made_for}, and this map is {amap.checksum[:12]}… (rebuilt since?); rebuild the table: "
+                    f"{rebuild_command(amap, 'tins')}")
         return None

@@ -138,7 +138,9 @@ def _canonical(value):
 
 
 class Checkpoint:
-    """A directory of finished columns for one recipe (refuses a directory made for another)."""
+    """A directory of finished columns for one recipe (refuses a directory made for another). The
+    columns in it are the build's source of truth: whoever traces a column writes it here, and the map
+    is assembled from what is here, so a killed worker or a killed build loses at most its running columns."""
 
     def __init__(self, directory: Path, recipe: Recipe, resume: bool):
         self.dir = Path(directory)
@@ -159,7 +161,7 @@ class Checkpoint:
         atomic_write(stamp, json.dumps({"fingerprint": fingerprint, "recipe": recipe.to_dict()}).encode())
 
     def path(self, j: int, k: int) -> Path:
-        return self.dir / f"col_{j:03d}_{k:03d}.npz"
+        return column_path(self.dir, j, k)
 
     def load(self, j: int, k: int) -> Column | None:
         p = self.path(j, k)
@@ -178,69 +180,167 @@ class Checkpoint:
         return col
 
     def save(self, j: int, k: int, col: Column) -> None:
-        with atomic_output(self.path(j, k), make_parents=False) as f:
-            np.savez(f, **{name: getattr(col, name) for name in _COLUMN_FIELDS}, n_paths=col.n_paths,
-                     truncated=col.truncated, truncation_bound=col.truncation_bound, seconds=col.seconds,
-                     path_events=col.path_events)
+        save_column(self.dir, j, k, col)
 
     def remove(self) -> None:
         shutil.rmtree(self.dir, ignore_errors=True)
+
+
+def column_path(directory: Path, j: int, k: int) -> Path:
+    return Path(directory) / f"col_{j:03d}_{k:03d}.npz"
+
+
+def save_column(directory: Path, j: int, k: int, col: Column) -> None:
+    with atomic_output(column_path(directory, j, k), make_parents=False) as f:
+        np.savez(f, **{name: getattr(col, name) for name in _COLUMN_FIELDS}, n_paths=col.n_paths,
+                 truncated=col.truncated, truncation_bound=col.truncation_bound, seconds=col.seconds,
+                 path_events=col.path_events)
+
+
+def column_task(recipe: Recipe, checkpoint_dir: str, j: int, k: int, tracer: Callable = trace_pair,
+                drjit_threads: int | None = None) -> tuple[Column, bool]:
+    """One column as a task, wherever it runs (this process or a Dask worker): trace it, write it to the
+    checkpoint, return (column, written). A pure function of (recipe, j, k) — its seeds come from the
+    column's identity (column_seed) — so a retry, another worker or another order gives the same bits.
+    `written` is False on a worker that does not see the checkpoint directory (no shared file system):
+    the caller then writes the column it receives."""
+    if drjit_threads:
+        from trimeter.maps.distributed import set_drjit_threads
+
+        set_drjit_threads(drjit_threads)
+    stack = Stack.from_recipe(recipe.geometry, recipe.geometry_params, recipe.n, recipe.thickness_mm)
+    col = trace_column(recipe, stack, j, k, tracer)
+    if not Path(checkpoint_dir).is_dir():
+        return col, False
+    save_column(Path(checkpoint_dir), j, k, col)
+    return col, True
 
 
 def default_checkpoint_dir(out: Path) -> Path:
     return out.parent / f".{out.name}.checkpoint"
 
 
+@dataclass(frozen=True)
+class MapJob:
+    """One map of a build: its recipe, its output file and (default: next to it) its checkpoint."""
+    recipe: Recipe
+    out: Path
+    checkpoint_dir: Path | None = None
+
+    @property
+    def checkpoint(self) -> Path:
+        return Path(self.checkpoint_dir) if self.checkpoint_dir else default_checkpoint_dir(Path(self.out))
+
+
+class _MapState:
+    """The columns of one map as they arrive (from the checkpoint or from a task)."""
+
+    def __init__(self, index: int, job: MapJob, resume: bool):
+        self.index, self.job, self.recipe = index, job, job.recipe
+        self.ckpt = Checkpoint(job.checkpoint, job.recipe, resume)
+        self.arrays = {f: np.zeros(job.recipe.shape) for f in _COLUMN_FIELDS}
+        ns, ng = job.recipe.shape[1:]
+        self.n_paths = np.zeros((ns, ng), dtype=np.int64)
+        self.trunc_bound = np.zeros((ns, ng))
+        self.trace_seconds = np.zeros((ns, ng))
+        self.done = np.zeros((ns, ng), dtype=bool)
+        self.traced = self.reused = 0
+
+    def columns(self) -> list[tuple[int, int]]:
+        ns, ng = self.recipe.shape[1:]
+        return [(j, k) for k in range(ng) for j in range(ns)]
+
+    def add(self, j: int, k: int, col: Column, traced: bool) -> None:
+        for f in _COLUMN_FIELDS:
+            self.arrays[f][:, j, k] = getattr(col, f)
+        self.n_paths[j, k], self.trunc_bound[j, k], self.trace_seconds[j, k] = (col.n_paths, col.truncation_bound,
+                                                                              col.seconds)
+        self.done[j, k] = True
+        self.traced += traced
+        self.reused += not traced
+
+    def finish(self, wall: float, executor: str, keep_checkpoint: bool) -> AppearanceMap:
+        recipe, n_paths = self.recipe, self.n_paths
+        provenance = {
+            "builder": BUILDER, "executor": executor,
+            "drjit_version": _version("drjit"), "mitsuba_version": _version("mitsuba"),
+            "trace_seconds": round(float(self.trace_seconds.sum()), 3),
+            "wall_seconds_last_run": round(wall, 3), "columns_traced_last_run": self.traced,
+            "columns_resumed": self.reused,
+            "paths_per_column": {"min": int(n_paths.min()), "median": int(np.median(n_paths)),
+                                 "max": int(n_paths.max()), "total": int(n_paths.sum())},
+            "truncation": {"k_max": k_max_for(float(recipe.alpha[-1]), recipe.sampling.truncation),
+                           "max_error_bound": float(self.trunc_bound.max())},
+            "recipe_fingerprint": recipe_fingerprint(recipe),
+            "built_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        }
+        amap = AppearanceMap(recipe=recipe.to_dict(), alpha=recipe.alpha, sigma_t=recipe.sigma_t, g=recipe.g,
+                             provenance=provenance, **self.arrays)
+        amap.save(self.job.out)
+        if not keep_checkpoint:
+            self.ckpt.remove()
+        return AppearanceMap.load(self.job.out)
+
+
 def build_map(recipe: Recipe, out: str | Path, *, checkpoint_dir: str | Path | None = None, resume: bool = False,
               progress: bool = True, keep_checkpoint: bool = False, tracer: Callable = trace_pair,
-              on_column: Callable[[int, int], None] | None = None) -> AppearanceMap:
-    """Build the map for `recipe` into `out` (atomically). `on_column(j, k)` is called after each
-    column is traced (not for columns reloaded from the checkpoint) — used by tests to interrupt."""
-    out = Path(out)
-    ckpt = Checkpoint(Path(checkpoint_dir) if checkpoint_dir else default_checkpoint_dir(out), recipe, resume)
-    stack = Stack.from_recipe(recipe.geometry, recipe.geometry_params, recipe.n, recipe.thickness_mm)
-    na, ns, ng = recipe.shape
-    arrays = {f: np.zeros(recipe.shape) for f in _COLUMN_FIELDS}
-    n_paths = np.zeros((ns, ng), dtype=np.int64)
-    trunc_bound = np.zeros((ns, ng))
-    trace_seconds = np.zeros((ns, ng))
-    jobs = [(j, k) for k in range(ng) for j in range(ns)]
-    reused = traced = 0
-    start = time.perf_counter()
-    with _progress(progress, len(jobs), recipe.name) as advance:
-        for j, k in jobs:
-            col = ckpt.load(j, k) if resume else None
+              on_column: Callable[[int, int], None] | None = None, client=None) -> AppearanceMap:
+    """Build the map for `recipe` into `out` (atomically): build_maps with one map."""
+    job = MapJob(recipe, Path(out), Path(checkpoint_dir) if checkpoint_dir else None)
+    return build_maps([job], resume=resume, progress=progress, keep_checkpoint=keep_checkpoint, tracer=tracer,
+                      on_column=None if on_column is None else (lambda name, j, k: on_column(j, k)),
+                      client=client)[0]
+
+
+def build_maps(jobs: list[MapJob], *, client=None, resume: bool = False, progress: bool = True,
+               keep_checkpoint: bool = False, tracer: Callable = trace_pair, retries: int = 2,
+               on_column: Callable[[str, int, int], None] | None = None) -> list[AppearanceMap]:
+    """Build every map of `jobs` (a library build): every unfinished (map, σt, g) column is one task.
+    `client`: a dask.distributed Client (trimeter.maps.distributed) to run the tasks on its cluster,
+    `retries` times more after a failure; None: one after another in this process. `on_column(name,
+    j, k)` is called after each traced column (not for those reloaded from the checkpoint) — used by
+    tests to interrupt. Whatever the executor, the maps hold the same bits (seeds from column identity)."""
+    outs = [Path(job.out).resolve() for job in jobs]
+    if len(set(outs)) != len(outs):
+        raise InputError("two recipes would write the same map file: give them different names or outputs")
+    states = [_MapState(i, job, resume) for i, job in enumerate(jobs)]
+    pending = []
+    for state in states:
+        for j, k in state.columns():
+            col = state.ckpt.load(j, k) if resume else None
             if col is None:
-                col = trace_column(recipe, stack, j, k, tracer)
-                ckpt.save(j, k, col)
-                traced += 1
-                if on_column:
-                    on_column(j, k)
+                pending.append((state, j, k))
             else:
-                reused += 1
-            for f in _COLUMN_FIELDS:
-                arrays[f][:, j, k] = getattr(col, f)
-            n_paths[j, k], trunc_bound[j, k], trace_seconds[j, k] = col.n_paths, col.truncation_bound, col.seconds
-            advance()
+                state.add(j, k, col, traced=False)
+    start = time.perf_counter()
+    with _progress(progress, [(s.recipe.name, len(s.columns()), s.reused) for s in states]) as advance:
+        if client is None:
+            executor = "in-process"
+            results = _run_here(pending, tracer)
+        else:
+            from trimeter.maps.distributed import describe_cluster, run_on_cluster
+
+            executor = describe_cluster(client)
+            results = run_on_cluster(client, pending, tracer, retries)
+        for state, j, k, col in results:
+            state.add(j, k, col, traced=True)
+            advance(state.index)
+            if on_column:
+                on_column(state.recipe.name, j, k)
     wall = time.perf_counter() - start
-    provenance = {
-        "builder": BUILDER,
-        "drjit_version": _version("drjit"), "mitsuba_version": _version("mitsuba"),
-        "trace_seconds": round(float(trace_seconds.sum()), 3),
-        "wall_seconds_last_run": round(wall, 3), "columns_traced_last_run": traced, "columns_resumed": reused,
-        "paths_per_column": {"min": int(n_paths.min()), "median": int(np.median(n_paths)), "max": int(n_paths.max()),
-                             "total": int(n_paths.sum())},
-        "truncation": {"k_max": k_max_for(float(recipe.alpha[-1]), recipe.sampling.truncation),
-                       "max_error_bound": float(trunc_bound.max())},
-        "recipe_fingerprint": recipe_fingerprint(recipe),
-        "built_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-    }
-    amap = AppearanceMap(recipe=recipe.to_dict(), alpha=recipe.alpha, sigma_t=recipe.sigma_t, g=recipe.g,
-                         provenance=provenance, **arrays)
-    amap.save(out)
-    if not keep_checkpoint:
-        ckpt.remove()
-    return AppearanceMap.load(out)
+    return [state.finish(wall, executor, keep_checkpoint) for state in states]
+
+
+def _run_here(pending, tracer):
+    """The tasks one after another in this process (the tests' and library default executor)."""
+    stacks = {}
+    for state, j, k in pending:
+        r = state.recipe
+        if id(state) not in stacks:
+            stacks[id(state)] = Stack.from_recipe(r.geometry, r.geometry_params, r.n, r.thickness_mm)
+        col = trace_column(r, stacks[id(state)], j, k, tracer)
+        state.ckpt.save(j, k, col)
+        yield state, j, k, col
 
 
 def _version(package: str) -> str | None:
@@ -251,22 +351,33 @@ def _version(package: str) -> str | None:
 
 
 class _progress:
-    """A rich progress bar over columns (or nothing, for tests and pipes)."""
+    """One progress view over every map of a build: a bar per map and, for several, one for all columns
+    (or nothing, for tests and pipes). Entering returns advance(map index)."""
 
-    def __init__(self, enabled: bool, total: int, label: str):
-        self.enabled, self.total, self.label = enabled, total, label
+    def __init__(self, enabled: bool, maps: list[tuple[str, int, int]]):
+        self.enabled, self.maps = enabled, maps
         self._bar = None
 
     def __enter__(self):
         if not self.enabled:
-            return lambda: None
+            return lambda index: None
         from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn, TimeRemainingColumn
 
         self._bar = Progress("[bold]{task.description}", BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                              TimeRemainingColumn())
         self._bar.__enter__()
-        task = self._bar.add_task(f"{self.label} (σt, g) columns", total=self.total)
-        return lambda: self._bar.advance(task)
+        tasks = [self._bar.add_task(f"{name} (σt, g) columns", total=total, completed=done)
+                 for name, total, done in self.maps]
+        overall = None
+        if len(self.maps) > 1:
+            overall = self._bar.add_task(f"all {len(self.maps)} maps", total=sum(m[1] for m in self.maps),
+                                         completed=sum(m[2] for m in self.maps))
+
+        def advance(index: int) -> None:
+            self._bar.advance(tasks[index])
+            if overall is not None:
+                self._bar.advance(overall)
+        return advance
 
     def __exit__(self, *exc):
         if self._bar is not None:

@@ -245,3 +245,7 @@ GEOMETRY_PARAMS = Table(
                           ("aperture_diameter_mm", "aperture_distance_mm", "beam_diameter_mm")})},
     rules=((lambda p: not p.get("cover_slides") or "cover_slide_n" in p, "lacks cover_slide_n (cover_slides is on)"),))
 PROVENANCE = Json(max_depth=8)
+# The stamp a derived file (a map's .tins, .tlut, .onnx) carries: its parent's SHA-256 and who made it
+# (trimeter.maps.pipeline); a loader compares the former with the parent's actual checksum.
+PARENT_SHA256 = Text(max_len=64)
+PRODUCER = Table({"name": Text(max_len=256), "version": Text(max_len=64)}, required=("name", "version"), extra=None)

@@ -1,0 +1,129 @@
+"""Map builds on Dask (`dask.distributed`): every unfinished (map, σt, g) column is one task.
+
+- Embedded default: `local_client(workers)` starts a LocalCluster of `workers` spawned worker
+  processes with one thread each, and each task runs Dr.Jit on one thread (`set_drjit_threads`), so N
+  workers use N cores and never oversubscribe them.
+- An existing cluster: `remote_client(address)` (`dask scheduler` / `dask worker` by hand, or
+  dask-jobqueue on SLURM: maps/README.md). An address nobody answers at is one clear error after
+  `connect_timeout` seconds, never a hang.
+- Tasks are `trimeter.maps.builder.column_task`: pure functions of (recipe, j, k) that write their
+  column into the map's checkpoint. A task whose worker dies (killed, out of memory: the nanny restarts
+  it) or that raises is run again, up to `retries` more times; after that the build stops with the
+  column named, and the finished columns stay in the checkpoint for `--resume`.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from contextlib import contextmanager
+from typing import Callable, Iterator
+
+from trimeter.errors import BuildError, InputError
+
+CONNECT_TIMEOUT_S = 10.0
+# Workers start with Dr.Jit's LLVM backend pointed at Debian's libLLVM 19 (the default LLVM aborts at
+# JIT time, ../shared/NOTES.md), whatever the environment of the process that starts the cluster.
+_LIBLLVM = "/usr/lib/x86_64-linux-gnu/libLLVM-19.so"
+
+
+def set_drjit_threads(count: int) -> None:
+    """Dr.Jit's thread pool size in this process (a worker runs one task at a time on one core)."""
+    from trimeter.maps.tracer import _drjit
+
+    dr, _ = _drjit()
+    if dr.thread_count() != count:
+        dr.set_thread_count(count)
+
+
+def _dask():
+    try:
+        import dask
+        import distributed
+    except ImportError:
+        raise InputError("distributed map builds need Dask: pip install 'trimeter[maps]'") from None
+    return dask, distributed
+
+
+@contextmanager
+def local_client(workers: int | None = None, retries: int = 2) -> Iterator:
+    """A Client on a fresh LocalCluster of `workers` processes (default: this machine's cores)."""
+    dask, distributed = _dask()
+    workers = workers or os.cpu_count() or 1
+    if not 1 <= workers <= 1024:
+        raise InputError(f"--workers must be 1…1024, got {workers}")
+    env = {"DRJIT_LIBLLVM_PATH": os.environ.get("DRJIT_LIBLLVM_PATH", _LIBLLVM)} if os.path.exists(_LIBLLVM) else {}
+    # allowed-failures: how many worker deaths one task may be part of before it is given up on
+    with dask.config.set({"distributed.worker.multiprocessing-method": "spawn",
+                          "distributed.scheduler.allowed-failures": retries,
+                          "distributed.worker.daemon": False}):
+        cluster = distributed.LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                                           dashboard_address=None, silence_logs=logging.CRITICAL, env=env)
+        try:
+            with distributed.Client(cluster) as client:
+                yield client
+        finally:
+            cluster.close()
+
+
+@contextmanager
+def remote_client(address: str, connect_timeout: float = CONNECT_TIMEOUT_S) -> Iterator:
+    """A Client on the running Dask cluster whose scheduler listens at `address` (tcp://host:8786)."""
+    _, distributed = _dask()
+    try:
+        client = distributed.Client(address, timeout=connect_timeout)
+    except (OSError, TimeoutError, ValueError, TypeError) as exc:
+        reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise InputError(f"--scheduler {address}: no Dask scheduler answered within {connect_timeout:g} s "
+                         f"({reason})") from None
+    try:
+        yield client
+    finally:
+        client.close()
+
+
+def describe_cluster(client) -> str:
+    """What ran the tasks, for the map's provenance: 'dask (N workers, T threads)'."""
+    workers = client.scheduler_info().get("workers", {})
+    threads = sum(int(w.get("nthreads", 1)) for w in workers.values())
+    return f"dask ({len(workers)} workers, {threads} threads)"
+
+
+def run_on_cluster(client, pending, tracer: Callable, retries: int):
+    """Submit every pending (map state, j, k) column at once (a library build fills the cluster with
+    every column of every map) and yield (state, j, k, column) as they finish, in any order."""
+    from distributed import as_completed
+
+    from trimeter.maps.builder import column_task
+
+    futures = {}
+    for state, j, k in pending:
+        future = client.submit(column_task, state.recipe, str(state.ckpt.dir), j, k, tracer, 1, retries=retries,
+                               pure=False, key=f"{state.recipe.name}-col_{j:03d}_{k:03d}-{os.urandom(4).hex()}")
+        futures[future] = (state, j, k)
+    try:
+        for future in as_completed(futures):
+            state, j, k = futures.pop(future)
+            if future.status != "finished":
+                raise _column_failed(state, j, k, future.exception(), retries)
+            col, written = future.result()
+            if not written:         # the worker did not see the checkpoint directory: keep the column here
+                state.ckpt.save(j, k, col)
+            future.release()
+            yield state, j, k, col
+    finally:
+        if futures:
+            client.cancel(list(futures))
+
+
+def _column_failed(state, j: int, k: int, exc: BaseException | None, retries: int) -> BuildError:
+    from distributed import KilledWorker
+
+    r = state.recipe
+    if isinstance(exc, KilledWorker):
+        what = f"its worker died {retries + 1} times (killed or out of memory)"
+    else:
+        what = f"it failed {retries + 1} times, last with {type(exc).__name__}: {(str(exc) or '-').splitlines()[0]}"
+    return BuildError(f"map {r.name}: column σt[{j}] = {r.sigma_t[j]:g} /mm, g[{k}] = {r.g[k]:g} stopped the build: "
+                      f"{what}. The finished columns are kept in {state.ckpt.dir}; run the same command again "
+                      f"with --resume once the cause is fixed")

@@ -1,0 +1,238 @@
+"""One artifact pipeline: a recipe → `.tmap` → `.tins` → `.tlut` → `.onnx`, all made by `trimeter map build`.
+
+| stage | file | made from the map by | needs |
+|---|---|---|---|
+| tmap | `<name>.tmap` | trimeter.maps.builder (the columns, on Dask or here) | the recipe |
+| tins | `<name>.tins` | trimeter.forward.inscatter.InscatterTable.build | device geometry (skipped otherwise) |
+| tlut | `<name>.tlut` | trimeter.inversion.table.build_from_map | — |
+| onnx | `<name>.onnx` | trimeter.maps.mlp_training (scikit-learn → ONNX) | opt-in: minutes of training |
+
+Every child is derived from the `.tmap` alone, so each records the map's SHA-256 as its parent (the
+.tins and .onnx metadata, the .tlut's fixed header) and its producer (name and trimeter version; the
+.tlut's fixed C layout has no room for it: its format version stands for it). A child whose map changed
+is refused where it is loaded, with `rebuild_command` naming the command that rebuilds it.
+
+With a Dask client the children's computations run on the cluster too (one task per map and stage);
+the files are always written here, next to the map.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+from trimeter import __version__
+from trimeter.errors import BuildError, InputError
+from trimeter.paths import MAPS_DIR
+
+STAGES = ("tmap", "tins", "tlut", "onnx")
+DEFAULT_STAGES = ("tmap", "tins", "tlut")
+SUFFIX = {"tmap": ".tmap", "tins": ".tins", "tlut": ".tlut", "onnx": ".onnx"}
+
+
+def parse_stages(text: str) -> tuple[str, ...]:
+    """'tmap,tins' → the stages in pipeline order; an unknown name is an InputError naming it."""
+    names = [s.strip() for s in str(text).split(",") if s.strip()]
+    unknown = [s for s in names if s not in STAGES]
+    if unknown or not names:
+        raise InputError(f"--stages: {unknown[0] if unknown else 'nothing'!r} is not a stage "
+                         f"(stages: {', '.join(STAGES)}, comma-separated)")
+    return tuple(s for s in STAGES if s in names)
+
+
+def stage_producer(stage: str) -> dict:
+    """The producer stamp of a stage's files."""
+    return {"name": f"trimeter map build --stages {stage}", "version": __version__}
+
+
+def rebuild_command(amap, stage: str) -> str:
+    """The command that rebuilds `stage` of this map in place (the shipped recipe's path when it has one)."""
+    recipe = MAPS_DIR / "recipes" / f"{amap.name}.toml"
+    recipe_arg = _shown_path(recipe) if recipe.is_file() else "RECIPE.toml"
+    out = f" --out {_shown_path(amap.path)}" if amap.path is not None else ""
+    return f"trimeter map build {recipe_arg}{out} --stages {stage}"
+
+
+def _shown_path(path: Path) -> str:
+    try:
+        return os.path.relpath(path)
+    except ValueError:
+        return str(path)
+
+
+@dataclass(frozen=True)
+class Options:
+    """The children's settings (the defaults are what the shipped files were made with)."""
+    inscatter_photons: int = 30_000
+    inscatter_seed: int = 0
+    table_n_xy: int | None = None
+    mlp_hidden: tuple[int, ...] = (32, 32)
+    mlp_samples: int = 400_000
+    mlp_epochs: int = 80
+    mlp_seed: int = 0
+    mlp_activation: str = "relu"
+
+
+# ------------------------------------------------------------------ the children, one stage each
+def applies(stage: str, amap) -> str | None:
+    """Why `stage` does not apply to this map (None when it does)."""
+    if stage == "tins" and (amap.recipe.get("geometry") != "device"
+                            or "collimated" not in amap.recipe.get("geometry_params", {})):
+        return "in-scattering needs the device geometry's collimated set-up"
+    return None
+
+
+def compute(stage: str, amap, options: Options):
+    """The stage's product for `amap`, in memory (runs on a Dask worker or here)."""
+    if stage == "tins":
+        from trimeter.forward.inscatter import InscatterTable
+
+        return InscatterTable.build(amap.n, amap.thickness_mm, amap.recipe["geometry_params"],
+                                    photons=options.inscatter_photons, seed=options.inscatter_seed)
+    if stage == "tlut":
+        from trimeter.inversion.table import build_from_map
+
+        return build_from_map(amap, n_xy=options.table_n_xy)
+    if stage == "onnx":
+        from trimeter.maps.mlp_training import train
+
+        return train(amap, options.mlp_hidden, options.mlp_samples, options.mlp_epochs, options.mlp_seed,
+                     options.mlp_activation)
+    raise ValueError(f"no child stage {stage!r}")
+
+
+def write(stage: str, amap, product, options: Options, out: Path | None = None) -> tuple[Path, str]:
+    """Stamp the product with its parent (the map's SHA-256) and producer, write it next to the map (or
+    to `out`), read it back; returns (path, one-line description)."""
+    out = Path(out) if out else amap.path.with_suffix(SUFFIX[stage])
+    if stage == "tins":
+        from trimeter.forward.inscatter import InscatterTable
+
+        product.parent_sha256, product.producer = amap.checksum, stage_producer(stage)
+        checksum = product.save(out)
+        InscatterTable.load(out)
+        return out, (f"{product.L.shape} grid, {options.inscatter_photons} photons per column, largest ln(1 + r) "
+                     f"{product.L.max():.3f}, sha256 {checksum[:12]}…")
+    if stage == "tlut":
+        from trimeter.inversion.table import MapTable, describe_table
+
+        product.save(out)
+        MapTable.load(out)
+        info = describe_table(out)
+        return out, (f"{info['size_bytes']} bytes (slot {info['slot_capacity_bytes']}), crc32 {info['crc32']}, "
+                     f"inverse {info['inverse_grid']['x']}×{info['inverse_grid']['y']} per σt node")
+    if stage == "onnx":
+        from trimeter.maps.mlp_training import export
+
+        model, stats = product
+        export(model, amap, out, options.mlp_hidden, stats, stage_producer(stage))
+        return out, (f"hidden {options.mlp_hidden}, raw network on fresh map samples: α abs p95 "
+                     f"{stats['alpha_abs_p95']:.4f}, g abs p95 {stats['g_abs_p95']:.4f}")
+    raise ValueError(f"no child stage {stage!r}")
+
+
+def make_child(stage: str, amap, options: Options = Options(), out: Path | None = None,
+               say: Callable[[str], None] = print) -> Path:
+    """One child of one map, here (e.g. `trimeter map inscatter`)."""
+    if why := applies(stage, amap):
+        raise InputError(f"map {amap.name}: {why}")
+    t0 = time.perf_counter()
+    path, text = write(stage, amap, compute(stage, amap, options), options, out)
+    say(f"{stage}: wrote {path} in {time.perf_counter() - t0:.1f} s: {text}")
+    return path
+
+
+# ------------------------------------------------------------------ the whole pipeline for a library
+@dataclass(frozen=True)
+class Target:
+    """One map of a build: its recipe, where the recipe came from (for messages) and the .tmap path."""
+    recipe: object
+    recipe_path: Path | None
+    out: Path
+
+
+def run(targets: list[Target], stages: tuple[str, ...], *, client=None, resume: bool = False, progress: bool = True,
+        keep_checkpoint: bool = False, checkpoint_dir: Path | None = None, retries: int = 2,
+        options: Options = Options(), say: Callable[[str], None] = print) -> list:
+    """Run `stages` for every target: the maps (all their columns at once), then each map's children.
+    Without the tmap stage the maps must exist and be current against their recipes."""
+    from trimeter.maps.builder import MapJob, build_maps, recipe_fingerprint, validation_report
+
+    if "tmap" in stages:
+        jobs = [MapJob(t.recipe, t.out, checkpoint_dir) for t in targets]
+        maps = build_maps(jobs, client=client, resume=resume, progress=progress, keep_checkpoint=keep_checkpoint,
+                          retries=retries)
+        for amap in maps:
+            _report_map(amap, validation_report(amap), say)
+            for stage in STAGES[1:]:
+                child = amap.path.with_suffix(SUFFIX[stage])
+                if stage not in stages and child.exists():
+                    say(f"note: {child} was made from the previous map and will be refused; rebuild it: "
+                        f"{rebuild_command(amap, stage)}")
+    else:
+        maps = []
+        for t in targets:
+            amap = _existing_map(t)
+            if recipe_fingerprint(amap.recipe) != recipe_fingerprint(t.recipe):
+                raise BuildError(f"map {t.out} was built from another recipe than {t.recipe_path or t.recipe.name} "
+                                 f"(or another geometry): rebuild it first, with --stages tmap,"
+                                 f"{','.join(stages)}")
+            maps.append(amap)
+    children = [(amap, stage) for amap in maps for stage in stages if stage != "tmap"]
+    runnable = []
+    for amap, stage in children:
+        if why := applies(stage, amap):
+            say(f"{stage}: skipped for {amap.name}: {why}")
+        else:
+            runnable.append((amap, stage))
+    for (amap, stage), (product, seconds) in zip(runnable, _compute_all(runnable, client, options)):
+        path, text = write(stage, amap, product, options)
+        say(f"{stage}: wrote {path} ({seconds:.1f} s): {text}")
+    return maps
+
+
+def _existing_map(target: Target):
+    from trimeter.maps.appearance import AppearanceMap
+
+    if not target.out.is_file():
+        raise InputError(f"map {target.out} does not exist: build it first (--stages tmap, the default includes it)")
+    return AppearanceMap.load(target.out)
+
+
+def _timed(stage: str, amap, options: Options):
+    t0 = time.perf_counter()
+    return compute(stage, amap, options), time.perf_counter() - t0
+
+
+def _compute_all(runnable, client, options: Options):
+    """(product, seconds) per (map, stage), in order: on the cluster all at once, else one after another."""
+    if client is None:
+        for amap, stage in runnable:
+            yield _timed(stage, amap, options)
+        return
+    futures = [client.submit(_timed, stage, amap, options, pure=False) for amap, stage in runnable]
+    try:
+        for (amap, stage), future in zip(runnable, futures):
+            try:
+                yield future.result()
+            except Exception as exc:  # noqa: BLE001 - whatever the task raised, named with its map and stage
+                raise BuildError(f"map {amap.name}: the {stage} stage failed on the cluster "
+                                 f"({type(exc).__name__}: {(str(exc) or '-').splitlines()[0]}); the map itself is "
+                                 f"written: {rebuild_command(amap, stage)}") from None
+    finally:
+        client.cancel(futures)
+
+
+def _report_map(amap, report: dict, say) -> None:
+    info, prov = amap.info(), amap.provenance
+    say(f"tmap: wrote {amap.path} ({amap.path.stat().st_size / 1e6:.2f} MB, sha256 {amap.checksum[:16]}…)")
+    say(f"  trace time {prov['trace_seconds']:.1f} s (this run: {prov['wall_seconds_last_run']:.1f} s wall on "
+        f"{prov.get('executor', 'this process')}, {prov['columns_traced_last_run']} columns traced, "
+        f"{prov['columns_resumed']} resumed)")
+    say(f"  MC std-error of I: median {info['mc_stderr']['median']:.2e}, max {info['mc_stderr']['max']:.2e}; "
+        f"paths per column {prov['paths_per_column']['min']}…{prov['paths_per_column']['max']}; "
+        f"truncation error ≤ {prov['truncation']['max_error_bound']:.1e} (K = {prov['truncation']['k_max']})")
+    say(f"  validation: {report}")
