@@ -9,19 +9,48 @@ the LED double-blinks until the second is in and the button pressed again; both 
 config swap_timeout_s) the first is written alone, marked incomplete. Status LED: steady = ready, slow
 blink = working, triple blink = empty the holder and press (to calibrate), double blink = put the next
 sample in and press, fast blink = the last press failed (e.g. a shot refused by its light checks: nothing
-was written). Survives device resets and reconnects. Stop with Ctrl-C."""
+was written). Survives device resets and reconnects. Stop with Ctrl-C.
+
+`--http HOST:PORT` also serves the instrument on the network (default bind 127.0.0.1; 0.0.0.0 only when
+asked): a JSON API (/api/openapi.json), a live event websocket and a page with status, calibration,
+measurement, history and results. The button and the page start jobs in one queue. Access needs the
+token made at first start (0600 in the host config directory): `--show-token` prints it and the link.
+`--webhook URL` is POSTed {event: done|failed|flagged, job, measurement} when a job ends."""
 
 from __future__ import annotations
 
 import threading
 from datetime import datetime
+from urllib.parse import urlsplit
 
 from trimeter.cli._instrument import add_instrument_args, open_device, open_spectrometer, settings_from
+from trimeter.errors import InputError
 from trimeter.sequences.measure import map_for_thickness
 from trimeter.sequences.service import Service
 
 
+def show_token(args) -> None:
+    from trimeter.web.app import parse_bind
+    from trimeter.web.auth import load_or_create_token, token_path
+
+    token = load_or_create_token()
+    host, port = parse_bind(args.http) if args.http else ("127.0.0.1", 8080)
+    print(f"token: {token}  ({token_path()}, mode 0600)")
+    print(f"page:  http://{'localhost' if host in ('127.0.0.1', '0.0.0.0', '') else host}:{port}/?token={token}")
+
+
+def check_webhook(url: str | None) -> None:
+    if url is None:
+        return
+    parts = urlsplit(url)
+    if parts.scheme not in ("http", "https") or not parts.hostname:
+        raise InputError(f"--webhook: {url!r} is not an http(s) URL")
+
+
 def run(args):
+    if args.show_token:
+        return show_token(args)
+    check_webhook(args.webhook)
     settings = settings_from(args)
     if args.thickness:
         settings.set("thickness_mm", args.thickness)
@@ -39,6 +68,8 @@ def run(args):
 
     service = Service(lambda: open_device(settings), lambda: open_spectrometer(settings), settings,
                       on_event=show, label=args.label)
+    if args.http:
+        return serve_http(args, service, settings)
     print(f"serving the instrument on {settings.port}; results in {settings.results_path} (Ctrl-C stops)", flush=True)
     try:
         service.serve(stop=stop.is_set)
@@ -56,4 +87,38 @@ def register(subparsers) -> None:
                    help="a second sample's thickness in mm, measured after the first on each press (0: none; "
                         "default: host config)")
     p.add_argument("--label", help="a name for the results directories")
+    p.add_argument("--http", metavar="HOST:PORT",
+                   help="also serve the web page and API, e.g. 127.0.0.1:8080 (0.0.0.0:8080: the whole LAN)")
+    p.add_argument("--show-token", action="store_true",
+                   help="print the web token and the page's link (made if missing), then exit")
+    p.add_argument("--webhook", metavar="URL", help="POSTed JSON when a job is done, failed or flagged (with --http)")
     p.set_defaults(func=run)
+
+
+def serve_http(args, service: Service, settings) -> None:
+    """The press-button loop on a worker thread, the web app on another; Ctrl-C stops both."""
+    from trimeter.sequences.settings import data_dir
+    from trimeter.web.app import WebServer, create_app, parse_bind
+    from trimeter.web.auth import load_or_create_token
+    from trimeter.web.history import History
+    from trimeter.web.jobs import Jobs
+
+    host, port = parse_bind(args.http)
+    token = load_or_create_token()
+    history = History(settings.results_path, data_dir() / "history.sqlite")
+    for note in history.open():
+        print(f"{datetime.now():%H:%M:%S} {'history':<12} {note}", flush=True)
+    history.close()  # this thread's connection; the worker and the web thread open their own
+    jobs = Jobs(service, on_measurement=history.add)
+    server = WebServer(create_app(jobs, history, token, webhook=args.webhook), host, port).start()
+    jobs.start()
+    print(f"serving the instrument on {settings.port}; results in {settings.results_path}; web page on "
+          f"{server.url}/ (`trimeter serve --show-token` prints the link with its token; Ctrl-C stops)", flush=True)
+    try:
+        threading.Event().wait()
+    except KeyboardInterrupt:
+        pass
+    finally:
+        server.close()
+        jobs.stop()
+        service.close()

@@ -1,0 +1,709 @@
+"""`trimeter serve --http`: the instrument on the LAN — a JSON API, a live event websocket and a page.
+
+aiohttp: one dependency that is both the server (HTTP/1.1, websockets, file responses) and the client
+(webhooks, `trimeter bench http`), running on plain asyncio in the serve process next to the
+instrument's worker thread; no ASGI server or framework layer to configure. The API is the product
+and the page (static/) one client of it; every answer is JSON, errors as {"error": {"status",
+"message"}}. See `openapi()` for the endpoints, trimeter.web.auth for access, trimeter.web.jobs for
+how the button and the page share the instrument.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import copy
+import csv
+import io
+import json
+import logging
+import math
+import re
+import threading
+import zipfile
+from concurrent.futures import ThreadPoolExecutor
+from importlib import resources
+from pathlib import Path
+from typing import Callable
+
+from aiohttp import ClientSession, ClientTimeout, WSMsgType, web
+
+from trimeter import registers as regs
+from trimeter.device.client import CONFIG_NAMES, encode
+from trimeter.errors import InputError, TrimeterError
+from trimeter.inversion.api import METHODS
+from trimeter.inversion.flags import advice, describe
+from trimeter.maps.appearance import AppearanceMap, find_map, shipped_maps
+from trimeter.sequences.measure import map_for_thickness
+from trimeter.sequences.service import EMPTY_HOLDER, NEXT_SAMPLE
+from trimeter.sequences.settings import HostSettings
+from trimeter.web import auth
+from trimeter.web.history import History, is_measurement_id, parse_day_or_time
+from trimeter.web.jobs import Busy, Job, Jobs
+
+log = logging.getLogger("trimeter.web")
+
+MAX_BODY_BYTES = 64 * 1024          # every request body is a small JSON object
+EVENT_QUEUE = 256                   # events buffered per websocket client; a client that falls further behind is closed
+DEVICE_CALL_TIMEOUT_S = 15.0
+WEBHOOK_TIMEOUT_S = 5.0
+LABEL = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
+MAX_THICKNESS_MM = 100.0
+CSV_COLUMNS = ("id", "written_utc", "label", "thicknesses_mm", "maps", "method", "bins", "flagged_bins",
+               "flag_names", "incomplete", "refit_of")
+
+JOBS = web.AppKey("jobs", Jobs)
+HISTORY = web.AppKey("history", History)
+TOKEN = web.AppKey("token", str)
+STATE = web.AppKey("state", dict)
+
+
+class ApiError(Exception):
+    def __init__(self, status: int, message: str, **extra):
+        super().__init__(message)
+        self.status, self.message, self.extra = status, message, extra
+
+
+def _error(status: int, message: str, **extra) -> web.Response:
+    return web.json_response({"error": {"status": status, "message": message, **extra}}, status=status)
+
+
+# ------------------------------------------------------------------------------------ middleware
+@web.middleware
+async def errors_middleware(request: web.Request, handler):
+    """Every failure of an API call as the JSON envelope; never a traceback on the wire."""
+    try:
+        return await handler(request)
+    except ApiError as exc:
+        return _error(exc.status, exc.message, **exc.extra)
+    except Busy as exc:
+        return _error(409, f"the instrument is busy: {exc}", job=exc.job.to_json())
+    except TrimeterError as exc:
+        return _error(400, str(exc))
+    except web.HTTPException as exc:
+        if exc.status < 400 or not request.path.startswith("/api"):
+            raise
+        message = {413: f"the request body is larger than {MAX_BODY_BYTES} bytes"}.get(exc.status, exc.reason)
+        return _error(exc.status, message)
+    except asyncio.CancelledError:
+        raise
+    except Exception:
+        log.exception("internal error answering %s %s", request.method, request.path)
+        return _error(500, "internal error (the serve log has the details)")
+
+
+@web.middleware
+async def auth_middleware(request: web.Request, handler):
+    if not request.path.startswith("/api"):
+        return await handler(request)
+    if not auth.token_matches(request.app[TOKEN], auth.presented_token(request)):
+        return _error(401, "no or wrong token: open the link `trimeter serve --show-token` prints, or send "
+                           "`Authorization: Bearer <token>`")
+    if request.method in auth.UNSAFE_METHODS or request.path == "/api/events":
+        if why := auth.cross_origin(request):
+            return _error(403, f"refused: a request from another site's page ({why})")
+    if request.content_length is not None and request.content_length > MAX_BODY_BYTES:
+        return _error(413, f"the request body is larger than {MAX_BODY_BYTES} bytes")
+    return await handler(request)
+
+
+# ------------------------------------------------------------------------------------- helpers
+async def json_body(request: web.Request, allowed: tuple[str, ...]) -> dict:
+    """The request's JSON object (empty body: {}); unknown keys are refused, not ignored."""
+    raw = await request.read()
+    if not raw.strip():
+        return {}
+    if request.content_type not in ("application/json", "application/octet-stream", ""):
+        raise ApiError(415, f"the body must be JSON (Content-Type application/json), not {request.content_type}")
+    try:
+        body = json.loads(raw)
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise ApiError(400, f"the body is not valid JSON ({exc})") from None
+    if not isinstance(body, dict):
+        raise ApiError(400, f"the body must be a JSON object, not {type(body).__name__}")
+    if unknown := [k for k in body if k not in allowed]:
+        raise ApiError(400, f"unknown field(s) {', '.join(map(repr, unknown))}; allowed: {', '.join(allowed)}")
+    return body
+
+
+def number(body: dict, key: str, *, default=None, minimum: float = 0.0, maximum: float = math.inf,
+           allow_zero: bool = False):
+    value = body.get(key, default)
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise ApiError(400, f"{key}: {value!r} is not a number")
+    if not (minimum < value <= maximum or allow_zero and value == 0):
+        raise ApiError(400, f"{key}: {value!r} must be within ({minimum:g}, {maximum:g}]")
+    return float(value)
+
+
+def _query_int(request, key, default):
+    text = request.query.get(key)
+    if text is None:
+        return default
+    try:
+        return int(text)
+    except ValueError:
+        raise ApiError(400, f"{key}: {text!r} is not an integer") from None
+
+
+async def _blocking(request: web.Request, fn: Callable, *args):
+    """Run file-system / SQLite / CPU work off the event loop (one thread: one SQLite connection)."""
+    return await asyncio.get_running_loop().run_in_executor(request.app[STATE]["executor"], fn, *args)
+
+
+async def _device_call(request: web.Request, fn: Callable):
+    future = request.app[JOBS].call(fn)
+    try:
+        return await asyncio.wait_for(asyncio.wrap_future(future), DEVICE_CALL_TIMEOUT_S)
+    except asyncio.TimeoutError:
+        future.cancel()
+        raise ApiError(503, f"the instrument did not answer within {DEVICE_CALL_TIMEOUT_S:g} s (not connected?)")
+
+
+def _measurement_dir(request: web.Request) -> Path:
+    measurement_id = request.match_info["id"]
+    history = request.app[HISTORY]
+    if not is_measurement_id(measurement_id):
+        raise ApiError(400, f"{measurement_id!r} is not a measurement id (a results directory's name)")
+    path = history.root / measurement_id
+    if not path.is_dir():
+        raise ApiError(404, f"no measurement {measurement_id!r}")
+    return path
+
+
+def _accepted(job: Job) -> web.Response:
+    return web.json_response({"job": job.to_json()}, status=202, headers={"Location": f"/api/jobs/{job.id}"})
+
+
+def map_catalog(settings: HostSettings) -> dict[str, Path]:
+    """The maps the web page may name (shipped ones and the host config's), by name. Never a path from a
+    request: a client names a map, the host knows where it is."""
+    catalog = {p.stem: p for p in shipped_maps()}
+    for configured in (settings.map, settings.second_map):
+        if configured:
+            try:
+                path = find_map(configured)
+                catalog[AppearanceMap.load(path).name] = path
+            except TrimeterError:
+                continue  # `serve` refuses it at start; here it is simply not offered
+    return catalog
+
+
+# -------------------------------------------------------------------------------------- routes
+routes = web.RouteTableDef()
+
+
+@routes.get("/")
+async def index(request: web.Request):
+    token = request.query.get("token")
+    if token is not None:
+        if not auth.token_matches(request.app[TOKEN], token):
+            return web.Response(status=401, text="wrong token: use the link `trimeter serve --show-token` prints\n")
+        response = web.HTTPFound("/")
+        response.set_cookie(auth.COOKIE, token, httponly=True, samesite="Strict", path="/",
+                            max_age=400 * 24 * 3600)
+        raise response
+    if not auth.token_matches(request.app[TOKEN], request.cookies.get(auth.COOKIE)):
+        return web.Response(status=401, content_type="text/html", text=(
+            "<!doctype html><title>trimeter</title><p>Open this page with its token: "
+            "<code>trimeter serve --show-token</code> prints the link.</p>"))
+    return web.Response(text=_static_text("index.html"), content_type="text/html",
+                        headers={"Cache-Control": "no-store"})
+
+
+def _static_text(name: str) -> str:
+    return resources.files("trimeter.web").joinpath("static", name).read_text()
+
+
+@routes.get("/api/openapi.json")
+async def openapi_route(request):
+    return web.json_response(openapi())
+
+
+@routes.get("/api/status")
+async def status(request):
+    return web.json_response(request.app[JOBS].status())
+
+
+@routes.get("/api/jobs/{job_id}")
+async def job_route(request):
+    job = request.app[JOBS].job(request.match_info["job_id"])
+    if job is None:
+        raise ApiError(404, f"no job {request.match_info['job_id']!r} (the last {len(request.app[JOBS].recent)} "
+                            f"are kept)")
+    return web.json_response({"job": job.to_json()})
+
+
+@routes.post("/api/calibrate")
+async def calibrate(request):
+    body = await json_body(request, ("holder_empty",))
+    holder_empty = body.get("holder_empty", False)
+    if not isinstance(holder_empty, bool):
+        raise ApiError(400, f"holder_empty: {holder_empty!r} is not true or false")
+    jobs = request.app[JOBS]
+    service = jobs.service
+
+    def ask(job: Job) -> str:
+        service.ask_to_calibrate("a calibration was asked for on the web page")
+        job.message = "empty the sample holder, then confirm (or press the button)"
+        return "asked"
+
+    def confirmed(job: Job) -> str:
+        if service.pattern != EMPTY_HOLDER:  # answered meanwhile (the button, another client)
+            job.message = "the instrument was no longer asking for an empty holder; nothing was done"
+            return "refused"
+        service.calibration_requested = service.calibration_requested or "a calibration was confirmed on the web page"
+        return service.handle_press()
+
+    if holder_empty and service.pattern != EMPTY_HOLDER:
+        raise ApiError(409, "the instrument is not asking for an empty holder: POST /api/calibrate without "
+                            "holder_empty first, empty the holder, then confirm")
+    return _accepted(jobs.submit("calibrate", body, confirmed if holder_empty else ask))
+
+
+@routes.post("/api/measure")
+async def measure(request):
+    body = await json_body(request, ("label", "thickness_mm", "second_thickness_mm"))
+    jobs = request.app[JOBS]
+    service = jobs.service
+    settings = service.settings
+    label = body.get("label")
+    if label is not None and (not isinstance(label, str) or not LABEL.fullmatch(label)):
+        raise ApiError(400, f"label: {label!r} must be 1-64 letters, digits, '.', '_' or '-', starting with a letter "
+                            f"or digit (it names the results directory)")
+    thickness = number(body, "thickness_mm", default=settings.thickness_mm, maximum=MAX_THICKNESS_MM)
+    second = number(body, "second_thickness_mm", default=None, maximum=MAX_THICKNESS_MM, allow_zero=True)
+    configured = dict(reversed(settings.serve_samples))  # thickness → the host config's map for it, if any
+    samples = [(t, configured.get(t)) for t in (thickness, second) if t]
+    await _blocking(request, lambda: [map_for_thickness(t, m) for t, m in samples])  # InputError → 400
+    if service.pattern == EMPTY_HOLDER:
+        raise ApiError(409, "a calibration is due: the instrument asks for an empty holder first "
+                            "(confirm with POST /api/calibrate {\"holder_empty\": true})")
+
+    def run(job: Job) -> str:
+        return service.handle_press(samples, label)
+
+    return _accepted(jobs.submit("measure", {"label": label, "thicknesses_mm": [t for t, _ in samples]}, run))
+
+
+@routes.post("/api/next-sample")
+async def next_sample(request):
+    await json_body(request, ())
+    service = request.app[JOBS].service
+    if service.pattern != NEXT_SAMPLE:
+        raise ApiError(409, "the instrument is not waiting for a next sample")
+    service.confirm_next_sample()
+    return web.json_response({"confirmed": True})
+
+
+@routes.get("/api/maps")
+async def maps_route(request):
+    catalog = await _blocking(request, map_catalog, request.app[JOBS].service.settings)
+    return web.json_response({"maps": sorted(catalog), "methods": list(METHODS)})
+
+
+# ---------------------------------------------------------------------------------- history
+def _search_args(request) -> dict:
+    q = request.query
+    flagged = q.get("flagged")
+    if flagged is not None and flagged.lower() not in ("true", "false", "yes", "no", "1", "0"):
+        raise ApiError(400, f"flagged: {flagged!r} is not true or false")
+    return {"label": q.get("label") or None,
+            "since": parse_day_or_time(q["since"], "since") if q.get("since") else None,
+            "until": parse_day_or_time(q["until"], "until", end=True) if q.get("until") else None,
+            "flagged": None if flagged is None else flagged.lower() in ("true", "yes", "1"),
+            "flag": q.get("flag") or None}
+
+
+@routes.get("/api/measurements")
+async def measurements(request):
+    args = _search_args(request)
+    history = request.app[HISTORY]
+    if request.query.get("format") == "csv":
+        def export():
+            rows, offset = [], 0
+            while True:
+                page, total = history.search(**args, limit=500, offset=offset)
+                rows += page
+                offset += len(page)
+                if not page or offset >= total:
+                    return rows
+        rows = await _blocking(request, export)
+        text = io.StringIO()
+        writer = csv.writer(text)
+        writer.writerow(CSV_COLUMNS)
+        for row in rows:
+            writer.writerow([" ".join(map(str, v)) if isinstance(v, list) else ("" if v is None else v)
+                             for v in (row[c] for c in CSV_COLUMNS)])
+        return web.Response(text=text.getvalue(), content_type="text/csv",
+                            headers={"Content-Disposition": 'attachment; filename="trimeter-history.csv"'})
+    limit, offset = _query_int(request, "limit", 50), _query_int(request, "offset", 0)
+    rows, total = await _blocking(request, lambda: history.search(**args, limit=limit, offset=offset))
+    return web.json_response({"measurements": rows, "total": total, "limit": limit, "offset": offset})
+
+
+def _details(history: History, path: Path) -> dict:
+    row = history.get(path.name) or history.add(path)
+    if row is None:
+        raise ApiError(404, f"{path.name} has no readable measurement.json")
+    out = {"measurement": row}
+    try:
+        out["meta"] = json.loads((path / "measurement.json").read_text())
+        out["parameters"] = json.loads((path / "parameters.json").read_text())
+    except (OSError, ValueError, UnicodeDecodeError) as exc:
+        raise ApiError(500, f"{path.name}: its files cannot be read ({exc})") from None
+    flags = out["parameters"].get("combined", {}).get("flags") or []
+    counts = {}
+    for value in flags:
+        for name in describe(value).split("|"):
+            if name != "NONE":
+                counts[name] = counts.get(name, 0) + 1
+    out["flag_counts"] = counts
+    out["advice"] = advice(flags, max(1, len(row["thicknesses_mm"])))
+    out["files"] = sorted(p.name for p in path.iterdir() if p.is_file() and not p.is_symlink())
+    return out
+
+
+@routes.get("/api/measurements/{id}")
+async def measurement(request):
+    path = _measurement_dir(request)
+    return web.json_response(await _blocking(request, _details, request.app[HISTORY], path))
+
+
+@routes.get("/api/measurements/{id}/files/{name}")
+async def measurement_file(request):
+    path = _measurement_dir(request)
+    name = request.match_info["name"]
+    if "/" in name or "\\" in name or ".." in name or name.startswith(".") or "\0" in name:
+        raise ApiError(400, f"{name!r} is not a file name (no paths, no '..')")
+    target = path / name
+    if not target.is_file() or target.is_symlink():
+        raise ApiError(404, f"{path.name} has no file {name!r}")
+    disposition = "inline" if target.suffix in (".png", ".json") else "attachment"
+    return web.FileResponse(target, headers={"Content-Disposition": f'{disposition}; filename="{name}"',
+                                             "Cache-Control": "no-cache"})
+
+
+def _zip(path: Path) -> bytes:
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w", zipfile.ZIP_DEFLATED) as z:
+        for file in sorted(path.iterdir()):
+            if file.is_file() and not file.is_symlink():
+                z.write(file, f"{path.name}/{file.name}")
+    return buffer.getvalue()
+
+
+@routes.get("/api/measurements/{id}/zip")
+async def measurement_zip(request):
+    path = _measurement_dir(request)
+    data = await _blocking(request, _zip, path)
+    return web.Response(body=data, content_type="application/zip",
+                        headers={"Content-Disposition": f'attachment; filename="{path.name}.zip"'})
+
+
+@routes.post("/api/measurements/{id}/refit")
+async def refit_route(request):
+    from trimeter.web.refit import refit
+
+    path = _measurement_dir(request)
+    body = await json_body(request, ("maps", "method"))
+    jobs = request.app[JOBS]
+    method = body.get("method", jobs.service.settings.method)
+    if method not in METHODS:
+        raise ApiError(400, f"method: {method!r} is not one of {', '.join(METHODS)}")
+    names = body.get("maps")
+    catalog = await _blocking(request, map_catalog, jobs.service.settings)
+    if names is not None:
+        if not isinstance(names, list) or not names or not all(isinstance(n, str) for n in names):
+            raise ApiError(400, "maps: a list of map names, one per thickness")
+        if unknown := [n for n in names if n not in catalog]:
+            raise ApiError(400, f"maps: {', '.join(map(repr, unknown))} not known here "
+                                f"(GET /api/maps lists them: {', '.join(sorted(catalog))})")
+
+    def run(job: Job) -> str:
+        meta = json.loads((path / "measurement.json").read_text())
+        chosen = names or meta.get("maps") or []
+        maps = []
+        for name in chosen:
+            if name not in catalog:
+                raise InputError(f"the measurement's map {name!r} is not known here; name one (GET /api/maps)")
+            maps.append(AppearanceMap.load(catalog[name]))
+        new = refit(path, maps, method)
+        jobs.on_measurement(new)
+        job.measurement = new.name
+        job.message = f"re-fitted with {', '.join(chosen)} ({method}) into {new.name}"
+        return "refitted"
+
+    return _accepted(jobs.submit("refit", {"of": path.name, "maps": names, "method": method}, run))
+
+
+# ----------------------------------------------------------------------------------- config
+@routes.get("/api/config")
+async def get_config(request):
+    jobs = request.app[JOBS]
+    device, source = jobs.device_config, "cached"
+    if jobs.current is None and jobs.service.device is not None:
+        config = await _device_call(request, lambda service: service.device.config())
+        jobs.set_device_config(config)
+        device, source = jobs.device_config, "read"
+    return web.json_response({"host": jobs.service.settings.as_dict(), "host_file": str(HostSettings.path()),
+                              "device": device, "device_source": source, "device_writable": list(CONFIG_NAMES)})
+
+
+@routes.put("/api/config")
+async def put_config(request):
+    body = await json_body(request, ("host", "device", "save"))
+    jobs = request.app[JOBS]
+    host, device, save = body.get("host") or {}, body.get("device") or {}, body.get("save", False)
+    if not isinstance(host, dict) or not isinstance(device, dict) or not isinstance(save, bool):
+        raise ApiError(400, "host and device must be objects of NAME: value, save true or false")
+    # every check before anything changes: a bad item leaves both configurations as they were
+    stored, running = HostSettings.load(), copy.deepcopy(jobs.service.settings)
+    for key, value in host.items():
+        stored.set(key, value, source="PUT /api/config")
+        running.set(key, value, source="PUT /api/config")
+    if unknown := [n for n in device if n not in CONFIG_NAMES]:
+        raise ApiError(400, f"not device configuration items: {', '.join(unknown)} (see device_writable)")
+    for name, value in device.items():
+        if isinstance(value, (dict, list)) or value is None:
+            raise ApiError(400, f"{name}: {value!r} is not a number or a name")
+        encode(regs.BY_NAME[name], value)
+    if (device or save) and jobs.current is not None:
+        raise Busy(jobs.current)
+    if host:
+        await _blocking(request, stored.save)
+        for key in host:  # the running loop reads its settings object: changed in place
+            setattr(jobs.service.settings, key, getattr(running, key))
+    if device or save:
+        def write(service):
+            if device:
+                service.device.write_config(device)
+            if save:
+                service.device.command("save_config")
+                service.device.wait_idle(10.0)
+            return service.device.config()
+
+        if jobs.service.device is None:
+            raise ApiError(503, "the instrument is not connected")
+        jobs.set_device_config(await _device_call(request, write))
+    return web.json_response({"host": jobs.service.settings.as_dict(), "device": jobs.device_config,
+                              "saved": save})
+
+
+# ----------------------------------------------------------------------------------- events
+@routes.get("/api/events")
+async def events(request):
+    ws = web.WebSocketResponse(heartbeat=30.0, max_msg_size=4096)
+    await ws.prepare(request)
+    queue: asyncio.Queue = asyncio.Queue(EVENT_QUEUE)
+    clients: set = request.app[STATE]["clients"]
+    clients.add(queue)
+    try:
+        await ws.send_json({"type": "status", "status": request.app[JOBS].status()})
+        receiver = asyncio.ensure_future(ws.receive())
+        while not ws.closed:
+            getter = asyncio.ensure_future(queue.get())
+            done, _ = await asyncio.wait({getter, receiver}, return_when=asyncio.FIRST_COMPLETED)
+            if receiver in done:
+                getter.cancel()
+                message = receiver.result()
+                if message.type in (WSMsgType.CLOSE, WSMsgType.CLOSED, WSMsgType.CLOSING, WSMsgType.ERROR):
+                    break
+                receiver = asyncio.ensure_future(ws.receive())  # clients have nothing to say: ignored
+                continue
+            record = getter.result()
+            if record is None:   # fell too far behind
+                await ws.close(message=b"too slow")
+                break
+            await ws.send_json(record)
+        receiver.cancel()
+    finally:
+        clients.discard(queue)
+    return ws
+
+
+def _broadcast(app: web.Application, record: dict) -> None:
+    """On the event loop: hand one record to every websocket client."""
+    for queue in list(app[STATE]["clients"]):
+        try:
+            queue.put_nowait(record)
+        except asyncio.QueueFull:
+            app[STATE]["clients"].discard(queue)
+            while not queue.empty():
+                queue.get_nowait()
+            queue.put_nowait(None)
+
+
+async def _notify(app: web.Application, url: str, record: dict) -> None:
+    try:
+        async with app[STATE]["http"].post(url, json=record) as response:
+            if response.status >= 400:
+                log.warning("webhook %s answered %s", url, response.status)
+    except Exception as exc:  # a notification must never disturb the instrument
+        log.warning("webhook %s failed: %s", url, exc)
+
+
+def webhook_record(job: dict) -> dict | None:
+    """The notification for a finished job (done / failed / flagged), or None for one not worth one."""
+    if job["state"] not in ("done", "failed") or job["outcome"] == "asked":
+        return None
+    event = "failed" if job["state"] == "failed" else "flagged" if job["flagged"] else "done"
+    return {"event": event, "job": job, "measurement": job["measurement"]}
+
+
+# ---------------------------------------------------------------------------------- the app
+def create_app(jobs: Jobs, history: History, token: str, *, webhook: str | None = None) -> web.Application:
+    app = web.Application(middlewares=[errors_middleware, auth_middleware], client_max_size=MAX_BODY_BYTES)
+    app[JOBS], app[HISTORY], app[TOKEN] = jobs, history, token
+    app[STATE] = {"clients": set(), "executor": ThreadPoolExecutor(1, thread_name_prefix="trimeter-web-files")}
+    app.add_routes(routes)
+    app.router.add_static("/static/", resources.files("trimeter.web") / "static", show_index=False)
+
+    async def started(app):
+        loop = asyncio.get_running_loop()
+        app[STATE]["http"] = ClientSession(timeout=ClientTimeout(total=WEBHOOK_TIMEOUT_S))
+
+        def listener(record: dict) -> None:   # on the worker thread
+            loop.call_soon_threadsafe(_broadcast, app, record)
+            if webhook and record.get("type") == "job" and (note := webhook_record(record["job"])):
+                asyncio.run_coroutine_threadsafe(_notify(app, webhook, note), loop)
+
+        app[STATE]["listener"] = listener
+        jobs.listeners.append(listener)
+
+    async def stopping(app):
+        jobs.listeners.remove(app[STATE]["listener"])
+        for queue in list(app[STATE]["clients"]):
+            queue.put_nowait(None) if not queue.full() else None
+        await app[STATE]["http"].close()
+        app[STATE]["executor"].shutdown(wait=False)
+
+    app.on_startup.append(started)
+    app.on_cleanup.append(stopping)
+    return app
+
+
+class WebServer:
+    """The app on its own thread and event loop (the instrument's worker has another thread; the main
+    thread waits for Ctrl-C)."""
+
+    def __init__(self, app: web.Application, host: str, port: int):
+        self.app, self.host, self.port = app, host, port
+        self._loop = asyncio.new_event_loop()
+        self._ready = threading.Event()
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(target=self._run, name="trimeter-web", daemon=True)
+        self.url = ""
+
+    def start(self) -> "WebServer":
+        self._thread.start()
+        self._ready.wait(30)
+        if self._error is not None:
+            raise InputError(f"--http {self.host}:{self.port}: cannot listen ({self._error})")
+        return self
+
+    def _run(self) -> None:
+        asyncio.set_event_loop(self._loop)
+        runner = web.AppRunner(self.app, access_log=None, handle_signals=False)
+        try:
+            self._loop.run_until_complete(runner.setup())
+            site = web.TCPSite(runner, self.host, self.port, backlog=256)
+            self._loop.run_until_complete(site.start())
+            port = runner.addresses[0][1]
+            host = f"[{self.host}]" if ":" in self.host else self.host
+            self.url = f"http://{host}:{port}"
+        except BaseException as exc:
+            self._error = exc
+            self._ready.set()
+            self._loop.run_until_complete(runner.cleanup())
+            return
+        self._ready.set()
+        self._loop.run_forever()
+        self._loop.run_until_complete(runner.cleanup())
+        self._loop.close()
+
+    def close(self) -> None:
+        if self._thread.is_alive():
+            self._loop.call_soon_threadsafe(self._loop.stop)
+            self._thread.join(15)
+
+
+def parse_bind(text: str) -> tuple[str, int]:
+    """`HOST:PORT`, `[IPv6]:PORT` or `PORT` (then 127.0.0.1)."""
+    match = re.fullmatch(r"(?:\[([0-9A-Fa-f:.]+)\]|([^:\[\]]*)):(\d{1,5})|(\d{1,5})", text.strip())
+    if not match:
+        raise InputError(f"--http: {text!r} is not HOST:PORT (e.g. 127.0.0.1:8080, 0.0.0.0:8080 for the LAN)")
+    host = match[1] or match[2] or "127.0.0.1"
+    port = int(match[3] or match[4])
+    if port > 65535:
+        raise InputError(f"--http: port {port} is not within 0..65535")
+    return host, port
+
+
+def openapi() -> dict:
+    """The API's OpenAPI 3.1 description (served at /api/openapi.json)."""
+    def op(summary, *, body=None, params=(), responses=None):
+        out = {"summary": summary, "responses": {"200": {"description": "OK"}, "401": {"description": "no or wrong "
+                                                                                                         "token"},
+                                                 **(responses or {})}}
+        if body:
+            out["requestBody"] = {"content": {"application/json": {"schema": {"type": "object", "properties": body,
+                                                                              "additionalProperties": False}}}}
+        if params:
+            out["parameters"] = [{"name": n, "in": where, "required": where == "path", "schema": {"type": t},
+                                  "description": d} for n, where, t, d in params]
+        return out
+
+    job = {"202": {"description": "accepted: {job}, Location /api/jobs/{id}"},
+           "409": {"description": "a job is queued or running: {error: {job}}"}}
+    mid = ("id", "path", "string", "a results directory's name")
+    search = [("label", "query", "string", "part of the label"), ("since", "query", "string", "YYYY-MM-DD or ISO time"),
+              ("until", "query", "string", "YYYY-MM-DD (inclusive) or ISO time"),
+              ("flagged", "query", "boolean", "only measurements with (true) / without (false) flagged bins"),
+              ("flag", "query", "string", "only those with this FitFlag (e.g. UNDERDETERMINED)"),
+              ("limit", "query", "integer", "page size, 1..500 (default 50)"), ("offset", "query", "integer", ""),
+              ("format", "query", "string", "csv: every match as CSV")]
+    number_ = {"type": "number"}
+    return {
+        "openapi": "3.1.0",
+        "info": {"title": "trimeter", "version": "1",
+                 "description": "The instrument on the LAN. Errors: {error: {status, message}}. Access: cookie "
+                                "trimeter_token or Authorization: Bearer."},
+        "components": {"securitySchemes": {"bearer": {"type": "http", "scheme": "bearer"},
+                                           "cookie": {"type": "apiKey", "in": "cookie", "name": auth.COOKIE}}},
+        "security": [{"bearer": []}, {"cookie": []}],
+        "paths": {
+            "/api/status": {"get": op("state, current job, step and progress, lamp drift, calibration age, device "
+                                      "identity, active map table")},
+            "/api/jobs/{job_id}": {"get": op("one job (the current or one of the last 20)",
+                                             params=[("job_id", "path", "string", "")])},
+            "/api/calibrate": {"post": op("ask for an empty holder; with holder_empty: true (while asked) check "
+                                          "the holder, warm up and calibrate", body={"holder_empty":
+                                                                                    {"type": "boolean"}},
+                                          responses=job)},
+            "/api/measure": {"post": op("measure the sample(s) in the holder", body={
+                "label": {"type": "string"}, "thickness_mm": number_, "second_thickness_mm": number_},
+                responses=job)},
+            "/api/next-sample": {"post": op("the next sample is in (while asked for, with two thicknesses)",
+                                            responses={"409": {"description": "not asked for"}})},
+            "/api/maps": {"get": op("maps a refit may name, and the methods")},
+            "/api/measurements": {"get": op("search the history, newest first", params=search)},
+            "/api/measurements/{id}": {"get": op("one measurement: index row, measurement.json, parameters, "
+                                                 "flags in words, files", params=[mid])},
+            "/api/measurements/{id}/files/{name}": {"get": op("one file of it", params=[
+                mid, ("name", "path", "string", "a file name from `files`")])},
+            "/api/measurements/{id}/zip": {"get": op("its whole directory as a zip", params=[mid])},
+            "/api/measurements/{id}/refit": {"post": op("fit its capture again (another map or method) into a new "
+                                                        "record", params=[mid], responses=job, body={
+                                                            "maps": {"type": "array", "items": {"type": "string"}},
+                                                            "method": {"enum": list(METHODS)}})},
+            "/api/config": {"get": op("host and device configuration"),
+                            "put": op("change host settings and/or device items (all checked first; nothing "
+                                      "changes on an error); save: store the device's in its flash", body={
+                                          "host": {"type": "object"}, "device": {"type": "object"},
+                                          "save": {"type": "boolean"}})},
+            "/api/events": {"get": op("websocket: the service's events, progress and jobs as JSON, live")},
+            "/api/openapi.json": {"get": op("this description")},
+        },
+    }
