@@ -1,159 +1,51 @@
 #!/usr/bin/env python3
-"""Train the `mlp` inverse for an appearance map and export it to ONNX next to the map.
+"""Train the `mlp` inverse for an appearance map and export it to ONNX next to the map: the onnx stage
+of `trimeter map build RECIPE --stages onnx` (trimeter.maps.pipeline; training in
+trimeter.maps.mlp_training), for a map given by file or shipped name.
 
     .venv/bin/python tools/train_mlp.py maps/device-l0.4.tmap [-o maps/device-l0.4.onnx]
         [--hidden 32,32] [--activation relu] [--samples 400000] [--epochs 80] [--seed 0]
-
-Training data: random materials (α denser towards 1, ln σt uniform, g uniform over the map's range)
-and random backgrounds (ρ_b ∈ [0, 0.1], ρ_w ∈ [0.85, 1]) pushed through the map as it is evaluated
-between its nodes (AppearanceMap.between_nodes: the model the polish refines the guess on). Features
-and targets: trimeter.inversion.mlp.
-scikit-learn trains (StandardScaler + MLPRegressor); the network is written as a plain ONNX graph
-(network_graph: Gemm layers, the scaler folded in) with the map's SHA-256 stored
-in the model's metadata and inference refuses a model used with any other map.
 """
 
 from __future__ import annotations
 
 import argparse
 import sys
-import time
 from pathlib import Path
 
-import numpy as np
+from trimeter.maps.mlp_training import DEFAULTS, export, network_graph, train, training_set
 
-
-def training_set(amap, n: int, rng: np.random.Generator):
-    from trimeter.inversion.mlp import features
-
-    grid = amap.between_nodes
-    a_lo, a_hi = grid.alpha_range
-    u = rng.uniform(0, 1, n)
-    alpha = np.where(rng.uniform(0, 1, n) < 0.5, a_lo + (a_hi - a_lo) * u, a_hi - (a_hi - a_lo) * u ** 2)
-    log_s = rng.uniform(grid.log_sigma_t[0], grid.log_sigma_t[-1], n)
-    g = rng.uniform(*grid.g_range, n)
-    rho_b = rng.uniform(0.0, 0.1, n)
-    rho_w = rng.uniform(0.85, 1.0, n)
-    sigma_t = np.exp(log_s)
-    I_b, I_w, _ = grid.intensities(alpha, sigma_t, g, rho_b, rho_w)
-    x = features(I_b, I_w, sigma_t, rho_b, rho_w, (grid.log_sigma_t[0], grid.log_sigma_t[-1]))
-    return x, np.column_stack([alpha, g]).astype(np.float32)
-
-
-def train(amap, hidden=(32, 32), samples=400000, epochs=80, seed=0, activation="relu"):
-    from sklearn.neural_network import MLPRegressor
-    from sklearn.pipeline import make_pipeline
-    from sklearn.preprocessing import StandardScaler
-
-    rng = np.random.default_rng(seed)
-    x, y = training_set(amap, samples, rng)
-    model = make_pipeline(StandardScaler(), MLPRegressor(hidden_layer_sizes=hidden, activation=activation,
-                                                         max_iter=epochs, batch_size=256, learning_rate_init=2e-3,
-                                                         tol=1e-7, n_iter_no_change=15, random_state=seed))
-    import warnings
-
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # ConvergenceWarning at max_iter is expected: epochs are a budget
-        model.fit(x, y)
-    xv, yv = training_set(amap, 20000, np.random.default_rng(seed + 1))
-    err = np.abs(model.predict(xv) - yv)
-    return model, {"alpha_abs_p95": float(np.percentile(err[:, 0], 95)),
-                   "g_abs_p95": float(np.percentile(err[:, 1], 95))}
-
-
-def network_graph(model):
-    """The fitted StandardScaler + MLPRegressor pipeline as a plain ONNX graph: Gemm, activation, …,
-    Gemm, with the scaler folded into the first layer (W₁' = diag(1/scale)·W₁,
-    b₁' = b₁ − (mean/scale)·W₁).
-    Why not skl2onnx: its graph (an ai.onnx.ml Scaler, a Cast, MatMul + Add per layer, a final
-    Reshape that interleaved the two outputs) ran 0.059 ms per 1024 bins in onnxruntime; this one
-    0.029 ms, the same predictions to float32 rounding."""
-    from onnx import TensorProto, helper, numpy_helper
-
-    from trimeter.inversion.mlp import FEATURES
-
-    scaler, net = model.steps[0][1], model.steps[-1][1]
-    activation = {"relu": "Relu", "tanh": "Tanh"}.get(net.activation)
-    if activation is None or net.out_activation_ != "identity":
-        raise ValueError(f"unsupported network: activation {net.activation!r}, output {net.out_activation_!r}")
-    weights = [np.asarray(w, dtype=np.float64) for w in net.coefs_]
-    biases = [np.asarray(b, dtype=np.float64) for b in net.intercepts_]
-    mean = np.zeros(weights[0].shape[0]) if scaler.mean_ is None else scaler.mean_
-    scale = np.ones(weights[0].shape[0]) if scaler.scale_ is None else scaler.scale_
-    biases[0] = biases[0] - (mean / scale) @ weights[0]
-    weights[0] = weights[0] / scale[:, None]
-    nodes, inits, x = [], [], "features"
-    for k, (w, b) in enumerate(zip(weights, biases)):
-        inits += [numpy_helper.from_array(w.astype(np.float32), f"W{k}"),
-                  numpy_helper.from_array(b.astype(np.float32), f"b{k}")]
-        last = k == len(weights) - 1
-        y = "alpha_g" if last else f"z{k}"
-        nodes.append(helper.make_node("Gemm", [x, f"W{k}", f"b{k}"], [y]))
-        if not last:
-            nodes.append(helper.make_node(activation, [y], [f"h{k}"]))
-            x = f"h{k}"
-    n_in, n_out = len(FEATURES), weights[-1].shape[1]
-    graph = helper.make_graph(nodes, "trimeter-mlp-inverse",
-                              [helper.make_tensor_value_info("features", TensorProto.FLOAT, [None, n_in])],
-                              [helper.make_tensor_value_info("alpha_g", TensorProto.FLOAT, [None, n_out])], inits)
-    onx = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)], producer_name="tools/train_mlp.py")
-    onx.ir_version = 8  # onnxruntime ≥ 1.17 reads IR 8 / opset 17
-    return onx
-
-
-def export(model, amap, path: Path, hidden, stats: dict) -> Path:
-    import onnx
-
-    from trimeter.atomic import atomic_write
-    from trimeter.inversion.mlp import FEATURES, MODEL_KIND
-
-    onx = network_graph(model)
-    onnx.checker.check_model(onx)
-    check = np.random.default_rng(0).uniform(0, 1, (64, len(FEATURES))).astype(np.float32)
-    import onnxruntime as ort
-
-    got = ort.InferenceSession(onx.SerializeToString(), providers=["CPUExecutionProvider"]).run(
-        None, {onx.graph.input[0].name: check})[0]
-    if got.shape != (64, 2) or not np.allclose(got, model.predict(check), atol=1e-4):
-        raise RuntimeError("exported ONNX model does not reproduce scikit-learn's predictions")
-    meta = {"trimeter.kind": MODEL_KIND, "trimeter.format": "1", "trimeter.map_sha256": amap.checksum,
-            "trimeter.map_name": amap.name, "trimeter.features": ",".join(FEATURES), "trimeter.outputs": "alpha,g",
-            "trimeter.hidden": ",".join(map(str, hidden)), "trimeter.producer": "tools/train_mlp.py",
-            "trimeter.validation": ",".join(f"{k}={v:.4g}" for k, v in stats.items())}
-    for key, value in meta.items():
-        prop = onx.metadata_props.add()
-        prop.key, prop.value = key, value
-    return atomic_write(path, onx.SerializeToString())
+__all__ = ["export", "network_graph", "train", "training_set", "main"]
 
 
 def main(argv=None) -> int:
-    from trimeter.inversion.mlp import model_path_for
+    from trimeter.errors import TrimeterError
     from trimeter.maps.appearance import AppearanceMap, find_map
+    from trimeter.maps.pipeline import Options, make_child
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("map", help="map file or shipped map name")
     ap.add_argument("-o", "--output", type=Path, help="default: next to the map, <name>.onnx")
-    ap.add_argument("--hidden", default="32,32", help="hidden layer sizes, comma-separated")
-    # 400k samples (was 60k; ~30 s of training): the guess itself is closer (l0.8 held-out α p50 0.019 →
-    # 0.013, p95 0.13 → 0.10), the polish takes 3.4 steps per bin instead of 3.6, and the thick,
-    # underdetermined bins — where the polish stops near the guess — end closer: l0.8 polished α p95
-    # 0.032 → 0.029 (l0.4 unchanged, 0.0068). 64-64 guessed no better for 2.4× the ONNX time.
-    ap.add_argument("--samples", type=int, default=400000)
-    ap.add_argument("--epochs", type=int, default=80)
-    ap.add_argument("--seed", type=int, default=0)
-    # ReLU 32-32 (was tanh 64-64): the polish ends where it would from a tanh 64-64 guess (both ~4.5
-    # Newton steps per bin; the network's guess, like the table's, is ~0.1 off in α at p95), and the
-    # ONNX call is ~0.07 ms per 1024 bins cheaper (whole mlp fit 0.495 → 0.426 ms on l0.4)
-    ap.add_argument("--activation", default="relu", choices=("tanh", "relu"))
+    ap.add_argument("--hidden", default=",".join(map(str, DEFAULTS["hidden"])),
+                    help="hidden layer sizes, comma-separated")
+    ap.add_argument("--samples", type=int, default=DEFAULTS["samples"])
+    ap.add_argument("--epochs", type=int, default=DEFAULTS["epochs"])
+    ap.add_argument("--seed", type=int, default=DEFAULTS["seed"])
+    ap.add_argument("--activation", default=DEFAULTS["activation"], choices=("tanh", "relu"))
     args = ap.parse_args(argv)
-    amap = AppearanceMap.load(find_map(args.map))
-    hidden = tuple(int(h) for h in args.hidden.split(","))
-    t0 = time.perf_counter()
-    model, stats = train(amap, hidden, args.samples, args.epochs, args.seed, args.activation)
-    out = export(model, amap, args.output or model_path_for(amap.path), hidden, stats)
-    print(f"{out}: {out.stat().st_size} bytes, hidden {hidden}, trained in {time.perf_counter() - t0:.1f} s; "
-          f"raw network on fresh map samples: α abs p95 {stats['alpha_abs_p95']:.4f}, g abs p95 "
-          f"{stats['g_abs_p95']:.4f}")
+    try:
+        hidden = tuple(int(h) for h in args.hidden.split(","))
+    except ValueError:
+        ap.error(f"--hidden: comma-separated layer sizes, got {args.hidden!r}")
+    if not hidden or min(hidden) < 1 or args.samples < 100 or args.epochs < 1:
+        ap.error("--hidden sizes, --samples (≥ 100) and --epochs must be positive")
+    try:
+        amap = AppearanceMap.load(find_map(args.map))
+        make_child("onnx", amap, Options(mlp_hidden=hidden, mlp_samples=args.samples, mlp_epochs=args.epochs,
+                                         mlp_seed=args.seed, mlp_activation=args.activation), out=args.output)
+    except TrimeterError as exc:
+        print(f"train_mlp: error: {exc}", file=sys.stderr)
+        return 2
     return 0
 
 
