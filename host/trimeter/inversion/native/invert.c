@@ -897,8 +897,11 @@ static double correct_inscatter(const tm_forward_grid *f, const sigma_cell_t *c,
 static void model_variance(const tm_forward_grid *f, const sigma_cell_t *c, double alpha, double g, double *var_b,
                            double *var_w) {
     double wa, wg, ws = c->ws;
-    int ia = find_cell(f->alpha, f->inv_da, f->na, alpha, &wa);
-    int ig = find_cell(f->g, f->inv_dg, f->ng, g, &wg);
+    /* from the last evaluation's cells (the solution is at most a step away): find_cell's result for any
+     * non-NaN (α, g), without its search */
+    int ia = c->ia < 0 ? find_cell(f->alpha, f->inv_da, f->na, alpha, &wa)
+                       : walk_from(f->alpha, f->inv_da, f->na, alpha, c->ia, &wa);
+    int ig = c->ig < 0 ? find_cell(f->g, f->inv_dg, f->ng, g, &wg) : walk_from(f->g, f->inv_dg, f->ng, g, c->ig, &wg);
     int is = c->is;
     double out[2];
     for (int k = 0; k < 2; k++) {
