@@ -21,7 +21,6 @@ import re
 import threading
 import zipfile
 from concurrent.futures import ThreadPoolExecutor
-from importlib import resources
 from pathlib import Path
 from typing import Callable
 
@@ -42,6 +41,7 @@ from trimeter.web.jobs import Busy, Job, Jobs
 
 log = logging.getLogger("trimeter.web")
 
+STATIC = Path(__file__).resolve().parent / "static"   # package data (pyproject)
 MAX_BODY_BYTES = 64 * 1024          # every request body is a small JSON object
 EVENT_QUEUE = 256                   # events buffered per websocket client; a client that falls further behind is closed
 DEVICE_CALL_TIMEOUT_S = 15.0
@@ -213,7 +213,7 @@ async def index(request: web.Request):
 
 
 def _static_text(name: str) -> str:
-    return resources.files("trimeter.web").joinpath("static", name).read_text()
+    return (STATIC / name).read_text()
 
 
 @routes.get("/api/openapi.json")
@@ -558,7 +558,7 @@ def create_app(jobs: Jobs, history: History, token: str, *, webhook: str | None 
     app[JOBS], app[HISTORY], app[TOKEN] = jobs, history, token
     app[STATE] = {"clients": set(), "executor": ThreadPoolExecutor(1, thread_name_prefix="trimeter-web-files")}
     app.add_routes(routes)
-    app.router.add_static("/static/", resources.files("trimeter.web") / "static", show_index=False)
+    app.router.add_static("/static/", STATIC, show_index=False)
 
     async def started(app):
         loop = asyncio.get_running_loop()
