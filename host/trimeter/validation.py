@@ -6,6 +6,19 @@ import math
 
 from trimeter.errors import InputError
 
+SHOWN_CHARS = 60  # characters of an offending value quoted in a message
+
+
+def shown(value, limit: int = SHOWN_CHARS) -> str:
+    """repr(value) cut to `limit` characters + '…': a hostile file's 10 MB value is not echoed back.
+    Containers are summarised by type and length (a deep one is not walked), huge integers by size."""
+    if isinstance(value, (dict, list, tuple)):
+        return f"a {type(value).__name__} of {len(value)} item(s)"
+    if isinstance(value, int) and value.bit_length() > 4 * limit:
+        return f"an integer of {value.bit_length()} bits"
+    text = repr(value[:limit + 1] if isinstance(value, str) else value)
+    return text if len(text) <= limit else text[:limit] + "…"
+
 
 def require_number(field: str, value, *, lo: float | None = None, hi: float | None = None,
                    lo_open: bool = False, hi_open: bool = False) -> float:

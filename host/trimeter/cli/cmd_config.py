@@ -17,7 +17,7 @@ from enum import IntEnum
 from pathlib import Path
 
 from trimeter import registers as regs
-from trimeter.device.backup import config_source_warning, dump_config, parse_config
+from trimeter.device.backup import config_source_warning, dump_config, listing, read_config
 from trimeter.device.client import CONFIG_NAMES
 from trimeter.cli._instrument import add_instrument_args, open_device, settings_from
 from trimeter.errors import InputError
@@ -105,13 +105,9 @@ def cmd_export(args):
 
 
 def cmd_import(args):
-    try:
-        text = args.file.read_text()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"{args.file}: cannot read ({getattr(exc, 'strerror', None) or exc})") from None
-    values, unknown = parse_config(text, str(args.file))
+    values, unknown = read_config(args.file)
     if unknown:  # e.g. items a newer or older firmware had: the rest is still restored
-        print(f"skipped, not in this firmware's register map: {', '.join(unknown)}", file=sys.stderr)
+        print(f"skipped, not in this firmware's register map: {listing(unknown)}", file=sys.stderr)
     with open_device(settings_from(args)) as dev:
         dev.write_config(values)
         kept = [n for n in CONFIG_NAMES if n not in values]

@@ -30,6 +30,7 @@ import numpy as np
 
 from trimeter.atomic import atomic_write, same_file
 from trimeter.errors import InputError, OutputError
+from trimeter.validation import shown
 
 REQUIRED = ("wavelength_nm", "I_b", "I_w", "I_c")
 OPTIONAL = ("rho_b", "rho_w", "thickness_mm", "I_b_std", "I_w_std", "I_c_std", "thickness_std_mm")
@@ -57,21 +58,31 @@ def read_measurements(path: Path) -> dict[str, np.ndarray]:
         text = path.read_text(encoding="utf-8-sig")
     except (OSError, UnicodeDecodeError) as exc:
         raise InputError(f"--input {path}: cannot read ({getattr(exc, 'strerror', None) or exc})") from None
-    reader = csv.DictReader(line for line in text.splitlines() if line.strip() and not line.lstrip().startswith("#"))
-    header = [h.strip() for h in (reader.fieldnames or [])]
+    lines = (line for line in text.splitlines() if line.strip() and not line.lstrip().startswith("#"))
+    try:
+        return _parse_columns(csv.reader(lines), path)
+    except csv.Error as exc:  # e.g. a field over the csv module's limit, a NUL byte
+        raise InputError(f"--input {path}: not a readable CSV ({exc})") from None
+
+
+def _parse_columns(reader, path: Path) -> dict[str, np.ndarray]:
+    header = [h.strip() for h in next(reader, [])]
+    duplicated = sorted({h for h in header if header.count(h) > 1})
+    if duplicated:
+        raise InputError(f"--input {path}: column(s) {', '.join(map(shown, duplicated))} appear more than once")
     missing = [c for c in REQUIRED if c not in header]
     if missing:
         raise InputError(f"--input {path}: missing column(s) {', '.join(missing)} (have: "
-                         f"{', '.join(header) or 'none'})")
+                         f"{', '.join(map(shown, header)) or 'none'})")
     columns = {c: [] for c in REQUIRED + OPTIONAL if c in header}
+    where = {c: header.index(c) for c in columns}
     for row_no, row in enumerate(reader, start=2):
-        row = {(k or "").strip(): v for k, v in row.items()}
-        for c in columns:
-            cell = (row.get(c) or "").strip()
+        for c, i in where.items():
+            cell = row[i].strip() if i < len(row) else ""
             try:
                 columns[c].append(float(cell) if cell else math.nan)
             except ValueError:
-                raise InputError(f"--input {path}: line {row_no}, column {c}: {cell!r} is not a number") from None
+                raise InputError(f"--input {path}: line {row_no}, column {c}: {shown(cell)} is not a number") from None
     data = {c: np.array(v, dtype=float) for c, v in columns.items()}
     if not len(data["wavelength_nm"]):
         raise InputError(f"--input {path}: no data rows")

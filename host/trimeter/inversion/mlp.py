@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from trimeter.errors import MapFileError
-from trimeter.maps.schema import shown
+from trimeter.validation import shown
 
 MODEL_SUFFIX = ".onnx"
 MODEL_KIND = "mlp-inverse"

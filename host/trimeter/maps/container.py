@@ -31,7 +31,8 @@ from pathlib import Path
 import numpy as np
 
 from trimeter.errors import MapFileError
-from trimeter.maps.schema import ALLOWED_DTYPES, ContainerSchema, Items, Json, Number, SchemaError, Table, Text, shown
+from trimeter.maps.schema import ALLOWED_DTYPES, ContainerSchema, Items, Json, Number, SchemaError, Table, Text
+from trimeter.validation import shown
 
 MAGIC = b"\x89TRMAP\r\n"
 FORMAT_VERSION = 1

@@ -17,20 +17,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-_SHOWN = 60  # characters of an offending value quoted in a message
+from trimeter.validation import shown
 
 
 class SchemaError(ValueError):
     """A header field that breaks its schema; `str()` names the field."""
-
-
-def shown(value, limit: int = _SHOWN) -> str:
-    """repr(value) cut to `limit` characters: a hostile file's 10 MB value is not echoed back.
-    Containers are summarised by type and length, so a deep one is not walked by repr."""
-    if isinstance(value, (dict, list, tuple)):
-        return f"a {type(value).__name__} of {len(value)} item(s)"
-    text = repr(value) if not isinstance(value, str) or len(value) <= limit else repr(value[:limit])
-    return text if len(text) <= limit else text[:limit] + "…"
 
 
 def _fail(where: str, message: str):
