@@ -30,6 +30,8 @@ def register(subparsers) -> None:
     where.add_argument("--workers", type=int, help="local Dask cluster of N worker processes, one core each "
                                                    f"(default: this machine's {os.cpu_count()} cores)")
     where.add_argument("--scheduler", metavar="ADDRESS", help="run on an existing Dask cluster (tcp://host:8786)")
+    p.add_argument("--connect-timeout", type=float, default=10.0, metavar="SECONDS",
+                   help="how long to wait for the --scheduler to answer (default 10)")
     p.add_argument("--retries", type=int, default=2, help="runs of a failed column (worker killed, out of memory, "
                                                           "error) beyond the first before the build stops "
                                                           "(default 2)")
@@ -93,6 +95,8 @@ def cmd_build(args) -> int:
         raise InputError(f"--retries must be 0…100, got {args.retries}")
     if args.workers is not None and not 1 <= args.workers <= 1024:
         raise InputError(f"--workers must be 1…1024, got {args.workers}")
+    if not 0.1 <= args.connect_timeout <= 600:
+        raise InputError(f"--connect-timeout must be 0.1…600 s, got {args.connect_timeout:g}")
     if args.inscatter_photons < 1000:
         raise InputError("--inscatter-photons: at least 1000")
     out_dir = Path(args.out_dir) if args.out_dir else Path(".")
@@ -114,7 +118,9 @@ def cmd_build(args) -> int:
         return 0
     from trimeter.maps.distributed import local_client, remote_client
 
-    with (remote_client(args.scheduler) if args.scheduler else local_client(args.workers, args.retries)) as client:
+    cluster = (remote_client(args.scheduler, args.connect_timeout) if args.scheduler else
+               local_client(args.workers, args.retries))
+    with cluster as client:
         pipeline.run(targets, stages, client=client, **run)
     return 0
 

@@ -104,11 +104,16 @@ def run_on_cluster(client, pending, tracer: Callable, retries: int):
     try:
         for future in as_completed(futures):
             state, j, k = futures.pop(future)
-            if future.status != "finished":
-                raise _column_failed(state, j, k, future.exception(), retries)
-            col, written = future.result()
-            if not written:         # the worker did not see the checkpoint directory: keep the column here
-                state.ckpt.save(j, k, col)
+            # A result held by a worker that died since is lost (Dask would recompute it); its column
+            # file is not, and it is the truth.
+            col = state.ckpt.load(j, k) if future.status == "lost" else None
+            if col is None:
+                try:
+                    col, written = future.result()
+                except Exception as exc:  # noqa: BLE001 - the task's own error or KilledWorker, named below
+                    raise _column_failed(state, j, k, exc, retries) from None
+                if not written:     # the worker did not see the checkpoint directory: keep the column here
+                    state.ckpt.save(j, k, col)
             future.release()
             yield state, j, k, col
     finally:

@@ -68,6 +68,7 @@ class Options:
     """The children's settings (the defaults are what the shipped files were made with)."""
     inscatter_photons: int = 30_000
     inscatter_seed: int = 0
+    inscatter_shape: tuple[int, int, int] = (25, 21, 13)   # α × σt·ℓ × g nodes
     table_n_xy: int | None = None
     mlp_hidden: tuple[int, ...] = (32, 32)
     mlp_samples: int = 400_000
@@ -91,7 +92,8 @@ def compute(stage: str, amap, options: Options):
         from trimeter.forward.inscatter import InscatterTable
 
         return InscatterTable.build(amap.n, amap.thickness_mm, amap.recipe["geometry_params"],
-                                    photons=options.inscatter_photons, seed=options.inscatter_seed)
+                                    photons=options.inscatter_photons, seed=options.inscatter_seed,
+                                    shape=options.inscatter_shape)
     if stage == "tlut":
         from trimeter.inversion.table import build_from_map
 
