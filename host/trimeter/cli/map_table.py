@@ -14,16 +14,14 @@ import zlib
 from pathlib import Path
 
 from trimeter.cli._instrument import add_instrument_args, open_device, settings_from
-from trimeter.errors import DeviceError, InputError
+from trimeter.errors import DeviceError
 
 
 def _read_table(path: str) -> bytes:
-    from trimeter.inversion.table import MapTable
+    from trimeter.inversion.table import MAX_TABLE_BYTES, MapTable
+    from trimeter.maps.container import read_bounded
 
-    try:
-        data = Path(path).read_bytes()
-    except OSError as exc:
-        raise InputError(f"table: cannot read {path} ({exc.strerror})") from None
+    data = read_bounded(Path(path), MAX_TABLE_BYTES, "map table")  # a larger file is refused unread
     MapTable.from_bytes(data, source=path)  # MapFileError (one line) on any defect: never flash garbage
     return data
 
