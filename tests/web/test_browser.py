@@ -1,0 +1,73 @@
+"""The page in a real browser (Debian's headless chromium through chromium-driver): opened with the
+token, it calibrates (the "holder is empty" confirm stands in for the press), starts a measurement
+on the twin, waits for the result page with its plot, and saves screenshots (to
+$TRIMETER_SCREENSHOT_DIR if set — docs/img holds the project's — else the test's temporary directory)."""
+
+from __future__ import annotations
+
+import os
+import shutil
+from pathlib import Path
+
+import pytest
+
+from conftest import web_instrument
+from hil_support import SAMPLE, THICKNESS_MM
+
+CHROMIUM, DRIVER = shutil.which("chromium"), shutil.which("chromedriver")
+pytestmark = pytest.mark.skipif(not (CHROMIUM and DRIVER),
+                                reason="needs Debian's chromium and chromium-driver (tools/setup.sh installs them)")
+
+
+@pytest.fixture
+def browser():
+    from selenium import webdriver
+    from selenium.webdriver.chrome.service import Service
+
+    options = webdriver.ChromeOptions()
+    options.binary_location = CHROMIUM
+    for arg in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage", "--window-size=1280,1000",
+                "--disable-gpu", "--force-device-scale-factor=1"):
+        options.add_argument(arg)
+    driver = webdriver.Chrome(service=Service(executable_path=DRIVER), options=options)
+    driver.set_page_load_timeout(30)
+    yield driver
+    driver.quit()
+
+
+def test_the_page_calibrates_measures_and_shows_the_result(tmp_path, browser):
+    from selenium.webdriver.common.by import By
+    from selenium.webdriver.support import expected_conditions as EC
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    shots = Path(os.environ.get("TRIMETER_SCREENSHOT_DIR") or tmp_path)
+    shots.mkdir(parents=True, exist_ok=True)
+    wait = WebDriverWait(browser, 120)
+
+    with web_instrument(tmp_path / "rig") as web:
+        web.twin.control.remove_sample()
+        browser.get(f"{web.url}/?token={web.token}")
+        assert "token" not in browser.current_url  # taken once, then a cookie
+        wait.until(EC.text_to_be_present_in_element((By.ID, "state"), "Empty the holder"))
+        wait.until(EC.element_to_be_clickable((By.ID, "holder-empty"))).click()
+        wait.until(EC.text_to_be_present_in_element((By.ID, "state"), "Ready"))
+        web.twin.control.insert_sample(SAMPLE, THICKNESS_MM)
+        label = browser.find_element(By.NAME, "label")
+        label.send_keys("cyan-ink")
+        wait.until(EC.text_to_be_present_in_element((By.ID, "conn"), "live"))
+        browser.save_screenshot(str(shots / "web-status.png"))
+        browser.find_element(By.ID, "measure-btn").click()
+        wait.until(EC.url_contains("#/m/"))
+        wait.until(EC.presence_of_element_located((By.CSS_SELECTOR, "#m-plot svg path")))
+        assert "cyan-ink" in browser.find_element(By.ID, "m-title").text
+        assert browser.find_elements(By.CSS_SELECTOR, "#m-files a")
+        browser.save_screenshot(str(shots / "web-measurement.png"))
+        measured = browser.current_url.rsplit("/", 1)[1]
+        assert (web.history.root / measured / "parameters.csv").exists()
+
+        browser.get(f"{web.url}/#/history")
+        wait.until(EC.presence_of_element_located((By.CSS_SELECTOR, "#rows tr")))
+        assert measured in browser.find_element(By.ID, "rows").get_attribute("innerHTML")
+        browser.save_screenshot(str(shots / "web-history.png"))
+    for name in ("web-status.png", "web-measurement.png", "web-history.png"):
+        assert (shots / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
