@@ -106,7 +106,7 @@ def test_the_maps_own_error_enters_the_stds():
         grid.model_var = saved
         api.table_inverter(amap)._native = solver
     ok = (with_map.flags == 0) & (noise_only.flags == 0)
-    assert np.median(with_map.alpha_std[ok] / noise_only.alpha_std[ok]) > 2  # the map's error dominates here
+    assert np.median(with_map.alpha_std[ok] / noise_only.alpha_std[ok]) > 1.5  # the interpolation error dominates
 
 
 @pytest.mark.skipif(not native.available(), reason=native.status())
