@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from trimeter.geometry import load_geometry
-from trimeter.maps.tracer import ColumnTally, Stack, Tally, k_max_for
+from trimeter.errors import InputError
+from trimeter.maps.tracer import ColumnTally, Stack, Tally, _detector_sums, k_max_for, resolve_backend
 from trimeter.maps.tracer import trace_column as trace
 
 from maps_direct_render import render_black_panels
@@ -60,6 +61,43 @@ def test_polynomial_bookkeeping_equals_per_path_sums():
     per_path = 0.8 * np.where(sel[:, None], powers * np.where(m[:, None] == 0, 1.0, q[None, :]), 0.0)
     var = per_path.var(axis=0, ddof=1) / n_paths + (B * q * q) ** 2 * per_below.var(axis=0, ddof=1) / n_below
     np.testing.assert_allclose(tally.stderr(alpha, rho), np.sqrt(var), rtol=1e-10)
+
+
+def test_next_event_sums_equal_per_path_values():
+    """A detector path's value is v·α^k₁·q (its next-event estimate at the first background bounce) +
+    h·α^k·q^m (it reached the light itself): the tallies' mean and second moment at any (α, q) equal
+    the explicit per-path ones."""
+    rng = np.random.default_rng(7)
+    n = 400
+    nee_k = rng.integers(0, 12, n)
+    nee_value = np.where(rng.random(n) < 0.6, rng.uniform(0.0, 2.0, n), 0.0)
+    m = np.where(nee_value > 0, np.where(rng.random(n) < 0.5, 1, 2), rng.integers(0, 3, n))
+    k = np.where(m >= 1, nee_k + rng.integers(0, 5, n), rng.integers(0, 12, n))
+    hit = rng.random(n) < 0.5
+    counts, second = _detector_sums(k, m, hit, nee_k, nee_value)
+    tally = Tally(counts=counts, n_paths=n, weight=0.7, specular=0.0, truncated=0, k_max=100, second=second)
+    alpha, q = np.array([0.0, 0.4, 0.97]), 0.8
+    h = (hit & (m < 2))[:, None]
+    value = 0.7 * (nee_value[:, None] * alpha**nee_k[:, None] * q + h * alpha**k[:, None] * q ** m[:, None])
+    first, second_moments = tally._moments(alpha)
+    np.testing.assert_allclose(first[0] + q * first[1], value.mean(axis=0), rtol=1e-12)
+    np.testing.assert_allclose(sum(second_moments[p] * q**p for p in range(3)), (value**2).mean(axis=0), rtol=1e-12)
+
+
+def test_backend_llvm_runs_and_cuda_without_a_gpu_is_a_clear_error(ideal):
+    import drjit as dr
+
+    assert resolve_backend("llvm") == "llvm"
+    tally = trace(ideal, 1.0, 0.5, 4096, 3, K_MAX, backend=resolve_backend("llvm"))
+    assert tally.n_paths == 4096 and tally.above.counts.sum() > 0
+    with pytest.raises(InputError, match="backend"):
+        resolve_backend("gpu")
+    if dr.has_backend(dr.JitBackend.CUDA):
+        assert resolve_backend("auto") == "cuda"
+    else:
+        assert resolve_backend("auto") == "llvm"
+        with pytest.raises(InputError, match="no CUDA device"):
+            resolve_backend("cuda")
 
 
 def test_alpha_zero_is_beer_lambert_with_fresnel_and_g_has_no_effect(ideal):

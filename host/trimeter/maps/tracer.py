@@ -39,6 +39,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from trimeter.errors import InputError
 from trimeter.maps.appearance import background_response
 
 N_BACKGROUND_ORDERS = 2  # detector paths stop at their 2nd background hit: m = 0 → A, m = 1 → B
@@ -97,6 +98,27 @@ class Stack:
                    detector_half_side=side / 2, scale=float(reflectance_scale(p)))
 
 
+def _panel_margin(stack: Stack) -> float:
+    """How far [mm] the panel's hit point can move when a ray leaves the top of the stack rather than
+    going straight on from the background: the refracted ray's sideways offset (at most the stack's
+    thickness × the steepest panel direction's tanθ), × 3 for the slant onto the panel, + 1 mm."""
+    if not stack.panels:
+        return 0.0
+    steepest = 0.0
+    w = stack.background_half_width if math.isfinite(stack.background_half_width) else 0.0
+    for p in stack.panels:
+        for su in (-1, 1):
+            for sv in (-1, 1):
+                corner = [p.center[j] + su * p.half_u * p.axis_u[j] + sv * p.half_v * p.axis_v[j] for j in range(3)]
+                for bx in (-w, w):
+                    for by in (-w, w):
+                        rise = corner[2] - stack.background_z
+                        run = math.hypot(corner[0] - bx, corner[1] - by)
+                        steepest = max(steepest, run / rise if rise > 0 else math.inf)
+    thickness = stack.plane_z[0] - stack.plane_z[-1]
+    return 3 * thickness * min(steepest, 20.0) + 1.0
+
+
 def _panel_from_corners(corners) -> Panel:
     corners = np.asarray(corners, dtype=float)
     centre = corners.mean(axis=0)
@@ -114,9 +136,13 @@ def _panel_from_corners(corners) -> Panel:
 
 @dataclass
 class Tally:
-    """Histogram of contributing paths by (background bounces m, scattering events k)."""
+    """Sums over paths, as polynomials in α and q (q = ρ/(1 − Cρ) for detector paths): `counts[m, k]`
+    holds Σ of the values a path adds to the α^k q^m term (1 for a path that reaches the light; the
+    next-event estimate for one that reaches the background), `second[p, s]` Σ of its squared value's
+    α^s q^p terms, so that mean and variance of a path's value follow at any (α, ρ). None: every path
+    adds at most one term of value 1 (the background paths), so `second` follows from `counts`."""
 
-    counts: np.ndarray                  # (3, K+1) number of paths reaching the light with (m, k)
+    counts: np.ndarray                  # (rows, K+1)
     n_paths: int
     weight: float                       # contribution of one path at α = ρ = 1
     specular: float                     # deterministic first-surface reflection (k = m = 0)
@@ -124,11 +150,17 @@ class Tally:
     k_max: int
     seconds: float = 0.0
     path_events: int = 0                # loop iterations over all paths (work measure)
+    second: np.ndarray | None = None    # (2·rows − 1, 2K+1)
+
+    def __post_init__(self):
+        if self.second is None:
+            rows, width = self.counts.shape
+            self.second = np.zeros((2 * rows - 1, 2 * width - 1))
+            self.second[0::2, 0::2] = self.counts
 
     def __iadd__(self, other: "Tally") -> "Tally":
-        if other.counts.shape[1] > self.counts.shape[1]:
-            self.counts = np.pad(self.counts, ((0, 0), (0, other.counts.shape[1] - self.counts.shape[1])))
-        self.counts[:, : other.counts.shape[1]] += other.counts
+        self.counts = _add_padded(self.counts, other.counts)
+        self.second = _add_padded(self.second, other.second)
         self.n_paths += other.n_paths
         self.truncated += other.truncated
         self.seconds += other.seconds
@@ -136,13 +168,13 @@ class Tally:
         return self
 
     def _moments(self, alpha):
-        """Per-row first and second raw moments of one path's value, shape (rows, len(alpha))."""
+        """First moments per row m (shape (rows, nα)) and second moments per power p of q (shape
+        (2·rows − 1, nα)) of one path's value."""
         alpha = np.atleast_1d(np.asarray(alpha, dtype=float))
-        k = np.arange(self.counts.shape[1])
         with np.errstate(under="ignore"):
-            powers = alpha[None, :] ** k[:, None]               # (K+1, nα); 0**0 = 1
-            first = self.counts @ powers / self.n_paths * self.weight
-            second = self.counts @ (powers * powers) / self.n_paths * self.weight**2
+            powers = alpha[None, :] ** np.arange(self.second.shape[1])[:, None]   # 0**0 = 1
+            first = self.counts @ powers[: self.counts.shape[1]] / self.n_paths * self.weight
+            second = self.second @ powers / self.n_paths * self.weight**2
         return first, second
 
     def orders(self, alpha):
@@ -198,14 +230,14 @@ class ColumnTally:
         return c[0], c[1], C
 
     def stderr(self, alpha, rho):
-        """MC standard error of I(ρ) = A + Bρ/(1 − Cρ): each detector path contributes once (its m
-        decides whether it counts towards A or, × ρ/(1 − Cρ), towards B), plus C's own error
+        """MC standard error of I(ρ) = A + Bρ/(1 − Cρ): the spread of one detector path's value (its
+        terms towards A and, × q = ρ/(1 − Cρ), towards B, from `Tally.second`), plus C's own error
         propagated through ∂I/∂C = Bρ²/(1 − Cρ)²."""
         A, B, C = self.abc(alpha)
         q = rho / (1 - C * rho)
         f1, f2 = self.above._moments(alpha)
         mean = f1[0] + q * f1[1]
-        mean_sq = f2[0] + q * q * f2[1]
+        mean_sq = sum(f2[p] * q**p for p in range(len(f2)))
         n = self.above.n_paths
         var_above = np.maximum(mean_sq - mean * mean, 0.0) / max(n - 1, 1)
         g1, g2 = self.below._moments(alpha)
@@ -241,22 +273,32 @@ TRACE_CHUNK = 1 << 24
 
 
 def trace_column(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max: int,
-                 below_fraction: float = 1.0) -> ColumnTally:
+                 below_fraction: float = 1.0, backend: str = "llvm") -> ColumnTally:
     """Detector paths and (a fraction as many) background paths for one (σt, g); seeds derived from
-    `seed`; in chunks of at most TRACE_CHUNK paths (memory), chunk i > 0 seeded with _mix64(seed + i)."""
+    `seed`; in chunks of at most TRACE_CHUNK paths (memory), chunk i > 0 seeded with _mix64(seed + i).
+    `backend`: "llvm" or "cuda" (resolve_backend); the same seed gives the same paths on either, up to
+    the backends' floating-point differences."""
     n_paths = int(n_paths)
     total = None
     for i, start in enumerate(range(0, max(n_paths, 1), TRACE_CHUNK)):
         n = min(TRACE_CHUNK, n_paths - start)
         s = seed if i == 0 else _mix64(seed + i)
-        above = trace(stack, sigma_t, g, n, s, k_max)
+        above = trace(stack, sigma_t, g, n, s, k_max, backend=backend)
         below = trace(stack, sigma_t, g, max(1024, int(n * below_fraction)), _mix64(s ^ 0xB0B0B0B0), k_max,
-                      from_below=True)
+                      from_below=True, backend=backend)
         if total is None:
             total = ColumnTally(above, below)
         else:
             total += ColumnTally(above, below)
     return total
+
+
+def _add_padded(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    shape = tuple(max(x, y) for x, y in zip(a.shape, b.shape))
+    out = np.zeros(shape)
+    out[: a.shape[0], : a.shape[1]] += a
+    out[: b.shape[0], : b.shape[1]] += b
+    return out
 
 
 def _mix64(x: int) -> int:
@@ -275,14 +317,43 @@ def k_max_for(alpha_max: float, truncation: float) -> int:
 
 
 # ------------------------------------------------------------------------------------ Dr.Jit part
-def _drjit():
-    """Import Dr.Jit's LLVM backend lazily (maps load and query without it)."""
+BACKENDS = ("llvm", "cuda", "auto")
+
+
+def resolve_backend(name: str = "auto") -> str:
+    """The Dr.Jit backend a trace runs on: `llvm` (CPU, all cores), `cuda` (a GPU), or `auto` (CUDA
+    when Dr.Jit finds a CUDA device, else LLVM). Asking for `cuda` without one is an InputError."""
+    if name not in BACKENDS:
+        raise InputError(f"--backend must be one of {', '.join(BACKENDS)}, got {name!r}")
+    if name == "llvm":
+        return name
+    dr = _import_drjit()
+    has_cuda = bool(dr.has_backend(dr.JitBackend.CUDA))
+    if name == "cuda" and not has_cuda:
+        raise InputError("--backend cuda: Dr.Jit finds no CUDA device (driver and GPU) on this machine; "
+                         "use --backend llvm or auto")
+    return "cuda" if has_cuda else "llvm"
+
+
+def _import_drjit():
     llvm = "/usr/lib/x86_64-linux-gnu/libLLVM-19.so"
-    if os.path.exists(llvm):
+    if os.path.exists(llvm):  # the machine's default LLVM aborts at JIT time (shared/NOTES.md)
         os.environ.setdefault("DRJIT_LIBLLVM_PATH", llvm)
     import drjit as dr
-    import drjit.llvm as backend
-    return dr, backend
+    return dr
+
+
+def _drjit(backend: str = "llvm"):
+    """Dr.Jit and the array module of one backend (drjit.llvm or drjit.cuda), imported lazily: maps
+    load and query without Dr.Jit. The only place the array types are chosen."""
+    dr = _import_drjit()
+    if backend == "cuda":
+        import drjit.cuda as arrays
+    elif backend == "llvm":
+        import drjit.llvm as arrays
+    else:
+        raise InputError(f"backend must be 'llvm' or 'cuda' (resolve 'auto' first), got {backend!r}")
+    return dr, arrays
 
 
 def _fresnel(dr, cos_i, eta):
@@ -297,13 +368,13 @@ def _fresnel(dr, cos_i, eta):
 
 
 def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max: int, wave: int = 48,
-          from_below: bool = False) -> Tally:
+          from_below: bool = False, backend: str = "llvm") -> Tally:
     """Trace `n_paths` adjoint paths from the detector at extinction σt [1/mm] and HG anisotropy g;
     or, `from_below`, paths leaving the background (under the detector spot) cosine-distributed
     upward, tallying those that come back to the background (row 0) — the C coefficient."""
     import time
 
-    dr, B = _drjit()
+    dr, B = _drjit(backend)
     Float, UInt32, Bool = B.Float, B.UInt32, B.Bool
     t0 = time.perf_counter()
     L = len(stack.layer_n)
@@ -324,20 +395,94 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
             out = dr.select(li == i, values[i], out)
         return out
 
+    def sees_panel(p, px, py, pz, dx, dy, dz):
+        nx, ny, nz = p.normal
+        denom = dx * nx + dy * ny + dz * nz
+        t = ((p.center[0] - px) * nx + (p.center[1] - py) * ny + (p.center[2] - pz) * nz) / denom
+        hx, hy, hz = px + t * dx - p.center[0], py + t * dy - p.center[1], pz + t * dz - p.center[2]
+        u = hx * p.axis_u[0] + hy * p.axis_u[1] + hz * p.axis_u[2]
+        v = hx * p.axis_v[0] + hy * p.axis_v[1] + hz * p.axis_v[2]
+        return (denom < 0) & (t > 0) & (dr.abs(u) <= p.half_u) & (dr.abs(v) <= p.half_v)
+
     def light(px, py, pz, dx, dy, dz):
         """Radiance-1 light seen by a ray leaving upward: the sky (ideal) or the panels (device)."""
         if not stack.panels:
             return dz > 0
         seen = Bool(False)
         for p in stack.panels:
-            nx, ny, nz = p.normal
-            denom = dx * nx + dy * ny + dz * nz
-            t = ((p.center[0] - px) * nx + (p.center[1] - py) * ny + (p.center[2] - pz) * nz) / denom
-            hx, hy, hz = px + t * dx - p.center[0], py + t * dy - p.center[1], pz + t * dz - p.center[2]
-            u = hx * p.axis_u[0] + hy * p.axis_u[1] + hz * p.axis_u[2]
-            v = hx * p.axis_v[0] + hy * p.axis_v[1] + hz * p.axis_v[2]
-            seen |= (denom < 0) & (t > 0) & (dr.abs(u) <= p.half_u) & (dr.abs(v) <= p.half_v)
+            seen |= sees_panel(p, px, py, pz, dx, dy, dz)
         return seen
+
+    nee = not from_below
+    margin = _panel_margin(stack)
+
+    def straight_through(px, py, u_a, u_b):
+        """Next-event estimate at a background bounce (px, py): the light that leaves the bounce
+        upward and reaches the light *straight*, i.e. through every interface of the stack (Fresnel
+        transmission, no reflection), unscattered (Beer-Lambert through the sample) and past no side
+        face. Device: a direction towards a point drawn uniformly on one panel (chosen by u_a)
+        enlarged by `margin`, which holds every point the refracted ray can reach; ideal: a
+        cosine-distributed direction. Value = (cos/π)/pdf · transmittance · reached the light."""
+        if stack.panels:
+            count = len(stack.panels)
+            pick = dr.minimum(UInt32(u_a * count), count - 1)
+            u_a = u_a * count - Float(pick)
+            cx = cy = cz = ux = uy = uz = vx = vy = vz = hu = hv = Float(0.0)
+            for i, p in enumerate(stack.panels):
+                on = pick == i
+                cx, cy, cz = (dr.select(on, p.center[j], c) for j, c in enumerate((cx, cy, cz)))
+                ux, uy, uz = (dr.select(on, p.axis_u[j], c) for j, c in enumerate((ux, uy, uz)))
+                vx, vy, vz = (dr.select(on, p.axis_v[j], c) for j, c in enumerate((vx, vy, vz)))
+                hu, hv = dr.select(on, p.half_u + margin, hu), dr.select(on, p.half_v + margin, hv)
+            a, b = (2 * u_a - 1) * hu, (2 * u_b - 1) * hv
+            tx, ty, tz = cx + a * ux + b * vx - px, cy + a * uy + b * vy - py, cz + a * uz + b * vz - stack.background_z
+            dist2 = tx * tx + ty * ty + tz * tz
+            inv = dr.rsqrt(dist2)
+            ex, ey, ez = tx * inv, ty * inv, tz * inv
+            nx_, ny_, nz_ = (ux * 0, uy * 0, uz * 0)
+            for i, p in enumerate(stack.panels):
+                on = pick == i
+                nx_, ny_, nz_ = (dr.select(on, p.normal[j], c) for j, c in enumerate((nx_, ny_, nz_)))
+            cos_panel = dr.maximum(-(ex * nx_ + ey * ny_ + ez * nz_), 1e-6)
+            # (cos/π) / pdf_ω, pdf_ω = dist² / (area · cos_panel) / count
+            value = ez / math.pi * (4 * hu * hv) * cos_panel / dist2 * count
+        else:
+            r, phi = dr.sqrt(u_a), 2 * math.pi * u_b
+            ex, ey, ez = r * dr.cos(phi), r * dr.sin(phi), dr.safe_sqrt(1 - u_a)
+            value = Float(1.0)
+        # Through the gap to the stack's bottom face; a ray missing the stack goes straight on.
+        to_stack = (planes[-1] - stack.background_z) / ez
+        qx, qy = px + to_stack * ex, py + to_stack * ey
+        hits_stack = (dr.abs(qx) <= W) & (dr.abs(qy) <= W) if finite else Bool(True)
+        sin2 = ex * ex + ey * ey                    # n·sinθ is the same in every layer
+        transmit = Float(1.0)
+        inside = Bool(True)
+        n_before = 1.0
+        for layer in range(L - 1, -1, -1):          # bottom layer first
+            n_l = layer_n[layer]
+            cos_before = dr.safe_sqrt(1 - sin2 / (n_before * n_before))
+            F, cos_l = _fresnel(dr, cos_before, n_l / n_before)
+            transmit *= 1 - F
+            depth = planes[layer] - planes[layer + 1]
+            shift = depth / (n_l * cos_l)           # horizontal step per unit of the air direction's (x, y)
+            qx, qy = qx + shift * ex, qy + shift * ey
+            if layer == sample:
+                transmit *= dr.exp(-sigma_t * depth / cos_l)
+            if finite:
+                inside &= (dr.abs(qx) <= W) & (dr.abs(qy) <= W)
+            n_before = n_l
+        F, _ = _fresnel(dr, dr.safe_sqrt(1 - sin2 / (n_before * n_before)), 1.0 / n_before)
+        transmit *= 1 - F
+        qz = dr.select(hits_stack, planes[0], stack.background_z)
+        qx, qy = dr.select(hits_stack, qx, px), dr.select(hits_stack, qy, py)
+        transmit = dr.select(hits_stack, transmit, 1.0)
+        if stack.panels:
+            seen = Bool(False)
+            for i, p in enumerate(stack.panels):
+                seen |= (pick == i) & sees_panel(p, qx, qy, qz, ex, ey, ez)
+        else:
+            seen = ez > 0
+        return dr.select(seen & (inside | ~hits_stack) & (ez > 0), value * transmit, 0.0)
 
     # PCG32 streams whose (state, increment) seeds are close are correlated, and the constructor
     # adds the lane index to both: so both seeds are scrambled (SplitMix64) from `seed`.
@@ -367,11 +512,11 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
     it = dr.zeros(UInt32, n_paths)
     alive = dr.full(Bool, True, n_paths)
     hit = dr.full(Bool, False, n_paths)
+    nee_k = dr.zeros(UInt32, n_paths)          # scatterings before the first background bounce
+    nee_value = dr.zeros(Float, n_paths)       # its next-event estimate
+    straight = dr.full(Bool, False, n_paths)   # nothing but refraction since that bounce
 
-    def cond(x, y, z, dx, dy, dz, li, k, m, it, alive, hit, rng):
-        return alive
-
-    def body(x, y, z, dx, dy, dz, li, k, m, it, alive, hit, rng):
+    def body(x, y, z, dx, dy, dz, li, k, m, it, alive, hit, nee_k, nee_value, straight, rng):
         it = it + 1
         in_stack = li < L
         in_gap = li == L
@@ -472,20 +617,29 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
         cut = on_bg & (m >= orders)
         lost = (gap_down & ~on_bg) | cut
         done = out_top | escaped_up | wall_exit | lost | (k >= k_max) | (it >= max_iter)
+        if nee:
+            # The first bounce estimates the straight way out (u_free, u_f are unused at a bounce);
+            # the path goes on, and its own straight way out is not counted again.
+            first_bounce = alive & on_bg & (m == 1)
+            nee_value = dr.select(first_bounce, straight_through(x, y, u_free, u_f), nee_value)
+            nee_k = dr.select(first_bounce, k, nee_k)
+            straight = dr.select(first_bounce, True, straight & ~(scatter | reflect | wall))
+            reach_light &= ~straight
         hit = hit | (alive & (cut if from_below else reach_light))
         alive = alive & ~done
-        return (x, y, z, new_dx, new_dy, new_dz, dr.select(out_top, li, new_li), k, m, it, alive, hit, rng)
+        return (x, y, z, new_dx, new_dy, new_dz, dr.select(out_top, li, new_li), k, m, it, alive, hit, nee_k,
+                nee_value, straight, rng)
 
     # Waves: a symbolic loop runs each SIMD packet until its *slowest* lane is done, and path lengths
     # are heavy-tailed; so run WAVE iterations at a time, then keep only the live paths (the kernel
     # is compiled once: the wave limit is an opaque input). A lane's random stream is its own, so
     # the result does not depend on the wave length.
-    state = [x, y, z, dx, dy, dz, li, k, m, it, alive, hit, rng]
+    state = [x, y, z, dx, dy, dz, li, k, m, it, alive, hit, nee_k, nee_value, straight, rng]
     lane = dr.arange(UInt32, n_paths)
-    k_np = np.zeros(n_paths, dtype=np.int64)
-    m_np = np.zeros(n_paths, dtype=np.int64)
-    it_np = np.zeros(n_paths, dtype=np.int64)
-    hit_np = np.zeros(n_paths, dtype=bool)
+    final = {name: np.zeros(n_paths, dtype=dtype) for name, dtype in
+             (("k", np.int64), ("m", np.int64), ("it", np.int64), ("hit", bool), ("nee_k", np.int64),
+              ("nee_value", np.float64))}
+    slots = {"k": 7, "m": 8, "it": 9, "hit": 11, "nee_k": 12, "nee_value": 13}
     limit = 0
     while True:
         limit += wave
@@ -496,32 +650,47 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
         lane_np = np.asarray(lane, dtype=np.int64)
         done = ~alive_now
         ids = lane_np[done]
-        k_np[ids] = np.asarray(state[7])[done]
-        m_np[ids] = np.asarray(state[8])[done]
-        it_np[ids] = np.asarray(state[9])[done]
-        hit_np[ids] = np.asarray(state[11], dtype=bool)[done]
+        for name, slot in slots.items():
+            final[name][ids] = np.asarray(state[slot])[done]
         if not alive_now.any():
             break
         keep = UInt32(np.flatnonzero(alive_now).astype(np.uint32))
-        rng_old = state[12]
+        rng_old = state[-1]
         rng_new = B.PCG32(rng_old)
         rng_new.state = dr.gather(B.UInt64, rng_old.state, keep)
         rng_new.inc = dr.gather(B.UInt64, rng_old.inc, keep)
-        state = [dr.gather(type(v), v, keep) for v in state[:12]] + [rng_new]
+        state = [dr.gather(type(v), v, keep) for v in state[:-1]] + [rng_new]
         lane = dr.gather(UInt32, lane, keep)
 
+    k_np, m_np, it_np, hit_np = final["k"], final["m"], final["it"], final["hit"]
     truncated = int(np.count_nonzero((k_np >= k_max) | (it_np >= max_iter)))
     if from_below:
         counts = np.bincount(k_np[hit_np], minlength=1)[None, :].astype(float)
         return Tally(counts=counts, n_paths=n_paths, weight=1.0, specular=0.0, truncated=truncated, k_max=k_max,
                      seconds=time.perf_counter() - t0, path_events=int(it_np.sum()))
-    sel = hit_np & (m_np < N_BACKGROUND_ORDERS)
-    counts = np.zeros((N_BACKGROUND_ORDERS, int(k_np[sel].max(initial=0)) + 1))
-    np.add.at(counts, (m_np[sel], k_np[sel]), 1.0)
+    counts, second = _detector_sums(k_np, m_np, hit_np, final["nee_k"], final["nee_value"])
 
     # First interface (air → top layer) at normal incidence, in closed form.
     r0 = ((layer_n[0] - 1.0) / (layer_n[0] + 1.0)) ** 2
     specular = r0 * stack.scale if not stack.panels else 0.0  # the device's detector sees no panel specularly
     return Tally(counts=counts, n_paths=n_paths, weight=(1 - r0) * stack.scale, specular=specular,
                  truncated=truncated, k_max=k_max, seconds=time.perf_counter() - t0,
-                 path_events=int(it_np.sum()))
+                 path_events=int(it_np.sum()), second=second)
+
+
+def _detector_sums(k, m, hit, nee_k, nee_value):
+    """Tally.counts and Tally.second of detector paths. A path's value is v·α^k₁·q (its next-event
+    estimate at the first background bounce, after k₁ scatterings) + h·α^k·q^m (h = 1 if it reached the
+    light itself, with m < 2); its square has the terms v²·α^2k₁·q², h·α^2k·q^2m and 2vh·α^(k₁+k)·q^(1+m)."""
+    h = hit & (m < N_BACKGROUND_ORDERS)
+    v = np.where(nee_value > 0, nee_value, 0.0)
+    width = int(max(k[h].max(initial=0), nee_k[v > 0].max(initial=0))) + 1
+    counts = np.zeros((N_BACKGROUND_ORDERS, width))
+    np.add.at(counts, (m[h], k[h]), 1.0)
+    counts[1] += np.bincount(nee_k, weights=v, minlength=width)[:width]
+    second = np.zeros((2 * N_BACKGROUND_ORDERS - 1, 2 * width - 1))
+    np.add.at(second, (2 * m[h], 2 * k[h]), 1.0)
+    second[2] += np.bincount(2 * nee_k, weights=v * v, minlength=2 * width - 1)[: 2 * width - 1]
+    both = h & (v > 0)
+    np.add.at(second, (1 + m[both], nee_k[both] + k[both]), 2 * v[both])
+    return counts, second

@@ -1,0 +1,111 @@
+"""`trimeter bench tracer-check`: the map tracer against Mitsuba's volpath over many random materials.
+
+Per geometry (ideal ℓ = 0.5 mm; device, half the materials at ℓ = 0.4 mm and half at 0.8 mm), seeded
+random materials over the maps' range (trimeter.forward.validate.random_materials: half of them with
+α near 1), both reference backgrounds (ρ = 0.02, 0.9). Each material: one tracer column at `--paths`
+detector paths and one volpath render per ρ at `--spp` samples (std-errors of the same order), then
+z = (tracer − volpath) / combined std-error. Judged by the distribution (trimeter.forward.validate:
+p95 |z| ≤ 2.5 and |mean z| ≤ 0.5 per geometry); the ideal geometry also against adding-doubling.
+Exit status 1 when a geometry misses. Rows and summaries also go to `--out` (JSON).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+from trimeter.errors import InputError
+
+DEVICE_THICKNESSES = (0.4, 0.8)
+IDEAL_THICKNESS = 0.5
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("tracer-check", help="the map tracer against Mitsuba volpath: z-scores over random "
+                                                   "materials, both geometries and backgrounds")
+    p.add_argument("--materials", type=int, default=40, help="random materials per geometry (default 40)")
+    p.add_argument("--paths", type=int, default=1 << 21, help="tracer detector paths per material")
+    p.add_argument("--spp", type=int, default=1 << 19, help="volpath samples per render")
+    p.add_argument("--geometry", choices=("ideal", "device", "both"), default="both")
+    p.add_argument("--seed", type=int, default=2027)
+    p.add_argument("--backend", default="auto", help="tracer backend: llvm, cuda or auto (default)")
+    p.add_argument("--out", default="out/bench-tracer-check/results.json", help="JSON report")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from trimeter.forward.validate import random_materials, tracer_agreement
+    from trimeter.maps.tracer import resolve_backend
+
+    if not 1 <= args.materials <= 10_000:
+        raise InputError(f"--materials must be 1…10000, got {args.materials}")
+    if args.paths < 4096 or args.spp < 1024:
+        raise InputError("--paths must be ≥ 4096 and --spp ≥ 1024")
+    backend = resolve_backend(args.backend)
+    geometries = ("ideal", "device") if args.geometry == "both" else (args.geometry,)
+    print(f"tracer ({backend}, {args.paths} paths per material) vs volpath ({args.spp} spp per render), "
+          f"{args.materials} materials per geometry, ρ = 0.02 and 0.9, seed {args.seed}")
+    rows, report = [], {"settings": {k: getattr(args, k) for k in ("materials", "paths", "spp", "seed")} |
+                        {"backend": backend}, "summary": {}}
+    start = time.perf_counter()
+    for gi, geometry in enumerate(geometries):
+        materials = random_materials(args.materials, args.seed + gi)
+        if geometry == "ideal":
+            parts = [(IDEAL_THICKNESS, materials, args.seed)]
+        else:
+            half = (len(materials) + 1) // 2
+            parts = [(DEVICE_THICKNESSES[0], materials[:half], args.seed),
+                     (DEVICE_THICKNESSES[1], materials[half:], args.seed + half)]
+        for ell, subset, seed in parts:
+            for i, material in enumerate(subset):   # one at a time, so the rows print as they come
+                part = tracer_agreement(geometry, [material], 1.5, ell, paths=args.paths, spp=args.spp,
+                                        seed=seed + i, backend=backend)
+                rows += part
+                _print_rows(part, geometry, ell)
+    report["seconds"] = round(time.perf_counter() - start, 1)
+    _summarise(rows, geometries, report, args)
+    return 0 if report["ok"] else 1
+
+
+def _print_rows(part, geometry, ell) -> None:
+    for r in part:
+        extra = f"  iad {r['iad']:.5f} z_iad {r['z_iad']:+.2f}" if "iad" in r else ""
+        print(f"  {geometry} ℓ={ell:g} α={r['alpha']:.4f} σt={r['sigma_t']:7.3f} g={r['g']:.2f} "
+              f"ρ={r['rho']:.2f}: tracer {r['tracer']:.5f}±{r['tracer_stderr']:.5f} volpath "
+              f"{r['volpath']:.5f}±{r['volpath_stderr']:.5f} z {r['z']:+.2f}{extra}", flush=True)
+
+
+def _summarise(rows, geometries, report, args) -> None:
+    from trimeter.forward.validate import Z_MEAN_MAX, Z_P95_MAX, z_summary
+
+    print(f"{report['seconds']:.0f} s; z = (tracer − volpath) / combined std-error; targets p95 |z| ≤ {Z_P95_MAX}, "
+          f"|mean z| ≤ {Z_MEAN_MAX}")
+    ok = True
+    groups = [(g, None) for g in geometries] + [(g, rho) for g in geometries for rho in (0.02, 0.9)]
+    for geometry, rho in groups:
+        z = [r["z"] for r in rows if r["geometry"] == geometry and (rho is None or r["rho"] == rho)]
+        s = z_summary(z)
+        key = geometry if rho is None else f"{geometry} ρ={rho:g}"
+        report["summary"][key] = s
+        if rho is None:
+            ok &= s["ok"]
+        print(f"{key:15s} n={s['count']:3d}  mean z {s['mean']:+.2f} (±{s['mean_stderr']:.2f})  std {s['std']:.2f}  "
+              f"p95 |z| {s['p95_abs']:.2f}  max |z| {s['max_abs']:.2f}" + ("" if rho else
+                                                                          f"  {'ok' if s['ok'] else 'MISSED'}"))
+    iad = [r["z_iad"] for r in rows if "z_iad" in r]
+    if iad:
+        s = z_summary(iad)
+        report["summary"]["ideal vs adding-doubling"] = s
+        print(f"ideal vs adding-doubling n={s['count']:3d}  mean z {s['mean']:+.2f}  p95 |z| {s['p95_abs']:.2f}  "
+              f"max |z| {s['max_abs']:.2f}  {'ok' if s['ok'] else 'MISSED'}")
+        ok &= s["ok"]
+    report["rows"] = rows
+    report["ok"] = ok
+    out = Path(args.out)
+    from trimeter.atomic import atomic_write
+
+    out.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write(out, json.dumps(report, indent=1).encode())
+    print(f"report: {out}")
+    print(f"tracer check: {'ok' if ok else 'MISSED'}")

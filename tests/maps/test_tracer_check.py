@@ -1,0 +1,41 @@
+"""The map tracer against Mitsuba's volpath over seeded random materials (slow): a subset of
+`trimeter bench tracer-check` (which runs 40 materials per geometry). Judged by the z distribution:
+p95 |z| ≤ 2.5, and a mean z within 3 of its own standard error (with 16 z-scores per geometry, the
+bench's |mean z| ≤ 0.5 would be a coin toss even for a perfect tracer)."""
+
+import math
+
+import numpy as np
+import pytest
+
+from trimeter.forward.validate import Z_P95_MAX, random_materials, tracer_agreement, z_summary
+
+MATERIALS = 8
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("geometry, ell", [("ideal", 0.5), ("device", 0.4)])
+def test_tracer_z_scores_against_volpath(geometry, ell):
+    materials = random_materials(MATERIALS, seed=31 if geometry == "ideal" else 32)
+    rows = tracer_agreement(geometry, materials, 1.5, ell, paths=1 << 18, spp=1 << 16, seed=5)
+    s = z_summary([r["z"] for r in rows])
+    print(f"\n{geometry}: {s['count']} z-scores, mean {s['mean']:+.2f} ± {s['mean_stderr']:.2f}, "
+          f"p95 |z| {s['p95_abs']:.2f}, max {s['max_abs']:.2f}")
+    assert s["count"] == 2 * MATERIALS
+    assert s["p95_abs"] <= Z_P95_MAX, rows
+    assert abs(s["mean"]) <= 3 * s["mean_stderr"], rows
+    if geometry == "ideal":
+        z_iad = np.array([r["z_iad"] for r in rows])
+        assert np.percentile(np.abs(z_iad), 95) <= Z_P95_MAX, rows
+
+
+def test_z_summary_flags_a_bias_and_a_wide_spread():
+    rng = np.random.default_rng(0)
+    fair = rng.standard_normal(400)
+    assert z_summary(fair)["ok"]
+    assert not z_summary(fair + 0.8)["ok"]            # biased
+    assert not z_summary(fair * 2.0)["ok"]            # std-errors too small by half
+    s = z_summary([1.0, -1.0, 3.0])
+    assert s["count"] == 3 and math.isclose(s["mean"], 1.0) and s["max_abs"] == 3.0
+    with pytest.raises(ValueError):
+        z_summary([])
