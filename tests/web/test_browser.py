@@ -1,6 +1,6 @@
 """The page in a real browser (Debian's headless chromium through chromium-driver): opened with the
 token, it calibrates (the "holder is empty" confirm stands in for the press), starts a measurement
-on the twin, waits for the result page with its plot, and saves screenshots (to
+on the twin, waits for the result page with its plot, overlays it with a re-fit, and saves screenshots (to
 $TRIMETER_SCREENSHOT_DIR if set — docs/img holds the project's — else the test's temporary directory)."""
 
 from __future__ import annotations
@@ -65,9 +65,16 @@ def test_the_page_calibrates_measures_and_shows_the_result(tmp_path, browser):
         measured = browser.current_url.rsplit("/", 1)[1]
         assert (web.history.root / measured / "parameters.csv").exists()
 
+        refit = web.call("POST", f"/api/measurements/{measured}/refit", {"maps": ["device-n1.5-l0.4"]})
+        other = web.wait_job(refit.json["job"]["id"])["measurement"]
+        browser.get(f"{web.url}/#/compare/{measured}/{other}")
+        wait.until(EC.presence_of_element_located((By.CSS_SELECTOR, "#c-plot svg path")))
+        assert len(browser.find_elements(By.CSS_SELECTOR, "#c-legend a")) == 2
+        browser.save_screenshot(str(shots / "web-overlay.png"))
+
         browser.get(f"{web.url}/#/history")
         wait.until(EC.presence_of_element_located((By.CSS_SELECTOR, "#rows tr")))
         assert measured in browser.find_element(By.ID, "rows").get_attribute("innerHTML")
         browser.save_screenshot(str(shots / "web-history.png"))
-    for name in ("web-status.png", "web-measurement.png", "web-history.png"):
+    for name in ("web-status.png", "web-measurement.png", "web-overlay.png", "web-history.png"):
         assert (shots / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

@@ -277,7 +277,8 @@ async function compareView(a, b) {
   mount("tpl-compare");
   const [da, db] = await Promise.all([a, b].map((id) => api(`/api/measurements/${encodeURIComponent(id)}`)));
   const series = [da, db].map((d, i) => ({params: d.parameters.combined, color: COLORS[i + 1], band: true,
-    name: `${d.measurement.label || d.measurement.id} (${d.measurement.written_utc.slice(0, 16)})`}));
+    name: `${d.measurement.label || d.measurement.id} · ${d.measurement.maps.join(" + ")} · ${d.measurement.method} · ` +
+      `${d.measurement.written_utc.replace("T", " ").slice(0, 19)}${d.measurement.refit_of ? " (re-fit)" : ""}`}));
   $("c-legend").replaceChildren(...series.map((s) => el("span", {}, el("i", {style: `background:${s.color}`}),
     el("a", {href: `#/m/${[a, b][series.indexOf(s)]}`}, s.name))));
   $("c-plot").replaceChildren(plotParameters(series, {}));
