@@ -145,6 +145,11 @@ class Service:
         """What the LED shows between presses: READY, EMPTY_HOLDER (asking), FAILED; NEXT_SAMPLE while it waits."""
         return self._status
 
+    @property
+    def device_uptime_s(self) -> float | None:
+        """The device's uptime at the last poll (None before the first)."""
+        return None if self._uptime < 0 else float(self._uptime)
+
     # --------------------------------------------------------------------------------- loop
     def serve(self, stop: Callable[[], bool] = lambda: False, poll_s: float = 0.05,
               reconnect_s: float = 0.5, between_polls: Callable[[str | None], None] | None = None) -> None:
