@@ -28,6 +28,10 @@ class FitFlag(enum.IntFlag):
     # a combination of α and g is determined) or a very thin one. The value solves the map, but so would
     # others; the stds say by how much.
     UNDERDETERMINED = 1 << 10
+    # The stds are first-order (the map's Jacobian at the solution), and the map is not linear over
+    # ±2σ here: (α, g) re-fitted from intensities moved by ±2σ land off the Jacobian's prediction
+    # (api.check_first_order). The truth lies outside ±2σ more often than 5 %; the stds give the scale only.
+    STD_APPROXIMATE = 1 << 11
 
 
 UNUSABLE = FitFlag.NONFINITE_INPUT | FitFlag.NEGATIVE_INPUT | FitFlag.ABOVE_ONE | FitFlag.BAD_BACKGROUND
@@ -69,6 +73,10 @@ def advice(flags, thicknesses: int = 1) -> list[str]:
     if k := count(FitFlag.OUTSIDE_MAP | FitFlag.NOT_CONVERGED):
         notes.append(f"{k} of {n} bins fall outside the map's range (values clamped to its edge or not "
                      f"converged): a map for another thickness may cover them")
+    if k := count(FitFlag.STD_APPROXIMATE):
+        notes.append(f"{k} of {n} bins are STD_APPROXIMATE: the map bends within their ±2σ, so their stds are "
+                     f"a scale, not a ±1σ/±2σ that covers the truth at 68/95 %; lower noise (more frames "
+                     f"averaged) or a second thickness narrows them to where first order holds")
     if k := count(FitFlag.THICKNESS_DISAGREE):
         notes.append(f"{k} of {n} bins: the thicknesses disagree beyond their uncertainty; check the stated "
                      f"thicknesses and that both samples are the same material")
