@@ -8,7 +8,7 @@
 #include <stdint.h>
 
 /* ---- identity */
-#define TRIMETER_REGMAP_HASH 0x0AFB548Fu
+#define TRIMETER_REGMAP_HASH 0x721544FAu
 #define TRIMETER_FIRMWARE_VERSION "0.1.0"
 #define TRIMETER_FIRMWARE_VERSION_MAJOR 0u
 #define TRIMETER_FIRMWARE_VERSION_MINOR 1u
@@ -250,7 +250,7 @@ static inline const char *trimeter_unlock_name(unsigned value) /* else "unknown"
 #define REG_DI_HOMED 4u
 
 /* ---- input_registers */
-#define REG_IR_SPAN 65u /* one past the highest used address */
+#define REG_IR_SPAN 75u /* one past the highest used address */
 #define REG_IR_VENDOR_ID 0u
 #define REG_IR_MODEL_ID 1u
 #define REG_IR_FIRMWARE_VERSION_MAJOR 2u
@@ -283,6 +283,9 @@ static inline const char *trimeter_unlock_name(unsigned value) /* else "unknown"
 #define REG_IR_ERASE_COUNT_MAP_A 60u
 #define REG_IR_ERASE_COUNT_MAP_B 62u
 #define REG_IR_ERASE_REFUSALS 64u
+#define REG_IR_LAMP_MONITOR_PANEL_LEFT 72u
+#define REG_IR_LAMP_MONITOR_PANEL_RIGHT 73u
+#define REG_IR_LAMP_MONITOR_COLLIMATED 74u
 
 /* ---- holding_registers */
 #define REG_HR_SPAN 95u /* one past the highest used address */
@@ -432,7 +435,7 @@ typedef struct {
     float min_f, max_f, def_f; /* f32 */
 } regmap_entry_t;
 
-#define REGMAP_ENTRY_COUNT 75u
+#define REGMAP_ENTRY_COUNT 78u
 extern const regmap_entry_t regmap_entries[REGMAP_ENTRY_COUNT];
 
 #endif

@@ -9,7 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from enum import IntEnum
 
-REGMAP_HASH = 0x0AFB548F
+REGMAP_HASH = 0x721544FA
 FIRMWARE_VERSION = (0, 1, 0)
 VENDOR_NAME = 'trimeter project'
 PRODUCT_CODE = 'TRIMETER-1'
@@ -233,6 +233,12 @@ REGISTERS: tuple[Register, ...] = (
              'Erases of map slot B.'),
     Register('erase_refusals', 'input_register', 64, 'u16', 1, 'r', 1.0, '', 0, 65535, 0, None, (),
              'Erases refused by the rate limit since boot (save_config answered exception 06, begin_write error_busy), wraps.'),
+    Register('lamp_monitor_panel_left', 'input_register', 72, 'u16', 1, 'r', 1.0, 'counts', 0, 65535, 0, None, (),
+             'Photodiode at the left diffuse panel, past its shutter: ADC counts, ~16 ms average.'),
+    Register('lamp_monitor_panel_right', 'input_register', 73, 'u16', 1, 'r', 1.0, 'counts', 0, 65535, 0, None, (),
+             'Photodiode at the right diffuse panel, past its shutter: ADC counts, ~16 ms average.'),
+    Register('lamp_monitor_collimated', 'input_register', 74, 'u16', 1, 'r', 1.0, 'counts', 0, 65535, 0, None, (),
+             'Photodiode beside the collimated beam, past its shutter (not through the sample): ADC counts, ~16 ms average.'),
     Register('command', 'holding_register', 0, 'u16', 1, 'rw', 1.0, '', 0, 8, 0, 'command', (),
              'Write to start an action; reads back the last accepted command. Motion commands only set a target. save_config and load_defaults need `unlock` first (else exception 01); a save refused by the erase rate limit: exception 06.'),
     Register('unlock', 'holding_register', 1, 'u16', 1, 'rw', 1.0, '', 0, 23294, 0, 'unlock', (0, 23294),
@@ -304,4 +310,4 @@ COILS: dict[str, Register] = {r.name: r for r in REGISTERS if r.table == 'coil'}
 DISCRETE_INPUTS: dict[str, Register] = {r.name: r for r in REGISTERS if r.table == 'discrete_input'}
 INPUT_REGISTERS: dict[str, Register] = {r.name: r for r in REGISTERS if r.table == 'input_register'}
 HOLDING_REGISTERS: dict[str, Register] = {r.name: r for r in REGISTERS if r.table == 'holding_register'}
-SPANS: dict[str, int] = {'coil': 6, 'discrete_input': 5, 'input_register': 65, 'holding_register': 95}
+SPANS: dict[str, int] = {'coil': 6, 'discrete_input': 5, 'input_register': 75, 'holding_register': 95}
