@@ -512,11 +512,15 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
     it = dr.zeros(UInt32, n_paths)
     alive = dr.full(Bool, True, n_paths)
     hit = dr.full(Bool, False, n_paths)
-    nee_k = dr.zeros(UInt32, n_paths)          # scatterings before the first background bounce
-    nee_value = dr.zeros(Float, n_paths)       # its next-event estimate
-    straight = dr.full(Bool, False, n_paths)   # nothing but refraction since that bounce
+    # The first background bounce: scatterings before it, where, two unused random numbers (for its
+    # next-event estimate, computed once per path after the loop), and whether the path has gone
+    # straight on since (nothing but refraction).
+    nee_k = dr.zeros(UInt32, n_paths)
+    bounce_x, bounce_y = dr.zeros(Float, n_paths), dr.zeros(Float, n_paths)
+    nee_u, nee_v = dr.zeros(Float, n_paths), dr.zeros(Float, n_paths)
+    straight = dr.full(Bool, False, n_paths)
 
-    def body(x, y, z, dx, dy, dz, li, k, m, it, alive, hit, nee_k, nee_value, straight, rng):
+    def body(x, y, z, dx, dy, dz, li, k, m, it, alive, hit, nee_k, bounce_x, bounce_y, nee_u, nee_v, straight, rng):
         it = it + 1
         in_stack = li < L
         in_gap = li == L
@@ -621,25 +625,27 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
             # The first bounce estimates the straight way out (u_free, u_f are unused at a bounce);
             # the path goes on, and its own straight way out is not counted again.
             first_bounce = alive & on_bg & (m == 1)
-            nee_value = dr.select(first_bounce, straight_through(x, y, u_free, u_f), nee_value)
+            bounce_x, bounce_y = dr.select(first_bounce, x, bounce_x), dr.select(first_bounce, y, bounce_y)
+            nee_u, nee_v = dr.select(first_bounce, u_free, nee_u), dr.select(first_bounce, u_f, nee_v)
             nee_k = dr.select(first_bounce, k, nee_k)
             straight = dr.select(first_bounce, True, straight & ~(scatter | reflect | wall))
             reach_light &= ~straight
         hit = hit | (alive & (cut if from_below else reach_light))
         alive = alive & ~done
         return (x, y, z, new_dx, new_dy, new_dz, dr.select(out_top, li, new_li), k, m, it, alive, hit, nee_k,
-                nee_value, straight, rng)
+                bounce_x, bounce_y, nee_u, nee_v, straight, rng)
 
     # Waves: a symbolic loop runs each SIMD packet until its *slowest* lane is done, and path lengths
     # are heavy-tailed; so run WAVE iterations at a time, then keep only the live paths (the kernel
     # is compiled once: the wave limit is an opaque input). A lane's random stream is its own, so
     # the result does not depend on the wave length.
-    state = [x, y, z, dx, dy, dz, li, k, m, it, alive, hit, nee_k, nee_value, straight, rng]
+    state = [x, y, z, dx, dy, dz, li, k, m, it, alive, hit, nee_k, bounce_x, bounce_y, nee_u, nee_v, straight, rng]
     lane = dr.arange(UInt32, n_paths)
     final = {name: np.zeros(n_paths, dtype=dtype) for name, dtype in
              (("k", np.int64), ("m", np.int64), ("it", np.int64), ("hit", bool), ("nee_k", np.int64),
-              ("nee_value", np.float64))}
-    slots = {"k": 7, "m": 8, "it": 9, "hit": 11, "nee_k": 12, "nee_value": 13}
+              ("bounce_x", np.float32), ("bounce_y", np.float32), ("nee_u", np.float32), ("nee_v", np.float32))}
+    slots = {"k": 7, "m": 8, "it": 9, "hit": 11, "nee_k": 12, "bounce_x": 13, "bounce_y": 14, "nee_u": 15,
+             "nee_v": 16}
     limit = 0
     while True:
         limit += wave
@@ -668,7 +674,12 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
         counts = np.bincount(k_np[hit_np], minlength=1)[None, :].astype(float)
         return Tally(counts=counts, n_paths=n_paths, weight=1.0, specular=0.0, truncated=truncated, k_max=k_max,
                      seconds=time.perf_counter() - t0, path_events=int(it_np.sum()))
-    counts, second = _detector_sums(k_np, m_np, hit_np, final["nee_k"], final["nee_value"])
+    bounced = np.flatnonzero(m_np >= 1)
+    nee_value = np.zeros(n_paths)
+    if len(bounced):
+        value = straight_through(*(Float(final[name][bounced]) for name in ("bounce_x", "bounce_y", "nee_u", "nee_v")))
+        nee_value[bounced] = np.asarray(value, dtype=np.float64)
+    counts, second = _detector_sums(k_np, m_np, hit_np, final["nee_k"], nee_value)
 
     # First interface (air → top layer) at normal incidence, in closed form.
     r0 = ((layer_n[0] - 1.0) / (layer_n[0] + 1.0)) ** 2
