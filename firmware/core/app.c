@@ -347,6 +347,9 @@ static void fill_input_registers(uint16_t *ir)
     for (int r = 0; r < HAL_REGION_COUNT; r++) regmap_put_u32(&ir[wear[r]], app.storage.erase_count[r]);
     ir[REG_IR_ERASE_REFUSALS] = app.storage.erase_refusals;
     regmap_put_u32(&ir[REG_IR_MAP_OP_BYTES_WRITTEN], app.upload.open ? app.upload.bytes_written : 0);
+    ir[REG_IR_LAMP_MONITOR_PANEL_LEFT] = lamp_monitor_counts(&app.lamp_monitor, HAL_LED_PANEL_LEFT);
+    ir[REG_IR_LAMP_MONITOR_PANEL_RIGHT] = lamp_monitor_counts(&app.lamp_monitor, HAL_LED_PANEL_RIGHT);
+    ir[REG_IR_LAMP_MONITOR_COLLIMATED] = lamp_monitor_counts(&app.lamp_monitor, HAL_LED_COLLIMATED);
 }
 
 uint8_t app_read_regs(void *ctx, mb_table_t table, uint16_t addr, uint16_t n, uint16_t *out)
@@ -482,6 +485,7 @@ void app_init(const hal_t *hal)
     config_motion(&app.cfg, &mc);
     motion_init(&app.motion, hal, &mc);
     actuators_init(&app.act, hal, app.boot_us);
+    lamp_monitor_init(&app.lamp_monitor);
     for (int s = 0; s < HAL_SHUTTER_COUNT; s++) set_shutter((enum hal_shutter)s, false);
 
     app.mb_io = (mb_io_t){.read = io_read, .write = io_write, .now_us = io_now, .ctx = (void *)hal};
@@ -533,6 +537,7 @@ void app_poll(void)
                                         ? STATUS_FAST_BLINK
                                         : (enum status_pattern)app.hr[REG_HR_STATUS_PATTERN]);
     actuators_poll(&app.act, t);
+    lamp_monitor_poll(&app.lamp_monitor, app.hal, t);
 
     while (t - app.uptime_mark_us >= 1000000u) {
         app.uptime_mark_us += 1000000u;

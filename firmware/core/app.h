@@ -37,6 +37,7 @@
 #include "actuators.h"
 #include "config.h"
 #include "hal.h"
+#include "lamp_monitor.h"
 #include "modbus.h"
 #include "motion.h"
 #include "registers_gen.h"
@@ -51,6 +52,7 @@ typedef struct app {
     trimeter_config_source_t config_source; /* input register config_source */
     motion_t motion;
     actuators_t act;
+    lamp_monitor_t lamp_monitor;
     storage_t storage;
     storage_map_session_t upload;
     uint16_t map_op_status;

@@ -75,6 +75,12 @@ typedef struct hal {
     void (*status_led)(void *ctx, bool on);
     bool (*button_pressed)(void *ctx);
 
+    /* Lamp monitor: one photodiode per LED channel, seen past that channel's shutter (so it reads light
+     * only while the shutter is open) and never through the sample. Returns one 12-bit ADC sample
+     * (0..4095, dark offset included); may take a few µs (one conversion). NULL when the board has no
+     * monitor (the lamp_monitor_* registers then read 0). */
+    uint16_t (*lamp_monitor)(void *ctx, enum hal_led lamp);
+
     /* Storage. Return 0 on success, negative on an I/O error or out-of-range access. */
     int (*storage_read)(void *ctx, enum hal_region region, uint32_t offset, void *buf, size_t len);
     int (*storage_write)(void *ctx, enum hal_region region, uint32_t offset, const void *buf,

@@ -64,6 +64,12 @@ static void f_led(void *ctx, enum hal_led l, uint16_t pm) { ((fake_hal_t *)ctx)-
 static void f_status(void *ctx, bool on) { ((fake_hal_t *)ctx)->status_led = on; }
 static bool f_button(void *ctx) { return ((fake_hal_t *)ctx)->button; }
 static void f_kick(void *ctx) { ((fake_hal_t *)ctx)->watchdog_kicks++; }
+static uint16_t f_lamp(void *ctx, enum hal_led l)
+{
+    fake_hal_t *f = ctx;
+    f->lamp_samples++;
+    return f->lamp_adc[l];
+}
 
 static uint8_t *region(fake_hal_t *f, enum hal_region r, uint32_t offset, size_t len)
 {
@@ -152,6 +158,7 @@ fake_hal_t *fake_hal_new(void)
         .led_level = f_led,
         .status_led = f_status,
         .button_pressed = f_button,
+        .lamp_monitor = f_lamp,
         .storage_read = f_read,
         .storage_write = f_write,
         .storage_erase = f_erase,

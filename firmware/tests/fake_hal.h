@@ -40,6 +40,8 @@ typedef struct fake_hal {
     bool status_led;
     bool button;
     uint32_t watchdog_kicks;
+    uint16_t lamp_adc[HAL_LED_COUNT]; /* what each lamp-monitor photodiode's ADC sample reads */
+    uint32_t lamp_samples;            /* lamp_monitor calls */
 
     /* storage: NOR flash with a power-cut budget (bytes programmed/erased before power is lost;
      * negative = unlimited). After the cut every write/erase fails and changes nothing. */
