@@ -123,6 +123,7 @@ static void h_led(void *ctx, enum hal_led l, uint16_t pm) { (void)ctx; sim.plant
 static void h_status(void *ctx, bool on) { (void)ctx; sim.plant.status_led = on; }
 static bool h_button(void *ctx) { (void)ctx; return plant_button(&sim.plant, sim.now_us); }
 static void h_kick(void *ctx) { (void)ctx; }
+static uint16_t h_lamp(void *ctx, enum hal_led l) { (void)ctx; return plant_lamp_monitor(&sim.plant, l); }
 
 static const uint32_t region_offset[HAL_REGION_COUNT] = {
     0, HAL_CONFIG_REGION_SIZE, 2 * HAL_CONFIG_REGION_SIZE, 2 * HAL_CONFIG_REGION_SIZE + HAL_MAP_REGION_SIZE};
@@ -190,6 +191,7 @@ static const hal_t sim_hal = {
     .led_level = h_led,
     .status_led = h_status,
     .button_pressed = h_button,
+    .lamp_monitor = h_lamp,
     .storage_read = h_read,
     .storage_write = h_write,
     .storage_erase = h_erase,

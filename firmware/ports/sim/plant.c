@@ -12,6 +12,11 @@
 #define SHUTTER_OPEN_TOLERANCE_DEG 2.0
 #define SLOT_TOLERANCE_MM 0.5
 #define END_MARGIN_MM 1.0 /* mechanical ends this far beyond the endstop / the travel */
+#define MONITOR_DARK_COUNTS 60.0   /* photodiode stage offset + stray light, shutter closed */
+#define MONITOR_SPAN_COUNTS 3200.0 /* added by a nominal lamp at full level through an open shutter */
+#define MONITOR_NOISE_COUNTS 2.0   /* ADC noise per sample (standard deviation) */
+#define MONITOR_ADC_MAX 4095.0
+#define LAMP_EMISSION_MAX 2.0
 
 static const char *const shutter_names[HAL_SHUTTER_COUNT] = {"panel_left", "panel_right", "collimated"};
 
@@ -26,6 +31,9 @@ void plant_init(plant_t *p, double steps_per_mm, double start_mm)
     p->min_steps = -llround(END_MARGIN_MM * steps_per_mm);
     p->max_steps = llround((p->travel_mm + END_MARGIN_MM) * steps_per_mm);
     for (int s = 0; s < HAL_SHUTTER_COUNT; s++) p->shutter_angle_deg[s] = 0.0;
+    for (int l = 0; l < HAL_LED_COUNT; l++) p->lamp_emission[l] = 1.0;
+    p->shutter_leaking = -1;
+    p->noise_state = 0x9E3779B97F4A7C15ull;
 }
 
 void plant_update(plant_t *p, uint64_t now_us)
@@ -54,6 +62,36 @@ bool plant_endstop(const plant_t *p) { return !p->endstop_broken && p->position_
 bool plant_button(const plant_t *p, uint64_t now_us)
 {
     return p->button_held || (p->button_release_us && now_us < p->button_release_us);
+}
+
+/* xorshift64*: uniform in (0, 1) */
+static double uniform(plant_t *p)
+{
+    uint64_t x = p->noise_state;
+    x ^= x >> 12, x ^= x << 25, x ^= x >> 27;
+    p->noise_state = x;
+    return ((x * 0x2545F4914F6CDD1Dull >> 11) + 0.5) / 9007199254740992.0;
+}
+
+/* How far the shutter's blade uncovers its aperture: 0 at the closed angle, 1 at the open angle. */
+static double shutter_opening(const plant_t *p, int s)
+{
+    if (s == p->shutter_leaking) return 1.0;
+    const app_t *a = app_get();
+    double open = pulse_to_deg(a->cfg.servo_open_us[s]), closed = pulse_to_deg(a->cfg.servo_closed_us[s]);
+    if (fabs(open - closed) < 1e-9) return 0.0;
+    double f = (p->shutter_angle_deg[s] - closed) / (open - closed);
+    return f < 0 ? 0 : f > 1 ? 1 : f;
+}
+
+uint16_t plant_lamp_monitor(plant_t *p, enum hal_led lamp)
+{
+    /* each LED channel sits behind the shutter of the same index (hal.h) */
+    double light = MONITOR_SPAN_COUNTS * p->led_permille[lamp] / 1000.0 * p->lamp_emission[lamp] *
+                   shutter_opening(p, (int)lamp);
+    double gauss = sqrt(-2.0 * log(uniform(p))) * cos(6.283185307179586 * uniform(p));
+    double counts = MONITOR_DARK_COUNTS + light + MONITOR_NOISE_COUNTS * gauss;
+    return (uint16_t)lround(counts < 0 ? 0 : counts > MONITOR_ADC_MAX ? MONITOR_ADC_MAX : counts);
 }
 
 /* ---------------------------------------------------------------- a flat JSON object reader */
@@ -188,6 +226,15 @@ static size_t reply_state(const plant_t *p, uint64_t now_us, char *out, size_t c
            trimeter_status_pattern_name(a->act.pattern), plant_button(p, now_us) ? "true" : "false");
     if (fault) APPEND("\"fault\":\"%s\",", fault);
     else APPEND("\"fault\":null,");
+    APPEND("\"lamp_monitor\":{\"panel_left\":%u,\"panel_right\":%u,\"collimated\":%u},",
+           lamp_monitor_counts(&a->lamp_monitor, HAL_LED_PANEL_LEFT),
+           lamp_monitor_counts(&a->lamp_monitor, HAL_LED_PANEL_RIGHT),
+           lamp_monitor_counts(&a->lamp_monitor, HAL_LED_COLLIMATED));
+    APPEND("\"lamp_emission\":{\"panel_left\":%.4f,\"panel_right\":%.4f,\"collimated\":%.4f},",
+           p->lamp_emission[HAL_LED_PANEL_LEFT], p->lamp_emission[HAL_LED_PANEL_RIGHT],
+           p->lamp_emission[HAL_LED_COLLIMATED]);
+    if (p->shutter_leaking >= 0) APPEND("\"shutter_leaking\":\"%s\",", shutter_names[p->shutter_leaking]);
+    else APPEND("\"shutter_leaking\":null,");
     APPEND("\"fault_code\":%d,\"state\":\"%s\",\"homed\":%s,\"slot\":%s,\"stuck_slider\":%s,\"endstop_broken\":%s}\n",
            (int)app_fault(), trimeter_state_name(app_state()), a->motion.homed ? "true" : "false", slot_name(p),
            p->stuck_slider ? "true" : "false", p->endstop_broken ? "true" : "false");
@@ -202,6 +249,19 @@ static size_t reply_error(const char *msg, char *out, size_t cap)
 }
 
 static size_t reply_ok(char *out, size_t cap) { return (size_t)snprintf(out, cap, "{\"ok\":true}\n"); }
+
+static int shutter_index(const char *name)
+{
+    for (int s = 0; s < HAL_SHUTTER_COUNT; s++)
+        if (!strcmp(name, shutter_names[s])) return s;
+    return -1;
+}
+
+/* "lamp_<LED channel>" → the channel (the LED channels share the shutters' names), else -1. */
+static int lamp_field(const char *key)
+{
+    return strncmp(key, "lamp_", 5) ? -1 : shutter_index(key + 5);
+}
 
 size_t plant_handle_request(plant_t *p, const char *line, uint64_t now_us, char *out, size_t cap,
                             bool *reset_requested)
@@ -236,15 +296,28 @@ size_t plant_handle_request(plant_t *p, const char *line, uint64_t now_us, char 
         /* validate everything first: a bad request changes nothing */
         for (int i = 0; i < count; i++) {
             if (&fields[i] == cmd) continue;
-            if (strcmp(fields[i].key, "stuck_slider") && strcmp(fields[i].key, "endstop_broken") &&
-                strcmp(fields[i].key, "button"))
-                return reply_error("unknown field for set (stuck_slider, endstop_broken, button)", out, cap);
-            if (fields[i].type != J_BOOL) return reply_error("set fields take true/false", out, cap);
+            const char *k = fields[i].key;
+            if (lamp_field(k) >= 0) {
+                if (fields[i].type != J_NUMBER || fields[i].number < 0 || fields[i].number > LAMP_EMISSION_MAX)
+                    return reply_error("lamp_* fields take a number 0..2 (emission relative to nominal)", out, cap);
+            } else if (!strcmp(k, "shutter_leaking")) {
+                if (fields[i].type != J_NULL && (fields[i].type != J_STRING || shutter_index(fields[i].str) < 0))
+                    return reply_error("shutter_leaking: panel_left, panel_right, collimated or null", out, cap);
+            } else if (strcmp(k, "stuck_slider") && strcmp(k, "endstop_broken") && strcmp(k, "button")) {
+                return reply_error("unknown field for set (stuck_slider, endstop_broken, button, lamp_panel_left, "
+                                   "lamp_panel_right, lamp_collimated, shutter_leaking)", out, cap);
+            } else if (fields[i].type != J_BOOL) {
+                return reply_error("stuck_slider, endstop_broken and button take true/false", out, cap);
+            }
         }
         for (int i = 0; i < count; i++) {
-            if (!strcmp(fields[i].key, "stuck_slider")) p->stuck_slider = fields[i].boolean;
-            if (!strcmp(fields[i].key, "endstop_broken")) p->endstop_broken = fields[i].boolean;
-            if (!strcmp(fields[i].key, "button")) p->button_held = fields[i].boolean;
+            const char *k = fields[i].key;
+            if (!strcmp(k, "stuck_slider")) p->stuck_slider = fields[i].boolean;
+            if (!strcmp(k, "endstop_broken")) p->endstop_broken = fields[i].boolean;
+            if (!strcmp(k, "button")) p->button_held = fields[i].boolean;
+            if (lamp_field(k) >= 0) p->lamp_emission[lamp_field(k)] = fields[i].number;
+            if (!strcmp(k, "shutter_leaking"))
+                p->shutter_leaking = fields[i].type == J_NULL ? -1 : shutter_index(fields[i].str);
         }
         return reply_ok(out, cap);
     }

@@ -26,6 +26,12 @@ typedef struct plant {
     bool stuck_slider;
     bool driver_stalled;       /* the driver's stall output: stepping against the jam */
     bool endstop_broken;
+    /* lamp monitor photodiodes: each lamp's emission at full drive relative to nominal (the twin's lamp
+     * model: warm-up droop, a dimmed or dead lamp), and a shutter whose blade passes light whatever its
+     * angle (-1: none) */
+    double lamp_emission[HAL_LED_COUNT];
+    int shutter_leaking;
+    uint64_t noise_state;
     uint64_t last_update_us;
 } plant_t;
 
@@ -35,6 +41,9 @@ void plant_update(plant_t *p, uint64_t now_us);
 void plant_step(plant_t *p);
 bool plant_endstop(const plant_t *p);
 bool plant_button(const plant_t *p, uint64_t now_us);
+/* One ADC sample of the photodiode that watches `lamp` past its shutter: dark offset + light through the
+ * shutter's opening × LED level × emission, with ADC noise. */
+uint16_t plant_lamp_monitor(plant_t *p, enum hal_led lamp);
 
 /* Handles one request line; writes one reply line (with '\n') into out (size cap). Sets
  * *reset_requested for {"cmd":"reset"} (the caller reboots the firmware before replying). */
