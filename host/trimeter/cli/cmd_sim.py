@@ -104,7 +104,8 @@ def register(subparsers) -> None:
                    help="virtual sample inserted at start (default: none; see --list-materials)")
     p.add_argument("--thickness", type=float, default=0.4, metavar="MM", help="sample thickness (default 0.4)")
     p.add_argument("--faults", metavar="LIST", default="",
-                   help="e.g. corrupt=0.01,drop=0.02,late=0.01,reset_at=STEP,stuck_slider,lamp_failure")
+                   help="e.g. corrupt=0.01,drop=0.02,late=0.01,reset_at=STEP,stuck_slider,lamp_failure,"
+                        "lamp_dimmed=panels:0.8")
     p.add_argument("--time-scale", type=float, default=1.0, metavar="K", help="simulated time runs K× wall time")
     p.add_argument("--state-dir", default=None, metavar="DIR",
                    help="firmware storage + links (default: the platformdirs state directory); reuse it to keep config")

@@ -25,6 +25,9 @@ from trimeter.twin._pty import open_raw_pty, read_some, write_all
 REQUEST_GAP_S = 0.003
 LAMP_FAILURES = ("panels", "collimated", "both")
 SHUTTERS = ("panel_left", "panel_right", "collimated")
+LAMP_CHANNELS = SHUTTERS   # one LED channel behind each shutter
+DIMMABLE = {"panels": ("panel_left", "panel_right"), "panel_left": ("panel_left",),
+            "panel_right": ("panel_right",), "collimated": ("collimated",), "both": LAMP_CHANNELS}
 
 
 @dataclass(frozen=True)
@@ -38,6 +41,7 @@ class FaultConfig:
     lamp_failure: str | None = None
     stuck_shutter_open: str | None = None   # a shutter whose blade lets light through whatever it is told
     endstop_broken: bool = False
+    lamp_dimmed: str | None = None          # "LAMP:FACTOR": that lamp emits FACTOR × nominal (an aged LED)
 
     def __post_init__(self):
         for name in ("corrupt", "drop", "late"):
@@ -58,6 +62,27 @@ class FaultConfig:
                              f"{self.stuck_shutter_open!r}")
         if not isinstance(self.endstop_broken, bool):
             raise InputError(f"fault endstop_broken must be true/false, got {self.endstop_broken!r}")
+        if self.lamp_dimmed is not None:
+            self.lamp_emission()  # validates
+
+    def lamp_emission(self) -> dict[str, float]:
+        """Each LED channel's emission relative to nominal under lamp_dimmed and lamp_failure (1: healthy)."""
+        emission = dict.fromkeys(LAMP_CHANNELS, 1.0)
+        if self.lamp_dimmed is not None:
+            target, _, factor = str(self.lamp_dimmed).partition(":")
+            try:
+                value = float(factor)
+            except ValueError:
+                value = float("nan")
+            if target not in DIMMABLE or not 0.0 <= value <= 2.0:
+                raise InputError(f"fault lamp_dimmed must be LAMP:FACTOR with LAMP one of {', '.join(DIMMABLE)} and "
+                                 f"FACTOR within 0..2, got {self.lamp_dimmed!r}")
+            for channel in DIMMABLE[target]:
+                emission[channel] = value
+        if self.lamp_failure is not None:
+            for channel in DIMMABLE[self.lamp_failure]:
+                emission[channel] = 0.0
+        return emission
 
     def replace(self, **changes) -> "FaultConfig":
         unknown = set(changes) - {f.name for f in dataclasses.fields(self)}
@@ -72,7 +97,7 @@ class FaultConfig:
     @classmethod
     def parse(cls, text: str) -> "FaultConfig":
         """`corrupt=0.01,drop=0.02,late=0.01,reset_at=STEP,stuck_slider,lamp_failure[=panels],
-        stuck_shutter_open=SHUTTER,endstop_broken`."""
+        stuck_shutter_open=SHUTTER,endstop_broken,lamp_dimmed=panels:0.8`."""
         changes: dict = {}
         for item in filter(None, (s.strip() for s in (text or "").split(","))):
             key, eq, value = item.partition("=")
@@ -100,6 +125,21 @@ def as_optics_see_it(plant_state: dict, faults: FaultConfig) -> dict:
     shutters = dict(plant_state.get("shutters", {}))
     shutters[faults.stuck_shutter_open] = {**shutters.get(faults.stuck_shutter_open, {}), "open": True}
     return {**plant_state, "shutters": shutters}
+
+
+def as_lamps_emit(plant_state: dict, faults: FaultConfig) -> dict:
+    """The plant state with each LED level scaled by its lamp's dimming (lamp_dimmed): a dimmed lamp driven
+    at level L lights the sample like a healthy one at L × factor (its heat still follows the drive)."""
+    if faults.lamp_dimmed is None:
+        return plant_state
+    emission = faults.lamp_emission()
+    leds = {k: float(v) for k, v in plant_state.get("leds", {}).items()}
+    for channel in LAMP_CHANNELS:
+        if channel in leds:
+            leds[channel] *= emission[channel]
+    if "panel_left" in leds and "panel_right" in leds:
+        leds["panels"] = 0.5 * (leds["panel_left"] + leds["panel_right"])
+    return {**plant_state, "leds": leds}
 
 
 class ModbusProxy:

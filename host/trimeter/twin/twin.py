@@ -25,7 +25,7 @@ import numpy as np
 
 from trimeter.errors import DeviceError, InputError, TrimeterError
 from trimeter.paths import REPO_ROOT
-from trimeter.twin.faults import FaultConfig, ModbusProxy, as_optics_see_it
+from trimeter.twin.faults import FaultConfig, ModbusProxy, as_lamps_emit, as_optics_see_it
 from trimeter.twin.optics import Optics, material_names
 from trimeter.twin.plant import PlantClient
 from trimeter.twin.specserver import SpectrometerServer
@@ -36,6 +36,7 @@ READY_TIMEOUT_S = 20.0
 POLL_INTERVAL_S = 0.05
 _UNIX_PATH_MAX = 100  # sun_path is 108 bytes; keep a margin
 MAX_REQUEST = 65536  # control-socket line limit
+MONITOR_UPDATE = 2e-4  # relative emission change that is sent to the plant's photodiodes
 
 
 def _die_with_parent() -> None:
@@ -101,6 +102,7 @@ class Twin:
         self.modbus_port = self.spectrometer_port = self.control_path = None
         self.last_plant_state: dict | None = None
         self.poll_error: str | None = None
+        self._monitor_sent: dict | None = None  # what the plant's photodiode model was last given
 
     # ---------------------------------------------------------------------------------- lifecycle
     def __enter__(self) -> "Twin":
@@ -147,6 +149,7 @@ class Twin:
         if self.faults.endstop_broken:
             self.plant.request(cmd="set", endstop_broken=True)
         self._poll_once()
+        self._feed_lamp_monitor()
 
         poller = threading.Thread(target=self._poll, name="twin-plant-poller", daemon=True)
         poller.start()
@@ -253,10 +256,30 @@ class Twin:
             self.last_plant_state = state
         return state
 
+    def _feed_lamp_monitor(self, force: bool = False) -> None:
+        """Give the plant's photodiodes what only the twin knows: each lamp's emission (warm-up droop from the
+        thermal model, dimming, failure) and a shutter stuck open. The plant applies LED level and shutter
+        angle itself, at every ADC sample, so the readings follow the firmware's own timing."""
+        with self._optics_lock:
+            droop = {lamp: float(led.spectrum().sum() / led.spectrum(0.0).sum())
+                     for lamp, led in (("panels", self.optics.panels), ("collimated", self.optics.collimated))}
+        emission = self.faults.lamp_emission()
+        wanted = {f"lamp_{channel}": round(value * droop["collimated" if channel == "collimated" else "panels"], 5)
+                  for channel, value in emission.items()}
+        wanted["shutter_leaking"] = self.faults.stuck_shutter_open
+        sent = self._monitor_sent
+        lamps = [k for k in wanted if k.startswith("lamp_")]
+        if not force and sent is not None and sent["shutter_leaking"] == wanted["shutter_leaking"] and all(
+                abs(wanted[k] - sent[k]) <= MONITOR_UPDATE * max(sent[k], 1e-3) for k in lamps):
+            return
+        self.plant.request(cmd="set", **wanted)
+        self._monitor_sent = wanted
+
     def _poll(self) -> None:
         while not self._stop.wait(POLL_INTERVAL_S):
             try:
                 self._poll_once()
+                self._feed_lamp_monitor()
                 self.poll_error = None
             except TrimeterError as exc:
                 self.poll_error = str(exc)
@@ -271,6 +294,7 @@ class Twin:
         end = self._poll_once()
         with self._optics_lock:
             lamp = self.faults.lamp_failure
+            start, end = as_lamps_emit(start, self.faults), as_lamps_emit(end, self.faults)
             rate = 0.5 * (self.optics.rate(start, lamp) + self.optics.rate(end, lamp))
             counts = self.optics.spectrometer.expose(rate, integration_time_us, self._rng)
         return counts, float(end["time_s"])
@@ -308,6 +332,7 @@ class TwinControl:
         if "endstop_broken" in changes:
             twin.plant.request(cmd="set", endstop_broken=new.endstop_broken)
         twin.faults = new
+        twin._feed_lamp_monitor(force=True)
         return new.to_dict()
 
     def truth(self) -> dict | None:
