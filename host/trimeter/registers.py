@@ -232,7 +232,7 @@ REGISTERS: tuple[Register, ...] = (
     Register('erase_count_map_b', 'input_register', 62, 'u32', 2, 'r', 1.0, '', 0, 4294967295, 0, None, (),
              'Erases of map slot B.'),
     Register('erase_refusals', 'input_register', 64, 'u16', 1, 'r', 1.0, '', 0, 65535, 0, None, (),
-             'Erases refused by the rate limit since boot (save_config answered exception 06, begin_write error_busy), wraps.'),
+             'Erases refused by the rate limit since boot (save_config answered exception 06, map begin_write / activate error_busy), wraps.'),
     Register('lamp_monitor_panel_left', 'input_register', 72, 'u16', 1, 'r', 1.0, 'counts', 0, 65535, 0, None, (),
              'Photodiode at the left diffuse panel, past its shutter: ADC counts, ~16 ms average.'),
     Register('lamp_monitor_panel_right', 'input_register', 73, 'u16', 1, 'r', 1.0, 'counts', 0, 65535, 0, None, (),
