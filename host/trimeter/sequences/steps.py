@@ -29,6 +29,7 @@ from trimeter.device.transport import LinkError
 from trimeter.errors import DeviceError, InputError
 
 T = TypeVar("T")
+LAMP_MONITORS = ("panel_left", "panel_right", "collimated")  # one photodiode per LED channel
 
 
 @dataclass(frozen=True)
@@ -75,6 +76,11 @@ class Wait:
 @dataclass(frozen=True)
 class DeviceTime:
     """Returns the device's uptime in seconds."""
+
+
+@dataclass(frozen=True)
+class LampMonitor:
+    """Returns the lamp-monitor photodiodes now, in ADC counts: {"panel_left", "panel_right", "collimated"}."""
 
 
 @dataclass(frozen=True)
@@ -286,6 +292,9 @@ class Runner:
         if isinstance(step, Status):
             dev.write("status_pattern", step.pattern)
             return None
+        if isinstance(step, LampMonitor):
+            readings = dev.read_many(*(f"lamp_monitor_{lamp}" for lamp in LAMP_MONITORS))
+            return {lamp: int(readings[f"lamp_monitor_{lamp}"]) for lamp in LAMP_MONITORS}
         if isinstance(step, Progress):
             if self.on_progress:
                 self.on_progress(step.fraction, step.message)
