@@ -9,8 +9,10 @@ What the spectrometer sees for a plant state (counts/s per pixel, before noise):
     black slot (or between slots):  panels · (I_b  | ρ_black without a sample)
     white slot:                     panels · (I_w  | ρ_white)
     open slot:                      panels · (I(ρ=0) | 0) + beam · (I_c | 1)
-with (I_b, I_w, I_c) = AppearanceMap.query(α, σt, g, ρ_black, ρ_white) for the inserted sample (I_c with
-the light scattered into the detector's aperture where the map has an in-scattering table).
+with (I_b, I_w, I_c) of the inserted sample rendered directly by the tracer for the set-up (geometry, n, ℓ)
+of the chosen map — trimeter.twin.traced, never the map the host inverts, so a round trip includes the
+map's own error. A set-up or material nobody traced falls back to AppearanceMap.query (then `physics` says so and the
+round trip cannot see the map's error).
 """
 
 from __future__ import annotations
@@ -25,6 +27,8 @@ import numpy as np
 from scipy.interpolate import PchipInterpolator
 
 from trimeter.errors import InputError
+from trimeter.geometry import load_geometry
+from trimeter.twin.traced import traced_setup
 
 MATERIALS_FILE = Path(__file__).resolve().parents[1] / "data" / "materials.toml"
 
@@ -159,6 +163,7 @@ class SampleOptics:
     I_c: np.ndarray
     I_open: np.ndarray  # diffuse reflectance over the open slot (no background: ρ = 0)
     map_name: str
+    physics: str = "map"  # where I_b, I_w, I_c came from: "traced" (independent of the map) or "map"
 
 
 def _load_maps(appearance_map) -> list:
@@ -208,6 +213,18 @@ class Optics:
             raise InputError(f"thickness_mm must be positive, got {thickness_mm!r}")
         spectra = material_spectra(name, self.wavelengths_nm)
         amap = self._map_for(thickness_mm)
+        traced = traced_setup(str(amap.recipe.get("geometry")), amap.n, thickness_mm)
+        observed = None
+        if traced is not None:
+            geometry_params = load_geometry(traced.geometry)
+            observed = traced.observables(name, _catalogue()["material"][name], geometry_params,
+                                          self.wavelengths_nm, self.rho_black, self.rho_white)
+        if observed is not None:
+            I_b, I_w, L, I_open = observed
+            I_c = traced.collimated(spectra["sigma_t"], L, geometry_params)
+            self.sample = SampleOptics(name=name, thickness_mm=thickness_mm, I_b=I_b, I_w=I_w, I_c=I_c,
+                                       I_open=I_open, map_name=amap.name, physics="traced", **spectra)
+            return self.sample
         for key, axis in (("alpha", amap.alpha), ("sigma_t", amap.sigma_t), ("g", amap.g)):
             values = spectra[key]
             bad = (values < axis[0]) | (values > axis[-1])
@@ -253,4 +270,5 @@ class Optics:
         if s is None:
             return None
         return {"name": s.name, "thickness_mm": s.thickness_mm, "wavelengths_nm": self.wavelengths_nm.copy(),
-                "alpha": s.alpha.copy(), "sigma_t": s.sigma_t.copy(), "g": s.g.copy(), "map": s.map_name}
+                "alpha": s.alpha.copy(), "sigma_t": s.sigma_t.copy(), "g": s.g.copy(), "map": s.map_name,
+                "physics": s.physics}

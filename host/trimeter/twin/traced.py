@@ -1,0 +1,128 @@
+"""The twin's virtual samples rendered directly, independent of any appearance map.
+
+The map the host inverts is an interpolant of the forward model; a twin that made its samples' I_b,
+I_w, I_c with that same map would hide the map's own error (node spacing, its Monte Carlo noise), so
+every round trip would look better than a real instrument can. Instead, `tools/make_twin_observables.py`
+traces each catalogue material once per set-up (geometry, n, ℓ) with the project's tracer
+(trimeter.maps.tracer, at the material's own α, σt, g — no map), at a coarse set of wavelength nodes,
+and stores per node the background-response coefficients (A, B, C of I(ρ) = A + Bρ/(1 − Cρ)) and the
+collimated beam's in-scattering L = ln(1 + r) (trimeter.forward.inscatter's direct tracer; 0 for the
+ideal geometry, whose detector takes only the unscattered beam). Between the nodes the coefficients
+are interpolated with a cubic spline in λ: the materials are smooth sums of Gaussian bands of ≥ 35 nm
+width, and all nodes of one material share their random numbers, so the Monte Carlo error is smooth in λ
+as well. The unscattered beam is analytic (Beer-Lambert with the Fresnel stack) at every pixel.
+
+Data: host/trimeter/data/twin_observables/<geometry>-n<n>-l<ℓ>.json, one file per set-up, with the
+hash of each material's catalogue entry and of the geometry: a material or geometry changed since
+the trace makes the data stale (an error, naming the tool to re-run).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+from scipy.interpolate import CubicSpline
+
+from trimeter.errors import InputError
+from trimeter.forward.collimated import collimated_transmittance
+from trimeter.geometry import cover_slide_n
+
+DATA_DIR = Path(__file__).resolve().parents[1] / "data" / "twin_observables"
+FORMAT_VERSION = 1
+MAX_FILE_BYTES = 4_000_000
+
+
+def setup_name(geometry: str, n: float, thickness_mm: float) -> str:
+    return f"{geometry}-n{n:g}-l{thickness_mm:g}"
+
+
+def content_hash(value) -> str:
+    """A short stable hash of a JSON-able value (a material's catalogue entry, a geometry preset)."""
+    return hashlib.sha256(json.dumps(value, sort_keys=True).encode()).hexdigest()[:16]
+
+
+@dataclass(frozen=True)
+class TracedSetup:
+    """One set-up's traced observables: per material, coefficients at wavelength nodes."""
+
+    geometry: str
+    n: float
+    thickness_mm: float
+    geometry_hash: str
+    materials: dict          # name → {"material_hash", "wavelength_nm", "A", "B", "C", "L", ...}
+    provenance: dict
+    path: Path
+
+    def observables(self, name: str, material_entry: dict, geometry_params: dict, wavelengths_nm, rho_b, rho_w):
+        """(I_b, I_w, L, I_open) of material `name` at `wavelengths_nm` on backgrounds ρ_b(λ), ρ_w(λ)
+        (L: the collimated beam's in-scattering, for `collimated`), or None if it was not traced."""
+        if name not in self.materials:
+            return None
+        m = self.materials[name]
+        stale = []
+        if m["material_hash"] != content_hash(material_entry):
+            stale.append(f"material {name!r} changed in materials.toml")
+        if self.geometry_hash != content_hash(geometry_params):
+            stale.append(f"geometry {self.geometry!r} changed in hardware/geometry.toml")
+        if stale:
+            raise InputError(f"{self.path.name} is stale ({'; '.join(stale)}): re-run tools/make_twin_observables.py")
+        lam = np.asarray(wavelengths_nm, dtype=float)
+        nodes = np.asarray(m["wavelength_nm"], dtype=float)
+        A, B, C, L = (CubicSpline(nodes, np.asarray(m[k], dtype=float))(lam) for k in ("A", "B", "C", "L"))
+        C = np.clip(C, 0.0, 0.999)
+        I_b = A + B * rho_b / (1.0 - C * rho_b)
+        I_w = A + B * rho_w / (1.0 - C * rho_w)
+        return I_b, I_w, L, A
+
+    def collimated(self, sigma_t, L, geometry_params: dict):
+        """I_c: the analytic unscattered beam times (1 + r), r the traced in-scattered fraction."""
+        unscattered = collimated_transmittance(sigma_t, self.thickness_mm, self.n, cover_slide_n(geometry_params))
+        return unscattered * np.exp(L)
+
+
+def _check(doc: dict, path: Path) -> None:
+    if not isinstance(doc, dict) or doc.get("format_version") != FORMAT_VERSION:
+        raise InputError(f"{path}: not a version-{FORMAT_VERSION} twin observables file")
+    for key in ("geometry", "n", "thickness_mm", "geometry_hash", "materials"):
+        if key not in doc:
+            raise InputError(f"{path}: lacks {key!r}")
+    for name, m in doc["materials"].items():
+        nodes = np.asarray(m.get("wavelength_nm", []), dtype=float)
+        if nodes.ndim != 1 or len(nodes) < 4 or not np.all(np.diff(nodes) > 0):
+            raise InputError(f"{path}: {name}: wavelength_nm must be ≥ 4 increasing nodes")
+        for k in ("A", "B", "C", "L"):
+            v = np.asarray(m.get(k, []), dtype=float)
+            if v.shape != nodes.shape or not np.all(np.isfinite(v)):
+                raise InputError(f"{path}: {name}: {k} must be {len(nodes)} finite numbers")
+
+
+@lru_cache(maxsize=16)
+def _load(path: Path) -> TracedSetup:
+    if path.stat().st_size > MAX_FILE_BYTES:
+        raise InputError(f"{path}: larger than {MAX_FILE_BYTES} bytes")
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise InputError(f"{path}: unreadable ({exc})") from None
+    _check(doc, path)
+    return TracedSetup(geometry=doc["geometry"], n=float(doc["n"]), thickness_mm=float(doc["thickness_mm"]),
+                       geometry_hash=doc["geometry_hash"], materials=doc["materials"],
+                       provenance=doc.get("provenance", {}), path=path)
+
+
+def traced_setup(geometry: str, n: float, thickness_mm: float) -> TracedSetup | None:
+    """The traced observables of a set-up, or None when none were traced for it."""
+    path = DATA_DIR / f"{setup_name(geometry, n, thickness_mm)}.json"
+    if not math.isfinite(thickness_mm) or not path.is_file():
+        return None
+    return _load(path)
+
+
+def available_setups() -> list[str]:
+    return sorted(p.stem for p in DATA_DIR.glob("*.json"))
