@@ -53,12 +53,13 @@ def local_client(workers: int | None = None, retries: int = 2) -> Iterator:
     if not 1 <= workers <= 1024:
         raise InputError(f"--workers must be 1…1024, got {workers}")
     env = {"DRJIT_LIBLLVM_PATH": os.environ.get("DRJIT_LIBLLVM_PATH", _LIBLLVM)} if os.path.exists(_LIBLLVM) else {}
-    # allowed-failures: how many worker deaths one task may be part of before it is given up on
+    # allowed-failures: how many worker deaths one task may be part of before it is given up on;
+    # dashboard ":0": the scheduler's HTTP server on a free port (it always starts one; 8787 may be taken)
     with dask.config.set({"distributed.worker.multiprocessing-method": "spawn",
                           "distributed.scheduler.allowed-failures": retries,
                           "distributed.worker.daemon": False}):
         cluster = distributed.LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                                           dashboard_address=None, silence_logs=logging.CRITICAL, env=env)
+                                           dashboard_address=":0", silence_logs=logging.CRITICAL, env=env)
         try:
             with distributed.Client(cluster) as client:
                 yield client
