@@ -160,6 +160,84 @@ def test_retry_policy_refuses_nonsense():
             RetryPolicy(**bad)
 
 
+# ------------------------------------------------------------------ the press-button service
+class FlakyOutsideSequences(FlakyLink):
+    """Loses requests only while no sequence (Runner.run) is running: the service's own polls, status LED
+    writes, lamp switching and map-table check."""
+
+    def __init__(self, instrument, **link):
+        super().__init__(instrument, **link)
+        self.in_sequence = False
+        self.enabled = False
+
+    def __getattr__(self, name):
+        flaky = super().__getattr__(name)
+        call = getattr(self.instrument, name)
+        return call if self.in_sequence or not self.enabled else flaky
+
+
+def service_rig(tmp_path, monkeypatch, policy):
+    from hil_support import HIL_MAP
+    from trimeter.maps import AppearanceMap
+    from trimeter.sequences.service import Service
+    from trimeter.sequences.settings import HostSettings
+
+    monkeypatch.setenv("TRIMETER_DATA_DIR", str(tmp_path / "data"))
+    amap = AppearanceMap.load(HIL_MAP)
+    wl = np.linspace(420, 720, 61)
+    fake = FakeInstrument(busy_polls=1)
+    optics = FakeOptics(wl, diffuse=np.full(wl.size, 3e6), collimated=np.full(wl.size, 5e6), rho_black=0.03,
+                        rho_white=0.99)
+    flaky = FlakyOutsideSequences(fake, p_lost=0.06, p_unanswered=0.06, seed=11)
+    run = Runner.run
+
+    def run_marked(runner, plan):
+        flaky.in_sequence = True
+        try:
+            return run(runner, plan)
+        finally:
+            flaky.in_sequence = False
+
+    monkeypatch.setattr(Runner, "run", run_marked)
+    settings = HostSettings()
+    settings.set("results_dir", str(tmp_path / "results"))
+    settings.set("map", str(amap.path))
+    settings.set("warmup_interval_s", 2)
+    events = []
+    service = Service(lambda: Device(flaky), lambda: FakeSpectrometer(fake, optics), settings,
+                      on_event=events.append, retry=policy)
+    optics_sample = amap.query(np.full(wl.size, 0.8), np.full(wl.size, 3.0), np.full(wl.size, 0.5), 0.03, 0.99)
+    return service, fake, optics, flaky, events, optics_sample
+
+
+def test_the_service_retries_its_own_requests_so_a_lossy_line_costs_no_press(tmp_path, monkeypatch):
+    service, fake, optics, flaky, events, sample = service_rig(tmp_path, monkeypatch, RetryPolicy(backoff_s=0.0,
+                                                                                                  max_backoff_s=0.0))
+    service.connect()
+    flaky.enabled = True
+    outcomes = [service.poll_once() for _ in range(5)]
+    fake.press_button()
+    outcomes.append(service.poll_once())
+    optics.sample = sample
+    for _ in range(3):
+        fake.press_button()
+        outcomes.append(service.poll_once())
+    assert outcomes == [None] * 5 + ["calibrated"] + ["measured"] * 3
+    assert [e for e in events if e.kind == "failed"] == []
+    assert flaky.failures >= 5 and flaky.reopens == flaky.failures  # each one retried, after a reopen
+    np.testing.assert_allclose(service.last_parameters.alpha, 0.8, atol=0.01)
+
+
+def test_without_retries_the_same_line_fails_a_press_outside_any_sequence(tmp_path, monkeypatch):
+    service, fake, optics, flaky, events, sample = service_rig(tmp_path, monkeypatch, RetryPolicy(attempts=1))
+    service.connect()
+    flaky.enabled = True
+    with pytest.raises(LinkError, match="failed 1 times on a bad link; gave up on the device link"):
+        for _ in range(20):
+            fake.press_button()
+            service.poll_once()
+
+
 # ------------------------------------------------------------------ the transport over a real pty
 class BadCrcThenGoodSlave(threading.Thread):
     """Answers FC 03 reads; the first reply has a flipped bit (bad CRC), the others are good."""

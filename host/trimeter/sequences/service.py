@@ -12,7 +12,9 @@ Status LED: steady on = ready (press to measure) · slow blink = working · trip
 holder and press (to calibrate) · double blink = put the next sample in and press · fast blink = the
 last press failed (see the log) · the firmware's own slow blink at power-up = not yet connected.
 A device reset or a lost link never ends the service: it reconnects, re-arms, marks the calibration
-stale, and a measurement the reset interrupted leaves no result directory.
+stale, and a measurement the reset interrupted leaves no result directory. A request a noisy line loses
+is tried again under the sequences' RetryPolicy, inside a sequence (the Runner) and outside it alike
+(polls, status LED, lamps, the map-table check: `_on_device`), so it does not cost the press.
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
+from typing import Callable, TypeVar
 
 from trimeter.device import Device
 from trimeter.device.backup import config_source_warning
@@ -35,11 +37,12 @@ from trimeter.sequences.checks import calibration_problems, fit_problems, shot_p
 from trimeter.sequences.plans import holder_check, sample_capture, warm_up
 from trimeter.sequences.reflectance import Calibration, reflectances
 from trimeter.sequences.settings import HostSettings
-from trimeter.sequences.steps import Runner
+from trimeter.sequences.steps import RetryPolicy, Runner, retry_on_link_error
 
 READY, WORKING, FAILED = "on", "slow_blink", "fast_blink"
 NEXT_SAMPLE = "double_blink"  # two samples: the first is captured, put the second in and press
 EMPTY_HOLDER = "triple_blink"  # a calibration is due: empty the holder and press
+T = TypeVar("T")
 
 
 @dataclass
@@ -75,7 +78,7 @@ class Service:
     def __init__(self, open_device: Callable[[], Device], open_spectrometer: Callable[[], object],
                  settings: HostSettings, *, on_event: Callable[[Event], None] | None = None,
                  on_progress: Callable[[float, str], None] | None = None, label: str | None = None,
-                 device_clock: Callable[[], float] | None = None):
+                 device_clock: Callable[[], float] | None = None, retry: RetryPolicy = RetryPolicy()):
         self._open_device = open_device
         self._open_spectrometer = open_spectrometer
         self.settings = settings
@@ -83,6 +86,7 @@ class Service:
         self.on_progress = on_progress
         self.label = label
         self.device_clock = device_clock
+        self.retry = retry
         self.device: Device | None = None
         self.spectrometer = None
         self.calibration: Calibration | None = None
@@ -140,6 +144,16 @@ class Service:
     def _emit(self, kind, message, **data):
         self.on_event(Event(kind, message, data))
 
+    def _on_device(self, what: str, action: Callable[[Device], T]) -> T:
+        """`action(device)` under the same RetryPolicy as a sequence's steps: a request the line lost is tried
+        again after a backoff and a reopen; a reset or a refusal is not. Every action here sets a state or
+        reads one, so it is safe to repeat."""
+        return retry_on_link_error(lambda: action(self.device), what, self.retry, self.device.transport,
+                                   abandoned="gave up on the device link")
+
+    def _show(self, pattern: str) -> None:
+        self._on_device("setting the status LED", lambda d: d.write("status_pattern", pattern))
+
     @property
     def pattern(self) -> str:
         """What the LED shows between presses: READY, EMPTY_HOLDER (asking), FAILED; NEXT_SAMPLE while it waits."""
@@ -176,8 +190,8 @@ class Service:
 
     def poll_once(self) -> str | None:
         """Check the button once; run whatever a press asks for. Returns what was done, if anything."""
-        button, uptime = self.device.read_many("button_events", "uptime_s").values()
-        lamps = self.device.read("led_panel_left_on")
+        button, uptime, lamps = self._on_device("polling the button", lambda d: (
+            *d.read_many("button_events", "uptime_s").values(), d.read("led_panel_left_on")))
         # A reset restarts the counters and darkens the lamps (which this service keeps on); uptime alone
         # misses a reset within a second of the last poll.
         if uptime < self._uptime or not lamps:
@@ -192,8 +206,8 @@ class Service:
                     pass  # it is gone already
             self.spectrometer = self._open_spectrometer()
             self._button, self._uptime = button, uptime
-            lamps_on(self.device)
-            self.device.write("status_pattern", self._status)
+            self._on_device("switching the lamps on", lamps_on)
+            self._show(self._status)
             self._ask_empty_holder(self.calibration_stale_reason)
             return "reset"
         self._uptime = uptime
@@ -223,21 +237,20 @@ class Service:
 
     def _ask_empty_holder(self, reason: str) -> None:
         self._status = EMPTY_HOLDER
-        self.device.write("status_pattern", EMPTY_HOLDER)
+        self._show(EMPTY_HOLDER)
         self._emit("empty_holder", f"{reason}: empty the sample holder and press the button to calibrate",
                    reason=reason)
 
     def handle_press(self, samples: list[tuple[float, str | None]] | None = None, label: str | None = None) -> str:
         """What a press does. `samples` ((thickness, map or None) each) and `label`: a measurement asked for
         by name (the web page) instead of the host config's; it never calibrates: a due calibration only asks."""
-        dev = self.device
         try:
-            reason = self.calibration_due(dev.read("uptime_s"))
+            reason = self.calibration_due(self._on_device("reading the device's uptime", lambda d: d.read("uptime_s")))
             if reason and (self._status != EMPTY_HOLDER or samples is not None):
                 # this press was meant to measure, with a sample in: it must not calibrate
                 self._ask_empty_holder(reason)
                 return "asked"
-            dev.write("status_pattern", WORKING)
+            self._show(WORKING)
             if reason:
                 self._emit("calibrating", f"{reason}: checking that the holder is empty, then warming up and "
                                           f"calibrating")
@@ -256,7 +269,7 @@ class Service:
             if outcome == "incomplete":  # written, but not what was asked for: the LED says so
                 self._emit("failed", self.last_incomplete)
             self._status = FAILED if outcome == "incomplete" else READY
-            dev.write("status_pattern", self._status)
+            self._show(self._status)
             return outcome
         except DeviceError as exc:
             self._status = FAILED
@@ -273,13 +286,13 @@ class Service:
         """measure()'s `between` under `serve`: the LED double-blinks until the button is pressed again
         (the next sample is in); that press is consumed here, not taken as a new measurement. No press
         within swap_timeout_s, or a device reset meanwhile, raises: measure() then writes what it has."""
-        dev = self.device
-        dev.write("status_pattern", NEXT_SAMPLE)
+        self._show(NEXT_SAMPLE)
         self._emit("next_sample", f"insert the {thickness:g} mm sample and press the button", thickness_mm=thickness)
         deadline = time.monotonic() + self.settings.swap_timeout_s
         self._next_sample_confirmed.clear()  # only a confirm given while this asks counts
         while True:
-            button, uptime = dev.read_many("button_events", "uptime_s").values()
+            button, uptime = self._on_device("polling the button", lambda d: d.read_many("button_events",
+                                                                                         "uptime_s").values())
             if uptime < self._uptime:  # left for poll_once to handle as a reset: lamps, calibration
                 raise DeviceError(f"the device was reset while waiting for the {thickness:g} mm sample")
             confirmed = self._next_sample_confirmed.is_set()
@@ -288,7 +301,7 @@ class Service:
                 self._next_sample_confirmed.clear()
                 self._emit("press", f"{'confirmed on the web page' if confirmed else 'button pressed'}: "
                                     f"measuring the {thickness:g} mm sample")
-                dev.write("status_pattern", WORKING)
+                self._show(WORKING)
                 return
             if time.monotonic() >= deadline:
                 raise TrimeterError(f"no press within {self.settings.swap_timeout_s:g} s "
@@ -303,7 +316,8 @@ class Service:
 
     # ------------------------------------------------------------------------------ actions
     def _runner(self) -> Runner:
-        return Runner(self.device, self.spectrometer, on_progress=self.on_progress, device_clock=self.device_clock)
+        return Runner(self.device, self.spectrometer, on_progress=self.on_progress, device_clock=self.device_clock,
+                      retry=self.retry)
 
     def previous_calibration(self) -> Calibration | None:
         """The last good calibration on disk (every saved one passed its checks), or None."""
@@ -318,7 +332,7 @@ class Service:
         disagrees with the previous good one (a replaced lamp); the physical bounds still apply."""
         s = self.settings
         runner = self._runner()
-        lamps_on(self.device)
+        self._on_device("switching the lamps on", lamps_on)
         identity = self.device.identity
         device = {} if identity is None else {
             "vendor_id": identity.vendor_id, "model_id": identity.model_id,
@@ -343,7 +357,7 @@ class Service:
         self.last_timing = runner.timing.to_dict()
         self._emit("calibrated", "calibrated: insert the sample and press the button to measure",
                    timing=self.last_timing)
-        self.device.write("status_pattern", READY)
+        self._show(READY)
         return cal
 
     def device_table(self, amap) -> dict:
@@ -397,7 +411,7 @@ class Service:
         for note in prepare_results_dir(s.results_path, n_bins=len(self.calibration.wavelengths_nm),
                                         n_samples=len(thicknesses)):
             self._emit("warning", note)  # leftovers of interrupted writes, moved to the spool
-        table = self.device_table(maps[0])
+        table = self._on_device("reading the device's map table", lambda d: self.device_table(maps[0]))
         if table["slot"] and not table["matches_fit_table"]:
             self._emit("warning", f"the device's active map table (slot {table['slot']}, CRC-32 {table['crc32']}) is "
                                   f"not the table of map {maps[0].name}; `trimeter map flash` the right one")

@@ -139,6 +139,34 @@ class Timing:
         return {k: (round(v, 4) if isinstance(v, float) else v) for k, v in self.__dict__.items()}
 
 
+def retry_on_link_error(action: Callable[[], T], what: str, policy: RetryPolicy, transport, *,
+                        sleep: Callable[[float], None] = time.sleep, timing: Timing | None = None,
+                        abandoned: str = "the sequence was abandoned") -> T:
+    """`action()`, tried again while it fails with a LinkError, up to `policy.attempts` tries: after each
+    failure a backoff, then `transport.reopen()` (the device's identity is checked again on the next read).
+    Any other error — a reset, a refusal, a fault — propagates at once. After the last try, a LinkError
+    naming `what` (as the operator would say it) and what was `abandoned`. `timing` counts the retried
+    tries and their wall time."""
+    failures = 0
+    while True:
+        t0 = time.monotonic()
+        try:
+            return action()
+        except LinkError as exc:
+            failures += 1
+            if failures >= policy.attempts:
+                if timing is not None:
+                    timing.retry_wall_s += time.monotonic() - t0
+                raise LinkError(f"{what} failed {failures} times on a bad link; {abandoned} (last: {exc})") from None
+            sleep(policy.backoff(failures))
+            reopen = getattr(transport, "reopen", None)
+            if reopen is not None:
+                reopen()
+            if timing is not None:
+                timing.step_retries += 1
+                timing.retry_wall_s += time.monotonic() - t0
+
+
 class Runner:
     """Executes plans against a Device and a Spectrometer."""
 
@@ -184,28 +212,11 @@ class Runner:
                 self.timing.request_retries += stats.retries - retries0
 
     def retrying(self, action: Callable[[], T], what: str) -> T:
-        """`action()`, tried again (RetryPolicy) while it fails with a LinkError: after each failure a
-        backoff, then the port is reopened (the device's identity is checked again on the next read).
-        Any other error — a reset, a refusal, a fault — propagates at once. Also for what a sequence's
-        owner does on the device outside a plan (e.g. switching the lamps on), so it shares the policy."""
-        failures = 0
+        """`action()` under the RetryPolicy (retry_on_link_error), counted in this run's timing; also for
+        what a sequence's owner does on the device outside a plan, so it shares the policy."""
         self._wait_start = None
-        while True:
-            t0 = time.monotonic()
-            try:
-                return action()
-            except LinkError as exc:
-                failures += 1
-                if failures >= self.retry.attempts:
-                    self.timing.retry_wall_s += time.monotonic() - t0
-                    raise LinkError(f"{what} failed {failures} times on a bad link; the sequence was abandoned "
-                                    f"(last: {exc})") from None
-                self._sleep(self.retry.backoff(failures))
-                reopen = getattr(self.device.transport, "reopen", None)
-                if reopen is not None:
-                    reopen()
-                self.timing.step_retries += 1
-                self.timing.retry_wall_s += time.monotonic() - t0
+        return retry_on_link_error(action, what, self.retry, self.device.transport, sleep=self._sleep,
+                                   timing=self.timing)
 
     # ------------------------------------------------------------------------------- guarding
     def _check_not_reset(self) -> None:
