@@ -48,6 +48,10 @@ class FakeInstrument:
         self.time_s = 0.0          # device clock: advances tick_s per request (what a real link costs)
         self.tick_s = 0.05
         self.on_request = None     # callable(fake) run on every request (fault injection in tests)
+        # lamp monitor: per LED channel (left, right, collimated), its emission relative to nominal, seen by a
+        # photodiode past its shutter: dark offset + span × LED on × shutter open × emission
+        self.lamp_emission = [1.0, 1.0, 1.0]
+        self.monitor_dark_counts, self.monitor_span_counts = 60, 3200
         self._refresh_map_registers()
 
     # ------------------------------------------------------------------------------ helpers
@@ -106,8 +110,15 @@ class FakeInstrument:
             return list(self.inputs[address:address + count])
         return list(self.coils[address:address + count])
 
+    def _refresh_lamp_monitor(self):
+        for i, lamp in enumerate(("panel_left", "panel_right", "collimated")):
+            lit = self.coils[i] and self.coils[3 + i]
+            self._set("ir", regs.BY_NAME[f"lamp_monitor_{lamp}"],
+                      self.monitor_dark_counts + lit * self.monitor_span_counts * self.lamp_emission[i])
+
     def read_words(self, table, address, count):
         self._tick()
+        self._refresh_lamp_monitor()
         data = self.ir if table == "input_register" else self.hr
         if address + count > len(data):
             raise ModbusExceptionReply("read", 2)

@@ -22,6 +22,12 @@ BAD_BIN_FRACTION of the usable bins:
 - I_c above the calibrated beam: a sample transmits less than the open slot;
 - after the fit: no material of the map explains the triple (NOT_CONVERGED).
 A genuinely black or opaque sample passes all four (its I_w sits at the floor, I_c near 0 is allowed).
+
+The lamps themselves, which nothing in a shot's spectra can judge (a panel dimmed to 80 % reads as a darker
+sample), are watched by the lamp monitor (trimeter.sequences.lamp_monitor): its photodiodes see each lamp
+past its shutter, never through the sample; every shot's readings against the calibration's refuse a lamp off
+by more than ±3 %, a dead one, or a shutter that did not move. The calibration's own readings must show each
+photodiode lit through its open shutter and dark behind the closed one.
 """
 
 from __future__ import annotations
@@ -30,6 +36,7 @@ import numpy as np
 
 from trimeter.inversion.flags import FitFlag
 from trimeter.maps.appearance import background_response
+from trimeter.sequences import lamp_monitor
 from trimeter.sequences.reflectance import Calibration, Reflectances
 
 RHO_BLACK_MAX = 0.12          # median ρ_black of an empty holder's black background
@@ -91,6 +98,7 @@ def calibration_problems(calibration: Calibration, previous: Calibration | None 
         problems.append(f"the dark frames read {cal.dark_counts:.0f} counts ({cal.dark_counts / full_scale:.0%} of "
                         f"full scale, expected ≤ {DARK_LEVEL_MAX:.0%}) with every shutter closed: light leaks in "
                         f"or the spectrometer is faulty")
+    problems += lamp_monitor.calibration_problems(cal.lamp_monitor)
     if previous is not None and comparable(cal, previous) is None:
         problems += agreement_problems(cal, previous)
     return problems
@@ -142,11 +150,14 @@ def _std(value) -> np.ndarray | float:
 
 
 def shot_problems(refl: Reflectances, amap) -> list[str]:
-    """Is this triple physically possible for any sample, given the calibration and the map?"""
+    """Were the lamps as calibrated (lamp monitor), and is this triple physically possible for any sample,
+    given the calibration and the map?"""
+    lamps = lamp_monitor.shot_problems(refl.lamp_light)
     usable = usable_bins(refl)
     n = int(usable.sum())
     if n == 0:
-        return ["no bin has a usable I_b, I_w, I_c (every bin saturated, non-finite or without reference light)"]
+        return lamps + ["no bin has a usable I_b, I_w, I_c (every bin saturated, non-finite or without reference "
+                        "light)"]
     floor = surface_floor(amap, float(np.nanmin(refl.rho_w)))
     sb, sw, sc = _std(refl.I_b_std), _std(refl.I_w_std), _std(refl.I_c_std)
     with np.errstate(invalid="ignore"):
@@ -164,7 +175,7 @@ def shot_problems(refl: Reflectances, amap) -> list[str]:
              "the collimated beam is brighter than at the calibration, or panel light leaks into the open slot; "
              "calibrate again with the holder empty"),
         )
-    problems = []
+    problems = lamps
     for bad, seen, cause in checks:
         k = int(np.count_nonzero(bad & usable))
         if k > BAD_BIN_FRACTION * n:

@@ -20,7 +20,9 @@ import numpy as np
 
 from trimeter.errors import CheckError, DeviceError
 from trimeter.sequences.reflectance import Calibration, Capture, RawSample
-from trimeter.sequences.steps import Acquire, Describe, DeviceTime, Expose, Lights, Move, Progress, Status, Wait
+from trimeter.sequences import lamp_monitor
+from trimeter.sequences.steps import (Acquire, Describe, DeviceTime, Expose, LampMonitor, Lights, Move, Progress,
+                                      Status, Wait)
 
 SATURATION_FRACTION = 0.98   # a bin above this fraction of full scale counts as saturated
 EXPOSURE_TARGET = 0.7        # auto-exposure aims the brightest bin at this fraction of full scale
@@ -78,9 +80,11 @@ def auto_expose(start_us: float | None = None, *, target: float = EXPOSURE_TARGE
 def capture(slot: str, *, panels: bool = False, collimated: bool = False, frames: int = 2, hdr_decades: int = 0,
             start_us: float | None = None):
     """One set-up: move, light, auto-expose, then `frames` exposures at t, 10t, … (HDR decades).
-    Returns {integration_time_us: mean counts} and the auto-exposure's peak fraction."""
+    Returns {integration_time_us: mean counts}, the auto-exposure's peak fraction and the lamp monitor's
+    record (read once the shutters settled and again after the last exposure)."""
     yield Move(slot)
     yield Lights(panels=panels, collimated=collimated)
+    monitor = [(yield LampMonitor())]
     description, _ = yield Describe()
     t, peak = yield from auto_expose(start_us)
     times = [t]
@@ -93,7 +97,8 @@ def capture(slot: str, *, panels: bool = False, collimated: bool = False, frames
     for wanted in times:
         actual = yield Expose(wanted)
         signals[actual] = yield Acquire(frames, spread=True)
-    return signals, peak
+    monitor.append((yield LampMonitor()))
+    return signals, peak, lamp_monitor.record(panels, collimated, monitor)
 
 
 def dark_frames(times, *, frames: int = 2):
@@ -148,20 +153,24 @@ def _check_light(capture: Capture, saturation_counts: float, what: str) -> None:
 def _captures(setups, frames, progress_from, progress_to, label):
     description, wavelengths = yield Describe()
     lit = _lit_bins(description, len(wavelengths))
-    raw, peaks = {}, {}
+    raw, peaks, monitors = {}, {}, {}
     for i, (key, slot, panels, collimated, hdr, what) in enumerate(setups):
         yield Progress(progress_from + (progress_to - progress_from) * i / (len(setups) + 1),
                        f"{label}: {key} ({slot} slot)")
-        raw[key], peaks[key] = yield from capture(slot, panels=panels, collimated=collimated, frames=frames,
-                                                  hdr_decades=hdr)
+        raw[key], peaks[key], monitors[key] = yield from capture(slot, panels=panels, collimated=collimated,
+                                                                 frames=frames, hdr_decades=hdr)
     yield Progress(progress_from + (progress_to - progress_from) * len(setups) / (len(setups) + 1),
                    f"{label}: dark frames")
     darks = yield from dark_frames([t for signals in raw.values() for t in signals], frames=frames)
+    # every shutter closed, the LEDs still on: each photodiode's closed reading
+    monitors["dark"] = lamp_monitor.record(False, False, [(yield LampMonitor())])
     out = {key: combine(raw[key], darks, description.saturation_counts, lit) for key in raw}
+    for key in raw:
+        out[key].lamp_monitor = monitors[key]
     for key, _, _, _, _, what in setups:
         if what:
             _check_light(out[key], description.saturation_counts, what)
-    return out, wavelengths[lit], description
+    return out, wavelengths[lit], description, monitors
 
 
 def calibration(*, white_reference_reflectance: float, frames: int = 2):
@@ -172,11 +181,12 @@ def calibration(*, white_reference_reflectance: float, frames: int = 2):
     setups = [("white", "white", True, False, 0, "diffuse LED panels"),
               ("black", "black", True, False, 0, None),
               ("collimated", "open", False, True, 0, "collimated LED")]
-    captures, wavelengths, description = yield from _captures(setups, frames, 0.0, 1.0, "calibration")
+    captures, wavelengths, description, monitors = yield from _captures(setups, frames, 0.0, 1.0, "calibration")
     device_time = yield DeviceTime()
     yield Progress(1.0, "calibration done")
     return Calibration.from_captures(wavelengths, captures, white_reference_reflectance=white_reference_reflectance,
-                                     device_time_s=device_time, spectrometer=description.to_dict())
+                                     device_time_s=device_time, spectrometer=description.to_dict(),
+                                     lamp_monitor=monitors)
 
 
 def holder_check(*, white_reference_reflectance: float, frames: int = 1):
@@ -186,7 +196,7 @@ def holder_check(*, white_reference_reflectance: float, frames: int = 1):
     setups = [("white", "white", True, False, 0, None),
               ("black", "black", True, False, 0, None),
               ("collimated", "open", False, True, 0, None)]
-    captures, wavelengths, description = yield from _captures(setups, frames, 0.0, 1.0, "holder check")
+    captures, wavelengths, description, monitors = yield from _captures(setups, frames, 0.0, 1.0, "holder check")
     if not _light_seen(captures["white"], description.saturation_counts):
         raise CheckError("no light from the diffuse panels on the white slot: something opaque covers the holder, "
                          "a panel lamp failed or its shutter stuck closed")
@@ -195,7 +205,8 @@ def holder_check(*, white_reference_reflectance: float, frames: int = 1):
                          "remove it (if the holder is empty: the collimated LED or its shutter failed)")
     device_time = yield DeviceTime()
     return Calibration.from_captures(wavelengths, captures, white_reference_reflectance=white_reference_reflectance,
-                                     device_time_s=device_time, spectrometer=description.to_dict())
+                                     device_time_s=device_time, spectrometer=description.to_dict(),
+                                     lamp_monitor=monitors)
 
 
 def sample_capture(*, frames: int = 2, hdr_decades: int = 2, label: str = "sample"):
@@ -204,10 +215,10 @@ def sample_capture(*, frames: int = 2, hdr_decades: int = 2, label: str = "sampl
     setups = [("black", "black", True, False, 0, None),
               ("white", "white", True, False, 0, None),
               ("collimated", "open", False, True, hdr_decades, None)]
-    captures, wavelengths, _ = yield from _captures(setups, frames, 0.0, 1.0, label)
+    captures, wavelengths, _, monitors = yield from _captures(setups, frames, 0.0, 1.0, label)
     device_time = yield DeviceTime()
     return RawSample(wavelengths_nm=wavelengths, black=captures["black"], white=captures["white"],
-                     collimated=captures["collimated"], device_time_s=device_time)
+                     collimated=captures["collimated"], device_time_s=device_time, lamp_monitor=monitors)
 
 
 @dataclass(frozen=True)

@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from trimeter.errors import InputError
+from trimeter.sequences import lamp_monitor
 
 CALIBRATION_FORMAT_VERSION = 1
 MIN_REFERENCE_FRACTION = 1e-3   # reference rate below this fraction of its median: no usable light in that bin
@@ -45,6 +46,7 @@ class Capture:
     signals: np.ndarray = field(repr=False)   # (exposures, bins) mean counts
     darks: np.ndarray = field(repr=False)
     rate_std: np.ndarray | None = field(default=None, repr=False)  # standard error of `rate` (frame spread)
+    lamp_monitor: dict | None = field(default=None, repr=False)  # lamp_monitor.record() of this set-up
 
     def relative_std(self) -> np.ndarray:
         if self.rate_std is None:
@@ -65,6 +67,7 @@ class RawSample:
     white: Capture
     collimated: Capture
     device_time_s: float = 0.0
+    lamp_monitor: dict = field(default_factory=dict)  # set-up → lamp_monitor.record(), incl. "dark"
 
 
 def _reference_ok(rate: np.ndarray) -> np.ndarray:
@@ -90,11 +93,12 @@ class Calibration:
     collimated_rel_std: np.ndarray | None = None
     dark_counts: float = float("nan")   # median dark frame (every shutter closed), counts
     device: dict = field(default_factory=dict)    # identity of the instrument it was taken on
+    lamp_monitor: dict = field(default_factory=dict)  # set-up → lamp_monitor.record(): the lamps' references
 
     @classmethod
     def from_captures(cls, wavelengths_nm, captures: dict, *, white_reference_reflectance: float,
                       device_time_s: float = 0.0, spectrometer: dict | None = None,
-                      device: dict | None = None) -> "Calibration":
+                      device: dict | None = None, lamp_monitor: dict | None = None) -> "Calibration":
         white, black, coll = captures["white"], captures["black"], captures["collimated"]
         flags = white.flags() | black.flags() | coll.flags()
         diffuse = white.rate / white_reference_reflectance
@@ -108,7 +112,8 @@ class Calibration:
                    np.where(no_light, np.nan, coll.rate), rho_black, float(white_reference_reflectance),
                    flags.astype(np.int32), float(device_time_s),
                    datetime.now(timezone.utc).isoformat(timespec="seconds"), dict(spectrometer or {}),
-                   white.relative_std(), coll.relative_std(), dark_counts, dict(device or {}))
+                   white.relative_std(), coll.relative_std(), dark_counts, dict(device or {}),
+                   dict(lamp_monitor or {}))
 
     # -------------------------------------------------------------------------------- files
     def save(self, directory: str | Path) -> Path:
@@ -118,7 +123,8 @@ class Calibration:
         meta = {"format_version": CALIBRATION_FORMAT_VERSION, "rho_white": self.rho_white,
                 "device_time_s": self.device_time_s, "created_utc": self.created_utc,
                 "spectrometer": self.spectrometer, "bins": int(len(self.wavelengths_nm)),
-                "dark_counts": None if not np.isfinite(self.dark_counts) else self.dark_counts, "device": self.device}
+                "dark_counts": None if not np.isfinite(self.dark_counts) else self.dark_counts, "device": self.device,
+                "lamp_monitor": self.lamp_monitor}
         (directory / "calibration.json").write_text(json.dumps(meta, indent=2))
         nan = np.full_like(self.diffuse, np.nan)
         table = np.column_stack([self.wavelengths_nm, self.diffuse, self.collimated, self.rho_black, self.flags,
@@ -148,7 +154,8 @@ class Calibration:
             return cls(table[:, 0], table[:, 1], table[:, 2], table[:, 3], float(meta["rho_white"]),
                        table[:, 4].astype(np.int32), float(meta.get("device_time_s", 0.0)),
                        str(meta.get("created_utc", "")), dict(meta.get("spectrometer") or {}), table[:, 5],
-                       table[:, 6], float("nan") if dark is None else float(dark), dict(meta.get("device") or {}))
+                       table[:, 6], float("nan") if dark is None else float(dark), dict(meta.get("device") or {}),
+                       dict(meta.get("lamp_monitor") or {}))
         except (KeyError, TypeError, ValueError) as exc:
             raise InputError(f"calibration in {directory} has a bad field ({exc}); calibrate again") from None
 
@@ -165,6 +172,7 @@ class Reflectances:
     I_b_std: np.ndarray | None = None   # standard errors from the frame-to-frame spread (sample and reference)
     I_w_std: np.ndarray | None = None
     I_c_std: np.ndarray | None = None
+    lamp_light: dict | None = None      # the lamps during the shot against the calibration (lamp_monitor)
 
     def as_columns(self) -> dict:
         cols = {"wavelength_nm": self.wavelengths_nm, "I_b": self.I_b, "I_w": self.I_w, "I_c": self.I_c,
@@ -208,4 +216,5 @@ def reflectances(calibration: Calibration, sample: RawSample) -> Reflectances:
                         np.full_like(calibration.rho_black, calibration.rho_white), flags.astype(np.int32),
                         std(i_b, sample.black, calibration.diffuse_rel_std),
                         std(i_w, sample.white, calibration.diffuse_rel_std),
-                        std(i_c, sample.collimated, calibration.collimated_rel_std))
+                        std(i_c, sample.collimated, calibration.collimated_rel_std),
+                        lamp_monitor.relative_light(calibration.lamp_monitor, sample.lamp_monitor))
