@@ -66,9 +66,13 @@ class SpectralMaterial:
         ok = np.isfinite(wl) & np.isfinite(alpha) & np.isfinite(sigma_t) & np.isfinite(g)
         if ok.sum() < 2:
             raise InputError("fewer than two wavelengths with a finite α, σt and g")
+        for name, values, bad in (("alpha", alpha, (alpha < 0) | (alpha > 1)), ("sigma_t", sigma_t, sigma_t < 0),
+                                  ("g", g, np.abs(g) >= 1)):
+            if (bad & ok).any():
+                i = int(np.flatnonzero(bad & ok)[0])
+                raise InputError(f"{name} at {wl[i]:g} nm is {values[i]:g}: outside its physical range")
         order = np.argsort(wl[ok])
-        return cls(wl[ok][order], np.clip(alpha[ok][order], 0, 1), np.maximum(sigma_t[ok][order], 0),
-                   np.clip(g[ok][order], -0.99, 0.99))
+        return cls(wl[ok][order], alpha[ok][order], sigma_t[ok][order], np.clip(g[ok][order], -0.99, 0.99))
 
     @property
     def sigma_s(self) -> np.ndarray:
