@@ -144,15 +144,16 @@ def shot_problems(light: dict | None) -> list[str]:
                     note(lamp, "leak", f, key, f)
     problems = []
     for (lamp, kind), (_, setups, f) in sorted(worst.items()):
-        name, where = LAMP_NAMES[lamp], ", ".join(setups)
+        name = LAMP_NAMES[lamp]
+        where = " and ".join(setups) + (" captures" if len(setups) > 1 else " capture")
         if kind == "dead":
-            problems.append(f"the {name} gave {f:.0%} of its calibrated light (lamp monitor, {where} capture): the "
+            problems.append(f"the {name} gave {f:.0%} of its calibrated light (lamp monitor, {where}): the "
                             f"lamp is dead or its shutter did not open")
         elif kind == "drift":
-            problems.append(f"the {name} was at {f - 1:+.1%} of its calibrated light (lamp monitor, {where} capture; "
+            problems.append(f"the {name} was at {f - 1:+.1%} of its calibrated light (lamp monitor, {where}; "
                             f"bound ±{DRIFT_BOUND:.0%}): a dimmed or drifting lamp — calibrate again (replace the "
                             f"lamp if it keeps dimming)")
         else:
             problems.append(f"the {name}'s shutter did not close (its lamp monitor saw {f:.0%} of the open light "
-                            f"during the {where} capture): a stuck shutter")
+                            f"during the {where}): a stuck shutter")
     return problems
