@@ -294,9 +294,18 @@ def test_a_silent_device_is_a_link_error_naming_the_timeout():
     tty.setraw(slave)
     link = RtuTransport(os.ttyname(slave), timeout_s=0.05, attempts=2)
     try:
-        with pytest.raises(LinkError, match="after 2 attempts .last: no reply within 0.05 s"):
+        # the allowance plus both frames on the wire: 8 request bytes, 9 reply bytes at 11 bits each
+        timeout = 0.05 + (8 + 9) * 11 / 19200
+        assert link.request_timeout_s(8, 9) == pytest.approx(timeout)
+        with pytest.raises(LinkError, match=f"after 2 attempts .last: no reply within {timeout:.3g} s"):
             link.read_words("input_register", 0, 2)
         assert link.stats.timeouts == 2
+        link.attempts = 1
+        t0 = time.monotonic()
+        with link.slow_reply(0.3), pytest.raises(LinkError, match=f"no reply within {timeout + 0.3:.3g} s"):
+            link.read_words("input_register", 0, 2)
+        assert time.monotonic() - t0 >= 2 * (timeout + 0.3)  # waited that long, then drained as long
+        assert link.request_timeout_s(8, 9) == pytest.approx(timeout)  # only inside
     finally:
         link.close()
         os.close(master)

@@ -47,7 +47,7 @@ MATERIALS = ("cyan-ink", "magenta-ink", "yellow-ink", "milk")
 LINK_LEVELS = ((0.55, dict(corrupt=0.0, drop=0.0, late=0.0)),
                (0.2, dict(corrupt=0.01, drop=0.0, late=0.0)),
                (0.15, dict(corrupt=0.02, drop=0.0, late=0.0)),
-               (0.1, dict(corrupt=0.02, drop=0.05, late=0.01, late_delay_s=0.3)))
+               (0.1, dict(corrupt=0.02, drop=0.05, late=0.01, late_delay_s=0.2)))
 RESET_PROBABILITY = 0.03
 REACTION_TIMEOUT_S = 300.0  # no answer to a press within this (wall): counted as a failure, pressed again
 

@@ -15,6 +15,7 @@ comes from trimeter.registers (generated from hardware/registers.toml).
 
 from __future__ import annotations
 
+import contextlib
 import struct
 import time
 import zlib
@@ -29,6 +30,10 @@ from trimeter.errors import DeviceError, InputError
 
 _STRUCT = {"u16": ">H", "i16": ">h", "u32": ">I", "i32": ">i", "f32": ">f"}
 # Device config: what `config list/get/set` show — the rw holding registers that persist with save_config.
+# The firmware erases a flash sector before it answers these (STM32F405 at x32: a 16 KiB config sector
+# 0.5 s, a 128 KiB map sector 2 s at most), so their replies get that much longer to arrive.
+CONFIG_ERASE_S = 0.75
+MAP_ERASE_S = 2.5
 CONFIG_NAMES = tuple(r.name for r in regs.REGISTERS if r.table == "holding_register" and r.address >= 64)
 
 
@@ -146,7 +151,7 @@ class Device:
         self.identity = self.check_identity() if check else None
 
     @classmethod
-    def open(cls, port: str, *, address: int = 1, baudrate: int = 19200, timeout_s: float = 0.5,
+    def open(cls, port: str, *, address: int = 1, baudrate: int = 19200, timeout_s: float = 0.15,
              attempts: int = 4, reconnect_timeout_s: float = 10.0, check: bool = True,
              local_echo: bool = False, late_reply_window_s: float | None = None) -> "Device":
         transport = RtuTransport(port, address=address, baudrate=baudrate, timeout_s=timeout_s,
@@ -285,6 +290,12 @@ class Device:
             cmd = action
         self.write("command", cmd)
 
+    def _erasing(self, seconds: float):
+        """Context for a request the device answers only after a flash erase (transports without timeouts:
+        nothing to do)."""
+        slow_reply = getattr(self.transport, "slow_reply", None)
+        return slow_reply(seconds) if slow_reply is not None else contextlib.nullcontext()
+
     def unlock(self) -> None:
         """Open the firmware's short window for ONE destructive command (sent next, as its own request)."""
         self.write("unlock", regs.Unlock.KEY)
@@ -294,7 +305,8 @@ class Device:
         for attempt in (1, 2):
             self.unlock()
             try:
-                self.write("command", DESTRUCTIVE_COMMANDS[action])
+                with self._erasing(CONFIG_ERASE_S):  # save_config; load_defaults erases nothing but is as rare
+                    self.write("command", DESTRUCTIVE_COMMANDS[action])
                 return
             except ModbusExceptionReply as exc:
                 if exc.code == 6:
@@ -397,7 +409,8 @@ class Device:
             self.write("map_command", "abort")
             raise DeviceError(f"map read-back differs at byte {_first_difference(back, data)}; not activated, "
                               "the old map stays active")
-        result = self._unlocked_map_command("activate", timeout_s)
+        with self._erasing(CONFIG_ERASE_S):  # activate commits the storage record to a config sector
+            result = self._unlocked_map_command("activate", timeout_s)
         active = self.read("map_active_slot")
         if result != regs.MapOpStatus.ACTIVATED or active != target:
             raise DeviceError(f"map activation failed ({getattr(result, 'name', result)}, active slot "
@@ -423,7 +436,8 @@ class Device:
                             ("map_version", version), ("map_read_slot", 0), ("map_command", "begin_write")):
             reg = regs.BY_NAME[name]
             words[reg.address - first:reg.address - first + reg.words] = encode(reg, value)
-        status = self._unlocked_map_command(lambda: self.transport.write_words(first, words))
+        with self._erasing(MAP_ERASE_S):  # begin_write erases the slot's sector
+            status = self._unlocked_map_command(lambda: self.transport.write_words(first, words))
         if status != regs.MapOpStatus.WRITING:
             raise DeviceError(f"device did not open a map write (status {getattr(status, 'name', status)})")
 

@@ -2,7 +2,12 @@
 
 What this layer guarantees to the client above it (trimeter.device.client):
 - every request has an explicit timeout and a bounded number of attempts; after the last one a
-  DeviceError names the port, the request and the last failure;
+  DeviceError names the port, the request and the last failure. The timeout is the time the request's
+  and the reply's bytes take on the wire at the baud rate, plus `timeout_s` for the device and the
+  adapter to answer (the firmware answers from its main loop within milliseconds; a USB adapter adds up
+  to its latency timer, 16 ms by default on FTDI chips), plus whatever `slow_reply()` allows for a
+  request the device acts on before it answers (a flash erase). A lost request costs its timeout and
+  then the drain (below), so a timeout longer than needed is paid on every line error;
 - after any failure the input is drained and then flushed, so the framer restarts on a clean buffer
   (garbage, a bad CRC or half a frame never poisons the next request);
 - a garbled reply is given up on as soon as the bytes of a whole reply of the expected length are in
@@ -13,7 +18,7 @@ What this layer guarantees to the client above it (trimeter.device.client):
   it answers *this* request: same function code, same address/count
   (writes echo them), same length (reads). RTU has no transaction ids, so a late reply to an earlier
   request of a different shape is recognised and discarded, and after a request went unanswered
-  everything arriving within `late_reply_window_s` (default: the timeout) is discarded (after a garbled
+  everything arriving within `late_reply_window_s` (default: that request's timeout) is discarded (after a garbled
   reply, which was this request's answer, until the line is quiet). A reply later than that, of the
   same shape, cannot be told apart by any RTU master: the window is the documented bound;
 - when the serial adapter disappears (USB unplugged, twin restarted) the port is closed and reopened
@@ -26,6 +31,7 @@ What this layer guarantees to the client above it (trimeter.device.client):
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import time
 from dataclasses import dataclass, field
@@ -107,7 +113,7 @@ class LinkStats:
 class RtuTransport:
     """Modbus RTU master on one serial port, for one slave address."""
 
-    def __init__(self, port: str, *, address: int = 1, baudrate: int = 19200, timeout_s: float = 0.5,
+    def __init__(self, port: str, *, address: int = 1, baudrate: int = 19200, timeout_s: float = 0.15,
                  attempts: int = 4, late_reply_window_s: float | None = None, reconnect_timeout_s: float = 10.0,
                  local_echo: bool = False):
         """local_echo: an RS-485 adapter that hears its own transmission (half duplex without echo
@@ -117,8 +123,11 @@ class RtuTransport:
         self.port = port
         self.address = address
         self.timeout_s = timeout_s
+        self.baudrate = baudrate
         self.attempts = max(1, attempts)
-        self.late_reply_window_s = timeout_s if late_reply_window_s is None else late_reply_window_s
+        self.late_reply_window_s = late_reply_window_s  # None: each request's own timeout
+        self._slow_reply_s = 0.0
+        self._request_timeout_s = timeout_s
         self.reconnect_timeout_s = reconnect_timeout_s
         self.stats = LinkStats()
         # retries=0: we retry ourselves, so every retry drains + flushes and checks the reply's shape.
@@ -144,6 +153,21 @@ class RtuTransport:
         self.stats.reconnects += 1
         self._open(deadline=time.monotonic() + self.reconnect_timeout_s)
 
+    @contextlib.contextmanager
+    def slow_reply(self, seconds: float):
+        """Requests made inside may take `seconds` longer to be answered: the device acts on them before it
+        replies (a flash sector erase blocks the firmware's main loop)."""
+        saved, self._slow_reply_s = self._slow_reply_s, seconds
+        try:
+            yield
+        finally:
+            self._slow_reply_s = saved
+
+    def request_timeout_s(self, request_bytes: int, reply_bytes: int) -> float:
+        """How long to wait for a reply: both frames' time on the wire (11 bits a byte: start, 8 data, parity
+        or a second stop, stop) plus the answering allowance and any slow_reply()."""
+        return self.timeout_s + self._slow_reply_s + (request_bytes + reply_bytes) * 11 / self.baudrate
+
     def _drain(self, *, answered: bool = False) -> None:
         """After a failure: discard everything that arrives for the whole late-reply window, then flush.
         Stopping at the first quiet moment would let a reply that is merely late land in the next
@@ -154,7 +178,8 @@ class RtuTransport:
         if sock is None:
             return
         now = time.monotonic()
-        end, quiet_until = now + self.late_reply_window_s, now + self._quiet_s
+        window = self._request_timeout_s if self.late_reply_window_s is None else self.late_reply_window_s
+        end, quiet_until = now + window, now + self._quiet_s
         while time.monotonic() < (quiet_until if answered else end):
             waiting = sock.in_waiting
             if waiting:
@@ -178,10 +203,13 @@ class RtuTransport:
 
     # ------------------------------------------------------------------------------------- requests
     def _execute(self, what: str, function_code: int, call: Callable[[ModbusSerialClient], object],
-                 answers: Callable[[object], bool], reply_bytes: int):
-        """`reply_bytes`: the length of the normal (non-exception) reply frame, address and CRC included."""
+                 answers: Callable[[object], bool], request_bytes: int, reply_bytes: int):
+        """`request_bytes`, `reply_bytes`: the lengths of the request frame and of its normal (non-exception)
+        reply frame, address and CRC included."""
         started = time.monotonic()
         self.stats.requests += 1
+        self._request_timeout_s = timeout = self.request_timeout_s(request_bytes, reply_bytes)
+        self._client.comm_params.timeout_connect = timeout  # what pymodbus's serial client waits for a reply
         last_failure = "no attempt"
         try:
             for attempt in range(self.attempts):
@@ -204,8 +232,8 @@ class RtuTransport:
                         # pymodbus's own wording ("… CLOSING CONNECTION") describes a close it does not do
                         # on a serial client; what happened is that no whole reply came back in time.
                         self.stats.timeouts += 1
-                        last_failure = (f"no reply within {self.timeout_s:g} s" if not self._received else
-                                        f"an incomplete reply within {self.timeout_s:g} s ({self._received.hex(' ')})")
+                        last_failure = (f"no reply within {timeout:.3g} s" if not self._received else
+                                        f"an incomplete reply within {timeout:.3g} s ({self._received.hex(' ')})")
                     else:
                         last_failure = str(exc).strip() or type(exc).__name__
                     if isinstance(exc, (ConnectionException, OSError)) or self._client.socket is None:
@@ -244,7 +272,7 @@ class RtuTransport:
         reply = self._execute(
             f"a read of {count} {table}s at {address}", fc,
             lambda c: getattr(c, method)(address, count=count, device_id=self.address),
-            lambda r: r.function_code == fc and len(r.bits) == padded, 5 + padded // 8)
+            lambda r: r.function_code == fc and len(r.bits) == padded, 8, 5 + padded // 8)
         return [bool(b) for b in reply.bits[:count]]
 
     def read_words(self, table: str, address: int, count: int) -> list[int]:
@@ -253,20 +281,22 @@ class RtuTransport:
         reply = self._execute(
             f"a read of {count} {table}s at {address}", fc,
             lambda c: getattr(c, method)(address, count=count, device_id=self.address),
-            lambda r: r.function_code == fc and len(r.registers) == count, 5 + 2 * count)
+            lambda r: r.function_code == fc and len(r.registers) == count, 8, 5 + 2 * count)
         return list(reply.registers)
 
     def write_bits(self, address: int, values: list[bool]) -> None:
         self._execute(
             f"a write of {len(values)} coils at {address}", 0x0F,
             lambda c: c.write_coils(address, list(values), device_id=self.address),
-            lambda r: r.function_code == 0x0F and (r.address, r.count) == (address, len(values)), 8)
+            lambda r: r.function_code == 0x0F and (r.address, r.count) == (address, len(values)),
+            9 + (len(values) + 7) // 8, 8)
 
     def write_words(self, address: int, values: list[int]) -> None:
         self._execute(
             f"a write of {len(values)} holding registers at {address}", 0x10,
             lambda c: c.write_registers(address, list(values), device_id=self.address),
-            lambda r: r.function_code == 0x10 and (r.address, r.count) == (address, len(values)), 8)
+            lambda r: r.function_code == 0x10 and (r.address, r.count) == (address, len(values)),
+            9 + 2 * len(values), 8)
 
     def read_file_records(self, file_number: int, record_number: int, count: int) -> bytes:
         request = [FileRecord(file_number=file_number, record_number=record_number, record_length=2 * count)]
@@ -274,7 +304,7 @@ class RtuTransport:
             f"a file-record read of file {file_number} record {record_number} (+{count})", 0x14,
             lambda c: c.read_file_record(request, device_id=self.address),
             lambda r: r.function_code == 0x14 and len(r.records) == 1 and len(r.records[0].record_data) == 2 * count,
-            7 + 2 * count)
+            12, 7 + 2 * count)
         return bytes(reply.records[0].record_data)
 
     def write_file_records(self, file_number: int, record_number: int, data: bytes) -> None:
@@ -284,4 +314,4 @@ class RtuTransport:
             lambda c: c.write_file_record(request, device_id=self.address),
             lambda r: r.function_code == 0x15 and len(r.records) == 1
             and (r.records[0].file_number, r.records[0].record_number) == (file_number, record_number),
-            12 + len(data))
+            12 + len(data), 12 + len(data))

@@ -35,7 +35,7 @@ class HostSettings:
     port: str = ""                     # serial port of the instrument (e.g. /dev/ttyUSB0)
     address: int = 1                   # Modbus slave address
     baudrate: int = 19200
-    timeout_s: float = 0.5             # per Modbus request
+    timeout_s: float = 0.15            # per Modbus request, on top of its frames' time on the wire (transport.py)
     attempts: int = 4                  # per Modbus request
     local_echo: int = 0                # 1: the RS-485 adapter echoes what it sends (pymodbus strips it)
     spectrometer: str = ""             # spectrometer URL (sim:/dev/pts/N, seabreeze:, i2c:1)
