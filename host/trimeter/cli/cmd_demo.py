@@ -4,7 +4,8 @@ Starts the twin (the real firmware core built for the `sim` port, plant, optics,
 empty holder, runs the press-button service exactly as `trimeter serve` does, presses the button
 (warm-up + calibration), inserts a virtual ink, presses again (capture + fit + results), then prints
 α, σt, g at a few wavelengths beside the twin's truth, the timing split (physical vs. host overhead)
-and the path of the figure."""
+and the path of the figure. The twin's sample is rendered directly (independent physics: trimeter.twin.traced),
+so the printed errors include the appearance map's own."""
 
 from __future__ import annotations
 
@@ -101,7 +102,14 @@ def run(args):
             thread.join(timeout=10)
 
     params, timing = measured.data["parameters"], measured.data["timing"]
-    print("\nα, σt [1/mm], g — measured (± 1σ) beside the twin's truth")
+    if truth.get("physics") == "traced":
+        print(f"\nindependent physics: the twin rendered '{args.sample}' with the tracer for this set-up "
+              f"(trimeter.twin.traced), not with the map {amap.name} the fit inverts — the errors below include the "
+              "map's own")
+    else:
+        print(f"\nsame physics as the fit: no traced observables for this set-up, so the twin used the map {amap.name} "
+              "itself — the errors below do NOT include the map's own (tools/make_twin_observables.py traces them)")
+    print("α, σt [1/mm], g — measured (± 1σ) beside the twin's truth")
     print(f"{'λ nm':>6} {'α':>16} {'truth':>7} {'σt':>18} {'truth':>7} {'g':>15} {'truth':>6}")
     tw = np.asarray(truth["wavelengths_nm"])
     for w in SHOW_NM:
