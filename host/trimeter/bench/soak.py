@@ -168,7 +168,7 @@ def run_soak(cycles: int, *, seed: int = 0, time_scale: float = 50.0, calibratio
 def _operate(cycles, twin, operator, events, report, rng, weights, progress, started) -> None:
     truth = None
     next_action = "wait"  # the service asks first (no calibration yet → triple blink)
-    checkpoint = max(1, cycles // 10)
+    checkpoint = max(1, min(10, cycles // 10))  # RSS every 10 cycles at most: a jump is placed to within 10
     while report.cycles < cycles:
         if next_action != "wait":
             level = LINK_LEVELS[rng.choice(len(LINK_LEVELS), p=weights / weights.sum())][1]
