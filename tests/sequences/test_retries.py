@@ -310,3 +310,53 @@ def test_a_silent_device_is_a_link_error_naming_the_timeout():
         link.close()
         os.close(master)
         os.close(slave)
+
+
+class SlowReplyRecorder:
+    """FakeInstrument with a transport's slow_reply(): records each request with the extra time it was allowed."""
+
+    def __init__(self, instrument):
+        self.instrument, self.extra_s, self.log = instrument, 0.0, []
+
+    def slow_reply(self, seconds):
+        import contextlib
+
+        @contextlib.contextmanager
+        def allowing():
+            saved, self.extra_s = self.extra_s, seconds
+            try:
+                yield
+            finally:
+                self.extra_s = saved
+        return allowing()
+
+    def __getattr__(self, name):
+        call = getattr(self.instrument, name)
+
+        def recorded(*args):
+            self.log.append((name, args[0] if args else None, args[1] if len(args) > 1 else None, self.extra_s))
+            return call(*args)
+        return recorded
+
+
+def test_requests_the_firmware_answers_after_a_flash_erase_get_the_erase_time():
+    from trimeter import registers as regs
+    from trimeter.device.client import CONFIG_ERASE_S, MAP_ERASE_S
+
+    recorder = SlowReplyRecorder(FakeInstrument())
+    device = Device(recorder)
+    device.command("save_config")
+    table = bytes(range(256)) * 4
+    device.flash_map(table, version=3)
+    command, map_command = regs.BY_NAME["command"].address, regs.BY_NAME["map_command"].address
+    slow = {(name, address): extra for name, address, values, extra in recorder.log if extra}
+    writes = [(address, values, extra) for name, address, values, extra in recorder.log if name == "write_words"]
+    save = [extra for address, values, extra in writes if address == command and values == [regs.Command.SAVE_CONFIG]]
+    begin = [extra for address, values, extra in writes if address <= map_command < address + len(values)
+             and values[map_command - address] == regs.MapCommand.BEGIN_WRITE]
+    activate = [extra for address, values, extra in writes if address == map_command
+                and values == [regs.MapCommand.ACTIVATE]]
+    assert save == [CONFIG_ERASE_S] and begin == [MAP_ERASE_S] and activate == [CONFIG_ERASE_S]
+    # everything else waits the ordinary timeout: the file records, the polls, verify
+    assert all(name != "write_file_records" for name, _ in slow)
+    assert sum(1 for *_, extra in recorder.log if not extra) > 10
