@@ -213,6 +213,14 @@ class Optics:
             raise InputError(f"thickness_mm must be positive, got {thickness_mm!r}")
         spectra = material_spectra(name, self.wavelengths_nm)
         amap = self._map_for(thickness_mm)
+        # only samples the host's map can invert, whichever physics renders them
+        for key, axis in (("alpha", amap.alpha), ("sigma_t", amap.sigma_t), ("g", amap.g)):
+            values = spectra[key]
+            bad = (values < axis[0]) | (values > axis[-1])
+            if bad.any():
+                lam = self.wavelengths_nm[bad]
+                raise InputError(f"sample {name!r}: {key} spans {values.min():.4g}..{values.max():.4g}, outside map "
+                                 f"{amap.name}'s {axis[0]:.4g}..{axis[-1]:.4g} at {lam[0]:.0f}-{lam[-1]:.0f} nm")
         traced = traced_setup(str(amap.recipe.get("geometry")), amap.n, thickness_mm)
         observed = None
         if traced is not None:
@@ -225,13 +233,6 @@ class Optics:
             self.sample = SampleOptics(name=name, thickness_mm=thickness_mm, I_b=I_b, I_w=I_w, I_c=I_c,
                                        I_open=I_open, map_name=amap.name, physics="traced", **spectra)
             return self.sample
-        for key, axis in (("alpha", amap.alpha), ("sigma_t", amap.sigma_t), ("g", amap.g)):
-            values = spectra[key]
-            bad = (values < axis[0]) | (values > axis[-1])
-            if bad.any():
-                lam = self.wavelengths_nm[bad]
-                raise InputError(f"sample {name!r}: {key} spans {values.min():.4g}..{values.max():.4g}, outside map "
-                                 f"{amap.name}'s {axis[0]:.4g}..{axis[-1]:.4g} at {lam[0]:.0f}-{lam[-1]:.0f} nm")
         I_b, I_w, I_c = amap.query(spectra["alpha"], spectra["sigma_t"], spectra["g"], self.rho_black, self.rho_white)
         I_open = amap.diffuse(spectra["alpha"], spectra["sigma_t"], spectra["g"], 0.0)
         self.sample = SampleOptics(name=name, thickness_mm=thickness_mm, I_b=I_b, I_w=I_w, I_c=I_c, I_open=I_open,

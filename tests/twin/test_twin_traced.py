@@ -1,0 +1,72 @@
+"""The twin's independent physics: virtual samples rendered by the tracer (trimeter.twin.traced), close to
+but not the map the host inverts; stale data is refused; an untraced set-up says it fell back to the map."""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib.util
+import json
+
+import numpy as np
+import pytest
+
+from trimeter.errors import InputError
+from trimeter.geometry import load_geometry
+from trimeter.maps import AppearanceMap
+from trimeter.paths import REPO_ROOT
+from trimeter.twin import traced
+from trimeter.twin.optics import Optics, _catalogue
+
+DEVICE_MAP = REPO_ROOT / "maps" / "device-n1.5-l0.4.tmap"
+
+
+@pytest.mark.skipif(not DEVICE_MAP.exists() or traced.traced_setup("device", 1.5, 0.4) is None,
+                    reason="needs the shipped device map and its traced observables")
+def test_traced_sample_agrees_with_the_map_but_is_not_it():
+    amap = AppearanceMap.load(DEVICE_MAP)
+    optics = Optics(amap)
+    s = optics.insert_sample("magenta-ink", 0.4)
+    assert s.physics == "traced" and optics.truth()["physics"] == "traced"
+    I_b, I_w, I_c = amap.query(s.alpha, s.sigma_t, s.g, optics.rho_black, optics.rho_white)
+    # the same forward model, traced independently: within the map's own error, never bit-identical
+    assert np.nanmax(np.abs(s.I_w / I_w - 1)) < 0.02 and np.nanmax(np.abs(s.I_b / I_b - 1)) < 0.03
+    assert np.nanmax(np.abs(s.I_w - I_w)) > 1e-5
+    np.testing.assert_allclose(s.I_c, I_c, rtol=2e-3)  # both analytic Beer-Lambert × traced in-scattering
+
+
+def test_untraced_setup_falls_back_to_the_map_and_says_so(ideal_map):
+    other = dataclasses.replace(ideal_map, recipe={**ideal_map.recipe, "thickness_mm": 0.37}, path=None)
+    s = Optics(other).insert_sample("milk", 0.37)
+    assert s.physics == "map"
+
+
+def _tool():
+    spec = importlib.util.spec_from_file_location("make_twin_observables",
+                                                  REPO_ROOT / "tools" / "make_twin_observables.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_tool_output_loads_and_stale_data_is_refused(tmp_path, monkeypatch):
+    pytest.importorskip("drjit")
+    tool = _tool()
+    monkeypatch.setattr(tool, "DATA_DIR", tmp_path)
+    assert tool.main(["--setup", "ideal:0.3", "--material", "milk", "--paths", "4096", "--step-nm", "150",
+                      "--range-nm", "340", "1000"]) == 0
+    path = tmp_path / "ideal-n1.5-l0.3.json"
+    setup = traced._load(path)
+    lam = np.linspace(400, 900, 50)
+    params = load_geometry("ideal")
+    I_b, I_w, L, I_open = setup.observables("milk", _catalogue()["material"]["milk"], params, lam, 0.03, 0.99)
+    assert np.all(I_w > I_b) and np.all(L == 0) and np.all((I_open > 0) & (I_open < I_b + 1e-12))
+    assert setup.observables("cyan-ink", _catalogue()["material"]["cyan-ink"], params, lam, 0.03, 0.99) is None
+    changed = {**_catalogue()["material"]["milk"], "g_at_500nm": 0.5}
+    with pytest.raises(InputError, match="stale.*make_twin_observables"):
+        setup.observables("milk", changed, params, lam, 0.03, 0.99)
+    doc = json.loads(path.read_text())
+    doc["materials"]["milk"]["A"] = doc["materials"]["milk"]["A"][:-1]
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps(doc))
+    with pytest.raises(InputError, match="A must be"):
+        traced._load(bad)
