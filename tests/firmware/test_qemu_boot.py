@@ -61,6 +61,16 @@ def line():
         proc.wait()
 
 
+def _frame_length(reply: bytes) -> int:
+    """The RTU reply's length as far as its first bytes tell: a CRC residue of 0 alone can end a frame early
+    (some prefix of a longer reply may happen to check)."""
+    if len(reply) >= 2 and reply[1] & 0x80:
+        return 5
+    if len(reply) >= 3 and reply[1] in (3, 4):
+        return 3 + reply[2] + 2
+    return 5
+
+
 def transact(sock: socket.socket, pdu: bytes, tries: int = 10) -> bytes:
     """One RTU request; retried while the guest boots (bytes before USART init are lost)."""
     frame = bytes([1]) + pdu
@@ -69,7 +79,7 @@ def transact(sock: socket.socket, pdu: bytes, tries: int = 10) -> bytes:
         sock.sendall(frame)
         reply = b""
         try:
-            while len(reply) < 5 or crc16(reply) != 0:
+            while len(reply) < _frame_length(reply) or crc16(reply) != 0:
                 chunk = sock.recv(300)
                 if not chunk:
                     break

@@ -56,7 +56,7 @@ static void clock_init(void)
 
 /* ---------------------------------------------------------------- GPIO */
 
-enum { MODE_INPUT = 0, MODE_OUTPUT = 1, MODE_AF = 2 };
+enum { MODE_INPUT = 0, MODE_OUTPUT = 1, MODE_AF = 2, MODE_ANALOG = 3 };
 
 static void pin_mode(uint32_t port, uint32_t pin, uint32_t mode, int af, uint32_t pull)
 {
@@ -102,6 +102,9 @@ static void gpio_init(void)
     PIN_INIT(LED_PANEL_LEFT, MODE_AF);
     PIN_INIT(LED_PANEL_RIGHT, MODE_AF);
     PIN_INIT(LED_COLLIMATED, MODE_AF);
+    PIN_INIT(MONITOR_PANEL_LEFT, MODE_ANALOG);
+    PIN_INIT(MONITOR_PANEL_RIGHT, MODE_ANALOG);
+    PIN_INIT(MONITOR_COLLIMATED, MODE_ANALOG);
 }
 
 /* ---------------------------------------------------------------- time base */
@@ -290,6 +293,37 @@ static void h_led(void *ctx, enum hal_led l, uint16_t permille)
     TIM_CCR(TIM4_BASE, led_channel[l]) = (uint32_t)permille * led_period_ticks / 1000u;
 }
 
+/* ---------------------------------------------------------------- lamp monitor (ADC1) */
+
+#define ADC_TIMEOUT 2000u /* loop turns: a conversion takes ~7 µs; never hang on a dead ADC */
+
+static const uint8_t monitor_channel[HAL_LED_COUNT] = {
+    PIN_MONITOR_PANEL_LEFT_CHANNEL, PIN_MONITOR_PANEL_RIGHT_CHANNEL, PIN_MONITOR_COLLIMATED_CHANNEL};
+
+static void adc_init(void)
+{
+    RCC_APB2ENR |= RCC_APB2ENR_ADC1;
+    ADC_CCR = ADC_CCR_ADCPRE_DIV4; /* APB2 84 MHz / 4 = 21 MHz, within the 36 MHz limit */
+    ADC1_CR1 = 0;                  /* 12 bits, no scan, no interrupts */
+    ADC1_SQR1 = 0;                 /* one conversion per start */
+    /* 144 cycles (~7 µs) of sampling; the 100 nF at each pin holds the 100 kΩ load's voltage meanwhile */
+    for (int l = 0; l < HAL_LED_COUNT; l++)
+        ADC1_SMPR2 |= ADC_SMP_144_CYCLES << (3u * monitor_channel[l]);
+    ADC1_CR2 = ADC_CR2_ADON;
+}
+
+/* One regular conversion of the photodiode's channel; 0 if the ADC does not answer. */
+static uint16_t h_lamp(void *ctx, enum hal_led l)
+{
+    (void)ctx;
+    ADC1_SQR3 = monitor_channel[l];
+    (void)ADC1_DR; /* clears a stale EOC */
+    ADC1_CR2 = ADC_CR2_ADON | ADC_CR2_SWSTART;
+    for (uint32_t i = 0; i < ADC_TIMEOUT; i++)
+        if (ADC1_SR & ADC_SR_EOC) return (uint16_t)(ADC1_DR & 0xFFFu);
+    return 0;
+}
+
 /* ---------------------------------------------------------------- the rest of the HAL */
 
 static uint32_t h_now_us(void *ctx)
@@ -345,6 +379,7 @@ static hal_t board_hal = {
     .led_level = h_led,
     .status_led = h_status,
     .button_pressed = h_button,
+    .lamp_monitor = h_lamp,
     .storage_read = flash_region_read,
     .storage_write = flash_region_write,
     .storage_erase = flash_region_erase,
@@ -358,6 +393,7 @@ int main(void)
     systick_init();
     step_timer_init();
     watchdog_init();
+    adc_init();
     app_init(&board_hal);
     const app_t *app = app_get();
     pwm_setup(app->cfg.led_pwm_hz);

@@ -27,6 +27,7 @@
 #define RCC_APB1ENR_TIM4 (1u << 2)
 #define RCC_APB1ENR_TIM5 (1u << 3)
 #define RCC_APB2ENR_USART1 (1u << 4)
+#define RCC_APB2ENR_ADC1 (1u << 8)
 
 /* ---- FLASH interface */
 #define FLASH_BASE_R 0x40023C00u
@@ -99,6 +100,22 @@
 #define TIM_SR_UIF (1u << 0)
 #define TIM_EGR_UG (1u << 0)
 #define TIM_OCMODE_PWM1 6u
+
+/* ---- ADC1 (regular group, software-started single conversions) */
+#define ADC1_BASE 0x40012000u
+#define ADC1_SR REG32(ADC1_BASE + 0x00)
+#define ADC1_CR1 REG32(ADC1_BASE + 0x04)
+#define ADC1_CR2 REG32(ADC1_BASE + 0x08)
+#define ADC1_SMPR2 REG32(ADC1_BASE + 0x10)
+#define ADC1_SQR1 REG32(ADC1_BASE + 0x2C)
+#define ADC1_SQR3 REG32(ADC1_BASE + 0x34)
+#define ADC1_DR REG32(ADC1_BASE + 0x4C)
+#define ADC_CCR REG32(0x40012300u + 0x04)
+#define ADC_SR_EOC (1u << 1)
+#define ADC_CR2_ADON (1u << 0)
+#define ADC_CR2_SWSTART (1u << 30)
+#define ADC_CCR_ADCPRE_DIV4 (1u << 16)
+#define ADC_SMP_144_CYCLES 6u
 
 /* ---- IWDG */
 #define IWDG_BASE 0x40003000u
