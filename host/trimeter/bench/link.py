@@ -17,6 +17,8 @@ from pathlib import Path
 from trimeter.bench._rig import twin_and_service
 from trimeter.errors import InputError, TrimeterError
 from trimeter.sequences.measure import map_for_thickness
+from trimeter.sequences.settings import HostSettings
+from trimeter.sequences.steps import RetryPolicy
 from trimeter.twin import FaultConfig
 
 SAMPLE = "cyan-ink"
@@ -78,8 +80,10 @@ def measure_level(corrupt: float, drop: float, *, time_scale: float, seed: int) 
 def run(args) -> int:
     levels = parse_levels(args.levels)
     rows = []
-    print(f"twin at time scale {args.time_scale:g}; host defaults (timeout 0.5 s, 4 attempts per request, "
-          f"5 tries per step); sample {SAMPLE} {THICKNESS_MM:g} mm", flush=True)
+    host = HostSettings()
+    print(f"twin at time scale {args.time_scale:g}; host defaults (timeout {host.timeout_s:g} s + the frames' time on "
+          f"the wire, {host.attempts} attempts per request, {RetryPolicy().attempts} tries per step); sample {SAMPLE} "
+          f"{THICKNESS_MM:g} mm", flush=True)
     print(f"{'corrupt':>7} {'drop':>5} | {'calibrate s':>11} {'×clean':>6} {'steps↻':>6} | {'measure s':>9} "
           f"{'×clean':>6} {'steps↻':>6} | {'requests':>8} {'req↻':>5} {'garbled':>7} {'timeouts':>8}", flush=True)
     for i, (corrupt, drop) in enumerate(levels):

@@ -152,7 +152,7 @@ class Device:
 
     @classmethod
     def open(cls, port: str, *, address: int = 1, baudrate: int = 19200, timeout_s: float = 0.15,
-             attempts: int = 4, reconnect_timeout_s: float = 10.0, check: bool = True,
+             attempts: int = 6, reconnect_timeout_s: float = 10.0, check: bool = True,
              local_echo: bool = False, late_reply_window_s: float | None = None) -> "Device":
         transport = RtuTransport(port, address=address, baudrate=baudrate, timeout_s=timeout_s,
                                  attempts=attempts, reconnect_timeout_s=reconnect_timeout_s, local_echo=local_echo,

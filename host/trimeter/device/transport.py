@@ -114,7 +114,7 @@ class RtuTransport:
     """Modbus RTU master on one serial port, for one slave address."""
 
     def __init__(self, port: str, *, address: int = 1, baudrate: int = 19200, timeout_s: float = 0.15,
-                 attempts: int = 4, late_reply_window_s: float | None = None, reconnect_timeout_s: float = 10.0,
+                 attempts: int = 6, late_reply_window_s: float | None = None, reconnect_timeout_s: float = 10.0,
                  local_echo: bool = False):
         """local_echo: an RS-485 adapter that hears its own transmission (half duplex without echo
         suppression); pymodbus then strips the echoed request before framing the reply."""
