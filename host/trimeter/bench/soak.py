@@ -2,14 +2,17 @@
 with stale calibrations, device resets, sample swaps and link faults; every written result is checked
 against the twin's truth.
 
-    trimeter bench soak --cycles N [--seed S] [--time-scale 50] [--json PATH]
+    trimeter bench soak --cycles N [--seed S] [--time-scale 300] [--calibration-max-age 14400] [--json PATH]
 
 A cycle is one press of the twin's button by the simulated operator, who does what the status LED
 asks: triple blink → empty the holder and press; after a calibration → insert a sample and press;
 after a result → swap in another material and press; fast blink (a failure) → press again. Before
 each press the link gets a fault level drawn at random (clean, 1 % or 2 % byte corruption, 2 % with 5 %
 dropped replies and a few replies late), and now and then the firmware is reset; calibrations also go
-stale by age (`calibration_max_age_s`, device seconds).
+stale by age (`calibration_max_age_s`, device seconds). The twin runs 300× faster than real time by
+default: a cycle's device time (moves, settling, exposures, warm-ups) is then a small part of its wall
+time, which goes to the host's own work (writing the result, fitting) and to the link's recoveries; the
+calibration age limit is in device seconds, so it scales along (14400 s: stale about every 48 s of wall time).
 
 Printed: cycles, results written, calibrations, **garbage** (a written result that is wrong for the
 sample that was in: goal 0), failures and refusals with their reasons, RSS of this process over time
@@ -138,7 +141,7 @@ def _reason(message: str) -> str:
     return text[:160]
 
 
-def run_soak(cycles: int, *, seed: int = 0, time_scale: float = 50.0, calibration_max_age_s: float = 600.0,
+def run_soak(cycles: int, *, seed: int = 0, time_scale: float = 300.0, calibration_max_age_s: float = 14400.0,
              progress=lambda line: print(line, flush=True), root: Path | None = None) -> SoakReport:
     """`root`: where the twin's state, the calibration and the results go (default: a temporary directory)."""
     if cycles < 1:
@@ -263,8 +266,8 @@ def register(bench_subparsers) -> None:
                                     description=__doc__)
     p.add_argument("--cycles", type=int, default=50, help="operator presses (default: %(default)s)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--time-scale", type=float, default=50.0, help="twin time scale (default: %(default)s)")
-    p.add_argument("--calibration-max-age", type=float, default=600.0,
+    p.add_argument("--time-scale", type=float, default=300.0, help="twin time scale (default: %(default)s)")
+    p.add_argument("--calibration-max-age", type=float, default=14400.0,
                    help="calibration_max_age_s for the service, device seconds (default: %(default)s)")
     p.add_argument("--json", help="also write the report as JSON here")
     p.set_defaults(func=run)
