@@ -420,6 +420,42 @@ class ForwardGrid:
         J[:, 2, 1] = self.collimated_derivative(s)
         return J
 
+    def first_order_holds(self, alpha, cell: SigmaCell, g, I_b, I_w, rho_b, rho_w, J, sigma_b, sigma_w, std_a, std_g,
+                          sigmas, tol):
+        """Whether the first-order stds std_a, std_g hold over ±`sigmas` σ (invert.c check_first_order,
+        operation for operation). From the polish's solution (α, g) at σt's cell and its Jacobian J
+        (N, 3, 3), the measured (I_b, I_w) are moved by ±sigmas·σ in I_b, then in I_w (σ: sigma_b,
+        sigma_w, the stds propagated); each move's linear prediction (α, g) + J2⁻¹·δI, clamped to the
+        map's box, is corrected by one Newton step there: where a re-fit from the moved intensities
+        lands, up to the square of its distance from the prediction. A bin holds where correction and
+        clamp stay within tol·sigmas of each std for all four moves: two evaluations per move, where
+        solving the re-fits took up to six."""
+        (a_lo, a_hi), (g_lo, g_hi) = self.alpha_range, self.g_range
+        j11, j12, j21, j22 = J[:, 0, 0], J[:, 0, 2], J[:, 1, 0], J[:, 1, 2]
+        limit_a, limit_g = tol * sigmas * std_a, tol * sigmas * std_g
+        holds = np.ones(len(alpha), dtype=bool)
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            det = j11 * j22 - j12 * j21
+            for move in range(4):
+                on_b = move < 2
+                dI = (-sigmas if move & 1 else sigmas) * (sigma_b if on_b else sigma_w)
+                # J2⁻¹'s column for I_b is (j22, −j21)/det, for I_w (−j12, j11)/det
+                da = (j22 * dI) / det if on_b else (-j12 * dI) / det
+                dg = (-j21 * dI) / det if on_b else (j11 * dI) / det
+                a1 = np.minimum(np.maximum(alpha + da, a_lo), a_hi)
+                g1 = np.minimum(np.maximum(g + dg, g_lo), g_hi)
+                coef, e_a, e_g = self.coefficients(a1, cell, g1)
+                Ib, gb, kb = self.diffuse(coef, rho_b)
+                Iw, gw, kw = self.diffuse(coef, rho_w)
+                rb = Ib - (I_b + dI) if on_b else Ib - I_b
+                rw = Iw - I_w if on_b else Iw - (I_w + dI)
+                step_a, step_g = self._lm_step(self.directional(gb, kb, e_a), self.directional(gb, kb, e_g),
+                                               self.directional(gw, kw, e_a), self.directional(gw, kw, e_g), rb, rw)[:2]
+                a2 = np.minimum(np.maximum(a1 + step_a, a_lo), a_hi)
+                g2 = np.minimum(np.maximum(g1 + step_g, g_lo), g_hi)
+                holds &= (np.abs(a2 - alpha - da) <= limit_a) & (np.abs(g2 - g - dg) <= limit_g)
+        return holds
+
     @staticmethod
     def propagate(J, sigma_I, sigma_t_var=None):
         """Standard deviations of (α, σt, g) from independent intensity noise sigma_I (N, 3), to

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 LIBRARY = Path(__file__).with_name("libtrimeter_invert.so")
-ABI_VERSION = 13
+ABI_VERSION = 14
 
 _double_p = ctypes.POINTER(ctypes.c_double)
 
@@ -48,7 +48,8 @@ class _FitOptionsC(ctypes.Structure):
     _fields_ = [(name, ctypes.c_double) for name in (
         "noise_rel", "noise_abs", "mc_stderr", "ic_floor", "alpha_min_g", "input_tolerance", "ref_rho_b",
         "ref_rho_w", "t_max", "t_valid", "step_tol", "step_tol_std", "underdetermined_alpha_std",
-        "underdetermined_g_std", "thickness_rel_std", "inscatter_rel_std")] + [
+        "underdetermined_g_std", "thickness_rel_std", "inscatter_rel_std", "std_check_alpha", "std_check_g",
+        "std_check_sigmas", "std_check_tol")] + [
         ("iterations", ctypes.c_int32)]
 
 
@@ -66,7 +67,7 @@ INSCATTER_ONCE = 1e-3
 
 # tm_flag_bits order; the library is refused if its bits differ from FitFlag's
 _FLAG_ORDER = ("NONFINITE_INPUT", "NEGATIVE_INPUT", "ABOVE_ONE", "BLACK_NOT_BELOW_WHITE", "IC_BELOW_FLOOR",
-               "G_UNDEFINED", "OUTSIDE_MAP", "NOT_CONVERGED", "BAD_BACKGROUND", "UNDERDETERMINED")
+               "G_UNDEFINED", "OUTSIDE_MAP", "NOT_CONVERGED", "BAD_BACKGROUND", "UNDERDETERMINED", "STD_APPROXIMATE")
 
 
 def _load():
@@ -286,10 +287,11 @@ def _fit_outputs(n: int):
 
 def _fit_options(*, noise_rel, noise_abs, mc_stderr, ic_floor, alpha_min_g, input_tolerance, ref_rho, t_max, t_valid,
                  iterations, step_tol, step_tol_std, underdetermined_std, thickness_rel_std,
-                 inscatter_rel_std) -> _FitOptionsC:
+                 inscatter_rel_std, std_check) -> _FitOptionsC:
+    """std_check: (α std, g std, σs, tolerance) of the STD_APPROXIMATE check (api.STD_CHECK_*)."""
     return _FitOptionsC(noise_rel, noise_abs, mc_stderr, ic_floor, alpha_min_g, input_tolerance, *ref_rho, t_max,
                         t_valid, step_tol, step_tol_std, *underdetermined_std, thickness_rel_std, inscatter_rel_std,
-                        iterations)
+                        *std_check, iterations)
 
 
 def _stds(sd, n):

@@ -2,7 +2,7 @@
  * map table's initial guess or a given one, the damped Gauss-Newton polish of (α, g) at that σt on
  * the trilinear forward map, stopping each bin once converged, the Jacobian at the solution (from
  * the converging step's evaluation), the in-scattering correction of σt (where the map has a table),
- * the first-order uncertainty and the validity flags; or its two
+ * the first-order uncertainty and the validity flags, STD_APPROXIMATE's check included; or its two
  * halves tm_fit_prepare / tm_fit_solve with an MLP's guess in between), and its parts for the
  * numpy-side callers (tm_solve_alpha_g, tm_propagate). One pass per bin, everything in registers;
  * the polish takes four bins per step with AVX2 where the CPU has it (newton_step4).
@@ -25,7 +25,7 @@
 #include <stdint.h>
 #include <stdlib.h>
 
-#define TM_ABI_VERSION 13
+#define TM_ABI_VERSION 14
 
 typedef struct {
     int32_t na, ns, ng;
@@ -636,6 +636,15 @@ static int grid_ok(const tm_forward_grid *f, const tm_inverse_table *table) {
     return !table || (table->ns >= 2 && table->nx >= 2 && table->ny >= 2);
 }
 
+/* FLAG_STD_APPROXIMATE: whether a bin's first-order stds hold over ±sigmas σ (ForwardGrid.first_order_holds,
+ * operation for operation). From the polish's solution (α, g) and its Jacobian J2 = ∂(I_b, I_w)/∂(α, g),
+ * the measured (I_b, I_w) are moved by ±sigmas·σ in I_b, then in I_w (σ: the stds propagated); each
+ * move's linear prediction (α, g) + J2⁻¹·δI, clamped to the map's box, is corrected by one Newton step
+ * there: where a re-fit from the moved intensities lands, up to the square of its distance from the
+ * prediction. The bin holds where correction and clamp stay within tol·sigmas of each std for all
+ * four moves. A bin's state between the finish (which picks the bins) and the check: */
+typedef struct { double alpha, g, move_b, move_w, j11, j12, j21, j22, limit_a, limit_g; } check_t;
+
 /* A fit's per-bin working state between its two halves (tm_fit_prepare, tm_fit_solve): the
  * sanitized inputs, the polish's step tolerance, the σt cell, the final evaluations and the polish's
  * index list. One caller-owned block of tm_fit_scratch_size(n) bytes, carved here; tm_solve_alpha_g
@@ -645,11 +654,13 @@ typedef struct {
     double *var_b, *var_w, *sd_c; /* the intensities' noise: given per bin, or the noise model's */
     sigma_cell_t *cells;
     final_eval_t *evals;
+    check_t *checks;
     uint32_t *active;
 } fit_scratch_t;
 
 size_t tm_fit_scratch_size(size_t n) {
-    return (n ? n : 1) * (8 * sizeof(double) + sizeof(sigma_cell_t) + sizeof(final_eval_t) + sizeof(uint32_t));
+    return (n ? n : 1) *
+           (8 * sizeof(double) + sizeof(sigma_cell_t) + sizeof(final_eval_t) + sizeof(check_t) + sizeof(uint32_t));
 }
 
 static fit_scratch_t carve_scratch(void *mem, size_t n) {
@@ -667,7 +678,8 @@ static fit_scratch_t carve_scratch(void *mem, size_t n) {
     sc.sd_c = d + 7 * n;
     sc.cells = (sigma_cell_t *)(d + 8 * n);
     sc.evals = (final_eval_t *)(sc.cells + n);
-    sc.active = (uint32_t *)(sc.evals + n);
+    sc.checks = (check_t *)(sc.evals + n);
+    sc.active = (uint32_t *)(sc.checks + n);
     return sc;
 }
 
@@ -732,14 +744,17 @@ enum {
     FLAG_NOT_CONVERGED = 1 << 7,
     FLAG_BAD_BACKGROUND = 1 << 9,
     FLAG_UNDERDETERMINED = 1 << 10,
+    FLAG_STD_APPROXIMATE = 1 << 11,
     FLAG_UNUSABLE = FLAG_NONFINITE_INPUT | FLAG_NEGATIVE_INPUT | FLAG_ABOVE_ONE | FLAG_BAD_BACKGROUND,
+    /* bins whose stds already come with a caveat are not checked for FLAG_STD_APPROXIMATE */
+    STD_CHECK_SKIP = FLAG_UNUSABLE | FLAG_UNDERDETERMINED | FLAG_G_UNDEFINED | FLAG_OUTSIDE_MAP | FLAG_NOT_CONVERGED,
 };
 
-void tm_flag_bits(int64_t out[10]) {
-    const int64_t bits[10] = {FLAG_NONFINITE_INPUT, FLAG_NEGATIVE_INPUT, FLAG_ABOVE_ONE, FLAG_BLACK_NOT_BELOW_WHITE,
+void tm_flag_bits(int64_t out[11]) {
+    const int64_t bits[11] = {FLAG_NONFINITE_INPUT, FLAG_NEGATIVE_INPUT, FLAG_ABOVE_ONE, FLAG_BLACK_NOT_BELOW_WHITE,
                               FLAG_IC_BELOW_FLOOR, FLAG_G_UNDEFINED, FLAG_OUTSIDE_MAP, FLAG_NOT_CONVERGED,
-                              FLAG_BAD_BACKGROUND, FLAG_UNDERDETERMINED};
-    for (int k = 0; k < 10; k++) out[k] = bits[k];
+                              FLAG_BAD_BACKGROUND, FLAG_UNDERDETERMINED, FLAG_STD_APPROXIMATE};
+    for (int k = 0; k < 11; k++) out[k] = bits[k];
 }
 
 typedef struct {
@@ -755,6 +770,8 @@ typedef struct {
     double underdetermined_alpha_std, underdetermined_g_std; /* FLAG_UNDERDETERMINED above these stds */
     double thickness_rel_std;    /* the sample thickness's relative std: σt's (α and g do not depend on it) */
     double inscatter_rel_std;    /* the in-scattering correction's relative std */
+    /* FLAG_STD_APPROXIMATE: checked where α's or g's std is above these, over ±sigmas σ, to tol of it */
+    double std_check_alpha, std_check_g, std_check_sigmas, std_check_tol;
     int32_t iterations;
 } tm_fit_options;
 
@@ -921,6 +938,47 @@ static void model_variance(const tm_forward_grid *f, const sigma_cell_t *c, doub
     *var_w = out[1];
 }
 
+/* One move (on_b: in I_b, else I_w; dI its signed size): the prediction's offset (da, dg) and where
+ * it lands clamped (a1, g1). */
+static inline void check_target(const tm_forward_grid *f, const check_t *k, int on_b, double dI, double *da,
+                                double *dg, double *a1, double *g1) {
+    double det = k->j11 * k->j22 - k->j12 * k->j21;
+    /* J2⁻¹'s column for I_b is (j22, −j21)/det, for I_w (−j12, j11)/det */
+    *da = on_b ? (k->j22 * dI) / det : (-k->j12 * dI) / det;
+    *dg = on_b ? (-k->j21 * dI) / det : (k->j11 * dI) / det;
+    *a1 = clampd(k->alpha + *da, f->alpha_lo, f->alpha_hi);
+    *g1 = clampd(k->g + *dg, f->g_lo, f->g_hi);
+}
+
+/* The check for the bins listed in idx (m of them), move by move with the bins innermost (their
+ * table reads, cells a few σ from the solution's, then overlap). Sets FLAG_STD_APPROXIMATE in flags. */
+static void check_first_order(const tm_forward_grid *f, size_t m, const uint32_t *idx, const check_t *checks,
+                              sigma_cell_t *cells, const double *I_b, const double *I_w, const double *rho_b,
+                              const double *rho_w, double sigmas, int64_t *flags) {
+    for (int move = 0; move < 4; move++) {
+        int on_b = move < 2;
+        for (size_t j = 0; j < m; j++) {
+            size_t i = idx[j];
+            const check_t *k = &checks[i];
+            if (flags[i] & FLAG_STD_APPROXIMATE) continue;
+            double dI = (move & 1 ? -sigmas : sigmas) * (on_b ? k->move_b : k->move_w);
+            double da, dg, a1, g1;
+            check_target(f, k, on_b, dI, &da, &dg, &a1, &g1);
+            abc_t e;
+            coefficients(f, &cells[i], a1, g1, 0, &e);
+            double gb, kb, gw, kw;
+            double rb = diffuse(e.v, rho_b[i], &gb, &kb) - (on_b ? I_b[i] + dI : I_b[i]);
+            double rw = diffuse(e.v, rho_w[i], &gw, &kw) - (on_b ? I_w[i] : I_w[i] + dI);
+            lm_step_t st = lm_step(directional(gb, kb, e.da), directional(gb, kb, e.dg), directional(gw, kw, e.da),
+                                   directional(gw, kw, e.dg), rb, rw);
+            double a2 = clampd(a1 + st.step_a, f->alpha_lo, f->alpha_hi);
+            double g2 = clampd(g1 + st.step_g, f->g_lo, f->g_hi);
+            if (!(fabs(a2 - k->alpha - da) <= k->limit_a && fabs(g2 - k->g - dg) <= k->limit_g))
+                flags[i] |= FLAG_STD_APPROXIMATE;
+        }
+    }
+}
+
 /* The second half: the initial (α, g) from alpha0/g0 (the MLP's) or, where those are NULL or not
  * finite (a broken network), from `table` (without one: the middle of the map's box); the polish,
  * then flags for not converged / outside the map / g undefined / underdetermined, first-order stds
@@ -950,12 +1008,20 @@ long long tm_fit_solve(const tm_forward_grid *f, const tm_inverse_table *table, 
     size_t steps = polish(f, n, cells, ib, iw, rb, rw, o->iterations, o->step_tol, sc.step_var, alpha, g, sc.active,
                           sc.evals);
     const int g_lo_is_edge = f->g_lo > -1 + 1e-6, g_hi_is_edge = f->g_hi < 1 - 1e-6;
+    size_t checked = 0; /* bins for check_first_order, listed in sc.active (the polish is done with it) */
     for (size_t i = 0; i < n; i++) {
         double Ji[9];
         int64_t fl = out->flags[i];
         int usable = !(fl & FLAG_UNUSABLE);
         double residual2 = final_residual2_and_jacobian(f, &cells[i], &sc.evals[i], alpha[i], g[i], ib[i], iw[i], rb[i],
                                                         rw[i], Ji);
+        check_t *k = &sc.checks[i];
+        k->alpha = alpha[i];
+        k->g = g[i];
+        k->j11 = Ji[0];
+        k->j12 = Ji[2];
+        k->j21 = Ji[3];
+        k->j22 = Ji[5];
         double ds_in = 0.0; /* the in-scattering correction of σt */
         if (f->inscatter_L && !(fl & (FLAG_UNUSABLE | FLAG_IC_BELOW_FLOOR | FLAG_OUTSIDE_MAP)))
             ds_in = correct_inscatter(f, &cells[i], Ji, &alpha[i], &sigma_t[i], &g[i]);
@@ -982,6 +1048,13 @@ long long tm_fit_solve(const tm_forward_grid *f, const tm_inverse_table *table, 
             gg = sg = NAN;
         }
         if (usable && (sa > o->underdetermined_alpha_std || sg > o->underdetermined_g_std)) fl |= FLAG_UNDERDETERMINED;
+        if (!(fl & STD_CHECK_SKIP) && isfinite(sa) && isfinite(sg) && (sa > o->std_check_alpha || sg > o->std_check_g)) {
+            k->move_b = sqrt(sc.var_b[i] + model_b);
+            k->move_w = sqrt(sc.var_w[i] + model_w);
+            k->limit_a = o->std_check_tol * o->std_check_sigmas * sa;
+            k->limit_g = o->std_check_tol * o->std_check_sigmas * sg;
+            sc.active[checked++] = (uint32_t)i;
+        }
         if (!usable) {
             a = gg = sa = ss = sg = NAN;
             sigma_t[i] = out->sigma_t_beer[i] = NAN;
@@ -993,6 +1066,7 @@ long long tm_fit_solve(const tm_forward_grid *f, const tm_inverse_table *table, 
         out->g_std[i] = sg;
         out->flags[i] = fl;
     }
+    check_first_order(f, checked, sc.active, sc.checks, cells, ib, iw, rb, rw, o->std_check_sigmas, out->flags);
     return (long long)steps;
 }
 
