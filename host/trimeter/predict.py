@@ -140,7 +140,7 @@ def draw_swatches(path: Path, rows: list[tuple[str, Prediction]], *, columns: in
         r, c = divmod(k, columns)
         for y0, rgb in ((0.05, p.srgb_white), (0.42, p.srgb_black)):
             ax.add_patch(plt.Rectangle((c + 0.05, r + y0), 0.9, 0.37, color=srgb_encode(rgb)))
-        ax.text(c + 0.5, r + 0.9, label, ha="center", va="center", fontsize=7, color="white")
+        ax.text(c + 0.5, r + 0.9, label.replace("+", "\n+"), ha="center", va="center", fontsize=7, color="white")
     ax.set_title(title, fontsize=9, color="white")
     with atomic_output(path) as f:
         fig.savefig(f, format="png", dpi=110, facecolor=fig.get_facecolor())
