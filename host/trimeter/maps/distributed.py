@@ -54,8 +54,13 @@ def local_client(workers: int | None = None, retries: int = 2) -> Iterator:
         raise InputError(f"--workers must be 1…1024, got {workers}")
     env = {"DRJIT_LIBLLVM_PATH": os.environ.get("DRJIT_LIBLLVM_PATH", _LIBLLVM)} if os.path.exists(_LIBLLVM) else {}
     # allowed-failures: how many worker deaths one task may be part of before it is given up on;
-    # dashboard ":0": the scheduler's HTTP server on a free port (it always starts one; 8787 may be taken)
+    # dashboard ":0": the scheduler's HTTP server on a free port (it always starts one; 8787 may be taken).
+    # The nanny's default MALLOC_TRIM_THRESHOLD_=65536 makes the tracer segfault on dense device columns
+    # (σt = 50, g = 0.9: also in a plain process with that variable set), so workers keep glibc's default.
+    environ = {k: v for k, v in dask.config.get("distributed.nanny.pre-spawn-environ").items()
+               if k != "MALLOC_TRIM_THRESHOLD_"}
     with dask.config.set({"distributed.worker.multiprocessing-method": "spawn",
+                          "distributed.nanny.pre-spawn-environ": environ,
                           "distributed.scheduler.allowed-failures": retries,
                           "distributed.worker.daemon": False}):
         cluster = distributed.LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
