@@ -125,9 +125,47 @@ def test_c_and_numpy_agree_with_given_stds_and_thicknesses(monkeypatch, method):
     monkeypatch.setattr(api, "_TABLES", {})
     reference = api.fit(amap, I_b, I_w, I_c, method=method, **stds)
     np.testing.assert_array_equal(compiled.flags, reference.flags)
-    for name in ("alpha", "sigma_t", "g", "alpha_std", "sigma_t_std", "g_std"):
+    for name in ("alpha", "sigma_t", "g", "alpha_std", "sigma_t_std", "g_std", "conditioning_alpha_std",
+                 "conditioning_g_std"):
         np.testing.assert_allclose(getattr(compiled, name), getattr(reference, name), rtol=1e-6, atol=1e-11,
                                    err_msg=name)
+
+
+@pytest.mark.parametrize("native_kernel", [True, False])
+def test_underdetermined_is_judged_at_no_less_than_the_noise_model(monkeypatch, native_kernel):
+    """Dark, optically thick bins (σt·ℓ = 4) with a near-noiseless capture: their reported stds are
+    the capture's (small), yet they stay UNDERDETERMINED — that is the map's conditioning at the
+    instrument's usual noise; given stds above the noise model are judged as given. One thickness
+    and two alike."""
+    import trimeter.inversion.api as api
+    from trimeter.inversion.flags import FitFlag
+    from trimeter.maps.appearance import AppearanceMap
+
+    if not native_kernel:
+        monkeypatch.setattr(native, "_LIB", None)
+        monkeypatch.setattr(api, "_TABLES", {})
+    amap = AppearanceMap.load(DEVICE)
+    n = 40
+    grid = api.table_inverter(amap).grid
+    I_b, I_w, I_c = grid.intensities(np.full(n, 0.2), np.full(n, 4 / amap.thickness_mm), np.linspace(0.1, 0.8, n),
+                                     *amap.reference_rhos)
+    quiet = api.fit(amap, I_b, I_w, I_c, I_b_std=1e-7, I_w_std=1e-7, I_c_std=1e-7)
+    default = api.fit(amap, I_b, I_w, I_c)
+    under = int(FitFlag.UNDERDETERMINED)
+    assert np.count_nonzero(default.flags & under) >= n // 2
+    np.testing.assert_array_equal(quiet.flags & under, default.flags & under)
+    # the capture's own, smaller stds are what is reported (the map's error alone), on some bins below the
+    # thresholds: those are the bins the capture alone would have let through
+    assert np.median(quiet.alpha_std / default.alpha_std) < 0.5
+    hidden = (quiet.flags & under != 0) & (quiet.alpha_std <= api.UNDERDETERMINED_ALPHA_STD) & ~(
+        quiet.g_std > api.UNDERDETERMINED_G_STD)
+    assert hidden.sum() >= 10
+    loud = api.fit(amap, I_b, I_w, I_c, I_b_std=0.05, I_w_std=0.05, I_c_std=0.05)
+    assert np.all(loud.flags & under)
+    both = api.fit([amap, amap], np.stack([I_b, I_b]), np.stack([I_w, I_w]), np.stack([I_c, I_c]),
+                   I_b_std=1e-7, I_w_std=1e-7, I_c_std=1e-7)
+    both_default = api.fit([amap, amap], np.stack([I_b, I_b]), np.stack([I_w, I_w]), np.stack([I_c, I_c]))
+    np.testing.assert_array_equal(both.flags & under, both_default.flags & under)
 
 
 def test_bad_stds_are_clear_errors(tmp_path, capsys):

@@ -73,6 +73,10 @@ class FitResult:
     sigma_t_beer: np.ndarray        # the consistency column: σt from I_c alone (paper Eq. 2)
     method: str
     per_thickness: list = field(default_factory=list)  # FitResult per map when several were given
+    # α's and g's std with the intensities' stds at least the noise model's: what UNDERDETERMINED is
+    # judged on (None: the stds above)
+    conditioning_alpha_std: np.ndarray | None = None
+    conditioning_g_std: np.ndarray | None = None
 
     COLUMNS = ("alpha", "sigma_t", "g", "alpha_std", "sigma_t_std", "g_std", "flags", "sigma_t_beer")
 
@@ -307,7 +311,8 @@ def _fit_one(amap, I_b, I_w, I_c, rho_b, rho_w, *, sd, thickness_rel_std, method
         out.pop("steps")
         return FitResult(**out, method=method)
     p = _prepare(amap, grid, I_b, I_w, I_c, rho_b, rho_w, ic_floor)
-    sd = _noise_model(p, noise_rel, noise_abs) if sd is None else sd
+    floor_sd = _noise_model(p, noise_rel, noise_abs)
+    sd = floor_sd if sd is None else sd
     step_var = polish_step_var(p.ib, p.iw, noise_rel, noise_abs, grid.mc_stderr, _polish_tol_std(polish_tol), sd=sd)
     if mlp is None:
         alpha, g, residual, J = inverter.invert(p.ib, p.iw, p.sigma_t, p.rb, p.rw, polish_iterations=polish,
@@ -329,7 +334,7 @@ def _fit_one(amap, I_b, I_w, I_c, rho_b, rho_w, *, sd, thickness_rel_std, method
     return _finish(amap, grid, p.flags, p.usable, p.ib, p.iw, p.ic, p.rb, p.rw, alpha, sigma_t, g, residual,
                    p.sigma_beer, method=method, sd=sd, sigma_t_solved=p.sigma_t, inscatter_ds=inscatter_ds,
                    inscatter_rel_std=inscatter_rel_std, thickness_rel_std=thickness_rel_std,
-                   alpha_min_g=alpha_min_g, J=J, solved=solved)
+                   alpha_min_g=alpha_min_g, J=J, solved=solved, floor_sd=floor_sd)
 
 
 def _noise_model(p, noise_rel, noise_abs):
@@ -418,11 +423,12 @@ def _std_approximate(grid, flags, alpha, sigma_t, g, ib, iw, rb, rw, J, sigma_I,
 
 def _finish(amap, grid, flags, usable, ib, iw, ic, rb, rw, alpha, sigma_t, g, residual, sigma_beer, *,
             method, sd, sigma_t_solved, inscatter_ds, inscatter_rel_std, thickness_rel_std, alpha_min_g,
-            J=None, solved=None) -> FitResult:
+            J=None, solved=None, floor_sd=None) -> FitResult:
     """Flags and stds at the solution. sd: (N, 3) the intensities' stds; sigma_t_solved: the σt
     (α, g) were solved at (before the in-scattering correction inscatter_ds, None without one);
     solved: those (α, g) and the (I_b, I_w) they were solved for, J the Jacobian there (default: the
-    solution's and the measured intensities)."""
+    solution's and the measured intensities). floor_sd: (N, 3) the noise model's stds, below which
+    UNDERDETERMINED does not take the intensities' stds (None: sd stands)."""
     alpha_solved, g_solved, ib_solved, iw_solved = (alpha, g, ib, iw) if solved is None else solved
     var_in = sd * sd
     mc2 = grid.mc_stderr * grid.mc_stderr
@@ -452,7 +458,17 @@ def _finish(amap, grid, flags, usable, ib, iw, ic, rb, rw, alpha, sigma_t, g, re
     flags |= np.where(g_undef, int(FitFlag.G_UNDEFINED), 0)
     g = np.where(g_undef, np.nan, g)
     std_g = np.where(g_undef, np.nan, std_g)
-    flags |= np.where(usable & _underdetermined(std_a, std_g), int(FitFlag.UNDERDETERMINED), 0)
+    # UNDERDETERMINED is the map's conditioning at no less than the instrument's noise model: a
+    # capture's frame scatter alone misses drift and calibration error, and one quiet capture must
+    # not make α and g look told apart where a realistic noise leaves them not
+    cond_a, cond_g = std_a, std_g
+    if floor_sd is not None and np.any(floor_sd > sd):
+        cond_var = np.maximum(var_in, floor_sd * floor_sd)
+        cond_I = np.column_stack([np.sqrt(cond_var[:, 0] + model[0]), np.sqrt(cond_var[:, 1] + model[1]),
+                                  np.maximum(sd[:, 2], floor_sd[:, 2])])
+        cond_a, _, cond_g = grid.propagate(J, cond_I, inscatter_var)
+        cond_g = np.where(g_undef, np.nan, cond_g)
+    flags |= np.where(usable & _underdetermined(cond_a, cond_g), int(FitFlag.UNDERDETERMINED), 0)
     flags |= np.where(_std_approximate(grid, flags, alpha_solved, sigma_t_solved, g_solved, ib_solved, iw_solved, rb,
                                        rw, J, sigma_I, std_a, std_g), int(FitFlag.STD_APPROXIMATE), 0)
     blank = ~usable
@@ -460,7 +476,9 @@ def _finish(amap, grid, flags, usable, ib, iw, ic, rb, rw, alpha, sigma_t, g, re
     return FitResult(alpha=np.where(blank, nan, alpha), sigma_t=np.where(blank, nan, sigma_t),
                      g=np.where(blank, nan, g), alpha_std=np.where(blank, nan, std_a),
                      sigma_t_std=np.where(blank, nan, std_s), g_std=np.where(blank, nan, std_g),
-                     flags=flags.astype(np.int64), sigma_t_beer=np.where(blank, nan, sigma_beer), method=method)
+                     flags=flags.astype(np.int64), sigma_t_beer=np.where(blank, nan, sigma_beer), method=method,
+                     conditioning_alpha_std=np.where(blank, nan, cond_a),
+                     conditioning_g_std=np.where(blank, nan, cond_g))
 
 
 # --------------------------------------------------------------------------------- thicknesses
@@ -490,9 +508,14 @@ def combine(results: list[FitResult], method: str) -> FitResult:
     disagree = _disagree(vals[:3], stds[:3]).any(axis=0)  # not the consistency column
     flags |= np.where(disagree, int(FitFlag.THICKNESS_DISAGREE), 0)
     usable = (flags & int(UNUSABLE)) == 0
-    flags |= np.where(usable & _underdetermined(std[0], std[2]), int(FitFlag.UNDERDETERMINED), 0)
+    # judged on the conditioning stds (at least the noise model's), combined alike
+    cond = np.array([[r.alpha_std if r.conditioning_alpha_std is None else r.conditioning_alpha_std for r in results],
+                     [r.g_std if r.conditioning_g_std is None else r.conditioning_g_std for r in results]])
+    cond_std = _weighted(vals[[0, 2]], cond)[1]
+    flags |= np.where(usable & _underdetermined(cond_std[0], cond_std[1]), int(FitFlag.UNDERDETERMINED), 0)
     return FitResult(alpha=value[0], sigma_t=value[1], g=value[2], alpha_std=std[0], sigma_t_std=std[1],
-                     g_std=std[2], flags=flags, sigma_t_beer=value[3], method=method, per_thickness=results)
+                     g_std=std[2], flags=flags, sigma_t_beer=value[3], method=method, per_thickness=results,
+                     conditioning_alpha_std=cond_std[0], conditioning_g_std=cond_std[1])
 
 
 def _weighted(vals, stds):
@@ -550,15 +573,15 @@ def _fit_paper(amaps, arrays, stds, thickness_rel, *, samples, epsilon, seed, no
         I_model = grid.intensities(np.nan_to_num(alpha), np.nan_to_num(sigma_t, nan=1.0), np.nan_to_num(g), rb, rw)
         residual = np.where(coef_in, np.hypot(I_model[0] - ib, I_model[1] - iw), np.inf)
         sigma_beer = beer_lambert_sigma_t(I_c, amap.thickness_mm, amap.n, amap.cover_slide_n)
-        sd = stds[i] if stds[i] is not None else np.column_stack(
-            [noise_rel * ib + noise_abs, noise_rel * iw + noise_abs, noise_rel * ic + noise_abs])
+        floor_sd = np.column_stack([noise_rel * ib + noise_abs, noise_rel * iw + noise_abs, noise_rel * ic + noise_abs])
+        sd = stds[i] if stds[i] is not None else floor_sd
         # the ε-median has no separate in-scattering correction to propagate: its map's I_c holds it.
         # The interpolated median does not solve the map exactly: STD_APPROXIMATE's re-fits start from
         # the map's own intensities there, so that its residual does not count as the map's bend.
         r = _finish(amap, grid, flags, usable, ib, iw, ic, rb, rw, alpha, sigma_t, g, residual, sigma_beer,
                     method="paper", sd=sd, sigma_t_solved=sigma_t, inscatter_ds=None,
                     inscatter_rel_std=inscatter_rel_std, thickness_rel_std=thickness_rel[i], alpha_min_g=alpha_min_g,
-                    solved=(alpha, g, I_model[0], I_model[1]))
+                    solved=(alpha, g, I_model[0], I_model[1]), floor_sd=floor_sd)
         for name in ("alpha", "sigma_t", "g", "alpha_std", "sigma_t_std", "g_std"):
             getattr(r, name)[outside] = np.nan
         results.append(r)

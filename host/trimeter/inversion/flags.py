@@ -23,10 +23,11 @@ class FitFlag(enum.IntFlag):
     NOT_CONVERGED = 1 << 7        # the forward-map residual stayed above tolerance (outside the measurable gamut)
     THICKNESS_DISAGREE = 1 << 8   # two thicknesses disagree beyond their combined uncertainty
     BAD_BACKGROUND = 1 << 9       # ρ_b, ρ_w not in [0, 1] with ρ_b < ρ_w                    → NaN outputs
-    # The measurement barely constrains α or g (first-order std of α > 0.1 or of g > 0.2 under the fit's
-    # noise model): an optically thick sample (I_b ≈ I_w, the background no longer shows through, so only
+    # At this thickness the map barely tells α and g apart (first-order std of α > 0.1 or of g > 0.2
+    # with the intensities' stds at least the fit's noise model, so that one quiet capture does not
+    # hide it): an optically thick sample (I_b ≈ I_w, the background no longer shows through, so only
     # a combination of α and g is determined) or a very thin one. The value solves the map, but so would
-    # others; the stds say by how much.
+    # others; the stds say by how much this capture pinned it down.
     UNDERDETERMINED = 1 << 10
     # The stds are first-order (the map's Jacobian at the solution), and the map is not linear over
     # ±2σ here: (α, g) re-fitted from intensities moved by ±2σ land off the Jacobian's prediction
@@ -62,9 +63,9 @@ def advice(flags, thicknesses: int = 1) -> list[str]:
     if k := count(FitFlag.UNDERDETERMINED):
         if thicknesses < 2:
             notes.append(f"{k} of {n} bins are UNDERDETERMINED: at this thickness α and g are not told apart "
-                         f"(see their stds); measure a second thickness of the same material (thinner if it is "
-                         f"nearly opaque, thicker if nearly clear) and fit both (fit: a second --map; measure: "
-                         f"--thickness twice; serve: --second-thickness)")
+                         f"at the instrument's usual noise (see their stds); measure a second thickness of the same "
+                         f"material (thinner if it is nearly opaque, thicker if nearly clear) and fit both (fit: a "
+                         f"second --map; measure: --thickness twice; serve: --second-thickness)")
         else:
             notes.append(f"{k} of {n} bins are UNDERDETERMINED even with {thicknesses} thicknesses "
                          f"(see their stds); a further thickness would constrain them")

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 LIBRARY = Path(__file__).with_name("libtrimeter_invert.so")
-ABI_VERSION = 14
+ABI_VERSION = 15
 
 _double_p = ctypes.POINTER(ctypes.c_double)
 
@@ -54,7 +54,8 @@ class _FitOptionsC(ctypes.Structure):
 
 
 # The rows of tm_fit's output block (invert.c tm_fit_outputs), in order; flags are int64.
-_OUTPUT_ROWS = ("alpha", "sigma_t", "g", "alpha_std", "sigma_t_std", "g_std", "sigma_t_beer", "flags")
+_OUTPUT_ROWS = ("alpha", "sigma_t", "g", "alpha_std", "sigma_t_std", "g_std", "sigma_t_beer", "flags",
+                "conditioning_alpha_std", "conditioning_g_std")
 
 
 # A polish step at most this fraction of the one before it also ends a bin's polish when the next

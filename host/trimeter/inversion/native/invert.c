@@ -25,7 +25,7 @@
 #include <stdint.h>
 #include <stdlib.h>
 
-#define TM_ABI_VERSION 14
+#define TM_ABI_VERSION 15
 
 typedef struct {
     int32_t na, ns, ng;
@@ -652,6 +652,7 @@ typedef struct { double alpha, g, move_b, move_w, j11, j12, j21, j22, limit_a, l
 typedef struct {
     double *ib, *iw, *rb, *rw, *step_var;
     double *var_b, *var_w, *sd_c; /* the intensities' noise: given per bin, or the noise model's */
+    double *cond_var_b, *cond_var_w, *cond_sd_c; /* the same, at least the noise model's (UNDERDETERMINED) */
     sigma_cell_t *cells;
     final_eval_t *evals;
     check_t *checks;
@@ -660,7 +661,7 @@ typedef struct {
 
 size_t tm_fit_scratch_size(size_t n) {
     return (n ? n : 1) *
-           (8 * sizeof(double) + sizeof(sigma_cell_t) + sizeof(final_eval_t) + sizeof(check_t) + sizeof(uint32_t));
+           (11 * sizeof(double) + sizeof(sigma_cell_t) + sizeof(final_eval_t) + sizeof(check_t) + sizeof(uint32_t));
 }
 
 static fit_scratch_t carve_scratch(void *mem, size_t n) {
@@ -676,7 +677,10 @@ static fit_scratch_t carve_scratch(void *mem, size_t n) {
     sc.var_b = d + 5 * n;
     sc.var_w = d + 6 * n;
     sc.sd_c = d + 7 * n;
-    sc.cells = (sigma_cell_t *)(d + 8 * n);
+    sc.cond_var_b = d + 8 * n;
+    sc.cond_var_w = d + 9 * n;
+    sc.cond_sd_c = d + 10 * n;
+    sc.cells = (sigma_cell_t *)(d + 11 * n);
     sc.evals = (final_eval_t *)(sc.cells + n);
     sc.checks = (check_t *)(sc.evals + n);
     sc.active = (uint32_t *)(sc.checks + n);
@@ -775,16 +779,18 @@ typedef struct {
     int32_t iterations;
 } tm_fit_options;
 
-/* A fit's outputs: one caller-owned block of 8 rows of n, in this order (flags: int64), so that
- * Python hands over one address (NativeSolver: one allocation, no struct to build per call). */
+/* A fit's outputs: one caller-owned block of 10 rows of n, in this order (flags: int64), so that
+ * Python hands over one address (NativeSolver: one allocation, no struct to build per call).
+ * cond_*: α's and g's std at no less than the noise model, which UNDERDETERMINED is judged on. */
 typedef struct {
     double *alpha, *sigma_t, *g, *alpha_std, *sigma_t_std, *g_std, *sigma_t_beer;
     int64_t *flags;
+    double *cond_alpha_std, *cond_g_std;
 } tm_fit_outputs;
 
 static tm_fit_outputs outputs_in(double *block, size_t n) {
     tm_fit_outputs o = {block, block + n, block + 2 * n, block + 3 * n, block + 4 * n, block + 5 * n, block + 6 * n,
-                        (int64_t *)(block + 7 * n)};
+                        (int64_t *)(block + 7 * n), block + 8 * n, block + 9 * n};
     return o;
 }
 
@@ -853,16 +859,19 @@ void tm_fit_prepare(const tm_forward_grid *f, const tm_fit_options *o, size_t n,
                                     &sc.rb[i], &sc.rw[i], &s, &beer);
         out->sigma_t_beer[i] = beer;
         out->sigma_t[i] = s;
+        double sb = o->noise_rel * sc.ib[i] + o->noise_abs, sw = o->noise_rel * sc.iw[i] + o->noise_abs;
+        double sc_ = o->noise_rel * sanitize(I_c[i], 1.0) + o->noise_abs;
+        sc.cond_var_b[i] = sc.var_b[i] = sb * sb;
+        sc.cond_var_w[i] = sc.var_w[i] = sw * sw;
+        sc.cond_sd_c[i] = sc.sd_c[i] = sc_;
         if (sd_in) { /* the intensities' own stds (n × 3; api.fit has put the noise model where they were missing) */
             const double *sd = sd_in + i * 3u;
             sc.var_b[i] = sd[0] * sd[0];
             sc.var_w[i] = sd[1] * sd[1];
             sc.sd_c[i] = sd[2];
-        } else {
-            double sb = o->noise_rel * sc.ib[i] + o->noise_abs, sw = o->noise_rel * sc.iw[i] + o->noise_abs;
-            sc.var_b[i] = sb * sb;
-            sc.var_w[i] = sw * sw;
-            sc.sd_c[i] = o->noise_rel * sanitize(I_c[i], 1.0) + o->noise_abs;
+            sc.cond_var_b[i] = fmax(sc.var_b[i], sc.cond_var_b[i]);
+            sc.cond_var_w[i] = fmax(sc.var_w[i], sc.cond_var_w[i]);
+            sc.cond_sd_c[i] = fmax(sc.sd_c[i], sc.cond_sd_c[i]);
         }
         /* (κ σ)², σ² the mean of I_b's and I_w's */
         sc.step_var[i] = kappa2 * 0.5 * (sc.var_b[i] + sc.var_w[i] + 2.0 * mc2);
@@ -1047,7 +1056,16 @@ long long tm_fit_solve(const tm_forward_grid *f, const tm_inverse_table *table, 
             fl |= FLAG_G_UNDEFINED;
             gg = sg = NAN;
         }
-        if (usable && (sa > o->underdetermined_alpha_std || sg > o->underdetermined_g_std)) fl |= FLAG_UNDERDETERMINED;
+        /* UNDERDETERMINED is the map's conditioning at no less than the instrument's noise model: a
+         * capture's frame scatter alone misses drift and calibration error, and one quiet capture
+         * must not make α and g look told apart where a realistic noise leaves them not */
+        double ua = sa, us = ss, ug = sg;
+        if (sc.cond_var_b[i] != sc.var_b[i] || sc.cond_var_w[i] != sc.var_w[i] || sc.cond_sd_c[i] != sc.sd_c[i]) {
+            propagate_one(Ji, sc.cond_var_b[i] + model_b, sc.cond_var_w[i] + model_w, sc.cond_sd_c[i], ds_rel * ds_rel,
+                          &ua, &us, &ug);
+            if (isnan(gg)) ug = NAN;
+        }
+        if (usable && (ua > o->underdetermined_alpha_std || ug > o->underdetermined_g_std)) fl |= FLAG_UNDERDETERMINED;
         if (!(fl & STD_CHECK_SKIP) && isfinite(sa) && isfinite(sg) && (sa > o->std_check_alpha || sg > o->std_check_g)) {
             k->move_b = sqrt(sc.var_b[i] + model_b);
             k->move_w = sqrt(sc.var_w[i] + model_w);
@@ -1056,7 +1074,7 @@ long long tm_fit_solve(const tm_forward_grid *f, const tm_inverse_table *table, 
             sc.active[checked++] = (uint32_t)i;
         }
         if (!usable) {
-            a = gg = sa = ss = sg = NAN;
+            a = gg = sa = ss = sg = ua = ug = NAN;
             sigma_t[i] = out->sigma_t_beer[i] = NAN;
         }
         alpha[i] = a;
@@ -1064,6 +1082,8 @@ long long tm_fit_solve(const tm_forward_grid *f, const tm_inverse_table *table, 
         out->alpha_std[i] = sa;
         out->sigma_t_std[i] = ss;
         out->g_std[i] = sg;
+        out->cond_alpha_std[i] = ua;
+        out->cond_g_std[i] = ug;
         out->flags[i] = fl;
     }
     check_first_order(f, checked, sc.active, sc.checks, cells, ib, iw, rb, rw, o->std_check_sigmas, out->flags);
