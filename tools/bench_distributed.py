@@ -24,11 +24,14 @@ from pathlib import Path
 import numpy as np
 
 
-def reduced(recipe, sigma_every: int, g_every: int):
+def reduced(recipe, sigma_every: int, g_every: int, flat_paths: int | None = None):
     from trimeter.maps.recipe import parse_recipe
 
     data = recipe.to_dict()
     data.pop("geometry_params")
+    if flat_paths:   # every column the same paths: times per path, not per a column's adaptive top-ups
+        data["sampling"] = {**data["sampling"], "min_paths": flat_paths, "max_paths": flat_paths}
+        data["sampling"].pop("target_alpha_stderr", None)
     grid = data["grid"]
     grid["sigma_t"] = _every(grid["sigma_t"], sigma_every)
     grid["g"] = _every(grid["g"], g_every)
@@ -60,9 +63,11 @@ def main(argv=None) -> int:
     ap.add_argument("--project", type=int, default=64, help="workers of the projected cluster")
     ap.add_argument("--library", type=int, default=8, help="maps in the projected library build")
     ap.add_argument("--noop-tasks", type=int, default=400)
+    ap.add_argument("--flat-paths", type=int, help="paths per column (default: the recipe's adaptive sampling); "
+                                                   "the projection then scales by the shipped map's total paths")
     args = ap.parse_args(argv)
     full = load_recipe(args.recipe)
-    recipe = reduced(full, args.sigma_t_every, args.g_every)
+    recipe = reduced(full, args.sigma_t_every, args.g_every, args.flat_paths)
     full_columns = full.shape[1] * full.shape[2]
     columns = recipe.shape[1] * recipe.shape[2]
     print(f"reduced recipe: {recipe.name}, σt {list(np.round(recipe.sigma_t, 3))} × g {list(np.round(recipe.g, 3))}"
@@ -91,14 +96,24 @@ def main(argv=None) -> int:
         if overhead is not None:
             print(f"  scheduler: {args.noop_tasks} no-op tasks, {1e3 * overhead:.2f} ms per task")
     one = min(runs)
+    scale = full_columns / columns            # per-map time: the reduced recipe's, scaled by columns or paths
+    shipped = Path(args.recipe).parent.parent / f"{full.name}.tmap"
+    if args.flat_paths and shipped.is_file():
+        from trimeter.maps.appearance import AppearanceMap
+
+        total = AppearanceMap.load(shipped).provenance["paths_per_column"]["total"]
+        scale = total / (columns * args.flat_paths)
+        print(f"scaled by paths: the shipped {shipped.name} traced {total / 1e6:.0f}M paths, this run "
+              f"{columns * args.flat_paths / 1e6:.0f}M (×{scale:.1f})")
     if len(runs) > 1:
         most = max(runs)
         print(f"speed-up {one} → {most} workers: {runs[one][1] / runs[most][1]:.2f}× "
-              f"(per-map time scaled to {full_columns} columns: {runs[one][1] * full_columns / columns:.0f} s → "
-              f"{runs[most][1] * full_columns / columns:.0f} s)")
+              f"(per-map time, scaled: {runs[one][1] * scale:.0f} s → {runs[most][1] * scale:.0f} s)")
     start_up, _, seconds, _ = runs[max(runs)]
     overhead = next(r[3] for r in runs.values() if r[3] is not None)
-    mean, longest = float(np.mean(runs[one][2])), float(np.max(runs[one][2]))
+    mean = float(np.sum(runs[one][2])) * scale / full_columns      # per column of the full map
+    # the longest column: the measured one, or with flat paths one at the recipe's cap
+    longest = float(np.max(runs[one][2])) * (full.sampling.max_paths / args.flat_paths if args.flat_paths else 1)
     P = args.project
     for maps in (1, args.library):
         tasks = maps * full_columns
