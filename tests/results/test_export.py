@@ -16,7 +16,7 @@ from trimeter.errors import InputError
 from trimeter.results.export import (export, linear_srgb_coefficients, load_result, spectra_to_linear_srgb)
 from trimeter.results.medium import SpectralMaterial
 
-WL = np.arange(400.0, 701.0, 5.0)
+WL = np.arange(400.0, 701.0, 4.0)  # not the 5 nm default step: step 0 must keep these bins
 
 
 def cyan() -> SpectralMaterial:
@@ -149,7 +149,7 @@ def test_csv_parameters_file(tmp_path):
     rows = ["wavelength_nm,alpha,sigma_t,g,flags"] + [f"{w},{a},{s},{g},0" for w, a, s, g in
                                                       zip(WL, m.alpha, m.sigma_t, m.g)]
     path.write_text("\n".join(rows) + "\n")
-    assert main(["export", str(path), "--to", "pbrt"]) == 0
+    assert main(["export", str(path), "--to", "pbrt", "--step-nm", "0"]) == 0
     np.testing.assert_allclose(read_spd(tmp_path / "params-pbrt" / "sigma_s.spd")[:, 1], m.sigma_s, rtol=1e-5)
 
 

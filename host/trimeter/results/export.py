@@ -268,8 +268,7 @@ def _floats(a, digits: int = 6) -> list[float]:
 
 
 def _write_mitsuba(out: Path, material: SpectralMaterial, opts: dict) -> tuple[list[str], dict]:
-    info = write_medium(out, material.resampled(opts["step_nm"]) if opts["step_nm"] else material,
-                        scale=opts["scene_unit_mm"])
+    info = write_medium(out, material, scale=opts["scene_unit_mm"], step_nm=opts["step_nm"])
     if not info.get("written"):
         raise InputError(f"cannot write a Mitsuba medium: {info.get('reason')}")
     return info["files"], {"spectral_variants": VARIANT_NOTE, "g_mean": info["g_mean"],

@@ -147,9 +147,10 @@ class SpectralMaterial:
 def medium_spectra(parameters, step_nm: float = 5.0):
     """(grid, albedo, σt, g_mean) for the Mitsuba medium, or None with fewer than two valid bins."""
     try:
-        m = SpectralMaterial.from_parameters(parameters).resampled(step_nm)
+        m = SpectralMaterial.from_parameters(parameters)
     except InputError:
         return None
+    m = m.resampled(step_nm) if step_nm else m
     return m.wavelengths_nm, m.alpha, m.sigma_t, m.g_mean()
 
 
@@ -157,8 +158,8 @@ def _pairs(grid, values) -> str:
     return ", ".join(f"{w:.1f}:{v:.6g}" for w, v in zip(grid, values))
 
 
-def medium_dict(parameters, *, scale: float = 1.0) -> dict | None:
-    spectra = medium_spectra(parameters)
+def medium_dict(parameters, *, scale: float = 1.0, step_nm: float = 5.0) -> dict | None:
+    spectra = medium_spectra(parameters, step_nm)
     if spectra is None:
         return None
     grid, albedo, sigma_t, g = spectra
@@ -171,10 +172,11 @@ def medium_dict(parameters, *, scale: float = 1.0) -> dict | None:
             "phase": {"type": "hg", "g": g}}
 
 
-def write_medium(directory: str | Path, parameters, *, scale: float = 1.0) -> dict:
-    """Write medium.xml + medium.json; returns what was written (for measurement.json)."""
+def write_medium(directory: str | Path, parameters, *, scale: float = 1.0, step_nm: float = 5.0) -> dict:
+    """Write medium.xml + medium.json (spectra every `step_nm`, 0: the bins as given); returns what was
+    written (for measurement.json)."""
     directory = Path(directory)
-    spectra = medium_spectra(parameters)
+    spectra = medium_spectra(parameters, step_nm)
     if spectra is None:
         return {"written": False, "reason": "fewer than two wavelengths with a valid α and σt"}
     grid, albedo, sigma_t, g = spectra
@@ -189,6 +191,6 @@ def write_medium(directory: str | Path, parameters, *, scale: float = 1.0) -> di
         f'    <phase type="hg">\n        <float name="g" value="{g:.6g}"/>\n    </phase>\n'
         "</medium>\n")
     atomic_write(directory / "medium.xml", xml)
-    atomic_write(directory / "medium.json", json.dumps(medium_dict(parameters, scale=scale), indent=1))
+    atomic_write(directory / "medium.json", json.dumps(medium_dict(parameters, scale=scale, step_nm=step_nm), indent=1))
     return {"written": True, "files": ["medium.xml", "medium.json"], "g_mean": g, "bins": len(grid),
             "mitsuba_variants": VARIANT_NOTE}
