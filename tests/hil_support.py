@@ -20,8 +20,8 @@ SAMPLE = "cyan-ink"
 
 
 def build_hil_map(path, thickness_mm: float = THICKNESS_MM, n: float = 1.5) -> AppearanceMap:
-    """A small exact `ideal` map from adding-doubling (iadpython, test-only): the twin's optics and the
-    host's inversion share it, so what the suite measures is the instrument chain, not map error."""
+    """A small exact `ideal` map from adding-doubling (iadpython, test-only) for the host's inversion; the twin
+    renders its samples with the tracer (trimeter.twin.traced), so the suite measures the chain and this map's error."""
     from iadpython import Sample
 
     alpha = 1.0 - (1.0 - np.linspace(0.0, 1.0, 17)) ** 2
