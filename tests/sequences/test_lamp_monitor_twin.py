@@ -29,7 +29,15 @@ def test_a_dimmed_lamp_or_a_stuck_shutter_after_calibration_is_refused_and_a_sma
                                                                                                  capsys):
     port = ["--port", twin.modbus_port, "--spectrometer", twin.spectrometer_url]
     measure = ["measure", *port, "--thickness", "0.4", "--map", str(HIL_MAP), "--results", str(tmp_path / "results")]
-    assert main(["calibrate", *port]) == 0  # warmed up: the lamps' own droop since then stays near 1 %
+    # The warm-up ends when the light changes by < 0.2 % per 10 s, which the panels (τ 90 s, 4 % droop when
+    # hot) reach short of their steady heat; a second calibration right after is taken nearly hot, so the
+    # lamps' own droop since then is a few tenths of a % and the 99 % case below sits ~2 % inside the ±3 %
+    # bound whatever the machine's load (a slower host only lets the lamps heat longer, simulated time
+    # being wall time × time scale).
+    assert main(["calibrate", *port]) == 0
+    assert main(["calibrate", *port, "--no-warm-up"]) == 0
+    heat = twin.control.state()["lamp_temperature"]
+    assert min(heat.values()) > 0.9, f"lamps not near their steady heat after two calibrations: {heat}"
     capsys.readouterr()
     twin.control.insert_sample(SAMPLE, THICKNESS_MM)
     refusals = (
@@ -52,7 +60,7 @@ def test_a_dimmed_lamp_or_a_stuck_shutter_after_calibration_is_refused_and_a_sma
         assert not (tmp_path / "results").exists() or list((tmp_path / "results").iterdir()) == []
         twin.control.set_fault(**dict.fromkeys(fault))
     twin.control.set_fault(lamp_dimmed="panels:0.99")  # within the ±3 % bound
-    assert main(measure) == 0, capsys.readouterr().err
+    assert main(measure) == 0, (capsys.readouterr().err, twin.control.state()["lamp_temperature"])
     assert len(list((tmp_path / "results").iterdir())) == 1
 
 
