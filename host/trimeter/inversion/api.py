@@ -309,6 +309,8 @@ def _fit_one(amap, I_b, I_w, I_c, rho_b, rho_w, *, sd, thickness_rel_std, method
             out = solver.fit_guessed(I_b, I_w, I_c, rho_b, rho_w, mlp.run, mlp.log_sigma_range, sd=sd, **options)
             out.pop("features")
         out.pop("steps")
+        if sd is None:  # the noise model's stds: the conditioning stds are the stds themselves
+            out["conditioning_alpha_std"] = out["conditioning_g_std"] = None
         return FitResult(**out, method=method)
     p = _prepare(amap, grid, I_b, I_w, I_c, rho_b, rho_w, ic_floor)
     floor_sd = _noise_model(p, noise_rel, noise_abs)
@@ -477,8 +479,8 @@ def _finish(amap, grid, flags, usable, ib, iw, ic, rb, rw, alpha, sigma_t, g, re
                      g=np.where(blank, nan, g), alpha_std=np.where(blank, nan, std_a),
                      sigma_t_std=np.where(blank, nan, std_s), g_std=np.where(blank, nan, std_g),
                      flags=flags.astype(np.int64), sigma_t_beer=np.where(blank, nan, sigma_beer), method=method,
-                     conditioning_alpha_std=np.where(blank, nan, cond_a),
-                     conditioning_g_std=np.where(blank, nan, cond_g))
+                     conditioning_alpha_std=None if cond_a is std_a else np.where(blank, nan, cond_a),
+                     conditioning_g_std=None if cond_g is std_g else np.where(blank, nan, cond_g))
 
 
 # --------------------------------------------------------------------------------- thicknesses
@@ -509,13 +511,17 @@ def combine(results: list[FitResult], method: str) -> FitResult:
     flags |= np.where(disagree, int(FitFlag.THICKNESS_DISAGREE), 0)
     usable = (flags & int(UNUSABLE)) == 0
     # judged on the conditioning stds (at least the noise model's), combined alike
-    cond = np.array([[r.alpha_std if r.conditioning_alpha_std is None else r.conditioning_alpha_std for r in results],
-                     [r.g_std if r.conditioning_g_std is None else r.conditioning_g_std for r in results]])
-    cond_std = _weighted(vals[[0, 2]], cond)[1]
-    flags |= np.where(usable & _underdetermined(cond_std[0], cond_std[1]), int(FitFlag.UNDERDETERMINED), 0)
+    cond_a, cond_g = std[0], std[2]
+    if any(r.conditioning_alpha_std is not None or r.conditioning_g_std is not None for r in results):
+        cond = np.array([[r.alpha_std if r.conditioning_alpha_std is None else r.conditioning_alpha_std
+                          for r in results],
+                         [r.g_std if r.conditioning_g_std is None else r.conditioning_g_std for r in results]])
+        cond_a, cond_g = _weighted(vals[[0, 2]], cond)[1]
+    flags |= np.where(usable & _underdetermined(cond_a, cond_g), int(FitFlag.UNDERDETERMINED), 0)
+    same = cond_a is std[0]
     return FitResult(alpha=value[0], sigma_t=value[1], g=value[2], alpha_std=std[0], sigma_t_std=std[1],
                      g_std=std[2], flags=flags, sigma_t_beer=value[3], method=method, per_thickness=results,
-                     conditioning_alpha_std=cond_std[0], conditioning_g_std=cond_std[1])
+                     conditioning_alpha_std=None if same else cond_a, conditioning_g_std=None if same else cond_g)
 
 
 def _weighted(vals, stds):
