@@ -27,8 +27,12 @@ hemisphere) and `device` (cover slide | sample | cover slide, an air gap, a fini
 rectangular Lambertian LED panels, a 2 mm detector spot; reflectance factor normalised by the white
 reference: I = π·L / E with E the panels' irradiance at the background plane, as
 trimeter.forward.scenes computes it; panels emit radiance 1 and reflect nothing).
-The stack's side faces are dielectric (as in the direct-render scene); a ray leaving one counts if it
-reaches a panel (one leaving downward towards the background's rim is neglected).
+The stack's side faces are dielectric (as in the direct-render scene): light trapped in the stack by
+total internal reflection leaves through them. A ray leaving one upward counts if it reaches a panel;
+one leaving downward goes on through the air to the background, whose rim outside the stack's
+footprint is lit by the panels (on a white background, thin weakly scattering samples send much of
+their light this way). Rays rising from the background outside the footprint are taken to miss the
+stack's side faces.
 """
 
 from __future__ import annotations
@@ -611,16 +615,19 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
         new_dy = dr.select(scatter, ndy, dr.select(refract, ty, dr.select(on_bg, ly, dr.select(wall, wdy, dy))))
         new_dz = dr.select(scatter, ndz, dr.select(refract, tz, dr.select(reflect, -dz, dr.select(
             on_bg, lz, dr.select(wall, wdz, dz)))))
-        new_li = dr.select(refract, dr.select(in_gap, L - 1, dr.select(going_down, li + 1, li - 1)), li)
+        # A ray leaving a side face downward goes on through the air below the stack (the gap's state
+        # from wherever it is): it can land on the background's rim outside the stack's footprint.
+        wall_down = wall_exit & (wdz < 0)
+        new_li = dr.select(refract, dr.select(in_gap, L - 1, dr.select(going_down, li + 1, li - 1)),
+                           dr.select(wall_down, L, li))
 
         # --- termination: left through the top (light?), past the stack's edge, lost, or truncated
         out_top = refract & in_stack & ~going_down & (li == 0)
         escaped_up = gap_up & ~under_stack
-        # (a ray leaving a side face downward could still reach the background's rim: neglected)
         reach_light = (out_top | escaped_up | wall_exit) & light(x, y, z, new_dx, new_dy, new_dz)
         cut = on_bg & (m >= orders)
         lost = (gap_down & ~on_bg) | cut
-        done = out_top | escaped_up | wall_exit | lost | (k >= k_max) | (it >= max_iter)
+        done = out_top | escaped_up | (wall_exit & ~wall_down) | lost | (k >= k_max) | (it >= max_iter)
         if nee:
             # The first bounce estimates the straight way out (u_free, u_f are unused at a bounce);
             # the path goes on, and its own straight way out is not counted again.
