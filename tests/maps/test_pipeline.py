@@ -2,6 +2,8 @@
 SHA-256 and its producer's version; a child whose map was rebuilt is refused with the command that
 rebuilds it; bad stages, recipes and option combinations are one clear error."""
 
+import tomllib
+
 import numpy as np
 import pytest
 
@@ -109,6 +111,7 @@ def test_cli_builds_the_default_stages_on_a_local_cluster(tmp_path, capsys):
     (["--retries", "-1"], "--retries must be 0…100"),
     (["--connect-timeout", "nan"], "--connect-timeout must be"),
     (["--stages", "tlut"], "does not exist: build it first"),
+    (["--backend", "metal"], "--backend must be one of llvm, cuda, auto"),
 ])
 def test_bad_options_are_one_clear_error(tmp_path, capsys, args, named):
     recipe = tmp_path / "r.toml"
@@ -161,3 +164,35 @@ def test_stage_names_and_rebuild_command():
     assert pipeline.rebuild_command(amap, "tlut").endswith("recipes/ideal-n1.5-l0.5.toml --out "
                                                            f"{pipeline._shown_path(amap.path)} --stages tlut")
     assert np.all(pipeline.SUFFIX[s].endswith(s) for s in pipeline.STAGES)
+
+
+def test_cli_backend_cuda_without_a_gpu_is_a_clear_error_and_llvm_builds(tmp_path, capsys, monkeypatch):
+    """--backend reaches the column tasks: cuda on a machine without one stops before any work (exit 2,
+    one line), llvm builds, and the columns are traced with the backend asked for."""
+    from trimeter.maps import tracer
+
+    if tracer.resolve_backend("auto") == "cuda":
+        pytest.skip("this machine has a CUDA device")
+    recipe = tmp_path / "r.toml"
+    recipe.write_text(TINY_TOML)
+    assert main(["map", "build", str(recipe), "--out-dir", str(tmp_path), "--stages", "tmap", "--backend", "cuda"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("trimeter: error: --backend cuda: ") and err.count("\n") == 1
+    assert not (tmp_path / "pipe-tiny.tmap").exists()
+
+    seen = []
+    real = tracer.trace_column
+
+    def spy(*args, backend="llvm", **kwargs):
+        seen.append(backend)
+        return real(*args, backend=backend, **kwargs)
+
+    monkeypatch.setattr(tracer, "trace_column", spy)
+    pipeline.run([pipeline.Target(parse_recipe(tomllib.loads(TINY_TOML)), None, tmp_path / "p.tmap")], ("tmap",),
+                 progress=False, options=pipeline.Options(tracer_backend="llvm"), say=lambda line: None)
+    assert seen and set(seen) == {"llvm"}
+    # and the CLI end to end, on a one-worker local cluster
+    assert main(["map", "build", str(recipe), "--out-dir", str(tmp_path), "--stages", "tmap", "--backend", "llvm",
+                 "--workers", "1", "--quiet"]) == 0
+    assert "tracer backend: llvm" in capsys.readouterr().out
+    AppearanceMap.load(tmp_path / "pipe-tiny.tmap")

@@ -40,6 +40,10 @@ def register(subparsers) -> None:
                                         "next to the output)")
     p.add_argument("--keep-checkpoint", action="store_true", help="keep the checkpoint after a successful build")
     p.add_argument("--inscatter-photons", type=int, default=30_000, help="tins: photons per (σt, g) column")
+    p.add_argument("--backend", default="llvm",
+                   help="tracer backend: llvm (CPU, the default: what the shipped maps were traced on), cuda "
+                        "(a GPU; an error without one) or auto (cuda if there is a GPU, else llvm); checked on "
+                        "this machine, so a --scheduler cluster's workers must have it too")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_build)
 
@@ -87,8 +91,10 @@ def load_appearance_map(name_or_path):
 def cmd_build(args) -> int:
     from trimeter.maps import pipeline
     from trimeter.maps.recipe import load_recipe
+    from trimeter.maps.tracer import resolve_backend
 
     stages = pipeline.parse_stages(args.stages)
+    backend = resolve_backend(args.backend)
     if len(args.recipe) > 1 and (args.out or args.checkpoint):
         raise InputError("--out and --checkpoint name one map's files: with several recipes use --out-dir")
     if args.retries is not None and not 0 <= args.retries <= 100:
@@ -109,7 +115,9 @@ def cmd_build(args) -> int:
         na, ns, ng = t.recipe.shape
         print(f"{t.recipe.name}: {t.recipe.geometry}, n = {t.recipe.n:g}, ℓ = {t.recipe.thickness_mm:g} mm, "
               f"grid α×σt×g = {na}×{ns}×{ng} ({ns * ng} columns) → {t.out} [{','.join(stages)}]")
-    options = pipeline.Options(inscatter_photons=args.inscatter_photons)
+    if "tmap" in stages:
+        print(f"tracer backend: {backend}")
+    options = pipeline.Options(tracer_backend=backend, inscatter_photons=args.inscatter_photons)
     run = dict(resume=args.resume, progress=not args.quiet, keep_checkpoint=args.keep_checkpoint,
                checkpoint_dir=Path(args.checkpoint) if args.checkpoint else None, retries=args.retries,
                options=options)

@@ -18,6 +18,7 @@ the files are always written here, next to the map.
 
 from __future__ import annotations
 
+import functools
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -63,7 +64,10 @@ def _shown_path(path: Path) -> str:
 
 @dataclass(frozen=True)
 class Options:
-    """The children's settings (the defaults are what the shipped files were made with)."""
+    """The map's and the children's settings (the defaults are what the shipped files were made with).
+    `tracer_backend`: the Dr.Jit backend the map's columns are traced on, "llvm" or "cuda" (resolved
+    from "auto" by trimeter.maps.tracer.resolve_backend before it gets here)."""
+    tracer_backend: str = "llvm"
     inscatter_photons: int = 30_000
     inscatter_seed: int = 0
     inscatter_shape: tuple[int, int, int] = (25, 21, 13)   # α × σt·ℓ × g nodes
@@ -160,11 +164,14 @@ def run(targets: list[Target], stages: tuple[str, ...], *, client=None, resume: 
     """Run `stages` for every target: the maps (all their columns at once), then each map's children.
     Without the tmap stage the maps must exist and be current against their recipes."""
     from trimeter.maps.builder import MapJob, build_maps, recipe_fingerprint, validation_report
+    from trimeter.maps.tracer import trace_column as trace_pair
 
     if "tmap" in stages:
         jobs = [MapJob(t.recipe, t.out, checkpoint_dir) for t in targets]
+        # A partial of a module-level function: pickles to Dask workers like the function itself.
+        tracer = functools.partial(trace_pair, backend=options.tracer_backend)
         maps = build_maps(jobs, client=client, resume=resume, progress=progress, keep_checkpoint=keep_checkpoint,
-                          retries=retries)
+                          retries=retries, tracer=tracer)
         for amap in maps:
             _report_map(amap, validation_report(amap), say)
             for stage in STAGES[1:]:
