@@ -8,7 +8,7 @@
 #include <stdint.h>
 
 /* ---- identity */
-#define TRIMETER_REGMAP_HASH 0x721544FAu
+#define TRIMETER_REGMAP_HASH 0xC7026EF1u
 #define TRIMETER_FIRMWARE_VERSION "0.1.0"
 #define TRIMETER_FIRMWARE_VERSION_MAJOR 0u
 #define TRIMETER_FIRMWARE_VERSION_MINOR 1u
@@ -334,7 +334,7 @@ static inline const char *trimeter_unlock_name(unsigned value) /* else "unknown"
 #define REG_HR_STEPS_PER_MM_MIN 1.0f
 #define REG_HR_STEPS_PER_MM_MAX 10000.0f
 #define REG_HR_SLOT_BLACK_MM 66u
-#define REG_HR_SLOT_BLACK_MM_DEFAULT 20.0f
+#define REG_HR_SLOT_BLACK_MM_DEFAULT 6.0f
 #define REG_HR_SLOT_BLACK_MM_MIN 0.0f
 #define REG_HR_SLOT_BLACK_MM_MAX 120.0f
 #define REG_HR_SLOT_WHITE_MM 68u
@@ -342,7 +342,7 @@ static inline const char *trimeter_unlock_name(unsigned value) /* else "unknown"
 #define REG_HR_SLOT_WHITE_MM_MIN 0.0f
 #define REG_HR_SLOT_WHITE_MM_MAX 120.0f
 #define REG_HR_SLOT_OPEN_MM 70u
-#define REG_HR_SLOT_OPEN_MM_DEFAULT 100.0f
+#define REG_HR_SLOT_OPEN_MM_DEFAULT 114.0f
 #define REG_HR_SLOT_OPEN_MM_MIN 0.0f
 #define REG_HR_SLOT_OPEN_MM_MAX 120.0f
 #define REG_HR_SPEED_MM_S 72u

@@ -178,7 +178,7 @@ static void test_command_during_motion_is_queued(void)
     run_ms(200);
     CHECK_EQ_INT(command(TRIMETER_COMMAND_GOTO_BLACK), MB_OK); /* accepted while moving */
     CHECK(run_until_idle(30000));
-    CHECK_EQ_INT(f->carriage_steps, 1600); /* 20 mm: the last command wins */
+    CHECK_EQ_INT(f->carriage_steps, (int)(REG_HR_SLOT_BLACK_MM_DEFAULT * REG_HR_STEPS_PER_MM_DEFAULT + 0.5f)); /* the last command wins */
     CHECK_EQ_INT(ir(REG_IR_POSITION_SLOT), TRIMETER_SLOT_BLACK);
     /* stop drops a queued command */
     CHECK_EQ_INT(command(TRIMETER_COMMAND_GOTO_OPEN), MB_OK);

@@ -9,7 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from enum import IntEnum
 
-REGMAP_HASH = 0x721544FA
+REGMAP_HASH = 0xC7026EF1
 FIRMWARE_VERSION = (0, 1, 0)
 VENDOR_NAME = 'trimeter project'
 PRODUCT_CODE = 'TRIMETER-1'
@@ -261,11 +261,11 @@ REGISTERS: tuple[Register, ...] = (
              'Map storage command; placed after its parameters so one FC 0x10 write of 16..22 sets them and then acts.'),
     Register('steps_per_mm', 'holding_register', 64, 'f32', 2, 'rw', 1.0, 'steps/mm', 1.0, 10000.0, 80.0, None, (),
              'Slider motor steps per millimetre.'),
-    Register('slot_black_mm', 'holding_register', 66, 'f32', 2, 'rw', 1.0, 'mm', 0.0, 120.0, 20.0, None, (),
+    Register('slot_black_mm', 'holding_register', 66, 'f32', 2, 'rw', 1.0, 'mm', 0.0, 120.0, 6.0, None, (),
              'Slider position of the black background, from home.'),
     Register('slot_white_mm', 'holding_register', 68, 'f32', 2, 'rw', 1.0, 'mm', 0.0, 120.0, 60.0, None, (),
              'Slider position of the white background.'),
-    Register('slot_open_mm', 'holding_register', 70, 'f32', 2, 'rw', 1.0, 'mm', 0.0, 120.0, 100.0, None, (),
+    Register('slot_open_mm', 'holding_register', 70, 'f32', 2, 'rw', 1.0, 'mm', 0.0, 120.0, 114.0, None, (),
              'Slider position of the open slot (collimated measurement).'),
     Register('speed_mm_s', 'holding_register', 72, 'f32', 2, 'rw', 1.0, 'mm/s', 0.10000000149011612, 200.0, 40.0, None, (),
              'Cruise speed of the slider.'),

@@ -125,8 +125,6 @@ def test_slider_pockets_gap_and_pitch(meshes, mech):
         assert depth == pytest.approx(mech.mech["slider"][key], abs=F32)
 
 
-@pytest.mark.xfail(strict=True, reason="registers.toml's default slots (20, 60, 100 mm: a 40 mm pitch) cannot "
-                   "carry geometry.toml's 50 mm backgrounds side by side; FW-SAFE owns the defaults")
 def test_firmware_default_slot_positions_match_the_slider(mech):
     with open(ROOT / "hardware" / "registers.toml", "rb") as fh:
         regs = {r["name"]: r for r in tomllib.load(fh)["holding_register"]}

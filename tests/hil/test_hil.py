@@ -185,11 +185,12 @@ def test_config_backup_restores_by_name_after_a_register_map_change(start_twin, 
         assert dev.read("config_source") == regs.ConfigSource.SAVED
     # an inconsistent configuration (a slot inside the homing back-off) is refused whole
     bad = tmp_path / "bad.toml"
-    bad.write_text("[device]\nspeed_mm_s = 30\nslot_black_mm = 0.5\nslot_open_mm = 100\n")
+    bad.write_text("[device]\nspeed_mm_s = 30\nslot_black_mm = 0.5\nslot_open_mm = 114\n")
     assert main(["config", "import", str(bad), "--port", port]) == 2
     assert "refused the new values of slot_black_mm, speed_mm_s as inconsistent" in capsys.readouterr().err
     with Device.open(port) as dev:
-        assert dev.read("speed_mm_s") == pytest.approx(55.5) and dev.read("slot_black_mm") == pytest.approx(20.0)
+        assert dev.read("speed_mm_s") == pytest.approx(55.5) and dev.read("slot_black_mm") == pytest.approx(
+            regs.BY_NAME["slot_black_mm"].default)
 
 
 def _table_bytes(hil_map):
