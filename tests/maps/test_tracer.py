@@ -229,3 +229,32 @@ def test_thin_clear_device_sample_on_white_matches_a_direct_render():
     I_ref, s_ref = render_black_panels("device", alpha, 0.09, 0.66, N, 0.8, rho, spp=1 << 21)
     s = math.hypot(float(tally.stderr([alpha], rho)[0]), s_ref)
     assert abs(I - I_ref) < 4 * s, f"tracer {I:.5f} vs volpath {I_ref:.5f} ± {s:.5f}"
+
+
+CRASHING_COLUMN = """
+import tomllib
+from trimeter.maps.recipe import parse_recipe
+from trimeter.maps.builder import column_task
+d = tomllib.load(open("maps/recipes/device-n1.5-l0.4.toml", "rb"))
+d["grid"]["sigma_t"]["count"], d["grid"]["g"]["count"] = 4, 3
+d["sampling"]["min_paths"] = d["sampling"]["max_paths"] = 1 << 23
+col, _ = column_task(parse_recipe(d), "/nonexistent", 3, 2)
+print("traced", col.n_paths)
+"""
+
+
+@pytest.mark.slow
+def test_dense_device_column_survives_the_dask_nannys_malloc_trim_threshold():
+    """σt = 50/mm, g = 0.9 at 8M paths segfaulted (inside Dr.Jit's kernels) in a process started with
+    MALLOC_TRIM_THRESHOLD_=65536, the Dask nanny's default; the tracer undoes the setting (see
+    trimeter.maps.tracer._undo_malloc_trim_threshold)."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    env = {**os.environ, "MALLOC_TRIM_THRESHOLD_": "65536"}
+    run = subprocess.run([sys.executable, "-c", CRASHING_COLUMN], env=env, capture_output=True, text=True,
+                         cwd=Path(__file__).resolve().parents[2], timeout=600)
+    assert run.returncode == 0, (run.returncode, run.stderr[-2000:])
+    assert "traced 8388608" in run.stdout

@@ -343,8 +343,31 @@ def _import_drjit():
     llvm = "/usr/lib/x86_64-linux-gnu/libLLVM-19.so"
     if os.path.exists(llvm):  # the machine's default LLVM aborts at JIT time (shared/NOTES.md)
         os.environ.setdefault("DRJIT_LIBLLVM_PATH", llvm)
+    _undo_malloc_trim_threshold()
     import drjit as dr
     return dr
+
+
+def _undo_malloc_trim_threshold() -> None:
+    """Work-around for a segfault inside Dr.Jit's compiled kernels (on its worker thread, in the
+    background-path trace that follows a dense column's detector trace: σt = 50/mm, g = 0.9, 8M paths)
+    in processes started with MALLOC_TRIM_THRESHOLD_ set, as Dask's nanny does (65536). Setting it
+    also freezes glibc's mmap threshold at 128 KiB, so every large buffer freed goes back to the OS at
+    once and a later read of it faults; with glibc's dynamic thresholds the same run completes. Our
+    side was ruled out as far as tried: the crash stays with one Dr.Jit thread, with each wave's
+    gathers evaluated and synchronised before the next, and with every numpy↔Dr.Jit conversion an
+    explicit copy. So in such a process the thresholds are raised back to glibc's dynamic maximum."""
+    if "MALLOC_TRIM_THRESHOLD_" not in os.environ:
+        return
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL("libc.so.6")
+    except OSError:  # not glibc: the variable means nothing there
+        return
+    m_trim_threshold, m_mmap_threshold = -1, -3      # glibc's mallopt parameters
+    libc.mallopt(m_mmap_threshold, 32 << 20)          # DEFAULT_MMAP_THRESHOLD_MAX on 64-bit
+    libc.mallopt(m_trim_threshold, 64 << 20)          # twice that, as the dynamic rule keeps it
 
 
 def _drjit(backend: str = "llvm"):
