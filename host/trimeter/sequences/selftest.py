@@ -421,16 +421,22 @@ def _check_name(kind: str, light: str) -> str:
     return f"{kind} {light.replace('_', ' ')}"
 
 
-def _check_led(light: str):
+def _light_not_judged(bench: _Bench, light: str):
+    """Why `light` can't be judged with what the earlier checks reached (None: it can)."""
+    if light == "collimated" and "open" not in bench.reached:
+        return _outcome(SKIP, "not judged: the collimated beam is seen only through the open slot, which the "
+                              "slider did not reach (see slot open)")
     setup = "collimated" if light == "collimated" else "panels"
+    if setup not in bench.exposure_us:
+        return _outcome(SKIP, f"not judged: no integration time was found for the {setup} light "
+                              f"(see exposure {setup})")
+    return None
 
+
+def _check_led(light: str):
     def check(bench: _Bench):
-        if light == "collimated" and "open" not in bench.reached:
-            return _outcome(SKIP, "not judged: the collimated beam is seen only through the open slot, which the "
-                                  "slider did not reach (see slot open)")
-        if setup not in bench.exposure_us:
-            return _outcome(SKIP, f"not judged: no integration time was found for the {setup} light "
-                                  f"(see exposure {setup})")
+        if skipped := _light_not_judged(bench, light):
+            return skipped
         found = bench.source(light)
         rise = found["rise"]
         figures = {"rise_fraction": rise, "integration_time_us": found["integration_time_us"]}
@@ -456,13 +462,8 @@ def _check_led(light: str):
 
 def _check_shutter(light: str):
     def check(bench: _Bench):
-        setup = "collimated" if light == "collimated" else "panels"
-        if light == "collimated" and "open" not in bench.reached:
-            return _outcome(SKIP, "not judged: the collimated beam is seen only through the open slot, which the "
-                                  "slider did not reach (see slot open)")
-        if setup not in bench.exposure_us:
-            return _outcome(SKIP, f"not judged: no integration time was found for the {setup} light "
-                                  f"(see exposure {setup})")
+        if skipped := _light_not_judged(bench, light):
+            return skipped
         found = bench.source(light)
         figures = {"rise_fraction": found["rise"], "leak_fraction": found["leak"]}
         if found["rise"] < MIN_RISE_FRACTION:
