@@ -422,7 +422,10 @@ async def refit_route(request):
                                 f"(GET /api/maps lists them: {', '.join(sorted(catalog))})")
 
     def run(job: Job) -> str:
-        meta = json.loads((path / "measurement.json").read_text())
+        try:
+            meta = json.loads((path / "measurement.json").read_text())
+        except (OSError, ValueError, UnicodeDecodeError) as exc:
+            raise InputError(f"{path.name}: its measurement.json cannot be read ({exc})") from None
         chosen = names or meta.get("maps") or []
         maps = []
         for name in chosen:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import collections
 import concurrent.futures
+import logging
 import math
 import secrets
 import threading
@@ -22,6 +23,8 @@ from typing import Callable
 
 from trimeter.errors import DeviceError, TrimeterError
 from trimeter.sequences.service import EMPTY_HOLDER, FAILED, NEXT_SAMPLE, READY, WORKING, Event, Service
+
+log = logging.getLogger("trimeter.web")
 
 RECENT_JOBS = 20
 RECENT_EVENTS = 50
@@ -150,6 +153,12 @@ class Jobs:
             raise  # Service.serve reconnects
         except TrimeterError as exc:
             job.message = str(exc)
+            outcome = "failed"
+        except Exception as exc:
+            # A bug in one job (a re-fit of a damaged record, say) must fail that job, not end the
+            # instrument loop and leave the job "running" so that every later request is Busy.
+            log.exception("job %s (%s) failed", job.id, job.kind)
+            job.message = f"internal error: {type(exc).__name__}: {exc} (the serve log has the details)"
             outcome = "failed"
         self._finish(job, outcome)
 

@@ -1,0 +1,44 @@
+"""The job worker without an instrument: what a failing job leaves behind."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import pytest
+
+from trimeter.errors import DeviceError, InputError
+from trimeter.web.jobs import Jobs
+
+
+def _jobs() -> Jobs:
+    return Jobs(SimpleNamespace(on_event=lambda event: None, on_progress=None))
+
+
+@pytest.mark.parametrize("error, message", [(ValueError("bad column"), "internal error: ValueError: bad column"),
+                                            (InputError("no such map"), "no such map")])
+def test_a_job_that_raises_fails_alone_and_frees_the_worker(error, message):
+    jobs = _jobs()
+    finished = []
+    jobs.listeners.append(lambda record: finished.append(record["job"]["state"]) if record["type"] == "job" else None)
+
+    def broken(job):
+        raise error
+
+    job = jobs.submit("refit", {}, broken)
+    jobs.between_polls(None)  # Service.serve would end on anything but a DeviceError raised here
+    assert (job.state, job.outcome, jobs.current) == ("failed", "failed", None)
+    assert message in job.message
+    assert finished == ["queued", "failed"]
+    assert jobs.submit("refit", {}, lambda job: "refitted") is jobs.current  # not Busy
+
+
+def test_a_device_error_still_reaches_the_loop_that_reconnects():
+    jobs = _jobs()
+
+    def lost(job):
+        raise DeviceError("no answer")
+
+    job = jobs.submit("measure", {}, lost)
+    with pytest.raises(DeviceError):
+        jobs.between_polls(None)
+    assert (job.state, jobs.current) == ("failed", None)
