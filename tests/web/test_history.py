@@ -58,6 +58,9 @@ def test_the_index_is_built_from_the_directories_and_searched(results, tmp_path)
     assert total == 3 and len(page) == 1
     with pytest.raises(InputError):
         history.search(flag="NO_SUCH")
+    for offset in (-1, 10**20):  # beyond SQLite's 64-bit integers: an input error, not an OverflowError
+        with pytest.raises(InputError, match="offset"):
+            history.search(offset=offset)
     with pytest.raises(InputError):
         parse_day_or_time("tomorrow", "until")
 

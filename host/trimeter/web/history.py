@@ -28,6 +28,7 @@ MEASUREMENT_FILE = "measurement.json"
 # A results directory's name: the writer's UTC stamp, an optional label and a uniqueness suffix.
 ID_PATTERN = re.compile(r"\d{8}T\d{6}Z(?:-[A-Za-z0-9._-]+)?")
 MAX_PAGE = 500
+MAX_OFFSET = 2**62   # SQLite's integers are 64-bit: a larger offset is an overflow, not an empty page
 
 _SCHEMA = """
 CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
@@ -260,8 +261,8 @@ class History:
             args.append(int(bit))
         if not 1 <= limit <= MAX_PAGE:
             raise InputError(f"limit: must be within 1..{MAX_PAGE}, got {limit}")
-        if offset < 0:
-            raise InputError(f"offset: must be ≥ 0, got {offset}")
+        if not 0 <= offset <= MAX_OFFSET:
+            raise InputError(f"offset: must be within 0..{MAX_OFFSET}, got {offset}")
         clause = (" WHERE " + " AND ".join(where)) if where else ""
         total = self.db.execute(f"SELECT COUNT(*) FROM measurements{clause}", args).fetchone()[0]
         rows = self.db.execute(f"SELECT * FROM measurements{clause} ORDER BY written_utc DESC, id DESC "
