@@ -8,7 +8,7 @@ import pytest
 from scipy.stats import norm
 
 import trimeter
-from trimeter.bench.uncertainty import coverage
+from trimeter.bench.uncertainty import coverage, mean_signed_z
 from trimeter.cli import main
 from trimeter.errors import InputError
 from trimeter.inversion import native
@@ -43,6 +43,19 @@ def test_coverage_counts_the_share_within_one_and_two_sigma():
     c1b, _, nb = coverage(est, s, truth, mask)
     inside = np.abs(z[30:900]) <= 1
     assert nb == 900 and c1b == pytest.approx((inside.sum() + 10) / 900)
+
+
+def test_mean_signed_z_is_the_offset_the_estimates_share():
+    z = norm.ppf(np.linspace(0.0005, 0.9995, 1000))  # symmetric: mean 0
+    std, truth = np.linspace(0.5, 2.0, 1000), np.linspace(-1, 1, 1000)
+    everything = np.ones(1000, bool)
+    assert mean_signed_z(truth + z * std, std, truth, everything) == pytest.approx(0.0, abs=1e-9)
+    assert mean_signed_z(truth + (z - 0.3) * std, std, truth, everything) == pytest.approx(-0.3, abs=1e-9)
+    # masked, NaN and infinite-σ bins do not count; nothing left to score is NaN
+    est, s = truth + (z + 0.5) * std, std.copy()
+    est[:10], s[10:20] = np.nan, np.inf
+    assert mean_signed_z(est, s, truth, everything) == pytest.approx(0.5 + np.mean(z[20:]), abs=1e-9)
+    assert np.isnan(mean_signed_z(est, s, truth, np.zeros(1000, bool)))
 
 
 def test_the_map_error_is_its_mc_error_where_the_splines_are_exact():
@@ -216,7 +229,11 @@ def test_bench_uncertainty_prints_its_table(tmp_path, capsys):
                  "--thickness-rel-std", "0", "--out", str(tmp_path)]) == 0
     out = capsys.readouterr().out
     assert "device-n1.5-l0.4" in out and "given" in out and "fixed" in out and "UNDERDETERMINED" in out
-    assert (tmp_path / "results.json").is_file()
+    assert "mean signed" in out
+    import json
+
+    rows = json.loads((tmp_path / "results.json").read_text())["rows"]
+    assert all(np.isfinite(r[p]["mean_z"]) for r in rows for p in ("alpha", "sigma_t", "g"))
     assert main(["bench", "uncertainty", "--noise", "2"]) == 2
     assert "--noise" in capsys.readouterr().err
 
