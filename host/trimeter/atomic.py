@@ -21,14 +21,27 @@ from trimeter.errors import OutputError
 TEMP_SUFFIX = ".tmp"
 
 
+def _umask() -> int:
+    """The process's umask. Read from /proc where there is one: setting it to learn it (the only portable
+    way) briefly leaves 0 in force for every other thread's new files (the web server's, the instrument's)."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    umask = os.umask(0o077)  # the restrictive value, should another thread create a file meanwhile
+    os.umask(umask)
+    return umask
+
+
 def _mode_for(path: Path) -> int:
     """A replaced file keeps its permissions; a new one gets what open() would give it (not mkstemp's 0600)."""
     try:
         return path.stat().st_mode & 0o7777
     except OSError:
-        umask = os.umask(0)
-        os.umask(umask)
-        return 0o666 & ~umask
+        return 0o666 & ~_umask()
 
 
 def fsync_directory(directory: str | os.PathLike) -> None:

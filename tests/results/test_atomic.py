@@ -48,6 +48,19 @@ def _umask() -> int:
     return mask
 
 
+@pytest.mark.skipif(not os.path.exists("/proc/self/status"), reason="reads the umask from /proc")
+def test_a_new_file_follows_the_umask_without_changing_it_meanwhile(tmp_path, monkeypatch):
+    previous = os.umask(0o027)
+    try:
+        # setting the umask to learn it would leave another thread's new files unprotected for a moment
+        monkeypatch.setattr(atomic.os, "umask", lambda mask: pytest.fail("os.umask called"))
+        atomic_write(tmp_path / "new.csv", "x")
+    finally:
+        monkeypatch.undo()
+        os.umask(previous)
+    assert (tmp_path / "new.csv").stat().st_mode & 0o777 == 0o640
+
+
 @pytest.mark.parametrize("stage", ["write", "fsync", "replace"])
 def test_full_disk_leaves_the_previous_output_and_no_temporary(tmp_path, monkeypatch, stage):
     target = tmp_path / "params.csv"
