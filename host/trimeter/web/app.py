@@ -502,6 +502,7 @@ async def events(request):
     queue: asyncio.Queue = asyncio.Queue(EVENT_QUEUE)
     clients: set = request.app[STATE]["clients"]
     clients.add(queue)
+    receiver = getter = None
     try:
         await ws.send_json({"type": "status", "status": request.app[JOBS].status()})
         receiver = asyncio.ensure_future(ws.receive())
@@ -520,8 +521,10 @@ async def events(request):
                 await ws.close(message=b"too slow")
                 break
             await ws.send_json(record)
-        receiver.cancel()
-    finally:
+    finally:  # also when a send fails on a vanished client: no task left pending on its socket
+        for task in (receiver, getter):
+            if task is not None:
+                task.cancel()
         clients.discard(queue)
     return ws
 
