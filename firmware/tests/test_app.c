@@ -545,7 +545,8 @@ static void test_map_upload_over_file_records(void)
     CHECK_EQ_INT(ir(REG_IR_MAP_ACTIVE_SLOT), TRIMETER_MAP_SLOT_A);
 }
 
-/* The attack: 64 junk bytes with their right CRC-32, uploaded and activated. */
+/* A CRC-32 proves the bytes arrived, not that they are a table: 64 junk bytes with their right CRC-32,
+ * uploaded and activated. */
 static void test_junk_bytes_never_become_a_valid_map(void)
 {
     fresh_device();

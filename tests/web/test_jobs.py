@@ -2,11 +2,17 @@
 
 from __future__ import annotations
 
+import json
+import time
+import urllib.error
+import urllib.request
 from types import SimpleNamespace
 
 import pytest
 
 from trimeter.errors import DeviceError, InputError
+from trimeter.web.app import WebServer, create_app
+from trimeter.web.history import History
 from trimeter.web.jobs import Jobs
 
 
@@ -42,3 +48,21 @@ def test_a_device_error_still_reaches_the_loop_that_reconnects():
     with pytest.raises(DeviceError):
         jobs.between_polls(None)
     assert (job.state, jobs.current) == ("failed", None)
+
+
+def test_a_device_call_after_the_loop_stopped_is_503_at_once(tmp_path):
+    jobs = Jobs(SimpleNamespace(on_event=lambda event: None, on_progress=None, device=object()))
+    jobs.stopped = "no device port configured"
+    token = "t" * 32
+    server = WebServer(create_app(jobs, History(tmp_path / "results", tmp_path / "h.sqlite"), token),
+                       "127.0.0.1", 0).start()
+    try:
+        request = urllib.request.Request(server.url + "/api/config", headers={"Authorization": f"Bearer {token}"})
+        start = time.monotonic()
+        with pytest.raises(urllib.error.HTTPError) as answer:
+            urllib.request.urlopen(request, timeout=30)
+        assert time.monotonic() - start < 5  # not the device call's timeout
+        assert answer.value.code == 503
+        assert "no device port configured" in json.loads(answer.value.read())["error"]["message"]
+    finally:
+        server.close()

@@ -153,6 +153,8 @@ async def _blocking(request: web.Request, fn: Callable, *args):
 
 
 async def _device_call(request: web.Request, fn: Callable):
+    if stopped := request.app[JOBS].stopped:  # nothing would ever run the call: say why now, not after a timeout
+        raise ApiError(503, f"the instrument loop has stopped: {stopped}")
     future = request.app[JOBS].call(fn)
     try:
         return await asyncio.wait_for(asyncio.wrap_future(future), DEVICE_CALL_TIMEOUT_S)
