@@ -66,3 +66,16 @@ def test_a_device_call_after_the_loop_stopped_is_503_at_once(tmp_path):
         assert "no device port configured" in json.loads(answer.value.read())["error"]["message"]
     finally:
         server.close()
+
+
+def test_a_job_left_when_the_loop_stops_is_failed_not_running_forever():
+    def serve(stop, between_polls):
+        raise InputError("no device port configured")
+
+    jobs = Jobs(SimpleNamespace(on_event=lambda event: None, on_progress=None, serve=serve))
+    job = jobs.submit("measure", {}, lambda job: "measured")
+    jobs.start()
+    jobs.stop(timeout_s=5)
+    assert jobs.stopped == "no device port configured"
+    assert (job.state, jobs.current) == ("failed", None)
+    assert "no device port configured" in job.message

@@ -103,8 +103,15 @@ class Jobs:
         try:
             self.service.serve(stop=self._stop.is_set, between_polls=self.between_polls)
         except Exception as exc:  # e.g. no port configured: the page says so instead of a dead thread
+            if not isinstance(exc, TrimeterError):
+                log.exception("the instrument loop stopped")
             self.stopped = str(exc) if isinstance(exc, TrimeterError) else f"{type(exc).__name__}: {exc}"
             self.on_event(Event("stopped", f"the instrument loop stopped: {self.stopped}"))
+            with self._lock:
+                job = self.current
+            if job is not None:  # nothing will run or finish it now
+                job.message = job.message or f"the instrument loop stopped: {self.stopped}"
+                self._finish(job, "failed")
 
     def stop(self, timeout_s: float = 30.0) -> None:
         self._stop.set()
