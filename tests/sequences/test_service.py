@@ -245,6 +245,9 @@ def test_second_sample_settings_are_checked():
     for bad in ("inf", "nan", float("-inf")):  # no thickness or time is infinite
         with pytest.raises(InputError, match="not a finite number"):
             s.set("second_thickness_mm", bad)
+    for key, bad in (("frames", "1e400"), ("frames", True), ("map", {"a": 1}), ("port", ["COM1"]), ("map", None)):
+        with pytest.raises(InputError, match=key):  # what a web request's JSON may hold: no OverflowError, no str()
+            s.set(key, bad)
     s.set("second_thickness_mm", 0.8)
     s.set("map", "a.tmap")
     assert s.serve_samples == [(0.4, "a.tmap"), (0.8, None)]

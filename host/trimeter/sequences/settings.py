@@ -105,8 +105,10 @@ class HostSettings:
         try:
             if kind is int and isinstance(value, float) and not value.is_integer():
                 raise ValueError
+            if isinstance(value, (dict, list, bool)) or value is None:  # str() would take any of them
+                raise TypeError
             converted = kind(value) if kind is not int else int(float(value))
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):  # OverflowError: an int setting given 1e400
             raise InputError(f"{key}: {value!r} is not a {kind.__name__} ({source})") from None
         if kind is float and not math.isfinite(converted):
             raise InputError(f"{key}: {value!r} is not a finite number ({source})")
