@@ -1,6 +1,6 @@
 """What a dimmed lamp does to a measurement on the twin, and whether the lamp monitor refuses it.
 
-    .venv/bin/python tools/lamp_monitor_figures.py [--time-scale 50] [--seed 3]
+    .venv/bin/python tools/lamp_monitor_figures.py [--time-scale 50] [--seed 3] [--map MAP.tmap]
 
 The twin (the real firmware, its plant's photodiodes, the HIL map's optics, sample cyan-ink 0.4 mm) is
 warmed up and calibrated with the holder empty; then, per case, a lamp is dimmed (twin fault lamp_dimmed)
@@ -18,20 +18,21 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from trimeter.device import Device
+from trimeter.maps import AppearanceMap
+from trimeter.sequences import checks, lamp_monitor
+from trimeter.sequences.measure import fit_reflectances
+from trimeter.sequences.plans import calibration, sample_capture, warm_up
+from trimeter.sequences.reflectance import reflectances
+from trimeter.sequences.service import lamps_on
+from trimeter.sequences.steps import Runner
+from trimeter.spectrometer import open_spectrometer
+from trimeter.twin import Twin
 
-from hil_support import HIL_MAP, SAMPLE, THICKNESS_MM  # noqa: E402
-from trimeter.device import Device  # noqa: E402
-from trimeter.maps import AppearanceMap  # noqa: E402
-from trimeter.sequences import checks, lamp_monitor  # noqa: E402
-from trimeter.sequences.measure import fit_reflectances  # noqa: E402
-from trimeter.sequences.plans import calibration, sample_capture, warm_up  # noqa: E402
-from trimeter.sequences.reflectance import reflectances  # noqa: E402
-from trimeter.sequences.service import lamps_on  # noqa: E402
-from trimeter.sequences.steps import Runner  # noqa: E402
-from trimeter.spectrometer import open_spectrometer  # noqa: E402
-from trimeter.twin import Twin  # noqa: E402
-
+# The HIL suite's set-up (tests/hil_support.py), named here as data rather than imported from the tests.
+HIL_MAP = Path(__file__).resolve().parents[1] / "tests" / "hil" / "data" / "hil-ideal-l0.4.tmap"
+SAMPLE = "cyan-ink"
+THICKNESS_MM = 0.4
 CASES = (None, "panels:0.5", "panels:0.8", "collimated:0.5", "panels:0.97", "panels:0.99", "collimated:0.98")
 
 
@@ -39,8 +40,9 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--time-scale", type=float, default=50.0)
     parser.add_argument("--seed", type=int, default=3)
+    parser.add_argument("--map", type=Path, default=HIL_MAP, help="the host's map (default: the HIL suite's)")
     args = parser.parse_args()
-    amap = AppearanceMap.load(HIL_MAP)
+    amap = AppearanceMap.load(args.map)
     with Twin(sample=None, thickness_mm=THICKNESS_MM, time_scale=args.time_scale, appearance_map=amap,
               seed=args.seed) as twin:
         device = Device.open(twin.modbus_port, timeout_s=0.2)

@@ -100,9 +100,7 @@ def from_recipe(recipe_path, pairs, alphas, paths, seed, alpha_stderr=None, max_
 
 
 def from_ideal(map_path, count, seed):
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "inversion"))
-    from ideal_map import ideal_abc
-
+    from trimeter.forward.adding_doubling import ideal_abc
     from trimeter.maps.appearance import AppearanceMap
 
     m = AppearanceMap.load(map_path)

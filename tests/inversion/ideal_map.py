@@ -6,8 +6,7 @@ test-only dependency and never the source of a shipped map.
     python tests/inversion/ideal_map.py            # (re)builds tests/inversion/data/ideal-l0.5.tmap
     python tests/inversion/ideal_map.py --second   # ... and the coarse 1.0 mm one (two-thickness tests)
 
-Per material, `Sample(a=α, b=σt·ℓ, g, d=ℓ, n, n_above=1, n_below=1).rt()` → (UR1, UT1, URU, UTU),
-and I(ρ) = A + Bρ/(1 − Cρ) with A = UR1, B = UT1·UTU, C = URU (see trimeter.maps.appearance).
+The adding-doubling itself is trimeter.forward.adding_doubling (tools/make_heldout.py --ideal uses it too).
 """
 
 from __future__ import annotations
@@ -18,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from trimeter.forward.adding_doubling import ideal_abc
 from trimeter.maps.appearance import AppearanceMap
 
 DATA_DIR = Path(__file__).resolve().parent / "data"
@@ -34,23 +34,11 @@ def ideal_axes(n_alpha=25, n_sigma=24, n_g=13):
     return alpha, sigma_t, g
 
 
-def ideal_abc(alpha, sigma_t, g, thickness_mm=THICKNESS_MM, n=N):
-    """Exact (A, B, C) per material (flat arrays); ~2 ms per point."""
-    from iadpython import Sample
-
-    out = np.empty((len(alpha), 3))
-    for i, (a, s, gi) in enumerate(zip(alpha, sigma_t, g)):  # iadpython is scalar per material
-        ur1, ut1, uru, utu = Sample(a=float(a), b=float(s) * thickness_mm, g=float(gi), d=thickness_mm,
-                                    n=n, n_above=1, n_below=1).rt()
-        out[i] = (ur1, ut1 * utu, uru)
-    return out
-
-
 def build_ideal_map(path: Path = IDEAL_MAP, thickness_mm: float = THICKNESS_MM, **axes) -> AppearanceMap:
     alpha, sigma_t, g = ideal_axes(**axes)
     aa, ss, gg = np.meshgrid(alpha, sigma_t, g, indexing="ij")
     t0 = time.perf_counter()
-    abc = ideal_abc(aa.ravel(), ss.ravel(), gg.ravel(), thickness_mm=thickness_mm).reshape(*aa.shape, 3)
+    abc = ideal_abc(aa.ravel(), ss.ravel(), gg.ravel(), thickness_mm=thickness_mm, n=N).reshape(*aa.shape, 3)
     recipe = {"name": path.stem, "geometry": "ideal", "n": N, "thickness_mm": thickness_mm,
               "reference_rho_b": REF_RHO_B, "reference_rho_w": REF_RHO_W}
     provenance = {"builder": "tests/inversion/ideal_map.py (iadpython adding-doubling, exact)",
