@@ -13,6 +13,7 @@ import pytest
 from trimeter.errors import DeviceError, InputError
 from trimeter.web.app import WebServer, create_app
 from trimeter.web.history import History
+from trimeter.sequences.service import Event
 from trimeter.web.jobs import Jobs
 
 
@@ -79,3 +80,14 @@ def test_a_job_left_when_the_loop_stops_is_failed_not_running_forever():
     assert jobs.stopped == "no device port configured"
     assert (job.state, jobs.current) == ("failed", None)
     assert "no device port configured" in job.message
+
+
+def test_a_history_index_failure_does_not_reach_the_measurement():
+    def index(path):
+        raise OSError("database or disk is full")
+
+    jobs = Jobs(SimpleNamespace(on_event=lambda event: None, on_progress=None), on_measurement=index)
+    seen = []
+    jobs.listeners.append(seen.append)
+    jobs.on_event(Event("measured", "measured", {"path": "/results/20260301T000000Z-red"}))
+    assert seen[-1]["data"]["measurement"] == "20260301T000000Z-red"  # still told to the page

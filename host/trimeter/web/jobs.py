@@ -228,7 +228,10 @@ class Jobs:
                 elif event.kind in ("failed", "refused") or (event.kind == "empty_holder" and not job.message):
                     job.message = event.message
         if event.kind == "measured" and path is not None:
-            self.on_measurement(Path(path))
+            try:
+                self.on_measurement(Path(path))
+            except Exception:  # the index (a full disk, a locked file) must not fail a measurement already written
+                log.exception("indexing %s failed; the next start adds it", path)
         self._tell(record)
 
     def on_progress(self, fraction: float, message: str) -> None:
