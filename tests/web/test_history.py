@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from trimeter.errors import InputError
+from trimeter.errors import InputError, OutputError
 from trimeter.inversion.flags import FitFlag
 from trimeter.web.history import History, parse_day_or_time
 
@@ -132,3 +132,12 @@ def test_the_index_survives_its_writer_killed_mid_insert(results, tmp_path):
     history = History(results, db)
     assert "built" not in " ".join(history.open())   # reopened, not rebuilt
     assert history.search()[1] == on_disk
+
+
+def test_an_index_that_cannot_be_written_is_a_clear_error(results, tmp_path, monkeypatch):
+    def refuse(self):  # what sqlite says for a read-only data directory (root writes anywhere, so faked)
+        raise sqlite3.OperationalError("unable to open database file")
+
+    monkeypatch.setattr(History, "_connect", refuse)
+    with pytest.raises(OutputError, match="history index .* cannot be opened"):
+        History(results, tmp_path / "h.sqlite").open()

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from trimeter.errors import InputError
+from trimeter.errors import InputError, OutputError
 from trimeter.inversion.flags import FitFlag, describe
 from trimeter.results.writer import PARTIAL_PREFIX
 
@@ -150,6 +150,12 @@ class History:
 
     def open(self) -> list[str]:
         """Check the index (rebuilding it if needed) and bring it up to date with the directories."""
+        try:
+            return self._open()
+        except sqlite3.Error as exc:  # e.g. a read-only data directory: a clear error, not a traceback
+            raise OutputError(f"the history index {self.db_path} cannot be opened or written ({exc})") from None
+
+    def _open(self) -> list[str]:
         self.db_path.parent.mkdir(parents=True, exist_ok=True)
         problem = None if self.db_path.exists() else "no index yet"
         if problem is None:
