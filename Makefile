@@ -46,12 +46,12 @@ gen: setup
 
 check-gen: setup
 	$(PY) tools/gen_registers.py --check
-	$(PY) tools/gen_hardware.py --check
+	$(PY) -m tools.gen_hardware --check
 
 # The build documentation and printable parts (hardware/README.md): bom.md, wiring.md and the pictures
 # in hardware/img (committed), STLs in build/hardware (not committed), all from hardware/*.toml.
 hardware: setup
-	$(PY) tools/gen_hardware.py --parts
+	$(PY) -m tools.gen_hardware --parts
 
 # pycodestyle + pyflakes rules (configured in pyproject.toml): unused names, undefined names, long lines
 lint: setup

@@ -1,9 +1,9 @@
 #!/usr/bin/env python3
 """Generate the build documentation from hardware/*.toml.
 
-    python tools/gen_hardware.py            # bom.md, wiring.md, img/wiring.svg + .png
-    python tools/gen_hardware.py --check    # exit 1 naming each stale Markdown file; write nothing
-    python tools/gen_hardware.py --parts    # also the printable parts: build/hardware/*.stl and
+    python -m tools.gen_hardware            # from the repo's root: bom.md, wiring.md, img/wiring.svg + .png
+    python -m tools.gen_hardware --check    # exit 1 naming each stale Markdown file; write nothing
+    python -m tools.gen_hardware --parts    # also the printable parts: build/hardware/*.stl and
                                             # their pictures img/<part>.png, img/assembly.png (needs build123d)
 
 Sources: bom.toml (parts, prices), wiring.toml (where each wire goes), pinout.toml (the MCU's pins,
@@ -21,8 +21,7 @@ import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from hardware_parts import HardwareError, build_parts, load_mechanics, tray_name, write_stls  # noqa: E402
+from tools.hardware_parts import HardwareError, build_parts, load_mechanics, tray_name, write_stls
 
 ROOT = Path(__file__).resolve().parent.parent
 HW = ROOT / "hardware"
