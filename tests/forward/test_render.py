@@ -82,7 +82,7 @@ def test_closed_form_fit_is_exact_on_its_own_model():
 
 
 def test_device_closed_form_in_rho():
-    # Issue 2 §3: A, B, C fitted from renders at ρ = 0, 0.5, 0.99 predict renders at ρ = 0.02, 0.8.
+    # A, B, C fitted from renders at ρ = 0, 0.5, 0.99 predict renders at ρ = 0.02, 0.8.
     # At α > 0.95 there is no roulette, so the renders at all ρ share their paths and the check
     # resolves far below the std-error (measured: ≤ 0.005 %); 0.2 % + 1σ leaves room for MC noise.
     row = rho_closed_form("device", 0.97, 3.0, 0.6, 1.5, 0.4, spp=262144, seed=8)

@@ -1,5 +1,5 @@
 """Hardware-in-the-loop: the host stack against the twin (the real firmware core + plant + optics) or,
-with --port/--spectrometer, a real instrument. Issue 6 §7. Tests that inject faults or read the
+with --port/--spectrometer, a real instrument. Tests that inject faults or read the
 virtual sample's truth need the twin and skip on hardware. Shared code: tests/hil_support.py (no
 conftest.py here: `from conftest import` elsewhere would pick this one up)."""
 

@@ -29,7 +29,7 @@ def test_bench_fit_reports_figures_and_plot(tmp_path, capsys):
     assert noisy["lut p0"]["alpha_misses"] > 0  # 1 % noise puts some bins over 0.01: the count is live
     assert "flags UNDERDETERMINED" in text
     # every target judged from this run's figures: speed-ups at least, the rest at most their limit
-    assert set(report["targets"]) == {"lut p≤8", "mlp p≤8"} and "issue 4 targets" in text
+    assert set(report["targets"]) == {"lut p≤8", "mlp p≤8"} and "inversion targets" in text
     lut = report["targets"]["lut p≤8"]
     clean_lut = next(r for r in rows if r["noise"] == 0 and r["variant"] == "lut p≤8")
     assert len(lut) == 7 and lut["α p95"]["value"] == clean_lut["alpha_p95"]

@@ -47,10 +47,10 @@ from trimeter.paths import MAPS_DIR, REPO_ROOT
 
 HELDOUT_DIR = MAPS_DIR / "heldout"
 IDEAL_FALLBACK = REPO_ROOT / "tests" / "inversion" / "data" / "ideal-l0.5.tmap"
-# Issue 4 §5 noise-free p95 targets for lut/mlp; a reference resolves them where its own first-order
+# The inversion's noise-free p95 targets for lut/mlp; a reference resolves them where its own first-order
 # std is below half of them (the well-conditioned subset).
 ALPHA_TARGET, G_TARGET = 0.01, 0.015
-# the rest of issue 4 §2/§5: ≥ 50× paper's plain interpolation, ms per 1024 bins, σt relative p95
+# and its speed and σt targets: ≥ 50× paper's plain interpolation, ms per 1024 bins, σt relative p95
 SPEEDUP_TARGET, MS_TARGET, SIGMA_REL_TARGET = 50.0, {"lut": 1.0, "mlp": 2.0}, 0.01
 G_MIN_ALPHA = 0.5  # g is scored over α ≥ 0.5 only (below, g barely changes the intensities)
 DEFAULT_POLISH = dict(polish=8, polish_tol=1e-6)  # trimeter.fit's defaults
@@ -585,9 +585,9 @@ def target_checks(row, paper) -> dict:
     def check(name, value, limit, met, issue_target=True):
         checks[name] = {"value": value, "limit": limit, "met": bool(met), "issue_target": issue_target}
 
-    # The issue's speed-up is a throughput figure (time per 1024 bins): warm, as in a batch of spectra.
+    # The speed-up target is a throughput figure (time per 1024 bins): warm, as in a batch of spectra.
     # Cold (one press-button fit after the caches were evicted) is this bench's own stricter view,
-    # judged against the same limit but not one of the issue's targets: it is memory-bound (the
+    # judged against the same limit but not a target: it is memory-bound (the
     # polish's refined forward model is ~22 MB) and moves ±15 % with the machine's state.
     for key, label, target in (("ms_per_1024", "× paper", True), ("ms_per_1024_cold", "× paper cold", False)):
         if key in row and key in paper:
@@ -605,17 +605,17 @@ def target_checks(row, paper) -> dict:
 
 def _show_check(name, c) -> str:
     verdict = "" if c["met"] else (" MISSED" if c["issue_target"] else f" (below {c['limit']:g})")
-    return f"{name} {c['value']:.3g}{verdict}" + ("" if c["issue_target"] else " [not an issue target]")
+    return f"{name} {c['value']:.3g}{verdict}" + ("" if c["issue_target"] else " [not a target]")
 
 
 def _print_targets(title, rows):
-    """One line per lut/mlp p≤8 variant: every issue 4 target, met or MISSED, from this run (the targets
+    """One line per lut/mlp p≤8 variant: every inversion target, met or MISSED, from this run (the targets
     are noise-free: nothing to judge when --noise left out 0)."""
     paper = next((r for r in rows if r["variant"] == "paper"), None)
     if paper is None:
-        print(f"\n   issue 4 targets, {title}: not judged (they are noise-free figures: include 0 in --noise)")
+        print(f"\n   inversion targets, {title}: not judged (they are noise-free figures: include 0 in --noise)")
         return {}
-    print(f"\n   issue 4 targets, {title} (noise-free, rendered references; ratios to paper in this run):")
+    print(f"\n   inversion targets, {title} (noise-free, rendered references; ratios to paper in this run):")
     verdicts = {}
     for r in rows:
         if r["variant"] not in ("lut p≤8", "mlp p≤8"):
@@ -624,7 +624,7 @@ def _print_targets(title, rows):
         verdicts[r["variant"]] = checks
         missed = [k for k, c in checks.items() if c["issue_target"] and not c["met"]]
         print(f"   {r['variant']:<10}" + "; ".join(_show_check(k, c) for k, c in checks.items())
-              + (f"  — MISSED: {', '.join(missed)}" if missed else "  — all issue targets met"))
+              + (f"  — MISSED: {', '.join(missed)}" if missed else "  — all targets met"))
     return verdicts
 
 

@@ -27,7 +27,7 @@ from trimeter.maps.recipe import parse_recipe
 
 def register(subparsers) -> None:
     p = subparsers.add_parser("mapbuild", help="map building: naive direct renders vs the (k, m)-tally tracer")
-    p.add_argument("--spp", type=int, default=655360, help="samples per naive render (issue 5: ~655k)")
+    p.add_argument("--spp", type=int, default=655360, help="samples per naive render (the paper's 640K)")
     p.add_argument("--naive-renders", type=int, default=12, help="naive renders measured in this run")
     p.add_argument("--seed", type=int, default=7)
     p.set_defaults(func=run)

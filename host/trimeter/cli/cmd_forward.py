@@ -34,7 +34,7 @@ def register(subparsers) -> None:
     sub = p.add_subparsers(dest="forward_command", metavar="SUBCOMMAND")
     v = sub.add_parser("validate", help="physics report: ideal vs adding-doubling, device I(ρ) closed form, I_c "
                                         "in-scattering",
-                       description="Checks of the direct renders (issue 2 §3, §7). Prints figures; exit 1 if "
+                       description="Physics checks of the direct renders. Prints figures; exit 1 if "
                                    "the ideal geometry misses the 0.5 % median agreement.")
     v.add_argument("--materials", type=int, default=30, help="random materials for the adding-doubling check")
     v.add_argument("--spp", type=int, default=1048576, help="samples per render (ideal)")

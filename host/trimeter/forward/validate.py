@@ -1,4 +1,4 @@
-"""Physics checks of the direct renders (issue 2 §3, §7): shared by tests/forward and `trimeter forward validate`.
+"""Physics checks of the direct renders: shared by tests/forward and `trimeter forward validate`.
 
 - `iad_agreement`: the `ideal` geometry against Prahl's adding-doubling (iadpython, a dev/test
   dependency) over random materials, both backgrounds: per-observable relative error and z-score.

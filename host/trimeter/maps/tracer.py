@@ -1,6 +1,6 @@
 """The fast map tracer: one path-traced batch per (σt, g) serves every α and every background ρ.
 
-Why it works (issue 5; paper Sec. 5.1, "reusing the Monte Carlo path space samples"): at fixed σt, g
+Why it works (paper Sec. 5.1, "reusing the Monte Carlo path space samples"): at fixed σt, g
 and geometry, free-flight distances, Fresnel choices and scattering directions do not depend on α or
 ρ. Everything is sampled proportionally (no weights besides a constant), so a path that reaches the
 light after k scattering events and m background bounces contributes w·α^k·ρ^m. We trace adjoint
