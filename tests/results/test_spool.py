@@ -122,10 +122,11 @@ def test_when_no_spool_can_take_it_either_the_error_says_so(tmp_path, measuremen
 
 def test_the_spool_falls_back_to_the_temp_directory(tmp_path, measurement, monkeypatch):
     (tmp_path / "file").write_text("")
+    (tmp_path / "tmp").mkdir()
     monkeypatch.setattr(spool.tempfile, "gettempdir", lambda: str(tmp_path / "tmp"))
     with pytest.raises(CaptureSpooled) as caught:
         write_or_spool(tmp_path / "file" / "results", measurement, spool=tmp_path / "file" / "spool")
-    assert caught.value.path.parent == tmp_path / "tmp" / "trimeter-spool"
+    assert caught.value.path.parent == tmp_path / "tmp" / f"trimeter-spool-{os.getuid()}"
 
 
 # ------------------------------------------------------------------------------ leftovers
@@ -279,3 +280,18 @@ def test_ctrl_c_mid_write_leaves_the_partial_for_the_next_start(tmp_path, measur
     later = time.time() + 2 * spool.IN_PROGRESS_MAX_AGE_S
     (left,) = spool.find_partials(tmp_path, now=later)  # once no write can still be running, a leftover
     assert left.path == partial and left.files >= 5
+
+
+def test_the_last_resort_spool_in_the_temp_directory_is_private_and_never_a_link(tmp_path, monkeypatch):
+    monkeypatch.setattr(spool.tempfile, "gettempdir", lambda: str(tmp_path))
+    made = spool._private_temp_spool()
+    assert made == tmp_path / f"trimeter-spool-{os.getuid()}" and (made.stat().st_mode & 0o777) == 0o700
+    made.rmdir()
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir(mode=0o700)
+    made.symlink_to(elsewhere)          # planted by someone to redirect captures
+    assert spool._private_temp_spool() is None
+    made.unlink()
+    made.mkdir(mode=0o777)
+    os.chmod(made, 0o777)               # open to others: not used either
+    assert spool._private_temp_spool() is None

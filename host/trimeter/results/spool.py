@@ -7,7 +7,7 @@ could not take, and recovery of the `.partial-*` directories an interrupted writ
   reported and moved to the spool (empty ones deleted).
 - `write_or_spool(root, measurement)` after it: when the results directory cannot take the
   measurement (full disk, removed, read-only), the capture goes to the spool
-  (`<data dir>/spool/<name>`; the temp directory's `trimeter-spool` if that fails too) and an
+  (`<data dir>/spool/<name>`; the temp directory's private `trimeter-spool-<uid>` if that fails too) and an
   OutputError names where it is and how to re-fit it.
 """
 
@@ -16,6 +16,7 @@ from __future__ import annotations
 import os
 import re
 import shutil
+import stat
 import tempfile
 import time
 from dataclasses import dataclass
@@ -36,8 +37,23 @@ def spool_dir() -> Path:
     return data_dir() / "spool"
 
 
+def _private_temp_spool() -> Path | None:
+    """The last-resort spool in the shared temp directory: one per user, mode 0700, and refused when it is a
+    link or someone else's (another local user could otherwise create it first and read or redirect captures)."""
+    path = Path(tempfile.gettempdir()) / f"trimeter-spool-{os.getuid()}"
+    try:
+        path.mkdir(mode=0o700, exist_ok=True)
+        info = os.lstat(path)
+    except OSError:
+        return None
+    if not stat.S_ISDIR(info.st_mode) or info.st_uid != os.getuid() or info.st_mode & 0o077:
+        return None
+    return path
+
+
 def _spool_roots(spool: Path | None) -> list[Path]:
-    return [spool or spool_dir(), Path(tempfile.gettempdir()) / "trimeter-spool"]
+    fallback = _private_temp_spool()
+    return [spool or spool_dir(), *([fallback] if fallback else [])]
 
 
 def refit_hint(directory: Path) -> str:
