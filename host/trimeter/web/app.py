@@ -319,6 +319,15 @@ def _search_args(request) -> dict:
 
 
 @routes.get("/api/measurements")
+def _spreadsheet_safe(value):
+    """A text cell a spreadsheet would run as a formula (a label from the CLI may start with '=') is quoted."""
+    if value is None:
+        return ""
+    if isinstance(value, str) and value[:1] in ("=", "+", "-", "@", "\t", "\r"):
+        return "'" + value
+    return value
+
+
 async def measurements(request):
     args = _search_args(request)
     history = request.app[HISTORY]
@@ -336,7 +345,7 @@ async def measurements(request):
         writer = csv.writer(text)
         writer.writerow(CSV_COLUMNS)
         for row in rows:
-            writer.writerow([" ".join(map(str, v)) if isinstance(v, list) else ("" if v is None else v)
+            writer.writerow([_spreadsheet_safe(" ".join(map(str, v)) if isinstance(v, list) else v)
                              for v in (row[c] for c in CSV_COLUMNS)])
         return web.Response(text=text.getvalue(), content_type="text/csv",
                             headers={"Content-Disposition": 'attachment; filename="trimeter-history.csv"'})
