@@ -31,7 +31,7 @@ class FakeInstrument:
                 self._set("hr", reg, reg.default)
         self._set("ir", regs.BY_NAME["vendor_id"], regs.VENDOR_ID)
         self._set("ir", regs.BY_NAME["model_id"], regs.MODEL_ID)
-        for part, value in zip(("major", "minor", "patch"), firmware):
+        for part, value in zip(("major", "minor", "patch"), firmware, strict=True):
             self._set("ir", regs.BY_NAME[f"firmware_version_{part}"], value)
         self._set("ir", regs.BY_NAME["regmap_hash"], regmap_hash)
         self.busy_polls = busy_polls

@@ -331,7 +331,7 @@ def render_mesh_png(meshes: list, out: Path, title: str, elev: float = 28, azim:
         hi.append(mesh.bounds[1])
     lo, hi = np.min(lo, axis=0), np.max(hi, axis=0)
     centre, half = (lo + hi) / 2, (hi - lo).max() / 2
-    for setter, c in zip((ax.set_xlim, ax.set_ylim, ax.set_zlim), centre):
+    for setter, c in zip((ax.set_xlim, ax.set_ylim, ax.set_zlim), centre, strict=True):
         setter(c - half, c + half)
     ax.set_box_aspect((1, 1, 1))
     ax.view_init(elev=elev, azim=azim)

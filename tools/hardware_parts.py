@@ -172,7 +172,7 @@ def _slider(m: Mechanics) -> Part:
     face = -gap
     x_end = rail_x + hole_dx / 2 + 2 * wall
     body = _box(bd, -half - wall, x_end, ys[-1] - half - margin, half + margin, face - t, face)
-    for name, y in zip(order, ys):
+    for name, y in zip(order, ys, strict=True):
         if name == "open":
             body -= _cyl(bd, m.mm("mechanics.slider.open_window_diameter_mm") / 2, face - t - 1, face + 1, y=y)
             continue

@@ -71,7 +71,7 @@ def from_recipe(recipe_path, pairs, alphas, paths, seed, alpha_stderr=None, max_
     gs = _off_grid(rng.uniform(float(r.g[0]), float(r.g[-1]), pairs), r.g, rng, float(r.g[0]), float(r.g[-1]))
     rows = []
     t0 = time.perf_counter()
-    for i, (s, g) in enumerate(zip(sig, gs)):  # one trace per (σt, g): each is seconds of Dr.Jit work
+    for i, (s, g) in enumerate(zip(sig, gs, strict=True)):  # one trace per (σt, g): each is seconds of Dr.Jit work
         a_lo, a_hi = float(r.alpha[0]), float(r.alpha[-1])
         u = rng.uniform(0, 1, alphas)
         al = np.where(np.arange(alphas) % 2 == 0, a_lo + (a_hi - a_lo) * u, a_hi - (a_hi - a_lo) * u ** 2)

@@ -87,7 +87,7 @@ def predict_slab(material: SpectralMaterial, thickness_mm: float, *, geometry: s
     k_max = k_max_for(float(m.alpha.max()), TRUNCATION)
     out = np.empty((4, len(m.wavelengths_nm)))
     t0 = time.monotonic()
-    for i, (alpha, sigma_t, g) in enumerate(zip(m.alpha, m.sigma_t, m.g)):
+    for i, (alpha, sigma_t, g) in enumerate(zip(m.alpha, m.sigma_t, m.g, strict=True)):
         # σt = 0 has no free flight to sample; 1e-9/mm is clear glass to any printed precision
         tally = trace_column(stack, max(float(sigma_t), 1e-9), float(g), int(paths), seed, k_max)
         A, B, C = (float(v[0]) for v in tally.abc([alpha]))

@@ -181,7 +181,7 @@ def test_flash_commands_write_the_elf_or_each_image_at_its_address():
     assert [d[4] for d in dfu] == addresses[:-1] + [addresses[-1] + ":leave"]
     assert [d[6] for d in dfu] == [f"build/stm32/{p.name}" for p in images]
     stlink = [line.split() for line in out if line.startswith("st-flash ")]
-    assert [s[-2:] for s in stlink] == [[f"build/stm32/{p.name}", a] for p, a in zip(images, addresses)]
+    assert [s[-2:] for s in stlink] == [[f"build/stm32/{p.name}", a] for p, a in zip(images, addresses, strict=True)]
     assert ["--reset" in s for s in stlink] == [False] * (len(images) - 1) + [True]
 
 

@@ -112,7 +112,7 @@ def test_slider_pockets_gap_and_pitch(meshes, mech):
     centres, widths = inner.mean(axis=1), -np.diff(inner, axis=1)[:, 0]
     pitch = mech.mech["slider"]["slot_pitch_mm"]
     np.testing.assert_allclose(-np.diff(centres), pitch, atol=TOL)
-    pockets = [w for w, name in zip(widths, mech.mech["slider"]["slot_order"]) if name != "open"]
+    pockets = [w for w, name in zip(widths, mech.mech["slider"]["slot_order"], strict=True) if name != "open"]
     np.testing.assert_allclose(pockets, mech.device["background_width_mm"] + 2 * mech.mech["fit_clearance_mm"],
                                atol=TOL)
     assert centres[0] == pytest.approx(0, abs=TOL), "posed with the first slot on the axis"
@@ -165,7 +165,7 @@ def test_panel_mount_face_is_at_the_panels_elevation(meshes, mech):
     normals, areas = mount.face_normals, mount.area_faces
     inclined = np.abs(normals[:, 0]) > 0.05
     area_by_angle = {}
-    for n, a in zip(normals[inclined], areas[inclined]):
+    for n, a in zip(normals[inclined], areas[inclined], strict=True):
         angle = round(math.degrees(math.acos(np.clip(n[2], -1, 1))), 3)
         area_by_angle[angle] = area_by_angle.get(angle, 0) + a
     face_angle = max(area_by_angle, key=area_by_angle.get)

@@ -34,7 +34,7 @@ def truth(ideal_map):
 def test_fit_csv_round_trip(ideal_map, truth, tmp_path, capsys):
     wl, a, s, g, rho_b, rho_w = truth
     I_b, I_w, I_c = forward(ideal_map, a, s, g, rho_b, rho_w)
-    rows = list(zip(wl, I_b, I_w, I_c, rho_b, rho_w))
+    rows = list(zip(wl, I_b, I_w, I_c, rho_b, rho_w, strict=True))
     rows[3] = (wl[3], "nan", I_w[3], I_c[3], rho_b[3], rho_w[3])  # a missing value: flagged, nothing lost
     inp = _write(tmp_path / "meas.csv", rows[::-1], ["wavelength_nm", "I_b", "I_w", "I_c", "rho_b", "rho_w"])
     out = tmp_path / "params.csv"
@@ -60,7 +60,7 @@ def test_fit_says_what_to_do_about_underdetermined_bins(ideal_map, tmp_path, cap
     says, on stderr (stdout may be the CSV) and in the JSON, that a second thickness is the remedy."""
     a, s, g = np.array([0.2, 0.3, 0.9, 0.6]), np.array([12.0, 12.0, 2.0, 1.0]), np.array([0.5, 0.6, 0.3, 0.2])
     I_b, I_w, I_c = forward(ideal_map, a, s, g, 0.02, 0.99)
-    inp = _write(tmp_path / "thick.csv", zip([500, 510, 520, 530], I_b, I_w, I_c, [0.02] * 4, [0.99] * 4),
+    inp = _write(tmp_path / "thick.csv", zip([500, 510, 520, 530], I_b, I_w, I_c, [0.02] * 4, [0.99] * 4, strict=True),
                  ["wavelength_nm", "I_b", "I_w", "I_c", "rho_b", "rho_w"])
     assert main(["fit", "--map", str(ideal_map.path), "--input", str(inp), "--json"]) == 0
     out = capsys.readouterr()
@@ -77,7 +77,7 @@ def test_fit_json_and_two_thicknesses(ideal_map, thick_map, truth, tmp_path, cap
     rows = []
     for amap in (ideal_map, thick_map):
         I_b, I_w, I_c = forward(amap, a, s, g, 0.02, 0.99)
-        rows += [(w, x, y, z, amap.thickness_mm) for w, x, y, z in zip(wl, I_b, I_w, I_c)]
+        rows += [(w, x, y, z, amap.thickness_mm) for w, x, y, z in zip(wl, I_b, I_w, I_c, strict=True)]
     inp = _write(tmp_path / "two.csv", rows, ["wavelength_nm", "I_b", "I_w", "I_c", "thickness_mm"])
     rc = main(["fit", "--map", str(ideal_map.path), "--map", str(thick_map.path), "--input", str(inp),
                "--method", "paper", "--json"])
@@ -95,7 +95,7 @@ def test_a_declared_thickness_other_than_the_maps_is_an_error(ideal_map, thick_m
     the matching map is accepted and says the thickness was declared."""
     wl, a, s, g, rho_b, rho_w = truth
     I_b, I_w, I_c = forward(ideal_map, a, s, g, 0.02, 0.99)
-    inp = _write(tmp_path / "m.csv", zip(wl, I_b, I_w, I_c), ["wavelength_nm", "I_b", "I_w", "I_c"])
+    inp = _write(tmp_path / "m.csv", zip(wl, I_b, I_w, I_c, strict=True), ["wavelength_nm", "I_b", "I_w", "I_c"])
     assert main(["fit", "--map", str(thick_map.path), "--input", str(inp), "--thickness", "0.5"]) == 2
     err = capsys.readouterr().err
     assert err.startswith("trimeter: error: --thickness 0.5: map ") and "is for ℓ = 1 mm" in err and "×0.5" in err

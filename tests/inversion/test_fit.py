@@ -65,7 +65,7 @@ def test_two_thicknesses_combine_and_disagree(ideal_map, thick_map):
     a, s, g = well_conditioned(thick_map, 200, rng, tau=(0.5, 3.0))
     thin = forward(ideal_map, a, s, g, 0.02, 0.99)
     thick = forward(thick_map, a, s, g, 0.02, 0.99)
-    stack = [np.stack([x, y]) for x, y in zip(thin, thick)]
+    stack = [np.stack([x, y]) for x, y in zip(thin, thick, strict=True)]
     r = trimeter.fit([ideal_map, thick_map], *stack)
     assert len(r.per_thickness) == 2
     one = r.per_thickness[0]
@@ -75,7 +75,7 @@ def test_two_thicknesses_combine_and_disagree(ideal_map, thick_map):
     assert np.percentile(np.abs(r.alpha - a)[agree], 95) < 0.01
     # The same bins with the thick sample's σt doubled: the thicknesses must now disagree.
     bad = forward(thick_map, a, 2 * s, g, 0.02, 0.99)
-    stack = [np.stack([x, y]) for x, y in zip(thin, bad)]
+    stack = [np.stack([x, y]) for x, y in zip(thin, bad, strict=True)]
     r2 = trimeter.fit([ideal_map, thick_map], *stack)
     assert ((r2.flags & FitFlag.THICKNESS_DISAGREE) != 0).mean() > 0.9
     # The paper's pooled median runs on the same input and is flagged the same way.
@@ -128,7 +128,7 @@ CASES = {
 def test_bad_input_is_a_flag_never_an_exception(ideal_map, ideal_model, method, case):
     (ib, iw, ic), flag, blank = CASES[case]
     good = forward(ideal_map, 0.9, 1.0, 0.4, 0.02, 0.99)
-    I_b, I_w, I_c = (np.array([float(np.ravel(v)[0]), float(x)]) for v, x in zip(good, (ib, iw, ic)))
+    I_b, I_w, I_c = (np.array([float(np.ravel(v)[0]), float(x)]) for v, x in zip(good, (ib, iw, ic), strict=True))
     kw = {"mlp_model": ideal_model} if method == "mlp" else {"samples": 10} if method == "paper" else {}
     r = trimeter.fit(ideal_map, I_b, I_w, I_c, method=method, **kw)
     _assert_bounds(r)

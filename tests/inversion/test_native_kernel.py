@@ -46,7 +46,7 @@ def test_table_inversion_matches_the_numpy_kernel(monkeypatch, polish):
     reference = TableInverter(table)
     assert reference._native is None
     expected = reference.invert(*args, polish_iterations=polish)
-    for got, want, name in zip(compiled, expected, ("alpha", "g", "residual", "J")):
+    for got, want, name in zip(compiled, expected, ("alpha", "g", "residual", "J"), strict=True):
         np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-12, err_msg=name)
     finite = np.isfinite(args[0]) & np.isfinite(args[1])
     assert np.all(np.isfinite(compiled[0][finite])) and np.all(np.isfinite(compiled[1][finite]))
@@ -67,12 +67,12 @@ def test_polish_from_a_given_guess_and_the_propagated_uncertainty_match(monkeypa
     reference = ForwardGrid.from_table(table)
     assert reference.native_solver is None
     expected = reference.solve_alpha_g(I_b, I_w, cell, rho_b, rho_w, alpha0, g0, iterations=3)
-    for got, want in zip(compiled, expected):
+    for got, want in zip(compiled, expected, strict=True):
         np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-12)
     expected_std = reference.propagate(expected[3], sigma_I)
     # the two evaluate J2⁻¹ Σ J2⁻ᵀ in a different order: where J2 is near-singular (stds ~1e5) its
     # condition number amplifies the rounding difference, hence 1e-5 rather than 1e-9
-    for got, want in zip(compiled_std, expected_std):
+    for got, want in zip(compiled_std, expected_std, strict=True):
         np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-12)
 
 
@@ -208,7 +208,7 @@ def test_four_bins_per_step_give_bit_for_bit_the_scalar_result(method):
         native.set_simd(True)
     for name in FitResultColumns + ("flags",):
         np.testing.assert_array_equal(getattr(results[True], name), getattr(results[False], name), err_msg=name)
-    for a, b in zip(results[True, "solve"], results[False, "solve"]):
+    for a, b in zip(results[True, "solve"], results[False, "solve"], strict=True):
         np.testing.assert_array_equal(a, b)
 
 

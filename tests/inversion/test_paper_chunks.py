@@ -22,7 +22,7 @@ def test_chunk_size_does_not_change_the_medians(ideal_map, thick_map):
     for chunk_points in (1, 16 * 2 * 5, 16 * 2 * 11):  # one bin per chunk, 5 and 11 bins per chunk
         chunked = paper_medians(maps, inputs, samples=16, seed=4, chunk_points=chunk_points)
         np.testing.assert_array_equal(chunked[0], whole[0])
-        for a, b in zip(chunked[1], whole[1]):
+        for a, b in zip(chunked[1], whole[1], strict=True):
             np.testing.assert_array_equal(a, b)
     assert np.isnan(whole[1][0][5]).all() and np.isfinite(whole[0][:5]).all()
 

@@ -173,7 +173,7 @@ def test_one_trace_per_column_matches_adding_doubling_for_every_alpha_and_rho(id
         for rho in (0.02, 0.5, 0.9):
             I = A + B * rho / (1 - C * rho)
             sd = tally.stderr(alphas, rho)
-            for a, i_mc, s in zip(alphas, I, sd):
+            for a, i_mc, s in zip(alphas, I, sd, strict=True):
                 ref = adding_doubling(a, sigma_t, g, rho)
                 rel.append(abs(i_mc - ref) / ref)
                 zs.append((i_mc - ref) / math.hypot(s, 2e-4))   # 2e-4: iadpython's own quadrature error

@@ -147,7 +147,7 @@ def test_csv_parameters_file(tmp_path):
     m = cyan()
     path = tmp_path / "params.csv"
     rows = ["wavelength_nm,alpha,sigma_t,g,flags"] + [f"{w},{a},{s},{g},0" for w, a, s, g in
-                                                      zip(WL, m.alpha, m.sigma_t, m.g)]
+                                                      zip(WL, m.alpha, m.sigma_t, m.g, strict=True)]
     path.write_text("\n".join(rows) + "\n")
     assert main(["export", str(path), "--to", "pbrt", "--step-nm", "0"]) == 0
     np.testing.assert_allclose(read_spd(tmp_path / "params-pbrt" / "sigma_s.spd")[:, 1], m.sigma_s, rtol=1e-5)

@@ -41,7 +41,7 @@ def test_calibration_and_capture_recover_known_reflectances_exactly():
     np.testing.assert_allclose(cal.collimated, opt.collimated, rtol=1e-9)
     opt.sample = known_sample()
     refl = reflectances(cal, runner.run(sample_capture(hdr_decades=3)))
-    for got, want in zip((refl.I_b, refl.I_w, refl.I_c), opt.sample):
+    for got, want in zip((refl.I_b, refl.I_w, refl.I_c), opt.sample, strict=True):
         np.testing.assert_allclose(got, want, rtol=1e-9)
     assert (refl.flags == 0).all() and (refl.rho_w == 0.99).all()
 

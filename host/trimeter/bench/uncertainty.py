@@ -112,7 +112,7 @@ class Case:
 
     def draw_from(self, intensities, level: float, rng):
         noisy = tuple(x * (1.0 + level * rng.standard_normal(x.shape)) for x in intensities)
-        stds = tuple(np.hypot(level * x, r) for x, r in zip(intensities, self.render_std))
+        stds = tuple(np.hypot(level * x, r) for x, r in zip(intensities, self.render_std, strict=True))
         return noisy, stds
 
     def at_thickness(self, ratio):
@@ -124,7 +124,7 @@ class Case:
         a, s, g = (self.truth[k] for k in PARAMS)
         rb, rw = self.amap.reference_rhos
         moved, here = grid.intensities(a, s * ratio, g, rb, rw), grid.intensities(a, s, g, rb, rw)
-        return tuple(x + m - h for x, m, h in zip(self.I, moved, here))
+        return tuple(x + m - h for x, m, h in zip(self.I, moved, here, strict=True))
 
 
 def _fit(cases, noisy, stds, mode, thickness_std=None):

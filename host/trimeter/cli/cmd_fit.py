@@ -114,7 +114,7 @@ def _split_thicknesses(data, amaps, path):
     if not used.all():
         raise InputError(f"--input {path}: {int((~used).sum())} row(s) have a thickness_mm matching none of the maps")
     ref = data["wavelength_nm"][groups[0]]
-    for rows, amap in zip(groups[1:], amaps[1:]):
+    for rows, amap in zip(groups[1:], amaps[1:], strict=True):
         if len(rows) != len(ref) or not np.allclose(data["wavelength_nm"][rows], ref):
             raise InputError(f"--input {path}: thickness {amap.thickness_mm:g} mm does not cover the same "
                              f"wavelengths as {amaps[0].thickness_mm:g} mm")
@@ -167,7 +167,7 @@ def run(args) -> int:
 def _thickness_std(column, groups, amaps, path) -> list[float]:
     """One thickness std per map from the column: the same value on every row of that thickness."""
     out = []
-    for rows, amap in zip(groups, amaps):
+    for rows, amap in zip(groups, amaps, strict=True):
         values = np.unique(column[rows][np.isfinite(column[rows])])
         if len(values) > 1:
             raise InputError(f"--input {path}: column thickness_std_mm differs between the rows of thickness "
@@ -185,7 +185,7 @@ def check_declared_thickness(declared: list[float] | None, amaps) -> None:
     for thickness in declared:
         if not (math.isfinite(thickness) and thickness > 0):
             raise InputError(f"--thickness: {thickness:g} is not a positive thickness in mm")
-    for thickness, amap in zip(sorted(declared), sorted(amaps, key=lambda m: m.thickness_mm)):
+    for thickness, amap in zip(sorted(declared), sorted(amaps, key=lambda m: m.thickness_mm), strict=True):
         if abs(thickness - amap.thickness_mm) > 1e-6 * max(1.0, thickness):
             raise InputError(f"--thickness {thickness:g}: map {amap.name} is for ℓ = {amap.thickness_mm:g} mm, not "
                              f"the sample's {thickness:g} mm (σt would come out ×{thickness / amap.thickness_mm:.3g}); "

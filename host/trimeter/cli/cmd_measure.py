@@ -36,9 +36,9 @@ def run(args):
         raise InputError("thickness: give one or two positive thicknesses in mm")
     if args.map and len(args.map) != len(thicknesses):
         raise InputError("map: give one --map per --thickness")
-    maps = [map_for_thickness(t, m) for t, m in zip(thicknesses, args.map or [None] * len(thicknesses))]
+    maps = [map_for_thickness(t, m) for t, m in zip(thicknesses, args.map or [None] * len(thicknesses), strict=True)]
     source = "--thickness" if args.thickness else "host config thickness_mm"
-    for t, amap in zip(thicknesses, maps):  # never assumed silently
+    for t, amap in zip(thicknesses, maps, strict=True):  # never assumed silently
         print(f"thickness: {t:g} mm ({source}), map {amap.name} (ℓ = {amap.thickness_mm:g} mm)")
     if args.results:
         settings.set("results_dir", args.results)

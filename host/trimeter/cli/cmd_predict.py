@@ -50,7 +50,7 @@ def _options(args) -> dict:
 def _checker_patches(materials, names, steps: int):
     from trimeter.predict import mixture
 
-    patches = [(name, m) for name, m in zip(names, materials)]
+    patches = [(name, m) for name, m in zip(names, materials, strict=True)]
     for (i, a), (j, b) in combinations(enumerate(materials), 2):
         for k in range(1, steps):
             f = k / steps
@@ -91,7 +91,7 @@ def run(args) -> int:
         if len(fractions) != len(materials):
             raise InputError(f"--fractions: {len(fractions)} given for {len(materials)} materials")
     material = mixture(materials, fractions)
-    label = " + ".join(f"{n} {f:g}" for n, f in zip(names, fractions)) if fractions else names[0]
+    label = " + ".join(f"{n} {f:g}" for n, f in zip(names, fractions, strict=True)) if fractions else names[0]
     p = predict_slab(material, **opts)
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)

@@ -39,7 +39,7 @@ def stack_transmittance(indices, internal_transmittances):
         raise ValueError("need one internal transmittance per layer between the outer media")
     r = _fresnel_normal(indices[0], indices[1])
     element = (r, r, 1.0 - r)
-    for layer_t, (n1, n2) in zip(internal_transmittances, zip(indices[1:-1], indices[2:])):
+    for layer_t, (n1, n2) in zip(internal_transmittances, zip(indices[1:-1], indices[2:], strict=True), strict=True):
         element = _combine(element, (0.0, 0.0, layer_t))
         r = _fresnel_normal(n1, n2)
         element = _combine(element, (r, r, 1.0 - r))

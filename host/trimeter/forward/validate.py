@@ -53,7 +53,7 @@ def iad_agreement(materials, n: float = 1.5, thickness_mm: float = 0.5, rhos=(0.
     render_seconds = []
     for i, (alpha, sigma_t, g) in enumerate(np.asarray(materials, dtype=float)):
         reference = iad_reflectance(alpha, sigma_t, g, n, thickness_mm, np.asarray(rhos))
-        for rho, ref in zip(rhos, np.atleast_1d(reference)):
+        for rho, ref in zip(rhos, np.atleast_1d(reference), strict=True):
             start = time.perf_counter()
             value, stderr = render_diffuse("ideal", alpha, sigma_t, g, n, thickness_mm, rho, spp, seed + i)
             render_seconds.append(time.perf_counter() - start)

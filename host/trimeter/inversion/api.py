@@ -195,7 +195,7 @@ def fit(maps, I_b, I_w, I_c, rho_b=None, rho_w=None, method: str = "lut", *,
     k = len(amaps)
     arrays = _shape_inputs(k, I_b, I_w, I_c, rho_b, rho_w, amaps)
     stds = _shape_stds(k, arrays, (I_b_std, I_w_std, I_c_std), noise_rel, noise_abs)
-    thickness_rel = [t / m.thickness_mm for t, m in zip(_thickness_stds(k, thickness_std_mm), amaps)]
+    thickness_rel = [t / m.thickness_mm for t, m in zip(_thickness_stds(k, thickness_std_mm), amaps, strict=True)]
     opts = dict(noise_rel=noise_rel, noise_abs=noise_abs, ic_floor=ic_floor, alpha_min_g=alpha_min_g,
                 inscatter_rel_std=inscatter_rel_std)
     if method == "paper":
@@ -239,7 +239,7 @@ def _shape_stds(k, arrays, given, noise_rel, noise_abs) -> list:
         return [None] * k
     n = len(arrays[0][0])
     out = np.empty((k, n, 3))
-    for j, (name, value) in enumerate(zip(("I_b_std", "I_w_std", "I_c_std"), given)):
+    for j, (name, value) in enumerate(zip(("I_b_std", "I_w_std", "I_c_std"), given, strict=True)):
         if value is None:
             out[:, :, j] = np.nan
             continue
@@ -558,7 +558,7 @@ def _fit_paper(amaps, arrays, stds, thickness_rel, *, samples, epsilon, seed, no
     from trimeter.inversion.paper import paper_medians
 
     inputs, singles = [], []
-    for amap, (I_b, I_w, I_c, rho_b, rho_w) in zip(amaps, arrays):
+    for amap, (I_b, I_w, I_c, rho_b, rho_w) in zip(amaps, arrays, strict=True):
         flags = _input_flags(I_b, I_w, I_c, rho_b, rho_w)
         usable = (flags & int(UNUSABLE)) == 0
         inputs.append((np.where(usable, I_b, np.nan), I_w, I_c, rho_b, rho_w))
@@ -566,7 +566,8 @@ def _fit_paper(amaps, arrays, stds, thickness_rel, *, samples, epsilon, seed, no
     pooled_median, own_medians = paper_medians(amaps, inputs, samples=samples, epsilon=epsilon, seed=seed)
     results = []
     # Each thickness on its own median (the consistency check), the estimate on the pooled one.
-    for i, (med, (amap, flags, usable, I_b, I_w, I_c, rho_b, rho_w)) in enumerate(zip(own_medians, singles)):
+    for i, (med, (amap, flags, usable, I_b, I_w, I_c, rho_b, rho_w)) in enumerate(
+            zip(own_medians, singles, strict=True)):
         grid = _forward_grid(amap)
         ib, iw, ic = _sanitize(I_b, 0, 1, 0), _sanitize(I_w, 0, 1, 1), _sanitize(I_c, 0, 1, 1)
         ref = amap.reference_rhos

@@ -96,10 +96,10 @@ def paper_medians(amaps, inputs, samples=250, epsilon=0.01, seed=0, chunk_points
         stop = min(n, start + chunk)
         parts = [paper_samples(amap, *(np.asarray(v)[start:stop] for v in arrays), samples=samples, epsilon=epsilon,
                                seed=seed + i, first_row=start)
-                 for i, (amap, arrays) in enumerate(zip(amaps, inputs))]
+                 for i, (amap, arrays) in enumerate(zip(amaps, inputs, strict=True))]
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN bins: outside the hull, flagged by the caller
             pooled[start:stop] = np.nanmedian(np.concatenate(parts, axis=1), axis=1)
-            for median, part in zip(own, parts):
+            for median, part in zip(own, parts, strict=True):
                 median[start:stop] = np.nanmedian(part, axis=1)
     return pooled, own

@@ -279,11 +279,11 @@ def build_from_map(amap, n_xy: int | None = None, budget: int = MAX_TABLE_BYTES,
     na0, ns0, ng0 = amap.A.shape
     if refine is None:
         mc = float(np.median(np.concatenate([np.ravel(amap.std_b), np.ravel(amap.std_w)])))
-        dims = [(n - 1) * r + 1 for n, r in zip((na0, ns0, ng0), _REFINE_SMOOTH)]
+        dims = [(n - 1) * r + 1 for n, r in zip((na0, ns0, ng0), _REFINE_SMOOTH, strict=True)]
         smooth_fits = mc < _SMOOTH_STDERR and _total_size(*dims, _MIN_XY, _MIN_XY) <= budget
         refine = _REFINE_SMOOTH if smooth_fits else (1, 1, 1)
     # the map between its nodes (ForwardGrid.refined); an axis with fewer than 4 nodes stays as it is
-    factors = [r if len(ax) >= 4 else 1 for ax, r in zip((amap.alpha, amap.sigma_t, amap.g), refine)]
+    factors = [r if len(ax) >= 4 else 1 for ax, r in zip((amap.alpha, amap.sigma_t, amap.g), refine, strict=True)]
     grid = ForwardGrid.from_map(amap).refined(*factors)
     alpha_axis, log_s_axis, g_axis = grid.alpha, grid.log_sigma_t, grid.g
     coef = np.moveaxis(grid.coefficients_grid, -1, 0)  # (A, B, C) first
@@ -294,7 +294,8 @@ def build_from_map(amap, n_xy: int | None = None, budget: int = MAX_TABLE_BYTES,
                            f"over the {budget}-byte budget")
     rho_b, rho_w = amap.reference_rhos
     quant = np.array([[c.min(), (c.max() - c.min()) / _Q or 1.0] for c in coef], dtype=np.float32)
-    coef_q = np.stack([_quantize(c, float(q[0]), float(q[0]) + float(q[1]) * _Q) for c, q in zip(coef, quant)])
+    coef_q = np.stack([_quantize(c, float(q[0]), float(q[0]) + float(q[1]) * _Q)
+                       for c, q in zip(coef, quant, strict=True)])
 
     # Inverse slices: for each σt node, (α, g) at every (x, y) = (√I_b, √I_w) grid point of the
     # slice's bounding box. Start from the nearest of a dense forward sample (the map's axes refined),

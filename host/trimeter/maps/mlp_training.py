@@ -87,7 +87,7 @@ def network_graph(model):
     biases[0] = biases[0] - (mean / scale) @ weights[0]
     weights[0] = weights[0] / scale[:, None]
     nodes, inits, x = [], [], "features"
-    for k, (w, b) in enumerate(zip(weights, biases)):
+    for k, (w, b) in enumerate(zip(weights, biases, strict=True)):
         inits += [numpy_helper.from_array(w.astype(np.float32), f"W{k}"),
                   numpy_helper.from_array(b.astype(np.float32), f"b{k}")]
         last = k == len(weights) - 1

@@ -195,7 +195,7 @@ def run(targets: list[Target], stages: tuple[str, ...], *, client=None, resume: 
             say(f"{stage}: skipped for {amap.name}: {why}")
         else:
             runnable.append((amap, stage))
-    for (amap, stage), (product, seconds) in zip(runnable, _compute_all(runnable, client, options)):
+    for (amap, stage), (product, seconds) in zip(runnable, _compute_all(runnable, client, options), strict=True):
         path, text = write(stage, amap, product, options)
         say(f"{stage}: wrote {path} ({seconds:.1f} s): {text}")
     return maps
@@ -222,7 +222,7 @@ def _compute_all(runnable, client, options: Options):
         return
     futures = [client.submit(_timed, stage, amap, options, pure=False) for amap, stage in runnable]
     try:
-        for (amap, stage), future in zip(runnable, futures):
+        for (amap, stage), future in zip(runnable, futures, strict=True):
             try:
                 yield future.result()
             except Exception as exc:  # noqa: BLE001 - whatever the task raised, named with its map and stage

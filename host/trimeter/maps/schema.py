@@ -206,7 +206,7 @@ class ContainerSchema:
             shape = d["shape"]
             if len(shape) != len(spec.dims):
                 _fail(f"{where}.shape", f"must have {len(spec.dims)} dimension(s), has {len(shape)}")
-            for size, dim in zip(shape, spec.dims):
+            for size, dim in zip(shape, spec.dims, strict=True):
                 if isinstance(dim, int):
                     if size != dim:
                         _fail(f"{where}.shape", f"must be {list(spec.dims)}, got {shape}")

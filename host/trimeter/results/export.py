@@ -277,7 +277,7 @@ def _write_mitsuba(out: Path, material: SpectralMaterial, opts: dict) -> tuple[l
 
 def _spd(wavelengths, values, what: str, provenance_line: str) -> str:
     lines = [f"# {what}, trimeter export ({provenance_line})", "# wavelength_nm value"]
-    lines += [f"{w:.2f} {v:.6g}" for w, v in zip(wavelengths, values)]
+    lines += [f"{w:.2f} {v:.6g}" for w, v in zip(wavelengths, values, strict=True)]
     return "\n".join(lines) + "\n"
 
 

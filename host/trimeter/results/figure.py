@@ -21,7 +21,7 @@ def plot_parameters(path: str | Path, combined, per_thickness=(), *, title: str 
     fig, axes = plt.subplots(1, 3, figsize=(13, 3.8), constrained_layout=True)
     panels = (("alpha", "albedo α", (0, 1.0)), ("sigma_t", "extinction σt [1/mm]", None),
               ("g", "anisotropy g", (-1, 1)))
-    for ax, (name, label, ylim) in zip(axes, panels):
+    for ax, (name, label, ylim) in zip(axes, panels, strict=True):
         value, std = getattr(combined, name), getattr(combined, f"{name}_std")
         band = np.isfinite(std) & np.isfinite(value)
         if ylim and band.any():  # the data's range, not the parameter's whole one: a ±1σ of 0.001 stays visible

@@ -45,7 +45,7 @@ class SpectralMaterial:
         arrays = [np.asarray(getattr(self, k), dtype=float) for k in ("alpha", "sigma_t", "g")]
         if wl.ndim != 1 or len(wl) < 2 or not np.all(np.diff(wl) > 0) or not np.all(np.isfinite(wl)):
             raise InputError("a material needs ≥ 2 strictly increasing, finite wavelengths")
-        for name, a in zip(("alpha", "sigma_t", "g"), arrays):
+        for name, a in zip(("alpha", "sigma_t", "g"), arrays, strict=True):
             if a.shape != wl.shape or not np.all(np.isfinite(a)):
                 raise InputError(f"material {name}: {len(wl)} finite values expected")
         if (arrays[0] < 0).any() or (arrays[0] > 1).any():
@@ -55,7 +55,7 @@ class SpectralMaterial:
         if (np.abs(arrays[2]) >= 1).any():
             raise InputError("material g must be within (−1, 1)")
         object.__setattr__(self, "wavelengths_nm", wl)
-        for name, a in zip(("alpha", "sigma_t", "g"), arrays):
+        for name, a in zip(("alpha", "sigma_t", "g"), arrays, strict=True):
             object.__setattr__(self, name, a)
 
     @classmethod
@@ -136,11 +136,11 @@ class SpectralMaterial:
         f = f / f.sum()
         lam = materials[0].wavelengths_nm
         on = [m.at(lam) for m in materials]
-        sa = sum(fi * m.sigma_a for fi, m in zip(f, on))
-        ss = sum(fi * m.sigma_s for fi, m in zip(f, on))
-        ssg = sum(fi * m.sigma_s * m.g for fi, m in zip(f, on))
+        sa = sum(fi * m.sigma_a for fi, m in zip(f, on, strict=True))
+        ss = sum(fi * m.sigma_s for fi, m in zip(f, on, strict=True))
+        ssg = sum(fi * m.sigma_s * m.g for fi, m in zip(f, on, strict=True))
         with np.errstate(invalid="ignore", divide="ignore"):
-            g = np.where(ss > 0, ssg / ss, sum(fi * m.g for fi, m in zip(f, on)))
+            g = np.where(ss > 0, ssg / ss, sum(fi * m.g for fi, m in zip(f, on, strict=True)))
         return SpectralMaterial.from_coefficients(lam, sa, ss, np.clip(g, -0.99, 0.99))
 
 
@@ -155,7 +155,7 @@ def medium_spectra(parameters, step_nm: float = 5.0):
 
 
 def _pairs(grid, values) -> str:
-    return ", ".join(f"{w:.1f}:{v:.6g}" for w, v in zip(grid, values))
+    return ", ".join(f"{w:.1f}:{v:.6g}" for w, v in zip(grid, values, strict=True))
 
 
 def medium_dict(parameters, *, scale: float = 1.0, step_nm: float = 5.0) -> dict | None:

@@ -180,12 +180,12 @@ def _tags(thicknesses) -> list[str]:
 def _write_all(out: Path, m: Measurement, *, figure: bool, medium: bool) -> None:
     tags = _tags(m.thicknesses_mm)
     m.calibration.save(out)
-    for raw, refl, tag in zip(m.raw, m.reflectances, tags):
+    for raw, refl, tag in zip(m.raw, m.reflectances, tags, strict=True):
         for setup in ("black", "white", "collimated"):
             write_csv(out / f"raw_{setup}{tag}.csv", _raw_columns(raw.wavelengths_nm, getattr(raw, setup)))
         write_csv(out / f"reflectances{tag}.csv", refl.as_columns())
     write_csv(out / "parameters.csv", m.parameters.columns())
-    for p, tag in zip(m.per_thickness, _tags([p.thickness_mm for p in m.per_thickness])):
+    for p, tag in zip(m.per_thickness, _tags([p.thickness_mm for p in m.per_thickness]), strict=True):
         write_csv(out / f"parameters{tag}.csv", p.columns())
     atomic_write(out / "parameters.json", json.dumps(
         {"combined": m.parameters.to_json(), "per_thickness": [p.to_json() for p in m.per_thickness]}, indent=1))

@@ -73,5 +73,5 @@ def fit_reflectances(refls: list[Reflectances], maps: list[AppearanceMap], *, me
     result = trimeter.fit(maps, stack["I_b"], stack["I_w"], stack["I_c"], rho_b=stack["rho_b"], rho_w=stack["rho_w"],
                           method=method, **noise)
     per = [Parameters.from_fit(wl, single, thickness_mm=amap.thickness_mm)
-           for single, amap in zip(result.per_thickness, maps)]
+           for single, amap in zip(result.per_thickness, maps, strict=True)]
     return Parameters.from_fit(wl, result), per

@@ -80,7 +80,7 @@ def refit(directory: Path, maps: list[AppearanceMap], method: str) -> Path:
     declared = meta.get("declared_thicknesses_mm") or meta["thicknesses_mm"]
     if len(maps) != len(refls):
         raise InputError(f"{len(maps)} map(s) for {len(refls)} measured thickness(es)")
-    for thickness, amap in zip(declared, maps):
+    for thickness, amap in zip(declared, maps, strict=True):
         if abs(amap.thickness_mm - float(thickness)) > 1e-6 * max(1.0, float(thickness)):
             raise InputError(f"map {amap.name} is for ℓ = {amap.thickness_mm:g} mm, not the sample's {thickness:g} mm")
     preflight(maps, method)

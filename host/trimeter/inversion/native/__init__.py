@@ -281,7 +281,7 @@ def _fit_outputs(n: int):
     """tm_fit's output block (rows _OUTPUT_ROWS; flags int64 in the last): one allocation, one
     address; and the FitResult columns as its rows."""
     block = np.empty((len(_OUTPUT_ROWS), n))
-    out = dict(zip(_OUTPUT_ROWS, block))
+    out = dict(zip(_OUTPUT_ROWS, block, strict=True))
     out["flags"] = out["flags"].view(np.int64)
     return block, out
 
