@@ -3,6 +3,8 @@ hold is one clear error, names another register map had are returned, not fatal.
 
 from __future__ import annotations
 
+import itertools
+
 import pytest
 
 from trimeter import registers as regs
@@ -65,5 +67,5 @@ def test_the_configuration_block_has_no_holes():
     whole, only because the block is contiguous: a write over an unmapped address is refused."""
     block = sorted((regs.BY_NAME[n] for n in CONFIG_NAMES), key=lambda r: r.address)
     assert block[0].address == 64 and block[-1].address + block[-1].words == regs.SPANS["holding_register"]
-    for a, b in zip(block, block[1:]):
+    for a, b in itertools.pairwise(block):
         assert a.address + a.words == b.address, (a.name, b.name)

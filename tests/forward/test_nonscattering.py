@@ -14,9 +14,9 @@ def test_ideal_alpha0_coefficients_match_adding_doubling(sigma_t):
     A, B, C = nonscattering_coefficients("ideal", sigma_t, 0.5, 1.5)
     ur1, ut1, uru, utu = iadpython.Sample(a=0.0, b=sigma_t * 0.5, g=0.0, d=0.5, n=1.5, n_above=1.0, n_below=1.0,
                                           quad_pts=32).rt()
-    assert A == pytest.approx(ur1, rel=1e-6)
-    assert B == pytest.approx(ut1 * utu, rel=2e-3)
-    assert C == pytest.approx(uru, rel=2e-3)
+    assert pytest.approx(ur1, rel=1e-6) == A
+    assert pytest.approx(ut1 * utu, rel=2e-3) == B
+    assert pytest.approx(uru, rel=2e-3) == C
 
 
 def test_normal_incidence_transmittance_is_the_collimated_model():

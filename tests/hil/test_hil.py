@@ -237,7 +237,8 @@ def test_interrupted_flash_leaves_the_old_map_active_and_resumes(start_twin, hil
     assert len(writes) < 0.6 * full_write_frames and writes[0] != (1, 0)  # continued, did not start over
     # a firmware reset in the middle of a flash: old map stays active, the next flash starts afresh
     with Device.open(twin.modbus_port, timeout_s=0.25) as dev:
-        with pytest.raises(Exception):
+        # the progress callback resets the firmware, then aborts the host's side of the flash
+        with pytest.raises(ZeroDivisionError):
             dev.flash_map(old, version=3, progress=lambda d, t: d > t // 3 and (twin.control.reset_firmware() or 1 / 0))
     with Device.open(twin.modbus_port, timeout_s=0.25) as dev:
         assert dev.map_status()["map_active_slot"] == regs.MapSlot.B

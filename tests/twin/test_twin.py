@@ -64,7 +64,7 @@ def _children():
 def test_start_stop_leaves_no_process_thread_fd_or_link(ideal_map, tmp_path):
     fds_before, threads_before = set(os.listdir("/proc/self/fd")), threading.active_count()
     starts, stops = [], []
-    for i in range(3):
+    for _ in range(3):
         t0 = time.perf_counter()
         twin = Twin(time_scale=20, appearance_map=ideal_map, state_dir=tmp_path / "twin").start()
         starts.append(time.perf_counter() - t0)

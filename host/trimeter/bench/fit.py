@@ -33,6 +33,7 @@ map's Jacobian (trimeter.inversion.kernel.ForwardGrid):
 
 from __future__ import annotations
 
+import functools
 import inspect
 import json
 import time
@@ -363,9 +364,9 @@ def two_thicknesses(amaps, repeats):
         print("\n   two thicknesses: the held-out sets hold different materials, not scored together")
         return {}
     a, s, g = (sets[0][k] for k in ("alpha", "sigma_t", "g"))
-    inten = [heldout_intensities(h, *m.reference_rhos) for h, m in zip(sets, amaps)]
+    inten = [heldout_intensities(h, *m.reference_rhos) for h, m in zip(sets, amaps, strict=True)]
     I_b, I_w = np.stack([i[0] for i in inten]), np.stack([i[1] for i in inten])
-    I_c = np.stack([heldout_collimated(m, h) for m, h in zip(amaps, sets)])
+    I_c = np.stack([heldout_collimated(m, h) for m, h in zip(amaps, sets, strict=True)])
     measurable = np.any(np.stack([m.collimated(s) for m in amaps]) >= MEASURABLE_IC, axis=0)  # as error_budget
     tile = np.resize(np.arange(len(a)), 1024)
     names = " + ".join(m.name for m in amaps)
@@ -383,12 +384,12 @@ def two_thicknesses(amaps, repeats):
             continue
         res = trimeter.fit(list(amaps), I_b, I_w, I_c, method=method, **kw)
         alone = [trimeter.fit(m, I_b[i], I_w[i], I_c[i], method=method, **kw) for i, m in enumerate(amaps)]
-        fn = lambda: trimeter.fit(list(amaps), I_b[:, tile], I_w[:, tile], I_c[:, tile], method=method, **kw)  # noqa: E731
+        fn = functools.partial(trimeter.fit, list(amaps), I_b[:, tile], I_w[:, tile], I_c[:, tile], method=method, **kw)
         fn()
         ms = min(_timed(fn) for _ in range(repeats))
         row = {"variant": name, "ms_per_1024": ms, **p95(res, measurable),
                "alone": {m.name: p95(r, I_c[i] >= MEASURABLE_IC)
-                         for i, (m, r) in enumerate(zip(amaps, alone))}}
+                         for i, (m, r) in enumerate(zip(amaps, alone, strict=True))}}
         rows.append(row)
         print(f"   {name:22s} {ms:12.4g} {row['alpha_p95']:10.4f} {row['g_p95']:8.4f}   " +
               "  ".join(f"{v['alpha_p95']:.4f} / {v['g_p95']:.4f}" for v in row["alone"].values()))
@@ -488,9 +489,8 @@ def run(args) -> int:
         rng = np.random.default_rng(args.seed)
         rows = []
         for level in noise_levels:
-            scale = lambda x: x * (1 + level * rng.standard_normal(x.shape)) if level else x  # noqa: E731
-            rows += _bench_case(amap, variants, (a, s, g), budget, (scale(I_b0), scale(I_w0), scale(I_c0)),
-                                "rendered", level, args, small)
+            noisy = tuple(x * (1 + level * rng.standard_normal(x.shape)) if level else x for x in (I_b0, I_w0, I_c0))
+            rows += _bench_case(amap, variants, (a, s, g), budget, noisy, "rendered", level, args, small)
         exact_rows = _bench_case(amap, variants, (a, s, g), budget, budget["map_exact"], "map-exact", 0.0, args, small)
         background_rows = (_bench_backgrounds(amap, h, budget, variants, small)
                            if args.per_wavelength_backgrounds else [])

@@ -91,7 +91,7 @@ def run(args) -> int:
         rows.append(row)
         base = rows[0]
 
-        def ratio(key):
+        def ratio(key, row=row, base=base):
             if row.get(key) is None or not base.get(key):
                 return "-"
             return f"{row[key] / base[key]:.1f}"

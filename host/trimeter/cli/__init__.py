@@ -8,6 +8,7 @@ added without touching this file. A handler returns an exit code (or None for 0)
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import os
 import pkgutil
@@ -78,10 +79,8 @@ def _discard_stdout() -> None:
 
 def _report(line: str, rc: int) -> int:
     """Print `line` on stderr; return the exit code `rc`."""
-    try:
+    with contextlib.suppress(OSError, AttributeError):  # no stderr either: the exit code says it
         print(line, file=sys.stderr, flush=True)
-    except (OSError, AttributeError):  # no stderr either: the exit code says it
-        pass
     return rc
 
 

@@ -19,10 +19,7 @@ def run(args):
     try:
         spectrometer = open_spectrometer(settings)
         try:
-            if args.json:
-                report = run_selftest(device, spectrometer)
-            else:
-                report = _run_with_progress(device, spectrometer)
+            report = run_selftest(device, spectrometer) if args.json else _run_with_progress(device, spectrometer)
         finally:
             spectrometer.close()
     finally:

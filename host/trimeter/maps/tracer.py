@@ -298,7 +298,7 @@ def trace_column(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int
 
 
 def _add_padded(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    shape = tuple(max(x, y) for x, y in zip(a.shape, b.shape))
+    shape = tuple(max(x, y) for x, y in zip(a.shape, b.shape, strict=True))
     out = np.zeros(shape)
     out[: a.shape[0], : a.shape[1]] += a
     out[: b.shape[0], : b.shape[1]] += b
@@ -680,7 +680,7 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
     while True:
         limit += wave
         wave_limit = dr.opaque(UInt32, limit)
-        state = list(dr.while_loop(tuple(state), lambda *s: s[10] & (s[9] < wave_limit), body))
+        state = list(dr.while_loop(tuple(state), lambda *s, bound=wave_limit: s[10] & (s[9] < bound), body))
         dr.eval(state)
         alive_now = np.asarray(state[10], dtype=bool)
         lane_np = np.asarray(lane, dtype=np.int64)

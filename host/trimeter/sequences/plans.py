@@ -154,7 +154,7 @@ def _captures(setups, frames, progress_from, progress_to, label):
     description, wavelengths = yield Describe()
     lit = _lit_bins(description, len(wavelengths))
     raw, peaks, monitors = {}, {}, {}
-    for i, (key, slot, panels, collimated, hdr, what) in enumerate(setups):
+    for i, (key, slot, panels, collimated, hdr, _what) in enumerate(setups):
         yield Progress(progress_from + (progress_to - progress_from) * i / (len(setups) + 1),
                        f"{label}: {key} ({slot} slot)")
         raw[key], peaks[key], monitors[key] = yield from capture(slot, panels=panels, collimated=collimated,

@@ -19,6 +19,7 @@ is tried again under the sequences' RetryPolicy, inside a sequence (the Runner) 
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
 from dataclasses import dataclass, field
@@ -135,10 +136,8 @@ class Service:
         for name in ("device", "spectrometer"):
             thing = getattr(self, name)
             if thing is not None:
-                try:
+                with contextlib.suppress(Exception):  # closing a link that is already gone
                     thing.close()
-                except Exception:
-                    pass  # closing a link that is already gone
                 setattr(self, name, None)
 
     def _emit(self, kind, message, **data):
@@ -200,10 +199,8 @@ class Service:
             self.calibration_stale_reason = "the device was reset since the calibration"
             # a power cycle re-enumerates the spectrometer too: reopen it before it is needed
             if self.spectrometer is not None:
-                try:
+                with contextlib.suppress(Exception):  # it is gone already
                     self.spectrometer.close()
-                except Exception:
-                    pass  # it is gone already
             self.spectrometer = self._open_spectrometer()
             self._button, self._uptime = button, uptime
             self._on_device("switching the lamps on", lamps_on)
@@ -309,10 +306,8 @@ class Service:
             time.sleep(poll_s)
 
     def _safe_status(self, pattern: str) -> None:
-        try:
+        with contextlib.suppress(TrimeterError):
             self.device.write("status_pattern", pattern)
-        except TrimeterError:
-            pass
 
     # ------------------------------------------------------------------------------ actions
     def _runner(self) -> Runner:
@@ -403,7 +398,7 @@ class Service:
         if problems := calibration_problems(self.calibration):
             raise CheckError("the calibration fails its checks (" + "; ".join(problems) + "); calibrate again "
                              "with the holder empty")
-        for thickness, amap in zip(thicknesses, maps):
+        for thickness, amap in zip(thicknesses, maps, strict=True):
             if abs(amap.thickness_mm - thickness) > 1e-6 * max(1.0, thickness):
                 raise InputError(f"thickness: map {amap.name} is for ℓ = {amap.thickness_mm:g} mm, not the declared "
                                  f"{thickness:g} mm")
@@ -439,7 +434,7 @@ class Service:
         t0 = time.monotonic()
         combined, per = fit_reflectances(refls, maps, method=s.method)
         fit_s = time.monotonic() - t0
-        for thickness, refl, params in zip(thicknesses, refls, per or [combined]):
+        for thickness, refl, params in zip(thicknesses, refls, per or [combined], strict=True):
             if problems := fit_problems(params.flags, usable_bins(refl)):
                 raise CheckError(f"the {thickness:g} mm capture was refused, nothing was written: "
                                  + "; ".join(problems))

@@ -18,6 +18,7 @@ integration time, a status pattern) or reads one, and a Wait resumes from its or
 
 from __future__ import annotations
 
+import functools
 import time
 from dataclasses import dataclass, field
 from typing import Callable, Generator, TypeVar
@@ -201,7 +202,7 @@ class Runner:
                 except StopIteration as stop:
                     return stop.value
                 t0 = time.monotonic()
-                reply = self.retrying(lambda: self.execute(step), _describe(step))
+                reply = self.retrying(functools.partial(self.execute, step), _describe(step))
                 name = type(step).__name__
                 self.timing.steps[name] = self.timing.steps.get(name, 0.0) + time.monotonic() - t0
         finally:

@@ -14,6 +14,7 @@ as are the clock and sleep, so the driver is tested against a fake chip (tests/s
 
 from __future__ import annotations
 
+import contextlib
 import time
 from typing import Callable
 
@@ -205,7 +206,7 @@ class AS7341:
         self._write(ENABLE, ENABLE_PON)
         self.last_saturated |= bool(raw[0] & ASTATUS_ASAT)
         counts = np.frombuffer(raw[1:], dtype="<u2")
-        return dict(zip(ADC_CHANNELS[config], (int(c) for c in counts)))
+        return dict(zip(ADC_CHANNELS[config], (int(c) for c in counts), strict=True))
 
     def intensities(self) -> np.ndarray:
         self.last_saturated = False
@@ -215,10 +216,8 @@ class AS7341:
         return np.array([float(merged[name]) for name in CHANNEL_NM])
 
     def close(self) -> None:
-        try:
+        with contextlib.suppress(DeviceError):
             self._write(ENABLE, 0)  # power down
-        except DeviceError:
-            pass
         if self._owns_bus:
             self._bus.close()
 

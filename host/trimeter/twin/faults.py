@@ -8,6 +8,7 @@ flipped) applies to every byte, both ways.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import os
 import select
@@ -150,10 +151,8 @@ class ModbusProxy:
         self._faults, self._rng, self._on_request = faults, rng, on_request
         self._master, self._slave, self.port = open_raw_pty()
         self._device = os.open(device_path, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
-        try:
+        with contextlib.suppress(Exception):  # not a tty (a test may hand in a pipe-like device): raw mode is moot
             tty.setraw(self._device)
-        except Exception:  # not a tty (a test may hand in a pipe-like device): raw mode is moot
-            pass
         self.counters = {"requests": 0, "bytes_forwarded": 0, "bytes_corrupted": 0,
                          "replies_dropped": 0, "replies_late": 0}
         self._fate = "forward"

@@ -7,6 +7,7 @@ child process that dies with us (PR_SET_PDEATHSIG) and is stopped with SIGTERM o
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import fcntl
 import json
@@ -41,10 +42,8 @@ MONITOR_UPDATE = 2e-4  # relative emission change that is sent to the plant's ph
 
 def _die_with_parent() -> None:
     """Runs in the child before exec: SIGTERM it when the twin's process dies, however it dies."""
-    try:
+    with contextlib.suppress(OSError):
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG = 1
-    except OSError:
-        pass
 
 
 def _firmware_is_current(binary: Path) -> bool:
@@ -229,10 +228,8 @@ class Twin:
         self._stop.set()
         while self._closers:
             closer = self._closers.pop()
-            try:
+            with contextlib.suppress(Exception):  # keep going: every resource gets its chance to be released
                 closer()
-            except Exception:  # keep going: every resource gets its chance to be released
-                pass
         if self._process is not None and self._process.stdout is not None:
             self._process.stdout.close()
 
@@ -450,10 +447,8 @@ class ControlServer:
         os.write(self._wake_w, b"x")
         self._thread.join(timeout=5)
         for conn in self._clients:
-            try:
+            with contextlib.suppress(OSError):
                 conn.shutdown(socket.SHUT_RDWR)
-            except OSError:
-                pass
             conn.close()
         for thread in self._threads:
             thread.join(timeout=5)

@@ -98,9 +98,9 @@ async def auth_middleware(request: web.Request, handler):
     if not auth.token_matches(request.app[TOKEN], auth.presented_token(request)):
         return _error(401, "no or wrong token: open the link `trimeter serve --show-token` prints, or send "
                            "`Authorization: Bearer <token>`")
-    if request.method in auth.UNSAFE_METHODS or request.path == "/api/events":
-        if why := auth.cross_origin(request):
-            return _error(403, f"refused: a request from another site's page ({why})")
+    guarded = request.method in auth.UNSAFE_METHODS or request.path == "/api/events"
+    if guarded and (why := auth.cross_origin(request)):
+        return _error(403, f"refused: a request from another site's page ({why})")
     if request.content_length is not None and request.content_length > MAX_BODY_BYTES:
         return _error(413, f"the request body is larger than {MAX_BODY_BYTES} bytes")
     return await handler(request)
@@ -160,7 +160,8 @@ async def _device_call(request: web.Request, fn: Callable):
         return await asyncio.wait_for(asyncio.wrap_future(future), DEVICE_CALL_TIMEOUT_S)
     except asyncio.TimeoutError:
         future.cancel()
-        raise ApiError(503, f"the instrument did not answer within {DEVICE_CALL_TIMEOUT_S:g} s (not connected?)")
+        raise ApiError(503, f"the instrument did not answer within {DEVICE_CALL_TIMEOUT_S:g} s "
+                            "(not connected?)") from None
 
 
 def _measurement_dir(request: web.Request) -> Path:
