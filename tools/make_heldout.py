@@ -165,9 +165,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("recipe", nargs="?", help="map recipe (.toml) for the tracer source")
     ap.add_argument("--ideal", type=Path, help="ideal map (.tmap): render with iadpython instead")
-    # 64 columns × 5 α (was 24 × 10): a column's materials share its MC error, so with few columns
-    # the p95 was decided by one or two of them (a 16-column check set gave l0.8 α p95 0.008 where
-    # the 24-column set gave 0.015)
+    # many columns, few α each: a column's materials share its MC error, so with few columns one or
+    # two of them decide the p95
     ap.add_argument("--pairs", type=int, default=64, help="random (σt, g) columns traced (recipe source)")
     ap.add_argument("--alphas", type=int, default=5, help="random α per column (recipe source)")
     ap.add_argument("--paths", type=int, default=16777216, help="paths per column (recipe source)")
