@@ -319,7 +319,6 @@ def _search_args(request) -> dict:
             "flag": q.get("flag") or None}
 
 
-@routes.get("/api/measurements")
 def _spreadsheet_safe(value):
     """A text cell a spreadsheet would run as a formula (a label from the CLI may start with '=') is quoted."""
     if value is None:
@@ -329,6 +328,7 @@ def _spreadsheet_safe(value):
     return value
 
 
+@routes.get("/api/measurements")
 async def measurements(request):
     args = _search_args(request)
     history = request.app[HISTORY]
