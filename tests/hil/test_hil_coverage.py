@@ -14,6 +14,7 @@ from __future__ import annotations
 import csv
 import queue
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -34,9 +35,12 @@ BOUNDS = {"alpha": ((0.60, 0.78), (0.91, 0.99)), "sigma_t": ((0.60, 0.78), (0.91
           "g": ((0.60, 0.92), (0.91, 1.0))}
 
 
-def _wait(events: queue.Queue, kind: str):
+def _wait(events: queue.Queue, kind: str, timeout_s: float = 300.0):
+    """The next `kind` event, within one deadline over all events (a service busy with other events must not
+    keep the wait alive)."""
+    deadline = time.monotonic() + timeout_s
     while True:
-        event = events.get(timeout=300)
+        event = events.get(timeout=max(deadline - time.monotonic(), 0.0))
         assert event.kind != "failed", event.message
         if event.kind == kind:
             return event
