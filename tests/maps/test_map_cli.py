@@ -9,20 +9,9 @@ from trimeter.cli import main
 from trimeter.maps.appearance import AppearanceMap, shipped_maps
 from trimeter.maps.container import write_container
 
-TINY_TOML = """
-name = "cli-tiny"
-geometry = "ideal"
-n = 1.5
-thickness_mm = 0.5
-[grid]
-alpha = { max = 0.99, count = 5 }
-sigma_t = [0.5, 5.0]
-g = [0.0, 0.5]
-[sampling]
-target_stderr = 1.0
-min_paths = 4096
-max_paths = 4096
-"""
+from tiny_toml import tiny_toml
+
+TINY_TOML = tiny_toml("cli-tiny")
 
 
 @pytest.fixture(scope="module")

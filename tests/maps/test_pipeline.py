@@ -16,20 +16,9 @@ from trimeter.maps import pipeline
 from trimeter.maps.appearance import AppearanceMap
 from trimeter.maps.recipe import parse_recipe
 
-TINY_TOML = """
-name = "pipe-tiny"
-geometry = "ideal"
-n = 1.5
-thickness_mm = 0.5
-[grid]
-alpha = { max = 0.99, count = 5 }
-sigma_t = [0.5, 5.0]
-g = [0.0, 0.5]
-[sampling]
-target_stderr = 1.0
-min_paths = 4096
-max_paths = 4096
-"""
+from tiny_toml import tiny_toml
+
+TINY_TOML = tiny_toml("pipe-tiny")
 SMALL = pipeline.Options(inscatter_photons=1000, inscatter_shape=(4, 3, 3), mlp_hidden=(6,), mlp_samples=2000,
                          mlp_epochs=3)
 
