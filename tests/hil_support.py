@@ -7,6 +7,7 @@ button presses are asked of the operator.
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 
 import numpy as np
@@ -40,6 +41,18 @@ def build_hil_map(path, thickness_mm: float = THICKNESS_MM, n: float = 1.5) -> A
                   std_w=np.zeros(shape)).save(path)
     return AppearanceMap.load(path)
 
+
+
+@contextlib.contextmanager
+def empty_twin(tmp_path, monkeypatch, seed: int):
+    """A twin with the HIL map and an empty holder; host config and data kept under tmp_path."""
+    from trimeter.twin import Twin
+
+    monkeypatch.setenv("TRIMETER_DATA_DIR", str(tmp_path / "data"))
+    monkeypatch.setenv("TRIMETER_CONFIG_DIR", str(tmp_path / "config"))
+    with Twin(sample=None, thickness_mm=THICKNESS_MM, time_scale=TIME_SCALE, appearance_map=AppearanceMap.load(HIL_MAP),
+              state_dir=tmp_path / "twin", seed=seed) as twin:
+        yield twin
 
 
 class TwinRig:

@@ -9,10 +9,9 @@ import time
 
 import pytest
 
-from hil_support import HIL_MAP, SAMPLE, THICKNESS_MM, TIME_SCALE
+from hil_support import HIL_MAP, SAMPLE, THICKNESS_MM, empty_twin
 from trimeter.cli import main
 from trimeter.device import Device
-from trimeter.maps import AppearanceMap
 from trimeter.sequences.service import Service
 from trimeter.sequences.settings import HostSettings
 from trimeter.spectrometer import open_spectrometer
@@ -20,12 +19,7 @@ from trimeter.spectrometer import open_spectrometer
 
 @pytest.fixture
 def twin(tmp_path, monkeypatch):
-    from trimeter.twin import Twin
-
-    monkeypatch.setenv("TRIMETER_DATA_DIR", str(tmp_path / "data"))
-    monkeypatch.setenv("TRIMETER_CONFIG_DIR", str(tmp_path / "config"))
-    with Twin(sample=None, thickness_mm=THICKNESS_MM, time_scale=TIME_SCALE, appearance_map=AppearanceMap.load(HIL_MAP),
-              state_dir=tmp_path / "twin", seed=5) as twin:
+    with empty_twin(tmp_path, monkeypatch, seed=5) as twin:
         yield twin
 
 

@@ -9,19 +9,13 @@ import re
 
 import pytest
 
-from hil_support import HIL_MAP, SAMPLE, THICKNESS_MM, TIME_SCALE
+from hil_support import HIL_MAP, SAMPLE, THICKNESS_MM, empty_twin
 from trimeter.cli import main
-from trimeter.maps import AppearanceMap
 
 
 @pytest.fixture
 def twin(tmp_path, monkeypatch):
-    from trimeter.twin import Twin
-
-    monkeypatch.setenv("TRIMETER_DATA_DIR", str(tmp_path / "data"))
-    monkeypatch.setenv("TRIMETER_CONFIG_DIR", str(tmp_path / "config"))
-    with Twin(sample=None, thickness_mm=THICKNESS_MM, time_scale=TIME_SCALE, appearance_map=AppearanceMap.load(HIL_MAP),
-              state_dir=tmp_path / "twin", seed=7) as twin:
+    with empty_twin(tmp_path, monkeypatch, seed=7) as twin:
         yield twin
 
 
