@@ -70,8 +70,8 @@ def network_graph(model):
     Gemm, with the scaler folded into the first layer (W₁' = diag(1/scale)·W₁,
     b₁' = b₁ − (mean/scale)·W₁).
     Why not skl2onnx: its graph (an ai.onnx.ml Scaler, a Cast, MatMul + Add per layer, a final
-    Reshape that interleaved the two outputs) ran 0.059 ms per 1024 bins in onnxruntime; this one
-    0.029 ms, the same predictions to float32 rounding."""
+    Reshape that interleaved the two outputs) ran about twice as long in onnxruntime as this one, for the
+    same predictions to float32 rounding."""
     from onnx import TensorProto, helper, numpy_helper
 
     from trimeter.inversion.mlp import FEATURES
@@ -107,8 +107,7 @@ def network_graph(model):
 
 def flush_subnormals(values) -> np.ndarray:
     """float32 weights with subnormal values set to zero: they change no prediction beyond float32 rounding,
-    but onnxruntime's CPU kernels take the processor's slow path on them (a 5-32-32-2 network ran 1.26 ms
-    per 1024 bins with 122 subnormal weights, 0.30 ms without)."""
+    but onnxruntime's CPU kernels take the processor's slow path on them, several times slower."""
     out = np.asarray(values, dtype=np.float32).copy()
     out[np.abs(out) < np.finfo(np.float32).tiny] = 0.0
     return out
