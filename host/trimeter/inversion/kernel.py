@@ -188,19 +188,8 @@ class ForwardGrid:
             return np.zeros((2, len(cell.index)))
         ia, wa = self._cell(self.alpha, self._inv_da, alpha)
         ig, wg = self._cell(self.g, self._inv_dg, g)
-        is_, ws = cell.index, cell.weight
-        V = self.model_var
-
-        def along_g(i, j):
-            lo, hi = V[i, j, ig], V[i, j, ig + 1]
-            return lo + (hi - lo) * wg[:, None]
-
-        def along_s(i):
-            lo, hi = along_g(i, is_), along_g(i, is_ + 1)
-            return lo + (hi - lo) * ws[:, None]
-
-        lo, hi = along_s(ia), along_s(ia + 1)
-        return (lo + (hi - lo) * wa[:, None]).T
+        # the nodes hold (I_b, I_w) pairs: the weights broadcast over that last axis
+        return trilinear(self.model_var, ia, wa[:, None], cell.index, cell.weight[:, None], ig, wg[:, None]).T
 
     def inscatter_log1p(self, alpha, sigma_t, g):
         """L = ln(1 + r) at (α, σt, g) from inscatter_grid (invert.c inscatter_log1p, operation for
