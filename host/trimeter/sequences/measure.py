@@ -40,6 +40,15 @@ def map_for_thickness(thickness_mm: float, explicit: str | Path | None = None,
     return candidates[0]
 
 
+def check_map_thicknesses(thicknesses, maps: list[AppearanceMap]) -> None:
+    """Each map must be for its sample's declared thickness: a map of another ℓ scales σt by their ratio."""
+    for thickness, amap in zip(thicknesses, maps, strict=True):
+        thickness = float(thickness)
+        if abs(amap.thickness_mm - thickness) > 1e-6 * max(1.0, thickness):
+            raise InputError(f"map {amap.name} is for ℓ = {amap.thickness_mm:g} mm, not the declared "
+                             f"{thickness:g} mm")
+
+
 def preflight(maps: list[AppearanceMap], method: str) -> None:
     """Fit one harmless bin with each map before any light is measured: a stale table, a missing model or
     a bad method then fails in a second, not after a whole capture."""

@@ -28,11 +28,11 @@ from typing import Callable, TypeVar
 
 from trimeter.device import Device
 from trimeter.device.backup import config_source_warning
-from trimeter.errors import CheckError, DeviceError, InputError, TrimeterError
+from trimeter.errors import CheckError, DeviceError, TrimeterError
 from trimeter.inversion.flags import advice
 from trimeter.results import Measurement
 from trimeter.results.spool import CaptureSpooled, prepare_results_dir, recover_partials, write_or_spool
-from trimeter.sequences.measure import fit_reflectances, map_for_thickness, preflight
+from trimeter.sequences.measure import check_map_thicknesses, fit_reflectances, map_for_thickness, preflight
 from trimeter.sequences.plans import calibration as calibration_plan
 from trimeter.sequences.checks import calibration_problems, fit_problems, shot_problems, usable_bins
 from trimeter.sequences.plans import holder_check, sample_capture, warm_up
@@ -398,10 +398,7 @@ class Service:
         if problems := calibration_problems(self.calibration):
             raise CheckError("the calibration fails its checks (" + "; ".join(problems) + "); calibrate again "
                              "with the holder empty")
-        for thickness, amap in zip(thicknesses, maps, strict=True):
-            if abs(amap.thickness_mm - thickness) > 1e-6 * max(1.0, thickness):
-                raise InputError(f"thickness: map {amap.name} is for ℓ = {amap.thickness_mm:g} mm, not the declared "
-                                 f"{thickness:g} mm")
+        check_map_thicknesses(thicknesses, maps)
         preflight(maps, s.method)
         for note in prepare_results_dir(s.results_path, n_bins=len(self.calibration.wavelengths_nm),
                                         n_samples=len(thicknesses)):

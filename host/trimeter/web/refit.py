@@ -18,7 +18,7 @@ from trimeter.inversion.flags import advice
 from trimeter.maps.appearance import AppearanceMap
 from trimeter.results import Measurement
 from trimeter.results.writer import _tags as file_tags, write_measurement
-from trimeter.sequences.measure import fit_reflectances, preflight
+from trimeter.sequences.measure import check_map_thicknesses, fit_reflectances, preflight
 from trimeter.sequences.reflectance import Calibration, Capture, RawSample, Reflectances
 
 SETUPS = ("black", "white", "collimated")
@@ -80,9 +80,7 @@ def refit(directory: Path, maps: list[AppearanceMap], method: str) -> Path:
     declared = meta.get("declared_thicknesses_mm") or meta["thicknesses_mm"]
     if len(maps) != len(refls):
         raise InputError(f"{len(maps)} map(s) for {len(refls)} measured thickness(es)")
-    for thickness, amap in zip(declared, maps, strict=True):
-        if abs(amap.thickness_mm - float(thickness)) > 1e-6 * max(1.0, float(thickness)):
-            raise InputError(f"map {amap.name} is for ℓ = {amap.thickness_mm:g} mm, not the sample's {thickness:g} mm")
+    check_map_thicknesses(declared, maps)
     preflight(maps, method)
     combined, per = fit_reflectances(refls, maps, method=method)
     new_meta = {key: value for key, value in meta.items()
