@@ -16,6 +16,7 @@ from pathlib import Path
 
 import platformdirs
 
+from trimeter.atomic import atomic_write
 from trimeter.errors import InputError
 from trimeter.geometry import load_geometry
 
@@ -124,16 +125,12 @@ class HostSettings:
     def save(self) -> Path:
         """Write only what differs from the defaults, so new defaults reach old installs."""
         path = self.path()
-        path.parent.mkdir(parents=True, exist_ok=True)
         defaults = asdict(HostSettings())
         lines = ["# trimeter host configuration (`trimeter config set --host KEY VALUE`)"]
         for key, value in asdict(self).items():
             if value != defaults[key]:
                 lines.append(f"{key} = {_toml_value(value)}")
-        tmp = path.with_suffix(".tmp")
-        tmp.write_text("\n".join(lines) + "\n")
-        os.replace(tmp, path)
-        return path
+        return atomic_write(path, "\n".join(lines) + "\n")
 
     def as_dict(self) -> dict:
         return asdict(self)
