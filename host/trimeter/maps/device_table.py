@@ -1,0 +1,335 @@
+"""The self-sufficient device table (`.tlut` format version 2): everything a fit needs in one map slot
+(≤ MAP_SLOT_CAPACITY_BYTES), with nothing else on the file system — the compact forward model for the
+polish, the in-scattering correction, the map's own error at its nodes, the inverse table for the
+initial guess, the sample set-up, the geometry it was traced for and its parent map's SHA-256.
+
+The forward model is trimeter.model.compact.CompactForward: per g node, cubic B-spline coefficients
+in (α, ln σt) of A, B, C, and PCHIP along g, evaluated on the fly from a 4×4×4 window (a host may
+instead sample it onto a refined grid at load). Every array is little-endian, starts at an offset
+that is a multiple of 8 (a C reader maps the file in place) and is named with its offset and length
+in the header, and every quantized array is value = offset + step · q with (offset, step) in SCALES.
+
+    offset size  field
+    0      8     magic b"\\x89TRLUT\\r\\n"
+    8      u16   format version (2)
+    10     u16   header size (256)
+    12     u32   total size in bytes, including the trailing CRC-32
+    16     32    SHA-256 of the parent appearance map (raw digest)
+    48     32    SHA-256 of the in-scattering table file it carries (raw digest; zeros: none known)
+    80     f32×6 n, thickness_mm ℓ, cover_slide_n (0: none), rho_b_ref, rho_w_ref, mc_stderr
+    104    f32×3 in-scattering axes' ends: u_max (u = −ln(1 − α)), tau_max (τ = σt·ℓ), v_max (v = −ln(1 − g))
+    116    u16×8 n_alpha, n_sigma, n_g, n_inverse, n_u, n_tau, n_v, reserved (0)
+    132    24    map name, UTF-8, NUL-padded
+    156    u32×2 per section below, in this order: (offset, length in bytes)
+    244    12    reserved (0)
+    256          the sections, each padded with zeros to a multiple of 8 bytes:
+      alpha         f32[n_alpha]                      α nodes
+      log_sigma_t   f32[n_sigma]                      ln σt nodes (σt in 1/mm)
+      g             f32[n_g]                          g nodes
+      scales        f32[6][2]                         (offset, step) of A, B, C, std_b, std_w, L
+      spline        u16[n_g][n_alpha][n_sigma][3]     B-spline coefficients of A, B, C
+      model_std     u16[n_alpha][n_sigma][n_g][2]     the map's own error std of (I_b, I_w) at the nodes,
+                                                      at the reference backgrounds (MC + interpolation)
+      inscatter     u16[n_u][n_tau][n_v]              L = ln(1 + r), regular in (u, τ, v) from 0
+      inv_frame     f32[n_sigma][6]                   (x0, y0, m00, m01, m10, m11) per σt node, as in v1
+      inv_alpha     u16[n_sigma][n_inverse][n_inverse] α = α_0 + (α_last − α_0)·q/65535 (as in v1)
+      inv_g         u16[n_sigma][n_inverse][n_inverse] g = g_0 + (g_last − g_0)·q/65535
+      geometry      UTF-8 JSON                        the geometry parameters the in-scattering was traced for
+    end−4  u32   CRC-32/IEEE (zlib.crc32) of every byte before it
+
+`DeviceTable.from_bytes` checks every field before any array is used and names the field of the
+first defect in a MapFileError; `load` refuses a file larger than the slot before reading it.
+"""
+
+from __future__ import annotations
+
+import json
+import struct
+import zlib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from trimeter.errors import MapFileError
+from trimeter.model.compact import CompactForward
+from trimeter.registers import MAP_SLOT_CAPACITY_BYTES
+
+MAGIC = b"\x89TRLUT\r\n"
+FORMAT_VERSION = 2
+HEADER_SIZE = 256
+ALIGN = 8
+MAX_BYTES = MAP_SLOT_CAPACITY_BYTES
+SECTIONS = ("alpha", "log_sigma_t", "g", "scales", "spline", "model_std", "inscatter", "inv_frame", "inv_alpha",
+            "inv_g", "geometry")
+SCALE_ROWS = ("A", "B", "C", "std_b", "std_w", "L")
+_HEAD = struct.Struct("<8sHHI32s32s6f3f8H24s")
+_DIRECTORY = struct.Struct(f"<{2 * len(SECTIONS)}I")
+_RESERVED = HEADER_SIZE - _HEAD.size - _DIRECTORY.size
+_Q = 65535.0
+
+
+def _padded(n: int) -> int:
+    return -(-n // ALIGN) * ALIGN
+
+
+def _layout(na: int, ns: int, ng: int, n_inv: int, nu: int, nt: int, nv: int, geometry_bytes: int):
+    """{section: (offset, nbytes, dtype, shape)} and the total size, from the counts alone."""
+    specs = {"alpha": ("<f4", (na,)), "log_sigma_t": ("<f4", (ns,)), "g": ("<f4", (ng,)),
+             "scales": ("<f4", (len(SCALE_ROWS), 2)), "spline": ("<u2", (ng, na, ns, 3)),
+             "model_std": ("<u2", (na, ns, ng, 2)), "inscatter": ("<u2", (nu, nt, nv)),
+             "inv_frame": ("<f4", (ns, 6)), "inv_alpha": ("<u2", (ns, n_inv, n_inv)),
+             "inv_g": ("<u2", (ns, n_inv, n_inv)), "geometry": ("u1", (geometry_bytes,))}
+    layout, offset = {}, HEADER_SIZE
+    for name in SECTIONS:
+        dtype, shape = specs[name]
+        nbytes = int(np.prod(shape)) * np.dtype(dtype).itemsize
+        layout[name] = (offset, nbytes, dtype, shape)
+        offset += _padded(nbytes)
+    return layout, offset + 4
+
+
+def table_size(na: int, ns: int, ng: int, n_inv: int, nu: int, nt: int, nv: int, geometry_bytes: int) -> int:
+    """The file's size in bytes for these counts."""
+    return _layout(na, ns, ng, n_inv, nu, nt, nv, geometry_bytes)[1]
+
+
+def geometry_bytes(geometry: dict) -> bytes:
+    """The geometry section: canonical JSON (sorted keys, no spaces)."""
+    return json.dumps(geometry, sort_keys=True, separators=(",", ":")).encode()
+
+
+def quantize(values: np.ndarray) -> tuple[np.ndarray, tuple[float, float]]:
+    """u16 codes of `values` over their own range and the (offset, step) that decodes them (float32,
+    as stored: the codes are rounded against the stored scale)."""
+    v = np.asarray(values, dtype=np.float64)
+    if not np.all(np.isfinite(v)):
+        raise MapFileError("device table: a quantity to store is not finite")
+    lo = np.float32(v.min())
+    step = np.float32((float(v.max()) - float(lo)) / _Q) or np.float32(1.0)
+    q = np.clip(np.round((v - np.float64(lo)) / np.float64(step)), 0, _Q).astype(np.uint16)
+    return q, (float(lo), float(step))
+
+
+@dataclass(frozen=True, eq=False)
+class DeviceTable:
+    name: str
+    parent_sha256: str                   # hex
+    inscatter_sha256: str                # hex, "" when unknown
+    n: float
+    thickness_mm: float
+    cover_slide_n: float | None
+    rho_b_ref: float
+    rho_w_ref: float
+    mc_stderr: float
+    inscatter_ends: tuple[float, float, float]   # u_max, tau_max, v_max
+    alpha: np.ndarray                    # f32 axes as stored
+    log_sigma_t: np.ndarray
+    g: np.ndarray
+    scales: np.ndarray                   # f32 (6, 2)
+    spline: np.ndarray                   # u16 (ng, na, ns, 3)
+    model_std: np.ndarray                # u16 (na, ns, ng, 2)
+    inscatter: np.ndarray                # u16 (nu, nt, nv)
+    inv_frame: np.ndarray                # f32 (ns, 6)
+    inv_alpha: np.ndarray                # u16 (ns, n_inv, n_inv)
+    inv_g: np.ndarray                    # u16 (ns, n_inv, n_inv)
+    geometry: dict
+    path: Path | None = field(default=None, compare=False)
+
+    # ------------------------------------------------------------------------------------ build
+    @classmethod
+    def build(cls, *, name: str, parent_sha256: str, inscatter_sha256: str, n: float, thickness_mm: float,
+              cover_slide_n: float | None, reference_rhos: tuple[float, float], mc_stderr: float, alpha, log_sigma_t,
+              g, nodes: np.ndarray, model_std: np.ndarray, inscatter_L: np.ndarray,
+              inscatter_ends: tuple[float, float, float], inv_frame: np.ndarray, inv_alpha: np.ndarray,
+              inv_g: np.ndarray, geometry: dict) -> DeviceTable:
+        """From float arrays: A, B, C at the map's nodes (na, ns, ng, 3), the model error stds
+        (na, ns, ng, 2), L (nu, nt, nv); the inverse grid already as v1 codes (u16)."""
+        a32, s32, g32 = (np.asarray(x, dtype=np.float32) for x in (alpha, log_sigma_t, g))
+        # the splines through the nodes on the axes as stored, so that a reader rebuilds the same model
+        coef = CompactForward.from_nodes(a32, s32, g32, nodes).coefficients
+        spline_q, scales = [], []
+        for i in range(3):
+            q, sc = quantize(coef[..., i])
+            spline_q.append(q)
+            scales.append(sc)
+        std_q = []
+        for i in range(2):
+            q, sc = quantize(model_std[..., i])
+            std_q.append(q)
+            scales.append(sc)
+        L_q, sc = quantize(inscatter_L)
+        scales.append(sc)
+        table = cls(name=name[:24], parent_sha256=parent_sha256, inscatter_sha256=inscatter_sha256 or "", n=n,
+                    thickness_mm=thickness_mm, cover_slide_n=cover_slide_n, rho_b_ref=reference_rhos[0],
+                    rho_w_ref=reference_rhos[1], mc_stderr=mc_stderr,
+                    inscatter_ends=tuple(float(x) for x in inscatter_ends), alpha=a32, log_sigma_t=s32, g=g32,
+                    scales=np.array(scales, dtype=np.float32), spline=np.stack(spline_q, axis=-1),
+                    model_std=np.stack(std_q, axis=-1), inscatter=L_q,
+                    inv_frame=np.asarray(inv_frame, dtype=np.float32), inv_alpha=np.asarray(inv_alpha, np.uint16),
+                    inv_g=np.asarray(inv_g, np.uint16), geometry=geometry)
+        return cls.from_bytes(table.to_bytes(), source="device table being built")  # every check, once
+
+    # ----------------------------------------------------------------------------- decoded views
+    def _decoded(self, codes: np.ndarray, row: int) -> np.ndarray:
+        offset, step = (float(x) for x in self.scales[row])
+        return offset + step * codes.astype(np.float64)
+
+    def forward(self) -> CompactForward:
+        coef = np.stack([self._decoded(self.spline[..., i], i) for i in range(3)], axis=-1)
+        return CompactForward(self.alpha, self.log_sigma_t, self.g, coef)
+
+    def model_variance(self) -> np.ndarray:
+        """(na, ns, ng, 2): variances of I_b, I_w's model error at the nodes."""
+        return np.stack([self._decoded(self.model_std[..., i], 3 + i) for i in range(2)], axis=-1) ** 2
+
+    def inscatter_L(self) -> np.ndarray:
+        return self._decoded(self.inscatter, 5)
+
+    def inverse_alpha(self) -> np.ndarray:
+        a0, a1 = float(self.alpha[0]), float(self.alpha[-1])
+        return a0 + (a1 - a0) * self.inv_alpha.astype(np.float64) / _Q
+
+    def inverse_g(self) -> np.ndarray:
+        g0, g1 = float(self.g[0]), float(self.g[-1])
+        return g0 + (g1 - g0) * self.inv_g.astype(np.float64) / _Q
+
+    @property
+    def reference_rhos(self) -> tuple[float, float]:
+        return self.rho_b_ref, self.rho_w_ref
+
+    def _geometry_bytes(self) -> bytes:
+        return geometry_bytes(self.geometry)
+
+    def _counts(self) -> tuple[int, ...]:
+        return (len(self.alpha), len(self.log_sigma_t), len(self.g), self.inv_alpha.shape[1], *self.inscatter.shape)
+
+    @property
+    def size_bytes(self) -> int:
+        return table_size(*self._counts(), len(self._geometry_bytes()))
+
+    def sizes(self) -> dict[str, int]:
+        """Bytes per part of the file (sections padded as stored)."""
+        layout, total = _layout(*self._counts(), len(self._geometry_bytes()))
+        return {"header": HEADER_SIZE, **{k: _padded(v[1]) for k, v in layout.items()}, "crc": 4, "total": total}
+
+    # ---------------------------------------------------------------------------------- encoding
+    def to_bytes(self) -> bytes:
+        geometry = self._geometry_bytes()
+        layout, total = _layout(*self._counts(), len(geometry))
+        directory = [x for name in SECTIONS for x in layout[name][:2]]
+        head = _HEAD.pack(MAGIC, FORMAT_VERSION, HEADER_SIZE, total,
+                          bytes.fromhex(self.parent_sha256) if self.parent_sha256 else b"\0" * 32,
+                          bytes.fromhex(self.inscatter_sha256) if self.inscatter_sha256 else b"\0" * 32,
+                          self.n, self.thickness_mm, self.cover_slide_n or 0.0, self.rho_b_ref, self.rho_w_ref,
+                          self.mc_stderr, *self.inscatter_ends, *self._counts()[:4], *self.inscatter.shape, 0,
+                          self.name.encode()[:24])
+        out = bytearray(head + _DIRECTORY.pack(*directory) + b"\0" * _RESERVED)
+        arrays = {name: getattr(self, name) for name in SECTIONS if name != "geometry"}
+        for name in SECTIONS:
+            offset, nbytes, dtype, _ = layout[name]
+            data = geometry if name == "geometry" else np.ascontiguousarray(arrays[name], dtype=dtype).tobytes()
+            out += data + b"\0" * (_padded(nbytes) - nbytes)
+        return bytes(out) + struct.pack("<I", zlib.crc32(out))
+
+    @classmethod
+    def from_bytes(cls, data: bytes, source: str = "device table") -> DeviceTable:
+        data = bytes(data)
+
+        def fail(name: str, why: str):
+            raise MapFileError(f"{source}: {name}: {why}")
+
+        if len(data) > MAX_BYTES:
+            fail("total_size", f"{len(data)} bytes is more than the {MAX_BYTES}-byte map slot")
+        if len(data) < HEADER_SIZE + 4:
+            fail("total_size", f"truncated ({len(data)} bytes, shorter than the header)")
+        (magic, version, header_size, total, parent, tins, n, thickness, cover_n, rho_b, rho_w, mc_stderr, u_max,
+         tau_max, v_max, na, ns, ng, n_inv, nu, nt, nv, reserved, name) = _HEAD.unpack_from(data)
+        if magic != MAGIC:
+            fail("magic", "not a trimeter map table")
+        if version != FORMAT_VERSION:
+            fail("format_version", f"{version}, this reader reads {FORMAT_VERSION}")
+        if header_size != HEADER_SIZE:
+            fail("header_size", f"{header_size}, not {HEADER_SIZE}")
+        if total != len(data):
+            fail("total_size", f"the header says {total} bytes, the data has {len(data)} (truncated or padded)")
+        (crc,) = struct.unpack_from("<I", data, len(data) - 4)
+        if zlib.crc32(data[:-4]) != crc:
+            fail("crc32", "mismatch: the table is corrupt")
+        counts = dict(n_alpha=(na, 4), n_sigma=(ns, 4), n_g=(ng, 3), n_inverse=(n_inv, 2), n_u=(nu, 2), n_tau=(nt, 2),
+                      n_v=(nv, 2))
+        for key, (value, least) in counts.items():
+            if value < least:
+                fail(key, f"{value}, at least {least} needed")
+        if reserved or any(data[_HEAD.size + _DIRECTORY.size:HEADER_SIZE]):
+            fail("reserved", "not zero (written by a newer or broken tool)")
+        directory = _DIRECTORY.unpack_from(data, _HEAD.size)
+        geometry_len = directory[-1]
+        layout, expected_total = _layout(na, ns, ng, n_inv, nu, nt, nv, geometry_len)
+        if expected_total != total:
+            fail("total_size", f"{total} bytes, the counts in the header make {expected_total}")
+        arrays = {}
+        for i, key in enumerate(SECTIONS):
+            offset, nbytes, dtype, shape = layout[key]
+            if directory[2 * i:2 * i + 2] != (offset, nbytes):
+                fail(key, f"at ({directory[2 * i]}, {directory[2 * i + 1]} bytes), expected ({offset}, {nbytes})")
+            if any(data[offset + nbytes:offset + _padded(nbytes)]):
+                fail(key, "padding after it is not zero")
+            arrays[key] = np.frombuffer(data, dtype=dtype, count=int(np.prod(shape)), offset=offset).reshape(shape)
+        for key in ("alpha", "log_sigma_t", "g"):
+            axis = arrays[key]
+            if not (np.all(np.isfinite(axis)) and np.all(np.diff(axis) > 0)):
+                fail(key, "not finite and strictly increasing")
+        if not (arrays["alpha"][0] >= 0 and arrays["alpha"][-1] <= 1):
+            fail("alpha", "outside [0, 1]")
+        if not (arrays["g"][0] > -1 and arrays["g"][-1] < 1):
+            fail("g", "outside (−1, 1)")
+        header = dict(n=(n, 1, 3), thickness_mm=(thickness, 1e-6, 100), rho_b_ref=(rho_b, 0, 1),
+                      rho_w_ref=(rho_w, 0, 1), mc_stderr=(mc_stderr, 0, 1), u_max=(u_max, 1e-6, 50),
+                      tau_max=(tau_max, 1e-6, 1e3), v_max=(v_max, 1e-6, 50))
+        for key, (value, lo, hi) in header.items():
+            if not (np.isfinite(value) and lo <= value <= hi):
+                fail(key, f"{value} is not a number in [{lo}, {hi}]")
+        if not rho_b < rho_w:
+            fail("rho_w_ref", f"{rho_w} is not above rho_b_ref {rho_b}")
+        if not (cover_n == 0 or 1 <= cover_n <= 3):
+            fail("cover_slide_n", f"{cover_n}: 0 (none) or an index in [1, 3]")
+        scales = arrays["scales"]
+        if not (np.all(np.isfinite(scales)) and np.all(scales[:, 1] > 0)):
+            fail("scales", "not finite, or a step that is not positive")
+        if not (scales[3:, 0] >= 0).all():
+            fail("scales", "a model error std or in-scattering L that can be negative")
+        if not np.all(np.isfinite(arrays["inv_frame"])):
+            fail("inv_frame", "not finite")
+        try:
+            name_str = name.rstrip(b"\0").decode()
+            if "\0" in name_str:
+                raise UnicodeDecodeError("utf-8", name, 0, 1, "NUL inside the name")
+        except UnicodeDecodeError:
+            fail("name", "not NUL-padded UTF-8")
+        try:
+            geometry = json.loads(arrays.pop("geometry").tobytes().decode())
+        except (UnicodeDecodeError, ValueError):
+            fail("geometry", "not UTF-8 JSON")
+        if not isinstance(geometry, dict):
+            fail("geometry", "not a JSON object")
+        return cls(name=name_str, parent_sha256=parent.hex(), inscatter_sha256="" if not any(tins) else tins.hex(),
+                   n=float(n), thickness_mm=float(thickness), cover_slide_n=float(cover_n) or None,
+                   rho_b_ref=float(rho_b), rho_w_ref=float(rho_w), mc_stderr=float(mc_stderr),
+                   inscatter_ends=(float(u_max), float(tau_max), float(v_max)), geometry=geometry, **arrays)
+
+    def save(self, path: str | Path) -> Path:
+        from trimeter.atomic import atomic_write
+
+        path = Path(path)
+        atomic_write(path, self.to_bytes())
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path) -> DeviceTable:
+        from trimeter.maps.container import read_bounded
+
+        path = Path(path)
+        table = cls.from_bytes(read_bounded(path, MAX_BYTES, "map table"), source=str(path))
+        object.__setattr__(table, "path", path)
+        return table

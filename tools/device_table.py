@@ -1,0 +1,256 @@
+#!/usr/bin/env python3
+"""The self-sufficient device table (`.tlut` v2, trimeter.maps.device_table): build it from a map and
+its in-scattering table, fit from it alone, and score that fit on the map's held-out set with
+`trimeter bench fit`'s scoring.
+
+    .venv/bin/python tools/device_table.py build MAP [-o FILE] [--n-inverse N]
+    .venv/bin/python tools/device_table.py measure MAP [MAP…] [--noise 0,0.005]
+
+`build` prints the bytes per part. `measure` prints, per map and noise level, α abs / σt relative /
+g abs (α ≥ 0.5) p50 and p95 over the measurable gamut for: the map's own lut fit (`trimeter.fit`,
+the map file, its .tlut v1 and .tins), the v2 table alone with its forward model sampled onto the
+refined grid at load (the host path), the same with the polish evaluating the compact model on the
+fly (the device path, numpy), and the polish-free table guess.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+
+
+# ------------------------------------------------------------------------------------------- build
+def build(amap, n_inverse: int | None = None):
+    """The v2 table of an AppearanceMap (with its .tins); n_inverse: the inverse grid's side (default:
+    the largest that fits the slot)."""
+    from trimeter.errors import MapFileError
+    from trimeter.inversion.api import map_model_variance
+    from trimeter.inversion.table import build_from_map
+    from trimeter.maps.device_table import MAX_BYTES, DeviceTable, geometry_bytes, table_size
+
+    tins = amap.inscatter
+    if tins is None:
+        raise MapFileError(f"map {amap.name} has no in-scattering table (.tins): a device table needs one")
+    if abs(tins.n - amap.n) > 1e-6 or abs(tins.thickness_mm - amap.thickness_mm) > 1e-6:
+        raise MapFileError(f"{amap.name}: its .tins was traced for n {tins.n}, ℓ {tins.thickness_mm}")
+    na, ns, ng = amap.A.shape
+    geometry_len = len(geometry_bytes(tins.geometry_params))
+    if n_inverse is None:
+        n_inverse = max((k for k in range(2, 129) if table_size(na, ns, ng, k, *tins.L.shape, geometry_len)
+                         <= MAX_BYTES), default=None)
+        if n_inverse is None:
+            raise MapFileError(f"a {na}×{ns}×{ng} map does not fit the {MAX_BYTES}-byte slot")
+    # the inverse grid over the map's own σt nodes, as the v1 table builds it
+    inverse = build_from_map(amap, n_xy=n_inverse, refine=(1, 1, 1))
+    var, _axes = map_model_variance(amap)
+    return DeviceTable.build(
+        name=amap.name, parent_sha256=amap.checksum or "", inscatter_sha256=tins.checksum or "", n=amap.n,
+        thickness_mm=amap.thickness_mm, cover_slide_n=amap.cover_slide_n, reference_rhos=amap.reference_rhos,
+        mc_stderr=float(np.median(np.concatenate([amap.std_b.ravel(), amap.std_w.ravel()]))),
+        alpha=amap.alpha, log_sigma_t=np.log(amap.sigma_t), g=amap.g, nodes=np.stack([amap.A, amap.B, amap.C], -1),
+        model_std=np.sqrt(var), inscatter_L=tins.L, inscatter_ends=(tins.u_max, tins.tau_max, tins.v_max),
+        inv_frame=inverse.inv_frame, inv_alpha=inverse.inv_alpha_q, inv_g=inverse.inv_g_q,
+        geometry=tins.geometry_params)
+
+
+# --------------------------------------------------------------------------------------------- fit
+def inscatter_table(table):
+    from trimeter.forward.inscatter import InscatterTable
+
+    u_max, tau_max, v_max = table.inscatter_ends
+    return InscatterTable(table.inscatter_L(), u_max=u_max, tau_max=tau_max, v_max=v_max, n=table.n,
+                          thickness_mm=table.thickness_mm, geometry_params=table.geometry)
+
+
+def host_inverter(table):
+    """The lut inverter (guess + polish) from the table alone: the compact model's node values, which
+    ForwardGrid.between_nodes refines at load exactly as it refines a map (the same splines)."""
+    from trimeter.inversion.lut import TableInverter
+
+    forward = table.forward()
+    view = SimpleNamespace(alpha=table.alpha.astype(np.float64), log_sigma_t=table.log_sigma_t.astype(np.float64),
+                           g=table.g.astype(np.float64), coefficients_grid=forward.nodes(), n=table.n,
+                           thickness_mm=table.thickness_mm, cover_slide_n=table.cover_slide_n,
+                           mc_stderr=table.mc_stderr, inv_alpha_q=table.inv_alpha, inv_frame=table.inv_frame,
+                           inverse_alpha=table.inverse_alpha(), inverse_g=table.inverse_g())
+    axes = (view.alpha, view.log_sigma_t, view.g)
+    return TableInverter(view, inscatter=inscatter_table(table), model_variance=(table.model_variance(), axes))
+
+
+class OnTheFlyGrid:
+    """Mixin for a ForwardGrid whose A, B, C come from the compact model at each point (the device's
+    polish), not from its refined cells; its nodes only serve the inverse guess and the clamps."""
+
+    compact = None
+
+    @property
+    def native_solver(self):
+        return None  # the C kernel reads the refined cells
+
+    def coefficients(self, alpha, cell, g, with_sigma_derivative=False):
+        value, d_a, d_ls, d_g = self.compact.evaluate(alpha, cell.log_sigma_t, g)
+        return (value, d_a, d_g, d_ls) if with_sigma_derivative else (value, d_a, d_g)
+
+    def _alpha_g_cells(self, alpha, g):
+        # the compact model is smooth across cells: a step never needs evaluating again for that
+        return np.zeros(len(alpha), dtype=np.intp), np.zeros(len(g), dtype=np.intp)
+
+
+def on_the_fly_inverter(table):
+    from trimeter.inversion.kernel import ForwardGrid
+
+    inverter = host_inverter(table)
+    grid = inverter.grid
+    fly = type("OnTheFlyForwardGrid", (OnTheFlyGrid, ForwardGrid), {})
+    fly_grid = fly(grid.alpha, grid.log_sigma_t, grid.g, grid.coefficients_grid, n=grid.n,
+                   thickness_mm=grid.thickness_mm, cover_slide_n=grid.cover_slide_n, mc_stderr=grid.mc_stderr)
+    fly_grid.compact = table.forward()
+    fly_grid.inscatter_grid, fly_grid.model_var = grid.inscatter_grid, grid.model_var
+    inverter.grid, inverter._native = fly_grid, None
+    return inverter
+
+
+def fit_table(table, inverter, I_b, I_w, I_c, rho_b=None, rho_w=None, *, polish: int = 8, polish_tol: float = 1e-6,
+              noise_rel: float = 0.005, noise_abs: float = 2e-4, ic_floor: float = 1e-4, alpha_min_g: float = 0.02):
+    """trimeter.fit's lut path for one thickness, from the table and an inverter built from it."""
+    from trimeter.inversion import api
+    from trimeter.inversion.flags import UNUSABLE, FitFlag
+    from trimeter.inversion.kernel import polish_step_var
+
+    n = len(I_b)
+    rho_b = np.full(n, table.rho_b_ref) if rho_b is None else np.broadcast_to(rho_b, (n,))
+    rho_w = np.full(n, table.rho_w_ref) if rho_w is None else np.broadcast_to(rho_w, (n,))
+    grid = inverter.grid
+    solver = inverter.native_solver
+    if solver is not None:
+        options = api.native_options(table, grid, polish=polish, polish_tol=polish_tol, noise_rel=noise_rel,
+                                     noise_abs=noise_abs, ic_floor=ic_floor, alpha_min_g=alpha_min_g)
+        out = solver.fit(I_b, I_w, I_c, rho_b, rho_w, sd=None, **options)
+        out.pop("steps")
+        out["conditioning_alpha_std"] = out["conditioning_g_std"] = None
+        return api.FitResult(**out, method="lut")
+    p = api._prepare(table, grid, I_b, I_w, I_c, rho_b, rho_w, ic_floor)
+    sd = api._noise_model(p, noise_rel, noise_abs)
+    step_var = polish_step_var(p.ib, p.iw, noise_rel, noise_abs, grid.mc_stderr, api._polish_tol_std(polish_tol),
+                               sd=sd)
+    alpha, g, residual, J = inverter.invert(p.ib, p.iw, p.sigma_t, p.rb, p.rw, polish_iterations=polish,
+                                            step_tol=polish_tol, step_var=step_var)
+    sigma_t, inscatter_ds, solved = p.sigma_t, None, (alpha, g, p.ib, p.iw)
+    if grid.inscatter_grid is not None:
+        eligible = (p.flags & int(UNUSABLE | FitFlag.IC_BELOW_FLOOR | FitFlag.OUTSIDE_MAP)) == 0
+        a, s, gg, ds = grid.correct_inscatter(alpha, sigma_t, g, J)
+        alpha, sigma_t, g = np.where(eligible, a, alpha), np.where(eligible, s, sigma_t), np.where(eligible, gg, g)
+        inscatter_ds = np.where(eligible, ds, 0.0)
+    return api._finish(table, grid, p.flags, p.usable, p.ib, p.iw, p.ic, p.rb, p.rw, alpha, sigma_t, g, residual,
+                       p.sigma_beer, method="lut", sd=sd, sigma_t_solved=p.sigma_t, inscatter_ds=inscatter_ds,
+                       inscatter_rel_std=api.INSCATTER_REL_STD, thickness_rel_std=0.0, alpha_min_g=alpha_min_g, J=J,
+                       solved=solved, floor_sd=sd)
+
+
+# ----------------------------------------------------------------------------------------- measure
+# bench fit's figures (trimeter.bench.fit._stats); "well": the well-conditioned subset, "det": the bins
+# the fit does not flag UNDERDETERMINED
+_COLUMNS = (("α p50", "alpha_p50"), ("α p95", "alpha_p95"), ("σt rel p50", "sigma_rel_p50"),
+            ("σt rel p95", "sigma_rel_p95"), ("g p50", "g_p50"), ("g p95", "g_p95"), ("α p95 well", "alpha_p95_well"),
+            ("g p95 well", "g_p95_well"), ("α p95 det", "alpha_p95_determined"), ("g p95 det", "g_p95_determined"))
+def measure(amap, noise_levels, seed: int = 0, say=print) -> list[dict]:
+    from trimeter.bench.fit import _stats, error_budget, heldout_collimated, heldout_for, heldout_intensities
+    from trimeter.inversion.api import fit
+
+    t0 = time.perf_counter()
+    table = build(amap)
+    built = time.perf_counter() - t0
+    say(f"\n== {amap.name}: v2 table {table.size_bytes} bytes (built in {built:.1f} s)")
+    for part, nbytes in table.sizes().items():
+        say(f"   {part:12s} {nbytes:7d}")
+    _, _, h = heldout_for(amap)
+    rb, rw = amap.reference_rhos
+    truth = (h["alpha"], h["sigma_t"], h["g"])
+    budget = error_budget(amap, h, rb, rw)
+    I_b0, I_w0 = heldout_intensities(h, rb, rw)
+    I_c0 = heldout_collimated(amap, h)
+    t0 = time.perf_counter()
+    host = host_inverter(table)
+    say(f"   host inverter from the table alone: {time.perf_counter() - t0:.2f} s")
+    fly = on_the_fly_inverter(table)
+    variants = {
+        "map lut p≤8": lambda ib, iw, ic: fit(amap, ib, iw, ic, method="lut"),
+        "table (refined at load) p≤8": lambda ib, iw, ic: fit_table(table, host, ib, iw, ic),
+        "table (on the fly) p≤8": lambda ib, iw, ic: fit_table(table, fly, ib, iw, ic),
+        "table guess p0": lambda ib, iw, ic: fit_table(table, host, ib, iw, ic, polish=0, polish_tol=0.0),
+    }
+    rng = np.random.default_rng(seed)
+    cases = []
+    for level in noise_levels:
+        noisy = tuple(x * (1 + level * rng.standard_normal(x.shape)) if level else x for x in (I_b0, I_w0, I_c0))
+        cases.append((f"rendered, noise {level * 100:g} %", noisy))
+    cases.append(("map-exact", budget["map_exact"]))
+    rows = []
+    for label, (ib, iw, ic) in cases:
+        say(f"   {label}\n   {'':30s}" + "".join(f"{title:>11s}" for title, _ in _COLUMNS) + f"{'ms/1024':>11s}")
+        tile = np.resize(np.arange(len(ib)), 1024)
+        tiled = (ib[tile], iw[tile], ic[tile])
+        for name, run in variants.items():
+            res = run(ib, iw, ic)
+            ms = _warm_ms(lambda run=run, tiled=tiled: run(*tiled))
+            st = _stats(res, truth, budget)
+            rows.append({"map": amap.name, "case": label, "variant": name, "ms_per_1024": ms, **st})
+            say(f"   {name:30s}" + "".join(f"{st[key]:11.2e}" if "sigma" in key else f"{st[key]:11.4f}"
+                                                for _, key in _COLUMNS) + f"{ms:11.2f}")
+    return rows
+
+
+def _warm_ms(fn, repeats: int = 5) -> float:
+    """Best of `repeats` calls in ms, after an untimed one (as for a batch of spectra)."""
+    fn()
+    best = np.inf
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t0)
+    return best * 1e3
+
+
+def main(argv=None) -> int:
+    from trimeter.errors import TrimeterError
+    from trimeter.maps.appearance import AppearanceMap, find_map
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    sub = ap.add_subparsers(dest="command", required=True)
+    b = sub.add_parser("build", help="write the v2 table of a map")
+    b.add_argument("map", help="map file or shipped map name")
+    b.add_argument("-o", "--output", type=Path, help="output file (default: <map>.v2.tlut in the current directory)")
+    b.add_argument("--n-inverse", type=int, help="inverse grid side (default: the largest that fits the slot)")
+    m = sub.add_parser("measure", help="held-out accuracy of fits from the v2 table alone")
+    m.add_argument("maps", nargs="+", help="map files or shipped map names")
+    m.add_argument("--noise", default="0", help="comma-separated relative noise levels (default 0)")
+    m.add_argument("--seed", type=int, default=0)
+    args = ap.parse_args(argv)
+    try:
+        if args.command == "build":
+            amap = AppearanceMap.load(find_map(args.map))
+            table = build(amap, args.n_inverse)
+            out = table.save(args.output or Path(f"{amap.name}.v2.tlut"))
+            print(f"{out}: {table.size_bytes} bytes")
+            for part, nbytes in table.sizes().items():
+                print(f"   {part:12s} {nbytes:7d}")
+        else:
+            try:
+                levels = [float(x) for x in args.noise.split(",")]
+            except ValueError:
+                ap.error(f"--noise: not a comma-separated list of numbers: {args.noise!r}")
+            for spec in args.maps:
+                measure(AppearanceMap.load(find_map(spec)), levels, args.seed)
+    except TrimeterError as exc:
+        print(f"device_table: error: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
