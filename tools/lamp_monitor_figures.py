@@ -19,9 +19,10 @@ from pathlib import Path
 import numpy as np
 
 from trimeter.device import Device
+from trimeter.domain import Sample, SampleCapture
 from trimeter.maps import AppearanceMap
 from trimeter.sequences import checks, lamp_monitor
-from trimeter.sequences.measure import fit_reflectances
+from trimeter.sequences.measure import prepare_fit
 from trimeter.sequences.plans import calibration, sample_capture, warm_up
 from trimeter.sequences.reflectance import reflectances
 from trimeter.sequences.service import lamps_on
@@ -54,12 +55,13 @@ def main() -> int:
         assert not checks.calibration_problems(cal), checks.calibration_problems(cal)
         twin.control.insert_sample(SAMPLE, THICKNESS_MM)
         truth = twin.control.truth()
+        fit = prepare_fit([Sample(THICKNESS_MM, amap)], "lut")
         print(f"{'lamp_dimmed':<16} {'median Δα':>10} {'median ΔσT/σT':>14}  spectra-only checks | lamp monitor")
         for case in CASES:
             twin.control.set_fault(lamp_dimmed=case)
             raw = runner.run(sample_capture(frames=2, hdr_decades=2))
             refl = reflectances(cal, raw)
-            params, _ = fit_reflectances([refl], [amap])
+            params, _ = fit.fit([SampleCapture(fit.samples[0], raw, refl)])
             true = {k: np.interp(refl.wavelengths_nm, truth["wavelengths_nm"], truth[k]) for k in ("alpha", "sigma_t")}
             d_alpha = float(np.nanmedian(params.alpha - true["alpha"]))
             d_sigma = float(np.nanmedian(params.sigma_t / true["sigma_t"] - 1.0))

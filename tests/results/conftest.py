@@ -6,8 +6,9 @@ import pytest
 
 from fakes import FakeInstrument, FakeOptics, FakeSpectrometer
 from trimeter.device.client import Device
-from trimeter.inversion.api import FitResult
-from trimeter.results import Measurement, Parameters
+from trimeter.domain.parameters import FitResult
+from trimeter.domain import MapIdentity, Measurement, Provenance, Sample, SampleCapture
+from trimeter.results import Parameters
 from trimeter.sequences import Runner, calibration, reflectances, sample_capture
 
 WL = np.linspace(400, 700, 31)
@@ -29,4 +30,6 @@ def measurement():
                        sigma_t_std=np.full(31, 0.1), g_std=np.full(31, 0.05), flags=np.where(np.isnan(alpha), 1, 0),
                        sigma_t_beer=np.linspace(1, 5, 31), method="lut")
     params = Parameters.from_fit(WL, result)
-    return Measurement(cal, [raw], [refl], [0.4], params, meta={"sample": "test ink", "method": "lut"})
+    sample = Sample(0.4, MapIdentity("test-map", 0.4, "sha256:0"))
+    return Measurement(cal, [SampleCapture(sample, raw, refl)], params,
+                       provenance=Provenance(method="lut", sample_name="test ink"))

@@ -21,6 +21,7 @@ from fakes import FakeInstrument, FakeOptics, FakeSpectrometer
 from hil_support import HIL_MAP
 from trimeter.cli import main
 from trimeter.device.client import Device
+from trimeter.domain import Sample
 from trimeter.errors import OutputError
 from trimeter.maps import AppearanceMap
 from trimeter.results.spool import CaptureSpooled, prepare_results_dir, recover_partials, write_or_spool
@@ -138,8 +139,9 @@ import numpy as np
 from fakes import FakeInstrument, FakeOptics, FakeSpectrometer
 import trimeter.results.figure as figure
 from trimeter.device.client import Device
-from trimeter.inversion.api import FitResult
-from trimeter.results import Measurement, Parameters, write_measurement
+from trimeter.domain.parameters import FitResult
+from trimeter.domain import MapIdentity, Measurement, Provenance, Sample, SampleCapture
+from trimeter.results import Parameters, write_measurement
 from trimeter.sequences import Runner, calibration, reflectances, sample_capture
 
 wl = np.linspace(400, 700, 31)
@@ -159,7 +161,9 @@ def hang(*args, **kwargs):
     time.sleep(120)
 
 figure.plot_parameters = hang
-write_measurement({root!r}, Measurement(cal, [raw], [reflectances(cal, raw)], [0.4], Parameters.from_fit(wl, result)),
+sample = Sample(0.4, MapIdentity('test-map', 0.4, 'sha256:0'))
+write_measurement({root!r}, Measurement(cal, [SampleCapture(sample, raw, reflectances(cal, raw))],
+                                        Parameters.from_fit(wl, result), provenance=Provenance(method='lut')),
                   label="killed")
 """
 
@@ -241,7 +245,7 @@ def test_the_service_refuses_before_capturing_when_results_cannot_be_written(rig
     reads = []
     monkeypatch.setattr(spec, "intensities", lambda: reads.append(1))
     with pytest.raises(OutputError, match="cannot be created"):
-        service.measure([amap.thickness_mm], maps=[amap])
+        service.measure([Sample(amap.thickness_mm, amap)])
     assert reads == []          # refused before a single spectrum of the sample was taken
 
 
@@ -249,7 +253,7 @@ def test_the_service_keeps_a_capture_it_cannot_write(rig, monkeypatch):
     service, spec, amap, events, tmp = rig
     monkeypatch.setattr(figure, "plot_parameters", _enospc)
     with pytest.raises(CaptureSpooled, match="No space left on device") as caught:
-        service.measure([amap.thickness_mm], maps=[amap])
+        service.measure([Sample(amap.thickness_mm, amap)])
     assert caught.value.path.parent == tmp / "data" / "spool"
     assert service.last_result == caught.value.path and (service.last_result / "reflectances.csv").is_file()
     assert _names(tmp / "results") == []

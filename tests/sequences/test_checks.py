@@ -16,7 +16,7 @@ from trimeter.device.client import Device
 from trimeter.errors import CheckError, InputError
 from trimeter.maps import AppearanceMap
 from trimeter.sequences.checks import calibration_problems, shot_problems, surface_floor
-from trimeter.sequences.reflectance import Calibration, Reflectances
+from trimeter.domain import Calibration, Reflectances, Sample
 from trimeter.sequences.service import Service
 from trimeter.sequences.settings import HostSettings
 
@@ -207,8 +207,8 @@ def test_a_map_for_another_thickness_than_the_declared_one_is_an_error(rig):
     service = calibrated(rig)
     optics.sample = cyan(amap)
     with pytest.raises(InputError, match=r"map hil-ideal-l0.4 is for ℓ = 0.4 mm, not the declared 0.8 mm"):
-        service.measure([0.8], maps=[amap])
-    path = service.measure([0.4], maps=[amap])
+        service.measure([Sample(0.8, amap)])
+    path = service.measure([Sample(0.4, amap)])
     meta = json.loads((path / "measurement.json").read_text())
     assert meta["declared_thicknesses_mm"] == [0.4] and meta["map_thicknesses_mm"] == [0.4]
 

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from trimeter.sequences import lamp_monitor as lm
-from trimeter.sequences.reflectance import Calibration
+from trimeter.domain import Calibration
 
 DARK, SPAN = 60, 3200
 

@@ -8,7 +8,8 @@ import pytest
 from fakes import FakeInstrument, FakeOptics, FakeSpectrometer
 from trimeter.device.client import Device
 from trimeter.errors import DeviceError
-from trimeter.sequences import CaptureFlag, Runner, calibration, reflectances, sample_capture, warm_up
+from trimeter.domain import CaptureFlag
+from trimeter.sequences import Runner, calibration, reflectances, sample_capture, warm_up
 from trimeter.sequences.plans import dark_frames
 from trimeter.sequences.steps import Acquire, Expose, Lights, Move
 

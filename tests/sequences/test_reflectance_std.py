@@ -3,9 +3,10 @@ the calibration corrected by the lamp monitor with what it leaves as a std term.
 
 import numpy as np
 
+from trimeter.domain import Calibration, Capture, RawSample
 from trimeter.sequences import lamp_monitor
-from trimeter.sequences.reflectance import (LAMP_SPECTRAL_REL, STD_POOL_BINS, Calibration, Capture, RawSample,
-                                            lamp_correction, pooled_relative_std, reflectances)
+from trimeter.sequences.reflectance import (LAMP_SPECTRAL_REL, STD_POOL_BINS, lamp_correction, pooled_relative_std,
+                                            reflectances)
 
 N = 400
 

@@ -9,6 +9,7 @@ from fakes import FakeInstrument, FakeOptics, FakeSpectrometer
 from hil_support import HIL_MAP
 from trimeter import registers as regs
 from trimeter.device.client import Device
+from trimeter.domain import Sample
 from trimeter.maps import AppearanceMap
 from trimeter.sequences.service import Service, calibration_is_stale  # noqa: F401
 from trimeter.sequences.settings import HostSettings
@@ -123,7 +124,7 @@ def test_failed_measurement_writes_nothing_and_shows_fast_blink(rig):
 
 
 def test_calibration_staleness_rules():
-    from trimeter.sequences.reflectance import Calibration
+    from trimeter.domain import Calibration
 
     cal = Calibration(WL, WL, WL, WL, 0.99, np.zeros(WL.size, np.int32), device_time_s=100.0)
     assert calibration_is_stale(None, 5, 1800) == "no calibration yet"
@@ -141,7 +142,7 @@ def test_two_thicknesses_are_captured_in_turn_fitted_and_combined(rig):
     amap = AppearanceMap.load(HIL_MAP)
     swaps = []
     # the same map twice stands in for two thicknesses: what is tested is the plumbing around trimeter.fit
-    path = service.measure([0.4, 0.4], maps=[amap, amap], between=swaps.append, label="two")
+    path = service.measure([Sample(0.4, amap), Sample(0.4, amap)], between=swaps.append, label="two")
     assert swaps == [0.4]
     names = {p.name for p in path.iterdir()}
     assert {"raw_black_1_0.4mm.csv", "raw_black_2_0.4mm.csv", "reflectances_2_0.4mm.csv", "parameters_1_0.4mm.csv",

@@ -18,7 +18,8 @@ from hil_support import HIL_MAP, THICKNESS_MM, TIME_SCALE
 from trimeter.bench._rig import host_dirs
 from trimeter.cli._instrument import open_device, open_spectrometer
 from trimeter.sequences.service import Service
-from trimeter.sequences.settings import HostSettings, data_dir
+from trimeter.paths import data_dir
+from trimeter.sequences.settings import HostSettings
 
 
 @dataclass

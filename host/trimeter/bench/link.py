@@ -15,6 +15,7 @@ import time
 from pathlib import Path
 
 from trimeter.bench._rig import twin_and_service
+from trimeter.domain import Sample
 from trimeter.errors import InputError, TrimeterError
 from trimeter.sequences.measure import map_for_thickness
 from trimeter.sequences.settings import HostSettings
@@ -61,7 +62,7 @@ def measure_level(corrupt: float, drop: float, *, time_scale: float, seed: int) 
                     service.calibrate()
                 else:
                     twin.control.insert_sample(SAMPLE, THICKNESS_MM)
-                    service.measure([THICKNESS_MM], maps=[amap])
+                    service.measure([Sample(THICKNESS_MM, amap)])
                 row[f"{phase}_s"] = round(time.monotonic() - t0, 2)
                 timing = service.last_timing
                 row[f"{phase}_step_retries"] = timing.get("step_retries", 0)

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from trimeter.errors import DeviceError, InputError
+from trimeter.inversion.methods import METHODS
 from trimeter.paths import REPO_ROOT
 
 FALLBACK_MAP = REPO_ROOT / "tests" / "hil" / "data" / "hil-ideal-l0.4.tmap"
@@ -42,7 +43,8 @@ def _wait_for(events: "queue.Queue", kind: str, timeout_s: float, log):
 def run(args):
     from trimeter.device import Device
     from trimeter.results.figure import plot_parameters
-    from trimeter.sequences.measure import map_for_thickness, preflight
+    from trimeter.domain import Sample
+    from trimeter.sequences.measure import map_for_thickness, prepare_fit
     from trimeter.sequences.service import Service
     from trimeter.sequences.settings import HostSettings
     from trimeter.spectrometer import open_spectrometer
@@ -58,7 +60,7 @@ def run(args):
         print(f"demo: no shipped map for ℓ = {args.thickness:g} mm; using the HIL test map {FALLBACK_MAP.name} "
               "(ideal geometry, adding-doubling)")
         amap = map_for_thickness(args.thickness, FALLBACK_MAP)
-    preflight([amap], args.method)  # a stale table or model fails now, not after the warm-up
+    prepare_fit([Sample(args.thickness, amap)], args.method)  # a stale table or model fails now, not after the warm-up
     out = Path(args.out or REPO_ROOT / "out" / "demo") / time.strftime("%Y%m%dT%H%M%S")
     out.mkdir(parents=True, exist_ok=True)
     os.environ["TRIMETER_DATA_DIR"] = str(out)  # the demo's calibration never touches the user's
@@ -164,7 +166,7 @@ def register(subparsers) -> None:
     p.add_argument("--sample", default="cyan-ink", help="virtual material (trimeter sim --list-materials)")
     p.add_argument("--thickness", type=float, default=0.4, help="sample thickness in mm (a map must exist for it)")
     p.add_argument("--map", help="appearance map (default: the shipped map of that thickness)")
-    p.add_argument("--method", default="lut", choices=("lut", "mlp", "paper"))
+    p.add_argument("--method", default="lut", choices=METHODS)
     p.add_argument("--time-scale", type=float, default=20.0, help="twin time runs this many times faster")
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--out", help="output directory (default: out/demo)")

@@ -8,7 +8,8 @@ import numpy as np
 
 from trimeter.cli._instrument import add_instrument_args, open_device, open_spectrometer, progress_bar, settings_from
 from trimeter.errors import InputError
-from trimeter.sequences.measure import map_for_thickness
+from trimeter.inversion.methods import METHODS
+from trimeter.sequences.measure import resolve_samples
 from trimeter.sequences.service import Service, calibration_is_stale
 
 SHOW_NM = (450, 550, 650)
@@ -36,10 +37,11 @@ def run(args):
         raise InputError("thickness: give one or two positive thicknesses in mm")
     if args.map and len(args.map) != len(thicknesses):
         raise InputError("map: give one --map per --thickness")
-    maps = [map_for_thickness(t, m) for t, m in zip(thicknesses, args.map or [None] * len(thicknesses), strict=True)]
+    samples = resolve_samples(zip(thicknesses, args.map or [None] * len(thicknesses), strict=True))
     source = "--thickness" if args.thickness else "host config thickness_mm"
-    for t, amap in zip(thicknesses, maps, strict=True):  # never assumed silently
-        print(f"thickness: {t:g} mm ({source}), map {amap.name} (ℓ = {amap.thickness_mm:g} mm)")
+    for sample in samples:  # never assumed silently
+        print(f"thickness: {sample.thickness_mm:g} mm ({source}), map {sample.map.name} "
+              f"(ℓ = {sample.map.thickness_mm:g} mm)")
     if args.results:
         settings.set("results_dir", args.results)
     service = Service(lambda: open_device(settings), lambda: open_spectrometer(settings), settings,
@@ -56,7 +58,7 @@ def run(args):
 
         with progress_bar("measurement") as update:
             service.on_progress = update
-            path = service.measure(thicknesses, maps=maps, between=swap, label=args.label)
+            path = service.measure(samples, between=swap, label=args.label)
     finally:
         service.close()
     p = service.last_parameters
@@ -71,7 +73,7 @@ def register(subparsers) -> None:
     add_instrument_args(p)
     p.add_argument("--thickness", type=float, action="append", help="sample thickness in mm (twice for two samples)")
     p.add_argument("--map", action="append", help="appearance map per thickness (default: the shipped one)")
-    p.add_argument("--method", choices=("lut", "mlp", "paper"), help="inversion method (default: host config)")
+    p.add_argument("--method", choices=METHODS, help="inversion method (default: host config)")
     p.add_argument("--label", help="a name for the results directory")
     p.add_argument("--results", help="results root directory (default: host config / data dir)")
     p.set_defaults(func=run)

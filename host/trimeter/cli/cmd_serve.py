@@ -97,7 +97,7 @@ def register(subparsers) -> None:
 
 def serve_http(args, service: Service, settings) -> None:
     """The press-button loop on a worker thread, the web app on another; Ctrl-C stops both."""
-    from trimeter.sequences.settings import data_dir
+    from trimeter.paths import data_dir
     from trimeter.web.app import WebServer, create_app, parse_bind
     from trimeter.web.auth import load_or_create_token
     from trimeter.web.history import History

@@ -1,5 +1,5 @@
 """Measurement results: one directory per measurement (temp dir + rename), figure, Mitsuba medium."""
 
-from trimeter.results.writer import Measurement, Parameters, write_measurement
+from trimeter.results.writer import Parameters, write_measurement
 
-__all__ = ["Measurement", "Parameters", "write_measurement"]
+__all__ = ["Parameters", "write_measurement"]

@@ -24,8 +24,9 @@ from pathlib import Path
 
 from trimeter.atomic import describe_os_error, fsync_directory
 from trimeter.errors import OutputError
-from trimeter.results.writer import PARTIAL_PREFIX, Measurement, expected_size_bytes, write_measurement
-from trimeter.sequences.settings import data_dir
+from trimeter.domain import Measurement
+from trimeter.paths import data_dir
+from trimeter.results.writer import PARTIAL_PREFIX, expected_size_bytes, write_measurement
 
 # A partial whose writer is still alive is a write in progress (another process on the same results
 # directory), unless it is older than any write takes: then its pid was reused, after a reboot say.

@@ -18,15 +18,15 @@ from __future__ import annotations
 import json
 import os
 import shutil
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
 
 from trimeter.atomic import atomic_output, atomic_write, fsync_directory
-from trimeter.inversion.api import FitResult
-from trimeter.sequences.reflectance import Calibration, RawSample, Reflectances
+from trimeter.domain.parameters import FitResult
+from trimeter.domain import Capture, Measurement
 
 PARAMETER_COLUMNS = FitResult.COLUMNS  # the fit's output columns, declared once in trimeter.inversion
 
@@ -77,26 +77,13 @@ def write_csv(path: Path, columns: dict) -> None:
         np.savetxt(f, table, delimiter=",", header=",".join(names), comments="", fmt=fmt)
 
 
-def _raw_columns(wavelengths, capture) -> dict:
+def _raw_columns(wavelengths: np.ndarray, capture: Capture) -> dict:
     cols = {"wavelength_nm": wavelengths}
     for i, t in enumerate(capture.integration_times_us):
         cols[f"signal_{int(t)}us"] = capture.signals[i]
         cols[f"dark_{int(t)}us"] = capture.darks[i]
     cols["rate_counts_per_s"] = capture.rate
     return cols
-
-
-@dataclass
-class Measurement:
-    """Everything one completed measurement produced; `write_measurement` stores it."""
-
-    calibration: Calibration
-    raw: list[RawSample]
-    reflectances: list[Reflectances]
-    thicknesses_mm: list[float]
-    parameters: Parameters                      # the (combined) estimate
-    per_thickness: list[Parameters] = field(default_factory=list)
-    meta: dict = field(default_factory=dict)
 
 
 def new_name(label: str | None = None) -> str:
@@ -169,7 +156,7 @@ def expected_size_bytes(n_bins: int, n_samples: int) -> int:
     return _CELL_BYTES * n_bins * columns + files * _BLOCK_BYTES + _FIGURE_BYTES
 
 
-def _tags(thicknesses) -> list[str]:
+def file_tags(thicknesses) -> list[str]:
     """File-name suffixes per sample: none for one, `_0.4mm` per thickness, `_2_0.4mm` if one repeats."""
     if len(thicknesses) < 2:
         return [""] * len(thicknesses)
@@ -178,25 +165,26 @@ def _tags(thicknesses) -> list[str]:
 
 
 def _write_all(out: Path, m: Measurement, *, figure: bool, medium: bool) -> None:
-    tags = _tags(m.thicknesses_mm)
+    tags = file_tags(m.thicknesses_mm)
     m.calibration.save(out)
-    for raw, refl, tag in zip(m.raw, m.reflectances, tags, strict=True):
+    for capture, tag in zip(m.captures, tags, strict=True):
         for setup in ("black", "white", "collimated"):
-            write_csv(out / f"raw_{setup}{tag}.csv", _raw_columns(raw.wavelengths_nm, getattr(raw, setup)))
-        write_csv(out / f"reflectances{tag}.csv", refl.as_columns())
+            write_csv(out / f"raw_{setup}{tag}.csv",
+                      _raw_columns(capture.raw.wavelengths_nm, getattr(capture.raw, setup)))
+        write_csv(out / f"reflectances{tag}.csv", capture.reflectances.as_columns())
     write_csv(out / "parameters.csv", m.parameters.columns())
-    for p, tag in zip(m.per_thickness, _tags([p.thickness_mm for p in m.per_thickness]), strict=True):
+    for p, tag in zip(m.per_thickness, file_tags([p.thickness_mm for p in m.per_thickness]), strict=True):
         write_csv(out / f"parameters{tag}.csv", p.columns())
     atomic_write(out / "parameters.json", json.dumps(
         {"combined": m.parameters.to_json(), "per_thickness": [p.to_json() for p in m.per_thickness]}, indent=1))
-    meta = dict(m.meta)
-    meta.setdefault("written_utc", datetime.now(timezone.utc).isoformat(timespec="seconds"))
-    meta["thicknesses_mm"] = list(m.thicknesses_mm)
+    meta = m.record()
+    meta["written_utc"] = datetime.now(timezone.utc).isoformat(timespec="seconds")
+    meta["thicknesses_mm"] = m.thicknesses_mm
     if figure:
         from trimeter.results.figure import plot_parameters
 
         plot_parameters(out / "figure.png", m.parameters, m.per_thickness,
-                        title=meta.get("sample") or meta.get("label") or "")
+                        title=m.provenance.sample_name or m.provenance.label or "")
         meta["figure"] = "figure.png"
     if medium:
         from trimeter.results.medium import write_medium

@@ -34,10 +34,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from trimeter.domain import Calibration, Reflectances
 from trimeter.inversion.flags import FitFlag
 from trimeter.maps.appearance import background_response
 from trimeter.sequences import lamp_monitor
-from trimeter.sequences.reflectance import Calibration, Reflectances
 
 RHO_BLACK_MAX = 0.12          # median ρ_black of an empty holder's black background
 RHO_BLACK_AGREEMENT = 0.03    # median |Δρ_black| against the previous good calibration

@@ -1,19 +1,30 @@
-"""From reflectances to parameters (through `trimeter.fit`), and the map that belongs to a thickness.
-
-Kept apart from the plans: this is pure computation on files and arrays, used identically by
-`trimeter measure`, `trimeter serve`, `trimeter demo` and offline re-fits of saved raw data.
+"""From samples to a written results directory: the one door into the inversion (`prepare_fit`) and the
+one-shot pipeline (capture → fit → write, `measure`) that `trimeter measure`, `trimeter serve`, the web
+page and the tests all call. The web page's re-fit of saved captures enters through `prepare_fit` too.
 """
 
 from __future__ import annotations
 
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from trimeter.errors import InputError
+from trimeter.domain import Calibration, InstrumentInfo, Measurement, Provenance, Sample, SampleCapture
+from trimeter.domain.measurement import DeviceTableCheck
+from trimeter.errors import CheckError, DeviceError, InputError, TrimeterError
+from trimeter.inversion.methods import METHODS
+from trimeter.inversion.flags import advice
 from trimeter.maps.appearance import AppearanceMap, find_map, shipped_maps
+from trimeter.results.spool import CaptureSpooled, prepare_results_dir, write_or_spool
 from trimeter.results.writer import Parameters
-from trimeter.sequences.reflectance import Reflectances
+from trimeter.sequences.checks import calibration_problems, fit_problems, shot_problems, usable_bins
+from trimeter.sequences.plans import sample_capture
+from trimeter.sequences.reflectance import reflectances
+from trimeter.sequences.settings import HostSettings
+from trimeter.sequences.steps import Runner
 
 
 def map_for_thickness(thickness_mm: float, explicit: str | Path | None = None,
@@ -21,9 +32,7 @@ def map_for_thickness(thickness_mm: float, explicit: str | Path | None = None,
     """The map named/pathed explicitly, else the shipped map (device geometry first) of this thickness."""
     if explicit:
         amap = AppearanceMap.load(find_map(explicit))
-        if abs(amap.thickness_mm - thickness_mm) > 1e-6:
-            raise InputError(f"map {amap.name} is for ℓ = {amap.thickness_mm:g} mm, "
-                             f"not the sample's {thickness_mm:g} mm")
+        Sample(thickness_mm, amap).check_map()
         return amap
     candidates = []
     for path in (search if search is not None else shipped_maps()):
@@ -40,47 +49,174 @@ def map_for_thickness(thickness_mm: float, explicit: str | Path | None = None,
     return candidates[0]
 
 
-def check_map_thicknesses(thicknesses, maps: list[AppearanceMap]) -> None:
-    """Each map must be for its sample's declared thickness: a map of another ℓ scales σt by their ratio."""
-    for thickness, amap in zip(thicknesses, maps, strict=True):
-        thickness = float(thickness)
-        if abs(amap.thickness_mm - thickness) > 1e-6 * max(1.0, thickness):
-            raise InputError(f"map {amap.name} is for ℓ = {amap.thickness_mm:g} mm, not the declared "
-                             f"{thickness:g} mm")
+def resolve_samples(requests: Iterable[tuple[float, str | Path | None]]) -> list[Sample]:
+    """(thickness, map name/path or None for the shipped one) pairs → samples with their maps loaded."""
+    return [Sample(thickness, map_for_thickness(thickness, explicit)) for thickness, explicit in requests]
 
 
-def preflight(maps: list[AppearanceMap], method: str) -> None:
-    """Fit one harmless bin with each map before any light is measured: a stale table, a missing model or
-    a bad method then fails in a second, not after a whole capture."""
+@dataclass(frozen=True)
+class PreparedFit:
+    """What the fit of these samples needs, checked before any light is measured. Built by `prepare_fit`."""
+
+    samples: tuple[Sample, ...]
+    method: str
+
+    def fit_table_bytes(self) -> bytes | None:
+        """The inverse table the fit of the first sample uses (what the device's active map slot should
+        hold), or None when the method fits without one."""
+        if self.method != "lut":
+            return None
+        from trimeter.inversion.api import table_inverter
+
+        return table_inverter(self.samples[0].map).table.to_bytes()
+
+    def fit(self, captures: list[SampleCapture]) -> tuple[Parameters, list[Parameters]]:
+        """trimeter.fit over one or several of the prepared samples' captures; returns (combined,
+        per-sample estimates: empty for one sample)."""
+        import trimeter
+
+        if not captures or not all(any(c.sample is s for s in self.samples) for c in captures):
+            raise InputError("the captures are not of the samples this fit was prepared for")
+        refls = [c.reflectances for c in captures]
+        maps = [c.sample.map for c in captures]
+        wl = refls[0].wavelengths_nm
+        # The fit's noise model σ_I = noise_rel·I + noise_abs, with noise_rel measured from the frame spread
+        # (so the reported uncertainties are this measurement's, not a default's).
+        measured = [r.noise_rel() for r in refls]
+        noise = {"noise_rel": float(np.clip(max(measured), 1e-4, 0.2))} if all(m is not None for m in measured) else {}
+        # and each bin's own stds from the capture (frame scatter, dark, the calibration's), where it has them
+        for name in ("I_b_std", "I_w_std", "I_c_std"):
+            if all(getattr(r, name) is not None for r in refls):
+                noise[name] = np.stack([getattr(r, name) for r in refls]) if len(refls) > 1 else getattr(refls[0],
+                                                                                                         name)
+        if len(refls) == 1:
+            r = refls[0]
+            result = trimeter.fit(maps[0], r.I_b, r.I_w, r.I_c, rho_b=r.rho_b, rho_w=r.rho_w, method=self.method,
+                                  **noise)
+            return Parameters.from_fit(wl, result, thickness_mm=maps[0].thickness_mm), []
+        stack = {k: np.stack([getattr(r, k) for r in refls]) for k in ("I_b", "I_w", "I_c", "rho_b", "rho_w")}
+        result = trimeter.fit(maps, stack["I_b"], stack["I_w"], stack["I_c"], rho_b=stack["rho_b"],
+                              rho_w=stack["rho_w"], method=self.method, **noise)
+        per = [Parameters.from_fit(wl, single, thickness_mm=amap.thickness_mm)
+               for single, amap in zip(result.per_thickness, maps, strict=True)]
+        return Parameters.from_fit(wl, result), per
+
+
+def prepare_fit(samples: Iterable[Sample], method: str) -> PreparedFit:
+    """The method is known, each map is for its sample's thickness, and one harmless bin fits with each map:
+    a stale table, a missing model or a bad method then fails in a second, not after a whole capture."""
     import trimeter
 
-    for amap in maps:
-        trimeter.fit(amap, [0.2], [0.5], [0.1], method=method)
+    samples = tuple(samples)
+    if not samples:
+        raise InputError("no sample to fit")
+    if method not in METHODS:
+        raise InputError(f"method: {method!r} is not one of {', '.join(METHODS)}")
+    for sample in samples:
+        sample.check_map()
+    for sample in samples:
+        trimeter.fit(sample.map, [0.2], [0.5], [0.1], method=method)
+    return PreparedFit(samples, method)
 
 
-def fit_reflectances(refls: list[Reflectances], maps: list[AppearanceMap], *, method: str = "lut"
-                     ) -> tuple[Parameters, list[Parameters]]:
-    """trimeter.fit over one or two thicknesses; returns (combined, per-thickness estimates)."""
-    import trimeter
+def check_calibration(calibration: Calibration | None) -> Calibration:
+    """The calibration a measurement may use, or why not."""
+    if calibration is None:
+        raise DeviceError("no calibration: run a calibration with the holder empty first")
+    if problems := calibration_problems(calibration):
+        raise CheckError("the calibration fails its checks (" + "; ".join(problems) + "); calibrate again "
+                         "with the holder empty")
+    return calibration
 
-    if len(refls) != len(maps) or not refls:
-        raise InputError("need one map per measured thickness")
-    wl = refls[0].wavelengths_nm
-    # The fit's noise model σ_I = noise_rel·I + noise_abs, with noise_rel measured from the frame spread
-    # (so the reported uncertainties are this measurement's, not a default's).
-    measured = [r.noise_rel() for r in refls]
-    noise = {"noise_rel": float(np.clip(max(measured), 1e-4, 0.2))} if all(m is not None for m in measured) else {}
-    # and each bin's own stds from the capture (frame scatter, dark, the calibration's), where it has them
-    for name in ("I_b_std", "I_w_std", "I_c_std"):
-        if all(getattr(r, name) is not None for r in refls):
-            noise[name] = np.stack([getattr(r, name) for r in refls]) if len(refls) > 1 else getattr(refls[0], name)
-    if len(refls) == 1:
-        r = refls[0]
-        result = trimeter.fit(maps[0], r.I_b, r.I_w, r.I_c, rho_b=r.rho_b, rho_w=r.rho_w, method=method, **noise)
-        return Parameters.from_fit(wl, result, thickness_mm=maps[0].thickness_mm), []
-    stack = {k: np.stack([getattr(r, k) for r in refls]) for k in ("I_b", "I_w", "I_c", "rho_b", "rho_w")}
-    result = trimeter.fit(maps, stack["I_b"], stack["I_w"], stack["I_c"], rho_b=stack["rho_b"], rho_w=stack["rho_w"],
-                          method=method, **noise)
-    per = [Parameters.from_fit(wl, single, thickness_mm=amap.thickness_mm)
-           for single, amap in zip(result.per_thickness, maps, strict=True)]
-    return Parameters.from_fit(wl, result), per
+
+def capture_samples(runner: Runner, calibration: Calibration, samples: Iterable[Sample], *, frames: int,
+                    hdr_decades: int, between: Callable[[float], None] | None = None
+                    ) -> tuple[list[SampleCapture], TrimeterError | None]:
+    """Capture each sample (calling `between(ℓ)` before the 2nd, to swap samples) and check the shot.
+    Returns the captures and, when `between` raised a TrimeterError (the next sample never came), that
+    error: the captures then hold the samples measured before it."""
+    captures: list[SampleCapture] = []
+    for i, sample in enumerate(samples):
+        if i and between:
+            try:
+                between(sample.thickness_mm)
+            except TrimeterError as exc:
+                return captures, exc
+        raw = runner.run(sample_capture(frames=frames, hdr_decades=hdr_decades,
+                                        label=f"sample ℓ = {sample.thickness_mm:g} mm"))
+        refl = reflectances(calibration, raw)
+        if problems := shot_problems(refl, sample.map):
+            raise CheckError(f"the {sample.thickness_mm:g} mm capture was refused, nothing was written: "
+                             + "; ".join(problems))
+        captures.append(SampleCapture(sample, raw, refl))
+    return captures, None
+
+
+@dataclass
+class MeasurementOutcome:
+    """What `measure` wrote (`path`: the results directory, or the spool's when `spooled`)."""
+
+    path: Path
+    measurement: Measurement
+    timing: dict[str, float]
+    spooled: CaptureSpooled | None = None     # the results directory could not take it: kept in the spool
+    stopped: TrimeterError | None = None      # why fewer samples than asked were measured
+
+    @property
+    def parameters(self) -> Parameters:
+        return self.measurement.parameters
+
+    @property
+    def incomplete(self) -> str | None:
+        return self.measurement.provenance.incomplete
+
+
+def measure(runner: Runner, calibration: Calibration | None, samples: list[Sample], settings: HostSettings, *,
+            label: str | None = None, between: Callable[[float], None] | None = None,
+            device_table: Callable[[PreparedFit], DeviceTableCheck] | None = None,
+            on_warning: Callable[[str], None] = lambda message: None) -> MeasurementOutcome:
+    """Capture → fit → write, once: check the calibration, prepare the fit, make sure the results directory
+    can take it, capture each sample, fit, check the fit and write (or spool) the results directory.
+    `device_table(prepared)` says whether the device's active map table is the fit's (None: not asked).
+    When `between` raises a TrimeterError, what was captured is still fitted and written, marked incomplete."""
+    calibration = check_calibration(calibration)
+    prepared = prepare_fit(samples, settings.method)
+    for note in prepare_results_dir(settings.results_path, n_bins=len(calibration.wavelengths_nm),
+                                    n_samples=len(samples)):
+        on_warning(note)  # leftovers of interrupted writes, moved to the spool
+    table = device_table(prepared) if device_table is not None else None
+    if table is not None and table.slot and not table.matches_fit_table:
+        on_warning(f"the device's active map table (slot {table.slot}, CRC-32 {table.crc32}) is not the table of "
+                   f"map {samples[0].map.name}; `trimeter map flash` the right one")
+    captures, stopped = capture_samples(runner, calibration, samples, frames=settings.frames,
+                                        hdr_decades=settings.hdr_decades, between=between)
+    incomplete = None
+    if stopped is not None:
+        n = len(captures)
+        incomplete = (f"only {n} of {len(samples)} samples measured ({stopped}); the results hold "
+                      f"{'it' if n == 1 else 'them'} alone")
+    t0 = time.monotonic()
+    combined, per = prepared.fit(captures)
+    fit_s = time.monotonic() - t0
+    for capture, params in zip(captures, per or [combined], strict=True):
+        if problems := fit_problems(params.flags, usable_bins(capture.reflectances)):
+            raise CheckError(f"the {capture.sample.thickness_mm:g} mm capture was refused, nothing was written: "
+                             + "; ".join(problems))
+    timing = runner.timing.to_dict()
+    timing["fit_wall_s"] = round(fit_s, 4)
+    device = runner.device
+    stats = getattr(device.transport, "stats", None)
+    provenance = Provenance(
+        method=prepared.method, label=label, timing=dict(timing),
+        instrument=None if device.identity is None else InstrumentInfo.of(device.identity),
+        device_map_table=table, noise_rel_measured=[c.reflectances.noise_rel() for c in captures],
+        incomplete=incomplete, advice=advice(combined.flags, len(captures)),
+        link={} if stats is None else vars(stats).copy())
+    measurement = Measurement(calibration, captures, combined, per, provenance)
+    t0 = time.monotonic()
+    try:
+        path = write_or_spool(settings.results_path, measurement, label=label)
+    except CaptureSpooled as exc:
+        return MeasurementOutcome(exc.path, measurement, timing, spooled=exc, stopped=stopped)
+    timing["write_wall_s"] = round(time.monotonic() - t0, 4)
+    return MeasurementOutcome(path, measurement, timing, stopped=stopped)

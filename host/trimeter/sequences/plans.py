@@ -18,8 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from trimeter.domain import Calibration, Capture, RawSample
 from trimeter.errors import CheckError, DeviceError
-from trimeter.sequences.reflectance import Calibration, Capture, RawSample
 from trimeter.sequences import lamp_monitor
 from trimeter.sequences.steps import (Acquire, Describe, DeviceTime, Expose, LampMonitor, Lights, Move, Progress,
                                       Status, Wait)

@@ -28,15 +28,14 @@ from typing import Callable, TypeVar
 
 from trimeter.device import Device
 from trimeter.device.backup import config_source_warning
+from trimeter.domain import Calibration, Sample
+from trimeter.domain.measurement import DeviceTableCheck
 from trimeter.errors import CheckError, DeviceError, TrimeterError
-from trimeter.inversion.flags import advice
-from trimeter.results import Measurement
-from trimeter.results.spool import CaptureSpooled, prepare_results_dir, recover_partials, write_or_spool
-from trimeter.sequences.measure import check_map_thicknesses, fit_reflectances, map_for_thickness, preflight
+from trimeter.results.spool import recover_partials
+from trimeter.sequences import measure as pipeline
+from trimeter.sequences.checks import calibration_problems
 from trimeter.sequences.plans import calibration as calibration_plan
-from trimeter.sequences.checks import calibration_problems, fit_problems, shot_problems, usable_bins
-from trimeter.sequences.plans import holder_check, sample_capture, warm_up
-from trimeter.sequences.reflectance import Calibration, reflectances
+from trimeter.sequences.plans import holder_check, warm_up
 from trimeter.sequences.settings import HostSettings
 from trimeter.sequences.steps import RetryPolicy, Runner, retry_on_link_error
 
@@ -259,8 +258,7 @@ class Service:
                     return "refused"
                 outcome = "calibrated"
             else:
-                samples = samples or self.settings.serve_samples
-                self.measure([t for t, _ in samples], maps=[map_for_thickness(t, m) for t, m in samples],
+                self.measure(pipeline.resolve_samples(samples or self.settings.serve_samples),
                              between=self._await_next_sample, label=label)
                 outcome = "incomplete" if self.last_incomplete else "measured"
             if outcome == "incomplete":  # written, but not what was asked for: the LED says so
@@ -355,8 +353,8 @@ class Service:
         self._show(READY)
         return cal
 
-    def device_table(self, amap) -> dict:
-        """Is the map table active in the device the very table this host fits `amap` with?
+    def device_table(self, prepared: pipeline.PreparedFit) -> DeviceTableCheck:
+        """Is the map table active in the device the very table this host fits the first sample with?
 
         Not by the slot's CRC-32: a table ends with its own CRC-32, so the CRC-32 over a whole valid
         table is always the CRC residue 0x2144DF1C. Compared instead: length, the 128-byte header (map
@@ -366,105 +364,45 @@ class Service:
         status = self.device.map_status()
         active = status["map_active_slot"]
         if active == regs.MapSlot.NONE:
-            return {"slot": None, "matches_fit_table": False}
+            return DeviceTableCheck(None, False)
         key = active.name.lower()
-        info = {"slot": active.name, "crc32": f"0x{status[f'map_slot_{key}_crc32']:08X}",
+        slot = {"slot": active.name, "crc32": f"0x{status[f'map_slot_{key}_crc32']:08X}",
                 "length": status[f"map_slot_{key}_length"], "version": status[f"map_slot_{key}_version"]}
-        if self.settings.method != "lut":
-            return {**info, "matches_fit_table": False}
-        from trimeter.inversion.api import table_inverter
-
-        table = table_inverter(amap).table.to_bytes()
-        same = len(table) == info["length"] and len(table) > 132
+        table = prepared.fit_table_bytes()
+        if table is None:
+            return DeviceTableCheck(matches_fit_table=False, **slot)
+        same = len(table) == slot["length"] and len(table) > 132
         if same:
             head = self.device.read_map(active, 128)
             tail_at = (len(table) - 4) & ~1
             tail = self.device.read_map(active, len(table) - tail_at, offset=tail_at)
             same = head == table[:128] and tail == table[tail_at:]
-        info["matches_fit_table"] = bool(same)
-        info["map"] = amap.name
-        return info
+        return DeviceTableCheck(matches_fit_table=bool(same), map=prepared.samples[0].map.name, **slot)
 
-    def measure(self, thicknesses: list[float], *, maps: list, between: Callable[[float], None] | None = None,
+    def measure(self, samples: list[Sample], *, between: Callable[[float], None] | None = None,
                 label: str | None = None) -> Path:
-        """Capture each thickness (calling `between(ℓ)` before the 2nd, to swap samples), fit with its
-        map (maps[i], e.g. sequences.measure.map_for_thickness), write.
-        When `between` raises a TrimeterError (the next sample never came: a timeout, a reset, a lost
-        link), what was captured is still fitted and written, marked incomplete (last_incomplete, and
-        "incomplete" in measurement.json); a DeviceError is raised again after that."""
-        s = self.settings
-        if self.calibration is None:
-            raise DeviceError("no calibration: run a calibration with the holder empty first")
-        if problems := calibration_problems(self.calibration):
-            raise CheckError("the calibration fails its checks (" + "; ".join(problems) + "); calibrate again "
-                             "with the holder empty")
-        check_map_thicknesses(thicknesses, maps)
-        preflight(maps, s.method)
-        for note in prepare_results_dir(s.results_path, n_bins=len(self.calibration.wavelengths_nm),
-                                        n_samples=len(thicknesses)):
-            self._emit("warning", note)  # leftovers of interrupted writes, moved to the spool
-        table = self._on_device("reading the device's map table", lambda d: self.device_table(maps[0]))
-        if table["slot"] and not table["matches_fit_table"]:
-            self._emit("warning", f"the device's active map table (slot {table['slot']}, CRC-32 {table['crc32']}) is "
-                                  f"not the table of map {maps[0].name}; `trimeter map flash` the right one")
-        runner = self._runner()
-        raws, refls = [], []
-        self.last_incomplete, stopped = None, None
-        for i, thickness in enumerate(thicknesses):
-            if i and between:
-                try:
-                    between(thickness)
-                except TrimeterError as exc:
-                    stopped = exc
-                    self.last_incomplete = (f"only {i} of {len(thicknesses)} samples measured ({exc}); the "
-                                            f"results hold {'it' if i == 1 else 'them'} alone")
-                    thicknesses, maps = thicknesses[:i], maps[:i]
-                    break
-            raw = runner.run(sample_capture(frames=s.frames, hdr_decades=s.hdr_decades,
-                                            label=f"sample ℓ = {thickness:g} mm"))
-            refl = reflectances(self.calibration, raw)
-            if problems := shot_problems(refl, maps[i]):
-                raise CheckError(f"the {thickness:g} mm capture was refused, nothing was written: "
-                                 + "; ".join(problems))
-            raws.append(raw)
-            refls.append(refl)
-        t0 = time.monotonic()
-        combined, per = fit_reflectances(refls, maps, method=s.method)
-        fit_s = time.monotonic() - t0
-        for thickness, refl, params in zip(thicknesses, refls, per or [combined], strict=True):
-            if problems := fit_problems(params.flags, usable_bins(refl)):
-                raise CheckError(f"the {thickness:g} mm capture was refused, nothing was written: "
-                                 + "; ".join(problems))
-        timing = runner.timing.to_dict()
-        timing["fit_wall_s"] = round(fit_s, 4)
-        meta = {"label": label or self.label, "method": s.method, "maps": [m.name for m in maps],
-                "declared_thicknesses_mm": list(thicknesses),
-                "map_thicknesses_mm": [m.thickness_mm for m in maps],
-                "map_checksums": [m.checksum for m in maps], "timing": timing,
-                "device": {"firmware": list(self.device.identity.firmware_version),
-                           "regmap_hash": f"0x{self.device.identity.regmap_hash:08X}"},
-                "calibration_created_utc": self.calibration.created_utc,
-                "device_map_table": table,
-                "noise_rel_measured": [r.noise_rel() for r in refls],
-                "incomplete": self.last_incomplete,
-                "advice": advice(combined.flags, len(thicknesses)),
-                "link": vars(self.device.transport.stats).copy() if hasattr(self.device.transport, "stats") else {}}
-        t0 = time.monotonic()
-        try:
-            path = write_or_spool(s.results_path, Measurement(self.calibration, raws, refls, thicknesses, combined,
-                                                              per, meta=meta), label=label or self.label)
-        except CaptureSpooled as exc:
-            self.last_result, self.last_parameters = exc.path, combined
-            raise
-        timing["write_wall_s"] = round(time.monotonic() - t0, 4)
-        self.last_result = path
-        self.last_parameters = combined
-        self.last_timing = timing
-        self.last_advice = meta["advice"]
+        """sequences.measure.measure with this service's device, calibration and settings; the LED, events
+        and last_* follow it. When `between` raises (the next sample never came), what was captured is
+        still written, marked incomplete (last_incomplete); a DeviceError is raised again after that."""
+        label = label or self.label
+        self.last_incomplete = None
+        outcome = pipeline.measure(
+            self._runner(), self.calibration, samples, self.settings, label=label, between=between,
+            device_table=lambda prepared: self._on_device("reading the device's map table",
+                                                          lambda d: self.device_table(prepared)),
+            on_warning=lambda note: self._emit("warning", note))
+        self.last_result, self.last_parameters = outcome.path, outcome.parameters
+        self.last_incomplete = outcome.incomplete
+        if outcome.spooled is not None:
+            raise outcome.spooled
+        self.last_timing = outcome.timing
+        self.last_advice = outcome.measurement.provenance.advice
         for note in self.last_advice:
             self._emit("advice", note)
-        self._emit("measured", f"results written to {path}", path=path, parameters=combined, timing=timing,
-                   link=meta["link"], device_map_table=table)
-        if isinstance(stopped, DeviceError):
-            raise stopped
-        return path
+        provenance = outcome.measurement.provenance
+        table = None if provenance.device_map_table is None else provenance.device_map_table.to_json()
+        self._emit("measured", f"results written to {outcome.path}", path=outcome.path,
+                   parameters=outcome.parameters, timing=outcome.timing, link=provenance.link, device_map_table=table)
+        if isinstance(outcome.stopped, DeviceError):
+            raise outcome.stopped
+        return outcome.path

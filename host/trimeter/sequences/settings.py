@@ -9,26 +9,16 @@ the demo, several instruments on one host).
 from __future__ import annotations
 
 import math
-import os
 import tomllib
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
-import platformdirs
-
 from trimeter.atomic import atomic_write
 from trimeter.errors import InputError
 from trimeter.geometry import load_geometry
+from trimeter.paths import config_dir, data_dir
 
 CONFIG_FILE_NAME = "config.toml"
-
-
-def config_dir() -> Path:
-    return Path(os.environ.get("TRIMETER_CONFIG_DIR") or platformdirs.user_config_dir("trimeter"))
-
-
-def data_dir() -> Path:
-    return Path(os.environ.get("TRIMETER_DATA_DIR") or platformdirs.user_data_dir("trimeter"))
 
 
 @dataclass

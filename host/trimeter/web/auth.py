@@ -18,7 +18,7 @@ from pathlib import Path
 from aiohttp import web
 
 from trimeter.errors import InputError
-from trimeter.sequences.settings import config_dir
+from trimeter.paths import config_dir
 
 TOKEN_FILE_NAME = "web-token"
 COOKIE = "trimeter_token"

@@ -183,7 +183,7 @@ class Jobs:
     def _read_device(self) -> None:
         """What the status shows of the device and is only read between jobs: its configuration and
         whether its active map table is the one this host fits with."""
-        from trimeter.sequences.measure import map_for_thickness
+        from trimeter.sequences.measure import prepare_fit, resolve_samples
 
         service = self.service
         try:
@@ -191,7 +191,8 @@ class Jobs:
         except TrimeterError as exc:
             config = {"error": str(exc)}
         try:
-            table = service.device_table(map_for_thickness(*service.settings.serve_samples[0]))
+            prepared = prepare_fit(resolve_samples(service.settings.serve_samples[:1]), service.settings.method)
+            table = service.device_table(prepared).to_json()
         except TrimeterError as exc:
             table = {"error": str(exc)}
         with self._lock:

@@ -8,18 +8,18 @@ atomic; its measurement.json names the record it came from (`refit_of`).
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
+from trimeter.domain import (Calibration, Capture, Measurement, Provenance, RawSample, Reflectances, Sample,
+                             SampleCapture)
 from trimeter.errors import InputError, OutputError
-from trimeter.inversion.api import METHODS
 from trimeter.inversion.flags import advice
 from trimeter.maps.appearance import AppearanceMap
-from trimeter.results import Measurement
-from trimeter.results.writer import _tags as file_tags, write_measurement
-from trimeter.sequences.measure import check_map_thicknesses, fit_reflectances, preflight
-from trimeter.sequences.reflectance import Calibration, Capture, RawSample, Reflectances
+from trimeter.results.writer import file_tags, write_measurement
+from trimeter.sequences.measure import prepare_fit
 
 SETUPS = ("black", "white", "collimated")
 
@@ -74,23 +74,19 @@ def load_capture(directory: Path) -> tuple[Calibration, list[RawSample], list[Re
 def refit(directory: Path, maps: list[AppearanceMap], method: str) -> Path:
     """Fit `directory`'s capture again with `maps` (one per thickness) and `method`; write a new results
     directory beside it and return its path."""
-    if method not in METHODS:
-        raise InputError(f"method: {method!r} is not one of {', '.join(METHODS)}")
     calibration, raws, refls, meta = load_capture(directory)
     declared = meta.get("declared_thicknesses_mm") or meta["thicknesses_mm"]
-    if len(maps) != len(refls):
+    if len(maps) != len(refls) or len(declared) != len(refls):
         raise InputError(f"{len(maps)} map(s) for {len(refls)} measured thickness(es)")
-    check_map_thicknesses(declared, maps)
-    preflight(maps, method)
-    combined, per = fit_reflectances(refls, maps, method=method)
-    new_meta = {key: value for key, value in meta.items()
-                if key not in ("written_utc", "figure", "medium", "timing", "advice", "link")}
-    new_meta.update({"method": method, "maps": [m.name for m in maps], "map_checksums": [m.checksum for m in maps],
-                     "map_thicknesses_mm": [m.thickness_mm for m in maps], "refit_of": directory.name,
-                     "advice": advice(combined.flags, len(maps))})
+    prepared = prepare_fit([Sample(float(t), amap) for t, amap in zip(declared, maps, strict=True)], method)
+    captures = [SampleCapture(sample, raw, refl) for sample, raw, refl in zip(prepared.samples, raws, refls,
+                                                                               strict=True)]
+    combined, per = prepared.fit(captures)
+    original = Provenance.from_record(meta)
+    provenance = replace(original, method=method, timing=None, link=None, refit_of=directory.name,
+                         advice=advice(combined.flags, len(maps)))
     try:
-        return write_measurement(directory.parent, Measurement(calibration, raws, refls, [float(t) for t in
-                                                               meta["thicknesses_mm"]], combined, per, meta=new_meta),
-                                 label=meta.get("label") or None)
+        return write_measurement(directory.parent, Measurement(calibration, captures, combined, per, provenance),
+                                 label=original.label or None)
     except OSError as exc:
         raise OutputError(f"the re-fit could not be written to {directory.parent} ({exc})") from None
