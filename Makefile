@@ -24,29 +24,43 @@ help:
 setup:
 	@bash tools/setup.sh
 
-# The compiled inversion kernel, loaded with ctypes (trimeter.inversion.native); without it the
-# numpy kernel runs (same results, slower).
-NATIVE_LIB := host/trimeter/inversion/native/libtrimeter_invert.so
-$(NATIVE_LIB): host/trimeter/inversion/native/invert.c
-	$(CC) -O2 -std=c11 -Wall -Wextra -Werror -shared -fPIC -o $@ $< -lm
+# The compiled inversion kernel, loaded with ctypes (trimeter.inversion.native), rebuilt whenever one
+# of its sources changes. Its boundary is invert.h; invert_abi.h and invert_h.py are generated from it.
+# The library carries a hash of its sources: Python names a library older than them and runs numpy.
+NATIVE_DIR := host/trimeter/inversion/native
+NATIVE_LIB := $(NATIVE_DIR)/libtrimeter_invert.so
+NATIVE_GEN := $(NATIVE_DIR)/invert_abi.h $(NATIVE_DIR)/invert_h.py
+NATIVE_SOURCES = $(sort $(wildcard $(NATIVE_DIR)/*.c $(NATIVE_DIR)/*.h) $(NATIVE_DIR)/invert_abi.h)
+# the core the firmware links too (library.c adds the host's malloc'd entry points)
+NATIVE_CORE := $(addprefix $(NATIVE_DIR)/,lookups.c newton.c simd.c pipeline.c)
+$(NATIVE_GEN) &: $(NATIVE_DIR)/invert.h tools/gen_native.py
+	python3 -m tools.gen_native
+$(NATIVE_LIB): $(NATIVE_SOURCES) $(NATIVE_GEN)
+	$(CC) -O2 -std=c11 -Wall -Wextra -Werror -shared -fPIC \
+	  -DTM_SOURCE_HASH=0x$$(cat $(NATIVE_SOURCES) | sha256sum | cut -c1-16)ULL \
+	  -o $@ $(filter %.c,$(NATIVE_SOURCES)) -lm
 
 native: $(NATIVE_LIB)
 
-# invert.c also builds, warning-free, where it has no AVX2 path (any non-x86 host, e.g. an ARM
+# The core also builds, warning-free, where it has no AVX2 path (any non-x86 host, e.g. an ARM
 # single-board computer next to the instrument): compiled for the firmware's Cortex-M4 toolchain,
 # which the firmware build needs anyway, as the stand-in for such a target.
-native-portable: setup
-	@mkdir -p build
-	arm-none-eabi-gcc -O2 -std=c11 -Wall -Wextra -Werror -c -o build/invert-portable.o host/trimeter/inversion/native/invert.c
+native-portable: setup $(NATIVE_GEN)
+	@mkdir -p build/invert-portable
+	for src in $(NATIVE_CORE); do \
+	  arm-none-eabi-gcc -O2 -std=c11 -Wall -Wextra -Werror -c -o build/invert-portable/$$(basename $$src .c).o $$src \
+	  || exit 1; done
 
 # Generated files (register map -> C header, Python module, Markdown) are committed; check-gen fails
 # when one of them is stale, so nobody edits a generated file by hand.
 gen: setup
 	$(PY) tools/gen_registers.py
+	$(PY) -m tools.gen_native
 
 check-gen: setup
 	$(PY) tools/gen_registers.py --check
 	$(PY) -m tools.gen_hardware --check
+	$(PY) -m tools.gen_native --check
 
 # The build documentation and printable parts (hardware/README.md): bom.md, wiring.md and the pictures
 # in hardware/img (committed), STLs in build/hardware (not committed), all from hardware/*.toml.

@@ -1,120 +1,113 @@
-"""The compiled inversion kernel (invert.c next to this file), bound with ctypes.
+"""The compiled inversion kernel (the C sources next to this file), bound with ctypes.
 
 `make native` (part of `make setup`, so of `make test` and `make demo`) compiles it into
-libtrimeter_invert.so here. Without it — no C compiler, a plain `pip install`, or
-TRIMETER_NATIVE=0 in the environment — every caller falls back to the numpy kernel
-(trimeter.inversion.kernel), which is the reference the C code is tested against; results agree to
-~1e-9 (flags bit for bit), only the speed differs. `status()` says which one runs (the benchmark
-prints it).
+libtrimeter_invert.so here. Its boundary is declared once, in invert.h: tools/gen_native.py generates
+invert_h.py from it (ctypes structures, prototypes, flag bits, constants, the ABI hash), and a library
+built from another header, or from sources older than these, is refused by name.
+
+Which kernel runs is chosen by TRIMETER_KERNEL: `auto` (the default) runs the compiled one and, when
+it is missing, stale or does not load, the numpy kernel (trimeter.inversion.kernel, the reference the
+C code is tested against; same results, ~16× slower) with a NativeKernelWarning that says so and
+names `make native`; `numpy` runs the numpy kernel on purpose, without a warning (TRIMETER_NATIVE=0
+means the same); `native` requires the compiled one (NativeKernelError at import otherwise).
+`status()` says which one runs (the benchmark prints it).
 """
 
 from __future__ import annotations
 
 import ctypes
+import hashlib
 import os
+import warnings
 from pathlib import Path
 
 import numpy as np
 
+from trimeter.errors import TrimeterError
+from trimeter.inversion.native import invert_h
+
 LIBRARY = Path(__file__).with_name("libtrimeter_invert.so")
-ABI_VERSION = 15
+ABI_HASH = invert_h.ABI_HASH
+ABI_VERSION = ABI_HASH  # the name callers used before the hash replaced a hand-bumped number
+
+# The polish and in-scattering constants the numpy kernel shares with C (invert.h)
+STEP_RATIO = invert_h.STEP_RATIO
+INSCATTER_ONCE = invert_h.INSCATTER_ONCE
 
 _double_p = ctypes.POINTER(ctypes.c_double)
+_ForwardGridC = invert_h.ForwardGridStruct
+_InverseTableC = invert_h.InverseTableStruct
+_FitOptionsC = invert_h.FitOptionsStruct
+_OUTPUT_ROWS = invert_h.OUTPUT_ROWS
+
+REBUILD = "run `make native`, or set TRIMETER_KERNEL=numpy to run the numpy kernel on purpose"
 
 
-class _ForwardGridC(ctypes.Structure):
-    _fields_ = [("na", ctypes.c_int32), ("ns", ctypes.c_int32), ("ng", ctypes.c_int32),
-                ("alpha", _double_p), ("log_sigma_t", _double_p), ("g", _double_p),
-                ("inv_da", _double_p), ("inv_ds", _double_p), ("inv_dg", _double_p),
-                ("poly", _double_p),
-                ("alpha_lo", ctypes.c_double), ("alpha_hi", ctypes.c_double),
-                ("g_lo", ctypes.c_double), ("g_hi", ctypes.c_double),
-                ("thickness_mm", ctypes.c_double), ("stack_a", ctypes.c_double), ("stack_b", ctypes.c_double),
-                ("uniform_ds", ctypes.c_double),
-                # in-scattering into I_c on this grid's α and g nodes (ForwardGrid.inscatter_grid), or NULL
-                ("in_nt", ctypes.c_int32), ("inscatter_L", _double_p), ("in_inv_dt", ctypes.c_double),
-                ("in_tau_max", ctypes.c_double),
-                # the map's error variances of I_b, I_w on the grid's nodes (ForwardGrid.model_var), or NULL
-                ("model_var", _double_p)]
+class NativeKernelError(TrimeterError):
+    """TRIMETER_KERNEL=native, but the compiled kernel is missing, stale or does not load; or
+    TRIMETER_KERNEL has an unknown value."""
 
 
-class _InverseTableC(ctypes.Structure):
-    _fields_ = [("ns", ctypes.c_int32), ("ny", ctypes.c_int32), ("nx", ctypes.c_int32),
-                ("cells", _double_p), ("frame", _double_p), ("log_sigma_t", _double_p), ("inv_ds", _double_p),
-                ("uniform_ds", ctypes.c_double)]
+class NativeKernelWarning(UserWarning):
+    """The compiled kernel is missing, stale or does not load: the numpy kernel runs instead."""
 
 
-class _FitOptionsC(ctypes.Structure):
-    _fields_ = [(name, ctypes.c_double) for name in (
-        "noise_rel", "noise_abs", "mc_stderr", "ic_floor", "alpha_min_g", "input_tolerance", "ref_rho_b",
-        "ref_rho_w", "t_max", "t_valid", "step_tol", "step_tol_std", "underdetermined_alpha_std",
-        "underdetermined_g_std", "thickness_rel_std", "inscatter_rel_std", "std_check_alpha", "std_check_g",
-        "std_check_sigmas", "std_check_tol")] + [
-        ("iterations", ctypes.c_int32)]
+def source_hash(directory: Path = LIBRARY.parent) -> int | None:
+    """The hash `make native` compiles into the library (tm_source_hash): 64 bits of SHA-256 over the
+    kernel's .c and .h files in name order; None where the sources are not installed."""
+    files = sorted(p for p in directory.iterdir() if p.suffix in (".c", ".h"))
+    if not files:
+        return None
+    digest = hashlib.sha256(b"".join(p.read_bytes() for p in files)).hexdigest()
+    return int(digest[:16], 16)
 
 
-# The rows of tm_fit's output block (invert.c tm_fit_outputs), in order; flags are int64.
-_OUTPUT_ROWS = ("alpha", "sigma_t", "g", "alpha_std", "sigma_t_std", "g_std", "sigma_t_beer", "flags",
-                "conditioning_alpha_std", "conditioning_g_std")
+def _choice() -> str:
+    if os.environ.get("TRIMETER_NATIVE") == "0":
+        return "numpy"
+    choice = os.environ.get("TRIMETER_KERNEL", "auto").strip().lower() or "auto"
+    if choice not in ("auto", "native", "numpy"):
+        raise NativeKernelError(f"TRIMETER_KERNEL must be auto, native or numpy, not {choice!r}")
+    return choice
 
 
-# A polish step at most this fraction of the one before it also ends a bin's polish when the next
-# step, extrapolated at that rate, would be below κ of the noise std (kernel.step_is_small, invert.c
-# STEP_RATIO; the library is refused if its value differs).
-STEP_RATIO = 0.25
-# The in-scattering correction takes L = ln(1 + r) a second time, at the moved σt, only where the first
-# is above this (ForwardGrid.correct_inscatter, invert.c INSCATTER_ONCE; checked like STEP_RATIO).
-INSCATTER_ONCE = 1e-3
-
-# tm_flag_bits order; the library is refused if its bits differ from FitFlag's
-_FLAG_ORDER = ("NONFINITE_INPUT", "NEGATIVE_INPUT", "ABOVE_ONE", "BLACK_NOT_BELOW_WHITE", "IC_BELOW_FLOOR",
-               "G_UNDEFINED", "OUTSIDE_MAP", "NOT_CONVERGED", "BAD_BACKGROUND", "UNDERDETERMINED", "STD_APPROXIMATE")
-
-
-def _load():
-    if os.environ.get("TRIMETER_NATIVE", "1") == "0":
-        return None, "disabled by TRIMETER_NATIVE=0"
+def _open():
+    """(the library, '') when it is current and loads, else (None, why not)."""
     if not LIBRARY.is_file():
-        return None, f"{LIBRARY.name} not built (run `make native`)"
+        return None, f"{LIBRARY.name} is not built"
     try:
         lib = ctypes.CDLL(str(LIBRARY))
     except OSError as exc:
         return None, f"{LIBRARY.name} does not load ({exc})"
-    if lib.tm_abi_version() != ABI_VERSION:
-        return None, f"{LIBRARY.name} is stale (ABI {lib.tm_abi_version()}, expected {ABI_VERSION}; run `make native`)"
-    size_t, vp = ctypes.c_size_t, ctypes.c_void_p  # arrays go in as raw addresses (see _addr)
-    lib.tm_solve_alpha_g.restype = ctypes.c_int
-    lib.tm_solve_alpha_g.argtypes = [ctypes.POINTER(_ForwardGridC), ctypes.POINTER(_InverseTableC), size_t,
-                                     vp, vp, vp, vp, vp, ctypes.c_int, ctypes.c_double, vp, vp, vp, vp, vp]
-    lib.tm_propagate.restype = None
-    lib.tm_propagate.argtypes = [size_t, vp, vp, vp, vp, vp, vp]
-    lib.tm_fit_scratch_size.restype = size_t
-    lib.tm_fit_scratch_size.argtypes = [size_t]
-    lib.tm_fit_prepare.restype = None
-    lib.tm_fit_prepare.argtypes = [ctypes.POINTER(_ForwardGridC), ctypes.POINTER(_FitOptionsC), size_t,
-                                   vp, vp, vp, vp, vp, vp, vp, vp, ctypes.c_double,
-                                   ctypes.c_double, vp]
-    lib.tm_fit_solve.restype = ctypes.c_longlong
-    lib.tm_fit_solve.argtypes = [ctypes.POINTER(_ForwardGridC), ctypes.POINTER(_InverseTableC),
-                                 ctypes.POINTER(_FitOptionsC), size_t, vp, vp, vp, vp]
-    lib.tm_fit.restype = ctypes.c_longlong
-    lib.tm_fit.argtypes = [ctypes.POINTER(_ForwardGridC), ctypes.POINTER(_InverseTableC),
-                           ctypes.POINTER(_FitOptionsC), size_t, vp, vp, vp, vp, vp, vp, vp, vp,
-                           vp]
-    from trimeter.inversion.flags import FitFlag
+    try:
+        built_for = lib.tm_abi_hash
+    except AttributeError:
+        return None, f"{LIBRARY.name} is stale (it has no tm_abi_hash: built before invert.h)"
+    built_for.restype = ctypes.c_uint64
+    if built_for() != ABI_HASH:
+        return None, (f"{LIBRARY.name} is stale (built for another invert.h: ABI {built_for():016x}, "
+                      f"expected {ABI_HASH:016x})")
+    for name, (restype, argtypes) in invert_h.FUNCTIONS.items():
+        function = getattr(lib, name)
+        function.restype, function.argtypes = restype, argtypes
+    expected = source_hash()
+    if expected is not None and lib.tm_source_hash() != expected:
+        return None, f"{LIBRARY.name} is stale (older than the C sources beside it)"
+    return lib, ""
 
-    bits = (ctypes.c_int64 * len(_FLAG_ORDER))()
-    lib.tm_flag_bits(bits)
-    if list(bits) != [int(FitFlag[name]) for name in _FLAG_ORDER]:
-        return None, f"{LIBRARY.name} declares other flag bits than trimeter.inversion.flags (run `make native`)"
-    lib.tm_set_simd.restype = ctypes.c_int
-    lib.tm_set_simd.argtypes = [ctypes.c_int]
-    lib.tm_step_ratio.restype = ctypes.c_double
-    if lib.tm_step_ratio() != STEP_RATIO:
-        return None, f"{LIBRARY.name} stops the polish at another step ratio than trimeter (run `make native`)"
-    lib.tm_inscatter_once.restype = ctypes.c_double
-    if lib.tm_inscatter_once() != INSCATTER_ONCE:
-        return None, f"{LIBRARY.name} corrects in-scattering otherwise than trimeter (run `make native`)"
+
+def _load():
+    """(the library or None, the status line); warns or raises as TRIMETER_KERNEL asks."""
+    choice = _choice()
+    if choice == "numpy":
+        return None, "numpy kernel (chosen by TRIMETER_KERNEL=numpy)"
+    lib, why = _open()
+    if lib is None:
+        if choice == "native":
+            raise NativeKernelError(f"TRIMETER_KERNEL=native, but {why}: run `make native`")
+        warnings.warn(f"{why}: the numpy kernel runs instead, ~16× slower; {REBUILD}", NativeKernelWarning,
+                      stacklevel=2)
+        return None, f"numpy kernel ({why}; {REBUILD})"
     lanes = "AVX2, 4 bins per Newton step" if lib.tm_set_simd(1) else "scalar"
     return lib, f"compiled ({LIBRARY.name}, {lanes})"
 
@@ -134,7 +127,7 @@ def available() -> bool:
 
 
 def status() -> str:
-    """'compiled (…)' or why the numpy kernel runs instead."""
+    """'compiled (…)', or which numpy kernel runs and why."""
     return _STATUS
 
 
@@ -143,9 +136,9 @@ def _ptr(a: np.ndarray):
 
 
 def _addr(a: np.ndarray) -> int:
-    """The data address of a contiguous array. Through ctypes' buffer protocol (0.2 µs) when the
-    array is writable, else its __array_interface__ (0.8 µs; read-only or empty arrays): ~12 of
-    these per fit, against 20-30 µs of Python around a ~0.2 ms kernel call."""
+    """The data address of a contiguous array: through ctypes' buffer protocol when the array is
+    writable (the cheaper way; a fit takes a dozen), else its __array_interface__ (read-only or
+    empty arrays)."""
     try:
         return ctypes.addressof(ctypes.c_char.from_buffer(a))
     except (TypeError, ValueError):
@@ -220,9 +213,9 @@ class NativeSolver:
         return alpha, g, residual, J
 
     def _options(self, options: dict):
-        """The C options struct for fit()'s options, built once per distinct set: a ctypes struct
-        costs ~1 µs to build warm, ~10 µs right after the caches were flushed (one press-button
-        measurement), where a dict lookup costs neither."""
+        """The C options struct for fit()'s options, built once per distinct set: building a ctypes
+        struct costs more than the dict lookup, most of all in a cold cache (one press-button
+        measurement)."""
         key = tuple(options.items())
         ref = self._fit_options.get(key)
         if ref is None:
@@ -232,7 +225,7 @@ class NativeSolver:
         return ref
 
     def fit(self, I_b, I_w, I_c, rho_b, rho_w, *, sd=None, alpha0=None, g0=None, **options):
-        """One thickness's whole fit in one call (invert.c `tm_fit`, api._fit_one's reference path
+        """One thickness's whole fit in one call (invert.h `tm_fit`, api._fit_one's reference path
         operation for operation): a dict of the FitResult columns and `steps`, the Newton steps taken.
         sd: the intensities' stds (n, 3), or None for the noise model of `options`
         (trimeter.inversion.api.native_options(…))."""
@@ -252,7 +245,7 @@ class NativeSolver:
 
     def fit_guessed(self, I_b, I_w, I_c, rho_b, rho_w, guess, log_sigma_range, *, sd=None, **options):
         """fit() with the initial (α, g) from guess(features) → (n, 2), e.g. the MLP: the bins are
-        prepared once (invert.c `tm_fit_prepare`, which also writes the features, mlp.features with
+        prepared once (invert.h `tm_fit_prepare`, which also writes the features, mlp.features with
         ln σt clamped to log_sigma_range), then solved from that guess (`tm_fit_solve`; where the
         guess is not finite, from the table's)."""
         n = len(I_b)
@@ -278,8 +271,8 @@ class NativeSolver:
 
 
 def _fit_outputs(n: int):
-    """tm_fit's output block (rows _OUTPUT_ROWS; flags int64 in the last): one allocation, one
-    address; and the FitResult columns as its rows."""
+    """tm_fit's output block (rows invert_h.OUTPUT_ROWS; flags int64): one allocation, one address;
+    and the FitResult columns as its rows."""
     block = np.empty((len(_OUTPUT_ROWS), n))
     out = dict(zip(_OUTPUT_ROWS, block, strict=True))
     out["flags"] = out["flags"].view(np.int64)

@@ -1,0 +1,100 @@
+/* The map's tables read at a point: the inverse table's initial guess, the in-scattering table, the
+ * map's error variances, and the forward cells prefetched before the polish. The forward cell lookups
+ * and trilinear coefficients themselves are inline in invert_internal.h (every stage uses them). */
+#include "invert_internal.h"
+
+/* The table's guess at ln σt (already clamped to the forward grid, whose range is the table's):
+ * bilinear in the two slices bracketing it, blended linearly in ln σt (TableInverter.initial_guess). */
+void tmi_initial_guess(const tm_inverse_table *t, double log_sigma_t, double I_b, double I_w,
+                          double *alpha, double *g) {
+    double ws;
+    int is = find_cell_on(t->log_sigma_t, t->inv_ds, t->ns, t->uniform_ds, log_sigma_t, &ws);
+    /* a NaN intensity counts as 0 here (it would index outside the table); the polish then returns NaN */
+    double x = sqrt(I_b > 0.0 ? fmin(I_b, 1.0) : 0.0), y = sqrt(I_w > 0.0 ? fmin(I_w, 1.0) : 0.0);
+    double out_a = 0.0, out_g = 0.0;
+    for (int dk = 0; dk < 2; dk++) {
+        int k = is + dk;
+        double wk = dk ? ws : 1.0 - ws;
+        const double *fr = t->frame + (size_t)k * 6u;
+        double dx = x - fr[0], dy = y - fr[1];
+        double u = clampd(fr[2] * dx + fr[3] * dy, 0.0, t->nx - 1.0);
+        double v = clampd(fr[4] * dx + fr[5] * dy, 0.0, t->ny - 1.0);
+        int iu = (int)u, iv = (int)v;
+        if (iu > t->nx - 2) iu = t->nx - 2;
+        if (iv > t->ny - 2) iv = t->ny - 2;
+        double fu = u - iu, fv = v - iv;
+        const double *q = t->cells + (((size_t)k * (size_t)(t->ny - 1) + (size_t)iv) * (size_t)(t->nx - 1) + (size_t)iu) * 8u;
+        out_a += (q[0] + q[2] * fu + (q[4] + q[6] * fu) * fv) * wk;
+        out_g += (q[1] + q[3] * fu + (q[5] + q[7] * fu) * fv) * wk;
+    }
+    *alpha = out_a;
+    *g = out_g;
+}
+
+/* Every bin's first forward cell, found (kept as walk_cell's hints) and prefetched in one pass before
+ * the polish: a bin's cell is a random 192 B in a ~22 MB grid, so in a cold cache each first visit
+ * is a memory round trip that the polish would otherwise wait on bin by bin. (Prefetching the
+ * table's guess cells, or each bin's next cell after every step, did not pay.) */
+void tmi_prefetch_cells(const tm_forward_grid *f, size_t n, sigma_cell_t *cells, const double *alpha,
+                           const double *g) {
+    for (size_t i = 0; i < n; i++) {
+        double w;
+        int ia = find_cell(f->alpha, f->inv_da, f->na, alpha[i], &w);
+        int ig = find_cell(f->g, f->inv_dg, f->ng, g[i], &w);
+        cells[i].ia = ia;
+        cells[i].ig = ig;
+        const double *P = poly_row(f, ia, cells[i].is, ig);
+        __builtin_prefetch(P);
+        __builtin_prefetch(P + 8);
+        __builtin_prefetch(P + 16);
+    }
+}
+
+/* L = ln(1 + r) of the in-scattered light at (α cell ia/wa, σt, g cell ig/wg):
+ * ForwardGrid.inscatter_log1p, operation for operation. Trilinear; τ clamped to [0, in_tau_max]. */
+double tmi_inscatter_log1p(const tm_forward_grid *f, int ia, double wa, double sigma_t, int ig, double wg) {
+    double p = clampd(sigma_t * f->thickness_mm, 0.0, f->in_tau_max) * f->in_inv_dt;
+    double fi = floor(p);
+    fi = fi > f->in_nt - 2 ? f->in_nt - 2 : fi;
+    int it = (int)fi;
+    double wt = clampd(p - fi, 0.0, 1.0);
+    const size_t nt = (size_t)f->in_nt, ng = (size_t)f->ng;
+#define L_AT(i, j, k) f->inscatter_L[((size_t)(i) * nt + (size_t)(j)) * ng + (size_t)(k)]
+#define ALONG_G(i, j) lerp(L_AT(i, j, ig), L_AT(i, j, ig + 1), wg)
+    double value = lerp(lerp(ALONG_G(ia, it), ALONG_G(ia, it + 1), wt),
+                        lerp(ALONG_G(ia + 1, it), ALONG_G(ia + 1, it + 1), wt), wa);
+#undef ALONG_G
+#undef L_AT
+    return value;
+}
+
+
+/* The map's error variances of I_b, I_w at (α, the bin's σt cell, g): trilinear on model_var's nodes,
+ * along g, then σt, then α (ForwardGrid.model_variance). */
+void tmi_model_variance(const tm_forward_grid *f, const sigma_cell_t *c, double alpha, double g, double *var_b,
+                           double *var_w) {
+    double wa, wg, ws = c->ws;
+    /* from the last evaluation's cells (the solution is at most a step away): find_cell's result for any
+     * non-NaN (α, g), without its search */
+    int ia = c->ia < 0 ? find_cell(f->alpha, f->inv_da, f->na, alpha, &wa)
+                       : walk_from(f->alpha, f->inv_da, f->na, alpha, c->ia, &wa);
+    int ig = c->ig < 0 ? find_cell(f->g, f->inv_dg, f->ng, g, &wg) : walk_from(f->g, f->inv_dg, f->ng, g, c->ig, &wg);
+    int is = c->is;
+    double out[2];
+    for (int k = 0; k < 2; k++) {
+        double along_s[2];
+        for (int da = 0; da < 2; da++) {
+            double along_g[2];
+            for (int ds = 0; ds < 2; ds++) {
+                const double *v = f->model_var + ((((size_t)(ia + da) * (size_t)f->ns + (size_t)(is + ds)) *
+                                                   (size_t)f->ng + (size_t)ig) * 2u + (size_t)k);
+                along_g[ds] = v[0] + (v[2] - v[0]) * wg;
+            }
+            along_s[da] = along_g[0] + (along_g[1] - along_g[0]) * ws;
+        }
+        out[k] = along_s[0] + (along_s[1] - along_s[0]) * wa;
+    }
+    *var_b = out[0];
+    *var_w = out[1];
+}
+

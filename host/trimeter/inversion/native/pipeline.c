@@ -1,0 +1,338 @@
+/* The whole single-thickness fit: api._fit_one + _finish, bin by bin (the module comment of
+ * invert_internal.h says where the other stages live). */
+#include "invert_internal.h"
+#include "invert_abi.h"
+
+uint64_t tm_abi_hash(void) { return TM_ABI_HASH; }
+
+/* First-order standard deviations of (α, σt, g) from independent intensity noise (variances var_b,
+ * var_w of I_b, I_w; std sd_c of I_c) and a further variance var_s_extra of σt that (α, g) follow
+ * (the in-scattering correction's) through one bin's J, using its block structure
+ * (ForwardGrid.propagate). Infinite where the (α, g) block is singular. */
+static inline void propagate_one(const double *Ji, double var_b, double var_w, double sd_c, double var_s_extra,
+                                 double *std_a, double *std_s, double *std_g) {
+    double ds = sd_c / Ji[7]; /* σt's std from I_c, signed */
+    double var_s = ds * ds + var_s_extra;
+    double a = Ji[0], b = Ji[2], c = Ji[3], d = Ji[5];
+    double inv_det = 1.0 / (a * d - b * c);
+    /* inv = [[d, -b], [-c, a]] / det */
+    double i00 = d * inv_det, i01 = -b * inv_det, i10 = -c * inv_det, i11 = a * inv_det;
+    double c00 = var_b + Ji[1] * Ji[1] * var_s;
+    double c11 = var_w + Ji[4] * Ji[4] * var_s;
+    double c01 = Ji[1] * Ji[4] * var_s;
+    double va = i00 * (i00 * c00 + i01 * c01) + i01 * (i00 * c01 + i01 * c11);
+    double vg = i10 * (i10 * c00 + i11 * c01) + i11 * (i10 * c01 + i11 * c11);
+    double sa = sqrt(fabs(va)), sg = sqrt(fabs(vg));
+    *std_a = isnan(sa) ? INFINITY : sa;
+    *std_g = isnan(sg) ? INFINITY : sg;
+    *std_s = sqrt(var_s);
+}
+
+/* trimeter.inversion.api._fit_one + _finish for one thickness, bin by bin: input flags → σt from
+ * I_c (exact inverse of the Fresnel stack; the floor's σt, a lower bound, under ic_floor) → (α, g)
+ * by guess + polish → flags for not converged / outside the map / g undefined → first-order stds →
+ * NaN for unusable bins. The numpy path in api.py is the reference (same operations, same order);
+ * tests/inversion/test_native_kernel.py checks both bin for bin, flags included. */
+
+/* The rows of a fit's output block (enum tm_row) */
+typedef struct {
+    double *alpha, *sigma_t, *g, *alpha_std, *sigma_t_std, *g_std, *sigma_t_beer;
+    int64_t *flags;
+    double *cond_alpha_std, *cond_g_std;
+} tm_fit_outputs;
+
+static tm_fit_outputs outputs_in(double *block, size_t n) {
+    tm_fit_outputs o = {block + TM_ROW_ALPHA * n,
+                        block + TM_ROW_SIGMA_T * n,
+                        block + TM_ROW_G * n,
+                        block + TM_ROW_ALPHA_STD * n,
+                        block + TM_ROW_SIGMA_T_STD * n,
+                        block + TM_ROW_G_STD * n,
+                        block + TM_ROW_SIGMA_T_BEER * n,
+                        (int64_t *)(block + TM_ROW_FLAGS * n),
+                        block + TM_ROW_CONDITIONING_ALPHA_STD * n,
+                        block + TM_ROW_CONDITIONING_G_STD * n};
+    return o;
+}
+
+/* beer_lambert_sigma_t: solve b·I·x² + a·x − I = 0 for x = exp(−σt ℓ) (the stable root); NaN where
+ * I_c is not in (0, t_valid]. */
+static inline double beer_lambert(const tm_forward_grid *f, const tm_fit_options *o, double I_c) {
+    if (!(isfinite(I_c) && I_c > 0.0 && I_c <= o->t_valid)) return NAN;
+    double a = f->stack_a;
+    double x = 2.0 * I_c / (a + sqrt(a * a + 4.0 * f->stack_b * I_c * I_c));
+    double sigma = -log(x) / f->thickness_mm;
+    return sigma > 0.0 ? sigma : 0.0;
+}
+
+static inline double sanitize(double x, double fill) { return isfinite(x) ? clampd(x, 0.0, 1.0) : fill; }
+
+/* One bin's input flags, sanitized stand-ins (unusable bins are computed on harmless stand-ins and
+ * blanked at the end), σt from I_c (under the floor the floor's σt, a lower bound; above
+ * T(σt = 0), σt = 0) and the Beer-Lambert consistency column: api._prepare. Returns the flags. */
+typedef struct { double lo, hi; } sigma_bounds_t; /* the grid's σt range, widened by 1e-6 for rounding */
+
+static sigma_bounds_t sigma_bounds(const tm_forward_grid *f) {
+    sigma_bounds_t b = {exp(f->log_sigma_t[0]) * (1 - 1e-6), exp(f->log_sigma_t[f->ns - 1]) * (1 + 1e-6)};
+    return b;
+}
+
+static int64_t prepare_bin(const tm_forward_grid *f, const tm_fit_options *o, sigma_bounds_t bounds, double Ib,
+                           double Iw, double Ic, double Rb, double Rw, double *ib, double *iw, double *rb, double *rw,
+                           double *sigma_t, double *sigma_beer) {
+    const double tol = o->input_tolerance;
+    int64_t fl = 0;
+    int finite = isfinite(Ib) && isfinite(Iw) && isfinite(Ic) && isfinite(Rb) && isfinite(Rw);
+    if (!finite) fl |= TM_FLAG_NONFINITE_INPUT;
+    if (Ib < -tol || Iw < -tol || Ic < -tol) fl |= TM_FLAG_NEGATIVE_INPUT;
+    if (Ib > 1 + tol || Iw > 1 + tol || Ic > 1 + tol) fl |= TM_FLAG_ABOVE_ONE;
+    if (finite && !(Rb >= 0 && Rb < Rw && Rw <= 1)) fl |= TM_FLAG_BAD_BACKGROUND;
+    if (finite && Ib >= Iw) fl |= TM_FLAG_BLACK_NOT_BELOW_WHITE;
+    int usable = !(fl & TM_FLAGS_UNUSABLE);
+    *ib = sanitize(Ib, 0.0);
+    *iw = sanitize(Iw, 1.0);
+    double ic = sanitize(Ic, 1.0);
+    *rb = usable ? Rb : o->ref_rho_b;
+    *rw = usable ? Rw : o->ref_rho_w;
+    if (usable && ic < o->ic_floor) fl |= TM_FLAG_IC_BELOW_FLOOR;
+    double s = beer_lambert(f, o, fmin(fmax(ic, o->ic_floor), o->t_max));
+    int in_range = isfinite(Ic) && Ic >= o->ic_floor && Ic <= o->t_max;
+    *sigma_beer = in_range ? s : beer_lambert(f, o, Ic);
+    if (usable && (s < bounds.lo || s > bounds.hi)) fl |= TM_FLAG_OUTSIDE_MAP;
+    *sigma_t = s;
+    return fl;
+}
+
+/* The first half of a fit: input flags, σt from I_c and the Beer-Lambert column into `outputs`, the
+ * sanitized inputs and σt cells into `scratch`; with `features` (n × 5 float32, else NULL) also the
+ * MLP's input (trimeter.inversion.mlp.features; ln σt clamped to [log_lo, log_hi]), so that the
+ * network's guess can go to tm_fit_solve without preparing the bins twice. */
+void tm_fit_prepare(const tm_forward_grid *f, const tm_fit_options *o, size_t n, const double *I_b, const double *I_w,
+                    const double *I_c, const double *rho_b, const double *rho_w, const double *sd_in, void *scratch,
+                    double *outputs, double log_lo, double log_hi, float *features) {
+    fit_scratch_t sc = carve_scratch(scratch, n);
+    const tm_fit_outputs o_ = outputs_in(outputs, n), *out = &o_;
+    const double mc2 = o->mc_stderr * o->mc_stderr, kappa2 = o->step_tol_std * o->step_tol_std;
+    const sigma_bounds_t bounds = sigma_bounds(f);
+    for (size_t i = 0; i < n; i++) {
+        double s, beer;
+        out->flags[i] = prepare_bin(f, o, bounds, I_b[i], I_w[i], I_c[i], rho_b[i], rho_w[i], &sc.ib[i], &sc.iw[i],
+                                    &sc.rb[i], &sc.rw[i], &s, &beer);
+        out->sigma_t_beer[i] = beer;
+        out->sigma_t[i] = s;
+        double sb = o->noise_rel * sc.ib[i] + o->noise_abs, sw = o->noise_rel * sc.iw[i] + o->noise_abs;
+        double sc_ = o->noise_rel * sanitize(I_c[i], 1.0) + o->noise_abs;
+        sc.cond_var_b[i] = sc.var_b[i] = sb * sb;
+        sc.cond_var_w[i] = sc.var_w[i] = sw * sw;
+        sc.cond_sd_c[i] = sc.sd_c[i] = sc_;
+        if (sd_in) { /* the intensities' own stds (n × 3; api.fit has put the noise model where they were missing) */
+            const double *sd = sd_in + i * 3u;
+            sc.var_b[i] = sd[0] * sd[0];
+            sc.var_w[i] = sd[1] * sd[1];
+            sc.sd_c[i] = sd[2];
+            sc.cond_var_b[i] = fmax(sc.var_b[i], sc.cond_var_b[i]);
+            sc.cond_var_w[i] = fmax(sc.var_w[i], sc.cond_var_w[i]);
+            sc.cond_sd_c[i] = fmax(sc.sd_c[i], sc.cond_sd_c[i]);
+        }
+        /* (κ σ)², σ² the mean of I_b's and I_w's */
+        sc.step_var[i] = kappa2 * 0.5 * (sc.var_b[i] + sc.var_w[i] + 2.0 * mc2);
+        double ls = log(s);
+        sc.cells[i] = sigma_cell(f, ls, s);
+        if (features) {
+            float *xi = features + i * 5u;
+            xi[0] = (float)sqrt(sc.ib[i]); /* ib, iw: already in [0, 1] */
+            xi[1] = (float)sqrt(sc.iw[i]);
+            xi[2] = (float)clampd(s > 1e-30 ? ls : log(1e-30), log_lo, log_hi); /* as mlp.features */
+            xi[3] = (float)sc.rb[i];
+            xi[4] = (float)sc.rw[i];
+        }
+    }
+}
+
+/* In-scattered light in I_c (ForwardGrid.correct_inscatter, operation for operation): a measured I_c
+ * is T(σt)·e^L(α, σt, g), so with (α, g) solved, σt moves up by L/ℓ (ln T falls by ℓ per unit σt;
+ * the Fresnel stack adds at most 3.6e-3 of that slope), L taken again at the moved σt (it grows
+ * with σt), and (α, g) follow to first order so that (I_b, I_w) stay fitted: J2·δ(α, g) = −∂I/∂σt·δσt,
+ * solved as a Newton step (lm_step). One bin; Ji its 3 × 3
+ * Jacobian at the solution, which stays that of the result (first order). */
+
+static double correct_inscatter(const tm_forward_grid *f, const sigma_cell_t *c, const double *Ji, double *alpha,
+                                double *sigma_t, double *g) {
+    double wa, wg, s0 = *sigma_t;
+    int ia = c->ia < 0 ? find_cell(f->alpha, f->inv_da, f->na, *alpha, &wa)
+                       : walk_from(f->alpha, f->inv_da, f->na, *alpha, c->ia, &wa);
+    int ig = c->ig < 0 ? find_cell(f->g, f->inv_dg, f->ng, *g, &wg) : walk_from(f->g, f->inv_dg, f->ng, *g, c->ig, &wg);
+    double L = tmi_inscatter_log1p(f, ia, wa, s0, ig, wg);
+    if (!(L > 0.0)) return 0.0; /* nothing scattered in */
+    double s = s0 + L / f->thickness_mm;
+    /* L again at the moved σt: it changes σt by ~L·dL/dτ, below 1e-6 of σt where L ≤ TM_INSCATTER_ONCE */
+    if (L > TM_INSCATTER_ONCE) s = s0 + tmi_inscatter_log1p(f, ia, wa, s, ig, wg) / f->thickness_mm;
+    double ds = s - s0;
+    if (!(ds > 0.0)) return 0.0;
+    /* the residual the σt move alone would leave in (I_b, I_w), taken out by one step in (α, g) */
+    lm_step_t st = lm_step(Ji[0], Ji[2], Ji[3], Ji[5], Ji[1] * ds, Ji[4] * ds);
+    *alpha = clampd(*alpha + st.step_a, f->alpha_lo, f->alpha_hi);
+    *g = clampd(*g + st.step_g, f->g_lo, f->g_hi);
+    *sigma_t = s;
+    return ds;
+}
+
+/* One move (on_b: in I_b, else I_w; dI its signed size): the prediction's offset (da, dg) and where
+ * it lands clamped (a1, g1). */
+static inline void check_target(const tm_forward_grid *f, const check_t *k, int on_b, double dI, double *da,
+                                double *dg, double *a1, double *g1) {
+    double det = k->j11 * k->j22 - k->j12 * k->j21;
+    /* J2⁻¹'s column for I_b is (j22, −j21)/det, for I_w (−j12, j11)/det */
+    *da = on_b ? (k->j22 * dI) / det : (-k->j12 * dI) / det;
+    *dg = on_b ? (-k->j21 * dI) / det : (k->j11 * dI) / det;
+    *a1 = clampd(k->alpha + *da, f->alpha_lo, f->alpha_hi);
+    *g1 = clampd(k->g + *dg, f->g_lo, f->g_hi);
+}
+
+/* The check for the bins listed in idx (m of them), move by move with the bins innermost (their
+ * table reads, cells a few σ from the solution's, then overlap). Sets TM_FLAG_STD_APPROXIMATE in flags. */
+static void check_first_order(const tm_forward_grid *f, size_t m, const uint32_t *idx, const check_t *checks,
+                              sigma_cell_t *cells, const double *I_b, const double *I_w, const double *rho_b,
+                              const double *rho_w, double sigmas, int64_t *flags) {
+    for (int move = 0; move < 4; move++) {
+        int on_b = move < 2;
+        for (size_t j = 0; j < m; j++) {
+            size_t i = idx[j];
+            const check_t *k = &checks[i];
+            if (flags[i] & TM_FLAG_STD_APPROXIMATE) continue;
+            double dI = (move & 1 ? -sigmas : sigmas) * (on_b ? k->move_b : k->move_w);
+            double da, dg, a1, g1;
+            check_target(f, k, on_b, dI, &da, &dg, &a1, &g1);
+            abc_t e;
+            coefficients(f, &cells[i], a1, g1, 0, &e);
+            double gb, kb, gw, kw;
+            double rb = diffuse(e.v, rho_b[i], &gb, &kb) - (on_b ? I_b[i] + dI : I_b[i]);
+            double rw = diffuse(e.v, rho_w[i], &gw, &kw) - (on_b ? I_w[i] : I_w[i] + dI);
+            lm_step_t st = lm_step(directional(gb, kb, e.da), directional(gb, kb, e.dg), directional(gw, kw, e.da),
+                                   directional(gw, kw, e.dg), rb, rw);
+            double a2 = clampd(a1 + st.step_a, f->alpha_lo, f->alpha_hi);
+            double g2 = clampd(g1 + st.step_g, f->g_lo, f->g_hi);
+            if (!(fabs(a2 - k->alpha - da) <= k->limit_a && fabs(g2 - k->g - dg) <= k->limit_g))
+                flags[i] |= TM_FLAG_STD_APPROXIMATE;
+        }
+    }
+}
+
+/* The second half: the initial (α, g) from alpha0/g0 (the MLP's) or, where those are NULL or not
+ * finite (a broken network), from `table` (without one: the middle of the map's box); the polish,
+ * then flags for not converged / outside the map / g undefined / underdetermined, first-order stds
+ * and NaN for unusable bins. Returns the number of Newton steps taken (≥ 0), -1 on a malformed grid
+ * or a missing guess. */
+long long tm_fit_solve(const tm_forward_grid *f, const tm_inverse_table *table, const tm_fit_options *o, size_t n,
+                       const double *alpha0, const double *g0, void *scratch,
+                       double *outputs) {
+    if (!grid_ok(f, table) || (!alpha0 && !table) || (alpha0 && !g0) || n > UINT32_MAX) return -1;
+    fit_scratch_t sc = carve_scratch(scratch, n);
+    const tm_fit_outputs o_ = outputs_in(outputs, n), *out = &o_;
+    const double *ib = sc.ib, *iw = sc.iw, *rb = sc.rb, *rw = sc.rw;
+    sigma_cell_t *cells = sc.cells;
+    const double mc2 = o->mc_stderr * o->mc_stderr;
+    double *alpha = out->alpha, *g = out->g, *sigma_t = out->sigma_t;
+    for (size_t i = 0; i < n; i++) {
+        double a = alpha0 ? alpha0[i] : NAN, gg = g0 ? g0[i] : NAN;
+        if (!(isfinite(a) && isfinite(gg))) {
+            a = 0.5 * (f->alpha_lo + f->alpha_hi);
+            gg = 0.5 * (f->g_lo + f->g_hi);
+            if (table) tmi_initial_guess(table, cells[i].log_sigma_t, ib[i], iw[i], &a, &gg);
+        }
+        alpha[i] = clampd(a, f->alpha_lo, f->alpha_hi);
+        g[i] = clampd(gg, f->g_lo, f->g_hi);
+    }
+    tmi_prefetch_cells(f, n, cells, alpha, g);
+    size_t steps = tmi_polish(f, n, cells, ib, iw, rb, rw, o->iterations, o->step_tol, sc.step_var, alpha, g, sc.active,
+                          sc.evals);
+    const int g_lo_is_edge = f->g_lo > -1 + 1e-6, g_hi_is_edge = f->g_hi < 1 - 1e-6;
+    size_t checked = 0; /* bins for check_first_order, listed in sc.active (the polish is done with it) */
+    for (size_t i = 0; i < n; i++) {
+        double Ji[9];
+        int64_t fl = out->flags[i];
+        int usable = !(fl & TM_FLAGS_UNUSABLE);
+        double residual2 = tmi_final_residual2_and_jacobian(f, &cells[i], &sc.evals[i], alpha[i], g[i], ib[i], iw[i], rb[i],
+                                                        rw[i], Ji);
+        check_t *k = &sc.checks[i];
+        k->alpha = alpha[i];
+        k->g = g[i];
+        k->j11 = Ji[0];
+        k->j12 = Ji[2];
+        k->j21 = Ji[3];
+        k->j22 = Ji[5];
+        double ds_in = 0.0; /* the in-scattering correction of σt */
+        if (f->inscatter_L && !(fl & (TM_FLAGS_UNUSABLE | TM_FLAG_IC_BELOW_FLOOR | TM_FLAG_OUTSIDE_MAP)))
+            ds_in = correct_inscatter(f, &cells[i], Ji, &alpha[i], &sigma_t[i], &g[i]);
+        /* variances, not stds: only their sums are needed (sqrt(x² + y²), not hypot: these are small
+         * positive numbers, nothing to guard, and hypot is slower) */
+        double var_b = sc.var_b[i] + mc2, var_w = sc.var_w[i] + mc2;
+        double tolerance = 3.0 * sqrt(var_b + var_w) + 1e-4;
+        int not_conv = !(residual2 <= tolerance * tolerance); /* |residual| ≤ tolerance, squared */
+        int at_edge = (g[i] <= f->g_lo + 1e-9 && g_lo_is_edge) || (g[i] >= f->g_hi - 1e-9 && g_hi_is_edge);
+        if (usable && not_conv) fl |= TM_FLAG_NOT_CONVERGED;
+        if (usable && not_conv && at_edge) fl |= TM_FLAG_OUTSIDE_MAP;
+        double a = isfinite(alpha[i]) ? clampd(alpha[i], 0.0, 1.0) : NAN;
+        double gg = isfinite(g[i]) ? clampd(g[i], -1.0, 1.0) : NAN;
+        /* the map's own error at the solution, in place of its median MC std-error where the grid has it */
+        double model_b = mc2, model_w = mc2;
+        if (f->model_var) tmi_model_variance(f, &cells[i], alpha[i], g[i], &model_b, &model_w);
+        double sa, ss, sg, ds_rel = o->inscatter_rel_std * ds_in;
+        propagate_one(Ji, sc.var_b[i] + model_b, sc.var_w[i] + model_w, sc.sd_c[i], ds_rel * ds_rel, &sa, &ss, &sg);
+        double thick = o->thickness_rel_std * sigma_t[i];
+        ss = sqrt(ss * ss + thick * thick);
+        if (fl & TM_FLAG_IC_BELOW_FLOOR) ss = INFINITY;
+        if (usable && !(a >= o->alpha_min_g)) {
+            fl |= TM_FLAG_G_UNDEFINED;
+            gg = sg = NAN;
+        }
+        /* UNDERDETERMINED is the map's conditioning at no less than the instrument's noise model: a
+         * capture's frame scatter alone misses drift and calibration error, and one quiet capture
+         * must not make α and g look told apart where a realistic noise leaves them not */
+        double ua = sa, us = ss, ug = sg;
+        if (sc.cond_var_b[i] != sc.var_b[i] || sc.cond_var_w[i] != sc.var_w[i] || sc.cond_sd_c[i] != sc.sd_c[i]) {
+            propagate_one(Ji, sc.cond_var_b[i] + model_b, sc.cond_var_w[i] + model_w, sc.cond_sd_c[i], ds_rel * ds_rel,
+                          &ua, &us, &ug);
+            if (isnan(gg)) ug = NAN;
+        }
+        if (usable && (ua > o->underdetermined_alpha_std || ug > o->underdetermined_g_std)) fl |= TM_FLAG_UNDERDETERMINED;
+        if (!(fl & TM_FLAGS_STD_CHECK_SKIP) && isfinite(sa) && isfinite(sg) && (sa > o->std_check_alpha || sg > o->std_check_g)) {
+            k->move_b = sqrt(sc.var_b[i] + model_b);
+            k->move_w = sqrt(sc.var_w[i] + model_w);
+            k->limit_a = o->std_check_tol * o->std_check_sigmas * sa;
+            k->limit_g = o->std_check_tol * o->std_check_sigmas * sg;
+            sc.active[checked++] = (uint32_t)i;
+        }
+        if (!usable) {
+            a = gg = sa = ss = sg = ua = ug = NAN;
+            sigma_t[i] = out->sigma_t_beer[i] = NAN;
+        }
+        alpha[i] = a;
+        g[i] = gg;
+        out->alpha_std[i] = sa;
+        out->sigma_t_std[i] = ss;
+        out->g_std[i] = sg;
+        out->cond_alpha_std[i] = ua;
+        out->cond_g_std[i] = ug;
+        out->flags[i] = fl;
+    }
+    check_first_order(f, checked, sc.active, sc.checks, cells, ib, iw, rb, rw, o->std_check_sigmas, out->flags);
+    return (long long)steps;
+}
+
+/* First-order standard deviations for n bins (ForwardGrid.propagate); sigma_I is n × 3, sigma_t_var
+ * (n, or NULL) a further variance of σt that (α, g) follow. */
+void tm_propagate(size_t n, const double *J, const double *sigma_I, const double *sigma_t_var, double *std_a,
+                  double *std_s, double *std_g) {
+    for (size_t i = 0; i < n; i++) {
+        const double *s = sigma_I + i * 3u;
+        propagate_one(J + i * 9u, s[0] * s[0], s[1] * s[1], s[2], sigma_t_var ? sigma_t_var[i] : 0.0, &std_a[i],
+                      &std_s[i], &std_g[i]);
+    }
+}
+
+size_t tm_fit_scratch_size(size_t n) {
+    return (n ? n : 1) *
+           (11 * sizeof(double) + sizeof(sigma_cell_t) + sizeof(final_eval_t) + sizeof(check_t) + sizeof(uint32_t));
+}
+

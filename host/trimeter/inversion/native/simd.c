@@ -1,0 +1,192 @@
+/* newton_step (newton.c) for four bins at once with AVX2 (x86-64, chosen at run time; elsewhere, or with
+ * tm_set_simd(0), the scalar loop runs). The same operations in the same order, lane by lane, and no
+ * FMA (-std=c11 does not contract, and the target does not enable it): bit for bit the scalar
+ * result, which tests/inversion/test_native_kernel.py checks. Most of a step's arithmetic does not
+ * depend on the cell, and here it runs 4 lanes wide. Each lane still walks to its own cell (scalar: short loops), and its
+ * 24 polynomial coefficients are loaded as 6 rows of 4 and transposed. */
+#include "invert_internal.h"
+
+#ifdef TM_SIMD
+#include <immintrin.h>
+
+typedef __m256d v4;
+
+__attribute__((target("avx2"))) static inline v4 clamp4(v4 x, v4 lo, v4 hi) {
+    /* clampd: max_pd/min_pd return their second operand when either is NaN, as clampd keeps a NaN */
+    return _mm256_min_pd(hi, _mm256_max_pd(lo, x));
+}
+
+__attribute__((target("avx2"))) static inline v4 set4(double a, double b, double c, double d) {
+    return _mm256_set_pd(d, c, b, a);
+}
+
+/* rows[k] = (P0[k], P1[k], P2[k], P3[k]) for k = 4r .. 4r+3: one 4 × 4 transpose */
+__attribute__((target("avx2"))) static inline void transpose_rows(const double *P0, const double *P1, const double *P2,
+                                                                  const double *P3, int r, v4 *rows) {
+    v4 a = _mm256_loadu_pd(P0 + 4 * r), b = _mm256_loadu_pd(P1 + 4 * r);
+    v4 c = _mm256_loadu_pd(P2 + 4 * r), d = _mm256_loadu_pd(P3 + 4 * r);
+    v4 ab_lo = _mm256_unpacklo_pd(a, b), ab_hi = _mm256_unpackhi_pd(a, b);
+    v4 cd_lo = _mm256_unpacklo_pd(c, d), cd_hi = _mm256_unpackhi_pd(c, d);
+    rows[4 * r + 0] = _mm256_permute2f128_pd(ab_lo, cd_lo, 0x20);
+    rows[4 * r + 1] = _mm256_permute2f128_pd(ab_hi, cd_hi, 0x20);
+    rows[4 * r + 2] = _mm256_permute2f128_pd(ab_lo, cd_lo, 0x31);
+    rows[4 * r + 3] = _mm256_permute2f128_pd(ab_hi, cd_hi, 0x31);
+}
+
+/* step_is_small, four lanes: an all-ones lane where the step ends that parameter's polish */
+__attribute__((target("avx2"))) static inline v4 small4(v4 step, v4 last, v4 step_tol, v4 step_var, v4 h, v4 det) {
+    const v4 sign = _mm256_set1_pd(-0.0);
+    v4 a = _mm256_andnot_pd(sign, step);
+    v4 d2 = _mm256_mul_pd(_mm256_mul_pd(a, a), det);
+    v4 lim = _mm256_mul_pd(step_var, h);
+    v4 below_std = _mm256_cmp_pd(d2, lim, _CMP_LE_OQ);
+    v4 shrinking = _mm256_and_pd(
+        _mm256_cmp_pd(a, _mm256_mul_pd(_mm256_set1_pd(TM_STEP_RATIO), last), _CMP_LE_OQ),
+        _mm256_cmp_pd(_mm256_mul_pd(_mm256_mul_pd(d2, a), a), _mm256_mul_pd(_mm256_mul_pd(lim, last), last),
+                      _CMP_LE_OQ));
+    v4 positive = _mm256_cmp_pd(det, _mm256_setzero_pd(), _CMP_GT_OQ);
+    return _mm256_or_pd(_mm256_cmp_pd(a, step_tol, _CMP_LE_OQ),
+                        _mm256_and_pd(positive, _mm256_or_pd(below_std, shrinking)));
+}
+
+/* directional(grad_b, grad_c, d) = d0 + grad_b·d1 + grad_c·d2, four lanes */
+__attribute__((target("avx2"))) static inline v4 directional4(v4 gb, v4 gc, v4 d0, v4 d1, v4 d2) {
+    return _mm256_add_pd(_mm256_add_pd(d0, _mm256_mul_pd(gb, d1)), _mm256_mul_pd(gc, d2));
+}
+
+/* newton_step for the bins idx[0..3]; done[l] as newton_step returns it */
+__attribute__((target("avx2"))) void tmi_newton_step4(const tm_forward_grid *f, sigma_cell_t *cells,
+                                                         const uint32_t *idx, const double *I_b, const double *I_w,
+                                                         const double *rho_b, const double *rho_w, double step_tol,
+                                                         const double *step_var, double *alpha, double *g,
+                                                         final_eval_t *evals, int *done) {
+    const double *P[4];
+    double wa[4], wg[4], ws[4], ida[4], idg[4], ids[4], a0[4], g0[4];
+    for (int l = 0; l < 4; l++) {
+        sigma_cell_t *c = &cells[idx[l]];
+        a0[l] = alpha[idx[l]];
+        g0[l] = g[idx[l]];
+        int ia = walk_cell(f->alpha, f->inv_da, f->na, a0[l], &c->ia, &wa[l]);
+        int ig = walk_cell(f->g, f->inv_dg, f->ng, g0[l], &c->ig, &wg[l]);
+        P[l] = poly_row(f, ia, c->is, ig);
+        ws[l] = c->ws;
+        ida[l] = f->inv_da[ia];
+        idg[l] = f->inv_dg[ig];
+        ids[l] = f->inv_ds[c->is];
+    }
+    v4 T[24];
+    for (int r = 0; r < 6; r++) transpose_rows(P[0], P[1], P[2], P[3], r, T);
+    v4 Wa = _mm256_loadu_pd(wa), Wg = _mm256_loadu_pd(wg), Ws = _mm256_loadu_pd(ws);
+    v4 Ida = _mm256_loadu_pd(ida), Idg = _mm256_loadu_pd(idg), Ids = _mm256_loadu_pd(ids);
+    v4 V[3], DA[3], DG[3], DS[3];
+    for (int c = 0; c < 3; c++) { /* coefficients(), term by term */
+        v4 p0 = _mm256_add_pd(T[0 * 3 + c], _mm256_mul_pd(T[2 * 3 + c], Ws));
+        v4 p1 = _mm256_add_pd(T[1 * 3 + c], _mm256_mul_pd(T[4 * 3 + c], Ws));
+        v4 p3 = _mm256_add_pd(T[3 * 3 + c], _mm256_mul_pd(T[6 * 3 + c], Ws));
+        v4 p5 = _mm256_add_pd(T[5 * 3 + c], _mm256_mul_pd(T[7 * 3 + c], Ws));
+        V[c] = _mm256_add_pd(_mm256_add_pd(p0, _mm256_mul_pd(p1, Wa)),
+                             _mm256_mul_pd(_mm256_add_pd(p3, _mm256_mul_pd(p5, Wa)), Wg));
+        DA[c] = _mm256_mul_pd(_mm256_add_pd(p1, _mm256_mul_pd(p5, Wg)), Ida);
+        DG[c] = _mm256_mul_pd(_mm256_add_pd(p3, _mm256_mul_pd(p5, Wa)), Idg);
+        DS[c] = _mm256_mul_pd(_mm256_add_pd(_mm256_add_pd(T[2 * 3 + c], _mm256_mul_pd(T[4 * 3 + c], Wa)),
+                                            _mm256_mul_pd(_mm256_add_pd(T[6 * 3 + c], _mm256_mul_pd(T[7 * 3 + c], Wa)),
+                                                          Wg)),
+                              Ids);
+    }
+    const v4 one = _mm256_set1_pd(1.0);
+    v4 Rb = set4(rho_b[idx[0]], rho_b[idx[1]], rho_b[idx[2]], rho_b[idx[3]]);
+    v4 Rw = set4(rho_w[idx[0]], rho_w[idx[1]], rho_w[idx[2]], rho_w[idx[3]]);
+    /* diffuse(): I = A + B·fr, grad_B = fr = ρ/(1 − Cρ), grad_C = B·fr² */
+    v4 fb = _mm256_div_pd(Rb, _mm256_sub_pd(one, _mm256_mul_pd(V[2], Rb)));
+    v4 fw = _mm256_div_pd(Rw, _mm256_sub_pd(one, _mm256_mul_pd(V[2], Rw)));
+    v4 hb = _mm256_mul_pd(_mm256_mul_pd(V[1], fb), fb), hw = _mm256_mul_pd(_mm256_mul_pd(V[1], fw), fw);
+    v4 rb = _mm256_sub_pd(_mm256_add_pd(V[0], _mm256_mul_pd(V[1], fb)),
+                          set4(I_b[idx[0]], I_b[idx[1]], I_b[idx[2]], I_b[idx[3]]));
+    v4 rw = _mm256_sub_pd(_mm256_add_pd(V[0], _mm256_mul_pd(V[1], fw)),
+                          set4(I_w[idx[0]], I_w[idx[1]], I_w[idx[2]], I_w[idx[3]]));
+    v4 j11 = directional4(fb, hb, DA[0], DA[1], DA[2]), j12 = directional4(fb, hb, DG[0], DG[1], DG[2]);
+    v4 j21 = directional4(fw, hw, DA[0], DA[1], DA[2]), j22 = directional4(fw, hw, DG[0], DG[1], DG[2]);
+    v4 h11 = _mm256_add_pd(_mm256_mul_pd(j11, j11), _mm256_mul_pd(j21, j21));
+    v4 h22 = _mm256_add_pd(_mm256_mul_pd(j12, j12), _mm256_mul_pd(j22, j22));
+    v4 h12 = _mm256_add_pd(_mm256_mul_pd(j11, j12), _mm256_mul_pd(j21, j22));
+    v4 mu = _mm256_add_pd(_mm256_set1_pd(1e-9), _mm256_mul_pd(_mm256_set1_pd(1e-6), _mm256_add_pd(h11, h22)));
+    h11 = _mm256_add_pd(h11, mu);
+    h22 = _mm256_add_pd(h22, mu);
+    v4 b1 = _mm256_add_pd(_mm256_mul_pd(j11, rb), _mm256_mul_pd(j21, rw));
+    v4 b2 = _mm256_add_pd(_mm256_mul_pd(j12, rb), _mm256_mul_pd(j22, rw));
+    v4 det = _mm256_sub_pd(_mm256_mul_pd(h11, h22), _mm256_mul_pd(h12, h12));
+    const v4 sign = _mm256_set1_pd(-0.0);
+    v4 step_a = _mm256_div_pd(_mm256_xor_pd(sign, _mm256_sub_pd(_mm256_mul_pd(h22, b1), _mm256_mul_pd(h12, b2))), det);
+    v4 step_g = _mm256_div_pd(_mm256_xor_pd(sign, _mm256_sub_pd(_mm256_mul_pd(h11, b2), _mm256_mul_pd(h12, b1))), det);
+    step_a = clamp4(step_a, _mm256_set1_pd(-0.25), _mm256_set1_pd(0.25));
+    step_g = clamp4(step_g, _mm256_set1_pd(-0.5), _mm256_set1_pd(0.5));
+    v4 A0 = _mm256_loadu_pd(a0), G0 = _mm256_loadu_pd(g0);
+    v4 A1 = clamp4(_mm256_add_pd(A0, step_a), _mm256_set1_pd(f->alpha_lo), _mm256_set1_pd(f->alpha_hi));
+    v4 G1 = clamp4(_mm256_add_pd(G0, step_g), _mm256_set1_pd(f->g_lo), _mm256_set1_pd(f->g_hi));
+    double last_a[4], last_g[4], var[4];
+    for (int l = 0; l < 4; l++) {
+        last_a[l] = cells[idx[l]].last_step_a;
+        last_g[l] = cells[idx[l]].last_step_g;
+        var[l] = step_var ? step_var[idx[l]] : 0.0;
+    }
+    v4 Tol = _mm256_set1_pd(step_tol), Var = _mm256_loadu_pd(var);
+    v4 small = _mm256_and_pd(small4(step_a, _mm256_loadu_pd(last_a), Tol, Var, h22, det),
+                             small4(step_g, _mm256_loadu_pd(last_g), Tol, Var, h11, det));
+    /* the final evaluation's pieces (used for the lanes that end here in their cell) */
+    v4 dA = _mm256_sub_pd(A1, A0), dG = _mm256_sub_pd(G1, G0);
+    v4 ra = _mm256_add_pd(_mm256_add_pd(rb, _mm256_mul_pd(j11, dA)), _mm256_mul_pd(j12, dG));
+    v4 rwn = _mm256_add_pd(_mm256_add_pd(rw, _mm256_mul_pd(j21, dA)), _mm256_mul_pd(j22, dG));
+    v4 res2 = _mm256_add_pd(_mm256_mul_pd(ra, ra), _mm256_mul_pd(rwn, rwn));
+    v4 S = set4(cells[idx[0]].sigma_t, cells[idx[1]].sigma_t, cells[idx[2]].sigma_t, cells[idx[3]].sigma_t);
+    v4 js_b = _mm256_div_pd(directional4(fb, hb, DS[0], DS[1], DS[2]), S);
+    v4 js_w = _mm256_div_pd(directional4(fw, hw, DS[0], DS[1], DS[2]), S);
+    double out_a[4], out_g[4], sa[4], sg[4], r2[4], J[6][4];
+    _mm256_storeu_pd(out_a, A1);
+    _mm256_storeu_pd(out_g, G1);
+    _mm256_storeu_pd(sa, _mm256_andnot_pd(sign, step_a));
+    _mm256_storeu_pd(sg, _mm256_andnot_pd(sign, step_g));
+    _mm256_storeu_pd(r2, res2);
+    _mm256_storeu_pd(J[0], j11);
+    _mm256_storeu_pd(J[1], js_b);
+    _mm256_storeu_pd(J[2], j12);
+    _mm256_storeu_pd(J[3], j21);
+    _mm256_storeu_pd(J[4], js_w);
+    _mm256_storeu_pd(J[5], j22);
+    int mask = _mm256_movemask_pd(small);
+    for (int l = 0; l < 4; l++) {
+        uint32_t i = idx[l];
+        sigma_cell_t *c = &cells[i];
+        alpha[i] = out_a[l];
+        g[i] = out_g[l];
+        c->last_step_a = sa[l];
+        c->last_step_g = sg[l];
+        done[l] = (mask >> l) & 1;
+        if (done[l]) {
+            const double Jl[6] = {J[0][l], J[1][l], J[2][l], J[3][l], J[4][l], J[5][l]};
+            keep_final_eval(f, c, out_a[l], out_g[l], r2[l], Jl, &evals[i]);
+        }
+    }
+}
+
+static int simd_enabled = -1; /* -1: not decided yet */
+
+int tmi_use_simd(void) {
+    if (simd_enabled < 0) {
+        __builtin_cpu_init();
+        simd_enabled = __builtin_cpu_supports("avx2") ? 1 : 0;
+    }
+    return simd_enabled;
+}
+#endif
+
+int tm_set_simd(int enabled) {
+#ifdef TM_SIMD
+    simd_enabled = -1;
+    if (enabled) return tmi_use_simd();
+    simd_enabled = 0;
+#else
+    (void)enabled;
+#endif
+    return 0;
+}
+
