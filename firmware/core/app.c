@@ -205,7 +205,7 @@ static void run_map_command(uint16_t command)
     case TRIMETER_MAP_COMMAND_BEGIN_WRITE:
         if (unlock_repeat(REG_HR_MAP_COMMAND, command)) return;
         /* Flash erase stalls the CPU on the MCU: never while the step timer must run. */
-        if (motion_busy(&app.motion)) {
+        if (motion_busy(&app.motion) || fit_busy(&app.fit)) {
             app.map_op_status = TRIMETER_MAP_OP_STATUS_ERROR_STATE;
             return;
         }
@@ -233,7 +233,7 @@ static void run_map_command(uint16_t command)
         return;
     case TRIMETER_MAP_COMMAND_ACTIVATE:
         if (unlock_repeat(REG_HR_MAP_COMMAND, command)) return;
-        if (!app.upload.open || !app.upload.verified || motion_busy(&app.motion)) {
+        if (!app.upload.open || !app.upload.verified || motion_busy(&app.motion) || fit_busy(&app.fit)) {
             app.map_op_status = TRIMETER_MAP_OP_STATUS_ERROR_STATE;
             return;
         }
@@ -252,6 +252,19 @@ static void run_map_command(uint16_t command)
         app.map_op_status = TRIMETER_MAP_OP_STATUS_IDLE;
         return;
     default: return;
+    }
+}
+
+static uint8_t run_fit_command(uint16_t command)
+{
+    switch (command) {
+    case TRIMETER_FIT_COMMAND_RUN:
+        /* a fit's bins and results belong to one master's exchange: a broadcast has no reply to wait on */
+        if (mb_request_is_broadcast(&app.mb)) return MB_EX_ILLEGAL_FUNCTION;
+        return fit_start(&app.fit, &app.storage, app.hr[REG_HR_FIT_BIN_COUNT],
+                         regmap_get_f32(&app.hr[REG_HR_FIT_THICKNESS_MM]));
+    case TRIMETER_FIT_COMMAND_ABORT: fit_abort(&app.fit); return MB_OK;
+    default: return MB_OK;
     }
 }
 
@@ -350,6 +363,10 @@ static void fill_input_registers(uint16_t *ir)
     ir[REG_IR_LAMP_MONITOR_PANEL_LEFT] = lamp_monitor_counts(&app.lamp_monitor, HAL_LED_PANEL_LEFT);
     ir[REG_IR_LAMP_MONITOR_PANEL_RIGHT] = lamp_monitor_counts(&app.lamp_monitor, HAL_LED_PANEL_RIGHT);
     ir[REG_IR_LAMP_MONITOR_COLLIMATED] = lamp_monitor_counts(&app.lamp_monitor, HAL_LED_COLLIMATED);
+    ir[REG_IR_FIT_STATUS] = (uint16_t)app.fit.status;
+    ir[REG_IR_FIT_BINS_DONE] = app.fit.done;
+    ir[REG_IR_FIT_AVAILABLE] = fit_available();
+    regmap_put_u32(&ir[REG_IR_FIT_TABLE_CRC32], app.fit.table ? app.fit.table_crc32 : 0);
 }
 
 uint8_t app_read_regs(void *ctx, mb_table_t table, uint16_t addr, uint16_t n, uint16_t *out)
@@ -396,6 +413,7 @@ uint8_t app_write_regs(void *ctx, uint16_t addr, uint16_t n, const uint16_t *val
     config_t previous = app.cfg;
     app.cfg = candidate;
     if (covers(addr, n, REG_HR_COMMAND)) ex = run_command(app.hr[REG_HR_COMMAND]);
+    if (!ex && covers(addr, n, REG_HR_FIT_COMMAND)) ex = run_fit_command(app.hr[REG_HR_FIT_COMMAND]);
     if (ex) {
         memcpy(app.hr, before, sizeof before);
         app.cfg = previous;
@@ -431,6 +449,7 @@ uint8_t app_read_file(void *ctx, uint16_t file, uint16_t record, uint16_t n, uin
 {
     (void)ctx;
     static uint8_t bytes[2 * 125];
+    if (fit_is_file(file)) return fit_read_records(&app.fit, file, record, n, out);
     uint16_t which = app.hr[REG_HR_MAP_READ_SLOT];
     int slot = which == TRIMETER_MAP_SLOT_NONE ? storage_map_active(&app.storage) : (int)which - TRIMETER_MAP_SLOT_A;
     uint32_t offset;
@@ -450,6 +469,11 @@ uint8_t app_write_file(void *ctx, uint16_t file, uint16_t record, uint16_t n, co
     (void)ctx;
     static uint8_t bytes[2 * 125];
     uint32_t offset;
+    if (fit_is_file(file)) {
+        if (mb_request_is_broadcast(&app.mb)) return MB_EX_ILLEGAL_FUNCTION;
+        write_arrives();
+        return fit_write_records(&app.fit, file, record, n, vals);
+    }
     if (!app.upload.open || mb_request_is_broadcast(&app.mb)) return MB_EX_ILLEGAL_FUNCTION; /* no begin_write */
     write_arrives();
     if (n > 125 || !record_span(file, record, n, app.upload.expected_length, &offset))
@@ -486,6 +510,7 @@ void app_init(const hal_t *hal)
     motion_init(&app.motion, hal, &mc);
     actuators_init(&app.act, hal, app.boot_us);
     lamp_monitor_init(&app.lamp_monitor);
+    fit_init(&app.fit);
     for (int s = 0; s < HAL_SHUTTER_COUNT; s++) set_shutter((enum hal_shutter)s, false);
 
     app.mb_io = (mb_io_t){.read = io_read, .write = io_write, .now_us = io_now, .ctx = (void *)hal};
@@ -517,6 +542,7 @@ void app_poll(void)
     mb_poll(&app.mb);
     motion_poll(&app.motion, t);
     storage_poll(&app.storage, t);
+    fit_poll(&app.fit);
     if (app.unlock_open && t - app.unlock_us >= APP_UNLOCK_WINDOW_US) unlock_close(); /* before the clock wraps */
 
     bool moving = motion_busy(&app.motion);

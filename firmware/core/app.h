@@ -27,7 +27,10 @@
  *   - save_config with nothing changed writes nothing; erases are rate-limited and counted
  *     (storage.h): a refused save answers exception 06, a refused begin_write / activate sets
  *     map_op_status error_busy.
- *   - verify accepts only a map table whose header the firmware accepts (map_table.h): error_table. */
+ *   - verify accepts only a map table whose header the firmware accepts (map_table.h): error_table.
+ * On-device fit (fit_command, files fit_input / fit_output; fit.h): run is refused with an exception and
+ *   fit_status saying why; never by broadcast; while it runs, map begin_write / activate are refused
+ *   (error_state), so the table it reads in place cannot be erased under it. */
 #ifndef TRIMETER_APP_H
 #define TRIMETER_APP_H
 
@@ -36,6 +39,7 @@
 
 #include "actuators.h"
 #include "config.h"
+#include "fit.h"
 #include "hal.h"
 #include "lamp_monitor.h"
 #include "modbus.h"
@@ -55,6 +59,7 @@ typedef struct app {
     lamp_monitor_t lamp_monitor;
     storage_t storage;
     storage_map_session_t upload;
+    fit_t fit;
     uint16_t map_op_status;
     trimeter_fault_t app_fault; /* faults not from motion (storage) */
     int pending_command;        /* TRIMETER_COMMAND_* queued behind a running motion, 0 = none */

@@ -86,6 +86,11 @@ typedef struct hal {
     int (*storage_write)(void *ctx, enum hal_region region, uint32_t offset, const void *buf,
                          size_t len);
     int (*storage_erase)(void *ctx, enum hal_region region);
+    /* A map region's HAL_MAP_REGION_SIZE bytes, read in place (memory-mapped flash on the MCU, the storage
+     * image in RAM on the sim), so the fit reads its table without a 128 KiB copy. Valid until the next
+     * storage_write/erase of that region. NULL for another region, or a port that cannot map it (then
+     * the device cannot fit). */
+    const uint8_t *(*storage_map_bytes)(void *ctx, enum hal_region region);
 
     void (*watchdog_kick)(void *ctx);
 } hal_t;

@@ -17,6 +17,8 @@ static float getf(const uint8_t *p)
     return f;
 }
 
+float map_table_thickness_mm(const uint8_t *header) { return getf(header + 52); }
+
 uint32_t map_table_size(uint32_t na, uint32_t ns, uint32_t ng, uint32_t nx, uint32_t ny)
 {
     /* header, axes + (offset, step) of A, B, C, the u16 coefficients, the inverse frames, the two
@@ -36,7 +38,7 @@ enum map_table_verdict map_table_check(const uint8_t *h, uint32_t length, uint32
     uint16_t na = get16(h + 72), ns = get16(h + 74), ng = get16(h + 76), nx = get16(h + 78), ny = get16(h + 80);
     if (na < 2 || ns < 2 || ng < 2 || nx < 2 || ny < 2 || map_table_size(na, ns, ng, nx, ny) != length)
         return MAP_TABLE_BAD_GRID;
-    float n = getf(h + 48), thickness = getf(h + 52), rho_b = getf(h + 60), rho_w = getf(h + 64);
+    float n = getf(h + 48), thickness = map_table_thickness_mm(h), rho_b = getf(h + 60), rho_w = getf(h + 64);
     /* the comparisons are false for NaN, so a NaN anywhere fails them */
     if (!(n >= 1.0f && isfinite(n)) || !(thickness > 0.0f && thickness <= MAP_TABLE_MAX_THICKNESS_MM) ||
         !(rho_b >= 0.0f && rho_b < rho_w && rho_w <= 1.0f))

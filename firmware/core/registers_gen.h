@@ -8,7 +8,7 @@
 #include <stdint.h>
 
 /* ---- identity */
-#define TRIMETER_REGMAP_HASH 0xC7026EF1u
+#define TRIMETER_REGMAP_HASH 0x3FD4B190u
 #define TRIMETER_FIRMWARE_VERSION "0.1.0"
 #define TRIMETER_FIRMWARE_VERSION_MAJOR 0u
 #define TRIMETER_FIRMWARE_VERSION_MINOR 1u
@@ -202,6 +202,96 @@ static inline const char *trimeter_map_op_status_name(unsigned value) /* else "u
     }
 }
 typedef enum {
+    TRIMETER_FIT_FILE_INPUT = 100,
+    TRIMETER_FIT_FILE_OUTPUT = 101,
+} trimeter_fit_file_t;
+static inline const char *trimeter_fit_file_name(unsigned value) /* else "unknown" */
+{
+    switch (value) {
+    case 100u: return "input";
+    case 101u: return "output";
+    default: return "unknown";
+    }
+}
+typedef enum {
+    TRIMETER_FIT_INPUT_WORD_I_B = 0,
+    TRIMETER_FIT_INPUT_WORD_I_W = 2,
+    TRIMETER_FIT_INPUT_WORD_I_C = 4,
+    TRIMETER_FIT_INPUT_WORD_RHO_B = 6,
+    TRIMETER_FIT_INPUT_WORD_RHO_W = 8,
+    TRIMETER_FIT_INPUT_WORD_STRIDE = 10,
+} trimeter_fit_input_word_t;
+static inline const char *trimeter_fit_input_word_name(unsigned value) /* else "unknown" */
+{
+    switch (value) {
+    case 0u: return "i_b";
+    case 2u: return "i_w";
+    case 4u: return "i_c";
+    case 6u: return "rho_b";
+    case 8u: return "rho_w";
+    case 10u: return "stride";
+    default: return "unknown";
+    }
+}
+typedef enum {
+    TRIMETER_FIT_OUTPUT_WORD_ALPHA = 0,
+    TRIMETER_FIT_OUTPUT_WORD_SIGMA_T = 2,
+    TRIMETER_FIT_OUTPUT_WORD_G = 4,
+    TRIMETER_FIT_OUTPUT_WORD_FLAGS = 6,
+    TRIMETER_FIT_OUTPUT_WORD_STRIDE = 7,
+} trimeter_fit_output_word_t;
+static inline const char *trimeter_fit_output_word_name(unsigned value) /* else "unknown" */
+{
+    switch (value) {
+    case 0u: return "alpha";
+    case 2u: return "sigma_t";
+    case 4u: return "g";
+    case 6u: return "flags";
+    case 7u: return "stride";
+    default: return "unknown";
+    }
+}
+typedef enum {
+    TRIMETER_FIT_COMMAND_NONE = 0,
+    TRIMETER_FIT_COMMAND_RUN = 1,
+    TRIMETER_FIT_COMMAND_ABORT = 2,
+} trimeter_fit_command_t;
+static inline const char *trimeter_fit_command_name(unsigned value) /* else "unknown" */
+{
+    switch (value) {
+    case 0u: return "none";
+    case 1u: return "run";
+    case 2u: return "abort";
+    default: return "unknown";
+    }
+}
+typedef enum {
+    TRIMETER_FIT_STATUS_IDLE = 0,
+    TRIMETER_FIT_STATUS_BUSY = 1,
+    TRIMETER_FIT_STATUS_DONE = 2,
+    TRIMETER_FIT_STATUS_ABORTED = 3,
+    TRIMETER_FIT_STATUS_ERROR_UNAVAILABLE = 4,
+    TRIMETER_FIT_STATUS_ERROR_NO_TABLE = 5,
+    TRIMETER_FIT_STATUS_ERROR_TABLE = 6,
+    TRIMETER_FIT_STATUS_ERROR_GEOMETRY = 7,
+    TRIMETER_FIT_STATUS_ERROR_CORE = 8,
+} trimeter_fit_status_t;
+static inline const char *trimeter_fit_status_name(unsigned value) /* else "unknown" */
+{
+    switch (value) {
+    case 0u: return "idle";
+    case 1u: return "busy";
+    case 2u: return "done";
+    case 3u: return "aborted";
+    case 4u: return "error_unavailable";
+    case 5u: return "error_no_table";
+    case 6u: return "error_table";
+    case 7u: return "error_geometry";
+    case 8u: return "error_core";
+    default: return "unknown";
+    }
+}
+typedef enum {
     TRIMETER_UNLOCK_LOCKED = 0,
     TRIMETER_UNLOCK_KEY = 23294,
 } trimeter_unlock_t;
@@ -250,7 +340,7 @@ static inline const char *trimeter_unlock_name(unsigned value) /* else "unknown"
 #define REG_DI_HOMED 4u
 
 /* ---- input_registers */
-#define REG_IR_SPAN 75u /* one past the highest used address */
+#define REG_IR_SPAN 86u /* one past the highest used address */
 #define REG_IR_VENDOR_ID 0u
 #define REG_IR_MODEL_ID 1u
 #define REG_IR_FIRMWARE_VERSION_MAJOR 2u
@@ -286,6 +376,10 @@ static inline const char *trimeter_unlock_name(unsigned value) /* else "unknown"
 #define REG_IR_LAMP_MONITOR_PANEL_LEFT 72u
 #define REG_IR_LAMP_MONITOR_PANEL_RIGHT 73u
 #define REG_IR_LAMP_MONITOR_COLLIMATED 74u
+#define REG_IR_FIT_STATUS 80u
+#define REG_IR_FIT_BINS_DONE 81u
+#define REG_IR_FIT_AVAILABLE 82u
+#define REG_IR_FIT_TABLE_CRC32 84u
 
 /* ---- holding_registers */
 #define REG_HR_SPAN 95u /* one past the highest used address */
@@ -329,6 +423,18 @@ static inline const char *trimeter_unlock_name(unsigned value) /* else "unknown"
 #define REG_HR_MAP_COMMAND_DEFAULT 0u
 #define REG_HR_MAP_COMMAND_MIN 0u
 #define REG_HR_MAP_COMMAND_MAX 4u
+#define REG_HR_FIT_BIN_COUNT 24u
+#define REG_HR_FIT_BIN_COUNT_DEFAULT 1u
+#define REG_HR_FIT_BIN_COUNT_MIN 1u
+#define REG_HR_FIT_BIN_COUNT_MAX 256u
+#define REG_HR_FIT_THICKNESS_MM 25u
+#define REG_HR_FIT_THICKNESS_MM_DEFAULT 0.0f
+#define REG_HR_FIT_THICKNESS_MM_MIN 0.0f
+#define REG_HR_FIT_THICKNESS_MM_MAX 100.0f
+#define REG_HR_FIT_COMMAND 27u
+#define REG_HR_FIT_COMMAND_DEFAULT 0u
+#define REG_HR_FIT_COMMAND_MIN 0u
+#define REG_HR_FIT_COMMAND_MAX 2u
 #define REG_HR_STEPS_PER_MM 64u
 #define REG_HR_STEPS_PER_MM_DEFAULT 80.0f
 #define REG_HR_STEPS_PER_MM_MIN 1.0f
@@ -435,7 +541,7 @@ typedef struct {
     float min_f, max_f, def_f; /* f32 */
 } regmap_entry_t;
 
-#define REGMAP_ENTRY_COUNT 78u
+#define REGMAP_ENTRY_COUNT 85u
 extern const regmap_entry_t regmap_entries[REGMAP_ENTRY_COUNT];
 
 #endif

@@ -206,6 +206,18 @@ int storage_map_write(storage_t *st, int slot, uint32_t offset, const uint8_t *d
     return STORAGE_OK;
 }
 
+const uint8_t *storage_map_active_bytes(const storage_t *st, uint32_t *length, uint32_t *crc32)
+{
+    int slot = storage_map_active(st);
+    if (slot < 0 || !st->hal->storage_map_bytes) return NULL;
+    const uint8_t *bytes = st->hal->storage_map_bytes(st->hal->ctx, (enum hal_region)(HAL_REGION_MAP_A + slot));
+    if (bytes) {
+        *length = st->map[slot].length;
+        *crc32 = st->map[slot].crc32;
+    }
+    return bytes;
+}
+
 int storage_map_read(const storage_t *st, int slot, uint32_t offset, uint8_t *data, uint32_t len)
 {
     if (slot < 0 || slot >= STORAGE_MAP_SLOTS || offset > map_region_size() || len > map_region_size() - offset)

@@ -17,13 +17,18 @@
  *   - an erase happens only in a request that arrived while an unlock window was open, at most one
  *     per unlock; erases since boot never exceed the rate limit's budget;
  *   - a valid map slot always holds a table whose header map_table_check accepts;
- *   - state and fault stay inside their enums. */
+ *   - state and fault stay inside their enums;
+ *   - the on-device fit (a stand-in for the inverse core, defined here, checks the seam's contract): the
+ *     core is called only during a run, with the active slot's bytes in place and its committed length,
+ *     at most FIT_BINS_PER_POLL bins at a time; the table it reads stays valid to the run's end;
+ *     fit_status stays in its enum and fit_bins_done never exceeds the run's count. */
 #include <stdbool.h>
 #include <stdlib.h>
 #include <string.h>
 
 #include "../core/app.h"
 #include "../core/crc.h"
+#include "../core/fit_core.h"
 #include "../core/map_table.h"
 #include "../core/regmap.h"
 #include "../tests/fake_hal.h"
@@ -78,6 +83,28 @@ static void boot(void)
 
 static uint8_t our_address(void) { return app_get()->mb.address; }
 
+/* ---------------------------------------------------------------- the inverse core's stand-in */
+
+int tr_fit_bins(const uint8_t *table, size_t len, const float *in, size_t n, float *out, uint16_t *flags)
+{
+    const app_t *a = app_get();
+    int slot = storage_map_active(&a->storage);
+    if (slot < 0 || table != f->map[slot] || len != a->storage.map[slot].length) abort();
+    if (n == 0) return table[84] == 'x' ? TR_FIT_ERR_TABLE : TR_FIT_OK; /* a table "of another format" */
+    if (a->fit.status != TRIMETER_FIT_STATUS_BUSY || n > FIT_BINS_PER_POLL || !in || !out || !flags) abort();
+    uint32_t stored = (uint32_t)(table[len - 4] | table[len - 3] << 8 | table[len - 2] << 16 |
+                                 (uint32_t)table[len - 1] << 24);
+    if (map_table_check(table, (uint32_t)len, crc32_update(0, table, len - 4), stored) != MAP_TABLE_OK) abort();
+    for (size_t i = 0; i < n; i++) {
+        const float *b = &in[i * TR_FIT_IN_PER_BIN];
+        flags[i] = 0;
+        for (int k = 0; k < TR_FIT_IN_PER_BIN; k++)
+            if (b[k] != b[k] || b[k] - b[k] != 0.0f) flags[i] = 1u; /* NaN or inf: NONFINITE_INPUT */
+        for (int k = 0; k < TR_FIT_OUT_PER_BIN; k++) out[i * TR_FIT_OUT_PER_BIN + k] = flags[i] ? b[k] - b[k] : b[k];
+    }
+    return table[85] == 'x' ? TR_FIT_ERR_ARGS : TR_FIT_OK; /* a core failing mid-run */
+}
+
 /* ---------------------------------------------------------------- invariants */
 
 static bool window_open(const app_t *a)
@@ -121,6 +148,9 @@ static void check_erases(const uint8_t *adu, uint64_t erases_before, uint64_t wr
 static void check_state(void)
 {
     if ((unsigned)app_state() > TRIMETER_STATE_FAULT || (unsigned)app_fault() > TRIMETER_FAULT_STORAGE) abort();
+    const fit_t *fit = &app_get()->fit;
+    if ((unsigned)fit->status > TRIMETER_FIT_STATUS_ERROR_CORE || fit->done > fit->count || fit->count > FIT_MAX_BINS)
+        abort();
     /* the rate limit: a burst, then one per refill interval */
     uint64_t budget = STORAGE_ERASE_BURST + (f->now_us - boot_us) / STORAGE_ERASE_REFILL_US;
     if (erases - erases_at_boot > budget) abort();
@@ -305,9 +335,40 @@ static void op_upload_table(cursor_t *c)
     write_reg(REG_HR_MAP_COMMAND, TRIMETER_MAP_COMMAND_ACTIVATE);
 }
 
+/* Bins into file fit_input (raw words from the input, so NaN, inf and anything else), then one FC 0x10 of
+ * count, thickness (the fixture tables' 0.4 mm, or raw) and fit_command, some time, and a read of results. */
+static void op_fit(cursor_t *c)
+{
+    uint8_t how = take(c);
+    uint16_t bins = (uint16_t)(1u + take(c) % 24u), first = (uint16_t)(how & 0x20u ? take16(c) % 300u : 0u);
+    for (uint16_t b = 0; b < bins; b += 12) {
+        uint16_t n = (uint16_t)((bins - b < 12 ? bins - b : 12) * TRIMETER_FIT_INPUT_WORD_STRIDE);
+        uint16_t rec = (uint16_t)((first + b) * TRIMETER_FIT_INPUT_WORD_STRIDE);
+        uint8_t adu[MB_ADU_MAX + 2] = {pick_address(how >> 6), 0x15, (uint8_t)(7 + 2 * n), 6, 0,
+                                       TRIMETER_FIT_FILE_INPUT, (uint8_t)(rec >> 8), (uint8_t)rec, 0, (uint8_t)n};
+        for (uint16_t i = 0; i < n; i++) {
+            uint16_t w = take16(c);
+            adu[10 + 2 * i] = (uint8_t)(w >> 8);
+            adu[11 + 2 * i] = (uint8_t)w;
+        }
+        deliver(adu, 10u + 2u * n);
+    }
+    uint16_t params[REG_HR_FIT_COMMAND - REG_HR_FIT_BIN_COUNT + 1];
+    params[0] = how & 0x10u ? take16(c) : (uint16_t)(first + bins);
+    if (how & 0x01u) regmap_put_f32(&params[REG_HR_FIT_THICKNESS_MM - REG_HR_FIT_BIN_COUNT], 0.4f);
+    else regmap_put_u32(&params[REG_HR_FIT_THICKNESS_MM - REG_HR_FIT_BIN_COUNT], (uint32_t)take16(c) << 16 | take16(c));
+    params[REG_HR_FIT_COMMAND - REG_HR_FIT_BIN_COUNT] = how & 0x02u ? TRIMETER_FIT_COMMAND_ABORT : TRIMETER_FIT_COMMAND_RUN;
+    write_regs(pick_address(how >> 2), REG_HR_FIT_BIN_COUNT, (uint16_t)(sizeof params / sizeof *params), params);
+    run_ms(take(c) % 64u);
+    uint16_t rec = (uint16_t)(take(c) * 3u), n = (uint16_t)(1u + take(c) % 120u);
+    uint8_t read[] = {our_address(), 0x14, 7, 6, 0, how & 0x08u ? TRIMETER_FIT_FILE_INPUT : TRIMETER_FIT_FILE_OUTPUT,
+                      (uint8_t)(rec >> 8), (uint8_t)rec, 0, (uint8_t)n, 0, 0};
+    deliver(read, 10);
+}
+
 static void run_op(cursor_t *c)
 {
-    switch (take(c) % 10u) {
+    switch (take(c) % 11u) {
     case 0: op_frame(c); break;
     case 1: op_write_holding(c); break;
     case 2: op_raw(c); break;
@@ -317,6 +378,7 @@ static void run_op(cursor_t *c)
     case 6: op_plant(c); break;
     case 7: op_unlocked_command(c); break;
     case 8: op_upload_table(c); break;
+    case 10: op_fit(c); break;
     default: /* factory-fresh flash: lets the fuzzer get out of a state it cannot leave */
         if (take(c) == 0xA5u) {
             memset(f->config, 0xFF, sizeof f->config);

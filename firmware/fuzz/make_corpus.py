@@ -57,6 +57,9 @@ SEEDS = {
 
 # fuzz_app programs: one byte picks the operation (run_op: value % 10), its arguments follow.
 FRAME, WRITE_HOLDING, RAW, TIME, REBOOT, POWER_CUT, PLANT, UNLOCKED_COMMAND, UPLOAD = range(9)
+FIT = 10  # op_fit: how (0x01 the table's thickness, 0x02 abort, 0x20 an offset, 0xC0/0x0C addresses), bins, words...
+F32_04 = struct.pack(">f", 0.4)
+F32_NAN = struct.pack(">f", float("nan"))
 UNICAST, BROADCAST = 1, 0
 UNLOCK_KEY = (0x5A, 0xFE)
 SAVE, LOAD_DEFAULTS, HOME = 0x00, 0x01, 0x02
@@ -64,6 +67,10 @@ NO_UNLOCK, TWICE = 0x40, 0x20
 SLOT_WHITE_70 = bytes([WRITE_HOLDING, UNICAST, 68, 1, 0x42, 0x8C, 0, 0])  # f32 70.0 = 0x428C0000
 APP_SEEDS = {
     "upload_valid_table": bytes([UPLOAD, 0x0B, 1, 0, REBOOT]),
+    # a table, then 3 bins (one NaN I_c) fitted with the table's thickness, 20 ms, results read back
+    "fit_three_bins": bytes([UPLOAD, 0x0B, 1, 0, FIT, 0x45, 2]) + (F32_04 * 2 + F32_NAN + F32_04 * 2) * 3
+    + bytes([20, 0, 21]),
+    "fit_without_table": bytes([FIT, 0x44, 0]) + F32_04 * 5 + bytes([5, 0, 7]),
     "upload_table_bad_magic": bytes([UPLOAD, 0x0B, 2, 1, 0x00, 0x05, 0x77]),
     "upload_junk_with_fixed_crc": bytes([UPLOAD, 0x08 | 0x02, 3, 2, 0x00, 0x48, 0x09, 0x00, 0x50, 0x01]),
     "upload_activate_without_unlock": bytes([UPLOAD, 0x1B, 4, 0]),

@@ -129,6 +129,11 @@ static int f_erase(void *ctx, enum hal_region r)
     return 0;
 }
 
+static const uint8_t *f_map_bytes(void *ctx, enum hal_region r)
+{
+    return r == HAL_REGION_MAP_A || r == HAL_REGION_MAP_B ? region(ctx, r, 0, HAL_MAP_REGION_SIZE) : NULL;
+}
+
 fake_hal_t *fake_hal_new(void)
 {
     fake_hal_t *f = calloc(1, sizeof *f);
@@ -162,6 +167,7 @@ fake_hal_t *fake_hal_new(void)
         .storage_read = f_read,
         .storage_write = f_write,
         .storage_erase = f_erase,
+        .storage_map_bytes = f_map_bytes,
         .watchdog_kick = f_kick,
     };
     return f;

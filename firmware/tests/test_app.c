@@ -722,6 +722,26 @@ static uint32_t rnd(void)
     return rng_state;
 }
 
+/* This binary links no inverse core: the device says so and refuses every run, never making results up. */
+static void test_without_the_inverse_core_a_fit_is_refused_as_unavailable(void)
+{
+    fresh_device();
+    CHECK_EQ_INT(ir(REG_IR_FIT_AVAILABLE), 0);
+    CHECK_EQ_INT(ir(REG_IR_FIT_STATUS), TRIMETER_FIT_STATUS_IDLE);
+    uint16_t w[REG_HR_FIT_COMMAND - REG_HR_FIT_BIN_COUNT + 1] = {0};
+    w[0] = 1;
+    regmap_put_f32(&w[REG_HR_FIT_THICKNESS_MM - REG_HR_FIT_BIN_COUNT], 0.4f);
+    w[REG_HR_FIT_COMMAND - REG_HR_FIT_BIN_COUNT] = TRIMETER_FIT_COMMAND_RUN;
+    CHECK_EQ_INT(app_write_regs(NULL, REG_HR_FIT_BIN_COUNT, (uint16_t)(sizeof w / sizeof *w), w), MB_EX_ILLEGAL_FUNCTION);
+    CHECK_EQ_INT(ir(REG_IR_FIT_STATUS), TRIMETER_FIT_STATUS_ERROR_UNAVAILABLE);
+    CHECK_EQ_INT(ir(REG_IR_FIT_BINS_DONE), 0);
+    uint16_t out[1];
+    CHECK_EQ_INT(app_read_file(NULL, TRIMETER_FIT_FILE_OUTPUT, 0, 1, out), MB_EX_ILLEGAL_DATA_ADDRESS);
+    /* the refused write changed nothing, the command included */
+    CHECK_EQ_INT(app_read_regs(NULL, MB_TABLE_HOLDING_REGISTERS, REG_HR_FIT_COMMAND, 1, out), MB_OK);
+    CHECK_EQ_INT(out[0], TRIMETER_FIT_COMMAND_NONE);
+}
+
 static void send_frame(const uint8_t *adu, size_t len)
 {
     uint16_t crc = crc16_modbus(adu, len);
@@ -784,6 +804,7 @@ int main(void)
     RUN_TEST(test_destructive_commands_need_an_unlock_right_before);
     RUN_TEST(test_a_broadcast_never_unlocks_nor_runs_a_destructive_command);
     RUN_TEST(test_erases_are_rate_limited_and_counted);
+    RUN_TEST(test_without_the_inverse_core_a_fit_is_refused_as_unavailable);
     RUN_TEST(test_random_requests_never_break_the_app);
     fake_hal_free(f);
     return CHECK_SUMMARY();

@@ -173,6 +173,11 @@ void flash_io_read(uint32_t address, void *buf, size_t len)
     memcpy(buf, src + (address - FLASH_MEMORY_BASE), len);
 }
 
+const uint8_t *flash_io_map(uint32_t address)
+{
+    return ((fc.acr & FLASH_ACR_DCEN) ? fc.dcache_view : fc.memory) + (address - FLASH_MEMORY_BASE);
+}
+
 /* ---------------------------------------------------------------- the tests */
 
 static const struct {
@@ -331,6 +336,21 @@ static void test_erase_then_write_then_read_back_sees_the_new_bytes(void)
     CHECK_MEM(back, new, sizeof new);
 }
 
+static void test_map_regions_read_in_place_at_their_sectors_and_config_regions_do_not(void)
+{
+    /* the fit reads its table where it lies: the pointer must be the slot's sector, showing what was written */
+    fake_power_on();
+    const uint8_t table[4] = {0x89, 'T', 'R', 'L'};
+    CHECK_EQ_INT(flash_region_erase(NULL, HAL_REGION_MAP_B), 0);
+    CHECK_EQ_INT(flash_region_write(NULL, HAL_REGION_MAP_B, 0, table, sizeof table), 0);
+    const uint8_t *b = flash_region_map_bytes(NULL, HAL_REGION_MAP_B);
+    CHECK(b == flash_io_map(flash_sector_address(FLASH_STORAGE_SECTOR_MAP_B)));
+    CHECK_MEM(b, table, sizeof table);
+    CHECK(flash_region_map_bytes(NULL, HAL_REGION_MAP_A) == flash_io_map(flash_sector_address(FLASH_STORAGE_SECTOR_MAP_A)));
+    CHECK(flash_region_map_bytes(NULL, HAL_REGION_CONFIG_A) == NULL);
+    CHECK(flash_region_map_bytes(NULL, HAL_REGION_COUNT) == NULL);
+}
+
 int main(void)
 {
     RUN_TEST(test_each_region_is_one_whole_storage_sector);
@@ -342,5 +362,6 @@ int main(void)
     RUN_TEST(test_an_error_the_controller_raises_fails_the_write_and_is_cleared);
     RUN_TEST(test_a_stale_error_flag_does_not_fail_the_next_operation);
     RUN_TEST(test_erase_then_write_then_read_back_sees_the_new_bytes);
+    RUN_TEST(test_map_regions_read_in_place_at_their_sectors_and_config_regions_do_not);
     return CHECK_SUMMARY();
 }

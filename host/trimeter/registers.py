@@ -9,7 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from enum import IntEnum
 
-REGMAP_HASH = 0xC7026EF1
+REGMAP_HASH = 0x3FD4B190
 FIRMWARE_VERSION = (0, 1, 0)
 VENDOR_NAME = 'trimeter project'
 PRODUCT_CODE = 'TRIMETER-1'
@@ -107,6 +107,46 @@ class MapOpStatus(IntEnum):
     ERROR_TABLE = 9
 
 
+class FitFile(IntEnum):
+    INPUT = 100
+    OUTPUT = 101
+
+
+class FitInputWord(IntEnum):
+    I_B = 0
+    I_W = 2
+    I_C = 4
+    RHO_B = 6
+    RHO_W = 8
+    STRIDE = 10
+
+
+class FitOutputWord(IntEnum):
+    ALPHA = 0
+    SIGMA_T = 2
+    G = 4
+    FLAGS = 6
+    STRIDE = 7
+
+
+class FitCommand(IntEnum):
+    NONE = 0
+    RUN = 1
+    ABORT = 2
+
+
+class FitStatus(IntEnum):
+    IDLE = 0
+    BUSY = 1
+    DONE = 2
+    ABORTED = 3
+    ERROR_UNAVAILABLE = 4
+    ERROR_NO_TABLE = 5
+    ERROR_TABLE = 6
+    ERROR_GEOMETRY = 7
+    ERROR_CORE = 8
+
+
 class Unlock(IntEnum):
     LOCKED = 0
     KEY = 23294
@@ -122,6 +162,11 @@ ENUMS: dict[str, type[IntEnum]] = {
     'map_slot': MapSlot,
     'map_command': MapCommand,
     'map_op_status': MapOpStatus,
+    'fit_file': FitFile,
+    'fit_input_word': FitInputWord,
+    'fit_output_word': FitOutputWord,
+    'fit_command': FitCommand,
+    'fit_status': FitStatus,
     'unlock': Unlock,
 }
 
@@ -239,6 +284,14 @@ REGISTERS: tuple[Register, ...] = (
              'Photodiode at the right diffuse panel, past its shutter: ADC counts, ~16 ms average.'),
     Register('lamp_monitor_collimated', 'input_register', 74, 'u16', 1, 'r', 1.0, 'counts', 0, 65535, 0, None, (),
              'Photodiode beside the collimated beam, past its shutter (not through the sample): ADC counts, ~16 ms average.'),
+    Register('fit_status', 'input_register', 80, 'u16', 1, 'r', 1.0, '', 0, 8, 0, 'fit_status', (),
+             "State of the on-device fit: the last run's outcome, or why the last fit_command = run was refused."),
+    Register('fit_bins_done', 'input_register', 81, 'u16', 1, 'r', 1.0, '', 0, 65535, 0, None, (),
+             "Bins of the current (or last) run already in file fit_output; 0 from each run's start."),
+    Register('fit_available', 'input_register', 82, 'u16', 1, 'r', 1.0, '', 0, 1, 0, None, (),
+             '1 when this firmware was built with the inverse core; 0: fit_command = run answers exception 01 (error_unavailable).'),
+    Register('fit_table_crc32', 'input_register', 84, 'u32', 2, 'r', 1.0, '', 0, 4294967295, 0, None, (),
+             "CRC-32 of the map table the current (or last) run fits with (the active slot's at run), 0 before any run: the master compares it with its own table."),
     Register('command', 'holding_register', 0, 'u16', 1, 'rw', 1.0, '', 0, 8, 0, 'command', (),
              'Write to start an action; reads back the last accepted command. Motion commands only set a target. save_config and load_defaults need `unlock` first (else exception 01); a save refused by the erase rate limit: exception 06.'),
     Register('unlock', 'holding_register', 1, 'u16', 1, 'rw', 1.0, '', 0, 23294, 0, 'unlock', (0, 23294),
@@ -259,6 +312,12 @@ REGISTERS: tuple[Register, ...] = (
              'Which slot file-record reads return: none (0) = the active slot, a, b.'),
     Register('map_command', 'holding_register', 22, 'u16', 1, 'rw', 1.0, '', 0, 4, 0, 'map_command', (),
              'Map storage command; placed after its parameters so one FC 0x10 write of 16..22 sets them and then acts.'),
+    Register('fit_bin_count', 'holding_register', 24, 'u16', 1, 'rw', 1.0, '', 1, 256, 1, None, (),
+             "Parameter of fit_command = run: bins 0..fit_bin_count-1 of file fit_input are fitted. Its max is the device's bin capacity."),
+    Register('fit_thickness_mm', 'holding_register', 25, 'f32', 2, 'rw', 1.0, 'mm', 0.0, 100.0, 0.0, None, (),
+             "Parameter of fit_command = run: the sample's thickness as the master states it; run is refused (exception 03, fit_status error_geometry) unless it is the active table's (0, the default, never is)."),
+    Register('fit_command', 'holding_register', 27, 'u16', 1, 'rw', 1.0, '', 0, 2, 0, 'fit_command', (),
+             "Fit on the device: write bins into file fit_input (FC 0x15; bin k at records k*stride.. of the file, words at enum fit_input_word offsets, f32 high word first), then fit_bin_count, fit_thickness_mm and run in one FC 0x10 over 24..27 (parameters first, the command last); poll fit_status until done; read file fit_output (FC 0x14, enum fit_output_word: α, σt, g as f32, the FitFlag bits as u16). Refusals of run: exception 01 (no inverse core, no valid active table, a table format the core does not fit with), 03 (fit_thickness_mm is not the table's), 06 (a fit runs); fit_status says which. Never by broadcast (exception 01). While a fit runs, writes to fit_input answer 06 and map begin_write / activate set map_op_status error_state."),
     Register('steps_per_mm', 'holding_register', 64, 'f32', 2, 'rw', 1.0, 'steps/mm', 1.0, 10000.0, 80.0, None, (),
              'Slider motor steps per millimetre.'),
     Register('slot_black_mm', 'holding_register', 66, 'f32', 2, 'rw', 1.0, 'mm', 0.0, 120.0, 6.0, None, (),
@@ -310,4 +369,4 @@ COILS: dict[str, Register] = {r.name: r for r in REGISTERS if r.table == 'coil'}
 DISCRETE_INPUTS: dict[str, Register] = {r.name: r for r in REGISTERS if r.table == 'discrete_input'}
 INPUT_REGISTERS: dict[str, Register] = {r.name: r for r in REGISTERS if r.table == 'input_register'}
 HOLDING_REGISTERS: dict[str, Register] = {r.name: r for r in REGISTERS if r.table == 'holding_register'}
-SPANS: dict[str, int] = {'coil': 6, 'discrete_input': 5, 'input_register': 75, 'holding_register': 95}
+SPANS: dict[str, int] = {'coil': 6, 'discrete_input': 5, 'input_register': 86, 'holding_register': 95}

@@ -175,6 +175,13 @@ static int h_erase(void *ctx, enum hal_region r)
     return persist(fo, size);
 }
 
+static const uint8_t *h_map_bytes(void *ctx, enum hal_region r)
+{
+    (void)ctx;
+    uint32_t fo;
+    return r == HAL_REGION_MAP_A || r == HAL_REGION_MAP_B ? region(r, 0, HAL_MAP_REGION_SIZE, &fo) : NULL;
+}
+
 static const hal_t sim_hal = {
     .ctx = NULL,
     .uart_read = h_uart_read,
@@ -195,6 +202,7 @@ static const hal_t sim_hal = {
     .storage_read = h_read,
     .storage_write = h_write,
     .storage_erase = h_erase,
+    .storage_map_bytes = h_map_bytes,
     .watchdog_kick = h_kick,
 };
 

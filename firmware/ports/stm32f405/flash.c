@@ -87,6 +87,13 @@ int flash_region_read(void *ctx, enum hal_region r, uint32_t offset, void *buf, 
     return 0;
 }
 
+const uint8_t *flash_region_map_bytes(void *ctx, enum hal_region r)
+{
+    (void)ctx;
+    if (r != HAL_REGION_MAP_A && r != HAL_REGION_MAP_B) return NULL;
+    return flash_io_map(flash_sector_address(region_sector[r]));
+}
+
 RAMFUNC int flash_region_write(void *ctx, enum hal_region r, uint32_t offset, const void *buf, size_t len)
 {
     (void)ctx;

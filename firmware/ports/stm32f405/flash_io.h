@@ -16,5 +16,7 @@ void flash_io_write_reg(enum flash_reg reg, uint32_t value);
 void flash_io_program8(uint32_t address, uint8_t value);
 void flash_io_program32(uint32_t address, uint32_t value);
 void flash_io_read(uint32_t address, void *buf, size_t len);
+/* The flash memory at `address` as the CPU reads it (memory-mapped, through the caches). */
+const uint8_t *flash_io_map(uint32_t address);
 
 #endif

@@ -383,6 +383,7 @@ static hal_t board_hal = {
     .storage_read = flash_region_read,
     .storage_write = flash_region_write,
     .storage_erase = flash_region_erase,
+    .storage_map_bytes = flash_region_map_bytes,
     .watchdog_kick = h_kick,
 };
 
