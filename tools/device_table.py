@@ -5,12 +5,14 @@ its in-scattering table, fit from it alone, and score that fit on the map's held
 
     .venv/bin/python tools/device_table.py build MAP [-o FILE] [--n-inverse N]
     .venv/bin/python tools/device_table.py measure MAP [MAP…] [--noise 0,0.005]
+    .venv/bin/python tools/device_table.py budget MAP [MAP…]
 
 `build` prints the bytes per part. `measure` prints, per map and noise level, α abs / σt relative /
 g abs (α ≥ 0.5) p50 and p95 over the measurable gamut for: the map's own lut fit (`trimeter.fit`,
 the map file, its .tlut v1 and .tins), the v2 table alone with its forward model sampled onto the
 refined grid at load (the host path), the same with the polish evaluating the compact model on the
-fly (the device path, numpy), and the polish-free table guess.
+fly (the device path, numpy), and the polish-free table guess. `budget` prints what the bytes buy:
+the same fit with the forward coefficients at float64/32/16, L unquantized and smaller inverse grids.
 """
 
 from __future__ import annotations
@@ -59,27 +61,30 @@ def build(amap, n_inverse: int | None = None):
 
 
 # --------------------------------------------------------------------------------------------- fit
-def inscatter_table(table):
+def inscatter_table(table, L=None):
+    """The table's in-scattering lookup (L: other values on its grid, for the precision study)."""
     from trimeter.forward.inscatter import InscatterTable
 
     u_max, tau_max, v_max = table.inscatter_ends
-    return InscatterTable(table.inscatter_L(), u_max=u_max, tau_max=tau_max, v_max=v_max, n=table.n,
+    return InscatterTable(table.inscatter_L() if L is None else L, u_max=u_max, tau_max=tau_max, v_max=v_max, n=table.n,
                           thickness_mm=table.thickness_mm, geometry_params=table.geometry)
 
 
-def host_inverter(table):
+def host_inverter(table, forward=None, inscatter_L=None):
     """The lut inverter (guess + polish) from the table alone: the compact model's node values, which
-    ForwardGrid.between_nodes refines at load exactly as it refines a map (the same splines)."""
+    ForwardGrid.between_nodes refines at load exactly as it refines a map (the same splines). forward,
+    inscatter_L: other coefficients or L than the table's (for the precision study)."""
     from trimeter.inversion.lut import TableInverter
 
-    forward = table.forward()
+    forward = table.forward() if forward is None else forward
     view = SimpleNamespace(alpha=table.alpha.astype(np.float64), log_sigma_t=table.log_sigma_t.astype(np.float64),
                            g=table.g.astype(np.float64), coefficients_grid=forward.nodes(), n=table.n,
                            thickness_mm=table.thickness_mm, cover_slide_n=table.cover_slide_n,
                            mc_stderr=table.mc_stderr, inv_alpha_q=table.inv_alpha, inv_frame=table.inv_frame,
                            inverse_alpha=table.inverse_alpha(), inverse_g=table.inverse_g())
     axes = (view.alpha, view.log_sigma_t, view.g)
-    return TableInverter(view, inscatter=inscatter_table(table), model_variance=(table.model_variance(), axes))
+    return TableInverter(view, inscatter=inscatter_table(table, inscatter_L),
+                         model_variance=(table.model_variance(), axes))
 
 
 class OnTheFlyGrid:
@@ -205,6 +210,63 @@ def measure(amap, noise_levels, seed: int = 0, say=print) -> list[dict]:
     return rows
 
 
+def budget(amap, say=print) -> list[dict]:
+    """What the slot's bytes buy: fits from the table (host path, noise-free rendered held-out) with the
+    forward coefficients at other precisions, with L unquantized, and with smaller inverse grids."""
+    from trimeter.bench.fit import _stats, error_budget, heldout_collimated, heldout_for, heldout_intensities
+    from trimeter.maps.device_table import table_size
+
+    table = build(amap)
+    _, _, h = heldout_for(amap)
+    rb, rw = amap.reference_rhos
+    truth = (h["alpha"], h["sigma_t"], h["g"])
+    scoring = error_budget(amap, h, rb, rw)
+    I_b, I_w = heldout_intensities(h, rb, rw)
+    I_c = heldout_collimated(amap, h)
+    exact = compact_from_map(amap)
+    na, ns, ng = amap.A.shape
+    coef_bytes = 3 * na * ns * ng
+    rounded = {name: exact.coefficients.astype(dtype).astype(np.float64) for name, dtype in
+               (("float16", np.float16), ("float32", np.float32))}
+    cases = [("as stored: coefficients u16, L u16", table, None, None, 2 * coef_bytes),
+             ("coefficients float64 (unquantized)", table, exact, None, 8 * coef_bytes),
+             ("coefficients float32", table, _with_coefficients(exact, rounded["float32"]), None, 4 * coef_bytes),
+             ("coefficients float16", table, _with_coefficients(exact, rounded["float16"]), None, 2 * coef_bytes),
+             ("L float64 (unquantized)", table, None, amap.inscatter.L, None)]
+    for n_inv in (24, 16, 8):
+        cases.append((f"inverse grid {n_inv}×{n_inv}", build(amap, n_inv), None, None, None))
+    say(f"\n== {amap.name}: noise-free rendered held-out, table refined at load, lut p≤8")
+    say(f"   {'variant':38s}{'coef bytes':>11s}{'file bytes':>11s}" + "".join(f"{t:>11s}" for t, _ in _COLUMNS[:6])
+        + f"{'ms/1024':>9s}")
+    rows = []
+    tile = np.resize(np.arange(len(I_b)), 1024)
+    for name, tab, forward, L, nbytes in cases:
+        inverter = host_inverter(tab, forward, L)
+        res = fit_table(tab, inverter, I_b, I_w, I_c)
+        ms = _warm_ms(lambda tab=tab, inverter=inverter: fit_table(tab, inverter, I_b[tile], I_w[tile], I_c[tile]))
+        st = _stats(res, truth, scoring)
+        size = table_size(na, ns, ng, tab.inv_alpha.shape[1], *tab.inscatter.shape, len(tab._geometry_bytes()))
+        rows.append({"map": amap.name, "variant": name, "file_bytes": size, "ms_per_1024": ms, **st})
+        say(f"   {name:38s}{nbytes or 2 * coef_bytes:11d}{size:11d}"
+            + "".join(f"{st[key]:11.2e}" if "sigma" in key else f"{st[key]:11.4f}" for _, key in _COLUMNS[:6])
+            + f"{ms:9.2f}")
+    return rows
+
+
+def compact_from_map(amap):
+    from trimeter.model.compact import CompactForward
+
+    values = np.stack([amap.A, amap.B, amap.C], axis=-1).astype(np.float64)
+    return CompactForward.from_nodes(np.array(amap.alpha, np.float64), np.log(np.array(amap.sigma_t, np.float64)),
+                                     np.array(amap.g, np.float64), values)
+
+
+def _with_coefficients(model, coefficients):
+    from trimeter.model.compact import CompactForward
+
+    return CompactForward(model.alpha, model.log_sigma_t, model.g, coefficients)
+
+
 def _warm_ms(fn, repeats: int = 5) -> float:
     """Best of `repeats` calls in ms, after an untimed one (as for a batch of spectra)."""
     fn()
@@ -226,6 +288,8 @@ def main(argv=None) -> int:
     b.add_argument("map", help="map file or shipped map name")
     b.add_argument("-o", "--output", type=Path, help="output file (default: <map>.v2.tlut in the current directory)")
     b.add_argument("--n-inverse", type=int, help="inverse grid side (default: the largest that fits the slot)")
+    bud = sub.add_parser("budget", help="accuracy against the precision and inverse-grid size the bytes buy")
+    bud.add_argument("maps", nargs="+", help="map files or shipped map names")
     m = sub.add_parser("measure", help="held-out accuracy of fits from the v2 table alone")
     m.add_argument("maps", nargs="+", help="map files or shipped map names")
     m.add_argument("--noise", default="0", help="comma-separated relative noise levels (default 0)")
@@ -239,6 +303,9 @@ def main(argv=None) -> int:
             print(f"{out}: {table.size_bytes} bytes")
             for part, nbytes in table.sizes().items():
                 print(f"   {part:12s} {nbytes:7d}")
+        elif args.command == "budget":
+            for spec in args.maps:
+                budget(AppearanceMap.load(find_map(spec)))
         else:
             try:
                 levels = [float(x) for x in args.noise.split(",")]
