@@ -47,6 +47,9 @@ def build(amap, n_inverse: int | None = None):
                          <= MAX_BYTES), default=None)
         if n_inverse is None:
             raise MapFileError(f"a {na}×{ns}×{ng} map does not fit the {MAX_BYTES}-byte slot")
+    elif n_inverse < 2 or table_size(na, ns, ng, n_inverse, *tins.L.shape, geometry_len) > MAX_BYTES:
+        raise MapFileError(f"an inverse grid of {n_inverse}×{n_inverse} is below 2×2 or does not fit the "
+                           f"{MAX_BYTES}-byte slot")
     # the inverse grid over the map's own σt nodes, as the v1 table builds it
     inverse = build_from_map(amap, n_xy=n_inverse, refine=(1, 1, 1))
     var, _axes = map_model_variance(amap)

@@ -175,3 +175,14 @@ def test_the_shipped_map_s_table_fits_the_slot_and_fits_held_out_materials_from_
     monkeypatch.undo()
     st = _stats(res, (h["alpha"], h["sigma_t"], h["g"]), scoring)
     assert st["alpha_p95"] <= 0.01 and st["sigma_rel_p95"] <= 0.01 and st["g_p95"] <= 0.015, st
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["build", "no-such-map"], "neither a file nor a shipped map"),
+    (["build", "ideal-n1.5-l0.5"], "no in-scattering table"),
+    (["build", "device-n1.5-l0.4", "--n-inverse", "300"], "does not fit"),
+])
+def test_the_tool_names_what_is_wrong_and_exits_2(argv, message, capsys, tmp_path):
+    assert _tool().main([*argv, "-o", str(tmp_path / "t.tlut")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("device_table: error: ") and message in err and "Traceback" not in err

@@ -8,6 +8,8 @@ in (α, ln σt) of A, B, C, and PCHIP along g, evaluated on the fly from a 4×4�
 instead sample it onto a refined grid at load). Every array is little-endian, starts at an offset
 that is a multiple of 8 (a C reader maps the file in place) and is named with its offset and length
 in the header, and every quantized array is value = offset + step · q with (offset, step) in SCALES.
+The splines' knots are not stored: they are the not-a-knot knots of the stored α and ln σt axes
+(x₀ four times, x₂ … x₋₃, x₋₁ four times; trimeter.model.compact.not_a_knot_knots).
 
     offset size  field
     0      8     magic b"\\x89TRLUT\\r\\n"
