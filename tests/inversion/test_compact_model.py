@@ -38,8 +38,9 @@ def random_points(alpha, log_s, g, n, seed=0):
     return (rng.uniform(alpha[0], alpha[-1], n), rng.uniform(log_s[0], log_s[-1], n), rng.uniform(g[0], g[-1], n))
 
 
-def test_it_is_the_tensor_spline_with_pchip_in_g_exactly():
-    alpha, log_s, g, values = smooth_map()
+@pytest.mark.parametrize("ng", [3, 4, 5, 8])  # g windows: the whole axis, and placed at its ends and inside
+def test_it_is_the_tensor_spline_with_pchip_in_g_exactly(ng):
+    alpha, log_s, g, values = smooth_map(ng=ng)
     model = CompactForward.from_nodes(alpha, log_s, g, values)
     pa, ps, pg = random_points(alpha, log_s, g, 300)
     value = model.evaluate(pa, ps, pg)[0]

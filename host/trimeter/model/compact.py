@@ -68,13 +68,13 @@ def bspline_basis(knots: np.ndarray, n_coef: int, x: np.ndarray):
 
 
 def _pchip_slopes(h: np.ndarray, y: np.ndarray, dy: np.ndarray):
-    """scipy's PchipInterpolator node slopes (and their tangents) along axis 0 of y (ng, ...), node
-    spacings h (ng − 1,); dy (T, ng, ...) are tangents of y that the slopes' tangents follow."""
-    shape = (-1,) + (1,) * (y.ndim - 1)
-    hh = h.reshape(shape)
-    m, dm = np.diff(y, axis=0) / hh, np.diff(dy, axis=1) / hh
+    """scipy's PchipInterpolator node slopes (and their tangents) along axis 0 of y (W, ...), node
+    spacings h (W − 1, ...) broadcasting against y's differences; dy (T, W, ...) are tangents of y
+    that the slopes' tangents follow. The first and last node take the one-sided three-point slope:
+    right at the ends of the g axis, and at a window's ends not needed (see CompactForward.evaluate)."""
+    m, dm = np.diff(y, axis=0) / h, np.diff(dy, axis=1) / h
     d, dd = np.zeros_like(y), np.zeros_like(dy)
-    h0, h1 = hh[:-1], hh[1:]
+    h0, h1 = h[:-1], h[1:]
     w1, w2 = 2 * h1 + h0, h1 + 2 * h0
     m0, m1 = m[:-1], m[1:]
     same = (np.sign(m0) == np.sign(m1)) & (m0 != 0) & (m1 != 0)
@@ -116,14 +116,16 @@ class CompactForward:
         """From A, B, C at the map's nodes, (na, ns, ng, 3)."""
         return cls(alpha, log_sigma_t, g, spline_coefficients(alpha, log_sigma_t, values))
 
-    def _at_g_nodes(self, alpha, log_sigma_t):
-        """(3, ng, 3, N): A, B, C at every g node and the point's (α, ln σt) — value, ∂/∂α, ∂/∂ln σt."""
+    def _at_g_window(self, alpha, log_sigma_t, first, width):
+        """(3, width, 3, N): A, B, C at g nodes first … first + width − 1 (per point) and the point's
+        (α, ln σt) — value, ∂/∂α, ∂/∂ln σt — from 4 × 4 coefficients per node."""
         ia, Na, dNa = bspline_basis(self.knots_alpha, len(self.alpha), alpha)
         js, Ns, dNs = bspline_basis(self.knots_sigma, len(self.log_sigma_t), log_sigma_t)
-        out = np.zeros((3, len(self.g), 3, len(ia)))
+        nodes = first + np.arange(width)[:, None]  # (width, N)
+        out = np.zeros((3, width, 3, len(ia)))
         for r in range(DEGREE + 1):
             for s in range(DEGREE + 1):
-                c = self.coefficients[:, ia + r, js + s, :].transpose(0, 2, 1)  # (ng, 3, N)
+                c = self.coefficients[nodes, ia + r, js + s].transpose(0, 2, 1)  # (width, 3, N)
                 out[0] += c * (Na[r] * Ns[s])
                 out[1] += c * (dNa[r] * Ns[s])
                 out[2] += c * (Na[r] * dNs[s])
@@ -131,22 +133,29 @@ class CompactForward:
 
     def evaluate(self, alpha, log_sigma_t, g):
         """A, B, C stacked (3, N) and their derivatives in α, ln σt and g, each (3, N); the point is
-        clamped to the map's box."""
+        clamped to the map's box. In g cell k the Hermite cubic needs the PCHIP slopes at k and k + 1,
+        i.e. the nodes k − 1 … k + 2 (three-point at the axis' ends): a window of 4 g nodes, placed so
+        that its own end formulas are used only where they are the axis' ends."""
         alpha, log_sigma_t, g = (np.atleast_1d(np.asarray(x, dtype=np.float64)) for x in (alpha, log_sigma_t, g))
         alpha, log_sigma_t, g = np.broadcast_arrays(alpha, log_sigma_t, g)
-        at = self._at_g_nodes(alpha.ravel(), log_sigma_t.ravel())  # (3, ng, 3, N)
-        y, dy = at[0], at[1:]
-        h = np.diff(self.g)
-        slope, dslope = _pchip_slopes(h, y, dy)
+        ng = len(self.g)
         gq = np.minimum(np.maximum(g.ravel(), self.g[0]), self.g[-1])
-        k = np.clip(np.searchsorted(self.g, gq, side="right") - 1, 0, len(self.g) - 2)
-        hk = h[k]
+        k = np.clip(np.searchsorted(self.g, gq, side="right") - 1, 0, ng - 2)
+        width = min(4, ng)
+        first = np.clip(k - 1, 0, ng - width)
+        at = self._at_g_window(alpha.ravel(), log_sigma_t.ravel(), first, width)
+        y, dy = at[0], at[1:]
+        nodes = first + np.arange(width)[:, None]
+        h = (self.g[nodes[1:]] - self.g[nodes[:-1]])[:, None, :]  # (width − 1, 1, N)
+        slope, dslope = _pchip_slopes(h, y, dy)
+        hk = self.g[k + 1] - self.g[k]
         s = (gq - self.g[k]) / hk
         h00, h10, h01, h11 = 2 * s**3 - 3 * s**2 + 1, s**3 - 2 * s**2 + s, -2 * s**3 + 3 * s**2, s**3 - s**2
         e00, e10, e01, e11 = (6 * s**2 - 6 * s) / hk, 3 * s**2 - 4 * s + 1, (-6 * s**2 + 6 * s) / hk, 3 * s**2 - 2 * s
+        at_k = k - first
 
-        def pick(a):  # (..., ng, 3, N) → (..., 3, N) at node k and at node k + 1 per point
-            index = k.reshape((1,) * (a.ndim - 3) + (1, 1, -1))
+        def pick(a):  # (..., width, 3, N) → (..., 3, N) at node k and at node k + 1 per point
+            index = at_k.reshape((1,) * (a.ndim - 3) + (1, 1, -1))
             return (np.take_along_axis(a, index, axis=-3)[..., 0, :, :],
                     np.take_along_axis(a, index + 1, axis=-3)[..., 0, :, :])
 
