@@ -17,11 +17,9 @@ from pathlib import Path
 
 import numpy as np
 
-from trimeter.errors import DeviceError, InputError
+from trimeter.errors import DeviceError
 from trimeter.inversion.methods import METHODS
 from trimeter.paths import REPO_ROOT
-
-FALLBACK_MAP = REPO_ROOT / "tests" / "hil" / "data" / "hil-ideal-l0.4.tmap"
 
 SHOW_NM = (450, 500, 550, 600, 650, 700)
 
@@ -51,15 +49,7 @@ def run(args):
     from trimeter.twin import Twin
 
     wall_start = time.monotonic()
-    try:
-        amap = map_for_thickness(args.thickness, args.map)
-    except InputError:
-        if args.map or not FALLBACK_MAP.exists():
-            raise
-        # A fresh clone before the shipped device maps are built: the HIL suite's exact `ideal` map.
-        print(f"demo: no shipped map for ℓ = {args.thickness:g} mm; using the HIL test map {FALLBACK_MAP.name} "
-              "(ideal geometry, adding-doubling)")
-        amap = map_for_thickness(args.thickness, FALLBACK_MAP)
+    amap = map_for_thickness(args.thickness, args.map)
     prepare_fit([Sample(args.thickness, amap)], args.method)  # a stale table or model fails now, not after the warm-up
     out = Path(args.out or REPO_ROOT / "out" / "demo") / time.strftime("%Y%m%dT%H%M%S")
     out.mkdir(parents=True, exist_ok=True)
