@@ -17,14 +17,16 @@
 #define FLASH_MEMORY_BASE 0x08000000u
 #define FLASH_SECTOR_COUNT 12u
 
-static inline uint32_t flash_sector_address(uint32_t sector)
+/* Always inlined: the flash driver's RAM functions use it while the flash is busy, so no copy of it may
+ * live in flash. */
+static inline __attribute__((always_inline)) uint32_t flash_sector_address(uint32_t sector)
 {
     if (sector < 4u) return FLASH_MEMORY_BASE + sector * 0x4000u;
     if (sector == 4u) return FLASH_MEMORY_BASE + 0x10000u;
     return FLASH_MEMORY_BASE + 0x20000u + (sector - 5u) * 0x20000u;
 }
 
-static inline uint32_t flash_sector_size(uint32_t sector)
+static inline __attribute__((always_inline)) uint32_t flash_sector_size(uint32_t sector)
 {
     return sector < 4u ? 0x4000u : sector == 4u ? 0x10000u : 0x20000u;
 }

@@ -5,6 +5,7 @@
     dev.write("led_panels_level", 0.5)            # physical units; range-checked before it is sent
     dev.command("goto_slot", "white"); dev.wait_idle(timeout_s=10)
     dev.flash_map(table_bytes, version=3)         # chunked file records, resumable, read-back verified
+    dev.fit(I_b, I_w, I_c, rho_b, rho_w, thickness_mm=0.4)  # fitted on the device with its active map table
 
 Destructive commands (save_config, load_defaults, map begin_write / activate) are unlocked right before
 they are sent (holding register `unlock`, see hardware/registers.md): the firmware refuses them otherwise.
@@ -22,6 +23,8 @@ import zlib
 from dataclasses import dataclass
 from enum import IntEnum
 from typing import Callable
+
+import numpy as np
 
 from trimeter import registers as regs
 from trimeter.device.transport import (MAX_FILE_RECORD_WORDS, MAX_READ_BITS, MAX_READ_WORDS, ModbusExceptionReply,
@@ -132,6 +135,39 @@ class Identity:
     model_id: int
     firmware_version: tuple[int, int, int]
     regmap_hash: int
+
+
+def _record_dtype(words: type[IntEnum], types: dict[str, str]) -> np.dtype:
+    """One bin's records in a fit file as a big-endian numpy record (f32 = two words, high word first, is
+    exactly a big-endian float32); offsets from the register map's word enums."""
+    return np.dtype({"names": list(types), "formats": list(types.values()),
+                     "offsets": [2 * int(words[name.upper()]) for name in types], "itemsize": 2 * int(words.STRIDE)})
+
+
+FIT_INPUT_DTYPE = _record_dtype(regs.FitInputWord, dict.fromkeys(("i_b", "i_w", "i_c", "rho_b", "rho_w"), ">f4"))
+FIT_OUTPUT_DTYPE = _record_dtype(regs.FitOutputWord, {"alpha": ">f4", "sigma_t": ">f4", "g": ">f4", "flags": ">u2"})
+# Why a run was refused or stopped (fit_status), as the person at the instrument can act on it.
+_FIT_REFUSALS = {
+    regs.FitStatus.ERROR_UNAVAILABLE: "this device's firmware was built without the inverse core (input register "
+                                      "fit_available is 0): fit on the host, or flash firmware built with it",
+    regs.FitStatus.ERROR_NO_TABLE: "the device has no valid active map table: flash one first "
+                                   "(trimeter map flash TABLE --port PORT)",
+    regs.FitStatus.ERROR_TABLE: "the device's inverse core does not fit with its active map table (a table format it "
+                                "does not read): flash a table made for this firmware",
+    regs.FitStatus.ABORTED: "the fit was aborted on the device (by another master?)",
+}
+
+
+@dataclass(frozen=True)
+class DeviceFit:
+    """Per-bin results of a fit on the device: α, σt [1/mm], g (NaN where a flag in
+    trimeter.inversion.flags.UNUSABLE is set) and the FitFlag bits; table_crc32 names the map table used."""
+
+    alpha: np.ndarray
+    sigma_t: np.ndarray
+    g: np.ndarray
+    flags: np.ndarray
+    table_crc32: int
 
 
 def _first_difference(a: bytes, b: bytes) -> int:
@@ -468,6 +504,104 @@ class Device:
             if status != regs.MapOpStatus.WRITING or self._clock() >= deadline:
                 return status
             self._sleep(0.01)
+
+    # ----------------------------------------------------------------------------- fit on the device
+    @property
+    def fit_capacity(self) -> int:
+        """Bins the device fits in one run (the register map's max of fit_bin_count)."""
+        return int(regs.BY_NAME["fit_bin_count"].max)
+
+    def fit(self, I_b, I_w, I_c, rho_b, rho_w, *, thickness_mm: float, timeout_s: float = 30.0) -> DeviceFit:
+        """Fit bins on the device with its active map table, in runs of at most `fit_capacity` bins.
+
+        Any number of bins; NaN, negative or out-of-range values are the device's to flag (like the host's
+        fit), not refused here. `thickness_mm` is the sample's: the device refuses a run unless it is its
+        table's ℓ. Raises InputError for unusable arguments or a thickness the table is not for, DeviceError
+        when the device cannot fit (no inverse core, no table, a table changed between runs)."""
+        try:
+            columns = [np.asarray(v, dtype=np.float64) for v in (I_b, I_w, I_c, rho_b, rho_w)]
+        except (TypeError, ValueError):
+            raise InputError("fit on the device: I_b, I_w, I_c, rho_b and rho_w must be arrays of numbers") from None
+        n = columns[0].size
+        if any(c.ndim != 1 or c.size != n for c in columns) or n == 0:
+            raise InputError("fit on the device: I_b, I_w, I_c, rho_b and rho_w must be 1-D arrays of one length "
+                             f"(got shapes {', '.join(str(c.shape) for c in columns)})")
+        thickness_words = encode(regs.BY_NAME["fit_thickness_mm"], thickness_mm)  # range-checked before sending
+        bins = np.zeros(n, dtype=FIT_INPUT_DTYPE)
+        for name, column in zip(FIT_INPUT_DTYPE.names, columns, strict=True):
+            with np.errstate(over="ignore"):  # beyond float32: inf, which the device flags like any bad value
+                bins[name] = column.astype(np.float32)
+        results = np.zeros(n, dtype=FIT_OUTPUT_DTYPE)
+        table_crc32 = None
+        for first in range(0, n, self.fit_capacity):
+            chunk = bins[first:first + self.fit_capacity]
+            self._write_fit_bins(chunk)
+            crc = self._run_fit(len(chunk), thickness_words, thickness_mm, timeout_s)
+            if table_crc32 is not None and crc != table_crc32:
+                raise DeviceError(f"the device's active map table changed during the fit (CRC-32 0x{table_crc32:08X}, "
+                                  f"then 0x{crc:08X}): fit again")
+            table_crc32 = crc
+            results[first:first + len(chunk)] = self._read_fit_results(len(chunk))
+        return DeviceFit(*(results[name].astype(np.float64) for name in ("alpha", "sigma_t", "g")),
+                         flags=results["flags"].astype(np.int64), table_crc32=int(table_crc32))
+
+    def _write_fit_bins(self, bins: np.ndarray) -> None:
+        per_request = MAX_FILE_RECORD_WORDS // int(regs.FitInputWord.STRIDE)
+        for first in range(0, len(bins), per_request):
+            try:
+                self.transport.write_file_records(regs.FitFile.INPUT, first * int(regs.FitInputWord.STRIDE),
+                                                  bins[first:first + per_request].tobytes())
+            except ModbusExceptionReply as exc:
+                if exc.code == 6:
+                    raise DeviceError("the device is busy with another fit (another master?): try again") from None
+                raise
+
+    def _run_fit(self, count: int, thickness_words: list[int], thickness_mm: float, timeout_s: float) -> int:
+        """One run over bins 0..count-1; returns the CRC-32 of the table it used."""
+        # One FC 0x10 over 24..27: the parameters first, the command last (hardware/registers.md).
+        first = regs.BY_NAME["fit_bin_count"].address
+        words = [0] * (regs.BY_NAME["fit_command"].address + 1 - first)
+        for name, value in (("fit_bin_count", encode(regs.BY_NAME["fit_bin_count"], count)),
+                            ("fit_thickness_mm", thickness_words),
+                            ("fit_command", encode(regs.BY_NAME["fit_command"], regs.FitCommand.RUN))):
+            reg = regs.BY_NAME[name]
+            words[reg.address - first:reg.address - first + reg.words] = value
+        try:
+            self.transport.write_words(first, words)
+        except ModbusExceptionReply as exc:
+            status = self.read("fit_status")
+            if exc.code == 3 and status == regs.FitStatus.ERROR_GEOMETRY:
+                raise InputError(f"the device's active map table is not for a {thickness_mm:g} mm sample: state the "
+                                 "sample's thickness, or flash the table for it") from None
+            if exc.code == 6:
+                raise DeviceError("the device is busy with another fit (another master?): try again") from None
+            if status in _FIT_REFUSALS:
+                raise DeviceError(f"fit on the device: {_FIT_REFUSALS[status]}") from None
+            raise
+        deadline = self._clock() + timeout_s
+        while True:
+            values = self.read_many("fit_status", "fit_bins_done", "fit_table_crc32")
+            status = values["fit_status"]
+            if status == regs.FitStatus.DONE:
+                return values["fit_table_crc32"]
+            if status == regs.FitStatus.ERROR_CORE:
+                raise DeviceError(f"the device's inverse core failed after {values['fit_bins_done']} of {count} bins")
+            if status != regs.FitStatus.BUSY:
+                why = _FIT_REFUSALS.get(status, f"unexpected fit_status {getattr(status, 'name', status)}")
+                raise DeviceError(f"fit on the device: {why}")
+            if self._clock() >= deadline:
+                self.write("fit_command", regs.FitCommand.ABORT)
+                raise DeviceError(f"the device fitted {values['fit_bins_done']} of {count} bins in {timeout_s:g} s; "
+                                  "aborted")
+            self._sleep(0.005)
+
+    def _read_fit_results(self, count: int) -> np.ndarray:
+        stride = int(regs.FitOutputWord.STRIDE)
+        per_request = MAX_FILE_RECORD_WORDS // stride
+        data = b"".join(self.transport.read_file_records(regs.FitFile.OUTPUT, first * stride,
+                                                         min(per_request, count - first) * stride)
+                        for first in range(0, count, per_request))
+        return np.frombuffer(data, dtype=FIT_OUTPUT_DTYPE)
 
     def read_map(self, slot: regs.MapSlot | str, length: int | None = None, *, offset: int = 0,
                  progress: Callable[[int, int], None] | None = None) -> bytes:
