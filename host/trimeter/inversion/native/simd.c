@@ -54,20 +54,17 @@ __attribute__((target("avx2"))) static inline v4 directional4(v4 gb, v4 gc, v4 d
     return _mm256_add_pd(_mm256_add_pd(d0, _mm256_mul_pd(gb, d1)), _mm256_mul_pd(gc, d2));
 }
 
-/* newton_step for the bins idx[0..3]; done[l] as newton_step returns it */
-__attribute__((target("avx2"))) void tmi_newton_step4(const tm_forward_grid *f, sigma_cell_t *cells,
-                                                         const uint32_t *idx, const double *I_b, const double *I_w,
-                                                         const double *rho_b, const double *rho_w, double step_tol,
-                                                         const double *step_var, double *alpha, double *g,
-                                                         final_eval_t *evals, int *done) {
+/* coefficients() for the bins idx[0..3] at (alpha[l], g[l]) (walking each lane's cell hints): A, B, C and
+ * their derivatives in α and g, and in ln σt where DS is not NULL; term by term as the scalar code */
+__attribute__((target("avx2"))) static inline void coefficients4(const tm_forward_grid *f, sigma_cell_t *cells,
+                                                                 const uint32_t *idx, const double *alpha,
+                                                                 const double *g, v4 *V, v4 *DA, v4 *DG, v4 *DS) {
     const double *P[4];
-    double wa[4], wg[4], ws[4], ida[4], idg[4], ids[4], a0[4], g0[4];
+    double wa[4], wg[4], ws[4], ida[4], idg[4], ids[4];
     for (int l = 0; l < 4; l++) {
         sigma_cell_t *c = &cells[idx[l]];
-        a0[l] = alpha[idx[l]];
-        g0[l] = g[idx[l]];
-        int ia = walk_cell(f->alpha, f->inv_da, f->na, a0[l], &c->ia, &wa[l]);
-        int ig = walk_cell(f->g, f->inv_dg, f->ng, g0[l], &c->ig, &wg[l]);
+        int ia = walk_cell(f->alpha, f->inv_da, f->na, alpha[l], &c->ia, &wa[l]);
+        int ig = walk_cell(f->g, f->inv_dg, f->ng, g[l], &c->ig, &wg[l]);
         P[l] = poly_row(f, ia, c->is, ig);
         ws[l] = c->ws;
         ida[l] = f->inv_da[ia];
@@ -78,8 +75,7 @@ __attribute__((target("avx2"))) void tmi_newton_step4(const tm_forward_grid *f, 
     for (int r = 0; r < 6; r++) transpose_rows(P[0], P[1], P[2], P[3], r, T);
     v4 Wa = _mm256_loadu_pd(wa), Wg = _mm256_loadu_pd(wg), Ws = _mm256_loadu_pd(ws);
     v4 Ida = _mm256_loadu_pd(ida), Idg = _mm256_loadu_pd(idg), Ids = _mm256_loadu_pd(ids);
-    v4 V[3], DA[3], DG[3], DS[3];
-    for (int c = 0; c < 3; c++) { /* coefficients(), term by term */
+    for (int c = 0; c < 3; c++) {
         v4 p0 = _mm256_add_pd(T[0 * 3 + c], _mm256_mul_pd(T[2 * 3 + c], Ws));
         v4 p1 = _mm256_add_pd(T[1 * 3 + c], _mm256_mul_pd(T[4 * 3 + c], Ws));
         v4 p3 = _mm256_add_pd(T[3 * 3 + c], _mm256_mul_pd(T[6 * 3 + c], Ws));
@@ -88,11 +84,50 @@ __attribute__((target("avx2"))) void tmi_newton_step4(const tm_forward_grid *f, 
                              _mm256_mul_pd(_mm256_add_pd(p3, _mm256_mul_pd(p5, Wa)), Wg));
         DA[c] = _mm256_mul_pd(_mm256_add_pd(p1, _mm256_mul_pd(p5, Wg)), Ida);
         DG[c] = _mm256_mul_pd(_mm256_add_pd(p3, _mm256_mul_pd(p5, Wa)), Idg);
-        DS[c] = _mm256_mul_pd(_mm256_add_pd(_mm256_add_pd(T[2 * 3 + c], _mm256_mul_pd(T[4 * 3 + c], Wa)),
-                                            _mm256_mul_pd(_mm256_add_pd(T[6 * 3 + c], _mm256_mul_pd(T[7 * 3 + c], Wa)),
-                                                          Wg)),
-                              Ids);
+        if (DS)
+            DS[c] = _mm256_mul_pd(_mm256_add_pd(_mm256_add_pd(T[2 * 3 + c], _mm256_mul_pd(T[4 * 3 + c], Wa)),
+                                                _mm256_mul_pd(_mm256_add_pd(T[6 * 3 + c],
+                                                                            _mm256_mul_pd(T[7 * 3 + c], Wa)),
+                                                              Wg)),
+                                  Ids);
     }
+}
+
+/* lm_step() for four lanes: the damped, trust-region-capped step and h11, h22, det */
+__attribute__((target("avx2"))) static inline void lm_step4(v4 j11, v4 j12, v4 j21, v4 j22, v4 rb, v4 rw, v4 *step_a,
+                                                            v4 *step_g, v4 *h11_out, v4 *h22_out, v4 *det_out) {
+    v4 h11 = _mm256_add_pd(_mm256_mul_pd(j11, j11), _mm256_mul_pd(j21, j21));
+    v4 h22 = _mm256_add_pd(_mm256_mul_pd(j12, j12), _mm256_mul_pd(j22, j22));
+    v4 h12 = _mm256_add_pd(_mm256_mul_pd(j11, j12), _mm256_mul_pd(j21, j22));
+    v4 mu = _mm256_add_pd(_mm256_set1_pd(1e-9), _mm256_mul_pd(_mm256_set1_pd(1e-6), _mm256_add_pd(h11, h22)));
+    h11 = _mm256_add_pd(h11, mu);
+    h22 = _mm256_add_pd(h22, mu);
+    v4 b1 = _mm256_add_pd(_mm256_mul_pd(j11, rb), _mm256_mul_pd(j21, rw));
+    v4 b2 = _mm256_add_pd(_mm256_mul_pd(j12, rb), _mm256_mul_pd(j22, rw));
+    v4 det = _mm256_sub_pd(_mm256_mul_pd(h11, h22), _mm256_mul_pd(h12, h12));
+    const v4 sign = _mm256_set1_pd(-0.0);
+    v4 sa = _mm256_div_pd(_mm256_xor_pd(sign, _mm256_sub_pd(_mm256_mul_pd(h22, b1), _mm256_mul_pd(h12, b2))), det);
+    v4 sg = _mm256_div_pd(_mm256_xor_pd(sign, _mm256_sub_pd(_mm256_mul_pd(h11, b2), _mm256_mul_pd(h12, b1))), det);
+    *step_a = clamp4(sa, _mm256_set1_pd(-0.25), _mm256_set1_pd(0.25));
+    *step_g = clamp4(sg, _mm256_set1_pd(-0.5), _mm256_set1_pd(0.5));
+    *h11_out = h11;
+    *h22_out = h22;
+    *det_out = det;
+}
+
+/* newton_step for the bins idx[0..3]; done[l] as newton_step returns it */
+__attribute__((target("avx2"))) void tmi_newton_step4(const tm_forward_grid *f, sigma_cell_t *cells,
+                                                      const uint32_t *idx, const double *I_b, const double *I_w,
+                                                      const double *rho_b, const double *rho_w, double step_tol,
+                                                      const double *step_var, double *alpha, double *g,
+                                                      final_eval_t *evals, int *done) {
+    double a0[4], g0[4];
+    for (int l = 0; l < 4; l++) {
+        a0[l] = alpha[idx[l]];
+        g0[l] = g[idx[l]];
+    }
+    v4 V[3], DA[3], DG[3], DS[3];
+    coefficients4(f, cells, idx, a0, g0, V, DA, DG, DS);
     const v4 one = _mm256_set1_pd(1.0);
     v4 Rb = set4(rho_b[idx[0]], rho_b[idx[1]], rho_b[idx[2]], rho_b[idx[3]]);
     v4 Rw = set4(rho_w[idx[0]], rho_w[idx[1]], rho_w[idx[2]], rho_w[idx[3]]);
@@ -106,20 +141,9 @@ __attribute__((target("avx2"))) void tmi_newton_step4(const tm_forward_grid *f, 
                           set4(I_w[idx[0]], I_w[idx[1]], I_w[idx[2]], I_w[idx[3]]));
     v4 j11 = directional4(fb, hb, DA[0], DA[1], DA[2]), j12 = directional4(fb, hb, DG[0], DG[1], DG[2]);
     v4 j21 = directional4(fw, hw, DA[0], DA[1], DA[2]), j22 = directional4(fw, hw, DG[0], DG[1], DG[2]);
-    v4 h11 = _mm256_add_pd(_mm256_mul_pd(j11, j11), _mm256_mul_pd(j21, j21));
-    v4 h22 = _mm256_add_pd(_mm256_mul_pd(j12, j12), _mm256_mul_pd(j22, j22));
-    v4 h12 = _mm256_add_pd(_mm256_mul_pd(j11, j12), _mm256_mul_pd(j21, j22));
-    v4 mu = _mm256_add_pd(_mm256_set1_pd(1e-9), _mm256_mul_pd(_mm256_set1_pd(1e-6), _mm256_add_pd(h11, h22)));
-    h11 = _mm256_add_pd(h11, mu);
-    h22 = _mm256_add_pd(h22, mu);
-    v4 b1 = _mm256_add_pd(_mm256_mul_pd(j11, rb), _mm256_mul_pd(j21, rw));
-    v4 b2 = _mm256_add_pd(_mm256_mul_pd(j12, rb), _mm256_mul_pd(j22, rw));
-    v4 det = _mm256_sub_pd(_mm256_mul_pd(h11, h22), _mm256_mul_pd(h12, h12));
+    v4 step_a, step_g, h11, h22, det;
+    lm_step4(j11, j12, j21, j22, rb, rw, &step_a, &step_g, &h11, &h22, &det);
     const v4 sign = _mm256_set1_pd(-0.0);
-    v4 step_a = _mm256_div_pd(_mm256_xor_pd(sign, _mm256_sub_pd(_mm256_mul_pd(h22, b1), _mm256_mul_pd(h12, b2))), det);
-    v4 step_g = _mm256_div_pd(_mm256_xor_pd(sign, _mm256_sub_pd(_mm256_mul_pd(h11, b2), _mm256_mul_pd(h12, b1))), det);
-    step_a = clamp4(step_a, _mm256_set1_pd(-0.25), _mm256_set1_pd(0.25));
-    step_g = clamp4(step_g, _mm256_set1_pd(-0.5), _mm256_set1_pd(0.5));
     v4 A0 = _mm256_loadu_pd(a0), G0 = _mm256_loadu_pd(g0);
     v4 A1 = clamp4(_mm256_add_pd(A0, step_a), _mm256_set1_pd(f->alpha_lo), _mm256_set1_pd(f->alpha_hi));
     v4 G1 = clamp4(_mm256_add_pd(G0, step_g), _mm256_set1_pd(f->g_lo), _mm256_set1_pd(f->g_hi));
@@ -166,6 +190,32 @@ __attribute__((target("avx2"))) void tmi_newton_step4(const tm_forward_grid *f, 
             keep_final_eval(f, c, out_a[l], out_g[l], r2[l], Jl, &evals[i]);
         }
     }
+}
+
+/* pipeline.c's check_step for the bins idx[0..3] at their predictions (a1[l], g1[l]), the moved
+ * intensities (tb[l], tw[l]): one damped step from there, clamped to the box, into (a2[l], g2[l]) */
+__attribute__((target("avx2"))) void tmi_check_step4(const tm_forward_grid *f, sigma_cell_t *cells, const uint32_t *idx,
+                                                     const double *a1, const double *g1, const double *tb,
+                                                     const double *tw, const double *rho_b, const double *rho_w,
+                                                     double *a2, double *g2) {
+    v4 V[3], DA[3], DG[3];
+    coefficients4(f, cells, idx, a1, g1, V, DA, DG, NULL);
+    const v4 one = _mm256_set1_pd(1.0);
+    v4 Rb = set4(rho_b[idx[0]], rho_b[idx[1]], rho_b[idx[2]], rho_b[idx[3]]);
+    v4 Rw = set4(rho_w[idx[0]], rho_w[idx[1]], rho_w[idx[2]], rho_w[idx[3]]);
+    v4 fb = _mm256_div_pd(Rb, _mm256_sub_pd(one, _mm256_mul_pd(V[2], Rb)));
+    v4 fw = _mm256_div_pd(Rw, _mm256_sub_pd(one, _mm256_mul_pd(V[2], Rw)));
+    v4 hb = _mm256_mul_pd(_mm256_mul_pd(V[1], fb), fb), hw = _mm256_mul_pd(_mm256_mul_pd(V[1], fw), fw);
+    v4 rb = _mm256_sub_pd(_mm256_add_pd(V[0], _mm256_mul_pd(V[1], fb)), _mm256_loadu_pd(tb));
+    v4 rw = _mm256_sub_pd(_mm256_add_pd(V[0], _mm256_mul_pd(V[1], fw)), _mm256_loadu_pd(tw));
+    v4 step_a, step_g, h11, h22, det;
+    lm_step4(directional4(fb, hb, DA[0], DA[1], DA[2]), directional4(fb, hb, DG[0], DG[1], DG[2]),
+             directional4(fw, hw, DA[0], DA[1], DA[2]), directional4(fw, hw, DG[0], DG[1], DG[2]), rb, rw, &step_a,
+             &step_g, &h11, &h22, &det);
+    _mm256_storeu_pd(a2, clamp4(_mm256_add_pd(_mm256_loadu_pd(a1), step_a), _mm256_set1_pd(f->alpha_lo),
+                                _mm256_set1_pd(f->alpha_hi)));
+    _mm256_storeu_pd(g2, clamp4(_mm256_add_pd(_mm256_loadu_pd(g1), step_g), _mm256_set1_pd(f->g_lo),
+                                _mm256_set1_pd(f->g_hi)));
 }
 
 static int simd_enabled = -1; /* -1: not decided yet */
