@@ -126,31 +126,6 @@ static inline void prefetch_cell(const tm_forward_grid *f, sigma_cell_t *cell, d
     __builtin_prefetch(P + 16);
 }
 
-/* Prefetch what the finish of a fit reads for a bin at its last evaluation's cells: the map's error
- * variances (model_var) and the in-scattering table around (α, σt, g), and the forward cell where the
- * polish stored no evaluation. The cells are a step from the solution's at most; a wrong guess
- * costs a wasted prefetch, never a different result. */
-static inline void prefetch_finish(const tm_forward_grid *f, const sigma_cell_t *cell) {
-    if (cell->ia < 0 || cell->ig < 0) return;
-    const size_t ia = (size_t)cell->ia, is = (size_t)cell->is, ig = (size_t)cell->ig, ns = (size_t)f->ns;
-    const size_t ng = (size_t)f->ng;
-    if (!cell->evaluated) {
-        const double *P = poly_row(f, cell->ia, cell->is, cell->ig);
-        __builtin_prefetch(P);
-        __builtin_prefetch(P + 8);
-        __builtin_prefetch(P + 16);
-    }
-    if (f->model_var)
-        for (size_t da = 0; da < 2; da++)
-            for (size_t ds = 0; ds < 2; ds++) __builtin_prefetch(f->model_var + (((ia + da) * ns + is + ds) * ng + ig) * 2u);
-    if (f->inscatter_L) {
-        double p = clampd(cell->sigma_t * f->thickness_mm, 0.0, f->in_tau_max) * f->in_inv_dt;
-        size_t it = p >= f->in_nt - 2 ? (size_t)(f->in_nt - 2) : (size_t)p, nt = (size_t)f->in_nt;
-        for (size_t da = 0; da < 2; da++)
-            for (size_t dt = 0; dt < 2; dt++) __builtin_prefetch(f->inscatter_L + ((ia + da) * nt + it + dt) * ng + ig);
-    }
-}
-
 typedef struct { double v[3], da[3], dg[3], ds[3]; } abc_t;
 
 /* A bin's residual² |(I_b, I_w) − model|² and its ∂(I_b, I_w)/∂(α, σt, g) (rows I_b, I_w) at the

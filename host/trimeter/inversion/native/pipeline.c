@@ -268,10 +268,6 @@ static void check_first_order(const tm_forward_grid *f, size_t m, const uint32_t
     }
 }
 
-/* How many bins ahead the finish prefetches its table reads (prefetch_finish): far enough for memory
- * to answer while the bins in between are finished. */
-#define FINISH_AHEAD 8
-
 /* The second half: the initial (α, g) from alpha0/g0 (the MLP's) or, where those are NULL or not
  * finite (a broken network), from `table` (without one: the middle of the map's box); the polish,
  * then flags for not converged / outside the map / g undefined / underdetermined, first-order stds
@@ -304,7 +300,6 @@ long long tm_fit_solve(const tm_forward_grid *f, const tm_inverse_table *table, 
     size_t checked = 0; /* bins for check_first_order, listed in sc.active (the polish is done with it) */
     for (size_t i = 0; i < n; i++) {
         double Ji[9];
-        if (i + FINISH_AHEAD < n) prefetch_finish(f, &cells[i + FINISH_AHEAD]);
         int64_t fl = out->flags[i];
         int usable = !(fl & TM_FLAGS_UNUSABLE);
         double residual2 = tmi_final_residual2_and_jacobian(f, &cells[i], &sc.evals[i], alpha[i], g[i], ib[i], iw[i], rb[i],
