@@ -62,7 +62,8 @@ def source_hash(directory: Path = LIBRARY.parent) -> int | None:
     return int(digest[:16], 16)
 
 
-def _choice() -> str:
+def choice() -> str:
+    """The kernel TRIMETER_KERNEL asks for: 'auto', 'native' or 'numpy' (TRIMETER_NATIVE=0: 'numpy')."""
     if os.environ.get("TRIMETER_NATIVE") == "0":
         return "numpy"
     choice = os.environ.get("TRIMETER_KERNEL", "auto").strip().lower() or "auto"
@@ -98,12 +99,12 @@ def _open():
 
 def _load():
     """(the library or None, the status line); warns or raises as TRIMETER_KERNEL asks."""
-    choice = _choice()
-    if choice == "numpy":
+    chosen = choice()
+    if chosen == "numpy":
         return None, "numpy kernel (chosen by TRIMETER_KERNEL=numpy)"
     lib, why = _open()
     if lib is None:
-        if choice == "native":
+        if chosen == "native":
             raise NativeKernelError(f"TRIMETER_KERNEL=native, but {why}: run `make native`")
         warnings.warn(f"{why}: the numpy kernel runs instead, ~16× slower; {REBUILD}", NativeKernelWarning,
                       stacklevel=2)
