@@ -66,10 +66,10 @@ def choice() -> str:
     """The kernel TRIMETER_KERNEL asks for: 'auto', 'native' or 'numpy' (TRIMETER_NATIVE=0: 'numpy')."""
     if os.environ.get("TRIMETER_NATIVE") == "0":
         return "numpy"
-    choice = os.environ.get("TRIMETER_KERNEL", "auto").strip().lower() or "auto"
-    if choice not in ("auto", "native", "numpy"):
-        raise NativeKernelError(f"TRIMETER_KERNEL must be auto, native or numpy, not {choice!r}")
-    return choice
+    value = os.environ.get("TRIMETER_KERNEL", "auto").strip().lower() or "auto"
+    if value not in ("auto", "native", "numpy"):
+        raise NativeKernelError(f"TRIMETER_KERNEL must be auto, native or numpy, not {value!r}")
+    return value
 
 
 def _open():
