@@ -69,7 +69,7 @@ APP_SEEDS = {
     "upload_valid_table": bytes([UPLOAD, 0x0B, 1, 0, REBOOT]),
     # a table, then 3 bins (one NaN I_c) fitted with the table's thickness, 20 ms, results read back
     "fit_three_bins": bytes([UPLOAD, 0x0B, 1, 0, FIT, 0x45, 2]) + (F32_04 * 2 + F32_NAN + F32_04 * 2) * 3
-    + bytes([20, 0, 21]),
+    + bytes([20, 0, 20]),
     "fit_without_table": bytes([FIT, 0x44, 0]) + F32_04 * 5 + bytes([5, 0, 7]),
     "upload_table_bad_magic": bytes([UPLOAD, 0x0B, 2, 1, 0x00, 0x05, 0x77]),
     "upload_junk_with_fixed_crc": bytes([UPLOAD, 0x08 | 0x02, 3, 2, 0x00, 0x48, 0x09, 0x00, 0x50, 0x01]),
