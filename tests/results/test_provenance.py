@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from trimeter.domain import MapIdentity, Measurement, Provenance, Sample
+from trimeter.domain import Calibration, InstrumentInfo, MapIdentity, Measurement, Provenance, Sample
 from trimeter.errors import InputError
 from trimeter.results import write_measurement
 
@@ -69,3 +69,19 @@ def test_a_sample_refuses_a_bad_thickness_and_a_map_of_another_thickness():
     Sample(0.4, amap).check_map()
     with pytest.raises(InputError, match=r"is for ℓ = 0.4 mm, not the declared 0.8 mm"):
         Sample(0.8, amap).check_map()
+
+
+def test_the_calibrations_instrument_round_trips_and_an_old_empty_one_reads_as_none(tmp_path, measurement):
+    cal = dataclasses.replace(measurement.calibration,
+                              device=InstrumentInfo((1, 4, 0), 0xC0FFEE, vendor_id=0x7472, model_id=1))
+    cal.save(tmp_path)
+    saved = json.loads((tmp_path / "calibration.json").read_text())["device"]
+    assert saved == {"vendor_id": 0x7472, "model_id": 1, "firmware": [1, 4, 0], "regmap_hash": "0x00C0FFEE"}
+    assert list(saved) == ["vendor_id", "model_id", "firmware", "regmap_hash"]
+    assert Calibration.load(tmp_path).device == cal.device
+    assert cal.device.to_json(with_model=False) == {"firmware": [1, 4, 0], "regmap_hash": "0x00C0FFEE"}
+    dataclasses.replace(cal, device=None).save(tmp_path)
+    assert json.loads((tmp_path / "calibration.json").read_text())["device"] == {}
+    assert Calibration.load(tmp_path).device is None
+    assert not cal.device.same_model(InstrumentInfo((1, 4, 0), 0xC0FFEE, vendor_id=0x7472, model_id=2))
+    assert cal.device.same_model(InstrumentInfo((1, 4, 0), 0xC0FFEE))

@@ -4,8 +4,8 @@ devices, sequences, the inversion and the results writer all import downward fro
 
 from trimeter.domain.calibration import Calibration
 from trimeter.domain.capture import Capture, CaptureFlag, RawSample
-from trimeter.domain.measurement import (InstrumentInfo, MapIdentity, Measurement, Provenance, Sample,
-                                         SampleCapture)
+from trimeter.domain.instrument import InstrumentInfo
+from trimeter.domain.measurement import MapIdentity, Measurement, Provenance, Sample, SampleCapture
 from trimeter.domain.reflectances import Reflectances
 
 __all__ = ["Calibration", "Capture", "CaptureFlag", "InstrumentInfo", "MapIdentity", "Measurement", "Provenance",

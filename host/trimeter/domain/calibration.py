@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from trimeter.domain.capture import Capture, CaptureFlag
+from trimeter.domain.instrument import InstrumentInfo
 from trimeter.errors import InputError
 
 CALIBRATION_FORMAT_VERSION = 1
@@ -43,13 +44,13 @@ class Calibration:
     diffuse_rel_std: np.ndarray | None = None     # relative standard errors (frame spread)
     collimated_rel_std: np.ndarray | None = None
     dark_counts: float = float("nan")   # median dark frame (every shutter closed), counts
-    device: dict = field(default_factory=dict)    # identity of the instrument it was taken on
+    device: InstrumentInfo | None = None          # the instrument it was taken on
     lamp_monitor: dict = field(default_factory=dict)  # set-up → lamp_monitor.record(): the lamps' references
 
     @classmethod
     def from_captures(cls, wavelengths_nm, captures: dict[str, Capture], *, white_reference_reflectance: float,
                       device_time_s: float = 0.0, spectrometer: dict | None = None,
-                      device: dict | None = None, lamp_monitor: dict | None = None) -> "Calibration":
+                      device: InstrumentInfo | None = None, lamp_monitor: dict | None = None) -> "Calibration":
         white, black, coll = captures["white"], captures["black"], captures["collimated"]
         flags = white.flags() | black.flags() | coll.flags()
         diffuse = white.rate / white_reference_reflectance
@@ -63,7 +64,7 @@ class Calibration:
                    np.where(no_light, np.nan, coll.rate), rho_black, float(white_reference_reflectance),
                    flags.astype(np.int32), float(device_time_s),
                    datetime.now(timezone.utc).isoformat(timespec="seconds"), dict(spectrometer or {}),
-                   white.relative_std(), coll.relative_std(), dark_counts, dict(device or {}),
+                   white.relative_std(), coll.relative_std(), dark_counts, device,
                    dict(lamp_monitor or {}))
 
     # -------------------------------------------------------------------------------- files
@@ -74,7 +75,8 @@ class Calibration:
         meta = {"format_version": CALIBRATION_FORMAT_VERSION, "rho_white": self.rho_white,
                 "device_time_s": self.device_time_s, "created_utc": self.created_utc,
                 "spectrometer": self.spectrometer, "bins": int(len(self.wavelengths_nm)),
-                "dark_counts": None if not np.isfinite(self.dark_counts) else self.dark_counts, "device": self.device,
+                "dark_counts": None if not np.isfinite(self.dark_counts) else self.dark_counts,
+                "device": {} if self.device is None else self.device.to_json(),
                 "lamp_monitor": self.lamp_monitor}
         (directory / "calibration.json").write_text(json.dumps(meta, indent=2))
         nan = np.full_like(self.diffuse, np.nan)
@@ -105,7 +107,7 @@ class Calibration:
             return cls(table[:, 0], table[:, 1], table[:, 2], table[:, 3], float(meta["rho_white"]),
                        table[:, 4].astype(np.int32), float(meta.get("device_time_s", 0.0)),
                        str(meta.get("created_utc", "")), dict(meta.get("spectrometer") or {}), table[:, 5],
-                       table[:, 6], float("nan") if dark is None else float(dark), dict(meta.get("device") or {}),
-                       dict(meta.get("lamp_monitor") or {}))
+                       table[:, 6], float("nan") if dark is None else float(dark),
+                       InstrumentInfo.from_json(meta.get("device")), dict(meta.get("lamp_monitor") or {}))
         except (KeyError, TypeError, ValueError) as exc:
             raise InputError(f"calibration in {directory} has a bad field ({exc}); calibrate again") from None

@@ -16,6 +16,7 @@ import numpy as np
 
 from trimeter.domain.calibration import Calibration
 from trimeter.domain.capture import RawSample
+from trimeter.domain.instrument import InstrumentInfo
 from trimeter.domain.reflectances import Reflectances
 from trimeter.errors import InputError
 
@@ -82,29 +83,6 @@ class Sample:
         if abs(self.map.thickness_mm - self.thickness_mm) > THICKNESS_TOLERANCE * max(1.0, self.thickness_mm):
             raise InputError(f"map {self.map.name} is for ℓ = {self.map.thickness_mm:g} mm, not the declared "
                              f"{self.thickness_mm:g} mm")
-
-
-@dataclass(frozen=True)
-class InstrumentInfo:
-    """The instrument a capture was taken on, as measurement.json's "device" records it."""
-
-    firmware: tuple[int, ...]
-    regmap_hash: int
-
-    @classmethod
-    def of(cls, identity: Any) -> InstrumentInfo:
-        """From a device's identity (trimeter.device.client's: firmware_version, regmap_hash)."""
-        return cls(tuple(int(v) for v in identity.firmware_version), int(identity.regmap_hash))
-
-    def to_json(self) -> dict:
-        return {"firmware": list(self.firmware), "regmap_hash": f"0x{self.regmap_hash:08X}"}
-
-    @classmethod
-    def from_json(cls, value: Any) -> InstrumentInfo | None:
-        try:
-            return cls(tuple(int(v) for v in value["firmware"]), int(str(value["regmap_hash"]), 16))
-        except (KeyError, TypeError, ValueError):
-            return None
 
 
 @dataclass(frozen=True)
@@ -218,7 +196,7 @@ class Measurement:
                     "map_checksums": [m.checksum for m in maps]})
         if p.timing is not None:
             out["timing"] = p.timing
-        out.update({"device": None if p.instrument is None else p.instrument.to_json(),
+        out.update({"device": None if p.instrument is None else p.instrument.to_json(with_model=False),
                     "calibration_created_utc": self.calibration.created_utc,
                     "device_map_table": None if p.device_map_table is None else p.device_map_table.to_json(),
                     "noise_rel_measured": list(p.noise_rel_measured), "incomplete": p.incomplete})

@@ -68,9 +68,8 @@ def comparable(calibration: Calibration, previous: Calibration | None) -> str | 
     for key in ("model", "serial"):
         if previous.spectrometer.get(key) != calibration.spectrometer.get(key):
             return "the previous calibration was taken with another spectrometer"
-    for key in ("vendor_id", "model_id"):
-        if key in previous.device and key in calibration.device and previous.device[key] != calibration.device[key]:
-            return "the previous calibration was taken on another instrument"
+    if previous.device and calibration.device and not previous.device.same_model(calibration.device):
+        return "the previous calibration was taken on another instrument"
     return None
 
 

@@ -28,7 +28,7 @@ from typing import Callable, TypeVar
 
 from trimeter.device import Device
 from trimeter.device.backup import config_source_warning
-from trimeter.domain import Calibration, Sample
+from trimeter.domain import Calibration, InstrumentInfo, Sample
 from trimeter.domain.measurement import DeviceTableCheck
 from trimeter.errors import CheckError, DeviceError, TrimeterError
 from trimeter.results.spool import recover_partials
@@ -327,9 +327,7 @@ class Service:
         runner = self._runner()
         self._on_device("switching the lamps on", lamps_on)
         identity = self.device.identity
-        device = {} if identity is None else {
-            "vendor_id": identity.vendor_id, "model_id": identity.model_id,
-            "firmware": list(identity.firmware_version), "regmap_hash": f"0x{identity.regmap_hash:08X}"}
+        device = None if identity is None else InstrumentInfo.of(identity)
         previous = None if force else self.previous_calibration()
         quick = runner.run(holder_check(white_reference_reflectance=s.white_reference))
         quick.device = device
