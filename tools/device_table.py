@@ -59,7 +59,7 @@ def build(amap, n_inverse: int | None = None):
         mc_stderr=float(np.median(np.concatenate([amap.std_b.ravel(), amap.std_w.ravel()]))),
         alpha=amap.alpha, log_sigma_t=np.log(amap.sigma_t), g=amap.g, nodes=np.stack([amap.A, amap.B, amap.C], -1),
         model_std=np.sqrt(var), inscatter_L=tins.L, inscatter_ends=(tins.u_max, tins.tau_max, tins.v_max),
-        inv_frame=inverse.inv_frame, inv_alpha=inverse.inv_alpha_q, inv_g=inverse.inv_g_q,
+        inv_frame=inverse.inv_frame, inv_alpha_q=inverse.inv_alpha_q, inv_g_q=inverse.inv_g_q,
         geometry=tins.geometry_params)
 
 
@@ -74,19 +74,18 @@ def inscatter_table(table, L=None):
 
 
 def host_inverter(table, forward=None, inscatter_L=None):
-    """The lut inverter (guess + polish) from the table alone: the compact model's node values, which
+    """The lut inverter (guess + polish) from the table alone: the table's node values, which
     ForwardGrid.between_nodes refines at load exactly as it refines a map (the same splines). forward,
     inscatter_L: other coefficients or L than the table's (for the precision study)."""
     from trimeter.inversion.lut import TableInverter
 
-    forward = table.forward() if forward is None else forward
-    view = SimpleNamespace(alpha=table.alpha.astype(np.float64), log_sigma_t=table.log_sigma_t.astype(np.float64),
-                           g=table.g.astype(np.float64), coefficients_grid=forward.nodes(), n=table.n,
-                           thickness_mm=table.thickness_mm, cover_slide_n=table.cover_slide_n,
-                           mc_stderr=table.mc_stderr, inv_alpha_q=table.inv_alpha, inv_frame=table.inv_frame,
-                           inverse_alpha=table.inverse_alpha(), inverse_g=table.inverse_g())
-    axes = (view.alpha, view.log_sigma_t, view.g)
-    return TableInverter(view, inscatter=inscatter_table(table, inscatter_L),
+    source = table
+    if forward is not None:
+        source = SimpleNamespace(**{k: getattr(table, k) for k in (
+            "alpha", "log_sigma_t", "g", "n", "thickness_mm", "cover_slide_n", "mc_stderr", "inv_alpha_q",
+            "inv_frame", "inverse_alpha", "inverse_g")}, coefficients_grid=forward.nodes())
+    axes = (table.alpha.astype(np.float64), table.log_sigma_t.astype(np.float64), table.g.astype(np.float64))
+    return TableInverter(source, inscatter=inscatter_table(table, inscatter_L),
                          model_variance=(table.model_variance(), axes))
 
 
@@ -248,7 +247,7 @@ def budget(amap, say=print) -> list[dict]:
         res = fit_table(tab, inverter, I_b, I_w, I_c)
         ms = _warm_ms(lambda tab=tab, inverter=inverter: fit_table(tab, inverter, I_b[tile], I_w[tile], I_c[tile]))
         st = _stats(res, truth, scoring)
-        size = table_size(na, ns, ng, tab.inv_alpha.shape[1], *tab.inscatter.shape, len(tab._geometry_bytes()))
+        size = table_size(na, ns, ng, tab.inv_alpha_q.shape[1], *tab.inscatter.shape, len(tab._geometry_bytes()))
         rows.append({"map": amap.name, "variant": name, "file_bytes": size, "ms_per_1024": ms, **st})
         say(f"   {name:38s}{nbytes or 2 * coef_bytes:11d}{size:11d}"
             + "".join(f"{st[key]:11.2e}" if "sigma" in key else f"{st[key]:11.4f}" for _, key in _COLUMNS[:6])

@@ -29,8 +29,8 @@ def small_table(**changes) -> DeviceTable:
                 cover_slide_n=1.52, reference_rhos=(0.02, 0.9), mc_stderr=3e-4, alpha=alpha, log_sigma_t=log_s, g=g,
                 nodes=nodes, model_std=rng.uniform(1e-4, 2e-3, nodes.shape[:3] + (2,)),
                 inscatter_L=rng.uniform(0.0, 0.3, (6, 5, 4)), inscatter_ends=(6.9, 10.0, 2.3),
-                inv_frame=rng.normal(size=(ns, 6)), inv_alpha=rng.integers(0, 65535, (ns, n_inv, n_inv)),
-                inv_g=rng.integers(0, 65535, (ns, n_inv, n_inv)),
+                inv_frame=rng.normal(size=(ns, 6)), inv_alpha_q=rng.integers(0, 65535, (ns, n_inv, n_inv)),
+                inv_g_q=rng.integers(0, 65535, (ns, n_inv, n_inv)),
                 geometry={"collimated": {"aperture_diameter_mm": 4.0}})
     args.update(changes)
     return DeviceTable.build(**args)

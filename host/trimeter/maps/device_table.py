@@ -34,8 +34,8 @@ The splines' knots are not stored: they are the not-a-knot knots of the stored �
                                                       at the reference backgrounds (MC + interpolation)
       inscatter     u16[n_u][n_tau][n_v]              L = ln(1 + r), regular in (u, τ, v) from 0
       inv_frame     f32[n_sigma][6]                   (x0, y0, m00, m01, m10, m11) per σt node, as in v1
-      inv_alpha     u16[n_sigma][n_inverse][n_inverse] α = α_0 + (α_last − α_0)·q/65535 (as in v1)
-      inv_g         u16[n_sigma][n_inverse][n_inverse] g = g_0 + (g_last − g_0)·q/65535
+      inv_alpha_q   u16[n_sigma][n_inverse][n_inverse] α = α_0 + (α_last − α_0)·q/65535 (as in v1)
+      inv_g_q       u16[n_sigma][n_inverse][n_inverse] g = g_0 + (g_last − g_0)·q/65535
       geometry      UTF-8 JSON                        the geometry parameters the in-scattering was traced for
     end−4  u32   CRC-32/IEEE (zlib.crc32) of every byte before it
 
@@ -49,6 +49,7 @@ import json
 import struct
 import zlib
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -62,8 +63,8 @@ FORMAT_VERSION = 2
 HEADER_SIZE = 256
 ALIGN = 8
 MAX_BYTES = MAP_SLOT_CAPACITY_BYTES
-SECTIONS = ("alpha", "log_sigma_t", "g", "scales", "spline", "model_std", "inscatter", "inv_frame", "inv_alpha",
-            "inv_g", "geometry")
+SECTIONS = ("alpha", "log_sigma_t", "g", "scales", "spline", "model_std", "inscatter", "inv_frame", "inv_alpha_q",
+            "inv_g_q", "geometry")
 SCALE_ROWS = ("A", "B", "C", "std_b", "std_w", "L")
 _HEAD = struct.Struct("<8sHHI32s32s6f3f8H24s")
 _DIRECTORY = struct.Struct(f"<{2 * len(SECTIONS)}I")
@@ -80,8 +81,8 @@ def _layout(na: int, ns: int, ng: int, n_inv: int, nu: int, nt: int, nv: int, ge
     specs = {"alpha": ("<f4", (na,)), "log_sigma_t": ("<f4", (ns,)), "g": ("<f4", (ng,)),
              "scales": ("<f4", (len(SCALE_ROWS), 2)), "spline": ("<u2", (ng, na, ns, 3)),
              "model_std": ("<u2", (na, ns, ng, 2)), "inscatter": ("<u2", (nu, nt, nv)),
-             "inv_frame": ("<f4", (ns, 6)), "inv_alpha": ("<u2", (ns, n_inv, n_inv)),
-             "inv_g": ("<u2", (ns, n_inv, n_inv)), "geometry": ("u1", (geometry_bytes,))}
+             "inv_frame": ("<f4", (ns, 6)), "inv_alpha_q": ("<u2", (ns, n_inv, n_inv)),
+             "inv_g_q": ("<u2", (ns, n_inv, n_inv)), "geometry": ("u1", (geometry_bytes,))}
     layout, offset = {}, HEADER_SIZE
     for name in SECTIONS:
         dtype, shape = specs[name]
@@ -133,8 +134,8 @@ class DeviceTable:
     model_std: np.ndarray                # u16 (na, ns, ng, 2)
     inscatter: np.ndarray                # u16 (nu, nt, nv)
     inv_frame: np.ndarray                # f32 (ns, 6)
-    inv_alpha: np.ndarray                # u16 (ns, n_inv, n_inv)
-    inv_g: np.ndarray                    # u16 (ns, n_inv, n_inv)
+    inv_alpha_q: np.ndarray                # u16 (ns, n_inv, n_inv)
+    inv_g_q: np.ndarray                    # u16 (ns, n_inv, n_inv)
     geometry: dict
     path: Path | None = field(default=None, compare=False)
 
@@ -143,8 +144,8 @@ class DeviceTable:
     def build(cls, *, name: str, parent_sha256: str, inscatter_sha256: str, n: float, thickness_mm: float,
               cover_slide_n: float | None, reference_rhos: tuple[float, float], mc_stderr: float, alpha, log_sigma_t,
               g, nodes: np.ndarray, model_std: np.ndarray, inscatter_L: np.ndarray,
-              inscatter_ends: tuple[float, float, float], inv_frame: np.ndarray, inv_alpha: np.ndarray,
-              inv_g: np.ndarray, geometry: dict) -> DeviceTable:
+              inscatter_ends: tuple[float, float, float], inv_frame: np.ndarray, inv_alpha_q: np.ndarray,
+              inv_g_q: np.ndarray, geometry: dict) -> DeviceTable:
         """From float arrays: A, B, C at the map's nodes (na, ns, ng, 3), the model error stds
         (na, ns, ng, 2), L (nu, nt, nv); the inverse grid already as v1 codes (u16)."""
         a32, s32, g32 = (np.asarray(x, dtype=np.float32) for x in (alpha, log_sigma_t, g))
@@ -168,8 +169,8 @@ class DeviceTable:
                     inscatter_ends=tuple(float(x) for x in inscatter_ends), alpha=a32, log_sigma_t=s32, g=g32,
                     scales=np.array(scales, dtype=np.float32), spline=np.stack(spline_q, axis=-1),
                     model_std=np.stack(std_q, axis=-1), inscatter=L_q,
-                    inv_frame=np.asarray(inv_frame, dtype=np.float32), inv_alpha=np.asarray(inv_alpha, np.uint16),
-                    inv_g=np.asarray(inv_g, np.uint16), geometry=geometry)
+                    inv_frame=np.asarray(inv_frame, dtype=np.float32), inv_alpha_q=np.asarray(inv_alpha_q, np.uint16),
+                    inv_g_q=np.asarray(inv_g_q, np.uint16), geometry=geometry)
         return cls.from_bytes(table.to_bytes(), source="device table being built")  # every check, once
 
     # ----------------------------------------------------------------------------- decoded views
@@ -188,13 +189,21 @@ class DeviceTable:
     def inscatter_L(self) -> np.ndarray:
         return self._decoded(self.inscatter, 5)
 
+    @cached_property
+    def coefficients_grid(self) -> np.ndarray:
+        """A, B, C at the map's nodes (na, ns, ng, 3) from the compact model: a map's node values, from
+        which ForwardGrid.between_nodes refines exactly the compact model's splines."""
+        return self.forward().nodes()
+
+    @cached_property
     def inverse_alpha(self) -> np.ndarray:
         a0, a1 = float(self.alpha[0]), float(self.alpha[-1])
-        return a0 + (a1 - a0) * self.inv_alpha.astype(np.float64) / _Q
+        return a0 + (a1 - a0) * self.inv_alpha_q.astype(np.float64) / _Q
 
+    @cached_property
     def inverse_g(self) -> np.ndarray:
         g0, g1 = float(self.g[0]), float(self.g[-1])
-        return g0 + (g1 - g0) * self.inv_g.astype(np.float64) / _Q
+        return g0 + (g1 - g0) * self.inv_g_q.astype(np.float64) / _Q
 
     @property
     def reference_rhos(self) -> tuple[float, float]:
@@ -204,7 +213,7 @@ class DeviceTable:
         return geometry_bytes(self.geometry)
 
     def _counts(self) -> tuple[int, ...]:
-        return (len(self.alpha), len(self.log_sigma_t), len(self.g), self.inv_alpha.shape[1], *self.inscatter.shape)
+        return (len(self.alpha), len(self.log_sigma_t), len(self.g), self.inv_alpha_q.shape[1], *self.inscatter.shape)
 
     @property
     def size_bytes(self) -> int:
