@@ -39,8 +39,8 @@ uint8_t fit_start(fit_t *f, const storage_t *st, uint16_t count, float thickness
     f->done = 0; /* a refused run leaves no earlier results readable as if they were its own */
     f->table = NULL;
     if (!fit_available()) return refuse(f, TRIMETER_FIT_STATUS_ERROR_UNAVAILABLE, MB_EX_ILLEGAL_FUNCTION);
-    uint32_t length = 0, crc32 = 0;
-    const uint8_t *table = storage_map_active_bytes(st, &length, &crc32);
+    uint32_t length = 0;
+    const uint8_t *table = storage_map_active_bytes(st, &length);
     if (!table) return refuse(f, TRIMETER_FIT_STATUS_ERROR_NO_TABLE, MB_EX_ILLEGAL_FUNCTION);
     /* a valid slot passed map_table_check, so its header is there and ℓ is finite and positive */
     float thickness = map_table_thickness_mm(table), off = thickness_mm - thickness;
@@ -51,7 +51,9 @@ uint8_t fit_start(fit_t *f, const storage_t *st, uint16_t count, float thickness
         return refuse(f, TRIMETER_FIT_STATUS_ERROR_TABLE, MB_EX_ILLEGAL_FUNCTION);
     f->table = table;
     f->table_length = length;
-    f->table_crc32 = crc32;
+    /* its own CRC (the last 4 bytes) names it: a CRC-32 over a whole table is the same for every table */
+    const uint8_t *tail = table + length - 4;
+    f->table_crc32 = (uint32_t)tail[0] | (uint32_t)tail[1] << 8 | (uint32_t)tail[2] << 16 | (uint32_t)tail[3] << 24;
     f->count = count;
     f->status = TRIMETER_FIT_STATUS_BUSY;
     return MB_OK;

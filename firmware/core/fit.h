@@ -22,7 +22,7 @@ typedef struct fit {
     uint16_t out[FIT_MAX_BINS * TRIMETER_FIT_OUTPUT_WORD_STRIDE]; /* file fit_output */
     const uint8_t *table;                                         /* the run's table, in place */
     uint32_t table_length;
-    uint32_t table_crc32;
+    uint32_t table_crc32;                                         /* the table's own (trailing) CRC-32 */
     uint16_t count;  /* bins in the run */
     uint16_t done;   /* bins in `out` */
     trimeter_fit_status_t status;

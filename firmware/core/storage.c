@@ -206,15 +206,12 @@ int storage_map_write(storage_t *st, int slot, uint32_t offset, const uint8_t *d
     return STORAGE_OK;
 }
 
-const uint8_t *storage_map_active_bytes(const storage_t *st, uint32_t *length, uint32_t *crc32)
+const uint8_t *storage_map_active_bytes(const storage_t *st, uint32_t *length)
 {
     int slot = storage_map_active(st);
     if (slot < 0 || !st->hal->storage_map_bytes) return NULL;
     const uint8_t *bytes = st->hal->storage_map_bytes(st->hal->ctx, (enum hal_region)(HAL_REGION_MAP_A + slot));
-    if (bytes) {
-        *length = st->map[slot].length;
-        *crc32 = st->map[slot].crc32;
-    }
+    if (bytes) *length = st->map[slot].length;
     return bytes;
 }
 

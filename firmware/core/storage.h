@@ -97,10 +97,10 @@ int storage_commit(storage_t *st);
 /* The valid slot with the newest commit, or -1. */
 int storage_map_active(const storage_t *st);
 
-/* The active map table where it lies (hal storage_map_bytes), with its committed length and CRC-32;
- * NULL when no slot is valid or the port cannot map it. The bytes stay valid until that slot is erased,
- * which needs another activation first (begin_write erases only the inactive slot). */
-const uint8_t *storage_map_active_bytes(const storage_t *st, uint32_t *length, uint32_t *crc32);
+/* The active map table where it lies (hal storage_map_bytes), with its committed length; NULL when no
+ * slot is valid or the port cannot map it. The bytes stay valid until that slot is erased, which needs
+ * another activation first (begin_write erases only the inactive slot). */
+const uint8_t *storage_map_active_bytes(const storage_t *st, uint32_t *length);
 
 /* Map slot access (raw bytes in the slot's region). */
 int storage_map_erase(storage_t *st, int slot);

@@ -291,7 +291,7 @@ REGISTERS: tuple[Register, ...] = (
     Register('fit_available', 'input_register', 82, 'u16', 1, 'r', 1.0, '', 0, 1, 0, None, (),
              '1 when this firmware was built with the inverse core; 0: fit_command = run answers exception 01 (error_unavailable).'),
     Register('fit_table_crc32', 'input_register', 84, 'u32', 2, 'r', 1.0, '', 0, 4294967295, 0, None, (),
-             "CRC-32 of the map table the current (or last) run fits with (the active slot's at run), 0 before any run: the master compares it with its own table."),
+             "The own CRC-32 of the map table the current (or last) run fits with (its last 4 bytes: the CRC-32 of every byte before them), 0 before any run: the master compares it with its table's, to know the device fitted with that table. (A CRC-32 over a whole table, map_slot_*_crc32, is the same constant for every valid table.)"),
     Register('command', 'holding_register', 0, 'u16', 1, 'rw', 1.0, '', 0, 8, 0, 'command', (),
              'Write to start an action; reads back the last accepted command. Motion commands only set a target. save_config and load_defaults need `unlock` first (else exception 01); a save refused by the erase rate limit: exception 06.'),
     Register('unlock', 'holding_register', 1, 'u16', 1, 'rw', 1.0, '', 0, 23294, 0, 'unlock', (0, 23294),

@@ -129,15 +129,19 @@ def test_with_a_core_linked_bins_go_out_and_results_come_back_exactly(standin):
     with pytest.raises(InputError, match="not for a 0.8 mm sample"):
         standin.fit(*_bins(2), thickness_mm=0.8)
     assert standin.read("fit_status") == regs.FitStatus.ERROR_GEOMETRY
+    with pytest.raises(DeviceError, match="another map table"):
+        standin.fit(*_bins(2), thickness_mm=0.4, table=_tiny_table(thickness_mm=0.8))
+    with pytest.raises(InputError, match="not a map table"):
+        standin.fit(*_bins(2), thickness_mm=0.4, table=b"\x89TRLUT\r\n0000")
 
     n = standin.fit_capacity + 45  # two runs, the second partial
     i_b, i_w, i_c, rho_b, rho_w = _bins(n)
     i_c[7], rho_w[300] = np.nan, np.inf  # the device flags these, it does not refuse them
-    got = standin.fit(i_b, i_w, i_c, rho_b, rho_w, thickness_mm=0.4)
+    got = standin.fit(i_b, i_w, i_c, rho_b, rho_w, thickness_mm=0.4, table=table)
     f32 = [np.asarray(v, dtype=np.float32) for v in (i_b, i_w, i_c, rho_b, rho_w)]
     bad = np.zeros(n, dtype=bool)
     bad[[7, 300]] = True
-    assert got.table_crc32 == zlib.crc32(table)
+    assert got.table_crc32 == zlib.crc32(table[:-4]) != zlib.crc32(_tiny_table(thickness_mm=0.8)[:-4])
     np.testing.assert_array_equal(got.flags, np.where(bad, 1, 0))
     assert np.isnan(got.alpha[bad]).all() and np.isnan(got.g[bad]).all()
     np.testing.assert_array_equal(got.alpha[~bad], f32[0][~bad])

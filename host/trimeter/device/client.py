@@ -158,10 +158,20 @@ _FIT_REFUSALS = {
 }
 
 
+def table_own_crc32(table: bytes) -> int:
+    """What names a map table (input register fit_table_crc32): its own CRC-32, the last 4 bytes (little-endian),
+    checked here against the bytes before them. A CRC-32 over a whole table would not do: it is the same
+    constant for every table that ends with its own CRC."""
+    if len(table) < 8 or zlib.crc32(table[:-4]) != int.from_bytes(table[-4:], "little"):
+        raise InputError("not a map table: its last 4 bytes are not the CRC-32 of the bytes before them")
+    return int.from_bytes(table[-4:], "little")
+
+
 @dataclass(frozen=True)
 class DeviceFit:
     """Per-bin results of a fit on the device: α, σt [1/mm], g (NaN where a flag in
-    trimeter.inversion.flags.UNUSABLE is set) and the FitFlag bits; table_crc32 names the map table used."""
+    trimeter.inversion.flags.UNUSABLE is set) and the FitFlag bits; table_crc32 names the map table used
+    (table_own_crc32)."""
 
     alpha: np.ndarray
     sigma_t: np.ndarray
@@ -511,13 +521,16 @@ class Device:
         """Bins the device fits in one run (the register map's max of fit_bin_count)."""
         return int(regs.BY_NAME["fit_bin_count"].max)
 
-    def fit(self, I_b, I_w, I_c, rho_b, rho_w, *, thickness_mm: float, timeout_s: float = 30.0) -> DeviceFit:
+    def fit(self, I_b, I_w, I_c, rho_b, rho_w, *, thickness_mm: float, table: bytes | None = None,
+            timeout_s: float = 30.0) -> DeviceFit:
         """Fit bins on the device with its active map table, in runs of at most `fit_capacity` bins.
 
         Any number of bins; NaN, negative or out-of-range values are the device's to flag (like the host's
         fit), not refused here. `thickness_mm` is the sample's: the device refuses a run unless it is its
-        table's ℓ. Raises InputError for unusable arguments or a thickness the table is not for, DeviceError
-        when the device cannot fit (no inverse core, no table, a table changed between runs)."""
+        table's ℓ. `table` (a .tlut file's bytes): the device must have fitted with exactly that table.
+        Raises InputError for unusable arguments or a thickness the table is not for, DeviceError when the
+        device cannot fit (no inverse core, no table, another table than the one given, a table changed
+        between runs)."""
         try:
             columns = [np.asarray(v, dtype=np.float64) for v in (I_b, I_w, I_c, rho_b, rho_w)]
         except (TypeError, ValueError):
@@ -527,23 +540,27 @@ class Device:
             raise InputError("fit on the device: I_b, I_w, I_c, rho_b and rho_w must be 1-D arrays of one length "
                              f"(got shapes {', '.join(str(c.shape) for c in columns)})")
         thickness_words = encode(regs.BY_NAME["fit_thickness_mm"], thickness_mm)  # range-checked before sending
+        expected = None if table is None else table_own_crc32(table)
         bins = np.zeros(n, dtype=FIT_INPUT_DTYPE)
         for name, column in zip(FIT_INPUT_DTYPE.names, columns, strict=True):
             with np.errstate(over="ignore"):  # beyond float32: inf, which the device flags like any bad value
                 bins[name] = column.astype(np.float32)
         results = np.zeros(n, dtype=FIT_OUTPUT_DTYPE)
-        table_crc32 = None
+        used = None
         for first in range(0, n, self.fit_capacity):
             chunk = bins[first:first + self.fit_capacity]
             self._write_fit_bins(chunk)
             crc = self._run_fit(len(chunk), thickness_words, thickness_mm, timeout_s)
-            if table_crc32 is not None and crc != table_crc32:
-                raise DeviceError(f"the device's active map table changed during the fit (CRC-32 0x{table_crc32:08X}, "
+            if expected is not None and crc != expected:
+                raise DeviceError(f"the device fits with another map table (CRC-32 0x{crc:08X}) than the one given "
+                                  f"(0x{expected:08X}): flash it (trimeter map flash TABLE --port PORT)")
+            if used is not None and crc != used:
+                raise DeviceError(f"the device's active map table changed during the fit (CRC-32 0x{used:08X}, "
                                   f"then 0x{crc:08X}): fit again")
-            table_crc32 = crc
+            used = crc
             results[first:first + len(chunk)] = self._read_fit_results(len(chunk))
         return DeviceFit(*(results[name].astype(np.float64) for name in ("alpha", "sigma_t", "g")),
-                         flags=results["flags"].astype(np.int64), table_crc32=int(table_crc32))
+                         flags=results["flags"].astype(np.int64), table_crc32=int(used))
 
     def _write_fit_bins(self, bins: np.ndarray) -> None:
         per_request = MAX_FILE_RECORD_WORDS // int(regs.FitInputWord.STRIDE)
