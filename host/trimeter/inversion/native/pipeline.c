@@ -220,14 +220,14 @@ static inline check_move_t check_move(const tm_forward_grid *f, const check_t *k
     return mv;
 }
 
-static inline int check_holds(const check_t *k, const check_move_t *mv, double a2, double g2) {
-    return fabs(a2 - k->alpha - mv->da) <= k->limit_a && fabs(g2 - k->g - mv->dg) <= k->limit_g;
+static inline int check_holds(const check_t *k, double da, double dg, double a2, double g2) {
+    return fabs(a2 - k->alpha - da) <= k->limit_a && fabs(g2 - k->g - dg) <= k->limit_g;
 }
 
 /* Bins per block of the check: each block's moved cells are found and prefetched in one pass before
  * they are evaluated (the moved cells, a few σ from the solution's, are mostly not in cache, and a
- * pass without dependent loads keeps many of those misses in flight); small enough for the stack. */
-#define CHECK_BLOCK 32
+ * pass without dependent loads keeps many of those misses in flight); its arrays take ~1 KB of stack. */
+#define CHECK_BLOCK 16
 
 /* The check for the bins listed in idx (m of them), move by move, a block of bins at a time: the
  * moves' cells prefetched, then evaluated four bins per step with AVX2 where the polish uses it. A
@@ -238,17 +238,19 @@ static void check_first_order(const tm_forward_grid *f, size_t m, const uint32_t
     for (int move = 0; move < 4; move++) {
         for (size_t j0 = 0; j0 < m; j0 += CHECK_BLOCK) {
             uint32_t lane[CHECK_BLOCK];
-            check_move_t mv[CHECK_BLOCK];
             double a1[CHECK_BLOCK], g1[CHECK_BLOCK], tb[CHECK_BLOCK], tw[CHECK_BLOCK], a2[CHECK_BLOCK], g2[CHECK_BLOCK];
+            double da[CHECK_BLOCK], dg[CHECK_BLOCK];
             size_t k = 0, j1 = m - j0 < CHECK_BLOCK ? m : j0 + CHECK_BLOCK;
             for (size_t j = j0; j < j1; j++) {
                 uint32_t i = idx[j];
                 if (flags[i] & TM_FLAG_STD_APPROXIMATE) continue;
-                mv[k] = check_move(f, &checks[i], move, sigmas, I_b[i], I_w[i]);
-                a1[k] = mv[k].a1;
-                g1[k] = mv[k].g1;
-                tb[k] = mv[k].tb;
-                tw[k] = mv[k].tw;
+                check_move_t mv = check_move(f, &checks[i], move, sigmas, I_b[i], I_w[i]);
+                a1[k] = mv.a1;
+                g1[k] = mv.g1;
+                tb[k] = mv.tb;
+                tw[k] = mv.tw;
+                da[k] = mv.da;
+                dg[k] = mv.dg;
                 prefetch_cell(f, &cells[i], a1[k], g1[k]);
                 lane[k++] = i;
             }
@@ -263,7 +265,7 @@ static void check_first_order(const tm_forward_grid *f, size_t m, const uint32_t
                 check_step(f, &cells[i], a1[l], g1[l], tb[l], tw[l], rho_b[i], rho_w[i], &a2[l], &g2[l]);
             }
             for (l = 0; l < k; l++)
-                if (!check_holds(&checks[lane[l]], &mv[l], a2[l], g2[l])) flags[lane[l]] |= TM_FLAG_STD_APPROXIMATE;
+                if (!check_holds(&checks[lane[l]], da[l], dg[l], a2[l], g2[l])) flags[lane[l]] |= TM_FLAG_STD_APPROXIMATE;
         }
     }
 }
