@@ -294,6 +294,47 @@ static void test_while_a_fit_runs_its_inputs_and_table_are_left_alone(void)
     CHECK_EQ_INT(app_write_file(NULL, TRIMETER_FIT_FILE_INPUT, 0, 2, w), MB_OK); /* writable again */
 }
 
+/* A request through the UART (address .. PDU; the CRC is added), handled after the line's silence. */
+static void send_adu(const uint8_t *adu, size_t len)
+{
+    uint16_t crc = crc16_modbus(adu, len);
+    memcpy(f->rx, adu, len);
+    f->rx[len] = (uint8_t)crc;
+    f->rx[len + 1] = (uint8_t)(crc >> 8);
+    f->rx_len = len + 2;
+    f->rx_pos = 0;
+    f->tx_len = 0;
+    run_ms(4); /* > t3.5 at 19200 baud */
+}
+
+static void test_a_broadcast_neither_writes_bins_nor_runs_a_fit(void)
+{
+    fresh_device();
+    activate_table();
+    write_bins(1);
+    /* FC 0x15 to address 0: one record of file fit_input */
+    const uint8_t bins[] = {0, 0x15, 9, 6, 0, TRIMETER_FIT_FILE_INPUT, 0, 0, 0, 1, 0x12, 0x34};
+    send_adu(bins, sizeof bins);
+    CHECK_EQ_INT(f->tx_len, 0);
+    uint16_t back;
+    CHECK_EQ_INT(app_read_file(NULL, TRIMETER_FIT_FILE_INPUT, 0, 1, &back), MB_OK);
+    CHECK(back != 0x1234);
+    /* FC 0x10 to address 0 over 24..27: count 1, 0.4 mm (0x3ECCCCCD), run */
+    const uint8_t run[] = {0, 0x10, 0, REG_HR_FIT_BIN_COUNT, 0, 4, 8, 0, 1, 0x3E, 0xCC, 0xCC, 0xCD,
+                           0, TRIMETER_FIT_COMMAND_RUN};
+    send_adu(run, sizeof run);
+    CHECK_EQ_INT(f->tx_len, 0);
+    CHECK_EQ_INT(ir(REG_IR_FIT_STATUS), TRIMETER_FIT_STATUS_IDLE);
+    CHECK_EQ_INT(core.bin_calls, 0);
+    /* the same run from our address works: the frame was right, only the broadcast was refused */
+    uint8_t unicast[sizeof run];
+    memcpy(unicast, run, sizeof run);
+    unicast[0] = app_get()->mb.address;
+    send_adu(unicast, sizeof unicast);
+    CHECK_EQ_INT(ir(REG_IR_FIT_STATUS), TRIMETER_FIT_STATUS_DONE);
+    CHECK_EQ_INT(core.bin_calls, 1);
+}
+
 static void test_a_core_failure_mid_run_stops_it_with_error_core(void)
 {
     fresh_device();
@@ -317,6 +358,7 @@ int main(void)
     RUN_TEST(test_run_is_refused_with_its_reason_before_any_bin_is_fitted);
     RUN_TEST(test_while_a_fit_runs_its_inputs_and_table_are_left_alone);
     RUN_TEST(test_a_core_failure_mid_run_stops_it_with_error_core);
+    RUN_TEST(test_a_broadcast_neither_writes_bins_nor_runs_a_fit);
     fake_hal_free(f);
     return CHECK_SUMMARY();
 }
