@@ -7,7 +7,7 @@ built from another header, or from sources older than these, is refused by name.
 
 Which kernel runs is chosen by TRIMETER_KERNEL: `auto` (the default) runs the compiled one and, when
 it is missing, stale or does not load, the numpy kernel (trimeter.inversion.kernel, the reference the
-C code is tested against; same results, ~16× slower) with a NativeKernelWarning that says so and
+C code is tested against; same results, many times slower) with a NativeKernelWarning that says so and
 names `make native`; `numpy` runs the numpy kernel on purpose, without a warning (TRIMETER_NATIVE=0
 means the same); `native` requires the compiled one (NativeKernelError at import otherwise).
 `status()` says which one runs (the benchmark prints it).
@@ -106,7 +106,7 @@ def _load():
     if lib is None:
         if chosen == "native":
             raise NativeKernelError(f"TRIMETER_KERNEL=native, but {why}: run `make native`")
-        warnings.warn(f"{why}: the numpy kernel runs instead, ~16× slower; {REBUILD}", NativeKernelWarning,
+        warnings.warn(f"{why}: the numpy kernel runs instead, many times slower; {REBUILD}", NativeKernelWarning,
                       stacklevel=2)
         return None, f"numpy kernel ({why}; {REBUILD})"
     lanes = "AVX2, 4 bins per Newton step" if lib.tm_set_simd(1) else "scalar"
