@@ -15,6 +15,7 @@ from trimeter import registers as regs
 from trimeter.device.client import Device
 from trimeter.errors import CheckError, InputError
 from trimeter.maps import AppearanceMap
+from trimeter.sequences.calibrate import previous_calibration
 from trimeter.sequences.checks import calibration_problems, shot_problems, surface_floor
 from trimeter.domain import Calibration, Reflectances, Sample
 from trimeter.sequences.service import Service
@@ -96,7 +97,7 @@ def test_a_calibration_disagreeing_with_the_previous_good_one_is_refused_unless_
     assert Calibration.load(service.settings.calibration_path).created_utc == first.created_utc  # kept
     cal = service.calibrate(force=True)
     np.testing.assert_allclose(cal.collimated, first.collimated * 0.5, rtol=0.01)
-    assert calibration_problems(service.previous_calibration(), first) != []  # the new one is the reference now
+    assert calibration_problems(previous_calibration(service.settings), first) != []  # the new one is the reference now
 
 
 def test_physical_bounds_of_a_calibration():

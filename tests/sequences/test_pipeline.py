@@ -1,5 +1,6 @@
-"""The one-shot pipeline as a plain function, without the press-button service: capture → fit → write
-from (thickness, map) samples, and the one door into the fit that refuses bad input before any light."""
+"""The one-shot pipelines as plain functions, without the press-button service: capture → fit → write
+from (thickness, map) samples, the one door into the fit that refuses bad input before any light, and
+calibrating."""
 
 import json
 
@@ -9,10 +10,11 @@ import pytest
 from fakes import FakeInstrument, FakeOptics, FakeSpectrometer
 from hil_support import HIL_MAP
 from trimeter.device.client import Device
-from trimeter.domain import Sample
+from trimeter.domain import InstrumentInfo, Sample
 from trimeter.errors import CheckError, DeviceError, InputError, TrimeterError
 from trimeter.maps import AppearanceMap
 from trimeter.sequences import Runner, calibration
+from trimeter.sequences.calibrate import calibrate, previous_calibration
 from trimeter.sequences.measure import measure, prepare_fit
 from trimeter.sequences.settings import HostSettings
 
@@ -90,3 +92,20 @@ def test_a_prepared_fit_takes_only_captures_of_its_own_samples(rig, amap):
     with pytest.raises(InputError, match="not of the samples"):
         other.fit(outcome.measurement.captures)
     assert other.fit_table_bytes()[:4] and prepare_fit([Sample(0.4, amap)], "paper").fit_table_bytes() is None
+
+
+def test_calibrate_saves_a_checked_calibration_and_refuses_a_sample_in_the_holder(tmp_path, monkeypatch):
+    monkeypatch.setenv("TRIMETER_DATA_DIR", str(tmp_path / "data"))
+    fake = FakeInstrument(busy_polls=1)
+    optics = FakeOptics(WL, diffuse=np.full(WL.size, 3e6), collimated=np.full(WL.size, 5e6),
+                        rho_black=np.full(WL.size, 0.03), rho_white=0.99)
+    runner = Runner(Device(fake), FakeSpectrometer(fake, optics), sleep=lambda s: None)
+    settings = HostSettings()
+    instrument = InstrumentInfo((0, 1, 0), 0xC7026EF1, vendor_id=1, model_id=2)
+    cal = calibrate(runner, settings, instrument=instrument, warm=False)
+    assert previous_calibration(settings).device == instrument and np.array_equal(
+        previous_calibration(settings).rho_black, cal.rho_black, equal_nan=True)
+    optics.sample = (np.full(WL.size, 0.2), np.full(WL.size, 0.5), np.full(WL.size, 0.1))
+    with pytest.raises(CheckError, match="holder does not look empty"):
+        calibrate(runner, settings, instrument=instrument, warm=False)
+    assert previous_calibration(settings).created_utc == cal.created_utc   # the good one is kept

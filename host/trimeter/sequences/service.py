@@ -33,9 +33,8 @@ from trimeter.domain.measurement import DeviceTableCheck
 from trimeter.errors import CheckError, DeviceError, TrimeterError
 from trimeter.results.spool import recover_partials
 from trimeter.sequences import measure as pipeline
+from trimeter.sequences.calibrate import calibrate, previous_calibration
 from trimeter.sequences.checks import calibration_problems
-from trimeter.sequences.plans import calibration as calibration_plan
-from trimeter.sequences.plans import holder_check, warm_up
 from trimeter.sequences.settings import HostSettings
 from trimeter.sequences.steps import RetryPolicy, Runner, retry_on_link_error
 
@@ -101,10 +100,7 @@ class Service:
         self.calibration_stale_reason: str | None = None  # set when a reset was seen
         self.calibration_requested: str | None = None  # a calibration asked for by name (the web page)
         self._next_sample_confirmed = threading.Event()  # the web page's stand-in for the double-blink press
-        try:
-            self.calibration = Calibration.load(settings.calibration_path)
-        except TrimeterError:
-            self.calibration = None
+        self.calibration = previous_calibration(settings)
         if self.calibration is not None and (problems := calibration_problems(self.calibration)):
             self.calibration_stale_reason = "the saved calibration fails its checks (" + "; ".join(problems) + ")"
 
@@ -312,37 +308,16 @@ class Service:
         return Runner(self.device, self.spectrometer, on_progress=self.on_progress, device_clock=self.device_clock,
                       retry=self.retry)
 
-    def previous_calibration(self) -> Calibration | None:
-        """The last good calibration on disk (every saved one passed its checks), or None."""
-        try:
-            return Calibration.load(self.settings.calibration_path)
-        except TrimeterError:
-            return None
-
     def calibrate(self, *, warm: bool = True, force: bool = False) -> Calibration:
-        """Holder check, warm-up, calibration, checks, save. CheckError (nothing saved) when the holder is
-        not empty, the slots are swapped or the result is implausible. `force` accepts a calibration that
-        disagrees with the previous good one (a replaced lamp); the physical bounds still apply."""
-        s = self.settings
-        runner = self._runner()
+        """sequences.calibrate.calibrate on this service's device, with the lamps switched on first; the LED
+        and events follow it (see there for the CheckError cases and `force`)."""
         self._on_device("switching the lamps on", lamps_on)
+        runner = self._runner()
         identity = self.device.identity
-        device = None if identity is None else InstrumentInfo.of(identity)
-        previous = None if force else self.previous_calibration()
-        quick = runner.run(holder_check(white_reference_reflectance=s.white_reference))
-        quick.device = device
-        if problems := calibration_problems(quick, previous):
-            raise CheckError("the holder does not look empty, nothing was calibrated: " + "; ".join(problems))
-        if warm:
-            result = runner.run(warm_up(threshold=s.warmup_threshold, interval_s=s.warmup_interval_s,
-                                        timeout_s=s.warmup_timeout_s, frames=s.frames))
-            self._emit("warmed_up", f"lamps stable after {result.elapsed_s:.0f} s (drift {result.drift:.2%})",
-                       drift=result.drift, elapsed_s=result.elapsed_s)
-        cal = runner.run(calibration_plan(white_reference_reflectance=s.white_reference, frames=s.frames))
-        cal.device = device
-        if problems := calibration_problems(cal, previous):
-            raise CheckError("calibration refused, the previous one is kept: " + "; ".join(problems))
-        cal.save(s.calibration_path)
+        cal = calibrate(runner, self.settings, instrument=None if identity is None else InstrumentInfo.of(identity),
+                        warm=warm, force=force, on_warmed_up=lambda result: self._emit(
+                            "warmed_up", f"lamps stable after {result.elapsed_s:.0f} s (drift {result.drift:.2%})",
+                            drift=result.drift, elapsed_s=result.elapsed_s))
         self.calibration = cal
         self.calibration_stale_reason = self.calibration_requested = None
         self.last_timing = runner.timing.to_dict()
