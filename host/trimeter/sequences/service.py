@@ -1,4 +1,7 @@
 """Press-button mode (`trimeter serve`): the instrument on its own, driven by its front button.
+This module keeps the button loop, the LED and the reconnect policy; what a press runs is a plain
+function (sequences.calibrate.calibrate, sequences.measure.measure) that `trimeter measure`, the web
+page and the tests call too.
 
 Calibration missing, older than `calibration_max_age_s`, or the device was reset since: the LED
 triple-blinks ("empty the holder and press") as soon as that is seen, and a press then checks that the
