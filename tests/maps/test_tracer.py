@@ -104,10 +104,11 @@ def test_backend_llvm_runs_and_cuda_without_a_gpu_is_a_clear_error(ideal):
 def test_alpha_zero_is_beer_lambert_with_fresnel_and_g_has_no_effect(ideal):
     """At α = 0 only unscattered light remains: A is the Fresnel slab's specular reflectance and
     B = T(normal)·∫2μ T(μ)dμ (Beer-Lambert along each slant path); paths with k = 0 never sample the
-    phase function, so with the same seed every g gives the identical α = 0 tally."""
+    phase function, so with the same seed every g gives the identical α = 0 tally (a fixed share of
+    background paths: the default one depends on the error at α > 0, and so on g)."""
     sigma_t = 1.0
-    t0 = trace(ideal, sigma_t, 0.0, 1 << 17, 5, K_MAX)
-    t9 = trace(ideal, sigma_t, 0.9, 1 << 17, 5, K_MAX)
+    t0 = trace(ideal, sigma_t, 0.0, 1 << 17, 5, K_MAX, below_fraction=1.0)
+    t9 = trace(ideal, sigma_t, 0.9, 1 << 17, 5, K_MAX, below_fraction=1.0)
     np.testing.assert_array_equal(t0.above.orders([0.0]), t9.above.orders([0.0]))
     np.testing.assert_array_equal(t0.below.orders([0.0]), t9.below.orders([0.0]))
 
@@ -258,3 +259,82 @@ def test_dense_device_column_survives_the_dask_nannys_malloc_trim_threshold():
                          cwd=Path(__file__).resolve().parents[2], timeout=600)
     assert run.returncode == 0, (run.returncode, run.stderr[-2000:])
     assert "traced 8388608" in run.stdout
+
+
+def test_added_constant_sums_equal_per_path_values():
+    """A control variate adds its expectation c·q^r to every path's value: the tallies' mean and
+    second moment at any (α, q) equal the explicit per-path ones."""
+    from trimeter.maps.tracer import _add_constant
+
+    rng = np.random.default_rng(5)
+    n = 300
+    nee_k, k = rng.integers(0, 8, n), rng.integers(0, 10, n)
+    m = rng.integers(0, 3, n)
+    nee_value = np.where(m >= 1, rng.uniform(0.0, 2.0, n), 0.0)
+    hit = rng.random(n) < 0.5
+    counts, second = _detector_sums(k, m, hit, nee_k, nee_value)
+    counts, second = _add_constant(counts, second, n, 0.37, row=1)
+    tally = Tally(counts=counts, n_paths=n, weight=0.7, specular=0.0, truncated=0, k_max=100, second=second)
+    alpha, q = np.array([0.0, 0.4, 0.97]), 0.8
+    h = (hit & (m < 2))[:, None]
+    value = 0.7 * (nee_value[:, None] * alpha**nee_k[:, None] * q + h * alpha**k[:, None] * q ** m[:, None] + 0.37 * q)
+    first, second_moments = tally._moments(alpha)
+    np.testing.assert_allclose(first[0] + q * first[1], value.mean(axis=0), rtol=1e-12)
+    np.testing.assert_allclose(sum(second_moments[p] * q**p for p in range(3)), (value**2).mean(axis=0), rtol=1e-12)
+
+
+@pytest.mark.parametrize("geometry, ell", [("ideal", 0.5), ("device", 0.4)])
+def test_plain_returns_happen_as_often_as_their_expectation_says(geometry, ell):
+    """The background paths' control variate: the share of paths that come straight back (no
+    scattering, within PLAIN_RETURN_ITERATIONS) equals _plain_return's integral within MC error. Both
+    estimators on the same paths differ by exactly n·E − (plain returns)."""
+    from trimeter.maps.tracer import _plain_return, trace as trace_one
+
+    stack = Stack.from_recipe(geometry, load_geometry(geometry), N, ell)
+    n = 1 << 20
+    for sigma_t in (0.05, 3.0):
+        plain = trace_one(stack, sigma_t, 0.5, n, 21, K_MAX, from_below=True, control_variates=False)
+        varied = trace_one(stack, sigma_t, 0.5, n, 21, K_MAX, from_below=True)
+        _, expected = _plain_return(stack, sigma_t)
+        share = (plain.counts[0, 0] - varied.counts[0, 0]) / n + expected
+        assert 0.05 < expected < 0.2
+        assert abs(share - expected) < 4 * math.sqrt(expected * (1 - expected) / n), (sigma_t, share, expected)
+
+
+@pytest.mark.parametrize("geometry, ell", [("ideal", 0.5), ("device", 0.4)])
+def test_control_variates_keep_the_values_and_cut_the_noise_of_clear_samples(geometry, ell):
+    """The default estimator (control variates, background paths by below_share) against the plain
+    one on the same seeds: the same I within the plain one's MC error, at every α and both
+    backgrounds; on a clear sample on white its std-error is well below the plain one's."""
+    stack = Stack.from_recipe(geometry, load_geometry(geometry), N, ell)
+    alpha = np.array([0.0, 0.5, 0.9, 0.99])
+    for sigma_t, g in ((0.05, 0.0), (2.0, 0.8)):
+        plain = trace(stack, sigma_t, g, 1 << 18, 31, K_MAX, below_fraction=1.0, control_variates=False)
+        varied = trace(stack, sigma_t, g, 1 << 18, 31, K_MAX)
+        for rho in (0.02, 0.9):
+            i_plain = background_response_of(plain, alpha, rho)
+            i_varied = background_response_of(varied, alpha, rho)
+            assert np.all(np.abs(i_varied - i_plain) < 4 * plain.stderr(alpha, rho)), (sigma_t, g, rho)
+    clear_plain = trace(stack, 0.05, 0.0, 1 << 18, 32, K_MAX, below_fraction=1.0, control_variates=False)
+    clear = trace(stack, 0.05, 0.0, 1 << 18, 32, K_MAX)
+    assert np.all(clear.stderr(alpha, 0.9) < 0.8 * clear_plain.stderr(alpha, 0.9))
+
+
+def background_response_of(tally, alpha, rho):
+    A, B, C = tally.abc(alpha)
+    return A + B * rho / (1 - C * rho)
+
+
+def test_background_paths_follow_their_share_of_the_error():
+    """below_share: few background paths where C hardly matters (it adds no variance), more where its
+    variance matters, never fewer than the pilot's share nor more than one per detector path."""
+    from trimeter.maps.tracer import BELOW_PILOT, below_share
+
+    above = Tally(counts=np.array([[100.0, 50.0], [300.0, 20.0]]), n_paths=1000, weight=1.0, specular=0.0,
+                  truncated=0, k_max=10, path_events=20000)
+    certain = Tally(counts=np.array([[1000.0]]), n_paths=1000, weight=1.0, specular=0.0, truncated=0, k_max=10,
+                    path_events=10000)          # every path comes back: C = 1 exactly, no variance
+    noisy = Tally(counts=np.array([[150.0, 20.0]]), n_paths=1000, weight=1.0, specular=0.0, truncated=0, k_max=10,
+                  path_events=10000)
+    assert below_share(above, certain) == 1 / BELOW_PILOT
+    assert 1 / BELOW_PILOT < below_share(above, noisy) <= 1.0

@@ -11,6 +11,13 @@ few (σt, g) columns, two backgrounds, `ideal` geometry:
   has equal or lower MC error (both printed).
 
 The last line is `ratio: N` with N = naive seconds / new seconds.
+
+`--device-columns RECIPE` instead compares the tracer's estimators on columns of a device recipe: per
+column, the plain one (as many background as detector paths, no control variates) and the default one
+are traced alternately on the same seeds, and each one's time to the recipe's criterion is projected
+from its seconds per path and the paths it needs (the builder's rule: std-error ∝ 1/√N, within the
+recipe's min/max paths). Also the same projection in loop iterations (path events: the work, whatever
+the machine's load). The last line is `ratio: N`, N = Σ plain time / Σ default time.
 """
 
 from __future__ import annotations
@@ -30,7 +37,54 @@ def register(subparsers) -> None:
     p.add_argument("--spp", type=int, default=655360, help="samples per naive render (the paper's 640K)")
     p.add_argument("--naive-renders", type=int, default=12, help="naive renders measured in this run")
     p.add_argument("--seed", type=int, default=7)
+    p.add_argument("--device-columns", metavar="RECIPE",
+                   help="compare the tracer's plain and default estimators on columns of this device recipe")
+    p.add_argument("--paths", type=int, default=1 << 21, help="detector paths per column (--device-columns)")
     p.set_defaults(func=run)
+
+
+# Representative columns: clear, middle and dense σt at both ends of g.
+COLUMNS = [(s, g) for s in (0.05, 0.2, 1.0, 5.0, 50.0) for g in (0.0, 0.9)]
+
+
+def compare_estimators(recipe_path: str, n_paths: int, seed: int) -> int:
+    """Print each column's projected time to the recipe's criterion with both estimators, and the ratio."""
+    from trimeter.maps.builder import _shortfall
+    from trimeter.maps.recipe import load_recipe
+    from trimeter.maps.tracer import Stack, k_max_for, trace_column
+
+    recipe = load_recipe(recipe_path)
+    s = recipe.sampling
+    stack = Stack.from_recipe(recipe.geometry, recipe.geometry_params, recipe.n, recipe.thickness_mm)
+    k_max = k_max_for(float(recipe.alpha[-1]), s.truncation)
+    plain = {"below_fraction": 1.0, "control_variates": False}
+    trace_column(stack, 1.0, 0.5, 4096, seed, k_max, **plain)      # compile both kernels outside the timing
+    trace_column(stack, 1.0, 0.5, 4096, seed, k_max)
+    print(f"{recipe.name}: {n_paths} detector paths per column and estimator; criterion: α std-error ≤ "
+          f"{s.target_alpha_stderr} where measurable, I std-error ≤ {s.target_stderr}, "
+          f"{s.min_paths}…{s.max_paths} paths")
+    totals = {"plain": 0.0, "default": 0.0}
+    work = {"plain": 0.0, "default": 0.0}
+    for i, (sigma_t, g) in enumerate(COLUMNS):
+        row, times = [], []
+        for name, options in (("plain", plain), ("default", {})):
+            t0 = time.perf_counter()
+            tally = trace_column(stack, sigma_t, g, n_paths, seed + i, k_max, **options)
+            seconds = time.perf_counter() - t0
+            shortfall = _shortfall(tally, recipe, sigma_t)
+            needed = min(max(s.min_paths, n_paths * shortfall**2), s.max_paths)
+            projected = seconds / n_paths * needed
+            totals[name] += projected
+            times.append(projected)
+            events = tally.path_events / n_paths * needed
+            work[name] += events
+            row.append(f"{name} {seconds / n_paths * 1e6:5.2f} µs/path × {needed / 1e6:6.1f}M = {projected:6.1f} s "
+                       f"({events / 1e9:5.2f}G iterations)")
+        print(f"  σt {sigma_t:5g}, g {g:.1f}: " + "; ".join(row) + f"  → ×{times[0] / times[1]:.2f}", flush=True)
+    print(f"sum over these columns: plain {totals['plain']:.0f} s, default {totals['default']:.0f} s; iterations "
+          f"{work['plain'] / 1e9:.2f}G vs {work['default'] / 1e9:.2f}G (×{work['plain'] / work['default']:.2f})")
+    print(f"ratio: {totals['plain'] / totals['default']:.2f}")
+    return 0
 
 
 def bench_recipe(target_stderr: float):
@@ -43,6 +97,8 @@ def bench_recipe(target_stderr: float):
 
 
 def run(args) -> int:
+    if args.device_columns:
+        return compare_estimators(args.device_columns, args.paths, args.seed)
     from trimeter.forward.render import render_diffuse
     from trimeter.maps.builder import build_map
 

@@ -155,6 +155,9 @@ class Tally:
     seconds: float = 0.0
     path_events: int = 0                # loop iterations over all paths (work measure)
     second: np.ndarray | None = None    # (2·rows − 1, 2K+1)
+    # Σ over traces of n²·Var(c): the variance of the constant c added to every path's value at
+    # α⁰q¹ (a control variate's expectation, estimated from its own samples), as a sum of n²·variances.
+    offset_variance: float = 0.0
 
     def __post_init__(self):
         if self.second is None:
@@ -169,6 +172,7 @@ class Tally:
         self.truncated += other.truncated
         self.seconds += other.seconds
         self.path_events += other.path_events
+        self.offset_variance += other.offset_variance
         return self
 
     def _moments(self, alpha):
@@ -244,6 +248,7 @@ class ColumnTally:
         mean_sq = sum(f2[p] * q**p for p in range(len(f2)))
         n = self.above.n_paths
         var_above = np.maximum(mean_sq - mean * mean, 0.0) / max(n - 1, 1)
+        var_above = var_above + (q * self.above.weight) ** 2 * self.above.offset_variance / n**2
         g1, g2 = self.below._moments(alpha)
         nb = self.below.n_paths
         var_c = np.maximum(g2[0] - g1[0] ** 2, 0.0) / max(nb - 1, 1)
@@ -277,9 +282,12 @@ TRACE_CHUNK = 1 << 24
 
 
 def trace_column(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max: int,
-                 below_fraction: float = 1.0, backend: str = "llvm") -> ColumnTally:
+                 below_fraction: float | None = None, backend: str = "llvm",
+                 control_variates: bool = True) -> ColumnTally:
     """Detector paths and (a fraction as many) background paths for one (σt, g); seeds derived from
     `seed`; in chunks of at most TRACE_CHUNK paths (memory), chunk i > 0 seeded with _mix64(seed + i).
+    `below_fraction` None: as many background paths as minimise the error of I(ρ = 0.9) for the work
+    (below_share, from a pilot of 1/16); `control_variates` False: the plain estimator (comparisons).
     `backend`: "llvm" or "cuda" (resolve_backend); the same seed gives the same paths on either, up to
     the backends' floating-point differences."""
     n_paths = int(n_paths)
@@ -287,14 +295,45 @@ def trace_column(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int
     for i, start in enumerate(range(0, max(n_paths, 1), TRACE_CHUNK)):
         n = min(TRACE_CHUNK, n_paths - start)
         s = seed if i == 0 else _mix64(seed + i)
-        above = trace(stack, sigma_t, g, n, s, k_max, backend=backend)
-        below = trace(stack, sigma_t, g, max(1024, int(n * below_fraction)), _mix64(s ^ 0xB0B0B0B0), k_max,
-                      from_below=True, backend=backend)
+        above = trace(stack, sigma_t, g, n, s, k_max, backend=backend, control_variates=control_variates)
+        share = below_fraction if below_fraction is not None else 1 / BELOW_PILOT
+        below = trace(stack, sigma_t, g, max(1024, int(n * share)), _mix64(s ^ 0xB0B0B0B0), k_max,
+                      from_below=True, backend=backend, control_variates=control_variates)
+        if below_fraction is None:
+            more = int(n * below_share(above, below)) - below.n_paths
+            if more > 0:
+                below += trace(stack, sigma_t, g, max(1024, more), _mix64(s ^ 0xB0B0B0B1), k_max, from_below=True,
+                               backend=backend, control_variates=control_variates)
         if total is None:
             total = ColumnTally(above, below)
         else:
             total += ColumnTally(above, below)
     return total
+
+
+# Background paths: a pilot of 1/BELOW_PILOT of the detector paths, then as many as below_share says.
+BELOW_PILOT = 16
+
+
+def below_share(above: Tally, below: Tally, rho: float = 0.9) -> float:
+    """Background paths per detector path that minimise the variance of I(ρ) for the work: with
+    per-path variances s_a² (detector paths' value) and s_c² (C's, × (∂I/∂C)²) and loop iterations e_a,
+    e_c per path, N_c/N_a = (s_c/s_a)·√(e_a/e_c) (the larger over α = 0.5, 0.9, 0.99), within
+    [1/BELOW_PILOT, 1]. Iterations, not seconds, so the count does not depend on the machine's load.
+    Clear samples' C is noisy and matters on white; a dense sample's C hardly matters."""
+    tally = ColumnTally(above, below)
+    alpha = np.array([0.5, 0.9, 0.99])
+    A, B, C = tally.abc(alpha)
+    q = rho / (1 - C * rho)
+    f1, f2 = above._moments(alpha)
+    var_a = np.maximum(sum(f2[p] * q**p for p in range(len(f2))) - (f1[0] + q * f1[1]) ** 2, 0.0)
+    g1, g2 = below._moments(alpha)
+    var_c = np.maximum(g2[0] - g1[0] ** 2, 0.0) * (B * q * q) ** 2
+    cost = (above.path_events / max(above.n_paths, 1)) / max(below.path_events / max(below.n_paths, 1), 1e-9)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = np.sqrt(var_c / var_a * cost)
+    ratio = float(np.max(np.where(np.isfinite(ratio), ratio, 1.0)))
+    return min(max(ratio, 1 / BELOW_PILOT), 1.0)
 
 
 def _add_padded(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -395,7 +434,7 @@ def _fresnel(dr, cos_i, eta):
 
 
 def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max: int, wave: int = 48,
-          from_below: bool = False, backend: str = "llvm") -> Tally:
+          from_below: bool = False, backend: str = "llvm", control_variates: bool = True) -> Tally:
     """Trace `n_paths` adjoint paths from the detector at extinction σt [1/mm] and HG anisotropy g;
     or, `from_below`, paths leaving the background (under the detector spot) cosine-distributed
     upward, tallying those that come back to the background (row 0) — the C coefficient."""
@@ -413,6 +452,7 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
     # Opaque: the material is a kernel *input*, so one compiled kernel serves every (σt, g) column
     # (literals would be baked in and force a fresh LLVM compile per column).
     g_is_zero = abs(float(g)) < 1e-4
+    sigma_t_value = float(sigma_t)
     sigma_t, g = dr.opaque(Float, float(sigma_t)), dr.opaque(Float, float(g) if not g_is_zero else 0.5)
     max_iter = 8 * k_max + 20000  # TIR bounces between scatterings count too; a safety net only
 
@@ -527,6 +567,7 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
         u1, u2 = rng.next_float32(), rng.next_float32()
         r_l, phi0 = dr.sqrt(u1), 2 * math.pi * u2
         dx, dy, dz = r_l * dr.cos(phi0), r_l * dr.sin(phi0), dr.safe_sqrt(1 - u1)
+        start_cos = np.asarray(dz, dtype=np.float64) if control_variates else None
         li = dr.full(UInt32, L, n_paths)
         m = dr.full(UInt32, 1, n_paths)          # has left the background once
         orders = 2                                # … and stops when it comes back
@@ -546,8 +587,10 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
     bounce_x, bounce_y = dr.zeros(Float, n_paths), dr.zeros(Float, n_paths)
     nee_u, nee_v = dr.zeros(Float, n_paths), dr.zeros(Float, n_paths)
     straight = dr.full(Bool, False, n_paths)
+    clean = dr.full(Bool, False, n_paths)   # reached the first bounce straight from the detector
 
-    def body(x, y, z, dx, dy, dz, li, k, m, it, alive, hit, nee_k, bounce_x, bounce_y, nee_u, nee_v, straight, rng):
+    def body(x, y, z, dx, dy, dz, li, k, m, it, alive, hit, nee_k, bounce_x, bounce_y, nee_u, nee_v, straight, clean,
+             rng):
         it = it + 1
         in_stack = li < L
         in_gap = li == L
@@ -659,23 +702,28 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
             nee_u, nee_v = dr.select(first_bounce, u_free, nee_u), dr.select(first_bounce, u_f, nee_v)
             nee_k = dr.select(first_bounce, k, nee_k)
             straight = dr.select(first_bounce, True, straight & ~(scatter | reflect | wall))
+            # Straight down needs one iteration per interface and one through the gap; any scattering
+            # or reflection on the way adds iterations (a vertical ray meets no side face).
+            clean = dr.select(first_bounce, it == L + 1, clean)
             reach_light &= ~straight
         hit = hit | (alive & (cut if from_below else reach_light))
         alive = alive & ~done
         return (x, y, z, new_dx, new_dy, new_dz, dr.select(out_top, li, new_li), k, m, it, alive, hit, nee_k,
-                bounce_x, bounce_y, nee_u, nee_v, straight, rng)
+                bounce_x, bounce_y, nee_u, nee_v, straight, clean, rng)
 
     # Waves: a symbolic loop runs each SIMD packet until its *slowest* lane is done, and path lengths
     # are heavy-tailed; so run WAVE iterations at a time, then keep only the live paths (the kernel
     # is compiled once: the wave limit is an opaque input). A lane's random stream is its own, so
     # the result does not depend on the wave length.
-    state = [x, y, z, dx, dy, dz, li, k, m, it, alive, hit, nee_k, bounce_x, bounce_y, nee_u, nee_v, straight, rng]
+    state = [x, y, z, dx, dy, dz, li, k, m, it, alive, hit, nee_k, bounce_x, bounce_y, nee_u, nee_v, straight, clean,
+             rng]
     lane = dr.arange(UInt32, n_paths)
     final = {name: np.zeros(n_paths, dtype=dtype) for name, dtype in
              (("k", np.int64), ("m", np.int64), ("it", np.int64), ("hit", bool), ("nee_k", np.int64),
-              ("bounce_x", np.float32), ("bounce_y", np.float32), ("nee_u", np.float32), ("nee_v", np.float32))}
+              ("bounce_x", np.float32), ("bounce_y", np.float32), ("nee_u", np.float32), ("nee_v", np.float32),
+              ("clean", bool))}
     slots = {"k": 7, "m": 8, "it": 9, "hit": 11, "nee_k": 12, "bounce_x": 13, "bounce_y": 14, "nee_u": 15,
-             "nee_v": 16}
+             "nee_v": 16, "clean": 18}
     limit = 0
     while True:
         limit += wave
@@ -701,22 +749,165 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
     k_np, m_np, it_np, hit_np = final["k"], final["m"], final["it"], final["hit"]
     truncated = int(np.count_nonzero((k_np >= k_max) | (it_np >= max_iter)))
     if from_below:
-        counts = np.bincount(k_np[hit_np], minlength=1)[None, :].astype(float)
+        counts, second = _background_sums(k_np, hit_np)
+        if control_variates:
+            # The light the stack's interfaces send straight back (no scattering, few reflections):
+            # its expectation is a 1-D integral, so those paths' 0/1 outcomes are replaced by it.
+            min_cos, expected = _plain_return(stack, sigma_t_value)
+            plain = hit_np & (k_np == 0) & (it_np <= PLAIN_RETURN_ITERATIONS) & (start_cos >= min_cos)
+            counts, second = _background_sums(k_np, hit_np & ~plain)
+            counts, second = _add_constant(counts, second, n_paths, expected, row=0)
         return Tally(counts=counts, n_paths=n_paths, weight=1.0, specular=0.0, truncated=truncated, k_max=k_max,
-                     seconds=time.perf_counter() - t0, path_events=int(it_np.sum()))
+                     seconds=time.perf_counter() - t0, path_events=int(it_np.sum()), second=second)
     bounced = np.flatnonzero(m_np >= 1)
     nee_value = np.zeros(n_paths)
     if len(bounced):
         value = straight_through(*(Float(final[name][bounced]) for name in ("bounce_x", "bounce_y", "nee_u", "nee_v")))
         nee_value[bounced] = np.asarray(value, dtype=np.float64)
+    offset_variance = 0.0
+    if control_variates:
+        # Most detector paths of a clear sample go straight down to the background; whether one does
+        # (a Fresnel or free-flight draw) and its next-event value are noise that does not depend on α.
+        # Their estimates are replaced by the exact probability of that first pass × the mean
+        # next-event value from fresh samples of the same estimator (control variate, unbiased).
+        nee_value = np.where(final["clean"], 0.0, nee_value)
+        clean_pass = _clean_pass_probability(stack, sigma_t_value)
+        replicas = []
+        for points in _nee_points(seed, n_paths):
+            if stack.detector_half_side > 0:
+                sx, sy = (Float(stack.detector_half_side * (2 * points[:, i] - 1)) for i in (0, 1))
+            else:
+                sx, sy = dr.zeros(Float, len(points)), dr.zeros(Float, len(points))
+            value = straight_through(sx, sy, Float(points[:, 2]), Float(points[:, 3]))
+            replicas.append(float(np.mean(np.asarray(value, dtype=np.float64))))
+        fresh_mean = float(np.mean(replicas))
+        offset_variance = (clean_pass * n_paths) ** 2 * float(np.var(replicas, ddof=1)) / len(replicas)
     counts, second = _detector_sums(k_np, m_np, hit_np, final["nee_k"], nee_value)
+    if control_variates:
+        counts, second = _add_constant(counts, second, n_paths, clean_pass * fresh_mean, row=1)
 
     # First interface (air → top layer) at normal incidence, in closed form.
     r0 = ((layer_n[0] - 1.0) / (layer_n[0] + 1.0)) ** 2
     specular = r0 * stack.scale if not stack.panels else 0.0  # the device's detector sees no panel specularly
     return Tally(counts=counts, n_paths=n_paths, weight=(1 - r0) * stack.scale, specular=specular,
                  truncated=truncated, k_max=k_max, seconds=time.perf_counter() - t0,
-                 path_events=int(it_np.sum()), second=second)
+                 path_events=int(it_np.sum()), second=second, offset_variance=offset_variance)
+
+
+# Independent randomisations of the quasi-random points that estimate the mean next-event value of
+# the straight first pass (their spread gives that estimate's variance).
+NEE_REPLICAS = 8
+
+
+def _nee_points(seed: int, n_paths: int) -> list[np.ndarray]:
+    """NEE_REPLICAS sets of 4-D points (detector x, y; light u, v) in [0, 1): scrambled Sobol, each
+    set a power of two of about n_paths / 16 points (≥ 4096), seeded from `seed`. float32 values, < 1."""
+    from scipy.stats import qmc
+
+    size = max(12, min(22, round(math.log2(max(n_paths, 1) / 16))))
+    below_one = np.float32(1 - 2**-24)
+    return [np.minimum(qmc.Sobol(4, scramble=True, seed=np.random.default_rng([seed, 0xC1EA2, r]))
+                       .random_base2(size).astype(np.float32), below_one) for r in range(NEE_REPLICAS)]
+
+
+def _background_sums(k, hit):
+    """Tally.counts and Tally.second of background paths: each adds α^k if it came back (`hit`)."""
+    counts = np.bincount(k[hit], minlength=1)[None, :].astype(float)
+    second = np.zeros((1, 2 * counts.shape[1] - 1))
+    second[0, 0::2] = counts[0]
+    return counts, second
+
+
+def _add_constant(counts, second, n_paths, value, row):
+    """The tallies with `value`·q^row added to every path's value (a control variate's expectation):
+    Σ(X + c·q^r) and Σ(X + c·q^r)² = ΣX² + 2c·q^r·ΣX + n·c²·q^2r, as polynomials in α and q."""
+    counts, second = counts.copy(), second.copy()
+    rows, width = counts.shape
+    second[row: row + rows, :width] += 2 * value * counts
+    second[2 * row, 0] += n_paths * value * value
+    counts[row, 0] += n_paths * value
+    return counts, second
+
+
+def _clean_pass_probability(stack: Stack, sigma_t: float) -> float:
+    """Probability that a detector path, past the top face, crosses every interface straight down
+    without a Fresnel reflection and the sample without scattering (normal incidence)."""
+    indices = [float(n) for n in stack.layer_n] + [1.0]
+    p = 1.0
+    for above, below in zip(indices[:-1], indices[1:], strict=True):
+        p *= 1 - ((above - below) / (above + below)) ** 2
+    depth = stack.plane_z[stack.sample_layer] - stack.plane_z[stack.sample_layer + 1]
+    return p * math.exp(-sigma_t * depth)
+
+
+# A background path that returns unscattered within this many loop iterations (a few reflections
+# inside the stack) is a "plain return", replaced by its expectation (see _plain_return).
+PLAIN_RETURN_ITERATIONS = 24
+
+
+def _plain_return(stack: Stack, sigma_t: float) -> tuple[float, float]:
+    """(μ_min, E): background paths leaving at cosθ ≥ μ_min that return unscattered within
+    PLAIN_RETURN_ITERATIONS iterations never meet a side face or the background's edge (their sideways
+    travel is bounded), so the probability of that return is the same as for an infinite stack; E is
+    its expectation over the cosine-distributed start, ∫ P(μ) 2μ dμ over [μ_min, 1], P from the
+    layers' Fresnel reflectances and the sample's Beer-Lambert attenuation, iteration by iteration."""
+    n_layers = len(stack.layer_n)
+    layer_n = np.array(stack.layer_n, dtype=float)
+    depth = -np.diff(np.asarray(stack.plane_z, dtype=float))
+    gap = stack.plane_z[-1] - stack.background_z
+    reach = min(stack.stack_half_width, stack.background_half_width) - stack.detector_half_side
+    steps = PLAIN_RETURN_ITERATIONS
+
+    def sideways(tan_air):  # an upper bound on the travel of such a path, the gap crossed twice
+        sin_air = tan_air / math.sqrt(1 + tan_air * tan_air)
+        sin_l = sin_air / layer_n
+        return 2 * gap * tan_air + (steps - 2) * float(np.max(depth * sin_l / np.sqrt(1 - sin_l * sin_l)))
+
+    if not math.isfinite(reach):
+        min_cos = 0.0
+    else:
+        lo, hi = 0.0, 1e6
+        for _ in range(100):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if sideways(mid) <= reach else (lo, mid)
+        min_cos = 1 / math.sqrt(1 + lo * lo)
+    nodes, weights = np.polynomial.legendre.leggauss(256)
+    mu = min_cos + (1 - min_cos) * (nodes + 1) / 2
+    weights = weights * (1 - min_cos) / 2
+    sin2 = 1 - mu * mu
+    cos_l = np.sqrt(1 - sin2[None, :] / layer_n[:, None] ** 2)        # (layer, μ)
+    survive = np.ones_like(cos_l)
+    survive[stack.sample_layer] = np.exp(-sigma_t * depth[stack.sample_layer] / cos_l[stack.sample_layer])
+    media = np.concatenate([[1.0], layer_n, [1.0]])
+    cos_media = np.vstack([mu, cos_l, mu])
+    # interface i lies between medium i (above) and i + 1 (below); F is the same from either side
+    fresnel = np.array([_fresnel_np(cos_media[i], media[i + 1] / media[i]) for i in range(n_layers + 1)])
+    up, down = np.zeros((n_layers + 1, len(mu))), np.zeros((n_layers + 1, len(mu)))   # index n_layers: the gap
+    up[n_layers] = 1.0
+    returned = np.zeros(len(mu))
+    for _ in range(steps):
+        returned += down[n_layers]
+        new_up, new_down = np.zeros_like(up), np.zeros_like(down)
+        new_down[n_layers] += up[n_layers] * fresnel[n_layers]
+        new_up[n_layers - 1] += up[n_layers] * (1 - fresnel[n_layers])
+        for layer in range(n_layers):
+            going_down, going_up = down[layer] * survive[layer], up[layer] * survive[layer]
+            new_up[layer] += going_down * fresnel[layer + 1]
+            new_down[layer + 1] += going_down * (1 - fresnel[layer + 1])
+            new_down[layer] += going_up * fresnel[layer]
+            if layer > 0:
+                new_up[layer - 1] += going_up * (1 - fresnel[layer])
+        up, down = new_up, new_down
+    return min_cos, float(np.sum(weights * returned * 2 * mu))
+
+
+def _fresnel_np(cos_i, eta):
+    """_fresnel in numpy (float64)."""
+    sin2_t = (1 - cos_i * cos_i) / (eta * eta)
+    cos_t = np.sqrt(np.maximum(1 - sin2_t, 0.0))
+    rs = (cos_i - eta * cos_t) / (cos_i + eta * cos_t)
+    rp = (eta * cos_i - cos_t) / (eta * cos_i + cos_t)
+    return np.where(sin2_t >= 1, 1.0, 0.5 * (rs * rs + rp * rp))
 
 
 def _detector_sums(k, m, hit, nee_k, nee_value):
