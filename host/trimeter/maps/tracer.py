@@ -19,6 +19,12 @@ No Russian roulette on α (it would break the polynomial): a path is traced unti
 truncated remainder of a path is worth at most w·α^K per path, so the truncation error of I is
 bounded by w·α^K·(fraction of paths truncated); the tally reports that bound.
 
+Variance reduction, each unbiased: a next-event estimate at the first background bounce; control
+variates for light that does not depend on α, which dominates the noise of clear samples (a detector
+path's straight first pass to the background with its next-event value, and background paths that
+come straight back off the stack: exact expectations replace their 0/1 outcomes); and only as many
+background paths as C's share of the error needs (`below_share`).
+
 The loop is a Dr.Jit symbolic loop (compiled once, material and seed are opaque inputs; all cores
 via the LLVM backend), run in waves that drop finished paths (see `trace`). The
 geometry is a layer stack with closed-form plane intersections, which is exact for both presets of
