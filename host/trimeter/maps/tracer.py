@@ -43,6 +43,7 @@ stack's side faces.
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 from dataclasses import dataclass
@@ -877,7 +878,7 @@ def _plain_return(stack: Stack, sigma_t: float) -> tuple[float, float]:
             mid = 0.5 * (lo + hi)
             lo, hi = (mid, hi) if sideways(mid) <= reach else (lo, mid)
         min_cos = 1 / math.sqrt(1 + lo * lo)
-    nodes, weights = np.polynomial.legendre.leggauss(256)
+    nodes, weights = _gauss_legendre()
     mu = min_cos + (1 - min_cos) * (nodes + 1) / 2
     weights = weights * (1 - min_cos) / 2
     sin2 = 1 - mu * mu
@@ -905,6 +906,13 @@ def _plain_return(stack: Stack, sigma_t: float) -> tuple[float, float]:
                 new_up[layer - 1] += going_up * (1 - fresnel[layer])
         up, down = new_up, new_down
     return min_cos, float(np.sum(weights * returned * 2 * mu))
+
+
+@functools.cache
+def _gauss_legendre() -> tuple[np.ndarray, np.ndarray]:
+    """256-point Gauss-Legendre nodes and weights on [-1, 1], computed once per process (an
+    eigenvalue problem that, with BLAS threads competing with Dr.Jit's, took longer than the trace)."""
+    return np.polynomial.legendre.leggauss(256)
 
 
 def _fresnel_np(cos_i, eta):
