@@ -32,11 +32,13 @@ NATIVE_LIB := $(NATIVE_DIR)/libtrimeter_invert.so
 NATIVE_GEN := $(NATIVE_DIR)/invert_abi.h $(NATIVE_DIR)/invert_h.py
 NATIVE_SOURCES = $(sort $(wildcard $(NATIVE_DIR)/*.c $(NATIVE_DIR)/*.h) $(NATIVE_DIR)/invert_abi.h)
 # the core the firmware links too (library.c adds the host's malloc'd entry points)
-NATIVE_CORE := $(addprefix $(NATIVE_DIR)/,lookups.c newton.c simd.c pipeline.c)
+NATIVE_CORE := $(addprefix $(NATIVE_DIR)/,lookups.c newton.c simd.c pipeline.c compact.c table_fit.c)
+# the seam the table fit (table_fit.c) implements for the firmware: tr_fit_bins
+FIT_CORE_HEADER := firmware/core/fit_core.h
 $(NATIVE_GEN) &: $(NATIVE_DIR)/invert.h tools/gen_native.py
 	python3 -m tools.gen_native
-$(NATIVE_LIB): $(NATIVE_SOURCES) $(NATIVE_GEN)
-	$(CC) -O2 -std=c11 -Wall -Wextra -Werror -shared -fPIC \
+$(NATIVE_LIB): $(NATIVE_SOURCES) $(NATIVE_GEN) $(FIT_CORE_HEADER)
+	$(CC) -O2 -std=c11 -Wall -Wextra -Werror -shared -fPIC -I$(dir $(FIT_CORE_HEADER)) \
 	  -DTM_SOURCE_HASH=0x$$(cat $(NATIVE_SOURCES) | sha256sum | cut -c1-16)ULL \
 	  -o $@ $(filter %.c,$(NATIVE_SOURCES)) -lm
 
@@ -48,7 +50,7 @@ native: $(NATIVE_LIB)
 native-portable: setup $(NATIVE_GEN)
 	@mkdir -p build/invert-portable
 	for src in $(NATIVE_CORE); do \
-	  arm-none-eabi-gcc -O2 -std=c11 -Wall -Wextra -Werror -c -o build/invert-portable/$$(basename $$src .c).o $$src \
+	  arm-none-eabi-gcc -O2 -std=c11 -Wall -Wextra -Werror -I$(dir $(FIT_CORE_HEADER)) -c -o build/invert-portable/$$(basename $$src .c).o $$src \
 	  || exit 1; done
 
 # Generated files (register map -> C header, Python module, Markdown) are committed; check-gen fails

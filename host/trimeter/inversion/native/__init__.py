@@ -19,6 +19,7 @@ import ctypes
 import hashlib
 import os
 import warnings
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -323,3 +324,57 @@ def propagate(J: np.ndarray, sigma_I: np.ndarray, sigma_t_var: np.ndarray | None
     out = [np.empty(n) for _ in range(3)]
     _LIB.tm_propagate(n, _addr(J), _addr(sigma_I), None if extra is None else _addr(extra), *(_addr(o) for o in out))
     return tuple(out)
+
+
+class TableFitter:
+    """The fit from a self-sufficient device table (.tlut v2) alone, in C (table_fit.c: the source the
+    firmware links as tr_fit_bins, here in double precision): the lut fit with fit()'s defaults, bin by
+    bin, from the table's bytes and nothing else. Returns α, σt, g and the FitFlag bits (NaN where a
+    bin is unusable); STD_APPROXIMATE is never set (the fit returns no stds).
+
+    table_bytes: the file's bytes; its CRC-32 is checked here, every other field by the C reader.
+    library: another build of the kernel (a path; e.g. the single-precision one a test compiles),
+    else the package's library."""
+
+    def __init__(self, table_bytes: bytes, library: str | Path | None = None):
+        from trimeter.errors import MapFileError
+
+        lib = _LIB if library is None else _bind(ctypes.CDLL(str(library)))
+        if lib is None:
+            raise NativeKernelError(f"the table fit needs the compiled kernel: {_STATUS}")
+        data = bytes(table_bytes)
+        if len(data) < 8 or zlib.crc32(data[:-4]) != int.from_bytes(data[-4:], "little"):
+            raise MapFileError("device table: crc32 mismatch or truncated: the table is corrupt")
+        # a fresh numpy buffer: aligned, as the C reader reads its float sections in place
+        self._table = np.frombuffer(data, dtype=np.uint8).copy()
+        self._fit = lib.tm_table_fit
+        if self._fit(_addr(self._table), len(data), None, 0, None, None) != 0:
+            raise MapFileError("device table: not a format-2 table the C fit reads (magic, version, sizes, "
+                               "section directory, axes or scales)")
+        self.reference_rhos = tuple(float(x) for x in np.frombuffer(data, dtype="<f4", count=2, offset=92))
+
+    def fit(self, I_b, I_w, I_c, rho_b=None, rho_w=None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(α, σt [1/mm], g, flags (int64)) per bin; rho_b, rho_w default to the table's reference
+        backgrounds. Arrays broadcast against each other."""
+        rb, rw = self.reference_rhos
+        rho_b, rho_w = rb if rho_b is None else rho_b, rw if rho_w is None else rho_w
+        columns = np.broadcast_arrays(*(np.asarray(x, dtype=np.float64) for x in (I_b, I_w, I_c, rho_b, rho_w)))
+        shape = columns[0].shape
+        inputs = np.ascontiguousarray(np.stack([c.ravel() for c in columns], axis=-1))
+        n = len(inputs)
+        out = np.empty((n, 3))
+        flags = np.empty(n, dtype=np.int64)
+        if n and self._fit(_addr(self._table), len(self._table), _addr(inputs), n, _addr(out), _addr(flags)) != 0:
+            raise NativeKernelError("the table fit refused a table it took before")  # cannot happen: no state
+        alpha, sigma_t, g = (np.array(out[:, k]).reshape(shape) for k in range(3))
+        return alpha, sigma_t, g, flags.reshape(shape)
+
+
+def _bind(lib: ctypes.CDLL) -> ctypes.CDLL:
+    """`lib` with the table fit's prototype, refused unless built from this invert.h."""
+    lib.tm_abi_hash.restype = ctypes.c_uint64
+    if lib.tm_abi_hash() != ABI_HASH:
+        raise NativeKernelError(f"{lib._name} was built for another invert.h")
+    restype, argtypes = invert_h.FUNCTIONS["tm_table_fit"]
+    lib.tm_table_fit.restype, lib.tm_table_fit.argtypes = restype, argtypes
+    return lib

@@ -107,6 +107,25 @@ typedef struct {
     int32_t iterations;
 } tm_fit_options;
 
+/* The fit from a self-sufficient device table (.tlut v2, trimeter.maps.device_table) alone, one bin at
+ * a time with no allocation (table_fit.c, the source the firmware links as tr_fit_bins,
+ * firmware/core/fit_core.h): fit()'s lut fit with these settings, fixed (a test checks them against
+ * trimeter.inversion.api's defaults). */
+#define TM_TABLE_FIT_NOISE_REL 0.005
+#define TM_TABLE_FIT_NOISE_ABS 2e-4
+#define TM_TABLE_FIT_IC_FLOOR 1e-4
+#define TM_TABLE_FIT_ALPHA_MIN_G 0.02
+#define TM_TABLE_FIT_POLISH 8
+#define TM_TABLE_FIT_POLISH_TOL 1e-6
+#define TM_TABLE_FIT_POLISH_TOL_STD 3e-3
+#define TM_TABLE_FIT_INPUT_TOLERANCE 1e-3
+#define TM_TABLE_FIT_UNDERDETERMINED_ALPHA_STD 0.1
+#define TM_TABLE_FIT_UNDERDETERMINED_G_STD 0.2
+#define TM_TABLE_FIT_INSCATTER_REL_STD 0.05
+/* tm_table_fit's returns besides 0 (tr_fit_bins's, checked against fit_core.h at compile time) */
+#define TM_TABLE_FIT_ERR_TABLE -1
+#define TM_TABLE_FIT_ERR_ARGS -2
+
 /* The hash of this header (invert_abi.h) the library was compiled with. */
 uint64_t tm_abi_hash(void);
 /* Host library only: a hash of the sources it was built from (`make native` passes it; 0 when built
@@ -126,6 +145,12 @@ long long tm_fit(const tm_forward_grid *f, const tm_inverse_table *table, const 
 size_t tm_fit_scratch_size(size_t n);
 void tm_fit_prepare(const tm_forward_grid *f, const tm_fit_options *o, size_t n, const double *I_b, const double *I_w, const double *I_c, const double *rho_b, const double *rho_w, const double *sd_in, void *scratch, double *outputs, double log_lo, double log_hi, float *features);
 long long tm_fit_solve(const tm_forward_grid *f, const tm_inverse_table *table, const tm_fit_options *o, size_t n, const double *alpha0, const double *g0, void *scratch, double *outputs);
+
+/* The fit from a device table of len bytes (read in place; its CRC-32 is the caller's to check):
+ * in[5 i …] = I_b, I_w, I_c, rho_b, rho_w of bin i, out[3 i …] = α, σt, g (NaN where unusable),
+ * flags[i] = FitFlag bits. n = 0 only checks the table. Double precision on the host; the -DTR_SINGLE
+ * build fits in single precision inside (as the MCU does). Returns 0 or TM_TABLE_FIT_ERR_*. */
+int tm_table_fit(const uint8_t *table, size_t len, const double *in, size_t n, double *out, int64_t *flags);
 
 /* The parts for the numpy-side callers: the guess and polish at a given ln σt (J: n × 3 × 3; with
  * scratch from malloc, host library only) and the first-order stds from given Jacobians. */

@@ -2,9 +2,22 @@
 
 import ctypes
 
-ABI_HASH = 0xa499d4d69ace2819
+ABI_HASH = 0x00c32d885ff35bdd
 STEP_RATIO = 0.25
 INSCATTER_ONCE = 0.001
+TABLE_FIT_NOISE_REL = 0.005
+TABLE_FIT_NOISE_ABS = 0.0002
+TABLE_FIT_IC_FLOOR = 0.0001
+TABLE_FIT_ALPHA_MIN_G = 0.02
+TABLE_FIT_POLISH = 8
+TABLE_FIT_POLISH_TOL = 1e-06
+TABLE_FIT_POLISH_TOL_STD = 0.003
+TABLE_FIT_INPUT_TOLERANCE = 0.001
+TABLE_FIT_UNDERDETERMINED_ALPHA_STD = 0.1
+TABLE_FIT_UNDERDETERMINED_G_STD = 0.2
+TABLE_FIT_INSCATTER_REL_STD = 0.05
+TABLE_FIT_ERR_TABLE = -1
+TABLE_FIT_ERR_ARGS = -2
 
 # FitFlag bits by name
 FLAG_BITS = {
@@ -159,6 +172,14 @@ FUNCTIONS = {
         ctypes.c_size_t,
         ctypes.c_void_p,
         ctypes.c_void_p,
+        ctypes.c_void_p,
+        ctypes.c_void_p,
+    ]),
+    "tm_table_fit": (ctypes.c_int, [
+        ctypes.c_void_p,
+        ctypes.c_size_t,
+        ctypes.c_void_p,
+        ctypes.c_size_t,
         ctypes.c_void_p,
         ctypes.c_void_p,
     ]),
