@@ -98,19 +98,20 @@ int tr_table_open(const uint8_t *data, size_t len, tr_table *t) {
     t->nu = counts[4];
     t->nt = counts[5];
     t->nv = counts[6];
-    const size_t na = (size_t)t->na, ns = (size_t)t->ns, ng = (size_t)t->ng, ni = (size_t)t->n_inv;
-    const size_t sizes[TR_SEC_COUNT] = {
+    /* 64-bit sizes: products of 16-bit counts overflow a 32-bit size_t (the MCU's) */
+    const uint64_t na = (uint64_t)t->na, ns = (uint64_t)t->ns, ng = (uint64_t)t->ng, ni = (uint64_t)t->n_inv;
+    const uint64_t sizes[TR_SEC_COUNT] = {
         4 * na, 4 * ns, 4 * ng, 4 * 2 * TR_SCALE_COUNT, 2 * ng * na * ns * 3, 2 * na * ns * ng * 2,
-        2 * (size_t)t->nu * (size_t)t->nt * (size_t)t->nv, 4 * ns * 6, 2 * ns * ni * ni, 2 * ns * ni * ni,
+        2 * (uint64_t)t->nu * (uint64_t)t->nt * (uint64_t)t->nv, 4 * ns * 6, 2 * ns * ni * ni, 2 * ns * ni * ni,
         get_u32(data + DIRECTORY_OFFSET + 8 * TR_SEC_GEOMETRY + 4)};
     const uint8_t *at[TR_SEC_COUNT];
-    size_t offset = HEADER_SIZE;
+    uint64_t offset = HEADER_SIZE;
     for (int s = 0; s < TR_SEC_COUNT; s++) {
+        if (sizes[s] > len || offset > len - sizes[s]) return -1;
         if (get_u32(data + DIRECTORY_OFFSET + 8 * s) != offset || get_u32(data + DIRECTORY_OFFSET + 8 * s + 4) != sizes[s])
             return -1;
-        if (sizes[s] > len || offset > len - sizes[s]) return -1;
         at[s] = data + offset;
-        offset += padded(sizes[s]);
+        offset += padded((size_t)sizes[s]);
     }
     if (offset + 4u != len) return -1;
     t->alpha = (const float *)(const void *)at[TR_SEC_ALPHA];
@@ -129,7 +130,7 @@ int tr_table_open(const uint8_t *data, size_t len, tr_table *t) {
         if (!isfinite(t->scales[2 * i]) || !isfinite(t->scales[2 * i + 1]) || !(t->scales[2 * i + 1] > 0.0f)) return -1;
     for (int i = TR_SCALE_STD_B; i < TR_SCALE_COUNT; i++)
         if (!(t->scales[2 * i] >= 0.0f)) return -1;
-    for (size_t i = 0; i < ns * 6; i++)
+    for (size_t i = 0; i < (size_t)ns * 6; i++)
         if (!isfinite(t->inv_frame[i])) return -1;
     t->n = R(get_f32(data + 80));
     t->thickness_mm = R(get_f32(data + 84));
@@ -304,6 +305,10 @@ void tr_compact_eval(const tr_table *t, tr_real alpha, tr_real log_sigma_t, tr_r
 
 /* ------------------------------------------------------------------------------- the other tables */
 
+/* x clamped to [0, hi] for an index, NaN to 0: a table whose numbers overflow gives NaN values, never
+ * an index outside it */
+static tr_real index_clamp(tr_real x, tr_real hi) { return !(x >= R(0.0)) ? R(0.0) : (x > hi ? hi : x); }
+
 /* ForwardGrid._cell on a float axis: the cell and weight of x, clamped */
 static int axis_cell(const float *axis, int n, tr_real x, tr_real *w) {
     int i = last_at_or_below(axis, n, x);
@@ -328,8 +333,8 @@ void tr_inverse_guess(const tr_table *t, tr_real log_sigma_t, tr_real I_b, tr_re
         tr_real wk = dk ? ws : R(1.0) - ws;
         const float *fr = t->inv_frame + (size_t)k * 6u;
         tr_real dx = x - R(fr[0]), dyy = yq - R(fr[1]);
-        tr_real u = tr_clamp(R(fr[2]) * R(nx - 1) * dx + R(fr[3]) * R(nx - 1) * dyy, R(0.0), R(nx - 1));
-        tr_real v = tr_clamp(R(fr[4]) * R(ny - 1) * dx + R(fr[5]) * R(ny - 1) * dyy, R(0.0), R(ny - 1));
+        tr_real u = index_clamp(R(fr[2]) * R(nx - 1) * dx + R(fr[3]) * R(nx - 1) * dyy, R(nx - 1));
+        tr_real v = index_clamp(R(fr[4]) * R(ny - 1) * dx + R(fr[5]) * R(ny - 1) * dyy, R(ny - 1));
         int iu = (int)u, iv = (int)v;
         if (iu > nx - 2) iu = nx - 2;
         if (iv > ny - 2) iv = ny - 2;
@@ -355,8 +360,7 @@ static tr_real lerp(tr_real a, tr_real b, tr_real w) { return a + (b - a) * w; }
 
 /* model.cells.regular_cell: cell and weight at p = (x − x0)/step on n evenly spaced nodes */
 static int regular_cell(tr_real p, int n, tr_real *w) {
-    tr_real f = R_FLOOR(p);
-    f = f < R(0.0) ? R(0.0) : (f > R(n - 2) ? R(n - 2) : f);
+    tr_real f = index_clamp(R_FLOOR(p), R(n - 2));
     *w = tr_clamp(p - f, R(0.0), R(1.0));
     return (int)f;
 }
