@@ -11,7 +11,8 @@ its in-scattering table, fit from it alone, and score that fit on the map's held
 g abs (α ≥ 0.5) p50 and p95 over the measurable gamut for: the map's own lut fit (`trimeter.fit`,
 the map file, its .tlut v1 and .tins), the v2 table alone with its forward model sampled onto the
 refined grid at load (the host path), the same with the polish evaluating the compact model on the
-fly (the device path, numpy), and the polish-free table guess. `budget` prints what the bytes buy:
+fly (the device path: numpy, and C from the file's bytes where the kernel is built), and the
+polish-free table guess. `budget` prints what the bytes buy:
 the same fit with the forward coefficients at float64/32/16, L unquantized and smaller inverse grids.
 """
 
@@ -167,6 +168,7 @@ _COLUMNS = (("α p50", "alpha_p50"), ("α p95", "alpha_p95"), ("σt rel p50", "s
             ("g p95 well", "g_p95_well"), ("α p95 det", "alpha_p95_determined"), ("g p95 det", "g_p95_determined"))
 def measure(amap, noise_levels, seed: int = 0, say=print) -> list[dict]:
     from trimeter.bench.fit import _stats, error_budget, heldout_collimated, heldout_for, heldout_intensities
+    from trimeter.inversion import native
     from trimeter.inversion.api import fit
 
     t0 = time.perf_counter()
@@ -191,6 +193,9 @@ def measure(amap, noise_levels, seed: int = 0, say=print) -> list[dict]:
         "table (on the fly) p≤8": lambda ib, iw, ic: fit_table(table, fly, ib, iw, ic),
         "table guess p0": lambda ib, iw, ic: fit_table(table, host, ib, iw, ic, polish=0, polish_tol=0.0),
     }
+    if native.available():  # the C fit from the table's bytes, as the firmware runs it (here in double)
+        fitter = native.TableFitter(table.to_bytes())
+        variants["table in C (on the fly) p≤8"] = lambda ib, iw, ic: _c_result(fitter.fit(ib, iw, ic))
     rng = np.random.default_rng(seed)
     cases = []
     for level in noise_levels:
@@ -210,6 +215,12 @@ def measure(amap, noise_levels, seed: int = 0, say=print) -> list[dict]:
             say(f"   {name:30s}" + "".join(f"{st[key]:11.2e}" if "sigma" in key else f"{st[key]:11.4f}"
                                                 for _, key in _COLUMNS) + f"{ms:11.2f}")
     return rows
+
+
+def _c_result(columns):
+    """native.TableFitter's (α, σt, g, flags) as the scoring reads a FitResult (it returns no stds)."""
+    alpha, sigma_t, g, flags = columns
+    return SimpleNamespace(alpha=alpha, sigma_t=sigma_t, g=g, flags=flags, alpha_std=np.full(len(alpha), np.nan))
 
 
 def budget(amap, say=print) -> list[dict]:
