@@ -13,7 +13,7 @@ grid node on every axis is redrawn), rendered directly — never interpolated fr
   with `--paths` paths; one trace serves several random α. Records A, B, C per material and their MC
   std-error at the reference backgrounds.
 - --ideal: Prahl's adding-doubling (iadpython), exact for the ideal geometry.
-I_b, I_w at any ρ follow from A, B, C; I_c is analytic (trimeter.forward.collimated), times
+I_b, I_w at any ρ follow from A, B, C; I_c is analytic (trimeter.model.collimated), times
 e^inscatter_log1p for device sets: the light scattered into the detector's aperture, traced per
 material (`--inscatter SET`: trimeter.forward.inscatter, one trace per (σt, g) column for all its α,
 independent of the map's own in-scattering table).

@@ -7,9 +7,10 @@ __version__ = "0.1.0"
 
 
 def __getattr__(name):
-    # `trimeter.fit(...)` is the inversion entry point; imported lazily so `import trimeter` stays light.
+    # `trimeter.fit(...)` is the inversion entry point on maps by name or path (trimeter.maps.artifacts);
+    # imported lazily so `import trimeter` stays light.
     if name == "fit":
-        from trimeter.inversion import fit
+        from trimeter.maps.artifacts import fit
 
         return fit
     raise AttributeError(f"module 'trimeter' has no attribute {name!r}")

@@ -28,7 +28,7 @@ def load_geometry(preset: str) -> dict:
 
 def cover_slide_n(params: dict) -> float | None:
     """The cover slides' refractive index for a geometry's parameters, None without slides (the
-    argument trimeter.forward.collimated takes)."""
+    argument trimeter.model.collimated takes)."""
     return float(params["cover_slide_n"]) if params.get("cover_slides") else None
 
 

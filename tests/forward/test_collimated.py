@@ -1,11 +1,11 @@
-"""The lead's analytic I_c (trimeter.forward.collimated) against adding-doubling and its own inverse."""
+"""The lead's analytic I_c (trimeter.model.collimated) against adding-doubling and its own inverse."""
 
 import math
 
 import numpy as np
 import pytest
 
-from trimeter.forward.collimated import beer_lambert_sigma_t, collimated_transmittance
+from trimeter.model.collimated import beer_lambert_sigma_t, collimated_transmittance
 
 iadpython = pytest.importorskip("iadpython")
 

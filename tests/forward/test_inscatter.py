@@ -54,27 +54,29 @@ def test_the_inscatter_table_round_trips_and_refuses_another_map(tmp_path):
     import shutil
 
     from trimeter.errors import MapFileError
-    from trimeter.forward.inscatter import InscatterTable
+    from trimeter.forward.inscatter import build_inscatter_table
     from trimeter.maps.appearance import AppearanceMap, find_map
+    from trimeter.maps.inscatter_file import load_inscatter, save_inscatter
+    from trimeter.model.inscatter import InscatterTable
 
     geometry = load_geometry("device")
-    table = InscatterTable.build(1.5, 0.8, geometry, photons=3000, shape=(4, 3, 3))
+    table = build_inscatter_table(1.5, 0.8, geometry, photons=3000, shape=(4, 3, 3))
     alphas, taus, gs = InscatterTable.axes(4, 3, 3)
     a, t, g = np.meshgrid(alphas, taus, gs, indexing="ij")
     np.testing.assert_allclose(table.log1p_ratio(a, t / 0.8, g), table.L, atol=1e-12)
     assert np.all(table.L[:, 0] == 0) and np.all(table.L[0] == 0)  # nothing scatters at τ = 0 or α = 0
     assert table.L[-1, -1, -1] > table.L[-1, -1, 0] > 0  # forward scattering sends more into the aperture
     path = tmp_path / "t.tins"
-    checksum = table.save(path)
-    back = InscatterTable.load(path)
+    checksum = save_inscatter(table, path)
+    back = load_inscatter(path)
     assert back.checksum == checksum and np.array_equal(back.L, table.L) and back.tau_max == table.tau_max
     data = bytearray(path.read_bytes())
     data[200] ^= 0xFF
     path.write_bytes(bytes(data))
     with pytest.raises(MapFileError):
-        InscatterTable.load(path)
+        load_inscatter(path)
     shipped = AppearanceMap.load(find_map("device-n1.5-l0.4"))
     shutil.copy(shipped.path, tmp_path / "m.tmap")
-    table.save(tmp_path / "m.tins")  # traced for ℓ = 0.8 mm, not the map's 0.4
+    save_inscatter(table, tmp_path / "m.tins")  # traced for ℓ = 0.8 mm, not the map's 0.4
     with pytest.raises(MapFileError, match="does not belong to map"):
         AppearanceMap.load(tmp_path / "m.tmap").inscatter

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from trimeter.forward.collimated import collimated_transmittance
+from trimeter.model.collimated import collimated_transmittance
 from trimeter.forward.nonscattering import fresnel_unpolarized, nonscattering_coefficients, stack_rt
 
 iadpython = pytest.importorskip("iadpython")

@@ -194,7 +194,7 @@ def test_config_backup_restores_by_name_after_a_register_map_change(start_twin, 
 
 
 def _table_bytes(hil_map):
-    from trimeter.inversion.table import build_from_map
+    from trimeter.maps.table import build_from_map
 
     return build_from_map(hil_map).to_bytes()
 
@@ -371,12 +371,12 @@ def test_two_samples_per_press_swap_on_the_double_blink(rig, hil_map, host_dirs)
 
 
 def test_flash_the_map_table_then_measure_with_it(start_twin, hil_map, host_dirs, tmp_path, capsys):
-    from trimeter.inversion.api import table_inverter
+    from trimeter.maps.artifacts import load_artifacts
 
     twin = start_twin()
     rig = TwinRig(twin)
     table = tmp_path / "hil.tlut"
-    table.write_bytes(table_inverter(hil_map).table.to_bytes())
+    table.write_bytes(load_artifacts(hil_map).inverter.table.to_bytes())
     assert main(["map", "flash", str(table), "--version", "4", "--port", twin.modbus_port]) == 0
     capsys.readouterr()
     assert main(["map", "slots", "--port", twin.modbus_port]) == 0

@@ -21,8 +21,8 @@ def well_conditioned(amap, n, rng, alpha=(0.3, 0.995), tau=(0.2, 4.0), g=(0.0, 0
 def forward(amap, alpha, sigma_t, g, rho_b, rho_w):
     """(I_b, I_w, I_c) by the forward model every method polishes and propagates with (the map
     table's: the map resampled onto refined axes), so round trips test the inversion alone."""
-    from trimeter.inversion.api import _forward_grid
+    from trimeter.maps.artifacts import load_artifacts
 
     n = len(np.atleast_1d(alpha))
     b = lambda v: np.broadcast_to(np.asarray(v, float), (n,)).copy()  # noqa: E731
-    return _forward_grid(amap).intensities(b(alpha), b(sigma_t), b(g), b(rho_b), b(rho_w))
+    return load_artifacts(amap).grid.intensities(b(alpha), b(sigma_t), b(g), b(rho_b), b(rho_w))

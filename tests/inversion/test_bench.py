@@ -48,6 +48,7 @@ def test_per_wavelength_backgrounds_case_scores_the_fit_at_the_bins_own_backgrou
     import numpy as np
 
     from trimeter.bench.fit import DEFAULT_POLISH, _bench_backgrounds, error_budget, heldout_for
+    from trimeter.maps.artifacts import load_artifacts
     from trimeter.maps.appearance import AppearanceMap
 
     amap = AppearanceMap.load(DATA / "ideal-l0.5.tmap")
@@ -56,7 +57,7 @@ def test_per_wavelength_backgrounds_case_scores_the_fit_at_the_bins_own_backgrou
     rb, rw = float(amap.recipe["reference_rho_b"]), float(amap.recipe["reference_rho_w"])
     budget = error_budget(amap, h, rb, rw)
     budget["rho"] = (rb, rw)
-    rows = _bench_backgrounds(amap, h, budget, [("lut p≤8", "lut", DEFAULT_POLISH)], None)
+    rows = _bench_backgrounds(amap, h, budget, [("lut p≤8", "lut", DEFAULT_POLISH, load_artifacts(amap))])
     assert [r["variant"] for r in rows] == ["lut p≤8"]
     row = rows[0]
     assert row["background_pairs"] > 20 and row["ms_per_1024"] > 0

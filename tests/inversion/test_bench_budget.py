@@ -15,9 +15,10 @@ import pytest
 
 from trimeter.bench.fit import error_budget, heldout_intensities
 from trimeter.cli import main
-from trimeter.inversion.kernel import ForwardGrid
+from trimeter.inversion.kernel import default_kernel
 from trimeter.maps.appearance import AppearanceMap
 from trimeter.maps.container import write_container
+from trimeter.model.grid import ForwardGrid
 
 from inversion_support import DATA
 
@@ -30,9 +31,9 @@ def amap():
 
 
 def model(amap) -> ForwardGrid:
-    from trimeter.inversion.api import table_inverter
+    from trimeter.maps.artifacts import load_artifacts
 
-    return table_inverter(amap).grid
+    return load_artifacts(amap).grid
 
 
 def synthetic_heldout(amap, n=200, seed=7, offset_A=0.0, std=1e-3):
@@ -59,8 +60,8 @@ def test_map_error_floor_is_the_exact_inversions_first_order_error(amap):
     grid = model(amap)
     I_b, I_w = heldout_intensities(h, RHO_B, RHO_W)
     n = len(I_b)
-    alpha, g, _, _ = grid.solve_alpha_g(I_b, I_w, grid.sigma_cell(h["sigma_t"]), np.full(n, RHO_B),
-                                        np.full(n, RHO_W), h["alpha"], h["g"], iterations=8)
+    alpha, g, _, _ = default_kernel().solve_alpha_g(grid, I_b, I_w, grid.sigma_cell(h["sigma_t"]), np.full(n, RHO_B),
+                                                    np.full(n, RHO_W), h["alpha"], h["g"], iterations=8)
     da, dg = alpha - h["alpha"], g - h["g"]
     ok = b["g_scored"] & (np.abs(dg) > 1e-5)  # skip nodes/kinks where the trilinear slope jumps
     assert ok.sum() > 50
@@ -80,8 +81,9 @@ def test_reference_noise_floor_is_the_std_of_noisy_solves(amap):
                 for x in heldout_intensities(h, RHO_B, RHO_W))
     rep = lambda x: np.repeat(x, draws)  # noqa: E731
     m = len(I_b)
-    alpha, g, _, _ = grid.solve_alpha_g(I_b, I_w, grid.sigma_cell(rep(h["sigma_t"])), np.full(m, RHO_B),
-                                        np.full(m, RHO_W), rep(h["alpha"]), rep(h["g"]), iterations=8)
+    alpha, g, _, _ = default_kernel().solve_alpha_g(grid, I_b, I_w, grid.sigma_cell(rep(h["sigma_t"])),
+                                                    np.full(m, RHO_B), np.full(m, RHO_W), rep(h["alpha"]),
+                                                    rep(h["g"]), iterations=8)
     std_a, std_g = alpha.reshape(-1, draws).std(axis=1), g.reshape(-1, draws).std(axis=1)
     sel = b["g_scored"]
     assert sel.sum() > 20

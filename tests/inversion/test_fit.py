@@ -96,18 +96,16 @@ def test_a_clear_sample_gives_sigma_t_zero_not_nan(monkeypatch, kernel):
     range. (It came out NaN when T(σt = 0) was taken from the table's float32 set-up but σt from the
     map's float64 one.)"""
     from trimeter.inversion import native
+    from trimeter.inversion.kernel import NativeKernel, NumpyKernel
     from trimeter.maps.appearance import AppearanceMap
     from trimeter.paths import MAPS_DIR
-    import trimeter.inversion.api as api
 
-    if kernel == "numpy":
-        monkeypatch.setattr(native, "_LIB", None)
-        monkeypatch.setattr(api, "_TABLES", {})
-    elif not native.available():
+    if kernel == "compiled" and not native.available():
         pytest.skip(native.status())
     amap = AppearanceMap.load(MAPS_DIR / "device-n1.5-l0.4.tmap")
     t0 = float(amap.collimated(0.0))
-    r = trimeter.fit(amap, np.full(3, 0.1), np.full(3, 0.5), [t0, min(1.0, t0 * 1.0005), 1.0005])
+    r = trimeter.fit(amap, np.full(3, 0.1), np.full(3, 0.5), [t0, min(1.0, t0 * 1.0005), 1.0005],
+                     kernel=NumpyKernel() if kernel == "numpy" else NativeKernel())
     assert np.all((r.sigma_t >= 0.0) & (r.sigma_t < 1e-6)), r.sigma_t  # 0, or ~1e-8 from the float32 set-up
     assert np.all(r.flags & FitFlag.OUTSIDE_MAP) and not np.any(r.flags & UNUSABLE)
 
@@ -197,7 +195,8 @@ def test_a_model_that_outputs_nan_costs_only_its_guess(ideal_map, ideal_model, t
     onnx = pytest.importorskip("onnx")
     from onnx import numpy_helper
 
-    from trimeter.inversion import api, native
+    from trimeter.inversion import native
+    from trimeter.inversion.kernel import NativeKernel, NumpyKernel
 
     if native_kernel == "1" and not native.available():
         pytest.skip(native.status())
@@ -206,14 +205,11 @@ def test_a_model_that_outputs_nan_costs_only_its_guess(ideal_map, ideal_model, t
     last.CopyFrom(numpy_helper.from_array(np.full_like(numpy_helper.to_array(last), np.nan), last.name))
     broken = tmp_path / "broken.onnx"
     onnx.save(model, broken)
-    if native_kernel == "0":  # the numpy reference throughout, as test_native_kernel sets it up
-        monkeypatch.setattr(native, "_LIB", None)
-        monkeypatch.setattr(api, "_TABLES", {})
-        assert api.table_inverter(ideal_map).native_solver is None
+    kernel = NumpyKernel() if native_kernel == "0" else NativeKernel()  # "0": the numpy reference throughout
     I_b, I_w, I_c = forward(ideal_map, np.array([0.9, 0.6, 0.95]), np.array([1.0, 3.0, 0.5]),
                             np.array([0.3, 0.5, 0.1]), *ideal_map.reference_rhos)
-    got = trimeter.fit(ideal_map, I_b, I_w, I_c, method="mlp", mlp_model=broken)
-    want = trimeter.fit(ideal_map, I_b, I_w, I_c, method="lut")
+    got = trimeter.fit(ideal_map, I_b, I_w, I_c, method="mlp", mlp_model=broken, kernel=kernel)
+    want = trimeter.fit(ideal_map, I_b, I_w, I_c, method="lut", kernel=kernel)
     np.testing.assert_allclose(got.alpha, want.alpha, rtol=1e-12)
     np.testing.assert_allclose(got.g, want.g, rtol=1e-12)
     np.testing.assert_array_equal(got.flags, want.flags)
@@ -222,20 +218,18 @@ def test_a_model_that_outputs_nan_costs_only_its_guess(ideal_map, ideal_model, t
 def test_lut_never_uses_a_table_built_from_another_map(ideal_map, thick_map, tmp_path):
     import shutil
 
-    from trimeter.inversion import api
     from trimeter.maps.appearance import AppearanceMap
+    from trimeter.maps.artifacts import ArtifactCache
 
     shutil.copy(thick_map.path, tmp_path / "x.tmap")
     shutil.copy(ideal_map.path.with_suffix(".tlut"), tmp_path / "x.tlut")
     other = AppearanceMap.load(tmp_path / "x.tmap")
-    api._TABLES.pop(api._key(other), None)
     with pytest.warns(UserWarning, match="built from map"):
-        inverter = api.table_inverter(other)
+        inverter = ArtifactCache().get(other).inverter
     assert inverter.table.source_checksum == other.checksum  # rebuilt from the map itself
     (tmp_path / "x.tlut").write_bytes(b"garbage")
-    api._TABLES.pop(api._key(other), None)
     with pytest.raises(MapFileError):
-        api.table_inverter(other)
+        ArtifactCache().get(other)
 
 
 @pytest.mark.parametrize("method", ["lut", "mlp"])
@@ -308,8 +302,8 @@ def test_light_scattered_into_the_aperture_no_longer_reads_as_a_lower_sigma_t():
     unscattered, I_c gives σt too low (by ln(1 + r)/(σt·ℓ)). With the map's in-scattering table the fit
     takes it out; I_c here is traced independently of that table (another trace, another seed)."""
     from trimeter.forward.inscatter import traced_log1p_ratio
-    from trimeter.inversion.api import table_inverter
     from trimeter.maps.appearance import AppearanceMap
+    from trimeter.maps.artifacts import load_artifacts
     from trimeter.paths import MAPS_DIR
 
     amap = AppearanceMap.load(MAPS_DIR / "device-n1.5-l0.8.tmap")
@@ -318,7 +312,7 @@ def test_light_scattered_into_the_aperture_no_longer_reads_as_a_lower_sigma_t():
     assert amap.inscatter is not None
     alpha, g = np.full(3, 0.995), np.full(3, 0.85)
     sigma_t = np.array([1.0, 3.0, 5.5]) / amap.thickness_mm
-    I_b, I_w, _ = table_inverter(plain).grid.intensities(alpha, sigma_t, g, 0.02, 0.9)
+    I_b, I_w, _ = load_artifacts(plain).grid.intensities(alpha, sigma_t, g, 0.02, 0.9)
     L = [traced_log1p_ratio(0.995, s, 0.85, amap.thickness_mm, amap.n, amap.recipe["geometry_params"], 40_000, 99)
          for s in sigma_t]
     I_c = amap.collimated(sigma_t) * np.exp(L)

@@ -7,10 +7,13 @@ import os
 import numpy as np
 import pytest
 
+import trimeter
 from trimeter.inversion import native
-from trimeter.inversion.kernel import ForwardGrid
+from trimeter.inversion.kernel import NativeKernel, NumpyKernel
 from trimeter.inversion.lut import TableInverter
-from trimeter.inversion.table import MapTable
+from trimeter.maps.artifacts import load_artifacts
+from trimeter.maps.table import MapTable
+from trimeter.model.grid import ForwardGrid
 from trimeter.paths import MAPS_DIR
 
 TABLE = MAPS_DIR / "device-n1.5-l0.4.tlut"
@@ -41,11 +44,8 @@ def _inputs(rng, n=4000):
 def test_table_inversion_matches_the_numpy_kernel(monkeypatch, polish):
     table = MapTable.load(TABLE)
     args = _inputs(np.random.default_rng(polish))
-    compiled = TableInverter(table).invert(*args, polish_iterations=polish)
-    monkeypatch.setattr(native, "_LIB", None)
-    reference = TableInverter(table)
-    assert reference._native is None
-    expected = reference.invert(*args, polish_iterations=polish)
+    compiled = NativeKernel().invert(TableInverter(table), *args, iterations=polish)
+    expected = NumpyKernel().invert(TableInverter(table), *args, iterations=polish)
     for got, want, name in zip(compiled, expected, ("alpha", "g", "residual", "J"), strict=True):
         np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-12, err_msg=name)
     finite = np.isfinite(args[0]) & np.isfinite(args[1])
@@ -61,12 +61,10 @@ def test_polish_from_a_given_guess_and_the_propagated_uncertainty_match(monkeypa
     sigma_I = rng.uniform(0.0, 0.01, (len(I_b), 3))
     grid = ForwardGrid.from_table(table)
     cell = grid.sigma_cell(sigma_t)
-    compiled = grid.solve_alpha_g(I_b, I_w, cell, rho_b, rho_w, alpha0, g0, iterations=3)
-    compiled_std = grid.propagate(compiled[3], sigma_I)
-    monkeypatch.setattr(native, "_LIB", None)
-    reference = ForwardGrid.from_table(table)
-    assert reference.native_solver is None
-    expected = reference.solve_alpha_g(I_b, I_w, cell, rho_b, rho_w, alpha0, g0, iterations=3)
+    compiled = NativeKernel().solve_alpha_g(grid, I_b, I_w, cell, rho_b, rho_w, alpha0, g0, iterations=3)
+    compiled_std = NativeKernel().propagate(compiled[3], sigma_I)
+    reference = NumpyKernel()
+    expected = reference.solve_alpha_g(grid, I_b, I_w, cell, rho_b, rho_w, alpha0, g0, iterations=3)
     for got, want in zip(compiled, expected, strict=True):
         np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-12)
     expected_std = reference.propagate(expected[3], sigma_I)
@@ -83,7 +81,6 @@ def test_the_stds_from_the_converging_step_are_those_at_the_solution():
     solution itself, to a small fraction (measured: ≤ 0.4 % for α, ≤ 0.7 % for g here, ≤ 1.2 % on
     l0.8; a last step that crossed a cell boundary, where the map's derivatives jump, had moved an
     ill-conditioned bin's std by up to 50 %, hence the same-cell rule)."""
-    from trimeter.inversion.api import fit, table_inverter
     from trimeter.maps.appearance import AppearanceMap
 
     amap = AppearanceMap.load(MAPS_DIR / "device-n1.5-l0.4.tmap")
@@ -94,9 +91,9 @@ def test_the_stds_from_the_converging_step_are_those_at_the_solution():
     n = 2000
     alpha, g = rng.uniform(0.3, 0.99, n), rng.uniform(0.0, 0.85, n)
     sigma_t = np.exp(rng.uniform(np.log(0.2), np.log(10), n))
-    grid = table_inverter(amap).grid
+    grid = load_artifacts(amap).grid
     I_b, I_w, I_c = grid.intensities(alpha, sigma_t, g, 0.02, 0.9)
-    r = fit(amap, I_b, I_w, I_c, 0.02, 0.9)
+    r = trimeter.fit(amap, I_b, I_w, I_c, 0.02, 0.9)
     ok = r.flags == 0
     assert ok.mean() > 0.8
     J = grid.jacobian(r.alpha[ok], r.sigma_t[ok], r.g[ok], 0.02, 0.9)
@@ -104,7 +101,7 @@ def test_the_stds_from_the_converging_step_are_those_at_the_solution():
     model = grid.model_variance(r.alpha[ok], grid.sigma_cell(r.sigma_t[ok]), r.g[ok])  # the map's own error
     sigma_I = np.column_stack([np.sqrt(noise(I_b[ok]) ** 2 + model[0]), np.sqrt(noise(I_w[ok]) ** 2 + model[1]),
                                noise(I_c[ok])])
-    std_a, std_s, std_g = grid.propagate(J, sigma_I)
+    std_a, std_s, std_g = NativeKernel().propagate(J, sigma_I)
     np.testing.assert_allclose(r.alpha_std[ok], std_a, rtol=0.02)
     np.testing.assert_allclose(r.sigma_t_std[ok], std_s, rtol=1e-9)
     np.testing.assert_allclose(r.g_std[ok], std_g, rtol=0.02)
@@ -133,18 +130,14 @@ def _fit_inputs(rng, n=4000):
                                                          ("mlp", 8, 1e-6)])
 def test_the_whole_fit_in_c_matches_the_numpy_reference_bin_for_bin(monkeypatch, method, polish, polish_tol):
     """tm_fit (flags, σt from I_c, guess, adaptive polish, stds, blanking) against api's numpy path."""
-    import trimeter.inversion.api as api
     from trimeter.maps.appearance import AppearanceMap
 
     amap = AppearanceMap.load(MAPS_DIR / "device-n1.5-l0.4.tmap")
     assert amap.inscatter is not None  # so the in-scattering correction is compared too
     args = _fit_inputs(np.random.default_rng(polish))
     kw = dict(method=method, polish=polish, polish_tol=polish_tol)
-    compiled = api.fit(amap, *args[:3], rho_b=args[3], rho_w=args[4], **kw)
-    monkeypatch.setattr(native, "_LIB", None)
-    monkeypatch.setattr(api, "_TABLES", {})
-    assert api.table_inverter(amap).native_solver is None
-    reference = api.fit(amap, *args[:3], rho_b=args[3], rho_w=args[4], **kw)
+    compiled = trimeter.fit(amap, *args[:3], rho_b=args[3], rho_w=args[4], kernel=NativeKernel(), **kw)
+    reference = trimeter.fit(amap, *args[:3], rho_b=args[3], rho_w=args[4], kernel=NumpyKernel(), **kw)
     np.testing.assert_array_equal(compiled.flags, reference.flags)
     for name in FitResultColumns:
         # The stds come from the polish's last evaluation, a small step before the solution, so they
@@ -171,7 +164,6 @@ FitResultColumns = ("alpha", "sigma_t", "g", "alpha_std", "sigma_t_std", "g_std"
 def test_four_bins_per_step_give_bit_for_bit_the_scalar_result(method):
     """The AVX2 polish (four bins per Newton step) against the scalar loop, over the whole input
     space with its edges: every column identical, not merely close."""
-    import trimeter.inversion.api as api
     from trimeter.maps.appearance import AppearanceMap
 
     if not native.set_simd(True):
@@ -182,11 +174,11 @@ def test_four_bins_per_step_give_bit_for_bit_the_scalar_result(method):
         results = {}
         for simd in (True, False):
             native.set_simd(simd)
-            results[simd] = api.fit(amap, *args[:3], rho_b=args[3], rho_w=args[4], method=method)
-            inverter = api.table_inverter(amap)
-            results[simd, "solve"] = inverter.invert(args[0], args[1], np.exp(args[2] * 3), args[3], args[4],
-                                                     polish_iterations=8, step_tol=1e-6,
-                                                     step_var=np.full(len(args[0]), 1e-9))
+            results[simd] = trimeter.fit(amap, *args[:3], rho_b=args[3], rho_w=args[4], method=method)
+            inverter = load_artifacts(amap).inverter
+            results[simd, "solve"] = NativeKernel().invert(inverter, args[0], args[1], np.exp(args[2] * 3), args[3],
+                                                           args[4], iterations=8, step_tol=1e-6,
+                                                           step_var=np.full(len(args[0]), 1e-9))
     finally:
         native.set_simd(True)
     for name in FitResultColumns + ("flags",):
@@ -197,27 +189,27 @@ def test_four_bins_per_step_give_bit_for_bit_the_scalar_result(method):
 
 @pytest.mark.skipif(not native.available(), reason=native.status())
 def test_the_adaptive_polish_stops_converged_bins_early_with_the_same_result():
-    from trimeter.inversion.api import table_inverter
     from trimeter.maps.appearance import AppearanceMap
 
     amap = AppearanceMap.load(MAPS_DIR / "device-n1.5-l0.4.tmap")
     rng = np.random.default_rng(3)
     alpha, g = rng.uniform(0.3, 0.99, 2000), rng.uniform(0.0, 0.85, 2000)
     sigma_t = np.exp(rng.uniform(np.log(0.1), np.log(20), 2000))
-    inverter = table_inverter(amap)
+    inverter = load_artifacts(amap).inverter
+    solver = native.NativeSolver(inverter.grid, *inverter.inverse_cells)
     I_b, I_w, I_c = inverter.grid.intensities(alpha, sigma_t, g, 0.02, 0.9)  # I_c with in-scattered light
     rho_b, rho_w = np.full(2000, 0.02), np.full(2000, 0.9)
-    fixed = inverter.invert(I_b, I_w, sigma_t, rho_b, rho_w, polish_iterations=12, step_tol=0.0)
-    adaptive = inverter.invert(I_b, I_w, sigma_t, rho_b, rho_w, polish_iterations=12, step_tol=1e-6)
+    fixed = NativeKernel().invert(inverter, I_b, I_w, sigma_t, rho_b, rho_w, iterations=12, step_tol=0.0)
+    adaptive = NativeKernel().invert(inverter, I_b, I_w, sigma_t, rho_b, rho_w, iterations=12, step_tol=1e-6)
     np.testing.assert_allclose(adaptive[0], fixed[0], atol=1e-5)  # a step ≤ 1e-6 leaves at most a few of it
     np.testing.assert_allclose(adaptive[1], fixed[1], atol=1e-5)
     from trimeter.inversion.api import native_options
 
     options = native_options(amap, inverter.grid, polish=12, polish_tol=1e-6, noise_rel=0.005, noise_abs=2e-4,
                              ic_floor=1e-4, alpha_min_g=0.02)
-    out = inverter.native_solver.fit(I_b, I_w, I_c, rho_b, rho_w, **options)
+    out = solver.fit(I_b, I_w, I_c, rho_b, rho_w, **options)
     # fit() also stops a bin once its step is below POLISH_TOL_STD (3e-3) of its noise std, or has
-    # shrunk 4× with the next one extrapolated below that (kernel.step_is_small): far fewer steps
+    # shrunk 4× with the next one extrapolated below that (newton.step_is_small): far fewer steps
     # than 12 per bin, and the result within a small fraction of that std of the fully converged one
     # (measured: ≤ 0.006 std at 2.6 steps per bin, 4.1 without the std rule; thick, underdetermined
     # bins converge slowly and differ most)
@@ -225,8 +217,7 @@ def test_the_adaptive_polish_stops_converged_bins_early_with_the_same_result():
     assert np.all(np.abs(out["alpha"] - np.clip(fixed[0], 0, 1)) <= np.maximum(0.05 * out["alpha_std"], 1e-5))
     defined = np.isfinite(out["g"])
     assert np.all(np.abs(out["g"] - fixed[1])[defined] <= np.maximum(0.05 * out["g_std"], 1e-5)[defined])
-    steps_without = inverter.native_solver.fit(I_b, I_w, I_c, rho_b, rho_w,
-                                               **dict(options, step_tol_std=0.0))["steps"]
+    steps_without = solver.fit(I_b, I_w, I_c, rho_b, rho_w, **dict(options, step_tol_std=0.0))["steps"]
     assert out["steps"] < 0.85 * steps_without
 
 
@@ -240,7 +231,7 @@ def test_the_mlp_features_from_c_match_the_numpy_preparation():
 
     amap = AppearanceMap.load(MAPS_DIR / "device-n1.5-l0.4.tmap")
     args = _fit_inputs(np.random.default_rng(11))
-    inverter = api.table_inverter(amap)
+    inverter = load_artifacts(amap).inverter
     grid = inverter.grid
     log_range = (float(np.log(amap.sigma_t[0])), float(np.log(amap.sigma_t[-1])))
     seen = []
@@ -249,8 +240,9 @@ def test_the_mlp_features_from_c_match_the_numpy_preparation():
         seen.append(x.copy())
         return np.column_stack([np.full(len(x), 0.5), np.full(len(x), 0.3)])
 
-    compiled = inverter.native_solver.fit_guessed(*args, guess, log_range, **api.native_options(
-        amap, grid, polish=0, polish_tol=0.0, noise_rel=0.005, noise_abs=2e-4, ic_floor=1e-4, alpha_min_g=0.02))
+    options = api.native_options(amap, grid, polish=0, polish_tol=0.0, noise_rel=0.005, noise_abs=2e-4, ic_floor=1e-4,
+                                 alpha_min_g=0.02)
+    compiled = native.NativeSolver(grid, *inverter.inverse_cells).fit_guessed(*args, guess, log_range, **options)
     assert len(seen) == 1 and np.array_equal(seen[0], compiled["features"])
     compiled = compiled["features"]
     p = api._prepare(amap, grid, *args, 1e-4)
@@ -265,12 +257,13 @@ def test_a_guess_of_the_wrong_shape_is_refused():
     from trimeter.maps.appearance import AppearanceMap
 
     amap = AppearanceMap.load(MAPS_DIR / "device-n1.5-l0.4.tmap")
-    inverter = api.table_inverter(amap)
+    inverter = load_artifacts(amap).inverter
     args = _fit_inputs(np.random.default_rng(2))
     options = api.native_options(amap, inverter.grid, polish=2, polish_tol=1e-6, noise_rel=0.005, noise_abs=2e-4,
                                  ic_floor=1e-4, alpha_min_g=0.02)
     with pytest.raises(ValueError, match="guess must be"):
-        inverter.native_solver.fit_guessed(*args, lambda x: x[:, :1], (-3.0, 4.0), **options)
+        native.NativeSolver(inverter.grid, *inverter.inverse_cells).fit_guessed(*args, lambda x: x[:, :1], (-3.0, 4.0),
+                                                                                 **options)
 
 
 @pytest.mark.skipif(not native.available(), reason=native.status())
@@ -281,7 +274,8 @@ def test_a_guess_that_is_not_finite_falls_back_to_the_table():
     from trimeter.maps.appearance import AppearanceMap
 
     amap = AppearanceMap.load(MAPS_DIR / "device-n1.5-l0.4.tmap")
-    inverter = api.table_inverter(amap)
+    inverter = load_artifacts(amap).inverter
+    solver = native.NativeSolver(inverter.grid, *inverter.inverse_cells)
     args = _fit_inputs(np.random.default_rng(4))
     n = len(args[0])
     options = api.native_options(amap, inverter.grid, polish=8, polish_tol=1e-6, noise_rel=0.005, noise_abs=2e-4,
@@ -294,8 +288,8 @@ def test_a_guess_that_is_not_finite_falls_back_to_the_table():
         y[bad & (np.arange(n) % 2 == 0), 1] = np.inf
         return y
 
-    guessed = inverter.native_solver.fit_guessed(*args, broken, (-3.0, 4.0), **options)
-    lut = inverter.native_solver.fit(*args, **options)
+    guessed = solver.fit_guessed(*args, broken, (-3.0, 4.0), **options)
+    lut = solver.fit(*args, **options)
     for name in ("alpha", "sigma_t", "g", "alpha_std", "g_std", "flags"):
         np.testing.assert_array_equal(guessed[name][bad], lut[name][bad], err_msg=name)
     assert np.all(np.isfinite(guessed["alpha"][~bad]) | (guessed["flags"][~bad] != 0))

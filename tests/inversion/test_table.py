@@ -11,7 +11,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from trimeter.errors import MapFileError
-from trimeter.inversion.table import (HEADER_SIZE, MAX_TABLE_BYTES, TABLE_MAGIC, MapTable, build_from_map,
+from trimeter.maps.table import (HEADER_SIZE, MAX_TABLE_BYTES, TABLE_MAGIC, MapTable, build_from_map,
                                       describe_table, table_path_for)
 
 
@@ -49,13 +49,13 @@ def test_describe_table(table, tmp_path):
 
 def test_inverse_grid_is_the_maps_inverse(table, ideal_map):
     """Entries inside the gamut reproduce their own (√I_b, √I_w) through the forward map."""
-    from trimeter.inversion.table import _from_frame
+    from trimeter.maps.table import _from_frame
 
     k = 10
     ns, ny, nx = table.inv_alpha_q.shape
     uu, vv = np.meshgrid(np.linspace(0, 1, nx), np.linspace(0, 1, ny))
     xy = _from_frame(table.inv_frame[k].astype(float), uu.ravel(), vv.ravel())
-    from trimeter.inversion.kernel import ForwardGrid
+    from trimeter.model.grid import ForwardGrid
 
     grid = ForwardGrid.from_table(table)
     n = ny * nx

@@ -11,8 +11,9 @@ import trimeter
 from trimeter.bench.uncertainty import coverage, mean_signed_z
 from trimeter.cli import main
 from trimeter.errors import InputError
-from trimeter.inversion import native
-from trimeter.inversion.kernel import ForwardGrid, node_model_variance
+from trimeter.inversion import api, native
+from trimeter.model.grid import ForwardGrid, node_model_variance
+from trimeter.model.setup import SampleSetup
 from trimeter.paths import MAPS_DIR
 
 DEVICE = MAPS_DIR / "device-n1.5-l0.4.tmap"
@@ -20,12 +21,12 @@ DEVICE = MAPS_DIR / "device-n1.5-l0.4.tmap"
 
 def _materials(amap, n=400, seed=0):
     """Clean, well-conditioned bins of the map: intensities from its own forward model."""
-    from trimeter.inversion.api import table_inverter
+    from trimeter.maps.artifacts import load_artifacts
 
     rng = np.random.default_rng(seed)
     alpha, g = rng.uniform(0.5, 0.97, n), rng.uniform(0.1, 0.8, n)
     sigma_t = np.exp(rng.uniform(np.log(0.5), np.log(5), n))
-    return table_inverter(amap).grid.intensities(alpha, sigma_t, g, *amap.reference_rhos)
+    return load_artifacts(amap).grid.intensities(alpha, sigma_t, g, *amap.reference_rhos)
 
 
 def test_coverage_counts_the_share_within_one_and_two_sigma():
@@ -99,25 +100,18 @@ def test_given_stds_set_the_uncertainty_and_thickness_widens_sigma_t_only():
 
 
 def test_the_maps_own_error_enters_the_stds():
-    from trimeter.inversion.api import table_inverter
+    from trimeter.inversion.kernel import NumpyKernel
     from trimeter.maps.appearance import AppearanceMap
+    from trimeter.maps.artifacts import ArtifactCache
 
     amap = AppearanceMap.load(DEVICE)
     I_b, I_w, I_c = _materials(amap)
-    grid = table_inverter(amap).grid
-    assert grid.model_var is not None
+    detached = ArtifactCache().get(amap)
+    assert detached.grid.model_var is not None
     with_map = trimeter.fit(amap, I_b, I_w, I_c, I_b_std=1e-5, I_w_std=1e-5, I_c_std=1e-6)
-    saved = grid.model_var
-    try:  # the numpy path with the map's error detached: the stds of the given noise alone
-        grid.model_var = None
-        import trimeter.inversion.api as api
-
-        solver = api.table_inverter(amap)._native
-        api.table_inverter(amap)._native = None
-        noise_only = trimeter.fit(amap, I_b, I_w, I_c, I_b_std=1e-5, I_w_std=1e-5, I_c_std=1e-6)
-    finally:
-        grid.model_var = saved
-        api.table_inverter(amap)._native = solver
+    # the numpy path with the map's error detached: the stds of the given noise alone
+    detached.grid.attach_model_variance(None, None, None, None)
+    noise_only = api.fit(detached, I_b, I_w, I_c, I_b_std=1e-5, I_w_std=1e-5, I_c_std=1e-6, kernel=NumpyKernel())
     ok = (with_map.flags == 0) & (noise_only.flags == 0)
     assert np.median(with_map.alpha_std[ok] / noise_only.alpha_std[ok]) > 1.5  # the interpolation error dominates
 
@@ -125,7 +119,7 @@ def test_the_maps_own_error_enters_the_stds():
 @pytest.mark.skipif(not native.available(), reason=native.status())
 @pytest.mark.parametrize("method", ["lut", "mlp"])
 def test_c_and_numpy_agree_with_given_stds_and_thicknesses(monkeypatch, method):
-    import trimeter.inversion.api as api
+    from trimeter.inversion.kernel import NumpyKernel
     from trimeter.maps.appearance import AppearanceMap
 
     amap = AppearanceMap.load(DEVICE)
@@ -133,10 +127,8 @@ def test_c_and_numpy_agree_with_given_stds_and_thicknesses(monkeypatch, method):
     rng = np.random.default_rng(1)
     stds = dict(I_b_std=rng.uniform(1e-4, 5e-3, 600), I_w_std=rng.uniform(1e-4, 5e-3, 600),
                 I_c_std=np.where(rng.random(600) < 0.2, np.nan, rng.uniform(1e-5, 1e-3, 600)), thickness_std_mm=0.01)
-    compiled = api.fit(amap, I_b, I_w, I_c, method=method, **stds)
-    monkeypatch.setattr(native, "_LIB", None)
-    monkeypatch.setattr(api, "_TABLES", {})
-    reference = api.fit(amap, I_b, I_w, I_c, method=method, **stds)
+    compiled = trimeter.fit(amap, I_b, I_w, I_c, method=method, **stds)
+    reference = trimeter.fit(amap, I_b, I_w, I_c, method=method, kernel=NumpyKernel(), **stds)
     np.testing.assert_array_equal(compiled.flags, reference.flags)
     for name in ("alpha", "sigma_t", "g", "alpha_std", "sigma_t_std", "g_std"):
         np.testing.assert_allclose(getattr(compiled, name), getattr(reference, name), rtol=1e-6, atol=1e-11,
@@ -153,20 +145,20 @@ def test_underdetermined_is_judged_at_no_less_than_the_noise_model(monkeypatch, 
     the capture's (small), yet they stay UNDERDETERMINED — that is the map's conditioning at the
     instrument's usual noise; given stds above the noise model are judged as given. One thickness
     and two alike."""
-    import trimeter.inversion.api as api
     from trimeter.inversion.flags import FitFlag
+    from trimeter.inversion.kernel import NativeKernel, NumpyKernel
     from trimeter.maps.appearance import AppearanceMap
+    from trimeter.maps.artifacts import load_artifacts
 
-    if not native_kernel:
-        monkeypatch.setattr(native, "_LIB", None)
-        monkeypatch.setattr(api, "_TABLES", {})
+    kernel = NativeKernel() if native_kernel else NumpyKernel()
+    fit = lambda *args, **kw: trimeter.fit(*args, kernel=kernel, **kw)  # noqa: E731
     amap = AppearanceMap.load(DEVICE)
     n = 40
-    grid = api.table_inverter(amap).grid
+    grid = load_artifacts(amap).grid
     I_b, I_w, I_c = grid.intensities(np.full(n, 0.2), np.full(n, 4 / amap.thickness_mm), np.linspace(0.1, 0.8, n),
                                      *amap.reference_rhos)
-    quiet = api.fit(amap, I_b, I_w, I_c, I_b_std=1e-7, I_w_std=1e-7, I_c_std=1e-7)
-    default = api.fit(amap, I_b, I_w, I_c)
+    quiet = fit(amap, I_b, I_w, I_c, I_b_std=1e-7, I_w_std=1e-7, I_c_std=1e-7)
+    default = fit(amap, I_b, I_w, I_c)
     under = int(FitFlag.UNDERDETERMINED)
     assert np.count_nonzero(default.flags & under) >= n // 2
     np.testing.assert_array_equal(quiet.flags & under, default.flags & under)
@@ -176,11 +168,11 @@ def test_underdetermined_is_judged_at_no_less_than_the_noise_model(monkeypatch, 
     hidden = (quiet.flags & under != 0) & (quiet.alpha_std <= api.UNDERDETERMINED_ALPHA_STD) & ~(
         quiet.g_std > api.UNDERDETERMINED_G_STD)
     assert hidden.sum() >= 10
-    loud = api.fit(amap, I_b, I_w, I_c, I_b_std=0.05, I_w_std=0.05, I_c_std=0.05)
+    loud = fit(amap, I_b, I_w, I_c, I_b_std=0.05, I_w_std=0.05, I_c_std=0.05)
     assert np.all(loud.flags & under)
-    both = api.fit([amap, amap], np.stack([I_b, I_b]), np.stack([I_w, I_w]), np.stack([I_c, I_c]),
-                   I_b_std=1e-7, I_w_std=1e-7, I_c_std=1e-7)
-    both_default = api.fit([amap, amap], np.stack([I_b, I_b]), np.stack([I_w, I_w]), np.stack([I_c, I_c]))
+    both = fit([amap, amap], np.stack([I_b, I_b]), np.stack([I_w, I_w]), np.stack([I_c, I_c]),
+               I_b_std=1e-7, I_w_std=1e-7, I_c_std=1e-7)
+    both_default = fit([amap, amap], np.stack([I_b, I_b]), np.stack([I_w, I_w]), np.stack([I_c, I_c]))
     np.testing.assert_array_equal(both.flags & under, both_default.flags & under)
 
 
@@ -240,7 +232,7 @@ def test_bench_uncertainty_prints_its_table(tmp_path, capsys):
 
 def test_forward_grid_without_model_variance_reports_zero():
     grid = ForwardGrid(np.linspace(0, 1, 3), np.linspace(0, 1, 3), np.linspace(0, 0.9, 3), np.zeros((3, 3, 3, 3)),
-                       n=1.5, thickness_mm=0.4, cover_slide_n=None)
+                       setup=SampleSetup(1.5, 0.4))
     assert np.all(grid.model_variance(np.array([0.5]), grid.sigma_cell(np.array([1.5])), np.array([0.3])) == 0)
 
 

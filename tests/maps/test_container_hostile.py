@@ -22,10 +22,11 @@ from hypothesis import strategies as st
 
 from trimeter.cli import main
 from trimeter.errors import MapFileError
-from trimeter.forward.inscatter import InscatterTable
-from trimeter.inversion.table import MapTable, build_from_map
 from trimeter.maps.appearance import AppearanceMap
 from trimeter.maps.container import FORMAT_VERSION, MAGIC, MAX_CONTAINER_BYTES
+from trimeter.maps.inscatter_file import load_inscatter, save_inscatter
+from trimeter.maps.table import MapTable, build_from_map
+from trimeter.model.inscatter import InscatterTable
 
 from test_container import small_map
 
@@ -221,7 +222,7 @@ def _inscatter_header(tmp_path):
     L = np.zeros((3, 3, 2))
     table = InscatterTable(L, u_max=6.9, tau_max=10.0, v_max=2.3, n=amap.n, thickness_mm=amap.thickness_mm,
                            geometry_params={})
-    table.save(tmp_path / "valid.tins")
+    save_inscatter(table, tmp_path / "valid.tins")
     return split(tmp_path / "valid.tins")
 
 
@@ -242,7 +243,7 @@ def test_crafted_inscatter_table_is_refused(tmp_path, capsys, what, field, value
     _set(header, field, value)
     tins = craft(tmp_path / "m.tins", header, payload)
     with pytest.raises(MapFileError, match="m.tins") as err:
-        InscatterTable.load(tins)
+        load_inscatter(tins)
     assert named in str(err.value)
     small_map().save(tmp_path / "m.tmap")  # the map is fine; the table next to it is not
     capsys.readouterr()
@@ -255,7 +256,7 @@ def test_inscatter_table_with_nan_is_refused(tmp_path):
     header, payload = _inscatter_header(tmp_path)
     tins = craft(tmp_path / "m.tins", header, np.full(18, np.nan).tobytes())
     with pytest.raises(MapFileError, match="arrays.L holds NaN"):
-        InscatterTable.load(tins)
+        load_inscatter(tins)
 
 
 # ------------------------------------------------------------------------------- the map table
@@ -308,15 +309,15 @@ def test_crafted_mlp_metadata_is_refused(tmp_path, key, value, named):
     path = tmp_path / "m.onnx"
     onnx.save(model, path)
     with pytest.raises(MapFileError, match=named) as err:
-        MlpInverter(path, "", (0.0, 1.0), (0.0, 1.0), (0.0, 0.9))
+        MlpInverter(path.read_bytes(), path, "", (0.0, 1.0), (0.0, 1.0), (0.0, 0.9))
     assert len(str(err.value)) < 400
 
 
 def test_oversized_mlp_model_is_refused_before_it_is_read(tmp_path):
-    from trimeter.inversion.mlp import MlpInverter
+    from trimeter.maps.artifacts import load_mlp
 
     path = tmp_path / "m.onnx"
     with open(path, "wb") as f:
         f.truncate(2**30)
     with pytest.raises(MapFileError, match="larger than any MLP model"):
-        MlpInverter(path, "", (0.0, 1.0), (0.0, 1.0), (0.0, 0.9))
+        load_mlp(path, small_map())

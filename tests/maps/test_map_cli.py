@@ -93,12 +93,11 @@ def test_map_inscatter_traces_a_device_maps_table_and_refuses_an_ideal_map(tmp_p
     the full one takes 90 s; tests/forward/test_inscatter.py checks the tracing itself.)"""
     import shutil
 
-    from trimeter.forward.inscatter import InscatterTable
+    from trimeter.forward import inscatter
     from trimeter.paths import MAPS_DIR
 
-    build = InscatterTable.build.__func__
-    monkeypatch.setattr(InscatterTable, "build",
-                        classmethod(lambda cls, *a, **kw: build(cls, *a, **{**kw, "shape": (4, 3, 3)})))
+    build = inscatter.build_inscatter_table
+    monkeypatch.setattr(inscatter, "build_inscatter_table", lambda *a, **kw: build(*a, **{**kw, "shape": (4, 3, 3)}))
 
     shutil.copy(MAPS_DIR / "device-n1.5-l0.8.tmap", tmp_path / "d.tmap")
     assert main(["map", "inscatter", str(tmp_path / "d.tmap"), "--photons", "1000"]) == 0

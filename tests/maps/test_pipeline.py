@@ -10,10 +10,10 @@ import pytest
 from trimeter import __version__
 from trimeter.cli import main
 from trimeter.errors import MapFileError
-from trimeter.forward.inscatter import InscatterTable
-from trimeter.inversion.table import MapTable
 from trimeter.maps import pipeline
 from trimeter.maps.appearance import AppearanceMap
+from trimeter.maps.inscatter_file import load_inscatter, save_inscatter
+from trimeter.maps.table import MapTable
 from trimeter.maps.recipe import parse_recipe
 
 from tiny_toml import tiny_toml
@@ -35,7 +35,7 @@ def test_every_stage_stamps_its_child_and_a_rebuilt_map_refuses_the_old_one(tmp_
     pipeline.run([pipeline.Target(device_recipe(), None, out)], pipeline.STAGES, progress=False, options=SMALL,
                  say=say.append)
     amap = AppearanceMap.load(out)
-    tins = InscatterTable.load(out.with_suffix(".tins"))
+    tins = load_inscatter(out.with_suffix(".tins"))
     assert tins.parent_sha256 == amap.checksum
     assert tins.producer == {"name": "trimeter map build --stages tins", "version": __version__}
     assert MapTable.load(out.with_suffix(".tlut")).source_checksum == amap.checksum
@@ -69,9 +69,9 @@ def test_a_table_without_a_parent_stamp_is_refused(tmp_path):
 
     shipped = AppearanceMap.load(MAPS_DIR / "device-n1.5-l0.4.tmap")
     (tmp_path / "m.tmap").write_bytes(shipped.path.read_bytes())
-    table = InscatterTable.load(shipped.path.with_suffix(".tins"))
+    table = load_inscatter(shipped.path.with_suffix(".tins"))
     table.parent_sha256 = None
-    table.save(tmp_path / "m.tins")
+    save_inscatter(table, tmp_path / "m.tins")
     with pytest.raises(MapFileError, match="does not record the map it was made for.*"
                                            "trimeter map build maps/recipes/device-n1.5-l0.4.toml"):
         AppearanceMap.load(tmp_path / "m.tmap").inscatter

@@ -8,7 +8,8 @@ import math
 import numpy as np
 import pytest
 
-from trimeter.forward.validate import Z_P95_MAX, random_materials, tracer_agreement, z_summary
+from trimeter.forward.validate import random_materials
+from trimeter.maps.tracer_validation import Z_P95_MAX, tracer_agreement, z_summary
 
 MATERIALS = 8
 

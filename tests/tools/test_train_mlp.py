@@ -30,7 +30,8 @@ def test_the_exported_graph_is_gemm_layers_that_reproduce_the_pipeline(tmp_path,
 
     ops = [node.op_type for node in onnx.load(path).graph.node]
     assert ops == ["Gemm", activation.capitalize(), "Gemm", activation.capitalize(), "Gemm"]
-    inverter = MlpInverter(path, amap.checksum, (float(np.log(amap.sigma_t[0])), float(np.log(amap.sigma_t[-1]))),
+    inverter = MlpInverter(path.read_bytes(), path, amap.checksum,
+                           (float(np.log(amap.sigma_t[0])), float(np.log(amap.sigma_t[-1]))),
                            (0.0, 1.0), (-1.0, 1.0))
     rng = np.random.default_rng(5)
     n = 500

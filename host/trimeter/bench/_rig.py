@@ -9,10 +9,11 @@ import os
 import tempfile
 from pathlib import Path
 
-from trimeter.cli._instrument import open_device, open_spectrometer
+from trimeter.device import Device
 from trimeter.errors import InputError
 from trimeter.sequences.service import Service
 from trimeter.sequences.settings import HostSettings
+from trimeter.spectrometer import open_spectrometer
 from trimeter.twin import FaultConfig, Twin
 
 
@@ -50,7 +51,13 @@ def twin_and_service(*, time_scale: float, seed: int, faults: FaultConfig | None
         host.set("results_dir", str(root / "results"))
         for key, value in (settings or {}).items():
             host.set(key, value, source="benchmark")
-        service = Service(lambda: open_device(host), lambda: open_spectrometer(host), host, on_event=on_event,
-                          device_clock=twin.sim_time, label="bench")
+        service = Service(lambda: _open_device(host), lambda: open_spectrometer(host.spectrometer), host,
+                          on_event=on_event, device_clock=twin.sim_time, label="bench")
         stack.callback(service.close)
         yield twin, service, host
+
+
+def _open_device(host: HostSettings) -> Device:
+    """The twin's device as the host settings describe it (the rig set its port itself)."""
+    return Device.open(host.port, address=host.address, baudrate=host.baudrate, timeout_s=host.timeout_s,
+                       attempts=host.attempts, local_echo=bool(host.local_echo))

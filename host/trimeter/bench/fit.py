@@ -18,7 +18,7 @@ actually produces, ρ_b(λ) and ρ_w(λ) varying over the bins, timing each meth
 
 The rendered held-out set is the headline, but on this instrument its figures mix three errors. An
 error budget per map (noise-free, measurable gamut) separates them, all to first order through the
-map's Jacobian (trimeter.inversion.kernel.ForwardGrid):
+map's Jacobian (trimeter.model.grid.ForwardGrid):
 - reference noise floor: the α / g standard deviation implied by the held-out renders' own MC
   std-error (std_b, std_w per material) — how precisely the references can check any method;
 - map error floor: the α / g error implied by model-forward − held-out intensities, where the model
@@ -42,7 +42,7 @@ from pathlib import Path
 import numpy as np
 
 from trimeter.atomic import atomic_output, atomic_write
-from trimeter.forward.collimated import MEASURABLE_IC
+from trimeter.model.collimated import MEASURABLE_IC
 from trimeter.inversion.flags import FitFlag
 from trimeter.paths import MAPS_DIR, REPO_ROOT
 
@@ -98,86 +98,85 @@ def heldout_for(amap):
                        f"make one with tools/make_heldout.py")
 
 
-def _variants(amap):
-    variants = [("paper", "paper", dict(samples=0)), ("paper-median", "paper", dict(samples=250, epsilon=0.01))]
-    # p0/p2: the raw table and two fixed Newton steps; p≤8: fit()'s default, up to 8 steps, a bin
-    # stopping once its steps are small (the adaptive polish, kernel.step_is_small)
-    for polish in (0, 2):
-        variants.append((f"lut p{polish}", "lut", dict(polish=polish, polish_tol=0.0)))
-    variants.append(("lut p≤8", "lut", DEFAULT_POLISH))
-    variants.append(("lut-small p≤8", "lut-small", DEFAULT_POLISH))
-    if amap.path is not None:
-        models = sorted(amap.path.parent.glob(f"{amap.path.stem}*.onnx"))
-        from trimeter.errors import MapFileError
-        from trimeter.inversion.mlp import mlp_inverter
+def _variants(amap, cache, small_cache):
+    """(label, method, fit options, artifacts) per variant, from the method table: each method's
+    bench variants, one set per artifact file a method needs (e.g. every <map>*.onnx for mlp), and the
+    lut on the small table (the same fit with another table injected)."""
+    from trimeter.errors import MapFileError
+    from trimeter.inversion.methods import METHODS
 
-        for model in models:
-            tag = model.stem[len(amap.path.stem):].lstrip("-.") or "mlp"
-            try:
-                mlp_inverter(amap, model)
-            except MapFileError as exc:  # e.g. the map was rebuilt since: report it, bench the rest
-                print(f"   skipping {model.name}: {exc}")
-                continue
-            for suffix, polish in (("p0", dict(polish=0)), ("p≤8", DEFAULT_POLISH)):
-                variants.append((f"{'mlp' if tag == 'mlp' else 'mlp-' + tag} {suffix}", "mlp",
-                                 dict(**polish, mlp_model=model)))
+    artifacts, small = cache.get(amap), small_cache.get(amap)
+    variants = []
+    for method in sorted(METHODS.values(), key=lambda m: not m.joint):  # the paper baseline first
+        sets = [(method.name, {})]
+        if method.needs:
+            sets = []
+            for suffix in method.needs:
+                files = sorted(amap.path.parent.glob(f"{amap.path.stem}*{suffix}")) if amap.path is not None else []
+                for model in files:
+                    tag = model.stem[len(amap.path.stem):].lstrip("-.")
+                    try:
+                        artifacts.mlp(model)
+                    except MapFileError as exc:  # e.g. the map was rebuilt since: report it, bench the rest
+                        print(f"   skipping {model.name}: {exc}")
+                        continue
+                    sets.append((f"{method.name}-{tag}" if tag else method.name, {"mlp_model": model}))
+        for label, extra in sets:
+            for suffix, options in method.bench_variants:
+                name = f"{label}{suffix}" if suffix.startswith("-") or not suffix else f"{label} {suffix}"
+                polish = {} if method.joint else DEFAULT_POLISH
+                variants.append((name, method.name, {**polish, **options, **extra}, artifacts))
+        if method.name == "lut":
+            variants.append(("lut-small p≤8", "lut", DEFAULT_POLISH, small))
     return variants
 
 
-def _fit_variant(amap, kind, kw, I_b, I_w, I_c, small_table, rho_b=None, rho_w=None):
-    import trimeter.inversion.api as api
+def _fit_variant(variant, I_b, I_w, I_c, rho_b=None, rho_w=None):
+    from trimeter.inversion.api import fit
 
-    if kind == "lut-small":
-        saved = api._TABLES.get(api._key(amap))
-        api._TABLES[api._key(amap)] = small_table
-        try:
-            return api.fit(amap, I_b, I_w, I_c, rho_b, rho_w, method="lut", **kw)
-        finally:
-            api._TABLES[api._key(amap)] = saved
-    return api.fit(amap, I_b, I_w, I_c, rho_b, rho_w, method=kind, **kw)
+    _, method, kw, artifacts = variant
+    return fit(artifacts, I_b, I_w, I_c, rho_b, rho_w, method=method, **kw)
 
 
-def _core(amap, kind, kw, I_b, I_w, I_c, rb, rw, small_table):
+def _core(variant, I_b, I_w, I_c, rb, rw):
     """The inversion kernel alone, without input validation, flags and uncertainty: paper = the
     scipy interpolator call; lut = σt from I_c + table guess + polish; mlp = σt + network + polish."""
     import trimeter.inversion.api as api
-    from trimeter.forward.collimated import beer_lambert_sigma_t
-    from trimeter.inversion.api import table_inverter
-    from trimeter.inversion.kernel import polish_step_var
+    from trimeter.inversion.kernel import default_kernel
+    from trimeter.inversion.newton import polish_step_var
+    from trimeter.inversion.paper import coordinates, interpolator
 
-    if kind == "paper":
-        from trimeter.inversion.paper import _interpolator, coordinates
-
-        interp = _interpolator(amap, round(rb, 3), round(rw, 3))
+    _, method, kw, artifacts = variant
+    if method == "paper":
+        interp = interpolator(artifacts.map, round(rb, 3), round(rw, 3), artifacts.paper_cache)
         return lambda: interp(coordinates(I_b, I_w, I_c))
+    kernel = default_kernel()
     n = len(I_b)
     rho_b, rho_w = np.full(n, rb), np.full(n, rw)
-    inv = small_table if kind == "lut-small" else table_inverter(amap)
-    polish, tol = kw.get("polish", DEFAULT_POLISH["polish"]), kw.get("polish_tol", DEFAULT_POLISH["polish_tol"])
-    sigma = lambda: beer_lambert_sigma_t(I_c, amap.thickness_mm, amap.n, amap.cover_slide_n)  # noqa: E731
+    inv, grid = artifacts.inverter, artifacts.grid
+    polish, tol = kw["polish"], kw["polish_tol"]
+    sigma = lambda: artifacts.setup.beer_lambert_sigma_t(I_c)  # noqa: E731
     # the polish stops bins as fit() does: step_tol, or a step below POLISH_TOL_STD of the noise std
     # under fit()'s default noise model
     fit_defaults = {k: p.default for k, p in inspect.signature(api.fit).parameters.items()}
     step_var = lambda: polish_step_var(I_b, I_w, fit_defaults["noise_rel"], fit_defaults["noise_abs"],  # noqa: E731
-                                       inv.grid.mc_stderr, api._polish_tol_std(tol))
-    if kind in ("lut", "lut-small"):
-        return lambda: inv.invert(I_b, I_w, sigma(), rho_b, rho_w, polish_iterations=polish, step_tol=tol,
-                                  step_var=step_var())
-    from trimeter.inversion.mlp import mlp_inverter
-
-    net = mlp_inverter(amap, kw["mlp_model"])
+                                       grid.mc_stderr, api._polish_tol_std(tol))
+    if "mlp_model" not in kw:
+        return lambda: kernel.invert(inv, I_b, I_w, sigma(), rho_b, rho_w, iterations=polish, step_tol=tol,
+                                     step_var=step_var())
+    net = artifacts.mlp(kw["mlp_model"])
 
     def run():
         s = sigma()
         a0, g0 = net.predict(I_b, I_w, s, rho_b, rho_w)
-        return inv.grid.solve_alpha_g(I_b, I_w, inv.grid.sigma_cell(s), rho_b, rho_w, a0, g0, iterations=polish,
-                                      step_tol=tol, step_var=step_var())
+        return kernel.solve_alpha_g(grid, I_b, I_w, grid.sigma_cell(s), rho_b, rho_w, a0, g0, iterations=polish,
+                                    step_tol=tol, step_var=step_var())
     return run
 
 
 def heldout_intensities(h, rho_b, rho_w):
     """(I_b, I_w) of the held-out materials at the backgrounds, from their rendered A, B, C."""
-    from trimeter.maps.appearance import background_response
+    from trimeter.model.response import background_response
 
     return background_response(h["A"], h["B"], h["C"], rho_b), background_response(h["A"], h["B"], h["C"], rho_w)
 
@@ -199,32 +198,35 @@ def _solve_alpha_g(J, d_b, d_w):
     return np.nan_to_num(da, nan=np.inf), np.nan_to_num(dg, nan=np.inf)
 
 
-def error_budget(amap, h, rho_b, rho_w):
+def error_budget(amap, h, rho_b, rho_w, artifacts=None):
     """Per held-out material, what limits the rendered-reference figures (see the module docstring):
     reference noise floor (first-order α / g std from the renders' MC std-error), map error floor
     (first-order signed α / g error of an exact map inversion: map forward − rendered intensities),
     the map-exact intensities (I_b, I_w, I_c from the map's own forward model) and the masks
-    (measurable gamut, g scored, well-conditioned for α and for g)."""
-    from trimeter.inversion.api import table_inverter
-    from trimeter.inversion.kernel import ForwardGrid
+    (measurable gamut, g scored, well-conditioned for α and for g). artifacts: the map's, loaded
+    (default: through the process's cache)."""
+    from trimeter.inversion.kernel import default_kernel
+    from trimeter.maps.artifacts import load_artifacts
+    from trimeter.model.grid import ForwardGrid
 
     a, s, g = h["alpha"], h["sigma_t"], h["g"]
     n = len(a)
     rb, rw = np.full(n, rho_b), np.full(n, rho_w)
-    grid = table_inverter(amap).grid  # the forward model lut and mlp polish on
+    kernel = default_kernel()
+    grid = (artifacts or load_artifacts(amap)).grid  # the forward model lut and mlp polish on
     I_b, I_w = heldout_intensities(h, rho_b, rho_w)
     map_b, map_w, map_c = grid.intensities(a, s, g, rb, rw)
     J = grid.jacobian(a, s, g, rb, rw)
     # I_c is analytic in both (no MC noise, no interpolation): its std is 0 here.
-    alpha_std, _, g_std = grid.propagate(J, np.column_stack([h["std_b"], h["std_w"], np.zeros(n)]))
+    alpha_std, _, g_std = kernel.propagate(J, np.column_stack([h["std_b"], h["std_w"], np.zeros(n)]))
     alpha_err, g_err = _solve_alpha_g(J, I_b - map_b, I_w - map_w)
     # The map's own MC part of that error: its nodes' std-errors interpolated like A, B, C (an upper
     # bound: exact when a cell's node errors are fully correlated, as along α within one traced column).
     node_std = ForwardGrid(amap.alpha, np.log(amap.sigma_t), amap.g,
                            np.stack([amap.std_b, amap.std_w, np.zeros_like(amap.std_b)], axis=-1),
-                           n=amap.n, thickness_mm=amap.thickness_mm, cover_slide_n=amap.cover_slide_n)
+                           setup=amap.setup)
     map_std = node_std.coefficients(a, node_std.sigma_cell(s), g)[0]
-    alpha_map_std, _, g_map_std = grid.propagate(J, np.column_stack([map_std[0], map_std[1], np.zeros(n)]))
+    alpha_map_std, _, g_map_std = kernel.propagate(J, np.column_stack([map_std[0], map_std[1], np.zeros(n)]))
     measurable = amap.collimated(s) >= MEASURABLE_IC
     g_scored = measurable & (a >= G_MIN_ALPHA)
     return {"alpha_floor_std": alpha_std, "g_floor_std": g_std, "alpha_map_err": alpha_err, "g_map_err": g_err,
@@ -285,26 +287,26 @@ def _stats(res, truth, budget):
             "measurable": int(measurable.sum())}
 
 
-def _bench_case(amap, variants, truth, budget, intensities, label, level, args, small):
+def _bench_case(variants, truth, budget, intensities, label, level, args):
     """Score and time every variant on one set of intensities; returns one row per variant."""
     I_b, I_w, I_c = intensities
     rows, timers = [], []  # timers: (row, key, fn, scale), timed round-robin below
     tile = np.resize(np.arange(len(I_b)), 1024)
     rb, rw = budget["rho"]
-    for name, kind, kw in variants:
-        res = _fit_variant(amap, kind, kw, I_b, I_w, I_c, small)
+    for variant in variants:
+        name = variant[0]
+        res = _fit_variant(variant, I_b, I_w, I_c)
         st = {"noise": level, "reference": label, "variant": name, **_stats(res, truth, budget),
               "ms_per_1024": np.inf, "ms_per_1024_cold": np.inf, "core_ms_per_1024": np.inf}
         rows.append(st)
         nb = args.median_bins if name == "paper-median" else 1024
         idx = tile[:nb]
         sub = (I_b[idx], I_w[idx], I_c[idx])
-        timers.append((st, "ms_per_1024", lambda kind=kind, kw=kw, sub=sub: _fit_variant(amap, kind, kw, *sub, small),
-                       1024 / nb))
+        timers.append((st, "ms_per_1024", lambda variant=variant, sub=sub: _fit_variant(variant, *sub), 1024 / nb))
         if name == "paper-median":
             st["core_ms_per_1024"] = float("nan")
         else:
-            timers.append((st, "core_ms_per_1024", _core(amap, kind, kw, *sub, rb, rw, small), 1.0))
+            timers.append((st, "core_ms_per_1024", _core(variant, *sub, rb, rw), 1.0))
     # Round-robin: every variant is timed once per round, so all see the same machine load
     # (the machine is shared); each keeps its best round. The ε-median is timed once, warm.
     # Two cache states, so that no variant's figure depends on which one ran just before it:
@@ -326,15 +328,15 @@ def _bench_case(amap, variants, truth, budget, intensities, label, level, args, 
     return rows
 
 
-def hull_split(amap, I_b, I_w, I_c, rb, rw, repeats):
+def hull_split(artifacts, I_b, I_w, I_c, rb, rw, repeats):
     """The paper method's time depends on where its inputs fall: scipy's Delaunay search rejects a
     point outside the hull's bounding box at once, but one inside the box and outside the hull costs
     a brute-force pass over every simplex (~0.3 ms). So: paper core and whole fit() against lut's
     default fit() on the inputs inside the hull alone (tiled to 1024), next to the whole set."""
-    import trimeter
-    from trimeter.inversion.paper import _interpolator, coordinates
+    from trimeter.inversion.api import fit
+    from trimeter.inversion.paper import coordinates, interpolator
 
-    interp = _interpolator(amap, round(rb, 3), round(rw, 3))
+    interp = interpolator(artifacts.map, round(rb, 3), round(rw, 3), artifacts.paper_cache)
     pts = coordinates(I_b, I_w, I_c)
     inside = interp.tri.find_simplex(pts) >= 0
     out = {"outside_hull": int((~inside).sum()), "of": len(inside)}
@@ -342,8 +344,8 @@ def hull_split(amap, I_b, I_w, I_c, rb, rw, repeats):
         return out
     idx = np.resize(np.flatnonzero(inside), 1024)
     calls = {"paper_core_ms": lambda: interp(pts[idx]),
-             "paper_ms": lambda: trimeter.fit(amap, I_b[idx], I_w[idx], I_c[idx], method="paper", samples=0),
-             "lut_ms": lambda: trimeter.fit(amap, I_b[idx], I_w[idx], I_c[idx], method="lut", **DEFAULT_POLISH)}
+             "paper_ms": lambda: fit(artifacts, I_b[idx], I_w[idx], I_c[idx], method="paper", samples=0),
+             "lut_ms": lambda: fit(artifacts, I_b[idx], I_w[idx], I_c[idx], method="lut", **DEFAULT_POLISH)}
     for key, fn in calls.items():
         fn()
         out[key] = min(_timed(fn) for _ in range(repeats))
@@ -357,7 +359,7 @@ def two_thicknesses(amaps, repeats):
     mlp p≤8 — time per 1024 bins of the whole multi-map fit(), α / g p95, and each map alone over its
     own measurable gamut for comparison."""
     import trimeter
-    from trimeter.inversion.mlp import model_path_for
+    from trimeter.maps.artifacts import model_path_for
 
     sets = [heldout_for(m)[2] for m in amaps]
     if not all(np.array_equal(sets[0][k], h[k]) for h in sets[1:] for k in ("alpha", "sigma_t", "g")):
@@ -426,12 +428,10 @@ def per_wavelength_backgrounds(n: int, rho_b: float, rho_w: float):
 BACKGROUND_VARIANTS = ("paper", "lut p≤8", "mlp p≤8")
 
 
-def _bench_backgrounds(amap, h, budget, variants, small):
+def _bench_backgrounds(amap, h, budget, variants):
     """The held-out materials 4× over (960 bins) with per-wavelength backgrounds, noise-free, each
     variant timed once, cold: its first fit() after a calibration produced these ρ(λ) (the paper
     method triangulates once per distinct (ρ_b, ρ_w) pair; lut and mlp need nothing per ρ)."""
-    from trimeter.inversion import paper
-
     idx = np.tile(np.arange(len(h["alpha"])), 4)
     rho_b, rho_w = per_wavelength_backgrounds(len(idx), *budget["rho"])
     I_b, I_w = heldout_intensities({k: h[k][idx] for k in ("A", "B", "C")}, rho_b, rho_w)
@@ -440,12 +440,13 @@ def _bench_backgrounds(amap, h, budget, variants, small):
     tiled = {k: budget[k][idx] for k in ("measurable", "g_scored", "well_alpha", "well_g")}
     pairs = len(np.unique(np.round(np.column_stack([rho_b, rho_w]), 3), axis=0))
     rows = []
-    for name, kind, kw in variants:
+    for variant in variants:
+        name = variant[0]
         if name not in BACKGROUND_VARIANTS:
             continue
-        paper._CACHE.clear()  # cold: no triangulation for these backgrounds yet
+        variant[3].paper_cache.clear()  # cold: no triangulation for these backgrounds yet
         t = time.perf_counter()
-        res = _fit_variant(amap, kind, kw, I_b, I_w, I_c, small, rho_b, rho_w)
+        res = _fit_variant(variant, I_b, I_w, I_c, rho_b, rho_w)
         ms = (time.perf_counter() - t) * 1e3 * 1024 / len(idx)
         rows.append({"noise": 0.0, "reference": "rendered, per-wavelength backgrounds", "variant": name,
                      **_stats(res, truth, tiled), "ms_per_1024": ms, "ms_per_1024_cold": float("nan"),
@@ -454,10 +455,9 @@ def _bench_backgrounds(amap, h, budget, variants, small):
 
 
 def run(args) -> int:
-    from trimeter.inversion.lut import TableInverter
-    from trimeter.inversion.table import build_from_map
-
     from trimeter.inversion import native
+    from trimeter.maps.artifacts import ArtifactCache
+    from trimeter.maps.table import build_from_map
 
     noise_levels = [float(x) for x in args.noise.split(",")]
     args.out.mkdir(parents=True, exist_ok=True)
@@ -465,13 +465,15 @@ def run(args) -> int:
     print(f"inversion kernel: {native.status()}")
     report = {"maps": [], "kernel": native.status()}
     amaps = _maps(args.maps)  # loaded once: the two-thickness case below reuses them (and their refined grids)
+    cache = ArtifactCache()
     for amap in amaps:
+        artifacts = cache.get(amap)
         path, meta, h = heldout_for(amap)
         rb, rw = amap.reference_rhos
         a, s, g = h["alpha"], h["sigma_t"], h["g"]
         I_b0, I_w0 = heldout_intensities(h, rb, rw)
         I_c0 = heldout_collimated(amap, h)
-        budget = error_budget(amap, h, rb, rw)
+        budget = error_budget(amap, h, rb, rw, artifacts)
         budget["rho"] = (rb, rw)
         measurable = budget["measurable"]
         mc = float(np.median(np.concatenate([h["std_b"], h["std_w"]])))
@@ -479,22 +481,19 @@ def run(args) -> int:
         print(f"   held-out: {path} — {len(a)} materials, {int(measurable.sum())} in the measurable gamut "
               f"(I_c ≥ {MEASURABLE_IC:g}); source: {meta.get('source')}; their own MC std-error median {mc:.1e}")
         t0 = time.perf_counter()
-        small = TableInverter(build_from_map(amap, n_xy=16, refine=(1, 1, 1)), inscatter=amap.inscatter)
+        small_table = build_from_map(amap, n_xy=16, refine=(1, 1, 1))
+        small_cache = ArtifactCache(tables={amap.name: small_table})
         print(f"   small table (map grid unrefined, 16×16 inverse) built in {time.perf_counter() - t0:.1f} s, "
-              f"{small.table.size_bytes} bytes; full table: ", end="")
-        from trimeter.inversion.api import table_inverter
-
-        print(f"{table_inverter(amap).table.size_bytes} bytes")
-        variants = _variants(amap)
+              f"{small_table.size_bytes} bytes; full table: {artifacts.inverter.table.size_bytes} bytes")
+        variants = _variants(amap, cache, small_cache)
         rng = np.random.default_rng(args.seed)
         rows = []
         for level in noise_levels:
             noisy = tuple(x * (1 + level * rng.standard_normal(x.shape)) if level else x for x in (I_b0, I_w0, I_c0))
-            rows += _bench_case(amap, variants, (a, s, g), budget, noisy, "rendered", level, args, small)
-        exact_rows = _bench_case(amap, variants, (a, s, g), budget, budget["map_exact"], "map-exact", 0.0, args, small)
-        background_rows = (_bench_backgrounds(amap, h, budget, variants, small)
-                           if args.per_wavelength_backgrounds else [])
-        hull = hull_split(amap, I_b0, I_w0, I_c0, rb, rw, args.repeats)
+            rows += _bench_case(variants, (a, s, g), budget, noisy, "rendered", level, args)
+        exact_rows = _bench_case(variants, (a, s, g), budget, budget["map_exact"], "map-exact", 0.0, args)
+        background_rows = (_bench_backgrounds(amap, h, budget, variants) if args.per_wavelength_backgrounds else [])
+        hull = hull_split(artifacts, I_b0, I_w0, I_c0, rb, rw, args.repeats)
         for level in noise_levels:
             _print_table([r for r in rows if r["noise"] == level], f"noise {level * 100:g} %")
         _print_table(exact_rows, "map-exact")
@@ -576,7 +575,7 @@ def _print_budget(summary, rows, exact_rows):
 
 
 def target_checks(row, paper) -> dict:
-    """Issue 4's targets for one lut/mlp row (noise-free, rendered references) against the paper row
+    """The inversion targets for one lut/mlp row (noise-free, rendered references) against the paper row
     of the same run: {target: {"value", "limit", "met"}}. Figures a row lacks (the two-thickness rows
     have no cold time, σt or NaN figures) are not checked."""
     kind = row["variant"].split()[0]  # "lut" / "mlp"

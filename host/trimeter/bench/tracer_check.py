@@ -35,7 +35,8 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from trimeter.forward.validate import random_materials, tracer_agreement
+    from trimeter.forward.validate import random_materials
+    from trimeter.maps.tracer_validation import tracer_agreement
     from trimeter.maps.tracer import resolve_backend
 
     if not 1 <= args.materials <= 10_000:
@@ -77,7 +78,7 @@ def _print_rows(part, geometry, ell) -> None:
 
 
 def _summarise(rows, geometries, report, args) -> None:
-    from trimeter.forward.validate import Z_MEAN_MAX, Z_P95_MAX, z_summary
+    from trimeter.maps.tracer_validation import Z_MEAN_MAX, Z_P95_MAX, z_summary
 
     print(f"{report['seconds']:.0f} s; z = (tracer − volpath) / combined std-error; targets p95 |z| ≤ {Z_P95_MAX}, "
           f"|mean z| ≤ {Z_MEAN_MAX}")

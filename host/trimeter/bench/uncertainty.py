@@ -118,9 +118,9 @@ class Case:
     def at_thickness(self, ratio):
         """The intensities of these materials cut `ratio` × the map's thickness, read on the map: the
         renders moved by the forward model's change from σt to σt·ratio (its own error cancels)."""
-        from trimeter.inversion.api import _forward_grid
+        from trimeter.maps.artifacts import load_artifacts
 
-        grid = _forward_grid(self.amap)
+        grid = load_artifacts(self.amap).grid
         a, s, g = (self.truth[k] for k in PARAMS)
         rb, rw = self.amap.reference_rhos
         moved, here = grid.intensities(a, s * ratio, g, rb, rw), grid.intensities(a, s, g, rb, rw)

@@ -30,6 +30,7 @@ import numpy as np
 
 from trimeter.atomic import atomic_write, same_file
 from trimeter.errors import InputError, OutputError
+from trimeter.inversion.methods import METHODS
 from trimeter.validation import shown
 
 REQUIRED = ("wavelength_nm", "I_b", "I_w", "I_c")
@@ -47,7 +48,7 @@ def register(subparsers) -> None:
                    help="CSV with wavelength_nm,I_b,I_w,I_c[,rho_b,rho_w,thickness_mm]")
     p.add_argument("--thickness", type=float, action="append",
                    help="the sample's thickness in mm (once per --map); a map of another thickness is an error")
-    p.add_argument("--method", choices=("lut", "mlp", "paper"), default="lut")
+    p.add_argument("--method", choices=METHODS, default="lut")
     p.add_argument("-o", "--output", type=Path, help="output CSV (default: stdout)")
     p.add_argument("--json", action="store_true", help="print JSON instead of CSV")
     p.set_defaults(func=run)
@@ -122,10 +123,11 @@ def _split_thicknesses(data, amaps, path):
 
 
 def run(args) -> int:
-    from trimeter.inversion.api import _load_map, fit
     from trimeter.inversion.flags import advice, describe
+    from trimeter.maps.appearance import AppearanceMap, find_map
+    from trimeter.maps.artifacts import fit
 
-    amaps = [_load_map(m) for m in args.maps]
+    amaps = [AppearanceMap.load(find_map(m)) for m in args.maps]
     refuse_output_onto_inputs(args.output, [args.input, *(m.path for m in amaps if m.path is not None)])
     if len({round(m.thickness_mm, 9) for m in amaps}) != len(amaps):
         raise InputError("--map: the maps must be for different thicknesses")

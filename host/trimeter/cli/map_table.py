@@ -18,7 +18,7 @@ from trimeter.errors import DeviceError
 
 
 def _read_table(path: str) -> bytes:
-    from trimeter.inversion.table import MAX_TABLE_BYTES, MapTable
+    from trimeter.maps.table import MAX_TABLE_BYTES, MapTable
     from trimeter.maps.container import read_bounded
 
     data = read_bounded(Path(path), MAX_TABLE_BYTES, "map table")  # a larger file is refused unread

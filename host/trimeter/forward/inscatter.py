@@ -1,9 +1,10 @@
 """How much scattered light the collimated measurement picks up besides the unscattered beam (paper Fig. 6).
 
-The unscattered transmittance is analytic (trimeter.forward.collimated). A real detector accepts a
+The unscattered transmittance is analytic (trimeter.model.collimated). A real detector accepts a
 finite solid angle, so light scattered forward near the beam adds to it: I_c = T(σt)·(1 + r), and read
-as unscattered it gives σt too low by ln(1 + r)/(σt·ℓ). InscatterTable tabulates L = ln(1 + r) per map
-(`trimeter map inscatter`, <map>.tins); the fit takes it out (ForwardGrid.correct_inscatter). This is a
+as unscattered it gives σt too low by ln(1 + r)/(σt·ℓ). trimeter.model.inscatter.InscatterTable tabulates
+L = ln(1 + r) per map (`trimeter map inscatter`, <map>.tins; build_inscatter_table traces it); the fit
+takes it out (trimeter.inversion.newton.correct_inscatter). This is a
 small volumetric light tracer for the device's `collimated` set-up (hardware/geometry.toml): a beam of
 `beam_diameter_mm` enters the stack at normal incidence from behind; a photon counts if it leaves the
 front and passes a disk of `aperture_diameter_mm` at `aperture_distance_mm` on the axis; the open-slot
@@ -31,10 +32,10 @@ import math
 
 import numpy as np
 
-from trimeter.errors import MapFileError
-from trimeter.forward.collimated import MEASURABLE_IC, beer_lambert_sigma_t, collimated_transmittance
 from trimeter.forward.nonscattering import fresnel_unpolarized
 from trimeter.geometry import cover_slide_n, cover_slide_thickness_mm, load_geometry
+from trimeter.model.collimated import MEASURABLE_IC, beer_lambert_sigma_t, collimated_transmittance
+from trimeter.model.inscatter import InscatterTable
 
 SIXTEEN_BIT_FLOOR = 2.0**-16
 
@@ -215,11 +216,6 @@ def inscatter_report(seed: int = 0, photons: int = 100_000, say=print) -> list[d
 
 
 # ------------------------------------------------------------------ the table the inversion corrects with
-INSCATTER_KIND = "inscatter-table"
-INSCATTER_FORMAT_VERSION = 1
-TAU_MAX = 10.0  # beyond, I_c is far under any noise floor (e^-10): σt is only a lower bound there anyway
-
-
 def traced_log1p_ratio(alphas, sigma_t: float, g: float, thickness_mm: float, n: float, geometry: dict,
                        photons: int, seed: int) -> np.ndarray:
     """L = ln(1 + in-scattered / unscattered) at each of `alphas`, for one (σt, g), from one trace."""
@@ -228,142 +224,23 @@ def traced_log1p_ratio(alphas, sigma_t: float, g: float, thickness_mm: float, n:
     return np.log1p(np.polynomial.polynomial.polyval(np.asarray(alphas, dtype=float), tally) / unscattered)
 
 
-def regular_cell(p, n: int):
-    """(cell, weight) on an evenly spaced axis of n nodes at p = (x − x0)/step, clamped to the axis
-    (invert.c inscatter_log1p's τ cell)."""
-    i = np.clip(np.floor(p), 0, n - 2)
-    return i.astype(np.intp), np.clip(p - i, 0.0, 1.0)
+def build_inscatter_table(n: float, thickness_mm: float, geometry_params: dict, *, photons: int = 30_000,
+                          seed: int = 0, shape=(25, 21, 13), progress=None) -> InscatterTable:
+    """Trace every (τ, g) column of an in-scattering table once (`_trace_orders`: all α from one trace)."""
+    import time
 
-
-def trilinear(L, i, wi, j, wj, k, wk):
-    """L (3-D) between its nodes: cells i, j, k with weights wi, wj, wk, interpolated along the last axis,
-    then the middle, then the first (invert.c inscatter_log1p, operation for operation)."""
-    def along_k(a, b):
-        return L[a, b, k] + (L[a, b, k + 1] - L[a, b, k]) * wk
-
-    def lerp(a, b, w):
-        return a + (b - a) * w
-
-    return lerp(lerp(along_k(i, j), along_k(i, j + 1), wj), lerp(along_k(i + 1, j), along_k(i + 1, j + 1), wj), wi)
-
-
-def _inscatter_schema():
-    """What an in-scatter table file must hold (trimeter.maps.schema), checked before it is used."""
-    from trimeter.maps.schema import GEOMETRY_PARAMS, PARENT_SHA256, PRODUCER, PROVENANCE, SAMPLE_N, THICKNESS_MM, \
-        ArraySpec, ContainerSchema, Number, Table
-
-    extent = Number(lo=0.0, lo_open=True, hi=50.0)  # u_max, v_max: −ln(1 − 0.999) ≈ 6.9; τ_max: TAU_MAX
-    return ContainerSchema(
-        version=("format_version", "in-scatter table format version", INSCATTER_FORMAT_VERSION),
-        meta=Table({"u_max": extent, "tau_max": extent, "v_max": extent, "n": SAMPLE_N, "thickness_mm": THICKNESS_MM,
-                    "geometry_params": GEOMETRY_PARAMS, "provenance": PROVENANCE, "parent_sha256": PARENT_SHA256,
-                    "producer": PRODUCER},
-                   required=("format_version", "u_max", "tau_max", "v_max", "n", "thickness_mm", "geometry_params")),
-        arrays={"L": ArraySpec(("n_u", "n_tau", "n_g"), min_len=2, lo=0.0, hi=50.0)})
-
-
-class InscatterTable:
-    """L = ln(1 + r), r the in-scattered over the unscattered collimated light, on a regular grid in
-    u = −ln(1 − α) (α 0 … 0.999), τ = σt·ℓ (0 … TAU_MAX) and v = −ln(1 − g) (g 0 … 0.9), for one sample
-    index n, thickness ℓ and the device's collimated geometry. A measured I_c is T(σt)·e^L; the fit
-    (invert.c tm_fit_solve, api._fit_one) takes σt from I_c·e^−L. Evaluation: trilinear, clamped to
-    the grid, the same operations as invert.c's inscatter_log1p."""
-
-    def __init__(self, L, *, u_max, tau_max, v_max, n, thickness_mm, geometry_params, provenance=None,
-                 parent_sha256: str | None = None, producer: dict | None = None):
-        self.L = np.ascontiguousarray(L, dtype=np.float64)
-        if self.L.ndim != 3 or min(self.L.shape) < 2 or not np.all(np.isfinite(self.L)) or self.L.min() < 0:
-            raise MapFileError("in-scatter table: L must be a finite, non-negative (u, τ, g) grid, ≥ 2 per axis")
-        self.u_max, self.tau_max, self.v_max = float(u_max), float(tau_max), float(v_max)
-        self.n, self.thickness_mm = float(n), float(thickness_mm)
-        self.geometry_params = geometry_params
-        self.provenance = provenance or {}
-        # the map it was traced for (its SHA-256) and what traced it: trimeter.maps.pipeline stamps both
-        self.parent_sha256, self.producer = parent_sha256, producer
-        self.checksum = None  # the file's SHA-256 once saved or loaded
-        nu, nt, nv = self.L.shape
-        self.inv_du, self.inv_dt, self.inv_dv = (nu - 1) / self.u_max, (nt - 1) / self.tau_max, (nv - 1) / self.v_max
-
-    @staticmethod
-    def axes(nu: int = 25, nt: int = 21, nv: int = 13, u_max: float = math.log(1000.0), tau_max: float = TAU_MAX,
-             v_max: float = math.log(10.0)):
-        """(α nodes, τ nodes, g nodes) of a table with these sizes."""
-        return (-np.expm1(-np.linspace(0.0, u_max, nu)), np.linspace(0.0, tau_max, nt),
-                -np.expm1(-np.linspace(0.0, v_max, nv)))
-
-    @classmethod
-    def build(cls, n: float, thickness_mm: float, geometry_params: dict, *, photons: int = 30_000, seed: int = 0,
-              shape=(25, 21, 13), progress=None) -> "InscatterTable":
-        """Trace every (τ, g) column once (`_trace_orders`: all α from one trace)."""
-        import time
-
-        alphas, taus, gs = cls.axes(*shape)
-        L = np.zeros(shape)
-        t0 = time.perf_counter()
-        for j, tau in enumerate(taus):
-            if tau == 0.0:
-                continue  # nothing scatters: L = 0
-            for k, g in enumerate(gs):
-                L[:, j, k] = traced_log1p_ratio(alphas, tau / thickness_mm, g, thickness_mm, n, geometry_params,
-                                                photons, seed + 1000 * j + k)
-            if progress:
-                progress(j, len(taus))
-        provenance = {"builder": "trimeter.forward.inscatter.InscatterTable.build", "photons": photons, "seed": seed,
-                      "seconds": round(time.perf_counter() - t0, 1)}
-        return cls(L, u_max=-math.log1p(-alphas[-1]), tau_max=taus[-1], v_max=-math.log1p(-gs[-1]), n=n,
-                   thickness_mm=thickness_mm, geometry_params=geometry_params, provenance=provenance)
-
-    def log1p_ratio(self, alpha, sigma_t, g):
-        """L at materials (arrays broadcast), clamped to the grid."""
-        alpha, sigma_t, g = np.broadcast_arrays(*(np.asarray(x, dtype=np.float64) for x in (alpha, sigma_t, g)))
-        alpha, sigma_t, g = (np.where(np.isfinite(x), x, 0.0) for x in (alpha, sigma_t, g))  # NaN: 0, as in C
-        nu, nt, nv = self.L.shape
-        iu, wu = regular_cell(-np.log1p(-np.clip(alpha, 0.0, 0.999)) * self.inv_du, nu)
-        it, wt = regular_cell(np.clip(sigma_t * self.thickness_mm, 0.0, self.tau_max) * self.inv_dt, nt)
-        iv, wv = regular_cell(-np.log1p(-np.clip(g, 0.0, 0.9)) * self.inv_dv, nv)
-        return trilinear(self.L, iu, wu, it, wt, iv, wv)
-
-    def save(self, path) -> str:
-        from trimeter.maps.container import write_container
-
-        meta = {"format_version": INSCATTER_FORMAT_VERSION, "u_max": self.u_max, "tau_max": self.tau_max,
-                "v_max": self.v_max, "n": self.n, "thickness_mm": self.thickness_mm,
-                "geometry_params": self.geometry_params, "provenance": self.provenance}
-        if self.parent_sha256 is not None:
-            meta.update(parent_sha256=self.parent_sha256, producer=self.producer)
-        self.checksum = write_container(path, INSCATTER_KIND, meta, {"L": self.L})
-        return self.checksum
-
-    @classmethod
-    def load(cls, path) -> "InscatterTable":
-        from trimeter.maps.container import read_container
-
-        meta, arrays, checksum = read_container(path, INSCATTER_KIND, _inscatter_schema())
-        try:
-            table = cls(arrays["L"], **{k: meta[k] for k in ("u_max", "tau_max", "v_max", "n", "thickness_mm",
-                                                             "geometry_params")},
-                        provenance=meta.get("provenance"), parent_sha256=meta.get("parent_sha256"),
-                        producer=meta.get("producer"))
-        except (KeyError, TypeError, ValueError) as exc:
-            raise MapFileError(f"{path}: in-scatter table header incomplete ({exc})") from None
-        except MapFileError as exc:
-            raise MapFileError(f"{path}: {exc}") from None
-        table.checksum = checksum
-        return table
-
-    def matches(self, amap) -> str | None:
-        """Why this table does not belong to the map (None when it does): another n, ℓ or geometry, or
-        a parent stamp that is not this map's SHA-256 (a table is only as good as the map it was made for)."""
-        if abs(self.n - amap.n) > 1e-9 or abs(self.thickness_mm - amap.thickness_mm) > 1e-9:
-            return f"it is for n = {self.n:g}, ℓ = {self.thickness_mm:g} mm, the map for n = {amap.n:g}, " \
-                   f"ℓ = {amap.thickness_mm:g} mm"
-        if self.geometry_params != amap.recipe.get("geometry_params"):
-            return "it was traced for another instrument geometry than the map's"
-        if amap.checksum and self.parent_sha256 != amap.checksum:
-            from trimeter.maps.pipeline import rebuild_command
-
-            made_for = (f"it was made for map {self.parent_sha256[:12]}…" if self.parent_sha256 else
-                        "it does not record the map it was made for")
-            return (f"{made_for}, and this map is {amap.checksum[:12]}… (rebuilt since?); rebuild the table: "
-                    f"{rebuild_command(amap, 'tins')}")
-        return None
+    alphas, taus, gs = InscatterTable.axes(*shape)
+    L = np.zeros(shape)
+    t0 = time.perf_counter()
+    for j, tau in enumerate(taus):
+        if tau == 0.0:
+            continue  # nothing scatters: L = 0
+        for k, g in enumerate(gs):
+            L[:, j, k] = traced_log1p_ratio(alphas, tau / thickness_mm, g, thickness_mm, n, geometry_params,
+                                            photons, seed + 1000 * j + k)
+        if progress:
+            progress(j, len(taus))
+    provenance = {"builder": "trimeter.forward.inscatter.build_inscatter_table", "photons": photons, "seed": seed,
+                  "seconds": round(time.perf_counter() - t0, 1)}
+    return InscatterTable(L, u_max=-math.log1p(-alphas[-1]), tau_max=taus[-1], v_max=-math.log1p(-gs[-1]), n=n,
+                          thickness_mm=thickness_mm, geometry_params=geometry_params, provenance=provenance)

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from trimeter.forward.collimated import collimated_transmittance
+from trimeter.model.collimated import collimated_transmittance
 from trimeter.forward.mitsuba_env import mitsuba
 from trimeter.forward.scenes import (PARAM_KEYS, _Transform, integrator_for, reflectance_scale, resolve_geometry,
                                      scene_dict)

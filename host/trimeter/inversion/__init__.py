@@ -1,23 +1,14 @@
-"""Inversion of appearance maps: measured (I_b, I_w, I_c) per wavelength → (α, σt, g) with per-bin
-uncertainty and flags.
+"""Inversion of the forward model: measured (I_b, I_w, I_c) per wavelength → (α, σt, g) with per-bin
+uncertainty and flags. It only solves: what it solves comes in as model objects (trimeter.model,
+loaded from map files by trimeter.maps.artifacts).
 
     trimeter.fit(maps, I_b, I_w, I_c, rho_b=None, rho_w=None, method="lut") -> FitResult
 
-Methods: `paper` (Iser et al. Sec. 4.3: Delaunay + linear interpolation, ε-median; the baseline),
-`lut` (the compact map table, trimeter.inversion.table, + Newton polish on the forward map),
-`mlp` (a small ONNX network next to the map + the same polish). Flags: trimeter.inversion.flags.
+Methods (trimeter.inversion.methods): `paper` (Iser et al. Sec. 4.3: Delaunay + linear
+interpolation, ε-median; the baseline), `lut` (the map table's guess + Newton polish on the forward
+map), `mlp` (a small ONNX network next to the map + the same polish). Flags: trimeter.inversion.flags.
 """
 
 from trimeter.inversion.flags import FitFlag
 
-
-def __getattr__(name):
-    # Lazy, so the flashing tool can import trimeter.inversion.table without scipy's heavier parts.
-    if name in ("fit", "FitResult", "METHODS"):
-        from trimeter.inversion import api
-
-        return getattr(api, name)
-    raise AttributeError(f"module 'trimeter.inversion' has no attribute {name!r}")
-
-
-__all__ = ["fit", "FitResult", "FitFlag", "METHODS"]
+__all__ = ["FitFlag"]

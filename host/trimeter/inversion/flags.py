@@ -31,7 +31,7 @@ class FitFlag(enum.IntFlag):
     UNDERDETERMINED = 1 << 10
     # The stds are first-order (the map's Jacobian at the solution), and the map is not linear over
     # ±2σ here: (α, g) re-fitted from intensities moved by ±2σ land off the Jacobian's prediction
-    # (kernel.ForwardGrid.first_order_holds). The truth lies outside ±2σ more often than 5 %; the stds
+    # (newton.first_order_holds). The truth lies outside ±2σ more often than 5 %; the stds
     # give the scale only.
     STD_APPROXIMATE = 1 << 11
 

@@ -8,26 +8,27 @@ nodes bracketing it and blended. The grid was built at the reference backgrounds
 differ, the polish (a few vectorised Gauss-Newton steps, each bin stopping once converged) moves the
 guess to the exact solution of that forward map.
 
-Guess and polish run in C when the native kernel is built (trimeter.inversion.native, same
-algorithm, tested to agree); the numpy code below is the reference and the fallback.
+Guess and polish run on the kernel the fit was handed (trimeter.inversion.kernel: numpy or C, the
+same algorithm); initial_guess below is the numpy reference of the C guess.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from trimeter.inversion import native
-from trimeter.inversion.kernel import ForwardGrid, SigmaCell
-from trimeter.inversion.table import MapTable
+from trimeter.inversion.strategy import Method
+from trimeter.model.grid import ForwardGrid, SigmaCell
 
 
 class TableInverter:
-    def __init__(self, table: MapTable, inscatter=None, model_variance=None):
-        """inscatter: the map's in-scattering table (AppearanceMap.inscatter), or None; model_variance:
-        the map's own error at its nodes (api.map_model_variance), or None."""
+    def __init__(self, table, inscatter=None, model_variance=None):
+        """table: a map table (trimeter.maps.table.MapTable: its forward section, inverse slices and
+        set-up); inscatter: the map's in-scattering table (trimeter.model.inscatter.InscatterTable), or
+        None; model_variance: the map's own error at its nodes ((variances, axes) as
+        ForwardGrid.attach_model_variance takes them), or None."""
         self.table = table
         self.table_grid = ForwardGrid.from_table(table)  # the table's own nodes: its guess slices
-        # the polish model: the table's forward map between its nodes as everywhere (kernel.BETWEEN_NODES_*)
+        # the polish model: the table's forward map between its nodes as everywhere (model.grid.BETWEEN_NODES_*)
         self.grid = self.table_grid.between_nodes()
         self.grid.attach_inscatter(inscatter)
         if model_variance is not None:
@@ -43,14 +44,12 @@ class TableInverter:
         f = table.inv_frame.astype(np.float64)
         self._ox, self._oy = f[:, 0].copy(), f[:, 1].copy()
         self._m = [f[:, 2] * (nx - 1), f[:, 3] * (nx - 1), f[:, 4] * (ny - 1), f[:, 5] * (ny - 1)]
-        self._native = (native.NativeSolver(self.grid, self._cells, np.column_stack([self._ox, self._oy, *self._m]),
-                                            self._shape, self.table_grid.log_sigma_t)
-                        if native.available() else None)
 
     @property
-    def native_solver(self):
-        """The table and its forward grid in C (trimeter.inversion.native), or None without the library."""
-        return self._native
+    def inverse_cells(self) -> tuple:
+        """(cells, frames, shape, the table's ln σt nodes): the guess slices as the C kernel takes them."""
+        return (self._cells, np.column_stack([self._ox, self._oy, *self._m]), self._shape,
+                self.table_grid.log_sigma_t)
 
     def initial_guess(self, I_b, I_w, cell: SigmaCell):
         """The table's (α, g) guess; `cell` on the table's own σt nodes (self.table_grid.sigma_cell)."""
@@ -72,14 +71,9 @@ class TableInverter:
             out = out + (q[0] + q[1] * fu + (q[2] + q[3] * fu) * fv) * wk
         return out[0], out[1]
 
-    def invert(self, I_b, I_w, sigma_t, rho_b, rho_w, polish_iterations=3, step_tol=0.0, step_var=None):
-        """(α, g, residual, Jacobian at the solution) for bins with σt already known (from I_c);
-        polish as in ForwardGrid.solve_alpha_g."""
-        if self._native is not None:  # the same guess + polish in C (it clamps ln σt to the grid itself)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                log_sigma_t = np.log(sigma_t)
-            return self._native.solve(I_b, I_w, log_sigma_t, rho_b, rho_w, max(polish_iterations, 0),
-                                      step_tol=step_tol, step_var=step_var)
-        alpha, g = self.initial_guess(I_b, I_w, self.table_grid.sigma_cell(sigma_t))
-        return self.grid.solve_alpha_g(I_b, I_w, self.grid.sigma_cell(sigma_t), rho_b, rho_w, alpha, g,
-                                       iterations=max(polish_iterations, 0), step_tol=step_tol, step_var=step_var)
+
+METHOD = Method("lut", "the map table's inverse grid as the guess, then the Newton polish on the forward map",
+                # p0/p2: the raw table and two fixed Newton steps; p≤8: fit()'s default, up to 8 steps, a bin
+                # stopping once its steps are small (the adaptive polish, newton.step_is_small)
+                bench_variants=(("p0", dict(polish=0, polish_tol=0.0)), ("p2", dict(polish=2, polish_tol=0.0)),
+                                ("p≤8", {})))

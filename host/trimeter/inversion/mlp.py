@@ -1,5 +1,5 @@
 """`mlp`: a small network (trained by tools/train_mlp.py, shipped as maps/<map-name>.onnx) gives the
-initial (α, g); the forward-map Newton polish (trimeter.inversion.kernel) refines it at the bins'
+initial (α, g); the forward-map Newton polish (trimeter.inversion.newton) refines it at the bins'
 true backgrounds. Inference through onnxruntime only (no scikit-learn at run time).
 
 Model contract (checked on load; a mismatch is a MapFileError, never a silent wrong answer):
@@ -11,22 +11,15 @@ Model contract (checked on load; a mismatch is a MapFileError, never a silent wr
 
 from __future__ import annotations
 
-import functools
-import os
-import stat
-from pathlib import Path
-
 import numpy as np
 
 from trimeter.errors import MapFileError
+from trimeter.inversion.strategy import Method
 from trimeter.validation import shown
 
-MODEL_SUFFIX = ".onnx"
 MODEL_KIND = "mlp-inverse"
 MODEL_FORMAT = "1"
-MAX_MODEL_BYTES = 64 * 2**20  # the shipped models are ~6 KB; onnxruntime would parse anything given
 FEATURES = ("sqrt_I_b", "sqrt_I_w", "ln_sigma_t", "rho_b", "rho_w")
-_CACHE: dict = {}
 
 
 def features(I_b, I_w, sigma_t, rho_b, rho_w, log_sigma_range) -> np.ndarray:
@@ -42,18 +35,12 @@ def features(I_b, I_w, sigma_t, rho_b, rho_w, log_sigma_range) -> np.ndarray:
     return x
 
 
-def model_path_for(map_path: str | Path) -> Path:
-    return Path(map_path).with_suffix(MODEL_SUFFIX)
-
-
 class MlpInverter:
-    def __init__(self, path: str | Path, map_checksum: str, log_sigma_range, alpha_range, g_range):
+    def __init__(self, model: bytes, path, map_checksum: str, log_sigma_range, alpha_range, g_range):
+        """model: the ONNX file's bytes (trimeter.maps.artifacts reads them), path: where they came from
+        (for messages); the ranges: the map's ln σt, α and g boxes."""
         import onnxruntime as ort
 
-        from trimeter.maps.container import read_bounded
-
-        path = Path(path)
-        model = read_bounded(path, MAX_MODEL_BYTES, "MLP model")
         opts = ort.SessionOptions()
         opts.intra_op_num_threads = 1   # one core: the benchmark's unit, and the machine is shared
         opts.inter_op_num_threads = 1
@@ -61,7 +48,6 @@ class MlpInverter:
             self.session = ort.InferenceSession(model, sess_options=opts, providers=["CPUExecutionProvider"])
         except Exception as exc:  # onnxruntime raises its own exception types for corrupt files
             raise MapFileError(f"{path}: not a loadable ONNX model ({str(exc).splitlines()[0]})") from None
-        meta = self.session.get_modelmeta().custom_metadata_map
         meta = self.session.get_modelmeta().custom_metadata_map
         if meta.get("trimeter.kind") != MODEL_KIND:
             raise MapFileError(f"{path}: not a trimeter MLP inverse model (metadata trimeter.kind is "
@@ -97,29 +83,6 @@ class MlpInverter:
         return self.session.run(None, {self.input_name: x})[0]
 
 
-@functools.lru_cache(maxsize=64)
-def _default_model(map_path: Path) -> str:
-    return os.fspath(model_path_for(map_path))
-
-
-def mlp_inverter(amap, model: str | Path | None = None) -> MlpInverter:
-    """The MLP for `amap`: `model` if given, else maps/<map-name>.onnx next to the map. Called once
-    per fit: one stat() and a dict lookup when the model is loaded already (Path arithmetic cost
-    more than that)."""
-    if model is None:
-        if amap.path is None:
-            raise MapFileError("method mlp needs a model file: pass mlp_model=… for a map without a path")
-        model = _default_model(amap.path)
-    path = os.fspath(model)
-    try:
-        info = os.stat(path)  # one system call: exists, is a file, and its mtime (a changed file reloads)
-    except OSError:
-        info = None
-    if info is None or not stat.S_ISREG(info.st_mode):
-        raise MapFileError(f"no MLP model {path} for map {amap.name}; train one with tools/train_mlp.py")
-    key = (path, info.st_mtime_ns, amap.checksum)
-    if key not in _CACHE:
-        _CACHE[key] = MlpInverter(Path(path), amap.checksum,
-                                  (float(np.log(amap.sigma_t[0])), float(np.log(amap.sigma_t[-1]))),
-                                  (float(amap.alpha[0]), float(amap.alpha[-1])), (float(amap.g[0]), float(amap.g[-1])))
-    return _CACHE[key]
+METHOD = Method("mlp", "a small network's guess (maps/<map-name>.onnx), then the Newton polish on the forward map",
+                guesser=lambda model, options: model.mlp(options.get("mlp_model")), needs=(".onnx",),
+                bench_variants=(("p0", dict(polish=0)), ("p≤8", {})))

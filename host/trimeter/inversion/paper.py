@@ -7,7 +7,8 @@ are interpolated and the median taken; several thicknesses pool their samples be
 `samples=0` is the plain interpolation.
 
 Per-wavelength backgrounds: the triangulation depends on ρ_b, ρ_w, so one is built per distinct
-(ρ_b, ρ_w) pair, rounded to 1e-3 (≈0.1 s each; cached per map), and bins are grouped by pair.
+(ρ_b, ρ_w) pair, rounded to 1e-3 (≈0.1 s each; kept in the map's artifacts' cache, `cache` below),
+and bins are grouped by pair.
 
 Memory: the ε-samples take ~27 KB per bin at 250 samples, so `paper_medians` works through the bins
 in chunks of CHUNK_POINTS interpolated points and keeps only the medians: bounded whatever the row
@@ -22,12 +23,15 @@ from collections import OrderedDict
 
 import numpy as np
 
-from trimeter.maps.appearance import background_response
+from trimeter.domain.parameters import FitResult
+from trimeter.inversion import api
+from trimeter.inversion.flags import UNUSABLE, FitFlag
+from trimeter.inversion.strategy import Method
+from trimeter.model.response import background_response
 
 _LOG_IC_FLOOR = 1e-12   # I_c below this is treated as this, so log10 stays finite
 _RHO_DECIMALS = 3
-_CACHE: "OrderedDict[tuple, object]" = OrderedDict()
-_CACHE_SIZE = 16
+CACHE_SIZE = 16  # triangulations kept per map
 CHUNK_POINTS = 500_000  # interpolated points per chunk: ~60 MB of working arrays
 
 
@@ -36,28 +40,30 @@ def coordinates(I_b, I_w, I_c) -> np.ndarray:
     return np.column_stack([I_b, I_w, np.log10(np.maximum(I_c, _LOG_IC_FLOOR))])
 
 
-def _interpolator(amap, rho_b: float, rho_w: float):
+def interpolator(amap, rho_b: float, rho_w: float, cache: OrderedDict | None = None):
+    """The paper's interpolant of `amap` (its nodes, arrays A, B, C and collimated_measured) at these
+    backgrounds; `cache`: the map's triangulations by (ρ_b, ρ_w), least recently used dropped first."""
     from scipy.interpolate import LinearNDInterpolator
 
-    inscatter = amap.inscatter  # the nodes' I_c include it
-    key = (amap.checksum or id(amap), inscatter.checksum if inscatter is not None else None, rho_b, rho_w)
-    if key in _CACHE:
-        _CACHE.move_to_end(key)
-        return _CACHE[key]
+    cache = OrderedDict() if cache is None else cache
+    key = (rho_b, rho_w)
+    if key in cache:
+        cache.move_to_end(key)
+        return cache[key]
     aa, ss, gg = (v.ravel() for v in np.meshgrid(amap.alpha, amap.sigma_t, amap.g, indexing="ij"))
     # the map's own nodes, straight from its arrays (not evaluated through AppearanceMap.query: the
     # Delaunay of these nearly coplanar points changes with their last bits)
     A, B, C = (v.ravel() for v in (amap.A, amap.B, amap.C))
     I_b, I_w = (background_response(A, B, C, rho) for rho in (rho_b, rho_w))
-    I_c = amap.collimated_measured(aa, ss, gg)
+    I_c = amap.collimated_measured(aa, ss, gg)  # with the map's in-scattering, if it has a table
     interp = LinearNDInterpolator(coordinates(I_b, I_w, I_c), np.column_stack([aa, ss, gg]))
-    _CACHE[key] = interp
-    if len(_CACHE) > _CACHE_SIZE:
-        _CACHE.popitem(last=False)
+    cache[key] = interp
+    if len(cache) > CACHE_SIZE:
+        cache.popitem(last=False)
     return interp
 
 
-def paper_samples(amap, I_b, I_w, I_c, rho_b, rho_w, samples=250, epsilon=0.01, seed=0, first_row=0):
+def paper_samples(amap, I_b, I_w, I_c, rho_b, rho_w, samples=250, epsilon=0.01, seed=0, first_row=0, cache=None):
     """Interpolated (α, σt, g) for each bin: shape (N, max(samples, 1), 3), NaN outside the hull.
     `first_row`: the bins' position in the whole input (which ε-offsets of the seed's stream are theirs)."""
     I_b, I_w, I_c, rho_b, rho_w = (np.asarray(v, dtype=float) for v in (I_b, I_w, I_c, rho_b, rho_w))
@@ -77,17 +83,19 @@ def paper_samples(amap, I_b, I_w, I_c, rho_b, rho_w, samples=250, epsilon=0.01, 
     rows = np.flatnonzero(ok)
     for j, (rb, rw) in enumerate(unique):  # one triangulation per distinct background pair
         sel = rows[group.ravel() == j]
-        interp = _interpolator(amap, float(rb), float(rw))
+        interp = interpolator(amap, float(rb), float(rw), cache)
         out[sel] = interp(np.broadcast_to(pts[sel], (len(sel), k, 3)).reshape(-1, 3)).reshape(len(sel), k, 3)
     return out
 
 
-def paper_medians(amaps, inputs, samples=250, epsilon=0.01, seed=0, chunk_points=CHUNK_POINTS):
+def paper_medians(amaps, inputs, samples=250, epsilon=0.01, seed=0, chunk_points=CHUNK_POINTS, caches=None):
     """The ε-median (α, σt, g) of each bin, (N, 3): pooled over the maps (several thicknesses of one
     material) and each map's own, for inputs[i] = (I_b, I_w, I_c, rho_b, rho_w) over the same N bins
     for amaps[i] (map i samples with seed + i). Bins are processed in chunks of about `chunk_points`
-    interpolated points, so memory does not grow with N beyond the (N, 3) results."""
+    interpolated points, so memory does not grow with N beyond the (N, 3) results. caches: one
+    triangulation cache per map (interpolator), or None."""
     n = len(inputs[0][0])
+    caches = [OrderedDict() for _ in amaps] if caches is None else caches
     k = max(int(samples), 1)
     chunk = max(1, int(chunk_points) // (k * len(amaps)))
     pooled = np.full((n, 3), np.nan)
@@ -95,7 +103,7 @@ def paper_medians(amaps, inputs, samples=250, epsilon=0.01, seed=0, chunk_points
     for start in range(0, n, chunk):
         stop = min(n, start + chunk)
         parts = [paper_samples(amap, *(np.asarray(v)[start:stop] for v in arrays), samples=samples, epsilon=epsilon,
-                               seed=seed + i, first_row=start)
+                               seed=seed + i, first_row=start, cache=caches[i])
                  for i, (amap, arrays) in enumerate(zip(amaps, inputs, strict=True))]
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN bins: outside the hull, flagged by the caller
@@ -103,3 +111,59 @@ def paper_medians(amaps, inputs, samples=250, epsilon=0.01, seed=0, chunk_points
             for median, part in zip(own, parts, strict=True):
                 median[start:stop] = np.nanmedian(part, axis=1)
     return pooled, own
+
+
+def fit_paper(models, arrays, stds, thickness_rel, *, kernel, samples, epsilon, seed, noise_rel, noise_abs, ic_floor,
+              alpha_min_g, inscatter_rel_std) -> FitResult:
+    """The paper method over all thicknesses (trimeter.inversion.api.fit's arguments, shaped): each
+    thickness's flags and stds on its own ε-median, the estimate on the pooled one."""
+    amaps = [m.map for m in models]
+    inputs, singles = [], []
+    for amap, (I_b, I_w, I_c, rho_b, rho_w) in zip(amaps, arrays, strict=True):
+        flags = api._input_flags(I_b, I_w, I_c, rho_b, rho_w)
+        usable = (flags & int(UNUSABLE)) == 0
+        inputs.append((np.where(usable, I_b, np.nan), I_w, I_c, rho_b, rho_w))
+        singles.append((amap, flags, usable, I_b, I_w, I_c, rho_b, rho_w))
+    pooled_median, own_medians = paper_medians(amaps, inputs, samples=samples, epsilon=epsilon, seed=seed,
+                                               caches=[m.paper_cache for m in models])
+    results = []
+    # Each thickness on its own median (the consistency check), the estimate on the pooled one.
+    for i, (med, model, (amap, flags, usable, I_b, I_w, I_c, rho_b, rho_w)) in enumerate(
+            zip(own_medians, models, singles, strict=True)):
+        grid = model.grid
+        ib, iw, ic = api._sanitize(I_b, 0, 1, 0), api._sanitize(I_w, 0, 1, 1), api._sanitize(I_c, 0, 1, 1)
+        ref = amap.reference_rhos
+        rb, rw = np.where(usable, rho_b, ref[0]), np.where(usable, rho_w, ref[1])
+        flags = flags | np.where(usable & (ic < ic_floor), int(FitFlag.IC_BELOW_FLOOR), 0)
+        outside = usable & ~np.all(np.isfinite(med), axis=1)
+        flags |= np.where(outside, int(FitFlag.OUTSIDE_MAP) | int(FitFlag.NOT_CONVERGED), 0)
+        alpha, sigma_t, g = med[:, 0], med[:, 1], med[:, 2]
+        coef_in = np.isfinite(alpha)
+        I_model = grid.intensities(np.nan_to_num(alpha), np.nan_to_num(sigma_t, nan=1.0), np.nan_to_num(g), rb, rw)
+        residual = np.where(coef_in, np.hypot(I_model[0] - ib, I_model[1] - iw), np.inf)
+        sigma_beer = amap.setup.beer_lambert_sigma_t(I_c)
+        floor_sd = np.column_stack([noise_rel * ib + noise_abs, noise_rel * iw + noise_abs, noise_rel * ic + noise_abs])
+        sd = stds[i] if stds[i] is not None else floor_sd
+        # the ε-median has no separate in-scattering correction to propagate: its map's I_c holds it.
+        # The interpolated median does not solve the map exactly: STD_APPROXIMATE's re-fits start from
+        # the map's own intensities there, so that its residual does not count as the map's bend.
+        r = api._finish(amap, grid, flags, usable, ib, iw, ic, rb, rw, alpha, sigma_t, g, residual, sigma_beer,
+                    method="paper", kernel=kernel, sd=sd, sigma_t_solved=sigma_t, inscatter_ds=None,
+                    inscatter_rel_std=inscatter_rel_std, thickness_rel_std=thickness_rel[i], alpha_min_g=alpha_min_g,
+                    solved=(alpha, g, I_model[0], I_model[1]), floor_sd=floor_sd)
+        for name in ("alpha", "sigma_t", "g", "alpha_std", "sigma_t_std", "g_std"):
+            getattr(r, name)[outside] = np.nan
+        results.append(r)
+    if len(results) == 1:
+        return results[0]
+    combined = api.combine(results, "paper")
+    # As written: the pooled median is the estimate; the stds come from the inverse-variance combination.
+    med = pooled_median
+    combined.alpha, combined.sigma_t, combined.g = med[:, 0], med[:, 1], med[:, 2]
+    combined.g = np.where((combined.flags & int(FitFlag.G_UNDEFINED)) != 0, np.nan, combined.g)
+    return combined
+
+
+METHOD = Method("paper", "Iser et al. 2022 as written: Delaunay + linear interpolation, the ε-median (the baseline)",
+                fit_all=fit_paper, default_polish=0,
+                bench_variants=(("", dict(samples=0)), ("-median", dict(samples=250, epsilon=0.01))))

@@ -9,7 +9,7 @@ Representation (one concept, one place):
   (exact for the ideal geometry — A: the slab's own reflectance, B: T_down·T_up, C: the slab's
   diffuse reflectance seen from below — and verified against direct renders for the device). So
   I_b = I(ρ_b(λ)) and I_w = I(ρ_w(λ)) for any per-wavelength background without re-rendering.
-- I_c is analytic (trimeter.forward.collimated) from σt, ℓ, n and the cover slides.
+- I_c is analytic (trimeter.model.collimated) from σt, ℓ, n and the cover slides (AppearanceMap.setup).
 - Std-errors: `std_b`, `std_w` — the Monte Carlo standard error of I at the recipe's reference
   backgrounds `reference_rho_b`, `reference_rho_w`.
 Axes are strictly increasing. Between the nodes the map is evaluated as the inversion polishes on it
@@ -29,11 +29,12 @@ from pathlib import Path
 import numpy as np
 
 from trimeter.errors import InputError, MapFileError
-from trimeter.forward.collimated import collimated_transmittance
-from trimeter.geometry import cover_slide_n
 from trimeter.maps.container import read_container, write_container
 from trimeter.maps.schema import (GEOMETRY_PARAMS, PROVENANCE, REFLECTANCE, SAMPLE_N, THICKNESS_MM, ArraySpec,
                                   ContainerSchema, Table, Text)
+from trimeter.model.grid import ForwardGrid
+from trimeter.model.response import background_response
+from trimeter.model.setup import SampleSetup
 from trimeter.paths import MAPS_DIR
 
 MAP_KIND = "appearance-map"
@@ -97,17 +98,22 @@ class AppearanceMap:
     def name(self) -> str:
         return str(self.recipe.get("name") or (self.path.stem if self.path else "unnamed"))
 
+    @cached_property
+    def setup(self) -> SampleSetup:
+        """The sample set-up the map was traced for (its recipe's n, ℓ, cover slides, geometry)."""
+        return SampleSetup.from_recipe(self.recipe)
+
     @property
     def thickness_mm(self) -> float:
-        return float(self.recipe["thickness_mm"])
+        return self.setup.thickness_mm
 
     @property
     def n(self) -> float:
-        return float(self.recipe["n"])
+        return self.setup.n
 
     @property
     def cover_slide_n(self) -> float | None:
-        return cover_slide_n(self.recipe.get("geometry_params", {}))
+        return self.setup.cover_slide_n
 
     @property
     def reference_rhos(self) -> tuple[float, float]:
@@ -149,11 +155,9 @@ class AppearanceMap:
 
     # -------------------------------------------------------------------------------- evaluation
     @cached_property
-    def between_nodes(self):
+    def between_nodes(self) -> ForwardGrid:
         """The map as evaluated between its nodes, the same way the inversion's polish does
-        (trimeter.inversion.kernel.ForwardGrid.between_nodes: cubic in α and ln σt, PCHIP in g)."""
-        from trimeter.inversion.kernel import ForwardGrid
-
+        (trimeter.model.grid.ForwardGrid.between_nodes: cubic in α and ln σt, PCHIP in g)."""
         return ForwardGrid.from_map(self).between_nodes()
 
     def coefficients(self, alpha, sigma_t, g):
@@ -172,20 +176,20 @@ class AppearanceMap:
 
     def collimated(self, sigma_t):
         """The unscattered collimated beam through the sample (Beer-Lambert with the Fresnel stack)."""
-        return collimated_transmittance(sigma_t, self.thickness_mm, self.n, self.cover_slide_n)
+        return self.setup.collimated(sigma_t)
 
     @cached_property
     def inscatter(self):
         """The in-scattering table traced for this map (`<map>.tins` next to it, `trimeter map inscatter`),
         or None: then I_c is modelled as the unscattered beam alone. A table that does not belong to
         the map (another n, ℓ or geometry) is an error, not ignored."""
-        from trimeter.forward.inscatter import InscatterTable
+        from trimeter.maps.inscatter_file import inscatter_mismatch, inscatter_path_for, load_inscatter
 
-        if self.path is None or not self.path.with_suffix(".tins").is_file():
+        if self.path is None or not inscatter_path_for(self.path).is_file():
             return None
-        path = self.path.with_suffix(".tins")
-        table = InscatterTable.load(path)
-        if why := table.matches(self):
+        path = inscatter_path_for(self.path)
+        table = load_inscatter(path)
+        if why := inscatter_mismatch(table, self):
             raise MapFileError(f"{path} does not belong to map {self.name}: {why}")
         return table
 
@@ -201,17 +205,10 @@ class AppearanceMap:
         """(I_b, I_w, I_c) for materials and backgrounds (arrays broadcast; NaN outside the map)."""
         A, B, C = self.coefficients(alpha, sigma_t, g)
         rho_b, rho_w = np.asarray(rho_b, dtype=float), np.asarray(rho_w, dtype=float)
-        I_b = A + B * rho_b / (1.0 - C * rho_b)
-        I_w = A + B * rho_w / (1.0 - C * rho_w)
+        I_b = background_response(A, B, C, rho_b)
+        I_w = background_response(A, B, C, rho_w)
         I_c = np.where(np.isnan(A), np.nan, self.collimated_measured(alpha, np.asarray(sigma_t, dtype=float), g))
         return I_b, I_w, I_c
-
-
-def background_response(A, B, C, rho):
-    """I(ρ) = A + B·ρ / (1 − C·ρ): the diffuse observable against a background of reflectance ρ
-    from the response coefficients (the map's representation, see the module docstring)."""
-    rho = np.asarray(rho, dtype=float)
-    return A + B * rho / (1.0 - C * rho)
 
 
 def shipped_maps() -> list[Path]:

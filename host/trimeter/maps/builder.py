@@ -29,12 +29,13 @@ import numpy as np
 
 from trimeter.atomic import atomic_output, atomic_write
 from trimeter.errors import InputError, MapFileError
-from trimeter.forward.collimated import MEASURABLE_IC, collimated_transmittance
 from trimeter.geometry import cover_slide_n
-from trimeter.maps.appearance import AppearanceMap, background_response
+from trimeter.maps.appearance import AppearanceMap
 from trimeter.maps.recipe import Recipe
 from trimeter.maps.tracer import ColumnTally, Stack, k_max_for
 from trimeter.maps.tracer import trace_column as trace_pair
+from trimeter.model.collimated import MEASURABLE_IC, collimated_transmittance
+from trimeter.model.response import background_response
 
 BUILDER = "trimeter.maps.tracer: (k, m)-tally path tracer (detector + background paths), Dr.Jit LLVM symbolic loop"
 _COLUMN_FIELDS = ("A", "B", "C", "std_b", "std_w")

@@ -3,8 +3,8 @@
 | stage | file | made from the map by | needs |
 |---|---|---|---|
 | tmap | `<name>.tmap` | trimeter.maps.builder (the columns, on Dask or here) | the recipe |
-| tins | `<name>.tins` | trimeter.forward.inscatter.InscatterTable.build | device geometry (skipped otherwise) |
-| tlut | `<name>.tlut` | trimeter.inversion.table.build_from_map | — |
+| tins | `<name>.tins` | trimeter.forward.inscatter.build_inscatter_table | device geometry (skipped otherwise) |
+| tlut | `<name>.tlut` | trimeter.maps.table.build_from_map | — |
 | onnx | `<name>.onnx` | trimeter.maps.mlp_training (scikit-learn → ONNX) | opt-in: minutes of training |
 
 Every child is derived from the `.tmap` alone, so each records the map's SHA-256 as its parent (the
@@ -91,13 +91,13 @@ def applies(stage: str, amap) -> str | None:
 def compute(stage: str, amap, options: Options):
     """The stage's product for `amap`, in memory (runs on a Dask worker or here)."""
     if stage == "tins":
-        from trimeter.forward.inscatter import InscatterTable
+        from trimeter.forward.inscatter import build_inscatter_table
 
-        return InscatterTable.build(amap.n, amap.thickness_mm, amap.recipe["geometry_params"],
-                                    photons=options.inscatter_photons, seed=options.inscatter_seed,
-                                    shape=options.inscatter_shape)
+        return build_inscatter_table(amap.n, amap.thickness_mm, amap.recipe["geometry_params"],
+                                     photons=options.inscatter_photons, seed=options.inscatter_seed,
+                                     shape=options.inscatter_shape)
     if stage == "tlut":
-        from trimeter.inversion.table import build_from_map
+        from trimeter.maps.table import build_from_map
 
         return build_from_map(amap, n_xy=options.table_n_xy)
     if stage == "onnx":
@@ -113,15 +113,15 @@ def write(stage: str, amap, product, options: Options, out: Path | None = None) 
     to `out`), read it back; returns (path, one-line description)."""
     out = Path(out) if out else amap.path.with_suffix(SUFFIX[stage])
     if stage == "tins":
-        from trimeter.forward.inscatter import InscatterTable
+        from trimeter.maps.inscatter_file import load_inscatter, save_inscatter
 
         product.parent_sha256, product.producer = amap.checksum, stage_producer(stage)
-        checksum = product.save(out)
-        InscatterTable.load(out)
+        checksum = save_inscatter(product, out)
+        load_inscatter(out)
         return out, (f"{product.L.shape} grid, {options.inscatter_photons} photons per column, largest ln(1 + r) "
                      f"{product.L.max():.3f}, sha256 {checksum[:12]}…")
     if stage == "tlut":
-        from trimeter.inversion.table import MapTable, describe_table
+        from trimeter.maps.table import MapTable, describe_table
 
         product.save(out)
         MapTable.load(out)

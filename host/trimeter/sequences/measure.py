@@ -66,9 +66,9 @@ class PreparedFit:
         hold), or None when the method fits without one."""
         if self.method != "lut":
             return None
-        from trimeter.inversion.api import table_inverter
+        from trimeter.maps.artifacts import load_artifacts
 
-        return table_inverter(self.samples[0].map).table.to_bytes()
+        return load_artifacts(self.samples[0].map).inverter.table.to_bytes()
 
     def fit(self, captures: list[SampleCapture]) -> tuple[Parameters, list[Parameters]]:
         """trimeter.fit over one or several of the prepared samples' captures; returns (combined,

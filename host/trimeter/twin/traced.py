@@ -30,8 +30,8 @@ import numpy as np
 from scipy.interpolate import CubicSpline
 
 from trimeter.errors import InputError
-from trimeter.forward.collimated import collimated_transmittance
 from trimeter.geometry import cover_slide_n
+from trimeter.model.collimated import collimated_transmittance
 
 DATA_DIR = Path(__file__).resolve().parents[1] / "data" / "twin_observables"
 FORMAT_VERSION = 1

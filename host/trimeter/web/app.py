@@ -29,7 +29,7 @@ from aiohttp import ClientSession, ClientTimeout, WSMsgType, web
 from trimeter import registers as regs
 from trimeter.device.client import CONFIG_NAMES, encode
 from trimeter.errors import InputError, TrimeterError
-from trimeter.inversion.api import METHODS
+from trimeter.inversion.methods import METHODS
 from trimeter.inversion.flags import advice, describe
 from trimeter.maps.appearance import AppearanceMap, find_map, shipped_maps
 from trimeter.sequences.measure import map_for_thickness

@@ -2,8 +2,8 @@
 with incoherent Fresnel inter-reflections at normal incidence (paper Sec. 3.2, Eq. 1).
 
 I_c is normalised by the open-slot reference (no sample, no slides), as the calibration measures it,
-so it is exactly the stack's transmittance. In-scattering into the detector aperture is neglected;
-tests/forward checks that it stays negligible over the map's range (paper Fig. 6).
+so it is exactly the stack's transmittance. Light scattered into the detector aperture is a separate
+factor (trimeter.model.inscatter).
 """
 
 from __future__ import annotations

@@ -56,7 +56,10 @@ from pathlib import Path
 import numpy as np
 
 from trimeter.errors import MapFileError
-from trimeter.inversion.kernel import ForwardGrid, refine_axis
+from trimeter.maps.container import read_bounded
+from trimeter.model.cells import refine_axis
+from trimeter.model.grid import ForwardGrid
+from trimeter.model.setup import SampleSetup
 from trimeter.registers import MAP_SLOT_CAPACITY_BYTES
 
 TABLE_MAGIC = b"\x89TRLUT\r\n"
@@ -90,6 +93,11 @@ class MapTable:
     path: Path | None = field(default=None, compare=False)
 
     # ------------------------------------------------------------------------------ decoded views
+    @cached_property
+    def setup(self) -> SampleSetup:
+        """The sample set-up as the table holds it (its f32 fields): what a fit on the table uses."""
+        return SampleSetup(self.n, self.thickness_mm, self.cover_slide_n)
+
     @cached_property
     def sigma_t(self) -> np.ndarray:
         return np.exp(self.log_sigma_t.astype(np.float64))
@@ -201,8 +209,6 @@ class MapTable:
 
     @classmethod
     def load(cls, path: str | Path) -> "MapTable":
-        from trimeter.maps.container import read_bounded
-
         path = Path(path)
         table = cls.from_bytes(read_bounded(path, MAX_TABLE_BYTES, "map table"), source=str(path))
         object.__setattr__(table, "path", path)
@@ -257,11 +263,9 @@ def _inverse_size_for(na: int, ns: int, ng: int, budget: int, max_xy: int) -> in
                        f"inverse grid; build the table from a coarser map")
 
 
-# Forward-grid refinement (α, σt, g factors) used when the map is smooth enough to gain from it.
-# Measured (tools: trimeter bench fit / refinement sweep): on the exact iadpython ideal map, refining
-# σt 2× cut α p95 0.066 → 0.018 and g p95 0.052 → 0.016 (refining α or g: ≤ 10 %); on the device map
-# (MC std-error ~1e-3) no refinement helped and splines through the noise made g worse, so noisy
-# maps keep their own grid.
+# Forward-grid refinement (α, σt, g factors) used when the map is smooth enough to gain from it: on a
+# smooth map refining σt is what helps, while splines through a noisy map's nodes make g worse, so
+# noisy maps keep their own grid (figures: maps/README.md).
 _REFINE_SMOOTH = (1, 2, 1)
 _SMOOTH_STDERR = 5e-4
 _MIN_XY = 9
@@ -274,8 +278,8 @@ def build_from_map(amap, n_xy: int | None = None, budget: int = MAX_TABLE_BYTES,
     The forward section is the map resampled onto its axes refined by `refine` (ForwardGrid.refined)
     (default: _REFINE_SMOOTH for a map whose MC std-error is below _SMOOTH_STDERR and that still
     fits, else the map's own grid), so the run-time trilinear evaluation follows the map's curvature
-    between its nodes (exact ideal map: I_w error p95 3.7e-3 trilinear vs 1.4e-4 cubic). `n_xy` (the
-    inverse grid's side) defaults to the largest that fits `budget` bytes."""
+    between its nodes. `n_xy` (the inverse grid's side) defaults to the largest that fits `budget`
+    bytes."""
     na0, ns0, ng0 = amap.A.shape
     if refine is None:
         mc = float(np.median(np.concatenate([np.ravel(amap.std_b), np.ravel(amap.std_w)])))
@@ -303,6 +307,8 @@ def build_from_map(amap, n_xy: int | None = None, budget: int = MAX_TABLE_BYTES,
     # (projected onto the gamut where a grid point lies outside it).
     from scipy.spatial import cKDTree
 
+    from trimeter.inversion.kernel import default_kernel
+
     aa, gg = (v.ravel() for v in np.meshgrid(refine_axis(alpha_axis, 2), refine_axis(g_axis, 2), indexing="ij"))
     frames = np.zeros((ns, 6), dtype=np.float32)
     starts_a, starts_g = np.zeros((ns, nxy, nxy)), np.zeros((ns, nxy, nxy))
@@ -322,9 +328,9 @@ def build_from_map(amap, n_xy: int | None = None, budget: int = MAX_TABLE_BYTES,
         targets[k] = (np.clip(gxy, 0, 1) ** 2).reshape(nxy, nxy, 2)
     node = np.broadcast_to(np.exp(log_s_axis)[:, None, None], (ns, nxy, nxy)).ravel()
     m = node.size
-    alpha_sol, g_sol, _, _ = grid.solve_alpha_g(targets[..., 0].ravel(), targets[..., 1].ravel(),
-                                             grid.sigma_cell(node), np.full(m, rho_b), np.full(m, rho_w),
-                                             starts_a.ravel(), starts_g.ravel(), iterations=12)
+    alpha_sol, g_sol, _, _ = default_kernel().solve_alpha_g(
+        grid, targets[..., 0].ravel(), targets[..., 1].ravel(), grid.sigma_cell(node), np.full(m, rho_b),
+        np.full(m, rho_w), starts_a.ravel(), starts_g.ravel(), iterations=12)
     inv_a = _quantize(alpha_sol, alpha_axis[0], alpha_axis[-1]).reshape(ns, nxy, nxy)
     inv_g = _quantize(g_sol, g_axis[0], g_axis[-1]).reshape(ns, nxy, nxy)
     mc = float(np.median(np.concatenate([amap.std_b.ravel(), amap.std_w.ravel()])))

@@ -1,0 +1,144 @@
+"""A map and its children (`.tlut` table, `.tins` in-scattering table, `.onnx` network) loaded into what
+a fit needs (MapArtifacts, a trimeter.inversion.api.FitModel), kept in an explicit cache; and
+`trimeter.fit`, which takes map names, paths or AppearanceMaps and fits through trimeter.inversion."""
+
+from __future__ import annotations
+
+import os
+import stat
+import warnings
+from collections import OrderedDict
+from pathlib import Path
+
+import numpy as np
+
+from trimeter.errors import MapFileError
+from trimeter.inversion.lut import TableInverter
+from trimeter.inversion.mlp import MlpInverter
+from trimeter.maps.appearance import AppearanceMap, find_map
+from trimeter.maps.container import read_bounded
+from trimeter.maps.table import MapTable, build_from_map, table_path_for
+from trimeter.model.grid import ForwardGrid, node_model_variance
+from trimeter.model.response import background_response
+
+MODEL_SUFFIX = ".onnx"
+MAX_MODEL_BYTES = 64 * 2**20  # the shipped models are ~6 KB; onnxruntime would parse anything given
+
+
+def model_path_for(map_path: str | Path) -> Path:
+    """The MLP model that goes with a map: maps/<map-name>.onnx."""
+    return Path(map_path).with_suffix(MODEL_SUFFIX)
+
+
+def map_model_variance(amap: AppearanceMap) -> tuple:
+    """The map's own error variance of (I_b, I_w) at its nodes, at its reference backgrounds:
+    (variances (na, ns, ng, 2), α, ln σt, g axes) for ForwardGrid.attach_model_variance."""
+    rb, rw = amap.reference_rhos
+    values = np.stack([background_response(amap.A, amap.B, amap.C, rho) for rho in (rb, rw)], axis=-1)
+    axes = (np.asarray(amap.alpha, float), np.log(np.asarray(amap.sigma_t, float)), np.asarray(amap.g, float))
+    var = node_model_variance(values, np.stack([amap.std_b, amap.std_w], axis=-1), *axes)
+    return var, axes
+
+
+class MapArtifacts:
+    """One map as a fit takes it: the map, its table inverter (the table's guess and the polish's
+    forward grid, with the map's in-scattering and model error attached), its MLP models on demand
+    and the paper method's triangulations."""
+
+    def __init__(self, amap: AppearanceMap, table: MapTable):
+        self.map = amap
+        self.name = amap.name
+        self.reference_rhos = amap.reference_rhos
+        self.setup = amap.setup
+        self.inverter = TableInverter(table, inscatter=amap.inscatter, model_variance=map_model_variance(amap))
+        self.paper_cache: OrderedDict = OrderedDict()
+        self._mlps: dict = {}
+
+    @property
+    def grid(self) -> ForwardGrid:
+        """The forward model every method polishes and propagates on: the table's forward map between
+        its nodes (ForwardGrid.between_nodes)."""
+        return self.inverter.grid
+
+    def mlp(self, model: str | Path | None = None) -> MlpInverter:
+        """The MLP for this map: `model` if given, else maps/<map-name>.onnx next to the map. A changed
+        file (another mtime) is loaded again."""
+        amap = self.map
+        if model is None:
+            if amap.path is None:
+                raise MapFileError("method mlp needs a model file: pass mlp_model=… for a map without a path")
+            model = model_path_for(amap.path)
+        path = os.fspath(model)
+        try:
+            info = os.stat(path)  # one system call: exists, is a file, and its mtime
+        except OSError:
+            info = None
+        if info is None or not stat.S_ISREG(info.st_mode):
+            raise MapFileError(f"no MLP model {path} for map {amap.name}; train one with tools/train_mlp.py")
+        key = (path, info.st_mtime_ns)
+        if key not in self._mlps:
+            self._mlps[key] = load_mlp(Path(path), amap)
+        return self._mlps[key]
+
+
+def load_mlp(path: Path, amap: AppearanceMap) -> MlpInverter:
+    """An MLP model file checked against the map it must have been trained on."""
+    return MlpInverter(read_bounded(path, MAX_MODEL_BYTES, "MLP model"), path, amap.checksum,
+                       (float(np.log(amap.sigma_t[0])), float(np.log(amap.sigma_t[-1]))),
+                       (float(amap.alpha[0]), float(amap.alpha[-1])), (float(amap.g[0]), float(amap.g[-1])))
+
+
+def map_table(amap: AppearanceMap) -> MapTable:
+    """The map's table: maps/<name>.tlut if it exists and was built from this very map; else built in
+    memory from the map. A stale .tlut (built from an earlier version of the map) is never used: it is
+    rebuilt in memory with a warning, since the map is the source of truth and the file only a cache."""
+    path = table_path_for(amap.path) if amap.path else None
+    if path is not None and path.is_file():
+        table = MapTable.load(path)  # a damaged file is a MapFileError, never ignored
+        if not amap.checksum or table.source_checksum == amap.checksum:
+            return table
+        warnings.warn(f"{path} was built from map {table.source_checksum[:12]}…, not from {amap.path.name} "
+                      f"({amap.checksum[:12]}…): using a table rebuilt in memory; refresh the file with "
+                      f"tools/build_table.py", stacklevel=3)
+    return build_from_map(amap)
+
+
+class ArtifactCache:
+    """Loaded MapArtifacts by map identity (its checksum and its in-scattering table's). `tables`
+    overrides a map's table by its name (e.g. the bench's small variant)."""
+
+    def __init__(self, tables: dict[str, MapTable] | None = None):
+        self._loaded: dict = {}
+        self.tables = dict(tables or {})
+
+    def get(self, spec) -> MapArtifacts:
+        """The artifacts of an AppearanceMap, a map path or a shipped map's name."""
+        amap = spec if isinstance(spec, AppearanceMap) else AppearanceMap.load(find_map(spec))
+        inscatter = amap.inscatter
+        key = (amap.checksum or id(amap), inscatter.checksum if inscatter is not None else None)
+        if key not in self._loaded:
+            table = self.tables.get(amap.name) or map_table(amap)
+            self._loaded[key] = MapArtifacts(amap, table)
+        return self._loaded[key]
+
+    def clear(self) -> None:
+        self._loaded.clear()
+
+
+DEFAULT_CACHE = ArtifactCache()
+
+
+def load_artifacts(spec, cache: ArtifactCache | None = None) -> MapArtifacts:
+    return (DEFAULT_CACHE if cache is None else cache).get(spec)
+
+
+def fit(maps, I_b, I_w, I_c, rho_b=None, rho_w=None, method: str = "lut", *, cache: ArtifactCache | None = None,
+        **options):
+    """`trimeter.fit`: trimeter.inversion.api.fit on maps given as AppearanceMaps, map paths or shipped
+    maps' names (one, or a list for several thicknesses), loaded through `cache` (default: this
+    process's). Every other option: trimeter.inversion.api.fit's."""
+    from trimeter.inversion.api import fit as solve
+
+    listed = isinstance(maps, (list, tuple))
+    models = [load_artifacts(m, cache) for m in (maps if listed else [maps])]
+    return solve(models if listed else models[0], I_b, I_w, I_c, rho_b, rho_w, method, **options)

@@ -1,0 +1,81 @@
+"""The map tracer (trimeter.maps.tracer) against Mitsuba's volpath (trimeter.forward.render): shared by
+`trimeter bench tracer-check` and tests/maps.
+
+Many random materials (trimeter.forward.validate.random_materials), both reference backgrounds, each
+side at a high sample count; judged by the distribution of z = (tracer − volpath) / combined
+std-error, which is ~N(0, 1) when both agree and both std-errors are right. p95 |z| catches wrong
+std-errors and scattered disagreement, the mean catches a bias a per-point tolerance hides.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+
+from trimeter.forward.render import render_diffuse
+from trimeter.forward.validate import iad_reflectance
+from trimeter.model.response import background_response
+
+CHECK_RHOS = (0.02, 0.9)          # the shipped recipes' reference backgrounds
+Z_P95_MAX = 2.5                   # N(0, 1): 1.96; volpath's 16-batch std-error: t(15), 2.13
+Z_MEAN_MAX = 0.5
+
+
+def tracer_agreement(geometry: str, materials, n: float, thickness_mm: float, rhos=CHECK_RHOS,
+                     paths: int = 1 << 21, spp: int = 1 << 19, seed: int = 0, backend: str = "llvm",
+                     progress=None) -> list[dict]:
+    """Per material: one tracer column (trimeter.maps.tracer.trace_column, its (σt, g) at `paths`
+    detector paths) evaluated at the material's α and each ρ, against one volpath render per ρ
+    (trimeter.forward.render.render_diffuse, `spp` samples). For the ideal geometry the rows also carry
+    adding-doubling (iad, z_iad) when iadpython is installed. Seeds: material i uses seed + i on both sides."""
+    from trimeter.geometry import load_geometry
+    from trimeter.maps.tracer import Stack, k_max_for, trace_column
+
+    params = load_geometry(geometry)
+    stack = Stack.from_recipe(geometry, params, n, thickness_mm)
+    k_max = k_max_for(0.999, 1e-5)          # the shipped recipes' truncation
+    try:
+        import iadpython  # noqa: F401 - only to know whether the ideal rows can carry adding-doubling
+        with_iad = geometry == "ideal"
+    except ImportError:
+        with_iad = False
+    rows = []
+    for i, (alpha, sigma_t, g) in enumerate(np.asarray(materials, dtype=float)):
+        t0 = time.perf_counter()
+        tally = trace_column(stack, float(sigma_t), float(g), paths, seed + i, k_max, backend=backend)
+        A, B, C = (float(v[0]) for v in tally.abc([alpha]))
+        trace_seconds = time.perf_counter() - t0
+        iad = iad_reflectance(alpha, sigma_t, g, n, thickness_mm, np.asarray(rhos)) if with_iad else None
+        for k, rho in enumerate(rhos):
+            traced = float(background_response(A, B, C, rho))
+            traced_err = float(tally.stderr([alpha], rho)[0])
+            t0 = time.perf_counter()
+            rendered, rendered_err = render_diffuse(geometry, float(alpha), float(sigma_t), float(g), n,
+                                                    thickness_mm, float(rho), spp, seed + i)
+            row = {"geometry": geometry, "thickness_mm": thickness_mm, "alpha": float(alpha),
+                   "sigma_t": float(sigma_t), "g": float(g), "rho": float(rho), "tracer": traced,
+                   "tracer_stderr": traced_err, "volpath": rendered, "volpath_stderr": rendered_err,
+                   "z": (traced - rendered) / math.hypot(traced_err, rendered_err),
+                   "trace_seconds": trace_seconds / len(rhos), "render_seconds": time.perf_counter() - t0}
+            if with_iad:
+                row["iad"] = float(iad[k])
+                # 2e-4: adding-doubling's own quadrature error at 32 points (see IAD_QUAD_POINTS)
+                row["z_iad"] = (traced - row["iad"]) / math.hypot(traced_err, 2e-4)
+            rows.append(row)
+        if progress:
+            progress(i + 1, len(materials))
+    return rows
+
+
+def z_summary(z) -> dict:
+    """The distribution of z-scores and whether it meets the check (p95 |z| ≤ Z_P95_MAX, |mean| ≤ Z_MEAN_MAX)."""
+    z = np.asarray(z, dtype=float)
+    if z.size == 0:
+        raise ValueError("no z-scores to summarise")
+    out = {"count": int(z.size), "mean": float(z.mean()), "std": float(z.std(ddof=1)) if z.size > 1 else 0.0,
+           "mean_stderr": float(z.std(ddof=1) / math.sqrt(z.size)) if z.size > 1 else float("nan"),
+           "p95_abs": float(np.percentile(np.abs(z), 95)), "max_abs": float(np.abs(z).max())}
+    out["ok"] = bool(out["p95_abs"] <= Z_P95_MAX and abs(out["mean"]) <= Z_MEAN_MAX)
+    return out

@@ -1,0 +1,13 @@
+"""The background response: how a slab's diffuse observable depends on the background behind it."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def background_response(A, B, C, rho) -> np.ndarray:
+    """I(ρ) = A + B·ρ / (1 − C·ρ): the diffuse observable against a Lambertian background of
+    reflectance ρ (A: the slab's own reflectance, B: T_down·T_up, C: the slab's diffuse reflectance
+    seen from below; exact for the ideal geometry, verified against renders for the device)."""
+    rho = np.asarray(rho, dtype=float)
+    return A + B * rho / (1.0 - C * rho)
