@@ -6,7 +6,7 @@ import json
 import numpy as np
 import pytest
 
-from trimeter.inversion.api import FitResult
+from trimeter.domain.parameters import FitResult
 from trimeter.results import Parameters, write_measurement
 from trimeter.results.medium import medium_dict
 
