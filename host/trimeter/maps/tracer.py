@@ -808,10 +808,10 @@ NEE_REPLICAS = 8
 
 def _nee_points(seed: int, n_paths: int) -> list[np.ndarray]:
     """NEE_REPLICAS sets of 4-D points (detector x, y; light u, v) in [0, 1): scrambled Sobol, each
-    set a power of two of about n_paths / 16 points (≥ 4096), seeded from `seed`. float32 values, < 1."""
+    set a power of two of about n_paths / 64 points (≥ 4096), seeded from `seed`. float32 values, < 1."""
     from scipy.stats import qmc
 
-    size = max(12, min(22, round(math.log2(max(n_paths, 1) / 16))))
+    size = max(12, min(20, round(math.log2(max(n_paths, 1) / 64))))
     below_one = np.float32(1 - 2**-24)
     return [np.minimum(qmc.Sobol(4, scramble=True, seed=np.random.default_rng([seed, 0xC1EA2, r]))
                        .random_base2(size).astype(np.float32), below_one) for r in range(NEE_REPLICAS)]
