@@ -182,13 +182,16 @@ static int bspline_basis(const float *x, int n, tr_real xq, tr_real N[4], tr_rea
     int j = last_at_or_below(x, n, xq);
     if (R(x[n - 1]) <= xq) j = n - 1;
     int i = j + 2 < 3 ? 3 : (j + 2 > n - 1 ? n - 1 : j + 2);
+    tr_real kt[8]; /* knots i − 3 … i + 4: the only ones the recurrence and its derivative read */
+    for (int m = 0; m < 8; m++) kt[m] = knot(x, n, i - 3 + m);
+#define T(k) kt[(k) - (i - 3)]
     tr_real cur[4] = {R(1.0)}, lower[5] = {R(0.0)};
     for (int d = 1; d <= 3; d++) {
         if (d == 3)
             for (int r = 0; r < 3; r++) lower[r + 1] = cur[r];
         tr_real saved = R(0.0), next[4];
         for (int r = 0; r < d; r++) {
-            tr_real right = knot(x, n, i + r + 1) - xq, left = xq - knot(x, n, i + r + 1 - d);
+            tr_real right = T(i + r + 1) - xq, left = xq - T(i + r + 1 - d);
             tr_real temp = cur[r] / (right + left);
             next[r] = saved + right * temp;
             saved = left * temp;
@@ -199,47 +202,51 @@ static int bspline_basis(const float *x, int n, tr_real xq, tr_real N[4], tr_rea
     lower[4] = R(0.0);
     for (int r = 0; r < 4; r++) {
         int m = i - 3 + r;
-        tr_real d0 = knot(x, n, m + 3) - knot(x, n, m), d1 = knot(x, n, m + 4) - knot(x, n, m + 1);
+        tr_real d0 = T(m + 3) - T(m), d1 = T(m + 4) - T(m + 1);
         tr_real a = lower[r] / (d0 > R(0.0) ? d0 : R(1.0)), b = lower[r + 1] / (d1 > R(0.0) ? d1 : R(1.0));
         N[r] = cur[r];
         dN[r] = R(3.0) * (a - b);
     }
+#undef T
     return i - 3;
 }
 
 static int sgn(tr_real x) { return (x > R(0.0)) - (x < R(0.0)); }
 
-/* compact._pchip_slopes on a window of w ≤ 4 g nodes for one component: slopes d of values y at the
- * nodes (spacings h) and their tangents dd (of the tangents dy, in α and ln σt) */
-static void pchip_slopes(int w, const tr_real *h, const tr_real *y, const tr_real dy[2][4], tr_real *d,
-                         tr_real dd[2][4]) {
+/* compact._pchip_slopes on a window of w ≤ 4 g nodes for one component, at the two nodes `at` and
+ * `at` + 1 only (the Hermite cubic's ends): slopes d of values y (node spacings 1/inv_h) and their
+ * tangents dd (of the tangents dy, in α and ln σt). Divisions by reciprocals taken once: they are
+ * most of an evaluation's cost otherwise. */
+static void pchip_slopes(int w, int at, const tr_real *h, const tr_real *inv_h, const tr_real *y,
+                         const tr_real dy[2][4], tr_real d[2], tr_real dd[2][2]) {
     tr_real m[3], dm[2][3];
     for (int i = 0; i < w - 1; i++) {
-        m[i] = (y[i + 1] - y[i]) / h[i];
-        for (int k = 0; k < 2; k++) dm[k][i] = (dy[k][i + 1] - dy[k][i]) / h[i];
+        m[i] = (y[i + 1] - y[i]) * inv_h[i];
+        for (int k = 0; k < 2; k++) dm[k][i] = (dy[k][i + 1] - dy[k][i]) * inv_h[i];
     }
-    for (int i = 1; i < w - 1; i++) {
-        tr_real h0 = h[i - 1], h1 = h[i], w1 = R(2.0) * h1 + h0, w2 = h1 + R(2.0) * h0, m0 = m[i - 1], m1 = m[i];
-        int same = sgn(m0) == sgn(m1) && m0 != R(0.0) && m1 != R(0.0);
-        d[i] = R(0.0);
-        dd[0][i] = dd[1][i] = R(0.0);
-        if (same) {
-            tr_real den = w1 / m0 + w2 / m1;
-            d[i] = (w1 + w2) / den;
-            for (int k = 0; k < 2; k++)
-                dd[k][i] = (w1 + w2) * (w1 * dm[k][i - 1] / (m0 * m0) + w2 * dm[k][i] / (m1 * m1)) / (den * den);
+    for (int out = 0; out < 2; out++) {
+        int i = at + out;
+        if (i > 0 && i < w - 1) {
+            tr_real h0 = h[i - 1], h1 = h[i], w1 = R(2.0) * h1 + h0, w2 = h1 + R(2.0) * h0, m0 = m[i - 1], m1 = m[i];
+            d[out] = dd[0][out] = dd[1][out] = R(0.0);
+            if (sgn(m0) == sgn(m1) && m0 != R(0.0) && m1 != R(0.0)) {
+                tr_real im0 = R(1.0) / m0, im1 = R(1.0) / m1, iden = R(1.0) / (w1 * im0 + w2 * im1);
+                d[out] = (w1 + w2) * iden;
+                for (int k = 0; k < 2; k++)
+                    dd[k][out] = (w1 + w2) * (w1 * dm[k][i - 1] * im0 * im0 + w2 * dm[k][i] * im1 * im1) * iden * iden;
+            }
+            continue;
         }
-    }
-    for (int end = 0; end < 2; end++) { /* one-sided three-point slopes, shape-preserving */
-        int a = end ? w - 2 : 0, b = end ? w - 3 : 1, node = end ? w - 1 : 0;
-        tr_real e0 = h[a], e1 = h[b], ma = m[a], mb = m[b];
-        tr_real de = ((R(2.0) * e0 + e1) * ma - e0 * mb) / (e0 + e1);
+        /* one-sided three-point slope at an end of the axis, shape-preserving */
+        int a = i ? w - 2 : 0, b = i ? w - 3 : 1;
+        tr_real e0 = h[a], e1 = h[b], ma = m[a], mb = m[b], inv_e = R(1.0) / (e0 + e1);
+        tr_real de = ((R(2.0) * e0 + e1) * ma - e0 * mb) * inv_e;
         int zero = sgn(de) != sgn(ma);
         int cap = !zero && sgn(ma) != sgn(mb) && R_FABS(de) > R(3.0) * R_FABS(ma);
-        d[node] = zero ? R(0.0) : (cap ? R(3.0) * ma : de);
+        d[out] = zero ? R(0.0) : (cap ? R(3.0) * ma : de);
         for (int k = 0; k < 2; k++) {
-            tr_real dde = ((R(2.0) * e0 + e1) * dm[k][a] - e0 * dm[k][b]) / (e0 + e1);
-            dd[k][node] = zero ? R(0.0) : (cap ? R(3.0) * dm[k][a] : dde);
+            tr_real dde = ((R(2.0) * e0 + e1) * dm[k][a] - e0 * dm[k][b]) * inv_e;
+            dd[k][out] = zero ? R(0.0) : (cap ? R(3.0) * dm[k][a] : dde);
         }
     }
 }
@@ -252,31 +259,37 @@ void tr_compact_eval(const tr_table *t, tr_real alpha, tr_real log_sigma_t, tr_r
     tr_real gq = tr_clamp(g, R(t->g[0]), R(t->g[ng - 1]));
     int k = last_at_or_below(t->g, ng, gq);
     int first = k - 1 < 0 ? 0 : (k - 1 > ng - width ? ng - width : k - 1);
-    /* per window node: value and tangents in α and ln σt of A, B, C from 4 × 4 decoded coefficients */
+    /* per window node: value and tangents in α and ln σt of A, B, C from 4 × 4 coefficients, summed
+     * over ln σt first. The codes are summed as they are and decoded once (value = offset + step·code):
+     * the basis sums to one and its derivatives to zero, so the offset enters the value alone. */
     tr_real y[3][4], dy[3][2][4], h[3];
-    tr_real off[3], step[3];
-    for (int c = 0; c < 3; c++) {
-        off[c] = R(t->scales[2 * c]);
-        step[c] = R(t->scales[2 * c + 1]);
-    }
+    const size_t row = (size_t)t->ns * 3u;
     for (int w = 0; w < width; w++) {
         tr_real v[3] = {R(0.0)}, va[3] = {R(0.0)}, vs[3] = {R(0.0)};
-        for (int r = 0; r < 4; r++)
-            for (int s = 0; s < 4; s++) {
-                const uint16_t *q = t->spline + (((size_t)(first + w) * (size_t)t->na + (size_t)(ia + r)) *
-                                                 (size_t)t->ns + (size_t)(js + s)) * 3u;
-                tr_real wv = Na[r] * Ns[s], wa = dNa[r] * Ns[s], ws = Na[r] * dNs[s];
-                for (int c = 0; c < 3; c++) {
-                    tr_real coef = off[c] + step[c] * R(q[c]);
-                    v[c] += coef * wv;
-                    va[c] += coef * wa;
-                    vs[c] += coef * ws;
+        const uint16_t *q0 = t->spline + (((size_t)(first + w) * (size_t)t->na + (size_t)ia) * (size_t)t->ns +
+                                          (size_t)js) * 3u;
+#pragma GCC unroll 4
+        for (int r = 0; r < 4; r++) {
+            const uint16_t *q = q0 + (size_t)r * row;
+#pragma GCC unroll 3
+            for (int c = 0; c < 3; c++) {
+                tr_real along = R(0.0), along_d = R(0.0);
+#pragma GCC unroll 4
+                for (int s = 0; s < 4; s++) {
+                    tr_real code = R(q[3 * s + c]);
+                    along += code * Ns[s];
+                    along_d += code * dNs[s];
                 }
+                v[c] += Na[r] * along;
+                va[c] += dNa[r] * along;
+                vs[c] += Na[r] * along_d;
             }
+        }
         for (int c = 0; c < 3; c++) {
-            y[c][w] = v[c];
-            dy[c][0][w] = va[c];
-            dy[c][1][w] = vs[c];
+            const tr_real off = R(t->scales[2 * c]), step = R(t->scales[2 * c + 1]);
+            y[c][w] = off + step * v[c];
+            dy[c][0][w] = step * va[c];
+            dy[c][1][w] = step * vs[c];
         }
         if (w + 1 < width) h[w] = R(t->g[first + w + 1]) - R(t->g[first + w]);
     }
@@ -287,14 +300,16 @@ void tr_compact_eval(const tr_table *t, tr_real alpha, tr_real log_sigma_t, tr_r
     tr_real e00 = (R(6.0) * s2 - R(6.0) * s) / hk, e10 = R(3.0) * s2 - R(4.0) * s + R(1.0),
             e01 = (R(-6.0) * s2 + R(6.0) * s) / hk, e11 = R(3.0) * s2 - R(2.0) * s;
     int at = k - first;
+    tr_real inv_h[3];
+    for (int i = 0; i < width - 1; i++) inv_h[i] = R(1.0) / h[i];
     for (int c = 0; c < 3; c++) {
-        tr_real d[4], dd[2][4];
-        pchip_slopes(width, h, y[c], dy[c], d, dd);
-        tr_real y0 = y[c][at], y1 = y[c][at + 1], d0 = d[at], d1 = d[at + 1];
-        out->v[c] = h00 * y0 + h10 * hk * d0 + h01 * y1 + h11 * hk * d1;
-        out->da[c] = h00 * dy[c][0][at] + h10 * hk * dd[0][at] + h01 * dy[c][0][at + 1] + h11 * hk * dd[0][at + 1];
-        out->ds[c] = h00 * dy[c][1][at] + h10 * hk * dd[1][at] + h01 * dy[c][1][at + 1] + h11 * hk * dd[1][at + 1];
-        out->dg[c] = e00 * y0 + e10 * d0 + e01 * y1 + e11 * d1;
+        tr_real d[2], dd[2][2];
+        pchip_slopes(width, at, h, inv_h, y[c], dy[c], d, dd);
+        tr_real y0 = y[c][at], y1 = y[c][at + 1];
+        out->v[c] = h00 * y0 + h10 * hk * d[0] + h01 * y1 + h11 * hk * d[1];
+        out->da[c] = h00 * dy[c][0][at] + h10 * hk * dd[0][0] + h01 * dy[c][0][at + 1] + h11 * hk * dd[0][1];
+        out->ds[c] = h00 * dy[c][1][at] + h10 * hk * dd[1][0] + h01 * dy[c][1][at + 1] + h11 * hk * dd[1][1];
+        out->dg[c] = e00 * y0 + e10 * d[0] + e01 * y1 + e11 * d[1];
     }
     /* C is a reflectance, and 1 − Cρ must stay positive (compact.C_CLIP) */
     if (out->v[2] < R(0.0) || out->v[2] > R(0.999)) {
@@ -365,15 +380,22 @@ static int regular_cell(tr_real p, int n, tr_real *w) {
     return (int)f;
 }
 
-/* InscatterTable.log1p_ratio at one material: trilinear in (u, τ, v), clamped to the grid */
-static tr_real inscatter_table(const tr_table *t, tr_real alpha, tr_real sigma_t, tr_real g) {
-    const int nu = t->nu, nt = t->nt, nv = t->nv;
-    tr_real wu, wt, wv;
-    int iu = regular_cell(-R_LOG1P(-tr_clamp(alpha, R(0.0), R(0.999))) * (R(nu - 1) / t->u_max), nu, &wu);
-    int it = regular_cell(tr_clamp(sigma_t * t->thickness_mm, R(0.0), t->tau_max) * (R(nt - 1) / t->tau_max), nt, &wt);
-    int iv = regular_cell(-R_LOG1P(-tr_clamp(g, R(0.0), R(0.9))) * (R(nv - 1) / t->v_max), nv, &wv);
+/* InscatterTable.log1p_ratio's cells: u = −ln(1 − α) (α ≤ 0.999), τ = σt·ℓ, v = −ln(1 − g) (0 ≤ g ≤ 0.9) */
+static int u_cell(const tr_table *t, tr_real alpha, tr_real *w) {
+    return regular_cell(-R_LOG1P(-tr_clamp(alpha, R(0.0), R(0.999))) * (R(t->nu - 1) / t->u_max), t->nu, w);
+}
+static int tau_cell(const tr_table *t, tr_real sigma_t, tr_real *w) {
+    return regular_cell(tr_clamp(sigma_t * t->thickness_mm, R(0.0), t->tau_max) * (R(t->nt - 1) / t->tau_max), t->nt, w);
+}
+static int v_cell(const tr_table *t, tr_real g, tr_real *w) {
+    return regular_cell(-R_LOG1P(-tr_clamp(g, R(0.0), R(0.9))) * (R(t->nv - 1) / t->v_max), t->nv, w);
+}
+
+/* InscatterTable.log1p_ratio at one material from its cells: trilinear in (u, τ, v), along v first */
+static tr_real inscatter_table(const tr_table *t, int iu, tr_real wu, int it, tr_real wt, int iv, tr_real wv) {
+    const size_t nt = (size_t)t->nt, nv = (size_t)t->nv;
     const tr_real off = R(t->scales[2 * TR_SCALE_L]), step = R(t->scales[2 * TR_SCALE_L + 1]);
-#define L_AT(i, j, k) (off + step * R(t->inscatter[((size_t)(i) * (size_t)nt + (size_t)(j)) * (size_t)nv + (size_t)(k)]))
+#define L_AT(i, j, k) (off + step * R(t->inscatter[((size_t)(i) * nt + (size_t)(j)) * nv + (size_t)(k)]))
 #define ALONG_V(i, j) lerp(L_AT(i, j, iv), L_AT(i, j, iv + 1), wv)
     tr_real value = lerp(lerp(ALONG_V(iu, it), ALONG_V(iu, it + 1), wt), lerp(ALONG_V(iu + 1, it), ALONG_V(iu + 1, it + 1), wt),
                          wu);
@@ -402,14 +424,19 @@ tr_real tr_inscatter_log1p(const tr_table *t, tr_real alpha, tr_real sigma_t, tr
     tau = isfinite(tau) ? tau : R(0.0);
     int it = regular_cell(tr_clamp(tau, R(0.0), t->tau_max) * (R(nt - 1) / t->tau_max), nt, &wt);
     tr_real dt = t->tau_max / R(nt - 1); /* numpy.linspace's step */
+    int iu[2], iv[2], jt[2];
+    tr_real wu[2], wv[2], wjt[2];
+    for (int k = 0; k < 2; k++) {
+        iu[k] = u_cell(t, an[k], &wu[k]);
+        iv[k] = v_cell(t, gn[k], &wv[k]);
+        int j = it + k;
+        jt[k] = tau_cell(t, (j == nt - 1 ? t->tau_max : R(j) * dt) / t->thickness_mm, &wjt[k]);
+    }
     tr_real along_t[2][2];
     for (int da = 0; da < 2; da++)
-        for (int dt_ = 0; dt_ < 2; dt_++) {
-            int j = it + dt_;
-            tr_real tau_j = j == nt - 1 ? t->tau_max : R(j) * dt;
-            tr_real s = tau_j / t->thickness_mm;
-            along_t[da][dt_] = lerp(inscatter_table(t, an[da], s, gn[0]), inscatter_table(t, an[da], s, gn[1]), wg);
-        }
+        for (int k = 0; k < 2; k++)
+            along_t[da][k] = lerp(inscatter_table(t, iu[da], wu[da], jt[k], wjt[k], iv[0], wv[0]),
+                                  inscatter_table(t, iu[da], wu[da], jt[k], wjt[k], iv[1], wv[1]), wg);
     return lerp(lerp(along_t[0][0], along_t[0][1], wt), lerp(along_t[1][0], along_t[1][1], wt), wa);
 }
 

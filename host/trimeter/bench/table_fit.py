@@ -1,0 +1,86 @@
+"""`trimeter bench table-fit`: the fit from a device table (.tlut v2) alone, in C (native.TableFitter:
+the source the firmware links as tr_fit_bins, here in double precision), on its map's held-out set
+(maps/heldout, as `bench fit` scores them): α p95, σt relative p95 and g p95 (α ≥ 0.5) against the
+targets, and the time per 1024 bins beside the map's own lut fit (its refined grid, in C) in the same
+run, timed round-robin, best of --repeats. Run it on one core for the per-core figure:
+`taskset -c 1 trimeter bench table-fit --table FILE`.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+
+from trimeter.errors import InputError
+
+# the issue's targets for a fit from the table alone (noise-free rendered held-out references)
+TARGETS = {"alpha_p95": 0.01, "sigma_rel_p95": 0.01, "g_p95": 0.015}
+
+
+def register(bench_subparsers) -> None:
+    p = bench_subparsers.add_parser("table-fit", help="the C fit from a device table alone: accuracy and speed",
+                                    description=__doc__.split("\n\n")[0])
+    p.add_argument("--table", type=Path, required=True, help="a .tlut v2 file (tools/device_table.py build)")
+    p.add_argument("--map", help="its map (default: the map the table names)")
+    p.add_argument("--repeats", type=int, default=7, help="timed runs per variant (best kept; default 7)")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    import trimeter
+    from trimeter.bench.fit import _stats, error_budget, heldout_collimated, heldout_for, heldout_intensities
+    from trimeter.inversion import native
+    from trimeter.maps.appearance import AppearanceMap, find_map
+    from trimeter.maps.container import read_bounded
+    from trimeter.maps.device_table import MAX_BYTES, DeviceTable
+
+    if args.repeats < 1:
+        raise InputError(f"--repeats must be at least 1, not {args.repeats}")
+    data = read_bounded(args.table, MAX_BYTES, "map table")
+    table = DeviceTable.from_bytes(data, source=str(args.table))
+    amap = AppearanceMap.load(find_map(args.map or table.name))
+    if table.parent_sha256 != amap.checksum:
+        raise InputError(f"{args.table} was built from another map than {amap.name} as it is now (parent SHA-256 "
+                         f"{table.parent_sha256[:12]}…, the map's {str(amap.checksum)[:12]}…): rebuild it")
+    _, _, h = heldout_for(amap)
+    rb, rw = amap.reference_rhos
+    I_b, I_w = heldout_intensities(h, rb, rw)
+    I_c = heldout_collimated(amap, h)
+    truth = (h["alpha"], h["sigma_t"], h["g"])
+    budget = error_budget(amap, h, rb, rw)
+    fitter = native.TableFitter(data)
+
+    def table_fit(ib, iw, ic):
+        alpha, sigma_t, g, flags = fitter.fit(ib, iw, ic)
+        return SimpleNamespace(alpha=alpha, sigma_t=sigma_t, g=g, flags=flags, alpha_std=np.full_like(alpha, np.nan))
+
+    def map_fit(ib, iw, ic):
+        return trimeter.fit(amap, ib, iw, ic, method="lut")
+
+    variants = {f"table alone, C ({table.size_bytes} B)": table_fit, "map lut, refined grid, C (baseline)": map_fit}
+    tile = np.resize(np.arange(len(I_b)), 1024)
+    tiled = (I_b[tile], I_w[tile], I_c[tile])
+    best = dict.fromkeys(variants, np.inf)
+    for fn in variants.values():
+        fn(*tiled)  # warm: first calls load and prepare
+    for _ in range(args.repeats):  # round-robin: a slow moment of the machine hits both alike
+        for name, fn in variants.items():
+            t0 = time.perf_counter()
+            fn(*tiled)
+            best[name] = min(best[name], time.perf_counter() - t0)
+    print(f"{amap.name}: {len(I_b)} held-out materials, noise-free rendered references; kernel: {native.status()}; "
+          f"cores {sorted(os.sched_getaffinity(0))}")
+    header = "".join(f"{k:>15s}" for k in TARGETS) + f"{'targets':>9s}{'ms/1024':>10s}{'× base':>8s}"
+    print(f"{'variant':40s}{header}")
+    base = best["map lut, refined grid, C (baseline)"]
+    for name, fn in variants.items():
+        st = _stats(fn(I_b, I_w, I_c), truth, budget)
+        met = all(st[k] <= v for k, v in TARGETS.items())
+        print(f"{name:40s}" + "".join(f"{st[k]:15.4g}" for k in TARGETS) + f"{'met' if met else 'MISSED':>9s}"
+              f"{best[name] * 1e3:10.3f}{best[name] / base:8.2f}")
+    print("targets: " + ", ".join(f"{k} ≤ {v}" for k, v in TARGETS.items()))
+    return 0
