@@ -14,7 +14,7 @@ endif
 # 2-core machine idle OpenBLAS threads spin-wait under load, which stalled scipy's Delaunay for minutes.
 export OPENBLAS_NUM_THREADS ?= 1
 
-.PHONY: help setup native native-portable gen check-gen hardware lint firmware firmware-test fuzz pytest test demo bench clean
+.PHONY: help setup native native-portable gen check-gen hardware lint typecheck firmware firmware-test fuzz pytest test demo bench clean
 
 help:
 	@echo "make demo   - set up, start the twin with a virtual sample, run a press-button measurement, plot it"
@@ -69,9 +69,13 @@ check-gen: setup
 hardware: setup
 	$(PY) -m tools.gen_hardware --parts
 
-# pycodestyle + pyflakes rules (configured in pyproject.toml): unused names, undefined names, long lines
+# ruff's pycodestyle, pyflakes, bugbear and simplify rules (configured in pyproject.toml)
 lint: setup
 	$(VENV)/bin/ruff check host tools tests
+
+# mypy over host/trimeter ([tool.mypy] in pyproject.toml); incremental through .mypy_cache
+typecheck: setup
+	$(VENV)/bin/mypy
 
 firmware: setup
 	$(MAKE) -C firmware all
