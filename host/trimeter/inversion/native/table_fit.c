@@ -50,14 +50,18 @@ typedef struct { tr_real step_a, step_g, h11, h22, det; } lm_step_t;
 
 static lm_step_t lm_step(tr_real j11, tr_real j12, tr_real j21, tr_real j22, tr_real rb, tr_real rw) {
     lm_step_t st;
-    tr_real h11 = j11 * j11 + j21 * j21, h22 = j12 * j12 + j22 * j22, h12 = j11 * j12 + j21 * j22;
+    tr_real h11 = j11 * j11 + j21 * j21, h22 = j12 * j12 + j22 * j22;
     tr_real mu = R(1e-9) + R(1e-6) * (h11 + h22); /* stays finite where ∂I/∂g → 0 (α → 0) */
     h11 += mu;
     h22 += mu;
     tr_real b1 = j11 * rb + j21 * rw, b2 = j12 * rb + j22 * rw;
-    tr_real det = h11 * h22 - h12 * h12;
-    st.step_a = tr_clamp(-(h22 * b1 - h12 * b2) / det, R(-0.25), R(0.25));
-    st.step_g = tr_clamp(-(h11 * b2 - h12 * b1) / det, R(-0.5), R(0.5));
+    /* h11·h22 − h12² and h22·b1 − h12·b2 written out in D = det J: the same numbers, without
+     * subtracting squares that agree to all but a few digits where α and g are hard to tell apart
+     * (single precision has none to spare there) */
+    tr_real D = j11 * j22 - j12 * j21;
+    tr_real det = D * D + mu * (h11 + h22 - mu);
+    st.step_a = tr_clamp(-(D * (j22 * rb - j12 * rw) + mu * b1) / det, R(-0.25), R(0.25));
+    st.step_g = tr_clamp(-(D * (j11 * rw - j21 * rb) + mu * b2) / det, R(-0.5), R(0.5));
     st.h11 = h11;
     st.h22 = h22;
     st.det = det;
