@@ -6,8 +6,8 @@ method → flags for g undefined / outside the map / not converged → per-bin s
 first-order propagation through the forward map's Jacobian of every known error: the intensities'
 noise (given per bin, else the noise model), the map's own error at the solution (its MC std-error
 and interpolation error, trimeter.model.grid.node_model_variance), the in-scattering correction's and
-the thickness's uncertainty. Several thicknesses are then combined by inverse-variance weighting (the paper's method pools its samples
-and takes the median, as written) and checked against each other.
+the thickness's uncertainty. Several thicknesses are then combined by inverse-variance weighting (the
+paper's method pools its samples and takes the median, as written) and checked against each other.
 
 The fit takes what it solves as model objects (FitModel: a map's forward grid, table inverter, MLP
 session, its nodes for the paper method), loaded by trimeter.maps.artifacts (`trimeter.fit` takes map
@@ -66,7 +66,7 @@ class FitModel(Protocol):
     """What a fit needs of one map (thickness): trimeter.maps.artifacts.MapArtifacts is one."""
     name: str
     reference_rhos: tuple[float, float]
-    setup: SampleSetup          # the map's sample set-up (the polish grid's is the table's: grid.setup)
+    setup: SampleSetup          # the sample set-up every step of the fit uses (the polish grid's: grid.setup)
     inverter: TableInverter     # the map table's guess and the polish's forward grid (inverter.grid)
     map: Any                    # the appearance map's nodes, A, B, C and collimated_measured (paper)
     paper_cache: Any            # the paper method's triangulations of this map
@@ -305,9 +305,8 @@ def _prepare(amap, grid, I_b, I_w, I_c, rho_b, rho_w, ic_floor) -> _Prepared:
     below = ic < ic_floor
     flags |= np.where(below & usable, int(FitFlag.IC_BELOW_FLOOR), 0)
     t_max = grid.transmittance_limits[0]
-    # σt from I_c; under the floor, the floor's σt (a lower bound); above T(σt = 0), σt = 0
-    # The grid's sample set-up (the table's, stored as float32), not the map's: with the map's, T(σt = 0)
-    # of the two differed in the last digits and I_c at T(σt = 0) came out as σt = NaN.
+    # σt from I_c; under the floor, the floor's σt (a lower bound); above T(σt = 0), σt = 0. One set-up
+    # throughout (the grid's, FitModel.setup): T(σt = 0) and its inverse must agree to the last digit.
     sigma_t = grid.setup.beer_lambert_sigma_t(np.minimum(np.maximum(ic, ic_floor), t_max))
     in_range = np.isfinite(I_c) & (I_c >= ic_floor) & (I_c <= t_max)
     sigma_beer = sigma_t if in_range.all() else np.where(in_range, sigma_t, grid.setup.beer_lambert_sigma_t(I_c))

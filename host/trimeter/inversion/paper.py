@@ -141,7 +141,7 @@ def fit_paper(models, arrays, stds, thickness_rel, *, kernel, samples, epsilon, 
         coef_in = np.isfinite(alpha)
         I_model = grid.intensities(np.nan_to_num(alpha), np.nan_to_num(sigma_t, nan=1.0), np.nan_to_num(g), rb, rw)
         residual = np.where(coef_in, np.hypot(I_model[0] - ib, I_model[1] - iw), np.inf)
-        sigma_beer = amap.setup.beer_lambert_sigma_t(I_c)
+        sigma_beer = model.setup.beer_lambert_sigma_t(I_c)
         floor_sd = np.column_stack([noise_rel * ib + noise_abs, noise_rel * iw + noise_abs, noise_rel * ic + noise_abs])
         sd = stds[i] if stds[i] is not None else floor_sd
         # the ε-median has no separate in-scattering correction to propagate: its map's I_c holds it.

@@ -20,6 +20,7 @@ from trimeter.maps.container import read_bounded
 from trimeter.maps.table import MapTable, build_from_map, table_path_for
 from trimeter.model.grid import ForwardGrid, node_model_variance
 from trimeter.model.response import background_response
+from trimeter.model.setup import SampleSetup
 
 MODEL_SUFFIX = ".onnx"
 MAX_MODEL_BYTES = 64 * 2**20  # the shipped models are ~6 KB; onnxruntime would parse anything given
@@ -49,10 +50,15 @@ class MapArtifacts:
         self.map = amap
         self.name = amap.name
         self.reference_rhos = amap.reference_rhos
-        self.setup = amap.setup
         self.inverter = TableInverter(table, inscatter=amap.inscatter, model_variance=map_model_variance(amap))
         self.paper_cache: OrderedDict = OrderedDict()
         self._mlps: dict = {}
+
+    @property
+    def setup(self) -> SampleSetup:
+        """The sample set-up the fit works with: the table's (its f32 fields, as the device has them),
+        which its forward grid carries; the map's own is amap.setup."""
+        return self.inverter.grid.setup
 
     @property
     def grid(self) -> ForwardGrid:
