@@ -1,24 +1,30 @@
 /* The map table's header, checked before a slot may become (or stay) the active map.
  *
- * The layout is host/trimeter/inversion/table.py's (format version 1, all little-endian): magic
- * "\x89TRLUT\r\n", u16 version, u16 header size 128, u32 total size (trailing CRC-32 included),
- * the source map's SHA-256, six f32 (n, thickness_mm, cover_slide_n, rho_b_ref, rho_w_ref,
- * mc_stderr), u16 grid counts n_alpha, n_sigma, n_g, n_x, n_y, then the payload and a CRC-32 of
- * every byte before it.
+ * Two formats, both little-endian, both starting with the magic "\x89TRLUT\r\n", u16 version, u16
+ * header size, u32 total size (trailing CRC-32 included), and ending with a CRC-32 of every byte before it:
+ *   1  host/trimeter/maps/table.py: header 128 bytes, the source map's SHA-256, six f32 (n, thickness_mm,
+ *      cover_slide_n, rho_b_ref, rho_w_ref, mc_stderr), u16 grid counts n_alpha, n_sigma, n_g, n_x, n_y,
+ *      then the payload.
+ *   2  the self-sufficient device table, host/trimeter/maps/device_table.py: header 256 bytes, two
+ *      SHA-256s, six f32 as above at offset 80, u16 counts n_alpha, n_sigma, n_g, n_inverse, n_u, n_tau,
+ *      n_v at 116, a directory of (offset, length) per section at 156, then the sections, each padded to
+ *      8 bytes. The inverse core fits with this one (fit_core.h).
  *
  * What the firmware accepts ("geometry" = the table's grid and the sample set-up it was built for):
- * the magic, version 1, header size 128, the total size equal to the uploaded length, every grid
- * count >= 2 with the sizes adding up to exactly that length, n >= 1 and 0 < thickness <= 100 mm
- * (finite), 0 <= rho_b_ref < rho_w_ref <= 1, and the table's own trailing CRC-32. The payload is the
- * host's to interpret; a table passing all this is what the host wrote, not bytes that happen to
- * carry the expected CRC. */
+ * the magic, a known version with its header size, the total size equal to the uploaded length, every
+ * grid count at least its format's minimum with the sizes adding up to exactly that length, n >= 1 and
+ * 0 < thickness <= 100 mm (finite), 0 <= rho_b_ref < rho_w_ref <= 1, and the table's own trailing CRC-32.
+ * The payload is the host's (and the inverse core's) to interpret; a table passing all this is what the
+ * host wrote, not bytes that happen to carry the expected CRC. */
 #ifndef TRIMETER_MAP_TABLE_H
 #define TRIMETER_MAP_TABLE_H
 
 #include <stdint.h>
 
-#define MAP_TABLE_HEADER_BYTES 128u
-#define MAP_TABLE_FORMAT_VERSION 1u
+/* The bytes map_table_check reads: the longer of the two headers */
+#define MAP_TABLE_HEADER_BYTES 256u
+#define MAP_TABLE_V1_HEADER_BYTES 128u
+#define MAP_TABLE_V2_HEADER_BYTES 256u
 #define MAP_TABLE_MAX_THICKNESS_MM 100.0f
 
 enum map_table_verdict {
@@ -38,10 +44,15 @@ enum map_table_verdict {
 enum map_table_verdict map_table_check(const uint8_t *header, uint32_t length, uint32_t body_crc32,
                                        uint32_t stored_crc32);
 
-/* The sample thickness ℓ in mm the table was built for (header of a table map_table_check accepted). */
+/* The sample thickness ℓ in mm the table was built for (header of a table map_table_check accepted, either format). */
 float map_table_thickness_mm(const uint8_t *header);
 
-/* The total size of a table with these grid counts (0 if it would not fit in 32 bits). */
+/* The total size of a format-1 table with these grid counts (0 if it would not fit in 32 bits). */
 uint32_t map_table_size(uint32_t n_alpha, uint32_t n_sigma, uint32_t n_g, uint32_t n_x, uint32_t n_y);
+
+/* The total size of a format-2 table with these counts and a geometry section of geometry_bytes (0 if it
+ * would not fit in 32 bits). */
+uint32_t map_table_v2_size(uint32_t n_alpha, uint32_t n_sigma, uint32_t n_g, uint32_t n_inverse, uint32_t n_u,
+                           uint32_t n_tau, uint32_t n_v, uint32_t geometry_bytes);
 
 #endif

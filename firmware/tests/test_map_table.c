@@ -58,6 +58,25 @@ static void test_each_header_defect_is_refused(void)
     CHECK_EQ_INT(check(table, length), MAP_TABLE_BAD_CRC);
 }
 
+static void test_the_device_table_format_2_is_accepted_and_its_defects_refused(void)
+{
+    length = fixture_table_v2(table, sizeof table, 3);
+    CHECK(length > 0);
+    CHECK_EQ_INT(check(table, length), MAP_TABLE_OK);
+    CHECK(map_table_thickness_mm(table) == 0.4f);
+    CHECK_EQ_INT(map_table_v2_size(65535, 65535, 65535, 65535, 65535, 65535, 65535, 0), 0);
+    uint16_t h128 = 128, three = 3, one = 1;
+    uint32_t geometry_longer = 9;
+    float nan = 0.0f / 0.0f, one_f = 1.0f;
+    CHECK_EQ_INT(edited(10, &h128, 2), MAP_TABLE_BAD_VERSION);   /* format 2 with format 1's header size */
+    CHECK_EQ_INT(edited(116, &three, 2), MAP_TABLE_BAD_GRID);    /* n_alpha 3: a cubic spline needs 4 */
+    CHECK_EQ_INT(edited(124, &one, 2), MAP_TABLE_BAD_GRID);      /* n_u 1 */
+    CHECK_EQ_INT(edited(240, &geometry_longer, 4), MAP_TABLE_BAD_GRID); /* sections no longer add up */
+    CHECK_EQ_INT(edited(84, &nan, 4), MAP_TABLE_BAD_SETUP);      /* thickness */
+    CHECK_EQ_INT(edited(92, &one_f, 4), MAP_TABLE_BAD_SETUP);    /* rho_b >= rho_w */
+    CHECK_EQ_INT(check(table, length - 8), MAP_TABLE_BAD_SIZE);
+}
+
 static void test_junk_with_a_right_length_is_not_a_table(void)
 {
     uint8_t junk[64];
@@ -73,6 +92,7 @@ int main(void)
 {
     RUN_TEST(test_the_hosts_layout_is_accepted);
     RUN_TEST(test_each_header_defect_is_refused);
+    RUN_TEST(test_the_device_table_format_2_is_accepted_and_its_defects_refused);
     RUN_TEST(test_junk_with_a_right_length_is_not_a_table);
     return CHECK_SUMMARY();
 }
