@@ -13,6 +13,7 @@ import` after it restore every item both maps know, and say which they don't.
 from __future__ import annotations
 
 import math
+import os
 import re
 import tomllib
 from datetime import datetime, timezone
@@ -56,7 +57,7 @@ def dump_config(values: dict, identity: Identity, port: str = "") -> str:
     return "\n".join(lines) + "\n"
 
 
-def read_config(path) -> tuple[dict, list[str]]:
+def read_config(path: str | os.PathLike[str]) -> tuple[dict, list[str]]:
     """parse_config of a backup file, refused before reading when larger than MAX_BACKUP_BYTES."""
     try:
         with open(path, "rb") as f:
@@ -118,7 +119,7 @@ def parse_config(text: str, source: str) -> tuple[dict, list[str]]:
     return values, unknown
 
 
-def _plausible(value) -> bool:
+def _plausible(value: object) -> bool:
     """A value some configuration register could take: a finite number within 64 bits, or a short name."""
     if isinstance(value, bool):
         return False
@@ -139,12 +140,13 @@ def listing(names: list[str]) -> str:
     return ", ".join(names[:_MAX_LISTED]) + (f" and {more} more" if more > 0 else "")
 
 
-def config_source_warning(source) -> str | None:
+def config_source_warning(source: int) -> str | None:
     """What to tell a person when the device ignored its saved configuration at boot (input register
     config_source), else None."""
-    why = {regs.ConfigSource.OTHER_REGISTER_MAP: "was written by firmware with another register map (a firmware "
-                                                 "update?)",
-           regs.ConfigSource.REFUSED: "fails the firmware's checks"}.get(source)
+    reasons: dict[int, str] = {
+        regs.ConfigSource.OTHER_REGISTER_MAP: "was written by firmware with another register map (a firmware update?)",
+        regs.ConfigSource.REFUSED: "fails the firmware's checks"}
+    why = reasons.get(source)
     if why is None:
         return None
     return (f"the device runs on its default configuration: the saved one {why} and was ignored; restore a "

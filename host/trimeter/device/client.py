@@ -22,9 +22,12 @@ import time
 import zlib
 from dataclasses import dataclass
 from enum import IntEnum
-from typing import Callable
+from collections.abc import Callable
+from contextlib import AbstractContextManager
+from typing import Any, Self
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from trimeter import registers as regs
 from trimeter.device.transport import (MAX_FILE_RECORD_WORDS, MAX_READ_BITS, MAX_READ_WORDS, ModbusExceptionReply,
@@ -40,12 +43,17 @@ MAP_ERASE_S = 2.5
 CONFIG_NAMES = tuple(r.name for r in regs.REGISTERS if r.table == "holding_register" and r.address >= 64)
 
 
-def encode(reg: regs.Register, value) -> list[int]:
+# What a register holds once decoded: bool, IntEnum, int or float, which one known only from the register
+# map at run time, so callers see Any.
+Value = Any
+
+
+def encode(reg: regs.Register, value: Any) -> list[int]:
     """Physical value -> register words (or [0/1] for a bit), refusing out-of-range values by name."""
     if reg.enum:
         enum = regs.ENUMS[reg.enum]
         try:
-            raw = enum[value.upper()] if isinstance(value, str) else enum(int(value))
+            raw: int | float = enum[value.upper()] if isinstance(value, str) else enum(int(value))
         except (KeyError, ValueError):
             names = ", ".join(m.name.lower() for m in enum)
             raise InputError(f"{reg.name}: {value!r} is not one of {names}") from None
@@ -79,7 +87,7 @@ def encode(reg: regs.Register, value) -> list[int]:
     return list(struct.unpack(f">{reg.words}H", packed))
 
 
-def decode(reg: regs.Register, words: list[int]):
+def decode(reg: regs.Register, words: list[int]) -> Value:
     """Register words -> physical value (bool, IntEnum, int or float)."""
     if reg.type == "bool":
         return bool(words[0])
@@ -141,10 +149,11 @@ def _record_dtype(words: type[IntEnum], types: dict[str, str]) -> np.dtype:
     """One bin's records in a fit file as a big-endian numpy record (f32 = two words, high word first, is
     exactly a big-endian float32); offsets from the register map's word enums."""
     return np.dtype({"names": list(types), "formats": list(types.values()),
-                     "offsets": [2 * int(words[name.upper()]) for name in types], "itemsize": 2 * int(words.STRIDE)})
+                     "offsets": [2 * int(words[name.upper()]) for name in types], "itemsize": 2 * int(words["STRIDE"])})
 
 
-FIT_INPUT_DTYPE = _record_dtype(regs.FitInputWord, dict.fromkeys(("i_b", "i_w", "i_c", "rho_b", "rho_w"), ">f4"))
+FIT_INPUT_FIELDS = ("i_b", "i_w", "i_c", "rho_b", "rho_w")
+FIT_INPUT_DTYPE = _record_dtype(regs.FitInputWord, dict.fromkeys(FIT_INPUT_FIELDS, ">f4"))
 FIT_OUTPUT_DTYPE = _record_dtype(regs.FitOutputWord, {"alpha": ">f4", "sigma_t": ">f4", "g": ">f4", "flags": ">u2"})
 # Why a run was refused or stopped (fit_status), as the person at the instrument can act on it.
 _FIT_REFUSALS = {
@@ -189,7 +198,7 @@ class Device:
     """A connected trimeter. Construct with `Device.open(port)` or around any Transport (tests)."""
 
     def __init__(self, transport: Transport, *, check: bool = True, clock: Callable[[], float] = time.monotonic,
-                 sleep: Callable[[float], None] = time.sleep):
+                 sleep: Callable[[float], None] = time.sleep) -> None:
         self.transport = transport
         self._clock = clock
         self._sleep = sleep
@@ -213,10 +222,10 @@ class Device:
     def close(self) -> None:
         self.transport.close()
 
-    def __enter__(self):
+    def __enter__(self) -> Self:
         return self
 
-    def __exit__(self, *exc):
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
     # ---------------------------------------------------------------------------------- identity
@@ -240,12 +249,12 @@ class Device:
         return identity
 
     # ----------------------------------------------------------------------------- read / write
-    def read(self, name: str):
+    def read(self, name: str) -> Value:
         if name in DERIVED:
             return DERIVED[name](self)
         return self.read_many(name)[name]
 
-    def read_many(self, *names: str) -> dict:
+    def read_many(self, *names: str) -> dict[str, Value]:
         """Read several items with as few requests as possible (one per table span)."""
         by_table: dict[str, list[regs.Register]] = {}
         for name in names:
@@ -273,14 +282,14 @@ class Device:
             if self.identity is not None:
                 self.identity = self.check_identity()
 
-    def _read_block(self, table, lo, hi, items):
+    def _read_block(self, table: str, lo: int, hi: int, items: list[regs.Register]) -> dict[str, Value]:
         if table in ("coil", "discrete_input"):
             data = [int(b) for b in self.transport.read_bits(table, lo, hi - lo)]
         else:
             data = self.transport.read_words(table, lo, hi - lo)
         return {r.name: decode(r, data[r.address - lo:r.address - lo + r.words]) for r in items}
 
-    def write(self, name: str, value) -> None:
+    def write(self, name: str, value: object) -> None:
         reg = _lookup(name)
         if reg.access != "rw":
             raise InputError(f"{name} is read-only")
@@ -332,12 +341,12 @@ class Device:
         if action == "goto_slot":
             if argument not in GOTO:
                 raise InputError(f"goto_slot: slot {argument!r} is not one of {', '.join(GOTO)}")
-            cmd = GOTO[argument]
+            cmd: object = GOTO[argument]
         else:
             cmd = action
         self.write("command", cmd)
 
-    def _erasing(self, seconds: float):
+    def _erasing(self, seconds: float) -> AbstractContextManager[object]:
         """Context for a request the device answers only after a flash erase (transports without timeouts:
         nothing to do)."""
         slow_reply = getattr(self.transport, "slow_reply", None)
@@ -488,7 +497,7 @@ class Device:
         if status != regs.MapOpStatus.WRITING:
             raise DeviceError(f"device did not open a map write (status {getattr(status, 'name', status)})")
 
-    def _unlocked_map_command(self, send, timeout_s: float = 0.0):
+    def _unlocked_map_command(self, send: str | Callable[[], object], timeout_s: float = 0.0) -> Value:
         """Unlock, send a destructive map command (a map_command name, or a callable that writes it), and
         return map_op_status; refused as locked (the window closed while a request was retried): once more."""
         for _attempt in (1, 2):
@@ -507,7 +516,7 @@ class Device:
                               "(is another master writing to it?); the old map stays active")
         return status
 
-    def _wait_map_op(self, timeout_s: float):
+    def _wait_map_op(self, timeout_s: float) -> Value:
         deadline = self._clock() + timeout_s
         while True:
             status = self.read("map_op_status")
@@ -521,7 +530,8 @@ class Device:
         """Bins the device fits in one run (the register map's max of fit_bin_count)."""
         return int(regs.BY_NAME["fit_bin_count"].max)
 
-    def fit(self, I_b, I_w, I_c, rho_b, rho_w, *, thickness_mm: float, table: bytes | None = None,
+    def fit(self, I_b: ArrayLike, I_w: ArrayLike, I_c: ArrayLike, rho_b: ArrayLike, rho_w: ArrayLike, *,
+            thickness_mm: float, table: bytes | None = None,
             timeout_s: float = 30.0) -> DeviceFit:
         """Fit bins on the device with its active map table, in runs of at most `fit_capacity` bins.
 
@@ -542,7 +552,7 @@ class Device:
         thickness_words = encode(regs.BY_NAME["fit_thickness_mm"], thickness_mm)  # range-checked before sending
         expected = None if table is None else table_own_crc32(table)
         bins = np.zeros(n, dtype=FIT_INPUT_DTYPE)
-        for name, column in zip(FIT_INPUT_DTYPE.names, columns, strict=True):
+        for name, column in zip(FIT_INPUT_FIELDS, columns, strict=True):
             with np.errstate(over="ignore"):  # beyond float32: inf, which the device flags like any bad value
                 bins[name] = column.astype(np.float32)
         results = np.zeros(n, dtype=FIT_OUTPUT_DTYPE)
@@ -559,8 +569,10 @@ class Device:
                                   f"then 0x{crc:08X}): fit again")
             used = crc
             results[first:first + len(chunk)] = self._read_fit_results(len(chunk))
-        return DeviceFit(*(results[name].astype(np.float64) for name in ("alpha", "sigma_t", "g")),
-                         flags=results["flags"].astype(np.int64), table_crc32=int(used))
+        assert used is not None  # n > 0 bins: at least one run
+        return DeviceFit(alpha=results["alpha"].astype(np.float64), sigma_t=results["sigma_t"].astype(np.float64),
+                         g=results["g"].astype(np.float64), flags=results["flags"].astype(np.int64),
+                         table_crc32=int(used))
 
     def _write_fit_bins(self, bins: np.ndarray) -> None:
         per_request = MAX_FILE_RECORD_WORDS // int(regs.FitInputWord.STRIDE)

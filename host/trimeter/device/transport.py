@@ -35,7 +35,8 @@ import contextlib
 import logging
 import time
 from dataclasses import dataclass, field
-from typing import Callable, Protocol
+from collections.abc import Iterator
+from typing import Any, Callable, Protocol
 
 from pymodbus import FramerType
 from pymodbus.client import ModbusSerialClient
@@ -69,7 +70,7 @@ class _GarbledReply(Exception):
 class ModbusExceptionReply(DeviceError):
     """The device answered with a Modbus exception (code 1: function, 2: address, 3: value, 4: failure)."""
 
-    def __init__(self, what: str, code: int):
+    def __init__(self, what: str, code: int) -> None:
         super().__init__(f"device refused {what}: Modbus exception {code:02d} ({_EXCEPTION_TEXT.get(code, 'unknown')})")
         self.code = code
 
@@ -115,7 +116,7 @@ class RtuTransport:
 
     def __init__(self, port: str, *, address: int = 1, baudrate: int = 19200, timeout_s: float = 0.15,
                  attempts: int = 6, late_reply_window_s: float | None = None, reconnect_timeout_s: float = 10.0,
-                 local_echo: bool = False):
+                 local_echo: bool = False) -> None:
         """local_echo: an RS-485 adapter that hears its own transmission (half duplex without echo
         suppression); pymodbus then strips the echoed request before framing the reply."""
         if not 1 <= address <= 247:
@@ -154,7 +155,7 @@ class RtuTransport:
         self._open(deadline=time.monotonic() + self.reconnect_timeout_s)
 
     @contextlib.contextmanager
-    def slow_reply(self, seconds: float):
+    def slow_reply(self, seconds: float) -> Iterator[None]:
         """Requests made inside may take `seconds` longer to be answered: the device acts on them before it
         replies (a flash sector erase blocks the firmware's main loop)."""
         saved, self._slow_reply_s = self._slow_reply_s, seconds
@@ -202,9 +203,10 @@ class RtuTransport:
         return data
 
     # ------------------------------------------------------------------------------------- requests
-    def _execute(self, what: str, function_code: int, call: Callable[[ModbusSerialClient], object],
-                 answers: Callable[[object], bool], request_bytes: int, reply_bytes: int):
-        """`request_bytes`, `reply_bytes`: the lengths of the request frame and of its normal (non-exception)
+    def _execute(self, what: str, function_code: int, call: Callable[[ModbusSerialClient], Any],
+                 answers: Callable[[Any], bool], request_bytes: int, reply_bytes: int) -> Any:
+        """The reply is the PDU class of the request's function code (bits, registers or records), hence Any.
+        `request_bytes`, `reply_bytes`: the lengths of the request frame and of its normal (non-exception)
         reply frame, address and CRC included."""
         started = time.monotonic()
         self.stats.requests += 1
