@@ -1,10 +1,11 @@
 """Fitting on the device (Device.fit) against the firmware sim over its pty: the plumbing end to end.
 
-Two builds of the real firmware: the shipped one (no inverse core linked yet: every run is refused as
-unavailable, and the client says so) and one linked with the stand-in core of
+Two builds of the real firmware besides the shipped one: one without the inverse core (FIT_CORE_SRC empty:
+every run is refused as unavailable, and the client says so) and one linked with the stand-in core of
 firmware/tests/standin/fit_core_standin.c, a transparent function whose outputs are known exactly in
 float32 — so the bins' layout, the runs of at most fit_capacity bins, the flags, and every refusal
-(no table, a thickness the table is not for) are checked on the wire, without the real core."""
+(no table, a thickness the table is not for) are checked on the wire, without the real core. The shipped
+build, with the real core, is tests/device/test_table_fit_on_device.py's."""
 
 from __future__ import annotations
 
@@ -25,7 +26,6 @@ from trimeter.device.client import Device
 from trimeter.errors import DeviceError, InputError
 
 ROOT = Path(__file__).resolve().parents[2]
-SIM = ROOT / "firmware" / "build" / "sim" / "trimeter-fw-sim"
 READY_TIMEOUT_S = 10.0
 
 
@@ -64,24 +64,12 @@ def _stop(proc) -> None:
         proc.wait()
 
 
-@pytest.fixture(scope="module")
-def shipped(tmp_path_factory):
-    if not SIM.is_file():
-        pytest.skip(f"firmware sim not built ({SIM}): run `make -C firmware sim`")
-    tmp = tmp_path_factory.mktemp("shipped")
-    proc = _start_sim(SIM, tmp)
-    dev = Device.open(str(tmp / "modbus"))
-    yield dev
-    dev.close()
-    _stop(proc)
-
-
-@pytest.fixture(scope="module")
-def standin(tmp_path_factory):
-    tmp = tmp_path_factory.mktemp("standin")
-    binary = tmp / "trimeter-fw-sim-standin"
+def _sim_with_core(tmp_path_factory, name: str, core_sources: str):
+    """The sim built with FIT_CORE_SRC=core_sources (empty: no core), started; yields its Device."""
+    tmp = tmp_path_factory.mktemp(name)
+    binary = tmp / f"trimeter-fw-sim-{name}"
     build = subprocess.run(["make", "-s", "-C", str(ROOT / "firmware"), "sim", "SIM_CFLAGS=-std=c11 -O0 -D_GNU_SOURCE",
-                            "FIT_CORE_SRC=tests/standin/fit_core_standin.c", f"SIM_BIN={binary}"],
+                            f"FIT_CORE_SRC={core_sources}", f"SIM_BIN={binary}"],
                            capture_output=True, text=True, timeout=120)
     assert build.returncode == 0, build.stderr
     proc = _start_sim(binary, tmp)
@@ -91,33 +79,43 @@ def standin(tmp_path_factory):
     _stop(proc)
 
 
+@pytest.fixture(scope="module")
+def coreless(tmp_path_factory):
+    yield from _sim_with_core(tmp_path_factory, "coreless", "")
+
+
+@pytest.fixture(scope="module")
+def standin(tmp_path_factory):
+    yield from _sim_with_core(tmp_path_factory, "standin", "tests/standin/fit_core_standin.c")
+
+
 def _bins(n: int, seed: int = 1):
     rng = np.random.default_rng(seed)
     i_b = rng.uniform(0.01, 0.5, n)
     return i_b, i_b + rng.uniform(0.01, 0.4, n), rng.uniform(0.0, 0.9, n), np.full(n, 0.02), np.full(n, 0.95)
 
 
-def test_the_shipped_firmware_has_no_inverse_core_yet_and_refuses_to_fit_saying_so(shipped):
-    assert shipped.read("fit_available") == 0
+def test_firmware_built_without_the_inverse_core_refuses_to_fit_saying_so(coreless):
+    assert coreless.read("fit_available") == 0
     with pytest.raises(DeviceError, match="built without the inverse core"):
-        shipped.fit(*_bins(3), thickness_mm=0.4)
-    assert shipped.read("fit_status") == regs.FitStatus.ERROR_UNAVAILABLE
-    assert shipped.read("fit_bins_done") == 0
+        coreless.fit(*_bins(3), thickness_mm=0.4)
+    assert coreless.read("fit_status") == regs.FitStatus.ERROR_UNAVAILABLE
+    assert coreless.read("fit_bins_done") == 0
 
 
-def test_unusable_arguments_are_refused_before_anything_is_sent(shipped):
+def test_unusable_arguments_are_refused_before_anything_is_sent(coreless):
     i_b, i_w, i_c, rho_b, rho_w = _bins(4)
     with pytest.raises(InputError, match="1-D arrays of one length"):
-        shipped.fit(i_b, i_w[:3], i_c, rho_b, rho_w, thickness_mm=0.4)
+        coreless.fit(i_b, i_w[:3], i_c, rho_b, rho_w, thickness_mm=0.4)
     with pytest.raises(InputError, match="1-D arrays of one length"):
-        shipped.fit([], [], [], [], [], thickness_mm=0.4)
+        coreless.fit([], [], [], [], [], thickness_mm=0.4)
     with pytest.raises(InputError, match="arrays of numbers"):
-        shipped.fit(["a"] * 4, i_w, i_c, rho_b, rho_w, thickness_mm=0.4)
+        coreless.fit(["a"] * 4, i_w, i_c, rho_b, rho_w, thickness_mm=0.4)
     with pytest.raises(InputError, match="fit_thickness_mm"):
-        shipped.fit(i_b, i_w, i_c, rho_b, rho_w, thickness_mm=float("nan"))
+        coreless.fit(i_b, i_w, i_c, rho_b, rho_w, thickness_mm=float("nan"))
     with pytest.raises(InputError, match="fit_thickness_mm: 101 is outside"):
-        shipped.fit(i_b, i_w, i_c, rho_b, rho_w, thickness_mm=101)
-    assert shipped.read("fit_status") == regs.FitStatus.ERROR_UNAVAILABLE  # nothing reached the device
+        coreless.fit(i_b, i_w, i_c, rho_b, rho_w, thickness_mm=101)
+    assert coreless.read("fit_status") == regs.FitStatus.ERROR_UNAVAILABLE  # nothing reached the device
 
 
 def test_with_a_core_linked_bins_go_out_and_results_come_back_exactly(standin):

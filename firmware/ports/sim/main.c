@@ -50,7 +50,7 @@ static struct sim {
     client_t clients[MAX_CLIENTS];
     /* storage */
     int storage_fd;
-    uint8_t storage[STORAGE_BYTES];
+    _Alignas(8) uint8_t storage[STORAGE_BYTES]; /* the inverse core reads a map slot in place */
     plant_t plant;
     uint8_t address_override;
 } sim;
