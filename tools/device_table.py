@@ -32,9 +32,9 @@ def build(amap, n_inverse: int | None = None):
     """The v2 table of an AppearanceMap (with its .tins); n_inverse: the inverse grid's side (default:
     the largest that fits the slot)."""
     from trimeter.errors import MapFileError
-    from trimeter.inversion.api import map_model_variance
-    from trimeter.inversion.table import build_from_map
+    from trimeter.maps.artifacts import map_model_variance
     from trimeter.maps.device_table import MAX_BYTES, DeviceTable, geometry_bytes, table_size
+    from trimeter.maps.table import build_from_map
 
     tins = amap.inscatter
     if tins is None:
@@ -65,99 +65,70 @@ def build(amap, n_inverse: int | None = None):
 
 
 # --------------------------------------------------------------------------------------------- fit
-def inscatter_table(table, L=None):
-    """The table's in-scattering lookup (L: other values on its grid, for the precision study)."""
-    from trimeter.forward.inscatter import InscatterTable
-
-    u_max, tau_max, v_max = table.inscatter_ends
-    return InscatterTable(table.inscatter_L() if L is None else L, u_max=u_max, tau_max=tau_max, v_max=v_max, n=table.n,
-                          thickness_mm=table.thickness_mm, geometry_params=table.geometry)
-
-
-def host_inverter(table, forward=None, inscatter_L=None):
-    """The lut inverter (guess + polish) from the table alone: the table's node values, which
-    ForwardGrid.between_nodes refines at load exactly as it refines a map (the same splines). forward,
-    inscatter_L: other coefficients or L than the table's (for the precision study)."""
+def table_model(table, forward=None, inscatter_L=None):
+    """The fit's view of the table alone (DeviceTableModel); forward, inscatter_L: other coefficients or
+    L than the table's (for the precision study)."""
     from trimeter.inversion.lut import TableInverter
+    from trimeter.maps.device_table import DeviceTableModel
 
+    if forward is None and inscatter_L is None:
+        return table.fit_model()
     source = table
     if forward is not None:
         source = SimpleNamespace(**{k: getattr(table, k) for k in (
-            "alpha", "log_sigma_t", "g", "n", "thickness_mm", "cover_slide_n", "mc_stderr", "inv_alpha_q",
-            "inv_frame", "inverse_alpha", "inverse_g")}, coefficients_grid=forward.nodes())
-    axes = (table.alpha.astype(np.float64), table.log_sigma_t.astype(np.float64), table.g.astype(np.float64))
-    return TableInverter(source, inscatter=inscatter_table(table, inscatter_L),
-                         model_variance=(table.model_variance(), axes))
+            "alpha", "log_sigma_t", "g", "setup", "mc_stderr", "inv_alpha_q", "inv_frame", "inverse_alpha",
+            "inverse_g")}, coefficients_grid=forward.nodes())
+    axes = tuple(np.asarray(a, dtype=np.float64) for a in (table.alpha, table.log_sigma_t, table.g))
+    return DeviceTableModel(table, TableInverter(source, inscatter=table.inscatter_table(inscatter_L),
+                                                 model_variance=(table.model_variance(), axes)))
 
 
 class OnTheFlyGrid:
     """Mixin for a ForwardGrid whose A, B, C come from the compact model at each point (the device's
-    polish), not from its refined cells; its nodes only serve the inverse guess and the clamps."""
+    polish), not from its refined cells; its nodes only serve the clamps and the cell lookups of the
+    in-scattering and model-error tables."""
 
     compact = None
-
-    @property
-    def native_solver(self):
-        return None  # the C kernel reads the refined cells
 
     def coefficients(self, alpha, cell, g, with_sigma_derivative=False):
         value, d_a, d_ls, d_g = self.compact.evaluate(alpha, cell.log_sigma_t, g)
         return (value, d_a, d_g, d_ls) if with_sigma_derivative else (value, d_a, d_g)
 
-    def _alpha_g_cells(self, alpha, g):
+    def alpha_g_cells(self, alpha, g):
         # the compact model is smooth across cells: a step never needs evaluating again for that
         return np.zeros(len(alpha), dtype=np.intp), np.zeros(len(g), dtype=np.intp)
 
 
 def on_the_fly_inverter(table):
-    from trimeter.inversion.kernel import ForwardGrid
-
-    inverter = host_inverter(table)
-    grid = inverter.grid
-    fly = type("OnTheFlyForwardGrid", (OnTheFlyGrid, ForwardGrid), {})
-    fly_grid = fly(grid.alpha, grid.log_sigma_t, grid.g, grid.coefficients_grid, n=grid.n,
-                   thickness_mm=grid.thickness_mm, cover_slide_n=grid.cover_slide_n, mc_stderr=grid.mc_stderr)
-    fly_grid.compact = table.forward()
-    fly_grid.inscatter_grid, fly_grid.model_var = grid.inscatter_grid, grid.model_var
-    inverter.grid, inverter._native = fly_grid, None
-    return inverter
+    """The table's fit model with the polish on the compact model itself (fit_table runs it on the
+    numpy kernel: the compiled one reads the refined cells)."""
+    return on_the_fly_model(table)
 
 
-def fit_table(table, inverter, I_b, I_w, I_c, rho_b=None, rho_w=None, *, polish: int = 8, polish_tol: float = 1e-6,
-              noise_rel: float = 0.005, noise_abs: float = 2e-4, ic_floor: float = 1e-4, alpha_min_g: float = 0.02):
-    """trimeter.fit's lut path for one thickness, from the table and an inverter built from it."""
-    from trimeter.inversion import api
-    from trimeter.inversion.flags import UNUSABLE, FitFlag
-    from trimeter.inversion.kernel import polish_step_var
+def fit_table(table, model, I_b, I_w, I_c, rho_b=None, rho_w=None, **options):
+    """trimeter.inversion.api.fit's lut path on a fit model of `table` (table.fit_model(), table_model
+    or on_the_fly_inverter), on the numpy kernel where the polish evaluates the compact model."""
+    from trimeter.inversion.api import fit
+    from trimeter.inversion.kernel import NumpyKernel
 
-    n = len(I_b)
-    rho_b = np.full(n, table.rho_b_ref) if rho_b is None else np.broadcast_to(rho_b, (n,))
-    rho_w = np.full(n, table.rho_w_ref) if rho_w is None else np.broadcast_to(rho_w, (n,))
-    grid = inverter.grid
-    solver = inverter.native_solver
-    if solver is not None:
-        options = api.native_options(table, grid, polish=polish, polish_tol=polish_tol, noise_rel=noise_rel,
-                                     noise_abs=noise_abs, ic_floor=ic_floor, alpha_min_g=alpha_min_g)
-        out = solver.fit(I_b, I_w, I_c, rho_b, rho_w, sd=None, **options)
-        out.pop("steps")
-        out["conditioning_alpha_std"] = out["conditioning_g_std"] = None
-        return api.FitResult(**out, method="lut")
-    p = api._prepare(table, grid, I_b, I_w, I_c, rho_b, rho_w, ic_floor)
-    sd = api._noise_model(p, noise_rel, noise_abs)
-    step_var = polish_step_var(p.ib, p.iw, noise_rel, noise_abs, grid.mc_stderr, api._polish_tol_std(polish_tol),
-                               sd=sd)
-    alpha, g, residual, J = inverter.invert(p.ib, p.iw, p.sigma_t, p.rb, p.rw, polish_iterations=polish,
-                                            step_tol=polish_tol, step_var=step_var)
-    sigma_t, inscatter_ds, solved = p.sigma_t, None, (alpha, g, p.ib, p.iw)
-    if grid.inscatter_grid is not None:
-        eligible = (p.flags & int(UNUSABLE | FitFlag.IC_BELOW_FLOOR | FitFlag.OUTSIDE_MAP)) == 0
-        a, s, gg, ds = grid.correct_inscatter(alpha, sigma_t, g, J)
-        alpha, sigma_t, g = np.where(eligible, a, alpha), np.where(eligible, s, sigma_t), np.where(eligible, gg, g)
-        inscatter_ds = np.where(eligible, ds, 0.0)
-    return api._finish(table, grid, p.flags, p.usable, p.ib, p.iw, p.ic, p.rb, p.rw, alpha, sigma_t, g, residual,
-                       p.sigma_beer, method="lut", sd=sd, sigma_t_solved=p.sigma_t, inscatter_ds=inscatter_ds,
-                       inscatter_rel_std=api.INSCATTER_REL_STD, thickness_rel_std=0.0, alpha_min_g=alpha_min_g, J=J,
-                       solved=solved, floor_sd=sd)
+    if isinstance(model.grid, OnTheFlyGrid):
+        options.setdefault("kernel", NumpyKernel())
+    return fit(model, I_b, I_w, I_c, rho_b, rho_w, method="lut", **options)
+
+
+def on_the_fly_model(table):
+    """The table's fit model with the polish on the compact model itself (run it on the numpy kernel:
+    the compiled one reads the refined cells)."""
+    from trimeter.model.grid import ForwardGrid
+
+    model = table.fit_model()
+    grid = model.inverter.grid
+    fly = type("OnTheFlyForwardGrid", (OnTheFlyGrid, ForwardGrid), {})(
+        grid.alpha, grid.log_sigma_t, grid.g, grid.coefficients_grid, setup=grid.setup, mc_stderr=grid.mc_stderr)
+    fly.compact = table.forward()
+    fly.inscatter_grid, fly.model_var = grid.inscatter_grid, grid.model_var
+    model.inverter.grid = fly
+    return model
 
 
 # ----------------------------------------------------------------------------------------- measure
@@ -169,7 +140,7 @@ _COLUMNS = (("α p50", "alpha_p50"), ("α p95", "alpha_p95"), ("σt rel p50", "s
 def measure(amap, noise_levels, seed: int = 0, say=print) -> list[dict]:
     from trimeter.bench.fit import _stats, error_budget, heldout_collimated, heldout_for, heldout_intensities
     from trimeter.inversion import native
-    from trimeter.inversion.api import fit
+    from trimeter.maps.artifacts import fit as fit_maps
 
     t0 = time.perf_counter()
     table = build(amap)
@@ -184,11 +155,11 @@ def measure(amap, noise_levels, seed: int = 0, say=print) -> list[dict]:
     I_b0, I_w0 = heldout_intensities(h, rb, rw)
     I_c0 = heldout_collimated(amap, h)
     t0 = time.perf_counter()
-    host = host_inverter(table)
-    say(f"   host inverter from the table alone: {time.perf_counter() - t0:.2f} s")
-    fly = on_the_fly_inverter(table)
+    host = table.fit_model()
+    say(f"   fit model from the table alone: {time.perf_counter() - t0:.2f} s")
+    fly = on_the_fly_model(table)
     variants = {
-        "map lut p≤8": lambda ib, iw, ic: fit(amap, ib, iw, ic, method="lut"),
+        "map lut p≤8": lambda ib, iw, ic: fit_maps(amap, ib, iw, ic, method="lut"),
         "table (refined at load) p≤8": lambda ib, iw, ic: fit_table(table, host, ib, iw, ic),
         "table (on the fly) p≤8": lambda ib, iw, ic: fit_table(table, fly, ib, iw, ic),
         "table guess p0": lambda ib, iw, ic: fit_table(table, host, ib, iw, ic, polish=0, polish_tol=0.0),
@@ -227,6 +198,7 @@ def budget(amap, say=print) -> list[dict]:
     """What the slot's bytes buy: fits from the table (host path, noise-free rendered held-out) with the
     forward coefficients at other precisions, with L unquantized, and with smaller inverse grids."""
     from trimeter.bench.fit import _stats, error_budget, heldout_collimated, heldout_for, heldout_intensities
+    from trimeter.inversion.api import fit
     from trimeter.maps.device_table import table_size
 
     table = build(amap)
@@ -254,9 +226,9 @@ def budget(amap, say=print) -> list[dict]:
     rows = []
     tile = np.resize(np.arange(len(I_b)), 1024)
     for name, tab, forward, L, nbytes in cases:
-        inverter = host_inverter(tab, forward, L)
-        res = fit_table(tab, inverter, I_b, I_w, I_c)
-        ms = _warm_ms(lambda tab=tab, inverter=inverter: fit_table(tab, inverter, I_b[tile], I_w[tile], I_c[tile]))
+        model = table_model(tab, forward, L)
+        res = fit(model, I_b, I_w, I_c, method="lut")
+        ms = _warm_ms(lambda model=model: fit(model, I_b[tile], I_w[tile], I_c[tile], method="lut"))
         st = _stats(res, truth, scoring)
         size = table_size(na, ns, ng, tab.inv_alpha_q.shape[1], *tab.inscatter.shape, len(tab._geometry_bytes()))
         rows.append({"map": amap.name, "variant": name, "file_bytes": size, "ms_per_1024": ms, **st})

@@ -152,6 +152,7 @@ def test_the_shipped_map_s_table_fits_the_slot_and_fits_held_out_materials_from_
     map file out of reach)."""
     import trimeter.maps.container as container
     from trimeter.bench.fit import _stats, error_budget, heldout_collimated, heldout_for, heldout_intensities
+    from trimeter.inversion.api import fit
     from trimeter.maps.appearance import AppearanceMap, find_map
 
     tool = _tool()
@@ -171,7 +172,7 @@ def test_the_shipped_map_s_table_fits_the_slot_and_fits_held_out_materials_from_
     monkeypatch.setattr(AppearanceMap, "load", no_other_file)
     table = DeviceTable.load(path)
     assert table.parent_sha256 == amap.checksum and table.inscatter_sha256 == amap.inscatter.checksum
-    res = tool.fit_table(table, tool.host_inverter(table), I_b, I_w, I_c)
+    res = fit(table.fit_model(), I_b, I_w, I_c, method="lut")
     monkeypatch.undo()
     st = _stats(res, (h["alpha"], h["sigma_t"], h["g"]), scoring)
     assert st["alpha_p95"] <= 0.01 and st["sigma_rel_p95"] <= 0.01 and st["g_p95"] <= 0.015, st
@@ -186,3 +187,11 @@ def test_the_tool_names_what_is_wrong_and_exits_2(argv, message, capsys, tmp_pat
     assert _tool().main([*argv, "-o", str(tmp_path / "t.tlut")]) == 2
     err = capsys.readouterr().err
     assert err.startswith("device_table: error: ") and message in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize("method, message", [("paper", "carries no appearance map"), ("mlp", "carries no MLP")])
+def test_methods_that_need_more_than_the_table_are_refused_by_name(method, message):
+    from trimeter.inversion.api import fit
+
+    with pytest.raises(MapFileError, match=message):
+        fit(small_table().fit_model(), [0.1], [0.3], [0.5], method=method)

@@ -55,7 +55,11 @@ from pathlib import Path
 import numpy as np
 
 from trimeter.errors import MapFileError
+from trimeter.inversion.lut import TableInverter
 from trimeter.model.compact import CompactForward
+from trimeter.model.grid import ForwardGrid
+from trimeter.model.inscatter import InscatterTable
+from trimeter.model.setup import SampleSetup
 from trimeter.registers import MAP_SLOT_CAPACITY_BYTES
 
 MAGIC = b"\x89TRLUT\r\n"
@@ -166,7 +170,8 @@ class DeviceTable:
         table = cls(name=name[:24], parent_sha256=parent_sha256, inscatter_sha256=inscatter_sha256 or "", n=n,
                     thickness_mm=thickness_mm, cover_slide_n=cover_slide_n, rho_b_ref=reference_rhos[0],
                     rho_w_ref=reference_rhos[1], mc_stderr=mc_stderr,
-                    inscatter_ends=tuple(float(x) for x in inscatter_ends), alpha=a32, log_sigma_t=s32, g=g32,
+                    inscatter_ends=(float(inscatter_ends[0]), float(inscatter_ends[1]), float(inscatter_ends[2])),
+                    alpha=a32, log_sigma_t=s32, g=g32,
                     scales=np.array(scales, dtype=np.float32), spline=np.stack(spline_q, axis=-1),
                     model_std=np.stack(std_q, axis=-1), inscatter=L_q,
                     inv_frame=np.asarray(inv_frame, dtype=np.float32), inv_alpha_q=np.asarray(inv_alpha_q, np.uint16),
@@ -209,11 +214,26 @@ class DeviceTable:
     def reference_rhos(self) -> tuple[float, float]:
         return self.rho_b_ref, self.rho_w_ref
 
+    @cached_property
+    def setup(self) -> SampleSetup:
+        return SampleSetup(self.n, self.thickness_mm, self.cover_slide_n, geometry_params=self.geometry)
+
+    def inscatter_table(self, L: np.ndarray | None = None) -> InscatterTable:
+        """The in-scattering lookup it carries (L: other values on its grid, e.g. unquantized)."""
+        u_max, tau_max, v_max = self.inscatter_ends
+        return InscatterTable(self.inscatter_L() if L is None else L, u_max=u_max, tau_max=tau_max, v_max=v_max,
+                              n=self.n, thickness_mm=self.thickness_mm, geometry_params=self.geometry)
+
+    def fit_model(self) -> DeviceTableModel:
+        """What trimeter.inversion.api.fit takes to fit from this table alone."""
+        return DeviceTableModel(self)
+
     def _geometry_bytes(self) -> bytes:
         return geometry_bytes(self.geometry)
 
-    def _counts(self) -> tuple[int, ...]:
-        return (len(self.alpha), len(self.log_sigma_t), len(self.g), self.inv_alpha_q.shape[1], *self.inscatter.shape)
+    def _counts(self) -> tuple[int, int, int, int, int, int, int]:
+        nu, nt, nv = self.inscatter.shape
+        return len(self.alpha), len(self.log_sigma_t), len(self.g), self.inv_alpha_q.shape[1], nu, nt, nv
 
     @property
     def size_bytes(self) -> int:
@@ -327,7 +347,10 @@ class DeviceTable:
         return cls(name=name_str, parent_sha256=parent.hex(), inscatter_sha256="" if not any(tins) else tins.hex(),
                    n=float(n), thickness_mm=float(thickness), cover_slide_n=float(cover_n) or None,
                    rho_b_ref=float(rho_b), rho_w_ref=float(rho_w), mc_stderr=float(mc_stderr),
-                   inscatter_ends=(float(u_max), float(tau_max), float(v_max)), geometry=geometry, **arrays)
+                   inscatter_ends=(float(u_max), float(tau_max), float(v_max)), geometry=geometry,
+                   alpha=arrays["alpha"], log_sigma_t=arrays["log_sigma_t"], g=arrays["g"], scales=arrays["scales"],
+                   spline=arrays["spline"], model_std=arrays["model_std"], inscatter=arrays["inscatter"],
+                   inv_frame=arrays["inv_frame"], inv_alpha_q=arrays["inv_alpha_q"], inv_g_q=arrays["inv_g_q"])
 
     def save(self, path: str | Path) -> Path:
         from trimeter.atomic import atomic_write
@@ -344,3 +367,35 @@ class DeviceTable:
         table = cls.from_bytes(read_bounded(path, MAX_BYTES, "map table"), source=str(path))
         object.__setattr__(table, "path", path)
         return table
+
+
+class DeviceTableModel:
+    """A fit's view of a device table alone (a trimeter.inversion.api.FitModel): the lut method's guess
+    and polish, with the in-scattering correction and the map's node error it carries. It holds no
+    appearance map and no network, so the paper and mlp methods are refused by name."""
+
+    paper_cache = None
+
+    def __init__(self, table: DeviceTable, inverter: TableInverter | None = None):
+        """inverter: another guess-and-polish over this table (default: TableInverter on it, its
+        forward model refined at load by ForwardGrid.between_nodes)."""
+        self.table = table
+        self.name = table.name
+        self.reference_rhos = table.reference_rhos
+        self.setup = table.setup
+        axes = tuple(np.asarray(a, dtype=np.float64) for a in (table.alpha, table.log_sigma_t, table.g))
+        self.inverter = inverter or TableInverter(table, inscatter=table.inscatter_table(),
+                                                  model_variance=(table.model_variance(), axes))
+
+    @property
+    def grid(self) -> ForwardGrid:
+        return self.inverter.grid
+
+    @property
+    def map(self):
+        where = f" ({self.table.path})" if self.table.path else ""
+        raise MapFileError(f"{self.name}: a device table{where} carries no appearance map; the paper method needs "
+                           f"the map (.tmap): fit from the table with method lut")
+
+    def mlp(self, model=None):
+        raise MapFileError(f"{self.name}: a device table carries no MLP model; fit from it with method lut")
