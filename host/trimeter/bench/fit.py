@@ -140,16 +140,21 @@ def _fit_variant(variant, I_b, I_w, I_c, rho_b=None, rho_w=None):
 
 def _core(variant, I_b, I_w, I_c, rb, rw):
     """The inversion kernel alone, without input validation, flags and uncertainty: paper = the
-    scipy interpolator call; lut = σt from I_c + table guess + polish; mlp = σt + network + polish."""
+    scipy interpolator call; a guess-and-polish method = σt from I_c + its guess (the table's, or its
+    guesser's: the network for mlp) + polish. None for another whole-fit method (not timed)."""
     import trimeter.inversion.api as api
     from trimeter.inversion.kernel import default_kernel
+    from trimeter.inversion.methods import get_method
     from trimeter.inversion.newton import polish_step_var
     from trimeter.inversion.paper import coordinates, interpolator
 
     _, method, kw, artifacts = variant
+    strategy = get_method(method)
     if method == "paper":
         interp = interpolator(artifacts.map, round(rb, 3), round(rw, 3), artifacts.paper_cache)
         return lambda: interp(coordinates(I_b, I_w, I_c))
+    if strategy.joint:
+        return None
     kernel = default_kernel()
     n = len(I_b)
     rho_b, rho_w = np.full(n, rb), np.full(n, rw)
@@ -161,10 +166,10 @@ def _core(variant, I_b, I_w, I_c, rb, rw):
     fit_defaults = {k: p.default for k, p in inspect.signature(api.fit).parameters.items()}
     step_var = lambda: polish_step_var(I_b, I_w, fit_defaults["noise_rel"], fit_defaults["noise_abs"],  # noqa: E731
                                        grid.mc_stderr, api._polish_tol_std(tol))
-    if "mlp_model" not in kw:
+    if strategy.guesser is None:
         return lambda: kernel.invert(inv, I_b, I_w, sigma(), rho_b, rho_w, iterations=polish, step_tol=tol,
                                      step_var=step_var())
-    net = artifacts.mlp(kw["mlp_model"])
+    net = strategy.guesser(artifacts, kw)
 
     def run():
         s = sigma()
@@ -303,10 +308,11 @@ def _bench_case(variants, truth, budget, intensities, label, level, args):
         idx = tile[:nb]
         sub = (I_b[idx], I_w[idx], I_c[idx])
         timers.append((st, "ms_per_1024", lambda variant=variant, sub=sub: _fit_variant(variant, *sub), 1024 / nb))
-        if name == "paper-median":
+        core = None if name == "paper-median" else _core(variant, *sub, rb, rw)
+        if core is None:
             st["core_ms_per_1024"] = float("nan")
         else:
-            timers.append((st, "core_ms_per_1024", _core(variant, *sub, rb, rw), 1.0))
+            timers.append((st, "core_ms_per_1024", core, 1.0))
     # Round-robin: every variant is timed once per round, so all see the same machine load
     # (the machine is shared); each keeps its best round. The ε-median is timed once, warm.
     # Two cache states, so that no variant's figure depends on which one ran just before it:
@@ -359,7 +365,7 @@ def two_thicknesses(amaps, repeats):
     mlp p≤8 — time per 1024 bins of the whole multi-map fit(), α / g p95, and each map alone over its
     own measurable gamut for comparison."""
     import trimeter
-    from trimeter.maps.artifacts import model_path_for
+    from trimeter.inversion.methods import METHODS
 
     sets = [heldout_for(m)[2] for m in amaps]
     if not all(np.array_equal(sets[0][k], h[k]) for h in sets[1:] for k in ("alpha", "sigma_t", "g")):
@@ -380,9 +386,10 @@ def two_thicknesses(amaps, repeats):
                 "g_p95": _pct(np.abs(r.g - g)[scored & (a >= G_MIN_ALPHA)], 95)}
 
     rows = []
-    for name, method, kw in (("paper", "paper", dict(samples=0)), ("lut p≤8", "lut", DEFAULT_POLISH),
-                             ("mlp p≤8", "mlp", DEFAULT_POLISH)):
-        if method == "mlp" and not all(m.path and model_path_for(m.path).is_file() for m in amaps):
+    for strategy in sorted(METHODS.values(), key=lambda m: not m.joint):  # each method's plain default
+        method = strategy.name
+        name, kw = (method, strategy.bench_variants[0][1]) if strategy.joint else (f"{method} p≤8", DEFAULT_POLISH)
+        if not all(m.path and m.path.with_suffix(suffix).is_file() for m in amaps for suffix in strategy.needs):
             continue
         res = trimeter.fit(list(amaps), I_b, I_w, I_c, method=method, **kw)
         alone = [trimeter.fit(m, I_b[i], I_w[i], I_c[i], method=method, **kw) for i, m in enumerate(amaps)]
