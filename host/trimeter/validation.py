@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from typing import Any
 import math
 
 from trimeter.errors import InputError
@@ -9,7 +10,7 @@ from trimeter.errors import InputError
 SHOWN_CHARS = 60  # characters of an offending value quoted in a message
 
 
-def shown(value, limit: int = SHOWN_CHARS) -> str:
+def shown(value: object, limit: int = SHOWN_CHARS) -> str:
     """repr(value) cut to `limit` characters + '…': a hostile file's 10 MB value is not echoed back.
     Containers are summarised by type and length (a deep one is not walked), huge integers by size."""
     if isinstance(value, (dict, list, tuple)):
@@ -20,7 +21,7 @@ def shown(value, limit: int = SHOWN_CHARS) -> str:
     return text if len(text) <= limit else text[:limit] + "…"
 
 
-def require_number(field: str, value, *, lo: float | None = None, hi: float | None = None,
+def require_number(field: str, value: Any, *, lo: float | None = None, hi: float | None = None,
                    lo_open: bool = False, hi_open: bool = False) -> float:
     """Return `value` as a float, or raise InputError naming `field` if it is not finite or out of range."""
     try:
@@ -36,18 +37,18 @@ def require_number(field: str, value, *, lo: float | None = None, hi: float | No
     return x
 
 
-def require_material(alpha, sigma_t, g) -> tuple[float, float, float]:
+def require_material(alpha: Any, sigma_t: Any, g: Any) -> tuple[float, float, float]:
     """The physically possible material: α ∈ [0, 1], σt ≥ 0 [1/mm], |g| < 1."""
     return (require_number("alpha", alpha, lo=0.0, hi=1.0),
             require_number("sigma_t", sigma_t, lo=0.0),
             require_number("g", g, lo=-1.0, hi=1.0, lo_open=True, hi_open=True))
 
 
-def require_sample(n, thickness_mm) -> tuple[float, float]:
+def require_sample(n: Any, thickness_mm: Any) -> tuple[float, float]:
     """A sample's refractive index n ≥ 1 and thickness ℓ > 0 [mm]."""
     return (require_number("n", n, lo=1.0), require_number("thickness_mm", thickness_mm, lo=0.0, lo_open=True))
 
 
-def require_reflectance(field: str, rho) -> float:
+def require_reflectance(field: str, rho: Any) -> float:
     """A background reflectance ρ ∈ [0, 1]."""
     return require_number(field, rho, lo=0.0, hi=1.0)

@@ -7,6 +7,7 @@
 
 from __future__ import annotations
 
+from typing import Any
 from trimeter.errors import InputError
 from trimeter.spectrometer.base import Spectrometer, SpectrometerDescription
 
@@ -17,7 +18,7 @@ OPTIONS = {"sim": ("timeout_s",), "i2c": ("address", "gain", "integration_time_u
            "seabreeze": ("integration_time_us",)}
 
 
-def open_spectrometer(url: str, **options) -> Spectrometer:
+def open_spectrometer(url: str, **options: Any) -> Spectrometer:
     """Open the spectrometer named by `url` (`<backend>:<address>[?key=value&...]`)."""
     if not isinstance(url, str) or ":" not in url:
         raise InputError(f"spectrometer must be '<backend>:<address>' with backend one of {', '.join(BACKENDS)}, got "

@@ -6,6 +6,7 @@ readable: a backend reports what the device actually uses (rounded to its step),
 
 from __future__ import annotations
 
+from typing import Any
 from dataclasses import asdict, dataclass, field
 from typing import Protocol, runtime_checkable
 
@@ -64,7 +65,7 @@ class Spectrometer(Protocol):
     def close(self) -> None: ...
 
 
-def check_integration_time(value, limits: tuple[int, int]) -> int:
+def check_integration_time(value: Any, limits: tuple[int, int]) -> int:
     """Validate a requested integration time against a device's limits (InputError naming the field)."""
     from trimeter.errors import InputError
 

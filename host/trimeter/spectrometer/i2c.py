@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import contextlib
 import time
-from typing import Callable
+from typing import Any, Callable, Self
 
 import numpy as np
 
@@ -56,7 +56,7 @@ CHANNEL_NM = {"F1": 415.0, "F2": 445.0, "F3": 480.0, "F4": 515.0, "F5": 555.0, "
               "F7": 630.0, "F8": 680.0, "NIR": 910.0}
 
 
-def _code_for_gain(gain) -> int:
+def _code_for_gain(gain: Any) -> int:
     try:
         return GAINS.index(float(gain))  # 64.0 == 64: exact values only, 64.5 is refused
     except (ValueError, TypeError):
@@ -64,9 +64,9 @@ def _code_for_gain(gain) -> int:
 
 
 class AS7341:
-    def __init__(self, bus, address: int = DEFAULT_ADDRESS, gain=64, integration_time_us: int = 100_000,
+    def __init__(self, bus: Any, address: int = DEFAULT_ADDRESS, gain: float = 64, integration_time_us: int = 100_000,
                  valid_timeout_s: float | None = None, clock: Callable[[], float] = time.monotonic,
-                 sleep: Callable[[float], None] = time.sleep, owns_bus: bool = False):
+                 sleep: Callable[[float], None] = time.sleep, owns_bus: bool = False) -> None:
         self._bus, self.address, self._clock, self._sleep = bus, int(address), clock, sleep
         self._owns_bus = owns_bus
         try:
@@ -83,7 +83,7 @@ class AS7341:
         self.integration_time_us = integration_time_us
 
     @classmethod
-    def open(cls, bus_number: str, address="0x39", **options) -> "AS7341":
+    def open(cls, bus_number: str, address: str = "0x39", **options: Any) -> AS7341:
         """`i2c:1` → /dev/i2c-1 (options from the URL query: address, gain)."""
         try:
             import smbus2
@@ -129,7 +129,7 @@ class AS7341:
         except OSError as exc:
             raise DeviceError(f"AS7341 at 0x{self.address:02x}: block write at 0x{reg:02x} failed ({exc})") from None
 
-    def _poll(self, ready: Callable[[], bool], what: str, timeout_s: float) -> None:
+    def _poll(self, ready: Callable[[], object], what: str, timeout_s: float) -> None:
         deadline = self._clock() + timeout_s
         while not ready():
             if self._clock() > deadline:
@@ -142,7 +142,7 @@ class AS7341:
         return GAINS[min(self._read(CFG1) & 0x1F, len(GAINS) - 1)]
 
     @gain.setter
-    def gain(self, value) -> None:
+    def gain(self, value: Any) -> None:
         code = _code_for_gain(value)
         self._write(CFG1, (self._read(CFG1) & ~0x1F) | code)
 
@@ -156,7 +156,7 @@ class AS7341:
         return int(round((atime + 1) * (astep + 1) * STEP_US))
 
     @integration_time_us.setter
-    def integration_time_us(self, value) -> None:
+    def integration_time_us(self, value: Any) -> None:
         us = check_integration_time(value, self.integration_time_us_limits)
         # The fewest ATIME steps that let ASTEP (≤ 65534) reach the time: the finest resolution.
         atime = min(255, max(0, int(np.ceil(us / (STEP_US * 65535))) - 1))
@@ -221,8 +221,8 @@ class AS7341:
         if self._owns_bus:
             self._bus.close()
 
-    def __enter__(self):
+    def __enter__(self) -> Self:
         return self
 
-    def __exit__(self, *exc):
+    def __exit__(self, *exc: object) -> None:
         self.close()

@@ -7,13 +7,14 @@ Its integration time cannot be read back from the device, so this wrapper keeps 
 
 from __future__ import annotations
 
+from typing import Any, Self
 import numpy as np
 
 from trimeter.errors import DeviceError
 from trimeter.spectrometer.base import SpectrometerDescription, check_integration_time
 
 
-def _import_seabreeze():
+def _import_seabreeze() -> tuple[Any, Any]:
     try:
         from seabreeze.spectrometers import Spectrometer, list_devices
     except ImportError:
@@ -22,7 +23,7 @@ def _import_seabreeze():
 
 
 class SeaBreezeSpectrometer:
-    def __init__(self, serial: str | None = None, integration_time_us: int = 100_000):
+    def __init__(self, serial: str | None = None, integration_time_us: int = 100_000) -> None:
         Spectrometer, list_devices = _import_seabreeze()
         try:
             self._spec = Spectrometer.from_serial_number(serial) if serial else Spectrometer.from_first_available()
@@ -58,7 +59,7 @@ class SeaBreezeSpectrometer:
         return self._it_us
 
     @integration_time_us.setter
-    def integration_time_us(self, value) -> None:
+    def integration_time_us(self, value: Any) -> None:
         us = check_integration_time(value, self._limits)
         self._spec.integration_time_micros(us)
         self._it_us = us
@@ -78,8 +79,8 @@ class SeaBreezeSpectrometer:
     def close(self) -> None:
         self._spec.close()
 
-    def __enter__(self):
+    def __enter__(self) -> Self:
         return self
 
-    def __exit__(self, *exc):
+    def __exit__(self, *exc: object) -> None:
         self.close()

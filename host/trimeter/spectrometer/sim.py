@@ -8,6 +8,7 @@ host/trimeter/twin/README.md § "Spectrometer line protocol". The server is trim
 
 from __future__ import annotations
 
+from typing import Any, Self
 import base64
 import json
 import time
@@ -22,7 +23,7 @@ REPLY_TIMEOUT_S = 5.0
 
 
 class SimSpectrometer:
-    def __init__(self, port: str, timeout_s: float = REPLY_TIMEOUT_S):
+    def __init__(self, port: str, timeout_s: float = REPLY_TIMEOUT_S) -> None:
         import serial  # pyserial: a pty opens like any serial port
 
         if not port:
@@ -79,10 +80,12 @@ class SimSpectrometer:
     def _describe(self) -> SpectrometerDescription:
         try:
             d = json.loads(self._command("DESC?"))
+            first_nm, last_nm = d["wavelength_range_nm"]  # exactly two each, or a bad reply
+            shortest_us, longest_us = d["integration_time_us_limits"]
             return SpectrometerDescription(
                 model=str(d["model"]), serial=str(d["serial"]), pixels=int(d["pixels"]),
-                wavelength_range_nm=tuple(float(x) for x in d["wavelength_range_nm"]),
-                integration_time_us_limits=tuple(int(x) for x in d["integration_time_us_limits"]),
+                wavelength_range_nm=(float(first_nm), float(last_nm)),
+                integration_time_us_limits=(int(shortest_us), int(longest_us)),
                 saturation_counts=float(d["saturation_counts"]),
                 dark_pixels=tuple(int(i) for i in d["dark_pixels"]))
         except (ValueError, KeyError, TypeError) as exc:
@@ -101,7 +104,7 @@ class SimSpectrometer:
         return self._it_us
 
     @integration_time_us.setter
-    def integration_time_us(self, value) -> None:
+    def integration_time_us(self, value: Any) -> None:
         us = check_integration_time(value, self.integration_time_us_limits)
         self._command(f"IT {us}")
         self._it_us = int(self._command("IT?"))
@@ -137,8 +140,8 @@ class SimSpectrometer:
     def close(self) -> None:
         self._serial.close()
 
-    def __enter__(self):
+    def __enter__(self) -> Self:
         return self
 
-    def __exit__(self, *exc):
+    def __exit__(self, *exc: object) -> None:
         self.close()
