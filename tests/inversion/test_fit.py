@@ -324,3 +324,12 @@ def test_light_scattered_into_the_aperture_no_longer_reads_as_a_lower_sigma_t():
     np.testing.assert_allclose(after.alpha, alpha, atol=2e-3)
     np.testing.assert_allclose(after.g, g, atol=0.01)
     assert np.all(after.sigma_t_beer == before.sigma_t_beer)  # the Beer's-law column stays I_c's own
+
+
+def test_the_solver_refuses_a_map_it_was_not_handed_loaded(ideal_map):
+    """inversion.api.fit only solves: a map, path or name goes through trimeter.fit, which loads it."""
+    from trimeter.inversion.api import fit
+
+    for raw in (ideal_map, str(ideal_map.path), [ideal_map]):
+        with pytest.raises(InputError, match="load_artifacts"):
+            fit(raw, [0.1], [0.5], [0.3])

@@ -122,6 +122,9 @@ def fit(models, I_b, I_w, I_c, rho_b=None, rho_w=None, method: str = "lut", *, k
     amaps = list(models) if isinstance(models, (list, tuple)) else [models]
     if not amaps:
         raise InputError("maps must name at least one map")
+    if not all(hasattr(m, "inverter") for m in amaps):  # a map, a path or a name: trimeter.fit loads those
+        raise InputError("inversion.api.fit takes loaded maps (trimeter.maps.artifacts.load_artifacts); "
+                         "trimeter.fit takes maps, paths and names")
     k = len(amaps)
     arrays = _shape_inputs(k, I_b, I_w, I_c, rho_b, rho_w, amaps)
     stds = _shape_stds(k, arrays, (I_b_std, I_w_std, I_c_std), noise_rel, noise_abs)
