@@ -199,7 +199,7 @@ def budget(amap, say=print) -> list[dict]:
     forward coefficients at other precisions, with L unquantized, and with smaller inverse grids."""
     from trimeter.bench.fit import _stats, error_budget, heldout_collimated, heldout_for, heldout_intensities
     from trimeter.inversion.api import fit
-    from trimeter.maps.device_table import table_size
+    from trimeter.maps.device_table import MAX_BYTES, table_size
 
     table = build(amap)
     _, _, h = heldout_for(amap)
@@ -220,9 +220,9 @@ def budget(amap, say=print) -> list[dict]:
              ("L float64 (unquantized)", table, None, amap.inscatter.L, None)]
     for n_inv in (24, 16, 8):
         cases.append((f"inverse grid {n_inv}×{n_inv}", build(amap, n_inv), None, None, None))
-    say(f"\n== {amap.name}: noise-free rendered held-out, table refined at load, lut p≤8")
-    say(f"   {'variant':38s}{'coef bytes':>11s}{'file bytes':>11s}" + "".join(f"{t:>11s}" for t, _ in _COLUMNS[:6])
-        + f"{'ms/1024':>9s}")
+    say(f"\n== {amap.name}: noise-free rendered held-out, table refined at load, lut p≤8 (* over the slot)")
+    say(f"   {'variant':38s}{'coef bytes':>11s}{'file bytes':>11s} " + "".join(f"{t:>11s}" for t, _ in _COLUMNS[:6])
+        + f"{'ms/1024':>10s}")
     rows = []
     tile = np.resize(np.arange(len(I_b)), 1024)
     for name, tab, forward, L, nbytes in cases:
@@ -230,9 +230,11 @@ def budget(amap, say=print) -> list[dict]:
         res = fit(model, I_b, I_w, I_c, method="lut")
         ms = _warm_ms(lambda model=model: fit(model, I_b[tile], I_w[tile], I_c[tile], method="lut"))
         st = _stats(res, truth, scoring)
-        size = table_size(na, ns, ng, tab.inv_alpha_q.shape[1], *tab.inscatter.shape, len(tab._geometry_bytes()))
+        # the file these coefficients would make with this inverse grid (over the slot: would not fit)
+        size = (table_size(na, ns, ng, tab.inv_alpha_q.shape[1], *tab.inscatter.shape, len(tab._geometry_bytes()))
+                + (nbytes or 2 * coef_bytes) - 2 * coef_bytes)
         rows.append({"map": amap.name, "variant": name, "file_bytes": size, "ms_per_1024": ms, **st})
-        say(f"   {name:38s}{nbytes or 2 * coef_bytes:11d}{size:11d}"
+        say(f"   {name:38s}{nbytes or 2 * coef_bytes:11d}{size:11d}{'*' if size > MAX_BYTES else ' '}"
             + "".join(f"{st[key]:11.2e}" if "sigma" in key else f"{st[key]:11.4f}" for _, key in _COLUMNS[:6])
             + f"{ms:9.2f}")
     return rows
