@@ -338,3 +338,10 @@ def test_background_paths_follow_their_share_of_the_error():
                   path_events=10000)
     assert below_share(above, certain) == 1 / BELOW_PILOT
     assert 1 / BELOW_PILOT < below_share(above, noisy) <= 1.0
+
+
+def test_estimator_comparison_refuses_too_few_paths_with_a_clear_error(capsys):
+    from trimeter.cli import main
+
+    assert main(["bench", "mapbuild", "--device-columns", "maps/recipes/device-n1.5-l0.4.toml", "--paths", "10"]) == 2
+    assert "trimeter: error: --paths must be ≥ 65536" in capsys.readouterr().err

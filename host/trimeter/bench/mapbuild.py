@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
+from trimeter.errors import InputError
 from trimeter.maps.recipe import parse_recipe
 
 
@@ -53,6 +54,8 @@ def compare_estimators(recipe_path: str, n_paths: int, seed: int) -> int:
     from trimeter.maps.recipe import load_recipe
     from trimeter.maps.tracer import Stack, k_max_for, trace_column
 
+    if n_paths < 65536:
+        raise InputError(f"--paths must be ≥ 65536 (the projection scales the std-error it measures), got {n_paths}")
     recipe = load_recipe(recipe_path)
     s = recipe.sampling
     stack = Stack.from_recipe(recipe.geometry, recipe.geometry_params, recipe.n, recipe.thickness_mm)
