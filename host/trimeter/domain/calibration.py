@@ -13,6 +13,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from trimeter.domain.capture import Capture, CaptureFlag
 from trimeter.domain.instrument import InstrumentInfo
@@ -48,8 +49,8 @@ class Calibration:
     lamp_monitor: dict = field(default_factory=dict)  # set-up → lamp_monitor.record(): the lamps' references
 
     @classmethod
-    def from_captures(cls, wavelengths_nm, captures: dict[str, Capture], *, white_reference_reflectance: float,
-                      device_time_s: float = 0.0, spectrometer: dict | None = None,
+    def from_captures(cls, wavelengths_nm: ArrayLike, captures: dict[str, Capture], *,
+                      white_reference_reflectance: float, device_time_s: float = 0.0, spectrometer: dict | None = None,
                       device: InstrumentInfo | None = None, lamp_monitor: dict | None = None) -> "Calibration":
         white, black, coll = captures["white"], captures["black"], captures["collimated"]
         flags = white.flags() | black.flags() | coll.flags()

@@ -35,10 +35,21 @@ class MapRef(Protocol):
 
 
 class Estimate(Protocol):
-    """What a measurement needs of fitted parameters (trimeter.results.Parameters is one)."""
+    """What a measurement needs of fitted parameters (trimeter.results.Parameters is one): read-only, as
+    a frozen result is."""
 
-    wavelengths_nm: np.ndarray
-    thickness_mm: float | None
+    @property
+    def wavelengths_nm(self) -> np.ndarray: ...
+    @property
+    def thickness_mm(self) -> float | None: ...
+    @property
+    def alpha(self) -> np.ndarray: ...
+    @property
+    def sigma_t(self) -> np.ndarray: ...
+    @property
+    def g(self) -> np.ndarray: ...
+    @property
+    def sigma_t_beer(self) -> np.ndarray: ...
 
     def columns(self) -> dict: ...
 

@@ -28,6 +28,7 @@ from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from trimeter import __version__
 from trimeter.atomic import atomic_write
@@ -68,7 +69,7 @@ def _read_capped(path: Path) -> str:
         raise InputError(f"{path}: cannot read ({exc.strerror or exc})") from None
 
 
-def _number_list(values, name: str, path: Path) -> np.ndarray:
+def _number_list(values: object, name: str, path: Path) -> np.ndarray:
     if not isinstance(values, list):
         raise InputError(f"{path}: {name} must be a list of numbers")
     out = np.empty(len(values))
@@ -85,7 +86,7 @@ def _number_list(values, name: str, path: Path) -> np.ndarray:
 class _Columns:
     """Columns of a fit's parameters, as SpectralMaterial.from_parameters reads them."""
 
-    def __init__(self, columns: dict, path: Path):
+    def __init__(self, columns: dict, path: Path) -> None:
         lengths = {len(v) for v in columns.values()}
         if len(lengths) != 1:
             raise InputError(f"{path}: columns of different lengths")
@@ -171,7 +172,7 @@ def load_result(path: str | Path) -> LoadedResult:
 
 # ------------------------------------------------------------------------------------- colour
 @lru_cache(maxsize=8)
-def _tristimulus_weights(illuminant: str):
+def _tristimulus_weights(illuminant: str) -> tuple[np.ndarray, np.ndarray]:
     """(λ, W) with XYZ = Σ_λ W(λ)·T(λ) for a transmittance or reflectance T: colour-science's CIE 1931 2°
     observer × the illuminant at 1 nm over 360-780 nm, normalised so that T ≡ 1 has Y = 1 (its
     "Integration" method, tested against colour.sd_to_XYZ)."""
@@ -187,7 +188,7 @@ def _tristimulus_weights(illuminant: str):
     return np.asarray(shape.wavelengths, dtype=float), weights / weights[:, 1].sum()
 
 
-def spectra_to_linear_srgb(wavelengths_nm, values, illuminant: str = "D65") -> np.ndarray:
+def spectra_to_linear_srgb(wavelengths_nm: ArrayLike, values: ArrayLike, illuminant: str = "D65") -> np.ndarray:
     """Linear sRGB of reflectance/transmittance spectra (`values`: (..., len(wavelengths))) seen under
     `illuminant`, adapted to sRGB's D65 white (CAT02) when the illuminant is another. Spectra are
     interpolated linearly onto 1 nm and held constant beyond their ends."""
@@ -204,29 +205,31 @@ def spectra_to_linear_srgb(wavelengths_nm, values, illuminant: str = "D65") -> n
                              apply_cctf_encoding=False)
 
 
-def srgb_encode(linear) -> np.ndarray:
+def srgb_encode(linear: ArrayLike) -> np.ndarray:
     """sRGB's transfer function (for swatches and images), linear values clipped to [0, 1]."""
     import colour
 
     return colour.cctf_encoding(np.clip(np.asarray(linear, dtype=float), 0.0, 1.0), function="sRGB")
 
 
+# How the RGB coefficients are derived, written into rgb.json beside them.
+RGB_METHOD = (
+    "Why not the mean of σ over each channel's band: an RGB renderer attenuates each channel by exp(−σ_c·d), "
+    "and the colour of light through a coloured material is the band-average of exp(−σ(λ)·d), not exp(−(band-"
+    "average of σ)·d) — a narrow absorption band would come out far too weak. So for σt and σa the spectral "
+    "transmittance over the reference thickness d is converted to linear sRGB (XYZ under the illuminant), "
+    "normalised by a non-absorbing sample's (which is then exactly (1, 1, 1)), and σ_c = −ln(T_c)/d: a slab "
+    "of thickness d renders with the measured colour of its unscattered transmittance and its absorption. "
+    "σs_c = σt_c − σa_c keeps σt = σa + σs, which renderers assume. g_c is g(λ) weighted by σs(λ) and the "
+    "channel's (positive) colour-matching weight. A transmittance outside sRGB's gamut is desaturated towards"
+    " its luminance until it fits (`gamut_saturation` < 1 says how much was kept). Exact at d, inside the "
+    "gamut, and for spectrally flat materials; other thicknesses shift the colour slightly.")
+
+
 def linear_srgb_coefficients(material: SpectralMaterial, thickness_mm: float = 1.0,
                              illuminant: str = "D65") -> dict:
-    """σa, σs, σt [1/mm] and g per linear-sRGB channel, through transmittance at `thickness_mm`.
-
-    Why not the mean of σ over each channel's band: an RGB renderer attenuates each channel by
-    exp(−σ_c·d), and the colour of light through a coloured material is the band-average of
-    exp(−σ(λ)·d), not exp(−(band-average of σ)·d) — a narrow absorption band would come out far too
-    weak. So for σt and σa the spectral transmittance over the reference thickness d is converted to
-    linear sRGB (XYZ under the illuminant), normalised by a non-absorbing sample's (which is then
-    exactly (1, 1, 1)), and σ_c = −ln(T_c)/d: a slab of thickness d renders with the measured colour
-    of its unscattered transmittance and its absorption. σs_c = σt_c − σa_c keeps σt = σa + σs, which
-    renderers assume. g_c is g(λ) weighted by σs(λ) and the channel's (positive) colour-matching
-    weight. A transmittance outside sRGB's gamut is desaturated towards its luminance until it fits
-    (`gamut_saturation` < 1 says how much was kept). Exact at d, inside the gamut, and for spectrally
-    flat materials; other thicknesses shift the colour slightly.
-    """
+    """σa, σs, σt [1/mm] and g per linear-sRGB channel, through transmittance at `thickness_mm`, by
+    RGB_METHOD."""
     if not (math.isfinite(thickness_mm) and thickness_mm > 0):
         raise InputError(f"reference thickness must be positive [mm], got {thickness_mm!r}")
     wl = material.wavelengths_nm
@@ -249,7 +252,7 @@ def linear_srgb_coefficients(material: SpectralMaterial, thickness_mm: float = 1
             "gamut_saturation": {"sigma_t": float(saturation[0]), "sigma_a": float(saturation[1])}}
 
 
-def _into_gamut(rgb):
+def _into_gamut(rgb: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
     """Transmittances (rows) moved into [floor, 1] towards their own luminance grey, keeping luminance:
     a saturated colour outside sRGB (a cyan's red channel below 0) would otherwise give an infinite or
     negative coefficient. Returns the moved colours and the saturation kept per row (1: untouched)."""
@@ -263,7 +266,7 @@ def _into_gamut(rgb):
 
 
 # -------------------------------------------------------------------------------------- writers
-def _floats(a, digits: int = 6) -> list[float]:
+def _floats(a: ArrayLike, digits: int = 6) -> list[float]:
     return [float(f"{v:.{digits}g}") for v in np.asarray(a, dtype=float)]
 
 
@@ -275,7 +278,7 @@ def _write_mitsuba(out: Path, material: SpectralMaterial, opts: dict) -> tuple[l
                            "scale": opts["scene_unit_mm"]}
 
 
-def _spd(wavelengths, values, what: str, provenance_line: str) -> str:
+def _spd(wavelengths: np.ndarray, values: np.ndarray, what: str, provenance_line: str) -> str:
     lines = [f"# {what}, trimeter export ({provenance_line})", "# wavelength_nm value"]
     lines += [f"{w:.2f} {v:.6g}" for w, v in zip(wavelengths, values, strict=True)]
     return "\n".join(lines) + "\n"
@@ -306,7 +309,7 @@ def _write_rgb(out: Path, material: SpectralMaterial, opts: dict) -> tuple[list[
     c = linear_srgb_coefficients(material, opts["reference_thickness_mm"], opts["illuminant"])
     doc = {"units": "1/mm", "colour_space": "linear sRGB (D65 white), channels R, G, B",
            **{k: _floats(c[k]) if isinstance(c[k], np.ndarray) else c[k] for k in c},
-           "method": linear_srgb_coefficients.__doc__.split("\n\n")[1].strip().replace("\n    ", " ")}
+           "method": RGB_METHOD}
     atomic_write(out / "rgb.json", json.dumps(doc, indent=1))
     rows = ["channel,sigma_a_per_mm,sigma_s_per_mm,sigma_t_per_mm,g"]
     rows += [f"{ch},{c['sigma_a'][i]:.6g},{c['sigma_s'][i]:.6g},{c['sigma_t'][i]:.6g},{c['g'][i]:.6g}"

@@ -3,14 +3,16 @@ wavelength; the combined estimate thick with a ±1σ band, single thicknesses da
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
 from trimeter.atomic import atomic_output
+from trimeter.domain.measurement import Estimate
 
 
-def plot_parameters(path: str | Path, combined, per_thickness=(), *, title: str = "",
+def plot_parameters(path: str | Path, combined: Estimate, per_thickness: Sequence[Estimate] = (), *, title: str = "",
                     truth: dict | None = None) -> Path:
     import matplotlib
 
@@ -60,7 +62,7 @@ def plot_parameters(path: str | Path, combined, per_thickness=(), *, title: str 
     return Path(path)
 
 
-def _band_scale(value, std, band, ylim) -> int:
+def _band_scale(value: np.ndarray, std: np.ndarray, band: np.ndarray, ylim: tuple[float, float] | None) -> int:
     """1, or the factor (5, 10, 50, …) that widens a ±1σ band narrower than ~1.5 % of the panel to
     about that: otherwise it hides under the line. The legend says so."""
     if not band.any():

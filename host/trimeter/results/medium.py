@@ -17,10 +17,13 @@ finite bins, so the per-pixel noise of a measurement averages out) and mixed.
 from __future__ import annotations
 
 import json
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from trimeter.atomic import atomic_write
 from trimeter.errors import InputError
@@ -29,6 +32,19 @@ SPECTRAL_VARIANTS = ("scalar_spectral", "llvm_ad_spectral", "cuda_ad_spectral", 
                      "llvm_ad_spectral_polarized", "cuda_ad_spectral_polarized")
 VARIANT_NOTE = ("spectral only in Mitsuba's *_spectral variants (" + ", ".join(SPECTRAL_VARIANTS[:3]) +
                 "); *_rgb variants convert each spectrum to one sRGB triplet, *_mono variants to a constant")
+
+
+class SpectralColumns(Protocol):
+    """What a material is read from: a fit's parameters, their columns from a file, or a material."""
+
+    @property
+    def wavelengths_nm(self) -> ArrayLike: ...
+    @property
+    def alpha(self) -> ArrayLike: ...
+    @property
+    def sigma_t(self) -> ArrayLike: ...
+    @property
+    def g(self) -> ArrayLike: ...
 
 
 @dataclass(frozen=True)
@@ -40,7 +56,7 @@ class SpectralMaterial:
     sigma_t: np.ndarray
     g: np.ndarray
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         wl = np.asarray(self.wavelengths_nm, dtype=float)
         arrays = [np.asarray(getattr(self, k), dtype=float) for k in ("alpha", "sigma_t", "g")]
         if wl.ndim != 1 or len(wl) < 2 or not np.all(np.diff(wl) > 0) or not np.all(np.isfinite(wl)):
@@ -59,7 +75,7 @@ class SpectralMaterial:
             object.__setattr__(self, name, a)
 
     @classmethod
-    def from_parameters(cls, parameters) -> "SpectralMaterial":
+    def from_parameters(cls, parameters: SpectralColumns) -> SpectralMaterial:
         """The bins of a fit (results.Parameters or anything with those columns) where α, σt and g are finite."""
         wl = np.asarray(parameters.wavelengths_nm, dtype=float)
         alpha, sigma_t, g = (np.asarray(getattr(parameters, k), dtype=float) for k in ("alpha", "sigma_t", "g"))
@@ -87,18 +103,19 @@ class SpectralMaterial:
         w = self.sigma_s
         return float(np.clip(np.average(self.g, weights=w) if w.sum() > 0 else self.g.mean(), -0.99, 0.99))
 
-    def at(self, wavelengths_nm) -> "SpectralMaterial":
+    def at(self, wavelengths_nm: ArrayLike) -> SpectralMaterial:
         """On other wavelengths: α, σt and g interpolated linearly, held constant beyond the ends."""
         lam = np.asarray(wavelengths_nm, dtype=float)
         return SpectralMaterial(lam, *(np.interp(lam, self.wavelengths_nm, v) for v in (self.alpha, self.sigma_t,
                                                                                           self.g)))
 
     @classmethod
-    def from_coefficients(cls, wavelengths_nm, sigma_a, sigma_s, g) -> "SpectralMaterial":
+    def from_coefficients(cls, wavelengths_nm: ArrayLike, sigma_a: ArrayLike, sigma_s: ArrayLike,
+                          g: ArrayLike) -> SpectralMaterial:
         sigma_t = np.asarray(sigma_a, dtype=float) + np.asarray(sigma_s, dtype=float)
         with np.errstate(invalid="ignore", divide="ignore"):
             alpha = np.where(sigma_t > 0, np.asarray(sigma_s, dtype=float) / sigma_t, 0.0)
-        return cls(wavelengths_nm, np.clip(alpha, 0, 1), sigma_t, g)
+        return cls(np.asarray(wavelengths_nm, dtype=float), np.clip(alpha, 0, 1), sigma_t, np.asarray(g, dtype=float))
 
     def resampled(self, step_nm: float = 5.0) -> "SpectralMaterial":
         """On a regular grid every `step_nm` over the covered range: the mean of the bins within ±step/2
@@ -124,7 +141,7 @@ class SpectralMaterial:
                                         for k in ("alpha", "sigma_t", "g")))
 
     @staticmethod
-    def mixture(materials, fractions) -> "SpectralMaterial":
+    def mixture(materials: Iterable[SpectralMaterial], fractions: ArrayLike) -> SpectralMaterial:
         """A mixture by volume fractions on the first material's wavelengths: σa and σs add in
         proportion (each material's particles keep their cross-sections), g is the σs-weighted mean."""
         materials = list(materials)
@@ -144,7 +161,8 @@ class SpectralMaterial:
         return SpectralMaterial.from_coefficients(lam, sa, ss, np.clip(g, -0.99, 0.99))
 
 
-def medium_spectra(parameters, step_nm: float = 5.0):
+def medium_spectra(parameters: SpectralColumns,
+                   step_nm: float = 5.0) -> tuple[np.ndarray, np.ndarray, np.ndarray, float] | None:
     """(grid, albedo, σt, g_mean) for the Mitsuba medium, or None with fewer than two valid bins."""
     try:
         m = SpectralMaterial.from_parameters(parameters)
@@ -154,11 +172,11 @@ def medium_spectra(parameters, step_nm: float = 5.0):
     return m.wavelengths_nm, m.alpha, m.sigma_t, m.g_mean()
 
 
-def _pairs(grid, values) -> str:
+def _pairs(grid: np.ndarray, values: np.ndarray) -> str:
     return ", ".join(f"{w:.1f}:{v:.6g}" for w, v in zip(grid, values, strict=True))
 
 
-def medium_dict(parameters, *, scale: float = 1.0, step_nm: float = 5.0) -> dict | None:
+def medium_dict(parameters: SpectralColumns, *, scale: float = 1.0, step_nm: float = 5.0) -> dict | None:
     spectra = medium_spectra(parameters, step_nm)
     if spectra is None:
         return None
@@ -172,7 +190,8 @@ def medium_dict(parameters, *, scale: float = 1.0, step_nm: float = 5.0) -> dict
             "phase": {"type": "hg", "g": g}}
 
 
-def write_medium(directory: str | Path, parameters, *, scale: float = 1.0, step_nm: float = 5.0) -> dict:
+def write_medium(directory: str | Path, parameters: SpectralColumns, *, scale: float = 1.0,
+                 step_nm: float = 5.0) -> dict:
     """Write medium.xml + medium.json (spectra every `step_nm`, 0: the bins as given); returns what was
     written (for measurement.json)."""
     directory = Path(directory)

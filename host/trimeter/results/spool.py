@@ -69,7 +69,7 @@ def refit_hint(directory: Path) -> str:
 class CaptureSpooled(OutputError):
     """The results directory could not take a measurement; its capture is kept at `path` instead."""
 
-    def __init__(self, message: str, path: Path):
+    def __init__(self, message: str, path: Path) -> None:
         super().__init__(message)
         self.path = path
 

@@ -20,9 +20,12 @@ import os
 import shutil
 from dataclasses import dataclass
 from datetime import datetime, timezone
+from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from trimeter.atomic import atomic_output, atomic_write, fsync_directory
 from trimeter.domain.parameters import FitResult
@@ -42,13 +45,14 @@ class Parameters:
     thickness_mm: float | None = None   # None for a combined estimate
 
     @classmethod
-    def from_fit(cls, wavelengths_nm, result: FitResult, *, thickness_mm=None) -> "Parameters":
+    def from_fit(cls, wavelengths_nm: ArrayLike, result: FitResult, *,
+                 thickness_mm: float | None = None) -> Parameters:
         wavelengths_nm = np.asarray(wavelengths_nm, float)
         if len(result) != len(wavelengths_nm):
             raise ValueError(f"{len(result)} fitted bins for {len(wavelengths_nm)} wavelengths")
         return cls(wavelengths_nm, result, thickness_mm)
 
-    def __getattr__(self, name):
+    def __getattr__(self, name: str) -> Any:
         # only called for names not found otherwise; the guard keeps copy/replace (no `fit` yet) finite
         if name in PARAMETER_COLUMNS and "fit" in self.__dict__:
             return getattr(self.fit, name)
@@ -60,9 +64,9 @@ class Parameters:
         return out
 
     def to_json(self) -> dict:
-        def clean(a):
+        def clean(a: ArrayLike) -> list[float | None]:
             return [None if not np.isfinite(v) else float(v) for v in np.asarray(a, float)]
-        d = {"thickness_mm": self.thickness_mm, "wavelength_nm": clean(self.wavelengths_nm)}
+        d: dict[str, object] = {"thickness_mm": self.thickness_mm, "wavelength_nm": clean(self.wavelengths_nm)}
         for name in PARAMETER_COLUMNS:
             d[name] = [int(v) for v in self.flags] if name == "flags" else clean(getattr(self, name))
         return d
@@ -156,7 +160,7 @@ def expected_size_bytes(n_bins: int, n_samples: int) -> int:
     return _CELL_BYTES * n_bins * columns + files * _BLOCK_BYTES + _FIGURE_BYTES
 
 
-def file_tags(thicknesses) -> list[str]:
+def file_tags(thicknesses: Sequence[float | None]) -> list[str]:
     """File-name suffixes per sample: none for one, `_0.4mm` per thickness, `_2_0.4mm` if one repeats."""
     if len(thicknesses) < 2:
         return [""] * len(thicknesses)
