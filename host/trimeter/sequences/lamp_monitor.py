@@ -42,7 +42,7 @@ def _is_open(setup: dict, lamp: str) -> bool:
     return bool(setup["collimated"] if lamp == "collimated" else setup["panels"])
 
 
-def _well_formed(records) -> bool:
+def _well_formed(records: object) -> bool:
     try:
         return isinstance(records, dict) and all(
             isinstance(s["panels"], bool) and isinstance(s["collimated"], bool) and s["readings"]
@@ -125,7 +125,7 @@ def shot_problems(light: dict | None) -> list[str]:
         return [light["error"]]
     worst: dict[tuple[str, str], tuple[float, list[str], float]] = {}
 
-    def note(lamp, kind, value, setup, badness):
+    def note(lamp: str, kind: str, value: float, setup: str, badness: float) -> None:
         previous = worst.get((lamp, kind))
         if previous is None or badness > previous[0]:
             worst[(lamp, kind)] = (badness, [setup], value)

@@ -14,28 +14,31 @@ Every capture: auto-exposure, `frames` averaged exposures, dark frames at every 
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
 from trimeter.domain import Calibration, Capture, RawSample
+from trimeter.spectrometer.base import SpectrometerDescription
 from trimeter.errors import CheckError, DeviceError
 from trimeter.sequences import lamp_monitor
 from trimeter.sequences.steps import (Acquire, Describe, DeviceTime, Expose, LampMonitor, Lights, Move, Progress,
-                                      Status, Wait)
+                                      Plan, Status, Wait)
 
 SATURATION_FRACTION = 0.98   # a bin above this fraction of full scale counts as saturated
 EXPOSURE_TARGET = 0.7        # auto-exposure aims the brightest bin at this fraction of full scale
 NO_LIGHT_FRACTION = 0.003    # brightest bin under this fraction of full scale at the longest exposure: no light
 
 
-def _lit_bins(description, n):
+def _lit_bins(description: SpectrometerDescription, n: int) -> np.ndarray:
     lit = np.ones(n, dtype=bool)
     lit[[p for p in description.dark_pixels if 0 <= p < n]] = False
     return lit
 
 
-def _offset(counts, description):
+def _offset(counts: np.ndarray, description: SpectrometerDescription) -> float:
     """Dark-offset estimate of one frame from the masked pixels, for exposure control only (the rates use
     real dark frames). Without masked pixels: 0, i.e. the offset counts as signal (conservative)."""
     dark = [p for p in description.dark_pixels if 0 <= p < len(counts)]
@@ -43,7 +46,8 @@ def _offset(counts, description):
     return value if np.isfinite(value) else 0.0
 
 
-def auto_expose(start_us: float | None = None, *, target: float = EXPOSURE_TARGET, max_iterations: int = 10):
+def auto_expose(start_us: float | None = None, *, target: float = EXPOSURE_TARGET,
+                max_iterations: int = 10) -> Plan[tuple[float, float]]:
     """Find the integration time that puts the brightest lit bin at `target` of full scale (its maximum,
     not a percentile: a bin that saturates in every frame is lost, so none may).
     Returns (integration_time_us, peak_fraction) — peak_fraction ≈ 0 means there is no light."""
@@ -78,7 +82,7 @@ def auto_expose(start_us: float | None = None, *, target: float = EXPOSURE_TARGE
 
 
 def capture(slot: str, *, panels: bool = False, collimated: bool = False, frames: int = 2, hdr_decades: int = 0,
-            start_us: float | None = None):
+            start_us: float | None = None) -> Plan[tuple[dict, float, dict]]:
     """One set-up: move, light, auto-expose, then `frames` exposures at t, 10t, … (HDR decades).
     Returns {integration_time_us: mean counts}, the auto-exposure's peak fraction and the lamp monitor's
     record (read once the shutters settled and again after the last exposure)."""
@@ -101,7 +105,7 @@ def capture(slot: str, *, panels: bool = False, collimated: bool = False, frames
     return signals, peak, lamp_monitor.record(panels, collimated, monitor)
 
 
-def dark_frames(times, *, frames: int = 2):
+def dark_frames(times: list[float], *, frames: int = 2) -> Plan[dict]:
     """All shutters closed; one averaged dark frame per integration time used."""
     yield Lights(panels=False, collimated=False)
     darks = {}
@@ -150,7 +154,9 @@ def _check_light(capture: Capture, saturation_counts: float, what: str) -> None:
                           "closed?); nothing was measured")
 
 
-def _captures(setups, frames, progress_from, progress_to, label):
+def _captures(setups: Sequence[tuple[str, str, bool, bool, int, str | None]], frames: int, progress_from: float,
+              progress_to: float, label: str
+              ) -> Plan[tuple[dict[str, Capture], np.ndarray, SpectrometerDescription, dict[str, Any]]]:
     description, wavelengths = yield Describe()
     lit = _lit_bins(description, len(wavelengths))
     raw, peaks, monitors = {}, {}, {}
@@ -173,7 +179,7 @@ def _captures(setups, frames, progress_from, progress_to, label):
     return out, wavelengths[lit], description, monitors
 
 
-def calibration(*, white_reference_reflectance: float, frames: int = 2):
+def calibration(*, white_reference_reflectance: float, frames: int = 2) -> Plan[Calibration]:
     """Paper Sec. 4.2, without a sample: returns a Calibration."""
     if not 0 < white_reference_reflectance <= 1:
         raise DeviceError(f"white reference reflectance must be in (0, 1], got {white_reference_reflectance}")
@@ -189,7 +195,7 @@ def calibration(*, white_reference_reflectance: float, frames: int = 2):
                                      lamp_monitor=monitors)
 
 
-def holder_check(*, white_reference_reflectance: float, frames: int = 1):
+def holder_check(*, white_reference_reflectance: float, frames: int = 1) -> Plan[Calibration]:
     """A quick look at the three references before a calibration (lamps possibly still cold): returns a
     provisional Calibration for checks.calibration_problems. A reference without light is a CheckError
     here, not a lamp failure: a sample or anything else in the holder may be what blocks it."""
@@ -209,7 +215,7 @@ def holder_check(*, white_reference_reflectance: float, frames: int = 1):
                                      lamp_monitor=monitors)
 
 
-def sample_capture(*, frames: int = 2, hdr_decades: int = 2, label: str = "sample"):
+def sample_capture(*, frames: int = 2, hdr_decades: int = 2, label: str = "sample") -> Plan[RawSample]:
     """The sample against black, white and the collimated beam: returns a RawSample (rates, counts/s)."""
     yield Status("fast_blink")
     setups = [("black", "black", True, False, 0, None),
@@ -228,7 +234,8 @@ class WarmUpResult:
     spectra: int
 
 
-def warm_up(*, threshold: float = 0.002, interval_s: float = 10.0, timeout_s: float = 900.0, frames: int = 2):
+def warm_up(*, threshold: float = 0.002, interval_s: float = 10.0, timeout_s: float = 900.0,
+            frames: int = 2) -> Plan[WarmUpResult]:
     """Lamps on, white background; stop when two spectra `interval_s` apart differ by < `threshold`."""
     yield Status("slow_blink")
     yield Move("white")

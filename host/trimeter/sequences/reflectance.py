@@ -10,8 +10,9 @@ gets NaN (and a CaptureFlag bit); the fit flags NaN inputs as unusable.
 from __future__ import annotations
 
 import numpy as np
+from numpy.typing import ArrayLike
 
-from trimeter.domain import Calibration, RawSample, Reflectances
+from trimeter.domain import Calibration, Capture, RawSample, Reflectances
 from trimeter.errors import InputError
 from trimeter.sequences import lamp_monitor
 
@@ -27,7 +28,7 @@ STD_POOL_BINS = 15
 LAMP_SPECTRAL_REL = 1.0
 
 
-def pooled_relative_std(rel_std) -> np.ndarray:
+def pooled_relative_std(rel_std: ArrayLike) -> np.ndarray:
     """Relative stds pooled over STD_POOL_BINS neighbouring bins (root of their mean square, NaN bins
     left out and left NaN)."""
     rel = np.asarray(rel_std, dtype=float)
@@ -75,7 +76,8 @@ def reflectances(calibration: Calibration, sample: RawSample) -> Reflectances:
     bad = flags != 0
     nan = np.float64("nan")
 
-    def std(value, capture, reference_rel, lamp_rel):
+    def std(value: np.ndarray, capture: Capture, reference_rel: np.ndarray | None,
+            lamp_rel: np.ndarray | float) -> np.ndarray | None:
         if reference_rel is None or capture.rate_std is None:
             return None
         with np.errstate(invalid="ignore"):

@@ -19,7 +19,7 @@ import tomllib
 from dataclasses import dataclass, field
 from enum import IntEnum
 from functools import lru_cache
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
@@ -27,9 +27,15 @@ from trimeter import registers as regs
 from trimeter.errors import TrimeterError
 from trimeter.paths import HARDWARE_DIR
 from trimeter.sequences.plans import EXPOSURE_TARGET, NO_LIGHT_FRACTION, SATURATION_FRACTION, auto_expose
-from trimeter.sequences.steps import Acquire, Expose, Runner
+from trimeter.sequences.steps import Acquire, Expose, Plan, Runner
+from trimeter.spectrometer.base import Spectrometer
+
+if TYPE_CHECKING:
+    from trimeter.device.client import Device, Value
 
 PASS, FAIL, SKIP = "pass", "fail", "skip"
+# What a check finds: its status, a message saying what to fix, and the figures it judged by.
+Outcome = tuple[str, str, dict]
 
 FRAMES = 2                       # exposures averaged per spectrum
 MIN_RISE_FRACTION = 0.05         # a working light raises the brightest bins by ≥ this much of full scale
@@ -85,7 +91,7 @@ class CheckResult:
                 "figures": {k: _plain(v) for k, v in self.figures.items()}, "seconds": round(self.seconds, 3)}
 
 
-def _plain(value):
+def _plain(value: object) -> object:
     if isinstance(value, IntEnum):
         return value.name.lower()
     if isinstance(value, (np.floating, float)):
@@ -110,15 +116,15 @@ class SelfTestReport:
                 "checks": [c.to_dict() for c in self.checks]}
 
 
-def _outcome(status: str, message: str, **figures) -> tuple[str, str, dict]:
+def _outcome(status: str, message: str, **figures: object) -> Outcome:
     return status, message, figures
 
 
-def _enum_name(code) -> str:
+def _enum_name(code: object) -> str:
     return code.name.lower() if isinstance(code, IntEnum) else str(code)
 
 
-def _spectrum_plan(integration_time_us: float, frames: int):
+def _spectrum_plan(integration_time_us: float, frames: int) -> Plan[tuple[int, np.ndarray]]:
     actual = yield Expose(integration_time_us)
     counts = yield Acquire(frames)
     return actual, counts
@@ -127,8 +133,9 @@ def _spectrum_plan(integration_time_us: float, frames: int):
 class _Bench:
     """The device and spectrometer under test, and what the checks so far have found."""
 
-    def __init__(self, device, spectrometer, *, frames: int, device_clock: Callable[[], float] | None,
-                 clock: Callable[[], float], sleep: Callable[[float], None]):
+    def __init__(self, device: Device, spectrometer: Spectrometer, *, frames: int,
+                 device_clock: Callable[[], float] | None, clock: Callable[[], float],
+                 sleep: Callable[[float], None]) -> None:
         self.device, self.spectrometer, self.frames = device, spectrometer, frames
         self.device_clock, self.clock, self.sleep = device_clock, clock, sleep
         self.description = spectrometer.description
@@ -149,7 +156,7 @@ class _Bench:
     def now(self) -> float:
         return self.device_clock() if self.device_clock is not None else self.clock()
 
-    def wait_idle(self, timeout_s: float):
+    def wait_idle(self, timeout_s: float) -> tuple[bool, Value]:
         """Poll until not busy: returns (finished, fault code or None)."""
         deadline = self.clock() + timeout_s
         while True:
@@ -233,12 +240,15 @@ class _Bench:
         return self._sources[light]
 
 
+Check = Callable[[_Bench], Outcome]
+
+
 class _CheckFailed(Exception):
     """A check found a problem partway (its message says what to fix)."""
 
 
 # ------------------------------------------------------------------------------------ checks
-def check_device(bench: _Bench):
+def check_device(bench: _Bench) -> Outcome:
     dev = bench.device
     identity = getattr(dev, "identity", None)
     version = ".".join(map(str, identity.firmware_version)) if identity else "?"
@@ -256,7 +266,7 @@ def check_device(bench: _Bench):
     return _outcome(PASS, "; ".join([message, *notes]), **figures)
 
 
-def check_homing(bench: _Bench):
+def check_homing(bench: _Bench) -> Outcome:
     dev, config = bench.device, bench.config
     bench.clear_fault()
     timeout_s = bench.homing_timeout_s()
@@ -298,8 +308,8 @@ def check_homing(bench: _Bench):
                           f"{position_mm:.2f} mm", **figures)
 
 
-def _check_slot(slot: str):
-    def check(bench: _Bench):
+def _check_slot(slot: str) -> Check:
+    def check(bench: _Bench) -> Outcome:
         dev, config = bench.device, bench.config
         target_mm = config[f"slot_{slot}_mm"]
         if not bench.homed:
@@ -337,7 +347,7 @@ def _check_slot(slot: str):
     return check
 
 
-def check_dark_level(bench: _Bench):
+def check_dark_level(bench: _Bench) -> Outcome:
     lo, hi = bench.description.integration_time_us_limits
     long_us = float(min(max(DARK_CHECK_US, lo), hi))
     shortest = bench.dark(float(lo))
@@ -370,13 +380,13 @@ def check_dark_level(bench: _Bench):
                           f"{abs(above):.2%} of the masked ones at {long_us / 1e3:g} ms; nothing saturated", **figures)
 
 
-def _check_exposure(setup: str):
+def _check_exposure(setup: str) -> Check:
     """Auto-exposure with all lights of a set-up on: it must converge, and nothing may saturate at its result."""
     lights = PANELS if setup == "panels" else ("collimated",)
     where = "white" if setup == "panels" else "open"
     level_name = "led_panels_level" if setup == "panels" else "led_collimated_level"
 
-    def check(bench: _Bench):
+    def check(bench: _Bench) -> Outcome:
         if setup == "collimated" and where not in bench.reached:
             return _outcome(SKIP, "not judged: the collimated beam is seen only through the open slot, which the "
                                   "slider did not reach (see slot open)")
@@ -421,7 +431,7 @@ def _check_name(kind: str, light: str) -> str:
     return f"{kind} {light.replace('_', ' ')}"
 
 
-def _light_not_judged(bench: _Bench, light: str):
+def _light_not_judged(bench: _Bench, light: str) -> Outcome | None:
     """Why `light` can't be judged with what the earlier checks reached (None: it can)."""
     if light == "collimated" and "open" not in bench.reached:
         return _outcome(SKIP, "not judged: the collimated beam is seen only through the open slot, which the "
@@ -433,8 +443,8 @@ def _light_not_judged(bench: _Bench, light: str):
     return None
 
 
-def _check_led(light: str):
-    def check(bench: _Bench):
+def _check_led(light: str) -> Check:
+    def check(bench: _Bench) -> Outcome:
         if skipped := _light_not_judged(bench, light):
             return skipped
         found = bench.source(light)
@@ -460,8 +470,8 @@ def _check_led(light: str):
     return check
 
 
-def _check_shutter(light: str):
-    def check(bench: _Bench):
+def _check_shutter(light: str) -> Check:
+    def check(bench: _Bench) -> Outcome:
         if skipped := _light_not_judged(bench, light):
             return skipped
         found = bench.source(light)
@@ -480,7 +490,7 @@ def _check_shutter(light: str):
     return check
 
 
-def check_backgrounds(bench: _Bench):
+def check_backgrounds(bench: _Bench) -> Outcome:
     """White vs black under the panels: the slider really moved between them and the backgrounds are in place."""
     missing = [s for s in ("white", "black") if s not in bench.reached]
     if missing:
@@ -520,7 +530,7 @@ def check_backgrounds(bench: _Bench):
     return _outcome(PASS, f"under the panels, white is {ratio:.1f}× brighter than black", **figures)
 
 
-CHECKS: tuple[tuple[str, Callable], ...] = (
+CHECKS: tuple[tuple[str, Check], ...] = (
     ("device", check_device),
     ("homing", check_homing),
     ("slot white", _check_slot("white")),
@@ -539,7 +549,8 @@ CHECKS: tuple[tuple[str, Callable], ...] = (
 )
 
 
-def run_selftest(device, spectrometer, *, frames: int = FRAMES, device_clock: Callable[[], float] | None = None,
+def run_selftest(device: Device, spectrometer: Spectrometer, *, frames: int = FRAMES,
+                 device_clock: Callable[[], float] | None = None,
                  on_result: Callable[[CheckResult, int, int], None] | None = None,
                  clock: Callable[[], float] = time.monotonic, sleep: Callable[[float], None] = time.sleep
                  ) -> SelfTestReport:
@@ -586,14 +597,14 @@ def run_selftest(device, spectrometer, *, frames: int = FRAMES, device_clock: Ca
     return SelfTestReport(results, device_info, spectrometer_info)
 
 
-def _uptime_or_none(device):
+def _uptime_or_none(device: Device) -> int | None:
     try:
         return device.read("uptime_s")
     except TrimeterError:
         return None
 
 
-def _leave_safe(device, pattern) -> None:
+def _leave_safe(device: Device, pattern: object) -> None:
     """Lights off and shutters closed, the status LED as it was; best effort (the device may be gone)."""
     try:
         for name in regs.COILS:

@@ -12,6 +12,7 @@ import math
 import tomllib
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
+from typing import Any
 
 from trimeter.atomic import atomic_write
 from trimeter.errors import InputError
@@ -88,8 +89,8 @@ class HostSettings:
             settings.set(key, value, source=str(path))
         return settings
 
-    def set(self, key: str, value, source: str = "host config") -> None:
-        types = {f.name: f.type for f in fields(self)}
+    def set(self, key: str, value: Any, source: str = "host config") -> None:
+        types = {f.name: str(f.type) for f in fields(self)}  # postponed annotations: already the names
         if key not in types:
             raise InputError(f"{key}: no such host setting ({', '.join(types)})")
         kind = {"str": str, "int": int, "float": float}[types[key]]
@@ -126,7 +127,7 @@ class HostSettings:
         return asdict(self)
 
 
-def _toml_value(value) -> str:
+def _toml_value(value: object) -> str:
     if isinstance(value, str):
         return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
     return repr(value)

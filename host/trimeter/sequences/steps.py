@@ -21,13 +21,17 @@ from __future__ import annotations
 import functools
 import time
 from dataclasses import dataclass, field
-from typing import Callable, Generator, TypeVar
+from typing import TYPE_CHECKING, Any, Callable, Generator, TypeVar
 
 import numpy as np
 
 from trimeter.device.client import light_coils
 from trimeter.device.transport import LinkError
 from trimeter.errors import DeviceError, InputError
+
+if TYPE_CHECKING:
+    from trimeter.device.client import Device
+    from trimeter.spectrometer.base import Spectrometer
 
 T = TypeVar("T")
 LAMP_MONITORS = ("panel_left", "panel_right", "collimated")  # one photodiode per LED channel
@@ -95,7 +99,8 @@ class Progress:
     message: str
 
 
-Plan = Generator[object, object, object]
+# A plan yields steps and is sent each one's answer, whose type depends on the step; it returns a T.
+Plan = Generator[object, Any, T]
 
 
 @dataclass(frozen=True)
@@ -106,7 +111,7 @@ class RetryPolicy:
     backoff_s: float = 0.2       # before the 2nd try; doubled before each further one
     max_backoff_s: float = 2.0
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         if isinstance(self.attempts, bool) or not isinstance(self.attempts, int) or self.attempts < 1:
             raise InputError(f"step attempts must be an integer ≥ 1, got {self.attempts!r}")
         if not 0.0 <= self.backoff_s <= self.max_backoff_s <= 60.0:
@@ -140,7 +145,7 @@ class Timing:
         return {k: (round(v, 4) if isinstance(v, float) else v) for k, v in self.__dict__.items()}
 
 
-def retry_on_link_error(action: Callable[[], T], what: str, policy: RetryPolicy, transport, *,
+def retry_on_link_error(action: Callable[[], T], what: str, policy: RetryPolicy, transport: object, *,
                         sleep: Callable[[float], None] = time.sleep, timing: Timing | None = None,
                         abandoned: str = "the sequence was abandoned") -> T:
     """`action()`, tried again while it fails with a LinkError, up to `policy.attempts` tries: after each
@@ -171,9 +176,10 @@ def retry_on_link_error(action: Callable[[], T], what: str, policy: RetryPolicy,
 class Runner:
     """Executes plans against a Device and a Spectrometer."""
 
-    def __init__(self, device, spectrometer, *, on_progress: Callable[[float, str], None] | None = None,
-                 move_timeout_s: float = 60.0, sleep: Callable[[float], None] = time.sleep,
-                 device_clock: Callable[[], float] | None = None, retry: RetryPolicy = RetryPolicy()):
+    def __init__(self, device: Device, spectrometer: Spectrometer, *,
+                 on_progress: Callable[[float, str], None] | None = None, move_timeout_s: float = 60.0,
+                 sleep: Callable[[float], None] = time.sleep, device_clock: Callable[[], float] | None = None,
+                 retry: RetryPolicy = RetryPolicy()) -> None:
         """`device_clock`: the device's own time in seconds with sub-second resolution, if there is one
         (the twin's simulated clock); it splits physical time (motion, settling) from host overhead."""
         self.device = device
@@ -190,7 +196,7 @@ class Runner:
         self.retry = retry
         self._wait_start: int | None = None  # a Wait's start, kept across its retries
 
-    def run(self, plan: Plan):
+    def run(self, plan: Plan[T]) -> T:
         started = time.monotonic()
         stats = getattr(self.device.transport, "stats", None)
         requests0, busy0, retries0 = (stats.requests, stats.busy_s, stats.retries) if stats else (0, 0.0, 0)
@@ -239,7 +245,7 @@ class Runner:
                                   "the measurement was abandoned")
 
     # ------------------------------------------------------------------------------- execute
-    def execute(self, step):
+    def execute(self, step: object) -> Any:
         if isinstance(step, (Move, Lights, Wait)) and self._device_clock is not None:
             d0 = self._device_clock()
             result = self._execute(step)
@@ -251,7 +257,7 @@ class Runner:
             return result
         return self._execute(step)
 
-    def _execute(self, step):
+    def _execute(self, step: object) -> Any:
         dev, spec = self.device, self.spectrometer
         if isinstance(step, Move):
             t0 = time.monotonic()
@@ -316,7 +322,7 @@ class Runner:
 
 
 
-def _describe(step) -> str:
+def _describe(step: object) -> str:
     """A step as the operator would say it, for errors."""
     if isinstance(step, Move):
         return f"moving to the {step.slot} slot"
