@@ -1,7 +1,8 @@
 #!/usr/bin/env python3
 """Write the fuzzers' seed corpora. corpus/ (fuzz_modbus): valid RTU frames of every function code against
 the trimeter register map (slave 1 and broadcast), plus bad ones. corpus_app/ (fuzz_app): short programs
-of its operations (fuzz_app.c, run_op). Run with the venv (`make -C firmware/fuzz corpus`)."""
+of its operations (fuzz_app.c, run_op). corpus_table_fit/ (fuzz_table_fit): edits of the device table and
+bins. Run with the venv (`make -C firmware/fuzz corpus`)."""
 
 from pathlib import Path
 import struct
@@ -86,8 +87,24 @@ APP_SEEDS = {
 }
 
 
+def bins(*rows) -> bytes:
+    """fuzz_table_fit's bins: (I_b, I_w, I_c, rho_b, rho_w) per row, float32 little-endian."""
+    return b"".join(struct.pack("<5f", *row) for row in rows)
+
+
+ORDINARY = ((0.10, 0.30, 0.05, 0.02, 0.95), (0.40, 0.70, 0.40, 0.02, 0.95), (0.02, 0.05, 0.001, 0.02, 0.95))
+NAN = float("nan")
+TABLE_FIT_SEEDS = {  # fuzz_table_fit: edit count (bit 4: cut the length), edits (u16 offset, byte), bins
+    "ordinary_bins": bytes([0]) + bins(*ORDINARY),
+    "special_bins": bytes([0]) + bins((NAN, 0.5, 0.1, 0.02, 0.95), (0.1, 0.5, 0.0, 0.5, 0.2), (-1, 2, 1e30, 0, 1)),
+    "n_alpha_edited": bytes([1]) + struct.pack("<HB", 116, 3) + bins(ORDINARY[0]),
+    "scale_edited": bytes([2]) + struct.pack("<HBHB", 307, 0x7F, 315, 0xFF) + bins(*ORDINARY),
+    "length_cut": bytes([0x10, 9]) + bins(ORDINARY[1]),
+}
+
+
 def main() -> None:
-    for directory, seeds in (("corpus", SEEDS), ("corpus_app", APP_SEEDS)):
+    for directory, seeds in (("corpus", SEEDS), ("corpus_app", APP_SEEDS), ("corpus_table_fit", TABLE_FIT_SEEDS)):
         out = HERE / directory
         out.mkdir(exist_ok=True)
         for name, data in seeds.items():
