@@ -73,6 +73,7 @@ def test_the_map_error_is_its_mc_error_where_the_splines_are_exact():
 
 def test_given_stds_set_the_uncertainty_and_thickness_widens_sigma_t_only():
     from trimeter.maps.appearance import AppearanceMap
+    from trimeter.maps.artifacts import load_artifacts
 
     amap = AppearanceMap.load(DEVICE)
     I_b, I_w, I_c = _materials(amap)
@@ -91,7 +92,8 @@ def test_given_stds_set_the_uncertainty_and_thickness_widens_sigma_t_only():
     thick = trimeter.fit(amap, I_b, I_w, I_c, thickness_std_mm=0.02)
     np.testing.assert_allclose(thick.alpha_std, model.alpha_std, rtol=1e-12)
     np.testing.assert_allclose(thick.g_std, model.g_std, rtol=1e-12)
-    expected = np.hypot(model.sigma_t_std, model.sigma_t * 0.02 / amap.thickness_mm)
+    ell = load_artifacts(amap).setup.thickness_mm  # the fit's one set-up: the table's (f32) ℓ
+    expected = np.hypot(model.sigma_t_std, model.sigma_t * 0.02 / ell)
     np.testing.assert_allclose(thick.sigma_t_std, expected, rtol=1e-9)
     # the in-scattering correction's uncertainty reaches σt (and α, g) where the correction moved it
     none = trimeter.fit(amap, I_b, I_w, I_c, inscatter_rel_std=0.0)
