@@ -190,3 +190,16 @@ def test_bad_inputs_are_flagged_bins_with_nan_values(heldout):
     below = fitter.fit(0.1, 0.5, 0.0)
     assert below[3] & int(FitFlag.IC_BELOW_FLOOR) and np.isfinite(below[1])
     assert fitter.fit([], [], [])[0].shape == (0,)
+
+
+def test_the_bench_prints_the_table_fit_s_figures_and_names_bad_arguments(heldout, tmp_path, capsys):
+    from trimeter.cli import main
+
+    path = tmp_path / "l04.tlut"
+    path.write_bytes(heldout.data)
+    assert main(["bench", "table-fit", "--table", str(path), "--repeats", "1"]) == 0
+    out = capsys.readouterr().out
+    rows = [line for line in out.splitlines() if line.startswith(("table alone", "map lut"))]
+    assert len(rows) == 3 and all(" met " in row for row in rows), out
+    assert main(["bench", "table-fit", "--table", str(path), "--library", str(tmp_path / "none.so")]) == 2
+    assert "trimeter: error: --library: no such file" in capsys.readouterr().err

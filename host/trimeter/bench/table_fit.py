@@ -3,7 +3,8 @@ the source the firmware links as tr_fit_bins, here in double precision), on its 
 (maps/heldout, as `bench fit` scores them): α p95, σt relative p95 and g p95 (α ≥ 0.5) against the
 targets, and the time per 1024 bins beside the map's own lut fit (its refined grid, in C) in the same
 run, timed round-robin, best of --repeats. Run it on one core for the per-core figure:
-`taskset -c 1 trimeter bench table-fit --table FILE`.
+`taskset -c 1 trimeter bench table-fit --table FILE`. A third row: the same table's forward model
+sampled onto the refined grid at load (DeviceTable.fit_model), which the host may fit with instead.
 """
 
 from __future__ import annotations
@@ -27,13 +28,15 @@ def register(bench_subparsers) -> None:
     p.add_argument("--table", type=Path, required=True, help="a .tlut v2 file (tools/device_table.py build)")
     p.add_argument("--map", help="its map (default: the map the table names)")
     p.add_argument("--repeats", type=int, default=7, help="timed runs per variant (best kept; default 7)")
+    p.add_argument("--library", type=Path, help="another build of the kernel to fit the table with (e.g. one compiled "
+                                                "with -DTR_SINGLE: the MCU's single precision); default: the package's")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
     import trimeter
     from trimeter.bench.fit import _stats, error_budget, heldout_collimated, heldout_for, heldout_intensities
-    from trimeter.inversion import native
+    from trimeter.inversion import api, native
     from trimeter.maps.appearance import AppearanceMap, find_map
     from trimeter.maps.container import read_bounded
     from trimeter.maps.device_table import MAX_BYTES, DeviceTable
@@ -52,7 +55,9 @@ def run(args) -> int:
     I_c = heldout_collimated(amap, h)
     truth = (h["alpha"], h["sigma_t"], h["g"])
     budget = error_budget(amap, h, rb, rw)
-    fitter = native.TableFitter(data)
+    if args.library is not None and not args.library.is_file():
+        raise InputError(f"--library: no such file: {args.library}")
+    fitter = native.TableFitter(data, library=args.library)
 
     def table_fit(ib, iw, ic):
         alpha, sigma_t, g, flags = fitter.fit(ib, iw, ic)
@@ -61,7 +66,14 @@ def run(args) -> int:
     def map_fit(ib, iw, ic):
         return trimeter.fit(amap, ib, iw, ic, method="lut")
 
-    variants = {f"table alone, C ({table.size_bytes} B)": table_fit, "map lut, refined grid, C (baseline)": map_fit}
+    refined_model = table.fit_model()
+
+    def refined_fit(ib, iw, ic):
+        return api.fit(refined_model, ib, iw, ic, method="lut")
+
+    precision = "double" if args.library is None else args.library.name
+    variants = {f"table alone, C, {precision}": table_fit, "table alone, refined at load": refined_fit,
+                "map lut, refined grid, C (baseline)": map_fit}
     tile = np.resize(np.arange(len(I_b)), 1024)
     tiled = (I_b[tile], I_w[tile], I_c[tile])
     best = dict.fromkeys(variants, np.inf)
@@ -72,8 +84,8 @@ def run(args) -> int:
             t0 = time.perf_counter()
             fn(*tiled)
             best[name] = min(best[name], time.perf_counter() - t0)
-    print(f"{amap.name}: {len(I_b)} held-out materials, noise-free rendered references; kernel: {native.status()}; "
-          f"cores {sorted(os.sched_getaffinity(0))}")
+    print(f"{amap.name}: {len(I_b)} held-out materials, noise-free rendered references; table {table.size_bytes} B; "
+          f"kernel: {native.status()}; cores {sorted(os.sched_getaffinity(0))}")
     header = "".join(f"{k:>15s}" for k in TARGETS) + f"{'targets':>9s}{'ms/1024':>10s}{'× base':>8s}"
     print(f"{'variant':40s}{header}")
     base = best["map lut, refined grid, C (baseline)"]
