@@ -9,6 +9,7 @@ sampled onto the refined grid at load (DeviceTable.fit_model), which the host ma
 
 from __future__ import annotations
 
+import argparse
 import os
 import time
 from pathlib import Path
@@ -22,7 +23,7 @@ from trimeter.errors import InputError
 TARGETS = {"alpha_p95": 0.01, "sigma_rel_p95": 0.01, "g_p95": 0.015}
 
 
-def register(bench_subparsers) -> None:
+def register(bench_subparsers: argparse._SubParsersAction) -> None:
     p = bench_subparsers.add_parser("table-fit", help="the C fit from a device table alone: accuracy and speed",
                                     description=__doc__.split("\n\n")[0])
     p.add_argument("--table", type=Path, required=True, help="a .tlut v2 file (tools/device_table.py build)")
@@ -33,7 +34,7 @@ def register(bench_subparsers) -> None:
     p.set_defaults(func=run)
 
 
-def run(args) -> int:
+def run(args: argparse.Namespace) -> int:
     import trimeter
     from trimeter.bench.fit import _stats, error_budget, heldout_collimated, heldout_for, heldout_intensities
     from trimeter.inversion import api, native

@@ -21,6 +21,7 @@ import os
 import warnings
 import zlib
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -375,6 +376,6 @@ def _bind(lib: ctypes.CDLL) -> ctypes.CDLL:
     lib.tm_abi_hash.restype = ctypes.c_uint64
     if lib.tm_abi_hash() != ABI_HASH:
         raise NativeKernelError(f"{lib._name} was built for another invert.h")
-    restype, argtypes = invert_h.FUNCTIONS["tm_table_fit"]
-    lib.tm_table_fit.restype, lib.tm_table_fit.argtypes = restype, argtypes
+    function: Any = lib.tm_table_fit  # the prototype comes from the generated table, typed as data there
+    function.restype, function.argtypes = invert_h.FUNCTIONS["tm_table_fit"]
     return lib
