@@ -9,6 +9,7 @@ and written again).
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -32,6 +33,14 @@ class MapRef(Protocol):
 
     @property
     def checksum(self) -> str: ...
+
+    # the background response I(ρ) = A + Bρ/(1 − Cρ) per material: the shot checks' floor
+    @property
+    def A(self) -> np.ndarray: ...
+    @property
+    def B(self) -> np.ndarray: ...
+    @property
+    def C(self) -> np.ndarray: ...
 
 
 class Estimate(Protocol):
@@ -183,7 +192,7 @@ class Measurement:
     calibration: Calibration
     captures: list[SampleCapture]
     parameters: Estimate                          # the (combined) estimate
-    per_thickness: list[Estimate] = field(default_factory=list)   # one per sample when there are several
+    per_thickness: Sequence[Estimate] = field(default_factory=list)   # one per sample when there are several
     provenance: Provenance = field(default_factory=Provenance)
 
     @property

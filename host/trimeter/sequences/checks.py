@@ -32,7 +32,10 @@ photodiode lit through its open shutter and dark behind the closed one.
 
 from __future__ import annotations
 
+from typing import Protocol
+
 import numpy as np
+from numpy.typing import ArrayLike
 
 from trimeter.domain import Calibration, Reflectances
 from trimeter.inversion.flags import FitFlag
@@ -52,10 +55,10 @@ BAD_BIN_FRACTION = 0.25       # a per-bin problem in more than this fraction of 
 GAMUT_BAD_FRACTION = 0.5      # bins the fit could not place in the map
 
 
-def _median(values) -> float:
-    values = np.asarray(values, dtype=float)
-    values = values[np.isfinite(values)]
-    return float(np.median(values)) if values.size else float("nan")
+def _median(values: ArrayLike) -> float:
+    array = np.asarray(values, dtype=float)
+    finite = array[np.isfinite(array)]
+    return float(np.median(finite)) if finite.size else float("nan")
 
 
 def comparable(calibration: Calibration, previous: Calibration | None) -> str | None:
@@ -133,7 +136,18 @@ def agreement_problems(calibration: Calibration, previous: Calibration) -> list[
 
 
 # ------------------------------------------------------------------------------------------ shots
-def surface_floor(amap, rho_white: float) -> float:
+class BackgroundCoefficients(Protocol):
+    """A map's background response I(ρ) = A + Bρ/(1 − Cρ), per material."""
+
+    @property
+    def A(self) -> np.ndarray: ...
+    @property
+    def B(self) -> np.ndarray: ...
+    @property
+    def C(self) -> np.ndarray: ...
+
+
+def surface_floor(amap: BackgroundCoefficients, rho_white: float) -> float:
     """The lowest I_w any material of the map gives against a white background of `rho_white`: the
     light the sample's front surface reflects whatever lies behind it."""
     return float(np.nanmin(background_response(amap.A, amap.B, amap.C, rho_white)))
@@ -144,11 +158,11 @@ def usable_bins(refl: Reflectances) -> np.ndarray:
     return (refl.flags == 0) & np.isfinite(refl.I_b) & np.isfinite(refl.I_w) & np.isfinite(refl.I_c)
 
 
-def _std(value) -> np.ndarray | float:
+def _std(value: ArrayLike | None) -> np.ndarray | float:
     return 0.0 if value is None else np.nan_to_num(np.asarray(value, dtype=float), nan=0.0)
 
 
-def shot_problems(refl: Reflectances, amap) -> list[str]:
+def shot_problems(refl: Reflectances, amap: BackgroundCoefficients) -> list[str]:
     """Were the lamps as calibrated (lamp monitor), and is this triple physically possible for any sample,
     given the calibration and the map?"""
     lamps = lamp_monitor.shot_problems(refl.lamp_light)
@@ -182,7 +196,7 @@ def shot_problems(refl: Reflectances, amap) -> list[str]:
     return problems
 
 
-def fit_problems(flags, usable=None) -> list[str]:
+def fit_problems(flags: ArrayLike, usable: ArrayLike | None = None) -> list[str]:
     """After the fit: bins whose triple no material of the map explains (the fit did not converge)."""
     flags = np.asarray(flags, dtype=np.int64)
     usable = np.ones(flags.shape, bool) if usable is None else np.asarray(usable, bool)

@@ -9,11 +9,12 @@ import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from trimeter.domain import Calibration, InstrumentInfo, Measurement, Provenance, Sample, SampleCapture
-from trimeter.domain.measurement import DeviceTableCheck
+from trimeter.domain.measurement import DeviceTableCheck, Estimate
 from trimeter.errors import CheckError, DeviceError, InputError, TrimeterError
 from trimeter.inversion.methods import METHODS
 from trimeter.inversion.flags import advice
@@ -82,8 +83,9 @@ class PreparedFit:
         wl = refls[0].wavelengths_nm
         # The fit's noise model σ_I = noise_rel·I + noise_abs, with noise_rel measured from the frame spread
         # (so the reported uncertainties are this measurement's, not a default's).
-        measured = [r.noise_rel() for r in refls]
-        noise = {"noise_rel": float(np.clip(max(measured), 1e-4, 0.2))} if all(m is not None for m in measured) else {}
+        measured = [m for r in refls if (m := r.noise_rel()) is not None]
+        noise: dict[str, Any] = ({"noise_rel": float(np.clip(max(measured), 1e-4, 0.2))} if len(measured) == len(refls)
+                                 else {})
         # and each bin's own stds from the capture (frame scatter, dark, the calibration's), where it has them
         for name in ("I_b_std", "I_w_std", "I_c_std"):
             if all(getattr(r, name) is not None for r in refls):
@@ -163,7 +165,7 @@ class MeasurementOutcome:
     stopped: TrimeterError | None = None      # why fewer samples than asked were measured
 
     @property
-    def parameters(self) -> Parameters:
+    def parameters(self) -> Estimate:
         return self.measurement.parameters
 
     @property

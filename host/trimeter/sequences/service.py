@@ -32,7 +32,7 @@ from typing import Callable, TypeVar
 from trimeter.device import Device
 from trimeter.device.backup import config_source_warning
 from trimeter.domain import Calibration, InstrumentInfo, Sample
-from trimeter.domain.measurement import DeviceTableCheck
+from trimeter.domain.measurement import DeviceTableCheck, Estimate
 from trimeter.errors import CheckError, DeviceError, TrimeterError
 from trimeter.results.spool import recover_partials
 from trimeter.sequences import measure as pipeline
@@ -40,6 +40,7 @@ from trimeter.sequences.calibrate import calibrate, previous_calibration
 from trimeter.sequences.checks import calibration_problems
 from trimeter.sequences.settings import HostSettings
 from trimeter.sequences.steps import RetryPolicy, Runner, retry_on_link_error
+from trimeter.spectrometer.base import Spectrometer
 
 READY, WORKING, FAILED = "on", "slow_blink", "fast_blink"
 NEXT_SAMPLE = "double_blink"  # two samples: the first is captured, put the second in and press
@@ -77,10 +78,10 @@ def calibration_is_stale(calibration: Calibration | None, uptime_s: float, max_a
 class Service:
     """The press-button loop. `open_device()` / `open_spectrometer()` are factories so it can reconnect."""
 
-    def __init__(self, open_device: Callable[[], Device], open_spectrometer: Callable[[], object],
+    def __init__(self, open_device: Callable[[], Device], open_spectrometer: Callable[[], Spectrometer],
                  settings: HostSettings, *, on_event: Callable[[Event], None] | None = None,
                  on_progress: Callable[[float, str], None] | None = None, label: str | None = None,
-                 device_clock: Callable[[], float] | None = None, retry: RetryPolicy = RetryPolicy()):
+                 device_clock: Callable[[], float] | None = None, retry: RetryPolicy = RetryPolicy()) -> None:
         self._open_device = open_device
         self._open_spectrometer = open_spectrometer
         self.settings = settings
@@ -90,12 +91,12 @@ class Service:
         self.device_clock = device_clock
         self.retry = retry
         self.device: Device | None = None
-        self.spectrometer = None
+        self.spectrometer: Spectrometer | None = None
         self.calibration: Calibration | None = None
         self._button: int | None = None
         self._uptime = -1
         self.last_result: Path | None = None
-        self.last_parameters = None
+        self.last_parameters: Estimate | None = None
         self.last_advice: list[str] = []  # trimeter.inversion.flags.advice on the last measurement's fit
         self.last_timing: dict = {}
         self.last_incomplete: str | None = None  # why the last measurement has fewer samples than asked
@@ -124,7 +125,9 @@ class Service:
                 "the lamps were off (device reset or power-up) and must warm up again"
         lamps_on(self.device)
         self.device.write("status_pattern", self._status)
-        self._emit("connected", f"connected (firmware {'.'.join(map(str, self.device.identity.firmware_version))})")
+        identity = self.device.identity
+        firmware = ".".join(map(str, identity.firmware_version)) if identity is not None else "unchecked"
+        self._emit("connected", f"connected (firmware {firmware})")
         if warning := config_source_warning(self.device.read("config_source")):
             self._emit("warning", warning)  # slot positions, steps/mm … may be wrong for this instrument
         if self._status != EMPTY_HOLDER and (reason := self.calibration_due(uptime)):
@@ -138,15 +141,22 @@ class Service:
                     thing.close()
                 setattr(self, name, None)
 
-    def _emit(self, kind, message, **data):
+    def _emit(self, kind: str, message: str, **data: object) -> None:
         self.on_event(Event(kind, message, data))
 
     def _on_device(self, what: str, action: Callable[[Device], T]) -> T:
         """`action(device)` under the same RetryPolicy as a sequence's steps: a request the line lost is tried
         again after a backoff and a reopen; a reset or a refusal is not. Every action here sets a state or
         reads one, so it is safe to repeat."""
-        return retry_on_link_error(lambda: action(self.device), what, self.retry, self.device.transport,
+        device = self._device()
+        return retry_on_link_error(lambda: action(device), what, self.retry, device.transport,
                                    abandoned="gave up on the device link")
+
+    def _device(self) -> Device:
+        """The open device: a DeviceError, which the loop answers by reconnecting, when there is none."""
+        if self.device is None:
+            raise DeviceError("the device is not connected")
+        return self.device
 
     def _show(self, pattern: str) -> None:
         self._on_device("setting the status LED", lambda d: d.write("status_pattern", pattern))
@@ -260,7 +270,7 @@ class Service:
                 self.measure(pipeline.resolve_samples(samples or self.settings.serve_samples),
                              between=self._await_next_sample, label=label)
                 outcome = "incomplete" if self.last_incomplete else "measured"
-            if outcome == "incomplete":  # written, but not what was asked for: the LED says so
+            if outcome == "incomplete" and self.last_incomplete:  # written, but not what was asked for: the LED says so
                 self._emit("failed", self.last_incomplete)
             self._status = FAILED if outcome == "incomplete" else READY
             self._show(self._status)
@@ -304,11 +314,13 @@ class Service:
 
     def _safe_status(self, pattern: str) -> None:
         with contextlib.suppress(TrimeterError):
-            self.device.write("status_pattern", pattern)
+            self._device().write("status_pattern", pattern)
 
     # ------------------------------------------------------------------------------ actions
     def _runner(self) -> Runner:
-        return Runner(self.device, self.spectrometer, on_progress=self.on_progress, device_clock=self.device_clock,
+        if self.spectrometer is None:
+            raise DeviceError("the spectrometer is not open")
+        return Runner(self._device(), self.spectrometer, on_progress=self.on_progress, device_clock=self.device_clock,
                       retry=self.retry)
 
     def calibrate(self, *, warm: bool = True, force: bool = False) -> Calibration:
@@ -316,7 +328,7 @@ class Service:
         and events follow it (see there for the CheckError cases and `force`)."""
         self._on_device("switching the lamps on", lamps_on)
         runner = self._runner()
-        identity = self.device.identity
+        identity = self._device().identity
         cal = calibrate(runner, self.settings, instrument=None if identity is None else InstrumentInfo.of(identity),
                         warm=warm, force=force, on_warmed_up=lambda result: self._emit(
                             "warmed_up", f"lamps stable after {result.elapsed_s:.0f} s (drift {result.drift:.2%})",
@@ -337,7 +349,8 @@ class Service:
         name, source-map SHA-256, grid) and the table's trailing CRC-32 (which covers every other byte)."""
         from trimeter import registers as regs
 
-        status = self.device.map_status()
+        device = self._device()
+        status = device.map_status()
         active = status["map_active_slot"]
         if active == regs.MapSlot.NONE:
             return DeviceTableCheck(None, False)
@@ -349,9 +362,9 @@ class Service:
             return DeviceTableCheck(matches_fit_table=False, **slot)
         same = len(table) == slot["length"] and len(table) > 132
         if same:
-            head = self.device.read_map(active, 128)
+            head = device.read_map(active, 128)
             tail_at = (len(table) - 4) & ~1
-            tail = self.device.read_map(active, len(table) - tail_at, offset=tail_at)
+            tail = device.read_map(active, len(table) - tail_at, offset=tail_at)
             same = head == table[:128] and tail == table[tail_at:]
         return DeviceTableCheck(matches_fit_table=bool(same), map=prepared.samples[0].map.name, **slot)
 
