@@ -50,3 +50,27 @@ def test_qemu_count_reports_every_measurement_with_plausible_counts():
     assert 4 * 1024 <= counts["crc32_update, 1024 B"] <= 16 * 1024
     assert 4 * 256 <= counts["crc16_modbus, 256 B"] <= 16 * 256
     assert 100 < counts["mb_handle_adu, FC03 read of 10 registers"] < counts["crc32_update, 1024 B"]
+
+
+@pytest.mark.skipif(shutil.which("qemu-system-arm") is None or shutil.which("arm-none-eabi-gcc") is None,
+                    reason="needs qemu-system-arm and gcc-arm-none-eabi")
+def test_qemu_count_counts_the_inverse_core_per_bin_with_a_device_table(tmp_path):
+    """With COUNT_TABLE (the l0.4 map's format-2 table), tr_fit_bins too: the table check per call and
+    a spread of single bins, each a Newton polish on the compact model (tens of thousands of instructions:
+    a few model evaluations of a few thousand each; far fewer would mean the fit did not run)."""
+    from trimeter.maps.appearance import AppearanceMap, find_map
+
+    spec = importlib.util.spec_from_file_location("device_table_tool", ROOT / "tools" / "device_table.py")
+    tool = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(tool)
+    table = tool.build(AppearanceMap.load(find_map("device-n1.5-l0.4"))).save(tmp_path / "l04.tlut")
+    run = subprocess.run(["make", "-s", "-C", str(ROOT / "firmware"), "qemu-count", f"COUNT_TABLE={table}"],
+                         capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    check = re.search(r"^  tr_fit_bins, table check \(n = 0\)\s+(\d+)", run.stdout, re.MULTILINE)
+    per_bin = re.search(r"^  tr_fit_bins, 1 bin\s+(\d+) \(min (\d+), max (\d+), (\d+) calls\)", run.stdout,
+                        re.MULTILINE)
+    assert check and per_bin, run.stdout
+    assert 500 < int(check.group(1)) < 20_000
+    mean, low, high, calls = (int(x) for x in per_bin.groups())
+    assert calls == 8 and 5_000 < low <= mean <= high < 200_000, run.stdout
