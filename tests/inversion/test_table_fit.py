@@ -101,6 +101,22 @@ def test_double_precision_agrees_with_the_numpy_reference_bin_for_bin(heldout):
     assert np.array_equal(fit[3], heldout.reference.flags & ~NOT_SET)
 
 
+@pytest.mark.parametrize("cover_slide_n", [None, 1.52])
+def test_a_synthetic_table_with_or_without_cover_slides_agrees_too(cover_slide_n):
+    """Another model, random inverse codes, and both Fresnel stacks (the shipped map has cover slides)."""
+    from test_compact_table import small_table
+
+    tool = _tool()
+    table = small_table(cover_slide_n=cover_slide_n)
+    rng = np.random.default_rng(1)
+    I_b = rng.uniform(0.01, 0.4, 200)
+    I = (I_b, I_b + rng.uniform(0.01, 0.4, 200), rng.uniform(0.001, 0.9, 200))
+    reference = tool.fit_table(table, tool.on_the_fly_inverter(table), *I)
+    fit = native.TableFitter(table.to_bytes()).fit(*I)
+    assert max(d.max() for d in _differences(fit, reference)) <= 1e-9
+    assert np.array_equal(fit[3], reference.flags & ~NOT_SET)
+
+
 def test_single_precision_agrees_within_the_device_tolerances(heldout, single_library):
     """The issue's on-device tolerances (|Δα| ≤ 1e-3, |Δσt|/σt ≤ 1e-3, |Δg| ≤ 2e-3) over every bin; the
     bins the fit calls determined far inside them (float only moves the underdetermined ones, along
