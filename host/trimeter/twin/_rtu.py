@@ -14,7 +14,7 @@ from trimeter.crc import crc16_modbus_bytes as crc16
 
 
 class RtuMaster:
-    def __init__(self, port: str, address: int = 1, timeout_s: float = 1.0, gap_s: float = 0.005):
+    def __init__(self, port: str, address: int = 1, timeout_s: float = 1.0, gap_s: float = 0.005) -> None:
         self.address, self.timeout_s, self.gap_s = address, timeout_s, gap_s
         self.fd = os.open(port, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
         tty.setraw(self.fd)

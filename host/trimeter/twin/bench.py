@@ -9,6 +9,7 @@ spectrometer's overhead against the exposure itself — all measured in the same
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import select
 import statistics
@@ -44,17 +45,19 @@ def _bare_firmware_rtt(n: int, time_scale: float) -> list[float]:
         proc = subprocess.Popen([str(ensure_firmware()), "--storage", f"{tmp}/storage.bin", "--modbus-link", str(link),
                                  "--plant-link", str(plant), "--time-scale", repr(time_scale)],
                                 stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
+        stdout = proc.stdout
+        assert stdout is not None  # stdout=PIPE
         try:
-            if not select.select([proc.stdout], [], [], 20)[0] or b"ready" not in os.read(proc.stdout.fileno(), 64):
+            if not select.select([stdout], [], [], 20)[0] or b"ready" not in os.read(stdout.fileno(), 64):
                 raise RuntimeError("firmware sim not ready")
             return _rtt_ms(os.path.realpath(link), n)
         finally:
             proc.terminate()
             proc.wait(timeout=5)
-            proc.stdout.close()
+            stdout.close()
 
 
-def run(args) -> int:
+def run(args: argparse.Namespace) -> int:
     from trimeter.spectrometer import open_spectrometer
 
     ensure_firmware()
@@ -72,8 +75,9 @@ def run(args) -> int:
 
     bare = _bare_firmware_rtt(args.transactions, args.time_scale)
     with Twin(time_scale=args.time_scale, appearance_map=appearance_map) as twin:
+        assert twin.modbus_port is not None  # started
         proxied = _rtt_ms(twin.modbus_port, args.transactions)
-        with open_spectrometer(twin.spectrometer_url) as spec:
+        with contextlib.closing(open_spectrometer(twin.spectrometer_url)) as spec:
             rows = []
             for it_us in (1_000, 100_000, 1_000_000):
                 spec.integration_time_us = it_us
@@ -103,7 +107,7 @@ def _parser(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     return parser
 
 
-def register(bench_subparsers) -> None:
+def register(bench_subparsers: argparse._SubParsersAction) -> None:
     _parser(bench_subparsers.add_parser("twin", help="twin start/stop, Modbus proxy and spectrometer overhead",
                                         description=__doc__))
 

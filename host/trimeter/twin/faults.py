@@ -16,7 +16,7 @@ import threading
 import time
 import tty
 from dataclasses import dataclass
-from typing import Callable
+from typing import Any, Callable
 
 import numpy as np
 
@@ -44,7 +44,7 @@ class FaultConfig:
     endstop_broken: bool = False
     lamp_dimmed: str | None = None          # "LAMP:FACTOR": that lamp emits FACTOR × nominal (an aged LED)
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         for name in ("corrupt", "drop", "late"):
             value = getattr(self, name)
             if not isinstance(value, (int, float)) or isinstance(value, bool) or not 0.0 <= value <= 1.0:
@@ -85,7 +85,7 @@ class FaultConfig:
                 emission[channel] = 0.0
         return emission
 
-    def replace(self, **changes) -> "FaultConfig":
+    def replace(self, **changes: Any) -> FaultConfig:
         unknown = set(changes) - {f.name for f in dataclasses.fields(self)}
         if unknown:
             raise InputError(f"unknown fault {sorted(unknown)[0]!r} (known: "
@@ -147,7 +147,7 @@ class ModbusProxy:
     """host pty ⇄ firmware pty, with the faults of `faults()` (read on every request, so they can change)."""
 
     def __init__(self, device_path: str, faults: Callable[[], FaultConfig], rng: np.random.Generator,
-                 on_request: Callable[[int], None] | None = None):
+                 on_request: Callable[[int], None] | None = None) -> None:
         self._faults, self._rng, self._on_request = faults, rng, on_request
         self._master, self._slave, self.port = open_raw_pty()
         self._device = os.open(device_path, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
@@ -160,7 +160,8 @@ class ModbusProxy:
         self._held: list[tuple[float, bytes]] = []
         self._late_release = 0.0
         self._replied = False
-        self._wake_r, self._wake_w = os.pipe()
+        self._wake_r, wake_w = os.pipe()
+        self._wake_w: int | None = wake_w  # None once closed
         self._thread = threading.Thread(target=self._run, name="twin-modbus-proxy", daemon=True)
         self._thread.start()
 

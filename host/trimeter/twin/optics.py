@@ -22,6 +22,7 @@ import tomllib
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
+from typing import TYPE_CHECKING, TypeAlias
 
 import numpy as np
 from scipy.interpolate import PchipInterpolator
@@ -29,6 +30,13 @@ from scipy.interpolate import PchipInterpolator
 from trimeter.errors import InputError
 from trimeter.geometry import load_geometry
 from trimeter.twin.traced import traced_setup
+
+if TYPE_CHECKING:
+    from trimeter.maps import AppearanceMap
+
+# The maps the twin renders with: None (the shipped ones), a map or its path, or a list of them.
+MapSource: TypeAlias = ("AppearanceMap | str | Path | list[AppearanceMap | str | Path] | "
+                        "tuple[AppearanceMap | str | Path, ...] | None")
 
 MATERIALS_FILE = Path(__file__).resolve().parents[1] / "data" / "materials.toml"
 
@@ -87,7 +95,7 @@ class Led:
     held constant over Δt). Output = level · (1 − droop·h) · spectrum(phosphor centre + shift·h).
     """
 
-    def __init__(self, params: dict, wavelengths_nm: np.ndarray):
+    def __init__(self, params: dict, wavelengths_nm: np.ndarray) -> None:
         self.p = params
         self.lam = np.asarray(wavelengths_nm, dtype=float)
         self.heat = 0.0
@@ -122,7 +130,7 @@ class SpectrometerModel:
 
     params: dict = field(default_factory=lambda: dict(_catalogue()["spectrometer"]))
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         p = self.params
         i = np.arange(p["pixels"], dtype=float)
         c0, c1, c2 = p["dispersion"]
@@ -166,7 +174,7 @@ class SampleOptics:
     physics: str = "map"  # where I_b, I_w, I_c came from: "traced" (independent of the map) or "map"
 
 
-def _load_maps(appearance_map) -> list:
+def _load_maps(appearance_map: MapSource) -> list[AppearanceMap]:
     from trimeter.maps import AppearanceMap, shipped_maps
 
     if appearance_map is None:
@@ -178,7 +186,7 @@ def _load_maps(appearance_map) -> list:
 class Optics:
     """The optical bench: sample, backgrounds, two LEDs, one spectrometer."""
 
-    def __init__(self, appearance_map=None, white: str = "white", black: str = "black"):
+    def __init__(self, appearance_map: MapSource = None, white: str = "white", black: str = "black") -> None:
         self.spectrometer = SpectrometerModel()
         lam = self.spectrometer.wavelengths_nm
         self.rho_white = background_reflectance(white, lam)
@@ -187,14 +195,14 @@ class Optics:
         self.panels = Led(lights["panels"], lam)
         self.collimated = Led(lights["collimated"], lam)
         self._map_source = appearance_map
-        self._maps: list | None = None
+        self._maps: list[AppearanceMap] | None = None
         self.sample: SampleOptics | None = None
 
     @property
     def wavelengths_nm(self) -> np.ndarray:
         return self.spectrometer.wavelengths_nm
 
-    def _map_for(self, thickness_mm: float):
+    def _map_for(self, thickness_mm: float) -> AppearanceMap:
         if self._maps is None:
             self._maps = _load_maps(self._map_source)
         matching = [m for m in self._maps if abs(m.thickness_mm - thickness_mm) <= 1e-6]
@@ -222,21 +230,22 @@ class Optics:
                 raise InputError(f"sample {name!r}: {key} spans {values.min():.4g}..{values.max():.4g}, outside map "
                                  f"{amap.name}'s {axis[0]:.4g}..{axis[-1]:.4g} at {lam[0]:.0f}-{lam[-1]:.0f} nm")
         traced = traced_setup(str(amap.recipe.get("geometry")), amap.n, thickness_mm)
-        observed = None
+        alpha, sigma_t, g = spectra["alpha"], spectra["sigma_t"], spectra["g"]
         if traced is not None:
             geometry_params = load_geometry(traced.geometry)
             observed = traced.observables(name, _catalogue()["material"][name], geometry_params,
                                           self.wavelengths_nm, self.rho_black, self.rho_white)
-        if observed is not None:
-            I_b, I_w, L, I_open = observed
-            I_c = traced.collimated(spectra["sigma_t"], L, geometry_params)
-            self.sample = SampleOptics(name=name, thickness_mm=thickness_mm, I_b=I_b, I_w=I_w, I_c=I_c,
-                                       I_open=I_open, map_name=amap.name, physics="traced", **spectra)
-            return self.sample
+            if observed is not None:
+                I_b, I_w, L, I_open = observed
+                I_c = traced.collimated(sigma_t, L, geometry_params)
+                self.sample = SampleOptics(name=name, thickness_mm=thickness_mm, alpha=alpha, sigma_t=sigma_t, g=g,
+                                           I_b=I_b, I_w=I_w, I_c=I_c, I_open=I_open, map_name=amap.name,
+                                           physics="traced")
+                return self.sample
         I_b, I_w, I_c = amap.query(spectra["alpha"], spectra["sigma_t"], spectra["g"], self.rho_black, self.rho_white)
         I_open = amap.diffuse(spectra["alpha"], spectra["sigma_t"], spectra["g"], 0.0)
-        self.sample = SampleOptics(name=name, thickness_mm=thickness_mm, I_b=I_b, I_w=I_w, I_c=I_c, I_open=I_open,
-                                   map_name=amap.name, **spectra)
+        self.sample = SampleOptics(name=name, thickness_mm=thickness_mm, alpha=alpha, sigma_t=sigma_t, g=g, I_b=I_b,
+                                   I_w=I_w, I_c=I_c, I_open=I_open, map_name=amap.name)
         return self.sample
 
     def remove_sample(self) -> None:

@@ -10,7 +10,7 @@ from trimeter.errors import DeviceError
 
 
 class PlantClient:
-    def __init__(self, path: str, timeout_s: float = 5.0):
+    def __init__(self, path: str, timeout_s: float = 5.0) -> None:
         self.path = path
         self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
         self._sock.settimeout(timeout_s)
@@ -22,7 +22,7 @@ class PlantClient:
         self._file = self._sock.makefile("rb")
         self._lock = threading.Lock()
 
-    def request(self, **message) -> dict:
+    def request(self, **message: object) -> dict:
         """Send one command, return its reply; DeviceError if the plant refuses it or is gone."""
         with self._lock:
             try:

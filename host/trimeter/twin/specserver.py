@@ -23,7 +23,7 @@ MAX_LINE = 256
 
 class SpectrometerServer:
     def __init__(self, description: dict, wavelengths_nm: np.ndarray,
-                 expose: Callable[[int], tuple[np.ndarray, float]], integration_time_us: int = 100_000):
+                 expose: Callable[[int], tuple[np.ndarray, float]], integration_time_us: int = 100_000) -> None:
         self.description = description
         self._wavelengths = ",".join(f"{x:.4f}" for x in wavelengths_nm)
         self._expose = expose
@@ -31,7 +31,8 @@ class SpectrometerServer:
         self.last_time_s = 0.0
         self.acquisitions = 0
         self._master, self._slave, self.port = open_raw_pty()
-        self._wake_r, self._wake_w = os.pipe()
+        self._wake_r, wake_w = os.pipe()
+        self._wake_w: int | None = wake_w  # None once closed
         self._thread = threading.Thread(target=self._serve, name="twin-spectrometer", daemon=True)
         self._thread.start()
 

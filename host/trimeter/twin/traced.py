@@ -27,6 +27,7 @@ from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
+from numpy.typing import ArrayLike
 from scipy.interpolate import CubicSpline
 
 from trimeter.errors import InputError
@@ -42,7 +43,7 @@ def setup_name(geometry: str, n: float, thickness_mm: float) -> str:
     return f"{geometry}-n{n:g}-l{thickness_mm:g}"
 
 
-def content_hash(value) -> str:
+def content_hash(value: object) -> str:
     """A short stable hash of a JSON-able value (a material's catalogue entry, a geometry preset)."""
     return hashlib.sha256(json.dumps(value, sort_keys=True).encode()).hexdigest()[:16]
 
@@ -59,7 +60,9 @@ class TracedSetup:
     provenance: dict
     path: Path
 
-    def observables(self, name: str, material_entry: dict, geometry_params: dict, wavelengths_nm, rho_b, rho_w):
+    def observables(self, name: str, material_entry: dict, geometry_params: dict, wavelengths_nm: ArrayLike,
+                    rho_b: np.ndarray, rho_w: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
         """(I_b, I_w, L, I_open) of material `name` at `wavelengths_nm` on backgrounds ρ_b(λ), ρ_w(λ)
         (L: the collimated beam's in-scattering, for `collimated`), or None if it was not traced."""
         if name not in self.materials:
@@ -80,7 +83,7 @@ class TracedSetup:
         I_w = A + B * rho_w / (1.0 - C * rho_w)
         return I_b, I_w, L, A
 
-    def collimated(self, sigma_t, L, geometry_params: dict):
+    def collimated(self, sigma_t: np.ndarray, L: np.ndarray, geometry_params: dict) -> np.ndarray:
         """I_c: the analytic unscattered beam times (1 + r), r the traced in-scattered fraction."""
         unscattered = collimated_transmittance(sigma_t, self.thickness_mm, self.n, cover_slide_n(geometry_params))
         return unscattered * np.exp(L)

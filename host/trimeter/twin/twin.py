@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import fcntl
+import functools
 import json
 import os
 import select
@@ -21,13 +22,14 @@ import tempfile
 import threading
 import time
 from pathlib import Path
+from typing import IO, Any, Callable, Self
 
 import numpy as np
 
 from trimeter.errors import DeviceError, InputError, TrimeterError
 from trimeter.paths import REPO_ROOT
 from trimeter.twin.faults import FaultConfig, ModbusProxy, as_lamps_emit, as_optics_see_it
-from trimeter.twin.optics import Optics, material_names
+from trimeter.twin.optics import MapSource, Optics, material_names
 from trimeter.twin.plant import PlantClient
 from trimeter.twin.specserver import SpectrometerServer
 
@@ -77,8 +79,9 @@ class Twin:
     """The simulated instrument. Use as a context manager; see README.md in this package for the contract."""
 
     def __init__(self, sample: str | None = None, thickness_mm: float = 0.4, time_scale: float = 1.0,
-                 faults: FaultConfig | None = None, state_dir: str | Path | None = None, appearance_map=None,
-                 seed: int | None = None, white: str = "white", firmware: str | Path | None = None):
+                 faults: FaultConfig | None = None, state_dir: str | Path | None = None,
+                 appearance_map: MapSource = None, seed: int | None = None, white: str = "white",
+                 firmware: str | Path | None = None) -> None:
         try:
             self.time_scale = float(time_scale)
         except (TypeError, ValueError):
@@ -94,11 +97,13 @@ class Twin:
         self._rng = np.random.default_rng(seed)
         self._stop = threading.Event()
         self._optics_lock = threading.Lock()
-        self._closers: list = []
+        self._closers: list[Callable[[], object]] = []
         self._process: subprocess.Popen | None = None
         self._drain_thread: threading.Thread | None = None
         self.control = TwinControl(self)
-        self.modbus_port = self.spectrometer_port = self.control_path = None
+        self.modbus_port: str | None = None  # set by start()
+        self.spectrometer_port: str | None = None
+        self.control_path: str | None = None
         self.last_plant_state: dict | None = None
         self.poll_error: str | None = None
         self._monitor_sent: dict | None = None  # what the plant's photodiode model was last given
@@ -108,7 +113,7 @@ class Twin:
         self.start()
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
     def start(self) -> "Twin":
@@ -139,7 +144,8 @@ class Twin:
         fw_modbus = self.state_dir / "firmware-modbus"
         plant_path = socket_dir / "plant.sock"
         # The firmware removes these on a clean exit; after a crash (SIGKILL) the twin does.
-        self._closers.append(lambda: [p.unlink(missing_ok=True) for p in (fw_modbus, plant_path)])
+        self._closers.append(functools.partial(fw_modbus.unlink, missing_ok=True))
+        self._closers.append(functools.partial(plant_path.unlink, missing_ok=True))
         self._launch(binary, fw_modbus, plant_path)
         self.plant = PlantClient(str(plant_path))
         self._closers.append(self.plant.close)
@@ -169,42 +175,44 @@ class Twin:
         ports_file = self.state_dir / "ports.json"  # how `trimeter sim --ctl` finds this twin
         ports_file.write_text(json.dumps(self.control.ports()) + "\n")
         self._closers.append(lambda: ports_file.unlink(missing_ok=True))
-        for name, target in (("modbus", self.modbus_port), ("spectrometer", self.spectrometer_port)):
+        for name, target in (("modbus", self.proxy.port), ("spectrometer", self.spectrometer.port)):
             link = self.state_dir / name
             if link.is_symlink() or link.exists():
                 link.unlink()
             link.symlink_to(target)
-            self._closers.append(lambda link=link: link.unlink(missing_ok=True))
+            self._closers.append(functools.partial(link.unlink, missing_ok=True))
 
     def _launch(self, binary: Path, fw_modbus: Path, plant_path: Path) -> None:
         log = open(self.state_dir / "firmware.log", "ab")
         self._closers.append(log.close)
-        self._process = subprocess.Popen(
+        self._process = process = subprocess.Popen(
             [str(binary), "--storage", str(self.state_dir / "storage.bin"), "--modbus-link", str(fw_modbus),
              "--plant-link", str(plant_path), "--time-scale", repr(self.time_scale)],
             stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=log,
             # PDEATHSIG fires when the *thread* that forked exits: only safe from the main thread.
             preexec_fn=_die_with_parent if threading.current_thread() is threading.main_thread() else None)
         self._closers.append(self._stop_firmware)
+        stdout = process.stdout
+        assert stdout is not None  # stdout=PIPE
         deadline, seen = time.monotonic() + READY_TIMEOUT_S, b""
         while b"ready" not in seen:
             remaining = deadline - time.monotonic()
-            if remaining <= 0 or self._process.poll() is not None:
+            if remaining <= 0 or process.poll() is not None:
                 log.flush()
                 tail = (self.state_dir / "firmware.log").read_text(errors="replace").strip().splitlines()[-2:]
-                why = "exited" if self._process.poll() is not None else f"not ready within {READY_TIMEOUT_S:.0f} s"
+                why = "exited" if process.poll() is not None else f"not ready within {READY_TIMEOUT_S:.0f} s"
                 raise DeviceError(f"firmware sim {why}: {' | '.join(tail) or 'no output'}")
-            if select.select([self._process.stdout], [], [], min(remaining, 0.2))[0]:
-                chunk = os.read(self._process.stdout.fileno(), 4096)
+            if select.select([stdout], [], [], min(remaining, 0.2))[0]:
+                chunk = os.read(stdout.fileno(), 4096)
                 seen += chunk
                 log.write(chunk)
-        drain = threading.Thread(target=self._drain, args=(self._process.stdout, log), name="twin-fw-stdout",
+        drain = threading.Thread(target=self._drain, args=(stdout, log), name="twin-fw-stdout",
                                  daemon=True)
         drain.start()
         self._drain_thread = drain  # joined by _stop_firmware, once stdout is at EOF
 
     @staticmethod
-    def _drain(stream, log) -> None:
+    def _drain(stream: IO[bytes], log: IO[bytes]) -> None:
         try:
             for chunk in iter(lambda: os.read(stream.fileno(), 4096), b""):
                 log.write(chunk)
@@ -261,8 +269,9 @@ class Twin:
             droop = {lamp: float(led.spectrum().sum() / led.spectrum(0.0).sum())
                      for lamp, led in (("panels", self.optics.panels), ("collimated", self.optics.collimated))}
         emission = self.faults.lamp_emission()
-        wanted = {f"lamp_{channel}": round(value * droop["collimated" if channel == "collimated" else "panels"], 5)
-                  for channel, value in emission.items()}
+        wanted: dict[str, Any] = {
+            f"lamp_{channel}": round(value * droop["collimated" if channel == "collimated" else "panels"], 5)
+            for channel, value in emission.items()}
         wanted["shutter_leaking"] = self.faults.stuck_shutter_open
         sent = self._monitor_sent
         lamps = [k for k in wanted if k.startswith("lamp_")]
@@ -304,7 +313,7 @@ class Twin:
 class TwinControl:
     """What a test or the demo can do to the twin; the control socket exposes exactly these methods."""
 
-    def __init__(self, twin: Twin):
+    def __init__(self, twin: Twin) -> None:
         self._twin = twin
 
     def insert_sample(self, name: str, thickness_mm: float = 0.4) -> None:
@@ -321,7 +330,7 @@ class TwinControl:
     def reset_firmware(self) -> None:
         self._twin.plant.request(cmd="reset")
 
-    def set_fault(self, **changes) -> dict:
+    def set_fault(self, **changes: Any) -> dict:
         twin = self._twin
         new = twin.faults.replace(**changes)
         if "stuck_slider" in changes:
@@ -367,7 +376,7 @@ _REPLY_KEY = {"ports": None, "state": "state", "sim_time": "sim_time_s", "set_fa
               "materials": "materials"}
 
 
-def _jsonable(value):
+def _jsonable(value: object) -> Any:
     if isinstance(value, dict):
         return {k: _jsonable(v) for k, v in value.items()}
     if isinstance(value, np.ndarray):
@@ -403,7 +412,7 @@ def dispatch(control: TwinControl, line: bytes) -> dict:
 class ControlServer:
     """JSON-lines unix-socket server over a TwinControl (several clients at once, one thread each)."""
 
-    def __init__(self, path: str, control: TwinControl):
+    def __init__(self, path: str, control: TwinControl) -> None:
         self.path, self._control = path, control
         if os.path.exists(path) or os.path.islink(path):
             os.unlink(path)
@@ -412,13 +421,15 @@ class ControlServer:
         self._listener.listen(8)
         self._clients: list[socket.socket] = []
         self._threads: list[threading.Thread] = []
-        self._wake_r, self._wake_w = os.pipe()
+        self._wake_r, wake_w = os.pipe()
+        self._wake_w: int | None = wake_w  # None once closed
         self._thread = threading.Thread(target=self._accept, name="twin-control", daemon=True)
         self._thread.start()
 
     def _accept(self) -> None:
         while True:
-            ready, _, _ = select.select([self._listener, self._wake_r], [], [])
+            waitable: list[socket.socket | int] = [self._listener, self._wake_r]
+            ready, _, _ = select.select(waitable, [], [])
             if self._wake_r in ready:
                 return
             conn, _ = self._listener.accept()
@@ -463,7 +474,7 @@ class ControlServer:
 class TwinClient:
     """The twin's control methods over its control socket (for `trimeter sim` running elsewhere)."""
 
-    def __init__(self, path: str, timeout_s: float = 10.0):
+    def __init__(self, path: str, timeout_s: float = 10.0) -> None:
         self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
         self._sock.settimeout(timeout_s)
         try:
@@ -474,7 +485,7 @@ class TwinClient:
         self._file = self._sock.makefile("rb")
         self._lock = threading.Lock()
 
-    def _call(self, cmd: str, **fields) -> dict:
+    def _call(self, cmd: str, **fields: object) -> dict:
         with self._lock:
             try:
                 self._sock.sendall(json.dumps({"cmd": cmd, **fields}).encode() + b"\n")
@@ -511,7 +522,7 @@ class TwinClient:
     def reset_firmware(self) -> None:
         self._call("reset_firmware")
 
-    def set_fault(self, **changes) -> dict:
+    def set_fault(self, **changes: Any) -> dict:
         return self._call("set_fault", **changes)["faults"]
 
     def materials(self) -> dict:
@@ -528,8 +539,8 @@ class TwinClient:
         self._file.close()
         self._sock.close()
 
-    def __enter__(self):
+    def __enter__(self) -> Self:
         return self
 
-    def __exit__(self, *exc):
+    def __exit__(self, *exc: object) -> None:
         self.close()
