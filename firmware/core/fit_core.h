@@ -1,7 +1,9 @@
 /* The one seam between the firmware and the inverse core it shares with the host
- * (host/trimeter/inversion/native/, compiled for both ports by firmware/Makefile's FIT_CORE_SRC).
+ * (host/trimeter/inversion/native/table_fit.c and compact.c, compiled for both ports by firmware/Makefile's
+ * FIT_CORE_SRC; the host calls the same source in double precision as tm_table_fit).
  *
- * tr_fit_bins fits n bins with the map table `table` (len bytes, read in place: flash on the MCU):
+ * tr_fit_bins fits n bins with the map table `table` (len bytes, read in place: flash on the MCU; a
+ * format-2 device table, 4-byte aligned; its CRC-32 is the storage's to check, map_table.h):
  *   in[TR_FIT_IN_PER_BIN * i + TR_FIT_IN_*]   I_b, I_w, I_c (relative to the calibration), rho_b, rho_w
  *   out[TR_FIT_OUT_PER_BIN * i + TR_FIT_OUT_*] alpha, sigma_t (1/mm), g; NaN where the bin is unusable
  *   flags[i]                                   trimeter.inversion.flags.FitFlag bits, 0 = a clean fit
