@@ -77,3 +77,78 @@ def test_the_check_catches(snippet):
 ])
 def test_the_check_passes(snippet):
     assert not layering_problems(snippet)
+
+
+# The package's layers, lowest first. A module may import only from lower layers (its own subpackage aside); two
+# subpackages on one layer are independent of each other. Imports inside functions count: deferring an import
+# hides a cycle from Python, not from a reader.
+LAYERS = (
+    {"__version__", "errors", "crc"},
+    {"validation", "paths", "atomic"},
+    {"geometry", "registers"},
+    {"domain"},                         # plain data: captures, calibrations, reflectances, measurements, parameters
+    {"model"},                          # the forward model: what the instrument reads for a material and a set-up
+    {"forward", "inversion"},           # simulating the physics / solving the inverse, both on the model
+    {"maps", "device", "spectrometer"},  # files and artifacts / the instrument's two devices
+    {"twin", "results"},
+    {"sequences", "predict"},
+    {"web", "bench"},
+    {"cli", "<package>"},
+    {"__main__"},
+)
+RANK = {name: rank for rank, names in enumerate(LAYERS) for name in names}
+PACKAGE = ROOT / "host" / "trimeter"
+
+
+def _unit(path: Path) -> str:
+    """The subpackage (or top-level module) a source file belongs to."""
+    parts = path.relative_to(PACKAGE).with_suffix("").parts
+    return "<package>" if parts == ("__init__",) else parts[0]
+
+
+def import_edges(source: str, path: Path) -> set[tuple[str, str]]:
+    """(importing unit, imported unit) for every `trimeter` import in `source`, relative ones resolved."""
+    unit = _unit(path)
+    package = list(path.relative_to(PACKAGE.parent).with_suffix("").parts)
+    if package[-1] == "__init__":
+        package.append("")
+    edges = set()
+    for node in ast.walk(ast.parse(source, str(path))):
+        if isinstance(node, ast.Import):
+            modules = [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            base = package[:len(package) - node.level] if node.level else []
+            module = ".".join(base + ([node.module] if node.module else []))
+            modules = [module] if node.module or node.level == 0 else [f"{module}.{a.name}" for a in node.names]
+        else:
+            continue
+        for module in modules:
+            parts = module.split(".")
+            if parts[0] == "trimeter" and len(parts) > 1 and parts[1] != unit:
+                edges.add((unit, parts[1]))
+    return edges
+
+
+def _package_edges() -> set[tuple[str, str]]:
+    return {e for p in PACKAGE.rglob("*.py") for e in import_edges(p.read_text(encoding="utf-8"), p)}
+
+
+def test_every_unit_has_a_layer():
+    units = {_unit(p) for p in PACKAGE.rglob("*.py")}
+    assert units - RANK.keys() == set(), "add new subpackages to LAYERS"
+
+
+def test_imports_only_go_down():
+    upward = sorted(f"{a} -> {b}" for a, b in _package_edges() if RANK.get(b, -1) >= RANK.get(a, -1))
+    assert upward == [], f"imports that go sideways or up the layers: {upward}"
+
+
+@pytest.mark.parametrize(("source", "edge"), [
+    ("from trimeter.maps import container", ("inversion", "maps")),
+    ("def f():\n    import trimeter.maps.artifacts", ("inversion", "maps")),
+    ("from ..maps import container", ("inversion", "maps")),
+    ("from .. import maps", ("inversion", "maps")),
+])
+def test_the_edge_finder_sees(source, edge):
+    assert edge in import_edges(source, PACKAGE / "inversion" / "api.py")
+    assert RANK[edge[1]] >= RANK[edge[0]]  # each of these is an upward import the layer test would refuse
