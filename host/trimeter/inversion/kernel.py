@@ -7,8 +7,6 @@ fuses one thickness's whole fit into one call. A method never asks which one it 
 
 from __future__ import annotations
 
-import os
-import warnings
 import weakref
 from typing import Protocol
 
@@ -120,14 +118,8 @@ _DEFAULT: list[Kernel] = []
 
 
 def default_kernel() -> Kernel:
-    """The compiled kernel where it is built, else numpy — chosen once per process. Falling back is
-    said out loud (a warning naming why), unless TRIMETER_NATIVE=0 asked for numpy."""
+    """The compiled kernel where it is built, else numpy — chosen once per process, as TRIMETER_KERNEL
+    asks (trimeter.inversion.native says out loud, once, why numpy runs when it was not asked for)."""
     if not _DEFAULT:
-        if native.available():
-            _DEFAULT.append(NativeKernel())
-        else:
-            if os.environ.get("TRIMETER_NATIVE", "1") != "0":
-                warnings.warn(f"the inversion runs on the numpy kernel, many times slower than the compiled one: "
-                              f"{native.status()}", RuntimeWarning, stacklevel=2)
-            _DEFAULT.append(NumpyKernel())
+        _DEFAULT.append(NativeKernel() if native.available() else NumpyKernel())
     return _DEFAULT[0]
