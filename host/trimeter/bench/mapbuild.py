@@ -8,7 +8,8 @@ few (σt, g) columns, two backgrounds, `ideal` geometry:
   is rendered *in this run*; the naive time is (points × mean measured seconds per render) and the
   naive std-error is the median of the measured ones.
 - new: the builder (trimeter.maps.builder) with target_stderr = that naive std-error, so the new map
-  has equal or lower MC error (both printed).
+  has equal or lower MC error (both printed). The same map is also built with the tracer's plain
+  estimator (no control variates, as many background as detector paths), for its ratio in this run.
 
 The last line is `ratio: N` with N = naive seconds / new seconds.
 
@@ -25,6 +26,7 @@ from __future__ import annotations
 import math
 import tempfile
 import time
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -104,6 +106,7 @@ def run(args) -> int:
         return compare_estimators(args.device_columns, args.paths, args.seed)
     from trimeter.forward.render import render_diffuse
     from trimeter.maps.builder import build_map
+    from trimeter.maps.tracer import trace_column
 
     probe = bench_recipe(1e-3)
     rhos = (probe.reference_rho_b, probe.reference_rho_w)
@@ -133,6 +136,15 @@ def run(args) -> int:
           f"{naive_err:.2e}")
 
     recipe = bench_recipe(naive_err)
+    with tempfile.TemporaryDirectory() as tmp:
+        t0 = time.perf_counter()
+        plain = build_map(recipe, Path(tmp) / "plain.tmap", progress=False,
+                          tracer=partial(trace_column, below_fraction=1.0, control_variates=False))
+        plain_total = time.perf_counter() - t0
+    plain_std = np.concatenate([plain.std_b.ravel(), plain.std_w.ravel()])
+    print(f"plain: {plain_total:.1f} s for the whole map with the plain estimator "
+          f"({plain.provenance['paths_per_column']['total']} paths, std-error median {np.median(plain_std):.2e}); "
+          f"ratio {naive_total / plain_total:.1f}")
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
         amap = build_map(recipe, Path(tmp) / "bench.tmap", progress=False)

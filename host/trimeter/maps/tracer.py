@@ -325,11 +325,11 @@ BELOW_PILOT = 16
 def below_share(above: Tally, below: Tally, rho: float = 0.9) -> float:
     """Background paths per detector path that minimise the variance of I(ρ) for the work: with
     per-path variances s_a² (detector paths' value) and s_c² (C's, × (∂I/∂C)²) and loop iterations e_a,
-    e_c per path, N_c/N_a = (s_c/s_a)·√(e_a/e_c) (the larger over α = 0.5, 0.9, 0.99), within
+    e_c per path, N_c/N_a = (s_c/s_a)·√(e_a/e_c) (the largest over α = 0.5 … 0.999), within
     [1/BELOW_PILOT, 1]. Iterations, not seconds, so the count does not depend on the machine's load.
     Clear samples' C is noisy and matters on white; a dense sample's C hardly matters."""
     tally = ColumnTally(above, below)
-    alpha = np.array([0.5, 0.9, 0.99])
+    alpha = np.array([0.5, 0.9, 0.99, 0.999])
     A, B, C = tally.abc(alpha)
     q = rho / (1 - C * rho)
     f1, f2 = above._moments(alpha)
