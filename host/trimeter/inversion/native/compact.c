@@ -251,10 +251,17 @@ static void pchip_slopes(int w, int at, const tr_real *h, const tr_real *inv_h, 
     }
 }
 
-void tr_compact_eval(const tr_table *t, tr_real alpha, tr_real log_sigma_t, tr_real g, tr_abc *out) {
-    tr_real Na[4], dNa[4], Ns[4], dNs[4];
+tr_basis tr_sigma_basis(const tr_table *t, tr_real log_sigma_t) {
+    tr_basis b;
+    b.first = bspline_basis(t->log_sigma_t, t->ns, log_sigma_t, b.N, b.dN);
+    return b;
+}
+
+void tr_compact_eval(const tr_table *t, tr_real alpha, const tr_basis *sigma, tr_real g, tr_abc *out) {
+    tr_real Na[4], dNa[4];
     int ia = bspline_basis(t->alpha, t->na, alpha, Na, dNa);
-    int js = bspline_basis(t->log_sigma_t, t->ns, log_sigma_t, Ns, dNs);
+    const int js = sigma->first;
+    const tr_real *Ns = sigma->N, *dNs = sigma->dN;
     const int ng = t->ng, width = ng < 4 ? ng : 4;
     tr_real gq = tr_clamp(g, R(t->g[0]), R(t->g[ng - 1]));
     int k = last_at_or_below(t->g, ng, gq);

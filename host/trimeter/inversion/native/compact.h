@@ -72,8 +72,13 @@ typedef struct { tr_real v[3], da[3], ds[3], dg[3]; } tr_abc;
  * directory, the axes or the scales; the CRC-32 is not checked here, see compact.c). */
 int tr_table_open(const uint8_t *data, size_t len, tr_table *t);
 
-/* CompactForward.evaluate at one point, clamped to the map's box */
-void tr_compact_eval(const tr_table *t, tr_real alpha, tr_real log_sigma_t, tr_real g, tr_abc *out);
+/* The cubic B-spline basis along ln σt at a point: the first of its 4 non-zero functions, their values
+ * and derivatives. Fixed while a bin's (α, g) are solved, so taken once per bin. */
+typedef struct { int first; tr_real N[4], dN[4]; } tr_basis;
+tr_basis tr_sigma_basis(const tr_table *t, tr_real log_sigma_t);
+
+/* CompactForward.evaluate at one point (ln σt through its basis), clamped to the map's box */
+void tr_compact_eval(const tr_table *t, tr_real alpha, const tr_basis *sigma, tr_real g, tr_abc *out);
 
 /* TableInverter.initial_guess: the inverse table's (α, g) at ln σt (clamped to the axis) */
 void tr_inverse_guess(const tr_table *t, tr_real log_sigma_t, tr_real I_b, tr_real I_w, tr_real *alpha, tr_real *g);
