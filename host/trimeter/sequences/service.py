@@ -148,11 +148,11 @@ class Service:
         """`action(device)` under the same RetryPolicy as a sequence's steps: a request the line lost is tried
         again after a backoff and a reopen; a reset or a refusal is not. Every action here sets a state or
         reads one, so it is safe to repeat."""
-        device = self._device()
+        device = self.connected_device()
         return retry_on_link_error(lambda: action(device), what, self.retry, device.transport,
                                    abandoned="gave up on the device link")
 
-    def _device(self) -> Device:
+    def connected_device(self) -> Device:
         """The open device: a DeviceError, which the loop answers by reconnecting, when there is none."""
         if self.device is None:
             raise DeviceError("the device is not connected")
@@ -314,21 +314,21 @@ class Service:
 
     def _safe_status(self, pattern: str) -> None:
         with contextlib.suppress(TrimeterError):
-            self._device().write("status_pattern", pattern)
+            self.connected_device().write("status_pattern", pattern)
 
     # ------------------------------------------------------------------------------ actions
     def _runner(self) -> Runner:
         if self.spectrometer is None:
             raise DeviceError("the spectrometer is not open")
-        return Runner(self._device(), self.spectrometer, on_progress=self.on_progress, device_clock=self.device_clock,
-                      retry=self.retry)
+        return Runner(self.connected_device(), self.spectrometer, on_progress=self.on_progress,
+                      device_clock=self.device_clock, retry=self.retry)
 
     def calibrate(self, *, warm: bool = True, force: bool = False) -> Calibration:
         """sequences.calibrate.calibrate on this service's device, with the lamps switched on first; the LED
         and events follow it (see there for the CheckError cases and `force`)."""
         self._on_device("switching the lamps on", lamps_on)
         runner = self._runner()
-        identity = self._device().identity
+        identity = self.connected_device().identity
         cal = calibrate(runner, self.settings, instrument=None if identity is None else InstrumentInfo.of(identity),
                         warm=warm, force=force, on_warmed_up=lambda result: self._emit(
                             "warmed_up", f"lamps stable after {result.elapsed_s:.0f} s (drift {result.drift:.2%})",
@@ -349,7 +349,7 @@ class Service:
         name, source-map SHA-256, grid) and the table's trailing CRC-32 (which covers every other byte)."""
         from trimeter import registers as regs
 
-        device = self._device()
+        device = self.connected_device()
         status = device.map_status()
         active = status["map_active_slot"]
         if active == regs.MapSlot.NONE:

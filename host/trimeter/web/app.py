@@ -22,7 +22,8 @@ import threading
 import zipfile
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import Callable
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Awaitable, Callable, TypeVar
 
 from aiohttp import ClientSession, ClientTimeout, WSMsgType, web
 
@@ -38,6 +39,12 @@ from trimeter.sequences.settings import HostSettings
 from trimeter.web import auth
 from trimeter.web.history import History, is_measurement_id, parse_day_or_time
 from trimeter.web.jobs import Busy, Job, Jobs
+
+if TYPE_CHECKING:
+    from trimeter.sequences.service import Service
+
+T = TypeVar("T")
+Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
 
 log = logging.getLogger("trimeter.web")
 
@@ -58,18 +65,18 @@ STATE = web.AppKey("state", dict)
 
 
 class ApiError(Exception):
-    def __init__(self, status: int, message: str, **extra):
+    def __init__(self, status: int, message: str, **extra: object) -> None:
         super().__init__(message)
         self.status, self.message, self.extra = status, message, extra
 
 
-def _error(status: int, message: str, **extra) -> web.Response:
+def _error(status: int, message: str, **extra: object) -> web.Response:
     return web.json_response({"error": {"status": status, "message": message, **extra}}, status=status)
 
 
 # ------------------------------------------------------------------------------------ middleware
 @web.middleware
-async def errors_middleware(request: web.Request, handler):
+async def errors_middleware(request: web.Request, handler: Handler) -> web.StreamResponse:
     """Every failure of an API call as the JSON envelope; never a traceback on the wire."""
     try:
         return await handler(request)
@@ -92,7 +99,7 @@ async def errors_middleware(request: web.Request, handler):
 
 
 @web.middleware
-async def auth_middleware(request: web.Request, handler):
+async def auth_middleware(request: web.Request, handler: Handler) -> web.StreamResponse:
     if not request.path.startswith("/api"):
         return await handler(request)
     if not auth.token_matches(request.app[TOKEN], auth.presented_token(request)):
@@ -125,8 +132,8 @@ async def json_body(request: web.Request, allowed: tuple[str, ...]) -> dict:
     return body
 
 
-def number(body: dict, key: str, *, default=None, minimum: float = 0.0, maximum: float = math.inf,
-           allow_zero: bool = False):
+def number(body: dict, key: str, *, default: float | None = None, minimum: float = 0.0, maximum: float = math.inf,
+           allow_zero: bool = False) -> float | None:
     value = body.get(key, default)
     if value is None:
         return None
@@ -137,7 +144,7 @@ def number(body: dict, key: str, *, default=None, minimum: float = 0.0, maximum:
     return float(value)
 
 
-def _query_int(request, key, default):
+def _query_int(request: web.Request, key: str, default: int) -> int:
     text = request.query.get(key)
     if text is None:
         return default
@@ -147,12 +154,12 @@ def _query_int(request, key, default):
         raise ApiError(400, f"{key}: {text!r} is not an integer") from None
 
 
-async def _blocking(request: web.Request, fn: Callable, *args):
+async def _blocking(request: web.Request, fn: Callable[..., T], *args: object) -> T:
     """Run file-system / SQLite / CPU work off the event loop (one thread: one SQLite connection)."""
     return await asyncio.get_running_loop().run_in_executor(request.app[STATE]["executor"], fn, *args)
 
 
-async def _device_call(request: web.Request, fn: Callable):
+async def _device_call(request: web.Request, fn: Callable[[Service], T]) -> T:
     if stopped := request.app[JOBS].stopped:  # nothing would ever run the call: say why now, not after a timeout
         raise ApiError(503, f"the instrument loop has stopped: {stopped}")
     future = request.app[JOBS].call(fn)
@@ -198,7 +205,7 @@ routes = web.RouteTableDef()
 
 
 @routes.get("/")
-async def index(request: web.Request):
+async def index(request: web.Request) -> web.StreamResponse:
     token = request.query.get("token")
     if token is not None:
         if not auth.token_matches(request.app[TOKEN], token):
@@ -220,17 +227,17 @@ def _static_text(name: str) -> str:
 
 
 @routes.get("/api/openapi.json")
-async def openapi_route(request):
+async def openapi_route(request: web.Request) -> web.StreamResponse:
     return web.json_response(openapi())
 
 
 @routes.get("/api/status")
-async def status(request):
+async def status(request: web.Request) -> web.StreamResponse:
     return web.json_response(request.app[JOBS].status())
 
 
 @routes.get("/api/jobs/{job_id}")
-async def job_route(request):
+async def job_route(request: web.Request) -> web.StreamResponse:
     job = request.app[JOBS].job(request.match_info["job_id"])
     if job is None:
         raise ApiError(404, f"no job {request.match_info['job_id']!r} (the last {len(request.app[JOBS].recent)} "
@@ -239,7 +246,7 @@ async def job_route(request):
 
 
 @routes.post("/api/calibrate")
-async def calibrate(request):
+async def calibrate(request: web.Request) -> web.StreamResponse:
     body = await json_body(request, ("holder_empty",))
     holder_empty = body.get("holder_empty", False)
     if not isinstance(holder_empty, bool):
@@ -266,7 +273,7 @@ async def calibrate(request):
 
 
 @routes.post("/api/measure")
-async def measure(request):
+async def measure(request: web.Request) -> web.StreamResponse:
     body = await json_body(request, ("label", "thickness_mm", "second_thickness_mm"))
     jobs = request.app[JOBS]
     service = jobs.service
@@ -291,7 +298,7 @@ async def measure(request):
 
 
 @routes.post("/api/next-sample")
-async def next_sample(request):
+async def next_sample(request: web.Request) -> web.StreamResponse:
     await json_body(request, ())
     service = request.app[JOBS].service
     if service.pattern != NEXT_SAMPLE:
@@ -301,13 +308,13 @@ async def next_sample(request):
 
 
 @routes.get("/api/maps")
-async def maps_route(request):
+async def maps_route(request: web.Request) -> web.StreamResponse:
     catalog = await _blocking(request, map_catalog, request.app[JOBS].service.settings)
     return web.json_response({"maps": sorted(catalog), "methods": list(METHODS)})
 
 
 # ---------------------------------------------------------------------------------- history
-def _search_args(request) -> dict:
+def _search_args(request: web.Request) -> dict:
     q = request.query
     flagged = q.get("flagged")
     if flagged is not None and flagged.lower() not in ("true", "false", "yes", "no", "1", "0"):
@@ -319,7 +326,7 @@ def _search_args(request) -> dict:
             "flag": q.get("flag") or None}
 
 
-def _spreadsheet_safe(value):
+def _spreadsheet_safe(value: object) -> object:
     """A text cell a spreadsheet would run as a formula (a label from the CLI may start with '=') is quoted."""
     if value is None:
         return ""
@@ -329,11 +336,11 @@ def _spreadsheet_safe(value):
 
 
 @routes.get("/api/measurements")
-async def measurements(request):
+async def measurements(request: web.Request) -> web.StreamResponse:
     args = _search_args(request)
     history = request.app[HISTORY]
     if request.query.get("format") == "csv":
-        def export():
+        def export() -> list[dict]:
             rows, offset = [], 0
             while True:
                 page, total = history.search(**args, limit=500, offset=offset)
@@ -359,14 +366,14 @@ def _details(history: History, path: Path) -> dict:
     row = history.get(path.name) or history.add(path)
     if row is None:
         raise ApiError(404, f"{path.name} has no readable measurement.json")
-    out = {"measurement": row}
+    out: dict[str, object] = {"measurement": row}
     try:
         out["meta"] = json.loads((path / "measurement.json").read_text())
-        out["parameters"] = json.loads((path / "parameters.json").read_text())
+        out["parameters"] = parameters = json.loads((path / "parameters.json").read_text())
     except (OSError, ValueError, UnicodeDecodeError) as exc:
         raise ApiError(500, f"{path.name}: its files cannot be read ({exc})") from None
-    flags = out["parameters"].get("combined", {}).get("flags") or []
-    counts = {}
+    flags = parameters.get("combined", {}).get("flags") or []
+    counts: dict[str, int] = {}
     for value in flags:
         for name in describe(value).split("|"):
             if name != "NONE":
@@ -378,13 +385,13 @@ def _details(history: History, path: Path) -> dict:
 
 
 @routes.get("/api/measurements/{id}")
-async def measurement(request):
+async def measurement(request: web.Request) -> web.StreamResponse:
     path = _measurement_dir(request)
     return web.json_response(await _blocking(request, _details, request.app[HISTORY], path))
 
 
 @routes.get("/api/measurements/{id}/files/{name}")
-async def measurement_file(request):
+async def measurement_file(request: web.Request) -> web.StreamResponse:
     path = _measurement_dir(request)
     name = request.match_info["name"]
     if "/" in name or "\\" in name or ".." in name or name.startswith(".") or "\0" in name:
@@ -407,7 +414,7 @@ def _zip(path: Path) -> bytes:
 
 
 @routes.get("/api/measurements/{id}/zip")
-async def measurement_zip(request):
+async def measurement_zip(request: web.Request) -> web.StreamResponse:
     path = _measurement_dir(request)
     data = await _blocking(request, _zip, path)
     return web.Response(body=data, content_type="application/zip",
@@ -415,7 +422,7 @@ async def measurement_zip(request):
 
 
 @routes.post("/api/measurements/{id}/refit")
-async def refit_route(request):
+async def refit_route(request: web.Request) -> web.StreamResponse:
     from trimeter.web.refit import refit
 
     path = _measurement_dir(request)
@@ -455,11 +462,11 @@ async def refit_route(request):
 
 # ----------------------------------------------------------------------------------- config
 @routes.get("/api/config")
-async def get_config(request):
+async def get_config(request: web.Request) -> web.StreamResponse:
     jobs = request.app[JOBS]
     device, source = jobs.device_config, "cached"
     if jobs.current is None and jobs.service.device is not None:
-        config = await _device_call(request, lambda service: service.device.config())
+        config = await _device_call(request, lambda service: service.connected_device().config())
         jobs.set_device_config(config)
         device, source = jobs.device_config, "read"
     return web.json_response({"host": jobs.service.settings.as_dict(), "host_file": str(HostSettings.path()),
@@ -467,7 +474,7 @@ async def get_config(request):
 
 
 @routes.put("/api/config")
-async def put_config(request):
+async def put_config(request: web.Request) -> web.StreamResponse:
     body = await json_body(request, ("host", "device", "save"))
     jobs = request.app[JOBS]
     host, device, save = body.get("host") or {}, body.get("device") or {}, body.get("save", False)
@@ -491,13 +498,14 @@ async def put_config(request):
         for key in host:  # the running loop reads its settings object: changed in place
             setattr(jobs.service.settings, key, getattr(running, key))
     if device or save:
-        def write(service):
+        def write(service: Service) -> dict:
+            connected = service.connected_device()
             if device:
-                service.device.write_config(device)
+                connected.write_config(device)
             if save:
-                service.device.command("save_config")
-                service.device.wait_idle(10.0)
-            return service.device.config()
+                connected.command("save_config")
+                connected.wait_idle(10.0)
+            return connected.config()
 
         if jobs.service.device is None:
             raise ApiError(503, "the instrument is not connected")
@@ -508,7 +516,7 @@ async def put_config(request):
 
 # ----------------------------------------------------------------------------------- events
 @routes.get("/api/events")
-async def events(request):
+async def events(request: web.Request) -> web.StreamResponse:
     ws = web.WebSocketResponse(heartbeat=30.0, max_msg_size=4096)
     await ws.prepare(request)
     queue: asyncio.Queue = asyncio.Queue(EVENT_QUEUE)
@@ -578,7 +586,7 @@ def create_app(jobs: Jobs, history: History, token: str, *, webhook: str | None 
     app.add_routes(routes)
     app.router.add_static("/static/", STATIC, show_index=False)
 
-    async def started(app):
+    async def started(app: web.Application) -> None:
         loop = asyncio.get_running_loop()
         app[STATE]["http"] = ClientSession(timeout=ClientTimeout(total=WEBHOOK_TIMEOUT_S))
 
@@ -590,7 +598,7 @@ def create_app(jobs: Jobs, history: History, token: str, *, webhook: str | None 
         app[STATE]["listener"] = listener
         jobs.listeners.append(listener)
 
-    async def stopping(app):
+    async def stopping(app: web.Application) -> None:
         jobs.listeners.remove(app[STATE]["listener"])
         for queue in list(app[STATE]["clients"]):
             queue.put_nowait(None) if not queue.full() else None
@@ -606,7 +614,7 @@ class WebServer:
     """The app on its own thread and event loop (the instrument's worker has another thread; the main
     thread waits for Ctrl-C)."""
 
-    def __init__(self, app: web.Application, host: str, port: int):
+    def __init__(self, app: web.Application, host: str, port: int) -> None:
         self.app, self.host, self.port = app, host, port
         self._loop = asyncio.new_event_loop()
         self._ready = threading.Event()
@@ -661,7 +669,8 @@ def parse_bind(text: str) -> tuple[str, int]:
 
 def openapi() -> dict:
     """The API's OpenAPI 3.1 description (served at /api/openapi.json)."""
-    def op(summary, *, body=None, params=(), responses=None):
+    def op(summary: str, *, body: dict | None = None, params: Sequence[tuple[str, str, str, str]] = (),
+           responses: dict | None = None) -> dict:
         out = {"summary": summary, "responses": {"200": {"description": "OK"}, "401": {"description": "no or wrong "
                                                                                                          "token"},
                                                  **(responses or {})}}

@@ -79,11 +79,11 @@ def summarize(directory: Path) -> dict | None:
         flags = np.zeros(0, np.int64)
     written = meta.get("written_utc")
     try:
-        written = datetime.fromisoformat(written).astimezone(timezone.utc).isoformat(timespec="seconds")
+        written = datetime.fromisoformat(str(written)).astimezone(timezone.utc).isoformat(timespec="seconds")
     except (TypeError, ValueError):
         written = _stamp_of(directory.name)
 
-    def listed(key):
+    def listed(key: str) -> list:
         value = meta.get(key)
         return value if isinstance(value, list) else []
 
@@ -96,7 +96,7 @@ def summarize(directory: Path) -> dict | None:
             "advice": json.dumps([a for a in listed("advice") if isinstance(a, str)]), "mtime": mtime}
 
 
-def _text(value) -> str | None:
+def _text(value: object) -> str | None:
     return value if isinstance(value, str) and value else None
 
 
@@ -126,7 +126,7 @@ def parse_day_or_time(text: str, name: str, *, end: bool = False) -> str:
 class History:
     """The index of `root`'s results directories, kept in the SQLite file `db_path`."""
 
-    def __init__(self, root: Path, db_path: Path):
+    def __init__(self, root: Path, db_path: Path) -> None:
         self.root = Path(root)
         self.db_path = Path(db_path)
         self._local = threading.local()
@@ -246,7 +246,8 @@ class History:
                flagged: bool | None = None, flag: str | None = None, limit: int = 50, offset: int = 0
                ) -> tuple[list[dict], int]:
         """(one page of rows, newest first; how many match). Dates as parse_day_or_time gives them."""
-        where, args = [], []
+        where: list[str] = []
+        args: list[object] = []
         if label:
             where.append("label LIKE ? ESCAPE '\\'")
             args.append("%" + re.sub(r"([%_\\])", r"\\\1", label) + "%")
@@ -262,7 +263,8 @@ class History:
             try:
                 bit = FitFlag[flag.upper()]
             except KeyError:
-                raise InputError(f"flag: {flag!r} is not one of {', '.join(f.name for f in FitFlag if f)}") from None
+                known = ", ".join(str(f.name) for f in FitFlag if f)
+                raise InputError(f"flag: {flag!r} is not one of {known}") from None
             where.append("flags & ? != 0")
             args.append(int(bit))
         if not 1 <= limit <= MAX_PAGE:

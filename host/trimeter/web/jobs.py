@@ -19,7 +19,7 @@ import threading
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable
 
 from trimeter.errors import DeviceError, TrimeterError
 from trimeter.sequences.service import EMPTY_HOLDER, FAILED, NEXT_SAMPLE, READY, WORKING, Event, Service
@@ -59,7 +59,7 @@ class Job:
 
 
 class Busy(Exception):
-    def __init__(self, job: Job):
+    def __init__(self, job: Job) -> None:
         super().__init__(f"job {job.id} ({job.kind}, {job.state}) is not finished")
         self.job = job
 
@@ -68,7 +68,7 @@ class Jobs:
     """The worker around one Service. `listeners` get every event and finished job as JSON (on the
     worker thread: hand them to another thread quickly)."""
 
-    def __init__(self, service: Service, *, on_measurement: Callable[[Path], None] = lambda path: None):
+    def __init__(self, service: Service, *, on_measurement: Callable[[Path], None] = lambda path: None) -> None:
         self.service = service
         self.on_measurement = on_measurement   # a results directory was written (the history indexes it)
         self.listeners: list[Callable[[dict], None]] = []
@@ -78,7 +78,7 @@ class Jobs:
         self.current: Job | None = None
         self.recent: collections.deque[Job] = collections.deque(maxlen=RECENT_JOBS)
         self.events: collections.deque[dict] = collections.deque(maxlen=RECENT_EVENTS)
-        self._status = {"connected": False, "step": None, "progress": None, "lamp_drift": None,
+        self._status: dict[str, Any] = {"connected": False, "step": None, "progress": None, "lamp_drift": None,
                         "asking_reason": None, "map_table": None, "device_config": None}
         self._refresh_device = False
         self._stop = threading.Event()
@@ -88,8 +88,8 @@ class Jobs:
         service.on_progress = self.on_progress
 
     @staticmethod
-    def _chain(first, second):
-        def both(event):
+    def _chain(first: Callable[[Event], None], second: Callable[[Event], None]) -> Callable[[Event], None]:
+        def both(event: Event) -> None:
             first(event)
             second(event)
         return both
@@ -187,7 +187,7 @@ class Jobs:
 
         service = self.service
         try:
-            config = {name: _plain(value) for name, value in service.device.config().items()}
+            config = {name: _plain(value) for name, value in service.connected_device().config().items()}
         except TrimeterError as exc:
             config = {"error": str(exc)}
         try:
@@ -317,7 +317,7 @@ class Jobs:
             self._status["device_config"] = {name: _plain(value) for name, value in config.items()}
 
 
-def _plain(value):
+def _plain(value: object) -> Any:
     """A JSON-ready copy of an event's data (enums by name, paths as text, numpy scalars as numbers)."""
     import enum
 

@@ -64,7 +64,8 @@ def load_capture(directory: Path) -> tuple[Calibration, list[RawSample], list[Re
         for tag in file_tags(thicknesses):
             captures = {s: _capture(read_columns(directory / f"raw_{s}{tag}.csv")) for s in SETUPS}
             refl = _reflectances(read_columns(directory / f"reflectances{tag}.csv"))
-            raws.append(RawSample(refl.wavelengths_nm, **captures))
+            raws.append(RawSample(refl.wavelengths_nm, black=captures["black"], white=captures["white"],
+                                  collimated=captures["collimated"]))
             refls.append(refl)
     except KeyError as exc:
         raise InputError(f"{directory.name}: a capture file lacks the column {exc}") from None
