@@ -8,11 +8,13 @@ code base adds its sub-commands in its own file.
 
 from __future__ import annotations
 
+import argparse
 import importlib
 import pkgutil
 
 
-def register_group(subparsers, name: str, help_text: str, package: str, prefix: str = "") -> None:
+def register_group(subparsers: argparse._SubParsersAction, name: str, help_text: str, package: str,
+                   prefix: str = "") -> None:
     parser = subparsers.add_parser(name, help=help_text, description=help_text)
     group = parser.add_subparsers(dest=f"{name}_command", metavar="SUBCOMMAND")
     parser.set_defaults(func=lambda args: (parser.print_help(), 2)[1])

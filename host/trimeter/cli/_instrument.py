@@ -3,20 +3,27 @@ the spectrometer, and a rich progress bar for long work."""
 
 from __future__ import annotations
 
+import argparse
 import contextlib
+from collections.abc import Callable, Iterator
+from typing import TYPE_CHECKING
 
 from trimeter.errors import InputError
 from trimeter.sequences.settings import HostSettings
 
+if TYPE_CHECKING:
+    from trimeter.device import Device
+    from trimeter.spectrometer import Spectrometer
 
-def add_instrument_args(parser, *, spectrometer: bool = True) -> None:
+
+def add_instrument_args(parser: argparse.ArgumentParser, *, spectrometer: bool = True) -> None:
     parser.add_argument("--port", help="serial port of the instrument (default: host config `port`)")
     parser.add_argument("--address", type=int, help="Modbus address (default: host config `address`, 1)")
     if spectrometer:
         parser.add_argument("--spectrometer", help="spectrometer URL, e.g. sim:/dev/pts/5 (default: host config)")
 
 
-def settings_from(args) -> HostSettings:
+def settings_from(args: argparse.Namespace) -> HostSettings:
     settings = HostSettings.load()
     for key in ("port", "address", "spectrometer"):
         value = getattr(args, key, None)
@@ -25,7 +32,7 @@ def settings_from(args) -> HostSettings:
     return settings
 
 
-def open_device(settings: HostSettings):
+def open_device(settings: HostSettings) -> Device:
     from trimeter.device import Device
 
     if not settings.port:
@@ -34,7 +41,7 @@ def open_device(settings: HostSettings):
                        timeout_s=settings.timeout_s, attempts=settings.attempts, local_echo=bool(settings.local_echo))
 
 
-def open_spectrometer(settings: HostSettings):
+def open_spectrometer(settings: HostSettings) -> Spectrometer:
     from trimeter.spectrometer import open_spectrometer as open_url
 
     if not settings.spectrometer:
@@ -44,7 +51,7 @@ def open_spectrometer(settings: HostSettings):
 
 
 @contextlib.contextmanager
-def progress_bar(description: str = "working"):
+def progress_bar(description: str = "working") -> Iterator[Callable[[float, str], None]]:
     """Yields on_progress(fraction, message) driving a rich progress bar (plain lines when not a TTY)."""
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 

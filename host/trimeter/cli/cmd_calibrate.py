@@ -8,13 +8,14 @@ disagrees with the previous one (the physical bounds still apply)."""
 
 from __future__ import annotations
 
+import argparse
 import numpy as np
 
 from trimeter.cli._instrument import add_instrument_args, open_device, open_spectrometer, progress_bar, settings_from
 from trimeter.sequences.service import Service
 
 
-def run(args):
+def run(args: argparse.Namespace) -> None:
     settings = settings_from(args)
     service = Service(lambda: open_device(settings), lambda: open_spectrometer(settings), settings,
                       on_event=lambda e: print(e.message) if e.kind not in ("connected",) else None)
@@ -31,7 +32,7 @@ def run(args):
           f"ρ_black median {np.nanmedian(cal.rho_black):.3f}; saved in {settings.calibration_path}")
 
 
-def register(subparsers) -> None:
+def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("calibrate", help="warm up and calibrate (holder empty)", description=__doc__)
     add_instrument_args(p)
     p.add_argument("--no-warm-up", action="store_true", help="skip the warm-up (lamps already stable)")

@@ -12,6 +12,7 @@ saved configuration and runs on defaults; `config list`, `serve`, `measure` and 
 
 from __future__ import annotations
 
+import argparse
 import sys
 from enum import IntEnum
 from pathlib import Path
@@ -26,7 +27,7 @@ from trimeter.sequences.settings import HostSettings
 DEVICE_WRITABLE = {r.name for r in regs.REGISTERS if r.access == "rw" and r.name not in ("command", "map_command")}
 
 
-def _show(value) -> str:
+def _show(value: object) -> str:
     if isinstance(value, IntEnum):
         return value.name.lower()
     if isinstance(value, float):
@@ -34,11 +35,11 @@ def _show(value) -> str:
     return str(value)
 
 
-def _is_device(name: str, args) -> bool:
+def _is_device(name: str, args: argparse.Namespace) -> bool:
     return not args.host and name in regs.BY_NAME
 
 
-def cmd_list(args):
+def cmd_list(args: argparse.Namespace) -> None:
     settings = settings_from(args)
     if not args.device:
         print(f"# host ({HostSettings.path()})")
@@ -46,7 +47,8 @@ def cmd_list(args):
             print(f"{key} = {value!r}")
     if not args.host:
         with open_device(settings) as dev:
-            print(f"# device ({settings.port}, firmware {'.'.join(map(str, dev.identity.firmware_version))})")
+            identity = dev.identity or dev.check_identity()
+            print(f"# device ({settings.port}, firmware {'.'.join(map(str, identity.firmware_version))})")
             source = dev.read("config_source")
             print(f"# configuration source: {source.name.lower()}")
             if warning := config_source_warning(source):
@@ -56,7 +58,7 @@ def cmd_list(args):
                 print(f"{name} = {_show(value)}{(' ' + reg.unit) if reg.unit and reg.unit != '1' else ''}")
 
 
-def cmd_get(args):
+def cmd_get(args: argparse.Namespace) -> None:
     settings = settings_from(args)
     if _is_device(args.name, args):
         with open_device(settings) as dev:
@@ -68,7 +70,7 @@ def cmd_get(args):
         print(settings.as_dict()[args.name])
 
 
-def cmd_set(args):
+def cmd_set(args: argparse.Namespace) -> None:
     if _is_device(args.name, args):
         if args.name not in DEVICE_WRITABLE:
             raise InputError(f"{args.name} is read-only (or a command: use the dedicated sub-command)")
@@ -83,17 +85,17 @@ def cmd_set(args):
         print(f"{args.name} = {getattr(settings, args.name)!r} (host, {path})")
 
 
-def cmd_save(args):
+def cmd_save(args: argparse.Namespace) -> None:
     with open_device(settings_from(args)) as dev:
         dev.command("save_config")
         dev.wait_idle(10.0)
         print("device configuration saved")
 
 
-def cmd_export(args):
+def cmd_export(args: argparse.Namespace) -> None:
     settings = settings_from(args)
     with open_device(settings) as dev:
-        text = dump_config(dev.config(), dev.identity, settings.port)
+        text = dump_config(dev.config(), dev.identity or dev.check_identity(), settings.port)
     if args.output is None:
         print(text, end="")
         return
@@ -104,7 +106,7 @@ def cmd_export(args):
     print(f"device configuration written to {args.output}")
 
 
-def cmd_import(args):
+def cmd_import(args: argparse.Namespace) -> None:
     values, unknown = read_config(args.file)
     if unknown:  # e.g. items a newer or older firmware had: the rest is still restored
         print(f"skipped, not in this firmware's register map: {listing(unknown)}", file=sys.stderr)
@@ -121,7 +123,7 @@ def cmd_import(args):
             print("not saved: `trimeter config save` to keep it after a reset")
 
 
-def register(subparsers) -> None:
+def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser("config", help="device (Modbus) and host (TOML) configuration",
                                    description=__doc__)
     sub = parser.add_subparsers(dest="config_command", metavar="SUBCOMMAND")

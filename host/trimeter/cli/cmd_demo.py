@@ -9,11 +9,14 @@ so the printed errors include the appearance map's own."""
 
 from __future__ import annotations
 
+import argparse
 import os
 import queue
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -21,10 +24,13 @@ from trimeter.errors import DeviceError
 from trimeter.inversion.methods import METHODS
 from trimeter.paths import REPO_ROOT
 
+if TYPE_CHECKING:
+    from trimeter.sequences.service import Event
+
 SHOW_NM = (450, 500, 550, 600, 650, 700)
 
 
-def _wait_for(events: "queue.Queue", kind: str, timeout_s: float, log):
+def _wait_for(events: queue.Queue[Event], kind: str, timeout_s: float, log: Callable[[Event], None]) -> Event:
     deadline = time.monotonic() + timeout_s
     while True:
         try:
@@ -38,7 +44,7 @@ def _wait_for(events: "queue.Queue", kind: str, timeout_s: float, log):
             raise DeviceError(f"demo: the service reported: {event.message}")
 
 
-def run(args):
+def run(args: argparse.Namespace) -> None:
     from trimeter.device import Device
     from trimeter.results.figure import plot_parameters
     from trimeter.domain import Sample
@@ -61,7 +67,7 @@ def run(args):
     settings.set("timeout_s", 0.3)
     settings.set("map", str(amap.path))
 
-    def log(event):
+    def log(event: Event) -> None:
         print(f"  [{event.kind}] {event.message}", flush=True)
 
     print(f"demo: twin with '{args.sample}' ℓ = {args.thickness:g} mm, map {amap.name}, time scale "
@@ -70,7 +76,7 @@ def run(args):
               state_dir=out / "twin", seed=args.seed) as twin:
         settings.set("port", twin.modbus_port)
         settings.set("spectrometer", twin.spectrometer_url)
-        events: queue.Queue = queue.Queue()
+        events: queue.Queue[Event] = queue.Queue()
         service = Service(lambda: Device.open(settings.port, timeout_s=settings.timeout_s),
                           lambda: open_spectrometer(settings.spectrometer), settings, on_event=events.put,
                           device_clock=twin.sim_time, label=args.sample)
@@ -89,6 +95,8 @@ def run(args):
             measured = _wait_for(events, "measured", 600, log)
             cycle_wall, cycle_sim = time.monotonic() - wall0, twin.sim_time() - sim0
             truth = twin.control.truth()
+            if truth is None:
+                raise DeviceError("demo: the twin holds no sample to compare with")
         finally:
             stop.set()
             thread.join(timeout=10)
@@ -151,7 +159,7 @@ def run(args):
     print(f"demo wall time: {time.monotonic() - wall_start:.1f} s")
 
 
-def register(subparsers) -> None:
+def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("demo", help="run the whole instrument on the twin, end to end", description=__doc__)
     p.add_argument("--sample", default="cyan-ink", help="virtual material (trimeter sim --list-materials)")
     p.add_argument("--thickness", type=float, default=0.4, help="sample thickness in mm (a map must exist for it)")

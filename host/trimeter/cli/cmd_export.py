@@ -6,12 +6,13 @@ what they mean: trimeter.results.export. Every export writes provenance.json bes
 
 from __future__ import annotations
 
+import argparse
 from pathlib import Path
 
 from trimeter.validation import require_number
 
 
-def register(subparsers) -> None:
+def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("export", help="write a measured material for Mitsuba, PBRT-v4, Blender or RGB renderers",
                               description=__doc__)
     p.add_argument("result", help="measurement directory or parameters file (CSV/JSON)")
@@ -28,7 +29,7 @@ def register(subparsers) -> None:
     p.set_defaults(func=run)
 
 
-def run(args) -> int:
+def run(args: argparse.Namespace) -> int:
     from trimeter.results.export import export, load_result
 
     step = require_number("--step-nm", args.step_nm, lo=0.0, hi=100.0)

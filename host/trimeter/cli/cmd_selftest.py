@@ -5,15 +5,21 @@ Run it with the holder EMPTY: the optical checks expect the bare backgrounds and
 
 from __future__ import annotations
 
+import argparse
 import json
+from typing import TYPE_CHECKING
 
 from trimeter.cli._instrument import add_instrument_args, open_device, open_spectrometer, settings_from
-from trimeter.sequences.selftest import FAIL, PASS, SKIP, run_selftest
+from trimeter.sequences.selftest import FAIL, PASS, SKIP, CheckResult, SelfTestReport, run_selftest
+
+if TYPE_CHECKING:
+    from trimeter.device import Device
+    from trimeter.spectrometer import Spectrometer
 
 _STYLE = {PASS: ("PASS", "green"), FAIL: ("FAIL", "bold red"), SKIP: ("not judged", "yellow")}
 
 
-def run(args):
+def run(args: argparse.Namespace) -> int:
     settings = settings_from(args)
     device = open_device(settings)
     try:
@@ -31,12 +37,12 @@ def run(args):
     return 0 if report.passed else 1
 
 
-def _run_with_progress(device, spectrometer):
+def _run_with_progress(device: Device, spectrometer: Spectrometer) -> SelfTestReport:
     from rich.console import Console
 
     console = Console()
     with console.status("selftest: starting") as status:
-        def on_result(result, index, total):
+        def on_result(result: CheckResult, index: int, total: int) -> None:
             label, style = _STYLE[result.status]
             console.print(f"[{style}]{label:>10}[/] {result.name}")
             if index + 1 < total:
@@ -45,7 +51,7 @@ def _run_with_progress(device, spectrometer):
         return run_selftest(device, spectrometer, on_result=on_result)
 
 
-def _print_table(report) -> None:
+def _print_table(report: SelfTestReport) -> None:
     from rich.console import Console
     from rich.table import Table
 
@@ -70,7 +76,7 @@ def _print_table(report) -> None:
                       + (f" ([yellow]not judged[/]: {', '.join(skipped)})" if skipped else ""))
 
 
-def register(subparsers) -> None:
+def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("selftest", help="check homing, slots, shutters, LEDs and the spectrometer",
                               description=__doc__)
     add_instrument_args(p)

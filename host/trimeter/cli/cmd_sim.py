@@ -11,6 +11,7 @@ and drive the virtual instrument through its control socket:
 
 from __future__ import annotations
 
+import argparse
 import json
 import signal
 import sys
@@ -25,7 +26,7 @@ def _default_state_dir() -> str:
     return platformdirs.user_state_dir("trimeter") + "/twin"
 
 
-def _ctl(args) -> int:
+def _ctl(args: argparse.Namespace) -> int:
     """Send one control request to a running twin and print the reply as JSON."""
     from pathlib import Path
 
@@ -57,7 +58,7 @@ def _ctl(args) -> int:
     return 0
 
 
-def run(args) -> int:
+def run(args: argparse.Namespace) -> int:
     from trimeter.twin import FaultConfig, Twin
     from trimeter.twin.optics import material_names
 
@@ -97,7 +98,7 @@ def run(args) -> int:
     return 0
 
 
-def register(subparsers) -> None:
+def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("sim", help="run the simulated instrument (twin) and print its ports",
                               description=__doc__)
     p.add_argument("--sample", metavar="MATERIAL", default=None,

@@ -68,7 +68,7 @@ class Jobs:
     """The worker around one Service. `listeners` get every event and finished job as JSON (on the
     worker thread: hand them to another thread quickly)."""
 
-    def __init__(self, service: Service, *, on_measurement: Callable[[Path], None] = lambda path: None) -> None:
+    def __init__(self, service: Service, *, on_measurement: Callable[[Path], object] = lambda path: None) -> None:
         self.service = service
         self.on_measurement = on_measurement   # a results directory was written (the history indexes it)
         self.listeners: list[Callable[[dict], None]] = []
