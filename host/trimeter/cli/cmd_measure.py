@@ -4,9 +4,13 @@ With two thicknesses you are asked to swap the samples in between; both are fitt
 
 from __future__ import annotations
 
+import argparse
+from collections.abc import Sequence
+
 import numpy as np
 
 from trimeter.cli._instrument import add_instrument_args, open_device, open_spectrometer, progress_bar, settings_from
+from trimeter.domain.measurement import Estimate
 from trimeter.errors import InputError
 from trimeter.inversion.methods import METHODS
 from trimeter.sequences.measure import resolve_samples
@@ -15,7 +19,7 @@ from trimeter.sequences.service import Service, calibration_is_stale
 SHOW_NM = (450, 550, 650)
 
 
-def summary(parameters, wavelengths=SHOW_NM, truth=None) -> str:
+def summary(parameters: Estimate, wavelengths: Sequence[float] = SHOW_NM, truth: dict | None = None) -> str:
     lines = [f"{'λ [nm]':>8} {'α':>8} {'σt [1/mm]':>11} {'g':>7}" + ("   truth: α      σt      g" if truth else "")]
     for w in wavelengths:
         i = int(np.argmin(np.abs(parameters.wavelengths_nm - w)))
@@ -28,7 +32,7 @@ def summary(parameters, wavelengths=SHOW_NM, truth=None) -> str:
     return "\n".join(lines)
 
 
-def run(args):
+def run(args: argparse.Namespace) -> None:
     settings = settings_from(args)
     if args.method:
         settings.set("method", args.method)
@@ -48,12 +52,12 @@ def run(args):
                       on_event=lambda e: print(f"warning: {e.message}") if e.kind == "warning" else None)
     service.connect()
     try:
-        reason = calibration_is_stale(service.calibration, service.device.read("uptime_s"),
+        reason = calibration_is_stale(service.calibration, service.connected_device().read("uptime_s"),
                                       settings.calibration_max_age_s) or service.calibration_stale_reason
         if reason:
             raise InputError(f"calibration: {reason}; run `trimeter calibrate` with the holder empty")
 
-        def swap(thickness):
+        def swap(thickness: float) -> None:
             input(f"insert the {thickness:g} mm sample and press Enter ")
 
         with progress_bar("measurement") as update:
@@ -62,13 +66,14 @@ def run(args):
     finally:
         service.close()
     p = service.last_parameters
+    assert p is not None  # set by every measure that returns
     print(summary(p))
     for note in service.last_advice:
         print(f"note: {note}")
     print(f"results: {path}")
 
 
-def register(subparsers) -> None:
+def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("measure", help="measure the inserted sample", description=__doc__)
     add_instrument_args(p)
     p.add_argument("--thickness", type=float, action="append", help="sample thickness in mm (twice for two samples)")

@@ -19,6 +19,7 @@ token made at first start (0600 in the host config directory): `--show-token` pr
 
 from __future__ import annotations
 
+import argparse
 import threading
 from datetime import datetime
 from urllib.parse import urlsplit
@@ -26,10 +27,11 @@ from urllib.parse import urlsplit
 from trimeter.cli._instrument import add_instrument_args, open_device, open_spectrometer, settings_from
 from trimeter.errors import InputError
 from trimeter.sequences.measure import map_for_thickness
-from trimeter.sequences.service import Service
+from trimeter.sequences.service import Event, Service
+from trimeter.sequences.settings import HostSettings
 
 
-def show_token(args) -> None:
+def show_token(args: argparse.Namespace) -> None:
     from trimeter.web.app import parse_bind
     from trimeter.web.auth import load_or_create_token, token_path
 
@@ -47,7 +49,7 @@ def check_webhook(url: str | None) -> None:
         raise InputError(f"--webhook: {url!r} is not an http(s) URL")
 
 
-def run(args):
+def run(args: argparse.Namespace) -> None:
     if args.show_token:
         return show_token(args)
     check_webhook(args.webhook)
@@ -63,7 +65,7 @@ def run(args):
         print(f"sample {number}: thickness {thickness:g} mm ({source}), map {amap.name}", flush=True)
     stop = threading.Event()
 
-    def show(event):
+    def show(event: Event) -> None:
         print(f"{datetime.now():%H:%M:%S} {event.kind:<12} {event.message}", flush=True)
 
     service = Service(lambda: open_device(settings), lambda: open_spectrometer(settings), settings,
@@ -79,7 +81,7 @@ def run(args):
         service.close()
 
 
-def register(subparsers) -> None:
+def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("serve", help="press-button standalone mode", description=__doc__)
     add_instrument_args(p)
     p.add_argument("--thickness", type=float, help="sample thickness in mm (default: host config)")
@@ -95,7 +97,7 @@ def register(subparsers) -> None:
     p.set_defaults(func=run)
 
 
-def serve_http(args, service: Service, settings) -> None:
+def serve_http(args: argparse.Namespace, service: Service, settings: HostSettings) -> None:
     """The press-button loop on a worker thread, the web app on another; Ctrl-C stops both."""
     from trimeter.paths import data_dir
     from trimeter.web.app import WebServer, create_app, parse_bind
