@@ -69,8 +69,8 @@ check-gen: setup
 hardware: setup
 	$(PY) -m tools.gen_hardware --parts
 
-# ruff's pycodestyle, pyflakes, bugbear and simplify rules (configured in pyproject.toml)
-lint: setup
+# ruff's pycodestyle, pyflakes, bugbear and simplify rules (configured in pyproject.toml), after the type check
+lint: setup typecheck
 	$(VENV)/bin/ruff check host tools tests
 
 # mypy over host/trimeter ([tool.mypy] in pyproject.toml); incremental through .mypy_cache
