@@ -122,3 +122,17 @@ def test_a_late_reply_is_not_taken_for_the_next_answer(server):
         assert spec.integration_time_us == 3000
         server._expose = lambda it_us: (np.full(1024, 9, dtype=np.uint16), 2.0)
         np.testing.assert_array_equal(spec.intensities(), 9)
+
+
+@pytest.mark.parametrize("field, value", [("wavelength_range_nm", [340.0, 500.0, 850.0]),
+                                          ("integration_time_us_limits", [10]),
+                                          ("integration_time_us_limits", 10)])
+def test_a_description_whose_limits_are_not_pairs_is_refused(field, value):
+    model = SpectrometerModel()
+    description = {**model.description(), field: value}
+    server = SpectrometerServer(description, model.wavelengths_nm, lambda it_us: (np.zeros(1024, np.uint16), 0.0))
+    try:
+        with pytest.raises(DeviceError, match="bad DESC"):
+            open_spectrometer(f"sim:{server.port}")
+    finally:
+        server.close()
