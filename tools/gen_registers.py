@@ -157,7 +157,7 @@ def _item(table: str, is_bits: bool, entry: dict, enums: dict) -> Item:
     if allowed and (type_ == "f32" or default not in allowed
                     or not all(vmin <= v <= vmax for v in allowed)):
         raise MapError(f"{where}: allowed values must be integers in min..max including the default")
-    if enum is not None and sorted(enums[enum].values()) != list(range(lo, hi + 1)) and access == "rw":
+    if enum is not None and sorted(enums[enum].values()) != list(range(int(lo), int(hi) + 1)) and access == "rw":
         allowed = tuple(sorted(enums[enum].values()))
     scale = float(entry.get("scale", 1.0))
     if not math.isfinite(scale) or scale <= 0:
