@@ -9,7 +9,7 @@ its in-scattering table, fit from it alone, and score that fit on the map's held
 
 `build` prints the bytes per part. `measure` prints, per map and noise level, α abs / σt relative /
 g abs (α ≥ 0.5) p50 and p95 over the measurable gamut for: the map's own lut fit (`trimeter.fit`,
-the map file, its .tlut v1 and .tins), the v2 table alone with its forward model sampled onto the
+the map file with its .tlut and .tins), the v2 table alone with its forward model sampled onto the
 refined grid at load (the host path), the same with the polish evaluating the compact model on the
 fly (the device path: numpy, and C from the file's bytes where the kernel is built), and the
 polish-free table guess. `budget` prints what the bytes buy:
@@ -29,39 +29,10 @@ import numpy as np
 
 # ------------------------------------------------------------------------------------------- build
 def build(amap, n_inverse: int | None = None):
-    """The v2 table of an AppearanceMap (with its .tins); n_inverse: the inverse grid's side (default:
-    the largest that fits the slot)."""
-    from trimeter.errors import MapFileError
-    from trimeter.maps.artifacts import map_model_variance
-    from trimeter.maps.device_table import MAX_BYTES, DeviceTable, geometry_bytes, table_size
-    from trimeter.maps.table import build_from_map
+    """The v2 table of an AppearanceMap (the pipeline's tlut stage: trimeter.maps.device_table.build_from_map)."""
+    from trimeter.maps.device_table import build_from_map
 
-    tins = amap.inscatter
-    if tins is None:
-        raise MapFileError(f"map {amap.name} has no in-scattering table (.tins): a device table needs one")
-    if abs(tins.n - amap.n) > 1e-6 or abs(tins.thickness_mm - amap.thickness_mm) > 1e-6:
-        raise MapFileError(f"{amap.name}: its .tins was traced for n {tins.n}, ℓ {tins.thickness_mm}")
-    na, ns, ng = amap.A.shape
-    geometry_len = len(geometry_bytes(tins.geometry_params))
-    if n_inverse is None:
-        n_inverse = max((k for k in range(2, 129) if table_size(na, ns, ng, k, *tins.L.shape, geometry_len)
-                         <= MAX_BYTES), default=None)
-        if n_inverse is None:
-            raise MapFileError(f"a {na}×{ns}×{ng} map does not fit the {MAX_BYTES}-byte slot")
-    elif n_inverse < 2 or table_size(na, ns, ng, n_inverse, *tins.L.shape, geometry_len) > MAX_BYTES:
-        raise MapFileError(f"an inverse grid of {n_inverse}×{n_inverse} is below 2×2 or does not fit the "
-                           f"{MAX_BYTES}-byte slot")
-    # the inverse grid over the map's own σt nodes, as the v1 table builds it
-    inverse = build_from_map(amap, n_xy=n_inverse, refine=(1, 1, 1))
-    var, _axes = map_model_variance(amap)
-    return DeviceTable.build(
-        name=amap.name, parent_sha256=amap.checksum or "", inscatter_sha256=tins.checksum or "", n=amap.n,
-        thickness_mm=amap.thickness_mm, cover_slide_n=amap.cover_slide_n, reference_rhos=amap.reference_rhos,
-        mc_stderr=float(np.median(np.concatenate([amap.std_b.ravel(), amap.std_w.ravel()]))),
-        alpha=amap.alpha, log_sigma_t=np.log(amap.sigma_t), g=amap.g, nodes=np.stack([amap.A, amap.B, amap.C], -1),
-        model_std=np.sqrt(var), inscatter_L=tins.L, inscatter_ends=(tins.u_max, tins.tau_max, tins.v_max),
-        inv_frame=inverse.inv_frame, inv_alpha_q=inverse.inv_alpha_q, inv_g_q=inverse.inv_g_q,
-        geometry=tins.geometry_params)
+    return build_from_map(amap, n_inverse)
 
 
 # --------------------------------------------------------------------------------------------- fit

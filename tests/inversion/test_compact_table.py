@@ -132,9 +132,22 @@ def test_corrupt_truncated_padded_and_oversized_files_are_refused(tmp_path):
     assert DeviceTable.load(ok).to_bytes() == data
 
 
-def test_a_version_1_table_is_not_taken_for_version_2():
-    with pytest.raises(MapFileError, match=": format_version: 1"):
-        DeviceTable.load(ROOT / "maps" / "device-n1.5-l0.4.tlut")
+def test_a_version_1_table_is_refused_by_name_with_the_command_that_rebuilds_it(tmp_path):
+    data = bytearray(small_table().to_bytes())
+    data[8:10] = (1).to_bytes(2, "little")
+    path = tmp_path / "old.tlut"
+    path.write_bytes(bytes(data))
+    with pytest.raises(MapFileError, match=r": format_version: 1, .*retired.*--stages tlut"):
+        DeviceTable.load(path)
+
+
+def test_the_shipped_tables_are_version_2_of_their_maps():
+    from trimeter.maps.appearance import AppearanceMap
+
+    for path in sorted((ROOT / "maps").glob("*.tlut")):
+        table = DeviceTable.load(path)
+        assert table.parent_sha256 == AppearanceMap.load(path.with_suffix(".tmap")).checksum, path.name
+        assert table.size_bytes <= MAX_BYTES
 
 
 # ----------------------------------------------------------------------------- the fit from it alone
@@ -180,7 +193,7 @@ def test_the_shipped_map_s_table_fits_the_slot_and_fits_held_out_materials_from_
 
 @pytest.mark.parametrize("argv, message", [
     (["build", "no-such-map"], "neither a file nor a shipped map"),
-    (["build", "ideal-n1.5-l0.5"], "no in-scattering table"),
+    (["build", "device-n1.5-l0.4", "--n-inverse", "1"], "below 2×2"),
     (["build", "device-n1.5-l0.4", "--n-inverse", "300"], "does not fit"),
 ])
 def test_the_tool_names_what_is_wrong_and_exits_2(argv, message, capsys, tmp_path):

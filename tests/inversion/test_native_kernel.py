@@ -12,7 +12,7 @@ from trimeter.inversion import native
 from trimeter.inversion.kernel import NativeKernel, NumpyKernel
 from trimeter.inversion.lut import TableInverter
 from trimeter.maps.artifacts import load_artifacts
-from trimeter.maps.table import MapTable
+from trimeter.maps.device_table import DeviceTable as MapTable
 from trimeter.model.grid import ForwardGrid
 from trimeter.paths import MAPS_DIR
 

@@ -13,7 +13,7 @@ from trimeter.errors import MapFileError
 from trimeter.maps import pipeline
 from trimeter.maps.appearance import AppearanceMap
 from trimeter.maps.inscatter_file import load_inscatter, save_inscatter
-from trimeter.maps.table import MapTable
+from trimeter.maps.device_table import DeviceTable
 from trimeter.maps.recipe import parse_recipe
 
 from tiny_toml import tiny_toml
@@ -25,7 +25,8 @@ SMALL = pipeline.Options(inscatter_photons=1000, inscatter_shape=(4, 3, 3), mlp_
 
 def device_recipe(seed=1):
     return parse_recipe({"name": "pipe-device", "geometry": "device", "n": 1.5, "thickness_mm": 0.4, "seed": seed,
-                         "grid": {"alpha": {"max": 0.99, "count": 5}, "sigma_t": [1.0, 10.0], "g": [0.0, 0.5]},
+                         "grid": {"alpha": {"max": 0.99, "count": 5}, "sigma_t": [1.0, 2.0, 5.0, 10.0],
+                                  "g": [0.0, 0.3, 0.5]},
                          "sampling": {"target_stderr": 1.0, "min_paths": 4096, "max_paths": 4096}})
 
 
@@ -38,7 +39,12 @@ def test_every_stage_stamps_its_child_and_a_rebuilt_map_refuses_the_old_one(tmp_
     tins = load_inscatter(out.with_suffix(".tins"))
     assert tins.parent_sha256 == amap.checksum
     assert tins.producer == {"name": "trimeter map build --stages tins", "version": __version__}
-    assert MapTable.load(out.with_suffix(".tlut")).source_checksum == amap.checksum
+    table = DeviceTable.load(out.with_suffix(".tlut"))  # the device table, carrying this run's .tins
+    assert table.parent_sha256 == amap.checksum and table.inscatter_sha256 == tins.checksum
+    assert table.inscatter.shape == (4, 3, 3)
+    before = out.with_suffix(".tlut").read_bytes()  # the table again on its own: the same bytes
+    pipeline.run([pipeline.Target(device_recipe(), None, out)], ("tlut",), progress=False, say=say.append)
+    assert out.with_suffix(".tlut").read_bytes() == before
     import onnx
 
     meta = {p.key: p.value for p in onnx.load(out.with_suffix(".onnx")).metadata_props}
@@ -85,12 +91,9 @@ def test_cli_builds_the_default_stages_on_a_local_cluster(tmp_path, capsys):
     amap = AppearanceMap.load(tmp_path / "pipe-tiny.tmap")
     assert "dask (1 workers, 1 threads)" in text and amap.provenance["executor"] == "dask (1 workers, 1 threads)"
     assert "tins: skipped for pipe-tiny: in-scattering needs the device geometry" in text
-    assert MapTable.load(tmp_path / "pipe-tiny.tlut").source_checksum == amap.checksum
+    assert "tlut: skipped for pipe-tiny: a device table needs at least 4 α, 4 σt and 3 g nodes" in text
+    assert not (tmp_path / "pipe-tiny.tlut").exists()
     assert not (tmp_path / "pipe-tiny.onnx").exists()           # opt-in
-    # the table again on its own (no cluster needed): the same bytes
-    before = (tmp_path / "pipe-tiny.tlut").read_bytes()
-    assert main(["map", "build", str(recipe), "--out-dir", str(tmp_path), "--stages", "tlut"]) == 0
-    assert (tmp_path / "pipe-tiny.tlut").read_bytes() == before
 
 
 @pytest.mark.parametrize("args, named", [

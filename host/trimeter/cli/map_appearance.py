@@ -59,8 +59,9 @@ def register(subparsers) -> None:
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_list)
 
-    p = subparsers.add_parser("info", help="describe an appearance map (recipe, grid, MC error, provenance)")
-    p.add_argument("map", help="map file or shipped map name")
+    p = subparsers.add_parser("info", help="describe an appearance map (recipe, grid, MC error, provenance) or a "
+                                           "device table (.tlut)")
+    p.add_argument("map", help="map file, shipped map name or device table file (.tlut)")
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_info)
 
@@ -184,6 +185,8 @@ def cmd_list(args) -> int:
 
 
 def cmd_info(args) -> int:
+    if str(args.map).endswith(".tlut"):
+        return _table_info(args)
     info = _describe(load_appearance_map(args.map))
     if args.json:
         print(json.dumps(info, indent=2))
@@ -207,6 +210,32 @@ def cmd_info(args) -> int:
                                    f"{ins['path']} (grid {'×'.join(map(str, ins['grid']))}, σt·ℓ ≤ {ins['tau_max']:g}, "
                                    f"largest ln(1 + r) {ins['max_log1p_ratio']:.3f})"))
     print("\n".join(lines))
+    return 0
+
+
+def _table_info(args) -> int:
+    """`map info` of a device table (.tlut)."""
+    from trimeter.maps.device_table import describe_table
+
+    info = describe_table(args.map)
+    if args.json:
+        print(json.dumps(info, indent=2))
+        return 0
+    s, fg, ig, rg = info["sample"], info["forward_grid"], info["inverse_grid"], info["range"]
+    ins = info["inscatter_grid"]
+    print("\n".join([
+        f"name        {info['name']}   ({info['path']}, device table format {info['format_version']}, "
+        f"{info['size_bytes']} of {info['slot_capacity_bytes']} bytes)",
+        f"sha256      {info['sha256']}  (own CRC-32 {info['crc32']})",
+        f"parent map  sha256 {info['parent_map_sha256']}",
+        f"sample      n = {s['n']:g}, thickness = {s['thickness_mm']:g} mm, cover slides "
+        f"{'none' if s['cover_slide_n'] is None else format(s['cover_slide_n'], '.4g')}; reference ρ_b = "
+        f"{info['reference_rho']['black']:g}, ρ_w = {info['reference_rho']['white']:g}",
+        f"forward     α {fg['alpha']} ({rg['alpha'][0]:g}…{rg['alpha'][1]:g}), σt {fg['sigma_t']} "
+        f"({rg['sigma_t'][0]:g}…{rg['sigma_t'][1]:g} 1/mm), g {fg['g']} ({rg['g'][0]:g}…{rg['g'][1]:g})",
+        f"inverse     {ig['x']}×{ig['y']} per σt node",
+        "inscatter   " + ("none" if ins is None else "×".join(map(str, ins))),
+    ]))
     return 0
 
 

@@ -1,6 +1,6 @@
 """`trimeter map flash|verify|slots`: the device's map tables (A/B slots) over Modbus file records.
 
-flash:  validates the table file (MapTable.from_bytes: magic, version, CRC), writes it into the
+flash:  validates the device table (DeviceTable.from_bytes: every field, CRC), writes it into the
         inactive slot in chunks, lets the device verify its CRC-32, reads every byte back, and only
         then activates the new slot. Interrupted? Run it again: it resumes where the device stopped,
         and until activation the old map stays active.
@@ -18,11 +18,11 @@ from trimeter.errors import DeviceError
 
 
 def _read_table(path: str) -> bytes:
-    from trimeter.maps.table import MAX_TABLE_BYTES, MapTable
     from trimeter.maps.container import read_bounded
+    from trimeter.maps.device_table import MAX_BYTES, DeviceTable
 
-    data = read_bounded(Path(path), MAX_TABLE_BYTES, "map table")  # a larger file is refused unread
-    MapTable.from_bytes(data, source=path)  # MapFileError (one line) on any defect: never flash garbage
+    data = read_bounded(Path(path), MAX_BYTES, "map table")  # a larger file is refused unread
+    DeviceTable.from_bytes(data, source=path)  # MapFileError (one line) on any defect: never flash garbage
     return data
 
 

@@ -1,4 +1,4 @@
-"""A map and its children (`.tlut` table, `.tins` in-scattering table, `.onnx` network) loaded into what
+"""A map and its children (`.tlut` device table, `.tins` in-scattering table, `.onnx` network) loaded into what
 a fit needs (MapArtifacts, a trimeter.inversion.api.FitModel), kept in an explicit cache; and
 `trimeter.fit`, which takes map names, paths or AppearanceMaps and fits through trimeter.inversion."""
 
@@ -17,9 +17,8 @@ from trimeter.inversion.lut import TableInverter
 from trimeter.inversion.mlp import MlpInverter
 from trimeter.maps.appearance import AppearanceMap, find_map
 from trimeter.maps.container import read_bounded
-from trimeter.maps.table import MapTable, build_from_map, table_path_for
-from trimeter.model.grid import ForwardGrid, node_model_variance
-from trimeter.model.response import background_response
+from trimeter.maps.device_table import DeviceTable, DeviceTableModel, build_from_map, map_model_variance, table_path_for
+from trimeter.model.grid import ForwardGrid
 from trimeter.model.setup import SampleSetup
 
 MODEL_SUFFIX = ".onnx"
@@ -31,22 +30,12 @@ def model_path_for(map_path: str | Path) -> Path:
     return Path(map_path).with_suffix(MODEL_SUFFIX)
 
 
-def map_model_variance(amap: AppearanceMap) -> tuple:
-    """The map's own error variance of (I_b, I_w) at its nodes, at its reference backgrounds:
-    (variances (na, ns, ng, 2), α, ln σt, g axes) for ForwardGrid.attach_model_variance."""
-    rb, rw = amap.reference_rhos
-    values = np.stack([background_response(amap.A, amap.B, amap.C, rho) for rho in (rb, rw)], axis=-1)
-    axes = (np.asarray(amap.alpha, float), np.log(np.asarray(amap.sigma_t, float)), np.asarray(amap.g, float))
-    var = node_model_variance(values, np.stack([amap.std_b, amap.std_w], axis=-1), *axes)
-    return var, axes
-
-
 class MapArtifacts:
     """One map as a fit takes it: the map, its table inverter (the table's guess and the polish's
     forward grid, with the map's in-scattering and model error attached), its MLP models on demand
     and the paper method's triangulations."""
 
-    def __init__(self, amap: AppearanceMap, table: MapTable):
+    def __init__(self, amap: AppearanceMap, table: DeviceTable):
         self.map = amap
         self.name = amap.name
         self.reference_rhos = amap.reference_rhos
@@ -94,31 +83,39 @@ def load_mlp(path: Path, amap: AppearanceMap) -> MlpInverter:
                        (float(amap.alpha[0]), float(amap.alpha[-1])), (float(amap.g[0]), float(amap.g[-1])))
 
 
-def map_table(amap: AppearanceMap) -> MapTable:
+def map_table(amap: AppearanceMap) -> DeviceTable:
     """The map's table: maps/<name>.tlut if it exists and was built from this very map; else built in
     memory from the map. A stale .tlut (built from an earlier version of the map) is never used: it is
     rebuilt in memory with a warning, since the map is the source of truth and the file only a cache."""
+    from trimeter.maps.pipeline import rebuild_command
+
     path = table_path_for(amap.path) if amap.path else None
     if path is not None and path.is_file():
-        table = MapTable.load(path)  # a damaged file is a MapFileError, never ignored
-        if not amap.checksum or table.source_checksum == amap.checksum:
+        table = DeviceTable.load(path)  # a damaged or format-1 file is a MapFileError, never ignored
+        if not amap.checksum or table.parent_sha256 == amap.checksum:
             return table
-        warnings.warn(f"{path} was built from map {table.source_checksum[:12]}…, not from {amap.path.name} "
+        warnings.warn(f"{path} was built from map {table.parent_sha256[:12]}…, not from {amap.path.name} "
                       f"({amap.checksum[:12]}…): using a table rebuilt in memory; refresh the file with "
-                      f"tools/build_table.py", stacklevel=3)
+                      f"`{rebuild_command(amap, 'tlut')}`", stacklevel=3)
     return build_from_map(amap)
 
 
 class ArtifactCache:
-    """Loaded MapArtifacts by map identity (its checksum and its in-scattering table's). `tables`
-    overrides a map's table by its name (e.g. the bench's small variant)."""
+    """Loaded MapArtifacts by map identity (its checksum and its in-scattering table's), and device
+    tables' fit models by their SHA-256. `tables` overrides a map's table by its name (e.g. the bench's
+    small variant)."""
 
-    def __init__(self, tables: dict[str, MapTable] | None = None):
+    def __init__(self, tables: dict[str, DeviceTable] | None = None):
         self._loaded: dict = {}
         self.tables = dict(tables or {})
 
-    def get(self, spec) -> MapArtifacts:
-        """The artifacts of an AppearanceMap, a map path or a shipped map's name."""
+    def get(self, spec) -> MapArtifacts | DeviceTableModel:
+        """The artifacts of an AppearanceMap, a map path or a shipped map's name; a DeviceTable's fit model
+        (the table alone)."""
+        if isinstance(spec, DeviceTable):
+            if spec.sha256 not in self._loaded:
+                self._loaded[spec.sha256] = spec.fit_model()
+            return self._loaded[spec.sha256]
         amap = spec if isinstance(spec, AppearanceMap) else AppearanceMap.load(find_map(spec))
         inscatter = amap.inscatter
         key = (amap.checksum or id(amap), inscatter.checksum if inscatter is not None else None)
@@ -134,14 +131,14 @@ class ArtifactCache:
 DEFAULT_CACHE = ArtifactCache()
 
 
-def load_artifacts(spec, cache: ArtifactCache | None = None) -> MapArtifacts:
+def load_artifacts(spec, cache: ArtifactCache | None = None) -> MapArtifacts | DeviceTableModel:
     return (DEFAULT_CACHE if cache is None else cache).get(spec)
 
 
 def fit(maps, I_b, I_w, I_c, rho_b=None, rho_w=None, method: str = "lut", *, cache: ArtifactCache | None = None,
         **options):
-    """`trimeter.fit`: trimeter.inversion.api.fit on maps given as AppearanceMaps, map paths or shipped
-    maps' names (one, or a list for several thicknesses), loaded through `cache` (default: this
+    """`trimeter.fit`: trimeter.inversion.api.fit on maps given as AppearanceMaps, map paths, shipped
+    maps' names or DeviceTables (one, or a list for several thicknesses), loaded through `cache` (default: this
     process's). Every other option: trimeter.inversion.api.fit's."""
     from trimeter.inversion.api import fit as solve
 

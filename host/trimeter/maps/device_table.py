@@ -45,7 +45,10 @@ first defect in a MapFileError; `load` refuses a file larger than the slot befor
 
 from __future__ import annotations
 
+import contextlib
+import hashlib
 import json
+import os
 import struct
 import zlib
 from dataclasses import dataclass, field
@@ -54,16 +57,18 @@ from pathlib import Path
 
 import numpy as np
 
-from trimeter.errors import MapFileError
+from trimeter.errors import DeviceError, MapFileError, OutputError
 from trimeter.inversion.lut import TableInverter
 from trimeter.model.compact import CompactForward
-from trimeter.model.grid import ForwardGrid
+from trimeter.model.grid import ForwardGrid, node_model_variance
 from trimeter.model.inscatter import InscatterTable
+from trimeter.model.response import background_response
 from trimeter.model.setup import SampleSetup
-from trimeter.registers import MAP_SLOT_CAPACITY_BYTES
+from trimeter.registers import MAP_SLOT_CAPACITY_BYTES, MapSlot
 
 MAGIC = b"\x89TRLUT\r\n"
 FORMAT_VERSION = 2
+SUFFIX = ".tlut"
 HEADER_SIZE = 256
 ALIGN = 8
 MAX_BYTES = MAP_SLOT_CAPACITY_BYTES
@@ -74,6 +79,8 @@ _HEAD = struct.Struct("<8sHHI32s32s6f3f8H24s")
 _DIRECTORY = struct.Struct(f"<{2 * len(SECTIONS)}I")
 _RESERVED = HEADER_SIZE - _HEAD.size - _DIRECTORY.size
 _Q = 65535.0
+# the fewest (α, σt, g) nodes the compact model's splines take (cubic along α and ln σt, PCHIP along g)
+MIN_NODES = (4, 4, 3)
 
 
 def _padded(n: int) -> int:
@@ -218,8 +225,17 @@ class DeviceTable:
     def setup(self) -> SampleSetup:
         return SampleSetup(self.n, self.thickness_mm, self.cover_slide_n, geometry_params=self.geometry)
 
-    def inscatter_table(self, L: np.ndarray | None = None) -> InscatterTable:
-        """The in-scattering lookup it carries (L: other values on its grid, e.g. unquantized)."""
+    @property
+    def carries_inscatter(self) -> bool:
+        """False for a map traced without the device's collimated set-up (an ideal map): its section is
+        then all zeros (L = 0 everywhere: no correction)."""
+        return bool(self.inscatter.any()) or float(self.scales[5, 0]) != 0.0
+
+    def inscatter_table(self, L: np.ndarray | None = None) -> InscatterTable | None:
+        """The in-scattering lookup it carries (L: other values on its grid, e.g. unquantized); None when
+        it carries none."""
+        if L is None and not self.carries_inscatter:
+            return None
         u_max, tau_max, v_max = self.inscatter_ends
         return InscatterTable(self.inscatter_L() if L is None else L, u_max=u_max, tau_max=tau_max, v_max=v_max,
                               n=self.n, thickness_mm=self.thickness_mm, geometry_params=self.geometry)
@@ -243,6 +259,52 @@ class DeviceTable:
         """Bytes per part of the file (sections padded as stored)."""
         layout, total = _layout(*self._counts(), len(self._geometry_bytes()))
         return {"header": HEADER_SIZE, **{k: _padded(v[1]) for k, v in layout.items()}, "crc": 4, "total": total}
+
+    @cached_property
+    def sha256(self) -> str:
+        """The SHA-256 of the file's bytes (hex): what names this table."""
+        return hashlib.sha256(self.to_bytes()).hexdigest()
+
+    @property
+    def crc32(self) -> int:
+        """Its own trailing CRC-32 (what the device's fit_table_crc32 register reports)."""
+        return zlib.crc32(self.to_bytes()[:-4])
+
+    # what a measurement records of the model it fits with (trimeter.domain.measurement.MapRef)
+    @property
+    def checksum(self) -> str:
+        return self.sha256
+
+    @property
+    def A(self) -> np.ndarray:
+        return self.coefficients_grid[..., 0]
+
+    @property
+    def B(self) -> np.ndarray:
+        return self.coefficients_grid[..., 1]
+
+    @property
+    def C(self) -> np.ndarray:
+        return self.coefficients_grid[..., 2]
+
+    def info(self) -> dict:
+        """`trimeter map info` for a table."""
+        sigma_t = np.exp(self.log_sigma_t.astype(np.float64))
+        n_inv = self.inv_alpha_q.shape[1]
+        return {
+            "kind": "device-table", "format_version": FORMAT_VERSION, "name": self.name,
+            "path": str(self.path) if self.path else None, "size_bytes": self.size_bytes,
+            "slot_capacity_bytes": MAX_BYTES, "sha256": self.sha256, "crc32": f"{self.crc32:08x}",
+            "parent_map_sha256": self.parent_sha256, "inscatter_sha256": self.inscatter_sha256 or None,
+            "sample": {"n": self.n, "thickness_mm": self.thickness_mm, "cover_slide_n": self.cover_slide_n},
+            "reference_rho": {"black": self.rho_b_ref, "white": self.rho_w_ref},
+            "forward_grid": {"alpha": len(self.alpha), "sigma_t": len(self.log_sigma_t), "g": len(self.g)},
+            "inverse_grid": {"sigma_t": len(self.log_sigma_t), "x": n_inv, "y": n_inv},
+            "inscatter_grid": list(self.inscatter.shape) if self.carries_inscatter else None,
+            "range": {"alpha": [float(self.alpha[0]), float(self.alpha[-1])],
+                      "sigma_t": [float(sigma_t[0]), float(sigma_t[-1])], "g": [float(self.g[0]), float(self.g[-1])]},
+            "mc_stderr": self.mc_stderr, "bytes_per_part": self.sizes(),
+        }
 
     # ---------------------------------------------------------------------------------- encoding
     def to_bytes(self) -> bytes:
@@ -279,7 +341,9 @@ class DeviceTable:
         if magic != MAGIC:
             fail("magic", "not a trimeter map table")
         if version != FORMAT_VERSION:
-            fail("format_version", f"{version}, this reader reads {FORMAT_VERSION}")
+            retired = " (format 1 is retired: rebuild it with `trimeter map build RECIPE --stages tlut`)" \
+                if version == 1 else ""
+            fail("format_version", f"{version}, this reader reads {FORMAT_VERSION}{retired}")
         if header_size != HEADER_SIZE:
             fail("header_size", f"{header_size}, not {HEADER_SIZE}")
         if total != len(data):
@@ -287,8 +351,8 @@ class DeviceTable:
         (crc,) = struct.unpack_from("<I", data, len(data) - 4)
         if zlib.crc32(data[:-4]) != crc:
             fail("crc32", "mismatch: the table is corrupt")
-        counts = dict(n_alpha=(na, 4), n_sigma=(ns, 4), n_g=(ng, 3), n_inverse=(n_inv, 2), n_u=(nu, 2), n_tau=(nt, 2),
-                      n_v=(nv, 2))
+        counts = dict(n_alpha=(na, MIN_NODES[0]), n_sigma=(ns, MIN_NODES[1]), n_g=(ng, MIN_NODES[2]),
+                      n_inverse=(n_inv, 2), n_u=(nu, 2), n_tau=(nt, 2), n_v=(nv, 2))
         for key, (value, least) in counts.items():
             if value < least:
                 fail(key, f"{value}, at least {least} needed")
@@ -369,6 +433,85 @@ class DeviceTable:
         return table
 
 
+def table_path_for(map_path: str | Path) -> Path:
+    """maps/<name>.tmap → maps/<name>.tlut."""
+    return Path(map_path).with_suffix(SUFFIX)
+
+
+def map_model_variance(amap) -> tuple:
+    """The map's own error variance of (I_b, I_w) at its nodes, at its reference backgrounds:
+    (variances (na, ns, ng, 2), α, ln σt, g axes) for ForwardGrid.attach_model_variance."""
+    rb, rw = amap.reference_rhos
+    values = np.stack([background_response(amap.A, amap.B, amap.C, rho) for rho in (rb, rw)], axis=-1)
+    axes = (np.asarray(amap.alpha, float), np.log(np.asarray(amap.sigma_t, float)), np.asarray(amap.g, float))
+    var = node_model_variance(values, np.stack([amap.std_b, amap.std_w], axis=-1), *axes)
+    return var, axes
+
+
+# A map without the device's in-scattering (an ideal map) stores the smallest all-zero section: no correction.
+_NO_INSCATTER = (np.zeros((2, 2, 2)), (1.0, 1.0, 1.0), {})
+
+
+def largest_inverse_side(na: int, ns: int, ng: int, inscatter_shape: tuple[int, int, int], geometry_len: int) -> int:
+    """The largest inverse grid side that fits the slot with these counts (MapFileError: none does)."""
+    fits = [k for k in range(2, 129) if table_size(na, ns, ng, k, *inscatter_shape, geometry_len) <= MAX_BYTES]
+    if not fits:
+        raise MapFileError(f"a {na}×{ns}×{ng} map does not fit the {MAX_BYTES}-byte slot")
+    return max(fits)
+
+
+def too_coarse(amap) -> str | None:
+    """Why a map cannot have a device table (too few nodes for its splines), or None."""
+    shape = amap.A.shape
+    if any(n < least for n, least in zip(shape, MIN_NODES, strict=True)):
+        return (f"a device table needs at least {MIN_NODES[0]} α, {MIN_NODES[1]} σt and {MIN_NODES[2]} g nodes; "
+                f"the map has {shape[0]}×{shape[1]}×{shape[2]}")
+    return None
+
+
+def build_from_map(amap, n_inverse: int | None = None) -> DeviceTable:
+    """The device table of an AppearanceMap and its in-scattering table (.tins, when the map has one);
+    n_inverse: the inverse grid's side (default: the largest that fits the slot)."""
+    from trimeter.maps.table import inverse_grid
+
+    if why := too_coarse(amap):
+        raise MapFileError(f"map {amap.name}: {why}")
+    tins = amap.inscatter
+    if tins is None:
+        L, ends, geometry = _NO_INSCATTER
+        tins_sha = ""
+    else:
+        if abs(tins.n - amap.n) > 1e-6 or abs(tins.thickness_mm - amap.thickness_mm) > 1e-6:
+            raise MapFileError(f"{amap.name}: its .tins was traced for n {tins.n}, ℓ {tins.thickness_mm}, the map "
+                               f"is for n {amap.n}, ℓ {amap.thickness_mm}")
+        L, ends, geometry = tins.L, (tins.u_max, tins.tau_max, tins.v_max), tins.geometry_params
+        tins_sha = tins.checksum or ""
+    na, ns, ng = amap.A.shape
+    geometry_len = len(geometry_bytes(geometry))
+    if n_inverse is None:
+        n_inverse = largest_inverse_side(na, ns, ng, L.shape, geometry_len)
+    elif n_inverse < 2 or table_size(na, ns, ng, n_inverse, *L.shape, geometry_len) > MAX_BYTES:
+        raise MapFileError(f"an inverse grid of {n_inverse}×{n_inverse} is below 2×2 or does not fit the "
+                           f"{MAX_BYTES}-byte slot")
+    # the inverse slices over the map's own σt nodes, the axes the table stores
+    frames, inv_a, inv_g = inverse_grid(ForwardGrid.from_map(amap), n_inverse, amap.reference_rhos)
+    var, _axes = map_model_variance(amap)
+    return DeviceTable.build(
+        name=amap.name, parent_sha256=amap.checksum or "", inscatter_sha256=tins_sha, n=amap.n,
+        thickness_mm=amap.thickness_mm, cover_slide_n=amap.cover_slide_n, reference_rhos=amap.reference_rhos,
+        mc_stderr=float(np.median(np.concatenate([amap.std_b.ravel(), amap.std_w.ravel()]))),
+        alpha=amap.alpha, log_sigma_t=np.log(amap.sigma_t), g=amap.g, nodes=np.stack([amap.A, amap.B, amap.C], -1),
+        model_std=np.sqrt(var), inscatter_L=L, inscatter_ends=ends, inv_frame=frames, inv_alpha_q=inv_a,
+        inv_g_q=inv_g, geometry=geometry)
+
+
+def describe_table(path_or_bytes: str | Path | bytes) -> dict:
+    """`trimeter map info` for a .tlut file (path) or raw table bytes (e.g. read back from a slot)."""
+    if isinstance(path_or_bytes, (bytes, bytearray, memoryview)):
+        return DeviceTable.from_bytes(bytes(path_or_bytes)).info()
+    return DeviceTable.load(path_or_bytes).info()
+
+
 class DeviceTableModel:
     """A fit's view of a device table alone (a trimeter.inversion.api.FitModel): the lut method's guess
     and polish, with the in-scattering correction and the map's node error it carries. It holds no
@@ -399,3 +542,73 @@ class DeviceTableModel:
 
     def mlp(self, model=None):
         raise MapFileError(f"{self.name}: a device table carries no MLP model; fit from it with method lut")
+
+
+# ------------------------------------------------------------------------------ the instrument's own table
+def cache_dir() -> Path:
+    """Where tables read from instruments are kept, one file per table named by its SHA-256
+    (TRIMETER_CACHE_DIR overrides the user cache directory)."""
+    import platformdirs
+
+    return Path(os.environ.get("TRIMETER_CACHE_DIR") or platformdirs.user_cache_dir("trimeter")) / "device-tables"
+
+
+def _cached(directory: Path, length: int, head: bytes, tail_at: int, tail: bytes) -> DeviceTable | None:
+    """The cached table with this length, header and trailing CRC-32, checked against its SHA-256 name;
+    a damaged entry is deleted (the caller then reads the slot again)."""
+    if not directory.is_dir():
+        return None
+    for path in directory.glob("*" + SUFFIX):
+        try:
+            if path.stat().st_size != length:
+                continue
+            data = path.read_bytes()
+        except OSError:
+            continue
+        if data[:len(head)] != head or data[tail_at:] != tail:
+            continue
+        try:
+            if hashlib.sha256(data).hexdigest() != path.stem:
+                raise MapFileError(f"{path}: its SHA-256 is not its name")
+            table = DeviceTable.from_bytes(data, source=str(path))
+        except MapFileError:
+            path.unlink(missing_ok=True)
+            continue
+        return table
+    return None
+
+
+def instrument_table(device, cache: Path | None = None) -> tuple[DeviceTable, str, bool]:
+    """The table in the device's active map slot, (table, slot name, read from the cache). The slot's
+    header and trailing CRC-32 (a few hundred bytes) find it in the cache; otherwise the whole slot is
+    read, checked and cached (atomically, by its SHA-256). `device`: a trimeter.device.Device.
+
+    DeviceError when the device has no active table, MapFileError when the slot holds no usable table
+    (corrupt, or a retired format)."""
+    from trimeter.atomic import atomic_write
+
+    directory = cache_dir() if cache is None else Path(cache)
+    status = device.map_status()
+    active = MapSlot(status["map_active_slot"])
+    if active == MapSlot.NONE:
+        raise DeviceError("the device has no active map table: flash one (`trimeter map flash maps/<map>.tlut "
+                          "--port PORT`) or pass --map")
+    length = int(status[f"map_slot_{active.name.lower()}_length"])
+    if not HEADER_SIZE + 4 <= length <= MAX_BYTES:
+        raise MapFileError(f"the device's slot {active.name} holds {length} bytes, not a map table: flash one "
+                           f"(`trimeter map flash maps/<map>.tlut --port PORT`) or pass --map")
+    head = device.read_map(active, HEADER_SIZE)
+    tail_at = (length - 4) & ~1  # the device reads whole 16-bit words
+    tail = device.read_map(active, length - tail_at, offset=tail_at)
+    table = _cached(directory, length, head, tail_at, tail)
+    if table is not None:
+        return table, active.name, True
+    data = device.read_map(active, length)
+    try:
+        table = DeviceTable.from_bytes(data, source=f"the device's slot {active.name}")
+    except MapFileError as exc:
+        raise MapFileError(f"{exc}; flash a current table (`trimeter map flash maps/<map>.tlut --port PORT`) or "
+                           f"pass --map") from None
+    with contextlib.suppress(OutputError):  # an unwritable cache costs the next run a read, nothing else
+        atomic_write(directory / f"{table.sha256}{SUFFIX}", data)
+    return table, active.name, False

@@ -4,12 +4,13 @@
 |---|---|---|---|
 | tmap | `<name>.tmap` | trimeter.maps.builder (the columns, on Dask or here) | the recipe |
 | tins | `<name>.tins` | trimeter.forward.inscatter.build_inscatter_table | device geometry (skipped otherwise) |
-| tlut | `<name>.tlut` | trimeter.maps.table.build_from_map | — |
+| tlut | `<name>.tlut` | trimeter.maps.device_table.build_from_map | the .tins where the map has one |
 | onnx | `<name>.onnx` | trimeter.maps.mlp_training (scikit-learn → ONNX) | opt-in: minutes of training |
 
 Every child is derived from the `.tmap` alone, so each records the map's SHA-256 as its parent (the
-.tins and .onnx metadata, the .tlut's fixed header) and its producer (name and trimeter version; the
-.tlut's fixed C layout has no room for it: its format version stands for it). A child whose map changed
+.tins and .onnx metadata, the .tlut's fixed header, which also names its .tins's SHA-256) and its producer
+(name and trimeter version; the .tlut's fixed C layout has no room for it: its format version stands
+for it). The tlut stage therefore runs after tins. A child whose map changed
 is refused where it is loaded, with `rebuild_command` naming the command that rebuilds it.
 
 With a Dask client the children's computations run on the cluster too (one task per map and stage);
@@ -85,6 +86,10 @@ def applies(stage: str, amap) -> str | None:
     if stage == "tins" and (amap.recipe.get("geometry") != "device"
                             or "collimated" not in amap.recipe.get("geometry_params", {})):
         return "in-scattering needs the device geometry's collimated set-up"
+    if stage == "tlut":
+        from trimeter.maps.device_table import too_coarse
+
+        return too_coarse(amap)
     return None
 
 
@@ -97,9 +102,9 @@ def compute(stage: str, amap, options: Options):
                                      photons=options.inscatter_photons, seed=options.inscatter_seed,
                                      shape=options.inscatter_shape)
     if stage == "tlut":
-        from trimeter.maps.table import build_from_map
+        from trimeter.maps.device_table import build_from_map
 
-        return build_from_map(amap, n_xy=options.table_n_xy)
+        return build_from_map(amap, n_inverse=options.table_n_xy)
     if stage == "onnx":
         from trimeter.maps.mlp_training import train
 
@@ -121,13 +126,14 @@ def write(stage: str, amap, product, options: Options, out: Path | None = None) 
         return out, (f"{product.L.shape} grid, {options.inscatter_photons} photons per column, largest ln(1 + r) "
                      f"{product.L.max():.3f}, sha256 {checksum[:12]}…")
     if stage == "tlut":
-        from trimeter.maps.table import MapTable, describe_table
+        from trimeter.maps.device_table import describe_table
 
         product.save(out)
-        MapTable.load(out)
-        info = describe_table(out)
-        return out, (f"{info['size_bytes']} bytes (slot {info['slot_capacity_bytes']}), crc32 {info['crc32']}, "
-                     f"inverse {info['inverse_grid']['x']}×{info['inverse_grid']['y']} per σt node")
+        info = describe_table(out)  # read back: every check of the reader
+        return out, (f"device table format {info['format_version']}, {info['size_bytes']} bytes (slot "
+                     f"{info['slot_capacity_bytes']}), sha256 {info['sha256'][:12]}…, inverse "
+                     f"{info['inverse_grid']['x']}×{info['inverse_grid']['y']} per σt node, in-scattering "
+                     f"{'none' if info['inscatter_grid'] is None else '×'.join(map(str, info['inscatter_grid']))}")
     if stage == "onnx":
         from trimeter.maps.mlp_training import export
 
@@ -195,10 +201,18 @@ def run(targets: list[Target], stages: tuple[str, ...], *, client=None, resume: 
             say(f"{stage}: skipped for {amap.name}: {why}")
         else:
             runnable.append((amap, stage))
+    # the table carries the in-scattering table: it is built once this run's .tins are written, from the
+    # map read again (a loaded map keeps the .tins it first saw)
+    _write_all([c for c in runnable if c[1] != "tlut"], client, options, say)
+    _write_all([(_existing_map(Target(None, None, amap.path)), stage) for amap, stage in runnable if stage == "tlut"],
+               client, options, say)
+    return maps
+
+
+def _write_all(runnable, client, options: Options, say: Callable[[str], None]) -> None:
     for (amap, stage), (product, seconds) in zip(runnable, _compute_all(runnable, client, options), strict=True):
         path, text = write(stage, amap, product, options)
         say(f"{stage}: wrote {path} ({seconds:.1f} s): {text}")
-    return maps
 
 
 def _existing_map(target: Target):

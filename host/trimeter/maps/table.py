@@ -301,14 +301,32 @@ def build_from_map(amap, n_xy: int | None = None, budget: int = MAX_TABLE_BYTES,
     coef_q = np.stack([_quantize(c, float(q[0]), float(q[0]) + float(q[1]) * _Q)
                        for c, q in zip(coef, quant, strict=True)])
 
-    # Inverse slices: for each σt node, (α, g) at every (x, y) = (√I_b, √I_w) grid point of the
-    # slice's bounding box. Start from the nearest of a dense forward sample (the map's axes refined),
-    # then polish with the forward kernel's Newton solve, so stored entries are the map's own inverse
-    # (projected onto the gamut where a grid point lies outside it).
+    frames, inv_a, inv_g = inverse_grid(grid, nxy, (rho_b, rho_w))
+    mc = float(np.median(np.concatenate([amap.std_b.ravel(), amap.std_w.ravel()])))
+    return MapTable(name=amap.name[:24], source_checksum=amap.checksum or "", n=amap.n,
+                    thickness_mm=amap.thickness_mm, cover_slide_n=amap.cover_slide_n,
+                    rho_b_ref=rho_b, rho_w_ref=rho_w, mc_stderr=mc,
+                    alpha=alpha_axis.astype(np.float32), log_sigma_t=log_s_axis.astype(np.float32),
+                    g=g_axis.astype(np.float32), coef_quant=quant, coef_q=coef_q, inv_frame=frames,
+                    inv_alpha_q=inv_a, inv_g_q=inv_g)
+
+
+def inverse_grid(grid: ForwardGrid, nxy: int, reference_rhos: tuple[float, float]
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The inverse slices of a forward grid at the reference backgrounds, as a map table stores them:
+    (frames f32 (ns, 6), α codes u16 (ns, nxy, nxy), g codes u16 (ns, nxy, nxy)).
+
+    For each σt node, (α, g) at every (x, y) = (√I_b, √I_w) grid point of the slice's bounding box.
+    Start from the nearest of a dense forward sample (the grid's axes refined), then polish with the
+    forward kernel's Newton solve, so stored entries are the map's own inverse (projected onto the
+    gamut where a grid point lies outside it)."""
     from scipy.spatial import cKDTree
 
     from trimeter.inversion.kernel import default_kernel
 
+    rho_b, rho_w = reference_rhos
+    alpha_axis, log_s_axis, g_axis = grid.alpha, grid.log_sigma_t, grid.g
+    ns = len(log_s_axis)
     aa, gg = (v.ravel() for v in np.meshgrid(refine_axis(alpha_axis, 2), refine_axis(g_axis, 2), indexing="ij"))
     frames = np.zeros((ns, 6), dtype=np.float32)
     starts_a, starts_g = np.zeros((ns, nxy, nxy)), np.zeros((ns, nxy, nxy))
@@ -333,13 +351,7 @@ def build_from_map(amap, n_xy: int | None = None, budget: int = MAX_TABLE_BYTES,
         np.full(m, rho_w), starts_a.ravel(), starts_g.ravel(), iterations=12)
     inv_a = _quantize(alpha_sol, alpha_axis[0], alpha_axis[-1]).reshape(ns, nxy, nxy)
     inv_g = _quantize(g_sol, g_axis[0], g_axis[-1]).reshape(ns, nxy, nxy)
-    mc = float(np.median(np.concatenate([amap.std_b.ravel(), amap.std_w.ravel()])))
-    return MapTable(name=amap.name[:24], source_checksum=amap.checksum or "", n=amap.n,
-                    thickness_mm=amap.thickness_mm, cover_slide_n=amap.cover_slide_n,
-                    rho_b_ref=rho_b, rho_w_ref=rho_w, mc_stderr=mc,
-                    alpha=alpha_axis.astype(np.float32), log_sigma_t=log_s_axis.astype(np.float32),
-                    g=g_axis.astype(np.float32), coef_quant=quant, coef_q=coef_q, inv_frame=frames,
-                    inv_alpha_q=inv_a, inv_g_q=inv_g)
+    return frames, inv_a, inv_g
 
 
 def _gamut_frame(xy: np.ndarray) -> np.ndarray:
