@@ -1,6 +1,8 @@
 """`trimeter measure [--thickness MM [--thickness MM2]]`: capture the inserted sample (I_b, I_w, I_c),
-fit α, σt, g through the map of its thickness and write a results directory (printed at the end).
-With two thicknesses you are asked to swap the samples in between; both are fitted and combined."""
+fit α, σt, g and write a results directory (printed at the end). The fit uses the map table the
+instrument carries (its active slot, cached by SHA-256: no map files needed here); `--map` fits with a
+map instead. With two thicknesses you are asked to swap the samples in between; both are fitted and
+combined (a second thickness the instrument's table is not for uses the shipped map of it)."""
 
 from __future__ import annotations
 
@@ -13,6 +15,7 @@ from trimeter.cli._instrument import add_instrument_args, open_device, open_spec
 from trimeter.domain.measurement import Estimate
 from trimeter.errors import InputError
 from trimeter.inversion.methods import METHODS
+from trimeter.maps.device_table import DeviceTable
 from trimeter.sequences.measure import resolve_samples
 from trimeter.sequences.service import Service, calibration_is_stale
 
@@ -32,6 +35,17 @@ def summary(parameters: Estimate, wavelengths: Sequence[float] = SHOW_NM, truth:
     return "\n".join(lines)
 
 
+def describe_fit_model(model: object, instrument: dict) -> str:
+    """What a sample is fitted with, for the line that says so: a map, or the instrument's table."""
+    if isinstance(model, DeviceTable):
+        read = "the cache" if instrument.get("cached") else "the device"
+        return (f"the instrument's map table {model.name} (ℓ = {model.thickness_mm:g} mm, slot "
+                f"{instrument.get('slot', '?')}, sha256 {model.sha256[:12]}…, from {read} in "
+                f"{instrument.get('seconds', 0):.2f} s)")
+    name, thickness = getattr(model, "name", "?"), getattr(model, "thickness_mm", float("nan"))
+    return f"map {name} (ℓ = {thickness:g} mm)"
+
+
 def run(args: argparse.Namespace) -> None:
     settings = settings_from(args)
     if args.method:
@@ -41,17 +55,21 @@ def run(args: argparse.Namespace) -> None:
         raise InputError("thickness: give one or two positive thicknesses in mm")
     if args.map and len(args.map) != len(thicknesses):
         raise InputError("map: give one --map per --thickness")
-    samples = resolve_samples(zip(thicknesses, args.map or [None] * len(thicknesses), strict=True))
-    source = "--thickness" if args.thickness else "host config thickness_mm"
-    for sample in samples:  # never assumed silently
-        print(f"thickness: {sample.thickness_mm:g} mm ({source}), map {sample.map.name} "
-              f"(ℓ = {sample.map.thickness_mm:g} mm)")
+    requests = list(zip(thicknesses, args.map or [None] * len(thicknesses), strict=True))
+    if args.map:  # a map named on the command line: checked before anything moves
+        resolve_samples(requests)
     if args.results:
         settings.set("results_dir", args.results)
     service = Service(lambda: open_device(settings), lambda: open_spectrometer(settings), settings,
                       on_event=lambda e: print(f"warning: {e.message}") if e.kind == "warning" else None)
     service.connect()
     try:
+        # without --map the fit uses the table the instrument carries (read, or found in the cache)
+        samples = service.resolve_samples(requests)
+        source = "--thickness" if args.thickness else "host config thickness_mm"
+        for sample in samples:  # never assumed silently
+            where = describe_fit_model(sample.map, service.last_instrument_table)
+            print(f"thickness: {sample.thickness_mm:g} mm ({source}), {where}")
         reason = calibration_is_stale(service.calibration, service.connected_device().read("uptime_s"),
                                       settings.calibration_max_age_s) or service.calibration_stale_reason
         if reason:
@@ -77,7 +95,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("measure", help="measure the inserted sample", description=__doc__)
     add_instrument_args(p)
     p.add_argument("--thickness", type=float, action="append", help="sample thickness in mm (twice for two samples)")
-    p.add_argument("--map", action="append", help="appearance map per thickness (default: the shipped one)")
+    p.add_argument("--map", action="append",
+                   help="appearance map per thickness (default: the map table the instrument carries)")
     p.add_argument("--method", choices=METHODS, help="inversion method (default: host config)")
     p.add_argument("--label", help="a name for the results directory")
     p.add_argument("--results", help="results root directory (default: host config / data dir)")

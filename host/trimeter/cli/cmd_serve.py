@@ -59,10 +59,14 @@ def run(args: argparse.Namespace) -> None:
     if args.second_thickness is not None:
         settings.set("second_thickness_mm", args.second_thickness)
     for number, (thickness, map_name) in enumerate(settings.serve_samples, start=1):  # never assumed silently
-        amap = map_for_thickness(thickness, map_name)  # a map of another thickness is an error, before serving
         option = "--thickness" if number == 1 else "--second-thickness"
         source = option if getattr(args, option[2:].replace("-", "_")) else "host config"
-        print(f"sample {number}: thickness {thickness:g} mm ({source}), map {amap.name}", flush=True)
+        if map_name:
+            amap = map_for_thickness(thickness, map_name)  # a map of another thickness is an error, before serving
+            fitted = f"map {amap.name}"
+        else:  # checked against the sample's thickness at each press, as the active slot may change
+            fitted = "the map table the instrument carries"
+        print(f"sample {number}: thickness {thickness:g} mm ({source}), {fitted}", flush=True)
     stop = threading.Event()
 
     def show(event: Event) -> None:

@@ -14,11 +14,12 @@ from typing import Any
 import numpy as np
 
 from trimeter.domain import Calibration, InstrumentInfo, Measurement, Provenance, Sample, SampleCapture
-from trimeter.domain.measurement import DeviceTableCheck, Estimate
+from trimeter.domain.measurement import THICKNESS_TOLERANCE, DeviceTableCheck, Estimate
 from trimeter.errors import CheckError, DeviceError, InputError, TrimeterError
 from trimeter.inversion.methods import METHODS
 from trimeter.inversion.flags import advice
 from trimeter.maps.appearance import AppearanceMap, find_map, shipped_maps
+from trimeter.maps.device_table import DeviceTable
 from trimeter.results.spool import CaptureSpooled, prepare_results_dir, write_or_spool
 from trimeter.results.writer import Parameters
 from trimeter.sequences.checks import calibration_problems, fit_problems, shot_problems, usable_bins
@@ -50,9 +51,35 @@ def map_for_thickness(thickness_mm: float, explicit: str | Path | None = None,
     return candidates[0]
 
 
-def resolve_samples(requests: Iterable[tuple[float, str | Path | None]]) -> list[Sample]:
-    """(thickness, map name/path or None for the shipped one) pairs → samples with their maps loaded."""
-    return [Sample(thickness, map_for_thickness(thickness, explicit)) for thickness, explicit in requests]
+def resolve_samples(requests: Iterable[tuple[float, str | Path | None]],
+                    instrument_table: Callable[[], DeviceTable] | None = None) -> list[Sample]:
+    """(thickness, map name/path or None) pairs → samples with their maps loaded. None: the table the
+    instrument carries (`instrument_table()`, read when first needed), which the first such sample must be
+    for; a later sample of another thickness (the instrument holds one table) falls back to the shipped
+    map of its thickness. Without `instrument_table`, None means the shipped map."""
+    samples: list[Sample] = []
+    table: DeviceTable | None = None
+    for thickness, explicit in requests:
+        if explicit or instrument_table is None:
+            samples.append(Sample(thickness, map_for_thickness(thickness, explicit)))
+            continue
+        if table is None:
+            table = instrument_table()
+            check_instrument_table(table, thickness)
+        if abs(table.thickness_mm - thickness) <= THICKNESS_TOLERANCE * max(1.0, thickness):
+            samples.append(Sample(thickness, table))
+        else:
+            samples.append(Sample(thickness, map_for_thickness(thickness)))
+    return samples
+
+
+def check_instrument_table(table: DeviceTable, thickness_mm: float) -> None:
+    """InputError unless the instrument's table is for the declared thickness."""
+    if abs(table.thickness_mm - thickness_mm) > THICKNESS_TOLERANCE * max(1.0, thickness_mm):
+        raise InputError(f"thickness: the instrument's map table {table.name} is for ℓ = {table.thickness_mm:g} mm, "
+                         f"not the declared {thickness_mm:g} mm (σt would come out ×"
+                         f"{thickness_mm / table.thickness_mm:.3g}); flash the table for {thickness_mm:g} mm "
+                         f"(`trimeter map flash`) or pass --map")
 
 
 @dataclass(frozen=True)

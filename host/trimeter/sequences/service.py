@@ -34,6 +34,7 @@ from trimeter.device.backup import config_source_warning
 from trimeter.domain import Calibration, InstrumentInfo, Sample
 from trimeter.domain.measurement import DeviceTableCheck, Estimate
 from trimeter.errors import CheckError, DeviceError, TrimeterError
+from trimeter.maps.device_table import DeviceTable, instrument_table
 from trimeter.results.spool import recover_partials
 from trimeter.sequences import measure as pipeline
 from trimeter.sequences.calibrate import calibrate, previous_calibration
@@ -100,6 +101,7 @@ class Service:
         self.last_advice: list[str] = []  # trimeter.inversion.flags.advice on the last measurement's fit
         self.last_timing: dict = {}
         self.last_incomplete: str | None = None  # why the last measurement has fewer samples than asked
+        self.last_instrument_table: dict = {}  # the table last read from the device (instrument_table)
         self._status = READY   # what the LED shows between presses (kept across reconnects)
         self.calibration_stale_reason: str | None = None  # set when a reset was seen
         self.calibration_requested: str | None = None  # a calibration asked for by name (the web page)
@@ -267,7 +269,7 @@ class Service:
                     return "refused"
                 outcome = "calibrated"
             else:
-                self.measure(pipeline.resolve_samples(samples or self.settings.serve_samples),
+                self.measure(self.resolve_samples(samples or self.settings.serve_samples),
                              between=self._await_next_sample, label=label)
                 outcome = "incomplete" if self.last_incomplete else "measured"
             if outcome == "incomplete" and self.last_incomplete:  # written, but not what was asked for: the LED says so
@@ -340,6 +342,23 @@ class Service:
                    timing=self.last_timing)
         self._show(READY)
         return cal
+
+    def resolve_samples(self, requests: list[tuple[float, str | None]]) -> list[Sample]:
+        """pipeline.resolve_samples with this instrument's own table for a sample without a map: the fit
+        then uses what the device carries, so a host without map files measures and the two cannot differ."""
+        return pipeline.resolve_samples(requests, instrument_table=self.instrument_table)
+
+    def instrument_table(self) -> DeviceTable:
+        """The table in the device's active slot (trimeter.maps.device_table.instrument_table: cached by its
+        SHA-256); an event says which, and whether it was read from the device or the cache."""
+        t0 = time.monotonic()
+        table, slot, cached = self._on_device("reading the device's map table", instrument_table)
+        self.last_instrument_table = {"name": table.name, "sha256": table.sha256, "slot": slot, "cached": cached,
+                                      "seconds": round(time.monotonic() - t0, 3)}
+        self._emit("table", f"map table {table.name} (ℓ = {table.thickness_mm:g} mm, sha256 {table.sha256[:12]}…) "
+                            f"from the device's slot {slot}{' (cached)' if cached else ''}",
+                   **self.last_instrument_table)
+        return table
 
     def device_table(self, prepared: pipeline.PreparedFit) -> DeviceTableCheck:
         """Is the map table active in the device the very table this host fits the first sample with?

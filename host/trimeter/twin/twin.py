@@ -32,6 +32,8 @@ from trimeter.twin.faults import FaultConfig, ModbusProxy, as_lamps_emit, as_opt
 from trimeter.twin.optics import MapSource, Optics, material_names
 from trimeter.twin.plant import PlantClient
 from trimeter.twin.specserver import SpectrometerServer
+from trimeter.twin.storage import seed as seed_storage
+from trimeter.twin.storage import table_bytes
 
 FIRMWARE_DIR = REPO_ROOT / "firmware"
 FIRMWARE_BINARY = FIRMWARE_DIR / "build" / "sim" / "trimeter-fw-sim"
@@ -81,7 +83,9 @@ class Twin:
     def __init__(self, sample: str | None = None, thickness_mm: float = 0.4, time_scale: float = 1.0,
                  faults: FaultConfig | None = None, state_dir: str | Path | None = None,
                  appearance_map: MapSource = None, seed: int | None = None, white: str = "white",
-                 firmware: str | Path | None = None) -> None:
+                 firmware: str | Path | None = None, map_table: str | Path | bytes | None = None) -> None:
+        """map_table: a device table (bytes, a .tlut file or a shipped map's name) the twin's storage
+        holds active from the start, as an instrument carries its own; None: empty map slots."""
         try:
             self.time_scale = float(time_scale)
         except (TypeError, ValueError):
@@ -95,6 +99,7 @@ class Twin:
         self._state_dir_arg, self._appearance_map, self._white = state_dir, appearance_map, white
         self._firmware = Path(firmware) if firmware else FIRMWARE_BINARY
         self._rng = np.random.default_rng(seed)
+        self._map_table = None if map_table is None else table_bytes(map_table)
         self._stop = threading.Event()
         self._optics_lock = threading.Lock()
         self._closers: list[Callable[[], object]] = []
@@ -141,6 +146,8 @@ class Twin:
             self.optics.insert_sample(self._sample, self._thickness_mm)
 
         binary = ensure_firmware(self._firmware)
+        if self._map_table is not None:
+            seed_storage(self.state_dir / "storage.bin", binary, self._map_table)
         fw_modbus = self.state_dir / "firmware-modbus"
         plant_path = socket_dir / "plant.sock"
         # The firmware removes these on a clean exit; after a crash (SIGKILL) the twin does.
