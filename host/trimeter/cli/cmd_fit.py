@@ -1,7 +1,16 @@
 """`trimeter fit`: measured intensities (CSV) → α, σt [1/mm], g per wavelength (CSV or JSON).
 
     trimeter fit --map MAP [--map MAP2] --input meas.csv [--thickness MM …] [--method lut|mlp|paper] [-o params.csv]
-                 [--json]
+                 [--json] [--polish N]
+    trimeter fit --table TABLE.tlut --input meas.csv [--thickness MM] [--polish N] …
+    trimeter fit --on-device --port PORT --input meas.csv [--thickness MM] …
+
+`--table` fits from a device table alone (maps/<name>.tlut: the inverse grid, the compact forward
+model, the in-scattering correction, n, ℓ and the reference backgrounds; no map file needed), with
+method lut. `--on-device` sends the bins to the instrument, which fits them with the table in its
+active slot (identified by its SHA-256 on stderr and in the JSON); the columns it does not compute
+(the stds) are NaN. `--polish N`: at most N Newton steps after the method's guess (0: its raw answer;
+default: the method's own).
 
 Input columns: wavelength_nm, I_b, I_w, I_c; optional rho_b, rho_w (per-wavelength backgrounds;
 default: the map's reference backgrounds) and thickness_mm (required with two maps: tells which rows
@@ -20,6 +29,7 @@ another thickness is then an error.
 
 from __future__ import annotations
 
+import argparse
 import csv
 import json
 import math
@@ -29,6 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from trimeter.atomic import atomic_write, same_file
+from trimeter.cli._instrument import add_instrument_args
 from trimeter.errors import InputError, OutputError
 from trimeter.inversion.methods import METHODS
 from trimeter.validation import shown
@@ -42,16 +53,33 @@ OUTPUT = ("wavelength_nm", "alpha", "sigma_t", "g", "alpha_std", "sigma_t_std", 
 def register(subparsers) -> None:
     p = subparsers.add_parser("fit", help="invert measured I_b, I_w, I_c to alpha, sigma_t, g per wavelength",
                               description=__doc__.split("\n\n")[0])
-    p.add_argument("--map", dest="maps", action="append", required=True,
-                   help="appearance map (file or shipped name); give twice for two thicknesses")
+    source = p.add_mutually_exclusive_group(required=True)
+    source.add_argument("--map", dest="maps", action="append",
+                        help="appearance map (file or shipped name); give twice for two thicknesses")
+    source.add_argument("--table", type=Path, help="device table (.tlut) to fit from alone, with method lut")
+    source.add_argument("--on-device", action="store_true",
+                        help="fit on the instrument (--port) with the table in its active slot")
+    add_instrument_args(p, spectrometer=False)
+    p.add_argument("--polish", type=_polish_steps, metavar="N",
+                   help="at most N Newton steps after the method's guess (0: its raw answer; default: the method's)")
     p.add_argument("--input", required=True, type=Path,
                    help="CSV with wavelength_nm,I_b,I_w,I_c[,rho_b,rho_w,thickness_mm]")
     p.add_argument("--thickness", type=float, action="append",
                    help="the sample's thickness in mm (once per --map); a map of another thickness is an error")
-    p.add_argument("--method", choices=METHODS, default="lut")
+    p.add_argument("--method", choices=METHODS, help="inversion method (default: lut)")
     p.add_argument("-o", "--output", type=Path, help="output CSV (default: stdout)")
     p.add_argument("--json", action="store_true", help="print JSON instead of CSV")
     p.set_defaults(func=run)
+
+
+def _polish_steps(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if not 0 <= value <= 100:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of Newton steps in 0..100")
+    return value
 
 
 def read_measurements(path: Path) -> dict[str, np.ndarray]:
@@ -122,12 +150,36 @@ def _split_thicknesses(data, amaps, path):
     return groups
 
 
+def _fit_models(args) -> list:
+    """What the fit inverts through: the maps, or one device table (from a file, or the instrument's)."""
+    from trimeter.maps.appearance import AppearanceMap, find_map
+
+    if args.maps:
+        if args.port:
+            raise InputError("--port: only with --on-device (a --map fit runs here)")
+        return [AppearanceMap.load(find_map(m)) for m in args.maps]
+    if args.method not in (None, "lut"):
+        raise InputError(f"--method {args.method}: a device table fits with method lut (the paper and mlp methods "
+                         f"need the map and its network: use --map)")
+    if args.table is not None:
+        from trimeter.maps.device_table import DeviceTable
+
+        if args.port:
+            raise InputError("--port: only with --on-device (--table fits here, from the file)")
+        return [DeviceTable.load(args.table)]
+    if args.polish is not None:
+        raise InputError("--polish: the instrument fits with its own polish (fit from its table here with --table)")
+    return []  # --on-device: the table is read from the instrument
+
+
 def run(args) -> int:
     from trimeter.inversion.flags import advice, describe
-    from trimeter.maps.appearance import AppearanceMap, find_map
     from trimeter.maps.artifacts import fit
 
-    amaps = [AppearanceMap.load(find_map(m)) for m in args.maps]
+    amaps = _fit_models(args)
+    if args.on_device:
+        return _run_on_device(args)
+    method = args.method or "lut"
     refuse_output_onto_inputs(args.output, [args.input, *(m.path for m in amaps if m.path is not None)])
     if len({round(m.thickness_mm, 9) for m in amaps}) != len(amaps):
         raise InputError("--map: the maps must be for different thicknesses")
@@ -140,7 +192,9 @@ def run(args) -> int:
     stds = {name: stack(name) for name in ("I_b_std", "I_w_std", "I_c_std") if name in data}
     if "thickness_std_mm" in data:
         stds["thickness_std_mm"] = _thickness_std(data["thickness_std_mm"], groups, amaps, args.input)
-    result = fit(amaps, stack("I_b"), stack("I_w"), stack("I_c"), rho_b, rho_w, method=args.method, **stds)
+    if args.polish is not None:
+        stds["polish"] = args.polish
+    result = fit(amaps, stack("I_b"), stack("I_w"), stack("I_c"), rho_b, rho_w, method=method, **stds)
     columns = {"wavelength_nm": data["wavelength_nm"][groups[0]], **result.as_dict()}
     notes = advice(result.flags, len(amaps))
     for note in notes:  # stderr: stdout may be the CSV
@@ -148,21 +202,77 @@ def run(args) -> int:
     used = "+".join(f"{m.thickness_mm:g}" for m in amaps)
     source = "declared with --thickness" if args.thickness else "not declared: the map's" if len(amaps) == 1 \
         else "not declared: the maps'"
-    print(f"thickness: {used} mm ({source}; map {', '.join(m.name for m in amaps)})", file=sys.stderr)
+    table = _table_identity(amaps[0], "file") if args.table is not None else None
+    fitted = f"table {table['name']} (sha256 {table['sha256'][:12]}…)" if table else \
+        f"map {', '.join(m.name for m in amaps)}"
+    print(f"thickness: {used} mm ({source}; {fitted})", file=sys.stderr)
+    flag_names = [describe(f) for f in result.flags]
+    _write_result(args, columns, used, method, [m.thickness_mm for m in amaps], amaps, flag_names, notes, table)
+    return 0
+
+
+def _table_identity(table, source: str, slot: str | None = None) -> dict:
+    """A device table as the output names it: its own SHA-256 and CRC-32, its parent map's SHA-256."""
+    out = {"name": table.name, "source": source, "sha256": table.sha256, "crc32": f"{table.crc32:08x}",
+           "parent_map_sha256": table.parent_sha256, "thickness_mm": table.thickness_mm}
+    if table.path is not None:
+        out["path"] = str(table.path)
+    if slot is not None:
+        out["slot"] = slot
+    return out
+
+
+def _write_result(args, columns: dict, used: str, method: str, thicknesses: list[float], models: list,
+                  flag_names: list[str], notes: list[str], table: dict | None) -> None:
+    """The fit's output, the same for every source: CSV (OUTPUT columns) or JSON."""
     if args.json:
-        doc = {"method": args.method, "thickness_mm": [m.thickness_mm for m in amaps] if len(amaps) > 1
-               else amaps[0].thickness_mm, "thickness_declared": bool(args.thickness),
-               "maps": [{"name": m.name, "thickness_mm": m.thickness_mm, "sha256": m.checksum} for m in amaps],
+        doc = {"method": method, "thickness_mm": thicknesses if len(thicknesses) > 1 else thicknesses[0],
+               "thickness_declared": bool(args.thickness),
+               "maps": [{"name": m.name, "thickness_mm": m.thickness_mm, "sha256": m.checksum} for m in models],
                "columns": {k: [_json_number(v) for v in columns[k]] for k in OUTPUT if k != "thickness_mm"},
-               "flag_names": [describe(f) for f in result.flags], "advice": notes}
-        text = json.dumps(doc, indent=1, allow_nan=False)
-        _write(args.output, text + "\n")
-        return 0
+               "flag_names": flag_names, "advice": notes}
+        if table is not None:
+            doc["table"] = table
+        _write(args.output, json.dumps(doc, indent=1, allow_nan=False) + "\n")
+        return
     lines = [",".join(OUTPUT)]
     for i in range(len(columns["wavelength_nm"])):
         lines.append(",".join([*(str(int(columns[k][i])) if k == "flags" else f"{columns[k][i]:.9g}"
                                  for k in OUTPUT[:-1]), used]))
     _write(args.output, "\n".join(lines) + "\n")
+
+
+def _run_on_device(args) -> int:
+    """The bins fitted by the instrument (Device.fit) with the table in its active slot, which is read
+    (or found in the cache) first: its ℓ and reference backgrounds, and its identity for the output."""
+    from trimeter.cli._instrument import open_device, settings_from
+    from trimeter.inversion.flags import advice, describe
+    from trimeter.maps.device_table import instrument_table
+
+    refuse_output_onto_inputs(args.output, [args.input])
+    data = read_measurements(args.input)
+    with open_device(settings_from(args)) as device:
+        table, slot, _cached = instrument_table(device)
+        check_declared_thickness(args.thickness, [table])
+        rows = _split_thicknesses(data, [table], args.input)[0]
+        n = len(rows)
+        rho_b = data["rho_b"][rows] if "rho_b" in data else np.full(n, table.rho_b_ref)
+        rho_w = data["rho_w"][rows] if "rho_w" in data else np.full(n, table.rho_w_ref)
+        result = device.fit(data["I_b"][rows], data["I_w"][rows], data["I_c"][rows], rho_b, rho_w,
+                            thickness_mm=table.thickness_mm, table=table.to_bytes())
+    nan = np.full(n, np.nan)
+    columns = {"wavelength_nm": data["wavelength_nm"][rows], "alpha": result.alpha, "sigma_t": result.sigma_t,
+               "g": result.g, "alpha_std": nan, "sigma_t_std": nan, "g_std": nan, "flags": result.flags,
+               "sigma_t_beer": table.setup.beer_lambert_sigma_t(data["I_c"][rows])}
+    notes = advice(result.flags, 1)
+    for note in notes:
+        print(f"note: {note}", file=sys.stderr)
+    identity = _table_identity(table, "device", slot)
+    source = "declared with --thickness" if args.thickness else "not declared: the table's"
+    print(f"thickness: {table.thickness_mm:g} mm ({source}; fitted on the device with its table {table.name}, slot "
+          f"{slot}, sha256 {table.sha256[:12]}…, CRC-32 0x{result.table_crc32:08X})", file=sys.stderr)
+    _write_result(args, columns, f"{table.thickness_mm:g}", "lut (on the device)", [table.thickness_mm], [table],
+                  [describe(f) for f in result.flags], notes, identity)
     return 0
 
 
@@ -179,7 +289,7 @@ def _thickness_std(column, groups, amaps, path) -> list[float]:
 
 
 def check_declared_thickness(declared: list[float] | None, amaps) -> None:
-    """Each declared thickness must be a map's ℓ, one per map: a map of another thickness scales σt."""
+    """Each declared thickness must be a map's (or table's) ℓ, one per map: another thickness scales σt."""
     if not declared:
         return
     if len(declared) != len(amaps):
@@ -189,9 +299,10 @@ def check_declared_thickness(declared: list[float] | None, amaps) -> None:
             raise InputError(f"--thickness: {thickness:g} is not a positive thickness in mm")
     for thickness, amap in zip(sorted(declared), sorted(amaps, key=lambda m: m.thickness_mm), strict=True):
         if abs(thickness - amap.thickness_mm) > 1e-6 * max(1.0, thickness):
-            raise InputError(f"--thickness {thickness:g}: map {amap.name} is for ℓ = {amap.thickness_mm:g} mm, not "
+            kind = "table" if hasattr(amap, "parent_sha256") else "map"
+            raise InputError(f"--thickness {thickness:g}: {kind} {amap.name} is for ℓ = {amap.thickness_mm:g} mm, not "
                              f"the sample's {thickness:g} mm (σt would come out ×{thickness / amap.thickness_mm:.3g}); "
-                             f"use a map built for {thickness:g} mm")
+                             f"use a {kind} built for {thickness:g} mm")
 
 
 def _json_number(v):
