@@ -52,7 +52,7 @@ COLUMNS = [(s, g) for s in (0.05, 0.2, 1.0, 5.0, 50.0) for g in (0.0, 0.9)]
 
 def compare_estimators(recipe_path: str, n_paths: int, seed: int) -> int:
     """Print each column's projected time to the recipe's criterion with both estimators, and the ratio."""
-    from trimeter.maps.builder import _shortfall
+    from trimeter.maps.builder import criterion_shortfall
     from trimeter.maps.recipe import load_recipe
     from trimeter.maps.tracer import Stack, k_max_for, trace_column
 
@@ -76,7 +76,7 @@ def compare_estimators(recipe_path: str, n_paths: int, seed: int) -> int:
             t0 = time.perf_counter()
             tally = trace_column(stack, sigma_t, g, n_paths, seed + i, k_max, **options)
             seconds = time.perf_counter() - t0
-            shortfall = _shortfall(tally, recipe, sigma_t)
+            shortfall = criterion_shortfall(tally, recipe, sigma_t)
             needed = min(max(s.min_paths, n_paths * shortfall**2), s.max_paths)
             projected = seconds / n_paths * needed
             totals[name] += projected

@@ -74,7 +74,7 @@ def trace_column(recipe: Recipe, stack: Stack, j: int, k: int, tracer: Callable 
         else:
             tally += part
         batch += 1
-        shortfall = _shortfall(tally, recipe, sigma_t)  # (std-error reached / target) for the worse criterion
+        shortfall = criterion_shortfall(tally, recipe, sigma_t)  # (std-error reached / target) for the worse criterion
         if shortfall <= 1.0 or tally.n_paths >= s.max_paths or batch >= 4:
             break
         wanted = paths_to_reach(tally.n_paths, shortfall, s.max_paths)
@@ -92,7 +92,7 @@ def paths_to_reach(n_paths: int, shortfall: float, cap: int) -> int:
     return min(int(cap), math.ceil(n_paths * shortfall ** 2 * 1.1))
 
 
-def _shortfall(tally: ColumnTally, recipe: Recipe, sigma_t: float) -> float:
+def criterion_shortfall(tally: ColumnTally, recipe: Recipe, sigma_t: float) -> float:
     s = recipe.sampling
     worst = max(tally.stderr(recipe.alpha, recipe.reference_rho_b).max(),
                 tally.stderr(recipe.alpha, recipe.reference_rho_w).max())

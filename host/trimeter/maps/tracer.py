@@ -51,7 +51,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from trimeter.errors import InputError
-from trimeter.maps.appearance import background_response
+from trimeter.model.response import background_response
 
 N_BACKGROUND_ORDERS = 2  # detector paths stop at their 2nd background hit: m = 0 → A, m = 1 → B
 
