@@ -194,7 +194,7 @@ def test_config_backup_restores_by_name_after_a_register_map_change(start_twin, 
 
 
 def _table_bytes(hil_map):
-    from trimeter.maps.table import build_from_map
+    from trimeter.maps.device_table import build_from_map
 
     return build_from_map(hil_map).to_bytes()
 
@@ -206,7 +206,7 @@ def test_interrupted_flash_leaves_the_old_map_active_and_resumes(start_twin, hil
     path.write_bytes(old)
     assert main(["map", "flash", str(path), "--version", "1", "--port", twin.modbus_port]) == 0
     new = bytearray(old)
-    new[200:208] = b"NEWTABLE"  # a different table of the same format (payload bytes; CRC fixed below)
+    new[-2000:-1992] = b"NEWTABLE"  # a different table of the same format (inverse codes; CRC fixed below)
     import struct
     import zlib
 
