@@ -222,6 +222,19 @@ static inline double collimated_derivative(const tm_forward_grid *f, double sigm
 
 static inline double lerp(double a, double b, double w) { return a + (b - a) * w; }
 
+/* Two doubles as one value (GCC/clang vector extension; a pair of scalars where the target has no
+ * such registers): element for element the same IEEE operations as the scalar code, so the same
+ * results, for the tables that store two quantities side by side. */
+typedef double v2d __attribute__((vector_size(16)));
+
+static inline v2d load2(const double *p) {
+    v2d v;
+    __builtin_memcpy(&v, p, sizeof v); /* unaligned */
+    return v;
+}
+
+static inline v2d splat2(double x) { return (v2d){x, x}; }
+
 
 static inline int grid_ok(const tm_forward_grid *f, const tm_inverse_table *table) {
     if (!f || f->na < 2 || f->ns < 2 || f->ng < 2) return 0;

@@ -10,8 +10,8 @@ void tmi_initial_guess(const tm_inverse_table *t, double log_sigma_t, double I_b
     double ws;
     int is = find_cell_on(t->log_sigma_t, t->inv_ds, t->ns, t->uniform_ds, log_sigma_t, &ws);
     /* a NaN intensity counts as 0 here (it would index outside the table); the polish then returns NaN */
-    double x = sqrt(I_b > 0.0 ? fmin(I_b, 1.0) : 0.0), y = sqrt(I_w > 0.0 ? fmin(I_w, 1.0) : 0.0);
-    double out_a = 0.0, out_g = 0.0;
+    double x = sqrt(I_b > 0.0 ? (I_b < 1.0 ? I_b : 1.0) : 0.0), y = sqrt(I_w > 0.0 ? (I_w < 1.0 ? I_w : 1.0) : 0.0);
+    v2d out = {0.0, 0.0}; /* (α, g): the cells hold both side by side, so each step serves both */
     for (int dk = 0; dk < 2; dk++) {
         int k = is + dk;
         double wk = dk ? ws : 1.0 - ws;
@@ -22,13 +22,12 @@ void tmi_initial_guess(const tm_inverse_table *t, double log_sigma_t, double I_b
         int iu = (int)u, iv = (int)v;
         if (iu > t->nx - 2) iu = t->nx - 2;
         if (iv > t->ny - 2) iv = t->ny - 2;
-        double fu = u - iu, fv = v - iv;
+        v2d fu = splat2(u - iu), fv = splat2(v - iv);
         const double *q = t->cells + (((size_t)k * (size_t)(t->ny - 1) + (size_t)iv) * (size_t)(t->nx - 1) + (size_t)iu) * 8u;
-        out_a += (q[0] + q[2] * fu + (q[4] + q[6] * fu) * fv) * wk;
-        out_g += (q[1] + q[3] * fu + (q[5] + q[7] * fu) * fv) * wk;
+        out += (load2(q) + load2(q + 2) * fu + (load2(q + 4) + load2(q + 6) * fu) * fv) * splat2(wk);
     }
-    *alpha = out_a;
-    *g = out_g;
+    *alpha = out[0];
+    *g = out[1];
 }
 
 /* Every bin's first forward cell, found (kept as walk_cell's hints) and prefetched in one pass before
@@ -80,20 +79,19 @@ void tmi_model_variance(const tm_forward_grid *f, const sigma_cell_t *c, double 
                        : walk_from(f->alpha, f->inv_da, f->na, alpha, c->ia, &wa);
     int ig = c->ig < 0 ? find_cell(f->g, f->inv_dg, f->ng, g, &wg) : walk_from(f->g, f->inv_dg, f->ng, g, c->ig, &wg);
     int is = c->is;
-    double out[2];
-    for (int k = 0; k < 2; k++) {
-        double along_s[2];
-        for (int da = 0; da < 2; da++) {
-            double along_g[2];
-            for (int ds = 0; ds < 2; ds++) {
-                const double *v = f->model_var + ((((size_t)(ia + da) * (size_t)f->ns + (size_t)(is + ds)) *
-                                                   (size_t)f->ng + (size_t)ig) * 2u + (size_t)k);
-                along_g[ds] = v[0] + (v[2] - v[0]) * wg;
-            }
-            along_s[da] = along_g[0] + (along_g[1] - along_g[0]) * ws;
+    /* (var_b, var_w) side by side on every node: both interpolated at once */
+    v2d along_s[2], Wg = splat2(wg), Ws = splat2(ws);
+    for (int da = 0; da < 2; da++) {
+        v2d along_g[2];
+        for (int ds = 0; ds < 2; ds++) {
+            const double *v = f->model_var + ((((size_t)(ia + da) * (size_t)f->ns + (size_t)(is + ds)) *
+                                               (size_t)f->ng + (size_t)ig) * 2u);
+            v2d v0 = load2(v), v1 = load2(v + 2);
+            along_g[ds] = v0 + (v1 - v0) * Wg;
         }
-        out[k] = along_s[0] + (along_s[1] - along_s[0]) * wa;
+        along_s[da] = along_g[0] + (along_g[1] - along_g[0]) * Ws;
     }
+    v2d out = along_s[0] + (along_s[1] - along_s[0]) * splat2(wa);
     *var_b = out[0];
     *var_w = out[1];
 }

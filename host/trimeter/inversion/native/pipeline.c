@@ -95,7 +95,9 @@ static int64_t prepare_bin(const tm_forward_grid *f, const tm_fit_options *o, si
     *rb = usable ? Rb : o->ref_rho_b;
     *rw = usable ? Rw : o->ref_rho_w;
     if (usable && ic < o->ic_floor) fl |= TM_FLAG_IC_BELOW_FLOOR;
-    double s = beer_lambert(f, o, fmin(fmax(ic, o->ic_floor), o->t_max));
+    /* fmin(fmax(ic, floor), t_max) without libm's calls: ic is finite here */
+    double ic_in = ic > o->ic_floor ? ic : o->ic_floor;
+    double s = beer_lambert(f, o, ic_in < o->t_max ? ic_in : o->t_max);
     int in_range = isfinite(Ic) && Ic >= o->ic_floor && Ic <= o->t_max;
     *sigma_beer = in_range ? s : beer_lambert(f, o, Ic);
     if (usable && (s < bounds.lo || s > bounds.hi)) fl |= TM_FLAG_OUTSIDE_MAP;
