@@ -425,11 +425,12 @@ def combine(results: list[FitResult], method: str) -> FitResult:
     # more of α's or g's inverse-variance weight
     approx = np.zeros(len(flags), dtype=bool)
     with np.errstate(invalid="ignore", divide="ignore"):
-        for r in results:
-            heavy = ((std[0] / r.alpha_std) ** 2 >= 0.25) | ((std[2] / r.g_std) ** 2 >= 0.25)
-            approx |= ((r.flags & int(FitFlag.STD_APPROXIMATE)) != 0) & heavy
+        for r in results:  # only the few bins flagged at that thickness are weighed
+            idx = np.flatnonzero(r.flags & int(FitFlag.STD_APPROXIMATE))
+            heavy = ((std[0, idx] / r.alpha_std[idx]) ** 2 >= 0.25) | ((std[2, idx] / r.g_std[idx]) ** 2 >= 0.25)
+            approx[idx] |= heavy
     flags = (flags & ~int(FitFlag.STD_APPROXIMATE)) | np.where(approx, int(FitFlag.STD_APPROXIMATE), 0)
-    disagree = _disagree(vals[:3], stds[:3]).any(axis=0)  # not the consistency column
+    disagree = _disagree(vals[:3], stds[:3])  # not the consistency column
     flags |= np.where(disagree, int(FitFlag.THICKNESS_DISAGREE), 0)
     usable = (flags & int(UNUSABLE)) == 0
     # judged on the conditioning stds (at least the noise model's), combined alike
@@ -450,25 +451,34 @@ def _weighted(vals, stds):
     """Inverse-variance mean over the thicknesses (axis -2) and its std. Where no thickness has a
     usable std: the plain mean of the finite values and the smallest of their stds; NaN where no
     value is finite (a bin unusable at every thickness). Written out, not with nanmean/nanmin: those
-    warn on all-NaN columns and cost more than the arithmetic here."""
+    warn on all-NaN columns and cost more than the arithmetic here; the fallback is computed only for
+    the bins that need it."""
     finite = np.isfinite(vals)
     with np.errstate(divide="ignore", invalid="ignore"):
-        w = np.where(finite & np.isfinite(stds) & (stds > 0), 1.0 / (stds * stds), 0.0)
+        w = np.where(finite & (stds > 0) & (stds < np.inf), 1.0 / (stds * stds), 0.0)  # NaN stds fail both
         wsum = w.sum(axis=-2)
         v0 = np.where(finite, vals, 0.0)
-        weighted = (v0 * w).sum(axis=-2) / wsum
-        count = finite.sum(axis=-2)
-        plain = np.where(count > 0, v0.sum(axis=-2) / count, np.nan)
-        smallest = np.fmin.reduce(np.where(finite, stds, np.inf), axis=-2)  # fmin: a NaN std does not win
-        value = np.where(wsum > 0, weighted, plain)
-        std = np.where(wsum > 0, 1.0 / np.sqrt(wsum), np.where(count > 0, smallest, np.nan))
+        value = (v0 * w).sum(axis=-2) / wsum
+        std = 1.0 / np.sqrt(wsum)
+        fallback = ~(wsum > 0)
+        if fallback.any():
+            count = finite.sum(axis=-2)[fallback]
+            some = count > 0
+            value[fallback] = np.where(some, v0.sum(axis=-2)[fallback] / count, np.nan)
+            smallest = np.fmin.reduce(np.where(finite, stds, np.inf), axis=-2)[fallback]  # fmin: a NaN std does not win
+            std[fallback] = np.where(some, smallest, np.nan)
     return value, std
 
 
 def _disagree(vals, stds):
-    """Where two thicknesses (axis -2) differ by more than _DISAGREE_SIGMAS combined stds."""
+    """Per bin, whether two thicknesses (axis -2) differ by more than _DISAGREE_SIGMAS combined stds
+    in any column (axis 0); each pair once."""
+    k = vals.shape[-2]
+    bad = np.zeros(vals.shape[-1], dtype=bool)
     with np.errstate(invalid="ignore"):
-        diff = np.abs(vals[..., :, None, :] - vals[..., None, :, :])
-        scale = np.sqrt(stds[..., :, None, :] ** 2 + stds[..., None, :, :] ** 2)
-        bad = diff > _DISAGREE_SIGMAS * scale
-    return bad.any(axis=(-3, -2))
+        for i in range(k):
+            for j in range(i + 1, k):
+                diff = np.abs(vals[:, i] - vals[:, j])
+                scale = np.sqrt(stds[:, i] ** 2 + stds[:, j] ** 2)
+                bad |= (diff > _DISAGREE_SIGMAS * scale).any(axis=0)
+    return bad
