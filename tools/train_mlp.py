@@ -4,7 +4,7 @@ of `trimeter map build RECIPE --stages onnx` (trimeter.maps.pipeline; training i
 trimeter.maps.mlp_training), for a map given by file or shipped name.
 
     .venv/bin/python tools/train_mlp.py maps/device-l0.4.tmap [-o maps/device-l0.4.onnx]
-        [--hidden 32,32] [--activation relu] [--samples 400000] [--epochs 80] [--seed 0]
+        [--hidden 32,32] [--activation relu] [--samples 120000] [--epochs 40] [--seed 0]
 """
 
 from __future__ import annotations

@@ -1,11 +1,19 @@
 """`mlp`: a small network (trained by tools/train_mlp.py, shipped as maps/<map-name>.onnx) gives the
 initial (α, g); the forward-map Newton polish (trimeter.inversion.newton) refines it at the bins'
-true backgrounds. Inference through onnxruntime only (no scikit-learn at run time).
+true backgrounds (`polish=0`: the network's answer alone). Inference through onnxruntime only (no
+scikit-learn at run time).
+
+The fit prepares FEATURES per bin (numpy here, C in tm_fit_prepare); the network reads INPUTS made
+from them with the forward model (network_inputs): each background's intensity placed between what
+the map predicts at that σt and ρ for the least and the most scattering material (α at the map's
+ends, g = 0), as a logit. That takes out what the network would otherwise have to learn first: the
+background seen through the slab, which dominates I_b and I_w of thin samples, and the steep response
+near α = 1; a small network then reaches the accuracy a larger one on the raw intensities does not.
 
 Model contract (checked on load; a mismatch is a MapFileError, never a silent wrong answer):
 - metadata `trimeter.kind` = "mlp-inverse", `trimeter.map_sha256` = the SHA-256 of the map it was
-  trained on, `trimeter.features` = FEATURES (comma-separated), `trimeter.format` = "1";
-- one float32 input (N, 5) in the order FEATURES, one float32 output (N, 2) = (α, g).
+  trained on, `trimeter.features` = INPUTS (comma-separated), `trimeter.format` = MODEL_FORMAT;
+- one float32 input (N, 5) in the order INPUTS, one float32 output (N, 2) = (α, g).
 σt is not a network output: it comes exactly from I_c (see trimeter.inversion.api).
 """
 
@@ -18,8 +26,10 @@ from trimeter.inversion.strategy import Method
 from trimeter.validation import shown
 
 MODEL_KIND = "mlp-inverse"
-MODEL_FORMAT = "1"
+MODEL_FORMAT = "2"
 FEATURES = ("sqrt_I_b", "sqrt_I_w", "ln_sigma_t", "rho_b", "rho_w")
+INPUTS = ("logit_scatter_b", "logit_scatter_w", "ln_sigma_t", "rho_b", "rho_w")
+_LOGIT_CLIP = 1e-4  # keeps the logit finite for intensities at or beyond the map's ends (noise, other ρ)
 
 
 def features(I_b, I_w, sigma_t, rho_b, rho_w, log_sigma_range) -> np.ndarray:
@@ -33,6 +43,24 @@ def features(I_b, I_w, sigma_t, rho_b, rho_w, log_sigma_range) -> np.ndarray:
     x[:, 3] = rho_b
     x[:, 4] = rho_w
     return x
+
+
+def network_inputs(x: np.ndarray, grid) -> np.ndarray:
+    """The network's input (N, 5) float32 (INPUTS) from the fit's features x (N, 5) (FEATURES) and the
+    forward model `grid` (trimeter.model.grid.ForwardGrid) the network was trained against."""
+    x = np.asarray(x, dtype=np.float64)
+    n = len(x)
+    sigma_t, rho_b, rho_w = np.exp(x[:, 2]), x[:, 3], x[:, 4]
+    g0 = np.full(n, min(max(0.0, grid.g_range[0]), grid.g_range[1]))  # isotropic where the map has it
+    lo_b, lo_w, _ = grid.intensities(np.full(n, grid.alpha_range[0]), sigma_t, g0, rho_b, rho_w)
+    hi_b, hi_w, _ = grid.intensities(np.full(n, grid.alpha_range[1]), sigma_t, g0, rho_b, rho_w)
+    out = np.empty((n, 5), dtype=np.float32)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for col, intensity, lo, hi in ((0, x[:, 0] ** 2, lo_b, hi_b), (1, x[:, 1] ** 2, lo_w, hi_w)):
+            t = np.clip(np.nan_to_num((intensity - lo) / (hi - lo), nan=0.5), _LOGIT_CLIP, 1.0 - _LOGIT_CLIP)
+            out[:, col] = np.log(t / (1.0 - t))
+    out[:, 2:] = x[:, 2:]
+    return out
 
 
 class MlpInverter:
@@ -52,37 +80,56 @@ class MlpInverter:
         if meta.get("trimeter.kind") != MODEL_KIND:
             raise MapFileError(f"{path}: not a trimeter MLP inverse model (metadata trimeter.kind is "
                                f"{shown(meta.get('trimeter.kind'))})")
-        if meta.get("trimeter.format", MODEL_FORMAT) != MODEL_FORMAT:
+        if meta.get("trimeter.format") != MODEL_FORMAT:
             raise MapFileError(f"{path}: metadata trimeter.format {shown(meta.get('trimeter.format'))} is not "
                                f"supported (expected {MODEL_FORMAT!r})")
-        if meta.get("trimeter.features") != ",".join(FEATURES):
+        if meta.get("trimeter.features") != ",".join(INPUTS):
             raise MapFileError(f"{path}: metadata trimeter.features {shown(meta.get('trimeter.features'))} is not "
-                               f"{','.join(FEATURES)!r}")
+                               f"{','.join(INPUTS)!r}; retrain it with tools/train_mlp.py")
         if map_checksum and meta.get("trimeter.map_sha256") != map_checksum:
             raise MapFileError(f"{path}: trained on map {shown(meta.get('trimeter.map_sha256'), 12)}, not on this "
                                f"map ({map_checksum[:12]}…); retrain it with tools/train_mlp.py")
         self.path = path
         inputs, outputs = self.session.get_inputs(), self.session.get_outputs()
-        wanted = ((inputs, len(FEATURES)), (outputs, 2))
+        wanted = ((inputs, len(INPUTS)), (outputs, 2))
         if any(len(io) != 1 or io[0].type != "tensor(float)" or len(io[0].shape) != 2 or io[0].shape[1] != width
                for io, width in wanted):
             declared = [(x.type, x.shape) for x in inputs + outputs]
-            raise MapFileError(f"{path}: model must map float32 (N, {len(FEATURES)}) to float32 (N, 2), declares "
+            raise MapFileError(f"{path}: model must map float32 (N, {len(INPUTS)}) to float32 (N, 2), declares "
                                f"{shown(declared)}")
         self.input_name = inputs[0].name
         self.log_sigma_range = log_sigma_range
         self.alpha_range, self.g_range = alpha_range, g_range
 
-    def predict(self, I_b, I_w, sigma_t, rho_b, rho_w):
-        y = self.run(features(I_b, I_w, sigma_t, rho_b, rho_w, self.log_sigma_range)).astype(np.float64)
-        return (np.minimum(np.maximum(y[:, 0], self.alpha_range[0]), self.alpha_range[1]),
-                np.minimum(np.maximum(y[:, 1], self.g_range[0]), self.g_range[1]))
+    def on(self, grid) -> MlpGuesser:
+        """This network as a fit's guesser (trimeter.inversion.kernel.Guesser) on the forward model `grid`."""
+        return MlpGuesser(self, grid)
+
+    def run(self, inputs: np.ndarray) -> np.ndarray:
+        """The network's raw (α, g) (N, 2) float32 for its inputs (N, 5) float32 (INPUTS), unclamped."""
+        return self.session.run(None, {self.input_name: inputs})[0]
+
+
+class MlpGuesser:
+    """A network bound to the forward model its inputs are made with: the fit's Guesser."""
+
+    def __init__(self, network: MlpInverter, grid):
+        self.network, self.grid = network, grid
+        self.log_sigma_range = network.log_sigma_range
 
     def run(self, x: np.ndarray) -> np.ndarray:
-        """The network's raw (α, g) (N, 2) float32 for features x (N, 5) float32, unclamped."""
-        return self.session.run(None, {self.input_name: x})[0]
+        """(α, g) (N, 2) for the fit's features x (N, 5) (FEATURES), clamped to the map's box."""
+        y = self.network.run(network_inputs(x, self.grid)).astype(np.float64)
+        y[:, 0] = np.minimum(np.maximum(y[:, 0], self.network.alpha_range[0]), self.network.alpha_range[1])
+        y[:, 1] = np.minimum(np.maximum(y[:, 1], self.network.g_range[0]), self.network.g_range[1])
+        return y
+
+    def predict(self, I_b, I_w, sigma_t, rho_b, rho_w) -> tuple[np.ndarray, np.ndarray]:
+        y = self.run(features(I_b, I_w, sigma_t, rho_b, rho_w, self.log_sigma_range))
+        return y[:, 0], y[:, 1]
 
 
 METHOD = Method("mlp", "a small network's guess (maps/<map-name>.onnx), then the Newton polish on the forward map",
-                guesser=lambda model, options: model.mlp(options.get("mlp_model")), needs=(".onnx",),
-                bench_variants=(("p0", dict(polish=0)), ("p≤8", {})))
+                guesser=lambda model, options: model.mlp(options.get("mlp_model")).on(model.grid), needs=(".onnx",),
+                # p0: the network alone; p2: two fixed Newton steps, as lut p2 (their cost side by side)
+                bench_variants=(("p0", dict(polish=0)), ("p2", dict(polish=2, polish_tol=0.0)), ("p≤8", {})))

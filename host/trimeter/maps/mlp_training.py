@@ -1,9 +1,11 @@
 """Training the `mlp` inverse of an appearance map (the pipeline's onnx stage; trimeter.maps.pipeline).
 
-Training data: random materials (α denser towards 1, ln σt uniform, g uniform over the map's range)
-and random backgrounds (ρ_b ∈ [0, 0.1], ρ_w ∈ [0.85, 1]) pushed through the map as it is evaluated
-between its nodes (AppearanceMap.between_nodes: the model the polish refines the guess on). Features
-and targets: trimeter.inversion.mlp.
+Training data: random materials at continuous (α, σt, g) (α denser towards 1, ln σt uniform, g
+uniform over the map's range) and random backgrounds (ρ_b ∈ [0, 0.1], ρ_w ∈ [0.85, 1]) pushed
+through the map as it is evaluated between its nodes (AppearanceMap.between_nodes: the model the
+polish refines the guess on), I_b and I_w jittered by a fraction of the fit's default noise model so
+that the network answers noisy bins smoothly. Inputs (the forward model's normalisation of I_b, I_w)
+and targets (α, g): trimeter.inversion.mlp.
 scikit-learn trains (StandardScaler + MLPRegressor); the network is written as a plain ONNX graph
 (network_graph: Gemm layers, the scaler folded in) with the map's SHA-256 (its parent) and the
 producer's version stored in the model's metadata; inference refuses a model used with any other map.
@@ -16,18 +18,15 @@ from pathlib import Path
 
 import numpy as np
 
-# 400k samples (was 60k; ~30 s of training): the guess itself is closer (l0.8 held-out α p50 0.019 →
-# 0.013, p95 0.13 → 0.10), the polish takes 3.4 steps per bin instead of 3.6, and the thick,
-# underdetermined bins — where the polish stops near the guess — end closer: l0.8 polished α p95
-# 0.032 → 0.029 (l0.4 unchanged, 0.0068). 64-64 guessed no better for 2.4× the ONNX time.
-# ReLU 32-32 (was tanh 64-64): the polish ends where it would from a tanh 64-64 guess (both ~4.5
-# Newton steps per bin; the network's guess, like the table's, is ~0.1 off in α at p95), and the
-# ONNX call is ~0.07 ms per 1024 bins cheaper (whole mlp fit 0.495 → 0.426 ms on l0.4)
-DEFAULTS = {"hidden": (32, 32), "samples": 400000, "epochs": 80, "seed": 0, "activation": "relu"}
+# The size is chosen on `trimeter bench fit` (its mlp rows per shipped network); jitter: a quarter of the
+# fit's default noise model, enough to keep the guess smooth across noisy bins without blurring it.
+DEFAULTS = {"hidden": (32, 32), "samples": 120000, "epochs": 40, "seed": 0, "activation": "relu", "jitter": 0.25}
 
 
-def training_set(amap, n: int, rng: np.random.Generator):
-    from trimeter.inversion.mlp import features
+def training_set(amap, n: int, rng: np.random.Generator, jitter: float = 0.0):
+    """(network inputs (n, 5) float32, targets (α, g) (n, 2) float32); jitter: the intensities' noise as a
+    fraction of the fit's default noise model (σ_I = 0.005·I + 2e-4)."""
+    from trimeter.inversion.mlp import features, network_inputs
 
     grid = amap.between_nodes
     a_lo, a_hi = grid.alpha_range
@@ -39,18 +38,21 @@ def training_set(amap, n: int, rng: np.random.Generator):
     rho_w = rng.uniform(0.85, 1.0, n)
     sigma_t = np.exp(log_s)
     I_b, I_w, _ = grid.intensities(alpha, sigma_t, g, rho_b, rho_w)
+    if jitter:
+        I_b = I_b + jitter * (0.005 * I_b + 2e-4) * rng.standard_normal(n)
+        I_w = I_w + jitter * (0.005 * I_w + 2e-4) * rng.standard_normal(n)
     x = features(I_b, I_w, sigma_t, rho_b, rho_w, (grid.log_sigma_t[0], grid.log_sigma_t[-1]))
-    return x, np.column_stack([alpha, g]).astype(np.float32)
+    return network_inputs(x, grid), np.column_stack([alpha, g]).astype(np.float32)
 
 
 def train(amap, hidden=DEFAULTS["hidden"], samples=DEFAULTS["samples"], epochs=DEFAULTS["epochs"],
-          seed=DEFAULTS["seed"], activation=DEFAULTS["activation"]):
+          seed=DEFAULTS["seed"], activation=DEFAULTS["activation"], jitter=DEFAULTS["jitter"]):
     from sklearn.neural_network import MLPRegressor
     from sklearn.pipeline import make_pipeline
     from sklearn.preprocessing import StandardScaler
 
     rng = np.random.default_rng(seed)
-    x, y = training_set(amap, samples, rng)
+    x, y = training_set(amap, samples, rng, jitter)
     model = make_pipeline(StandardScaler(), MLPRegressor(hidden_layer_sizes=hidden, activation=activation,
                                                          max_iter=epochs, batch_size=256, learning_rate_init=2e-3,
                                                          tol=1e-7, n_iter_no_change=15, random_state=seed))
@@ -74,7 +76,7 @@ def network_graph(model):
     same predictions to float32 rounding."""
     from onnx import TensorProto, helper, numpy_helper
 
-    from trimeter.inversion.mlp import FEATURES
+    from trimeter.inversion.mlp import INPUTS
 
     scaler, net = model.steps[0][1], model.steps[-1][1]
     activation = {"relu": "Relu", "tanh": "Tanh"}.get(net.activation)
@@ -96,7 +98,7 @@ def network_graph(model):
         if not last:
             nodes.append(helper.make_node(activation, [y], [f"h{k}"]))
             x = f"h{k}"
-    n_in, n_out = len(FEATURES), weights[-1].shape[1]
+    n_in, n_out = len(INPUTS), weights[-1].shape[1]
     graph = helper.make_graph(nodes, "trimeter-mlp-inverse",
                               [helper.make_tensor_value_info("features", TensorProto.FLOAT, [None, n_in])],
                               [helper.make_tensor_value_info("alpha_g", TensorProto.FLOAT, [None, n_out])], inits)
@@ -119,22 +121,22 @@ def export(model, amap, path: Path, hidden, stats: dict, producer: dict | None =
     import onnx
 
     from trimeter.atomic import atomic_write
-    from trimeter.inversion.mlp import FEATURES, MODEL_KIND
+    from trimeter.inversion.mlp import INPUTS, MODEL_FORMAT, MODEL_KIND
     from trimeter.maps.pipeline import stage_producer
 
     producer = producer or stage_producer("onnx")
 
     onx = network_graph(model)
     onnx.checker.check_model(onx)
-    check = np.random.default_rng(0).uniform(0, 1, (64, len(FEATURES))).astype(np.float32)
+    check = np.random.default_rng(0).uniform(0, 1, (64, len(INPUTS))).astype(np.float32)
     import onnxruntime as ort
 
     got = ort.InferenceSession(onx.SerializeToString(), providers=["CPUExecutionProvider"]).run(
         None, {onx.graph.input[0].name: check})[0]
     if got.shape != (64, 2) or not np.allclose(got, model.predict(check), atol=1e-4):
         raise RuntimeError("exported ONNX model does not reproduce scikit-learn's predictions")
-    meta = {"trimeter.kind": MODEL_KIND, "trimeter.format": "1", "trimeter.map_sha256": amap.checksum,
-            "trimeter.map_name": amap.name, "trimeter.features": ",".join(FEATURES), "trimeter.outputs": "alpha,g",
+    meta = {"trimeter.kind": MODEL_KIND, "trimeter.format": MODEL_FORMAT, "trimeter.map_sha256": amap.checksum,
+            "trimeter.map_name": amap.name, "trimeter.features": ",".join(INPUTS), "trimeter.outputs": "alpha,g",
             "trimeter.hidden": ",".join(map(str, hidden)),
             "trimeter.producer": producer["name"], "trimeter.producer_version": producer["version"],
             "trimeter.validation": ",".join(f"{k}={v:.4g}" for k, v in stats.items())}
