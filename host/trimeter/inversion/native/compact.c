@@ -251,30 +251,20 @@ static void pchip_slopes(int w, int at, const tr_real *h, const tr_real *inv_h, 
     }
 }
 
-tr_basis tr_sigma_basis(const tr_table *t, tr_real log_sigma_t) {
-    tr_basis b;
+tr_sigma_slice tr_sigma_slice_at(const tr_table *t, tr_real log_sigma_t) {
+    tr_sigma_slice b;
     b.first = bspline_basis(t->log_sigma_t, t->ns, log_sigma_t, b.N, b.dN);
+    b.window_alpha = b.window_g = -1;
     return b;
 }
 
-void tr_compact_eval(const tr_table *t, tr_real alpha, const tr_basis *sigma, tr_real g, tr_abc *out) {
-    tr_real Na[4], dNa[4];
-    int ia = bspline_basis(t->alpha, t->na, alpha, Na, dNa);
-    const int js = sigma->first;
-    const tr_real *Ns = sigma->N, *dNs = sigma->dN;
-    const int ng = t->ng, width = ng < 4 ? ng : 4;
-    tr_real gq = tr_clamp(g, R(t->g[0]), R(t->g[ng - 1]));
-    int k = last_at_or_below(t->g, ng, gq);
-    int first = k - 1 < 0 ? 0 : (k - 1 > ng - width ? ng - width : k - 1);
-    /* per window node: value and tangents in α and ln σt of A, B, C from 4 × 4 coefficients, summed
-     * over ln σt first. The codes are summed as they are and decoded once (value = offset + step·code):
-     * the basis sums to one and its derivatives to zero, so the offset enters the value alone. */
-    tr_real y[3][4], dy[3][2][4], h[3];
+/* the window's coefficients summed along ln σt with the slice's basis (the codes as they are) */
+static void contract_sigma(const tr_table *t, int ia, int first, int width, tr_sigma_slice *sl) {
+    const tr_real *Ns = sl->N, *dNs = sl->dN;
     const size_t row = (size_t)t->ns * 3u;
     for (int w = 0; w < width; w++) {
-        tr_real v[3] = {R(0.0)}, va[3] = {R(0.0)}, vs[3] = {R(0.0)};
         const uint16_t *q0 = t->spline + (((size_t)(first + w) * (size_t)t->na + (size_t)ia) * (size_t)t->ns +
-                                          (size_t)js) * 3u;
+                                          (size_t)sl->first) * 3u;
 #pragma GCC unroll 4
         for (int r = 0; r < 4; r++) {
             const uint16_t *q = q0 + (size_t)r * row;
@@ -287,11 +277,38 @@ void tr_compact_eval(const tr_table *t, tr_real alpha, const tr_basis *sigma, tr
                     along += code * Ns[s];
                     along_d += code * dNs[s];
                 }
+                sl->sum[w][r][c] = along;
+                sl->sum_d[w][r][c] = along_d;
+            }
+        }
+    }
+    sl->window_alpha = ia;
+    sl->window_g = first;
+}
+
+void tr_compact_eval(const tr_table *t, tr_real alpha, tr_sigma_slice *sigma, tr_real g, tr_abc *out) {
+    tr_real Na[4], dNa[4];
+    int ia = bspline_basis(t->alpha, t->na, alpha, Na, dNa);
+    const int ng = t->ng, width = ng < 4 ? ng : 4;
+    tr_real gq = tr_clamp(g, R(t->g[0]), R(t->g[ng - 1]));
+    int k = last_at_or_below(t->g, ng, gq);
+    int first = k - 1 < 0 ? 0 : (k - 1 > ng - width ? ng - width : k - 1);
+    if (sigma->window_alpha != ia || sigma->window_g != first) contract_sigma(t, ia, first, width, sigma);
+    /* per window node: value and tangents in α and ln σt of A, B, C from the 4 α rows. The codes are
+     * summed as they are and decoded once (value = offset + step·code): the basis sums to one and its
+     * derivatives to zero, so the offset enters the value alone. */
+    tr_real y[3][4], dy[3][2][4], h[3];
+    for (int w = 0; w < width; w++) {
+        tr_real v[3] = {R(0.0)}, va[3] = {R(0.0)}, vs[3] = {R(0.0)};
+#pragma GCC unroll 4
+        for (int r = 0; r < 4; r++)
+#pragma GCC unroll 3
+            for (int c = 0; c < 3; c++) {
+                const tr_real along = sigma->sum[w][r][c], along_d = sigma->sum_d[w][r][c];
                 v[c] += Na[r] * along;
                 va[c] += dNa[r] * along;
                 vs[c] += Na[r] * along_d;
             }
-        }
         for (int c = 0; c < 3; c++) {
             const tr_real off = R(t->scales[2 * c]), step = R(t->scales[2 * c + 1]);
             y[c][w] = off + step * v[c];

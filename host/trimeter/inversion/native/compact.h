@@ -72,13 +72,21 @@ typedef struct { tr_real v[3], da[3], ds[3], dg[3]; } tr_abc;
  * directory, the axes or the scales; the CRC-32 is not checked here, see compact.c). */
 int tr_table_open(const uint8_t *data, size_t len, tr_table *t);
 
-/* The cubic B-spline basis along ln σt at a point: the first of its 4 non-zero functions, their values
- * and derivatives. Fixed while a bin's (α, g) are solved, so taken once per bin. */
-typedef struct { int first; tr_real N[4], dN[4]; } tr_basis;
-tr_basis tr_sigma_basis(const tr_table *t, tr_real log_sigma_t);
+/* The compact model on one ln σt, which stays fixed while a bin's (α, g) are solved: the cubic B-spline
+ * basis along ln σt (the first of its 4 non-zero functions, their values and derivatives), and the
+ * coefficients of the last (α, g) window contracted with it, kept for the next evaluation in the same
+ * window (a Newton step rarely leaves it; the sums are the ones it would compute, so the results do
+ * not depend on the reuse). */
+typedef struct {
+    int first;
+    tr_real N[4], dN[4];
+    int window_alpha, window_g; /* the window the sums belong to; -1: none yet */
+    tr_real sum[4][4][3], sum_d[4][4][3]; /* [g node][α row][A, B, C]: Σ code·N and Σ code·dN along ln σt */
+} tr_sigma_slice;
+tr_sigma_slice tr_sigma_slice_at(const tr_table *t, tr_real log_sigma_t);
 
-/* CompactForward.evaluate at one point (ln σt through its basis), clamped to the map's box */
-void tr_compact_eval(const tr_table *t, tr_real alpha, const tr_basis *sigma, tr_real g, tr_abc *out);
+/* CompactForward.evaluate at one point on the slice's ln σt, clamped to the map's box */
+void tr_compact_eval(const tr_table *t, tr_real alpha, tr_sigma_slice *sigma, tr_real g, tr_abc *out);
 
 /* TableInverter.initial_guess: the inverse table's (α, g) at ln σt (clamped to the axis) */
 void tr_inverse_guess(const tr_table *t, tr_real log_sigma_t, tr_real I_b, tr_real I_w, tr_real *alpha, tr_real *g);

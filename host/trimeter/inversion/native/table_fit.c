@@ -32,10 +32,10 @@ static tr_real diffuse(const tr_real *abc, tr_real rho, tr_real *grad_b, tr_real
 static tr_real directional(tr_real grad_b, tr_real grad_c, const tr_real *d) { return d[0] + grad_b * d[1] + grad_c * d[2]; }
 
 /* residuals of (I_b, I_w) and ∂(I_b, I_w)/∂(α, σt, g) at (α, ln σt, g) from one model evaluation */
-static void evaluate(const tr_table *t, tr_real alpha, const tr_basis *sigma_basis, tr_real sigma_t, tr_real g,
+static void evaluate(const tr_table *t, tr_real alpha, tr_sigma_slice *slice, tr_real sigma_t, tr_real g,
                      tr_real I_b, tr_real I_w, tr_real rho_b, tr_real rho_w, evaluation_t *e) {
     tr_abc c;
-    tr_compact_eval(t, alpha, sigma_basis, g, &c);
+    tr_compact_eval(t, alpha, slice, g, &c);
     for (int row = 0; row < 2; row++) {
         tr_real fr, hr;
         e->residual[row] = diffuse(c.v, row ? rho_w : rho_b, &fr, &hr) - (row ? I_w : I_b);
@@ -141,7 +141,7 @@ static uint16_t fit_bin(const tr_table *t, tr_real Ib, tr_real Iw, tr_real Ic, t
     tr_real ls = R_LOG(sigma_t);
     ls = isnan(ls) ? ls_lo : tr_clamp(ls, ls_lo, ls_hi);
     const tr_real s_cell = R_EXP(ls);
-    const tr_basis sigma_basis = tr_sigma_basis(t, ls);
+    tr_sigma_slice slice = tr_sigma_slice_at(t, ls);
     const tr_real a_lo = R(t->alpha[0]), a_hi = R(t->alpha[t->na - 1]), g_lo = R(t->g[0]), g_hi = R(t->g[t->ng - 1]);
     tr_real alpha, g;
     tr_inverse_guess(t, ls, ib, iw, &alpha, &g);
@@ -153,7 +153,7 @@ static uint16_t fit_bin(const tr_table *t, tr_real Ib, tr_real Iw, tr_real Ic, t
     int evaluated = 0;
     tr_real last_a = R(0.0), last_g = R(0.0), residual2 = R(0.0);
     for (int it = 0; it < TM_TABLE_FIT_POLISH; it++) {
-        evaluate(t, alpha, &sigma_basis, s_cell, g, ib, iw, rb, rw, &e);
+        evaluate(t, alpha, &slice, s_cell, g, ib, iw, rb, rw, &e);
         lm_step_t st = lm_step(e.J[0][0], e.J[0][2], e.J[1][0], e.J[1][2], e.residual[0], e.residual[1]);
         tr_real alpha0 = alpha, g0 = g;
         alpha = tr_clamp(alpha + st.step_a, a_lo, a_hi);
@@ -173,7 +173,7 @@ static uint16_t fit_bin(const tr_table *t, tr_real Ib, tr_real Iw, tr_real Ic, t
         }
     }
     if (!evaluated) {
-        evaluate(t, alpha, &sigma_basis, s_cell, g, ib, iw, rb, rw, &e);
+        evaluate(t, alpha, &slice, s_cell, g, ib, iw, rb, rw, &e);
         residual2 = e.residual[0] * e.residual[0] + e.residual[1] * e.residual[1];
     }
     const tr_real dIc = collimated_derivative(t, s_cell), residual = R_SQRT(residual2);
