@@ -5,7 +5,10 @@ empty holder, runs the press-button service exactly as `trimeter serve` does, pr
 (warm-up + calibration), inserts a virtual ink, presses again (capture + fit + results), then prints
 α, σt, g at a few wavelengths beside the twin's truth, the timing split (physical vs. host overhead)
 and the path of the figure. The twin's sample is rendered directly (independent physics: trimeter.twin.traced),
-so the printed errors include the appearance map's own."""
+so the printed errors include the appearance map's own.
+
+The host runs as a host with no map files would: the twin starts with the shipped table of that map in
+its active slot and the service fits with the table it reads from the instrument (`--map` overrides)."""
 
 from __future__ import annotations
 
@@ -20,7 +23,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from trimeter.errors import DeviceError
+from trimeter.errors import DeviceError, InputError
 from trimeter.inversion.methods import METHODS
 from trimeter.paths import REPO_ROOT
 
@@ -46,8 +49,9 @@ def _wait_for(events: queue.Queue[Event], kind: str, timeout_s: float, log: Call
 
 def run(args: argparse.Namespace) -> None:
     from trimeter.device import Device
-    from trimeter.results.figure import plot_parameters
     from trimeter.domain import Sample
+    from trimeter.maps.device_table import DeviceTable, table_path_for
+    from trimeter.results.figure import plot_parameters
     from trimeter.sequences.measure import map_for_thickness, prepare_fit
     from trimeter.sequences.service import Service
     from trimeter.sequences.settings import HostSettings
@@ -55,8 +59,17 @@ def run(args: argparse.Namespace) -> None:
     from trimeter.twin import Twin
 
     wall_start = time.monotonic()
-    amap = map_for_thickness(args.thickness, args.map)
-    prepare_fit([Sample(args.thickness, amap)], args.method)  # a stale table or model fails now, not after the warm-up
+    amap = map_for_thickness(args.thickness, args.map)  # the twin's optics (the instrument side) render with it
+    table_path = table_path_for(amap.path)
+    if not table_path.is_file():
+        raise InputError(f"demo: map {amap.name} has no device table ({table_path.name}) for the twin to carry; "
+                         f"build it with `trimeter map build --stages tlut`")
+    table = DeviceTable.load(table_path)
+    if not args.map and args.method != "lut":
+        raise InputError(f"demo: the instrument's table fits with method lut only; method {args.method} needs the "
+                         f"appearance map: give --map {amap.name}")
+    # a stale table or model fails now, not after the warm-up
+    prepare_fit([Sample(args.thickness, amap if args.map else table)], args.method)
     out = Path(args.out or REPO_ROOT / "out" / "demo") / time.strftime("%Y%m%dT%H%M%S")
     out.mkdir(parents=True, exist_ok=True)
     os.environ["TRIMETER_DATA_DIR"] = str(out)  # the demo's calibration never touches the user's
@@ -65,15 +78,18 @@ def run(args: argparse.Namespace) -> None:
     settings.set("thickness_mm", args.thickness)
     settings.set("method", args.method)
     settings.set("timeout_s", 0.3)
-    settings.set("map", str(amap.path))
+    if args.map:
+        settings.set("map", str(amap.path))
 
     def log(event: Event) -> None:
         print(f"  [{event.kind}] {event.message}", flush=True)
 
-    print(f"demo: twin with '{args.sample}' ℓ = {args.thickness:g} mm, map {amap.name}, time scale "
+    fitted_with = f"the map {amap.name} (--map)" if args.map else "the table the instrument carries"
+    print(f"demo: twin with '{args.sample}' ℓ = {args.thickness:g} mm and map table {table.name} "
+          f"(sha256 {table.sha256[:12]}…) in its slot; the host fits with {fitted_with}; time scale "
           f"{args.time_scale:g}×")
     with Twin(sample=None, thickness_mm=args.thickness, time_scale=args.time_scale, appearance_map=amap,
-              state_dir=out / "twin", seed=args.seed) as twin:
+              state_dir=out / "twin", seed=args.seed, map_table=table.to_bytes()) as twin:
         settings.set("port", twin.modbus_port)
         settings.set("spectrometer", twin.spectrometer_url)
         events: queue.Queue[Event] = queue.Queue()
@@ -102,12 +118,18 @@ def run(args: argparse.Namespace) -> None:
             thread.join(timeout=10)
 
     params, timing = measured.data["parameters"], measured.data["timing"]
+    if args.map:
+        print(f"\nfitted with the map {amap.name} (--map)")
+    else:
+        read = service.last_instrument_table
+        print(f"\nfitted with the instrument's map table {read['name']} (sha256 {read['sha256'][:12]}…, slot "
+              f"{read['slot']}, {'from the host cache' if read['cached'] else 'read from the device'})")
     if truth.get("physics") == "traced":
-        print(f"\nindependent physics: the twin rendered '{args.sample}' with the tracer for this set-up "
+        print(f"independent physics: the twin rendered '{args.sample}' with the tracer for this set-up "
               f"(trimeter.twin.traced), not with the map {amap.name} the fit inverts — the errors below include the "
               "map's own")
     else:
-        print(f"\nsame physics as the fit: no traced observables for this set-up, so the twin used the map {amap.name} "
+        print(f"same physics as the fit: no traced observables for this set-up, so the twin used the map {amap.name} "
               "itself — the errors below do NOT include the map's own (tools/make_twin_observables.py traces them)")
     print("α, σt [1/mm], g — measured (± 1σ) beside the twin's truth")
     print(f"{'λ nm':>6} {'α':>16} {'truth':>7} {'σt':>18} {'truth':>7} {'g':>15} {'truth':>6}")
@@ -163,7 +185,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("demo", help="run the whole instrument on the twin, end to end", description=__doc__)
     p.add_argument("--sample", default="cyan-ink", help="virtual material (trimeter sim --list-materials)")
     p.add_argument("--thickness", type=float, default=0.4, help="sample thickness in mm (a map must exist for it)")
-    p.add_argument("--map", help="appearance map (default: the shipped map of that thickness)")
+    p.add_argument("--map", help="fit with this appearance map (default: the table the twin carries, made from the "
+                                 "shipped map of that thickness)")
     p.add_argument("--method", default="lut", choices=METHODS)
     p.add_argument("--time-scale", type=float, default=20.0, help="twin time runs this many times faster")
     p.add_argument("--seed", type=int, default=1)
