@@ -39,7 +39,7 @@ from numpy.typing import ArrayLike
 
 from trimeter.domain import Calibration, Reflectances
 from trimeter.inversion.flags import FitFlag
-from trimeter.maps.appearance import background_response
+from trimeter.model.response import background_response
 from trimeter.sequences import lamp_monitor
 
 RHO_BLACK_MAX = 0.12          # median ρ_black of an empty holder's black background
