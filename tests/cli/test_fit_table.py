@@ -1,6 +1,7 @@
 """`trimeter fit --table FILE`: a fit from a device table alone, in a directory holding nothing else and
-with every map file out of reach; `--polish N` (0: the table's raw guess); bad tables and option
-combinations are one clear error line and exit code 2."""
+with every map file out of reach: by default the instrument's own fit (native.TableFitter, no stds);
+`--refine` the lut fit on the table's refined model, with `--polish N` (0: the table's raw guess); bad
+tables and option combinations are one clear error line and exit code 2."""
 
 from __future__ import annotations
 
@@ -63,31 +64,53 @@ def _read(path) -> dict:
 
 
 def test_fit_from_the_table_alone(alone, measured_materials, capsys):
+    from trimeter.inversion import native
     from trimeter.inversion.api import fit
 
+    if not native.available():
+        pytest.skip(native.status())
     assert main(["fit", "--table", "t.tlut", "--input", "meas.csv", "-o", "out.csv"]) == 0
     err = capsys.readouterr().err
     table = DeviceTable.load(alone / "t.tlut")
-    assert f"table {NAME} (sha256 {table.sha256[:12]}" in err and "thickness: 0.4 mm" in err
+    assert f"table {NAME} (sha256 {table.sha256[:12]}…) with the instrument's fit" in err
+    assert "thickness: 0.4 mm" in err
     got = _read(alone / "out.csv")
     alpha, sigma_t, g = measured_materials[4]
     assert np.all(got["thickness_mm"] == 0.4)
     assert np.median(np.abs(got["alpha"] - alpha)) < 0.01 and np.median(np.abs(got["g"] - g)) < 0.05
     assert np.median(np.abs(got["sigma_t"] / sigma_t - 1)) < 0.01
-    # what the file gives through the API, to the digit printed
+    # the instrument's fit on the file's bytes, to the digit printed; it computes no stds
     _, I_b, I_w, I_c, _ = measured_materials
-    want = fit(table.fit_model(), I_b, I_w, I_c, method="lut")
-    np.testing.assert_allclose(got["alpha"], want.alpha, rtol=1e-8)
+    want = native.TableFitter(table.to_bytes()).fit(I_b, I_w, I_c)
+    for column, value in zip(("alpha", "sigma_t", "g"), want[:3], strict=True):
+        np.testing.assert_allclose(got[column], value, rtol=1e-8)
+    np.testing.assert_array_equal(got["flags"], want[3])
+    assert np.isnan(got["alpha_std"]).all() and np.isnan(got["g_std"]).all()
+    # --refine: the lut fit on the table's refined model, stds included
+    assert main(["fit", "--table", "t.tlut", "--refine", "--input", "meas.csv", "-o", "refined.csv"]) == 0
+    assert "refined at load" in capsys.readouterr().err
+    refined = _read(alone / "refined.csv")
+    lut = fit(table.fit_model(), I_b, I_w, I_c, method="lut")
+    np.testing.assert_allclose(refined["alpha"], lut.alpha, rtol=1e-8)
+    assert np.isfinite(refined["alpha_std"]).all()
     # --polish 0: the table's raw guess, which the default polish then moves
-    assert main(["fit", "--table", "t.tlut", "--input", "meas.csv", "--polish", "0", "-o", "raw.csv"]) == 0
+    assert main(["fit", "--table", "t.tlut", "--refine", "--input", "meas.csv", "--polish", "0", "-o",
+                 "raw.csv"]) == 0
     raw = _read(alone / "raw.csv")
     guess = fit(table.fit_model(), I_b, I_w, I_c, method="lut", polish=0)
     np.testing.assert_allclose(raw["alpha"], guess.alpha, rtol=1e-8)
-    assert np.max(np.abs(raw["alpha"] - got["alpha"])) > 1e-4
+    assert np.max(np.abs(raw["alpha"] - refined["alpha"])) > 1e-4
     capsys.readouterr()
     assert main(["fit", "--table", "t.tlut", "--input", "meas.csv", "--json"]) == 0
     doc = __import__("json").loads(capsys.readouterr().out)
     assert doc["table"]["sha256"] == table.sha256 and doc["table"]["parent_map_sha256"] == table.parent_sha256
+
+
+def test_std_columns_are_named_as_unused_by_the_instruments_fit(alone, capsys):
+    rows = (alone / "meas.csv").read_text().splitlines()
+    (alone / "meas.csv").write_text("\n".join([rows[0] + ",I_b_std", *(r + ",0.001" for r in rows[1:])]) + "\n")
+    assert main(["fit", "--table", "t.tlut", "--input", "meas.csv", "-o", "out.csv"]) == 0
+    assert "column(s) I_b_std not used (--refine propagates them)" in capsys.readouterr().err
 
 
 def _damaged(data: bytes, offset: int, value: bytes, fix_crc: bool = True) -> bytes:
@@ -104,6 +127,7 @@ def _damaged(data: bytes, offset: int, value: bytes, fix_crc: bool = True) -> by
     (["--method", "paper"], "--method paper: a device table fits with method lut"),
     (["--polish", "-1"], "is not a number of Newton steps"),
     (["--polish", "many"], "is not a number of Newton steps"),
+    (["--polish", "2"], "--polish: the instrument's fit has its own polish (add --refine"),
     (["--port", "/dev/null"], "--port: only with --on-device"),
 ])
 def test_option_errors(alone, argv, message, capsys):
@@ -141,3 +165,5 @@ def test_polish_with_a_map_and_on_device_without_a_port(alone, monkeypatch, caps
     assert "port: no instrument port given" in capsys.readouterr().err
     assert main(["fit", "--on-device", "--port", "x", "--input", "meas.csv", "--polish", "2"]) == 2
     assert "--polish: the instrument fits with its own polish" in capsys.readouterr().err
+    assert main(["fit", "--map", NAME, "--input", "meas.csv", "--refine"]) == 2
+    assert "--refine: only with --table" in capsys.readouterr().err

@@ -162,20 +162,7 @@ def test_fit_on_device_agrees_with_fit_from_the_same_table(request, tmp_path, hi
     assert ok.all()  # every material inside the map is fitted, on both
     np.testing.assert_allclose(on_device["sigma_t_beer"], on_host["sigma_t_beer"], rtol=1e-9)
     assert np.isnan(on_device["alpha_std"]).all()
-    # σt comes from I_c on both; α and g from the polish, which on the host runs on the table's model refined at
-    # load and on the device on the compact model itself: the same at the nodes, not between them, which
-    # moves ill-conditioned bins along their α–g valley. Typical bins agree to the device tolerances ...
+    # one fit on both, the device's in single precision: the tolerances on every bin
+    assert np.max(np.abs(on_device["alpha"] - on_host["alpha"])) <= 1e-3
     assert np.max(np.abs(on_device["sigma_t"] / on_host["sigma_t"] - 1)) <= 1e-3
-    assert np.median(np.abs(on_device["alpha"] - on_host["alpha"])) <= 1e-3
-    assert np.median(np.abs(on_device["g"] - on_host["g"])) <= 2e-3
-    # ... and every bin does against the device's algorithm run here on the file's bytes
-    from trimeter.inversion import native
-
-    if not native.available():
-        pytest.skip(native.status())
-    f32 = [np.asarray(_columns(measured)[k], dtype=np.float32).astype(np.float64)
-           for k in ("I_b", "I_w", "I_c", "rho_b", "rho_w")]
-    alpha_c, sigma_c, g_c, _ = native.TableFitter(table.to_bytes()).fit(*f32)
-    assert np.max(np.abs(on_device["alpha"] - alpha_c)) <= 1e-3
-    assert np.max(np.abs(on_device["sigma_t"] / sigma_c - 1)) <= 1e-3
-    assert np.max(np.abs(on_device["g"] - g_c)) <= 2e-3
+    assert np.max(np.abs(on_device["g"] - on_host["g"])) <= 2e-3

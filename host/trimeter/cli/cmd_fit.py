@@ -2,15 +2,19 @@
 
     trimeter fit --map MAP [--map MAP2] --input meas.csv [--thickness MM …] [--method lut|mlp|paper] [-o params.csv]
                  [--json] [--polish N]
-    trimeter fit --table TABLE.tlut --input meas.csv [--thickness MM] [--polish N] …
+    trimeter fit --table TABLE.tlut --input meas.csv [--thickness MM] [--refine [--polish N]] …
     trimeter fit --on-device --port PORT --input meas.csv [--thickness MM] …
 
 `--table` fits from a device table alone (maps/<name>.tlut: the inverse grid, the compact forward
-model, the in-scattering correction, n, ℓ and the reference backgrounds; no map file needed), with
-method lut. `--on-device` sends the bins to the instrument, which fits them with the table in its
-active slot (identified by its SHA-256 on stderr and in the JSON); the columns it does not compute
-(the stds) are NaN. `--polish N`: at most N Newton steps after the method's guess (0: its raw answer;
-default: the method's own).
+model, the in-scattering correction, n, ℓ and the reference backgrounds; no map file needed) with the
+instrument's own fit: the C source the firmware runs, here in double precision, so that it gives what
+`--on-device` gives with that table (to the device's single precision). That fit returns no stds (NaN)
+and takes no I_*_std columns. `--refine` fits instead on the table's forward model refined at load
+onto a grid with the map's lut fit (stds, --polish, the std columns; between the table's nodes its α
+and g may differ from the device's). `--on-device` sends the bins to the instrument, which fits them
+with the table in its active slot (identified by its SHA-256 on stderr and in the JSON); the columns
+it does not compute (the stds) are NaN. `--polish N`: at most N Newton steps after the method's guess
+(0: its raw answer; default: the method's own).
 
 Input columns: wavelength_nm, I_b, I_w, I_c; optional rho_b, rho_w (per-wavelength backgrounds;
 default: the map's reference backgrounds) and thickness_mm (required with two maps: tells which rows
@@ -56,9 +60,14 @@ def register(subparsers) -> None:
     source = p.add_mutually_exclusive_group(required=True)
     source.add_argument("--map", dest="maps", action="append",
                         help="appearance map (file or shipped name); give twice for two thicknesses")
-    source.add_argument("--table", type=Path, help="device table (.tlut) to fit from alone, with method lut")
+    source.add_argument("--table", type=Path,
+                        help="device table (.tlut) to fit from alone, with the instrument's own fit (the same "
+                             "results as --on-device with that table; no stds)")
     source.add_argument("--on-device", action="store_true",
                         help="fit on the instrument (--port) with the table in its active slot")
+    p.add_argument("--refine", action="store_true",
+                   help="with --table: fit on the table's model refined at load (the lut fit: stds, --polish) "
+                        "instead of the instrument's fit")
     add_instrument_args(p, spectrometer=False)
     p.add_argument("--polish", type=_polish_steps, metavar="N",
                    help="at most N Newton steps after the method's guess (0: its raw answer; default: the method's)")
@@ -154,6 +163,8 @@ def _fit_models(args) -> list:
     """What the fit inverts through: the maps, or one device table (from a file, or the instrument's)."""
     from trimeter.maps.appearance import AppearanceMap, find_map
 
+    if args.refine and args.table is None:
+        raise InputError("--refine: only with --table (it names how the table's model is fitted)")
     if args.maps:
         if args.port:
             raise InputError("--port: only with --on-device (a --map fit runs here)")
@@ -166,6 +177,9 @@ def _fit_models(args) -> list:
 
         if args.port:
             raise InputError("--port: only with --on-device (--table fits here, from the file)")
+        if args.polish is not None and not args.refine:
+            raise InputError("--polish: the instrument's fit has its own polish (add --refine to polish on the "
+                             "table's refined model)")
         return [DeviceTable.load(args.table)]
     if args.polish is not None:
         raise InputError("--polish: the instrument fits with its own polish (fit from its table here with --table)")
@@ -179,6 +193,8 @@ def run(args) -> int:
     amaps = _fit_models(args)
     if args.on_device:
         return _run_on_device(args)
+    if args.table is not None and not args.refine:
+        return _run_table_fit(args, amaps[0])
     method = args.method or "lut"
     refuse_output_onto_inputs(args.output, [args.input, *(m.path for m in amaps if m.path is not None)])
     if len({round(m.thickness_mm, 9) for m in amaps}) != len(amaps):
@@ -203,7 +219,7 @@ def run(args) -> int:
     source = "declared with --thickness" if args.thickness else "not declared: the map's" if len(amaps) == 1 \
         else "not declared: the maps'"
     table = _table_identity(amaps[0], "file") if args.table is not None else None
-    fitted = f"table {table['name']} (sha256 {table['sha256'][:12]}…)" if table else \
+    fitted = f"table {table['name']} (sha256 {table['sha256'][:12]}…), refined at load" if table else \
         f"map {', '.join(m.name for m in amaps)}"
     print(f"thickness: {used} mm ({source}; {fitted})", file=sys.stderr)
     flag_names = [describe(f) for f in result.flags]
@@ -242,11 +258,33 @@ def _write_result(args, columns: dict, used: str, method: str, thicknesses: list
     _write(args.output, "\n".join(lines) + "\n")
 
 
+def _run_table_fit(args, table) -> int:
+    """The bins fitted here with the instrument's own fit (native.TableFitter, double precision) from the
+    table file alone."""
+    from trimeter.inversion import native
+
+    refuse_output_onto_inputs(args.output, [args.input, args.table])
+    check_declared_thickness(args.thickness, [table])
+    data = read_measurements(args.input)
+    rows = _split_thicknesses(data, [table], args.input)[0]
+    ignored = [c for c in ("I_b_std", "I_w_std", "I_c_std", "thickness_std_mm") if c in data]
+    if ignored:
+        print(f"note: the instrument's fit takes no stds: column(s) {', '.join(ignored)} not used (--refine "
+              f"propagates them)", file=sys.stderr)
+    rho_b, rho_w = _backgrounds(data, rows, table)
+    alpha, sigma_t, g, flags = native.TableFitter(table.to_bytes()).fit(data["I_b"][rows], data["I_w"][rows],
+                                                                        data["I_c"][rows], rho_b, rho_w)
+    source = "declared with --thickness" if args.thickness else "not declared: the table's"
+    fitted = f"table {table.name} (sha256 {table.sha256[:12]}…) with the instrument's fit"
+    _write_table_fit(args, data, rows, table, (alpha, sigma_t, g, flags), "lut (the instrument's fit)",
+                     _table_identity(table, "file"), f"thickness: {table.thickness_mm:g} mm ({source}; {fitted})")
+    return 0
+
+
 def _run_on_device(args) -> int:
     """The bins fitted by the instrument (Device.fit) with the table in its active slot, which is read
     (or found in the cache) first: its ℓ and reference backgrounds, and its identity for the output."""
     from trimeter.cli._instrument import open_device, settings_from
-    from trimeter.inversion.flags import advice, describe
     from trimeter.maps.device_table import instrument_table
 
     refuse_output_onto_inputs(args.output, [args.input])
@@ -255,25 +293,41 @@ def _run_on_device(args) -> int:
         table, slot, _cached = instrument_table(device)
         check_declared_thickness(args.thickness, [table])
         rows = _split_thicknesses(data, [table], args.input)[0]
-        n = len(rows)
-        rho_b = data["rho_b"][rows] if "rho_b" in data else np.full(n, table.rho_b_ref)
-        rho_w = data["rho_w"][rows] if "rho_w" in data else np.full(n, table.rho_w_ref)
+        rho_b, rho_w = _backgrounds(data, rows, table)
         result = device.fit(data["I_b"][rows], data["I_w"][rows], data["I_c"][rows], rho_b, rho_w,
                             thickness_mm=table.thickness_mm, table=table.to_bytes())
-    nan = np.full(n, np.nan)
-    columns = {"wavelength_nm": data["wavelength_nm"][rows], "alpha": result.alpha, "sigma_t": result.sigma_t,
-               "g": result.g, "alpha_std": nan, "sigma_t_std": nan, "g_std": nan, "flags": result.flags,
-               "sigma_t_beer": table.setup.beer_lambert_sigma_t(data["I_c"][rows])}
-    notes = advice(result.flags, 1)
-    for note in notes:
-        print(f"note: {note}", file=sys.stderr)
-    identity = _table_identity(table, "device", slot)
     source = "declared with --thickness" if args.thickness else "not declared: the table's"
-    print(f"thickness: {table.thickness_mm:g} mm ({source}; fitted on the device with its table {table.name}, slot "
-          f"{slot}, sha256 {table.sha256[:12]}…, CRC-32 0x{result.table_crc32:08X})", file=sys.stderr)
-    _write_result(args, columns, f"{table.thickness_mm:g}", "lut (on the device)", [table.thickness_mm], [table],
-                  [describe(f) for f in result.flags], notes, identity)
+    _write_table_fit(args, data, rows, table, (result.alpha, result.sigma_t, result.g, result.flags),
+                     "lut (on the device)", _table_identity(table, "device", slot),
+                     f"thickness: {table.thickness_mm:g} mm ({source}; fitted on the device with its table "
+                     f"{table.name}, slot {slot}, sha256 {table.sha256[:12]}…, CRC-32 0x{result.table_crc32:08X})")
     return 0
+
+
+def _backgrounds(data: dict, rows, table) -> tuple[np.ndarray, np.ndarray]:
+    """The rows' (ρ_b, ρ_w): the input's columns, else the table's reference backgrounds."""
+    n = len(rows)
+    rho_b = data["rho_b"][rows] if "rho_b" in data else np.full(n, table.rho_b_ref)
+    rho_w = data["rho_w"][rows] if "rho_w" in data else np.full(n, table.rho_w_ref)
+    return rho_b, rho_w
+
+
+def _write_table_fit(args, data: dict, rows, table, fitted: tuple, method: str, identity: dict, where: str) -> None:
+    """The output of the instrument's fit (here or on the device): the fit's columns, NaN stds (it
+    computes none), advice and the thickness line on stderr."""
+    from trimeter.inversion.flags import advice, describe
+
+    alpha, sigma_t, g, flags = fitted
+    nan = np.full(len(rows), np.nan)
+    columns = {"wavelength_nm": data["wavelength_nm"][rows], "alpha": alpha, "sigma_t": sigma_t, "g": g,
+               "alpha_std": nan, "sigma_t_std": nan, "g_std": nan, "flags": flags,
+               "sigma_t_beer": table.setup.beer_lambert_sigma_t(data["I_c"][rows])}
+    notes = advice(flags, 1)
+    for note in notes:  # stderr: stdout may be the CSV
+        print(f"note: {note}", file=sys.stderr)
+    print(where, file=sys.stderr)
+    _write_result(args, columns, f"{table.thickness_mm:g}", method, [table.thickness_mm], [table],
+                  [describe(f) for f in flags], notes, identity)
 
 
 def _thickness_std(column, groups, amaps, path) -> list[float]:
