@@ -60,6 +60,8 @@ def run(args: argparse.Namespace) -> None:
 
     wall_start = time.monotonic()
     amap = map_for_thickness(args.thickness, args.map)  # the twin's optics (the instrument side) render with it
+    if amap.path is None:  # a map made in memory has no file, so no device table beside it
+        raise InputError(f"demo: map {amap.name} has no file, so no device table for the twin to carry")
     table_path = table_path_for(amap.path)
     if not table_path.is_file():
         raise InputError(f"demo: map {amap.name} has no device table ({table_path.name}) for the twin to carry; "
