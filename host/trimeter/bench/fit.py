@@ -8,7 +8,11 @@ noise on I_b, I_w, I_c) and method variant it reports: time per 1024 bins of the
 untimed call) and cold (after evicting the caches: `ms_per_1024_cold`), and of the inversion
 kernel alone ("core": the paper's scipy interpolator call against the lut/mlp guess + polish), α abs
 error p50/p95, σt relative error p50/p95, g abs error p50/p95 over
-α ≥ 0.5, NaN rate and flag rate. Errors are taken over the measurable gamut (I_c ≥ 1e-3, so σt is
+α ≥ 0.5, NaN rate and flag rate, and what each variant costs in memory: the bytes of the files it
+reads (`files_kB`: .tmap for paper; .tlut, .tins and the .onnx for lut/mlp), of the model it works on
+in memory (`model_kB`: the refined forward grid and table cells, the network; the paper's map nodes)
+and the peak of the Python heap (numpy included; tracemalloc) during one fit() of 1024 bins
+(`peak_kB`). Errors are taken over the measurable gamut (I_c ≥ 1e-3, so σt is
 not just a lower bound); NaN and flag rates over every held-out material. A Pareto plot (time
 against α and g p95, noise-free) is written as a PNG whose path is printed.
 
@@ -37,6 +41,7 @@ import functools
 import inspect
 import json
 import time
+import tracemalloc
 from pathlib import Path
 
 import numpy as np
@@ -127,8 +132,52 @@ def _variants(amap, cache, small_cache):
                 polish = {} if method.joint else DEFAULT_POLISH
                 variants.append((name, method.name, {**polish, **options, **extra}, artifacts))
         if method.name == "lut":
-            variants.append(("lut-small p≤8", "lut", DEFAULT_POLISH, small))
+            variants += [("lut-small p0", "lut", dict(polish=0, polish_tol=0.0), small),
+                         ("lut-small p≤8", "lut", DEFAULT_POLISH, small)]
     return variants
+
+
+def _array_bytes(*objects) -> int:
+    """Bytes of the numpy arrays held by objects (their attributes one level down, tuples and lists too)."""
+    seen, total = set(), 0
+    for obj in objects:
+        for value in vars(obj).values():
+            for v in value if isinstance(value, (tuple, list)) else (value,):
+                if isinstance(v, np.ndarray) and id(v) not in seen:
+                    seen.add(id(v))
+                    total += v.nbytes
+    return total
+
+
+def _variant_bytes(variant) -> tuple[int, int]:
+    """(bytes of the files the variant reads, bytes of the model it solves on in memory)."""
+    from trimeter.inversion.methods import get_method
+
+    _, method, kw, artifacts = variant
+    amap = artifacts.map
+    path = amap.path
+    if get_method(method).joint:  # the paper method interpolates the map's nodes
+        files = [path] if path is not None else []
+        return sum(p.stat().st_size for p in files), _array_bytes(amap)
+    inverter = artifacts.inverter
+    files = sum(path.with_suffix(suffix).stat().st_size for suffix in (".tins",)
+                if path is not None and path.with_suffix(suffix).is_file())
+    files += inverter.table.size_bytes
+    model = _array_bytes(inverter, inverter.grid, inverter.table_grid)
+    if "mlp_model" in kw:
+        files += Path(kw["mlp_model"]).stat().st_size
+        model += Path(kw["mlp_model"]).stat().st_size  # onnxruntime holds the weights, about the file's size
+    return files, model
+
+
+def _peak_bytes(fn) -> int:
+    """Peak of the Python heap (numpy arrays included) during fn(), above what was allocated before."""
+    tracemalloc.start()
+    try:
+        fn()
+        return tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
 
 
 def _fit_variant(variant, I_b, I_w, I_c, rho_b=None, rho_w=None):
@@ -301,12 +350,16 @@ def _bench_case(variants, truth, budget, intensities, label, level, args):
     for variant in variants:
         name = variant[0]
         res = _fit_variant(variant, I_b, I_w, I_c)
+        files, model = _variant_bytes(variant)
         st = {"noise": level, "reference": label, "variant": name, **_stats(res, truth, budget),
-              "ms_per_1024": np.inf, "ms_per_1024_cold": np.inf, "core_ms_per_1024": np.inf}
+              "ms_per_1024": np.inf, "ms_per_1024_cold": np.inf, "core_ms_per_1024": np.inf,
+              "files_kB": files / 1e3, "model_kB": model / 1e3}
         rows.append(st)
         nb = args.median_bins if name == "paper-median" else 1024
         idx = tile[:nb]
         sub = (I_b[idx], I_w[idx], I_c[idx])
+        _fit_variant(variant, *sub)  # warm: the peak is the call's own, not the first load's
+        st["peak_kB"] = _peak_bytes(lambda variant=variant, sub=sub: _fit_variant(variant, *sub)) * 1024 / nb / 1e3
         timers.append((st, "ms_per_1024", lambda variant=variant, sub=sub: _fit_variant(variant, *sub), 1024 / nb))
         core = None if name == "paper-median" else _core(variant, *sub, rb, rw)
         if core is None:
@@ -533,7 +586,7 @@ def run(args) -> int:
 
 def _print_table(sub, title):
     cols = ("ms_per_1024", "ms_per_1024_cold", "core_ms_per_1024", "alpha_p50", "alpha_p95", "sigma_rel_p50",
-            "sigma_rel_p95", "g_p50", "g_p95", "nan_rate", "flag_rate")
+            "sigma_rel_p95", "g_p50", "g_p95", "nan_rate", "flag_rate", "files_kB", "model_kB", "peak_kB")
     base = next(r for r in sub if r["variant"] == "paper")
     print(f"\n   {title:<19}" + " ".join(f"{c:>13}" for c in cols))
     for r in sub:
