@@ -137,7 +137,11 @@ def fit(models, I_b, I_w, I_c, rho_b=None, rho_w=None, method: str = "lut", *, k
     singles = [_fit_one(amap, *arrays[i], sd=stds[i], thickness_rel_std=thickness_rel[i], method=strategy,
                         kernel=kernel, polish=polish, polish_tol=polish_tol, mlp_model=mlp_model, **opts)
                for i, amap in enumerate(amaps)]
-    return singles[0] if k == 1 else combine(singles, method)
+    if k == 1:
+        return singles[0]
+    combined = kernel.combine(singles, method, underdetermined_std=(UNDERDETERMINED_ALPHA_STD, UNDERDETERMINED_G_STD),
+                              disagree_sigmas=_DISAGREE_SIGMAS)
+    return combine(singles, method) if combined is None else combined
 
 
 def _shape_inputs(k, I_b, I_w, I_c, rho_b, rho_w, amaps):
@@ -408,7 +412,8 @@ def _finish(amap, grid, flags, usable, ib, iw, ic, rb, rw, alpha, sigma_t, g, re
 # --------------------------------------------------------------------------------- thicknesses
 def combine(results: list[FitResult], method: str) -> FitResult:
     """Inverse-variance combination of per-thickness fits; THICKNESS_DISAGREE where two finite
-    estimates differ by more than 3 combined standard deviations (α, σt, or g)."""
+    estimates differ by more than 3 combined standard deviations (α, σt, or g). The reference of the
+    compiled kernel's tm_combine (Kernel.combine), which fit() runs where it can."""
     flags = np.bitwise_or.reduce([r.flags for r in results])
     # A thickness whose bins were unusable drops out; its UNUSABLE bits stay only if all dropped.
     all_unusable = np.logical_and.reduce([(r.flags & int(UNUSABLE)) != 0 for r in results])

@@ -2,7 +2,8 @@
 
 NumpyKernel is the reference (trimeter.inversion.newton); NativeKernel runs the same algorithm in the
 compiled library (trimeter.inversion.native, tested to agree to ~1e-9, flags bit for bit) and also
-fuses one thickness's whole fit into one call. A method never asks which one it has.
+fuses one thickness's whole fit into one call, and combines several thicknesses (bit for bit
+api.combine's). A method never asks which one it has.
 """
 
 from __future__ import annotations
@@ -12,9 +13,15 @@ from typing import Protocol
 
 import numpy as np
 
+from trimeter.domain.parameters import FitResult
 from trimeter.inversion import native, newton
+from trimeter.inversion.native import invert_h
 from trimeter.inversion.lut import TableInverter
 from trimeter.model.grid import ForwardGrid, SigmaCell
+
+
+_ROWS = invert_h.OUTPUT_ROWS  # the FitResult columns, in the order of tm_fit's output block
+_CONDITIONING = {"conditioning_alpha_std": "alpha_std", "conditioning_g_std": "g_std"}
 
 
 class Guesser(Protocol):
@@ -45,6 +52,11 @@ class Kernel(Protocol):
         """One thickness's whole fit in one call (FitResult columns), or None where the kernel has no
         fused path and the fit runs its steps one by one."""
 
+    def combine(self, results: list[FitResult], method: str, *, underdetermined_std: tuple[float, float],
+                disagree_sigmas: float) -> FitResult | None:
+        """Several thicknesses' fits combined (api.combine, whose thresholds are passed in), or None where
+        the kernel has no such path and api.combine runs."""
+
 
 class NumpyKernel:
     name = "numpy"
@@ -63,6 +75,9 @@ class NumpyKernel:
         return newton.propagate(J, sigma_I, sigma_t_var)
 
     def fused_fit(self, inverter, I_b, I_w, I_c, rho_b, rho_w, *, sd, guesser, options):
+        return None
+
+    def combine(self, results, method, *, underdetermined_std, disagree_sigmas):
         return None
 
 
@@ -112,6 +127,26 @@ class NativeKernel:
             out.pop("features")
         out.pop("steps")
         return out
+
+    def combine(self, results, method, *, underdetermined_std, disagree_sigmas):
+        """tm_combine over the fits' columns, laid out as tm_fit's output blocks, one per thickness."""
+        k, n = len(results), len(results[0])
+        fits = np.empty((k, len(_ROWS), n))
+        for block, result in zip(fits, results, strict=True):
+            for row, name in zip(block, _ROWS, strict=True):
+                column = getattr(result, name)
+                if column is None:  # no conditioning stds of its own: its stds stand
+                    column = getattr(result, _CONDITIONING[name])
+                if name == "flags":
+                    row.view(np.int64)[:] = column
+                else:
+                    row[:] = column
+        out = np.empty((len(_ROWS), n))
+        # the library trimeter.inversion.native loaded and typed (its prototype is generated from invert.h)
+        native._LIB.tm_combine(k, n, fits.ctypes.data, *underdetermined_std, disagree_sigmas, out.ctypes.data)
+        columns = dict(zip(_ROWS, out, strict=True))
+        columns["flags"] = columns["flags"].view(np.int64)
+        return FitResult(**columns, method=method, per_thickness=results)
 
 
 _DEFAULT: list[Kernel] = []

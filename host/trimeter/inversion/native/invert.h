@@ -38,6 +38,7 @@ enum tm_flag {
     TM_FLAG_G_UNDEFINED = 1 << 5,
     TM_FLAG_OUTSIDE_MAP = 1 << 6,
     TM_FLAG_NOT_CONVERGED = 1 << 7,
+    TM_FLAG_THICKNESS_DISAGREE = 1 << 8,
     TM_FLAG_BAD_BACKGROUND = 1 << 9,
     TM_FLAG_UNDERDETERMINED = 1 << 10,
     TM_FLAG_STD_APPROXIMATE = 1 << 11
@@ -139,6 +140,14 @@ int tm_set_simd(int enabled);
 /* The whole single-thickness fit in one call, with scratch from malloc (host library only): -1 on a
  * malformed grid or a missing guess, -2 when out of memory, else the number of Newton steps taken. */
 long long tm_fit(const tm_forward_grid *f, const tm_inverse_table *table, const tm_fit_options *o, size_t n, const double *I_b, const double *I_w, const double *I_c, const double *rho_b, const double *rho_w, const double *sd_in, const double *alpha0, const double *g0, double *outputs);
+
+/* Several thicknesses' fits of the same bins combined (trimeter.inversion.api.combine, operation for
+ * operation): fits holds k output blocks one after the other (k × TM_ROW_COUNT × n, each as tm_fit
+ * writes it; its conditioning rows the α and g stds where that fit has none), outputs one more. The
+ * inverse-variance mean and std, flags merged, STD_APPROXIMATE where a flagged thickness carries a
+ * quarter of the weight, THICKNESS_DISAGREE beyond disagree_sigmas combined stds, UNDERDETERMINED on
+ * the combined conditioning stds. */
+void tm_combine(size_t k, size_t n, const double *fits, double underdetermined_alpha_std, double underdetermined_g_std, double disagree_sigmas, double *outputs);
 
 /* The fit in two halves around a caller-owned scratch block of tm_fit_scratch_size(n) bytes (no
  * allocation: what the firmware calls), with a guess (e.g. an MLP's) from the features in between. */

@@ -2,7 +2,7 @@
 
 import ctypes
 
-ABI_HASH = 0x00c32d885ff35bdd
+ABI_HASH = 0xec77c492c692b81e
 STEP_RATIO = 0.25
 INSCATTER_ONCE = 0.001
 TABLE_FIT_NOISE_REL = 0.005
@@ -29,6 +29,7 @@ FLAG_BITS = {
     "G_UNDEFINED": 32,
     "OUTSIDE_MAP": 64,
     "NOT_CONVERGED": 128,
+    "THICKNESS_DISAGREE": 256,
     "BAD_BACKGROUND": 512,
     "UNDERDETERMINED": 1024,
     "STD_APPROXIMATE": 2048,
@@ -144,6 +145,15 @@ FUNCTIONS = {
         ctypes.c_void_p,
         ctypes.c_void_p,
         ctypes.c_void_p,
+        ctypes.c_void_p,
+    ]),
+    "tm_combine": (None, [
+        ctypes.c_size_t,
+        ctypes.c_size_t,
+        ctypes.c_void_p,
+        ctypes.c_double,
+        ctypes.c_double,
+        ctypes.c_double,
         ctypes.c_void_p,
     ]),
     "tm_fit_scratch_size": (ctypes.c_size_t, [

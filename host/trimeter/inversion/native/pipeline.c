@@ -390,3 +390,114 @@ size_t tm_fit_scratch_size(size_t n) {
            (11 * sizeof(double) + sizeof(sigma_cell_t) + sizeof(final_eval_t) + sizeof(check_t) + sizeof(uint32_t));
 }
 
+
+/* api._weighted for one column of one bin over k thicknesses (v, s: a value and its std per thickness,
+ * `stride` apart): the inverse-variance mean and its std; where no std is usable, the plain mean of
+ * the finite values and the smallest of their stds; NaN where no value is finite. As numpy reduces:
+ * sums from +0 (so even a zero's sign agrees), the smallest from the first thickness's. v2 (or NULL):
+ * a second column with the same stds, whose mean alone goes to *value2 (the divisions shared). */
+static void weighted(size_t k, size_t stride, const double *v, const double *v2, const double *s, double *value,
+                     double *std, double *value2) {
+    double wsum = 0.0, wvsum = 0.0, vsum = 0.0, smallest = 0.0, wsum2 = 0.0, wvsum2 = 0.0, vsum2 = 0.0;
+    size_t count = 0, count2 = 0;
+    for (size_t j = 0; j < k; j++) {
+        double vj = v[j * stride], sj = s[j * stride];
+        int finite = isfinite(vj), usable_std = sj > 0.0 && sj < INFINITY;
+        double inv = 1.0 / (sj * sj);
+        double w = finite && usable_std ? inv : 0.0, v0 = finite ? vj : 0.0, least = finite ? sj : INFINITY;
+        wsum += w;
+        wvsum += v0 * w;
+        vsum += v0;
+        smallest = j ? fmin(smallest, least) : least; /* fmin: a NaN std does not win */
+        count += (size_t)finite;
+        if (v2) {
+            double uj = v2[j * stride];
+            int finite2 = isfinite(uj);
+            double w2 = finite2 && usable_std ? inv : 0.0, u0 = finite2 ? uj : 0.0;
+            wsum2 += w2;
+            wvsum2 += u0 * w2;
+            vsum2 += u0;
+            count2 += (size_t)finite2;
+        }
+    }
+    if (wsum > 0.0) {
+        *value = wvsum / wsum;
+        *std = 1.0 / sqrt(wsum);
+    } else {
+        *value = count ? vsum / (double)count : NAN;
+        *std = count ? smallest : NAN;
+    }
+    if (v2) *value2 = wsum2 > 0.0 ? wvsum2 / wsum2 : (count2 ? vsum2 / (double)count2 : NAN);
+}
+
+/* Whether rows a and b (k thicknesses, `stride` apart) hold the same stds bit for bit. */
+static int same_stds(size_t k, size_t stride, const double *a, const double *b) {
+    for (size_t j = 0; j < k; j++)
+        if (__builtin_memcmp(a + j * stride, b + j * stride, sizeof(double))) return 0;
+    return 1;
+}
+
+void tm_combine(size_t k, size_t n, const double *fits, double underdetermined_alpha_std, double underdetermined_g_std,
+                double disagree_sigmas, double *outputs) {
+    const size_t stride = (size_t)TM_ROW_COUNT * n; /* from one thickness's block to the next */
+    const tm_fit_outputs out = outputs_in(outputs, n);
+    static const int value_rows[3] = {TM_ROW_ALPHA, TM_ROW_SIGMA_T, TM_ROW_G};
+    static const int std_rows[3] = {TM_ROW_ALPHA_STD, TM_ROW_SIGMA_T_STD, TM_ROW_G_STD};
+#define ROW(p, r) ((p) + (size_t)(r) * n)
+    for (size_t i = 0; i < n; i++) {
+        const double *bin = fits + i;
+        int64_t fl = 0, all_unusable = 1;
+        for (size_t j = 0; j < k; j++) {
+            int64_t fj = ((const int64_t *)ROW(bin + j * stride, TM_ROW_FLAGS))[0];
+            fl |= fj;
+            all_unusable &= (fj & TM_FLAGS_UNUSABLE) != 0;
+        }
+        /* a thickness whose bin was unusable drops out; UNUSABLE stays only if all dropped */
+        if (!all_unusable) fl &= ~(int64_t)TM_FLAGS_UNUSABLE;
+        fl &= ~(int64_t)(TM_FLAG_UNDERDETERMINED | TM_FLAG_STD_APPROXIMATE); /* judged again below */
+        double value[3], std[3], beer;
+        weighted(k, stride, ROW(bin, TM_ROW_ALPHA), NULL, ROW(bin, TM_ROW_ALPHA_STD), &value[0], &std[0], NULL);
+        /* the Beer-Lambert column takes σt's std */
+        weighted(k, stride, ROW(bin, TM_ROW_SIGMA_T), ROW(bin, TM_ROW_SIGMA_T_BEER), ROW(bin, TM_ROW_SIGMA_T_STD),
+                 &value[1], &std[1], &beer);
+        weighted(k, stride, ROW(bin, TM_ROW_G), NULL, ROW(bin, TM_ROW_G_STD), &value[2], &std[2], NULL);
+        int approx = 0, disagree = 0;
+        for (size_t j = 0; j < k; j++) {
+            const double *a = bin + j * stride;
+            if (((const int64_t *)ROW(a, TM_ROW_FLAGS))[0] & TM_FLAG_STD_APPROXIMATE) {
+                /* first order failing at one thickness matters where it carries a quarter of the weight */
+                double ra = std[0] / *ROW(a, TM_ROW_ALPHA_STD), rg = std[2] / *ROW(a, TM_ROW_G_STD);
+                approx |= ra * ra >= 0.25 || rg * rg >= 0.25;
+            }
+            for (size_t m = j + 1; m < k; m++)
+                for (int c = 0; c < 3; c++) { /* not the consistency column */
+                    const double *b = bin + m * stride;
+                    double sa = *ROW(a, std_rows[c]), sb = *ROW(b, std_rows[c]);
+                    double diff = fabs(*ROW(a, value_rows[c]) - *ROW(b, value_rows[c]));
+                    disagree |= diff > disagree_sigmas * sqrt(sa * sa + sb * sb);
+                }
+        }
+        if (approx) fl |= TM_FLAG_STD_APPROXIMATE;
+        if (disagree) fl |= TM_FLAG_THICKNESS_DISAGREE;
+        /* UNDERDETERMINED on the conditioning stds combined alike (the stds themselves where they are) */
+        double cond_a = std[0], cond_g = std[2], unused;
+        if (!same_stds(k, stride, ROW(bin, TM_ROW_CONDITIONING_ALPHA_STD), ROW(bin, TM_ROW_ALPHA_STD)))
+            weighted(k, stride, ROW(bin, TM_ROW_ALPHA), NULL, ROW(bin, TM_ROW_CONDITIONING_ALPHA_STD), &unused, &cond_a,
+                     NULL);
+        if (!same_stds(k, stride, ROW(bin, TM_ROW_CONDITIONING_G_STD), ROW(bin, TM_ROW_G_STD)))
+            weighted(k, stride, ROW(bin, TM_ROW_G), NULL, ROW(bin, TM_ROW_CONDITIONING_G_STD), &unused, &cond_g, NULL);
+        if (!(fl & TM_FLAGS_UNUSABLE) && (cond_a > underdetermined_alpha_std || cond_g > underdetermined_g_std))
+            fl |= TM_FLAG_UNDERDETERMINED;
+        out.alpha[i] = value[0];
+        out.sigma_t[i] = value[1];
+        out.g[i] = value[2];
+        out.sigma_t_beer[i] = beer;
+        out.alpha_std[i] = std[0];
+        out.sigma_t_std[i] = std[1];
+        out.g_std[i] = std[2];
+        out.flags[i] = fl;
+        out.cond_alpha_std[i] = cond_a;
+        out.cond_g_std[i] = cond_g;
+    }
+#undef ROW
+}
