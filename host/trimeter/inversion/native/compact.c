@@ -199,13 +199,17 @@ static int bspline_basis(const float *x, int n, tr_real xq, tr_real N[4], tr_rea
         next[d] = saved;
         for (int r = 0; r <= d; r++) cur[r] = next[r];
     }
-    lower[4] = R(0.0);
+    /* dN_r = 3·(q_r − q_{r+1}), q_j = lower_j / (t_{i−3+j+3} − t_{i−3+j}): each quotient serves two
+     * functions; lower_0 = lower_4 = 0 */
+    tr_real q[5] = {R(0.0), R(0.0), R(0.0), R(0.0), R(0.0)};
+    for (int j = 1; j < 4; j++) {
+        int m = i - 3 + j;
+        tr_real d = T(m + 3) - T(m);
+        q[j] = lower[j] / (d > R(0.0) ? d : R(1.0));
+    }
     for (int r = 0; r < 4; r++) {
-        int m = i - 3 + r;
-        tr_real d0 = T(m + 3) - T(m), d1 = T(m + 4) - T(m + 1);
-        tr_real a = lower[r] / (d0 > R(0.0) ? d0 : R(1.0)), b = lower[r + 1] / (d1 > R(0.0) ? d1 : R(1.0));
         N[r] = cur[r];
-        dN[r] = R(3.0) * (a - b);
+        dN[r] = R(3.0) * (q[r] - q[r + 1]);
     }
 #undef T
     return i - 3;
@@ -219,9 +223,10 @@ static int sgn(tr_real x) { return (x > R(0.0)) - (x < R(0.0)); }
  * most of an evaluation's cost otherwise. */
 static void pchip_slopes(int w, int at, const tr_real *h, const tr_real *inv_h, const tr_real *y,
                          const tr_real dy[2][4], tr_real d[2], tr_real dd[2][2]) {
-    tr_real m[3], dm[2][3];
+    tr_real m[3], dm[2][3], im[3]; /* im: 1/m, shared by the two nodes around an interval (∞ at m = 0: unused) */
     for (int i = 0; i < w - 1; i++) {
         m[i] = (y[i + 1] - y[i]) * inv_h[i];
+        im[i] = R(1.0) / m[i];
         for (int k = 0; k < 2; k++) dm[k][i] = (dy[k][i + 1] - dy[k][i]) * inv_h[i];
     }
     for (int out = 0; out < 2; out++) {
@@ -230,7 +235,7 @@ static void pchip_slopes(int w, int at, const tr_real *h, const tr_real *inv_h, 
             tr_real h0 = h[i - 1], h1 = h[i], w1 = R(2.0) * h1 + h0, w2 = h1 + R(2.0) * h0, m0 = m[i - 1], m1 = m[i];
             d[out] = dd[0][out] = dd[1][out] = R(0.0);
             if (sgn(m0) == sgn(m1) && m0 != R(0.0) && m1 != R(0.0)) {
-                tr_real im0 = R(1.0) / m0, im1 = R(1.0) / m1, iden = R(1.0) / (w1 * im0 + w2 * im1);
+                tr_real im0 = im[i - 1], im1 = im[i], iden = R(1.0) / (w1 * im0 + w2 * im1);
                 d[out] = (w1 + w2) * iden;
                 for (int k = 0; k < 2; k++)
                     dd[k][out] = (w1 + w2) * (w1 * dm[k][i - 1] * im0 * im0 + w2 * dm[k][i] * im1 * im1) * iden * iden;
@@ -322,7 +327,7 @@ void tr_compact_eval(const tr_table *t, tr_real alpha, tr_sigma_slice *sigma, tr
     tr_real h00 = R(2.0) * s3 - R(3.0) * s2 + R(1.0), h10 = s3 - R(2.0) * s2 + s, h01 = R(-2.0) * s3 + R(3.0) * s2,
             h11 = s3 - s2;
     tr_real e00 = (R(6.0) * s2 - R(6.0) * s) / hk, e10 = R(3.0) * s2 - R(4.0) * s + R(1.0),
-            e01 = (R(-6.0) * s2 + R(6.0) * s) / hk, e11 = R(3.0) * s2 - R(2.0) * s;
+            e01 = -e00, e11 = R(3.0) * s2 - R(2.0) * s;
     int at = k - first;
     tr_real inv_h[3];
     for (int i = 0; i < width - 1; i++) inv_h[i] = R(1.0) / h[i];
