@@ -90,7 +90,11 @@ class Web:
 
 
 @contextlib.contextmanager
-def web_instrument(root: Path, *, webhook: str | None = None):
+def web_instrument(root: Path, *, webhook: str | None = None, map_table: bytes | None = None, host_map: bool = True,
+                   twin_map: object = None):
+    """map_table: a device table the twin carries in its active slot; host_map=False: the host config names
+    no map, so the service fits with the instrument's table; twin_map: what the twin renders with (default:
+    the HIL map's file, loaded when first needed)."""
     from trimeter.twin import Twin
     from trimeter.web.app import WebServer, create_app
     from trimeter.web.auth import load_or_create_token
@@ -98,11 +102,14 @@ def web_instrument(root: Path, *, webhook: str | None = None):
     from trimeter.web.jobs import Jobs
 
     with host_dirs(root), Twin(sample=None, thickness_mm=THICKNESS_MM, time_scale=TIME_SCALE,
-                               appearance_map=str(HIL_MAP), state_dir=root / "twin", seed=3) as twin:
+                               appearance_map=twin_map or str(HIL_MAP), state_dir=root / "twin", seed=3,
+                               map_table=map_table) as twin:
         settings = HostSettings()
-        for key, value in (("port", twin.modbus_port), ("spectrometer", twin.spectrometer_url), ("map", str(HIL_MAP)),
+        for key, value in (("port", twin.modbus_port), ("spectrometer", twin.spectrometer_url),
                            ("results_dir", str(root / "results")), ("warmup_threshold", 0.003)):
             settings.set(key, value)
+        if host_map:
+            settings.set("map", str(HIL_MAP))
         service = Service(lambda: open_device(settings), lambda: open_spectrometer(settings), settings,
                           device_clock=twin.sim_time)
         history = History(settings.results_path, data_dir() / "history.sqlite")

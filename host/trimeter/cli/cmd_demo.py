@@ -63,15 +63,16 @@ def run(args: argparse.Namespace) -> None:
     if amap.path is None:  # a map made in memory has no file, so no device table beside it
         raise InputError(f"demo: map {amap.name} has no file, so no device table for the twin to carry")
     table_path = table_path_for(amap.path)
-    if not table_path.is_file():
-        raise InputError(f"demo: map {amap.name} has no device table ({table_path.name}) for the twin to carry; "
-                         f"build it with `trimeter map build --stages tlut`")
-    table = DeviceTable.load(table_path)
-    if not args.map and args.method != "lut":
-        raise InputError(f"demo: the instrument's table fits with method lut only; method {args.method} needs the "
-                         f"appearance map: give --map {amap.name}")
+    table = DeviceTable.load(table_path) if table_path.is_file() else None  # what the twin's slot holds
+    if not args.map:
+        if table is None:
+            raise InputError(f"demo: map {amap.name} has no device table ({table_path.name}) for the twin to carry; "
+                             f"build it with `trimeter map build --stages tlut`, or fit with --map")
+        if args.method != "lut":
+            raise InputError(f"demo: the instrument's table fits with method lut only; method {args.method} needs "
+                             f"the appearance map: give --map {amap.name}")
     # a stale table or model fails now, not after the warm-up
-    prepare_fit([Sample(args.thickness, amap if args.map else table)], args.method)
+    prepare_fit([Sample(args.thickness, table if table is not None and not args.map else amap)], args.method)
     out = Path(args.out or REPO_ROOT / "out" / "demo") / time.strftime("%Y%m%dT%H%M%S")
     out.mkdir(parents=True, exist_ok=True)
     os.environ["TRIMETER_DATA_DIR"] = str(out)  # the demo's calibration never touches the user's
@@ -86,12 +87,13 @@ def run(args: argparse.Namespace) -> None:
     def log(event: Event) -> None:
         print(f"  [{event.kind}] {event.message}", flush=True)
 
+    carried = "no map table" if table is None else f"map table {table.name} (sha256 {table.sha256[:12]}…)"
     fitted_with = f"the map {amap.name} (--map)" if args.map else "the table the instrument carries"
-    print(f"demo: twin with '{args.sample}' ℓ = {args.thickness:g} mm and map table {table.name} "
-          f"(sha256 {table.sha256[:12]}…) in its slot; the host fits with {fitted_with}; time scale "
-          f"{args.time_scale:g}×")
+    print(f"demo: twin with '{args.sample}' ℓ = {args.thickness:g} mm and {carried} in its slot; the host fits "
+          f"with {fitted_with}; time scale {args.time_scale:g}×")
     with Twin(sample=None, thickness_mm=args.thickness, time_scale=args.time_scale, appearance_map=amap,
-              state_dir=out / "twin", seed=args.seed, map_table=table.to_bytes()) as twin:
+              state_dir=out / "twin", seed=args.seed,
+              map_table=None if table is None else table.to_bytes()) as twin:
         settings.set("port", twin.modbus_port)
         settings.set("spectrometer", twin.spectrometer_url)
         events: queue.Queue[Event] = queue.Queue()

@@ -13,6 +13,7 @@ from __future__ import annotations
 import asyncio
 import copy
 import csv
+import functools
 import io
 import json
 import logging
@@ -29,7 +30,7 @@ from aiohttp import ClientSession, ClientTimeout, WSMsgType, web
 
 from trimeter import registers as regs
 from trimeter.device.client import CONFIG_NAMES, encode
-from trimeter.errors import InputError, TrimeterError
+from trimeter.errors import DeviceError, InputError, TrimeterError
 from trimeter.inversion.methods import METHODS
 from trimeter.inversion.flags import advice, describe
 from trimeter.maps.appearance import AppearanceMap, find_map, shipped_maps
@@ -272,6 +273,17 @@ async def calibrate(request: web.Request) -> web.StreamResponse:
     return _accepted(jobs.submit("calibrate", body, confirmed if holder_empty else ask))
 
 
+def _unresolved(samples: list[tuple[float, str | None]], service: Service) -> str | None:
+    """Why these samples cannot be fitted here (None: they can). A DeviceError (no table in the device)
+    is answered, not raised into the worker, which would take it for a lost link; a link really lost is
+    found by the loop's next poll."""
+    try:
+        service.resolve_samples(samples)
+    except DeviceError as exc:
+        return str(exc)
+    return None
+
+
 @routes.post("/api/measure")
 async def measure(request: web.Request) -> web.StreamResponse:
     body = await json_body(request, ("label", "thickness_mm", "second_thickness_mm"))
@@ -286,7 +298,14 @@ async def measure(request: web.Request) -> web.StreamResponse:
     second = number(body, "second_thickness_mm", default=None, maximum=MAX_THICKNESS_MM, allow_zero=True)
     configured = dict(reversed(settings.serve_samples))  # thickness → the host config's map for it, if any
     samples = [(t, configured.get(t)) for t in (thickness, second) if t]
-    await _blocking(request, lambda: [map_for_thickness(t, m) for t, m in samples])  # InputError → 400
+    if jobs.current is not None:  # before the check below, which would wait for the worker
+        raise Busy(jobs.current)
+    # resolved now, as the job will (a sample without a configured map: the instrument's table, read on the
+    # worker thread that owns the device link), so a thickness nothing here fits is a 400, not a failed job
+    if all(m for _, m in samples):
+        await _blocking(request, lambda: [map_for_thickness(t, m) for t, m in samples])
+    elif problem := await _device_call(request, functools.partial(_unresolved, samples)):
+        raise ApiError(400, problem)
     if service.pattern == EMPTY_HOLDER:
         raise ApiError(409, "a calibration is due: the instrument asks for an empty holder first "
                             "(confirm with POST /api/calibrate {\"holder_empty\": true})")
@@ -423,7 +442,7 @@ async def measurement_zip(request: web.Request) -> web.StreamResponse:
 
 @routes.post("/api/measurements/{id}/refit")
 async def refit_route(request: web.Request) -> web.StreamResponse:
-    from trimeter.web.refit import refit
+    from trimeter.web.refit import recorded_maps, refit
 
     path = _measurement_dir(request)
     body = await json_body(request, ("maps", "method"))
@@ -445,12 +464,11 @@ async def refit_route(request: web.Request) -> web.StreamResponse:
             meta = json.loads((path / "measurement.json").read_text())
         except (OSError, ValueError, UnicodeDecodeError) as exc:
             raise InputError(f"{path.name}: its measurement.json cannot be read ({exc})") from None
-        chosen = names or meta.get("maps") or []
-        maps = []
-        for name in chosen:
-            if name not in catalog:
-                raise InputError(f"the measurement's map {name!r} is not known here; name one (GET /api/maps)")
-            maps.append(AppearanceMap.load(catalog[name]))
+        if names:
+            chosen, maps = names, [AppearanceMap.load(catalog[name]) for name in names]
+        else:
+            chosen = meta.get("maps") or []
+            maps = recorded_maps(meta, catalog, jobs.service.instrument_table)
         new = refit(path, maps, method)
         jobs.on_measurement(new)
         job.measurement = new.name

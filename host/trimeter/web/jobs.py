@@ -183,7 +183,7 @@ class Jobs:
     def _read_device(self) -> None:
         """What the status shows of the device and is only read between jobs: its configuration and
         whether its active map table is the one this host fits with."""
-        from trimeter.sequences.measure import prepare_fit, resolve_samples
+        from trimeter.sequences.measure import prepare_fit
 
         service = self.service
         try:
@@ -191,7 +191,7 @@ class Jobs:
         except TrimeterError as exc:
             config = {"error": str(exc)}
         try:
-            prepared = prepare_fit(resolve_samples(service.settings.serve_samples[:1]), service.settings.method)
+            prepared = prepare_fit(service.resolve_samples(service.settings.serve_samples[:1]), service.settings.method)
             table = service.device_table(prepared).to_json()
         except TrimeterError as exc:
             table = {"error": str(exc)}

@@ -7,7 +7,10 @@ atomic; its measurement.json names the record it came from (`refit_of`).
 
 from __future__ import annotations
 
+import hashlib
 import json
+import re
+from collections.abc import Callable, Sequence
 from dataclasses import replace
 from pathlib import Path
 
@@ -15,9 +18,11 @@ import numpy as np
 
 from trimeter.domain import (Calibration, Capture, Measurement, Provenance, RawSample, Reflectances, Sample,
                              SampleCapture)
-from trimeter.errors import InputError, OutputError
+from trimeter.domain.measurement import MapRef
+from trimeter.errors import InputError, MapFileError, OutputError, TrimeterError
 from trimeter.inversion.flags import advice
 from trimeter.maps.appearance import AppearanceMap
+from trimeter.maps.device_table import SUFFIX, DeviceTable, cache_dir
 from trimeter.results.writer import file_tags, write_measurement
 from trimeter.sequences.measure import prepare_fit
 
@@ -72,9 +77,68 @@ def load_capture(directory: Path) -> tuple[Calibration, list[RawSample], list[Re
     return calibration, raws, refls, meta
 
 
-def refit(directory: Path, maps: list[AppearanceMap], method: str) -> Path:
-    """Fit `directory`'s capture again with `maps` (one per thickness) and `method`; write a new results
-    directory beside it and return its path."""
+SHA256_HEX = re.compile(r"[0-9a-f]{64}")
+
+
+def cached_table(sha256: str) -> DeviceTable | None:
+    """The instrument table with this SHA-256 from the host's table cache, or None (not there, or damaged)."""
+    if not SHA256_HEX.fullmatch(sha256):  # a record's text never becomes a path
+        return None
+    path = cache_dir() / f"{sha256}{SUFFIX}"
+    try:
+        data = path.read_bytes()
+        if hashlib.sha256(data).hexdigest() != sha256:
+            return None
+        return DeviceTable.from_bytes(data, source=str(path))
+    except (OSError, MapFileError):
+        return None
+
+
+def recorded_maps(meta: dict, catalog: dict[str, Path], instrument_table: Callable[[], DeviceTable]
+                  ) -> list[MapRef]:
+    """The maps or tables a measurement was fitted with, by the identity its measurement.json records
+    (`maps` and `map_checksums`): an instrument's table from the host cache or, failing that, from the
+    instrument if it still carries it; a map of the catalog whose checksum is the recorded one. A record
+    without checksums is matched by map name alone. InputError when one is nowhere here."""
+    names = meta.get("maps")
+    checksums = meta.get("map_checksums")
+    if not isinstance(names, list) or not names or not all(isinstance(n, str) for n in names):
+        raise InputError("the measurement.json names no maps; name one to re-fit with (GET /api/maps)")
+    if not isinstance(checksums, list) or len(checksums) != len(names):
+        checksums = [None] * len(names)
+    device: DeviceTable | None = None
+    found: list[MapRef] = []
+    for name, checksum in zip(names, checksums, strict=True):
+        if not isinstance(checksum, str) or not checksum:  # an older record: the map of that name
+            if name not in catalog:
+                raise InputError(f"the measurement's map {name!r} is not known here; name one (GET /api/maps)")
+            found.append(AppearanceMap.load(catalog[name]))
+            continue
+        table = cached_table(checksum)
+        if table is None and name in catalog:
+            amap = AppearanceMap.load(catalog[name])
+            if amap.checksum == checksum:
+                found.append(amap)
+                continue
+        if table is None:
+            if device is None:
+                try:
+                    device = instrument_table()
+                except TrimeterError:
+                    device = None
+            if device is not None and device.sha256 == checksum:
+                table = device
+        if table is None:
+            raise InputError(f"the measurement was fitted with {name} (checksum {checksum[:12]}…), which is neither "
+                             f"in this host's table cache, nor the instrument's active table, nor a map here; name a "
+                             f"map to re-fit with (GET /api/maps)")
+        found.append(table)
+    return found
+
+
+def refit(directory: Path, maps: Sequence[MapRef], method: str) -> Path:
+    """Fit `directory`'s capture again with `maps` (appearance maps or instrument tables, one per thickness)
+    and `method`; write a new results directory beside it and return its path."""
     calibration, raws, refls, meta = load_capture(directory)
     declared = meta.get("declared_thicknesses_mm") or meta["thicknesses_mm"]
     if len(maps) != len(refls) or len(declared) != len(refls):
