@@ -7,7 +7,7 @@ import pytest
 
 import trimeter
 from trimeter.errors import MapFileError
-from trimeter.inversion.mlp import INPUTS, features, network_inputs
+from trimeter.inversion.mlp import INPUTS, ScatterRange, features, network_inputs
 
 from inversion_support import DATA
 
@@ -18,7 +18,7 @@ def _inputs(amap, alpha, sigma_t, g, rho_b, rho_w):
     full = lambda v: np.full(n, v, dtype=float)  # noqa: E731
     I_b, I_w, _ = grid.intensities(alpha, sigma_t, g, full(rho_b), full(rho_w))
     x = features(I_b, I_w, sigma_t, full(rho_b), full(rho_w), (grid.log_sigma_t[0], grid.log_sigma_t[-1]))
-    return network_inputs(x, grid)
+    return network_inputs(x, ScatterRange(grid))
 
 
 def test_the_inputs_place_each_intensity_between_the_maps_least_and_most_scattering_response(ideal_map):
@@ -37,13 +37,30 @@ def test_the_inputs_place_each_intensity_between_the_maps_least_and_most_scatter
         assert np.all(np.isfinite(low)) and low.dtype == np.float32 and low.shape == (9, len(INPUTS))
 
 
+@pytest.mark.parametrize("refined", [False, True])
+def test_the_ends_are_the_forward_models_own(ideal_map, refined):
+    """ScatterRange's lookups equal grid.intensities at the map's α ends (g = 0) at any σt and ρ, on the
+    map between its nodes and on the fit's grid (the table's, refined)."""
+    from trimeter.maps.artifacts import load_artifacts
+
+    grid = load_artifacts(ideal_map).grid if refined else ideal_map.between_nodes
+    rng = np.random.default_rng(7)
+    n = 400
+    sigma_t = np.exp(rng.uniform(grid.log_sigma_t[0] - 0.5, grid.log_sigma_t[-1] + 0.5, n))  # clamped past the ends
+    rho = rng.uniform(0.0, 1.0, n)
+    ends = ScatterRange(grid).ends(np.clip(np.log(sigma_t), grid.log_sigma_t[0], grid.log_sigma_t[-1]), rho)
+    for got, alpha in zip(ends, grid.alpha_range, strict=True):
+        want = grid.intensities(np.full(n, alpha), sigma_t, np.zeros(n), rho, rho)[0]
+        np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-14)
+
+
 def test_bad_features_give_finite_inputs(ideal_map):
     """NaN or out-of-range intensities (the fit computes unusable bins on stand-ins, but a guesser must
     never be handed NaN inputs by this step) and σt at the map's ends stay finite."""
     grid = ideal_map.between_nodes
     x = np.array([[np.nan, 0.5, 0.0, 0.02, 0.9], [2.0, -1.0, 10.0, 0.02, 0.9], [0.0, 0.0, -10.0, 0.0, 1.0]],
                  dtype=np.float32)
-    assert np.all(np.isfinite(network_inputs(x, grid)))
+    assert np.all(np.isfinite(network_inputs(x, ScatterRange(grid))))
 
 
 def test_a_model_made_for_the_raw_intensities_is_refused_by_name(ideal_map, tmp_path):

@@ -21,7 +21,7 @@ _spec.loader.exec_module(train_mlp)
 
 @pytest.mark.parametrize("activation", ["relu", "tanh"])
 def test_the_exported_graph_is_gemm_layers_that_reproduce_the_pipeline(tmp_path, activation):
-    from trimeter.inversion.mlp import MlpInverter, features, network_inputs
+    from trimeter.inversion.mlp import MlpInverter, ScatterRange, features, network_inputs
     from trimeter.maps.appearance import AppearanceMap
 
     amap = AppearanceMap.load(ROOT / "tests" / "inversion" / "data" / "ideal-l0.5.tmap")
@@ -37,7 +37,7 @@ def test_the_exported_graph_is_gemm_layers_that_reproduce_the_pipeline(tmp_path,
     n = 500
     x = network_inputs(features(rng.uniform(0, 0.5, n), rng.uniform(0.3, 1, n), np.exp(rng.uniform(-3, 3, n)),
                                 rng.uniform(0, 0.1, n), rng.uniform(0.85, 1, n), inverter.log_sigma_range),
-                       amap.between_nodes)
+                       ScatterRange(amap.between_nodes))
     np.testing.assert_allclose(inverter.run(x), model.predict(x), atol=2e-5)
 
 

@@ -45,19 +45,49 @@ def features(I_b, I_w, sigma_t, rho_b, rho_w, log_sigma_range) -> np.ndarray:
     return x
 
 
-def network_inputs(x: np.ndarray, grid) -> np.ndarray:
-    """The network's input (N, 5) float32 (INPUTS) from the fit's features x (N, 5) (FEATURES) and the
-    forward model `grid` (trimeter.model.grid.ForwardGrid) the network was trained against."""
+class ScatterRange:
+    """What the forward model `grid` predicts at each σt for the least and the most scattering material
+    (α at the map's ends, g = 0 where the map has it): the ends network_inputs places I_b and I_w between.
+    The grid is trilinear, so at fixed α and g nodes its A, B, C are piecewise linear in ln σt between
+    its σt nodes: these (ns, 3) rows interpolated give exactly grid.intensities there, for a few
+    lookups per bin instead of two forward evaluations."""
+
+    def __init__(self, grid):
+        nodes = grid.coefficients_grid  # (na, ns, ng, 3)
+        g0 = min(max(0.0, grid.g_range[0]), grid.g_range[1])
+        j = int(np.clip(np.searchsorted(grid.g, g0, side="right") - 1, 0, len(grid.g) - 2))
+        w = (g0 - grid.g[j]) / (grid.g[j + 1] - grid.g[j])
+        at_g0 = nodes[:, :, j] * (1.0 - w) + nodes[:, :, j + 1] * w  # linear in g within a cell
+        self.log_sigma_t = np.asarray(grid.log_sigma_t, dtype=np.float64)
+        rows = np.concatenate([at_g0[0], at_g0[-1]], axis=1)  # (ns, 6): least A, B, C, most A, B, C
+        self._rows, self._slopes = rows[:-1], np.diff(rows, axis=0) / np.diff(self.log_sigma_t)[:, None]
+
+    def coefficients(self, log_sigma_t) -> np.ndarray:
+        """(6, N): A, B, C of the least, then of the most scattering material at ln σt (clamped)."""
+        ls = np.clip(log_sigma_t, self.log_sigma_t[0], self.log_sigma_t[-1])
+        k = np.clip(np.searchsorted(self.log_sigma_t, ls, side="right") - 1, 0, len(self._rows) - 1)
+        return (self._rows[k] + self._slopes[k] * (ls - self.log_sigma_t[k])[:, None]).T
+
+    def ends(self, log_sigma_t, rho) -> tuple[np.ndarray, np.ndarray]:
+        """I(ρ) of the least and the most scattering material at ln σt (clamped to the grid)."""
+        return self._ends(self.coefficients(log_sigma_t), rho)
+
+    @staticmethod
+    def _ends(coef, rho) -> tuple[np.ndarray, np.ndarray]:
+        f_least, f_most = rho / (1.0 - coef[2] * rho), rho / (1.0 - coef[5] * rho)
+        return coef[0] + coef[1] * f_least, coef[3] + coef[4] * f_most
+
+
+def network_inputs(x: np.ndarray, scatter_range: ScatterRange) -> np.ndarray:
+    """The network's input (N, 5) float32 (INPUTS) from the fit's features x (N, 5) (FEATURES), with
+    the ends of the forward model the network was trained against."""
     x = np.asarray(x, dtype=np.float64)
-    n = len(x)
-    sigma_t, rho_b, rho_w = np.exp(x[:, 2]), x[:, 3], x[:, 4]
-    g0 = np.full(n, min(max(0.0, grid.g_range[0]), grid.g_range[1]))  # isotropic where the map has it
-    lo_b, lo_w, _ = grid.intensities(np.full(n, grid.alpha_range[0]), sigma_t, g0, rho_b, rho_w)
-    hi_b, hi_w, _ = grid.intensities(np.full(n, grid.alpha_range[1]), sigma_t, g0, rho_b, rho_w)
-    out = np.empty((n, 5), dtype=np.float32)
+    coef = scatter_range.coefficients(x[:, 2])
+    out = np.empty((len(x), 5), dtype=np.float32)
     with np.errstate(divide="ignore", invalid="ignore"):
-        for col, intensity, lo, hi in ((0, x[:, 0] ** 2, lo_b, hi_b), (1, x[:, 1] ** 2, lo_w, hi_w)):
-            t = np.clip(np.nan_to_num((intensity - lo) / (hi - lo), nan=0.5), _LOGIT_CLIP, 1.0 - _LOGIT_CLIP)
+        for col, rho in ((0, x[:, 3]), (1, x[:, 4])):
+            lo, hi = ScatterRange._ends(coef, rho)
+            t = np.clip(np.nan_to_num((x[:, col] ** 2 - lo) / (hi - lo), nan=0.5), _LOGIT_CLIP, 1.0 - _LOGIT_CLIP)
             out[:, col] = np.log(t / (1.0 - t))
     out[:, 2:] = x[:, 2:]
     return out
@@ -114,12 +144,12 @@ class MlpGuesser:
     """A network bound to the forward model its inputs are made with: the fit's Guesser."""
 
     def __init__(self, network: MlpInverter, grid):
-        self.network, self.grid = network, grid
+        self.network, self.scatter_range = network, ScatterRange(grid)
         self.log_sigma_range = network.log_sigma_range
 
     def run(self, x: np.ndarray) -> np.ndarray:
         """(α, g) (N, 2) for the fit's features x (N, 5) (FEATURES), clamped to the map's box."""
-        y = self.network.run(network_inputs(x, self.grid)).astype(np.float64)
+        y = self.network.run(network_inputs(x, self.scatter_range)).astype(np.float64)
         y[:, 0] = np.minimum(np.maximum(y[:, 0], self.network.alpha_range[0]), self.network.alpha_range[1])
         y[:, 1] = np.minimum(np.maximum(y[:, 1], self.network.g_range[0]), self.network.g_range[1])
         return y

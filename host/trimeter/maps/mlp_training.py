@@ -26,7 +26,7 @@ DEFAULTS = {"hidden": (32, 32), "samples": 120000, "epochs": 40, "seed": 0, "act
 def training_set(amap, n: int, rng: np.random.Generator, jitter: float = 0.0):
     """(network inputs (n, 5) float32, targets (α, g) (n, 2) float32); jitter: the intensities' noise as a
     fraction of the fit's default noise model (σ_I = 0.005·I + 2e-4)."""
-    from trimeter.inversion.mlp import features, network_inputs
+    from trimeter.inversion.mlp import ScatterRange, features, network_inputs
 
     grid = amap.between_nodes
     a_lo, a_hi = grid.alpha_range
@@ -42,7 +42,7 @@ def training_set(amap, n: int, rng: np.random.Generator, jitter: float = 0.0):
         I_b = I_b + jitter * (0.005 * I_b + 2e-4) * rng.standard_normal(n)
         I_w = I_w + jitter * (0.005 * I_w + 2e-4) * rng.standard_normal(n)
     x = features(I_b, I_w, sigma_t, rho_b, rho_w, (grid.log_sigma_t[0], grid.log_sigma_t[-1]))
-    return network_inputs(x, grid), np.column_stack([alpha, g]).astype(np.float32)
+    return network_inputs(x, ScatterRange(grid)), np.column_stack([alpha, g]).astype(np.float32)
 
 
 def train(amap, hidden=DEFAULTS["hidden"], samples=DEFAULTS["samples"], epochs=DEFAULTS["epochs"],
