@@ -42,6 +42,7 @@ from trimeter.web.history import History, is_measurement_id, parse_day_or_time
 from trimeter.web.jobs import Busy, Job, Jobs
 
 if TYPE_CHECKING:
+    from trimeter.domain.measurement import MapRef
     from trimeter.sequences.service import Service
 
 T = TypeVar("T")
@@ -464,6 +465,7 @@ async def refit_route(request: web.Request) -> web.StreamResponse:
             meta = json.loads((path / "measurement.json").read_text())
         except (OSError, ValueError, UnicodeDecodeError) as exc:
             raise InputError(f"{path.name}: its measurement.json cannot be read ({exc})") from None
+        maps: list[MapRef]
         if names:
             chosen, maps = names, [AppearanceMap.load(catalog[name]) for name in names]
         else:
