@@ -256,11 +256,9 @@ static void pchip_slopes(int w, int at, const tr_real *h, const tr_real *inv_h, 
     }
 }
 
-tr_sigma_slice tr_sigma_slice_at(const tr_table *t, tr_real log_sigma_t) {
-    tr_sigma_slice b;
-    b.first = bspline_basis(t->log_sigma_t, t->ns, log_sigma_t, b.N, b.dN);
-    b.window_alpha = b.window_g = -1;
-    return b;
+void tr_sigma_slice_init(const tr_table *t, tr_real log_sigma_t, tr_sigma_slice *slice) {
+    slice->first = bspline_basis(t->log_sigma_t, t->ns, log_sigma_t, slice->N, slice->dN);
+    slice->window_alpha = slice->window_g = -1;
 }
 
 /* the window's coefficients summed along ln σt with the slice's basis (the codes as they are) */

@@ -83,7 +83,7 @@ typedef struct {
     int window_alpha, window_g; /* the window the sums belong to; -1: none yet */
     tr_real sum[4][4][3], sum_d[4][4][3]; /* [g node][α row][A, B, C]: Σ code·N and Σ code·dN along ln σt */
 } tr_sigma_slice;
-tr_sigma_slice tr_sigma_slice_at(const tr_table *t, tr_real log_sigma_t);
+void tr_sigma_slice_init(const tr_table *t, tr_real log_sigma_t, tr_sigma_slice *slice);
 
 /* CompactForward.evaluate at one point on the slice's ln σt, clamped to the map's box */
 void tr_compact_eval(const tr_table *t, tr_real alpha, tr_sigma_slice *sigma, tr_real g, tr_abc *out);

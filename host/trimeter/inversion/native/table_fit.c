@@ -141,7 +141,8 @@ static uint16_t fit_bin(const tr_table *t, tr_real Ib, tr_real Iw, tr_real Ic, t
     tr_real ls = R_LOG(sigma_t);
     ls = isnan(ls) ? ls_lo : tr_clamp(ls, ls_lo, ls_hi);
     const tr_real s_cell = R_EXP(ls);
-    tr_sigma_slice slice = tr_sigma_slice_at(t, ls);
+    tr_sigma_slice slice;
+    tr_sigma_slice_init(t, ls, &slice);
     const tr_real a_lo = R(t->alpha[0]), a_hi = R(t->alpha[t->na - 1]), g_lo = R(t->g[0]), g_hi = R(t->g[t->ng - 1]);
     tr_real alpha, g;
     tr_inverse_guess(t, ls, ib, iw, &alpha, &g);
