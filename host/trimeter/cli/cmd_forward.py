@@ -84,7 +84,7 @@ def _validate(args) -> int:
     if args.materials < 0 or args.device_materials < 0:
         raise InputError("--materials and --device-materials must be >= 0")
     say = (lambda *a, **k: print(*a, file=sys.stderr, **k)) if args.json else print
-    report = {}
+    report: dict[str, object] = {}
     ok = True
     if args.materials > 0:
         materials = val.random_materials(args.materials, args.seed)

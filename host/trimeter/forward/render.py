@@ -20,6 +20,7 @@ import json
 import math
 import time
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -48,7 +49,7 @@ def _integrator(mi, alpha: float):
 @dataclass
 class _Loaded:
     scene: object
-    params: object
+    params: Any  # mitsuba.SceneParameters: mitsuba is imported lazily, so it is not named here
     scale: float
 
 

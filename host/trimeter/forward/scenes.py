@@ -147,9 +147,8 @@ def _gap(p: dict) -> float:
 def _device(p: dict, n: float, ell: float, rho: float, spp: int) -> dict:
     half = float(p["sample_width_mm"]) / 2
     n_slides = cover_slide_n(p)
-    slides = n_slides is not None
     t_s = cover_slide_thickness_mm(p)
-    n_s = n_slides if slides else 1.0
+    n_s = n_slides if n_slides is not None else 1.0
     z_back, z_front = t_s, t_s + ell                 # the sample's own faces
     medium = {"type": "ref", "id": MEDIUM_ID}
     shapes = {}
@@ -159,8 +158,8 @@ def _device(p: dict, n: float, ell: float, rho: float, spp: int) -> dict:
     shapes["sample_back"] = _rect([0, 0, z_back], [0, 0, -1], [half, half], inner, interior=medium)
     for i, (normal, centre) in enumerate(_side_walls(half, (z_back + z_front) / 2)):
         shapes[f"sample_side{i}"] = _rect(centre, normal, [half, ell / 2], _interface(n, 1.0), interior=medium)
-    if slides:
-        glass = _interface(n_s, 1.0)
+    if n_slides is not None:
+        glass = _interface(n_slides, 1.0)
         shapes["slide_front"] = _rect([0, 0, z_front + t_s], [0, 0, 1], [half, half], glass)
         shapes["slide_back"] = _rect([0, 0, 0.0], [0, 0, -1], [half, half], glass)
         for zc, tag in ((z_front + t_s / 2, "front"), (t_s / 2, "back")):
@@ -275,7 +274,7 @@ def _frame(axis: np.ndarray, up: np.ndarray):
     return left, new_up
 
 
-def _matrix(translate, columns, scale) -> list:
+def _matrix(translate, columns, scale) -> np.ndarray:
     m = np.eye(4)
     for j in range(3):
         m[:3, j] = np.asarray(columns[j], dtype=float) * scale[j]

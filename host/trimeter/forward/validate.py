@@ -69,7 +69,7 @@ def iad_agreement(materials, n: float = 1.5, thickness_mm: float = 0.5, rhos=(0.
             "seconds_per_render": float(np.mean(render_seconds)), "rows": rows}
 
 
-def fit_closed_form(rhos, values):
+def fit_closed_form(rhos, values) -> tuple[float, float, float]:
     """A, B, C of I(ρ) = A + Bρ/(1 − Cρ) through three points (ρ_0 = 0 not required)."""
     r, v = np.asarray(rhos, dtype=float), np.asarray(values, dtype=float)
     # I(1 − Cρ) = A(1 − Cρ) + Bρ  ⇔  I = A + (B − AC)ρ + C·ρI : linear in (A, B − AC, C).
@@ -78,7 +78,7 @@ def fit_closed_form(rhos, values):
     return float(a), float(b_minus_ac + a * c), float(c)
 
 
-def closed_form(abc, rho):
+def closed_form(abc: tuple[float, float, float], rho):
     return background_response(*abc, rho)
 
 

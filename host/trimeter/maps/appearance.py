@@ -160,7 +160,7 @@ class AppearanceMap:
         (trimeter.model.grid.ForwardGrid.between_nodes: cubic in α and ln σt, PCHIP in g)."""
         return ForwardGrid.from_map(self).between_nodes()
 
-    def coefficients(self, alpha, sigma_t, g):
+    def coefficients(self, alpha, sigma_t, g) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(A, B, C) at materials between the nodes (see between_nodes); NaN outside the map's range."""
         alpha, sigma_t, g = np.broadcast_arrays(*(np.asarray(v, dtype=float) for v in (alpha, sigma_t, g)))
         with np.errstate(invalid="ignore"):
@@ -168,7 +168,8 @@ class AppearanceMap:
                       & (sigma_t <= self.sigma_t[-1]) & (g >= self.g[0]) & (g <= self.g[-1]))
         model = self.between_nodes
         values = model.coefficients(alpha.ravel(), model.sigma_cell(sigma_t.ravel()), g.ravel())[0]
-        return tuple(np.where(inside, v.reshape(alpha.shape), np.nan) for v in values)
+        A, B, C = (np.where(inside, v.reshape(alpha.shape), np.nan) for v in values)
+        return A, B, C
 
     def diffuse(self, alpha, sigma_t, g, rho):
         """I(ρ) = A + Bρ/(1 − Cρ) at interpolated coefficients."""

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Any, NoReturn, Protocol
 
 import numpy as np
 
@@ -24,8 +25,14 @@ class SchemaError(ValueError):
     """A header field that breaks its schema; `str()` names the field."""
 
 
-def _fail(where: str, message: str):
+def _fail(where: str, message: str) -> NoReturn:
     raise SchemaError(f"{where} {message}")
+
+
+class Spec(Protocol):
+    """What a field of a JSON header is checked against (Number, Text, Flag, Json, Items, Table)."""
+
+    def check(self, value: Any, where: str) -> None: ...
 
 
 @dataclass(frozen=True)
@@ -99,7 +106,7 @@ class Json:
 @dataclass(frozen=True)
 class Items:
     """A JSON list of `of`, min_len … max_len long."""
-    of: object
+    of: Spec
     min_len: int = 0
     max_len: int = 64
 
@@ -117,9 +124,9 @@ class Table:
     """A JSON object: `fields` by name (those in `required` must be present), other keys checked
     with `extra` (None: refused). `rules` are (predicate, message) over the whole table, checked
     once its fields passed (relations such as ρ_b < ρ_w)."""
-    fields: dict = field(default_factory=dict)
+    fields: dict[str, Spec] = field(default_factory=dict)
     required: tuple[str, ...] = ()
-    extra: object | None = Json(kind=None)
+    extra: Spec | None = Json(kind=None)
     max_keys: int = 256
     rules: tuple = ()
 

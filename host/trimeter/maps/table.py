@@ -283,8 +283,8 @@ def build_from_map(amap, n_xy: int | None = None, budget: int = MAX_TABLE_BYTES,
     na0, ns0, ng0 = amap.A.shape
     if refine is None:
         mc = float(np.median(np.concatenate([np.ravel(amap.std_b), np.ravel(amap.std_w)])))
-        dims = [(n - 1) * r + 1 for n, r in zip((na0, ns0, ng0), _REFINE_SMOOTH, strict=True)]
-        smooth_fits = mc < _SMOOTH_STDERR and _total_size(*dims, _MIN_XY, _MIN_XY) <= budget
+        na, ns, ng = ((n - 1) * r + 1 for n, r in zip((na0, ns0, ng0), _REFINE_SMOOTH, strict=True))
+        smooth_fits = mc < _SMOOTH_STDERR and _total_size(na, ns, ng, _MIN_XY, _MIN_XY) <= budget
         refine = _REFINE_SMOOTH if smooth_fits else (1, 1, 1)
     # the map between its nodes (ForwardGrid.refined); an axis with fewer than 4 nodes stays as it is
     factors = [r if len(ax) >= 4 else 1 for ax, r in zip((amap.alpha, amap.sigma_t, amap.g), refine, strict=True)]

@@ -239,7 +239,7 @@ class ColumnTally:
     def truncated(self) -> int:
         return self.above.truncated + self.below.truncated
 
-    def abc(self, alpha):
+    def abc(self, alpha) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         c = self.above.orders(alpha)
         C = np.clip(self.below.orders(alpha)[0], 0.0, 0.999)
         return c[0], c[1], C

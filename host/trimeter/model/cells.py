@@ -34,11 +34,12 @@ def refine_axis(axis: np.ndarray, factor: int) -> np.ndarray:
 def cubic_resample(values: np.ndarray, old: np.ndarray, new: np.ndarray, axis: int, kind: str = "cubic") -> np.ndarray:
     """`values` along `axis` from nodes `old` onto `new`: a cubic spline ("cubic") or PCHIP ("pchip")
     through the nodes (both reproduce them exactly); linear with fewer than 4 nodes."""
-    from scipy.interpolate import PchipInterpolator, make_interp_spline
+    from scipy.interpolate import BSpline, PchipInterpolator, make_interp_spline
 
     x = np.array(old, dtype=np.float64)  # a copy: container arrays can be unaligned (scipy refuses those)
     front = np.moveaxis(np.asarray(values, dtype=np.float64), axis, 0)
     flat = np.array(front.reshape(len(x), -1))
+    curve: PchipInterpolator | BSpline
     if kind == "pchip" and len(x) >= 3:
         curve = PchipInterpolator(x, flat, axis=0)
     else:
