@@ -57,7 +57,7 @@ from pathlib import Path
 
 import numpy as np
 
-from trimeter.errors import DeviceError, MapFileError, OutputError
+from trimeter.errors import MapFileError, OutputError
 from trimeter.inversion.lut import TableInverter
 from trimeter.model.compact import CompactForward
 from trimeter.model.grid import ForwardGrid, node_model_variance
@@ -241,7 +241,9 @@ class DeviceTable:
                               n=self.n, thickness_mm=self.thickness_mm, geometry_params=self.geometry)
 
     def fit_model(self) -> DeviceTableModel:
-        """What trimeter.inversion.api.fit takes to fit from this table alone."""
+        """What trimeter.inversion.api.fit takes to fit from this table alone: the lut fit on the table's
+        model refined at load (stds included; `fit --table --refine`). The instrument's own fit, which
+        `fit --table` runs, is trimeter.inversion.native.TableFitter on to_bytes()."""
         return DeviceTableModel(self)
 
     def _geometry_bytes(self) -> bytes:
@@ -583,16 +585,17 @@ def instrument_table(device, cache: Path | None = None) -> tuple[DeviceTable, st
     header and trailing CRC-32 (a few hundred bytes) find it in the cache; otherwise the whole slot is
     read, checked and cached (atomically, by its SHA-256). `device`: a trimeter.device.Device.
 
-    DeviceError when the device has no active table, MapFileError when the slot holds no usable table
-    (corrupt, or a retired format)."""
+    MapFileError when the device has no active table or its slot holds no usable one (corrupt, or a
+    retired format)."""
     from trimeter.atomic import atomic_write
 
     directory = cache_dir() if cache is None else Path(cache)
     status = device.map_status()
     active = MapSlot(status["map_active_slot"])
     if active == MapSlot.NONE:
-        raise DeviceError("the device has no active map table: flash one (`trimeter map flash maps/<map>.tlut "
-                          "--port PORT`) or pass --map")
+        # not a link fault: the service must report it, not reconnect over it
+        raise MapFileError("the device has no active map table: flash one (`trimeter map flash maps/<map>.tlut "
+                           "--port PORT`) or name a map to fit with (--map)")
     length = int(status[f"map_slot_{active.name.lower()}_length"])
     if not HEADER_SIZE + 4 <= length <= MAX_BYTES:
         raise MapFileError(f"the device's slot {active.name} holds {length} bytes, not a map table: flash one "
