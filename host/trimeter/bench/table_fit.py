@@ -3,8 +3,9 @@ the source the firmware links as tr_fit_bins, here in double precision), on its 
 (maps/heldout, as `bench fit` scores them): α p95, σt relative p95 and g p95 (α ≥ 0.5) against the
 targets, and the time per 1024 bins beside the map's own lut fit (its refined grid, in C) in the same
 run, timed round-robin, best of --repeats. Run it on one core for the per-core figure:
-`taskset -c 1 trimeter bench table-fit --table FILE`. A third row: the same table's forward model
-sampled onto the refined grid at load (DeviceTable.fit_model), which the host may fit with instead.
+`taskset -c 1 trimeter bench table-fit --table FILE`. The first row is what `trimeter fit --table`
+runs; a second row: the same table's forward model sampled onto the refined grid at load
+(DeviceTable.fit_model, `fit --table --refine`).
 """
 
 from __future__ import annotations
@@ -73,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
         return api.fit(refined_model, ib, iw, ic, method="lut")
 
     precision = "double" if args.library is None else args.library.name
-    variants = {f"table alone, C, {precision}": table_fit, "table alone, refined at load": refined_fit,
+    variants = {f"table alone, C, {precision}": table_fit, "table alone, refined at load (--refine)": refined_fit,
                 "map lut, refined grid, C (baseline)": map_fit}
     tile = np.resize(np.arange(len(I_b)), 1024)
     tiled = (I_b[tile], I_w[tile], I_c[tile])

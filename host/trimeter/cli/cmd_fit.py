@@ -61,8 +61,8 @@ def register(subparsers) -> None:
     source.add_argument("--map", dest="maps", action="append",
                         help="appearance map (file or shipped name); give twice for two thicknesses")
     source.add_argument("--table", type=Path,
-                        help="device table (.tlut) to fit from alone, with the instrument's own fit (the same "
-                             "results as --on-device with that table; no stds)")
+                        help="device table (.tlut) to fit from alone, with the instrument's own fit (what "
+                             "--on-device gives with that table, here in double precision; no stds)")
     source.add_argument("--on-device", action="store_true",
                         help="fit on the instrument (--port) with the table in its active slot")
     p.add_argument("--refine", action="store_true",
