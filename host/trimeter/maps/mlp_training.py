@@ -72,7 +72,7 @@ def network_graph(model):
     Gemm, with the scaler folded into the first layer (W₁' = diag(1/scale)·W₁,
     b₁' = b₁ − (mean/scale)·W₁).
     Why not skl2onnx: its graph (an ai.onnx.ml Scaler, a Cast, MatMul + Add per layer, a final
-    Reshape that interleaved the two outputs) ran about twice as long in onnxruntime as this one, for the
+    Reshape that interleaved the two outputs) runs markedly slower in onnxruntime than this one, for the
     same predictions to float32 rounding."""
     from onnx import TensorProto, helper, numpy_helper
 
