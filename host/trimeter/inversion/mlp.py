@@ -130,10 +130,14 @@ class MlpInverter:
         self.input_name = inputs[0].name
         self.log_sigma_range = log_sigma_range
         self.alpha_range, self.g_range = alpha_range, g_range
+        self._bound: tuple | None = None  # (grid, its guesser)
 
     def on(self, grid) -> MlpGuesser:
-        """This network as a fit's guesser (trimeter.inversion.kernel.Guesser) on the forward model `grid`."""
-        return MlpGuesser(self, grid)
+        """This network as a fit's guesser (trimeter.inversion.kernel.Guesser) on the forward model `grid`
+        (the last one kept: every fit of one map asks with the same grid)."""
+        if self._bound is None or self._bound[0] is not grid:
+            self._bound = (grid, MlpGuesser(self, grid))
+        return self._bound[1]
 
     def run(self, inputs: np.ndarray) -> np.ndarray:
         """The network's raw (α, g) (N, 2) float32 for its inputs (N, 5) float32 (INPUTS), unclamped."""
