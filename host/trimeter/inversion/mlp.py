@@ -33,7 +33,8 @@ _LOGIT_CLIP = 1e-4  # keeps the logit finite for intensities at or beyond the ma
 
 
 def features(I_b, I_w, sigma_t, rho_b, rho_w, log_sigma_range) -> np.ndarray:
-    """The network input (N, 5) float32; ln σt clamped to the map's range."""
+    """The fit's per-bin features (N, 5) float32 (FEATURES; tm_fit_prepare writes the same); ln σt clamped
+    to the map's range. network_inputs makes the network's input from them."""
     ls = np.log(np.maximum(np.asarray(sigma_t, float), 1e-30))
     ls = np.minimum(np.maximum(ls, log_sigma_range[0]), log_sigma_range[1])
     x = np.empty((len(ls), 5), dtype=np.float32)
