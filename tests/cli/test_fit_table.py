@@ -106,6 +106,17 @@ def test_fit_from_the_table_alone(alone, measured_materials, capsys):
     assert doc["table"]["sha256"] == table.sha256 and doc["table"]["parent_map_sha256"] == table.parent_sha256
 
 
+def test_without_the_compiled_kernel_the_instruments_fit_is_a_clear_error(alone, monkeypatch, capsys):
+    from trimeter.inversion import native
+
+    monkeypatch.setattr(native, "_LIB", None)
+    monkeypatch.setattr(native, "_STATUS", "not built (make native)")
+    assert main(["fit", "--table", "t.tlut", "--input", "meas.csv"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("trimeter: error: the table fit needs the compiled kernel: not built")
+    assert "Traceback" not in err
+
+
 def test_std_columns_are_named_as_unused_by_the_instruments_fit(alone, capsys):
     rows = (alone / "meas.csv").read_text().splitlines()
     (alone / "meas.csv").write_text("\n".join([rows[0] + ",I_b_std", *(r + ",0.001" for r in rows[1:])]) + "\n")
