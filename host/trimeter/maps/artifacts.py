@@ -89,8 +89,7 @@ def map_table(amap: AppearanceMap) -> DeviceTable:
     rebuilt in memory with a warning, since the map is the source of truth and the file only a cache."""
     from trimeter.maps.pipeline import rebuild_command
 
-    path = table_path_for(amap.path) if amap.path else None
-    if path is not None and path.is_file():
+    if amap.path is not None and (path := table_path_for(amap.path)).is_file():
         table = DeviceTable.load(path)  # a damaged or format-1 file is a MapFileError, never ignored
         if not amap.checksum or table.parent_sha256 == amap.checksum:
             return table

@@ -23,12 +23,12 @@ import zipfile
 from dataclasses import dataclass
 from importlib import metadata
 from pathlib import Path
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
 from trimeter.atomic import atomic_output, atomic_write
-from trimeter.errors import InputError, MapFileError
+from trimeter.errors import BuildError, InputError, MapFileError
 from trimeter.geometry import cover_slide_n
 from trimeter.maps.appearance import AppearanceMap
 from trimeter.maps.recipe import Recipe
@@ -36,6 +36,9 @@ from trimeter.maps.tracer import ColumnTally, Stack, k_max_for
 from trimeter.maps.tracer import trace_column as trace_pair
 from trimeter.model.collimated import MEASURABLE_IC, collimated_transmittance
 from trimeter.model.response import background_response
+
+if TYPE_CHECKING:
+    from rich.progress import Progress
 
 BUILDER = "trimeter.maps.tracer: (k, m)-tally path tracer (detector + background paths), Dr.Jit LLVM symbolic loop"
 _COLUMN_FIELDS = ("A", "B", "C", "std_b", "std_w")
@@ -79,6 +82,8 @@ def trace_column(recipe: Recipe, stack: Stack, j: int, k: int, tracer: Callable 
             break
         wanted = paths_to_reach(tally.n_paths, shortfall, s.max_paths)
         n_next = math.ceil((wanted - tally.n_paths) / _BATCH_QUANTUM) * _BATCH_QUANTUM
+    if tally is None:
+        raise BuildError(f"recipe {recipe.name}: sampling.min_paths is {s.min_paths}, no paths were traced")
     A, B, C = tally.abc(recipe.alpha)
     return Column(A=A, B=B, C=C, std_b=tally.stderr(recipe.alpha, recipe.reference_rho_b),
                   std_w=tally.stderr(recipe.alpha, recipe.reference_rho_w), n_paths=tally.n_paths,
@@ -275,8 +280,10 @@ class _MapState:
             "recipe_fingerprint": recipe_fingerprint(recipe),
             "built_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         }
+        arrays = self.arrays
         amap = AppearanceMap(recipe=recipe.to_dict(), alpha=recipe.alpha, sigma_t=recipe.sigma_t, g=recipe.g,
-                             provenance=provenance, **self.arrays)
+                             A=arrays["A"], B=arrays["B"], C=arrays["C"], std_b=arrays["std_b"],
+                             std_w=arrays["std_w"], provenance=provenance)
         amap.save(self.job.out)
         if not keep_checkpoint:
             self.ckpt.remove()
@@ -357,27 +364,27 @@ class _progress:
 
     def __init__(self, enabled: bool, maps: list[tuple[str, int, int]]):
         self.enabled, self.maps = enabled, maps
-        self._bar = None
+        self._bar: Progress | None = None
 
     def __enter__(self):
         if not self.enabled:
             return lambda index: None
         from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn, TimeRemainingColumn
 
-        self._bar = Progress("[bold]{task.description}", BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                             TimeRemainingColumn())
-        self._bar.__enter__()
-        tasks = [self._bar.add_task(f"{name} (σt, g) columns", total=total, completed=done)
+        bar = self._bar = Progress("[bold]{task.description}", BarColumn(), MofNCompleteColumn(),
+                                   TimeElapsedColumn(), TimeRemainingColumn())
+        bar.__enter__()
+        tasks = [bar.add_task(f"{name} (σt, g) columns", total=total, completed=done)
                  for name, total, done in self.maps]
         overall = None
         if len(self.maps) > 1:
-            overall = self._bar.add_task(f"all {len(self.maps)} maps", total=sum(m[1] for m in self.maps),
-                                         completed=sum(m[2] for m in self.maps))
+            overall = bar.add_task(f"all {len(self.maps)} maps", total=sum(m[1] for m in self.maps),
+                                   completed=sum(m[2] for m in self.maps))
 
         def advance(index: int) -> None:
-            self._bar.advance(tasks[index])
+            bar.advance(tasks[index])
             if overall is not None:
-                self._bar.advance(overall)
+                bar.advance(overall)
         return advance
 
     def __exit__(self, *exc):

@@ -23,11 +23,15 @@ import functools
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 from trimeter import __version__
 from trimeter.errors import BuildError, InputError
 from trimeter.paths import MAPS_DIR
+
+if TYPE_CHECKING:
+    from trimeter.maps.appearance import AppearanceMap
+    from trimeter.maps.recipe import Recipe
 
 STAGES = ("tmap", "tins", "tlut", "onnx")
 DEFAULT_STAGES = ("tmap", "tins", "tlut")
@@ -159,7 +163,7 @@ def make_child(stage: str, amap, options: Options = Options(), out: Path | None 
 @dataclass(frozen=True)
 class Target:
     """One map of a build: its recipe, where the recipe came from (for messages) and the .tmap path."""
-    recipe: object
+    recipe: Recipe
     recipe_path: Path | None
     out: Path
 
@@ -181,14 +185,14 @@ def run(targets: list[Target], stages: tuple[str, ...], *, client=None, resume: 
         for amap in maps:
             _report_map(amap, validation_report(amap), say)
             for stage in STAGES[1:]:
-                child = amap.path.with_suffix(SUFFIX[stage])
+                child = _saved_path(amap).with_suffix(SUFFIX[stage])
                 if stage not in stages and child.exists():
                     say(f"note: {child} was made from the previous map and will be refused; rebuild it: "
                         f"{rebuild_command(amap, stage)}")
     else:
         maps = []
         for t in targets:
-            amap = _existing_map(t)
+            amap = _existing_map(t.out)
             if recipe_fingerprint(amap.recipe) != recipe_fingerprint(t.recipe):
                 raise BuildError(f"map {t.out} was built from another recipe than {t.recipe_path or t.recipe.name} "
                                  f"(or another geometry): rebuild it first, with --stages tmap,"
@@ -204,7 +208,7 @@ def run(targets: list[Target], stages: tuple[str, ...], *, client=None, resume: 
     # the table carries the in-scattering table: it is built once this run's .tins are written, from the
     # map read again (a loaded map keeps the .tins it first saw)
     _write_all([c for c in runnable if c[1] != "tlut"], client, options, say)
-    _write_all([(_existing_map(Target(None, None, amap.path)), stage) for amap, stage in runnable if stage == "tlut"],
+    _write_all([(_existing_map(_saved_path(amap)), stage) for amap, stage in runnable if stage == "tlut"],
                client, options, say)
     return maps
 
@@ -215,12 +219,19 @@ def _write_all(runnable, client, options: Options, say: Callable[[str], None]) -
         say(f"{stage}: wrote {path} ({seconds:.1f} s): {text}")
 
 
-def _existing_map(target: Target):
+def _existing_map(path: Path) -> AppearanceMap:
     from trimeter.maps.appearance import AppearanceMap
 
-    if not target.out.is_file():
-        raise InputError(f"map {target.out} does not exist: build it first (--stages tmap, the default includes it)")
-    return AppearanceMap.load(target.out)
+    if not path.is_file():
+        raise InputError(f"map {path} does not exist: build it first (--stages tmap, the default includes it)")
+    return AppearanceMap.load(path)
+
+
+def _saved_path(amap: AppearanceMap) -> Path:
+    """The file a map of this build was written to or read from (only an in-memory map has none)."""
+    if amap.path is None:
+        raise BuildError(f"map {amap.name} has no file: the build writes every map before its children")
+    return amap.path
 
 
 def _timed(stage: str, amap, options: Options):

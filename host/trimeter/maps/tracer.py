@@ -44,6 +44,7 @@ stack's side faces.
 from __future__ import annotations
 
 import functools
+import importlib
 import math
 import os
 from dataclasses import dataclass
@@ -95,6 +96,8 @@ class Stack:
 
         p = geometry_params
         ng = cover_slide_n(p)
+        layers: tuple[float, ...]
+        planes: tuple[float, ...]
         if ng is not None:
             s = cover_slide_thickness_mm(p)
             layers, planes, sample = (ng, n, ng), (2 * s + thickness_mm, s + thickness_mm, s, 0.0), 1
@@ -173,6 +176,7 @@ class Tally:
             self.second[0::2, 0::2] = self.counts
 
     def __iadd__(self, other: "Tally") -> "Tally":
+        assert self.second is not None and other.second is not None  # filled by __post_init__
         self.counts = _add_padded(self.counts, other.counts)
         self.second = _add_padded(self.second, other.second)
         self.n_paths += other.n_paths
@@ -185,6 +189,7 @@ class Tally:
     def _moments(self, alpha):
         """First moments per row m (shape (rows, nα)) and second moments per power p of q (shape
         (2·rows − 1, nα)) of one path's value."""
+        assert self.second is not None  # filled by __post_init__
         alpha = np.atleast_1d(np.asarray(alpha, dtype=float))
         with np.errstate(under="ignore"):
             powers = alpha[None, :] ** np.arange(self.second.shape[1])[:, None]   # 0**0 = 1
@@ -298,7 +303,7 @@ def trace_column(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int
     `backend`: "llvm" or "cuda" (resolve_backend); the same seed gives the same paths on either, up to
     the backends' floating-point differences."""
     n_paths = int(n_paths)
-    total = None
+    parts = []
     for i, start in enumerate(range(0, max(n_paths, 1), TRACE_CHUNK)):
         n = min(TRACE_CHUNK, n_paths - start)
         s = seed if i == 0 else _mix64(seed + i)
@@ -311,10 +316,10 @@ def trace_column(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int
             if more > 0:
                 below += trace(stack, sigma_t, g, max(1024, more), _mix64(s ^ 0xB0B0B0B1), k_max, from_below=True,
                                backend=backend, control_variates=control_variates)
-        if total is None:
-            total = ColumnTally(above, below)
-        else:
-            total += ColumnTally(above, below)
+        parts.append(ColumnTally(above, below))
+    total = parts[0]  # the range above has at least one chunk
+    for part in parts[1:]:
+        total += part
     return total
 
 
@@ -420,13 +425,9 @@ def _drjit(backend: str = "llvm"):
     """Dr.Jit and the array module of one backend (drjit.llvm or drjit.cuda), imported lazily: maps
     load and query without Dr.Jit. The only place the array types are chosen."""
     dr = _import_drjit()
-    if backend == "cuda":
-        import drjit.cuda as arrays
-    elif backend == "llvm":
-        import drjit.llvm as arrays
-    else:
+    if backend not in ("llvm", "cuda"):
         raise InputError(f"backend must be 'llvm' or 'cuda' (resolve 'auto' first), got {backend!r}")
-    return dr, arrays
+    return dr, importlib.import_module(f"drjit.{backend}")
 
 
 def _fresnel(dr, cos_i, eta):
@@ -757,7 +758,7 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
     truncated = int(np.count_nonzero((k_np >= k_max) | (it_np >= max_iter)))
     if from_below:
         counts, second = _background_sums(k_np, hit_np)
-        if control_variates:
+        if start_cos is not None:  # control variates on
             # The light the stack's interfaces send straight back (no scattering, few reflections):
             # its expectation is a 1-D integral, so those paths' 0/1 outcomes are replaced by it.
             min_cos, expected = _plain_return(stack, sigma_t_value)

@@ -54,15 +54,15 @@ def tracer_agreement(geometry: str, materials, n: float, thickness_mm: float, rh
             t0 = time.perf_counter()
             rendered, rendered_err = render_diffuse(geometry, float(alpha), float(sigma_t), float(g), n,
                                                     thickness_mm, float(rho), spp, seed + i)
-            row = {"geometry": geometry, "thickness_mm": thickness_mm, "alpha": float(alpha),
+            row: dict[str, object] = {"geometry": geometry, "thickness_mm": thickness_mm, "alpha": float(alpha),
                    "sigma_t": float(sigma_t), "g": float(g), "rho": float(rho), "tracer": traced,
                    "tracer_stderr": traced_err, "volpath": rendered, "volpath_stderr": rendered_err,
                    "z": (traced - rendered) / math.hypot(traced_err, rendered_err),
                    "trace_seconds": trace_seconds / len(rhos), "render_seconds": time.perf_counter() - t0}
-            if with_iad:
-                row["iad"] = float(iad[k])
+            if iad is not None:
+                row["iad"] = iad_value = float(iad[k])
                 # 2e-4: adding-doubling's own quadrature error at 32 points (see IAD_QUAD_POINTS)
-                row["z_iad"] = (traced - row["iad"]) / math.hypot(traced_err, 2e-4)
+                row["z_iad"] = (traced - iad_value) / math.hypot(traced_err, 2e-4)
             rows.append(row)
         if progress:
             progress(i + 1, len(materials))
