@@ -46,6 +46,7 @@ def main() -> int:
     amap = AppearanceMap.load(args.map)
     with Twin(sample=None, thickness_mm=THICKNESS_MM, time_scale=args.time_scale, appearance_map=amap,
               seed=args.seed) as twin:
+        assert twin.modbus_port is not None  # set by start()
         device = Device.open(twin.modbus_port, timeout_s=0.2)
         spectrometer = open_spectrometer(twin.spectrometer_url)
         runner = Runner(device, spectrometer)
@@ -55,6 +56,7 @@ def main() -> int:
         assert not checks.calibration_problems(cal), checks.calibration_problems(cal)
         twin.control.insert_sample(SAMPLE, THICKNESS_MM)
         truth = twin.control.truth()
+        assert truth is not None  # the sample was just inserted
         fit = prepare_fit([Sample(THICKNESS_MM, amap)], "lut")
         print(f"{'lamp_dimmed':<16} {'median Δα':>10} {'median ΔσT/σT':>14}  spectra-only checks | lamp monitor")
         for case in CASES:

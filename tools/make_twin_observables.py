@@ -36,7 +36,7 @@ def trace_material(name: str, geometry: str, params: dict, n: float, thickness_m
     s = material_spectra(name, nodes)
     stack = Stack.from_recipe(geometry, params, n, thickness_mm)
     k_max = k_max_for(float(s["alpha"].max()), TRUNCATION)
-    out = {k: [] for k in ("A", "B", "C", "L", "stderr_black", "stderr_white")}
+    out: dict[str, list[float]] = {k: [] for k in ("A", "B", "C", "L", "stderr_black", "stderr_white")}
     for alpha, sigma_t, g in zip(s["alpha"], s["sigma_t"], s["g"], strict=True):
         tally = trace_column(stack, float(sigma_t), float(g), paths, seed, k_max)
         A, B, C = (float(v[0]) for v in tally.abc([alpha]))

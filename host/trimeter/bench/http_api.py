@@ -66,6 +66,7 @@ def run_bench(clients: int, seconds: float, max_requests: int, time_scale: float
         root = Path(tmp)
         env = {**os.environ, "TRIMETER_DATA_DIR": str(root / "data"), "TRIMETER_CONFIG_DIR": str(root / "config")}
         with Twin(sample=None, time_scale=time_scale, state_dir=root / "twin", seed=0) as twin:
+            assert twin.modbus_port is not None  # set by start()
             serve = subprocess.Popen(
                 [sys.executable, "-m", "trimeter", "serve", "--port", twin.modbus_port, "--spectrometer",
                  twin.spectrometer_url, "--http", "127.0.0.1:0"], env=env, stdout=subprocess.PIPE,
@@ -73,6 +74,7 @@ def run_bench(clients: int, seconds: float, max_requests: int, time_scale: float
             try:
                 url = _wait_for_url(serve)
                 # its log must not fill the pipe and stall it
+                assert serve.stdout is not None  # stdout=PIPE
                 threading.Thread(target=serve.stdout.read, daemon=True).start()
                 token = (root / "config" / "web-token").read_text().strip()
                 status = _get_status(url, token)
@@ -101,6 +103,7 @@ def _pct(ms: np.ndarray, q: float):
 
 def _wait_for_url(serve: subprocess.Popen, timeout_s: float = 60.0) -> str:
     deadline = time.monotonic() + timeout_s
+    assert serve.stdout is not None  # stdout=PIPE
     lines = []
     while time.monotonic() < deadline:
         line = serve.stdout.readline()

@@ -26,6 +26,7 @@ from __future__ import annotations
 import math
 import tempfile
 import time
+from typing import Any
 from functools import partial
 from pathlib import Path
 
@@ -62,7 +63,7 @@ def compare_estimators(recipe_path: str, n_paths: int, seed: int) -> int:
     s = recipe.sampling
     stack = Stack.from_recipe(recipe.geometry, recipe.geometry_params, recipe.n, recipe.thickness_mm)
     k_max = k_max_for(float(recipe.alpha[-1]), s.truncation)
-    plain = {"below_fraction": 1.0, "control_variates": False}
+    plain: dict[str, Any] = {"below_fraction": 1.0, "control_variates": False}
     trace_column(stack, 1.0, 0.5, 4096, seed, k_max, **plain)      # compile both kernels outside the timing
     trace_column(stack, 1.0, 0.5, 4096, seed, k_max)
     print(f"{recipe.name}: {n_paths} detector paths per column and estimator; criterion: α std-error ≤ "
@@ -72,7 +73,8 @@ def compare_estimators(recipe_path: str, n_paths: int, seed: int) -> int:
     work = {"plain": 0.0, "default": 0.0}
     for i, (sigma_t, g) in enumerate(COLUMNS):
         row, times = [], []
-        for name, options in (("plain", plain), ("default", {})):
+        no_options: dict[str, Any] = {}
+        for name, options in (("plain", plain), ("default", no_options)):
             t0 = time.perf_counter()
             tally = trace_column(stack, sigma_t, g, n_paths, seed + i, k_max, **options)
             seconds = time.perf_counter() - t0
@@ -119,7 +121,7 @@ def run(args) -> int:
           f"(α, σt, g, ρ) points")
     print(f"naive: volpath direct render per point at {args.spp} spp; measuring {len(picks)} random points")
     render_diffuse("ideal", 0.5, 1.0, 0.5, 1.5, 0.5, 0.5, spp=4096, seed=0)   # load + JIT outside the timing
-    naive = []
+    naive: list[tuple[int, int, int, int, float, float, float]] = []
     for i, j, k, r in picks:
         t0 = time.perf_counter()
         I, s = render_diffuse("ideal", float(probe.alpha[i]), float(probe.sigma_t[j]), float(probe.g[k]), 1.5, 0.5,
@@ -156,12 +158,8 @@ def run(args) -> int:
           f"{amap.provenance['truncation']['max_error_bound']:.1e}")
 
     # Same points, both ways: grid points, so no interpolation is involved.
-    z = []
-    for i, j, k, r, I, s, _ in naive:
-        m_std = (amap.std_b if r == 0 else amap.std_w)[i, j, k]
-        I_map = float(amap.diffuse(probe.alpha[i], probe.sigma_t[j], probe.g[k], rhos[r]))
-        z.append((I_map - I) / math.hypot(s, m_std))
-    z = np.array(z)
+    z = np.array([(float(amap.diffuse(probe.alpha[i], probe.sigma_t[j], probe.g[k], rhos[r])) - I)
+                  / math.hypot(s, (amap.std_b if r == 0 else amap.std_w)[i, j, k]) for i, j, k, r, I, s, _ in naive])
     print(f"agreement at the rendered points: |z| median {np.median(np.abs(z)):.2f}, max {np.abs(z).max():.2f} "
           f"(z = (map − direct) / combined std-error)")
     matched = np.median(std) <= naive_err * 1.05

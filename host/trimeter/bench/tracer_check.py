@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import time
+from typing import Any
 from pathlib import Path
 
 from trimeter.errors import InputError
@@ -47,8 +48,9 @@ def run(args) -> int:
     geometries = ("ideal", "device") if args.geometry == "both" else (args.geometry,)
     print(f"tracer ({backend}, {args.paths} paths per material) vs volpath ({args.spp} spp per render), "
           f"{args.materials} materials per geometry, ρ = 0.02 and 0.9, seed {args.seed}")
-    rows, report = [], {"settings": {k: getattr(args, k) for k in ("materials", "paths", "spp", "seed")} |
-                        {"backend": backend}, "summary": {}}
+    rows: list[dict] = []
+    report: dict[str, Any] = {"settings": {k: getattr(args, k) for k in ("materials", "paths", "spp", "seed")}
+                              | {"backend": backend}, "summary": {}}
     start = time.perf_counter()
     for gi, geometry in enumerate(geometries):
         materials = random_materials(args.materials, args.seed + gi)

@@ -72,7 +72,7 @@ def mean_signed_z(estimate, std, truth, mask) -> float:
 
 def flag_counts(flags) -> dict[str, int]:
     flags = np.asarray(flags, dtype=np.int64)
-    return {f.name: int(np.count_nonzero(flags & int(f))) for f in FitFlag if f and np.any(flags & int(f))}
+    return {f.name: int(np.count_nonzero(flags & int(f))) for f in FitFlag if f and f.name and np.any(flags & int(f))}
 
 
 def goal_met(c1: float, c2: float) -> bool:

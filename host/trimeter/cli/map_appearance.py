@@ -6,6 +6,7 @@ import json
 import math
 import os
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -159,7 +160,7 @@ def _describe(amap) -> dict:
 def cmd_list(args) -> int:
     from trimeter.maps.appearance import shipped_maps
 
-    rows = []
+    rows: list[dict[str, Any]] = []
     for path in shipped_maps():
         try:
             info = _describe(load_appearance_map(path))
