@@ -15,12 +15,23 @@ Needs the `maps` extra (scikit-learn, onnx).
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TypedDict
 
 import numpy as np
 
 # The size is chosen on `trimeter bench fit` (its mlp rows per shipped network); jitter: a quarter of the
 # fit's default noise model, enough to keep the guess smooth across noisy bins without blurring it.
-DEFAULTS = {"hidden": (32, 32), "samples": 120000, "epochs": 40, "seed": 0, "activation": "relu", "jitter": 0.25}
+class TrainingDefaults(TypedDict):
+    hidden: tuple[int, ...]
+    samples: int
+    epochs: int
+    seed: int
+    activation: str
+    jitter: float
+
+
+DEFAULTS: TrainingDefaults = {"hidden": (32, 32), "samples": 120000, "epochs": 40, "seed": 0, "activation": "relu",
+                              "jitter": 0.25}
 
 
 def training_set(amap, n: int, rng: np.random.Generator, jitter: float = 0.0):

@@ -27,6 +27,7 @@ from typing import TYPE_CHECKING, Callable
 
 from trimeter import __version__
 from trimeter.errors import BuildError, InputError
+from trimeter.maps.mlp_training import DEFAULTS as MLP_DEFAULTS
 from trimeter.paths import MAPS_DIR
 
 if TYPE_CHECKING:
@@ -77,11 +78,11 @@ class Options:
     inscatter_seed: int = 0
     inscatter_shape: tuple[int, int, int] = (25, 21, 13)   # α × σt·ℓ × g nodes
     table_n_xy: int | None = None
-    mlp_hidden: tuple[int, ...] = (32, 32)
-    mlp_samples: int = 400_000
-    mlp_epochs: int = 80
-    mlp_seed: int = 0
-    mlp_activation: str = "relu"
+    mlp_hidden: tuple[int, ...] = MLP_DEFAULTS["hidden"]
+    mlp_samples: int = MLP_DEFAULTS["samples"]
+    mlp_epochs: int = MLP_DEFAULTS["epochs"]
+    mlp_seed: int = MLP_DEFAULTS["seed"]
+    mlp_activation: str = MLP_DEFAULTS["activation"]
 
 
 # ------------------------------------------------------------------ the children, one stage each
