@@ -35,7 +35,7 @@ class Mechanics:
     device: dict
     mech: dict
 
-    def get(self, dotted: str) -> float | list | str:
+    def get(self, dotted: str) -> object:
         """A value by dotted path from the file's top level, e.g. 'device.collimated.beam_diameter_mm'."""
         node: object = {"device": self.device, "mechanics": self.mech}
         for key in dotted.split("."):
@@ -50,6 +50,23 @@ class Mechanics:
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
             raise HardwareError(f"{GEOMETRY.name}: {dotted} must be a non-negative number, got {value!r}")
         return float(value)
+
+    def mm_list(self, dotted: str, count: int) -> list[float]:
+        """`count` non-negative lengths, e.g. 'mechanics.panel_mount.base_mm' = [length, width]."""
+        value = self.get(dotted)
+        if not isinstance(value, list) or len(value) != count or not all(
+                not isinstance(v, bool) and isinstance(v, (int, float)) and math.isfinite(v) and v >= 0
+                for v in value):
+            raise HardwareError(f"{GEOMETRY.name}: {dotted} must list {count} non-negative numbers, got {value!r}")
+        return [float(v) for v in value]
+
+    def slot_order(self) -> list[str]:
+        """The slider's slots from the first one: black, white and open, each once."""
+        order = self.get("mechanics.slider.slot_order")
+        if not isinstance(order, list) or not all(isinstance(name, str) for name in order) \
+                or sorted(order) != ["black", "open", "white"]:
+            raise HardwareError(f"{GEOMETRY.name}: mechanics.slider.slot_order must name black, white and open once")
+        return order
 
     # --- derived values, each stated once
     @property
@@ -82,9 +99,7 @@ class Mechanics:
 
     def slot_positions_mm(self) -> dict[str, float]:
         """Carriage travel from home at which each slot is on the axis (the firmware's slot_*_mm)."""
-        order = self.get("mechanics.slider.slot_order")
-        if not isinstance(order, list) or sorted(order) != ["black", "open", "white"]:
-            raise HardwareError(f"{GEOMETRY.name}: mechanics.slider.slot_order must name black, white and open once")
+        order = self.slot_order()
         first, pitch = self.mm("mechanics.slider.first_slot_from_home_mm"), self.mm("mechanics.slider.slot_pitch_mm")
         return {name: first + k * pitch for k, name in enumerate(order)}
 
@@ -166,8 +181,8 @@ def _slider(m: Mechanics) -> Part:
     pitch, t = m.mm("mechanics.slider.slot_pitch_mm"), m.mm("mechanics.slider.thickness_mm")
     half, margin = m.pocket_mm / 2, m.mm("mechanics.slider.end_margin_mm")
     rail_x = m.mm("mechanics.slider.rail_offset_mm")
-    hole_dx, hole_dy = m.get("mechanics.slider.carriage_hole_spacing_mm")
-    order = m.get("mechanics.slider.slot_order")
+    hole_dx, hole_dy = m.mm_list("mechanics.slider.carriage_hole_spacing_mm", 2)
+    order = m.slot_order()
     ys = [-k * pitch for k in range(len(order))]          # the slider moves +y to bring the next slot in
     face = -gap
     x_end = rail_x + hole_dx / 2 + 2 * wall
@@ -226,7 +241,7 @@ def _tray(m: Mechanics, ell: float) -> Part:
 def _panel_mount(m: Mechanics) -> Part:
     """A wedge holding an LED panel's back plate at the panels' elevation from the sample plane."""
     bd = _bd()
-    length, width = m.get("mechanics.panel_mount.base_mm")
+    length, width = m.mm_list("mechanics.panel_mount.base_mm", 2)
     t = m.mm("mechanics.panel_mount.thickness_mm")
     elev = math.radians(m.mm("device.panels.elevation_deg"))
     if not 5 <= math.degrees(elev) <= 80:
@@ -279,7 +294,7 @@ def _detector_tube(m: Mechanics) -> Part:
     bore_r = m.mm("mechanics.detector_tube.bore_mm") / 2
     r_out = bore_r + m.mm("mechanics.detector_tube.wall_mm")
     plate = m.mm("mechanics.detector_tube.aperture_plate_mm")
-    px, py, pz = m.get("mechanics.detector_tube.sensor_pocket_mm")
+    px, py, pz = m.mm_list("mechanics.detector_tube.sensor_pocket_mm", 3)
     flange_r = m.mm("mechanics.detector_tube.flange_diameter_mm") / 2
     if math.hypot(px, py) / 2 + 1 > flange_r:
         raise HardwareError(f"{GEOMETRY.name}: the sensor pocket does not fit the detector tube's flange")

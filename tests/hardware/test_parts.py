@@ -190,3 +190,19 @@ def test_a_bad_geometry_value_is_a_clear_error(tmp_path):
     bad.write_text("[device]\n", encoding="utf-8")
     with pytest.raises(hardware_parts.HardwareError, match=r"\[mechanics\]"):
         hardware_parts.load_mechanics(bad)
+
+
+@pytest.mark.parametrize("old, new, named", [
+    ("base_mm = [40.0, 20.0]", "base_mm = 40.0", "base_mm must list 2"),
+    ("sensor_pocket_mm = [27.0, 20.0, 6.0]", "sensor_pocket_mm = [27.0, 20.0]", "sensor_pocket_mm must list 3"),
+    ("carriage_hole_spacing_mm = [20.0, 20.0]", 'carriage_hole_spacing_mm = [20.0, "x"]', "carriage_hole_spacing"),
+    ('slot_order = ["black", "white", "open"]', 'slot_order = ["black", 1, "open"]', "slot_order must name"),
+])
+def test_a_malformed_list_is_a_clear_error(tmp_path, old, new, named):
+    """Pairs, triples and the slot order are checked before they are unpacked or sorted."""
+    text = (ROOT / "hardware" / "geometry.toml").read_text(encoding="utf-8")
+    assert old in text
+    bad = tmp_path / "geometry.toml"
+    bad.write_text(text.replace(old, new), encoding="utf-8")
+    with pytest.raises(hardware_parts.HardwareError, match=named):
+        hardware_parts.build_parts(hardware_parts.load_mechanics(bad))
