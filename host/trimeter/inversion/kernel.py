@@ -141,9 +141,7 @@ class NativeKernel:
                     row.view(np.int64)[:] = column
                 else:
                     row[:] = column
-        out = np.empty((len(_ROWS), n))
-        # the library trimeter.inversion.native loaded and typed (its prototype is generated from invert.h)
-        native._LIB.tm_combine(k, n, fits.ctypes.data, *underdetermined_std, disagree_sigmas, out.ctypes.data)
+        out = native.combine(fits, underdetermined_std, disagree_sigmas)
         columns = dict(zip(_ROWS, out, strict=True))
         columns["flags"] = columns["flags"].view(np.int64)
         return FitResult(**columns, method=method, per_thickness=results)

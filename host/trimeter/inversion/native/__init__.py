@@ -327,6 +327,16 @@ def propagate(J: np.ndarray, sigma_I: np.ndarray, sigma_t_var: np.ndarray | None
     return tuple(out)
 
 
+def combine(fits: np.ndarray, underdetermined_std: tuple[float, float], disagree_sigmas: float) -> np.ndarray:
+    """tm_combine: several thicknesses' fits (k, rows, n), laid out as tm_fit's output blocks, into one
+    (rows, n) block — trimeter.inversion.api.combine in C, bit for bit."""
+    k, _, n = fits.shape
+    fits = np.ascontiguousarray(fits, dtype=np.float64)
+    out = np.empty(fits.shape[1:])
+    _LIB.tm_combine(k, n, _addr(fits), *underdetermined_std, disagree_sigmas, _addr(out))
+    return out
+
+
 class TableFitter:
     """The fit from a self-sufficient device table (.tlut v2) alone, in C (table_fit.c: the source the
     firmware links as tr_fit_bins, here in double precision): the lut fit with fit()'s defaults, bin by
