@@ -9,11 +9,12 @@ I(ρ) = A + Bρ/(1 − Cρ) with A = UR1, B = UT1·UTU, C = URU (see trimeter.ma
 from __future__ import annotations
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from trimeter.errors import BuildError
 
 
-def ideal_abc(alpha, sigma_t, g, *, thickness_mm: float, n: float) -> np.ndarray:
+def ideal_abc(alpha: ArrayLike, sigma_t: ArrayLike, g: ArrayLike, *, thickness_mm: float, n: float) -> np.ndarray:
     """Exact (A, B, C) per material as a (count, 3) array from flat α, σt [1/mm], g; ~2 ms per material."""
     try:
         from iadpython import Sample

@@ -27,6 +27,7 @@ import stat
 import struct
 import tempfile
 from pathlib import Path
+from typing import NoReturn
 
 import numpy as np
 
@@ -156,5 +157,5 @@ def read_bounded(path: Path, limit: int, what: str) -> bytes:
     return data
 
 
-def _refuse_constant(name: str):
+def _refuse_constant(name: str) -> NoReturn:
     raise ValueError(f"{name} is not a number a trimeter file may hold")

@@ -13,13 +13,14 @@ def regular_cell(p: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
     return i.astype(np.intp), np.clip(p - i, 0.0, 1.0)
 
 
-def trilinear(L: np.ndarray, i, wi, j, wj, k, wk) -> np.ndarray:
+def trilinear(L: np.ndarray, i: np.ndarray, wi: np.ndarray, j: np.ndarray, wj: np.ndarray, k: np.ndarray,
+              wk: np.ndarray) -> np.ndarray:
     """L (3-D) between its nodes: cells i, j, k with weights wi, wj, wk, interpolated along the last axis,
     then the middle, then the first (invert.c inscatter_log1p, operation for operation)."""
-    def along_k(a, b):
+    def along_k(a: np.ndarray, b: np.ndarray) -> np.ndarray:
         return L[a, b, k] + (L[a, b, k + 1] - L[a, b, k]) * wk
 
-    def lerp(a, b, w):
+    def lerp(a: np.ndarray, b: np.ndarray, w: np.ndarray) -> np.ndarray:
         return a + (b - a) * w
 
     return lerp(lerp(along_k(i, j), along_k(i, j + 1), wj), lerp(along_k(i + 1, j), along_k(i + 1, j + 1), wj), wi)

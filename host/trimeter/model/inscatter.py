@@ -7,6 +7,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from trimeter.errors import MapFileError
 from trimeter.model.cells import regular_cell, trilinear
@@ -21,8 +22,9 @@ class InscatterTable:
     index n, thickness ℓ and the device's collimated geometry. Evaluation: trilinear, clamped to the
     grid, the same operations as invert.c's inscatter_log1p."""
 
-    def __init__(self, L, *, u_max, tau_max, v_max, n, thickness_mm, geometry_params, provenance=None,
-                 parent_sha256: str | None = None, producer: dict | None = None):
+    def __init__(self, L: ArrayLike, *, u_max: float, tau_max: float, v_max: float, n: float, thickness_mm: float,
+                 geometry_params: dict, provenance: dict | None = None, parent_sha256: str | None = None,
+                 producer: dict | None = None) -> None:
         self.L = np.ascontiguousarray(L, dtype=np.float64)
         if self.L.ndim != 3 or min(self.L.shape) < 2 or not np.all(np.isfinite(self.L)) or self.L.min() < 0:
             raise MapFileError("in-scatter table: L must be a finite, non-negative (u, τ, g) grid, ≥ 2 per axis")
@@ -43,7 +45,7 @@ class InscatterTable:
         return (-np.expm1(-np.linspace(0.0, u_max, nu)), np.linspace(0.0, tau_max, nt),
                 -np.expm1(-np.linspace(0.0, v_max, nv)))
 
-    def log1p_ratio(self, alpha, sigma_t, g) -> np.ndarray:
+    def log1p_ratio(self, alpha: ArrayLike, sigma_t: ArrayLike, g: ArrayLike) -> np.ndarray:
         """L at materials (arrays broadcast), clamped to the grid."""
         alpha, sigma_t, g = np.broadcast_arrays(*(np.asarray(x, dtype=np.float64) for x in (alpha, sigma_t, g)))
         alpha, sigma_t, g = (np.where(np.isfinite(x), x, 0.0) for x in (alpha, sigma_t, g))  # NaN: 0, as in C

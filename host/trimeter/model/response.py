@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 
-def background_response(A, B, C, rho) -> np.ndarray:
+def background_response(A: np.ndarray | float, B: np.ndarray | float, C: np.ndarray | float,
+                        rho: ArrayLike) -> np.ndarray:
     """I(ρ) = A + B·ρ / (1 − C·ρ): the diffuse observable against a Lambertian background of
     reflectance ρ (A: the slab's own reflectance, B: T_down·T_up, C: the slab's diffuse reflectance
     seen from below; exact for the ideal geometry, verified against renders for the device)."""
