@@ -10,14 +10,14 @@ import numpy as np
 from trimeter.bench import fit as bench
 from trimeter.maps.appearance import AppearanceMap
 from trimeter.maps.artifacts import ArtifactCache
-from trimeter.maps.table import build_from_map
+from trimeter.maps.device_table import build_from_map
 
 DATA = Path(__file__).resolve().parents[1] / "inversion" / "data"
 
 
 def test_each_variant_counts_the_files_it_reads_and_the_model_it_solves_on():
     amap = AppearanceMap.load(DATA / "ideal-l0.5.tmap")
-    small = ArtifactCache(tables={amap.name: build_from_map(amap, n_xy=16, refine=(1, 1, 1))})
+    small = ArtifactCache(tables={amap.name: build_from_map(amap, n_inverse=bench.SMALL_INVERSE)})
     variants = {v[0]: v for v in bench._variants(amap, ArtifactCache(), small)}
     assert {"paper", "lut p0", "lut p≤8", "lut-small p0", "mlp p0", "mlp p2", "mlp p≤8"} <= set(variants)
     sizes = {name: bench._variant_bytes(v) for name, v in variants.items()}

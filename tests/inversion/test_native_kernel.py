@@ -12,7 +12,7 @@ from trimeter.inversion import native
 from trimeter.inversion.kernel import NativeKernel, NumpyKernel
 from trimeter.inversion.lut import TableInverter
 from trimeter.maps.artifacts import load_artifacts
-from trimeter.maps.device_table import DeviceTable as MapTable
+from trimeter.maps.device_table import DeviceTable
 from trimeter.model.grid import ForwardGrid
 from trimeter.paths import MAPS_DIR
 
@@ -42,7 +42,7 @@ def _inputs(rng, n=4000):
 @pytest.mark.skipif(not native.available(), reason=native.status())
 @pytest.mark.parametrize("polish", [0, 1, 4])
 def test_table_inversion_matches_the_numpy_kernel(monkeypatch, polish):
-    table = MapTable.load(TABLE)
+    table = DeviceTable.load(TABLE)
     args = _inputs(np.random.default_rng(polish))
     compiled = NativeKernel().invert(TableInverter(table), *args, iterations=polish)
     expected = NumpyKernel().invert(TableInverter(table), *args, iterations=polish)
@@ -54,7 +54,7 @@ def test_table_inversion_matches_the_numpy_kernel(monkeypatch, polish):
 
 @pytest.mark.skipif(not native.available(), reason=native.status())
 def test_polish_from_a_given_guess_and_the_propagated_uncertainty_match(monkeypatch):
-    table = MapTable.load(TABLE)
+    table = DeviceTable.load(TABLE)
     rng = np.random.default_rng(7)
     I_b, I_w, sigma_t, rho_b, rho_w = _inputs(rng)
     alpha0, g0 = rng.uniform(-0.2, 1.2, len(I_b)), rng.uniform(-0.5, 1.5, len(I_b))

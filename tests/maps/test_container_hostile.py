@@ -1,9 +1,9 @@
 """Crafted data files WITH VALID CHECKSUMS: the checksum does not save the reader, the schema does.
 
 Every crafted header must give one clear MapFileError naming the offending field, from every entry
-point: the Python loaders (AppearanceMap.load, InscatterTable.load, MapTable.load, the MLP model
-metadata) and the CLI (`trimeter map info FILE`, `trimeter fit --map FILE`: `trimeter: error: …`,
-exit 2, no traceback).
+point: the Python loaders (AppearanceMap.load, InscatterTable.load, the MLP model metadata; DeviceTable.load
+in tests/inversion/test_compact_table.py) and the CLI (`trimeter map info FILE`, `trimeter fit --map FILE`:
+`trimeter: error: …`, exit 2, no traceback).
 """
 
 from __future__ import annotations
@@ -13,7 +13,6 @@ import hashlib
 import json
 import os
 import struct
-import zlib
 
 import numpy as np
 import pytest
@@ -25,7 +24,6 @@ from trimeter.errors import MapFileError
 from trimeter.maps.appearance import AppearanceMap
 from trimeter.maps.container import FORMAT_VERSION, MAGIC, MAX_CONTAINER_BYTES
 from trimeter.maps.inscatter_file import load_inscatter, save_inscatter
-from trimeter.maps.table import MapTable, build_from_map
 from trimeter.model.inscatter import InscatterTable
 
 from test_container import small_map
@@ -259,43 +257,14 @@ def test_inscatter_table_with_nan_is_refused(tmp_path):
         load_inscatter(tins)
 
 
-# ------------------------------------------------------------------------------- the map table
-def _table_bytes_with(tmp_path, **fields) -> bytes:
-    """A valid map table with header fields (offset: struct format) overwritten, CRC recomputed."""
-    data = bytearray(build_from_map(small_map(), n_xy=9).to_bytes())
-    for offset, (fmt, value) in fields.items():
-        struct.pack_into(fmt, data, int(offset.lstrip("_")), value)
-    data[-4:] = struct.pack("<I", zlib.crc32(bytes(data[:-4])))
-    return bytes(data)
-
-
-@pytest.mark.parametrize("fields, named", [
-    ({"_48": ("<f", 5.0)}, "impossible sample set-up"),          # n
-    ({"_52": ("<f", 0.0)}, "impossible sample set-up"),          # thickness
-    ({"_52": ("<f", float("nan"))}, "non-finite"),
-    ({"_72": ("<H", 60000)}, "do not match its length"),          # n_alpha
-    ({"_128": ("<f", 2.0)}, "not finite and strictly increasing"),  # α axis out of order
-], ids=["n of 5", "zero thickness", "NaN thickness", "huge grid", "alpha order"])
-def test_crafted_map_table_is_refused(tmp_path, fields, named):
-    path = tmp_path / "t.tlut"
-    path.write_bytes(_table_bytes_with(tmp_path, **fields))
-    with pytest.raises(MapFileError, match=named):
-        MapTable.load(path)
-
-
-def test_oversized_map_table_is_refused_before_it_is_read(tmp_path):
-    path = tmp_path / "t.tlut"
-    with open(path, "wb") as f:
-        f.truncate(2**30)
-    with pytest.raises(MapFileError, match="larger than any map table"):
-        MapTable.load(path)
+# the device table (.tlut): tests/inversion/test_compact_table.py crafts every header field and section
 
 
 # ------------------------------------------------------------------------------- the MLP model
 @pytest.mark.parametrize("key, value, named", [
     ("trimeter.kind", "x" * 10_000, "trimeter.kind"),
     ("trimeter.features", "sqrt_I_b", "trimeter.features"),
-    ("trimeter.format", "2", "trimeter.format"),
+    ("trimeter.format", "3", "trimeter.format"),
 ])
 def test_crafted_mlp_metadata_is_refused(tmp_path, key, value, named):
     onnx = pytest.importorskip("onnx")

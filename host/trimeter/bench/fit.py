@@ -60,6 +60,7 @@ ALPHA_TARGET, G_TARGET = 0.01, 0.015
 SPEEDUP_TARGET, MS_TARGET, SIGMA_REL_TARGET = 50.0, {"lut": 1.0, "mlp": 2.0}, 0.01
 G_MIN_ALPHA = 0.5  # g is scored over α ≥ 0.5 only (below, g barely changes the intensities)
 DEFAULT_POLISH = dict(polish=8, polish_tol=1e-6)  # trimeter.fit's defaults
+SMALL_INVERSE = 8  # the lut-small variant's inverse grid side: a half-slot device table
 
 
 def register(bench_subparsers) -> None:
@@ -517,7 +518,7 @@ def _bench_backgrounds(amap, h, budget, variants):
 def run(args) -> int:
     from trimeter.inversion import native
     from trimeter.maps.artifacts import ArtifactCache
-    from trimeter.maps.table import build_from_map
+    from trimeter.maps.device_table import build_from_map
 
     noise_levels = [float(x) for x in args.noise.split(",")]
     args.out.mkdir(parents=True, exist_ok=True)
@@ -541,9 +542,10 @@ def run(args) -> int:
         print(f"   held-out: {path} — {len(a)} materials, {int(measurable.sum())} in the measurable gamut "
               f"(I_c ≥ {MEASURABLE_IC:g}); source: {meta.get('source')}; their own MC std-error median {mc:.1e}")
         t0 = time.perf_counter()
-        small_table = build_from_map(amap, n_xy=16, refine=(1, 1, 1))
+        small_table = build_from_map(amap, n_inverse=SMALL_INVERSE)
         small_cache = ArtifactCache(tables={amap.name: small_table})
-        print(f"   small table (map grid unrefined, 16×16 inverse) built in {time.perf_counter() - t0:.1f} s, "
+        print(f"   small table ({SMALL_INVERSE}×{SMALL_INVERSE} inverse grid) built in "
+              f"{time.perf_counter() - t0:.1f} s, "
               f"{small_table.size_bytes} bytes; full table: {artifacts.inverter.table.size_bytes} bytes")
         variants = _variants(amap, cache, small_cache)
         rng = np.random.default_rng(args.seed)

@@ -22,7 +22,7 @@ from trimeter.model.grid import ForwardGrid, SigmaCell
 
 class TableInverter:
     def __init__(self, table, inscatter=None, model_variance=None):
-        """table: a map table (trimeter.maps.table.MapTable: its forward section, inverse slices and
+        """table: a device table (trimeter.maps.device_table.DeviceTable: its forward model, inverse slices and
         set-up); inscatter: the map's in-scattering table (trimeter.model.inscatter.InscatterTable), or
         None; model_variance: the map's own error at its nodes ((variances, axes) as
         ForwardGrid.attach_model_variance takes them), or None."""
