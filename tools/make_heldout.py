@@ -18,13 +18,11 @@ e^inscatter_log1p for device sets: the light scattered into the detector's apert
 material (`--inscatter SET`: trimeter.forward.inscatter, one trace per (σt, g) column for all its α,
 independent of the map's own in-scattering table).
 
-Why 16M paths per (σt, g): the references must be precise enough to check the inversion targets
-(α p95 0.01, g p95 0.015). At 1M paths their own MC noise alone, propagated through the map's
-Jacobian, was α std p95 ≈ 0.037 and g std p95 ≈ 0.13 (`trimeter bench fit` prints this as the
-"reference noise floor"); the std-error falls as 1/√paths, so 16× the paths give ≈ 4× less.
-At 16M that floor was still α p95 0.0124 on l0.4, nearly all from clear samples (σt·ℓ < 0.1, where
-I_b, I_w barely change with α), so such columns are topped up (once, to at most --max-paths) until
-α's std-error with g held is ≤ --alpha-stderr: floor 0.0050, ~14 min per device set.
+Why 16M paths per (σt, g), and more for clear samples: the references must be precise enough to check the
+inversion targets (α p95 0.01, g p95 0.015), and their own MC noise, propagated through the map's Jacobian
+(the "reference noise floor" `trimeter bench fit` prints), falls only as 1/√paths. Clear samples (σt·ℓ < 0.1,
+where I_b, I_w barely change with α) dominate it, so their columns are topped up (once, to at most --max-paths)
+until α's std-error with g held is ≤ --alpha-stderr. The figures are in maps/README.md.
 """
 
 from __future__ import annotations
