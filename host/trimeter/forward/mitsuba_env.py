@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from types import ModuleType
 
 from trimeter.errors import TrimeterError
 
@@ -26,7 +27,7 @@ class MitsubaUnavailable(TrimeterError):
     """Mitsuba is not installed (the device side) or no variant works on this machine."""
 
 
-def _import():
+def _import() -> ModuleType:
     if "DRJIT_LIBLLVM_PATH" not in os.environ and LIBLLVM.exists():
         # Must be set before Dr.Jit initialises its LLVM backend, i.e. before the first import.
         os.environ["DRJIT_LIBLLVM_PATH"] = str(LIBLLVM)
@@ -37,7 +38,7 @@ def _import():
     return mi
 
 
-def mitsuba(variant: str | None = None):
+def mitsuba(variant: str | None = None) -> ModuleType:
     """Return the `mitsuba` module with a variant set: `variant` if given, else the best that works.
 
     The choice is made once per process (switching variants invalidates loaded scenes), so a second
@@ -70,7 +71,7 @@ def mitsuba(variant: str | None = None):
     raise MitsubaUnavailable("no Mitsuba variant works here: " + "; ".join(errors))
 
 
-def _probe(mi) -> None:
+def _probe(mi: ModuleType) -> None:
     """Force the backend to JIT a trivial kernel, so a broken CUDA/LLVM fails here, not mid-render."""
     import drjit as dr
 

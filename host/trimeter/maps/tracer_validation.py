@@ -11,8 +11,10 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from trimeter.forward.render import render_diffuse
 from trimeter.forward.validate import iad_reflectance
@@ -23,9 +25,9 @@ Z_P95_MAX = 2.5                   # N(0, 1): 1.96; volpath's 16-batch std-error:
 Z_MEAN_MAX = 0.5
 
 
-def tracer_agreement(geometry: str, materials, n: float, thickness_mm: float, rhos=CHECK_RHOS,
-                     paths: int = 1 << 21, spp: int = 1 << 19, seed: int = 0, backend: str = "llvm",
-                     progress=None) -> list[dict]:
+def tracer_agreement(geometry: str, materials: ArrayLike, n: float, thickness_mm: float,
+                     rhos: tuple[float, ...] = CHECK_RHOS, paths: int = 1 << 21, spp: int = 1 << 19, seed: int = 0,
+                     backend: str = "llvm", progress: Callable[[int, int], None] | None = None) -> list[dict]:
     """Per material: one tracer column (trimeter.maps.tracer.trace_column, its (σt, g) at `paths`
     detector paths) evaluated at the material's α and each ρ, against one volpath render per ρ
     (trimeter.forward.render.render_diffuse, `spp` samples). For the ideal geometry the rows also carry
@@ -42,7 +44,8 @@ def tracer_agreement(geometry: str, materials, n: float, thickness_mm: float, rh
     except ImportError:
         with_iad = False
     rows = []
-    for i, (alpha, sigma_t, g) in enumerate(np.asarray(materials, dtype=float)):
+    materials = np.asarray(materials, dtype=float)
+    for i, (alpha, sigma_t, g) in enumerate(materials):
         t0 = time.perf_counter()
         tally = trace_column(stack, float(sigma_t), float(g), paths, seed + i, k_max, backend=backend)
         A, B, C = (float(v[0]) for v in tally.abc([alpha]))
@@ -69,7 +72,7 @@ def tracer_agreement(geometry: str, materials, n: float, thickness_mm: float, rh
     return rows
 
 
-def z_summary(z) -> dict:
+def z_summary(z: ArrayLike) -> dict:
     """The distribution of z-scores and whether it meets the check (p95 |z| ≤ Z_P95_MAX, |mean| ≤ Z_MEAN_MAX)."""
     z = np.asarray(z, dtype=float)
     if z.size == 0:

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 from functools import cached_property
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from trimeter.geometry import cover_slide_n
 from trimeter.model.collimated import (beer_lambert_limit, beer_lambert_sigma_t, collimated_derivative,
@@ -31,14 +32,14 @@ class SampleSetup:
                    str(recipe.get("geometry", "")), recipe.get("geometry_params"))
 
     # ------------------------------------------------------------------------- the collimated beam
-    def collimated(self, sigma_t) -> np.ndarray:
+    def collimated(self, sigma_t: ArrayLike) -> np.ndarray:
         """The unscattered collimated beam through the sample (Beer-Lambert with the Fresnel stack)."""
         return collimated_transmittance(sigma_t, self.thickness_mm, self.n, self.cover_slide_n)
 
-    def collimated_derivative(self, sigma_t) -> np.ndarray:
+    def collimated_derivative(self, sigma_t: ArrayLike) -> np.ndarray:
         return collimated_derivative(sigma_t, self.thickness_mm, self.n, self.cover_slide_n)
 
-    def beer_lambert_sigma_t(self, I_c) -> np.ndarray:
+    def beer_lambert_sigma_t(self, I_c: ArrayLike) -> np.ndarray:
         """σt from I_c alone (collimated's exact inverse; NaN outside (0, T(σt = 0)])."""
         return beer_lambert_sigma_t(I_c, self.thickness_mm, self.n, self.cover_slide_n)
 
