@@ -16,10 +16,12 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from trimeter.errors import InputError
 from trimeter.results.medium import SpectralMaterial
@@ -56,7 +58,7 @@ def load_material(spec: str) -> tuple[SpectralMaterial, str]:
     return result.material, str(result.source.get("sample") or result.source.get("label") or Path(spec).name)
 
 
-def mixture(materials, fractions=None) -> SpectralMaterial:
+def mixture(materials: Iterable[SpectralMaterial], fractions: ArrayLike | None = None) -> SpectralMaterial:
     """One material (no fractions) or their mixture by volume fractions (SpectralMaterial.mixture)."""
     materials = list(materials)
     if fractions is None:
@@ -68,7 +70,7 @@ def mixture(materials, fractions=None) -> SpectralMaterial:
 
 def predict_slab(material: SpectralMaterial, thickness_mm: float, *, geometry: str = "ideal", n: float = 1.5,
                  rho_black: float = 0.0, rho_white: float = 1.0, paths: int = DEFAULT_PATHS, seed: int = 1,
-                 wavelengths_nm=None) -> Prediction:
+                 wavelengths_nm: ArrayLike | None = None) -> Prediction:
     """Reflectance of a slab of `material`, `thickness_mm` thick, on backgrounds ρ_black and ρ_white."""
     from trimeter.geometry import load_geometry
     from trimeter.maps.tracer import Stack, k_max_for, trace_column
@@ -103,7 +105,7 @@ def predict_slab(material: SpectralMaterial, thickness_mm: float, *, geometry: s
     return Prediction(m.wavelengths_nm, out[0], out[1], out[2], out[3], srgb[0], srgb[1], info)
 
 
-def hex_colour(linear_rgb) -> str:
+def hex_colour(linear_rgb: ArrayLike) -> str:
     from trimeter.results.export import srgb_encode
 
     return "#" + "".join(f"{round(float(v) * 255):02x}" for v in srgb_encode(linear_rgb))

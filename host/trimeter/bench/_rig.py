@@ -7,18 +7,19 @@ from __future__ import annotations
 import contextlib
 import os
 import tempfile
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 from trimeter.device import Device
 from trimeter.errors import InputError
-from trimeter.sequences.service import Service
+from trimeter.sequences.service import Event, Service
 from trimeter.sequences.settings import HostSettings
 from trimeter.spectrometer import open_spectrometer
 from trimeter.twin import FaultConfig, Twin
 
 
 @contextlib.contextmanager
-def host_dirs(root: Path):
+def host_dirs(root: Path) -> Iterator[None]:
     """TRIMETER_DATA_DIR / TRIMETER_CONFIG_DIR under `root` while the benchmark runs (the calibration
     path is read from them), restored afterwards."""
     saved = {key: os.environ.get(key) for key in ("TRIMETER_DATA_DIR", "TRIMETER_CONFIG_DIR")}
@@ -36,7 +37,8 @@ def host_dirs(root: Path):
 
 @contextlib.contextmanager
 def twin_and_service(*, time_scale: float, seed: int, faults: FaultConfig | None = None,
-                     settings: dict | None = None, on_event=None, root: Path | None = None):
+                     settings: dict | None = None, on_event: Callable[[Event], None] | None = None,
+                     root: Path | None = None) -> Iterator[tuple[Twin, Service, HostSettings]]:
     """Yields (twin, service, settings): a twin with no sample, and a Service for it (not yet connected)."""
     if not 0 < time_scale <= 1000:
         raise InputError(f"--time-scale must be within (0, 1000], got {time_scale:g}")

@@ -23,20 +23,21 @@ the machine's load). The last line is `ratio: N`, N = Σ plain time / Σ default
 
 from __future__ import annotations
 
+import argparse
 import math
 import tempfile
 import time
-from typing import Any
 from functools import partial
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from trimeter.errors import InputError
-from trimeter.maps.recipe import parse_recipe
+from trimeter.maps.recipe import Recipe, parse_recipe
 
 
-def register(subparsers) -> None:
+def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("mapbuild", help="map building: naive direct renders vs the (k, m)-tally tracer")
     p.add_argument("--spp", type=int, default=655360, help="samples per naive render (the paper's 640K)")
     p.add_argument("--naive-renders", type=int, default=12, help="naive renders measured in this run")
@@ -94,7 +95,7 @@ def compare_estimators(recipe_path: str, n_paths: int, seed: int) -> int:
     return 0
 
 
-def bench_recipe(target_stderr: float):
+def bench_recipe(target_stderr: float) -> Recipe:
     return parse_recipe({
         "name": "bench-mapbuild", "geometry": "ideal", "n": 1.5, "thickness_mm": 0.5,
         "reference_rho_b": 0.02, "reference_rho_w": 0.9, "seed": 11,
@@ -103,7 +104,7 @@ def bench_recipe(target_stderr: float):
     })
 
 
-def run(args) -> int:
+def run(args: argparse.Namespace) -> int:
     if args.device_columns:
         return compare_estimators(args.device_columns, args.paths, args.seed)
     from trimeter.forward.render import render_diffuse
