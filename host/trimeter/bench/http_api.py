@@ -8,6 +8,7 @@ per second and errors. Loopback only: the figure is the server's, not a network'
 
 from __future__ import annotations
 
+import argparse
 import asyncio
 import json
 import os
@@ -35,7 +36,7 @@ async def _load(url: str, token: str, clients: int, seconds: float, max_requests
     deadline = started + seconds
     headers = {"Authorization": f"Bearer {token}"}
 
-    async def client(session):
+    async def client(session: ClientSession) -> None:
         nonlocal errors
         while time.perf_counter() < deadline and len(latencies) + errors < max_requests:
             start = time.perf_counter()
@@ -97,7 +98,7 @@ def run_bench(clients: int, seconds: float, max_requests: int, time_scale: float
             "max_ms": round(float(ms.max()), 2) if len(ms) else None, "server_state": status["state"]}
 
 
-def _pct(ms: np.ndarray, q: float):
+def _pct(ms: np.ndarray, q: float) -> float | None:
     return round(float(np.percentile(ms, q)), 2) if len(ms) else None
 
 
@@ -123,7 +124,7 @@ def _get_status(url: str, token: str) -> dict:
         return json.loads(response.read())
 
 
-def run(args) -> int:
+def run(args: argparse.Namespace) -> int:
     report = run_bench(args.clients, args.seconds, args.max_requests, args.time_scale)
     print(f"GET /api/status, {report['clients']} concurrent clients, {report['seconds']:g} s on 127.0.0.1 "
           f"(server: trimeter serve --http on the twin, state {report['server_state']})")
@@ -135,7 +136,7 @@ def run(args) -> int:
     return 0 if report["requests"] and not report["errors"] else 1
 
 
-def register(bench_subparsers) -> None:
+def register(bench_subparsers: argparse._SubParsersAction) -> None:
     p = bench_subparsers.add_parser("http", help="GET /api/status latency under concurrent clients (loopback)",
                                     description=__doc__)
     p.add_argument("--clients", type=int, default=50, help="concurrent clients (default: %(default)s)")

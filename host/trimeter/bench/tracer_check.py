@@ -11,10 +11,11 @@ Exit status 1 when a geometry misses. Rows and summaries also go to `--out` (JSO
 
 from __future__ import annotations
 
+import argparse
 import json
 import time
-from typing import Any
 from pathlib import Path
+from typing import Any
 
 from trimeter.errors import InputError
 
@@ -22,7 +23,7 @@ DEVICE_THICKNESSES = (0.4, 0.8)
 IDEAL_THICKNESS = 0.5
 
 
-def register(subparsers) -> None:
+def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("tracer-check", help="the map tracer against Mitsuba volpath: z-scores over random "
                                                    "materials, both geometries and backgrounds")
     p.add_argument("--materials", type=int, default=40, help="random materials per geometry (default 40)")
@@ -35,7 +36,7 @@ def register(subparsers) -> None:
     p.set_defaults(func=run)
 
 
-def run(args) -> int:
+def run(args: argparse.Namespace) -> int:
     from trimeter.forward.validate import random_materials
     from trimeter.maps.tracer_validation import tracer_agreement
     from trimeter.maps.tracer import resolve_backend
@@ -71,7 +72,7 @@ def run(args) -> int:
     return 0 if report["ok"] else 1
 
 
-def _print_rows(part, geometry, ell) -> None:
+def _print_rows(part: list[dict], geometry: str, ell: float) -> None:
     for r in part:
         extra = f"  iad {r['iad']:.5f} z_iad {r['z_iad']:+.2f}" if "iad" in r else ""
         print(f"  {geometry} ℓ={ell:g} α={r['alpha']:.4f} σt={r['sigma_t']:7.3f} g={r['g']:.2f} "
@@ -79,7 +80,8 @@ def _print_rows(part, geometry, ell) -> None:
               f"{r['volpath']:.5f}±{r['volpath_stderr']:.5f} z {r['z']:+.2f}{extra}", flush=True)
 
 
-def _summarise(rows, geometries, report, args) -> None:
+def _summarise(rows: list[dict], geometries: tuple[str, ...], report: dict[str, Any],
+               args: argparse.Namespace) -> None:
     from trimeter.maps.tracer_validation import Z_MEAN_MAX, Z_P95_MAX, z_summary
 
     print(f"{report['seconds']:.0f} s; z = (tracer − volpath) / combined std-error; targets p95 |z| ≤ {Z_P95_MAX}, "

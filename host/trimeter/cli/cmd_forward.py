@@ -7,15 +7,17 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import sys
+from typing import Any
 
 from trimeter.errors import InputError
 from trimeter.geometry import PRESETS
 from trimeter.validation import require_number
 
 
-def register(subparsers) -> None:
+def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("forward", help="render (I_b, I_w, I_c) for one material directly with Mitsuba",
                               description="Render the diffuse observables I_b, I_w with Mitsuba's volumetric "
                                           "path tracer (I_c is analytic). σt in 1/mm, thickness in mm.")
@@ -46,14 +48,14 @@ def register(subparsers) -> None:
     v.set_defaults(func=_validate)
 
 
-def _required(args, attr: str, flag: str, **bounds) -> float:
+def _required(args: argparse.Namespace, attr: str, flag: str, **bounds: Any) -> float:
     value = getattr(args, attr)
     if value is None:
         raise InputError(f"{flag} is required")
     return require_number(flag, value, **bounds)
 
 
-def _run(args) -> int:
+def _run(args: argparse.Namespace) -> int:
     alpha = _required(args, "alpha", "--alpha", lo=0.0, hi=1.0)
     sigma_t = _required(args, "sigma_t", "--sigma-t", lo=0.0)
     g = _required(args, "g", "--g", lo=-1.0, hi=1.0, lo_open=True, hi_open=True)
@@ -78,7 +80,7 @@ def _run(args) -> int:
     return 0
 
 
-def _validate(args) -> int:
+def _validate(args: argparse.Namespace) -> int:
     from trimeter.forward import validate as val
 
     if args.materials < 0 or args.device_materials < 0:
