@@ -28,6 +28,7 @@ preset as loaded, so a map is self-describing even if hardware/geometry.toml cha
 from __future__ import annotations
 
 import tomllib
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -154,7 +155,7 @@ def parse_recipe(data: dict, default_name: str = "map") -> Recipe:
                   sampling=sampling, description=str(data.get("description", "")))
 
 
-def _axis(field_name: str, spec, generator) -> np.ndarray:
+def _axis(field_name: str, spec: object, generator: Callable[[str, dict, int], np.ndarray]) -> np.ndarray:
     if spec is None:
         raise InputError(f"{field_name}: missing")
     if isinstance(spec, list):
@@ -172,20 +173,20 @@ def _axis(field_name: str, spec, generator) -> np.ndarray:
     return values
 
 
-def _alpha_axis(field_name, spec, count):
+def _alpha_axis(field_name: str, spec: dict, count: int) -> np.ndarray:
     top = require_number(f"{field_name}.max", spec.get("max"), lo=0.0, hi=1.0, lo_open=True, hi_open=True)
     lo = require_number(f"{field_name}.min", spec.get("min", 0.0), lo=0.0, hi=top, hi_open=True)
     # log-spaced in 1 − α: as many points between 0.9 and 0.99 as between 0.99 and 0.999
     return 1 - np.geomspace(1 - lo, 1 - top, count)
 
 
-def _log_axis(field_name, spec, count):
+def _log_axis(field_name: str, spec: dict, count: int) -> np.ndarray:
     lo = require_number(f"{field_name}.min", spec.get("min"), lo=0.0, lo_open=True)
     hi = require_number(f"{field_name}.max", spec.get("max"), lo=lo, lo_open=True)
     return np.geomspace(lo, hi, count)
 
 
-def _linear_axis(field_name, spec, count):
+def _linear_axis(field_name: str, spec: dict, count: int) -> np.ndarray:
     """Evenly spaced, or with spacing = "log1m" log-spaced in 1 − g: equal steps in the reduced
     extinction σt(1 − g), so finer towards g → 1 where I changes fastest."""
     lo = require_number(f"{field_name}.min", spec.get("min"))
