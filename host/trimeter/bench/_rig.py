@@ -12,6 +12,7 @@ from pathlib import Path
 
 from trimeter.device import Device
 from trimeter.errors import InputError
+from trimeter.sequences.measure import map_for_thickness
 from trimeter.sequences.service import Event, Service
 from trimeter.sequences.settings import HostSettings
 from trimeter.spectrometer import open_spectrometer
@@ -46,8 +47,11 @@ def twin_and_service(*, time_scale: float, seed: int, faults: FaultConfig | None
         if root is None:
             root = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="trimeter-bench-")))
         stack.enter_context(host_dirs(root))
-        twin = stack.enter_context(Twin(time_scale=time_scale, faults=faults, state_dir=root / "twin", seed=seed))
         host = HostSettings()
+        # the instrument carries the table of the thickness `serve` measures, as a flashed one would
+        table = map_for_thickness(host.thickness_mm).name
+        twin = stack.enter_context(Twin(time_scale=time_scale, faults=faults, state_dir=root / "twin", seed=seed,
+                                        map_table=table))
         host.set("port", twin.modbus_port)
         host.set("spectrometer", twin.spectrometer_url)
         host.set("results_dir", str(root / "results"))
