@@ -19,11 +19,14 @@ thickness's whole flow runs in one C call with the compiled kernel (`tm_fit`); `
 
 from __future__ import annotations
 
+from collections import OrderedDict
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from trimeter.domain.parameters import FitResult
 from trimeter.errors import InputError
@@ -34,6 +37,14 @@ from trimeter.inversion.newton import correct_inscatter, first_order_holds, poli
 from trimeter.inversion.strategy import Method
 from trimeter.model.grid import ForwardGrid
 from trimeter.model.setup import SampleSetup
+
+if TYPE_CHECKING:
+    from scipy.interpolate import LinearNDInterpolator
+
+    from trimeter.inversion.mlp import MlpInverter
+
+# one thickness's (I_b, I_w, I_c, ρ_b, ρ_w) over its bins
+Inputs = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 
 _INPUT_TOLERANCE = 1e-3   # intensities this far below 0 / above 1 are still taken as noise around the limit
 _DISAGREE_SIGMAS = 3.0
@@ -64,26 +75,45 @@ def _polish_tol_std(polish_tol: float) -> float:
 
 class FitModel(Protocol):
     """What a fit needs of one map (thickness): trimeter.maps.artifacts.MapArtifacts is one."""
-    name: str
-    reference_rhos: tuple[float, float]
-    setup: SampleSetup          # the sample set-up every step of the fit uses (the polish grid's: grid.setup)
-    inverter: TableInverter     # the map table's guess and the polish's forward grid (inverter.grid)
-    map: Any                    # the appearance map's nodes, A, B, C and collimated_measured (paper)
-    paper_cache: Any            # the paper method's triangulations of this map
+    # read-only: a fit never sets them (properties, so that a model may compute them)
+    @property
+    def name(self) -> str: ...
+
+    @property
+    def reference_rhos(self) -> tuple[float, float]: ...
+
+    # the sample set-up every step of the fit uses (the polish grid's: grid.setup)
+    @property
+    def setup(self) -> SampleSetup: ...
+
+    # the map table's guess and the polish's forward grid (inverter.grid)
+    @property
+    def inverter(self) -> TableInverter: ...
+
+    # the appearance map's nodes, A, B, C and collimated_measured (paper); maps sits above the inversion
+    @property
+    def map(self) -> Any: ...
+
+    # the paper method's triangulations of this map (None: none kept)
+    @property
+    def paper_cache(self) -> OrderedDict[tuple[float, float], LinearNDInterpolator] | None: ...
 
     @property
     def grid(self) -> ForwardGrid: ...
 
-    def mlp(self, model: str | Path | None = None) -> Any: ...
+    def mlp(self, model: str | Path | None = None) -> MlpInverter: ...
 
 
 # ---------------------------------------------------------------------------------------- the fit
-def fit(models, I_b, I_w, I_c, rho_b=None, rho_w=None, method: str = "lut", *, kernel: Kernel | None = None,
+def fit(models: FitModel | Sequence[FitModel], I_b: ArrayLike, I_w: ArrayLike, I_c: ArrayLike,
+        rho_b: ArrayLike | None = None, rho_w: ArrayLike | None = None, method: str = "lut", *,
+        kernel: Kernel | None = None,
         noise_rel: float = 0.005, noise_abs: float = 2e-4, ic_floor: float = 1e-4,
         alpha_min_g: float = 0.02, polish: int | None = None, polish_tol: float = 1e-6, samples: int = 250,
         epsilon: float = 0.01,
-        seed: int = 0, mlp_model: str | Path | None = None, I_b_std=None, I_w_std=None, I_c_std=None,
-        thickness_std_mm=0.0, inscatter_rel_std: float = INSCATTER_REL_STD) -> FitResult:
+        seed: int = 0, mlp_model: str | Path | None = None, I_b_std: ArrayLike | None = None,
+        I_w_std: ArrayLike | None = None, I_c_std: ArrayLike | None = None,
+        thickness_std_mm: float | ArrayLike = 0.0, inscatter_rel_std: float = INSCATTER_REL_STD) -> FitResult:
     """Invert measured intensities (arrays over wavelength bins) to α, σt [1/mm], g.
 
     models: a FitModel (trimeter.maps.artifacts.load_artifacts), or a list of them (the same material at
@@ -119,7 +149,7 @@ def fit(models, I_b, I_w, I_c, rho_b=None, rho_w=None, method: str = "lut", *, k
     polish, samples = int(require_number("polish", polish, lo=0)), int(require_number("samples", samples, lo=0))
     polish_tol = require_number("polish_tol", polish_tol, lo=0.0)
     inscatter_rel_std = require_number("inscatter_rel_std", inscatter_rel_std, lo=0.0)
-    amaps = list(models) if isinstance(models, (list, tuple)) else [models]
+    amaps = list(models) if isinstance(models, Sequence) else [models]
     if not amaps:
         raise InputError("maps must name at least one map")
     if not all(hasattr(m, "inverter") for m in amaps):  # a map, a path or a name: trimeter.fit loads those
@@ -129,9 +159,9 @@ def fit(models, I_b, I_w, I_c, rho_b=None, rho_w=None, method: str = "lut", *, k
     arrays = _shape_inputs(k, I_b, I_w, I_c, rho_b, rho_w, amaps)
     stds = _shape_stds(k, arrays, (I_b_std, I_w_std, I_c_std), noise_rel, noise_abs)
     thickness_rel = [t / m.setup.thickness_mm for t, m in zip(_thickness_stds(k, thickness_std_mm), amaps, strict=True)]
-    opts = dict(noise_rel=noise_rel, noise_abs=noise_abs, ic_floor=ic_floor, alpha_min_g=alpha_min_g,
-                inscatter_rel_std=inscatter_rel_std)
-    if strategy.joint:
+    opts: dict[str, Any] = dict(noise_rel=noise_rel, noise_abs=noise_abs, ic_floor=ic_floor, alpha_min_g=alpha_min_g,
+                                inscatter_rel_std=inscatter_rel_std)
+    if strategy.fit_all is not None:  # strategy.joint
         return strategy.fit_all(amaps, arrays, stds, thickness_rel, kernel=kernel, samples=samples, epsilon=epsilon,
                                 seed=seed, **opts)
     singles = [_fit_one(amap, *arrays[i], sd=stds[i], thickness_rel_std=thickness_rel[i], method=strategy,
@@ -144,7 +174,8 @@ def fit(models, I_b, I_w, I_c, rho_b=None, rho_w=None, method: str = "lut", *, k
     return combine(singles, method) if combined is None else combined
 
 
-def _shape_inputs(k, I_b, I_w, I_c, rho_b, rho_w, amaps):
+def _shape_inputs(k: int, I_b: ArrayLike, I_w: ArrayLike, I_c: ArrayLike, rho_b: ArrayLike | None,
+                  rho_w: ArrayLike | None, amaps: Sequence[FitModel]) -> list[Inputs]:
     try:
         I_b, I_w, I_c = (np.atleast_1d(np.asarray(v, dtype=float)) for v in (I_b, I_w, I_c))
     except (TypeError, ValueError) as exc:
@@ -169,7 +200,8 @@ def _shape_inputs(k, I_b, I_w, I_c, rho_b, rho_w, amaps):
     return [(I_b[i], I_w[i], I_c[i], rhos[0][i], rhos[1][i]) for i in range(k)]
 
 
-def _shape_stds(k, arrays, given, noise_rel, noise_abs) -> list:
+def _shape_stds(k: int, arrays: list[Inputs], given: tuple[ArrayLike | None, ...], noise_rel: float,
+                noise_abs: float) -> list[np.ndarray | None]:
     """Per thickness, the intensities' stds as an (N, 3) array, or None when none was given (the
     noise model then stands everywhere, computed where it is used). A missing column, or a NaN in
     one, takes the noise model's value at that (sanitized) intensity."""
@@ -198,7 +230,7 @@ def _shape_stds(k, arrays, given, noise_rel, noise_abs) -> list:
     return list(out)
 
 
-def _thickness_stds(k, thickness_std_mm) -> list[float]:
+def _thickness_stds(k: int, thickness_std_mm: float | ArrayLike) -> list[float]:
     from trimeter.validation import require_number
 
     values = list(thickness_std_mm) if isinstance(thickness_std_mm, (list, tuple, np.ndarray)) else \
@@ -208,7 +240,8 @@ def _thickness_stds(k, thickness_std_mm) -> list[float]:
     return [require_number("thickness_std_mm", 0.0 if v is None else v, lo=0.0) for v in values]
 
 
-def _input_flags(I_b, I_w, I_c, rho_b, rho_w):
+def _input_flags(I_b: np.ndarray, I_w: np.ndarray, I_c: np.ndarray, rho_b: np.ndarray,
+                 rho_w: np.ndarray) -> np.ndarray:
     flags = np.zeros(I_b.shape, dtype=np.int64)
     with np.errstate(invalid="ignore"):
         finite = np.isfinite(I_b) & np.isfinite(I_w) & np.isfinite(I_c) & np.isfinite(rho_b) & np.isfinite(rho_w)
@@ -223,12 +256,14 @@ def _input_flags(I_b, I_w, I_c, rho_b, rho_w):
     return flags
 
 
-def _sanitize(x, lo, hi, fill):
+def _sanitize(x: np.ndarray, lo: float, hi: float, fill: float) -> np.ndarray:
     return np.clip(np.where(np.isfinite(x), x, fill), lo, hi)
 
 
-def _fit_one(model, I_b, I_w, I_c, rho_b, rho_w, *, sd, thickness_rel_std, method: Method, kernel: Kernel, polish,
-             polish_tol, mlp_model, noise_rel, noise_abs, ic_floor, alpha_min_g, inscatter_rel_std) -> FitResult:
+def _fit_one(model: FitModel, I_b: np.ndarray, I_w: np.ndarray, I_c: np.ndarray, rho_b: np.ndarray,
+             rho_w: np.ndarray, *, sd: np.ndarray | None, thickness_rel_std: float, method: Method, kernel: Kernel,
+             polish: int, polish_tol: float, mlp_model: str | Path | None, noise_rel: float, noise_abs: float,
+             ic_floor: float, alpha_min_g: float, inscatter_rel_std: float) -> FitResult:
     inverter = model.inverter
     grid = inverter.grid
     guesser = None if method.guesser is None else method.guesser(model, {"mlp_model": mlp_model})
@@ -261,19 +296,20 @@ def _fit_one(model, I_b, I_w, I_c, rho_b, rho_w, *, sd, thickness_rel_std, metho
         a, s, gg, ds = correct_inscatter(grid, alpha, sigma_t, g, J)
         alpha, sigma_t, g = np.where(eligible, a, alpha), np.where(eligible, s, sigma_t), np.where(eligible, gg, g)
         inscatter_ds = np.where(eligible, ds, 0.0)
-    return _finish(model, grid, p.flags, p.usable, p.ib, p.iw, p.ic, p.rb, p.rw, alpha, sigma_t, g, residual,
+    return _finish(grid, p.flags, p.usable, p.ib, p.iw, p.ic, p.rb, p.rw, alpha, sigma_t, g, residual,
                    p.sigma_beer, method=method.name, kernel=kernel, sd=sd, sigma_t_solved=p.sigma_t,
                    inscatter_ds=inscatter_ds, inscatter_rel_std=inscatter_rel_std, thickness_rel_std=thickness_rel_std,
                    alpha_min_g=alpha_min_g, J=J, solved=solved, floor_sd=floor_sd)
 
 
-def _noise_model(p, noise_rel, noise_abs):
+def _noise_model(p: _Prepared, noise_rel: float, noise_abs: float) -> np.ndarray:
     """(N, 3) stds of the sanitized I_b, I_w, I_c under σ_I = noise_rel·I + noise_abs."""
     return np.column_stack([noise_rel * p.ib + noise_abs, noise_rel * p.iw + noise_abs, noise_rel * p.ic + noise_abs])
 
 
-def native_options(amap, grid, *, polish, polish_tol, noise_rel, noise_abs, ic_floor, alpha_min_g,
-                   thickness_rel_std=0.0, inscatter_rel_std=INSCATTER_REL_STD) -> dict:
+def native_options(amap: FitModel, grid: ForwardGrid, *, polish: int, polish_tol: float, noise_rel: float,
+                   noise_abs: float, ic_floor: float, alpha_min_g: float, thickness_rel_std: float = 0.0,
+                   inscatter_rel_std: float = INSCATTER_REL_STD) -> dict[str, Any]:
     """The C kernel's options for one thickness (NativeSolver.fit / prepare): fit()'s parameters plus
     what the numpy path below takes from the map and its grid."""
     return dict(noise_rel=noise_rel, noise_abs=noise_abs, mc_stderr=grid.mc_stderr, ic_floor=ic_floor,
@@ -299,7 +335,8 @@ class _Prepared:
     sigma_beer: np.ndarray
 
 
-def _prepare(amap, grid, I_b, I_w, I_c, rho_b, rho_w, ic_floor) -> _Prepared:
+def _prepare(amap: FitModel, grid: ForwardGrid, I_b: np.ndarray, I_w: np.ndarray, I_c: np.ndarray, rho_b: np.ndarray,
+             rho_w: np.ndarray, ic_floor: float) -> _Prepared:
     flags = _input_flags(I_b, I_w, I_c, rho_b, rho_w)
     usable = (flags & int(UNUSABLE)) == 0
     # Unusable bins are computed on harmless stand-ins and blanked at the end: no branch per bin.
@@ -323,7 +360,7 @@ def _prepare(amap, grid, I_b, I_w, I_c, rho_b, rho_w, ic_floor) -> _Prepared:
     return _Prepared(flags, usable, ib, iw, ic, rb, rw, sigma_t, sigma_beer)
 
 
-def _underdetermined(std_a, std_g):
+def _underdetermined(std_a: np.ndarray, std_g: np.ndarray) -> np.ndarray:
     with np.errstate(invalid="ignore"):  # NaN std_g (g undefined) does not count
         return (std_a > UNDERDETERMINED_ALPHA_STD) | (std_g > UNDERDETERMINED_G_STD)
 
@@ -333,7 +370,9 @@ _STD_CHECK_SKIP = int(UNUSABLE | FitFlag.UNDERDETERMINED | FitFlag.G_UNDEFINED |
                       | FitFlag.NOT_CONVERGED)
 
 
-def _std_approximate(grid, flags, alpha, sigma_t, g, ib, iw, rb, rw, J, sigma_I, std_a, std_g):
+def _std_approximate(grid: ForwardGrid, flags: np.ndarray, alpha: np.ndarray, sigma_t: np.ndarray, g: np.ndarray,
+                     ib: np.ndarray, iw: np.ndarray, rb: np.ndarray, rw: np.ndarray, J: np.ndarray,
+                     sigma_I: np.ndarray, std_a: np.ndarray, std_g: np.ndarray) -> np.ndarray:
     """Where FitFlag.STD_APPROXIMATE belongs (invert.c tm_fit_solve does the same): bins whose α or g
     std is above STD_CHECK_ALPHA / STD_CHECK_G, none already flagged as unusable, underdetermined, g
     undefined, outside the map or not converged, on which the map bends within ±STD_CHECK_SIGMAS σ
@@ -349,9 +388,12 @@ def _std_approximate(grid, flags, alpha, sigma_t, g, ib, iw, rb, rw, J, sigma_I,
     return out
 
 
-def _finish(amap, grid, flags, usable, ib, iw, ic, rb, rw, alpha, sigma_t, g, residual, sigma_beer, *,
-            method, kernel, sd, sigma_t_solved, inscatter_ds, inscatter_rel_std, thickness_rel_std, alpha_min_g,
-            J=None, solved=None, floor_sd=None) -> FitResult:
+def _finish(grid: ForwardGrid, flags: np.ndarray, usable: np.ndarray, ib: np.ndarray, iw: np.ndarray,
+            ic: np.ndarray, rb: np.ndarray, rw: np.ndarray, alpha: np.ndarray, sigma_t: np.ndarray, g: np.ndarray,
+            residual: np.ndarray, sigma_beer: np.ndarray, *, method: str, kernel: Kernel, sd: np.ndarray,
+            sigma_t_solved: np.ndarray, inscatter_ds: np.ndarray | None, inscatter_rel_std: float,
+            thickness_rel_std: float, alpha_min_g: float, J: np.ndarray | None = None,
+            solved: tuple[np.ndarray, ...] | None = None, floor_sd: np.ndarray | None = None) -> FitResult:
     """Flags and stds at the solution. sd: (N, 3) the intensities' stds; sigma_t_solved: the σt
     (α, g) were solved at (before the in-scattering correction inscatter_ds, None without one);
     solved: those (α, g) and the (I_b, I_w) they were solved for, J the Jacobian there (default: the
@@ -452,7 +494,7 @@ def combine(results: list[FitResult], method: str) -> FitResult:
                      conditioning_alpha_std=None if same else cond_a, conditioning_g_std=None if same else cond_g)
 
 
-def _weighted(vals, stds):
+def _weighted(vals: np.ndarray, stds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Inverse-variance mean over the thicknesses (axis -2) and its std. Where no thickness has a
     usable std: the plain mean of the finite values and the smallest of their stds; NaN where no
     value is finite (a bin unusable at every thickness). Written out, not with nanmean/nanmin: those
@@ -475,7 +517,7 @@ def _weighted(vals, stds):
     return value, std
 
 
-def _disagree(vals, stds):
+def _disagree(vals: np.ndarray, stds: np.ndarray) -> np.ndarray:
     """Per bin, whether two thicknesses (axis -2) differ by more than _DISAGREE_SIGMAS combined stds
     in any column (axis 0); each pair once."""
     k = vals.shape[-2]

@@ -41,18 +41,18 @@ UNUSABLE = FitFlag.NONFINITE_INPUT | FitFlag.NEGATIVE_INPUT | FitFlag.ABOVE_ONE 
 
 def describe(value: int) -> str:
     """'IC_BELOW_FLOOR|G_UNDEFINED' for a flag word (or 'NONE')."""
-    names = [f.name for f in FitFlag if f and (int(value) & f)]
+    names = [f.name for f in FitFlag if f.name and (int(value) & f)]
     return "|".join(names) if names else "NONE"
 
 
-def advice(flags, thicknesses: int = 1) -> list[str]:
+def advice(flags: np.ndarray | list[int], thicknesses: int = 1) -> list[str]:
     """What a person should do about a fit's flagged bins: one sentence per kind of problem, with how
     many of the bins it concerns (empty when nothing needs doing). `thicknesses`: how many samples
     were fitted together."""
     flags = np.asarray(flags, dtype=np.int64)
     n = len(flags)
 
-    def count(flag) -> int:
+    def count(flag: int) -> int:
         return int(np.count_nonzero(flags & int(flag)))
 
     notes = []

@@ -9,7 +9,7 @@ api.combine's). A method never asks which one it has.
 from __future__ import annotations
 
 import weakref
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -30,25 +30,30 @@ class Guesser(Protocol):
 
     def run(self, x: np.ndarray) -> np.ndarray: ...
 
-    def predict(self, I_b, I_w, sigma_t, rho_b, rho_w) -> tuple[np.ndarray, np.ndarray]: ...
+    def predict(self, I_b: np.ndarray, I_w: np.ndarray, sigma_t: np.ndarray, rho_b: np.ndarray,
+                rho_w: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
 
 
 class Kernel(Protocol):
     name: str
 
-    def solve_alpha_g(self, grid: ForwardGrid, I_b, I_w, cell: SigmaCell, rho_b, rho_w, alpha0, g0, *,
-                      iterations: int, step_tol: float = 0.0, step_var=None) -> tuple:
+    def solve_alpha_g(self, grid: ForwardGrid, I_b: np.ndarray, I_w: np.ndarray, cell: SigmaCell, rho_b: np.ndarray,
+                      rho_w: np.ndarray, alpha0: np.ndarray, g0: np.ndarray, *, iterations: int, step_tol: float = 0.0,
+                      step_var: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
         """(α, g, residual, J) polished from (alpha0, g0) (newton.solve_alpha_g)."""
 
-    def invert(self, inverter: TableInverter, I_b, I_w, sigma_t, rho_b, rho_w, *, iterations: int,
-               step_tol: float = 0.0, step_var=None) -> tuple:
+    def invert(self, inverter: TableInverter, I_b: np.ndarray, I_w: np.ndarray, sigma_t: np.ndarray, rho_b: np.ndarray,
+               rho_w: np.ndarray, *, iterations: int, step_tol: float = 0.0,
+               step_var: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
         """(α, g, residual, J) from the table's guess, polished on its grid."""
 
-    def propagate(self, J, sigma_I, sigma_t_var=None) -> tuple:
+    def propagate(self, J: np.ndarray, sigma_I: np.ndarray,
+                  sigma_t_var: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
         """First-order stds of (α, σt, g) (newton.propagate)."""
 
-    def fused_fit(self, inverter: TableInverter, I_b, I_w, I_c, rho_b, rho_w, *, sd, guesser: Guesser | None,
-                  options: dict) -> dict | None:
+    def fused_fit(self, inverter: TableInverter, I_b: np.ndarray, I_w: np.ndarray, I_c: np.ndarray, rho_b: np.ndarray,
+                  rho_w: np.ndarray, *, sd: Any, guesser: Guesser | None,
+                  options: dict[str, Any]) -> dict[str, Any] | None:
         """One thickness's whole fit in one call (FitResult columns), or None where the kernel has no
         fused path and the fit runs its steps one by one."""
 
@@ -61,23 +66,30 @@ class Kernel(Protocol):
 class NumpyKernel:
     name = "numpy"
 
-    def solve_alpha_g(self, grid, I_b, I_w, cell, rho_b, rho_w, alpha0, g0, *, iterations, step_tol=0.0,
-                      step_var=None):
+    def solve_alpha_g(self, grid: ForwardGrid, I_b: np.ndarray, I_w: np.ndarray, cell: SigmaCell, rho_b: np.ndarray,
+                      rho_w: np.ndarray, alpha0: np.ndarray, g0: np.ndarray, *, iterations: int, step_tol: float = 0.0,
+                      step_var: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
         return newton.solve_alpha_g(grid, I_b, I_w, cell, rho_b, rho_w, alpha0, g0, iterations=max(int(iterations), 0),
                                     step_tol=step_tol, step_var=step_var)
 
-    def invert(self, inverter, I_b, I_w, sigma_t, rho_b, rho_w, *, iterations, step_tol=0.0, step_var=None):
+    def invert(self, inverter: TableInverter, I_b: np.ndarray, I_w: np.ndarray, sigma_t: np.ndarray, rho_b: np.ndarray,
+               rho_w: np.ndarray, *, iterations: int, step_tol: float = 0.0,
+               step_var: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
         alpha, g = inverter.initial_guess(I_b, I_w, inverter.table_grid.sigma_cell(sigma_t))
         return self.solve_alpha_g(inverter.grid, I_b, I_w, inverter.grid.sigma_cell(sigma_t), rho_b, rho_w, alpha, g,
                                   iterations=iterations, step_tol=step_tol, step_var=step_var)
 
-    def propagate(self, J, sigma_I, sigma_t_var=None):
+    def propagate(self, J: np.ndarray, sigma_I: np.ndarray,
+                  sigma_t_var: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
         return newton.propagate(J, sigma_I, sigma_t_var)
 
-    def fused_fit(self, inverter, I_b, I_w, I_c, rho_b, rho_w, *, sd, guesser, options):
+    def fused_fit(self, inverter: TableInverter, I_b: np.ndarray, I_w: np.ndarray, I_c: np.ndarray, rho_b: np.ndarray,
+                  rho_w: np.ndarray, *, sd: Any, guesser: Guesser | None,
+                  options: dict[str, Any]) -> dict[str, Any] | None:
         return None
 
-    def combine(self, results, method, *, underdetermined_std, disagree_sigmas):
+    def combine(self, results: list[FitResult], method: str, *, underdetermined_std: tuple[float, float],
+                disagree_sigmas: float) -> FitResult | None:
         return None
 
 
@@ -86,7 +98,7 @@ class NativeKernel:
     long as the grid or inverter lives."""
     name = "native"
 
-    def __init__(self):
+    def __init__(self) -> None:
         if not native.available():
             raise RuntimeError(f"the native kernel is not available: {native.status()}")
         self._solvers: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
@@ -103,21 +115,27 @@ class NativeKernel:
             solver = self._solvers[inverter] = native.NativeSolver(inverter.grid, *inverter.inverse_cells)
         return solver
 
-    def solve_alpha_g(self, grid, I_b, I_w, cell, rho_b, rho_w, alpha0, g0, *, iterations, step_tol=0.0,
-                      step_var=None):
+    def solve_alpha_g(self, grid: ForwardGrid, I_b: np.ndarray, I_w: np.ndarray, cell: SigmaCell, rho_b: np.ndarray,
+                      rho_w: np.ndarray, alpha0: np.ndarray, g0: np.ndarray, *, iterations: int, step_tol: float = 0.0,
+                      step_var: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
         return self._grid_solver(grid).solve(I_b, I_w, cell.log_sigma_t, rho_b, rho_w, max(int(iterations), 0),
                                              alpha0, g0, step_tol=step_tol, step_var=step_var)
 
-    def invert(self, inverter, I_b, I_w, sigma_t, rho_b, rho_w, *, iterations, step_tol=0.0, step_var=None):
+    def invert(self, inverter: TableInverter, I_b: np.ndarray, I_w: np.ndarray, sigma_t: np.ndarray, rho_b: np.ndarray,
+               rho_w: np.ndarray, *, iterations: int, step_tol: float = 0.0,
+               step_var: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
         with np.errstate(divide="ignore", invalid="ignore"):
             log_sigma_t = np.log(sigma_t)  # C clamps ln σt to the grid itself
         return self._table_solver(inverter).solve(I_b, I_w, log_sigma_t, rho_b, rho_w, max(int(iterations), 0),
                                                   step_tol=step_tol, step_var=step_var)
 
-    def propagate(self, J, sigma_I, sigma_t_var=None):
+    def propagate(self, J: np.ndarray, sigma_I: np.ndarray,
+                  sigma_t_var: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
         return native.propagate(J, sigma_I, sigma_t_var)
 
-    def fused_fit(self, inverter, I_b, I_w, I_c, rho_b, rho_w, *, sd, guesser, options):
+    def fused_fit(self, inverter: TableInverter, I_b: np.ndarray, I_w: np.ndarray, I_c: np.ndarray, rho_b: np.ndarray,
+                  rho_w: np.ndarray, *, sd: Any, guesser: Guesser | None,
+                  options: dict[str, Any]) -> dict[str, Any] | None:
         solver = self._table_solver(inverter)
         if guesser is None:
             out = solver.fit(I_b, I_w, I_c, rho_b, rho_w, sd=sd, **options)
@@ -128,7 +146,8 @@ class NativeKernel:
         out.pop("steps")
         return out
 
-    def combine(self, results, method, *, underdetermined_std, disagree_sigmas):
+    def combine(self, results: list[FitResult], method: str, *, underdetermined_std: tuple[float, float],
+                disagree_sigmas: float) -> FitResult | None:
         """tm_combine over the fits' columns, laid out as tm_fit's output blocks, one per thickness."""
         k, n = len(results), len(results[0])
         fits = np.empty((k, len(_ROWS), n))

@@ -14,14 +14,21 @@ same algorithm); initial_guess below is the numpy reference of the C guess.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING, Any
+
 import numpy as np
 
 from trimeter.inversion.strategy import Method
 from trimeter.model.grid import ForwardGrid, SigmaCell
 
+if TYPE_CHECKING:
+    from trimeter.model.inscatter import InscatterTable
+
 
 class TableInverter:
-    def __init__(self, table, inscatter=None, model_variance=None):
+    # table: a trimeter.maps.device_table.DeviceTable, not named here: maps sits above the inversion
+    def __init__(self, table: Any, inscatter: InscatterTable | None = None,
+                 model_variance: tuple[np.ndarray, tuple[np.ndarray, ...]] | None = None) -> None:
         """table: a device table (trimeter.maps.device_table.DeviceTable: its forward model, inverse slices and
         set-up); inscatter: the map's in-scattering table (trimeter.model.inscatter.InscatterTable), or
         None; model_variance: the map's own error at its nodes ((variances, axes) as
@@ -46,18 +53,18 @@ class TableInverter:
         self._m = [f[:, 2] * (nx - 1), f[:, 3] * (nx - 1), f[:, 4] * (ny - 1), f[:, 5] * (ny - 1)]
 
     @property
-    def inverse_cells(self) -> tuple:
+    def inverse_cells(self) -> tuple[np.ndarray, np.ndarray, tuple[int, int, int], np.ndarray]:
         """(cells, frames, shape, the table's ln σt nodes): the guess slices as the C kernel takes them."""
         return (self._cells, np.column_stack([self._ox, self._oy, *self._m]), self._shape,
                 self.table_grid.log_sigma_t)
 
-    def initial_guess(self, I_b, I_w, cell: SigmaCell):
+    def initial_guess(self, I_b: np.ndarray, I_w: np.ndarray, cell: SigmaCell) -> tuple[np.ndarray, np.ndarray]:
         """The table's (α, g) guess; `cell` on the table's own σt nodes (self.table_grid.sigma_cell)."""
         ns, ny, nx = self._shape
         # a NaN intensity counts as 0 here (it would index outside the table); the polish then returns NaN
         x = np.sqrt(np.minimum(np.where(I_b > 0.0, I_b, 0.0), 1.0))
         y = np.sqrt(np.minimum(np.where(I_w > 0.0, I_w, 0.0), 1.0))
-        out = 0.0
+        blended = []
         m00, m01, m10, m11 = self._m
         for dk, wk in ((0, 1.0 - cell.weight), (1, cell.weight)):  # the two bracketing σt nodes
             k = cell.index + dk
@@ -68,7 +75,8 @@ class TableInverter:
             iv = np.minimum(v.astype(np.intp), ny - 2)
             fu, fv = u - iu, v - iv
             q = self._cells[(k * (ny - 1) + iv) * (nx - 1) + iu].T.copy().reshape(4, 2, -1)
-            out = out + (q[0] + q[1] * fu + (q[2] + q[3] * fu) * fv) * wk
+            blended.append((q[0] + q[1] * fu + (q[2] + q[3] * fu) * fv) * wk)
+        out = blended[0] + blended[1]
         return out[0], out[1]
 
 

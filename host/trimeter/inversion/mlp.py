@@ -19,11 +19,17 @@ Model contract (checked on load; a mismatch is a MapFileError, never a silent wr
 
 from __future__ import annotations
 
+from pathlib import Path
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from trimeter.errors import MapFileError
 from trimeter.inversion.strategy import Method
 from trimeter.validation import shown
+
+if TYPE_CHECKING:
+    from trimeter.model.grid import ForwardGrid
 
 MODEL_KIND = "mlp-inverse"
 MODEL_FORMAT = "2"
@@ -32,7 +38,8 @@ INPUTS = ("logit_scatter_b", "logit_scatter_w", "ln_sigma_t", "rho_b", "rho_w")
 _LOGIT_CLIP = 1e-4  # keeps the logit finite for intensities at or beyond the map's ends (noise, other ρ)
 
 
-def features(I_b, I_w, sigma_t, rho_b, rho_w, log_sigma_range) -> np.ndarray:
+def features(I_b: np.ndarray, I_w: np.ndarray, sigma_t: np.ndarray, rho_b: np.ndarray, rho_w: np.ndarray,
+             log_sigma_range: tuple[float, float]) -> np.ndarray:
     """The fit's per-bin features (N, 5) float32 (FEATURES; tm_fit_prepare writes the same); ln σt clamped
     to the map's range. network_inputs makes the network's input from them."""
     ls = np.log(np.maximum(np.asarray(sigma_t, float), 1e-30))
@@ -53,7 +60,7 @@ class ScatterRange:
     its σt nodes: these (ns, 3) rows interpolated give exactly grid.intensities there, for a few
     lookups per bin instead of two forward evaluations."""
 
-    def __init__(self, grid):
+    def __init__(self, grid: ForwardGrid) -> None:
         nodes = grid.coefficients_grid  # (na, ns, ng, 3)
         g0 = min(max(0.0, grid.g_range[0]), grid.g_range[1])
         j = int(np.clip(np.searchsorted(grid.g, g0, side="right") - 1, 0, len(grid.g) - 2))
@@ -63,18 +70,18 @@ class ScatterRange:
         rows = np.concatenate([at_g0[0], at_g0[-1]], axis=1)  # (ns, 6): least A, B, C, most A, B, C
         self._rows, self._slopes = rows[:-1], np.diff(rows, axis=0) / np.diff(self.log_sigma_t)[:, None]
 
-    def coefficients(self, log_sigma_t) -> np.ndarray:
+    def coefficients(self, log_sigma_t: np.ndarray) -> np.ndarray:
         """(6, N): A, B, C of the least, then of the most scattering material at ln σt (clamped)."""
         ls = np.clip(log_sigma_t, self.log_sigma_t[0], self.log_sigma_t[-1])
         k = np.clip(np.searchsorted(self.log_sigma_t, ls, side="right") - 1, 0, len(self._rows) - 1)
         return (self._rows[k] + self._slopes[k] * (ls - self.log_sigma_t[k])[:, None]).T
 
-    def ends(self, log_sigma_t, rho) -> tuple[np.ndarray, np.ndarray]:
+    def ends(self, log_sigma_t: np.ndarray, rho: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """I(ρ) of the least and the most scattering material at ln σt (clamped to the grid)."""
         return self._ends(self.coefficients(log_sigma_t), rho)
 
     @staticmethod
-    def _ends(coef, rho) -> tuple[np.ndarray, np.ndarray]:
+    def _ends(coef: np.ndarray, rho: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         f_least, f_most = rho / (1.0 - coef[2] * rho), rho / (1.0 - coef[5] * rho)
         return coef[0] + coef[1] * f_least, coef[3] + coef[4] * f_most
 
@@ -95,7 +102,8 @@ def network_inputs(x: np.ndarray, scatter_range: ScatterRange) -> np.ndarray:
 
 
 class MlpInverter:
-    def __init__(self, model: bytes, path, map_checksum: str, log_sigma_range, alpha_range, g_range):
+    def __init__(self, model: bytes, path: str | Path, map_checksum: str, log_sigma_range: tuple[float, float],
+                 alpha_range: tuple[float, float], g_range: tuple[float, float]) -> None:
         """model: the ONNX file's bytes (trimeter.maps.artifacts reads them), path: where they came from
         (for messages); the ranges: the map's ln σt, α and g boxes."""
         import onnxruntime as ort
@@ -131,9 +139,9 @@ class MlpInverter:
         self.input_name = inputs[0].name
         self.log_sigma_range = log_sigma_range
         self.alpha_range, self.g_range = alpha_range, g_range
-        self._bound: tuple | None = None  # (grid, its guesser)
+        self._bound: tuple[ForwardGrid, MlpGuesser] | None = None  # (grid, its guesser)
 
-    def on(self, grid) -> MlpGuesser:
+    def on(self, grid: ForwardGrid) -> MlpGuesser:
         """This network as a fit's guesser (trimeter.inversion.kernel.Guesser) on the forward model `grid`
         (the last one kept: every fit of one map asks with the same grid)."""
         if self._bound is None or self._bound[0] is not grid:
@@ -148,7 +156,7 @@ class MlpInverter:
 class MlpGuesser:
     """A network bound to the forward model its inputs are made with: the fit's Guesser."""
 
-    def __init__(self, network: MlpInverter, grid):
+    def __init__(self, network: MlpInverter, grid: ForwardGrid) -> None:
         self.network, self.scatter_range = network, ScatterRange(grid)
         self.log_sigma_range = network.log_sigma_range
 
@@ -159,7 +167,8 @@ class MlpGuesser:
         y[:, 1] = np.minimum(np.maximum(y[:, 1], self.network.g_range[0]), self.network.g_range[1])
         return y
 
-    def predict(self, I_b, I_w, sigma_t, rho_b, rho_w) -> tuple[np.ndarray, np.ndarray]:
+    def predict(self, I_b: np.ndarray, I_w: np.ndarray, sigma_t: np.ndarray, rho_b: np.ndarray,
+                rho_w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         y = self.run(features(I_b, I_w, sigma_t, rho_b, rho_w, self.log_sigma_range))
         return y[:, 0], y[:, 1]
 

@@ -12,13 +12,16 @@ table, σt and then (α, g) are corrected for it once (α, g) are solved, to fir
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from trimeter.inversion import native
 from trimeter.model.grid import ForwardGrid, SigmaCell
 
-def solve_alpha_g(grid: ForwardGrid, I_b, I_w, cell: SigmaCell, rho_b, rho_w, alpha0, g0, iterations=5, step_tol=0.0,
-                  step_var=None):
+def solve_alpha_g(grid: ForwardGrid, I_b: np.ndarray, I_w: np.ndarray, cell: SigmaCell, rho_b: np.ndarray,
+                  rho_w: np.ndarray, alpha0: np.ndarray, g0: np.ndarray, iterations: int = 5, step_tol: float = 0.0,
+                  step_var: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
     """Damped Gauss-Newton for (α, g) with I_b, I_w matched at the bins' own ρ_b, ρ_w. Steps are
     clamped to the map's box. At most `iterations` steps; a bin stops once a step was small in
     both α and g: at most `step_tol`, or (with step_var, per bin (κ σ_I)², see
@@ -34,7 +37,7 @@ def solve_alpha_g(grid: ForwardGrid, I_b, I_w, cell: SigmaCell, rho_b, rho_w, al
     g = np.clip(g0, *grid.g_range)
     active = np.ones(alpha.shape, dtype=bool)
     last_a = last_g = np.zeros(alpha.shape)
-    step_var = 0.0 if step_var is None else step_var
+    var: float | np.ndarray = 0.0 if step_var is None else step_var
     J = np.zeros((len(alpha), 3, 3))
     residual2 = np.zeros(len(alpha))
     evaluated = np.zeros(len(alpha), dtype=bool)
@@ -51,8 +54,8 @@ def solve_alpha_g(grid: ForwardGrid, I_b, I_w, cell: SigmaCell, rho_b, rho_w, al
         same_cell = (ia == ia_new) & (ig == ig_new)
         alpha, g = np.where(active, new_alpha, alpha), np.where(active, new_g, g)
         # var(α) = σ²·h22/det, var(g) = σ²·h11/det
-        small = (step_is_small(step_a, last_a, step_tol, step_var, h22, det)
-                 & step_is_small(step_g, last_g, step_tol, step_var, h11, det))
+        small = (step_is_small(step_a, last_a, step_tol, var, h22, det)
+                 & step_is_small(step_g, last_g, step_tol, var, h11, det))
         last_a, last_g = np.abs(step_a), np.abs(step_g)
         done = active & small & same_cell
         carried = r + J_step[:, :, 0] * d_alpha[:, None] + J_step[:, :, 2] * d_g[:, None]
@@ -66,7 +69,8 @@ def solve_alpha_g(grid: ForwardGrid, I_b, I_w, cell: SigmaCell, rho_b, rho_w, al
     return alpha, g, np.where(evaluated, np.sqrt(residual2), residual), J
 
 
-def correct_inscatter(grid, alpha, sigma_t, g, J):
+def correct_inscatter(grid: ForwardGrid, alpha: np.ndarray, sigma_t: np.ndarray, g: np.ndarray,
+                      J: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(α, σt, g) once the in-scattered light is taken out of I_c (invert.c correct_inscatter,
     operation for operation): σt up by L/ℓ (ln T falls by ℓ per unit σt; the Fresnel stack adds at
     most 3.6e-3 of that slope), L taken again at the moved σt, and (α, g) following to first order
@@ -90,7 +94,8 @@ def correct_inscatter(grid, alpha, sigma_t, g, J):
     return alpha, np.where(moved, s, s0), g, ds
 
 
-def lm_step(j11, j12, j21, j22, rb, rw):
+def lm_step(j11: np.ndarray, j12: np.ndarray, j21: np.ndarray, j22: np.ndarray, rb: np.ndarray,
+            rw: np.ndarray) -> tuple[np.ndarray, ...]:
     """(step_a, step_g, h11, h22, det): the damped Gauss-Newton (Levenberg-Marquardt) step on the
     2×2 normal equations of (I_b, I_w) in (α, g) for residuals (rb, rw), capped to a trust region
     (invert.c lm_step)."""
@@ -106,7 +111,8 @@ def lm_step(j11, j12, j21, j22, rb, rw):
     return step_a, step_g, h11, h22, det
 
 
-def _newton_step(grid, I_b, I_w, cell, rho_b, rho_w, alpha, g):
+def _newton_step(grid: ForwardGrid, I_b: np.ndarray, I_w: np.ndarray, cell: SigmaCell, rho_b: np.ndarray,
+                 rho_w: np.ndarray, alpha: np.ndarray, g: np.ndarray) -> tuple[Any, ...]:
     """One damped Gauss-Newton step from (α, g): the new (α, g), the steps, (det, h11, h22) of the
     normal equations, and this evaluation's residuals (N, 2) and ∂(I_b, I_w)/∂(α, σt, g) (N, 2, 3)."""
     coef, d_a, d_g, d_ls = grid.coefficients(alpha, cell, g, with_sigma_derivative=True)
@@ -125,8 +131,10 @@ def _newton_step(grid, I_b, I_w, cell, rho_b, rho_w, alpha, g):
 
 
 
-def first_order_holds(grid, alpha, cell: SigmaCell, g, I_b, I_w, rho_b, rho_w, J, sigma_b, sigma_w, std_a, std_g,
-                      sigmas, tol):
+def first_order_holds(grid: ForwardGrid, alpha: np.ndarray, cell: SigmaCell, g: np.ndarray, I_b: np.ndarray,
+                      I_w: np.ndarray, rho_b: np.ndarray, rho_w: np.ndarray, J: np.ndarray, sigma_b: np.ndarray,
+                      sigma_w: np.ndarray, std_a: np.ndarray, std_g: np.ndarray, sigmas: float,
+                      tol: float) -> np.ndarray:
     """Whether the first-order stds std_a, std_g hold over ±`sigmas` σ (invert.c check_first_order,
     operation for operation). From the polish's solution (α, g) at σt's cell and its Jacobian J
     (N, 3, 3), the measured (I_b, I_w) are moved by ±sigmas·σ in I_b, then in I_w (σ: sigma_b,
@@ -163,7 +171,8 @@ def first_order_holds(grid, alpha, cell: SigmaCell, g, I_b, I_w, rho_b, rho_w, J
 
 
 
-def propagate(J, sigma_I, sigma_t_var=None):
+def propagate(J: np.ndarray, sigma_I: np.ndarray,
+              sigma_t_var: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Standard deviations of (α, σt, g) from independent intensity noise sigma_I (N, 3), to
     first order: cov = J⁻¹ Σ J⁻ᵀ, using the block structure (row I_c has only ∂/∂σt).
     sigma_t_var (N,): further variance of σt that (α, g) follow as they follow I_c's (the
@@ -189,7 +198,8 @@ def propagate(J, sigma_I, sigma_t_var=None):
 
 
 
-def step_is_small(step, last, step_tol, step_var, h, det):
+def step_is_small(step: np.ndarray, last: np.ndarray, step_tol: float, step_var: float | np.ndarray, h: np.ndarray,
+                  det: np.ndarray) -> np.ndarray:
     """Whether a polish step in one parameter ends that parameter's polish (invert.c step_is_small,
     operation for operation): |step| ≤ step_tol; or below κ of its noise std (step² ≤ step_var·h/det,
     step_var = (κ σ_I)², h/det its variance per unit intensity variance); or at most native.STEP_RATIO of
@@ -203,7 +213,8 @@ def step_is_small(step, last, step_tol, step_var, h, det):
         return (a <= step_tol) | ((det > 0) & ((d2 <= lim) | tail))
 
 
-def polish_step_var(I_b, I_w, noise_rel, noise_abs, mc_stderr, kappa, sd=None):
+def polish_step_var(I_b: np.ndarray, I_w: np.ndarray, noise_rel: float, noise_abs: float, mc_stderr: float,
+                    kappa: float, sd: np.ndarray | None = None) -> np.ndarray:
     """solve_alpha_g's step_var: (κ σ)² per bin, σ² the mean of I_b's and I_w's variance under the
     noise model σ_I = noise_rel·I + noise_abs (or their given stds, sd (N, 3)), with the map's MC
     std-error in quadrature."""

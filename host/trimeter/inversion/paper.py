@@ -20,6 +20,9 @@ from __future__ import annotations
 
 import warnings
 from collections import OrderedDict
+from collections.abc import Sequence
+
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -29,18 +32,25 @@ from trimeter.inversion.flags import UNUSABLE, FitFlag
 from trimeter.inversion.strategy import Method
 from trimeter.model.response import background_response
 
+if TYPE_CHECKING:
+    from trimeter.inversion.api import FitModel
+    from trimeter.inversion.kernel import Kernel
+    from scipy.interpolate import LinearNDInterpolator
+
 _LOG_IC_FLOOR = 1e-12   # I_c below this is treated as this, so log10 stays finite
 _RHO_DECIMALS = 3
 CACHE_SIZE = 16  # triangulations kept per map
 CHUNK_POINTS = 500_000  # interpolated points per chunk: ~60 MB of working arrays
 
 
-def coordinates(I_b, I_w, I_c) -> np.ndarray:
+def coordinates(I_b: np.ndarray, I_w: np.ndarray, I_c: np.ndarray) -> np.ndarray:
     """The space the paper triangulates and interpolates in: (I_b, I_w, log10 I_c), shape (N, 3)."""
     return np.column_stack([I_b, I_w, np.log10(np.maximum(I_c, _LOG_IC_FLOOR))])
 
 
-def interpolator(amap, rho_b: float, rho_w: float, cache: OrderedDict | None = None):
+# amap: a trimeter.maps.appearance.AppearanceMap (maps sits above the inversion, so not named here)
+def interpolator(amap: Any, rho_b: float, rho_w: float,
+                 cache: OrderedDict[tuple[float, float], LinearNDInterpolator] | None = None) -> LinearNDInterpolator:
     """The paper's interpolant of `amap` (its nodes, arrays A, B, C and collimated_measured) at these
     backgrounds; `cache`: the map's triangulations by (ρ_b, ρ_w), least recently used dropped first."""
     from scipy.interpolate import LinearNDInterpolator
@@ -63,7 +73,9 @@ def interpolator(amap, rho_b: float, rho_w: float, cache: OrderedDict | None = N
     return interp
 
 
-def paper_samples(amap, I_b, I_w, I_c, rho_b, rho_w, samples=250, epsilon=0.01, seed=0, first_row=0, cache=None):
+def paper_samples(amap: Any, I_b: np.ndarray, I_w: np.ndarray, I_c: np.ndarray, rho_b: np.ndarray, rho_w: np.ndarray,
+                  samples: int = 250, epsilon: float = 0.01, seed: int = 0, first_row: int = 0,
+                  cache: OrderedDict[tuple[float, float], LinearNDInterpolator] | None = None) -> np.ndarray:
     """Interpolated (α, σt, g) for each bin: shape (N, max(samples, 1), 3), NaN outside the hull.
     `first_row`: the bins' position in the whole input (which ε-offsets of the seed's stream are theirs)."""
     I_b, I_w, I_c, rho_b, rho_w = (np.asarray(v, dtype=float) for v in (I_b, I_w, I_c, rho_b, rho_w))
@@ -88,7 +100,10 @@ def paper_samples(amap, I_b, I_w, I_c, rho_b, rho_w, samples=250, epsilon=0.01, 
     return out
 
 
-def paper_medians(amaps, inputs, samples=250, epsilon=0.01, seed=0, chunk_points=CHUNK_POINTS, caches=None):
+def paper_medians(amaps: Sequence[Any], inputs: Sequence[tuple[np.ndarray, ...]], samples: int = 250,
+                  epsilon: float = 0.01, seed: int = 0, chunk_points: int = CHUNK_POINTS,
+                  caches: Sequence[OrderedDict[tuple[float, float], LinearNDInterpolator] | None] | None = None,
+                  ) -> tuple[np.ndarray, list[np.ndarray]]:
     """The ε-median (α, σt, g) of each bin, (N, 3): pooled over the maps (several thicknesses of one
     material) and each map's own, for inputs[i] = (I_b, I_w, I_c, rho_b, rho_w) over the same N bins
     for amaps[i] (map i samples with seed + i). Bins are processed in chunks of about `chunk_points`
@@ -102,7 +117,7 @@ def paper_medians(amaps, inputs, samples=250, epsilon=0.01, seed=0, chunk_points
     own = [np.full((n, 3), np.nan) for _ in amaps]
     for start in range(0, n, chunk):
         stop = min(n, start + chunk)
-        parts = [paper_samples(amap, *(np.asarray(v)[start:stop] for v in arrays), samples=samples, epsilon=epsilon,
+        parts = [paper_samples(amap, *_rows(arrays, start, stop), samples=samples, epsilon=epsilon,
                                seed=seed + i, first_row=start, cache=caches[i])
                  for i, (amap, arrays) in enumerate(zip(amaps, inputs, strict=True))]
         with warnings.catch_warnings():
@@ -113,8 +128,19 @@ def paper_medians(amaps, inputs, samples=250, epsilon=0.01, seed=0, chunk_points
     return pooled, own
 
 
-def fit_paper(models, arrays, stds, thickness_rel, *, kernel, samples, epsilon, seed, noise_rel, noise_abs, ic_floor,
-              alpha_min_g, inscatter_rel_std) -> FitResult:
+Rows = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+
+
+def _rows(arrays: tuple[np.ndarray, ...], start: int, stop: int) -> Rows:
+    """(I_b, I_w, I_c, rho_b, rho_w) of bins start…stop."""
+    I_b, I_w, I_c, rho_b, rho_w = (np.asarray(v)[start:stop] for v in arrays)
+    return I_b, I_w, I_c, rho_b, rho_w
+
+
+def fit_paper(models: list[FitModel], arrays: list[tuple[np.ndarray, ...]], stds: list[np.ndarray],
+              thickness_rel: list[float], *, kernel: Kernel, samples: int, epsilon: float, seed: int,
+              noise_rel: float, noise_abs: float, ic_floor: float, alpha_min_g: float,
+              inscatter_rel_std: float) -> FitResult:
     """The paper method over all thicknesses (trimeter.inversion.api.fit's arguments, shaped): each
     thickness's flags and stds on its own ε-median, the estimate on the pooled one."""
     amaps = [m.map for m in models]
@@ -147,7 +173,7 @@ def fit_paper(models, arrays, stds, thickness_rel, *, kernel, samples, epsilon, 
         # the ε-median has no separate in-scattering correction to propagate: its map's I_c holds it.
         # The interpolated median does not solve the map exactly: STD_APPROXIMATE's re-fits start from
         # the map's own intensities there, so that its residual does not count as the map's bend.
-        r = api._finish(amap, grid, flags, usable, ib, iw, ic, rb, rw, alpha, sigma_t, g, residual, sigma_beer,
+        r = api._finish(grid, flags, usable, ib, iw, ic, rb, rw, alpha, sigma_t, g, residual, sigma_beer,
                     method="paper", kernel=kernel, sd=sd, sigma_t_solved=sigma_t, inscatter_ds=None,
                     inscatter_rel_std=inscatter_rel_std, thickness_rel_std=thickness_rel[i], alpha_min_g=alpha_min_g,
                     solved=(alpha, g, I_model[0], I_model[1]), floor_sd=floor_sd)

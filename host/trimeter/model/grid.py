@@ -8,10 +8,16 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from typing import TYPE_CHECKING, Any
+
 import numpy as np
+from numpy.typing import ArrayLike
 
 from trimeter.model.cells import cubic_resample, linear_resample, refine_axis, regular_cell, trilinear
 from trimeter.model.setup import SampleSetup
+
+if TYPE_CHECKING:
+    from trimeter.model.inscatter import InscatterTable
 
 @dataclass(frozen=True)
 class SigmaCell:
@@ -42,7 +48,8 @@ class ForwardGrid:
     """A, B, C (coefficients: (na, ns, ng, 3)) on the axes α, ln σt, g for one sample set-up, with
     the map's median MC std-error of I."""
 
-    def __init__(self, alpha, log_sigma_t, g, coefficients, *, setup: SampleSetup, mc_stderr: float = 0.0):
+    def __init__(self, alpha: ArrayLike, log_sigma_t: ArrayLike, g: ArrayLike, coefficients: ArrayLike, *,
+                 setup: SampleSetup, mc_stderr: float = 0.0) -> None:
         self.alpha = np.asarray(alpha, dtype=np.float64)
         self.log_sigma_t = np.asarray(log_sigma_t, dtype=np.float64)
         self.g = np.asarray(g, dtype=np.float64)
@@ -68,19 +75,19 @@ class ForwardGrid:
         self.g_range = (float(self.g[0]), float(self.g[-1]))
         self.sigma_t_range = (float(np.exp(self.log_sigma_t[0])), float(np.exp(self.log_sigma_t[-1])))
         # in-scattering into I_c (attach_inscatter): None means I_c is the unscattered beam alone
-        self.inscatter_grid = None
+        self.inscatter_grid: tuple[np.ndarray, float, float] | None = None  # (L, 1/Δτ, τ max)
         # the map's own error as variances of (I_b, I_w) on this grid's nodes (attach_model_variance), or None
-        self.model_var = None
+        self.model_var: np.ndarray | None = None
 
     @classmethod
-    def from_map(cls, amap) -> ForwardGrid:
+    def from_map(cls, amap: Any) -> ForwardGrid:  # an AppearanceMap: maps sits above the model
         """The grid on an appearance map's own nodes (anything with its arrays and `setup`)."""
         mc = float(np.median(np.concatenate([amap.std_b.ravel(), amap.std_w.ravel()])))
         return cls(amap.alpha, np.log(amap.sigma_t), amap.g, np.stack([amap.A, amap.B, amap.C], axis=-1),
                    setup=amap.setup, mc_stderr=mc)
 
     @classmethod
-    def from_table(cls, table) -> ForwardGrid:
+    def from_table(cls, table: Any) -> ForwardGrid:  # a DeviceTable: maps sits above the model
         """The grid on a map table's forward section (its f32 set-up: what the device fits with)."""
         return cls(table.alpha, table.log_sigma_t, table.g, table.coefficients_grid, setup=table.setup,
                    mc_stderr=table.mc_stderr)
@@ -112,7 +119,7 @@ class ForwardGrid:
         if coef is self.coefficients_grid:
             return self
         coef[..., 2] = np.clip(coef[..., 2], 0.0, 0.999)  # C: a reflectance, and 1 − Cρ must stay positive
-        return ForwardGrid(*axes, coef, setup=self.setup, mc_stderr=self.mc_stderr)
+        return ForwardGrid(axes[0], axes[1], axes[2], coef, setup=self.setup, mc_stderr=self.mc_stderr)
 
     def between_nodes(self) -> ForwardGrid:
         """This map as evaluated between its nodes everywhere (see BETWEEN_NODES_ALPHA)."""
@@ -125,17 +132,17 @@ class ForwardGrid:
 
     # ---------------------------------------------------------------------------------- helpers
     @staticmethod
-    def _cell(axis, inv_d, x):
+    def _cell(axis: np.ndarray, inv_d: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         # np.minimum/maximum: np.clip's Python wrapper costs more than the work at N ≈ 1000
         i = np.minimum(np.maximum(np.searchsorted(axis, x, side="right") - 1, 0), len(axis) - 2)
         w = np.minimum(np.maximum((x - axis[i]) * inv_d[i], 0.0), 1.0)
         return i, w
 
-    def alpha_g_cells(self, alpha, g):
+    def alpha_g_cells(self, alpha: np.ndarray, g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The (α, g) cells of bins: the cells whose derivatives a step uses."""
         return self._cell(self.alpha, self._inv_da, alpha)[0], self._cell(self.g, self._inv_dg, g)[0]
 
-    def sigma_cell(self, sigma_t) -> SigmaCell:
+    def sigma_cell(self, sigma_t: ArrayLike) -> SigmaCell:
         with np.errstate(divide="ignore", invalid="ignore"):
             ls = np.log(np.asarray(sigma_t, dtype=np.float64))
         ls = np.clip(np.nan_to_num(ls, nan=self.log_sigma_t[0], posinf=self.log_sigma_t[-1],
@@ -143,15 +150,15 @@ class ForwardGrid:
         i, w = self._cell(self.log_sigma_t, self._inv_ds, ls)
         return SigmaCell(i, w, ls)
 
-    def clamp_sigma_t(self, sigma_t):
+    def clamp_sigma_t(self, sigma_t: np.ndarray) -> np.ndarray:
         """σt clamped to the grid as sigma_cell does it (NaN → lowest node), without the cell."""
         lo, hi = self.sigma_t_range
         return np.minimum(np.where(sigma_t >= lo, sigma_t, lo), hi)
 
-    def collimated(self, sigma_t):
+    def collimated(self, sigma_t: np.ndarray) -> np.ndarray:
         return self.setup.collimated(sigma_t)
 
-    def attach_inscatter(self, table) -> None:
+    def attach_inscatter(self, table: InscatterTable | None) -> None:
         """Take in-scattered light into I_c into account (a trimeter.model.inscatter.InscatterTable,
         or None): the table resampled onto this grid's own α and g nodes, at its evenly spaced optical
         depths, so that a bin's lookup reuses the polish's α and g cells (no logarithms per bin)."""
@@ -164,7 +171,8 @@ class ForwardGrid:
         L = np.ascontiguousarray(table.log1p_ratio(a, t / table.thickness_mm, g))
         self.inscatter_grid = (L, (nt - 1) / table.tau_max, float(table.tau_max))
 
-    def attach_model_variance(self, node_var, alpha, log_sigma_t, g) -> None:
+    def attach_model_variance(self, node_var: ArrayLike | None, alpha: ArrayLike, log_sigma_t: ArrayLike,
+                              g: ArrayLike) -> None:
         """The map's own error (node_model_variance: (na, ns, ng, 2) variances of I_b, I_w on the
         map's nodes alpha, log_sigma_t, g), resampled linearly onto this grid's nodes, for the
         uncertainty at a solution (model_variance); None detaches it."""
@@ -176,7 +184,7 @@ class ForwardGrid:
             var = linear_resample(var, np.asarray(old, dtype=np.float64), new, axis)
         self.model_var = np.ascontiguousarray(var)
 
-    def model_variance(self, alpha, cell: SigmaCell, g):
+    def model_variance(self, alpha: np.ndarray, cell: SigmaCell, g: np.ndarray) -> np.ndarray:
         """(2, N): the map's error variance of I_b, I_w at (α, σt's cell, g), trilinear on the nodes
         (invert.c model_variance, operation for operation); zeros without attach_model_variance."""
         if self.model_var is None:
@@ -186,9 +194,11 @@ class ForwardGrid:
         # the nodes hold (I_b, I_w) pairs: the weights broadcast over that last axis
         return trilinear(self.model_var, ia, wa[:, None], cell.index, cell.weight[:, None], ig, wg[:, None]).T
 
-    def inscatter_log1p(self, alpha, sigma_t, g):
+    def inscatter_log1p(self, alpha: np.ndarray, sigma_t: np.ndarray, g: np.ndarray) -> np.ndarray:
         """L = ln(1 + r) at (α, σt, g) from inscatter_grid (invert.c inscatter_log1p, operation for
         operation): trilinear on the α and g nodes and the optical depths σt·ℓ (clamped to the table)."""
+        if self.inscatter_grid is None:
+            raise ValueError("no in-scattering table attached (attach_inscatter)")
         L, inv_dt, tau_max = self.inscatter_grid
         ia, wa = self._cell(self.alpha, self._inv_da, alpha)
         ig, wg = self._cell(self.g, self._inv_dg, g)
@@ -198,7 +208,7 @@ class ForwardGrid:
         return trilinear(L, ia, wa, it, wt, ig, wg)
 
 
-    def collimated_measured(self, alpha, sigma_t, g):
+    def collimated_measured(self, alpha: np.ndarray, sigma_t: np.ndarray, g: np.ndarray) -> np.ndarray:
         """I_c as the instrument reads it: the unscattered beam and, with an in-scattering table, the
         light scattered into the detector's aperture."""
         unscattered = self.collimated(sigma_t)
@@ -216,7 +226,8 @@ class ForwardGrid:
         """(a, b, T(σt = 0)) of I_c = a·x / (1 − b·x²), x = exp(−σt ℓ)."""
         return self.setup.stack_constants
 
-    def coefficients(self, alpha, cell: SigmaCell, g, with_sigma_derivative=False):
+    def coefficients(self, alpha: np.ndarray, cell: SigmaCell, g: np.ndarray,
+                     with_sigma_derivative: bool = False) -> tuple[np.ndarray, ...]:
         """A, B, C stacked (3, N) and their derivatives in α and g (and ln σt if asked), each (3, N).
         Component-major layout: every operation below runs on contiguous rows of N."""
         ia, wa = self._cell(self.alpha, self._inv_da, alpha)
@@ -237,18 +248,19 @@ class ForwardGrid:
         return value, d_alpha, d_g, d_ws * self._inv_ds[cell.index]
 
     @staticmethod
-    def diffuse(coef, rho):
+    def diffuse(coef: np.ndarray, rho: np.ndarray | float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """I(ρ) = A + Bρ/(1 − Cρ) and its gradient in (A, B, C) as (dI/dB, dI/dC), coef (3, N)."""
         A, B, C = coef
         f = rho / (1.0 - C * rho)
         return A + B * f, f, B * f * f
 
     @staticmethod
-    def directional(grad_B, grad_C, d):
+    def directional(grad_B: np.ndarray, grad_C: np.ndarray, d: np.ndarray) -> np.ndarray:
         """dI along one parameter from the (A, B, C) derivatives d (3, N)."""
         return d[0] + grad_B * d[1] + grad_C * d[2]
 
-    def intensities(self, alpha, sigma_t, g, rho_b, rho_w):
+    def intensities(self, alpha: ArrayLike, sigma_t: np.ndarray, g: ArrayLike, rho_b: ArrayLike,
+                    rho_w: ArrayLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(I_b, I_w, I_c) by the kernel (for training data and checks; σt clamped to the grid)."""
         cell = self.sigma_cell(sigma_t)
         alpha, g = np.broadcast_arrays(np.asarray(alpha, float), np.asarray(g, float))
@@ -259,7 +271,8 @@ class ForwardGrid:
 
     # ----------------------------------------------------------------------------------- solving
 
-    def residual_and_jacobian(self, I_b, I_w, cell: SigmaCell, rho_b, rho_w, alpha, g):
+    def residual_and_jacobian(self, I_b: np.ndarray, I_w: np.ndarray, cell: SigmaCell, rho_b: np.ndarray,
+                              rho_w: np.ndarray, alpha: np.ndarray, g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """|(I_b, I_w) − model| and ∂(I_b, I_w, I_c)/∂(α, σt, g) (N, 3, 3) from one evaluation."""
         coef, d_a, d_g, d_ls = self.coefficients(alpha, cell, g, with_sigma_derivative=True)
         s = np.exp(cell.log_sigma_t)
@@ -274,11 +287,12 @@ class ForwardGrid:
         J[:, 2, 1] = self.collimated_derivative(s)
         return np.sqrt(res2), J
 
-    def collimated_derivative(self, s):
+    def collimated_derivative(self, s: np.ndarray) -> np.ndarray:
         return self.setup.collimated_derivative(s)
 
 
-    def jacobian(self, alpha, sigma_t, g, rho_b, rho_w):
+    def jacobian(self, alpha: np.ndarray, sigma_t: np.ndarray, g: np.ndarray, rho_b: np.ndarray,
+                 rho_w: np.ndarray) -> np.ndarray:
         """∂(I_b, I_w, I_c)/∂(α, σt, g) per bin: (N, 3, 3). I_c depends on σt only."""
         cell = self.sigma_cell(sigma_t)
         coef, d_a, d_g, d_ls = self.coefficients(np.clip(alpha, *self.alpha_range), cell,
@@ -304,7 +318,8 @@ class ForwardGrid:
 LEAVE_ONE_OUT_SCALE = 0.1
 
 
-def node_model_variance(values: np.ndarray, mc_std: np.ndarray, alpha, log_sigma_t, g) -> np.ndarray:
+def node_model_variance(values: np.ndarray, mc_std: np.ndarray, alpha: ArrayLike, log_sigma_t: ArrayLike,
+                        g: ArrayLike) -> np.ndarray:
     """Variance of the map's own error at its nodes, (na, ns, ng, k) like `values` (here I_b, I_w
     at the reference backgrounds): its MC std-error squared plus the interpolation error, each axis's
     leave-one-out prediction error (× LEAVE_ONE_OUT_SCALE) squared and summed over the axes (end nodes

@@ -21,12 +21,17 @@ import os
 import warnings
 import zlib
 from pathlib import Path
-from typing import Any
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from trimeter.errors import TrimeterError
 from trimeter.inversion.native import invert_h
+
+if TYPE_CHECKING:
+    from trimeter.model.grid import ForwardGrid
 
 LIBRARY = Path(__file__).with_name("libtrimeter_invert.so")
 ABI_HASH = invert_h.ABI_HASH
@@ -74,7 +79,7 @@ def choice() -> str:
     return value
 
 
-def _open():
+def _open() -> tuple[ctypes.CDLL | None, str]:
     """(the library, '') when it is current and loads, else (None, why not)."""
     if not LIBRARY.is_file():
         return None, f"{LIBRARY.name} is not built"
@@ -99,7 +104,7 @@ def _open():
     return lib, ""
 
 
-def _load():
+def _load() -> tuple[ctypes.CDLL | None, str]:
     """(the library or None, the status line); warns or raises as TRIMETER_KERNEL asks."""
     chosen = choice()
     if chosen == "numpy":
@@ -118,6 +123,13 @@ def _load():
 _LIB, _STATUS = _load()
 
 
+def _library() -> ctypes.CDLL:
+    """The loaded library; only the native kernel's paths reach here, chosen where it is available."""
+    if _LIB is None:
+        raise NativeKernelError(f"the compiled kernel is not loaded: {_STATUS}")
+    return _LIB
+
+
 def set_simd(enabled: bool) -> bool:
     """Let the polish take four bins per Newton step with AVX2 (the default where the CPU has it) or
     only the scalar loop: the results are bit for bit the same (tests compare them). Returns whether
@@ -134,7 +146,7 @@ def status() -> str:
     return _STATUS
 
 
-def _ptr(a: np.ndarray):
+def _ptr(a: np.ndarray) -> Any:
     return a.ctypes.data_as(_double_p)
 
 
@@ -143,12 +155,12 @@ def _addr(a: np.ndarray) -> int:
     writable (the cheaper way; a fit takes a dozen), else its __array_interface__ (read-only or
     empty arrays)."""
     try:
-        return ctypes.addressof(ctypes.c_char.from_buffer(a))
+        return ctypes.addressof(ctypes.c_char.from_buffer(a))  # type: ignore[arg-type]  # ndarray is a buffer
     except (TypeError, ValueError):
         return a.__array_interface__["data"][0]
 
 
-def _f64(x, n) -> np.ndarray:
+def _f64(x: ArrayLike, n: int) -> np.ndarray:
     """A contiguous float64 array of n values (broadcast scalars), as the C loop reads it."""
     a = np.ascontiguousarray(x, dtype=np.float64)
     return a if a.shape == (n,) else np.ascontiguousarray(np.broadcast_to(a, (n,)))
@@ -157,8 +169,9 @@ def _f64(x, n) -> np.ndarray:
 class NativeSolver:
     """One forward grid (and optionally one inverse table) handed to C once; arrays kept alive here."""
 
-    def __init__(self, grid, inverse_cells: np.ndarray | None = None, inverse_frame: np.ndarray | None = None,
-                 inverse_shape: tuple[int, int, int] | None = None, inverse_log_sigma_t: np.ndarray | None = None):
+    def __init__(self, grid: ForwardGrid, inverse_cells: np.ndarray | None = None,
+                 inverse_frame: np.ndarray | None = None, inverse_shape: tuple[int, int, int] | None = None,
+                 inverse_log_sigma_t: np.ndarray | None = None) -> None:
         """grid: the forward grid the polish runs on; inverse_*: the table's guess slices, at its own σt
         nodes inverse_log_sigma_t (the forward grid may be finer in σt)."""
         keep = {name: np.ascontiguousarray(value, dtype=np.float64) for name, value in (
@@ -179,6 +192,8 @@ class NativeSolver:
             self._grid.model_var = _ptr(keep["model_var"])
         self._table = None
         if inverse_cells is not None:
+            if inverse_frame is None or inverse_shape is None or inverse_log_sigma_t is None:
+                raise ValueError("an inverse table needs its cells, frame, shape and σt nodes together")
             keep["cells"] = np.ascontiguousarray(inverse_cells, dtype=np.float64)
             keep["frame"] = np.ascontiguousarray(inverse_frame, dtype=np.float64)
             keep["table_log_sigma_t"] = np.ascontiguousarray(inverse_log_sigma_t, dtype=np.float64)
@@ -193,8 +208,9 @@ class NativeSolver:
         self._grid_ref = ctypes.byref(self._grid)
         self._table_ref = ctypes.byref(self._table) if self._table is not None else None
 
-    def solve(self, I_b, I_w, log_sigma_t, rho_b, rho_w, iterations, alpha0=None, g0=None, step_tol=0.0,
-              step_var=None):
+    def solve(self, I_b: ArrayLike, I_w: ArrayLike, log_sigma_t: np.ndarray, rho_b: ArrayLike, rho_w: ArrayLike,
+              iterations: int, alpha0: ArrayLike | None = None, g0: ArrayLike | None = None, step_tol: float = 0.0,
+              step_var: ArrayLike | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """(α, g, residual, J (n, 3, 3)) as ForwardGrid.solve_alpha_g returns them. ln σt is clamped to
         the grid in C (NaN → lowest node). Initial guess from the inverse table, or alpha0/g0 when
         given (then the table is not used)."""
@@ -203,19 +219,21 @@ class NativeSolver:
         use_table = alpha0 is None
         if use_table and self._table is None:
             raise ValueError("this solver has no inverse table: pass alpha0 and g0")
-        alpha = np.zeros(n) if use_table else _f64(alpha0, n).copy()
-        g = np.zeros(n) if use_table else _f64(g0, n).copy()
+        if (alpha0 is None) != (g0 is None):
+            raise ValueError("pass alpha0 and g0 together, or neither")
+        alpha = np.zeros(n) if alpha0 is None else _f64(alpha0, n).copy()
+        g = np.zeros(n) if g0 is None else _f64(g0, n).copy()
         residual = np.empty(n)
         J = np.empty((n, 3, 3))
         step_var = None if step_var is None else _f64(step_var, n)  # kept alive through the call
-        rc = _LIB.tm_solve_alpha_g(self._grid_ref, self._table_ref if use_table else None, n,
+        rc = _library().tm_solve_alpha_g(self._grid_ref, self._table_ref if use_table else None, n,
                                    *(_addr(a) for a in args), int(iterations), float(step_tol),
                                    None if step_var is None else _addr(step_var), _addr(alpha),
                                    _addr(g), _addr(residual), _addr(J))
         _check(rc)
         return alpha, g, residual, J
 
-    def _options(self, options: dict):
+    def _options(self, options: dict[str, Any]) -> Any:
         """The C options struct for fit()'s options, built once per distinct set: building a ctypes
         struct costs more than the dict lookup, most of all in a cold cache (one press-button
         measurement)."""
@@ -227,7 +245,9 @@ class NativeSolver:
             ref = self._fit_options[key] = ctypes.byref(_fit_options(**options))
         return ref
 
-    def fit(self, I_b, I_w, I_c, rho_b, rho_w, *, sd=None, alpha0=None, g0=None, **options):
+    def fit(self, I_b: np.ndarray, I_w: ArrayLike, I_c: ArrayLike, rho_b: ArrayLike, rho_w: ArrayLike, *,
+            sd: ArrayLike | None = None, alpha0: ArrayLike | None = None, g0: ArrayLike | None = None,
+            **options: Any) -> dict[str, Any]:
         """One thickness's whole fit in one call (invert.h `tm_fit`, api._fit_one's reference path
         operation for operation): a dict of the FitResult columns and `steps`, the Newton steps taken.
         sd: the intensities' stds (n, 3), or None for the noise model of `options`
@@ -235,18 +255,22 @@ class NativeSolver:
         n = len(I_b)
         args = [_f64(v, n) for v in (I_b, I_w, I_c, rho_b, rho_w)]
         sd = _stds(sd, n)
-        guess = [None, None] if alpha0 is None else [_f64(alpha0, n), _f64(g0, n)]
+        if (alpha0 is None) != (g0 is None):
+            raise ValueError("pass alpha0 and g0 together, or neither")
+        guess = [None, None] if alpha0 is None or g0 is None else [_f64(alpha0, n), _f64(g0, n)]
         if alpha0 is None and self._table is None:
             raise ValueError("this solver has no inverse table: pass alpha0 and g0")
         block, out = _fit_outputs(n)
-        steps = _LIB.tm_fit(self._grid_ref, self._table_ref if alpha0 is None else None, self._options(options), n,
-                            *(_addr(a) for a in args), None if sd is None else _addr(sd),
-                            *(None if v is None else _addr(v) for v in guess), _addr(block))
+        steps = _library().tm_fit(self._grid_ref, self._table_ref if alpha0 is None else None, self._options(options),
+                                  n, *(_addr(a) for a in args), None if sd is None else _addr(sd),
+                                  *(None if v is None else _addr(v) for v in guess), _addr(block))
         _check(steps)
         out["steps"] = int(steps)
         return out
 
-    def fit_guessed(self, I_b, I_w, I_c, rho_b, rho_w, guess, log_sigma_range, *, sd=None, **options):
+    def fit_guessed(self, I_b: np.ndarray, I_w: ArrayLike, I_c: ArrayLike, rho_b: ArrayLike, rho_w: ArrayLike,
+                    guess: Callable[[np.ndarray], ArrayLike], log_sigma_range: tuple[float, float], *,
+                    sd: ArrayLike | None = None, **options: Any) -> dict[str, Any]:
         """fit() with the initial (α, g) from guess(features) → (n, 2), e.g. the MLP: the bins are
         prepared once (invert.h `tm_fit_prepare`, which also writes the features, mlp.features with
         ln σt clamped to log_sigma_range), then solved from that guess (`tm_fit_solve`; where the
@@ -255,25 +279,25 @@ class NativeSolver:
         args = [_f64(v, n) for v in (I_b, I_w, I_c, rho_b, rho_w)]
         sd = _stds(sd, n)
         block, out = _fit_outputs(n)
-        scratch = np.empty(_LIB.tm_fit_scratch_size(n), dtype=np.uint8)
+        scratch = np.empty(_library().tm_fit_scratch_size(n), dtype=np.uint8)
         features = np.empty((n, 5), dtype=np.float32)
         opts = self._options(options)
-        _LIB.tm_fit_prepare(self._grid_ref, opts, n, *(_addr(a) for a in args), None if sd is None else _addr(sd),
+        _library().tm_fit_prepare(self._grid_ref, opts, n, *(_addr(a) for a in args), None if sd is None else _addr(sd),
                             _addr(scratch), _addr(block),
                             *map(float, log_sigma_range), _addr(features))
         guessed = np.asarray(guess(features))
         if guessed.shape != (n, 2):
             raise ValueError(f"the guess must be (n, 2) = ({n}, 2), got {guessed.shape}")
         alpha0, g0 = _f64(guessed[:, 0], n), _f64(guessed[:, 1], n)
-        steps = _LIB.tm_fit_solve(self._grid_ref, self._table_ref, opts, n, _addr(alpha0), _addr(g0), _addr(scratch),
-                                  _addr(block))
+        steps = _library().tm_fit_solve(self._grid_ref, self._table_ref, opts, n, _addr(alpha0), _addr(g0),
+                                        _addr(scratch), _addr(block))
         _check(steps)
         out["steps"] = int(steps)
         out["features"] = features
         return out
 
 
-def _fit_outputs(n: int):
+def _fit_outputs(n: int) -> tuple[np.ndarray, dict[str, Any]]:
     """tm_fit's output block (rows invert_h.OUTPUT_ROWS; flags int64): one allocation, one address;
     and the FitResult columns as its rows."""
     block = np.empty((len(_OUTPUT_ROWS), n))
@@ -282,16 +306,18 @@ def _fit_outputs(n: int):
     return block, out
 
 
-def _fit_options(*, noise_rel, noise_abs, mc_stderr, ic_floor, alpha_min_g, input_tolerance, ref_rho, t_max, t_valid,
-                 iterations, step_tol, step_tol_std, underdetermined_std, thickness_rel_std,
-                 inscatter_rel_std, std_check) -> _FitOptionsC:
+def _fit_options(*, noise_rel: float, noise_abs: float, mc_stderr: float, ic_floor: float, alpha_min_g: float,
+                 input_tolerance: float, ref_rho: tuple[float, float], t_max: float, t_valid: float, iterations: int,
+                 step_tol: float, step_tol_std: float, underdetermined_std: tuple[float, float],
+                 thickness_rel_std: float, inscatter_rel_std: float,
+                 std_check: tuple[float, float, float, float]) -> _FitOptionsC:
     """std_check: (α std, g std, σs, tolerance) of the STD_APPROXIMATE check (api.STD_CHECK_*)."""
     return _FitOptionsC(noise_rel, noise_abs, mc_stderr, ic_floor, alpha_min_g, input_tolerance, *ref_rho, t_max,
                         t_valid, step_tol, step_tol_std, *underdetermined_std, thickness_rel_std, inscatter_rel_std,
                         *std_check, iterations)
 
 
-def _stds(sd, n):
+def _stds(sd: ArrayLike | None, n: int) -> np.ndarray | None:
     """The intensities' stds as the C side reads them (n × 3, contiguous), or None."""
     if sd is None:
         return None
@@ -316,14 +342,16 @@ def _check(rc: int) -> None:
         raise ValueError("native kernel refused the grid (fewer than 2 nodes on an axis, or table/grid mismatch)")
 
 
-def propagate(J: np.ndarray, sigma_I: np.ndarray, sigma_t_var: np.ndarray | None = None):
+def propagate(J: np.ndarray, sigma_I: np.ndarray,
+              sigma_t_var: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
     """(std α, std σt, std g) — ForwardGrid.propagate in C."""
     n = len(J)
     J = np.ascontiguousarray(J, dtype=np.float64)
     sigma_I = np.ascontiguousarray(sigma_I, dtype=np.float64)
     extra = None if sigma_t_var is None else _f64(sigma_t_var, n)
     out = [np.empty(n) for _ in range(3)]
-    _LIB.tm_propagate(n, _addr(J), _addr(sigma_I), None if extra is None else _addr(extra), *(_addr(o) for o in out))
+    _library().tm_propagate(n, _addr(J), _addr(sigma_I), None if extra is None else _addr(extra),
+                            *(_addr(o) for o in out))
     return tuple(out)
 
 
@@ -333,7 +361,7 @@ def combine(fits: np.ndarray, underdetermined_std: tuple[float, float], disagree
     k, _, n = fits.shape
     fits = np.ascontiguousarray(fits, dtype=np.float64)
     out = np.empty(fits.shape[1:])
-    _LIB.tm_combine(k, n, _addr(fits), *underdetermined_std, disagree_sigmas, _addr(out))
+    _library().tm_combine(k, n, _addr(fits), *underdetermined_std, disagree_sigmas, _addr(out))
     return out
 
 
@@ -347,7 +375,7 @@ class TableFitter:
     library: another build of the kernel (a path; e.g. the single-precision one a test compiles),
     else the package's library."""
 
-    def __init__(self, table_bytes: bytes, library: str | Path | None = None):
+    def __init__(self, table_bytes: bytes, library: str | Path | None = None) -> None:
         from trimeter.errors import MapFileError
 
         lib = _LIB if library is None else _bind(ctypes.CDLL(str(library)))
@@ -364,7 +392,8 @@ class TableFitter:
                                "section directory, axes or scales)")
         self.reference_rhos = tuple(float(x) for x in np.frombuffer(data, dtype="<f4", count=2, offset=92))
 
-    def fit(self, I_b, I_w, I_c, rho_b=None, rho_w=None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def fit(self, I_b: ArrayLike, I_w: ArrayLike, I_c: ArrayLike, rho_b: ArrayLike | None = None,
+            rho_w: ArrayLike | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """(α, σt [1/mm], g, flags (int64)) per bin; rho_b, rho_w default to the table's reference
         backgrounds. Arrays broadcast against each other."""
         rb, rw = self.reference_rhos
