@@ -18,6 +18,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
+from trimeter.domain.parameters import FitResult
 from trimeter.errors import InputError
 
 # the targets for a fit from the table alone (noise-free rendered held-out references)
@@ -61,16 +62,16 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--library: no such file: {args.library}")
     fitter = native.TableFitter(data, library=args.library)
 
-    def table_fit(ib, iw, ic):
+    def table_fit(ib: np.ndarray, iw: np.ndarray, ic: np.ndarray) -> SimpleNamespace:
         alpha, sigma_t, g, flags = fitter.fit(ib, iw, ic)
         return SimpleNamespace(alpha=alpha, sigma_t=sigma_t, g=g, flags=flags, alpha_std=np.full_like(alpha, np.nan))
 
-    def map_fit(ib, iw, ic):
+    def map_fit(ib: np.ndarray, iw: np.ndarray, ic: np.ndarray) -> FitResult:
         return trimeter.fit(amap, ib, iw, ic, method="lut")
 
     refined_model = table.fit_model()
 
-    def refined_fit(ib, iw, ic):
+    def refined_fit(ib: np.ndarray, iw: np.ndarray, ic: np.ndarray) -> FitResult:
         return api.fit(refined_model, ib, iw, ic, method="lut")
 
     precision = "double" if args.library is None else args.library.name

@@ -54,6 +54,7 @@ import zlib
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
+from typing import TYPE_CHECKING, Any, NoReturn
 
 import numpy as np
 
@@ -65,6 +66,10 @@ from trimeter.model.inscatter import InscatterTable
 from trimeter.model.response import background_response
 from trimeter.model.setup import SampleSetup
 from trimeter.registers import MAP_SLOT_CAPACITY_BYTES, MapSlot
+
+if TYPE_CHECKING:
+    from trimeter.device.client import Device
+    from trimeter.maps.appearance import AppearanceMap
 
 MAGIC = b"\x89TRLUT\r\n"
 FORMAT_VERSION = 2
@@ -87,7 +92,8 @@ def _padded(n: int) -> int:
     return -(-n // ALIGN) * ALIGN
 
 
-def _layout(na: int, ns: int, ng: int, n_inv: int, nu: int, nt: int, nv: int, geometry_bytes: int):
+def _layout(na: int, ns: int, ng: int, n_inv: int, nu: int, nt: int, nv: int,
+            geometry_bytes: int) -> tuple[dict[str, tuple[int, int, str, tuple[int, ...]]], int]:
     """{section: (offset, nbytes, dtype, shape)} and the total size, from the counts alone."""
     specs = {"alpha": ("<f4", (na,)), "log_sigma_t": ("<f4", (ns,)), "g": ("<f4", (ng,)),
              "scales": ("<f4", (len(SCALE_ROWS), 2)), "spline": ("<u2", (ng, na, ns, 3)),
@@ -153,10 +159,11 @@ class DeviceTable:
     # ------------------------------------------------------------------------------------ build
     @classmethod
     def build(cls, *, name: str, parent_sha256: str, inscatter_sha256: str, n: float, thickness_mm: float,
-              cover_slide_n: float | None, reference_rhos: tuple[float, float], mc_stderr: float, alpha, log_sigma_t,
-              g, nodes: np.ndarray, model_std: np.ndarray, inscatter_L: np.ndarray,
+              cover_slide_n: float | None, reference_rhos: tuple[float, float], mc_stderr: float,
+              alpha: np.ndarray, log_sigma_t: np.ndarray, g: np.ndarray, nodes: np.ndarray, model_std: np.ndarray,
+              inscatter_L: np.ndarray,
               inscatter_ends: tuple[float, float, float], inv_frame: np.ndarray, inv_alpha_q: np.ndarray,
-              inv_g_q: np.ndarray, geometry: dict) -> DeviceTable:
+              inv_g_q: np.ndarray, geometry: dict[str, Any]) -> DeviceTable:
         """From float arrays: A, B, C at the map's nodes (na, ns, ng, 3), the model error stds
         (na, ns, ng, 2), L (nu, nt, nv); the inverse grid already as v1 codes (u16)."""
         a32, s32, g32 = (np.asarray(x, dtype=np.float32) for x in (alpha, log_sigma_t, g))
@@ -331,7 +338,7 @@ class DeviceTable:
     def from_bytes(cls, data: bytes, source: str = "device table") -> DeviceTable:
         data = bytes(data)
 
-        def fail(name: str, why: str):
+        def fail(name: str, why: str) -> NoReturn:
             raise MapFileError(f"{source}: {name}: {why}")
 
         if len(data) > MAX_BYTES:
@@ -440,7 +447,7 @@ def table_path_for(map_path: str | Path) -> Path:
     return Path(map_path).with_suffix(SUFFIX)
 
 
-def map_model_variance(amap) -> tuple:
+def map_model_variance(amap: AppearanceMap) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """The map's own error variance of (I_b, I_w) at its nodes, at its reference backgrounds:
     (variances (na, ns, ng, 2), α, ln σt, g axes) for ForwardGrid.attach_model_variance."""
     rb, rw = amap.reference_rhos
@@ -451,7 +458,8 @@ def map_model_variance(amap) -> tuple:
 
 
 # A map without the device's in-scattering (an ideal map) stores the smallest all-zero section: no correction.
-_NO_INSCATTER = (np.zeros((2, 2, 2)), (1.0, 1.0, 1.0), {})
+_NO_INSCATTER: tuple[np.ndarray, tuple[float, float, float], dict[str, Any]] = (
+    np.zeros((2, 2, 2)), (1.0, 1.0, 1.0), {})
 
 
 def largest_inverse_side(na: int, ns: int, ng: int, inscatter_shape: tuple[int, int, int], geometry_len: int) -> int:
@@ -462,7 +470,7 @@ def largest_inverse_side(na: int, ns: int, ng: int, inscatter_shape: tuple[int, 
     return max(fits)
 
 
-def too_coarse(amap) -> str | None:
+def too_coarse(amap: AppearanceMap) -> str | None:
     """Why a map cannot have a device table (too few nodes for its splines), or None."""
     shape = amap.A.shape
     if any(n < least for n, least in zip(shape, MIN_NODES, strict=True)):
@@ -471,7 +479,7 @@ def too_coarse(amap) -> str | None:
     return None
 
 
-def build_from_map(amap, n_inverse: int | None = None) -> DeviceTable:
+def build_from_map(amap: AppearanceMap, n_inverse: int | None = None) -> DeviceTable:
     """The device table of an AppearanceMap and its in-scattering table (.tins, when the map has one);
     n_inverse: the inverse grid's side (default: the largest that fits the slot)."""
     from trimeter.maps.table import inverse_grid
@@ -490,9 +498,10 @@ def build_from_map(amap, n_inverse: int | None = None) -> DeviceTable:
         tins_sha = tins.checksum or ""
     na, ns, ng = amap.A.shape
     geometry_len = len(geometry_bytes(geometry))
+    nu, nt, nv = L.shape
     if n_inverse is None:
-        n_inverse = largest_inverse_side(na, ns, ng, L.shape, geometry_len)
-    elif n_inverse < 2 or table_size(na, ns, ng, n_inverse, *L.shape, geometry_len) > MAX_BYTES:
+        n_inverse = largest_inverse_side(na, ns, ng, (nu, nt, nv), geometry_len)
+    elif n_inverse < 2 or table_size(na, ns, ng, n_inverse, nu, nt, nv, geometry_len) > MAX_BYTES:
         raise MapFileError(f"an inverse grid of {n_inverse}×{n_inverse} is below 2×2 or does not fit the "
                            f"{MAX_BYTES}-byte slot")
     # the inverse slices over the map's own σt nodes, the axes the table stores
@@ -521,7 +530,7 @@ class DeviceTableModel:
 
     paper_cache = None
 
-    def __init__(self, table: DeviceTable, inverter: TableInverter | None = None):
+    def __init__(self, table: DeviceTable, inverter: TableInverter | None = None) -> None:
         """inverter: another guess-and-polish over this table (default: TableInverter on it, its
         forward model refined at load by ForwardGrid.between_nodes)."""
         self.table = table
@@ -537,12 +546,12 @@ class DeviceTableModel:
         return self.inverter.grid
 
     @property
-    def map(self):
+    def map(self) -> NoReturn:
         where = f" ({self.table.path})" if self.table.path else ""
         raise MapFileError(f"{self.name}: a device table{where} carries no appearance map; the paper method needs "
                            f"the map (.tmap): fit from the table with method lut")
 
-    def mlp(self, model=None):
+    def mlp(self, model: str | Path | None = None) -> NoReturn:
         raise MapFileError(f"{self.name}: a device table carries no MLP model; fit from it with method lut")
 
 
@@ -580,7 +589,7 @@ def _cached(directory: Path, length: int, head: bytes, tail_at: int, tail: bytes
     return None
 
 
-def instrument_table(device, cache: Path | None = None) -> tuple[DeviceTable, str, bool]:
+def instrument_table(device: Device, cache: Path | None = None) -> tuple[DeviceTable, str, bool]:
     """The table in the device's active map slot, (table, slot name, read from the cache). The slot's
     header and trailing CRC-32 (a few hundred bytes) find it in the cache; otherwise the whole slot is
     read, checked and cached (atomically, by its SHA-256). `device`: a trimeter.device.Device.

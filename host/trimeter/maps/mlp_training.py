@@ -15,9 +15,16 @@ Needs the `maps` extra (scikit-learn, onnx).
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TypedDict
+from typing import TYPE_CHECKING, Any, TypedDict
 
 import numpy as np
+from numpy.typing import ArrayLike
+
+if TYPE_CHECKING:
+    import onnx
+
+    from trimeter.maps.appearance import AppearanceMap
+
 
 # The size is chosen on `trimeter bench fit` (its mlp rows per shipped network); jitter: a quarter of the
 # fit's default noise model, enough to keep the guess smooth across noisy bins without blurring it.
@@ -34,7 +41,8 @@ DEFAULTS: TrainingDefaults = {"hidden": (32, 32), "samples": 120000, "epochs": 4
                               "jitter": 0.25}
 
 
-def training_set(amap, n: int, rng: np.random.Generator, jitter: float = 0.0):
+def training_set(amap: AppearanceMap, n: int, rng: np.random.Generator,
+                 jitter: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """(network inputs (n, 5) float32, targets (α, g) (n, 2) float32); jitter: the intensities' noise as a
     fraction of the fit's default noise model (σ_I = 0.005·I + 2e-4)."""
     from trimeter.inversion.mlp import ScatterRange, features, network_inputs
@@ -43,7 +51,7 @@ def training_set(amap, n: int, rng: np.random.Generator, jitter: float = 0.0):
     a_lo, a_hi = grid.alpha_range
     u = rng.uniform(0, 1, n)
     alpha = np.where(rng.uniform(0, 1, n) < 0.5, a_lo + (a_hi - a_lo) * u, a_hi - (a_hi - a_lo) * u ** 2)
-    log_s = rng.uniform(grid.log_sigma_t[0], grid.log_sigma_t[-1], n)
+    log_s = rng.uniform(float(grid.log_sigma_t[0]), float(grid.log_sigma_t[-1]), n)
     g = rng.uniform(*grid.g_range, n)
     rho_b = rng.uniform(0.0, 0.1, n)
     rho_w = rng.uniform(0.85, 1.0, n)
@@ -56,8 +64,9 @@ def training_set(amap, n: int, rng: np.random.Generator, jitter: float = 0.0):
     return network_inputs(x, ScatterRange(grid)), np.column_stack([alpha, g]).astype(np.float32)
 
 
-def train(amap, hidden=DEFAULTS["hidden"], samples=DEFAULTS["samples"], epochs=DEFAULTS["epochs"],
-          seed=DEFAULTS["seed"], activation=DEFAULTS["activation"], jitter=DEFAULTS["jitter"]):
+def train(amap: AppearanceMap, hidden: tuple[int, ...] = DEFAULTS["hidden"], samples: int = DEFAULTS["samples"],
+          epochs: int = DEFAULTS["epochs"], seed: int = DEFAULTS["seed"], activation: str = DEFAULTS["activation"],
+          jitter: float = DEFAULTS["jitter"]) -> tuple[Any, dict[str, float]]:
     from sklearn.neural_network import MLPRegressor
     from sklearn.pipeline import make_pipeline
     from sklearn.preprocessing import StandardScaler
@@ -78,7 +87,7 @@ def train(amap, hidden=DEFAULTS["hidden"], samples=DEFAULTS["samples"], epochs=D
                    "g_abs_p95": float(np.percentile(err[:, 1], 95))}
 
 
-def network_graph(model):
+def network_graph(model: Any) -> onnx.ModelProto:
     """The fitted StandardScaler + MLPRegressor pipeline as a plain ONNX graph: Gemm, activation, …,
     Gemm, with the scaler folded into the first layer (W₁' = diag(1/scale)·W₁,
     b₁' = b₁ − (mean/scale)·W₁).
@@ -118,7 +127,7 @@ def network_graph(model):
     return onx
 
 
-def flush_subnormals(values) -> np.ndarray:
+def flush_subnormals(values: ArrayLike) -> np.ndarray:
     """float32 weights with subnormal values set to zero: they change no prediction beyond float32 rounding,
     but onnxruntime's CPU kernels take the processor's slow path on them, several times slower."""
     out = np.asarray(values, dtype=np.float32).copy()
@@ -126,7 +135,8 @@ def flush_subnormals(values) -> np.ndarray:
     return out
 
 
-def export(model, amap, path: Path, hidden, stats: dict, producer: dict | None = None) -> Path:
+def export(model: Any, amap: AppearanceMap, path: Path, hidden: tuple[int, ...], stats: dict[str, float],
+           producer: dict[str, str] | None = None) -> Path:
     """Write the network as ONNX (atomically), its metadata naming the parent map's SHA-256 and the
     producer (name, version), after checking it reproduces scikit-learn's predictions."""
     import onnx
