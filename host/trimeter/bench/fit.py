@@ -42,7 +42,10 @@ import inspect
 import json
 import time
 import tracemalloc
+from collections.abc import Callable, Sequence
 from pathlib import Path
+from types import SimpleNamespace
+from typing import TYPE_CHECKING, Any, TypedDict
 
 import numpy as np
 
@@ -50,6 +53,25 @@ from trimeter.atomic import atomic_output, atomic_write
 from trimeter.model.collimated import MEASURABLE_IC
 from trimeter.inversion.flags import FitFlag
 from trimeter.paths import MAPS_DIR
+
+if TYPE_CHECKING:
+    import argparse
+
+    from trimeter.domain.parameters import FitResult
+    from trimeter.maps.appearance import AppearanceMap
+    from trimeter.inversion.api import FitModel
+    from trimeter.maps.artifacts import ArtifactCache
+
+    # (label, method name, fit options, the map's loaded artifacts)
+    Variant = tuple[str, str, dict[str, Any], FitModel]
+    Heldout = dict[str, np.ndarray]  # a held-out set's arrays by name
+    Row = dict[str, Any]  # one printed and reported row of figures
+
+
+class PolishOptions(TypedDict):
+    polish: int
+    polish_tol: float
+
 
 HELDOUT_DIR = MAPS_DIR / "heldout"
 # used when no shipped map has a held-out set: the shipped ideal map, never a test fixture
@@ -60,11 +82,11 @@ ALPHA_TARGET, G_TARGET = 0.01, 0.015
 # and its speed and σt targets: ≥ 50× paper's plain interpolation, ms per 1024 bins, σt relative p95
 SPEEDUP_TARGET, MS_TARGET, SIGMA_REL_TARGET = 50.0, {"lut": 1.0, "mlp": 2.0}, 0.01
 G_MIN_ALPHA = 0.5  # g is scored over α ≥ 0.5 only (below, g barely changes the intensities)
-DEFAULT_POLISH = dict(polish=8, polish_tol=1e-6)  # trimeter.fit's defaults
+DEFAULT_POLISH = PolishOptions(polish=8, polish_tol=1e-6)  # trimeter.fit's defaults
 SMALL_INVERSE = 8  # the lut-small variant's inverse grid side: a half-slot device table
 
 
-def register(bench_subparsers) -> None:
+def register(bench_subparsers: argparse._SubParsersAction) -> None:
     p = bench_subparsers.add_parser("fit", help="inversion: time per 1024 bins against error, ratios to paper",
                                     description=__doc__.split("\n\n")[0])
     p.add_argument("--map", dest="maps", action="append",
@@ -81,7 +103,7 @@ def register(bench_subparsers) -> None:
     p.set_defaults(func=run)
 
 
-def _maps(specs):
+def _maps(specs: Sequence[str] | None) -> list[AppearanceMap]:
     from trimeter.maps.appearance import AppearanceMap, find_map, shipped_maps
 
     if specs:
@@ -90,7 +112,7 @@ def _maps(specs):
     return found or [AppearanceMap.load(IDEAL_FALLBACK)]
 
 
-def heldout_for(amap):
+def heldout_for(amap: AppearanceMap) -> tuple[Path, dict[str, Any], Heldout]:
     from trimeter.errors import MapFileError
     from trimeter.maps.container import read_container
 
@@ -105,7 +127,7 @@ def heldout_for(amap):
                        f"make one with tools/make_heldout.py")
 
 
-def _variants(amap, cache, small_cache):
+def _variants(amap: AppearanceMap, cache: ArtifactCache, small_cache: ArtifactCache) -> list[Variant]:
     """(label, method, fit options, artifacts) per variant, from the method table: each method's
     bench variants, one set per artifact file a method needs (e.g. every <map>*.onnx for mlp), and the
     lut on the small table (the same fit with another table injected)."""
@@ -113,15 +135,16 @@ def _variants(amap, cache, small_cache):
     from trimeter.inversion.methods import METHODS
 
     artifacts, small = cache.get(amap), small_cache.get(amap)
-    variants = []
+    variants: list[Variant] = []
     for method in sorted(METHODS.values(), key=lambda m: not m.joint):  # the paper baseline first
-        sets = [(method.name, {})]
+        sets: list[tuple[str, dict[str, Any]]] = [(method.name, {})]
         if method.needs:
             sets = []
             for suffix in method.needs:
-                files = sorted(amap.path.parent.glob(f"{amap.path.stem}*{suffix}")) if amap.path is not None else []
+                stem = amap.path.stem if amap.path is not None else ""
+                files = sorted(amap.path.parent.glob(f"{stem}*{suffix}")) if amap.path is not None else []
                 for model in files:
-                    tag = model.stem[len(amap.path.stem):].lstrip("-.")
+                    tag = model.stem[len(stem):].lstrip("-.")
                     try:
                         artifacts.mlp(model)
                     except MapFileError as exc:  # e.g. the map was rebuilt since: report it, bench the rest
@@ -131,17 +154,18 @@ def _variants(amap, cache, small_cache):
         for label, extra in sets:
             for suffix, options in method.bench_variants:
                 name = f"{label}{suffix}" if suffix.startswith("-") or not suffix else f"{label} {suffix}"
-                polish = {} if method.joint else DEFAULT_POLISH
+                polish: dict[str, Any] = {} if method.joint else dict(DEFAULT_POLISH)
                 variants.append((name, method.name, {**polish, **options, **extra}, artifacts))
         if method.name == "lut":
             variants += [("lut-small p0", "lut", dict(polish=0, polish_tol=0.0), small),
-                         ("lut-small p≤8", "lut", DEFAULT_POLISH, small)]
+                         ("lut-small p≤8", "lut", dict(DEFAULT_POLISH), small)]
     return variants
 
 
-def _array_bytes(*objects) -> int:
+def _array_bytes(*objects: object) -> int:
     """Bytes of the numpy arrays held by objects (their attributes one level down, tuples and lists too)."""
-    seen, total = set(), 0
+    seen: set[int] = set()
+    total = 0
     for obj in objects:
         for value in vars(obj).values():
             for v in value if isinstance(value, (tuple, list)) else (value,):
@@ -151,7 +175,7 @@ def _array_bytes(*objects) -> int:
     return total
 
 
-def _variant_bytes(variant) -> tuple[int, int]:
+def _variant_bytes(variant: Variant) -> tuple[int, int]:
     """(bytes of the files the variant reads, bytes of the model it solves on in memory)."""
     from trimeter.inversion.methods import get_method
 
@@ -159,8 +183,8 @@ def _variant_bytes(variant) -> tuple[int, int]:
     amap = artifacts.map
     path = amap.path
     if get_method(method).joint:  # the paper method interpolates the map's nodes
-        files = [path] if path is not None else []
-        return sum(p.stat().st_size for p in files), _array_bytes(amap)
+        paths = [path] if path is not None else []
+        return sum(p.stat().st_size for p in paths), _array_bytes(amap)
     inverter = artifacts.inverter
     files = sum(path.with_suffix(suffix).stat().st_size for suffix in (".tins",)
                 if path is not None and path.with_suffix(suffix).is_file())
@@ -172,7 +196,7 @@ def _variant_bytes(variant) -> tuple[int, int]:
     return files, model
 
 
-def _peak_bytes(fn) -> int:
+def _peak_bytes(fn: Callable[[], object]) -> int:
     """Peak of the Python heap (numpy arrays included) during fn(), above what was allocated before."""
     tracemalloc.start()
     try:
@@ -182,14 +206,16 @@ def _peak_bytes(fn) -> int:
         tracemalloc.stop()
 
 
-def _fit_variant(variant, I_b, I_w, I_c, rho_b=None, rho_w=None):
+def _fit_variant(variant: Variant, I_b: np.ndarray, I_w: np.ndarray, I_c: np.ndarray, rho_b: np.ndarray | None = None,
+                 rho_w: np.ndarray | None = None) -> FitResult:
     from trimeter.inversion.api import fit
 
     _, method, kw, artifacts = variant
     return fit(artifacts, I_b, I_w, I_c, rho_b, rho_w, method=method, **kw)
 
 
-def _core(variant, I_b, I_w, I_c, rb, rw):
+def _core(variant: Variant, I_b: np.ndarray, I_w: np.ndarray, I_c: np.ndarray, rb: float,
+          rw: float) -> Callable[[], object] | None:
     """The inversion kernel alone, without input validation, flags and uncertainty: paper = the
     scipy interpolator call; a guess-and-polish method = σt from I_c + its guess (the table's, or its
     guesser's: the network for mlp) + polish. None for another whole-fit method (not timed)."""
@@ -222,7 +248,7 @@ def _core(variant, I_b, I_w, I_c, rb, rw):
                                      step_var=step_var())
     net = strategy.guesser(artifacts, kw)
 
-    def run():
+    def run() -> tuple[np.ndarray, ...]:
         s = sigma()
         a0, g0 = net.predict(I_b, I_w, s, rho_b, rho_w)
         return kernel.solve_alpha_g(grid, I_b, I_w, grid.sigma_cell(s), rho_b, rho_w, a0, g0, iterations=polish,
@@ -230,21 +256,22 @@ def _core(variant, I_b, I_w, I_c, rb, rw):
     return run
 
 
-def heldout_intensities(h, rho_b, rho_w):
+def heldout_intensities(h: Heldout, rho_b: float | np.ndarray,
+                        rho_w: float | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(I_b, I_w) of the held-out materials at the backgrounds, from their rendered A, B, C."""
     from trimeter.model.response import background_response
 
     return background_response(h["A"], h["B"], h["C"], rho_b), background_response(h["A"], h["B"], h["C"], rho_w)
 
 
-def heldout_collimated(amap, h, index=slice(None)):
+def heldout_collimated(amap: AppearanceMap, h: Heldout, index: slice | np.ndarray = slice(None)) -> np.ndarray:
     """I_c of the held-out materials: the unscattered beam, and the light scattered into the detector's
     aperture where the set has it traced (tools/make_heldout.py --inscatter)."""
     unscattered = amap.collimated(h["sigma_t"][index])
     return unscattered * np.exp(h["inscatter_log1p"][index]) if "inscatter_log1p" in h else unscattered
 
 
-def _solve_alpha_g(J, d_b, d_w):
+def _solve_alpha_g(J: np.ndarray, d_b: np.ndarray, d_w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """First-order (δα, δg) from intensity offsets (δI_b, δI_w) at known σt: J2⁻¹ δI with J2 =
     ∂(I_b, I_w)/∂(α, g) (Cramer's rule, vectorized); ±inf where J2 is singular."""
     a, b, c, d = J[:, 0, 0], J[:, 0, 2], J[:, 1, 0], J[:, 1, 2]
@@ -254,7 +281,8 @@ def _solve_alpha_g(J, d_b, d_w):
     return np.nan_to_num(da, nan=np.inf), np.nan_to_num(dg, nan=np.inf)
 
 
-def error_budget(amap, h, rho_b, rho_w, artifacts=None):
+def error_budget(amap: AppearanceMap, h: Heldout, rho_b: float, rho_w: float,
+                 artifacts: FitModel | None = None) -> dict[str, Any]:
     """Per held-out material, what limits the rendered-reference figures (see the module docstring):
     reference noise floor (first-order α / g std from the renders' MC std-error), map error floor
     (first-order signed α / g error of an exact map inversion: map forward − rendered intensities),
@@ -292,14 +320,14 @@ def error_budget(amap, h, rho_b, rho_w, artifacts=None):
             "well_g": g_scored & (g_std < G_TARGET / 2)}
 
 
-def _pct(x, q):
+def _pct(x: np.ndarray, q: float) -> float:
     x = np.asarray(x, dtype=float)
     x = x[~np.isnan(x)]
     return float(np.percentile(x, q)) if len(x) else float("nan")
 
 
-def _budget_summary(b):
-    def p50_p95(key, mask):
+def _budget_summary(b: dict[str, Any]) -> dict[str, dict[str, float]]:
+    def p50_p95(key: str, mask: np.ndarray) -> dict[str, float]:
         x = np.abs(b[key][mask])
         return {f"{key.split('_')[0]}_p50": _pct(x, 50), f"{key.split('_')[0]}_p95": _pct(x, 95)}
 
@@ -317,7 +345,9 @@ def _budget_summary(b):
     }
 
 
-def _stats(res, truth, budget):
+def _stats(res: FitResult | SimpleNamespace, truth: tuple[np.ndarray, ...], budget: dict[str, Any]) -> Row:
+    """Error figures of a fit's columns (a FitResult, or any result with its alpha, sigma_t, g, flags and
+    alpha_std) against the true (α, σt, g)."""
     a, s, g = truth
     measurable = budget["measurable"]
     ea = np.abs(res.alpha - a)
@@ -343,10 +373,12 @@ def _stats(res, truth, budget):
             "measurable": int(measurable.sum())}
 
 
-def _bench_case(variants, truth, budget, intensities, label, level, args):
+def _bench_case(variants: list[Variant], truth: tuple[np.ndarray, ...], budget: dict[str, Any],
+                intensities: tuple[np.ndarray, ...], label: str, level: float, args: argparse.Namespace) -> list[Row]:
     """Score and time every variant on one set of intensities; returns one row per variant."""
     I_b, I_w, I_c = intensities
-    rows, timers = [], []  # timers: (row, key, fn, scale), timed round-robin below
+    rows: list[Row] = []
+    timers: list[tuple[Row, str, Callable[[], object], float]] = []  # (row, key, fn, scale): timed round-robin
     tile = np.resize(np.arange(len(I_b)), 1024)
     rb, rw = budget["rho"]
     for variant in variants:
@@ -361,8 +393,9 @@ def _bench_case(variants, truth, budget, intensities, label, level, args):
         idx = tile[:nb]
         sub = (I_b[idx], I_w[idx], I_c[idx])
         _fit_variant(variant, *sub)  # warm: the peak is the call's own, not the first load's
-        st["peak_kB"] = _peak_bytes(lambda variant=variant, sub=sub: _fit_variant(variant, *sub)) * 1024 / nb / 1e3
-        timers.append((st, "ms_per_1024", lambda variant=variant, sub=sub: _fit_variant(variant, *sub), 1024 / nb))
+        whole_fit = functools.partial(_fit_variant, variant, *sub)
+        st["peak_kB"] = _peak_bytes(whole_fit) * 1024 / nb / 1e3
+        timers.append((st, "ms_per_1024", whole_fit, 1024 / nb))
         core = None if name == "paper-median" else _core(variant, *sub, rb, rw)
         if core is None:
             st["core_ms_per_1024"] = float("nan")
@@ -389,7 +422,8 @@ def _bench_case(variants, truth, budget, intensities, label, level, args):
     return rows
 
 
-def hull_split(artifacts, I_b, I_w, I_c, rb, rw, repeats):
+def hull_split(artifacts: FitModel, I_b: np.ndarray, I_w: np.ndarray, I_c: np.ndarray, rb: float, rw: float,
+               repeats: int) -> dict[str, float]:
     """The paper method's time depends on where its inputs fall: scipy's Delaunay search rejects a
     point outside the hull's bounding box at once, but one inside the box and outside the hull costs
     a brute-force pass over every simplex (~0.3 ms). So: paper core and whole fit() against lut's
@@ -399,12 +433,12 @@ def hull_split(artifacts, I_b, I_w, I_c, rb, rw, repeats):
 
     interp = interpolator(artifacts.map, round(rb, 3), round(rw, 3), artifacts.paper_cache)
     pts = coordinates(I_b, I_w, I_c)
-    inside = interp.tri.find_simplex(pts) >= 0
-    out = {"outside_hull": int((~inside).sum()), "of": len(inside)}
+    inside = interp.tri.find_simplex(pts) >= 0  # type: ignore[attr-defined]  # scipy sets .tri; its stubs omit it
+    out: dict[str, float] = {"outside_hull": int((~inside).sum()), "of": len(inside)}
     if not inside.any():
         return out
     idx = np.resize(np.flatnonzero(inside), 1024)
-    calls = {"paper_core_ms": lambda: interp(pts[idx]),
+    calls: dict[str, Callable[[], object]] = {"paper_core_ms": lambda: interp(pts[idx]),
              "paper_ms": lambda: fit(artifacts, I_b[idx], I_w[idx], I_c[idx], method="paper", samples=0),
              "lut_ms": lambda: fit(artifacts, I_b[idx], I_w[idx], I_c[idx], method="lut", **DEFAULT_POLISH)}
     for key, fn in calls.items():
@@ -413,7 +447,7 @@ def hull_split(artifacts, I_b, I_w, I_c, rb, rw, repeats):
     return out
 
 
-def two_thicknesses(amaps, repeats):
+def two_thicknesses(amaps: list[AppearanceMap], repeats: int) -> dict[str, Any]:
     """The paper's own procedure (Sec. 4.3): the same materials at every thickness, fitted together.
     Only when the held-out sets hold the same materials (same seed and grid); scored over the
     materials measurable at any thickness (g over α ≥ 0.5). Rows: paper (plain, pooled), lut p≤8,
@@ -436,11 +470,11 @@ def two_thicknesses(amaps, repeats):
     print(f"\n== two thicknesses: {names} — {len(a)} materials, {int(measurable.sum())} measurable at either thickness")
     print(f"   {'variant':22s} {'ms_per_1024':>12s} {'alpha_p95':>10s} {'g_p95':>8s}   alone: " +
           "  ".join(f"{m.name.rsplit('-', 1)[-1]} α / g" for m in amaps))
-    def p95(r, scored):
+    def p95(r: FitResult, scored: np.ndarray) -> dict[str, float]:
         return {"alpha_p95": _pct(np.abs(r.alpha - a)[scored], 95),
                 "g_p95": _pct(np.abs(r.g - g)[scored & (a >= G_MIN_ALPHA)], 95)}
 
-    rows = []
+    rows: list[Row] = []
     for strategy in sorted(METHODS.values(), key=lambda m: not m.joint):  # each method's plain default
         method = strategy.name
         name, kw = (method, strategy.bench_variants[0][1]) if strategy.joint else (f"{method} p≤8", DEFAULT_POLISH)
@@ -451,7 +485,7 @@ def two_thicknesses(amaps, repeats):
         fn = functools.partial(trimeter.fit, list(amaps), I_b[:, tile], I_w[:, tile], I_c[:, tile], method=method, **kw)
         fn()
         ms = min(_timed(fn) for _ in range(repeats))
-        row = {"variant": name, "ms_per_1024": ms, **p95(res, measurable),
+        row: Row = {"variant": name, "ms_per_1024": ms, **p95(res, measurable),
                "alone": {m.name: p95(r, I_c[i] >= MEASURABLE_IC)
                          for i, (m, r) in enumerate(zip(amaps, alone, strict=True))}}
         rows.append(row)
@@ -463,7 +497,7 @@ def two_thicknesses(amaps, repeats):
     return {"maps": [m.name for m in amaps], "measurable": int(measurable.sum()), "rows": rows, "targets": targets}
 
 
-_EVICT: list = []
+_EVICT: list[np.ndarray] = []
 
 
 def _evict_caches() -> None:
@@ -473,13 +507,13 @@ def _evict_caches() -> None:
     _EVICT[0] += 1.0
 
 
-def _timed(fn) -> float:
+def _timed(fn: Callable[[], object]) -> float:
     t = time.perf_counter()
     fn()
     return (time.perf_counter() - t) * 1e3
 
 
-def per_wavelength_backgrounds(n: int, rho_b: float, rho_w: float):
+def per_wavelength_backgrounds(n: int, rho_b: float, rho_w: float) -> tuple[np.ndarray, np.ndarray]:
     """Smooth ρ_b(λ), ρ_w(λ) over n bins around the reference values, as a calibration measures
     them: a black background's reflectance varies by tens of % over the visible, a white one's by
     a few % (downwards here: ρ_w stays ≤ 1)."""
@@ -490,7 +524,7 @@ def per_wavelength_backgrounds(n: int, rho_b: float, rho_w: float):
 BACKGROUND_VARIANTS = ("paper", "lut p≤8", "mlp p≤8")
 
 
-def _bench_backgrounds(amap, h, budget, variants):
+def _bench_backgrounds(amap: AppearanceMap, h: Heldout, budget: dict[str, Any], variants: list[Variant]) -> list[Row]:
     """The held-out materials 4× over (960 bins) with per-wavelength backgrounds, noise-free, each
     variant timed once, cold: its first fit() after a calibration produced these ρ(λ) (the paper
     method triangulates once per distinct (ρ_b, ρ_w) pair; lut and mlp need nothing per ρ)."""
@@ -506,7 +540,9 @@ def _bench_backgrounds(amap, h, budget, variants):
         name = variant[0]
         if name not in BACKGROUND_VARIANTS:
             continue
-        variant[3].paper_cache.clear()  # cold: no triangulation for these backgrounds yet
+        paper_cache = variant[3].paper_cache
+        if paper_cache is not None:  # cold: no triangulation for these backgrounds yet
+            paper_cache.clear()
         t = time.perf_counter()
         res = _fit_variant(variant, I_b, I_w, I_c, rho_b, rho_w)
         ms = (time.perf_counter() - t) * 1e3 * 1024 / len(idx)
@@ -516,7 +552,7 @@ def _bench_backgrounds(amap, h, budget, variants):
     return rows
 
 
-def run(args) -> int:
+def run(args: argparse.Namespace) -> int:
     from trimeter.inversion import native
     from trimeter.maps.artifacts import ArtifactCache
     from trimeter.maps.device_table import build_from_map
@@ -525,7 +561,7 @@ def run(args) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     # lut/mlp timings depend on it: the C kernel, or the numpy reference when the library is missing
     print(f"inversion kernel: {native.status()}")
-    report = {"maps": [], "kernel": native.status()}
+    report: dict[str, Any] = {"maps": [], "kernel": native.status()}
     amaps = _maps(args.maps)  # loaded once: the two-thickness case below reuses them (and their refined grids)
     cache = ArtifactCache()
     for amap in amaps:
@@ -587,7 +623,7 @@ def run(args) -> int:
     return 0
 
 
-def _print_table(sub, title):
+def _print_table(sub: list[Row], title: str) -> None:
     cols = ("ms_per_1024", "ms_per_1024_cold", "core_ms_per_1024", "alpha_p50", "alpha_p95", "sigma_rel_p50",
             "sigma_rel_p95", "g_p50", "g_p95", "nan_rate", "flag_rate", "files_kB", "model_kB", "peak_kB")
     base = next(r for r in sub if r["variant"] == "paper")
@@ -604,7 +640,7 @@ def _print_table(sub, title):
             print(f"   {'  ratio to paper':<18}" + " ".join(ratios))
 
 
-def _print_budget(summary, rows, exact_rows):
+def _print_budget(summary: dict[str, dict[str, float]], rows: list[Row], exact_rows: list[Row]) -> None:
     ref, err, wc = summary["reference_noise_floor"], summary["map_error_floor"], summary["well_conditioned"]
     print(f"\n   error budget, noise-free (first order through the map's Jacobian; α over the measurable gamut, "
           f"g over α ≥ {G_MIN_ALPHA:g}):")
@@ -637,14 +673,14 @@ def _print_budget(summary, rows, exact_rows):
         print(line)
 
 
-def target_checks(row, paper) -> dict:
+def target_checks(row: Row, paper: Row) -> dict[str, dict[str, Any]]:
     """The inversion targets for one lut/mlp row (noise-free, rendered references) against the paper row
     of the same run: {target: {"value", "limit", "met"}}. Figures a row lacks (the two-thickness rows
     have no cold time, σt or NaN figures) are not checked."""
     kind = row["variant"].split()[0]  # "lut" / "mlp"
-    checks = {}
+    checks: dict[str, dict[str, Any]] = {}
 
-    def check(name, value, limit, met, issue_target=True):
+    def check(name: str, value: float, limit: float, met: bool | np.bool_, issue_target: bool = True) -> None:
         checks[name] = {"value": value, "limit": limit, "met": bool(met), "issue_target": issue_target}
 
     # The speed-up target is a throughput figure (time per 1024 bins): warm, as in a batch of spectra.
@@ -665,12 +701,12 @@ def target_checks(row, paper) -> dict:
     return checks
 
 
-def _show_check(name, c) -> str:
+def _show_check(name: str, c: dict[str, Any]) -> str:
     verdict = "" if c["met"] else (" MISSED" if c["issue_target"] else f" (below {c['limit']:g})")
     return f"{name} {c['value']:.3g}{verdict}" + ("" if c["issue_target"] else " [not a target]")
 
 
-def _print_targets(title, rows):
+def _print_targets(title: str, rows: list[Row]) -> dict[str, dict[str, dict[str, Any]]]:
     """One line per lut/mlp p≤8 variant: every inversion target, met or MISSED, from this run (the targets
     are noise-free: nothing to judge when --noise left out 0)."""
     paper = next((r for r in rows if r["variant"] == "paper"), None)
@@ -678,7 +714,7 @@ def _print_targets(title, rows):
         print(f"\n   inversion targets, {title}: not judged (they are noise-free figures: include 0 in --noise)")
         return {}
     print(f"\n   inversion targets, {title} (noise-free, rendered references; ratios to paper in this run):")
-    verdicts = {}
+    verdicts: dict[str, dict[str, dict[str, Any]]] = {}
     for r in rows:
         if r["variant"] not in ("lut p≤8", "mlp p≤8"):
             continue
@@ -690,7 +726,8 @@ def _print_targets(title, rows):
     return verdicts
 
 
-def _pareto(rows, exact_rows, summary, amap, out: Path) -> Path:
+def _pareto(rows: list[Row], exact_rows: list[Row], summary: dict[str, dict[str, float]], amap: AppearanceMap,
+            out: Path) -> Path:
     """Time against α / g p95, noise-free: rendered references (filled), map-exact (hollow, the
     method's own error, joined to its rendered point) and the budget's floors (dashed)."""
     import matplotlib

@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import os
 import time
+from collections.abc import Callable
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -75,8 +76,9 @@ def run(args: argparse.Namespace) -> int:
         return api.fit(refined_model, ib, iw, ic, method="lut")
 
     precision = "double" if args.library is None else args.library.name
-    variants = {f"table alone, C, {precision}": table_fit, "table alone, refined at load (--refine)": refined_fit,
-                "map lut, refined grid, C (baseline)": map_fit}
+    variants: dict[str, Callable[[np.ndarray, np.ndarray, np.ndarray], FitResult | SimpleNamespace]] = {
+        f"table alone, C, {precision}": table_fit, "table alone, refined at load (--refine)": refined_fit,
+        "map lut, refined grid, C (baseline)": map_fit}
     tile = np.resize(np.arange(len(I_b)), 1024)
     tiled = (I_b[tile], I_w[tile], I_c[tile])
     best = dict.fromkeys(variants, np.inf)
