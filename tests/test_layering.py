@@ -89,7 +89,8 @@ LAYERS = (
     {"domain"},                         # plain data: captures, calibrations, reflectances, measurements, parameters
     {"model"},                          # the forward model: what the instrument reads for a material and a set-up
     {"forward", "inversion"},           # simulating the physics / solving the inverse, both on the model
-    {"maps", "device", "spectrometer"},  # files and artifacts / the instrument's two devices
+    {"device", "spectrometer"},         # the instrument's two devices
+    {"maps"},                           # files and artifacts (a table is read from a device)
     {"twin", "results"},
     {"sequences", "predict"},
     {"web", "bench"},
