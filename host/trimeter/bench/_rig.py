@@ -55,7 +55,7 @@ def twin_and_service(*, time_scale: float, seed: int, faults: FaultConfig | None
         twin = stack.enter_context(Twin(time_scale=time_scale, faults=faults, state_dir=root / "twin", seed=seed,
                                         map_table=table))
         # the benches drive the button loop with the shipped map named: over their faulty links the file-record
-        # reads of the instrument's table fail too often (the README's known limits), and
+        # reads of the instrument's table fail too often (a known limit, in the README), and
         # tests/hil/test_instrument_table.py covers fitting with the instrument's table
         host.set("map", map_for_thickness(host.thickness_mm).name, source="benchmark")
         host.set("port", twin.modbus_port)
