@@ -22,12 +22,11 @@ from trimeter.twin.storage import table_bytes
 
 @contextlib.contextmanager
 def host_dirs(root: Path) -> Iterator[None]:
-    """TRIMETER_DATA_DIR / _CONFIG_DIR / _CACHE_DIR under `root` while the benchmark runs (the calibration
+    """TRIMETER_DATA_DIR / TRIMETER_CONFIG_DIR under `root` while the benchmark runs (the calibration
     path is read from them), restored afterwards."""
-    saved = {key: os.environ.get(key) for key in ("TRIMETER_DATA_DIR", "TRIMETER_CONFIG_DIR", "TRIMETER_CACHE_DIR")}
+    saved = {key: os.environ.get(key) for key in ("TRIMETER_DATA_DIR", "TRIMETER_CONFIG_DIR")}
     os.environ["TRIMETER_DATA_DIR"] = str(root / "data")
     os.environ["TRIMETER_CONFIG_DIR"] = str(root / "config")
-    os.environ["TRIMETER_CACHE_DIR"] = str(root / "cache")
     try:
         yield
     finally:

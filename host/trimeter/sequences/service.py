@@ -102,8 +102,6 @@ class Service:
         self.last_timing: dict = {}
         self.last_incomplete: str | None = None  # why the last measurement has fewer samples than asked
         self.last_instrument_table: dict = {}  # the table last read from the device (instrument_table)
-        # (the device's map-slot registers and erase counters, the table, its slot) as last read on this link
-        self._table_seen: tuple[dict, DeviceTable, str] | None = None
         self._status = READY   # what the LED shows between presses (kept across reconnects)
         self.calibration_stale_reason: str | None = None  # set when a reset was seen
         self.calibration_requested: str | None = None  # a calibration asked for by name (the web page)
@@ -138,7 +136,6 @@ class Service:
             self._ask_empty_holder(reason)
 
     def close(self) -> None:
-        self._table_seen = None  # the next link may be to another instrument
         for name in ("device", "spectrometer"):
             thing = getattr(self, name)
             if thing is not None:
@@ -351,22 +348,11 @@ class Service:
         then uses what the device carries, so a host without map files measures and the two cannot differ."""
         return pipeline.resolve_samples(requests, instrument_table=self.instrument_table)
 
-    def _current_table(self, device: Device) -> tuple[DeviceTable, str, bool]:
-        """instrument_table, skipped while the device's map-slot registers and erase counters are as they were
-        when this link last read it: writing another table erases a slot first, so the table is the same, and
-        a press costs a few registers instead of file-record reads of the table's head and tail."""
-        state = {**device.map_status(), **device.read_many("erase_count_map_a", "erase_count_map_b")}
-        if self._table_seen is not None and self._table_seen[0] == state:
-            return self._table_seen[1], self._table_seen[2], True
-        table, slot, cached = instrument_table(device)
-        self._table_seen = (state, table, slot)
-        return table, slot, cached
-
     def instrument_table(self) -> DeviceTable:
         """The table in the device's active slot (trimeter.maps.device_table.instrument_table: cached by its
         SHA-256); an event says which, and whether it was read from the device or the cache."""
         t0 = time.monotonic()
-        table, slot, cached = self._on_device("reading the device's map table", self._current_table)
+        table, slot, cached = self._on_device("reading the device's map table", instrument_table)
         self.last_instrument_table = {"name": table.name, "sha256": table.sha256, "slot": slot, "cached": cached,
                                       "seconds": round(time.monotonic() - t0, 3)}
         self._emit("table", f"map table {table.name} (ℓ = {table.thickness_mm:g} mm, sha256 {table.sha256[:12]}…) "
