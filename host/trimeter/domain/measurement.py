@@ -22,7 +22,18 @@ from trimeter.domain.reflectances import Reflectances
 from trimeter.errors import InputError
 
 
-class MapRef(Protocol):
+class BackgroundCoefficients(Protocol):
+    """A map's background response I(ρ) = A + Bρ/(1 − Cρ), per material: the shot checks' floor."""
+
+    @property
+    def A(self) -> np.ndarray: ...
+    @property
+    def B(self) -> np.ndarray: ...
+    @property
+    def C(self) -> np.ndarray: ...
+
+
+class MapRef(BackgroundCoefficients, Protocol):
     """What a measurement needs to know of an appearance map (trimeter.maps.appearance.AppearanceMap is one)."""
 
     @property
@@ -33,14 +44,6 @@ class MapRef(Protocol):
 
     @property
     def checksum(self) -> str: ...
-
-    # the background response I(ρ) = A + Bρ/(1 − Cρ) per material: the shot checks' floor
-    @property
-    def A(self) -> np.ndarray: ...
-    @property
-    def B(self) -> np.ndarray: ...
-    @property
-    def C(self) -> np.ndarray: ...
 
 
 class Estimate(Protocol):

@@ -32,11 +32,11 @@ photodiode lit through its open shutter and dark behind the closed one.
 
 from __future__ import annotations
 
-from typing import Protocol
 
 import numpy as np
 from numpy.typing import ArrayLike
 
+from trimeter.domain.measurement import BackgroundCoefficients
 from trimeter.domain import Calibration, Reflectances
 from trimeter.inversion.flags import FitFlag
 from trimeter.model.response import background_response
@@ -136,17 +136,6 @@ def agreement_problems(calibration: Calibration, previous: Calibration) -> list[
 
 
 # ------------------------------------------------------------------------------------------ shots
-class BackgroundCoefficients(Protocol):
-    """A map's background response I(ρ) = A + Bρ/(1 − Cρ), per material."""
-
-    @property
-    def A(self) -> np.ndarray: ...
-    @property
-    def B(self) -> np.ndarray: ...
-    @property
-    def C(self) -> np.ndarray: ...
-
-
 def surface_floor(amap: BackgroundCoefficients, rho_white: float) -> float:
     """The lowest I_w any material of the map gives against a white background of `rho_white`: the
     light the sample's front surface reflects whatever lies behind it."""
