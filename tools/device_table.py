@@ -21,14 +21,29 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from collections.abc import Callable, Sequence
+from functools import partial
 from pathlib import Path
 from types import SimpleNamespace
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from trimeter.model.compact import CompactForward
+from trimeter.model.grid import ForwardGrid, SigmaCell
+
+if TYPE_CHECKING:
+    from trimeter.domain.parameters import FitResult
+    from trimeter.maps.appearance import AppearanceMap
+    from trimeter.maps.device_table import DeviceTable, DeviceTableModel
+
+    # one way of fitting (I_b, I_w, I_c) bins, as measure() and budget() score them
+    Fitter = Callable[[np.ndarray, np.ndarray, np.ndarray], FitResult | SimpleNamespace]
+    Say = Callable[[str], object]
+
 
 # ------------------------------------------------------------------------------------------- build
-def build(amap, n_inverse: int | None = None):
+def build(amap: AppearanceMap, n_inverse: int | None = None) -> DeviceTable:
     """The v2 table of an AppearanceMap (the pipeline's tlut stage: trimeter.maps.device_table.build_from_map)."""
     from trimeter.maps.device_table import build_from_map
 
@@ -36,7 +51,8 @@ def build(amap, n_inverse: int | None = None):
 
 
 # --------------------------------------------------------------------------------------------- fit
-def table_model(table, forward=None, inscatter_L=None):
+def table_model(table: DeviceTable, forward: CompactForward | None = None,
+                inscatter_L: np.ndarray | None = None) -> DeviceTableModel:
     """The fit's view of the table alone (DeviceTableModel); forward, inscatter_L: other coefficients or
     L than the table's (for the precision study)."""
     from trimeter.inversion.lut import TableInverter
@@ -44,7 +60,7 @@ def table_model(table, forward=None, inscatter_L=None):
 
     if forward is None and inscatter_L is None:
         return table.fit_model()
-    source = table
+    source: DeviceTable | SimpleNamespace = table
     if forward is not None:
         source = SimpleNamespace(**{k: getattr(table, k) for k in (
             "alpha", "log_sigma_t", "g", "setup", "mc_stderr", "inv_alpha_q", "inv_frame", "inverse_alpha",
@@ -54,29 +70,35 @@ def table_model(table, forward=None, inscatter_L=None):
                                                  model_variance=(table.model_variance(), axes)))
 
 
-class OnTheFlyGrid:
-    """Mixin for a ForwardGrid whose A, B, C come from the compact model at each point (the device's
-    polish), not from its refined cells; its nodes only serve the clamps and the cell lookups of the
-    in-scattering and model-error tables."""
+class OnTheFlyGrid(ForwardGrid):
+    """A ForwardGrid whose A, B, C come from the compact model at each point (the device's polish), not
+    from its refined cells; `grid`'s nodes, in-scattering and model-error tables only serve the clamps
+    and the cell lookups of those tables."""
 
-    compact = None
+    def __init__(self, grid: ForwardGrid, compact: CompactForward) -> None:
+        super().__init__(grid.alpha, grid.log_sigma_t, grid.g, grid.coefficients_grid, setup=grid.setup,
+                         mc_stderr=grid.mc_stderr)
+        self.compact = compact
+        self.inscatter_grid, self.model_var = grid.inscatter_grid, grid.model_var
 
-    def coefficients(self, alpha, cell, g, with_sigma_derivative=False):
+    def coefficients(self, alpha: np.ndarray, cell: SigmaCell, g: np.ndarray,
+                     with_sigma_derivative: bool = False) -> tuple[np.ndarray, ...]:
         value, d_a, d_ls, d_g = self.compact.evaluate(alpha, cell.log_sigma_t, g)
         return (value, d_a, d_g, d_ls) if with_sigma_derivative else (value, d_a, d_g)
 
-    def alpha_g_cells(self, alpha, g):
+    def alpha_g_cells(self, alpha: np.ndarray, g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         # the compact model is smooth across cells: a step never needs evaluating again for that
         return np.zeros(len(alpha), dtype=np.intp), np.zeros(len(g), dtype=np.intp)
 
 
-def on_the_fly_inverter(table):
+def on_the_fly_inverter(table: DeviceTable) -> DeviceTableModel:
     """The table's fit model with the polish on the compact model itself (fit_table runs it on the
     numpy kernel: the compiled one reads the refined cells)."""
     return on_the_fly_model(table)
 
 
-def fit_table(table, model, I_b, I_w, I_c, rho_b=None, rho_w=None, **options):
+def fit_table(table: DeviceTable, model: DeviceTableModel, I_b: np.ndarray, I_w: np.ndarray, I_c: np.ndarray,
+              rho_b: np.ndarray | None = None, rho_w: np.ndarray | None = None, **options: Any) -> FitResult:
     """trimeter.inversion.api.fit's lut path on a fit model of `table` (table.fit_model(), table_model
     or on_the_fly_inverter), on the numpy kernel where the polish evaluates the compact model."""
     from trimeter.inversion.api import fit
@@ -87,18 +109,11 @@ def fit_table(table, model, I_b, I_w, I_c, rho_b=None, rho_w=None, **options):
     return fit(model, I_b, I_w, I_c, rho_b, rho_w, method="lut", **options)
 
 
-def on_the_fly_model(table):
+def on_the_fly_model(table: DeviceTable) -> DeviceTableModel:
     """The table's fit model with the polish on the compact model itself (run it on the numpy kernel:
     the compiled one reads the refined cells)."""
-    from trimeter.model.grid import ForwardGrid
-
     model = table.fit_model()
-    grid = model.inverter.grid
-    fly = type("OnTheFlyForwardGrid", (OnTheFlyGrid, ForwardGrid), {})(
-        grid.alpha, grid.log_sigma_t, grid.g, grid.coefficients_grid, setup=grid.setup, mc_stderr=grid.mc_stderr)
-    fly.compact = table.forward()
-    fly.inscatter_grid, fly.model_var = grid.inscatter_grid, grid.model_var
-    model.inverter.grid = fly
+    model.inverter.grid = OnTheFlyGrid(model.inverter.grid, table.forward())
     return model
 
 
@@ -108,7 +123,8 @@ def on_the_fly_model(table):
 _COLUMNS = (("α p50", "alpha_p50"), ("α p95", "alpha_p95"), ("σt rel p50", "sigma_rel_p50"),
             ("σt rel p95", "sigma_rel_p95"), ("g p50", "g_p50"), ("g p95", "g_p95"), ("α p95 well", "alpha_p95_well"),
             ("g p95 well", "g_p95_well"), ("α p95 det", "alpha_p95_determined"), ("g p95 det", "g_p95_determined"))
-def measure(amap, noise_levels, seed: int = 0, say=print) -> list[dict]:
+def measure(amap: AppearanceMap, noise_levels: Sequence[float], seed: int = 0,
+            say: Say = print) -> list[dict[str, Any]]:
     from trimeter.bench.fit import _stats, error_budget, heldout_collimated, heldout_for, heldout_intensities
     from trimeter.inversion import native
     from trimeter.maps.artifacts import fit as fit_maps
@@ -129,7 +145,7 @@ def measure(amap, noise_levels, seed: int = 0, say=print) -> list[dict]:
     host = table.fit_model()
     say(f"   fit model from the table alone: {time.perf_counter() - t0:.2f} s")
     fly = on_the_fly_model(table)
-    variants = {
+    variants: dict[str, Fitter] = {
         "map lut p≤8": lambda ib, iw, ic: fit_maps(amap, ib, iw, ic, method="lut"),
         "table (refined at load) p≤8": lambda ib, iw, ic: fit_table(table, host, ib, iw, ic),
         "table (on the fly) p≤8": lambda ib, iw, ic: fit_table(table, fly, ib, iw, ic),
@@ -151,7 +167,7 @@ def measure(amap, noise_levels, seed: int = 0, say=print) -> list[dict]:
         tiled = (ib[tile], iw[tile], ic[tile])
         for name, run in variants.items():
             res = run(ib, iw, ic)
-            ms = _warm_ms(lambda run=run, tiled=tiled: run(*tiled))
+            ms = _warm_ms(partial(run, *tiled))
             st = _stats(res, truth, budget)
             rows.append({"map": amap.name, "case": label, "variant": name, "ms_per_1024": ms, **st})
             say(f"   {name:30s}" + "".join(f"{st[key]:11.2e}" if "sigma" in key else f"{st[key]:11.4f}"
@@ -159,13 +175,13 @@ def measure(amap, noise_levels, seed: int = 0, say=print) -> list[dict]:
     return rows
 
 
-def _c_result(columns):
+def _c_result(columns: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]) -> SimpleNamespace:
     """native.TableFitter's (α, σt, g, flags) as the scoring reads a FitResult (it returns no stds)."""
     alpha, sigma_t, g, flags = columns
     return SimpleNamespace(alpha=alpha, sigma_t=sigma_t, g=g, flags=flags, alpha_std=np.full(len(alpha), np.nan))
 
 
-def budget(amap, say=print) -> list[dict]:
+def budget(amap: AppearanceMap, say: Say = print) -> list[dict[str, Any]]:
     """What the slot's bytes buy: fits from the table (host path, noise-free rendered held-out) with the
     forward coefficients at other precisions, with L unquantized, and with smaller inverse grids."""
     from trimeter.bench.fit import _stats, error_budget, heldout_collimated, heldout_for, heldout_intensities
@@ -184,7 +200,9 @@ def budget(amap, say=print) -> list[dict]:
     coef_bytes = 3 * na * ns * ng
     rounded = {name: exact.coefficients.astype(dtype).astype(np.float64) for name, dtype in
                (("float16", np.float16), ("float32", np.float32))}
-    cases = [("as stored: coefficients u16, L u16", table, None, None, 2 * coef_bytes),
+    # (variant, table, forward coefficients, L, their bytes; None: the table's own)
+    cases: list[tuple[str, DeviceTable, CompactForward | None, np.ndarray | None, int | None]] = [
+             ("as stored: coefficients u16, L u16", table, None, None, 2 * coef_bytes),
              ("coefficients float64 (unquantized)", table, exact, None, 8 * coef_bytes),
              ("coefficients float32", table, _with_coefficients(exact, rounded["float32"]), None, 4 * coef_bytes),
              ("coefficients float16", table, _with_coefficients(exact, rounded["float16"]), None, 2 * coef_bytes),
@@ -199,10 +217,11 @@ def budget(amap, say=print) -> list[dict]:
     for name, tab, forward, L, nbytes in cases:
         model = table_model(tab, forward, L)
         res = fit(model, I_b, I_w, I_c, method="lut")
-        ms = _warm_ms(lambda model=model: fit(model, I_b[tile], I_w[tile], I_c[tile], method="lut"))
+        ms = _warm_ms(partial(fit, model, I_b[tile], I_w[tile], I_c[tile], method="lut"))
         st = _stats(res, truth, scoring)
         # the file these coefficients would make with this inverse grid (over the slot: would not fit)
-        size = (table_size(na, ns, ng, tab.inv_alpha_q.shape[1], *tab.inscatter.shape, len(tab._geometry_bytes()))
+        nu, nt, nv = tab.inscatter.shape
+        size = (table_size(na, ns, ng, tab.inv_alpha_q.shape[1], nu, nt, nv, len(tab._geometry_bytes()))
                 + (nbytes or 2 * coef_bytes) - 2 * coef_bytes)
         rows.append({"map": amap.name, "variant": name, "file_bytes": size, "ms_per_1024": ms, **st})
         say(f"   {name:38s}{nbytes or 2 * coef_bytes:11d}{size:11d}{'*' if size > MAX_BYTES else ' '}"
@@ -211,21 +230,17 @@ def budget(amap, say=print) -> list[dict]:
     return rows
 
 
-def compact_from_map(amap):
-    from trimeter.model.compact import CompactForward
-
+def compact_from_map(amap: AppearanceMap) -> CompactForward:
     values = np.stack([amap.A, amap.B, amap.C], axis=-1).astype(np.float64)
     return CompactForward.from_nodes(np.array(amap.alpha, np.float64), np.log(np.array(amap.sigma_t, np.float64)),
                                      np.array(amap.g, np.float64), values)
 
 
-def _with_coefficients(model, coefficients):
-    from trimeter.model.compact import CompactForward
-
+def _with_coefficients(model: CompactForward, coefficients: np.ndarray) -> CompactForward:
     return CompactForward(model.alpha, model.log_sigma_t, model.g, coefficients)
 
 
-def _warm_ms(fn, repeats: int = 5) -> float:
+def _warm_ms(fn: Callable[[], object], repeats: int = 5) -> float:
     """Best of `repeats` calls in ms, after an untimed one (as for a batch of spectra)."""
     fn()
     best = np.inf
@@ -236,7 +251,7 @@ def _warm_ms(fn, repeats: int = 5) -> float:
     return best * 1e3
 
 
-def main(argv=None) -> int:
+def main(argv: Sequence[str] | None = None) -> int:
     from trimeter.errors import TrimeterError
     from trimeter.maps.appearance import AppearanceMap, find_map
 

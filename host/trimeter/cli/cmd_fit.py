@@ -38,7 +38,9 @@ import csv
 import json
 import math
 import sys
+from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING, Any, SupportsFloat
 
 import numpy as np
 
@@ -48,13 +50,20 @@ from trimeter.errors import InputError, OutputError
 from trimeter.inversion.methods import METHODS
 from trimeter.validation import shown
 
+if TYPE_CHECKING:
+    from trimeter.maps.appearance import AppearanceMap
+    from trimeter.maps.device_table import DeviceTable
+
+    # what a fit here inverts through: appearance maps (one per thickness) or one device table
+    FitSource = AppearanceMap | DeviceTable
+
 REQUIRED = ("wavelength_nm", "I_b", "I_w", "I_c")
 OPTIONAL = ("rho_b", "rho_w", "thickness_mm", "I_b_std", "I_w_std", "I_c_std", "thickness_std_mm")
 OUTPUT = ("wavelength_nm", "alpha", "sigma_t", "g", "alpha_std", "sigma_t_std", "g_std", "flags", "sigma_t_beer",
           "thickness_mm")
 
 
-def register(subparsers) -> None:
+def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("fit", help="invert measured I_b, I_w, I_c to alpha, sigma_t, g per wavelength",
                               description=__doc__.split("\n\n")[0])
     source = p.add_mutually_exclusive_group(required=True)
@@ -103,7 +112,7 @@ def read_measurements(path: Path) -> dict[str, np.ndarray]:
         raise InputError(f"--input {path}: not a readable CSV ({exc})") from None
 
 
-def _parse_columns(reader, path: Path) -> dict[str, np.ndarray]:
+def _parse_columns(reader: Iterator[list[str]], path: Path) -> dict[str, np.ndarray]:
     header = [h.strip() for h in next(reader, [])]
     duplicated = sorted({h for h in header if header.count(h) > 1})
     if duplicated:
@@ -112,7 +121,7 @@ def _parse_columns(reader, path: Path) -> dict[str, np.ndarray]:
     if missing:
         raise InputError(f"--input {path}: missing column(s) {', '.join(missing)} (have: "
                          f"{', '.join(map(shown, header)) or 'none'})")
-    columns = {c: [] for c in REQUIRED + OPTIONAL if c in header}
+    columns: dict[str, list[float]] = {c: [] for c in REQUIRED + OPTIONAL if c in header}
     where = {c: header.index(c) for c in columns}
     for row_no, row in enumerate(reader, start=2):
         for c, i in where.items():
@@ -129,7 +138,7 @@ def _parse_columns(reader, path: Path) -> dict[str, np.ndarray]:
     return data
 
 
-def _split_thicknesses(data, amaps, path):
+def _split_thicknesses(data: dict[str, np.ndarray], amaps: Sequence[FitSource], path: Path) -> list[np.ndarray]:
     """Per map, the row indices that belong to it (sorted by wavelength)."""
     n = len(data["wavelength_nm"])
     if len(amaps) == 1:
@@ -159,7 +168,7 @@ def _split_thicknesses(data, amaps, path):
     return groups
 
 
-def _fit_models(args) -> list:
+def _fit_models(args: argparse.Namespace) -> list[FitSource]:
     """What the fit inverts through: the maps, or one device table (from a file, or the instrument's)."""
     from trimeter.maps.appearance import AppearanceMap, find_map
 
@@ -186,15 +195,17 @@ def _fit_models(args) -> list:
     return []  # --on-device: the table is read from the instrument
 
 
-def run(args) -> int:
+def run(args: argparse.Namespace) -> int:
     from trimeter.inversion.flags import advice, describe
     from trimeter.maps.artifacts import fit
+    from trimeter.maps.device_table import DeviceTable
 
     amaps = _fit_models(args)
     if args.on_device:
         return _run_on_device(args)
-    if args.table is not None and not args.refine:
-        return _run_table_fit(args, amaps[0])
+    table_file = amaps[0] if isinstance(amaps[0], DeviceTable) else None  # --table
+    if table_file is not None and not args.refine:
+        return _run_table_fit(args, table_file)
     method = args.method or "lut"
     refuse_output_onto_inputs(args.output, [args.input, *(m.path for m in amaps if m.path is not None)])
     if len({round(m.thickness_mm, 9) for m in amaps}) != len(amaps):
@@ -205,12 +216,12 @@ def run(args) -> int:
     stack = lambda name: np.stack([data[name][rows] for rows in groups])  # noqa: E731
     rho_b = stack("rho_b") if "rho_b" in data else None
     rho_w = stack("rho_w") if "rho_w" in data else None
-    stds = {name: stack(name) for name in ("I_b_std", "I_w_std", "I_c_std") if name in data}
+    options: dict[str, Any] = {name: stack(name) for name in ("I_b_std", "I_w_std", "I_c_std") if name in data}
     if "thickness_std_mm" in data:
-        stds["thickness_std_mm"] = _thickness_std(data["thickness_std_mm"], groups, amaps, args.input)
+        options["thickness_std_mm"] = _thickness_std(data["thickness_std_mm"], groups, amaps, args.input)
     if args.polish is not None:
-        stds["polish"] = args.polish
-    result = fit(amaps, stack("I_b"), stack("I_w"), stack("I_c"), rho_b, rho_w, method=method, **stds)
+        options["polish"] = args.polish
+    result = fit(amaps, stack("I_b"), stack("I_w"), stack("I_c"), rho_b, rho_w, method=method, **options)
     columns = {"wavelength_nm": data["wavelength_nm"][groups[0]], **result.as_dict()}
     notes = advice(result.flags, len(amaps))
     for note in notes:  # stderr: stdout may be the CSV
@@ -218,16 +229,17 @@ def run(args) -> int:
     used = "+".join(f"{m.thickness_mm:g}" for m in amaps)
     source = "declared with --thickness" if args.thickness else "not declared: the map's" if len(amaps) == 1 \
         else "not declared: the maps'"
-    table = _table_identity(amaps[0], "file") if args.table is not None else None
-    fitted = f"table {table['name']} (sha256 {table['sha256'][:12]}…), refined at load" if table else \
+    identity = _table_identity(table_file, "file") if table_file is not None else None
+    fitted = f"table {identity['name']} (sha256 {identity['sha256'][:12]}…), refined at load" if identity else \
         f"map {', '.join(m.name for m in amaps)}"
     print(f"thickness: {used} mm ({source}; {fitted})", file=sys.stderr)
     flag_names = [describe(f) for f in result.flags]
-    _write_result(args, columns, used, method, [m.thickness_mm for m in amaps], amaps, flag_names, notes, table)
+    _write_result(args, columns, used, method, [m.thickness_mm for m in amaps], amaps, flag_names, notes,
+                  identity)
     return 0
 
 
-def _table_identity(table, source: str, slot: str | None = None) -> dict:
+def _table_identity(table: DeviceTable, source: str, slot: str | None = None) -> dict[str, Any]:
     """A device table as the output names it: its own SHA-256 and CRC-32, its parent map's SHA-256."""
     out = {"name": table.name, "source": source, "sha256": table.sha256, "crc32": f"{table.crc32:08x}",
            "parent_map_sha256": table.parent_sha256, "thickness_mm": table.thickness_mm}
@@ -238,8 +250,9 @@ def _table_identity(table, source: str, slot: str | None = None) -> dict:
     return out
 
 
-def _write_result(args, columns: dict, used: str, method: str, thicknesses: list[float], models: list,
-                  flag_names: list[str], notes: list[str], table: dict | None) -> None:
+def _write_result(args: argparse.Namespace, columns: dict[str, np.ndarray], used: str, method: str,
+                  thicknesses: list[float], models: Sequence[FitSource], flag_names: list[str], notes: list[str],
+                  table: dict[str, Any] | None) -> None:
     """The fit's output, the same for every source: CSV (OUTPUT columns) or JSON."""
     if args.json:
         doc = {"method": method, "thickness_mm": thicknesses if len(thicknesses) > 1 else thicknesses[0],
@@ -258,7 +271,7 @@ def _write_result(args, columns: dict, used: str, method: str, thicknesses: list
     _write(args.output, "\n".join(lines) + "\n")
 
 
-def _run_table_fit(args, table) -> int:
+def _run_table_fit(args: argparse.Namespace, table: DeviceTable) -> int:
     """The bins fitted here with the instrument's own fit (native.TableFitter, double precision) from the
     table file alone."""
     from trimeter.inversion import native
@@ -281,7 +294,7 @@ def _run_table_fit(args, table) -> int:
     return 0
 
 
-def _run_on_device(args) -> int:
+def _run_on_device(args: argparse.Namespace) -> int:
     """The bins fitted by the instrument (Device.fit) with the table in its active slot, which is read
     (or found in the cache) first: its ℓ and reference backgrounds, and its identity for the output."""
     from trimeter.cli._instrument import open_device, settings_from
@@ -304,7 +317,7 @@ def _run_on_device(args) -> int:
     return 0
 
 
-def _backgrounds(data: dict, rows, table) -> tuple[np.ndarray, np.ndarray]:
+def _backgrounds(data: dict[str, np.ndarray], rows: np.ndarray, table: DeviceTable) -> tuple[np.ndarray, np.ndarray]:
     """The rows' (ρ_b, ρ_w): the input's columns, else the table's reference backgrounds."""
     n = len(rows)
     rho_b = data["rho_b"][rows] if "rho_b" in data else np.full(n, table.rho_b_ref)
@@ -312,7 +325,9 @@ def _backgrounds(data: dict, rows, table) -> tuple[np.ndarray, np.ndarray]:
     return rho_b, rho_w
 
 
-def _write_table_fit(args, data: dict, rows, table, fitted: tuple, method: str, identity: dict, where: str) -> None:
+def _write_table_fit(args: argparse.Namespace, data: dict[str, np.ndarray], rows: np.ndarray, table: DeviceTable,
+                     fitted: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray], method: str,
+                     identity: dict[str, Any], where: str) -> None:
     """The output of the instrument's fit (here or on the device): the fit's columns, NaN stds (it
     computes none), advice and the thickness line on stderr."""
     from trimeter.inversion.flags import advice, describe
@@ -330,7 +345,7 @@ def _write_table_fit(args, data: dict, rows, table, fitted: tuple, method: str, 
                   [describe(f) for f in flags], notes, identity)
 
 
-def _thickness_std(column, groups, amaps, path) -> list[float]:
+def _thickness_std(column: np.ndarray, groups: list[np.ndarray], amaps: Sequence[FitSource], path: Path) -> list[float]:
     """One thickness std per map from the column: the same value on every row of that thickness."""
     out = []
     for rows, amap in zip(groups, amaps, strict=True):
@@ -342,7 +357,7 @@ def _thickness_std(column, groups, amaps, path) -> list[float]:
     return out
 
 
-def check_declared_thickness(declared: list[float] | None, amaps) -> None:
+def check_declared_thickness(declared: list[float] | None, amaps: Sequence[FitSource]) -> None:
     """Each declared thickness must be a map's (or table's) ℓ, one per map: another thickness scales σt."""
     if not declared:
         return
@@ -359,12 +374,12 @@ def check_declared_thickness(declared: list[float] | None, amaps) -> None:
                              f"use a {kind} built for {thickness:g} mm")
 
 
-def _json_number(v):
+def _json_number(v: SupportsFloat) -> float | None:
     v = float(v)
     return v if math.isfinite(v) else None
 
 
-def refuse_output_onto_inputs(output: Path | None, inputs) -> None:
+def refuse_output_onto_inputs(output: Path | None, inputs: Iterable[str | Path]) -> None:
     """-o naming one of the inputs (itself, a symlink or a hard link to it) would destroy it: refuse up front."""
     if output is None:
         return
