@@ -5,13 +5,24 @@ few (σt, g) columns, two backgrounds, `ideal` geometry:
 
 - naive: one direct Mitsuba volpath render (trimeter.forward.render.render_diffuse) per
   (α, σt, g, ρ) point. Rendering all of them would take tens of minutes, so a random sample of points
-  is rendered *in this run*; the naive time is (points × mean measured seconds per render) and the
-  naive std-error is the median of the measured ones.
-- new: the builder (trimeter.maps.builder) with target_stderr = that naive std-error, so the new map
-  has equal or lower MC error (both printed). The same map is also built with the tracer's plain
-  estimator (no control variates, as many background as detector paths), for its ratio in this run.
+  is rendered *in this run* at `--spp` samples each (time t_i, std-error s_i).
+- new: the builder (trimeter.maps.builder) with target_stderr = the naive renders' median std-error
+  (each column traced until its *largest* std-error over α and both backgrounds is at most that).
+  The same map is also built with the tracer's plain estimator (no control variates, as many
+  background as detector paths), for its ratio in this run.
 
-The last line is `ratio: N` with N = naive seconds / new seconds.
+Matched error (the headline): a naive builder that matched the new map's MC error would render each
+point to the map's own std-error σ_i there. Std-error ∝ 1/√spp and a render costs a fixed overhead
+t_0 (measured here: a render of 4096 samples) plus time ∝ spp, so point i would take
+t_0 + (t_i − t_0)·(s_i/σ_i)². The naive map's time is the number of points × the mean of that over
+the rendered points (± its standard error, printed); `ratio: N` = that / the new map's seconds.
+The spread of (s_i/σ_i)² is printed too: a point where the map is far more precise than the render
+weighs in fully, since the naive way would pay for it.
+
+Also printed, beside it, the older statistic: the naive renders at their own `--spp` (number of points ×
+mean t_i) over the new map's seconds. That one favours the naive side — the builder drives each column's
+*worst* std-error to the naive *median*, so most of the map is more precise than the renders it is
+compared with.
 
 `--device-columns RECIPE` instead compares the tracer's estimators on columns of a device recipe: per
 column, the plain one (as many background as detector paths, no control variates) and the default one
@@ -95,6 +106,21 @@ def compare_estimators(recipe_path: str, n_paths: int, seed: int) -> int:
     return 0
 
 
+def matched_naive_seconds(seconds: np.ndarray, overhead: float, naive_std: np.ndarray,
+                          map_std: np.ndarray) -> np.ndarray:
+    """Per rendered point, the seconds a direct render would take to reach the map's std-error there:
+    t_0 + (t_i − t_0)·(s_i/σ_i)² (std-error ∝ 1/√spp, time = overhead + ∝ spp); inf where σ_i = 0."""
+    seconds, naive_std, map_std = (np.asarray(a, dtype=np.float64) for a in (seconds, naive_std, map_std))
+    if not (seconds.shape == naive_std.shape == map_std.shape) or seconds.size == 0:
+        raise InputError("matched_naive_seconds needs one time, naive and map std-error per rendered point")
+    if np.any(seconds <= 0) or np.any(naive_std < 0) or np.any(map_std < 0) or overhead < 0:
+        raise InputError("render times must be positive and std-errors and the overhead non-negative")
+    sampling = np.maximum(seconds - min(overhead, float(seconds.min())), 0.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        scale = np.where(map_std > 0, (naive_std / np.where(map_std > 0, map_std, 1.0)) ** 2, np.inf)
+    return (seconds - sampling) + sampling * scale
+
+
 def bench_recipe(target_stderr: float) -> Recipe:
     return parse_recipe({
         "name": "bench-mapbuild", "geometry": "ideal", "n": 1.5, "thickness_mm": 0.5,
@@ -107,6 +133,11 @@ def bench_recipe(target_stderr: float) -> Recipe:
 def run(args: argparse.Namespace) -> int:
     if args.device_columns:
         return compare_estimators(args.device_columns, args.paths, args.seed)
+    if args.naive_renders < 2:
+        raise InputError(f"--naive-renders must be ≥ 2 (their spread is the naive time's error), "
+                         f"got {args.naive_renders}")
+    if args.spp < 4096:
+        raise InputError(f"--spp must be ≥ 4096 (a render of 4096 samples is the overhead measured), got {args.spp}")
     from trimeter.forward.render import render_diffuse
     from trimeter.maps.builder import build_map
     from trimeter.maps.tracer import trace_column
@@ -122,6 +153,9 @@ def run(args: argparse.Namespace) -> int:
           f"(α, σt, g, ρ) points")
     print(f"naive: volpath direct render per point at {args.spp} spp; measuring {len(picks)} random points")
     render_diffuse("ideal", 0.5, 1.0, 0.5, 1.5, 0.5, 0.5, spp=4096, seed=0)   # load + JIT outside the timing
+    t0 = time.perf_counter()
+    render_diffuse("ideal", 0.5, 1.0, 0.5, 1.5, 0.5, 0.5, spp=4096, seed=1)
+    overhead = time.perf_counter() - t0      # a render's fixed cost: the time of one with few samples
     naive: list[tuple[int, int, int, int, float, float, float]] = []
     for i, j, k, r in picks:
         t0 = time.perf_counter()
@@ -136,7 +170,7 @@ def run(args: argparse.Namespace) -> int:
     naive_total = naive_per * n_points
     print(f"naive: {naive_per:.2f} ± {seconds.std(ddof=1) / math.sqrt(len(seconds)):.2f} s per render → "
           f"{naive_total:.0f} s for the map (extrapolated from {len(seconds)} renders); median std-error "
-          f"{naive_err:.2e}")
+          f"{naive_err:.2e}; per-render overhead {overhead:.2f} s (a 4096-sample render)")
 
     recipe = bench_recipe(naive_err)
     with tempfile.TemporaryDirectory() as tmp:
@@ -145,9 +179,11 @@ def run(args: argparse.Namespace) -> int:
                           tracer=partial(trace_column, below_fraction=1.0, control_variates=False))
         plain_total = time.perf_counter() - t0
     plain_std = np.concatenate([plain.std_b.ravel(), plain.std_w.ravel()])
+    plain_naive, plain_naive_err = _matched_naive_total(naive, plain, rhos, overhead, n_points)
     print(f"plain: {plain_total:.1f} s for the whole map with the plain estimator "
           f"({plain.provenance['paths_per_column']['total']} paths, std-error median {np.median(plain_std):.2e}); "
-          f"ratio {naive_total / plain_total:.1f}")
+          f"matched-error ratio {plain_naive / plain_total:.1f} (naive {plain_naive:.0f} ± {plain_naive_err:.0f} s), "
+          f"at the naive spp {naive_total / plain_total:.1f}")
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
         amap = build_map(recipe, Path(tmp) / "bench.tmap", progress=False)
@@ -163,8 +199,29 @@ def run(args: argparse.Namespace) -> int:
                   / math.hypot(s, (amap.std_b if r == 0 else amap.std_w)[i, j, k]) for i, j, k, r, I, s, _ in naive])
     print(f"agreement at the rendered points: |z| median {np.median(np.abs(z)):.2f}, max {np.abs(z).max():.2f} "
           f"(z = (map − direct) / combined std-error)")
-    matched = np.median(std) <= naive_err * 1.05
-    print(f"matched error: new median std-error {'≤' if matched else '>'} naive ({np.median(std):.2e} vs "
-          f"{naive_err:.2e})")
-    print(f"ratio: {naive_total / new_total:.1f}")
+    scale = np.array([(s / _map_std(amap, rhos, i, j, k, r)) ** 2 for i, j, k, r, _, s, _ in naive])
+    print(f"(naive std-error / map std-error)² at the rendered points: median {np.median(scale):.1f}, "
+          f"min {scale.min():.1f}, max {scale.max():.1f}")
+    matched_total, matched_err = _matched_naive_total(naive, amap, rhos, overhead, n_points)
+    print(f"naive at the map's own std-error per point: {matched_total:.0f} ± {matched_err:.0f} s for the map "
+          f"(ratio {(matched_total - matched_err) / new_total:.0f}…{(matched_total + matched_err) / new_total:.0f} "
+          f"within one standard error)")
+    print(f"older statistic, naive at its own {args.spp} spp (std-error median {naive_err:.2e} vs the map's "
+          f"{np.median(std):.2e}): ratio {naive_total / new_total:.1f}")
+    print(f"ratio: {matched_total / new_total:.1f}")
     return 0
+
+
+def _map_std(amap: Any, rhos: tuple[float, float], i: int, j: int, k: int, r: int) -> float:
+    return float((amap.std_b if r == 0 else amap.std_w)[i, j, k])
+
+
+def _matched_naive_total(naive: list[tuple[int, int, int, int, float, float, float]], amap: Any,
+                         rhos: tuple[float, float], overhead: float, n_points: int) -> tuple[float, float]:
+    """The naive map's seconds at `amap`'s std-error point by point (n_points × the mean over the
+    rendered points) and that estimate's standard error."""
+    per_point = matched_naive_seconds(np.array([row[-1] for row in naive]), overhead,
+                                      np.array([row[5] for row in naive]),
+                                      np.array([_map_std(amap, rhos, *row[:4]) for row in naive]))
+    spread = float(per_point.std(ddof=1) / math.sqrt(len(per_point))) if len(per_point) > 1 else math.inf
+    return n_points * float(per_point.mean()), n_points * spread
