@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from trimeter.bench.mapbuild import matched_naive_seconds
+from trimeter.bench.mapbuild import matched_naive_seconds, stratified_mean
 from trimeter.errors import InputError
 
 
@@ -43,7 +43,7 @@ def test_bad_input_is_a_clear_error(seconds, naive_std, map_std, overhead):
 
 
 @pytest.mark.parametrize("argv, message", [
-    (["--naive-renders", "1"], "--naive-renders must be ≥ 2"),
+    (["--naive-renders", "11"], "--naive-renders must be ≥ 12"),
     (["--spp", "100"], "--spp must be ≥ 4096"),
 ])
 def test_bad_options_are_refused_before_any_render(capsys, argv, message):
@@ -51,3 +51,27 @@ def test_bad_options_are_refused_before_any_render(capsys, argv, message):
 
     assert main(["bench", "mapbuild", *argv]) == 2
     assert f"trimeter: error: {message}" in capsys.readouterr().err
+
+
+def test_the_stratified_mean_weighs_every_stratum_alike():
+    """Stratum 0 is sampled three times as often as stratum 1: its values must not count three times."""
+    values = np.array([1.0, 1.2, 0.8, 1.0, 1.2, 0.8, 10.0, 12.0])
+    labels = np.array([0, 0, 0, 0, 0, 0, 1, 1])
+    mean, err = stratified_mean(values, labels)
+    assert mean == pytest.approx((1.0 + 11.0) / 2)
+    within = np.sqrt(np.var([1.0, 1.2, 0.8] * 2, ddof=1) / 6 + np.var([10.0, 12.0], ddof=1) / 2) / 2
+    assert err == pytest.approx(within)
+
+
+def test_a_stratum_with_one_value_falls_back_to_the_unstratified_error():
+    values, labels = np.array([1.0, 3.0, 10.0]), np.array([0, 0, 1])
+    mean, err = stratified_mean(values, labels)
+    assert mean == pytest.approx(6.0)
+    assert err == pytest.approx(np.std(values, ddof=1) / np.sqrt(3))
+
+
+def test_the_stratified_mean_refuses_mismatched_or_too_few_values():
+    with pytest.raises(InputError):
+        stratified_mean(np.array([1.0, 2.0]), np.array([0]))
+    with pytest.raises(InputError):
+        stratified_mean(np.array([1.0]), np.array([0]))

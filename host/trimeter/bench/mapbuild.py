@@ -5,7 +5,9 @@ few (σt, g) columns, two backgrounds, `ideal` geometry:
 
 - naive: one direct Mitsuba volpath render (trimeter.forward.render.render_diffuse) per
   (α, σt, g, ρ) point. Rendering all of them would take tens of minutes, so a random sample of points
-  is rendered *in this run* at `--spp` samples each (time t_i, std-error s_i).
+  is rendered *in this run* at `--spp` samples each (time t_i, std-error s_i). The sample is
+  stratified: every (σt, g, ρ) stratum (40 points each) gets a render in turn (a seeded random order,
+  a random α), and a per-point quantity's mean over the map is the mean of its stratum means.
 - new: the builder (trimeter.maps.builder) with target_stderr = the naive renders' median std-error
   (each column traced until its *largest* std-error over α and both backgrounds is at most that).
   The same map is also built with the tracer's plain estimator (no control variates, as many
@@ -15,7 +17,8 @@ Matched error (the headline): a naive builder that matched the new map's MC erro
 point to the map's own std-error σ_i there. Std-error ∝ 1/√spp and a render costs a fixed overhead
 t_0 (measured here: a render of 4096 samples) plus time ∝ spp, so point i would take
 t_0 + (t_i − t_0)·(s_i/σ_i)². The naive map's time is the number of points × the mean of that over
-the rendered points (± its standard error, printed); `ratio: N` = that / the new map's seconds.
+the rendered points (stratified, ± its standard error; with a single render in some stratum, the
+unstratified formula, an overestimate); `ratio: N` = that / the new map's seconds.
 The spread of (s_i/σ_i)² is printed too: a point where the map is far more precise than the render
 weighs in fully, since the naive way would pay for it.
 
@@ -51,7 +54,8 @@ from trimeter.maps.recipe import Recipe, parse_recipe
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("mapbuild", help="map building: naive direct renders vs the (k, m)-tally tracer")
     p.add_argument("--spp", type=int, default=655360, help="samples per naive render (the paper's 640K)")
-    p.add_argument("--naive-renders", type=int, default=12, help="naive renders measured in this run")
+    p.add_argument("--naive-renders", type=int, default=24,
+                   help="naive renders measured in this run (≥ 12: one per (σt, g, ρ) stratum; ≥ 24: two)")
     p.add_argument("--seed", type=int, default=7)
     p.add_argument("--device-columns", metavar="RECIPE",
                    help="compare the tracer's plain and default estimators on columns of this device recipe")
@@ -121,11 +125,31 @@ def matched_naive_seconds(seconds: np.ndarray, overhead: float, naive_std: np.nd
     return (seconds - sampling) + sampling * scale
 
 
+def stratified_mean(values: np.ndarray, labels: np.ndarray) -> tuple[float, float]:
+    """The mean over equal-sized strata of `values` sampled per stratum (`labels`): the mean of the
+    stratum means, and its standard error — the stratified one if every stratum has ≥ 2 values, else
+    the unstratified one (which also counts the spread between strata: an overestimate)."""
+    values, labels = np.asarray(values, dtype=np.float64), np.asarray(labels)
+    if values.shape != labels.shape or values.size < 2:
+        raise InputError("stratified_mean needs at least two values, one stratum label each")
+    groups = [values[labels == h] for h in np.unique(labels)]
+    mean = float(np.mean([grp.mean() for grp in groups]))
+    if all(len(grp) >= 2 for grp in groups):
+        err = math.sqrt(sum(grp.var(ddof=1) / len(grp) for grp in groups)) / len(groups)
+    else:
+        err = float(values.std(ddof=1) / math.sqrt(values.size))
+    return mean, err
+
+
+BENCH_SIGMA_T = (0.2, 2.0, 20.0)
+BENCH_G = (0.0, 0.8)
+
+
 def bench_recipe(target_stderr: float) -> Recipe:
     return parse_recipe({
         "name": "bench-mapbuild", "geometry": "ideal", "n": 1.5, "thickness_mm": 0.5,
         "reference_rho_b": 0.02, "reference_rho_w": 0.9, "seed": 11,
-        "grid": {"alpha": {"max": 0.999, "count": 40}, "sigma_t": [0.2, 2.0, 20.0], "g": [0.0, 0.8]},
+        "grid": {"alpha": {"max": 0.999, "count": 40}, "sigma_t": list(BENCH_SIGMA_T), "g": list(BENCH_G)},
         "sampling": {"target_stderr": target_stderr, "min_paths": 65536, "max_paths": 4194304},
     })
 
@@ -133,8 +157,9 @@ def bench_recipe(target_stderr: float) -> Recipe:
 def run(args: argparse.Namespace) -> int:
     if args.device_columns:
         return compare_estimators(args.device_columns, args.paths, args.seed)
-    if args.naive_renders < 2:
-        raise InputError(f"--naive-renders must be ≥ 2 (their spread is the naive time's error), "
+    strata = [(j, k, r) for j in range(len(BENCH_SIGMA_T)) for k in range(len(BENCH_G)) for r in range(2)]
+    if args.naive_renders < len(strata):
+        raise InputError(f"--naive-renders must be ≥ {len(strata)} (one per (σt, g, ρ) stratum of the map), "
                          f"got {args.naive_renders}")
     if args.spp < 4096:
         raise InputError(f"--spp must be ≥ 4096 (a render of 4096 samples is the overhead measured), got {args.spp}")
@@ -147,11 +172,14 @@ def run(args: argparse.Namespace) -> int:
     na, ns, ng = probe.shape
     n_points = na * ns * ng * len(rhos)
     rng = np.random.default_rng(args.seed)
-    picks = [(int(rng.integers(na)), int(rng.integers(ns)), int(rng.integers(ng)), int(rng.integers(len(rhos))))
-             for _ in range(args.naive_renders)]
+    picks: list[tuple[int, int, int, int]] = []
+    while len(picks) < args.naive_renders:
+        for h in rng.permutation(len(strata))[: args.naive_renders - len(picks)]:
+            picks.append((int(rng.integers(na)), *strata[h]))
     print(f"map: ideal, n = 1.5, ℓ = 0.5 mm; α {na} × σt {ns} × g {ng} × ρ {len(rhos)} = {n_points} "
           f"(α, σt, g, ρ) points")
-    print(f"naive: volpath direct render per point at {args.spp} spp; measuring {len(picks)} random points")
+    print(f"naive: volpath direct render per point at {args.spp} spp; measuring {len(picks)} random points "
+          f"(stratified by σt, g, ρ)")
     render_diffuse("ideal", 0.5, 1.0, 0.5, 1.5, 0.5, 0.5, spp=4096, seed=0)   # load + JIT outside the timing
     t0 = time.perf_counter()
     render_diffuse("ideal", 0.5, 1.0, 0.5, 1.5, 0.5, 0.5, spp=4096, seed=1)
@@ -166,9 +194,10 @@ def run(args: argparse.Namespace) -> int:
               f"I = {I:.5f} ± {s:.5f}  ({naive[-1][-1]:.2f} s)")
     seconds = np.array([row[-1] for row in naive])
     naive_err = float(np.median([row[5] for row in naive]))
-    naive_per = float(seconds.mean())
+    labels = np.array([strata.index(row[1:4]) for row in naive])
+    naive_per, naive_per_err = stratified_mean(seconds, labels)
     naive_total = naive_per * n_points
-    print(f"naive: {naive_per:.2f} ± {seconds.std(ddof=1) / math.sqrt(len(seconds)):.2f} s per render → "
+    print(f"naive: {naive_per:.2f} ± {naive_per_err:.2f} s per render → "
           f"{naive_total:.0f} s for the map (extrapolated from {len(seconds)} renders); median std-error "
           f"{naive_err:.2e}; per-render overhead {overhead:.2f} s (a 4096-sample render)")
 
@@ -179,7 +208,7 @@ def run(args: argparse.Namespace) -> int:
                           tracer=partial(trace_column, below_fraction=1.0, control_variates=False))
         plain_total = time.perf_counter() - t0
     plain_std = np.concatenate([plain.std_b.ravel(), plain.std_w.ravel()])
-    plain_naive, plain_naive_err = _matched_naive_total(naive, plain, rhos, overhead, n_points)
+    plain_naive, plain_naive_err = _matched_naive_total(naive, labels, plain, rhos, overhead, n_points)
     print(f"plain: {plain_total:.1f} s for the whole map with the plain estimator "
           f"({plain.provenance['paths_per_column']['total']} paths, std-error median {np.median(plain_std):.2e}); "
           f"matched-error ratio {plain_naive / plain_total:.1f} (naive {plain_naive:.0f} ± {plain_naive_err:.0f} s), "
@@ -202,7 +231,7 @@ def run(args: argparse.Namespace) -> int:
     scale = np.array([(s / _map_std(amap, rhos, i, j, k, r)) ** 2 for i, j, k, r, _, s, _ in naive])
     print(f"(naive std-error / map std-error)² at the rendered points: median {np.median(scale):.1f}, "
           f"min {scale.min():.1f}, max {scale.max():.1f}")
-    matched_total, matched_err = _matched_naive_total(naive, amap, rhos, overhead, n_points)
+    matched_total, matched_err = _matched_naive_total(naive, labels, amap, rhos, overhead, n_points)
     print(f"naive at the map's own std-error per point: {matched_total:.0f} ± {matched_err:.0f} s for the map "
           f"(ratio {(matched_total - matched_err) / new_total:.0f}…{(matched_total + matched_err) / new_total:.0f} "
           f"within one standard error)")
@@ -216,12 +245,13 @@ def _map_std(amap: Any, rhos: tuple[float, float], i: int, j: int, k: int, r: in
     return float((amap.std_b if r == 0 else amap.std_w)[i, j, k])
 
 
-def _matched_naive_total(naive: list[tuple[int, int, int, int, float, float, float]], amap: Any,
-                         rhos: tuple[float, float], overhead: float, n_points: int) -> tuple[float, float]:
-    """The naive map's seconds at `amap`'s std-error point by point (n_points × the mean over the
-    rendered points) and that estimate's standard error."""
+def _matched_naive_total(naive: list[tuple[int, int, int, int, float, float, float]], labels: np.ndarray,
+                         amap: Any, rhos: tuple[float, float], overhead: float,
+                         n_points: int) -> tuple[float, float]:
+    """The naive map's seconds at `amap`'s std-error point by point (n_points × the stratified mean
+    over the rendered points) and that estimate's standard error."""
     per_point = matched_naive_seconds(np.array([row[-1] for row in naive]), overhead,
                                       np.array([row[5] for row in naive]),
                                       np.array([_map_std(amap, rhos, *row[:4]) for row in naive]))
-    spread = float(per_point.std(ddof=1) / math.sqrt(len(per_point))) if len(per_point) > 1 else math.inf
-    return n_points * float(per_point.mean()), n_points * spread
+    mean, err = stratified_mean(per_point, labels)
+    return n_points * mean, n_points * err
