@@ -22,6 +22,11 @@ from trimeter.paths import data_dir
 from trimeter.sequences.settings import HostSettings
 
 
+class _NoRedirect(urllib.request.HTTPRedirectHandler):
+    def redirect_request(self, *args: object, **kwargs: object) -> None:
+        return None  # the redirect itself is the answer (urllib raises it as an HTTPError)
+
+
 @dataclass
 class Answer:
     status: int
@@ -43,7 +48,7 @@ class Web:
     root: Path
 
     def call(self, method: str, path: str, body=None, *, token: str | None = "default", headers=None,
-             raw: bytes | None = None, timeout: float = 30.0) -> Answer:
+             raw: bytes | None = None, timeout: float = 30.0, follow_redirects: bool = True) -> Answer:
         head = dict(headers or {})
         token = self.token if token == "default" else token
         if token is not None:
@@ -53,8 +58,9 @@ class Web:
             data = json.dumps(body).encode()
             head.setdefault("Content-Type", "application/json")
         request = urllib.request.Request(self.url + path, data=data, method=method, headers=head)
+        opener = urllib.request.build_opener() if follow_redirects else urllib.request.build_opener(_NoRedirect)
         try:
-            with urllib.request.urlopen(request, timeout=timeout) as response:
+            with opener.open(request, timeout=timeout) as response:
                 return Answer(response.status, response.read(), dict(response.headers))
         except urllib.error.HTTPError as exc:
             return Answer(exc.code, exc.read(), dict(exc.headers))
@@ -131,3 +137,31 @@ def web(tmp_path_factory):
     with web_instrument(tmp_path_factory.mktemp("web")) as instrument:
         instrument.wait_state("asking_empty_holder")
         yield instrument
+
+
+def _no_instrument() -> object:
+    raise AssertionError("this test's host has no instrument: nothing may open one")
+
+
+@contextlib.contextmanager
+def idle_web(root: Path):
+    """The web app of a host whose instrument loop never starts (no twin): for what the app answers by
+    itself (headers, the map listing), in a fraction of a second."""
+    from trimeter.web.app import WebServer, create_app
+    from trimeter.web.auth import load_or_create_token
+    from trimeter.web.history import History
+    from trimeter.web.jobs import Jobs
+
+    with host_dirs(root):
+        settings = HostSettings()
+        settings.set("results_dir", str(root / "results"))
+        service = Service(_no_instrument, _no_instrument, settings)
+        history = History(settings.results_path, data_dir() / "history.sqlite")
+        history.open()
+        jobs = Jobs(service, on_measurement=history.add)
+        server = WebServer(create_app(jobs, history, load_or_create_token()), "127.0.0.1", 0).start()
+        try:
+            yield Web(server.url, load_or_create_token(), None, jobs, history, root)
+        finally:
+            server.close()
+            history.close()

@@ -1,7 +1,9 @@
 """The page in a real browser (Debian's headless chromium through chromium-driver): opened with the
 token, it calibrates (the "holder is empty" confirm stands in for the press), starts a measurement
 on the twin, waits for the result page with its plot, overlays it with a re-fit, and saves screenshots (to
-$TRIMETER_SCREENSHOT_DIR if set — docs/img holds the project's — else the test's temporary directory)."""
+$TRIMETER_SCREENSHOT_DIR if set — docs/img holds the project's — else the test's temporary directory).
+All of it under the page's Content-Security-Policy: the browser must report no violation of it, and the
+stylesheet and the script-set colours must have taken effect."""
 
 from __future__ import annotations
 
@@ -29,6 +31,7 @@ def browser():
     for arg in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage", "--window-size=1280,1000",
                 "--disable-gpu", "--force-device-scale-factor=1"):
         options.add_argument(arg)
+    options.set_capability("goog:loggingPrefs", {"browser": "ALL"})  # the console: CSP violations land there
     driver = webdriver.Chrome(service=Service(executable_path=DRIVER), options=options)
     driver.set_page_load_timeout(30)
     yield driver
@@ -44,10 +47,13 @@ def test_the_page_calibrates_measures_and_shows_the_result(tmp_path, browser):
     shots.mkdir(parents=True, exist_ok=True)
     wait = WebDriverWait(browser, 120)
 
+    console: list[dict] = []  # every browser console entry (get_log drains it)
     with web_instrument(tmp_path / "rig") as web:
         web.twin.control.remove_sample()
         browser.get(f"{web.url}/?token={web.token}")
         assert "token" not in browser.current_url  # taken once, then a cookie
+        header = browser.find_element(By.TAG_NAME, "header")
+        assert header.value_of_css_property("background-color") == "rgba(29, 35, 48, 1)"  # style.css applied
         wait.until(EC.text_to_be_present_in_element((By.ID, "state"), "Empty the holder"))
         wait.until(EC.element_to_be_clickable((By.ID, "holder-empty"))).click()
         wait.until(EC.text_to_be_present_in_element((By.ID, "state"), "Ready"))
@@ -70,11 +76,18 @@ def test_the_page_calibrates_measures_and_shows_the_result(tmp_path, browser):
         browser.get(f"{web.url}/#/compare/{measured}/{other}")
         wait.until(EC.presence_of_element_located((By.CSS_SELECTOR, "#c-plot svg path")))
         assert len(browser.find_elements(By.CSS_SELECTOR, "#c-legend a")) == 2
+        swatches = browser.find_elements(By.CSS_SELECTOR, "#c-legend i")
+        assert [s.value_of_css_property("background-color") for s in swatches] == ["rgba(35, 100, 210, 1)",
+                                                                                   "rgba(210, 105, 30, 1)"]
+        console += browser.get_log("browser")
         browser.save_screenshot(str(shots / "web-overlay.png"))
 
         browser.get(f"{web.url}/#/history")
         wait.until(EC.presence_of_element_located((By.CSS_SELECTOR, "#rows tr")))
         assert measured in browser.find_element(By.ID, "rows").get_attribute("innerHTML")
         browser.save_screenshot(str(shots / "web-history.png"))
+        console += browser.get_log("browser")
+    violations = [e["message"] for e in console if "Content Security Policy" in e["message"]]
+    assert not violations, violations
     for name in ("web-status.png", "web-measurement.png", "web-overlay.png", "web-history.png"):
         assert (shots / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

@@ -273,13 +273,20 @@ async function measurementView(id) {
   });
 }
 
+// a series' colour key: set through the CSSOM, which the page's CSP allows (a style attribute it refuses)
+function swatch(color) {
+  const node = el("i");
+  node.style.background = color;
+  return node;
+}
+
 async function compareView(a, b) {
   mount("tpl-compare");
   const [da, db] = await Promise.all([a, b].map((id) => api(`/api/measurements/${encodeURIComponent(id)}`)));
   const series = [da, db].map((d, i) => ({params: d.parameters.combined, color: COLORS[i + 1], band: true,
     name: `${d.measurement.label || d.measurement.id} · ${d.measurement.maps.join(" + ")} · ${d.measurement.method} · ` +
       `${d.measurement.written_utc.replace("T", " ").slice(0, 19)}${d.measurement.refit_of ? " (re-fit)" : ""}`}));
-  $("c-legend").replaceChildren(...series.map((s) => el("span", {}, el("i", {style: `background:${s.color}`}),
+  $("c-legend").replaceChildren(...series.map((s) => el("span", {}, swatch(s.color),
     el("a", {href: `#/m/${[a, b][series.indexOf(s)]}`}, s.name))));
   $("c-plot").replaceChildren(plotParameters(series, {}));
 }
