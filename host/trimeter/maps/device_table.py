@@ -49,11 +49,13 @@ import contextlib
 import hashlib
 import json
 import os
+import re
 import struct
 import zlib
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any, NoReturn
 
 import numpy as np
@@ -84,6 +86,7 @@ _HEAD = struct.Struct("<8sHHI32s32s6f3f8H24s")
 _DIRECTORY = struct.Struct(f"<{2 * len(SECTIONS)}I")
 _RESERVED = HEADER_SIZE - _HEAD.size - _DIRECTORY.size
 _Q = 65535.0
+SHA256_HEX = re.compile(r"[0-9a-f]{64}")  # a table's name in the cache
 # the fewest (α, σt, g) nodes the compact model's splines take (cubic along α and ln σt, PCHIP along g)
 MIN_NODES = (4, 4, 3)
 
@@ -129,6 +132,57 @@ def quantize(values: np.ndarray) -> tuple[np.ndarray, tuple[float, float]]:
     step = np.float32((float(v.max()) - float(lo)) / _Q) or np.float32(1.0)
     q = np.clip(np.round((v - np.float64(lo)) / np.float64(step)), 0, _Q).astype(np.uint16)
     return q, (float(lo), float(step))
+
+
+# a reader's report of the first defect: (field, why) → MapFileError
+Fail = Callable[[str, str], NoReturn]
+
+
+def _check_format(magic: bytes, version: int, header_size: int, fail: Fail) -> None:
+    if magic != MAGIC:
+        fail("magic", "not a trimeter map table")
+    if version != FORMAT_VERSION:
+        retired = " (format 1 is retired: rebuild it with `trimeter map build RECIPE --stages tlut`)" \
+            if version == 1 else ""
+        fail("format_version", f"{version}, this reader reads {FORMAT_VERSION}{retired}")
+    if header_size != HEADER_SIZE:
+        fail("header_size", f"{header_size}, not {HEADER_SIZE}")
+
+
+def _check_setup(n: float, thickness: float, cover_n: float, rho_b: float, rho_w: float, mc_stderr: float,
+                 ends: tuple[float, float, float], fail: Fail) -> None:
+    """The header's set-up numbers: each in its range, ρ_b < ρ_w, a known cover slide."""
+    u_max, tau_max, v_max = ends
+    header = dict(n=(n, 1, 3), thickness_mm=(thickness, 1e-6, 100), rho_b_ref=(rho_b, 0, 1),
+                  rho_w_ref=(rho_w, 0, 1), mc_stderr=(mc_stderr, 0, 1), u_max=(u_max, 1e-6, 50),
+                  tau_max=(tau_max, 1e-6, 1e3), v_max=(v_max, 1e-6, 50))
+    for key, (value, lo, hi) in header.items():
+        if not (np.isfinite(value) and lo <= value <= hi):
+            fail(key, f"{value} is not a number in [{lo}, {hi}]")
+    if not rho_b < rho_w:
+        fail("rho_w_ref", f"{rho_w} is not above rho_b_ref {rho_b}")
+    if not (cover_n == 0 or 1 <= cover_n <= 3):
+        fail("cover_slide_n", f"{cover_n}: 0 (none) or an index in [1, 3]")
+
+
+def _decode_name(raw: bytes, fail: Fail) -> str:
+    try:
+        name = raw.rstrip(b"\0").decode()
+    except UnicodeDecodeError:
+        fail("name", "not NUL-padded UTF-8")
+    if "\0" in name:
+        fail("name", "not NUL-padded UTF-8")
+    return name
+
+
+def _decode_geometry(raw: bytes, fail: Fail) -> dict[str, Any]:
+    try:
+        geometry = json.loads(raw.decode())
+    except (UnicodeDecodeError, ValueError):
+        fail("geometry", "not UTF-8 JSON")
+    if not isinstance(geometry, dict):
+        fail("geometry", "not a JSON object")
+    return geometry
 
 
 @dataclass(frozen=True, eq=False)
@@ -347,14 +401,7 @@ class DeviceTable:
             fail("total_size", f"truncated ({len(data)} bytes, shorter than the header)")
         (magic, version, header_size, total, parent, tins, n, thickness, cover_n, rho_b, rho_w, mc_stderr, u_max,
          tau_max, v_max, na, ns, ng, n_inv, nu, nt, nv, reserved, name) = _HEAD.unpack_from(data)
-        if magic != MAGIC:
-            fail("magic", "not a trimeter map table")
-        if version != FORMAT_VERSION:
-            retired = " (format 1 is retired: rebuild it with `trimeter map build RECIPE --stages tlut`)" \
-                if version == 1 else ""
-            fail("format_version", f"{version}, this reader reads {FORMAT_VERSION}{retired}")
-        if header_size != HEADER_SIZE:
-            fail("header_size", f"{header_size}, not {HEADER_SIZE}")
+        _check_format(magic, version, header_size, fail)
         if total != len(data):
             fail("total_size", f"the header says {total} bytes, the data has {len(data)} (truncated or padded)")
         (crc,) = struct.unpack_from("<I", data, len(data) - 4)
@@ -388,16 +435,7 @@ class DeviceTable:
             fail("alpha", "outside [0, 1]")
         if not (arrays["g"][0] > -1 and arrays["g"][-1] < 1):
             fail("g", "outside (−1, 1)")
-        header = dict(n=(n, 1, 3), thickness_mm=(thickness, 1e-6, 100), rho_b_ref=(rho_b, 0, 1),
-                      rho_w_ref=(rho_w, 0, 1), mc_stderr=(mc_stderr, 0, 1), u_max=(u_max, 1e-6, 50),
-                      tau_max=(tau_max, 1e-6, 1e3), v_max=(v_max, 1e-6, 50))
-        for key, (value, lo, hi) in header.items():
-            if not (np.isfinite(value) and lo <= value <= hi):
-                fail(key, f"{value} is not a number in [{lo}, {hi}]")
-        if not rho_b < rho_w:
-            fail("rho_w_ref", f"{rho_w} is not above rho_b_ref {rho_b}")
-        if not (cover_n == 0 or 1 <= cover_n <= 3):
-            fail("cover_slide_n", f"{cover_n}: 0 (none) or an index in [1, 3]")
+        _check_setup(n, thickness, cover_n, rho_b, rho_w, mc_stderr, (u_max, tau_max, v_max), fail)
         scales = arrays["scales"]
         if not (np.all(np.isfinite(scales)) and np.all(scales[:, 1] > 0)):
             fail("scales", "not finite, or a step that is not positive")
@@ -405,18 +443,8 @@ class DeviceTable:
             fail("scales", "a model error std or in-scattering L that can be negative")
         if not np.all(np.isfinite(arrays["inv_frame"])):
             fail("inv_frame", "not finite")
-        try:
-            name_str = name.rstrip(b"\0").decode()
-            if "\0" in name_str:
-                raise UnicodeDecodeError("utf-8", name, 0, 1, "NUL inside the name")
-        except UnicodeDecodeError:
-            fail("name", "not NUL-padded UTF-8")
-        try:
-            geometry = json.loads(arrays.pop("geometry").tobytes().decode())
-        except (UnicodeDecodeError, ValueError):
-            fail("geometry", "not UTF-8 JSON")
-        if not isinstance(geometry, dict):
-            fail("geometry", "not a JSON object")
+        name_str = _decode_name(name, fail)
+        geometry = _decode_geometry(arrays.pop("geometry").tobytes(), fail)
         return cls(name=name_str, parent_sha256=parent.hex(), inscatter_sha256="" if not any(tins) else tins.hex(),
                    n=float(n), thickness_mm=float(thickness), cover_slide_n=float(cover_n) or None,
                    rho_b_ref=float(rho_b), rho_w_ref=float(rho_w), mc_stderr=float(mc_stderr),
@@ -440,6 +468,41 @@ class DeviceTable:
         table = cls.from_bytes(read_bounded(path, MAX_BYTES, "map table"), source=str(path))
         object.__setattr__(table, "path", path)
         return table
+
+
+def read_header(path: str | Path) -> dict[str, Any]:
+    """A table file's identity from its header and geometry section alone (a few hundred bytes: neither the
+    arrays nor the CRC-32 are read, DeviceTable.load checks those): name, the parent map's SHA-256, n,
+    thickness_mm, cover_slide_n, geometry and size_bytes. MapFileError naming the first defect found."""
+    path = Path(path)
+
+    def fail(name: str, why: str) -> NoReturn:
+        raise MapFileError(f"{path}: {name}: {why}")
+
+    try:
+        with open(path, "rb") as f:
+            size = os.fstat(f.fileno()).st_size
+            if not HEADER_SIZE + 4 <= size <= MAX_BYTES:
+                fail("total_size", f"{size} bytes, not within a table's [{HEADER_SIZE + 4}, {MAX_BYTES}]")
+            head = f.read(HEADER_SIZE)
+            if len(head) != HEADER_SIZE:  # shrunk since fstat
+                fail("total_size", f"truncated ({len(head)} bytes, shorter than the header)")
+            (magic, version, header_size, total, parent, _tins, n, thickness, cover_n, rho_b, rho_w, mc_stderr,
+             u_max, tau_max, v_max, *_counts, name) = _HEAD.unpack_from(head)
+            _check_format(magic, version, header_size, fail)
+            if total != size:
+                fail("total_size", f"the header says {total} bytes, the file has {size} (truncated or padded)")
+            _check_setup(n, thickness, cover_n, rho_b, rho_w, mc_stderr, (u_max, tau_max, v_max), fail)
+            geometry_at, geometry_len = _DIRECTORY.unpack_from(head, _HEAD.size)[-2:]
+            if not HEADER_SIZE <= geometry_at <= geometry_at + geometry_len <= size - 4:
+                fail("geometry", f"at ({geometry_at}, {geometry_len} bytes), outside the file")
+            f.seek(geometry_at)
+            geometry = _decode_geometry(f.read(geometry_len), fail)
+    except OSError as exc:
+        raise MapFileError(f"{path}: cannot be read ({exc.strerror or exc})") from None
+    return {"name": _decode_name(name, fail), "parent_map_sha256": parent.hex(), "n": float(n),
+            "thickness_mm": float(thickness), "cover_slide_n": float(cover_n) or None, "geometry": geometry,
+            "size_bytes": size}
 
 
 def table_path_for(map_path: str | Path) -> Path:
@@ -562,6 +625,24 @@ def cache_dir() -> Path:
     import platformdirs
 
     return Path(os.environ.get("TRIMETER_CACHE_DIR") or platformdirs.user_cache_dir("trimeter")) / "device-tables"
+
+
+def cached_tables(directory: Path | None = None) -> list[dict[str, Any]]:
+    """What the cache of instruments' tables holds (default: cache_dir()), one entry per file by name: its
+    SHA-256 as named (not recomputed) and read_header's fields, or for a file that is no readable table a
+    `note` saying why (instrument_table checks an entry in full, and deletes a damaged one, when it uses it)."""
+    directory = cache_dir() if directory is None else Path(directory)
+    entries: list[dict[str, Any]] = []
+    for path in sorted(directory.glob("*" + SUFFIX)):
+        entry: dict[str, Any] = {"file": path.name, "sha256": path.stem}
+        try:
+            if not SHA256_HEX.fullmatch(path.stem):
+                raise MapFileError(f"{path}: not named by a SHA-256, so not a cache entry")
+            entry.update(read_header(path))
+        except MapFileError as exc:
+            entry["note"] = f"skipped: {exc}"
+        entries.append(entry)
+    return entries
 
 
 def _cached(directory: Path, length: int, head: bytes, tail_at: int, tail: bytes) -> DeviceTable | None:

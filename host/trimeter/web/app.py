@@ -34,6 +34,7 @@ from trimeter.errors import DeviceError, InputError, TrimeterError
 from trimeter.inversion.methods import METHODS
 from trimeter.inversion.flags import advice, describe
 from trimeter.maps.appearance import AppearanceMap, find_map, shipped_maps
+from trimeter.maps.device_table import cached_tables
 from trimeter.sequences.measure import map_for_thickness
 from trimeter.sequences.service import EMPTY_HOLDER, NEXT_SAMPLE
 from trimeter.sequences.settings import HostSettings
@@ -347,8 +348,12 @@ async def next_sample(request: web.Request) -> web.StreamResponse:
 
 @routes.get("/api/maps")
 async def maps_route(request: web.Request) -> web.StreamResponse:
+    """The maps a refit may name and the methods; and, to see what else this host holds, the tables read
+    from instruments into its cache (headers only; a file that is no table is listed with a note)."""
     catalog = await _blocking(request, map_catalog, request.app[JOBS].service.settings)
-    return web.json_response({"maps": sorted(catalog), "methods": list(METHODS)})
+    tables = await _blocking(request, cached_tables)
+    return web.json_response({"maps": sorted(catalog), "methods": list(METHODS),
+                              "instrument_tables": [{**table, "source": "instrument cache"} for table in tables]})
 
 
 # ---------------------------------------------------------------------------------- history
@@ -753,7 +758,9 @@ def openapi() -> dict:
                 responses=job)},
             "/api/next-sample": {"post": op("the next sample is in (while asked for, with two thicknesses)",
                                             responses={"409": {"description": "not asked for"}})},
-            "/api/maps": {"get": op("maps a refit may name, and the methods")},
+            "/api/maps": {"get": op("maps a refit may name, the methods, and the instrument tables in this host's "
+                                    "cache (name, parent map's SHA-256, n, ℓ, geometry, size; a note for a "
+                                    "corrupt file)")},
             "/api/measurements": {"get": op("search the history, newest first", params=search)},
             "/api/measurements/{id}": {"get": op("one measurement: index row, measurement.json, parameters, "
                                                  "flags in words, files", params=[mid])},

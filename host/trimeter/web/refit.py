@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import re
 from collections.abc import Callable, Sequence
 from dataclasses import replace
 from pathlib import Path
@@ -22,7 +21,7 @@ from trimeter.domain.measurement import MapRef
 from trimeter.errors import InputError, MapFileError, OutputError, TrimeterError
 from trimeter.inversion.flags import advice
 from trimeter.maps.appearance import AppearanceMap
-from trimeter.maps.device_table import SUFFIX, DeviceTable, cache_dir
+from trimeter.maps.device_table import SHA256_HEX, SUFFIX, DeviceTable, cache_dir
 from trimeter.results.writer import file_tags, write_measurement
 from trimeter.sequences.measure import prepare_fit
 
@@ -75,9 +74,6 @@ def load_capture(directory: Path) -> tuple[Calibration, list[RawSample], list[Re
     except KeyError as exc:
         raise InputError(f"{directory.name}: a capture file lacks the column {exc}") from None
     return calibration, raws, refls, meta
-
-
-SHA256_HEX = re.compile(r"[0-9a-f]{64}")
 
 
 def cached_table(sha256: str) -> DeviceTable | None:
