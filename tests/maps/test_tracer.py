@@ -305,18 +305,22 @@ def test_plain_returns_happen_as_often_as_their_expectation_says(geometry, ell):
 def test_control_variates_keep_the_values_and_cut_the_noise_of_clear_samples(geometry, ell):
     """The default estimator (control variates, background paths by below_share) against the plain
     one on the same seeds: the same I within the plain one's MC error, at every α and both
-    backgrounds; on a clear sample on white its std-error is well below the plain one's."""
+    backgrounds; on a clear sample on white its std-error is well below the plain one's. (Ideal
+    geometry: with B unfactorised, the estimator that uses control variates there.)"""
     stack = Stack.from_recipe(geometry, load_geometry(geometry), N, ell)
     alpha = np.array([0.0, 0.5, 0.9, 0.99])
+    unfactorised = {"factorise": False}
     for sigma_t, g in ((0.05, 0.0), (2.0, 0.8)):
-        plain = trace(stack, sigma_t, g, 1 << 18, 31, K_MAX, below_fraction=1.0, control_variates=False)
-        varied = trace(stack, sigma_t, g, 1 << 18, 31, K_MAX)
+        plain = trace(stack, sigma_t, g, 1 << 18, 31, K_MAX, below_fraction=1.0, control_variates=False,
+                      **unfactorised)
+        varied = trace(stack, sigma_t, g, 1 << 18, 31, K_MAX, **unfactorised)
         for rho in (0.02, 0.9):
             i_plain = background_response_of(plain, alpha, rho)
             i_varied = background_response_of(varied, alpha, rho)
             assert np.all(np.abs(i_varied - i_plain) < 4 * plain.stderr(alpha, rho)), (sigma_t, g, rho)
-    clear_plain = trace(stack, 0.05, 0.0, 1 << 18, 32, K_MAX, below_fraction=1.0, control_variates=False)
-    clear = trace(stack, 0.05, 0.0, 1 << 18, 32, K_MAX)
+    clear_plain = trace(stack, 0.05, 0.0, 1 << 18, 32, K_MAX, below_fraction=1.0, control_variates=False,
+                        **unfactorised)
+    clear = trace(stack, 0.05, 0.0, 1 << 18, 32, K_MAX, **unfactorised)
     assert np.all(clear.stderr(alpha, 0.9) < 0.8 * clear_plain.stderr(alpha, 0.9))
 
 
@@ -345,3 +349,76 @@ def test_estimator_comparison_refuses_too_few_paths_with_a_clear_error(capsys):
 
     assert main(["bench", "mapbuild", "--device-columns", "maps/recipes/device-n1.5-l0.4.toml", "--paths", "10"]) == 2
     assert "trimeter: error: --paths must be ≥ 65536" in capsys.readouterr().err
+
+
+def test_factorised_bookkeeping_equals_per_path_sums():
+    """Factorised columns (B = UT1·UTU): A, B, C and the std-error of I(ρ) equal the explicit per-path
+    computation — a detector path's value is its A term + q·UTU × its UT1 term; a background path
+    moves I through C (× B·q²) and UTU (× UT1·q), its two outcomes exclusive; constants added to rows
+    (as control variates add them) included."""
+    from trimeter.maps.tracer import _add_constant, _background_sums
+
+    rng = np.random.default_rng(3)
+    n, nb = 600, 400
+    k = rng.integers(0, 30, n)
+    m = rng.integers(0, 2, n)
+    hit = (m == 0) & (rng.random(n) < 0.6)
+    nee_k = np.where(m == 1, k, 0)
+    v = np.where((m == 1) & (rng.random(n) < 0.8), 1.0, 0.0)
+    counts, second = _detector_sums(k, m, hit, nee_k, v)
+    counts, second = _add_constant(counts, second, n, 0.15, row=1)
+    kb = rng.integers(0, 25, nb)
+    outcome = rng.random(nb)
+    returned, escaped = outcome < 0.3, outcome > 0.5
+    bc, bs = _background_sums(kb, returned, escaped)
+    bc, bs = _add_constant(bc, bs, nb, 0.05, row=0)
+    bc, bs = _add_constant(bc, bs, nb, 0.2, row=1)
+    above = Tally(counts=counts, n_paths=n, weight=0.9, specular=0.04, truncated=0, k_max=100, second=second)
+    below = Tally(counts=bc, n_paths=nb, weight=1.0, specular=0.0, truncated=0, k_max=100, second=bs)
+    tally = ColumnTally(above, below, factorised=True)
+    alpha, rho = np.array([0.0, 0.4, 0.97]), 0.8
+    a_term = 0.9 * np.where(hit[:, None], alpha[None, :] ** k[:, None], 0.0)
+    ut1_term = 0.9 * (v[:, None] * alpha[None, :] ** nee_k[:, None] + 0.15)
+    pb = alpha[None, :] ** kb[:, None]
+    c_term = np.where(returned[:, None], pb, 0.0) + 0.05
+    e_term = np.where(escaped[:, None], pb, 0.0) + 0.2
+    A, UT1, C, UTU = 0.04 + a_term.mean(0), ut1_term.mean(0), c_term.mean(0), e_term.mean(0)
+    got = tally.abc(alpha)
+    for have, want in zip(got, (A, UT1 * UTU, C), strict=True):
+        np.testing.assert_allclose(have, want, rtol=1e-12)
+    q = rho / (1 - C * rho)
+    per_above = a_term + q * UTU * ut1_term
+    per_below = UT1 * UTU * q * q * c_term + UT1 * q * e_term
+    var = per_above.var(0, ddof=1) / n + per_below.var(0, ddof=1) / nb
+    np.testing.assert_allclose(tally.stderr(alpha, rho), np.sqrt(var), rtol=1e-9)
+
+
+def test_factorisation_is_the_ideal_geometrys_default_and_refused_elsewhere(ideal):
+    device = Stack.from_recipe("device", load_geometry("device"), N, 0.4)
+    assert ideal.factorises and not device.factorises
+    assert trace(ideal, 1.0, 0.5, 4096, 3, K_MAX).factorised
+    assert not trace(ideal, 1.0, 0.5, 4096, 3, K_MAX, factorise=False).factorised
+    assert not trace(device, 1.0, 0.5, 4096, 3, K_MAX).factorised
+    with pytest.raises(InputError, match="factorises only"):
+        trace(device, 1.0, 0.5, 4096, 3, K_MAX, factorise=True)
+    with pytest.raises(ValueError, match="factorised"):
+        trace(ideal, 1.0, 0.5, 4096, 3, K_MAX).__iadd__(trace(ideal, 1.0, 0.5, 4096, 4, K_MAX, factorise=False))
+
+
+@pytest.mark.parametrize("sigma_t, g", [(0.05, 0.0), (2.0, 0.8), (20.0, 0.0)])
+def test_factorised_columns_agree_with_adding_doubling_and_cut_the_white_backgrounds_noise_near_alpha_one(
+        ideal, sigma_t, g):
+    """B = UT1·UTU is unbiased (against adding-doubling, both backgrounds, within 4 std-errors), and
+    the largest std-error over α on white — what sets a column's paths, at α near 1 — is well below
+    the unfactorised estimator's on as many detector paths."""
+    alpha = np.array([0.0, 0.5, 0.9, 0.99, 0.999])
+    n = 1 << 17
+    factorised = trace(ideal, sigma_t, g, n, 41, K_MAX)
+    unfactorised = trace(ideal, sigma_t, g, n, 41, K_MAX, factorise=False)
+    for rho in (0.02, 0.9):
+        reference = np.array([adding_doubling(a, sigma_t, g, rho) for a in alpha])
+        got = background_response_of(factorised, alpha, rho)
+        assert np.all(np.abs(got - reference) < 4 * factorised.stderr(alpha, rho) + 2e-4), (rho, got - reference)
+    worst, worst_before = factorised.stderr(alpha, 0.9).max(), unfactorised.stderr(alpha, 0.9).max()
+    print(f"\nσt {sigma_t}, g {g}: largest std-error on white {worst:.2e}, unfactorised {worst_before:.2e}")
+    assert worst < 0.75 * worst_before

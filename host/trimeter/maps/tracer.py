@@ -19,6 +19,18 @@ No Russian roulette on α (it would break the polynomial): a path is traced unti
 truncated remainder of a path is worth at most w·α^K per path, so the truncation error of I is
 bounded by w·α^K·(fraction of paths truncated); the tally reports that bound.
 
+In the ideal geometry (an unbounded slab over an unbounded Lambertian background) where and how a
+detector path reaches the background says nothing about where it goes next, so B = UT1·UTU factorises
+(the slab's transmittance for the detector's direction × its diffuse transmittance up to the light):
+detector paths stop at their first background hit and tally UT1, the background paths tally UTU
+(reached the light) beside C (came back). A detector path's value then carries UTU's expectation
+instead of a second 0/1 outcome, which is most of the noise on a white background at α near 1 (the
+nodes that set a column's paths). Factorised columns use none of the control variates below: they
+replace 0/1 outcomes by their expectation with coefficient 1, which pays where that light dominates
+(clear samples at low α) and adds variance where the rest of the light is comparable (α near 1,
+the nodes that set a column's paths). The device's finite stack, background and panels do not
+factorise: there, detector paths carry on after the bounce as described above (`Stack.factorises`).
+
 Variance reduction, each unbiased: a next-event estimate at the first background bounce; control
 variates for light that does not depend on α, which dominates the noise of clear samples (a detector
 path's straight first pass to the background with its next-event value, and background paths that
@@ -80,6 +92,14 @@ class Stack:
     panels: tuple[Panel, ...] = ()          # empty: uniform sky of radiance 1 (ideal)
     detector_half_side: float = 0.0        # the detector's spot: a square of the spot's area
     scale: float = 1.0                      # observable per unit of radiance reaching the detector
+
+    @property
+    def factorises(self) -> bool:
+        """Whether B = UT1·UTU holds exactly: a laterally unbounded stack over an unbounded Lambertian
+        background under a uniform sky (the ideal geometry), where the background forgets where and
+        from which direction a path arrived."""
+        return (not self.panels and not math.isfinite(self.stack_half_width)
+                and not math.isfinite(self.background_half_width))
 
     @classmethod
     def from_recipe(cls, geometry: str, geometry_params: dict, n: float, thickness_mm: float) -> "Stack":
@@ -218,12 +238,19 @@ class ColumnTally:
 
     C from its own paths rather than as c2/c1: the ratio is noisy and biased where few detector paths
     reach the background at all (thick slabs), and 1/(1 − Cρ) amplifies that. For the ideal geometry
-    both are URU exactly; for the device, C is the stack's response around the optical axis."""
+    both are URU exactly; for the device, C is the stack's response around the optical axis.
+
+    `factorised` (ideal geometry, see the module's docstring): `above` row 1 is UT1 (detector paths that
+    reached the background, stopped there), `below` row 1 UTU (background paths that reached the
+    light), and B = UT1·UTU."""
 
     above: Tally
     below: Tally
+    factorised: bool = False
 
     def __iadd__(self, other: "ColumnTally") -> "ColumnTally":
+        if self.factorised != other.factorised:
+            raise ValueError("cannot add a factorised column tally to one that is not")
         self.above += other.above
         self.below += other.below
         return self
@@ -246,19 +273,46 @@ class ColumnTally:
 
     def abc(self, alpha) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         c = self.above.orders(alpha)
-        C = np.clip(self.below.orders(alpha)[0], 0.0, 0.999)
+        below = self.below.orders(alpha)
+        C = np.clip(below[0], 0.0, 0.999)
+        if self.factorised:
+            return c[0], c[1] * below[1], C
         return c[0], c[1], C
+
+    def _factorised_path_variances(self, alpha, rho):
+        """Factorised columns: the variance of one detector path's and one background path's value
+        towards I(ρ) = A + UT1·UTU·q (q = ρ/(1 − Cρ)). A detector path adds its A term + q·UTU × its UT1
+        term; a background path moves I through C (∂I/∂C = B·q²) and UTU (∂I/∂UTU = UT1·q): its value
+        is B·q²·(came back) + UT1·q·(reached the light), from `below`'s moments in the formal variable y
+        = UT1·q / (B·q²) — spelled out term by term so that neither coefficient may be zero."""
+        A, B, C = self.abc(alpha)
+        q = rho / (1 - C * rho)
+        ut1, utu = self.above.orders(alpha)[1], self.below.orders(alpha)[1]
+        y = q * utu
+        f1, f2 = self.above._moments(alpha)
+        mean = f1[0] + y * f1[1]
+        mean_sq = sum(f2[p] * y**p for p in range(len(f2)))
+        var_above = np.maximum(mean_sq - mean * mean, 0.0)
+        a, b = B * q * q, ut1 * q
+        g1, g2 = self.below._moments(alpha)
+        second = a * a * g2[0] + a * b * g2[1] + b * b * g2[2]     # g2[1] = 2·E[came back · reached light]
+        var_below = np.maximum(second - (a * g1[0] + b * g1[1]) ** 2, 0.0)
+        return var_above, var_below, y
 
     def stderr(self, alpha, rho):
         """MC standard error of I(ρ) = A + Bρ/(1 − Cρ): the spread of one detector path's value (its
         terms towards A and, × q = ρ/(1 − Cρ), towards B, from `Tally.second`), plus C's own error
         propagated through ∂I/∂C = Bρ²/(1 − Cρ)²."""
+        n = self.above.n_paths
+        if self.factorised:
+            var_above, var_below, y = self._factorised_path_variances(alpha, rho)
+            var_above = var_above / max(n - 1, 1) + (y * self.above.weight) ** 2 * self.above.offset_variance / n**2
+            return np.sqrt(var_above + var_below / max(self.below.n_paths - 1, 1))
         A, B, C = self.abc(alpha)
         q = rho / (1 - C * rho)
         f1, f2 = self.above._moments(alpha)
         mean = f1[0] + q * f1[1]
         mean_sq = sum(f2[p] * q**p for p in range(len(f2)))
-        n = self.above.n_paths
         var_above = np.maximum(mean_sq - mean * mean, 0.0) / max(n - 1, 1)
         var_above = var_above + (q * self.above.weight) ** 2 * self.above.offset_variance / n**2
         g1, g2 = self.below._moments(alpha)
@@ -295,28 +349,37 @@ TRACE_CHUNK = 1 << 24
 
 def trace_column(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max: int,
                  below_fraction: float | None = None, backend: str = "llvm",
-                 control_variates: bool = True) -> ColumnTally:
+                 control_variates: bool = True, factorise: bool | None = None) -> ColumnTally:
     """Detector paths and (a fraction as many) background paths for one (σt, g); seeds derived from
     `seed`; in chunks of at most TRACE_CHUNK paths (memory), chunk i > 0 seeded with _mix64(seed + i).
     `below_fraction` None: as many background paths as minimise the error of I(ρ = 0.9) for the work
-    (below_share, from a pilot of 1/16); `control_variates` False: the plain estimator (comparisons).
+    (below_share, from a pilot of 1/16); `control_variates` False: the plain estimator (comparisons;
+    factorised columns never use them, see the module's docstring).
     `backend`: "llvm" or "cuda" (resolve_backend); the same seed gives the same paths on either, up to
-    the backends' floating-point differences."""
+    the backends' floating-point differences. `factorise` (B = UT1·UTU, see ColumnTally): None = where
+    it is exact (Stack.factorises); True elsewhere is an InputError; False: detector paths carry on
+    past the background (comparisons)."""
     n_paths = int(n_paths)
+    if factorise is None:
+        factorise = stack.factorises
+    elif factorise and not stack.factorises:
+        raise InputError("B = UT1·UTU factorises only for an unbounded slab over an unbounded background "
+                         "(the ideal geometry)")
     parts = []
     for i, start in enumerate(range(0, max(n_paths, 1), TRACE_CHUNK)):
         n = min(TRACE_CHUNK, n_paths - start)
         s = seed if i == 0 else _mix64(seed + i)
-        above = trace(stack, sigma_t, g, n, s, k_max, backend=backend, control_variates=control_variates)
+        above = trace(stack, sigma_t, g, n, s, k_max, backend=backend, control_variates=control_variates,
+                      factorise=factorise)
         share = below_fraction if below_fraction is not None else 1 / BELOW_PILOT
         below = trace(stack, sigma_t, g, max(1024, int(n * share)), _mix64(s ^ 0xB0B0B0B0), k_max,
-                      from_below=True, backend=backend, control_variates=control_variates)
+                      from_below=True, backend=backend, control_variates=control_variates, factorise=factorise)
         if below_fraction is None:
-            more = int(n * below_share(above, below)) - below.n_paths
+            more = int(n * below_share(above, below, factorised=factorise)) - below.n_paths
             if more > 0:
                 below += trace(stack, sigma_t, g, max(1024, more), _mix64(s ^ 0xB0B0B0B1), k_max, from_below=True,
-                               backend=backend, control_variates=control_variates)
-        parts.append(ColumnTally(above, below))
+                               backend=backend, control_variates=control_variates, factorise=factorise)
+        parts.append(ColumnTally(above, below, factorised=factorise))
     total = parts[0]  # the range above has at least one chunk
     for part in parts[1:]:
         total += part
@@ -327,20 +390,23 @@ def trace_column(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int
 BELOW_PILOT = 16
 
 
-def below_share(above: Tally, below: Tally, rho: float = 0.9) -> float:
+def below_share(above: Tally, below: Tally, rho: float = 0.9, factorised: bool = False) -> float:
     """Background paths per detector path that minimise the variance of I(ρ) for the work: with
     per-path variances s_a² (detector paths' value) and s_c² (C's, × (∂I/∂C)²) and loop iterations e_a,
     e_c per path, N_c/N_a = (s_c/s_a)·√(e_a/e_c) (the largest over α = 0.5 … 0.999), within
     [1/BELOW_PILOT, 1]. Iterations, not seconds, so the count does not depend on the machine's load.
     Clear samples' C is noisy and matters on white; a dense sample's C hardly matters."""
-    tally = ColumnTally(above, below)
+    tally = ColumnTally(above, below, factorised=factorised)
     alpha = np.array([0.5, 0.9, 0.99, 0.999])
-    A, B, C = tally.abc(alpha)
-    q = rho / (1 - C * rho)
-    f1, f2 = above._moments(alpha)
-    var_a = np.maximum(sum(f2[p] * q**p for p in range(len(f2))) - (f1[0] + q * f1[1]) ** 2, 0.0)
-    g1, g2 = below._moments(alpha)
-    var_c = np.maximum(g2[0] - g1[0] ** 2, 0.0) * (B * q * q) ** 2
+    if factorised:
+        var_a, var_c, _ = tally._factorised_path_variances(alpha, rho)
+    else:
+        A, B, C = tally.abc(alpha)
+        q = rho / (1 - C * rho)
+        f1, f2 = above._moments(alpha)
+        var_a = np.maximum(sum(f2[p] * q**p for p in range(len(f2))) - (f1[0] + q * f1[1]) ** 2, 0.0)
+        g1, g2 = below._moments(alpha)
+        var_c = np.maximum(g2[0] - g1[0] ** 2, 0.0) * (B * q * q) ** 2
     cost = (above.path_events / max(above.n_paths, 1)) / max(below.path_events / max(below.n_paths, 1), 1e-9)
     with np.errstate(divide="ignore", invalid="ignore"):
         ratio = np.sqrt(var_c / var_a * cost)
@@ -442,15 +508,19 @@ def _fresnel(dr, cos_i, eta):
 
 
 def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max: int, wave: int = 48,
-          from_below: bool = False, backend: str = "llvm", control_variates: bool = True) -> Tally:
+          from_below: bool = False, backend: str = "llvm", control_variates: bool = True,
+          factorise: bool = False) -> Tally:
     """Trace `n_paths` adjoint paths from the detector at extinction σt [1/mm] and HG anisotropy g;
     or, `from_below`, paths leaving the background (under the detector spot) cosine-distributed
-    upward, tallying those that come back to the background (row 0) — the C coefficient."""
+    upward, tallying those that come back to the background (row 0) — the C coefficient.
+    `factorise` (ColumnTally): detector paths stop at the background and tally it in row 1 (UT1);
+    background paths also tally those that reach the light, in row 1 (UTU); no control variates."""
     import time
 
     dr, B = _drjit(backend)
     Float, UInt32, Bool = B.Float, B.UInt32, B.Bool
     t0 = time.perf_counter()
+    control_variates = control_variates and not factorise
     L = len(stack.layer_n)
     planes = [float(z) for z in stack.plane_z]
     layer_n = [float(v) for v in stack.layer_n]
@@ -584,7 +654,7 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
         dx, dy, dz = dr.zeros(Float, n_paths), dr.zeros(Float, n_paths), dr.full(Float, -1.0, n_paths)
         li = dr.zeros(UInt32, n_paths)
         m = dr.zeros(UInt32, n_paths)
-        orders = N_BACKGROUND_ORDERS
+        orders = 1 if factorise else N_BACKGROUND_ORDERS
     it = dr.zeros(UInt32, n_paths)
     alive = dr.full(Bool, True, n_paths)
     hit = dr.full(Bool, False, n_paths)
@@ -714,7 +784,7 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
             # or reflection on the way adds iterations (a vertical ray meets no side face).
             clean = dr.select(first_bounce, it == L + 1, clean)
             reach_light &= ~straight
-        hit = hit | (alive & (cut if from_below else reach_light))
+        hit = hit | (alive & (cut if from_below and not factorise else reach_light))
         alive = alive & ~done
         return (x, y, z, new_dx, new_dy, new_dz, dr.select(out_top, li, new_li), k, m, it, alive, hit, nee_k,
                 bounce_x, bounce_y, nee_u, nee_v, straight, clean, rng)
@@ -757,7 +827,11 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
     k_np, m_np, it_np, hit_np = final["k"], final["m"], final["it"], final["hit"]
     truncated = int(np.count_nonzero((k_np >= k_max) | (it_np >= max_iter)))
     if from_below:
-        counts, second = _background_sums(k_np, hit_np)
+        # factorised: `hit` is "reached the light", and a path came back iff it met the background again
+        if factorise:
+            counts, second = _background_sums(k_np, m_np >= 2, hit_np)
+        else:
+            counts, second = _background_sums(k_np, hit_np)
         if start_cos is not None:  # control variates on
             # The light the stack's interfaces send straight back (no scattering, few reflections):
             # its expectation is a 1-D integral, so those paths' 0/1 outcomes are replaced by it.
@@ -769,6 +843,12 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
                      seconds=time.perf_counter() - t0, path_events=int(it_np.sum()), second=second)
     bounced = np.flatnonzero(m_np >= 1)
     nee_value = np.zeros(n_paths)
+    if factorise:  # each path that reached the background adds 1 to UT1 at its scatterings so far
+        counts, second = _detector_sums(k_np, m_np, hit_np, final["nee_k"], np.where(m_np >= 1, 1.0, 0.0))
+        r0 = ((layer_n[0] - 1.0) / (layer_n[0] + 1.0)) ** 2
+        return Tally(counts=counts, n_paths=n_paths, weight=(1 - r0) * stack.scale, specular=r0 * stack.scale,
+                     truncated=truncated, k_max=k_max, seconds=time.perf_counter() - t0,
+                     path_events=int(it_np.sum()), second=second)
     if len(bounced):
         value = straight_through(*(Float(final[name][bounced]) for name in ("bounce_x", "bounce_y", "nee_u", "nee_v")))
         nee_value[bounced] = np.asarray(value, dtype=np.float64)
@@ -818,11 +898,19 @@ def _nee_points(seed: int, n_paths: int) -> list[np.ndarray]:
                        .random_base2(size).astype(np.float32), below_one) for r in range(NEE_REPLICAS)]
 
 
-def _background_sums(k, hit):
-    """Tally.counts and Tally.second of background paths: each adds α^k if it came back (`hit`)."""
-    counts = np.bincount(k[hit], minlength=1)[None, :].astype(float)
-    second = np.zeros((1, 2 * counts.shape[1] - 1))
-    second[0, 0::2] = counts[0]
+def _background_sums(k, returned, escaped=None):
+    """Tally.counts and Tally.second of background paths: each adds α^k to row 0 if it came back and,
+    with `escaped` given (factorised columns), to row 1 if it reached the light — never both, so the
+    square of a path's value has no cross term."""
+    if escaped is None:
+        counts = np.bincount(k[returned], minlength=1)[None, :].astype(float)
+        second = np.zeros((1, 2 * counts.shape[1] - 1))
+        second[0, 0::2] = counts[0]
+        return counts, second
+    width = int(max(k[returned].max(initial=0), k[escaped].max(initial=0))) + 1
+    counts = np.stack([np.bincount(k[flags], minlength=width)[:width] for flags in (returned, escaped)]).astype(float)
+    second = np.zeros((3, 2 * width - 1))
+    second[0::2, 0::2] = counts
     return counts, second
 
 
