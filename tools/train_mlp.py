@@ -4,7 +4,9 @@ of `trimeter map build RECIPE --stages onnx` (trimeter.maps.pipeline; training i
 trimeter.maps.mlp_training), for a map given by file or shipped name.
 
     .venv/bin/python tools/train_mlp.py maps/device-l0.4.tmap [-o maps/device-l0.4.onnx]
-        [--hidden 32,32] [--activation relu] [--samples 120000] [--epochs 40] [--seed 0]
+        [--hidden 64,64] [--activation relu] [--samples 300000] [--epochs 60] [--seed 0]
+
+(the defaults: trimeter.maps.mlp_training.DEFAULTS; jitter and the learning-rate schedule are its defaults too)
 """
 
 from __future__ import annotations

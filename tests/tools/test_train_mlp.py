@@ -54,3 +54,36 @@ def test_a_network_the_graph_cannot_express_is_refused():
         model.fit(np.random.default_rng(0).uniform(size=(50, 5)), np.random.default_rng(1).uniform(size=(50, 2)))
     with pytest.raises(ValueError, match="unsupported network"):
         train_mlp.network_graph(model)
+
+
+def test_the_learning_rate_decays_on_a_cosine_to_its_floor():
+    from trimeter.maps.mlp_training import LEARNING_RATE_FLOOR, learning_rates
+
+    rates = learning_rates(3e-3, 61)
+    assert len(rates) == 61 and np.all(np.diff(rates) < 0)
+    assert rates[0] == pytest.approx(3e-3) and rates[-1] == pytest.approx(3e-3 * LEARNING_RATE_FLOOR)
+    assert rates[30] == pytest.approx((rates[0] + rates[-1]) / 2)  # a cosine: halfway down at half time
+    assert learning_rates(1e-3, 1) == pytest.approx([1e-3])  # one epoch: the initial rate, no division by zero
+
+
+def test_training_follows_the_schedule_and_reports_the_scored_g(monkeypatch):
+    """Every epoch is one partial_fit at that epoch's rate (the first at the initial rate), and the
+    validation names g's error over the materials where it is scored."""
+    from sklearn.neural_network import MLPRegressor
+
+    from trimeter.maps import mlp_training
+    from trimeter.maps.appearance import AppearanceMap
+
+    seen = []
+    original = MLPRegressor.partial_fit
+
+    def spy(self, x, y, *args, **kwargs):
+        seen.append(self._optimizer.learning_rate_init if hasattr(self, "_optimizer") else self.learning_rate_init)
+        return original(self, x, y, *args, **kwargs)
+
+    monkeypatch.setattr(MLPRegressor, "partial_fit", spy)
+    amap = AppearanceMap.load(ROOT / "tests" / "inversion" / "data" / "ideal-l0.5.tmap")
+    _, stats = mlp_training.train(amap, hidden=(8,), samples=500, epochs=4, learning_rate=2e-3)
+    np.testing.assert_allclose(seen, mlp_training.learning_rates(2e-3, 4))
+    assert set(stats) == {"alpha_abs_p95", "g_abs_p95", "g_abs_p95_scored"}
+    assert all(np.isfinite(v) and v >= 0 for v in stats.values())
