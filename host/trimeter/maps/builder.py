@@ -40,7 +40,8 @@ from trimeter.model.response import background_response
 if TYPE_CHECKING:
     from rich.progress import Progress
 
-BUILDER = "trimeter.maps.tracer: (k, m)-tally path tracer (detector + background paths), Dr.Jit LLVM symbolic loop"
+BUILDER = ("trimeter.maps.tracer: (k, m)-tally path tracer (detector + background paths; B = UT1·UTU where the "
+           "geometry factorises), Dr.Jit LLVM symbolic loop")
 _COLUMN_FIELDS = ("A", "B", "C", "std_b", "std_w")
 _BATCH_QUANTUM = 4096
 
