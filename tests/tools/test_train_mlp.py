@@ -87,3 +87,13 @@ def test_training_follows_the_schedule_and_reports_the_scored_g(monkeypatch):
     np.testing.assert_allclose(seen, mlp_training.learning_rates(2e-3, 4))
     assert set(stats) == {"alpha_abs_p95", "g_abs_p95", "g_abs_p95_scored"}
     assert all(np.isfinite(v) and v >= 0 for v in stats.values())
+
+
+def test_weights_whose_products_would_be_subnormal_are_flushed():
+    """A dead unit's weights decay to ~1e-38 (normal floats, but subnormal once multiplied by an activation):
+    zero, like subnormal ones; weights within float32 reach of the tensor's largest are kept exactly."""
+    from trimeter.maps.mlp_training import flush_subnormals
+
+    w = np.array([[2.5, -1e-3, 3e-9], [1.2e-38, -4e-30, 1e-45]], dtype=np.float32)
+    np.testing.assert_array_equal(flush_subnormals(w), [[2.5, -1e-3, 3e-9], [0.0, 0.0, 0.0]])
+    np.testing.assert_array_equal(flush_subnormals(np.zeros(3)), np.zeros(3))

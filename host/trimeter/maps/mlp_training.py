@@ -151,11 +151,19 @@ def network_graph(model: Any) -> onnx.ModelProto:
     return onx
 
 
+# A weight below this fraction of the largest in its tensor changes no prediction beyond float32 rounding (~6e-8).
+NEGLIGIBLE_WEIGHT = 1e-12
+
+
 def flush_subnormals(values: ArrayLike) -> np.ndarray:
-    """float32 weights with subnormal values set to zero: they change no prediction beyond float32 rounding,
-    but onnxruntime's CPU kernels take the processor's slow path on them, several times slower."""
+    """float32 weights with the values that make subnormals set to zero: subnormal weights, and weights
+    below NEGLIGIBLE_WEIGHT of the tensor's largest (the L2 penalty decays a dead unit's weights towards
+    ~1e-38, still normal, but their products with the activations are subnormal). Either changes no
+    prediction beyond float32 rounding, but onnxruntime's CPU kernels take the processor's slow path on
+    them, several times slower."""
     out = np.asarray(values, dtype=np.float32).copy()
-    out[np.abs(out) < np.finfo(np.float32).tiny] = 0.0
+    largest = float(np.max(np.abs(out))) if out.size else 0.0
+    out[np.abs(out) < max(np.finfo(np.float32).tiny, NEGLIGIBLE_WEIGHT * largest)] = 0.0
     return out
 
 
