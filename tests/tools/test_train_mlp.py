@@ -95,5 +95,5 @@ def test_weights_whose_products_would_be_subnormal_are_flushed():
     from trimeter.maps.mlp_training import flush_subnormals
 
     w = np.array([[2.5, -1e-3, 3e-9], [1.2e-38, -4e-30, 1e-45]], dtype=np.float32)
-    np.testing.assert_array_equal(flush_subnormals(w), [[2.5, -1e-3, 3e-9], [0.0, 0.0, 0.0]])
+    np.testing.assert_array_equal(flush_subnormals(w), np.array([[2.5, -1e-3, 3e-9], [0, 0, 0]], dtype=np.float32))
     np.testing.assert_array_equal(flush_subnormals(np.zeros(3)), np.zeros(3))
