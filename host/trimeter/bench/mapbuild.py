@@ -224,18 +224,20 @@ def run(args: argparse.Namespace) -> int:
                             ("unfactorised", partial(trace_column, factorise=False))):
         with tempfile.TemporaryDirectory() as tmp, _Clocks() as other_took:
             other = build_map(recipe, Path(tmp) / f"{name}.tmap", progress=False, tracer=estimator)
-        other_total = float(other_took.seconds[0])
+        other_total, other_cpu = (float(v) for v in other_took.seconds)
         other_std = np.concatenate([other.std_b.ravel(), other.std_w.ravel()])
         other_naive, other_naive_err = matched(_map_std(other, rhos, naive), 0)
-        print(f"{name}: {other_total:.1f} s for the whole map with the {name} estimator "
+        print(f"{name}: {other_total:.1f} s ({other_cpu:.1f} CPU s) for the whole map with the {name} estimator "
               f"({other.provenance['paths_per_column']['total']} paths, std-error median "
               f"{np.median(other_std):.2e}); matched-error ratio {other_naive / other_total:.1f} (naive "
-              f"{other_naive:.0f} ± {other_naive_err:.0f} s), at the naive spp {naive_total / other_total:.1f}")
+              f"{other_naive:.0f} ± {other_naive_err:.0f} s; CPU seconds: "
+              f"{matched(_map_std(other, rhos, naive), 1)[0] / other_cpu:.1f}), at the naive spp "
+              f"{naive_total / other_total:.1f}")
     with tempfile.TemporaryDirectory() as tmp, _Clocks() as new_took:
         amap = build_map(recipe, Path(tmp) / "bench.tmap", progress=False)
     new_total, new_cpu = (float(v) for v in new_took.seconds)
     std = np.concatenate([amap.std_b.ravel(), amap.std_w.ravel()])
-    print(f"new:   {new_total:.1f} s for the whole map ({ns * ng} traces, "
+    print(f"new:   {new_total:.1f} s ({new_cpu:.1f} CPU s) for the whole map ({ns * ng} traces, "
           f"{amap.provenance['paths_per_column']['total']} paths); std-error median {np.median(std):.2e}, "
           f"max {std.max():.2e} (target {naive_err:.2e}); truncation ≤ "
           f"{amap.provenance['truncation']['max_error_bound']:.1e}")
