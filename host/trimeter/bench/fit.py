@@ -116,9 +116,9 @@ def heldout_for(amap: AppearanceMap) -> tuple[Path, dict[str, Any], Heldout]:
     from trimeter.errors import MapFileError
     from trimeter.maps.container import read_container
 
-    candidates = [HELDOUT_DIR / f"{amap.name}.held"]
-    if amap.path is not None:
-        candidates.append(amap.path.with_suffix(".held"))
+    # a set next to the map first: a map built elsewhere is scored on its own set, not on the shipped one
+    candidates = [amap.path.with_suffix(".held")] if amap.path is not None else []
+    candidates.append(HELDOUT_DIR / f"{amap.name}.held")
     for path in candidates:
         if path.is_file():
             meta, arrays, _ = read_container(path, "heldout-set")
