@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from trimeter.domain.calibration import Calibration
 from trimeter.domain.capture import RawSample
@@ -46,7 +47,20 @@ class MapRef(BackgroundCoefficients, Protocol):
     def checksum(self) -> str: ...
 
 
-class Estimate(Protocol):
+class SpectralColumns(Protocol):
+    """What a material is read from: a fit's parameters, their columns from a file, or a material."""
+
+    @property
+    def wavelengths_nm(self) -> ArrayLike: ...
+    @property
+    def alpha(self) -> ArrayLike: ...
+    @property
+    def sigma_t(self) -> ArrayLike: ...
+    @property
+    def g(self) -> ArrayLike: ...
+
+
+class Estimate(SpectralColumns, Protocol):
     """What a measurement needs of fitted parameters (trimeter.results.Parameters is one): read-only, as
     a frozen result is."""
 

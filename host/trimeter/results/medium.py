@@ -20,31 +20,18 @@ import json
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Protocol
 
 import numpy as np
 from numpy.typing import ArrayLike
 
 from trimeter.atomic import atomic_write
+from trimeter.domain.measurement import SpectralColumns
 from trimeter.errors import InputError
 
 SPECTRAL_VARIANTS = ("scalar_spectral", "llvm_ad_spectral", "cuda_ad_spectral", "scalar_spectral_polarized",
                      "llvm_ad_spectral_polarized", "cuda_ad_spectral_polarized")
 VARIANT_NOTE = ("spectral only in Mitsuba's *_spectral variants (" + ", ".join(SPECTRAL_VARIANTS[:3]) +
                 "); *_rgb variants convert each spectrum to one sRGB triplet, *_mono variants to a constant")
-
-
-class SpectralColumns(Protocol):
-    """What a material is read from: a fit's parameters, their columns from a file, or a material."""
-
-    @property
-    def wavelengths_nm(self) -> ArrayLike: ...
-    @property
-    def alpha(self) -> ArrayLike: ...
-    @property
-    def sigma_t(self) -> ArrayLike: ...
-    @property
-    def g(self) -> ArrayLike: ...
 
 
 @dataclass(frozen=True)
