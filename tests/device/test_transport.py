@@ -34,13 +34,13 @@ class ScriptedSlave(threading.Thread):
         """Each 8-byte request as it completes (the line goes quiet), until stopped or closed."""
         buffer = b""
         while not self.stop:
-            ready, _, _ = select.select([self.master], [], [], 0.01)
-            if ready:
-                try:
+            try:  # the test closes the pty to unplug the adapter: either call may then fail
+                ready, _, _ = select.select([self.master], [], [], 0.01)
+                if ready:
                     buffer += os.read(self.master, 512)
-                except OSError:
-                    return
-                continue
+                    continue
+            except (OSError, ValueError):
+                return
             if len(buffer) < 8:
                 continue
             frame, buffer = buffer[:8], b""
