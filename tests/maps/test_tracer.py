@@ -140,6 +140,23 @@ def test_same_seed_same_tally_other_seed_other_tally(ideal):
     assert not np.array_equal(a.above.counts, c.above.counts)
 
 
+@pytest.mark.parametrize("geometry, ell, from_below", [("device", 0.4, False), ("device", 0.4, True),
+                                                      ("ideal", 0.5, False)])
+def test_tally_does_not_depend_on_the_wave_length(geometry, ell, from_below):
+    """Waves only decide when finished paths are dropped and their records copied out (the first
+    wave copies every lane, later ones scatter the live lanes): one long wave, the default and
+    three-iteration waves record the same paths."""
+    from trimeter.maps.tracer import trace as trace_one
+
+    stack = Stack.from_recipe(geometry, load_geometry(geometry), N, ell)
+    tallies = [trace_one(stack, 5.0, 0.6, 4096, 3, K_MAX, wave=wave, from_below=from_below)
+               for wave in (100_000, 48, 3)]
+    for other in tallies[1:]:
+        np.testing.assert_array_equal(other.counts, tallies[0].counts)
+        np.testing.assert_array_equal(other.second, tallies[0].second)
+        assert other.path_events == tallies[0].path_events
+
+
 def test_large_traces_run_in_chunks_that_keep_small_traces_unchanged(ideal, monkeypatch):
     """Memory: a request above TRACE_CHUNK paths is traced chunk by chunk and summed; a request of
     at most one chunk is bit for bit what it was (the shipped maps' first batches), and the chunked
@@ -247,8 +264,8 @@ print("traced", col.n_paths)
 @pytest.mark.slow
 def test_dense_device_column_survives_the_dask_nannys_malloc_trim_threshold():
     """σt = 50/mm, g = 0.9 at 8M paths segfaulted (inside Dr.Jit's kernels) in a process started with
-    MALLOC_TRIM_THRESHOLD_=65536, the Dask nanny's default; the tracer undoes the setting (see
-    trimeter.maps.tracer._undo_malloc_trim_threshold)."""
+    MALLOC_TRIM_THRESHOLD_=65536, the Dask nanny's default; the tracer overrides glibc's settings (see
+    trimeter.maps.tracer._keep_freed_memory)."""
     import os
     import subprocess
     import sys

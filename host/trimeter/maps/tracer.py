@@ -310,10 +310,7 @@ class ColumnTally:
             return np.sqrt(var_above + var_below / max(self.below.n_paths - 1, 1))
         A, B, C = self.abc(alpha)
         q = rho / (1 - C * rho)
-        f1, f2 = self.above._moments(alpha)
-        mean = f1[0] + q * f1[1]
-        mean_sq = sum(f2[p] * q**p for p in range(len(f2)))
-        var_above = np.maximum(mean_sq - mean * mean, 0.0) / max(n - 1, 1)
+        var_above = _detector_path_variance(self.above, alpha, q) / max(n - 1, 1)
         var_above = var_above + (q * self.above.weight) ** 2 * self.above.offset_variance / n**2
         g1, g2 = self.below._moments(alpha)
         nb = self.below.n_paths
@@ -339,6 +336,14 @@ class ColumnTally:
         """Bound on the truncation error of I (ρ ≤ 0.99, α ≤ α_max): A and B directly, C amplified."""
         amplify = 1 / (1 - 0.999 * 0.99) ** 2
         return self.above.truncation_bound(alpha_max) * 101 + self.below.truncation_bound(alpha_max) * amplify
+
+
+def _detector_path_variance(tally: Tally, alpha, q):
+    """Variance of one detector path's value towards I(ρ) = A + B·q (q = ρ/(1 − Cρ)), from its
+    tally's first and second moments."""
+    f1, f2 = tally._moments(alpha)
+    mean = f1[0] + q * f1[1]
+    return np.maximum(sum(f2[p] * q**p for p in range(len(f2))) - mean * mean, 0.0)
 
 
 # Paths per Dr.Jit launch: its path state costs ~140 bytes per path (a 128M-path launch held 19 GB),
@@ -403,8 +408,7 @@ def below_share(above: Tally, below: Tally, rho: float = 0.9, factorised: bool =
     else:
         A, B, C = tally.abc(alpha)
         q = rho / (1 - C * rho)
-        f1, f2 = above._moments(alpha)
-        var_a = np.maximum(sum(f2[p] * q**p for p in range(len(f2))) - (f1[0] + q * f1[1]) ** 2, 0.0)
+        var_a = _detector_path_variance(above, alpha, q)
         g1, g2 = below._moments(alpha)
         var_c = np.maximum(g2[0] - g1[0] ** 2, 0.0) * (B * q * q) ** 2
     cost = (above.path_events / max(above.n_paths, 1)) / max(below.path_events / max(below.n_paths, 1), 1e-9)
@@ -460,31 +464,41 @@ def _import_drjit():
     llvm = "/usr/lib/x86_64-linux-gnu/libLLVM-19.so"
     if os.path.exists(llvm):  # the machine's default LLVM aborts at JIT time (shared/NOTES.md)
         os.environ.setdefault("DRJIT_LIBLLVM_PATH", llvm)
-    _undo_malloc_trim_threshold()
+    _keep_freed_memory()
     import drjit as dr
     return dr
 
 
-def _undo_malloc_trim_threshold() -> None:
-    """Work-around for a segfault inside Dr.Jit's compiled kernels (on its worker thread, in the
-    background-path trace that follows a dense column's detector trace: σt = 50/mm, g = 0.9, 8M paths)
-    in processes started with MALLOC_TRIM_THRESHOLD_ set, as Dask's nanny does (65536). Setting it
-    also freezes glibc's mmap threshold at 128 KiB, so every large buffer freed goes back to the OS at
-    once and a later read of it faults; with glibc's dynamic thresholds the same run completes. Our
-    side was ruled out as far as tried: the crash stays with one Dr.Jit thread, with each wave's
-    gathers evaluated and synchronised before the next, and with every numpy↔Dr.Jit conversion an
-    explicit copy. So in such a process the thresholds are raised back to glibc's dynamic maximum."""
-    if "MALLOC_TRIM_THRESHOLD_" not in os.environ:
+def _keep_freed_memory() -> None:
+    """Make glibc keep the memory this process frees instead of handing it back to the OS, once per
+    process. Why, twice over:
+    - Speed: glibc maps every buffer over 32 MB afresh and unmaps it when freed, so each trace's
+      per-path arrays (tens of MB) land on fresh pages; on this machine (a VM) touching a fresh page
+      costs more than the copy itself. Five device columns (8M paths at σt 0.05-0.08/mm, 4M at 0.5,
+      2M at 50) took 14.5 s with glibc's defaults and 12.9 s with the memory kept.
+    - A segfault inside Dr.Jit's compiled kernels (on its worker thread, in the background-path
+      trace that follows a dense column's detector trace: σt = 50/mm, g = 0.9, 8M paths) in processes
+      started with MALLOC_TRIM_THRESHOLD_ set, as Dask's nanny does (65536): every large buffer freed
+      went back to the OS at once and a later read of it faulted. Our side was ruled out as far as
+      tried (one Dr.Jit thread, each wave's gathers evaluated and synchronised before the next, every
+      numpy↔Dr.Jit conversion an explicit copy); memory that is never unmapped cannot fault.
+    The process keeps its peak footprint (a 16M-path chunk: ~2.5 GB) until it exits."""
+    global _MEMORY_KEPT
+    if _MEMORY_KEPT:
         return
+    _MEMORY_KEPT = True
     try:
         import ctypes
 
         libc = ctypes.CDLL("libc.so.6")
-    except OSError:  # not glibc: the variable means nothing there
+    except OSError:  # not glibc
         return
-    m_trim_threshold, m_mmap_threshold = -1, -3      # glibc's mallopt parameters
-    libc.mallopt(m_mmap_threshold, 32 << 20)          # DEFAULT_MMAP_THRESHOLD_MAX on 64-bit
-    libc.mallopt(m_trim_threshold, 64 << 20)          # twice that, as the dynamic rule keeps it
+    m_trim_threshold, m_mmap_max = -1, -4           # glibc's mallopt parameters
+    libc.mallopt(m_mmap_max, 0)                      # no mmap'ed chunks: large buffers come from the heap
+    libc.mallopt(m_trim_threshold, 1 << 62)          # … and the heap's top is never trimmed
+
+
+_MEMORY_KEPT = False
 
 
 def _drjit(backend: str = "llvm"):
@@ -796,8 +810,8 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
     state = [x, y, z, dx, dy, dz, li, k, m, it, alive, hit, nee_k, bounce_x, bounce_y, nee_u, nee_v, straight, clean,
              rng]
     lane = dr.arange(UInt32, n_paths)
-    final = {name: np.zeros(n_paths, dtype=dtype) for name, dtype in
-             (("k", np.int64), ("m", np.int64), ("it", np.int64), ("hit", bool), ("nee_k", np.int64),
+    final = {name: np.zeros(n_paths, dtype=dtype) for name, dtype in   # the kernel's own types: no casts
+             (("k", np.uint32), ("m", np.uint32), ("it", np.uint32), ("hit", bool), ("nee_k", np.uint32),
               ("bounce_x", np.float32), ("bounce_y", np.float32), ("nee_u", np.float32), ("nee_v", np.float32),
               ("clean", bool))}
     slots = {"k": 7, "m": 8, "it": 9, "hit": 11, "nee_k": 12, "bounce_x": 13, "bounce_y": 14, "nee_u": 15,
@@ -809,11 +823,11 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
         state = list(dr.while_loop(tuple(state), lambda *s, bound=wave_limit: s[10] & (s[9] < bound), body))
         dr.eval(state)
         alive_now = np.asarray(state[10], dtype=bool)
-        lane_np = np.asarray(lane, dtype=np.int64)
-        done = ~alive_now
-        ids = lane_np[done]
+        # Every lane's values, live or not: a live path's are overwritten in the wave where it ends.
+        # (Selecting the finished ones first cost as much as the first wave's kernel.)
+        ids = slice(None) if limit == wave else np.asarray(lane, dtype=np.int64)
         for name, slot in slots.items():
-            final[name][ids] = np.asarray(state[slot])[done]
+            final[name][ids] = np.asarray(state[slot])
         if not alive_now.any():
             break
         keep = UInt32(np.flatnonzero(alive_now).astype(np.uint32))
@@ -1020,11 +1034,13 @@ def _detector_sums(k, m, hit, nee_k, nee_value):
     h = hit & (m < N_BACKGROUND_ORDERS)
     v = np.where(nee_value > 0, nee_value, 0.0)
     width = int(max(k[h].max(initial=0), nee_k[v > 0].max(initial=0))) + 1
-    counts = np.zeros((N_BACKGROUND_ORDERS, width))
-    np.add.at(counts, (m[h], k[h]), 1.0)
+    m_h, k_h = m[h].astype(np.int64), k[h].astype(np.int64)
+    # Whole counts by np.bincount on flat indices: exact like np.add.at, and many times faster.
+    counts = np.bincount(m_h * width + k_h, minlength=N_BACKGROUND_ORDERS * width).reshape(
+        N_BACKGROUND_ORDERS, width).astype(float)
     counts[1] += np.bincount(nee_k, weights=v, minlength=width)[:width]
-    second = np.zeros((2 * N_BACKGROUND_ORDERS - 1, 2 * width - 1))
-    np.add.at(second, (2 * m[h], 2 * k[h]), 1.0)
+    rows2, width2 = 2 * N_BACKGROUND_ORDERS - 1, 2 * width - 1
+    second = np.bincount(2 * m_h * width2 + 2 * k_h, minlength=rows2 * width2).reshape(rows2, width2).astype(float)
     second[2] += np.bincount(2 * nee_k, weights=v * v, minlength=2 * width - 1)[: 2 * width - 1]
     both = h & (v > 0)
     np.add.at(second, (1 + m[both], nee_k[both] + k[both]), 2 * v[both])
