@@ -35,7 +35,12 @@ Variance reduction, each unbiased: a next-event estimate at the first background
 variates for light that does not depend on α, which dominates the noise of clear samples (a detector
 path's straight first pass to the background with its next-event value, and background paths that
 come straight back off the stack: exact expectations replace their 0/1 outcomes); and only as many
-background paths as C's share of the error needs (`below_share`).
+background paths as C's share of the error needs (`below_share`). In the device, whether a path
+that leaves the top face meets one of the two panels is the main noise of every dense column and of
+light scattered in a clear sample: that 0/1 outcome is replaced by its average over the path turned
+about the vertical through its start (`ROTATIONS` turns; exact wherever the turned copies meet no
+side face or edge, see rotation_average in `trace`), which cut the std-error by ~1.3-1.9× across the
+grid at +0-25 % time per path.
 
 The loop is a Dr.Jit symbolic loop (compiled once, material and seed are opaque inputs; all cores
 via the LLVM backend), run in waves that drop finished paths (see `trace`). The
@@ -680,9 +685,15 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
     nee_u, nee_v = dr.zeros(Float, n_paths), dr.zeros(Float, n_paths)
     straight = dr.full(Bool, False, n_paths)
     clean = dr.full(Bool, False, n_paths)   # reached the first bounce straight from the detector
+    # For the rotation average of a path's own way to the light (see rotation_average): where it
+    # started, how far from there it has been (squared), and whether it left through the top face
+    # towards where a light could be (a way out that counts).
+    x0, y0 = Float(x), Float(y)
+    reach2 = dr.zeros(Float, n_paths)
+    escape = dr.full(Bool, False, n_paths)
 
     def body(x, y, z, dx, dy, dz, li, k, m, it, alive, hit, nee_k, bounce_x, bounce_y, nee_u, nee_v, straight, clean,
-             rng):
+             x0, y0, reach2, escape, rng):
         it = it + 1
         in_stack = li < L
         in_gap = li == L
@@ -798,22 +809,47 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
             # or reflection on the way adds iterations (a vertical ray meets no side face).
             clean = dr.select(first_bounce, it == L + 1, clean)
             reach_light &= ~straight
+            escape = escape | (alive & out_top & ~straight)
         hit = hit | (alive & (cut if from_below and not factorise else reach_light))
         alive = alive & ~done
+        reach2 = dr.maximum(reach2, (x - x0) * (x - x0) + (y - y0) * (y - y0))
         return (x, y, z, new_dx, new_dy, new_dz, dr.select(out_top, li, new_li), k, m, it, alive, hit, nee_k,
-                bounce_x, bounce_y, nee_u, nee_v, straight, clean, rng)
+                bounce_x, bounce_y, nee_u, nee_v, straight, clean, x0, y0, reach2, escape, rng)
 
     # Waves: a symbolic loop runs each SIMD packet until its *slowest* lane is done, and path lengths
     # are heavy-tailed; so run WAVE iterations at a time, then keep only the live paths (the kernel
     # is compiled once: the wave limit is an opaque input). A lane's random stream is its own, so
     # the result does not depend on the wave length.
     state = [x, y, z, dx, dy, dz, li, k, m, it, alive, hit, nee_k, bounce_x, bounce_y, nee_u, nee_v, straight, clean,
-             rng]
+             x0, y0, reach2, escape, rng]
+    averaged = nee and bool(stack.panels) and ROTATIONS > 1 and control_variates   # not in the plain estimator
+    safe_radius = min(W, WB)
+
+    def rotation_average(s):
+        """A detector path's own way to the light (h = 1 if it reached a panel), averaged over the
+        path turned about the vertical through its start by 2πi/ROTATIONS, i = 0…ROTATIONS−1.
+        Unbiased (Rao-Blackwell over a rotation group): inside a disc around the axis where the stack
+        and background are unbounded for every turned copy (the path and its start within
+        min(W, WB) of it), the layers, the Lambertian background and the straight-down start are
+        symmetric about any vertical, so each turned copy is as likely as the path itself; only
+        the panels break the symmetry, and they are what is averaged. Elsewhere h stays 0/1."""
+        px, py, pz, ux, uy, uz = s[0], s[1], s[2], s[3], s[4], s[5]
+        sx, sy, reach, left = s[19], s[20], s[21], s[22]
+        inside = dr.sqrt(sx * sx + sy * sy) + dr.sqrt(reach) < safe_radius
+        total = Float(0.0)
+        for i in range(ROTATIONS):
+            c, sn = math.cos(2 * math.pi * i / ROTATIONS), math.sin(2 * math.pi * i / ROTATIONS)
+            rx, ry = sx + c * (px - sx) - sn * (py - sy), sy + sn * (px - sx) + c * (py - sy)
+            total += dr.select(light(rx, ry, pz, c * ux - sn * uy, sn * ux + c * uy, uz), 1.0, 0.0)
+        return dr.select(left & inside, total / ROTATIONS, dr.select(s[11], 1.0, 0.0))
+
     lane = dr.arange(UInt32, n_paths)
     final = {name: np.zeros(n_paths, dtype=dtype) for name, dtype in   # the kernel's own types: no casts
              (("k", np.uint32), ("m", np.uint32), ("it", np.uint32), ("hit", bool), ("nee_k", np.uint32),
               ("bounce_x", np.float32), ("bounce_y", np.float32), ("nee_u", np.float32), ("nee_v", np.float32),
               ("clean", bool))}
+    if averaged:
+        final["light"] = np.zeros(n_paths, dtype=np.float32)
     slots = {"k": 7, "m": 8, "it": 9, "hit": 11, "nee_k": 12, "bounce_x": 13, "bounce_y": 14, "nee_u": 15,
              "nee_v": 16, "clean": 18}
     limit = 0
@@ -828,6 +864,10 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
         ids = slice(None) if limit == wave else np.asarray(lane, dtype=np.int64)
         for name, slot in slots.items():
             final[name][ids] = np.asarray(state[slot])
+        if averaged:
+            light_seen = rotation_average(state)
+            dr.eval(light_seen)
+            final["light"][ids] = np.asarray(light_seen)
         if not alive_now.any():
             break
         keep = UInt32(np.flatnonzero(alive_now).astype(np.uint32))
@@ -884,7 +924,7 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
             replicas.append(float(np.mean(np.asarray(value, dtype=np.float64))))
         fresh_mean = float(np.mean(replicas))
         offset_variance = (clean_pass * n_paths) ** 2 * float(np.var(replicas, ddof=1)) / len(replicas)
-    counts, second = _detector_sums(k_np, m_np, hit_np, final["nee_k"], nee_value)
+    counts, second = _detector_sums(k_np, m_np, final["light"] if averaged else hit_np, final["nee_k"], nee_value)
     if control_variates:
         counts, second = _add_constant(counts, second, n_paths, clean_pass * fresh_mean, row=1)
 
@@ -895,6 +935,10 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
                  truncated=truncated, k_max=k_max, seconds=time.perf_counter() - t0,
                  path_events=int(it_np.sum()), second=second, offset_variance=offset_variance)
 
+
+# A path's own way to the light is averaged over this many turns of the path (see rotation_average
+# in trace); 1: not averaged.
+ROTATIONS = 32
 
 # Independent randomisations of the quasi-random points that estimate the mean next-event value of
 # the straight first pass (their spread gives that estimate's variance).
@@ -1029,19 +1073,22 @@ def _fresnel_np(cos_i, eta):
 
 def _detector_sums(k, m, hit, nee_k, nee_value):
     """Tally.counts and Tally.second of detector paths. A path's value is v·α^k₁·q (its next-event
-    estimate at the first background bounce, after k₁ scatterings) + h·α^k·q^m (h = 1 if it reached the
-    light itself, with m < 2); its square has the terms v²·α^2k₁·q², h·α^2k·q^2m and 2vh·α^(k₁+k)·q^(1+m)."""
-    h = hit & (m < N_BACKGROUND_ORDERS)
+    estimate at the first background bounce, after k₁ scatterings) + h·α^k·q^m (its own way to the
+    light, with m < 2: `hit`, 1/0 or the rotation average); its square has the terms v²·α^2k₁·q²,
+    h²·α^2k·q^2m and 2vh·α^(k₁+k)·q^(1+m)."""
+    light = np.where(m < N_BACKGROUND_ORDERS, hit, 0.0)
+    h = light > 0
     v = np.where(nee_value > 0, nee_value, 0.0)
     width = int(max(k[h].max(initial=0), nee_k[v > 0].max(initial=0))) + 1
-    m_h, k_h = m[h].astype(np.int64), k[h].astype(np.int64)
-    # Whole counts by np.bincount on flat indices: exact like np.add.at, and many times faster.
-    counts = np.bincount(m_h * width + k_h, minlength=N_BACKGROUND_ORDERS * width).reshape(
-        N_BACKGROUND_ORDERS, width).astype(float)
+    m_h, k_h, w_h = m[h].astype(np.int64), k[h].astype(np.int64), light[h]
+    # By np.bincount on flat indices: many times faster than np.add.at, and as exact for 0/1 values.
+    counts = np.bincount(m_h * width + k_h, weights=w_h, minlength=N_BACKGROUND_ORDERS * width).reshape(
+        N_BACKGROUND_ORDERS, width)
     counts[1] += np.bincount(nee_k, weights=v, minlength=width)[:width]
     rows2, width2 = 2 * N_BACKGROUND_ORDERS - 1, 2 * width - 1
-    second = np.bincount(2 * m_h * width2 + 2 * k_h, minlength=rows2 * width2).reshape(rows2, width2).astype(float)
+    second = np.bincount(2 * m_h * width2 + 2 * k_h, weights=w_h * w_h, minlength=rows2 * width2).reshape(
+        rows2, width2)
     second[2] += np.bincount(2 * nee_k, weights=v * v, minlength=2 * width - 1)[: 2 * width - 1]
     both = h & (v > 0)
-    np.add.at(second, (1 + m[both], nee_k[both] + k[both]), 2 * v[both])
+    np.add.at(second, (1 + m[both], nee_k[both] + k[both]), 2 * v[both] * light[both])
     return counts, second
