@@ -98,9 +98,13 @@ def train(amap: AppearanceMap, hidden: tuple[int, ...] = DEFAULTS["hidden"], sam
                        learning_rate_init=learning_rate, max_iter=1, random_state=seed)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # ConvergenceWarning: each call is one epoch by design
-        for rate in learning_rates(learning_rate, epochs):
-            if hasattr(net, "_optimizer"):
-                net._optimizer.learning_rate_init = rate
+        for epoch, rate in enumerate(learning_rates(learning_rate, epochs)):
+            if epoch:  # scikit-learn has no public way to change Adam's step between partial_fit calls
+                optimizer: Any = getattr(net, "_optimizer", None)
+                if not hasattr(optimizer, "learning_rate_init"):
+                    raise RuntimeError("scikit-learn's MLPRegressor no longer keeps its Adam optimizer in "
+                                       "`_optimizer.learning_rate_init`: the cosine step schedule cannot be applied")
+                optimizer.learning_rate_init = rate
             net.partial_fit(xs, y)
     model = make_pipeline(scaler, net)
     xv, yv = training_set(amap, 20000, np.random.default_rng(seed + 1))
