@@ -39,8 +39,7 @@ background paths as C's share of the error needs (`below_share`). In the device,
 that leaves the top face meets one of the two panels is the main noise of every dense column and of
 light scattered in a clear sample: that 0/1 outcome is replaced by its average over the path turned
 about the vertical through its start (`ROTATIONS` turns; exact wherever the turned copies meet no
-side face or edge, see rotation_average in `trace`), which cut the std-error by ~1.3-1.9× across the
-grid at +0-25 % time per path.
+side face or edge, see rotation_average in `trace`; its gain is measured in maps/README.md).
 
 The loop is a Dr.Jit symbolic loop (compiled once, material and seed are opaque inputs; all cores
 via the LLVM backend), run in waves that drop finished paths (see `trace`). The
@@ -478,9 +477,8 @@ def _keep_freed_memory() -> None:
     """Make glibc keep the memory this process frees instead of handing it back to the OS, once per
     process. Why, twice over:
     - Speed: glibc maps every buffer over 32 MB afresh and unmaps it when freed, so each trace's
-      per-path arrays (tens of MB) land on fresh pages; on this machine (a VM) touching a fresh page
-      costs more than the copy itself. Five device columns (8M paths at σt 0.05-0.08/mm, 4M at 0.5,
-      2M at 50) took 14.5 s with glibc's defaults and 12.9 s with the memory kept.
+      per-path arrays (tens of MB) land on fresh pages, and on a virtual machine touching a fresh page
+      can cost more than the copy into it (maps/README.md has the measurement).
     - A segfault inside Dr.Jit's compiled kernels (on its worker thread, in the background-path
       trace that follows a dense column's detector trace: σt = 50/mm, g = 0.9, 8M paths) in processes
       started with MALLOC_TRIM_THRESHOLD_ set, as Dask's nanny does (65536): every large buffer freed
@@ -860,7 +858,7 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
         dr.eval(state)
         alive_now = np.asarray(state[10], dtype=bool)
         # Every lane's values, live or not: a live path's are overwritten in the wave where it ends.
-        # (Selecting the finished ones first cost as much as the first wave's kernel.)
+        # (Selecting the finished ones first was as slow as the first wave's kernel on large traces.)
         ids = slice(None) if limit == wave else np.asarray(lane, dtype=np.int64)
         for name, slot in slots.items():
             final[name][ids] = np.asarray(state[slot])
