@@ -38,6 +38,24 @@ def browser():
     driver.quit()
 
 
+def click_live(wait, locator) -> None:
+    """Click an element that the page may rebuild at any moment (each status update re-renders the
+    calibration prompt): retried until a click lands on an element still in the page."""
+    from selenium.common.exceptions import StaleElementReferenceException
+
+    def attempt(driver) -> bool:
+        try:
+            element = driver.find_element(*locator)
+            if not (element.is_displayed() and element.is_enabled()):
+                return False
+            element.click()
+            return True
+        except StaleElementReferenceException:
+            return False
+
+    wait.until(attempt)
+
+
 def test_the_page_calibrates_measures_and_shows_the_result(tmp_path, browser):
     from selenium.webdriver.common.by import By
     from selenium.webdriver.support import expected_conditions as EC
@@ -55,7 +73,7 @@ def test_the_page_calibrates_measures_and_shows_the_result(tmp_path, browser):
         header = browser.find_element(By.TAG_NAME, "header")
         assert header.value_of_css_property("background-color") == "rgba(29, 35, 48, 1)"  # style.css applied
         wait.until(EC.text_to_be_present_in_element((By.ID, "state"), "Empty the holder"))
-        wait.until(EC.element_to_be_clickable((By.ID, "holder-empty"))).click()
+        click_live(wait, (By.ID, "holder-empty"))
         wait.until(EC.text_to_be_present_in_element((By.ID, "state"), "Ready"))
         web.twin.control.insert_sample(SAMPLE, THICKNESS_MM)
         label = browser.find_element(By.NAME, "label")
