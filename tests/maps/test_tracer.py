@@ -238,6 +238,58 @@ def test_light_leaving_a_side_face_downward_reaches_the_backgrounds_rim():
     assert C_rim[0] - C_flush[0] > 0.005, (C_rim, C_flush)
 
 
+def test_a_ray_rising_from_the_rim_meets_the_stacks_side_face_only_where_it_is():
+    """The stack 40 mm wide and 1.1 mm tall, the rim 0.5 mm below its back face: a ray from the rim
+    towards the far panel enters the near side face; one steep enough passes over the top, one flat
+    enough passes under the back face (it meets the bottom face instead), one heading away or from
+    under the footprint meets nothing; the y faces likewise; a corner is entered through one face."""
+    from trimeter.maps.tracer import _drjit, _side_entry
+
+    dr, B = _drjit("llvm")
+    W, bottom, top, z0 = 20.0, 0.0, 1.1, -0.5
+    s2 = math.sqrt(0.5)
+    rays = [  # (x, y, dx, dy, dz): expected (meets x, meets y, distance or None)
+        ((21.0, 0.0, -s2, 0.0, s2), (True, False, 1.0 / s2)),          # 45° towards the stack: z = 0.5 at x = 20
+        ((20.2, 0.0, -0.1, 0.0, math.sqrt(0.99)), (False, False, None)),  # steep: over the top (z 1.49 at x = 20)
+        ((20.4, 0.0, -0.99, 0.0, math.sqrt(1 - 0.99**2)), (False, False, None)),  # flat: under the back face
+        ((21.0, 0.0, s2, 0.0, s2), (False, False, None)),               # heading away
+        ((10.0, 0.0, s2, 0.0, s2), (False, False, None)),               # from under the footprint
+        ((5.0, -21.0, 0.0, s2, s2), (False, True, 1.0 / s2)),           # the −y face
+        ((5.0, 22.0, 0.0, -s2, s2), (False, False, None)),              # −y heading, z 1.5 at y = 20: over the top
+        ((21.0, 20.5, -0.6, -0.6, math.sqrt(0.28)), (True, False, 1 / 0.6)),  # corner: at x = 20, y = 19.5, z 0.38
+    ]
+    cols = list(zip(*[r for r, _ in rays]))
+    px, py, dx, dy, dz = (B.Float(c) for c in cols)
+    meets_x, meets_y, dist = _side_entry(dr, W, bottom, top, px, py, B.Float([z0] * len(rays)), dx, dy, dz)
+    meets_x, meets_y, dist = (np.asarray(v) for v in (meets_x, meets_y, dist))
+    for i, (_, (ex, ey, ed)) in enumerate(rays):
+        assert (bool(meets_x[i]), bool(meets_y[i])) == (ex, ey), (i, rays[i])
+        if ed is not None:
+            assert dist[i] == pytest.approx(ed, rel=1e-5), (i, dist[i])
+
+
+def test_next_event_estimate_and_a_paths_own_way_out_count_the_rims_light_once():
+    """A thick, clear sample over a wide background: much of I comes from light that TIR carries to the
+    side faces, down onto the rim, and back up past (or into) the stack. The next-event estimate at the
+    first bounce counts the straight ways to a panel and the path itself the others; tracing without
+    the estimate (each path counting its own way out) must give the same A and B. A way counted by both,
+    or by neither — e.g. a ray from the rim into a side face — shows up here."""
+    from trimeter.maps.tracer import _detector_path_variance
+    from trimeter.maps.tracer import trace as trace_paths
+
+    params = {**load_geometry("device"), "background_width_mm": 80.0}
+    stack = Stack.from_recipe("device", params, N, 3.0)
+    alpha, q = 0.99, 0.9 / (1 - 0.2 * 0.9)
+    values, variances = [], []
+    for seed, next_event in ((11, True), (12, False)):
+        tally = trace_paths(stack, 0.1, 0.0, 1 << 21, seed, K_MAX, control_variates=False, next_event=next_event)
+        A, B = tally.orders([alpha])[:2]
+        values.append(float(A[0] + q * B[0]))
+        variances.append(float(_detector_path_variance(tally, [alpha], q)[0]) / (tally.n_paths - 1))
+    z = (values[0] - values[1]) / math.sqrt(sum(variances))
+    assert abs(z) < 4, f"with next-event estimate {values[0]:.5f}, without {values[1]:.5f} (z = {z:.2f})"
+
+
 @pytest.mark.slow
 def test_thin_clear_device_sample_on_white_matches_a_direct_render():
     """The case that exposed the neglected rim: ℓ 0.8 mm, σt 0.09 /mm, g 0.66, α 0.9775 on ρ = 0.9 came

@@ -53,8 +53,9 @@ The stack's side faces are dielectric (as in the direct-render scene): light tra
 total internal reflection leaves through them. A ray leaving one upward counts if it reaches a panel;
 one leaving downward goes on through the air to the background, whose rim outside the stack's
 footprint is lit by the panels (on a white background, thin weakly scattering samples send much of
-their light this way). Rays rising from the background outside the footprint are taken to miss the
-stack's side faces.
+their light this way). Rays rising from that rim towards the stack meet its side faces like any other
+interface (the stack shades the rim from the far panel), and a next-event estimate from the rim counts
+only directions that pass the stack without entering it.
 """
 
 from __future__ import annotations
@@ -524,20 +525,38 @@ def _fresnel(dr, cos_i, eta):
     return F, cos_t
 
 
+def _side_entry(dr, half_width, z_bottom, z_top, px, py, pz, dx, dy, dz):
+    """Where a ray in the air outside the stack's footprint (|x| or |y| > half_width), rising, meets
+    one of the stack's side faces (between z_bottom and z_top): (meets an x face, meets a y face,
+    distance). A convex box has one way in, so at most one is true; a ray from under the footprint
+    meets the bottom face first, or passes outward. Dr.Jit arrays of one backend."""
+    entries = []
+    for pos, d, other_pos, other_d in ((px, dx, py, dy), (py, dy, px, dx)):
+        face = dr.select(pos > 0, half_width, -half_width)
+        t = (face - pos) / d
+        zt, ot = pz + t * dz, other_pos + t * other_d
+        entries.append(((dr.abs(pos) > half_width) & (pos * d < 0) & (zt >= z_bottom) & (zt <= z_top)
+                        & (dr.abs(ot) <= half_width), t))
+    (meets_x, t_x), (meets_y, t_y) = entries
+    return meets_x, meets_y, dr.select(meets_x, t_x, t_y)
+
+
 def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max: int, wave: int = 48,
           from_below: bool = False, backend: str = "llvm", control_variates: bool = True,
-          factorise: bool = False) -> Tally:
+          factorise: bool = False, next_event: bool = True) -> Tally:
     """Trace `n_paths` adjoint paths from the detector at extinction σt [1/mm] and HG anisotropy g;
     or, `from_below`, paths leaving the background (under the detector spot) cosine-distributed
     upward, tallying those that come back to the background (row 0) — the C coefficient.
     `factorise` (ColumnTally): detector paths stop at the background and tally it in row 1 (UT1);
-    background paths also tally those that reach the light, in row 1 (UTU); no control variates."""
+    background paths also tally those that reach the light, in row 1 (UTU); no control variates.
+    `next_event` False (comparisons only): detector paths count their own straight way out instead
+    of a next-event estimate at the first bounce (no control variates either, they build on it)."""
     import time
 
     dr, B = _drjit(backend)
     Float, UInt32, Bool = B.Float, B.UInt32, B.Bool
     t0 = time.perf_counter()
-    control_variates = control_variates and not factorise
+    control_variates = control_variates and not factorise and next_event
     L = len(stack.layer_n)
     planes = [float(z) for z in stack.plane_z]
     layer_n = [float(v) for v in stack.layer_n]
@@ -575,7 +594,10 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
             seen |= sees_panel(p, px, py, pz, dx, dy, dz)
         return seen
 
-    nee = not from_below
+    def side_entry(px, py, pz, dx, dy, dz):
+        return _side_entry(dr, W, planes[-1], planes[0], px, py, pz, dx, dy, dz)
+
+    nee = next_event and not from_below
     margin = _panel_margin(stack)
 
     def straight_through(px, py, u_a, u_b):
@@ -638,13 +660,18 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
         qz = dr.select(hits_stack, planes[0], stack.background_z)
         qx, qy = dr.select(hits_stack, qx, px), dr.select(hits_stack, qy, py)
         transmit = dr.select(hits_stack, transmit, 1.0)
+        if finite:  # from the rim outside the footprint: a ray into a side face is not straight
+            meets_x, meets_y, _ = side_entry(px, py, Float(stack.background_z), ex, ey, ez)
+            passes = hits_stack | ~(meets_x | meets_y)
+        else:
+            passes = Bool(True)
         if stack.panels:
             seen = Bool(False)
             for i, p in enumerate(stack.panels):
                 seen |= (pick == i) & sees_panel(p, qx, qy, qz, ex, ey, ez)
         else:
             seen = ez > 0
-        return dr.select(seen & (inside | ~hits_stack) & (ez > 0), value * transmit, 0.0)
+        return dr.select(seen & (inside | ~hits_stack) & passes & (ez > 0), value * transmit, 0.0)
 
     # PCG32 streams whose (state, increment) seeds are close are correlated, and the constructor
     # adds the lane index to both: so both seeds are scrambled (SplitMix64) from `seed`.
@@ -757,8 +784,30 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
         enter_interface = cross | under_stack
         reflect = enter_interface & (u_f < F)
         refract = enter_interface & ~reflect
-        x, y = dr.select(in_gap, gx, x), dr.select(in_gap, gy, y)
-        z = dr.select(gap_down, stack.background_z, dr.select(gap_up, planes[-1], z))
+        if finite:
+            # A ray rising from the background's rim (outside the footprint) towards the stack can
+            # meet a side face, the more so the thicker the stack: Fresnel-reflected off it (it then
+            # rises away, past the stack) or refracted into the layer there. Not straight (see nee).
+            meets_x, meets_y, t_side = side_entry(x, y, z, dx, dy, dz)
+            side = gap_up & ~under_stack & (meets_x | meets_y)
+            sx, sy, sz = x + t_side * dx, y + t_side * dy, z + t_side * dz
+            side_li = UInt32(0)
+            for i in range(1, L):
+                side_li = side_li + dr.select(sz < planes[i], UInt32(1), UInt32(0))
+            n_side = per_layer(side_li, layer_n)
+            F_s, cos_s = _fresnel(dr, dr.select(meets_x, dr.abs(dx), dr.abs(dy)), n_side)
+            side_reflect = side & (u_f < F_s)
+            side_in = side & ~side_reflect
+            inward_x, inward_y = dr.select(dx > 0, cos_s, -cos_s), dr.select(dy > 0, cos_s, -cos_s)
+            side_dx = dr.select(meets_x, dr.select(side_reflect, -dx, inward_x), dr.select(side_reflect, dx, dx / n_side))
+            side_dy = dr.select(meets_x, dr.select(side_reflect, dy, dy / n_side), dr.select(side_reflect, -dy, inward_y))
+            side_dz = dr.select(side_reflect, dz, dz / n_side)
+        else:
+            side = side_in = Bool(False)
+            sx = sy = sz = side_dx = side_dy = side_dz = Float(0.0)
+            side_li = UInt32(0)
+        x, y = dr.select(side, sx, dr.select(in_gap, gx, x)), dr.select(side, sy, dr.select(in_gap, gy, y))
+        z = dr.select(side, sz, dr.select(gap_down, stack.background_z, dr.select(gap_up, planes[-1], z)))
 
         # Lambertian background bounce: m += 1, cosine-sampled upward direction
         m = dr.select(on_bg, m + 1, m)
@@ -778,19 +827,21 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
         wdy = dr.select(wall_reflect, dr.select(wall_is_x, dy, -dy),
                         dr.select(wall_is_x, dy * n_here, out_norm))
         wdz = dr.select(wall_reflect, dz, dz * n_here)
-        new_dx = dr.select(scatter, ndx, dr.select(refract, tx, dr.select(on_bg, lx, dr.select(wall, wdx, dx))))
-        new_dy = dr.select(scatter, ndy, dr.select(refract, ty, dr.select(on_bg, ly, dr.select(wall, wdy, dy))))
+        new_dx = dr.select(scatter, ndx, dr.select(refract, tx, dr.select(on_bg, lx, dr.select(
+            wall, wdx, dr.select(side, side_dx, dx)))))
+        new_dy = dr.select(scatter, ndy, dr.select(refract, ty, dr.select(on_bg, ly, dr.select(
+            wall, wdy, dr.select(side, side_dy, dy)))))
         new_dz = dr.select(scatter, ndz, dr.select(refract, tz, dr.select(reflect, -dz, dr.select(
-            on_bg, lz, dr.select(wall, wdz, dz)))))
+            on_bg, lz, dr.select(wall, wdz, dr.select(side, side_dz, dz))))))
         # A ray leaving a side face downward goes on through the air below the stack (the gap's state
         # from wherever it is): it can land on the background's rim outside the stack's footprint.
         wall_down = wall_exit & (wdz < 0)
         new_li = dr.select(refract, dr.select(in_gap, L - 1, dr.select(going_down, li + 1, li - 1)),
-                           dr.select(wall_down, L, li))
+                           dr.select(wall_down, L, dr.select(side_in, side_li, li)))
 
         # --- termination: left through the top (light?), past the stack's edge, lost, or truncated
         out_top = refract & in_stack & ~going_down & (li == 0)
-        escaped_up = gap_up & ~under_stack
+        escaped_up = gap_up & ~under_stack & ~side_in
         reach_light = (out_top | escaped_up | wall_exit) & light(x, y, z, new_dx, new_dy, new_dz)
         cut = on_bg & (m >= orders)
         lost = (gap_down & ~on_bg) | cut
@@ -802,7 +853,7 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
             bounce_x, bounce_y = dr.select(first_bounce, x, bounce_x), dr.select(first_bounce, y, bounce_y)
             nee_u, nee_v = dr.select(first_bounce, u_free, nee_u), dr.select(first_bounce, u_f, nee_v)
             nee_k = dr.select(first_bounce, k, nee_k)
-            straight = dr.select(first_bounce, True, straight & ~(scatter | reflect | wall))
+            straight = dr.select(first_bounce, True, straight & ~(scatter | reflect | wall | side))
             # Straight down needs one iteration per interface and one through the gap; any scattering
             # or reflection on the way adds iterations (a vertical ray meets no side face).
             clean = dr.select(first_bounce, it == L + 1, clean)
@@ -901,7 +952,7 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
         return Tally(counts=counts, n_paths=n_paths, weight=(1 - r0) * stack.scale, specular=r0 * stack.scale,
                      truncated=truncated, k_max=k_max, seconds=time.perf_counter() - t0,
                      path_events=int(it_np.sum()), second=second)
-    if len(bounced):
+    if nee and len(bounced):
         value = straight_through(*(Float(final[name][bounced]) for name in ("bounce_x", "bounce_y", "nee_u", "nee_v")))
         nee_value[bounced] = np.asarray(value, dtype=np.float64)
     offset_variance = 0.0
