@@ -258,7 +258,7 @@ def test_a_ray_rising_from_the_rim_meets_the_stacks_side_face_only_where_it_is()
         ((5.0, 22.0, 0.0, -s2, s2), (False, False, None)),              # −y heading, z 1.5 at y = 20: over the top
         ((21.0, 20.5, -0.6, -0.6, math.sqrt(0.28)), (True, False, 1 / 0.6)),  # corner: at x = 20, y = 19.5, z 0.38
     ]
-    cols = list(zip(*[r for r, _ in rays]))
+    cols = list(zip(*[r for r, _ in rays], strict=True))
     px, py, dx, dy, dz = (B.Float(c) for c in cols)
     meets_x, meets_y, dist = _side_entry(dr, W, bottom, top, px, py, B.Float([z0] * len(rays)), dx, dy, dz)
     meets_x, meets_y, dist = (np.asarray(v) for v in (meets_x, meets_y, dist))

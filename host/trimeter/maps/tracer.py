@@ -799,8 +799,10 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
             side_reflect = side & (u_f < F_s)
             side_in = side & ~side_reflect
             inward_x, inward_y = dr.select(dx > 0, cos_s, -cos_s), dr.select(dy > 0, cos_s, -cos_s)
-            side_dx = dr.select(meets_x, dr.select(side_reflect, -dx, inward_x), dr.select(side_reflect, dx, dx / n_side))
-            side_dy = dr.select(meets_x, dr.select(side_reflect, dy, dy / n_side), dr.select(side_reflect, -dy, inward_y))
+            side_dx = dr.select(meets_x, dr.select(side_reflect, -dx, inward_x),
+                                dr.select(side_reflect, dx, dx / n_side))
+            side_dy = dr.select(meets_x, dr.select(side_reflect, dy, dy / n_side),
+                                dr.select(side_reflect, -dy, inward_y))
             side_dz = dr.select(side_reflect, dz, dz / n_side)
         else:
             side = side_in = Bool(False)
