@@ -291,6 +291,37 @@ def test_next_event_estimate_and_a_paths_own_way_out_count_the_rims_light_once()
     assert abs(z) < 4, f"with next-event estimate {values[0]:.5f}, without {values[1]:.5f} (z = {z:.2f})"
 
 
+def test_tracing_on_to_more_background_bounces_keeps_A_and_B_and_gives_their_series():
+    """background_orders = 6 (a comparison): the detector paths' rows m = 0, 1 are what they are when
+    the paths stop at their 2nd bounce, bit for bit; the bounce series is close to the model at ρ 0.9
+    (a clear 0.8 mm sample: the model's single C puts ~0.1 % too much light there) and has a std-error.
+    A column with two orders has no series; fewer than two orders, or more in a factorised column,
+    are refused."""
+    device = Stack.from_recipe("device", load_geometry("device"), N, 0.8)
+    two = trace(device, 0.058, 0.5, 1 << 19, 3, K_MAX)
+    six = trace(device, 0.058, 0.5, 1 << 19, 3, K_MAX, background_orders=6)
+    width = two.above.counts.shape[1]
+    assert six.above.counts.shape[0] == 6
+    assert np.array_equal(six.above.counts[:2, :width], two.above.counts)
+    assert not six.above.counts[:2, width:].any()
+    assert six.above.counts[2:].sum() > 0
+    alpha = [0.97]
+    A, B, C = (float(v[0]) for v in six.abc(alpha))
+    model = A + B * 0.9 / (1 - C * 0.9)
+    value, error = (float(v[0]) for v in six.bounce_series(alpha, 0.9))
+    assert abs(value / model - 1) < 0.01, (value, model)
+    assert 0 < error < 0.005
+    with pytest.raises(ValueError):
+        two.bounce_series(alpha, 0.9)
+    with pytest.raises(InputError):
+        trace(device, 0.058, 0.5, 1 << 12, 3, K_MAX, background_orders=1)
+
+
+def test_background_orders_are_refused_for_a_factorised_column(ideal):
+    with pytest.raises(InputError):
+        trace(ideal, 0.3, 0.5, 1 << 12, 3, K_MAX, background_orders=3)
+
+
 @pytest.mark.slow
 def test_thin_clear_device_sample_on_white_matches_a_direct_render():
     """The case that exposed the neglected rim: ℓ 0.8 mm, σt 0.09 /mm, g 0.66, α 0.9775 on ρ = 0.9 came

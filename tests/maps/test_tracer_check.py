@@ -30,6 +30,14 @@ def test_tracer_z_scores_against_volpath(geometry, ell):
         assert np.percentile(np.abs(z_iad), 95) <= Z_P95_MAX, rows
 
 
+@pytest.mark.parametrize("geometry, orders", [("ideal", 6), ("device", 2), ("device", 17)])
+def test_bounce_series_needs_the_device_and_three_to_sixteen_orders(geometry, orders):
+    from trimeter.errors import InputError
+
+    with pytest.raises(InputError):
+        tracer_agreement(geometry, random_materials(1, seed=3), 1.5, 0.4, series_orders=orders)
+
+
 def test_z_summary_flags_a_bias_and_a_wide_spread():
     rng = np.random.default_rng(0)
     fair = rng.standard_normal(400)

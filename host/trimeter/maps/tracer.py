@@ -64,6 +64,7 @@ import functools
 import importlib
 import math
 import os
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -229,6 +230,16 @@ class Tally:
         first[0] += self.specular
         return first
 
+    def leading_orders(self, rows: int) -> "Tally":
+        """The tally of rows m < `rows` only: what a trace stopped at that background order would have
+        tallied (a path's terms of order ≥ rows come after all of its lower ones, and no path has terms
+        in both row 0 and a higher row, so the squares' rows p < 2·rows − 1 hold no cross term with
+        them)."""
+        if self.counts.shape[0] <= rows:
+            return self
+        assert self.second is not None  # filled by __post_init__
+        return dataclasses.replace(self, counts=self.counts[:rows].copy(), second=self.second[: 2 * rows - 1].copy())
+
     def truncation_bound(self, alpha_max: float) -> float:
         """Upper bound on the truncation error of any I (ρ ≤ 1, α ≤ α_max)."""
         return self.weight * alpha_max**self.k_max * self.truncated / self.n_paths
@@ -276,6 +287,12 @@ class ColumnTally:
     def truncated(self) -> int:
         return self.above.truncated + self.below.truncated
 
+    @property
+    def model_above(self) -> Tally:
+        """The detector paths' tally as the model A + Bρ/(1 − Cρ) uses it: rows m = 0, 1 (a column
+        traced on to more background orders for bounce_series has more)."""
+        return self.above.leading_orders(N_BACKGROUND_ORDERS)
+
     def abc(self, alpha) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         c = self.above.orders(alpha)
         below = self.below.orders(alpha)
@@ -315,12 +332,29 @@ class ColumnTally:
             return np.sqrt(var_above + var_below / max(self.below.n_paths - 1, 1))
         A, B, C = self.abc(alpha)
         q = rho / (1 - C * rho)
-        var_above = _detector_path_variance(self.above, alpha, q) / max(n - 1, 1)
+        var_above = _detector_path_variance(self.model_above, alpha, q) / max(n - 1, 1)
         var_above = var_above + (q * self.above.weight) ** 2 * self.above.offset_variance / n**2
         g1, g2 = self.below._moments(alpha)
         nb = self.below.n_paths
         var_c = np.maximum(g2[0] - g1[0] ** 2, 0.0) / max(nb - 1, 1)
         return np.sqrt(var_above + (B * q * q) ** 2 * var_c)
+
+    def bounce_series(self, alpha, rho) -> tuple[np.ndarray, np.ndarray]:
+        """I(ρ) from the detector paths' own background orders, for comparison with the model (which
+        takes every bounce after the first to return C, measured from under the detector): Σ_m c_m(α)ρ^m
+        over the traced orders (trace_column(..., background_orders ≥ 3)), continued as a geometric
+        series at the ratio of the last two; and its MC std-error from each path's value Σ_m h_m·ρ^m
+        (the continuation's factor and the control variates' own error left out: both small)."""
+        if self.factorised or self.above.counts.shape[0] < 3:
+            raise ValueError("bounce_series needs a device column traced to ≥ 3 background orders")
+        alpha = np.atleast_1d(np.asarray(alpha, dtype=float))
+        c = self.above.orders(alpha)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ratio = np.clip(np.where(c[-2] > 0, c[-1] / c[-2], 0.0), 0.0, 0.999)
+        powers = rho ** np.arange(len(c))[:, None]
+        value = (c * powers).sum(axis=0) + c[-1] * powers[-1] * ratio * rho / (1 - ratio * rho)
+        variance = _detector_path_variance(self.above, alpha, rho) / max(self.above.n_paths - 1, 1)
+        return value, np.sqrt(variance)
 
     def alpha_stderr(self, alpha, rho_b, rho_w):
         """MC standard error of α read from I(ρ_b), I(ρ_w) at this column's σt and g (g held: the
@@ -344,10 +378,10 @@ class ColumnTally:
 
 
 def _detector_path_variance(tally: Tally, alpha, q):
-    """Variance of one detector path's value towards I(ρ) = A + B·q (q = ρ/(1 − Cρ)), from its
-    tally's first and second moments."""
+    """Variance of one detector path's value Σ_m h_m·q^m, from its tally's first and second moments:
+    towards I(ρ) = A + B·q (q = ρ/(1 − Cρ)) for the model's two rows, the bounce series with q = ρ."""
     f1, f2 = tally._moments(alpha)
-    mean = f1[0] + q * f1[1]
+    mean = sum(f1[m] * q**m for m in range(len(f1)))
     return np.maximum(sum(f2[p] * q**p for p in range(len(f2))) - mean * mean, 0.0)
 
 
@@ -359,7 +393,8 @@ TRACE_CHUNK = 1 << 24
 
 def trace_column(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max: int,
                  below_fraction: float | None = None, backend: str = "llvm",
-                 control_variates: bool = True, factorise: bool | None = None) -> ColumnTally:
+                 control_variates: bool = True, factorise: bool | None = None,
+                 background_orders: int = N_BACKGROUND_ORDERS) -> ColumnTally:
     """Detector paths and (a fraction as many) background paths for one (σt, g); seeds derived from
     `seed`; in chunks of at most TRACE_CHUNK paths (memory), chunk i > 0 seeded with _mix64(seed + i).
     `below_fraction` None: as many background paths as minimise the error of I(ρ = 0.9) for the work
@@ -368,7 +403,9 @@ def trace_column(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int
     `backend`: "llvm" or "cuda" (resolve_backend); the same seed gives the same paths on either, up to
     the backends' floating-point differences. `factorise` (B = UT1·UTU, see ColumnTally): None = where
     it is exact (Stack.factorises); True elsewhere is an InputError; False: detector paths carry on
-    past the background (comparisons)."""
+    past the background (comparisons). `background_orders` > 2 (comparisons, ColumnTally.bounce_series):
+    detector paths go on to that many background bounces; A and B stay what they are at 2, bit for bit
+    (C may come from a few more or fewer background paths: their count follows the detector tally)."""
     n_paths = int(n_paths)
     if factorise is None:
         factorise = stack.factorises
@@ -380,12 +417,13 @@ def trace_column(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int
         n = min(TRACE_CHUNK, n_paths - start)
         s = seed if i == 0 else _mix64(seed + i)
         above = trace(stack, sigma_t, g, n, s, k_max, backend=backend, control_variates=control_variates,
-                      factorise=factorise)
+                      factorise=factorise, background_orders=background_orders)
         share = below_fraction if below_fraction is not None else 1 / BELOW_PILOT
         below = trace(stack, sigma_t, g, max(1024, int(n * share)), _mix64(s ^ 0xB0B0B0B0), k_max,
                       from_below=True, backend=backend, control_variates=control_variates, factorise=factorise)
         if below_fraction is None:
-            more = int(n * below_share(above, below, factorised=factorise)) - below.n_paths
+            more = int(n * below_share(above.leading_orders(N_BACKGROUND_ORDERS), below, factorised=factorise))
+            more -= below.n_paths
             if more > 0:
                 below += trace(stack, sigma_t, g, max(1024, more), _mix64(s ^ 0xB0B0B0B1), k_max, from_below=True,
                                backend=backend, control_variates=control_variates, factorise=factorise)
@@ -543,15 +581,21 @@ def _side_entry(dr, half_width, z_bottom, z_top, px, py, pz, dx, dy, dz):
 
 def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max: int, wave: int = 48,
           from_below: bool = False, backend: str = "llvm", control_variates: bool = True,
-          factorise: bool = False, next_event: bool = True) -> Tally:
+          factorise: bool = False, next_event: bool = True,
+          background_orders: int = N_BACKGROUND_ORDERS) -> Tally:
     """Trace `n_paths` adjoint paths from the detector at extinction σt [1/mm] and HG anisotropy g;
     or, `from_below`, paths leaving the background (under the detector spot) cosine-distributed
     upward, tallying those that come back to the background (row 0) — the C coefficient.
     `factorise` (ColumnTally): detector paths stop at the background and tally it in row 1 (UT1);
     background paths also tally those that reach the light, in row 1 (UTU); no control variates.
     `next_event` False (comparisons only): detector paths count their own straight way out instead
-    of a next-event estimate at the first bounce (no control variates either, they build on it)."""
+    of a next-event estimate at the first bounce (no control variates either, they build on it).
+    `background_orders`: detector paths stop at that background bounce (rows m < it; not factorised)."""
     import time
+
+    if background_orders < N_BACKGROUND_ORDERS or (factorise and background_orders != N_BACKGROUND_ORDERS):
+        raise InputError(f"background_orders must be ≥ {N_BACKGROUND_ORDERS} (and {N_BACKGROUND_ORDERS} for a "
+                         f"factorised column), got {background_orders}")
 
     dr, B = _drjit(backend)
     Float, UInt32, Bool = B.Float, B.UInt32, B.Bool
@@ -698,7 +742,7 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
         dx, dy, dz = dr.zeros(Float, n_paths), dr.zeros(Float, n_paths), dr.full(Float, -1.0, n_paths)
         li = dr.zeros(UInt32, n_paths)
         m = dr.zeros(UInt32, n_paths)
-        orders = 1 if factorise else N_BACKGROUND_ORDERS
+        orders = 1 if factorise else int(background_orders)
     it = dr.zeros(UInt32, n_paths)
     alive = dr.full(Bool, True, n_paths)
     hit = dr.full(Bool, False, n_paths)
@@ -975,7 +1019,8 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
             replicas.append(float(np.mean(np.asarray(value, dtype=np.float64))))
         fresh_mean = float(np.mean(replicas))
         offset_variance = (clean_pass * n_paths) ** 2 * float(np.var(replicas, ddof=1)) / len(replicas)
-    counts, second = _detector_sums(k_np, m_np, final["light"] if averaged else hit_np, final["nee_k"], nee_value)
+    counts, second = _detector_sums(k_np, m_np, final["light"] if averaged else hit_np, final["nee_k"], nee_value,
+                                    int(background_orders))
     if control_variates:
         counts, second = _add_constant(counts, second, n_paths, clean_pass * fresh_mean, row=1)
 
@@ -1122,21 +1167,21 @@ def _fresnel_np(cos_i, eta):
     return np.where(sin2_t >= 1, 1.0, 0.5 * (rs * rs + rp * rp))
 
 
-def _detector_sums(k, m, hit, nee_k, nee_value):
+def _detector_sums(k, m, hit, nee_k, nee_value, orders: int = N_BACKGROUND_ORDERS):
     """Tally.counts and Tally.second of detector paths. A path's value is v·α^k₁·q (its next-event
     estimate at the first background bounce, after k₁ scatterings) + h·α^k·q^m (its own way to the
-    light, with m < 2: `hit`, 1/0 or the rotation average); its square has the terms v²·α^2k₁·q²,
+    light, with m < `orders`: `hit`, 1/0 or the rotation average); its square has the terms v²·α^2k₁·q²,
     h²·α^2k·q^2m and 2vh·α^(k₁+k)·q^(1+m)."""
-    light = np.where(m < N_BACKGROUND_ORDERS, hit, 0.0)
+    light = np.where(m < orders, hit, 0.0)
     h = light > 0
     v = np.where(nee_value > 0, nee_value, 0.0)
     width = int(max(k[h].max(initial=0), nee_k[v > 0].max(initial=0))) + 1
     m_h, k_h, w_h = m[h].astype(np.int64), k[h].astype(np.int64), light[h]
     # By np.bincount on flat indices: many times faster than np.add.at, and as exact for 0/1 values.
-    counts = np.bincount(m_h * width + k_h, weights=w_h, minlength=N_BACKGROUND_ORDERS * width).reshape(
-        N_BACKGROUND_ORDERS, width)
+    counts = np.bincount(m_h * width + k_h, weights=w_h, minlength=orders * width).reshape(
+        orders, width)
     counts[1] += np.bincount(nee_k, weights=v, minlength=width)[:width]
-    rows2, width2 = 2 * N_BACKGROUND_ORDERS - 1, 2 * width - 1
+    rows2, width2 = 2 * orders - 1, 2 * width - 1
     second = np.bincount(2 * m_h * width2 + 2 * k_h, weights=w_h * w_h, minlength=rows2 * width2).reshape(
         rows2, width2)
     second[2] += np.bincount(2 * nee_k, weights=v * v, minlength=2 * width - 1)[: 2 * width - 1]

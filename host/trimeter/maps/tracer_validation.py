@@ -27,13 +27,22 @@ Z_MEAN_MAX = 0.5
 
 def tracer_agreement(geometry: str, materials: ArrayLike, n: float, thickness_mm: float,
                      rhos: tuple[float, ...] = CHECK_RHOS, paths: int = 1 << 21, spp: int = 1 << 19, seed: int = 0,
-                     backend: str = "llvm", progress: Callable[[int, int], None] | None = None) -> list[dict]:
+                     backend: str = "llvm", progress: Callable[[int, int], None] | None = None,
+                     series_orders: int | None = None) -> list[dict]:
     """Per material: one tracer column (trimeter.maps.tracer.trace_column, its (σt, g) at `paths`
     detector paths) evaluated at the material's α and each ρ, against one volpath render per ρ
     (trimeter.forward.render.render_diffuse, `spp` samples). For the ideal geometry the rows also carry
-    adding-doubling (iad, z_iad) when iadpython is installed. Seeds: material i uses seed + i on both sides."""
+    adding-doubling (iad, z_iad) when iadpython is installed. Seeds: material i uses seed + i on both sides.
+    `series_orders` (device only, ≥ 3): the tracer's value is its detector paths' own bounce series to that
+    many background orders (ColumnTally.bounce_series) instead of the map model A + Bρ/(1 − Cρ), which the
+    rows then carry as `tracer_model`."""
+    from trimeter.errors import InputError
     from trimeter.geometry import load_geometry
-    from trimeter.maps.tracer import Stack, k_max_for, trace_column
+    from trimeter.maps.tracer import N_BACKGROUND_ORDERS, Stack, k_max_for, trace_column
+
+    if series_orders is not None and (geometry != "device" or not 3 <= series_orders <= 16):
+        raise InputError("series orders: 3…16, device geometry only (the ideal map's model is exact), "
+                         f"got {series_orders} for {geometry!r}")
 
     params = load_geometry(geometry)
     stack = Stack.from_recipe(geometry, params, n, thickness_mm)
@@ -47,13 +56,17 @@ def tracer_agreement(geometry: str, materials: ArrayLike, n: float, thickness_mm
     materials = np.asarray(materials, dtype=float)
     for i, (alpha, sigma_t, g) in enumerate(materials):
         t0 = time.perf_counter()
-        tally = trace_column(stack, float(sigma_t), float(g), paths, seed + i, k_max, backend=backend)
+        tally = trace_column(stack, float(sigma_t), float(g), paths, seed + i, k_max, backend=backend,
+                             background_orders=series_orders or N_BACKGROUND_ORDERS)
         A, B, C = (float(v[0]) for v in tally.abc([alpha]))
         trace_seconds = time.perf_counter() - t0
         iad = iad_reflectance(alpha, sigma_t, g, n, thickness_mm, np.asarray(rhos)) if with_iad else None
         for k, rho in enumerate(rhos):
-            traced = float(background_response(A, B, C, rho))
+            traced = model = float(background_response(A, B, C, rho))
             traced_err = float(tally.stderr([alpha], rho)[0])
+            if series_orders:
+                value, error = tally.bounce_series([alpha], float(rho))
+                traced, traced_err = float(value[0]), float(error[0])
             t0 = time.perf_counter()
             rendered, rendered_err = render_diffuse(geometry, float(alpha), float(sigma_t), float(g), n,
                                                     thickness_mm, float(rho), spp, seed + i)
@@ -62,6 +75,8 @@ def tracer_agreement(geometry: str, materials: ArrayLike, n: float, thickness_mm
                    "tracer_stderr": traced_err, "volpath": rendered, "volpath_stderr": rendered_err,
                    "z": (traced - rendered) / math.hypot(traced_err, rendered_err),
                    "trace_seconds": trace_seconds / len(rhos), "render_seconds": time.perf_counter() - t0}
+            if series_orders:
+                row["tracer_model"] = model
             if iad is not None:
                 row["iad"] = iad_value = float(iad[k])
                 # 2e-4: adding-doubling's own quadrature error at 32 points (see IAD_QUAD_POINTS)
