@@ -273,8 +273,8 @@ def test_next_event_estimate_and_a_paths_own_way_out_count_the_rims_light_once()
     carries to the side faces, down onto the rim, and back up past (or into) the stack. The next-event
     estimate at the first bounce counts the straight ways to a panel and the path itself the others;
     tracing without the estimate (each path counting its own way out) must give the same A and B. A way
-    counted by both, or by neither, shows up here: a next-event estimate that still let rim rays through
-    the side faces (while the paths entered them) gave z = 7.4 (2.8 at 3 mm over 80 mm, too thin to tell)."""
+    counted by both, or by neither, shows up here, e.g. a next-event estimate that lets rim rays through the
+    side faces while the paths enter them (a thinner stack over a narrower rim is too weak to tell)."""
     from trimeter.maps.tracer import _detector_path_variance
     from trimeter.maps.tracer import trace as trace_paths
 
@@ -294,7 +294,7 @@ def test_next_event_estimate_and_a_paths_own_way_out_count_the_rims_light_once()
 def test_tracing_on_to_more_background_bounces_keeps_A_and_B_and_gives_their_series():
     """background_orders = 6 (a comparison): the detector paths' rows m = 0, 1 are what they are when
     the paths stop at their 2nd bounce, bit for bit; the bounce series is close to the model at ρ 0.9
-    (a clear 0.8 mm sample: the model's single C puts ~0.1 % too much light there) and has a std-error.
+    (a clear 0.8 mm sample, where the model's single C differs from it slightly) and has a std-error.
     A column with two orders has no series; fewer than two orders, or more in a factorised column,
     are refused."""
     device = Stack.from_recipe("device", load_geometry("device"), N, 0.8)
