@@ -13,6 +13,7 @@ import pytest
 from trimeter.geometry import load_geometry
 from trimeter.errors import InputError
 from trimeter.maps.tracer import ColumnTally, Stack, Tally, _detector_sums, k_max_for, resolve_backend
+from trimeter.model.response import background_response
 from trimeter.maps.tracer import trace_column as trace
 
 from maps_direct_render import render_black_panels
@@ -67,8 +68,9 @@ def test_polynomial_bookkeeping_equals_per_path_sums():
 @pytest.mark.parametrize("averaged", [False, True])
 def test_next_event_sums_equal_per_path_values(averaged):
     """A detector path's value is v·α^k₁·q (its next-event estimate at the first background bounce) +
-    h·α^k·q^m (its own way to the light: 1/0, or the rotation average): the tallies' mean and second
-    moment at any (α, q) equal the explicit per-path ones."""
+    h·α^k·q^m (its own way to the light: 1/0, or the rotation average); traced on to a 3rd bounce, also
+    + v₂·α^k₂·q² (the estimate at the 2nd). The tallies' mean and second moment at any (α, q) equal the
+    explicit per-path ones."""
     rng = np.random.default_rng(7)
     n = 400
     nee_k = rng.integers(0, 12, n)
@@ -78,14 +80,22 @@ def test_next_event_sums_equal_per_path_values(averaged):
     hit = rng.random(n) < 0.5
     if averaged:  # a share of the paths seen from 1…32 of their turned copies
         hit = np.where(hit, rng.integers(1, 33, n) / 32, 0.0).astype(np.float32)
-    counts, second = _detector_sums(k, m, hit, nee_k, nee_value)
-    tally = Tally(counts=counts, n_paths=n, weight=0.7, specular=0.0, truncated=0, k_max=100, second=second)
     alpha, q = np.array([0.0, 0.4, 0.97]), 0.8
-    h = np.where(m < 2, hit, 0.0)[:, None]
-    value = 0.7 * (nee_value[:, None] * alpha**nee_k[:, None] * q + h * alpha**k[:, None] * q ** m[:, None])
-    first, second_moments = tally._moments(alpha)
-    np.testing.assert_allclose(first[0] + q * first[1], value.mean(axis=0), rtol=1e-12)
-    np.testing.assert_allclose(sum(second_moments[p] * q**p for p in range(3)), (value**2).mean(axis=0), rtol=1e-12)
+    # a 2nd bounce's estimate: only paths that bounced twice, after at least their first's scatterings
+    m3 = np.where((m == 2) & (rng.random(n) < 0.5), 3, m)
+    k2 = np.where(m3 >= 2, nee_k + rng.integers(0, 3, n), 0)
+    value2 = np.where(m3 >= 2, rng.uniform(0.0, 2.0, n), 0.0)
+    for orders, m_of, terms in ((2, m, [(nee_k, nee_value, 1)]),
+                                (3, m3, [(nee_k, nee_value, 1), (k2, value2, 2)])):
+        counts, second = _detector_sums(k, m_of, hit, terms, orders)
+        tally = Tally(counts=counts, n_paths=n, weight=0.7, specular=0.0, truncated=0, k_max=100, second=second)
+        h = np.where(m_of < orders, hit, 0.0)[:, None]
+        value = 0.7 * (h * alpha**k[:, None] * q ** m_of[:, None]
+                       + sum(v[:, None] * alpha**kj[:, None] * q**r for kj, v, r in terms))
+        first, second_moments = tally._moments(alpha)
+        np.testing.assert_allclose(sum(first[r] * q**r for r in range(orders)), value.mean(axis=0), rtol=1e-12)
+        np.testing.assert_allclose(sum(second_moments[p] * q**p for p in range(2 * orders - 1)),
+                                   (value**2).mean(axis=0), rtol=1e-12)
 
 
 def test_backend_llvm_runs_and_cuda_without_a_gpu_is_a_clear_error(ideal):
@@ -268,53 +278,70 @@ def test_a_ray_rising_from_the_rim_meets_the_stacks_side_face_only_where_it_is()
             assert dist[i] == pytest.approx(ed, rel=1e-5), (i, dist[i])
 
 
-def test_next_event_estimate_and_a_paths_own_way_out_count_the_rims_light_once():
+@pytest.mark.parametrize("orders", [2, 4])
+def test_next_event_estimate_and_a_paths_own_way_out_count_the_rims_light_once(orders):
     """A thick (6 mm), clear sample over a wide (120 mm) background: much of I comes from light that TIR
     carries to the side faces, down onto the rim, and back up past (or into) the stack. The next-event
-    estimate at the first bounce counts the straight ways to a panel and the path itself the others;
-    tracing without the estimate (each path counting its own way out) must give the same A and B. A way
-    counted by both, or by neither, shows up here, e.g. a next-event estimate that lets rim rays through the
-    side faces while the paths enter them (a thinner stack over a narrower rim is too weak to tell)."""
+    estimate at a bounce counts the straight ways to a panel and the path itself the others; tracing
+    without the estimates (each path counting its own way out) must give the same A and B, and, traced
+    on to 4 bounces (an estimate at each), the same bounce series. A way counted by both, or by neither,
+    shows up here, e.g. a next-event estimate that lets rim rays through the side faces while the paths
+    enter them (a thinner stack over a narrower rim is too weak to tell)."""
     from trimeter.maps.tracer import _detector_path_variance
     from trimeter.maps.tracer import trace as trace_paths
 
     params = {**load_geometry("device"), "background_width_mm": 120.0}
     stack = Stack.from_recipe("device", params, N, 6.0)
-    alpha, q = 0.99, 0.9 / (1 - 0.2 * 0.9)
+    alpha, q = 0.99, (0.9 / (1 - 0.2 * 0.9) if orders == 2 else 0.9)
     values, variances = [], []
     for seed, next_event in ((11, True), (12, False)):
-        tally = trace_paths(stack, 0.1, 0.0, 1 << 21, seed, K_MAX, control_variates=False, next_event=next_event)
-        A, B = tally.orders([alpha])[:2]
-        values.append(float(A[0] + q * B[0]))
+        tally = trace_paths(stack, 0.1, 0.0, 1 << 21, seed, K_MAX, control_variates=False, next_event=next_event,
+                            background_orders=orders)
+        c = tally.orders([alpha])
+        assert len(c) == orders
+        values.append(float(sum(c[r][0] * q**r for r in range(orders))))
         variances.append(float(_detector_path_variance(tally, [alpha], q)[0]) / (tally.n_paths - 1))
     z = (values[0] - values[1]) / math.sqrt(sum(variances))
     assert abs(z) < 4, f"with next-event estimate {values[0]:.5f}, without {values[1]:.5f} (z = {z:.2f})"
 
 
-def test_tracing_on_to_more_background_bounces_keeps_A_and_B_and_gives_their_series():
-    """background_orders = 6 (a comparison): the detector paths' rows m = 0, 1 are what they are when
-    the paths stop at their 2nd bounce, bit for bit; the bounce series is close to the model at ρ 0.9
-    (a clear 0.8 mm sample, where the model's single C differs from it slightly) and has a std-error.
-    A column with two orders has no series; fewer than two orders, or more in a factorised column,
-    are refused."""
+def test_a_bounce_series_keeps_A_and_B_and_matches_C_at_the_white():
+    """background_orders = 6: the detector paths' rows m = 0, 1 are what they are when the paths stop
+    at their 2nd bounce, bit for bit, and no background paths are traced; C is the one that makes the
+    model equal the series at the white it is matched at (0.9, or 0.99 when asked), with the series'
+    std-error, and the model stays within a std-error of the series elsewhere (a clear 0.8 mm sample,
+    where the single C of background paths is high on white). A column with two
+    orders has no series; fewer than two orders, or more in a factorised column, are refused, and so
+    are a white outside (0, 1] and sums of different kinds of column."""
     device = Stack.from_recipe("device", load_geometry("device"), N, 0.8)
     two = trace(device, 0.058, 0.5, 1 << 19, 3, K_MAX)
     six = trace(device, 0.058, 0.5, 1 << 19, 3, K_MAX, background_orders=6)
     width = two.above.counts.shape[1]
-    assert six.above.counts.shape[0] == 6
+    assert six.above.counts.shape[0] == 6 and six.below is None
     assert np.array_equal(six.above.counts[:2, :width], two.above.counts)
     assert not six.above.counts[:2, width:].any()
     assert six.above.counts[2:].sum() > 0
-    alpha = [0.97]
-    A, B, C = (float(v[0]) for v in six.abc(alpha))
-    model = A + B * 0.9 / (1 - C * 0.9)
-    value, error = (float(v[0]) for v in six.bounce_series(alpha, 0.9))
-    assert abs(value / model - 1) < 0.01, (value, model)
-    assert 0 < error < 0.005
+    alpha = np.array([0.5, 0.97])
+    for white, column in ((0.9, six), (0.99, trace(device, 0.058, 0.5, 1 << 19, 3, K_MAX, background_orders=6,
+                                                   white_rho=0.99))):
+        A, B, C = column.abc(alpha)
+        for rho in (0.5, 0.9, 0.99):
+            value, error = column.bounce_series(alpha, rho)
+            model = background_response(A, B, C, rho)
+            assert np.all(error > 0) and np.all(error < 0.005)
+            np.testing.assert_array_equal(column.stderr(alpha, rho), error)
+            if rho == white:
+                np.testing.assert_allclose(model, value, rtol=1e-12)
+            else:
+                assert np.all(np.abs(model - value) < error), (white, rho, model, value)
     with pytest.raises(ValueError):
         two.bounce_series(alpha, 0.9)
+    with pytest.raises(ValueError, match="different kinds"):
+        six += two
     with pytest.raises(InputError):
         trace(device, 0.058, 0.5, 1 << 12, 3, K_MAX, background_orders=1)
+    with pytest.raises(InputError, match="white_rho"):
+        trace(device, 0.058, 0.5, 1 << 12, 3, K_MAX, background_orders=6, white_rho=0.0)
 
 
 def test_background_orders_are_refused_for_a_factorised_column(ideal):
@@ -376,7 +403,7 @@ def test_added_constant_sums_equal_per_path_values():
     m = rng.integers(0, 3, n)
     nee_value = np.where(m >= 1, rng.uniform(0.0, 2.0, n), 0.0)
     hit = rng.random(n) < 0.5
-    counts, second = _detector_sums(k, m, hit, nee_k, nee_value)
+    counts, second = _detector_sums(k, m, hit, [(nee_k, nee_value, 1)])
     counts, second = _add_constant(counts, second, n, 0.37, row=1)
     tally = Tally(counts=counts, n_paths=n, weight=0.7, specular=0.0, truncated=0, k_max=100, second=second)
     alpha, q = np.array([0.0, 0.4, 0.97]), 0.8
@@ -490,7 +517,7 @@ def test_factorised_bookkeeping_equals_per_path_sums():
     hit = (m == 0) & (rng.random(n) < 0.6)
     nee_k = np.where(m == 1, k, 0)
     v = np.where((m == 1) & (rng.random(n) < 0.8), 1.0, 0.0)
-    counts, second = _detector_sums(k, m, hit, nee_k, v)
+    counts, second = _detector_sums(k, m, hit, [(nee_k, v, 1)])
     counts, second = _add_constant(counts, second, n, 0.15, row=1)
     kb = rng.integers(0, 25, nb)
     outcome = rng.random(nb)

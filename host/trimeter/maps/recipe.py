@@ -36,6 +36,7 @@ import numpy as np
 
 from trimeter.errors import InputError
 from trimeter.geometry import PRESETS, load_geometry
+from trimeter.model.response import REFERENCE_RHOS
 from trimeter.validation import require_number, require_reflectance, require_sample
 
 _TOP_KEYS = {"name", "geometry", "n", "thickness_mm", "reference_rho_b", "reference_rho_w", "seed", "grid",
@@ -109,8 +110,8 @@ def parse_recipe(data: dict, default_name: str = "map") -> Recipe:
     if geometry not in PRESETS:
         raise InputError(f"geometry must be one of {', '.join(PRESETS)}, got {geometry!r}")
     n, thickness = require_sample(data.get("n"), data.get("thickness_mm"))
-    rho_b = require_reflectance("reference_rho_b", data.get("reference_rho_b", 0.02))
-    rho_w = require_reflectance("reference_rho_w", data.get("reference_rho_w", 0.9))
+    rho_b = require_reflectance("reference_rho_b", data.get("reference_rho_b", REFERENCE_RHOS[0]))
+    rho_w = require_reflectance("reference_rho_w", data.get("reference_rho_w", REFERENCE_RHOS[1]))
     seed = int(require_number("seed", data.get("seed", 1), lo=0, hi=2**31 - 1))
     name = data.get("name", default_name)
     if not isinstance(name, str) or not name or "/" in name:

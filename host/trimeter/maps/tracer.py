@@ -9,10 +9,18 @@ them. Then for every α on the map's axis
 
     c_m(α) = w/N · Σ_k H[m, k] α^k,     A = c0(α),  B = c1(α)
 
-so a detector path stops at its 2nd background hit. I(ρ) = A + Bρ/(1 − Cρ) needs C, the slab's
-reflectance seen from the (Lambertian) background: a second set of paths starts on the background,
+and I(ρ) = A + Bρ/(1 − Cρ) needs C, the slab's reflectance seen from the (Lambertian) background.
+In the ideal geometry, where the background forgets directions, C is exactly that: a detector path
+stops at its 2nd background hit, and a second set of paths starts on the background,
 cosine-distributed upward, and tallies by k those that come back to it, C(α) = Σ_k R[k] α^k / N_b.
-(Exact for the ideal geometry, where the background forgets directions; see ColumnTally.)
+The maps use that for the device too. But there light that came back returns less each time (it
+spreads over the finite stack and background, and strays further from the panels' view), so a single
+C measured from under the detector overstates a white background's I: by up to ~0.2 % in clear 0.8 mm
+columns (2.4 std-errors at 2M paths). The bounce series is the alternative: detector paths go on to
+`background_orders` ≥ 3 bounces, I(ρ) = Σ_m c_m(α)ρ^m (the tail geometric), and C is the one return
+coefficient that makes the model equal that series at a reference white (ColumnTally.abc): exact there,
+within ~0.3 std-error from ρ 0.5 to 0.99. It is not the maps' default yet: at the recipes' α criterion
+its clear columns need ~2.3× the paths (the returns' 0/1 outcomes have no control variate yet).
 
 No Russian roulette on α (it would break the polynomial): a path is traced until it escapes, is lost
 (sides, past the background), or has K scattering events, where α_max^K ≤ `truncation`. The
@@ -31,15 +39,16 @@ replace 0/1 outcomes by their expectation with coefficient 1, which pays where t
 the nodes that set a column's paths). The device's finite stack, background and panels do not
 factorise: there, detector paths carry on after the bounce as described above (`Stack.factorises`).
 
-Variance reduction, each unbiased: a next-event estimate at the first background bounce; control
+Variance reduction, each unbiased: a next-event estimate at each background bounce; control
 variates for light that does not depend on α, which dominates the noise of clear samples (a detector
 path's straight first pass to the background with its next-event value, and background paths that
-come straight back off the stack: exact expectations replace their 0/1 outcomes); and only as many
-background paths as C's share of the error needs (`below_share`). In the device, whether a path
-that leaves the top face meets one of the two panels is the main noise of every dense column and of
-light scattered in a clear sample: that 0/1 outcome is replaced by its average over the path turned
-about the vertical through its start (`ROTATIONS` turns; exact wherever the turned copies meet no
-side face or edge, see rotation_average in `trace`; its gain is measured in maps/README.md).
+come straight back off the stack: exact expectations replace their 0/1 outcomes); and, where C comes
+from background paths, only as many of them as C's share of the error needs (`below_share`). In the
+device, whether a path that leaves the top face meets one of the two panels is the main noise of
+every dense column and of light scattered in a clear sample: that 0/1 outcome is replaced by its
+average over the path turned about the vertical through its start (`ROTATIONS` turns; exact wherever
+the turned copies meet no side face or edge, see rotation_average in `trace`; its gain is measured in
+maps/README.md).
 
 The loop is a Dr.Jit symbolic loop (compiled once, material and seed are opaque inputs; all cores
 via the LLVM backend), run in waves that drop finished paths (see `trace`). The
@@ -70,9 +79,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from trimeter.errors import InputError
-from trimeter.model.response import background_response
+from trimeter.model.response import REFERENCE_RHOS, background_response
 
 N_BACKGROUND_ORDERS = 2  # detector paths stop at their 2nd background hit: m = 0 → A, m = 1 → B
+# A bounce series' usual length: the rest is continued geometrically at the ratio of the last two.
+# Where a white's light matters (clear columns) that ratio is 0.15-0.5, so the continued tail is ≤ 2 %
+# of B's light; the successive ratios change by a few % per order.
+SERIES_ORDERS = 6
 
 
 @dataclass(frozen=True)
@@ -247,29 +260,49 @@ class Tally:
 
 @dataclass
 class ColumnTally:
-    """One (σt, g) column: paths from the detector (`above`: rows m = 0, 1) and paths leaving the
-    background upward (`below`: row 0 = came back to the background).
+    """One (σt, g) column: paths from the detector (`above`: rows m = 0, 1, …) and, where C has paths
+    of its own, paths leaving the background upward (`below`: row 0 = came back to the background).
 
-        A = c0(α),  B = c1(α)  (above),   C = the slab's reflectance seen from the background (below)
+        A = c0(α),  B = c1(α)  (above),   C = the slab's reflectance seen from the background
 
-    C from its own paths rather than as c2/c1: the ratio is noisy and biased where few detector paths
-    reach the background at all (thick slabs), and 1/(1 − Cρ) amplifies that. For the ideal geometry
-    both are URU exactly; for the device, C is the stack's response around the optical axis.
+    Two ways to C:
+    - `below` (the maps' default): C from its own paths. For the ideal geometry that is URU exactly;
+      for the device, the stack's response around the optical axis, which overstates every return
+      after the first (see the module's docstring).
+    - `below` None (a bounce series, device only): the detector paths' own bounce series to `above`'s rows,
+      I(ρ) = Σ_m c_m ρ^m (bounce_series), and C the return coefficient that makes A + Bρ/(1 − Cρ)
+      equal it at `white_rho`. Where few detector paths reach the background (thick slabs) that C
+      is noisy, but there B is small and I hardly depends on C.
 
     `factorised` (ideal geometry, see the module's docstring): `above` row 1 is UT1 (detector paths that
     reached the background, stopped there), `below` row 1 UTU (background paths that reached the
     light), and B = UT1·UTU."""
 
     above: Tally
-    below: Tally
+    below: Tally | None
     factorised: bool = False
+    white_rho: float = REFERENCE_RHOS[1]
+
+    def __post_init__(self):
+        if self.below is None and (self.factorised or self.above.counts.shape[0] < 3):
+            raise ValueError("a column without background paths needs detector paths traced to ≥ 3 background "
+                             "orders (and is never factorised)")
 
     def __iadd__(self, other: "ColumnTally") -> "ColumnTally":
-        if self.factorised != other.factorised:
-            raise ValueError("cannot add a factorised column tally to one that is not")
+        if self.factorised != other.factorised or (self.below is None) != (other.below is None):
+            raise ValueError("cannot add column tallies of different kinds (factorised, or C from background "
+                             "paths or from the bounce series)")
+        if self.white_rho != other.white_rho:
+            raise ValueError(f"cannot add column tallies matched at different whites ({self.white_rho} and "
+                             f"{other.white_rho})")
         self.above += other.above
-        self.below += other.below
+        if self.below is not None and other.below is not None:
+            self.below += other.below
         return self
+
+    @property
+    def parts(self) -> list[Tally]:
+        return [self.above] if self.below is None else [self.above, self.below]
 
     @property
     def n_paths(self) -> int:
@@ -277,15 +310,15 @@ class ColumnTally:
 
     @property
     def seconds(self) -> float:
-        return self.above.seconds + self.below.seconds
+        return sum(t.seconds for t in self.parts)
 
     @property
     def path_events(self) -> int:
-        return self.above.path_events + self.below.path_events
+        return sum(t.path_events for t in self.parts)
 
     @property
     def truncated(self) -> int:
-        return self.above.truncated + self.below.truncated
+        return sum(t.truncated for t in self.parts)
 
     @property
     def model_above(self) -> Tally:
@@ -295,6 +328,14 @@ class ColumnTally:
 
     def abc(self, alpha) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         c = self.above.orders(alpha)
+        if self.below is None:
+            # A + Bρ/(1 − Cρ) = S at ρ = white: Bρ/(1 − Cρ) = S − A, and S − A ≥ Bρ (the later orders are
+            # ≥ 0), so C ≥ 0 up to noise; clipped as the measured C is.
+            rho = self.white_rho
+            excess = self.bounce_series(alpha, rho)[0] - c[0]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                C = np.where((excess > 0) & (c[1] > 0), (1 - c[1] * rho / excess) / rho, 0.0)
+            return c[0], c[1], np.clip(C, 0.0, 0.999)
         below = self.below.orders(alpha)
         C = np.clip(below[0], 0.0, 0.999)
         if self.factorised:
@@ -307,6 +348,7 @@ class ColumnTally:
         term; a background path moves I through C (∂I/∂C = B·q²) and UTU (∂I/∂UTU = UT1·q): its value
         is B·q²·(came back) + UT1·q·(reached the light), from `below`'s moments in the formal variable y
         = UT1·q / (B·q²) — spelled out term by term so that neither coefficient may be zero."""
+        assert self.below is not None  # a factorised column has background paths (__post_init__)
         A, B, C = self.abc(alpha)
         q = rho / (1 - C * rho)
         ut1, utu = self.above.orders(alpha)[1], self.below.orders(alpha)[1]
@@ -327,9 +369,12 @@ class ColumnTally:
         propagated through ∂I/∂C = Bρ²/(1 − Cρ)²."""
         n = self.above.n_paths
         if self.factorised:
+            assert self.below is not None  # a factorised column has background paths (__post_init__)
             var_above, var_below, y = self._factorised_path_variances(alpha, rho)
             var_above = var_above / max(n - 1, 1) + (y * self.above.weight) ** 2 * self.above.offset_variance / n**2
             return np.sqrt(var_above + var_below / max(self.below.n_paths - 1, 1))
+        if self.below is None:  # the bounce series' error, which the model equals at the white
+            return self.bounce_series(alpha, rho)[1]
         A, B, C = self.abc(alpha)
         q = rho / (1 - C * rho)
         var_above = _detector_path_variance(self.model_above, alpha, q) / max(n - 1, 1)
@@ -340,11 +385,10 @@ class ColumnTally:
         return np.sqrt(var_above + (B * q * q) ** 2 * var_c)
 
     def bounce_series(self, alpha, rho) -> tuple[np.ndarray, np.ndarray]:
-        """I(ρ) from the detector paths' own background orders, for comparison with the model (which
-        takes every bounce after the first to return C, measured from under the detector): Σ_m c_m(α)ρ^m
-        over the traced orders (trace_column(..., background_orders ≥ 3)), continued as a geometric
-        series at the ratio of the last two; and its MC std-error from each path's value Σ_m h_m·ρ^m
-        (the continuation's factor and the control variates' own error left out: both small)."""
+        """I(ρ) from the detector paths' own background orders: Σ_m c_m(α)ρ^m over the traced orders
+        (trace_column(..., background_orders ≥ 3)), continued as a geometric series at the ratio of
+        the last two; and its MC std-error from each path's value Σ_m h_m·ρ^m and the control
+        variates' own error (at ρ¹; the continuation's factor left out: it is small)."""
         if self.factorised or self.above.counts.shape[0] < 3:
             raise ValueError("bounce_series needs a device column traced to ≥ 3 background orders")
         alpha = np.atleast_1d(np.asarray(alpha, dtype=float))
@@ -353,7 +397,9 @@ class ColumnTally:
             ratio = np.clip(np.where(c[-2] > 0, c[-1] / c[-2], 0.0), 0.0, 0.999)
         powers = rho ** np.arange(len(c))[:, None]
         value = (c * powers).sum(axis=0) + c[-1] * powers[-1] * ratio * rho / (1 - ratio * rho)
-        variance = _detector_path_variance(self.above, alpha, rho) / max(self.above.n_paths - 1, 1)
+        n = self.above.n_paths
+        variance = _detector_path_variance(self.above, alpha, rho) / max(n - 1, 1)
+        variance = variance + (rho * self.above.weight) ** 2 * self.above.offset_variance / n**2
         return value, np.sqrt(variance)
 
     def alpha_stderr(self, alpha, rho_b, rho_w):
@@ -374,7 +420,8 @@ class ColumnTally:
     def truncation_bound(self, alpha_max: float) -> float:
         """Bound on the truncation error of I (ρ ≤ 0.99, α ≤ α_max): A and B directly, C amplified."""
         amplify = 1 / (1 - 0.999 * 0.99) ** 2
-        return self.above.truncation_bound(alpha_max) * 101 + self.below.truncation_bound(alpha_max) * amplify
+        below = self.below.truncation_bound(alpha_max) if self.below is not None else 0.0
+        return self.above.truncation_bound(alpha_max) * 101 + below * amplify
 
 
 def _detector_path_variance(tally: Tally, alpha, q):
@@ -394,30 +441,38 @@ TRACE_CHUNK = 1 << 24
 def trace_column(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max: int,
                  below_fraction: float | None = None, backend: str = "llvm",
                  control_variates: bool = True, factorise: bool | None = None,
-                 background_orders: int = N_BACKGROUND_ORDERS) -> ColumnTally:
-    """Detector paths and (a fraction as many) background paths for one (σt, g); seeds derived from
-    `seed`; in chunks of at most TRACE_CHUNK paths (memory), chunk i > 0 seeded with _mix64(seed + i).
-    `below_fraction` None: as many background paths as minimise the error of I(ρ = 0.9) for the work
-    (below_share, from a pilot of 1/16); `control_variates` False: the plain estimator (comparisons;
-    factorised columns never use them, see the module's docstring).
+                 background_orders: int = N_BACKGROUND_ORDERS, white_rho: float = REFERENCE_RHOS[1]) -> ColumnTally:
+    """Detector paths for one (σt, g), and for C either (a fraction as many) background paths or the
+    detector paths' own later background orders (ColumnTally); seeds derived from `seed`; in chunks of
+    at most TRACE_CHUNK paths (memory), chunk i > 0 seeded with _mix64(seed + i).
+    `background_orders`: at 2 (the maps'), C comes from background paths; at ≥ 3 (not factorised),
+    detector paths go on to that many background bounces with a next-event estimate at each, no
+    background paths are traced and C is matched to their bounce series at `white_rho` (A and B are,
+    bit for bit, what a trace to 2 orders gives).
+    `below_fraction` (background paths) None: as many as minimise the error of I(ρ = 0.9) for the
+    work (below_share, from a pilot of 1/16); `control_variates` False: the plain estimator
+    (comparisons; factorised columns never use them, see the module's docstring).
     `backend`: "llvm" or "cuda" (resolve_backend); the same seed gives the same paths on either, up to
     the backends' floating-point differences. `factorise` (B = UT1·UTU, see ColumnTally): None = where
     it is exact (Stack.factorises); True elsewhere is an InputError; False: detector paths carry on
-    past the background (comparisons). `background_orders` > 2 (comparisons, ColumnTally.bounce_series):
-    detector paths go on to that many background bounces; A and B stay what they are at 2, bit for bit
-    (C may come from a few more or fewer background paths: their count follows the detector tally)."""
+    past the background (comparisons)."""
     n_paths = int(n_paths)
     if factorise is None:
         factorise = stack.factorises
     elif factorise and not stack.factorises:
         raise InputError("B = UT1·UTU factorises only for an unbounded slab over an unbounded background "
                          "(the ideal geometry)")
+    if not 0 < white_rho <= 1:
+        raise InputError(f"white_rho must be within (0, 1], got {white_rho!r}")
     parts = []
     for i, start in enumerate(range(0, max(n_paths, 1), TRACE_CHUNK)):
         n = min(TRACE_CHUNK, n_paths - start)
         s = seed if i == 0 else _mix64(seed + i)
         above = trace(stack, sigma_t, g, n, s, k_max, backend=backend, control_variates=control_variates,
                       factorise=factorise, background_orders=background_orders)
+        if background_orders > N_BACKGROUND_ORDERS:
+            parts.append(ColumnTally(above, None, white_rho=white_rho))
+            continue
         share = below_fraction if below_fraction is not None else 1 / BELOW_PILOT
         below = trace(stack, sigma_t, g, max(1024, int(n * share)), _mix64(s ^ 0xB0B0B0B0), k_max,
                       from_below=True, backend=backend, control_variates=control_variates, factorise=factorise)
@@ -427,7 +482,7 @@ def trace_column(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int
             if more > 0:
                 below += trace(stack, sigma_t, g, max(1024, more), _mix64(s ^ 0xB0B0B0B1), k_max, from_below=True,
                                backend=backend, control_variates=control_variates, factorise=factorise)
-        parts.append(ColumnTally(above, below, factorised=factorise))
+        parts.append(ColumnTally(above, below, factorised=factorise, white_rho=white_rho))
     total = parts[0]  # the range above has at least one chunk
     for part in parts[1:]:
         total += part
@@ -750,6 +805,11 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
     # next-event estimate, computed once per path after the loop), and whether the path has gone
     # straight on since (nothing but refraction).
     nee_k = dr.zeros(UInt32, n_paths)
+    # Bounces 2 … orders − 1 of a detector path traced on past its 2nd (a bounce series): where, and
+    # after how many scatterings, for their next-event estimates (computed after the loop, like the first's).
+    later_bounces = max(orders - 2, 0) if nee and not factorise else 0
+    later = [v for _ in range(later_bounces)
+             for v in (dr.zeros(Float, n_paths), dr.zeros(Float, n_paths), dr.zeros(UInt32, n_paths))]
     bounce_x, bounce_y = dr.zeros(Float, n_paths), dr.zeros(Float, n_paths)
     nee_u, nee_v = dr.zeros(Float, n_paths), dr.zeros(Float, n_paths)
     straight = dr.full(Bool, False, n_paths)
@@ -762,7 +822,8 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
     escape = dr.full(Bool, False, n_paths)
 
     def body(x, y, z, dx, dy, dz, li, k, m, it, alive, hit, nee_k, bounce_x, bounce_y, nee_u, nee_v, straight, clean,
-             x0, y0, reach2, escape, rng):
+             x0, y0, reach2, escape, *rest):
+        later, rng = list(rest[:-1]), rest[-1]
         it = it + 1
         in_stack = li < L
         in_gap = li == L
@@ -899,7 +960,12 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
             bounce_x, bounce_y = dr.select(first_bounce, x, bounce_x), dr.select(first_bounce, y, bounce_y)
             nee_u, nee_v = dr.select(first_bounce, u_free, nee_u), dr.select(first_bounce, u_f, nee_v)
             nee_k = dr.select(first_bounce, k, nee_k)
-            straight = dr.select(first_bounce, True, straight & ~(scatter | reflect | wall | side))
+            for j in range(later_bounces):
+                at = alive & on_bg & (m == j + 2)
+                later[3 * j: 3 * j + 3] = (dr.select(at, x, later[3 * j]), dr.select(at, y, later[3 * j + 1]),
+                                           dr.select(at, k, later[3 * j + 2]))
+            # Every bounce estimates the straight way out: the path's own is counted after none.
+            straight = dr.select(alive & on_bg, True, straight & ~(scatter | reflect | wall | side))
             # Straight down needs one iteration per interface and one through the gap; any scattering
             # or reflection on the way adds iterations (a vertical ray meets no side face).
             clean = dr.select(first_bounce, it == L + 1, clean)
@@ -909,14 +975,14 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
         alive = alive & ~done
         reach2 = dr.maximum(reach2, (x - x0) * (x - x0) + (y - y0) * (y - y0))
         return (x, y, z, new_dx, new_dy, new_dz, dr.select(out_top, li, new_li), k, m, it, alive, hit, nee_k,
-                bounce_x, bounce_y, nee_u, nee_v, straight, clean, x0, y0, reach2, escape, rng)
+                bounce_x, bounce_y, nee_u, nee_v, straight, clean, x0, y0, reach2, escape, *later, rng)
 
     # Waves: a symbolic loop runs each SIMD packet until its *slowest* lane is done, and path lengths
     # are heavy-tailed; so run WAVE iterations at a time, then keep only the live paths (the kernel
     # is compiled once: the wave limit is an opaque input). A lane's random stream is its own, so
     # the result does not depend on the wave length.
     state = [x, y, z, dx, dy, dz, li, k, m, it, alive, hit, nee_k, bounce_x, bounce_y, nee_u, nee_v, straight, clean,
-             x0, y0, reach2, escape, rng]
+             x0, y0, reach2, escape, *later, rng]
     averaged = nee and bool(stack.panels) and ROTATIONS > 1 and control_variates   # not in the plain estimator
     safe_radius = min(W, WB)
 
@@ -947,6 +1013,10 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
         final["light"] = np.zeros(n_paths, dtype=np.float32)
     slots = {"k": 7, "m": 8, "it": 9, "hit": 11, "nee_k": 12, "bounce_x": 13, "bounce_y": 14, "nee_u": 15,
              "nee_v": 16, "clean": 18}
+    for j in range(later_bounces):
+        for i, (name, dtype) in enumerate((("x", np.float32), ("y", np.float32), ("k", np.uint32))):
+            final[f"later_{name}{j}"] = np.zeros(n_paths, dtype=dtype)
+            slots[f"later_{name}{j}"] = 23 + 3 * j + i
     limit = 0
     while True:
         limit += wave
@@ -993,7 +1063,7 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
     bounced = np.flatnonzero(m_np >= 1)
     nee_value = np.zeros(n_paths)
     if factorise:  # each path that reached the background adds 1 to UT1 at its scatterings so far
-        counts, second = _detector_sums(k_np, m_np, hit_np, final["nee_k"], np.where(m_np >= 1, 1.0, 0.0))
+        counts, second = _detector_sums(k_np, m_np, hit_np, [(final["nee_k"], np.where(m_np >= 1, 1.0, 0.0), 1)])
         r0 = ((layer_n[0] - 1.0) / (layer_n[0] + 1.0)) ** 2
         return Tally(counts=counts, n_paths=n_paths, weight=(1 - r0) * stack.scale, specular=r0 * stack.scale,
                      truncated=truncated, k_max=k_max, seconds=time.perf_counter() - t0,
@@ -1019,7 +1089,18 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
             replicas.append(float(np.mean(np.asarray(value, dtype=np.float64))))
         fresh_mean = float(np.mean(replicas))
         offset_variance = (clean_pass * n_paths) ** 2 * float(np.var(replicas, ddof=1)) / len(replicas)
-    counts, second = _detector_sums(k_np, m_np, final["light"] if averaged else hit_np, final["nee_k"], nee_value,
+    nee_terms = [(final["nee_k"], nee_value, 1)]
+    for j in range(later_bounces):
+        # Direction samples of their own (any independent uniforms will do), seeded from the trace's.
+        later_value = np.zeros(n_paths)
+        at = np.flatnonzero(m_np >= j + 2)
+        if len(at):
+            u, v = np.random.default_rng([seed, 0x4E45, j]).random((2, len(at)), dtype=np.float32)
+            value = straight_through(Float(final[f"later_x{j}"][at]), Float(final[f"later_y{j}"][at]), Float(u),
+                                     Float(v))
+            later_value[at] = np.asarray(value, dtype=np.float64)
+        nee_terms.append((final[f"later_k{j}"], later_value, j + 2))
+    counts, second = _detector_sums(k_np, m_np, final["light"] if averaged else hit_np, nee_terms,
                                     int(background_orders))
     if control_variates:
         counts, second = _add_constant(counts, second, n_paths, clean_pass * fresh_mean, row=1)
@@ -1167,24 +1248,27 @@ def _fresnel_np(cos_i, eta):
     return np.where(sin2_t >= 1, 1.0, 0.5 * (rs * rs + rp * rp))
 
 
-def _detector_sums(k, m, hit, nee_k, nee_value, orders: int = N_BACKGROUND_ORDERS):
-    """Tally.counts and Tally.second of detector paths. A path's value is v·α^k₁·q (its next-event
-    estimate at the first background bounce, after k₁ scatterings) + h·α^k·q^m (its own way to the
-    light, with m < `orders`: `hit`, 1/0 or the rotation average); its square has the terms v²·α^2k₁·q²,
-    h²·α^2k·q^2m and 2vh·α^(k₁+k)·q^(1+m)."""
-    light = np.where(m < orders, hit, 0.0)
-    h = light > 0
-    v = np.where(nee_value > 0, nee_value, 0.0)
-    width = int(max(k[h].max(initial=0), nee_k[v > 0].max(initial=0))) + 1
-    m_h, k_h, w_h = m[h].astype(np.int64), k[h].astype(np.int64), light[h]
-    # By np.bincount on flat indices: many times faster than np.add.at, and as exact for 0/1 values.
-    counts = np.bincount(m_h * width + k_h, weights=w_h, minlength=orders * width).reshape(
-        orders, width)
-    counts[1] += np.bincount(nee_k, weights=v, minlength=width)[:width]
+def _detector_sums(k, m, hit, nee_terms, orders: int = N_BACKGROUND_ORDERS):
+    """Tally.counts and Tally.second of detector paths. A path's value is Σ_j v_j·α^k_j·q^r_j (its
+    next-event estimates: `nee_terms` = [(k_j, v_j, r_j)], at background bounce r_j after k_j
+    scatterings) + h·α^k·q^m (its own way to the light, with m < `orders`: `hit`, 1/0 or the rotation
+    average); its square is the sum over every pair of those terms (× 2 for two different ones)."""
+    terms = []       # per term: (the paths that have it, their k, value, row)
+    for k_j, v_j, r_j in [(k, np.where(m < orders, hit, 0.0), m), *nee_terms]:
+        on = np.asarray(v_j) > 0
+        terms.append((on, np.asarray(k_j)[on].astype(np.int64), np.asarray(v_j, dtype=np.float64)[on],
+                      np.broadcast_to(r_j, on.shape)[on].astype(np.int64)))
+    width = max(int(k_j.max(initial=0)) for _, k_j, _, _ in terms) + 1
     rows2, width2 = 2 * orders - 1, 2 * width - 1
-    second = np.bincount(2 * m_h * width2 + 2 * k_h, weights=w_h * w_h, minlength=rows2 * width2).reshape(
-        rows2, width2)
-    second[2] += np.bincount(2 * nee_k, weights=v * v, minlength=2 * width - 1)[: 2 * width - 1]
-    both = h & (v > 0)
-    np.add.at(second, (1 + m[both], nee_k[both] + k[both]), 2 * v[both] * light[both])
-    return counts, second
+    # By np.bincount on flat indices: many times faster than np.add.at, and as exact for 0/1 values.
+    counts = np.zeros(orders * width)
+    second = np.zeros(rows2 * width2)
+    for i, (on_i, k_i, v_i, r_i) in enumerate(terms):
+        counts += np.bincount(r_i * width + k_i, weights=v_i, minlength=orders * width)
+        for on_j, k_j, v_j, r_j in terms[i:]:
+            both_i, both_j = on_j[on_i], on_i[on_j]        # the paths with both terms, in either's subset
+            if both_i.any():
+                factor = 1.0 if on_j is on_i else 2.0
+                second += np.bincount((r_i[both_i] + r_j[both_j]) * width2 + k_i[both_i] + k_j[both_j],
+                                      weights=factor * v_i[both_i] * v_j[both_j], minlength=rows2 * width2)
+    return counts.reshape(orders, width), second.reshape(rows2, width2)

@@ -18,9 +18,9 @@ from numpy.typing import ArrayLike
 
 from trimeter.forward.render import render_diffuse
 from trimeter.forward.validate import iad_reflectance
-from trimeter.model.response import background_response
+from trimeter.model.response import REFERENCE_RHOS, background_response
 
-CHECK_RHOS = (0.02, 0.9)          # the shipped recipes' reference backgrounds
+CHECK_RHOS = REFERENCE_RHOS       # the shipped recipes' reference backgrounds
 Z_P95_MAX = 2.5                   # N(0, 1): 1.96; volpath's 16-batch std-error: t(15), 2.13
 Z_MEAN_MAX = 0.5
 
@@ -33,9 +33,10 @@ def tracer_agreement(geometry: str, materials: ArrayLike, n: float, thickness_mm
     detector paths) evaluated at the material's α and each ρ, against one volpath render per ρ
     (trimeter.forward.render.render_diffuse, `spp` samples). For the ideal geometry the rows also carry
     adding-doubling (iad, z_iad) when iadpython is installed. Seeds: material i uses seed + i on both sides.
-    `series_orders` (device only, ≥ 3): the tracer's value is its detector paths' own bounce series to that
-    many background orders (ColumnTally.bounce_series) instead of the map model A + Bρ/(1 − Cρ), which the
-    rows then carry as `tracer_model`."""
+    The tracer's value is the map model A + Bρ/(1 − Cρ) as the builder makes it. `series_orders`
+    (device only, 3…16): instead, the detector paths' own bounce series to that many background orders
+    (ColumnTally.bounce_series), the model (C then matched to that series at the recipes' default white,
+    ColumnTally.abc) carried as `tracer_model`."""
     from trimeter.errors import InputError
     from trimeter.geometry import load_geometry
     from trimeter.maps.tracer import N_BACKGROUND_ORDERS, Stack, k_max_for, trace_column

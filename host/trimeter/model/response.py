@@ -5,6 +5,10 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike
 
+# The reference backgrounds of a map recipe unless it names its own (black, white): where a map's
+# std-errors are reported; where a bounce series' return coefficient is matched (trimeter.maps.tracer).
+REFERENCE_RHOS = (0.02, 0.9)
+
 
 def background_response(A: np.ndarray | float, B: np.ndarray | float, C: np.ndarray | float,
                         rho: ArrayLike) -> np.ndarray:
