@@ -983,6 +983,9 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
     # the result does not depend on the wave length.
     state = [x, y, z, dx, dy, dz, li, k, m, it, alive, hit, nee_k, bounce_x, bounce_y, nee_u, nee_v, straight, clean,
              x0, y0, reach2, escape, *later, rng]
+    slot = {name: i for i, name in enumerate(_LOOP_STATE)}     # then `later`'s, then the random stream
+    assert len(state) == len(_LOOP_STATE) + len(later) + 1
+    ALIVE, IT = slot["alive"], slot["it"]
     averaged = nee and bool(stack.panels) and ROTATIONS > 1 and control_variates   # not in the plain estimator
     safe_radius = min(W, WB)
 
@@ -994,15 +997,15 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
         min(W, WB) of it), the layers, the Lambertian background and the straight-down start are
         symmetric about any vertical, so each turned copy is as likely as the path itself; only
         the panels break the symmetry, and they are what is averaged. Elsewhere h stays 0/1."""
-        px, py, pz, ux, uy, uz = s[0], s[1], s[2], s[3], s[4], s[5]
-        sx, sy, reach, left = s[19], s[20], s[21], s[22]
+        px, py, pz, ux, uy, uz = (s[slot[name]] for name in ("x", "y", "z", "dx", "dy", "dz"))
+        sx, sy, reach, left = (s[slot[name]] for name in ("x0", "y0", "reach2", "escape"))
         inside = dr.sqrt(sx * sx + sy * sy) + dr.sqrt(reach) < safe_radius
         total = Float(0.0)
         for i in range(ROTATIONS):
             c, sn = math.cos(2 * math.pi * i / ROTATIONS), math.sin(2 * math.pi * i / ROTATIONS)
             rx, ry = sx + c * (px - sx) - sn * (py - sy), sy + sn * (px - sx) + c * (py - sy)
             total += dr.select(light(rx, ry, pz, c * ux - sn * uy, sn * ux + c * uy, uz), 1.0, 0.0)
-        return dr.select(left & inside, total / ROTATIONS, dr.select(s[11], 1.0, 0.0))
+        return dr.select(left & inside, total / ROTATIONS, dr.select(s[slot["hit"]], 1.0, 0.0))
 
     lane = dr.arange(UInt32, n_paths)
     final = {name: np.zeros(n_paths, dtype=dtype) for name, dtype in   # the kernel's own types: no casts
@@ -1011,24 +1014,23 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
               ("clean", bool))}
     if averaged:
         final["light"] = np.zeros(n_paths, dtype=np.float32)
-    slots = {"k": 7, "m": 8, "it": 9, "hit": 11, "nee_k": 12, "bounce_x": 13, "bounce_y": 14, "nee_u": 15,
-             "nee_v": 16, "clean": 18}
+    slots = {name: slot[name] for name in final if name != "light"}
     for j in range(later_bounces):
         for i, (name, dtype) in enumerate((("x", np.float32), ("y", np.float32), ("k", np.uint32))):
             final[f"later_{name}{j}"] = np.zeros(n_paths, dtype=dtype)
-            slots[f"later_{name}{j}"] = 23 + 3 * j + i
+            slots[f"later_{name}{j}"] = len(_LOOP_STATE) + 3 * j + i
     limit = 0
     while True:
         limit += wave
         wave_limit = dr.opaque(UInt32, limit)
-        state = list(dr.while_loop(tuple(state), lambda *s, bound=wave_limit: s[10] & (s[9] < bound), body))
+        state = list(dr.while_loop(tuple(state), lambda *s, bound=wave_limit: s[ALIVE] & (s[IT] < bound), body))
         dr.eval(state)
-        alive_now = np.asarray(state[10], dtype=bool)
+        alive_now = np.asarray(state[slot["alive"]], dtype=bool)
         # Every lane's values, live or not: a live path's are overwritten in the wave where it ends.
         # (Selecting the finished ones first was as slow as the first wave's kernel on large traces.)
         ids = slice(None) if limit == wave else np.asarray(lane, dtype=np.int64)
-        for name, slot in slots.items():
-            final[name][ids] = np.asarray(state[slot])
+        for name, index in slots.items():
+            final[name][ids] = np.asarray(state[index])
         if averaged:
             light_seen = rotation_average(state)
             dr.eval(light_seen)
@@ -1112,6 +1114,11 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
                  truncated=truncated, k_max=k_max, seconds=time.perf_counter() - t0,
                  path_events=int(it_np.sum()), second=second, offset_variance=offset_variance)
 
+
+# The symbolic loop's state, in `body`'s argument order (a bounce series' records and the random
+# stream follow).
+_LOOP_STATE = ("x", "y", "z", "dx", "dy", "dz", "li", "k", "m", "it", "alive", "hit", "nee_k", "bounce_x", "bounce_y",
+               "nee_u", "nee_v", "straight", "clean", "x0", "y0", "reach2", "escape")
 
 # A path's own way to the light is averaged over this many turns of the path (see rotation_average
 # in trace); 1: not averaged.
