@@ -19,8 +19,7 @@ C measured from under the detector overstates a white background's I: by up to ~
 columns (2.4 std-errors at 2M paths). The bounce series is the alternative: detector paths go on to
 `background_orders` ≥ 3 bounces, I(ρ) = Σ_m c_m(α)ρ^m (the tail geometric), and C is the one return
 coefficient that makes the model equal that series at a reference white (ColumnTally.abc): exact there,
-within ~0.3 std-error from ρ 0.5 to 0.99. It is not the maps' default yet: at the recipes' α criterion
-its clear columns need ~2.3× the paths (the returns' 0/1 outcomes have no control variate yet).
+within ~0.3 std-error from ρ 0.5 to 0.99. It is not the maps' default yet (its cost: maps/README.md).
 
 No Russian roulette on α (it would break the polynomial): a path is traced until it escapes, is lost
 (sides, past the background), or has K scattering events, where α_max^K ≤ `truncation`. The
@@ -42,7 +41,9 @@ factorise: there, detector paths carry on after the bounce as described above (`
 Variance reduction, each unbiased: a next-event estimate at each background bounce; control
 variates for light that does not depend on α, which dominates the noise of clear samples (a detector
 path's straight first pass to the background with its next-event value, and background paths that
-come straight back off the stack: exact expectations replace their 0/1 outcomes); and, where C comes
+come straight back off the stack: exact expectations replace their 0/1 outcomes; in a bounce series, a
+detector path's return from its first bounce by one Fresnel reflection: its expected next-event value
+replaces the realised one, _returns_control_variate); and, where C comes
 from background paths, only as many of them as C's share of the error needs (`below_share`). In the
 device, whether a path that leaves the top face meets one of the two panels is the main noise of
 every dense column and of light scattered in a clear sample: that 0/1 outcome is replaced by its
@@ -810,6 +811,13 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
     later_bounces = max(orders - 2, 0) if nee and not factorise else 0
     later = [v for _ in range(later_bounces)
              for v in (dr.zeros(Float, n_paths), dr.zeros(Float, n_paths), dr.zeros(UInt32, n_paths))]
+    # A bounce series' control variate (see after the loop): reflections since the last bounce
+    # (NOT_PLAIN once anything but an interface crossing happened); the first bounce's direction;
+    # whether the second bounce came back from the first by exactly one reflection.
+    n_later = len(later)
+    returns_cv = control_variates and later_bounces > 0
+    cv_state = ([dr.zeros(UInt32, n_paths), dr.zeros(Float, n_paths), dr.zeros(Float, n_paths),
+                 dr.zeros(Float, n_paths), dr.full(Bool, False, n_paths)] if returns_cv else [])
     bounce_x, bounce_y = dr.zeros(Float, n_paths), dr.zeros(Float, n_paths)
     nee_u, nee_v = dr.zeros(Float, n_paths), dr.zeros(Float, n_paths)
     straight = dr.full(Bool, False, n_paths)
@@ -823,7 +831,7 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
 
     def body(x, y, z, dx, dy, dz, li, k, m, it, alive, hit, nee_k, bounce_x, bounce_y, nee_u, nee_v, straight, clean,
              x0, y0, reach2, escape, *rest):
-        later, rng = list(rest[:-1]), rest[-1]
+        later, cv, rng = list(rest[:n_later]), list(rest[n_later:-1]), rest[-1]
         it = it + 1
         in_stack = li < L
         in_gap = li == L
@@ -964,6 +972,14 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
                 at = alive & on_bg & (m == j + 2)
                 later[3 * j: 3 * j + 3] = (dr.select(at, x, later[3 * j]), dr.select(at, y, later[3 * j + 1]),
                                            dr.select(at, k, later[3 * j + 2]))
+            if returns_cv:
+                reflections, fdx, fdy, fdz, plain2 = cv
+                plain2 = dr.select(alive & on_bg & (m == 2), reflections == 1, plain2)
+                fdx, fdy, fdz = (dr.select(first_bounce, v, f) for v, f in ((lx, fdx), (ly, fdy), (lz, fdz)))
+                counted = dr.minimum(reflections + dr.select(reflect, UInt32(1), UInt32(0)), NOT_PLAIN)
+                reflections = dr.select(on_bg, UInt32(0),
+                                        dr.select(scatter | wall | side, UInt32(NOT_PLAIN), counted))
+                cv = [reflections, fdx, fdy, fdz, plain2]
             # Every bounce estimates the straight way out: the path's own is counted after none.
             straight = dr.select(alive & on_bg, True, straight & ~(scatter | reflect | wall | side))
             # Straight down needs one iteration per interface and one through the gap; any scattering
@@ -975,16 +991,16 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
         alive = alive & ~done
         reach2 = dr.maximum(reach2, (x - x0) * (x - x0) + (y - y0) * (y - y0))
         return (x, y, z, new_dx, new_dy, new_dz, dr.select(out_top, li, new_li), k, m, it, alive, hit, nee_k,
-                bounce_x, bounce_y, nee_u, nee_v, straight, clean, x0, y0, reach2, escape, *later, rng)
+                bounce_x, bounce_y, nee_u, nee_v, straight, clean, x0, y0, reach2, escape, *later, *cv, rng)
 
     # Waves: a symbolic loop runs each SIMD packet until its *slowest* lane is done, and path lengths
     # are heavy-tailed; so run WAVE iterations at a time, then keep only the live paths (the kernel
     # is compiled once: the wave limit is an opaque input). A lane's random stream is its own, so
     # the result does not depend on the wave length.
     state = [x, y, z, dx, dy, dz, li, k, m, it, alive, hit, nee_k, bounce_x, bounce_y, nee_u, nee_v, straight, clean,
-             x0, y0, reach2, escape, *later, rng]
-    slot = {name: i for i, name in enumerate(_LOOP_STATE)}     # then `later`'s, then the random stream
-    assert len(state) == len(_LOOP_STATE) + len(later) + 1
+             x0, y0, reach2, escape, *later, *cv_state, rng]
+    slot = {name: i for i, name in enumerate(_LOOP_STATE)}     # then `later`'s, `cv_state`, the random stream
+    assert len(state) == len(_LOOP_STATE) + len(later) + len(cv_state) + 1
     ALIVE, IT = slot["alive"], slot["it"]
     averaged = nee and bool(stack.panels) and ROTATIONS > 1 and control_variates   # not in the plain estimator
     safe_radius = min(W, WB)
@@ -1019,6 +1035,12 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
         for i, (name, dtype) in enumerate((("x", np.float32), ("y", np.float32), ("k", np.uint32))):
             final[f"later_{name}{j}"] = np.zeros(n_paths, dtype=dtype)
             slots[f"later_{name}{j}"] = len(_LOOP_STATE) + 3 * j + i
+    if returns_cv:
+        for i, name in enumerate(("first_dx", "first_dy", "first_dz"), start=1):
+            final[name] = np.zeros(n_paths, dtype=np.float32)
+            slots[name] = len(_LOOP_STATE) + n_later + i
+        final["plain2"] = np.zeros(n_paths, dtype=bool)
+        slots["plain2"] = len(_LOOP_STATE) + n_later + 4
     limit = 0
     while True:
         limit += wave
@@ -1101,6 +1123,10 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
             value = straight_through(Float(final[f"later_x{j}"][at]), Float(final[f"later_y{j}"][at]), Float(u),
                                      Float(v))
             later_value[at] = np.asarray(value, dtype=np.float64)
+        if j == 0 and returns_cv:
+            later_value, expected = _returns_control_variate(dr, Float, stack, sigma_t_value, seed, final, m_np,
+                                                             later_value, straight_through)
+            nee_terms.append((final["nee_k"], expected, 2))
         nee_terms.append((final[f"later_k{j}"], later_value, j + 2))
     counts, second = _detector_sums(k_np, m_np, final["light"] if averaged else hit_np, nee_terms,
                                     int(background_orders))
@@ -1114,6 +1140,9 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
                  truncated=truncated, k_max=k_max, seconds=time.perf_counter() - t0,
                  path_events=int(it_np.sum()), second=second, offset_variance=offset_variance)
 
+
+# A bounce series' count of reflections since the last bounce once it stopped being plain.
+NOT_PLAIN = 255
 
 # The symbolic loop's state, in `body`'s argument order (a bounce series' records and the random
 # stream follow).
@@ -1244,6 +1273,85 @@ def _gauss_legendre() -> tuple[np.ndarray, np.ndarray]:
     """256-point Gauss-Legendre nodes and weights on [-1, 1], computed once per process (an
     eigenvalue problem that, with BLAS threads competing with Dr.Jit's, took longer than the trace)."""
     return np.polynomial.legendre.leggauss(256)
+
+
+def _returns_control_variate(dr, Float, stack: Stack, sigma_t: float, seed: int, final: dict, m, second_value,
+                             straight_through):
+    """A bounce series' control variate for its noisiest outcome: whether a path comes back to the
+    background after its first bounce (for a clear sample mostly a Fresnel reflection off the stack's
+    back face). The next-event estimate at the second bounce of a path that came back by exactly one
+    reflection and nothing else is replaced by its expectation given the first bounce's position and
+    direction, Σ_i P_i · v(landing_i) (_single_reflection_returns; one interface drawn ∝ P_i and one
+    next-event estimate from where it lands, fresh random numbers: unbiased). Returns the second
+    bounce's next-event values without those paths', and the expectation per path (α^k at the first
+    bounce's k, row 2)."""
+    second_value = np.where(final["plain2"], 0.0, second_value)
+    expected = np.zeros(len(m))
+    bounced = np.flatnonzero(m >= 1)
+    if not len(bounced):
+        return second_value, expected
+    P, landings = _single_reflection_returns(dr, stack, sigma_t, *(
+        Float(final[name][bounced]) for name in ("bounce_x", "bounce_y", "first_dx", "first_dy", "first_dz")))
+    below_one = np.float32(1 - 2**-24)
+    pick_u, u, v = (Float(np.minimum(r, below_one)) for r in
+                    np.random.default_rng([seed, 0x5245, 0]).random((3, len(bounced)), dtype=np.float32))
+    total = P[0]
+    for p in P[1:]:
+        total = total + p
+    # the interface whose cumulative share first reaches pick_u (the last one if rounding leaves none)
+    target, cumulative = pick_u * total, Float(0.0)
+    land_x, land_y = landings[-1]
+    chosen = dr.zeros(Float, len(bounced)) > 1     # all False
+    for p, (lx, ly) in zip(P[:-1], landings[:-1], strict=True):
+        cumulative = cumulative + p
+        take = ~chosen & (cumulative >= target) & (p > 0)
+        land_x, land_y = dr.select(take, lx, land_x), dr.select(take, ly, land_y)
+        chosen |= take
+    value = total * straight_through(land_x, land_y, u, v)
+    expected[bounced] = np.asarray(value, dtype=np.float64)
+    return second_value, expected
+
+
+def _single_reflection_returns(dr, stack: Stack, sigma_t: float, x, y, dx, dy, dz):
+    """For rays leaving the background at (x, y) upward in direction (dx, dy, dz) (Dr.Jit arrays of one
+    backend): per interface i of the stack (0 = its bottom face … L = its top face), the probability
+    P_i that the ray comes back to the background after one Fresnel reflection there and nothing else
+    (refracted through the interfaces below it both ways, unscattered, past no side face, landing on
+    the background), and where it lands: ([P_i], [(x_i, y_i)]). The ray's way up and down is
+    symmetric, so P_i = F_i·(transmittance up to i)², and it stays over the footprint if its entry,
+    the reflection and its exit do (each leg is monotonic sideways)."""
+    n_layers = len(stack.layer_n)
+    W, WB = stack.stack_half_width, stack.background_half_width
+    sin2 = dr.maximum(1 - dz * dz, 0.0)
+    gap = (stack.plane_z[-1] - stack.background_z) / dz     # sideways travel per unit of (dx, dy)
+    step, transmit = gap, dz * 0 + 1
+    cos_below, n_below = dz, 1.0
+
+    def over(px, py, half):
+        return (dr.abs(px) <= half) & (dr.abs(py) <= half)
+
+    entry_ok = over(x + gap * dx, y + gap * dy, W)
+    P, landings = [], []
+    for i in range(n_layers + 1):
+        layer = n_layers - i                     # the medium above interface i: layer − 1, or air at 0
+        n_above = stack.layer_n[layer - 1] if layer >= 1 else 1.0
+        F, _ = _fresnel(dr, cos_below, n_above / n_below)
+        land_x, land_y = x + 2 * step * dx, y + 2 * step * dy
+        ok = (entry_ok & over(x + step * dx, y + step * dy, W) & over(land_x - gap * dx, land_y - gap * dy, W)
+              & over(land_x, land_y, WB))
+        P.append(dr.select(ok, F * transmit * transmit, 0.0))
+        landings.append((land_x, land_y))
+        if layer >= 1:                           # on through layer − 1 to the next interface up
+            li = layer - 1
+            n_l = stack.layer_n[li]
+            cos_l = dr.safe_sqrt(1 - sin2 / (n_l * n_l))
+            depth = stack.plane_z[li] - stack.plane_z[li + 1]
+            transmit = transmit * (1 - F)
+            if li == stack.sample_layer:
+                transmit = transmit * dr.exp(-sigma_t * depth / cos_l)
+            step = step + depth / (n_l * cos_l)
+            cos_below, n_below = cos_l, n_l
+    return P, landings
 
 
 def _fresnel_np(cos_i, eta):
