@@ -48,3 +48,13 @@ def test_z_summary_flags_a_bias_and_a_wide_spread():
     assert s["count"] == 3 and math.isclose(s["mean"], 1.0) and s["max_abs"] == 3.0
     with pytest.raises(ValueError):
         z_summary([])
+
+
+@pytest.mark.parametrize("argv", [["--geometry", "both", "--series-orders", "4"],
+                                  ["--geometry", "device", "--series-orders", "2"]])
+def test_the_bench_refuses_bad_series_orders_before_it_starts(capsys, argv):
+    from trimeter.cli import main
+
+    assert main(["bench", "tracer-check", "--materials", "1", *argv]) == 2
+    out = capsys.readouterr()
+    assert "trimeter: error: series orders: 3…16" in out.err and out.out == ""

@@ -41,7 +41,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from trimeter.forward.validate import random_materials
-    from trimeter.maps.tracer_validation import tracer_agreement
+    from trimeter.maps.tracer_validation import require_series_orders, tracer_agreement
     from trimeter.maps.tracer import resolve_backend
 
     if not 1 <= args.materials <= 10_000:
@@ -50,8 +50,8 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("--paths must be ≥ 4096 and --spp ≥ 1024")
     backend = resolve_backend(args.backend)
     geometries = ("ideal", "device") if args.geometry == "both" else (args.geometry,)
-    if args.series_orders is not None and geometries != ("device",):
-        raise InputError("--series-orders needs --geometry device (the ideal map's model is exact)")
+    for geometry in geometries:                 # before any work is printed
+        require_series_orders(geometry, args.series_orders)
     print(f"tracer ({backend}, {args.paths} paths per material) vs volpath ({args.spp} spp per render), "
           f"{args.materials} materials per geometry, ρ = 0.02 and 0.9, seed {args.seed}"
           + (f"; tracer values from its bounce series to {args.series_orders} background orders"

@@ -37,13 +37,10 @@ def tracer_agreement(geometry: str, materials: ArrayLike, n: float, thickness_mm
     (device only, 3…16): instead, the detector paths' own bounce series to that many background orders
     (ColumnTally.bounce_series), the model (C then matched to that series at the recipes' default white,
     ColumnTally.abc) carried as `tracer_model`."""
-    from trimeter.errors import InputError
     from trimeter.geometry import load_geometry
     from trimeter.maps.tracer import N_BACKGROUND_ORDERS, Stack, k_max_for, trace_column
 
-    if series_orders is not None and (geometry != "device" or not 3 <= series_orders <= 16):
-        raise InputError("series orders: 3…16, device geometry only (the ideal map's model is exact), "
-                         f"got {series_orders} for {geometry!r}")
+    require_series_orders(geometry, series_orders)
 
     params = load_geometry(geometry)
     stack = Stack.from_recipe(geometry, params, n, thickness_mm)
@@ -86,6 +83,16 @@ def tracer_agreement(geometry: str, materials: ArrayLike, n: float, thickness_mm
         if progress:
             progress(i + 1, len(materials))
     return rows
+
+
+def require_series_orders(geometry: str, series_orders: int | None) -> None:
+    """InputError unless `series_orders` is None, or 3…16 for the device geometry (the ideal map's
+    model is exact, so it has no series to judge)."""
+    from trimeter.errors import InputError
+
+    if series_orders is not None and (geometry != "device" or not 3 <= series_orders <= 16):
+        raise InputError("series orders: 3…16, device geometry only (the ideal map's model is exact), "
+                         f"got {series_orders} for {geometry!r}")
 
 
 def z_summary(z: ArrayLike) -> dict:
