@@ -91,3 +91,31 @@ def test_no_roulette_at_high_albedo_and_a_depth_cap_that_bounds_the_truncation()
     assert integrator_for(1.0)["max_depth"] == -1
     assert integrator_for(0.5) == {"type": "volpath", "max_depth": -1, "rr_depth": 5}
     assert scene_dict("ideal", 0.999, 1.0, 0.0, 1.5, 0.5, 0.5)["integrator"] == integrator_for(0.999)
+
+
+@pytest.mark.parametrize("geometry", ["ideal", "device"])
+def test_a_translated_scene_moves_every_shape_and_the_sensor_and_nothing_else(geometry):
+    from trimeter.forward.scenes import _Transform, top_face_z, translated
+
+    scene = scene_dict(geometry, 0.5, 1.0, 0.5, 1.5, 0.4, 0.5)
+    moved = translated(scene, 10.0)
+    assert moved.keys() == scene.keys()
+    placed = 0
+    for key, value in scene.items():
+        if not isinstance(value, dict):
+            assert moved[key] == value
+            continue
+        if isinstance(value.get("to_world"), _Transform):
+            shift = moved[key]["to_world"].matrix - value["to_world"].matrix
+            assert np.allclose(shift[:, :3], 0) and np.allclose(shift[:, 3], [0, 0, 10.0, 0]), key
+            placed += 1
+        elif value.get("type") == "radiancemeter":
+            assert moved[key]["origin"] == [value["origin"][0], value["origin"][1], value["origin"][2] + 10.0]
+            placed += 1
+        else:
+            assert moved[key] == value, key
+    assert placed >= 4
+    fresh = scene_dict(geometry, 0.5, 1.0, 0.5, 1.5, 0.4, 0.5)["sensor"]                  # not changed in place
+    assert (np.array_equal(fresh["to_world"].matrix, scene["sensor"]["to_world"].matrix) if "to_world" in fresh
+            else fresh == scene["sensor"])
+    assert top_face_z(geometry, 0.4) == (0.0 if geometry == "ideal" else 0.4 + 2 * 0.15)

@@ -100,6 +100,32 @@ def scene_dict(geometry, alpha: float, sigma_t: float, g: float, n: float, thick
     return scene
 
 
+def translated(scene: dict, dz: float) -> dict:
+    """The scene moved by `dz` along +z as a whole (shapes, sensor): the same optics, but Mitsuba's ray
+    offsets, which grow with the coordinates (trimeter.forward.render.render_diffuse_offset_free), grow."""
+    shift = np.eye(4)
+    shift[2, 3] = dz
+    out = {}
+    for key, value in scene.items():
+        if isinstance(value, dict):
+            value = dict(value)
+            if isinstance(value.get("to_world"), _Transform):
+                value["to_world"] = _Transform(shift @ value["to_world"].matrix)
+            if value.get("type") == "radiancemeter":
+                value["origin"] = [value["origin"][0], value["origin"][1], value["origin"][2] + dz]
+        out[key] = value
+    return out
+
+
+def top_face_z(geometry, thickness_mm: float) -> float:
+    """z of the sample stack's top face in the scene (ideal: the slab's, at 0; device: the front cover
+    slide's, the stack's back face at 0)."""
+    name, params = resolve_geometry(geometry)
+    if name == "ideal":
+        return 0.0
+    return float(thickness_mm) + 2 * cover_slide_thickness_mm(params)
+
+
 def reflectance_scale(geometry) -> float:
     """Factor turning the scene's sensor radiance into the reflectance factor I: 1 for `ideal`
     (illumination radiance 1), π/E for `device` (the white-reference calibration, see module doc)."""

@@ -16,7 +16,7 @@ from collections.abc import Callable
 import numpy as np
 from numpy.typing import ArrayLike
 
-from trimeter.forward.render import render_diffuse
+from trimeter.forward.render import render_diffuse_offset_free
 from trimeter.forward.validate import iad_reflectance
 from trimeter.model.response import REFERENCE_RHOS, background_response
 
@@ -30,8 +30,9 @@ def tracer_agreement(geometry: str, materials: ArrayLike, n: float, thickness_mm
                      backend: str = "llvm", progress: Callable[[int, int], None] | None = None,
                      series_orders: int | None = None) -> list[dict]:
     """Per material: one tracer column (trimeter.maps.tracer.trace_column, its (σt, g) at `paths`
-    detector paths) evaluated at the material's α and each ρ, against one volpath render per ρ
-    (trimeter.forward.render.render_diffuse, `spp` samples). For the ideal geometry the rows also carry
+    detector paths) evaluated at the material's α and each ρ, against volpath per ρ extrapolated to no
+    ray offset (trimeter.forward.render.render_diffuse_offset_free: `spp` samples, and a quarter as many
+    with the scene moved; the render as made is in `volpath_as_rendered`). For the ideal geometry the rows also carry
     adding-doubling (iad, z_iad) when iadpython is installed. Seeds: material i uses seed + i on both sides.
     The tracer's value is the map model A + Bρ/(1 − Cρ) as the builder makes it. `series_orders`
     (device only, 3…16): instead, the detector paths' own bounce series to that many background orders
@@ -66,11 +67,12 @@ def tracer_agreement(geometry: str, materials: ArrayLike, n: float, thickness_mm
                 value, error = tally.bounce_series([alpha], float(rho))
                 traced, traced_err = float(value[0]), float(error[0])
             t0 = time.perf_counter()
-            rendered, rendered_err = render_diffuse(geometry, float(alpha), float(sigma_t), float(g), n,
-                                                    thickness_mm, float(rho), spp, seed + i)
+            rendered, rendered_err, as_rendered = render_diffuse_offset_free(
+                geometry, float(alpha), float(sigma_t), float(g), n, thickness_mm, float(rho), spp, seed + i)
             row: dict[str, object] = {"geometry": geometry, "thickness_mm": thickness_mm, "alpha": float(alpha),
                    "sigma_t": float(sigma_t), "g": float(g), "rho": float(rho), "tracer": traced,
                    "tracer_stderr": traced_err, "volpath": rendered, "volpath_stderr": rendered_err,
+                   "volpath_as_rendered": as_rendered,
                    "z": (traced - rendered) / math.hypot(traced_err, rendered_err),
                    "trace_seconds": trace_seconds / len(rhos), "render_seconds": time.perf_counter() - t0}
             if series_orders:
