@@ -5,7 +5,7 @@ random materials over the maps' range (trimeter.forward.validate.random_material
 α near 1), both reference backgrounds (ρ = 0.02, 0.9). Each material: one tracer column at `--paths`
 detector paths and volpath per ρ at `--spp` samples (std-errors of the same order), extrapolated to no
 ray offset with a second render at a quarter of them (trimeter.forward.render.render_diffuse_offset_free:
-Mitsuba's ray offsets make dense samples up to ~0.6 % dark), then z = (tracer − volpath) / combined
+Mitsuba's ray offsets make dense samples dark), then z = (tracer − volpath) / combined
 std-error. Judged by the distribution (trimeter.forward.validate: p95 |z| ≤ 2.5 and |mean z| ≤ 0.5 per
 geometry); the ideal geometry also against adding-doubling.
 Exit status 1 when a geometry misses. Rows and summaries also go to `--out` (JSON).

@@ -103,13 +103,13 @@ def render_diffuse(geometry, alpha: float, sigma_t: float, g: float, n: float, t
     return float(means.mean()), float(means.std(ddof=1) / math.sqrt(BATCHES))
 
 
-# Mitsuba spawns every ray off a surface at ε = RayEpsilon·(1 + max|p|) in float32 (RayEpsilon ≈ 8.9e-5, p in
-# scene units, mm here): ~0.15 µm at the sample, where a dense sample's light scatters within tens of µm of
-# the surface. Rays spawned past that layer skip its scattering, so volpath comes out low, the more so the
-# more light is single-scattered just under the surface: ℓ 0.4 mm, σt 36.6/mm, α 0.72 −0.41 %, α 0.1 −0.58 %
-# (maps/README.md). The loss is linear in ε, so a second render with the scene moved away from the origin
-# by OFFSET_SHIFT_MM (ε ∝ 1 + top + shift) extrapolates it to ε = 0; at a quarter of the samples its noise
-# adds ~(1 + top)/shift × 2 of the first render's to the result.
+# Mitsuba spawns every ray off a surface at ε = RayEpsilon·(1 + max|p|) in float32 (p in scene units, mm
+# here), a fraction of a µm at the sample, where a dense sample's light scatters within tens of µm of the
+# surface. Rays spawned past that layer skip its scattering, so volpath comes out low, the more so the more
+# light is single-scattered just under the surface (figures: maps/README.md). The loss is linear in ε, so a
+# second render with the scene moved away from the origin by OFFSET_SHIFT_MM (ε ∝ 1 + top + shift)
+# extrapolates it to ε = 0; at a quarter of the samples its noise adds ~(1 + top)/shift × 2 of the first
+# render's to the result.
 OFFSET_SHIFT_MM = 10.0
 
 

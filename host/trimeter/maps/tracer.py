@@ -15,11 +15,11 @@ stops at its 2nd background hit, and a second set of paths starts on the backgro
 cosine-distributed upward, and tallies by k those that come back to it, C(α) = Σ_k R[k] α^k / N_b.
 The maps use that for the device too. But there light that came back returns less each time (it
 spreads over the finite stack and background, and strays further from the panels' view), so a single
-C measured from under the detector overstates a white background's I: by up to ~0.2 % in clear 0.8 mm
-columns (2.4 std-errors at 2M paths). The bounce series is the alternative: detector paths go on to
+C measured from under the detector overstates a white background's I, most in clear samples (figures:
+maps/README.md). The bounce series is the alternative: detector paths go on to
 `background_orders` ≥ 3 bounces, I(ρ) = Σ_m c_m(α)ρ^m (the tail geometric), and C is the one return
 coefficient that makes the model equal that series at a reference white (ColumnTally.abc): exact there,
-within ~0.3 std-error from ρ 0.5 to 0.99. It is not the maps' default yet (its cost: maps/README.md).
+and close to it over the whites an instrument uses. It is not the maps' default yet (its cost: maps/README.md).
 
 No Russian roulette on α (it would break the polynomial): a path is traced until it escapes, is lost
 (sides, past the background), or has K scattering events, where α_max^K ≤ `truncation`. The
@@ -74,7 +74,6 @@ import functools
 import importlib
 import math
 import os
-import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -83,10 +82,6 @@ from trimeter.errors import InputError
 from trimeter.model.response import REFERENCE_RHOS, background_response
 
 N_BACKGROUND_ORDERS = 2  # detector paths stop at their 2nd background hit: m = 0 → A, m = 1 → B
-# A bounce series' usual length: the rest is continued geometrically at the ratio of the last two.
-# Where a white's light matters (clear columns) that ratio is 0.15-0.5, so the continued tail is ≤ 2 %
-# of B's light; the successive ratios change by a few % per order.
-SERIES_ORDERS = 6
 
 
 @dataclass(frozen=True)
@@ -244,16 +239,6 @@ class Tally:
         first[0] += self.specular
         return first
 
-    def leading_orders(self, rows: int) -> "Tally":
-        """The tally of rows m < `rows` only: what a trace stopped at that background order would have
-        tallied (a path's terms of order ≥ rows come after all of its lower ones, and no path has terms
-        in both row 0 and a higher row, so the squares' rows p < 2·rows − 1 hold no cross term with
-        them)."""
-        if self.counts.shape[0] <= rows:
-            return self
-        assert self.second is not None  # filled by __post_init__
-        return dataclasses.replace(self, counts=self.counts[:rows].copy(), second=self.second[: 2 * rows - 1].copy())
-
     def truncation_bound(self, alpha_max: float) -> float:
         """Upper bound on the truncation error of any I (ρ ≤ 1, α ≤ α_max)."""
         return self.weight * alpha_max**self.k_max * self.truncated / self.n_paths
@@ -321,12 +306,6 @@ class ColumnTally:
     def truncated(self) -> int:
         return sum(t.truncated for t in self.parts)
 
-    @property
-    def model_above(self) -> Tally:
-        """The detector paths' tally as the model A + Bρ/(1 − Cρ) uses it: rows m = 0, 1 (a column
-        traced on to more background orders for bounce_series has more)."""
-        return self.above.leading_orders(N_BACKGROUND_ORDERS)
-
     def abc(self, alpha) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         c = self.above.orders(alpha)
         if self.below is None:
@@ -378,7 +357,7 @@ class ColumnTally:
             return self.bounce_series(alpha, rho)[1]
         A, B, C = self.abc(alpha)
         q = rho / (1 - C * rho)
-        var_above = _detector_path_variance(self.model_above, alpha, q) / max(n - 1, 1)
+        var_above = _detector_path_variance(self.above, alpha, q) / max(n - 1, 1)
         var_above = var_above + (q * self.above.weight) ** 2 * self.above.offset_variance / n**2
         g1, g2 = self.below._moments(alpha)
         nb = self.below.n_paths
@@ -478,8 +457,7 @@ def trace_column(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int
         below = trace(stack, sigma_t, g, max(1024, int(n * share)), _mix64(s ^ 0xB0B0B0B0), k_max,
                       from_below=True, backend=backend, control_variates=control_variates, factorise=factorise)
         if below_fraction is None:
-            more = int(n * below_share(above.leading_orders(N_BACKGROUND_ORDERS), below, factorised=factorise))
-            more -= below.n_paths
+            more = int(n * below_share(above, below, factorised=factorise)) - below.n_paths
             if more > 0:
                 below += trace(stack, sigma_t, g, max(1024, more), _mix64(s ^ 0xB0B0B0B1), k_max, from_below=True,
                                backend=backend, control_variates=control_variates, factorise=factorise)
@@ -1301,7 +1279,7 @@ def _returns_control_variate(dr, Float, stack: Stack, sigma_t: float, seed: int,
     # the interface whose cumulative share first reaches pick_u (the last one if rounding leaves none)
     target, cumulative = pick_u * total, Float(0.0)
     land_x, land_y = landings[-1]
-    chosen = dr.zeros(Float, len(bounced)) > 1     # all False
+    chosen = dr.zeros(dr.mask_t(Float), len(bounced))
     for p, (lx, ly) in zip(P[:-1], landings[:-1], strict=True):
         cumulative = cumulative + p
         take = ~chosen & (cumulative >= target) & (p > 0)
@@ -1324,7 +1302,7 @@ def _single_reflection_returns(dr, stack: Stack, sigma_t: float, x, y, dx, dy, d
     W, WB = stack.stack_half_width, stack.background_half_width
     sin2 = dr.maximum(1 - dz * dz, 0.0)
     gap = (stack.plane_z[-1] - stack.background_z) / dz     # sideways travel per unit of (dx, dy)
-    step, transmit = gap, dz * 0 + 1
+    step, transmit = gap, dr.ones(type(dz), dr.width(dz))
     cos_below, n_below = dz, 1.0
 
     def over(px, py, half):
