@@ -19,7 +19,13 @@ C measured from under the detector overstates a white background's I, most in cl
 maps/README.md). The bounce series is the alternative: detector paths go on to
 `background_orders` ≥ 3 bounces, I(ρ) = Σ_m c_m(α)ρ^m (the tail geometric), and C is the one return
 coefficient that makes the model equal that series at a reference white (ColumnTally.abc): exact there,
-and close to it over the whites an instrument uses. It is not the maps' default yet (its cost: maps/README.md).
+and close to it over the whites an instrument uses. The paths are traced to their 2nd bounce as for
+the maps, and those that reach it go on in passes of their own, bounce by bounce, each from where the
+last pass cut it with its own random stream (so a path is what one unbroken trace would make it, and
+the loop carries no per-bounce records). Past the 2nd bounce, Russian roulette with a constant
+survival (a weight, not a power of α: the polynomial stays) spares the long diffusion of light that
+comes back into a dense sample from below; a pilot sets the survival (continuation_share). It is not
+the maps' default yet (its cost: maps/README.md).
 
 No Russian roulette on α (it would break the polynomial): a path is traced until it escapes, is lost
 (sides, past the background), or has K scattering events, where α_max^K ≤ `truncation`. The
@@ -43,7 +49,7 @@ variates for light that does not depend on α, which dominates the noise of clea
 path's straight first pass to the background with its next-event value, and background paths that
 come straight back off the stack: exact expectations replace their 0/1 outcomes; in a bounce series, a
 detector path's return from its first bounce by one Fresnel reflection: its expected next-event value
-replaces the realised one, _returns_control_variate); and, where C comes
+given where it bounced replaces the realised one, _returns_control_variate); and, where C comes
 from background paths, only as many of them as C's share of the error needs (`below_share`). In the
 device, whether a path that leaves the top face meets one of the two panels is the main noise of
 every dense column and of light scattered in a clear sample: that 0/1 outcome is replaced by its
@@ -624,7 +630,9 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
     background paths also tally those that reach the light, in row 1 (UTU); no control variates.
     `next_event` False (comparisons only): detector paths count their own straight way out instead
     of a next-event estimate at the first bounce (no control variates either, they build on it).
-    `background_orders`: detector paths stop at that background bounce (rows m < it; not factorised)."""
+    `background_orders`: detector paths stop at that background bounce (rows m < it; not factorised);
+    beyond 2 (a bounce series, with next-event estimates), past their 2nd bounce in passes, with
+    roulette (see the module's docstring)."""
     import time
 
     if background_orders < N_BACKGROUND_ORDERS or (factorise and background_orders != N_BACKGROUND_ORDERS):
@@ -784,18 +792,12 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
     # next-event estimate, computed once per path after the loop), and whether the path has gone
     # straight on since (nothing but refraction).
     nee_k = dr.zeros(UInt32, n_paths)
-    # Bounces 2 … orders − 1 of a detector path traced on past its 2nd (a bounce series): where, and
-    # after how many scatterings, for their next-event estimates (computed after the loop, like the first's).
-    later_bounces = max(orders - 2, 0) if nee and not factorise else 0
-    later = [v for _ in range(later_bounces)
-             for v in (dr.zeros(Float, n_paths), dr.zeros(Float, n_paths), dr.zeros(UInt32, n_paths))]
-    # A bounce series' control variate (see after the loop): reflections since the last bounce
-    # (NOT_PLAIN once anything but an interface crossing happened); the first bounce's direction;
-    # whether the second bounce came back from the first by exactly one reflection.
-    n_later = len(later)
-    returns_cv = control_variates and later_bounces > 0
-    cv_state = ([dr.zeros(UInt32, n_paths), dr.zeros(Float, n_paths), dr.zeros(Float, n_paths),
-                 dr.zeros(Float, n_paths), dr.full(Bool, False, n_paths)] if returns_cv else [])
+    # A bounce series traces on past the 2nd bounce in passes (go_on, below): its loop state is
+    # the 2-order trace's, plus, in the first pass, for the returns' control variate (after the loop),
+    # the reflections since the first bounce (NOT_PLAIN once anything but an interface crossing happened).
+    series = orders > N_BACKGROUND_ORDERS and nee and not factorise
+    returns_cv = control_variates and series
+    cv_state = [dr.zeros(UInt32, n_paths)] if returns_cv else []
     bounce_x, bounce_y = dr.zeros(Float, n_paths), dr.zeros(Float, n_paths)
     nee_u, nee_v = dr.zeros(Float, n_paths), dr.zeros(Float, n_paths)
     straight = dr.full(Bool, False, n_paths)
@@ -807,9 +809,12 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
     reach2 = dr.zeros(Float, n_paths)
     escape = dr.full(Bool, False, n_paths)
 
+    # A pass stops its paths at this background bounce (an opaque input: one kernel serves every pass).
+    cut_at = [dr.opaque(UInt32, min(orders, N_BACKGROUND_ORDERS) if series else orders)]
+
     def body(x, y, z, dx, dy, dz, li, k, m, it, alive, hit, nee_k, bounce_x, bounce_y, nee_u, nee_v, straight, clean,
              x0, y0, reach2, escape, *rest):
-        later, cv, rng = list(rest[:n_later]), list(rest[n_later:-1]), rest[-1]
+        cv, rng = list(rest[:-1]), rest[-1]
         it = it + 1
         in_stack = li < L
         in_gap = li == L
@@ -936,7 +941,7 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
         out_top = refract & in_stack & ~going_down & (li == 0)
         escaped_up = gap_up & ~under_stack & ~side_in
         reach_light = (out_top | escaped_up | wall_exit) & light(x, y, z, new_dx, new_dy, new_dz)
-        cut = on_bg & (m >= orders)
+        cut = on_bg & (m >= cut_at[0])
         lost = (gap_down & ~on_bg) | cut
         done = out_top | escaped_up | (wall_exit & ~wall_down) | lost | (k >= k_max) | (it >= max_iter)
         if nee:
@@ -946,18 +951,9 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
             bounce_x, bounce_y = dr.select(first_bounce, x, bounce_x), dr.select(first_bounce, y, bounce_y)
             nee_u, nee_v = dr.select(first_bounce, u_free, nee_u), dr.select(first_bounce, u_f, nee_v)
             nee_k = dr.select(first_bounce, k, nee_k)
-            for j in range(later_bounces):
-                at = alive & on_bg & (m == j + 2)
-                later[3 * j: 3 * j + 3] = (dr.select(at, x, later[3 * j]), dr.select(at, y, later[3 * j + 1]),
-                                           dr.select(at, k, later[3 * j + 2]))
-            if returns_cv:
-                reflections, fdx, fdy, fdz, plain2 = cv
-                plain2 = dr.select(alive & on_bg & (m == 2), reflections == 1, plain2)
-                fdx, fdy, fdz = (dr.select(first_bounce, v, f) for v, f in ((lx, fdx), (ly, fdy), (lz, fdz)))
-                counted = dr.minimum(reflections + dr.select(reflect, UInt32(1), UInt32(0)), NOT_PLAIN)
-                reflections = dr.select(on_bg, UInt32(0),
-                                        dr.select(scatter | wall | side, UInt32(NOT_PLAIN), counted))
-                cv = [reflections, fdx, fdy, fdz, plain2]
+            if cv:  # the first pass of a bounce series: it ends at the 2nd bounce, with that count
+                counted = dr.minimum(cv[0] + dr.select(reflect, UInt32(1), UInt32(0)), NOT_PLAIN)
+                cv = [dr.select(first_bounce, UInt32(0), dr.select(scatter | wall | side, UInt32(NOT_PLAIN), counted))]
             # Every bounce estimates the straight way out: the path's own is counted after none.
             straight = dr.select(alive & on_bg, True, straight & ~(scatter | reflect | wall | side))
             # Straight down needs one iteration per interface and one through the gap; any scattering
@@ -969,16 +965,17 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
         alive = alive & ~done
         reach2 = dr.maximum(reach2, (x - x0) * (x - x0) + (y - y0) * (y - y0))
         return (x, y, z, new_dx, new_dy, new_dz, dr.select(out_top, li, new_li), k, m, it, alive, hit, nee_k,
-                bounce_x, bounce_y, nee_u, nee_v, straight, clean, x0, y0, reach2, escape, *later, *cv, rng)
+                bounce_x, bounce_y, nee_u, nee_v, straight, clean, x0, y0, reach2, escape, *cv, rng)
 
     # Waves: a symbolic loop runs each SIMD packet until its *slowest* lane is done, and path lengths
     # are heavy-tailed; so run WAVE iterations at a time, then keep only the live paths (the kernel
     # is compiled once: the wave limit is an opaque input). A lane's random stream is its own, so
     # the result does not depend on the wave length.
     state = [x, y, z, dx, dy, dz, li, k, m, it, alive, hit, nee_k, bounce_x, bounce_y, nee_u, nee_v, straight, clean,
-             x0, y0, reach2, escape, *later, *cv_state, rng]
-    slot = {name: i for i, name in enumerate(_LOOP_STATE)}     # then `later`'s, `cv_state`, the random stream
-    assert len(state) == len(_LOOP_STATE) + len(later) + len(cv_state) + 1
+             x0, y0, reach2, escape, *cv_state, rng]
+    slot = {name: i for i, name in enumerate(_LOOP_STATE)}     # then `cv_state`, the random stream
+    slot["reflections"] = len(_LOOP_STATE)
+    assert len(state) == len(_LOOP_STATE) + len(cv_state) + 1
     ALIVE, IT = slot["alive"], slot["it"]
     averaged = nee and bool(stack.panels) and ROTATIONS > 1 and control_variates   # not in the plain estimator
     safe_radius = min(W, WB)
@@ -1001,53 +998,107 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
             total += dr.select(light(rx, ry, pz, c * ux - sn * uy, sn * ux + c * uy, uz), 1.0, 0.0)
         return dr.select(left & inside, total / ROTATIONS, dr.select(s[slot["hit"]], 1.0, 0.0))
 
-    lane = dr.arange(UInt32, n_paths)
-    final = {name: np.zeros(n_paths, dtype=dtype) for name, dtype in   # the kernel's own types: no casts
-             (("k", np.uint32), ("m", np.uint32), ("it", np.uint32), ("hit", bool), ("nee_k", np.uint32),
-              ("bounce_x", np.float32), ("bounce_y", np.float32), ("nee_u", np.float32), ("nee_v", np.float32),
-              ("clean", bool))}
-    if averaged:
-        final["light"] = np.zeros(n_paths, dtype=np.float32)
-    slots = {name: slot[name] for name in final if name != "light"}
-    for j in range(later_bounces):
-        for i, (name, dtype) in enumerate((("x", np.float32), ("y", np.float32), ("k", np.uint32))):
-            final[f"later_{name}{j}"] = np.zeros(n_paths, dtype=dtype)
-            slots[f"later_{name}{j}"] = len(_LOOP_STATE) + 3 * j + i
-    if returns_cv:
-        for i, name in enumerate(("first_dx", "first_dy", "first_dz"), start=1):
-            final[name] = np.zeros(n_paths, dtype=np.float32)
-            slots[name] = len(_LOOP_STATE) + n_later + i
-        final["plain2"] = np.zeros(n_paths, dtype=bool)
-        slots["plain2"] = len(_LOOP_STATE) + n_later + 4
-    limit = 0
-    while True:
-        limit += wave
-        wave_limit = dr.opaque(UInt32, limit)
-        state = list(dr.while_loop(tuple(state), lambda *s, bound=wave_limit: s[ALIVE] & (s[IT] < bound), body))
-        dr.eval(state)
-        alive_now = np.asarray(state[slot["alive"]], dtype=bool)
-        # Every lane's values, live or not: a live path's are overwritten in the wave where it ends.
-        # (Selecting the finished ones first was as slow as the first wave's kernel on large traces.)
-        ids = slice(None) if limit == wave else np.asarray(lane, dtype=np.int64)
-        for name, index in slots.items():
-            final[name][ids] = np.asarray(state[index])
-        if averaged:
-            light_seen = rotation_average(state)
-            dr.eval(light_seen)
-            final["light"][ids] = np.asarray(light_seen)
-        if not alive_now.any():
-            break
-        keep = UInt32(np.flatnonzero(alive_now).astype(np.uint32))
-        rng_old = state[-1]
-        rng_new = B.PCG32(rng_old)
-        rng_new.state = dr.gather(B.UInt64, rng_old.state, keep)
-        rng_new.inc = dr.gather(B.UInt64, rng_old.inc, keep)
-        state = [dr.gather(type(v), v, keep) for v in state[:-1]] + [rng_new]
-        lane = dr.gather(UInt32, lane, keep)
+    # Per lane, what a pass leaves: the path's outcome (and the first pass, its first bounce); a bounce
+    # series' passes also leave, for the paths they cut at a bounce, all that a path needs to go on.
+    outcome = [("k", np.uint32), ("m", np.uint32), ("it", np.uint32), ("hit", bool)]
+    first_bounce_record = [("nee_k", np.uint32), ("bounce_x", np.float32), ("bounce_y", np.float32),
+                           ("nee_u", np.float32), ("nee_v", np.float32), ("clean", bool)]
+    carried = [(name, np.float32) for name in ("x", "y", "z", "dx", "dy", "dz", "x0", "y0", "reach2")] + [
+        ("li", np.uint32)]
 
-    k_np, m_np, it_np, hit_np = final["k"], final["m"], final["it"], final["hit"]
-    truncated = int(np.count_nonzero((k_np >= k_max) | (it_np >= max_iter)))
+    def run(state, recorded, cut_bounce=None, wave_length=wave):
+        """Runs the paths of `state` to their end, `wave_length` iterations at a time: each lane's final values
+        of `recorded` (name, dtype); with `cut_bounce`, those of `carried` and the random stream too,
+        for the lanes that ended cut at that bounce (the others' stay 0)."""
+        n = dr.width(state[0])
+        lane = dr.arange(UInt32, n)
+        final = {name: np.zeros(n, dtype=dtype) for name, dtype in recorded}   # the kernel's own types: no casts
+        if averaged:
+            final["light"] = np.zeros(n, dtype=np.float32)
+        cut_record = {}
+        if cut_bounce is not None:
+            cut_record = {name: np.zeros(n, dtype=dtype) for name, dtype in carried}
+            cut_record.update(rng_state=np.zeros(n, dtype=np.uint64), rng_inc=np.zeros(n, dtype=np.uint64))
+        limit = 0
+        while True:
+            limit += wave_length
+            wave_limit = dr.opaque(UInt32, limit)
+            state = list(dr.while_loop(tuple(state), lambda *s, bound=wave_limit: s[ALIVE] & (s[IT] < bound), body))
+            dr.eval(state)
+            alive_now = np.asarray(state[slot["alive"]], dtype=bool)
+            # Every lane's values, live or not: a live path's are overwritten in the wave where it ends.
+            # (Selecting the finished ones first was as slow as the first wave's kernel on large traces.)
+            ids = slice(None) if limit == wave_length else np.asarray(lane, dtype=np.int64)
+            for name in final:
+                if name in slot:
+                    final[name][ids] = np.asarray(state[slot[name]])
+            if averaged:
+                light_seen = rotation_average(state)
+                dr.eval(light_seen)
+                final["light"][ids] = np.asarray(light_seen)
+            if cut_bounce is not None:   # few lanes, gathered before leaving Dr.Jit
+                ended = np.flatnonzero(~alive_now & (final["m"][ids] == cut_bounce))
+                lanes = np.arange(n) if isinstance(ids, slice) else ids
+                if len(ended):
+                    at = UInt32(ended.astype(np.uint32))
+                    sources = [state[slot[name]] for name, _ in carried] + [state[-1].state, state[-1].inc]
+                    gathered = [dr.gather(type(v), v, at) for v in sources]
+                    dr.eval(gathered)           # one kernel for all
+                    for name, values in zip([name for name, _ in carried] + ["rng_state", "rng_inc"], gathered,
+                                            strict=True):
+                        cut_record[name][lanes[ended]] = np.asarray(values)
+            if not alive_now.any():
+                return final, cut_record
+            keep = UInt32(np.flatnonzero(alive_now).astype(np.uint32))
+            rng_old = state[-1]
+            rng_new = B.PCG32(rng_old)
+            rng_new.state = dr.gather(B.UInt64, rng_old.state, keep)
+            rng_new.inc = dr.gather(B.UInt64, rng_old.inc, keep)
+            state = [dr.gather(type(v), v, keep) for v in state[:-1]] + [rng_new]
+            lane = dr.gather(UInt32, lane, keep)
+
+    if returns_cv:
+        outcome_first = outcome + first_bounce_record + [("reflections", np.uint32)]
+    else:
+        outcome_first = outcome + first_bounce_record
+    final, cut_record = run(state, outcome_first, N_BACKGROUND_ORDERS if series else None)
+    it_total, over_iter = final["it"].astype(np.int64), final["it"] >= max_iter
+    def go_on(paths, record, k_at, m_at):
+        """A bounce series: `paths`, cut at a bounce with `record` (their `carried` values and random
+        streams) and (k, m), go on from there, pass by pass, each with its own random stream (so a
+        path is what one unbroken trace would make it) to the next bounce, until `orders`. Their
+        outcomes go into `final`, their iterations into it_total; returns, per bounce after the cut,
+        the paths that reached it, where and k."""
+        reached = []
+        while len(paths):
+            n, bounce = len(paths), int(m_at[0])
+            rng = B.PCG32(n)
+            rng.state, rng.inc = B.UInt64(record["rng_state"]), B.UInt64(record["rng_inc"])
+            start = {name: (UInt32 if dtype == np.uint32 else Float)(record[name]) for name, dtype in carried}
+            start.update(k=UInt32(k_at), m=UInt32(m_at), it=dr.zeros(UInt32, n), alive=dr.full(Bool, True, n),
+                         hit=dr.full(Bool, False, n), straight=dr.full(Bool, True, n), clean=dr.full(Bool, False, n),
+                         escape=dr.full(Bool, False, n), nee_k=dr.zeros(UInt32, n),   # the first bounce's: unused
+                         **{name: dr.zeros(Float, n) for name in ("bounce_x", "bounce_y", "nee_u", "nee_v")})
+            cut_at[0] = dr.opaque(UInt32, bounce + 1)
+            # few paths: longer waves, fewer of each wave's fixed costs (tracing the loop, launching it)
+            current, next_record = run([start[name] for name in _LOOP_STATE] + [rng], outcome,
+                                       bounce + 1 if bounce + 1 < orders else None, LATER_WAVES * wave)
+            for name in ("k", "m", "hit", "light"):
+                if name in current:
+                    final[name][paths] = current[name]
+            it_total[paths] += current["it"]
+            over_iter[paths] |= current["it"] >= max_iter
+            if bounce + 1 >= orders:
+                break
+            cut = np.flatnonzero(current["m"] == bounce + 1)
+            paths, k_at, m_at = paths[cut], current["k"][cut], current["m"][cut]
+            record = {name: values[cut] for name, values in next_record.items()}
+            reached.append((paths, record["x"], record["y"], k_at))
+        return reached
+
+    k_np, m_np, hit_np = final["k"], final["m"], final["hit"]
     if from_below:
+        truncated = int(np.count_nonzero((k_np >= k_max) | over_iter))
         # factorised: `hit` is "reached the light", and a path came back iff it met the background again
         if factorise:
             counts, second = _background_sums(k_np, m_np >= 2, hit_np)
@@ -1057,19 +1108,22 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
             # The light the stack's interfaces send straight back (no scattering, few reflections):
             # its expectation is a 1-D integral, so those paths' 0/1 outcomes are replaced by it.
             min_cos, expected = _plain_return(stack, sigma_t_value)
-            plain = hit_np & (k_np == 0) & (it_np <= PLAIN_RETURN_ITERATIONS) & (start_cos >= min_cos)
+            plain = hit_np & (k_np == 0) & (it_total <= PLAIN_RETURN_ITERATIONS) & (start_cos >= min_cos)
             counts, second = _background_sums(k_np, hit_np & ~plain)
             counts, second = _add_constant(counts, second, n_paths, expected, row=0)
         return Tally(counts=counts, n_paths=n_paths, weight=1.0, specular=0.0, truncated=truncated, k_max=k_max,
-                     seconds=time.perf_counter() - t0, path_events=int(it_np.sum()), second=second)
+                     seconds=time.perf_counter() - t0, path_events=int(it_total.sum()), second=second)
     bounced = np.flatnonzero(m_np >= 1)
     nee_value = np.zeros(n_paths)
     if factorise:  # each path that reached the background adds 1 to UT1 at its scatterings so far
-        counts, second = _detector_sums(k_np, m_np, hit_np, [(final["nee_k"], np.where(m_np >= 1, 1.0, 0.0), 1)])
+        truncated = int(np.count_nonzero((k_np >= k_max) | over_iter))
+        every = np.arange(n_paths)
+        counts, second = _detector_sums(n_paths, [(every, k_np, np.where(m_np < 1, hit_np, 0.0), m_np),
+                                                  (every, final["nee_k"], np.where(m_np >= 1, 1.0, 0.0), 1)])
         r0 = ((layer_n[0] - 1.0) / (layer_n[0] + 1.0)) ** 2
         return Tally(counts=counts, n_paths=n_paths, weight=(1 - r0) * stack.scale, specular=r0 * stack.scale,
                      truncated=truncated, k_max=k_max, seconds=time.perf_counter() - t0,
-                     path_events=int(it_np.sum()), second=second)
+                     path_events=int(it_total.sum()), second=second)
     if nee and len(bounced):
         value = straight_through(*(Float(final[name][bounced]) for name in ("bounce_x", "bounce_y", "nee_u", "nee_v")))
         nee_value[bounced] = np.asarray(value, dtype=np.float64)
@@ -1091,23 +1145,64 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
             replicas.append(float(np.mean(np.asarray(value, dtype=np.float64))))
         fresh_mean = float(np.mean(replicas))
         offset_variance = (clean_pass * n_paths) ** 2 * float(np.var(replicas, ddof=1)) / len(replicas)
-    nee_terms = [(final["nee_k"], nee_value, 1)]
-    for j in range(later_bounces):
+    every = np.arange(n_paths)
+    terms = [(every, final["nee_k"], nee_value, 1)]
+
+    def next_events(at, x, y, bounce):
         # Direction samples of their own (any independent uniforms will do), seeded from the trace's.
-        later_value = np.zeros(n_paths)
-        at = np.flatnonzero(m_np >= j + 2)
-        if len(at):
-            u, v = np.random.default_rng([seed, 0x4E45, j]).random((2, len(at)), dtype=np.float32)
-            value = straight_through(Float(final[f"later_x{j}"][at]), Float(final[f"later_y{j}"][at]), Float(u),
-                                     Float(v))
-            later_value[at] = np.asarray(value, dtype=np.float64)
-        if j == 0 and returns_cv:
-            later_value, expected = _returns_control_variate(dr, Float, stack, sigma_t_value, seed, final, m_np,
-                                                             later_value, straight_through)
-            nee_terms.append((final["nee_k"], expected, 2))
-        nee_terms.append((final[f"later_k{j}"], later_value, j + 2))
-    counts, second = _detector_sums(k_np, m_np, final["light"] if averaged else hit_np, nee_terms,
-                                    int(background_orders))
+        if not len(at):
+            return np.zeros(0)
+        u, v = np.random.default_rng([seed, 0x4E45, bounce - 2]).random((2, len(at)), dtype=np.float32)
+        return np.asarray(straight_through(Float(x), Float(y), Float(u), Float(v)), dtype=np.float64)
+
+    own = final["light"] if averaged else hit_np
+    if series:
+        # The 2nd bounce: its next-event estimate (with the returns' control variate), for every path
+        # that reached it.
+        at = np.flatnonzero(m_np == N_BACKGROUND_ORDERS)
+        value = next_events(at, cut_record["x"][at], cut_record["y"][at], N_BACKGROUND_ORDERS)
+        if returns_cv:
+            value, expected = _returns_control_variate(dr, B, stack, sigma_t_value, seed, straight_through, final,
+                                                       cut_record, at, value)
+            terms.append((every, final["nee_k"], expected, N_BACKGROUND_ORDERS))
+        terms.append((at, k_np[at], value, N_BACKGROUND_ORDERS))
+        first = [*terms, (every, k_np.copy(), np.where(m_np < N_BACKGROUND_ORDERS, own, 0.0), m_np.copy())]
+        first_iterations = int(it_total.sum())
+        # Past the 2nd bounce, Russian roulette (a constant weight, no α in it: the polynomial stays):
+        # light that comes back into a dense sample from below diffuses for thousands of scatterings
+        # and hardly changes I. A pilot, 1 in CONTINUATION_PILOT of the paths there, always goes on;
+        # from its cost and spread (continuation_share) the others go on with a probability p and
+        # weight 1/p. The pilot's outcomes decide only the others' p: unbiased.
+        draw = np.random.default_rng([seed, 0x5255]).random(len(at))
+        pilot = draw < 1 / CONTINUATION_PILOT
+        weight = np.ones(n_paths)
+
+        def go_on_from_the_second(chosen):
+            return go_on(chosen, {name: values[chosen] for name, values in cut_record.items()}, k_np[chosen],
+                         m_np[chosen])
+
+        reached = [go_on_from_the_second(at[pilot])]      # per group, per bounce 3 …: (paths, x, y, k)
+        later_terms = [(at[pilot], k_np[at[pilot]], own[at[pilot]], m_np[at[pilot]])]
+        for j, (p_j, x_j, y_j, k_j) in enumerate(reached[0]):
+            later_terms.append((p_j, k_j, next_events(p_j, x_j, y_j, N_BACKGROUND_ORDERS + 1 + j),
+                                N_BACKGROUND_ORDERS + 1 + j))
+        share = continuation_share(n_paths, first, first_iterations, later_terms,
+                                   int(it_total.sum()) - first_iterations, orders)
+        others = at[~pilot & (draw < share)]
+        if len(others):
+            weight[others] = (1 - 1 / CONTINUATION_PILOT) / (share - 1 / CONTINUATION_PILOT)
+        reached.append(go_on_from_the_second(others))
+        own = np.where(m_np >= N_BACKGROUND_ORDERS, own * weight, own)   # the paths that went on (others': 0)
+        for j in range(orders - N_BACKGROUND_ORDERS - 1):     # bounces 3 … orders − 1, both groups, in path order
+            parts = [group[j] for group in reached if len(group) > j]
+            p_j, x_j, y_j, k_j = (np.concatenate([part[i] for part in parts]) for i in range(4))
+            order = np.argsort(p_j, kind="stable")
+            p_j, x_j, y_j, k_j = p_j[order], x_j[order], y_j[order], k_j[order]
+            terms.append((p_j, k_j, next_events(p_j, x_j, y_j, N_BACKGROUND_ORDERS + 1 + j) * weight[p_j],
+                          N_BACKGROUND_ORDERS + 1 + j))
+    terms.append((every, k_np, np.where(m_np < orders, own, 0.0), m_np))
+    truncated = int(np.count_nonzero((k_np >= k_max) | over_iter))
+    counts, second = _detector_sums(n_paths, terms, orders)
     if control_variates:
         counts, second = _add_constant(counts, second, n_paths, clean_pass * fresh_mean, row=1)
 
@@ -1116,14 +1211,14 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
     specular = r0 * stack.scale if not stack.panels else 0.0  # the device's detector sees no panel specularly
     return Tally(counts=counts, n_paths=n_paths, weight=(1 - r0) * stack.scale, specular=specular,
                  truncated=truncated, k_max=k_max, seconds=time.perf_counter() - t0,
-                 path_events=int(it_np.sum()), second=second, offset_variance=offset_variance)
+                 path_events=int(it_total.sum()), second=second, offset_variance=offset_variance)
 
 
 # A bounce series' count of reflections since the last bounce once it stopped being plain.
 NOT_PLAIN = 255
 
-# The symbolic loop's state, in `body`'s argument order (a bounce series' records and the random
-# stream follow).
+# The symbolic loop's state, in `body`'s argument order (then, in a bounce series' first pass, its
+# count of reflections since the first bounce; then the random stream).
 _LOOP_STATE = ("x", "y", "z", "dx", "dy", "dz", "li", "k", "m", "it", "alive", "hit", "nee_k", "bounce_x", "bounce_y",
                "nee_u", "nee_v", "straight", "clean", "x0", "y0", "reach2", "escape")
 
@@ -1253,41 +1348,100 @@ def _gauss_legendre() -> tuple[np.ndarray, np.ndarray]:
     return np.polynomial.legendre.leggauss(256)
 
 
-def _returns_control_variate(dr, Float, stack: Stack, sigma_t: float, seed: int, final: dict, m, second_value,
-                             straight_through):
+# A bounce series' passes past the 2nd bounce run this many times as many iterations per wave.
+LATER_WAVES = 4
+
+# Paths that go on past the 2nd background bounce first, as a pilot for the others: 1 in this many.
+CONTINUATION_PILOT = 8
+# Paths whose value up to the 2nd bounce gives the spread that continuation_share weighs the pilot against.
+CONTINUATION_SAMPLE = 1 << 18
+
+
+def continuation_share(n_paths: int, first_terms, first_iterations: int, later_terms, later_iterations: int,
+                       orders: int, rho: float = REFERENCE_RHOS[1]) -> float:
+    """The survival past the 2nd background bounce that minimises the variance of I(ρ) for the work,
+    from a pilot of 1/CONTINUATION_PILOT of the paths there (`later_terms`, `later_iterations`): with
+    V the per-path variance of a path's value up to that bounce (`first_terms`), M the mean square of
+    its value after it (at survival 1) and c₁, c_L the iterations per path before and after,
+    f = √(M·c₁ / (V·c_L)) (the largest over α = 0.9 … 0.999), within [1/CONTINUATION_PILOT, 1].
+    Terms as _detector_sums takes them."""
+    if later_iterations <= 0:
+        return 1.0
+    alpha = np.array([0.9, 0.99, 0.999])
+    # V from the first CONTINUATION_SAMPLE paths (any will do: they are independent): the sums are
+    # the costliest part of a trace's bookkeeping.
+    sample = min(n_paths, CONTINUATION_SAMPLE)
+    first_terms = [tuple(part[:np.searchsorted(term[0], sample)] if np.ndim(part) else part for part in term)
+                   for term in first_terms]
+    first, later = (Tally(counts=counts, second=second, n_paths=n, weight=1.0, specular=0.0, truncated=0, k_max=0)
+                    for n, (counts, second) in ((sample, _detector_sums(sample, first_terms, orders)),
+                                                (n_paths, _detector_sums(n_paths, later_terms, orders))))
+    variance = _detector_path_variance(first, alpha, rho)
+    _, later_second = later._moments(alpha)
+    mean_square = sum(later_second[p] * rho**p for p in range(len(later_second))) * CONTINUATION_PILOT
+    cost_ratio = first_iterations / (later_iterations * CONTINUATION_PILOT)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        share = np.sqrt(mean_square / variance * cost_ratio)
+    share = float(np.max(np.where(np.isfinite(share), share, 1.0)))
+    return min(max(share, 1 / CONTINUATION_PILOT), 1.0)
+
+
+def _returns_control_variate(dr, B, stack: Stack, sigma_t: float, seed: int, straight_through, final: dict,
+                             second_bounce: dict, at, value):
     """A bounce series' control variate for its noisiest outcome: whether a path comes back to the
     background after its first bounce (for a clear sample mostly a Fresnel reflection off the stack's
-    back face). The next-event estimate at the second bounce of a path that came back by exactly one
-    reflection and nothing else is replaced by its expectation given the first bounce's position and
-    direction, Σ_i P_i · v(landing_i) (_single_reflection_returns; one interface drawn ∝ P_i and one
-    next-event estimate from where it lands, fresh random numbers: unbiased). Returns the second
-    bounce's next-event values without those paths', and the expectation per path (α^k at the first
-    bounce's k, row 2)."""
-    second_value = np.where(final["plain2"], 0.0, second_value)
-    expected = np.zeros(len(m))
-    bounced = np.flatnonzero(m >= 1)
-    if not len(bounced):
-        return second_value, expected
-    P, landings = _single_reflection_returns(dr, stack, sigma_t, *(
-        Float(final[name][bounced]) for name in ("bounce_x", "bounce_y", "first_dx", "first_dy", "first_dz")))
-    below_one = np.float32(1 - 2**-24)
-    pick_u, u, v = (Float(np.minimum(r, below_one)) for r in
-                    np.random.default_rng([seed, 0x5245, 0]).random((3, len(bounced)), dtype=np.float32))
-    total = P[0]
-    for p in P[1:]:
-        total = total + p
-    # the interface whose cumulative share first reaches pick_u (the last one if rounding leaves none)
-    target, cumulative = pick_u * total, Float(0.0)
-    land_x, land_y = landings[-1]
-    chosen = dr.zeros(dr.mask_t(Float), len(bounced))
-    for p, (lx, ly) in zip(P[:-1], landings[:-1], strict=True):
-        cumulative = cumulative + p
-        take = ~chosen & (cumulative >= target) & (p > 0)
-        land_x, land_y = dr.select(take, lx, land_x), dr.select(take, ly, land_y)
-        chosen |= take
-    value = total * straight_through(land_x, land_y, u, v)
-    expected[bounced] = np.asarray(value, dtype=np.float64)
-    return second_value, expected
+    back face). `at`: the paths that reached their 2nd bounce, `value` their next-event estimates
+    there; a path that came back by exactly one reflection and nothing else (`final`'s reflections
+    since its first bounce, `second_bounce`: where the paths landed) has its estimate replaced by the
+    expectation of it given its first bounce's position (_expected_plain_returns, for every path that
+    bounced). Returns the estimates without those paths', and the expectation per path (α^k at the
+    first bounce's k, row 2)."""
+    value = np.where(final["reflections"][at] == 1, 0.0, value)
+    expected = np.zeros(len(final["m"]))
+    bounced = np.flatnonzero(final["m"] >= 1)
+    if len(bounced):
+        expected[bounced] = _expected_plain_returns(dr, B, stack, sigma_t, seed, straight_through,
+                                                    final["bounce_x"][bounced], final["bounce_y"][bounced])
+    return value, expected
+
+
+def _expected_plain_returns(dr, B, stack: Stack, sigma_t: float, seed: int, straight_through, x, y):
+    """A bounce series' control variate for its noisiest outcome: whether a path comes back to the
+    background after its first bounce (for a clear sample mostly a Fresnel reflection off the stack's
+    back face). A path that came back by exactly one reflection and nothing else has its second
+    bounce's next-event estimate replaced by the expectation of that estimate given the first
+    bounce's position (x, y) (numpy): over the bounce's cosine-distributed direction, Σ_i P_i ·
+    v(landing_i) (_single_reflection_returns), from RETURN_DIRECTIONS fresh directions per path, each
+    with one interface drawn ∝ P_i and one next-event estimate from where it lands (unbiased). Fresh
+    directions, not the path's own: the trace need not carry its first bounce's direction."""
+    Float = B.Float
+    xs, ys = Float(x), Float(y)
+    total_value = np.zeros(len(x))
+    state = _mix64(seed ^ 0x5245)
+    rng = B.PCG32(len(x), initstate=dr.opaque(B.UInt64, state), initseq=dr.opaque(B.UInt64, _mix64(state ^ 0x5EED)))
+    for _ in range(RETURN_DIRECTIONS):
+        u1, u2, pick_u, u, v = (rng.next_float32() for _ in range(5))
+        r, phi = dr.sqrt(u1), 2 * math.pi * u2
+        P, landings = _single_reflection_returns(dr, stack, sigma_t, xs, ys, r * dr.cos(phi), r * dr.sin(phi),
+                                                 dr.safe_sqrt(1 - u1))
+        total = P[0]
+        for p in P[1:]:
+            total = total + p
+        # the interface whose cumulative share first reaches pick_u (the last one if rounding leaves none)
+        target, cumulative = pick_u * total, Float(0.0)
+        land_x, land_y = landings[-1]
+        chosen = dr.zeros(dr.mask_t(Float), len(x))
+        for p, (lx, ly) in zip(P[:-1], landings[:-1], strict=True):
+            cumulative = cumulative + p
+            take = ~chosen & (cumulative >= target) & (p > 0)
+            land_x, land_y = dr.select(take, lx, land_x), dr.select(take, ly, land_y)
+            chosen |= take
+        total_value += np.asarray(total * straight_through(land_x, land_y, u, v), dtype=np.float64)
+    return total_value / RETURN_DIRECTIONS
+
+
+# Fresh first-bounce directions per path for the bounce series' returns control variate.
+RETURN_DIRECTIONS = 2
 
 
 def _single_reflection_returns(dr, stack: Stack, sigma_t: float, x, y, dx, dy, dz):
@@ -1341,27 +1495,66 @@ def _fresnel_np(cos_i, eta):
     return np.where(sin2_t >= 1, 1.0, 0.5 * (rs * rs + rp * rp))
 
 
-def _detector_sums(k, m, hit, nee_terms, orders: int = N_BACKGROUND_ORDERS):
-    """Tally.counts and Tally.second of detector paths. A path's value is Σ_j v_j·α^k_j·q^r_j (its
-    next-event estimates: `nee_terms` = [(k_j, v_j, r_j)], at background bounce r_j after k_j
-    scatterings) + h·α^k·q^m (its own way to the light, with m < `orders`: `hit`, 1/0 or the rotation
-    average); its square is the sum over every pair of those terms (× 2 for two different ones)."""
-    terms = []       # per term: (the paths that have it, their k, value, row)
-    for k_j, v_j, r_j in [(k, np.where(m < orders, hit, 0.0), m), *nee_terms]:
-        on = np.asarray(v_j) > 0
-        terms.append((on, np.asarray(k_j)[on].astype(np.int64), np.asarray(v_j, dtype=np.float64)[on],
-                      np.broadcast_to(r_j, on.shape)[on].astype(np.int64)))
-    width = max(int(k_j.max(initial=0)) for _, k_j, _, _ in terms) + 1
+def _detector_sums(n_paths, terms, orders: int = N_BACKGROUND_ORDERS):
+    """Tally.counts and Tally.second of `n_paths` detector paths. A path's value is Σ_j v_j·α^k_j·q^r_j
+    over the `terms` it has: (paths, k, v, r) each, the paths (sorted indices) with that term, their
+    k, value and row r < `orders` (its own way to the light, and its next-event estimates at its
+    bounces); its square is the sum over every pair of its terms (× 2 for two different ones).
+    Summed SUMS_CHUNK paths at a time: the temporaries stay small and reuse the same memory (fresh
+    pages cost more than the arithmetic on this machine's VMs)."""
+    terms = [(np.asarray(paths), np.asarray(k_j), np.asarray(v_j), r_j) for paths, k_j, v_j, r_j in terms]
+    width = max(int(k_j[v_j > 0].max(initial=0)) for _, k_j, v_j, _ in terms) + 1
+    rows2, width2 = 2 * orders - 1, 2 * width - 1
+    counts = np.zeros(orders * width)
+    second = np.zeros(rows2 * width2)
+    for start in range(0, max(n_paths, 1), SUMS_CHUNK):
+        stop = min(start + SUMS_CHUNK, n_paths)
+        chunk = []
+        for paths, k_j, v_j, r_j in terms:
+            lo, hi = np.searchsorted(paths, (start, stop))
+            chunk.append((paths[lo:hi] - start, k_j[lo:hi], v_j[lo:hi], r_j[lo:hi] if np.ndim(r_j) else r_j))
+        chunk_counts, chunk_second = _detector_sums_chunk(stop - start, chunk, orders, width)
+        counts += chunk_counts
+        second += chunk_second
+    return counts.reshape(orders, width), second.reshape(rows2, width2)
+
+
+# Paths per step of _detector_sums.
+SUMS_CHUNK = 1 << 20
+
+
+def _detector_sums_chunk(n_paths, terms, orders, width):
+    """_detector_sums' flat counts and second moments for paths 0 … n_paths − 1 (a chunk)."""
+    dense, sparse = [], []   # a term over most paths: as arrays over every path; else its nonzero entries
+    for paths, k_j, v_j, r_j in terms:
+        v_j = np.asarray(v_j, dtype=np.float64)
+        k_j, r_j = k_j.astype(np.int64), np.broadcast_to(r_j, v_j.shape).astype(np.int64)
+        on = v_j > 0
+        if len(v_j) == n_paths and 4 * np.count_nonzero(on) > n_paths:
+            # absent entries (value 0) add nothing, wherever their index points
+            dense.append((np.where(on, v_j, 0.0), np.where(on, k_j, 0), np.where(on, r_j, 0)))
+        else:
+            sparse.append((paths[on], k_j[on], v_j[on], r_j[on]))
     rows2, width2 = 2 * orders - 1, 2 * width - 1
     # By np.bincount on flat indices: many times faster than np.add.at, and as exact for 0/1 values.
     counts = np.zeros(orders * width)
     second = np.zeros(rows2 * width2)
-    for i, (on_i, k_i, v_i, r_i) in enumerate(terms):
+
+    def add(r_a, k_a, v_a, r_b, k_b, v_b, factor):
+        nonlocal second
+        second += np.bincount((r_a + r_b) * width2 + k_a + k_b, weights=factor * v_a * v_b, minlength=rows2 * width2)
+
+    for i, (v_i, k_i, r_i) in enumerate(dense):
         counts += np.bincount(r_i * width + k_i, weights=v_i, minlength=orders * width)
-        for on_j, k_j, v_j, r_j in terms[i:]:
-            both_i, both_j = on_j[on_i], on_i[on_j]        # the paths with both terms, in either's subset
-            if both_i.any():
-                factor = 1.0 if on_j is on_i else 2.0
-                second += np.bincount((r_i[both_i] + r_j[both_j]) * width2 + k_i[both_i] + k_j[both_j],
-                                      weights=factor * v_i[both_i] * v_j[both_j], minlength=rows2 * width2)
-    return counts.reshape(orders, width), second.reshape(rows2, width2)
+        for j, (v_j, k_j, r_j) in enumerate(dense[i:]):
+            add(r_i, k_i, v_i, r_j, k_j, v_j, 1.0 if j == 0 else 2.0)
+    for i, (p_i, k_i, v_i, r_i) in enumerate(sparse):
+        counts += np.bincount(r_i * width + k_i, weights=v_i, minlength=orders * width)
+        for v_d, k_d, r_d in dense:
+            add(r_i, k_i, v_i, r_d[p_i], k_d[p_i], v_d[p_i], 2.0)
+        add(r_i, k_i, v_i, r_i, k_i, v_i, 1.0)
+        for p_j, k_j, v_j, r_j in sparse[i + 1:]:
+            _, a, b = np.intersect1d(p_i, p_j, assume_unique=True, return_indices=True)
+            add(r_i[a], k_i[a], v_i[a], r_j[b], k_j[b], v_j[b], 2.0)
+    return counts, second
+
