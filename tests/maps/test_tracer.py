@@ -349,6 +349,8 @@ def test_a_bounce_series_keeps_A_and_B_and_matches_C_at_the_white():
         trace(device, 0.058, 0.5, 1 << 12, 3, K_MAX, background_orders=1)
     with pytest.raises(InputError, match="white_rho"):
         trace(device, 0.058, 0.5, 1 << 12, 3, K_MAX, background_orders=6, white_rho=0.0)
+    with pytest.raises(InputError, match="below_fraction"):
+        trace(device, 0.058, 0.5, 1 << 12, 3, K_MAX, background_orders=6, below_fraction=0.5)
 
 
 def test_a_bounce_series_control_variate_predicts_the_returns_it_replaces(monkeypatch):

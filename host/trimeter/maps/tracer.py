@@ -450,6 +450,8 @@ def trace_column(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int
                          "(the ideal geometry)")
     if not 0 < white_rho <= 1:
         raise InputError(f"white_rho must be within (0, 1], got {white_rho!r}")
+    if below_fraction is not None and background_orders > N_BACKGROUND_ORDERS:
+        raise InputError("below_fraction sets the background paths, and a bounce series traces none")
     parts = []
     for i, start in enumerate(range(0, max(n_paths, 1), TRACE_CHUNK)):
         n = min(TRACE_CHUNK, n_paths - start)
@@ -1520,7 +1522,7 @@ def _detector_sums(n_paths, terms, orders: int = N_BACKGROUND_ORDERS):
 
 
 # Paths per step of _detector_sums.
-SUMS_CHUNK = 1 << 20
+SUMS_CHUNK = 1 << 18
 
 
 def _detector_sums_chunk(n_paths, terms, orders, width):
