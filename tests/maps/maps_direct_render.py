@@ -2,7 +2,6 @@
 
 import math
 
-import numpy as np
 
 from trimeter.geometry import load_geometry
 
@@ -13,7 +12,7 @@ def render_black_panels(geometry, alpha, sigma_t, g, n, ell, rho, spp, seed=0):
     exactly 1; grey panels added +1.7 % at σt = 0.5, α = 0, ρ = 0.9 before forward/ fixed it in 29faea0).
     Kept explicit so that these tests don't depend on that default."""
     from trimeter.forward.mitsuba_env import mitsuba
-    from trimeter.forward.render import to_mitsuba
+    from trimeter.forward.render import render_pixel, to_mitsuba
     from trimeter.forward.scenes import reflectance_scale, scene_dict
 
     mi = mitsuba()
@@ -24,6 +23,5 @@ def render_black_panels(geometry, alpha, sigma_t, g, n, ell, rho, spp, seed=0):
             shape["bsdf"] = {"type": "diffuse", "reflectance": {"type": "uniform", "value": 0.0}}
     scene = mi.load_dict(to_mitsuba(d, mi))
     batches = 8
-    values = np.array([float(np.asarray(mi.render(scene, spp=spp // batches, seed=seed * batches + b)).ravel()[0])
-                       for b in range(batches)]) * reflectance_scale(params)
+    values = render_pixel(scene, scene.integrator(), spp, seed, batches) * reflectance_scale(params)
     return float(values.mean()), float(values.std(ddof=1) / math.sqrt(batches))
