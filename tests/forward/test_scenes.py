@@ -34,8 +34,9 @@ def test_ideal_scene_is_slab_background_sky_radiancemeter():
     medium = scene["sample_medium"]
     assert (medium["albedo"], medium["sigma_t"], medium["phase"]) == (0.9, 2.0, {"type": "hg", "g": 0.5})
     assert scene["background"]["bsdf"]["reflectance"]["value"] == 0.3
-    # two dielectric faces, four mirror sides, one background: nothing else
-    assert _types(scene).count("rectangle") == 7
+    # two dielectric faces, four mirror sides of the slab and four of the air gap, one background: nothing else
+    assert _types(scene).count("rectangle") == 11
+    assert sum(1 for v in scene.values() if isinstance(v, dict) and v.get("bsdf", {}).get("type") == "conductor") == 8
     assert sum(1 for v in scene.values() if isinstance(v, dict) and v.get("bsdf", {}).get("type") == "dielectric") == 2
 
 
