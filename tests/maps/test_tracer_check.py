@@ -1,7 +1,9 @@
 """The map tracer against Mitsuba's volpath over seeded random materials (slow): a subset of
-`trimeter bench tracer-check` (which runs 40 materials per geometry). Judged by the z distribution:
-p95 |z| ≤ 2.5, and a mean z within 3 of its own standard error (with 16 z-scores per geometry, the
-bench's |mean z| ≤ 0.5 would be a coin toss even for a perfect tracer)."""
+`trimeter bench tracer-check` (which runs 40 materials per geometry and judges p95 |z| ≤ 2.5, |mean z| ≤ 0.5).
+Here 16 z-scores per geometry, 8 materials on both backgrounds (each pair from the same renders' seeds), so
+the bench's bounds would fail a perfect tracer too often: the mean must lie within 3 of its own standard
+error, and p95 |z|, which for 16 values is nearly their largest, ≤ 3.0 (exceeded by ~1 % of seeds for exact
+normal z-scores correlated in pairs, by ~5 % at 2.5; simulated)."""
 
 import math
 
@@ -12,6 +14,7 @@ from trimeter.forward.validate import random_materials
 from trimeter.maps.tracer_validation import Z_P95_MAX, tracer_agreement, z_summary
 
 MATERIALS = 8
+P95_MAX = 3.0          # for 16 z-scores (see the module's docstring); the bench's 80 are held to Z_P95_MAX
 
 
 @pytest.mark.slow
@@ -23,7 +26,7 @@ def test_tracer_z_scores_against_volpath(geometry, ell):
     print(f"\n{geometry}: {s['count']} z-scores, mean {s['mean']:+.2f} ± {s['mean_stderr']:.2f}, "
           f"p95 |z| {s['p95_abs']:.2f}, max {s['max_abs']:.2f}")
     assert s["count"] == 2 * MATERIALS
-    assert s["p95_abs"] <= Z_P95_MAX, rows
+    assert s["p95_abs"] <= P95_MAX, rows
     assert abs(s["mean"]) <= 3 * s["mean_stderr"], rows
     if geometry == "ideal":
         z_iad = np.array([r["z_iad"] for r in rows])
