@@ -2,8 +2,8 @@
 `trimeter bench tracer-check` (which runs 40 materials per geometry and judges p95 |z| ≤ 2.5, |mean z| ≤ 0.5).
 Here 16 z-scores per geometry, 8 materials on both backgrounds (each pair from the same renders' seeds), so
 the bench's bounds would fail a perfect tracer too often: the mean must lie within 3 of its own standard
-error, and p95 |z|, which for 16 values is nearly their largest, ≤ 3.0 (exceeded by ~1 % of seeds for exact
-normal z-scores correlated in pairs, by ~5 % at 2.5; simulated)."""
+error, and p95 |z|, which for 16 values is nearly their largest, ≤ 3.0 (how often a perfect tracer exceeds
+either bound, simulated: maps/README.md)."""
 
 import math
 

@@ -108,8 +108,8 @@ LANES = 1 << 20
 def render_pixel(scene, integrator, spp: int, seed: int, batches: int = BATCHES) -> np.ndarray:
     """The mean radiance seen by the scene's one-pixel sensor, in `batches` independent batches of
     spp/batches rays (their means, float64): rays from the sensor, `integrator.sample` for each, the
-    mean taken in float64. Not mi.render: its film sums a pixel's samples in float32, which at 2^16 to
-    2^20 samples per render moved a clear slab's exactly known value by −0.09 % to +0.4 % (maps/README.md).
+    mean taken in float64. Not mi.render: its film sums a pixel's samples in float32, whose rounding at
+    the sample counts a check needs is far larger than the noise (figures: maps/README.md).
     Batch b, launch j is seeded from (seed, b, j)."""
     mi = mitsuba()
     sensor = scene.sensors()[0]

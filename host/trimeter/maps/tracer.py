@@ -1040,8 +1040,8 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
                 final["light"][ids] = np.asarray(light_seen)
             if cut_bounce is not None:   # few lanes, gathered before leaving Dr.Jit
                 ended = np.flatnonzero(~alive_now & (final["m"][ids] == cut_bounce))
-                lanes = np.arange(n) if isinstance(ids, slice) else ids
                 if len(ended):
+                    lanes = np.arange(n) if isinstance(ids, slice) else ids
                     at = UInt32(ended.astype(np.uint32))
                     sources = [state[slot[name]] for name, _ in carried] + [state[-1].state, state[-1].inc]
                     gathered = [dr.gather(type(v), v, at) for v in sources]
@@ -1059,12 +1059,10 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
             state = [dr.gather(type(v), v, keep) for v in state[:-1]] + [rng_new]
             lane = dr.gather(UInt32, lane, keep)
 
-    if returns_cv:
-        outcome_first = outcome + first_bounce_record + [("reflections", np.uint32)]
-    else:
-        outcome_first = outcome + first_bounce_record
-    final, cut_record = run(state, outcome_first, N_BACKGROUND_ORDERS if series else None)
+    final, cut_record = run(state, outcome + first_bounce_record + ([("reflections", np.uint32)] if returns_cv else []),
+                            N_BACKGROUND_ORDERS if series else None)
     it_total, over_iter = final["it"].astype(np.int64), final["it"] >= max_iter
+
     def go_on(paths, record, k_at, m_at):
         """A bounce series: `paths`, cut at a bounce with `record` (their `carried` values and random
         streams) and (k, m), go on from there, pass by pass, each with its own random stream (so a
