@@ -5,6 +5,7 @@
   trimeter library tag NAME [--add T] [--remove T] [--notes TEXT]
   trimeter library export NAME -o DIR [--to trimeter|mitsuba|pbrt|blender|rgb]
   trimeter library import DIR [--as NAME] [--replace]
+  trimeter library mixtures --twin | --component NAME=SOURCE … --mixture NAME:F+NAME:F=RESULT …   # Sec. 5.2
 
 Members are combined by inverse variance, with the spread between repeats and a flag where they
 disagree beyond their stds; members measured at different thicknesses are re-fitted jointly
@@ -65,6 +66,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     i.add_argument("--as", dest="as_name", help="store it under another name")
     i.add_argument("--replace", action="store_true")
     i.set_defaults(func=_import)
+    from trimeter.library.mixtures import register_command
+
+    register_command(sub)
 
 
 def _library(args: argparse.Namespace) -> Library:
