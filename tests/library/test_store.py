@@ -218,3 +218,11 @@ def test_schema_file_with_jsonschema_when_installed(exported):
     bad = {**doc, "version": 2}
     with pytest.raises(jsonschema.ValidationError):
         jsonschema.validate(bad, schema())
+
+
+def test_a_library_material_is_a_material_for_predictions_and_mixtures(tmp_path, members):
+    from trimeter.prediction import _as_material
+
+    m = Library(tmp_path / "a.sqlite").add("cyan", members)
+    material = _as_material(m)
+    assert np.array_equal(material.wavelengths_nm, m.document.columns["wavelength_nm"])
