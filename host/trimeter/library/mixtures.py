@@ -231,8 +231,8 @@ def draw_checker(path: Path, squares: Sequence[Square], *, columns: int = 5, tit
     for k, s in enumerate(squares):
         r, c = divmod(k, columns)
         for y0, i in ((0.05, 1), (0.40, 0)):   # white above, black below
-            for x0, rgb in ((0.05, s.srgb_predicted[i]), (0.5, s.srgb_measured[i])):
-                ax.add_patch(plt.Rectangle((c + x0, r + y0), 0.45, 0.35, color=srgb_encode(rgb)))
+            for x0, rgb in ((0.05, s.srgb_predicted[i]), (0.51, s.srgb_measured[i])):   # a hairline between
+                ax.add_patch(plt.Rectangle((c + x0, r + y0), 0.44, 0.35, color=srgb_encode(rgb)))
         parts = [f"{name.removesuffix('-ink')} {f:.2f}" for name, f in s.fractions]
         ax.text(c + 0.5, r + 0.88, " + ".join(parts[:2]) + ("\n+ " + " + ".join(parts[2:]) if parts[2:] else "")
                 + f"\nΔE00 {s.delta_e[1]:.2f} / {s.delta_e[0]:.2f}", ha="center", va="center", fontsize=6,
@@ -312,7 +312,8 @@ def run(args: argparse.Namespace) -> int:
     sources: dict[str, int] = {}
     for o in observed:
         sources[o.source] = sources.get(o.source, 0) + 1
-    print("mixtures measured: " + "; ".join(f"{k} ×{n}" for k, n in sources.items()))
+    if len(sources) < len(observed):   # the twin's: how they were rendered (taken ones: mixtures.json)
+        print("mixtures measured: " + "; ".join(f"{k} ×{n}" for k, n in sources.items()))
     out = Path(args.output) if args.output else data_dir() / "mixture-check" / time.strftime("%Y%m%dT%H%M%S")
     summary = write_outputs(out, squares, info)
     verdict = "within" if summary["median_delta_e2000"] <= PASS_MEDIAN_DE else "above"
