@@ -40,7 +40,8 @@ import numpy as np
 
 from trimeter.errors import InputError
 from trimeter.library.colour import delta_e_2000, reflectance_to_xyz, xyz_to_lab
-from trimeter.results.medium import SpectralMaterial, parse_fractions
+from trimeter.model.mixing import parse_fractions
+from trimeter.results.medium import SpectralMaterial
 
 if TYPE_CHECKING:
     from trimeter.maps.appearance import AppearanceMap

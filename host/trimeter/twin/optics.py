@@ -54,8 +54,8 @@ def material_names() -> dict[str, str]:
 
 def parse_mixture(name: str) -> list[tuple[str, float]] | None:
     """A mixture's catalogue materials and volume fractions from its name, e.g. "cyan-ink:0.25+yellow-ink:0.75"
-    (trimeter.results.medium.parse_fractions), or None for a plain material name."""
-    from trimeter.results.medium import FRACTION_SEPARATOR, parse_fractions
+    (trimeter.model.mixing.parse_fractions), or None for a plain material name."""
+    from trimeter.model.mixing import FRACTION_SEPARATOR, parse_fractions
 
     if FRACTION_SEPARATOR not in name:
         return None
@@ -83,16 +83,18 @@ def catalogue_entry(name: str) -> dict:
 
 def material_spectra(name: str, wavelengths_nm: np.ndarray) -> dict[str, np.ndarray]:
     """α(λ), σt(λ) [1/mm], g(λ) of a catalogue material, or of a mixture of them by volume fractions
-    (`parse_mixture`: σa and σs add by fraction, g is σs-weighted: SpectralMaterial.mixture), on the
+    (`parse_mixture`; trimeter.model.mixing: σa and σs add by fraction, g is σs-weighted), on the
     given wavelengths."""
     mixture = parse_mixture(name)
     if mixture is not None:
-        from trimeter.results.medium import SpectralMaterial
+        from trimeter.model.mixing import mix_coefficients
 
-        lam = np.asarray(wavelengths_nm, dtype=float)
-        parts = [SpectralMaterial(lam, **material_spectra(c, lam)) for c, _ in mixture]
-        mixed = SpectralMaterial.mixture(parts, [f for _, f in mixture])
-        return {"alpha": mixed.alpha, "sigma_t": mixed.sigma_t, "g": mixed.g}
+        parts = [material_spectra(c, wavelengths_nm) for c, _ in mixture]
+        sigma_a, sigma_s, g = mix_coefficients([(1 - p["alpha"]) * p["sigma_t"] for p in parts],
+                                               [p["alpha"] * p["sigma_t"] for p in parts], [p["g"] for p in parts],
+                                               [f for _, f in mixture])
+        sigma_t = sigma_a + sigma_s
+        return {"alpha": sigma_s / sigma_t, "sigma_t": sigma_t, "g": g}
     materials = _catalogue()["material"]
     if name not in materials:
         raise InputError(f"sample must be one of {', '.join(materials)} or a mixture like "
