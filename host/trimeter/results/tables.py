@@ -90,6 +90,7 @@ class TableReader:
         self.name = f"{what} {self.path}".strip()
         self.chunk_rows = int(chunk_rows)
         self._file = open_checked(path, max_bytes=max_bytes, what=what, follow_symlinks=follow_symlinks)
+        self.size_bytes = os.fstat(self._file.fileno()).st_size
         self._line = 0
         try:
             header_line = self._next_content_line()
