@@ -23,7 +23,7 @@ import numpy as np
 
 from trimeter.atomic import atomic_output
 from trimeter.errors import InputError, OutputError
-from trimeter.results.tables import TableReader
+from trimeter.tables import TableReader
 
 REQUIRED = ("wavelength_nm", "I_b", "I_w", "I_c")
 OPTIONAL = ("rho_b", "rho_w", "thickness_mm", "I_b_std", "I_w_std", "I_c_std", "thickness_std_mm")

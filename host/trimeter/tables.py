@@ -95,7 +95,10 @@ class TableReader:
         try:
             header_line = self._next_content_line()
             self.header = [h.strip() for h in next(csv.reader([header_line or ""]), [])] if header_line else []
-        except (csv.Error, UnicodeDecodeError) as exc:
+        except UnicodeDecodeError:
+            self.close()
+            raise InputError(f"{self.name}: not a UTF-8 text file") from None
+        except csv.Error as exc:
             self.close()
             raise InputError(f"{self.name}: not a readable CSV ({exc})") from None
         duplicated = sorted({h for h in self.header if self.header.count(h) > 1})
