@@ -109,3 +109,10 @@ def test_the_calibration_reads_through_it(tmp_path):
     (tmp_path / "calibration.csv").write_text("\n".join(text[:-1]) + "\n")
     with pytest.raises(InputError, match="unknown format or is truncated"):
         Calibration.load(tmp_path)
+
+
+def test_rows_are_counted_without_columns_asked(tmp_path):
+    path = _write(tmp_path, "a,b\n1,2\n3,4\n")
+    assert read_columns(path, optional=("c",), min_rows=2) == {}
+    with pytest.raises(InputError, match="2 data row.s., at least 3 expected"):
+        read_columns(path, optional=("c",), min_rows=3)

@@ -91,6 +91,7 @@ class TableReader:
         self.chunk_rows = int(chunk_rows)
         self._file = open_checked(path, max_bytes=max_bytes, what=what, follow_symlinks=follow_symlinks)
         self.size_bytes = os.fstat(self._file.fileno()).st_size
+        self.rows_read = 0
         self._line = 0
         try:
             header_line = self._next_content_line()
@@ -147,6 +148,7 @@ class TableReader:
             if not lines:
                 return
             table = self._parse(lines, numbers)
+            self.rows_read += len(lines)
             yield {c: table[:, i] for i, c in enumerate(self.columns)}
 
     def _parse(self, lines: list[str], numbers: list[int]) -> np.ndarray:
@@ -187,11 +189,9 @@ def read_columns(path: str | Path, *, required: Sequence[str] = (), optional: Se
     with TableReader(path, required=required, optional=optional, max_bytes=max_bytes, what=what,
                      follow_symlinks=follow_symlinks) as reader:
         parts = list(reader.chunks())
-        columns = reader.columns
-        name = reader.name
-    rows = sum(len(next(iter(p.values()), ())) for p in parts) if columns else 0
+        columns, name, rows = reader.columns, reader.name, reader.rows_read
     if rows < min_rows:
         raise InputError(f"{name}: no data rows" if rows == 0 else f"{name}: {rows} data row(s), at least {min_rows} "
                                                                    f"expected")
-    return {c: np.concatenate([p[c] for p in parts]) for c in columns}
+    return {c: np.concatenate([p[c] for p in parts]) if parts else np.empty(0) for c in columns}
 

@@ -134,6 +134,7 @@ def output(path: Path | None) -> Iterator[ByteSink]:
     """Where the CSV goes: stdout, or `path` replaced atomically when every row is written (an error part
     way leaves the old file, or none)."""
     if path is None:
+        sys.stdout.flush()  # anything printed before goes first
         yield sys.stdout.buffer if hasattr(sys.stdout, "buffer") else _TextSink(sys.stdout)
         sys.stdout.flush()
         return
