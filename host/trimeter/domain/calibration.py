@@ -8,6 +8,7 @@ with its files: calibration.json (meta) + calibration.csv (per bin).
 from __future__ import annotations
 
 import json
+import os
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
@@ -18,6 +19,7 @@ from numpy.typing import ArrayLike
 from trimeter.domain.capture import Capture, CaptureFlag
 from trimeter.domain.instrument import InstrumentInfo
 from trimeter.errors import InputError
+from trimeter.paths import open_regular, read_regular_text
 
 CALIBRATION_FORMAT_VERSION = 1
 MIN_REFERENCE_FRACTION = 1e-3   # reference rate below this fraction of its median: no usable light in that bin
@@ -94,12 +96,16 @@ class Calibration:
     def load(cls, directory: str | Path) -> "Calibration":
         directory = Path(directory)
         try:
-            meta = json.loads((directory / "calibration.json").read_text())
-            table = np.loadtxt(directory / "calibration.csv", delimiter=",", skiprows=1, ndmin=2)
+            meta = json.loads(read_regular_text(directory / "calibration.json"))
+            with os.fdopen(open_regular(directory / "calibration.csv")) as f:  # never blocks on a FIFO
+                table = np.loadtxt(f, delimiter=",", skiprows=1, ndmin=2)
         except FileNotFoundError:
             raise InputError(f"no calibration in {directory}: run `trimeter calibrate` with the holder empty") from None
-        except (ValueError, json.JSONDecodeError) as exc:
+        except (ValueError, json.JSONDecodeError, RecursionError) as exc:
             raise InputError(f"calibration in {directory} is corrupt ({exc}); run `trimeter calibrate` again") from None
+        except OSError as exc:  # a FIFO, a link or a device in place of a file, or unreadable
+            raise InputError(f"calibration in {directory} cannot be read ({exc.strerror or exc}: "
+                             f"{Path(exc.filename or '').name}); run `trimeter calibrate` again") from None
         if not isinstance(meta, dict) or meta.get("format_version") != CALIBRATION_FORMAT_VERSION \
                 or table.shape[1] != 7 or table.shape[0] != meta.get("bins"):
             raise InputError(f"calibration in {directory} has an unknown format or is truncated; calibrate again")

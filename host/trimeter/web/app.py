@@ -18,6 +18,7 @@ import io
 import json
 import logging
 import math
+import mimetypes
 import re
 import threading
 import zipfile
@@ -35,6 +36,7 @@ from trimeter.inversion.methods import METHODS
 from trimeter.inversion.flags import advice, describe
 from trimeter.maps.appearance import AppearanceMap, find_map, shipped_maps
 from trimeter.maps.device_table import cached_tables
+from trimeter.paths import NAME_MAX, read_regular_bytes, read_regular_text, real_subdirectory, regular_files
 from trimeter.sequences.measure import map_for_thickness
 from trimeter.sequences.service import EMPTY_HOLDER, NEXT_SAMPLE
 from trimeter.sequences.settings import HostSettings
@@ -197,8 +199,8 @@ def _measurement_dir(request: web.Request) -> Path:
     history = request.app[HISTORY]
     if not is_measurement_id(measurement_id):
         raise ApiError(400, f"{measurement_id!r} is not a measurement id (a results directory's name)")
-    path = history.root / measurement_id
-    if not path.is_dir():
+    path = real_subdirectory(history.root, measurement_id)
+    if path is None:  # missing, or not a real directory of the results root (a link is never followed)
         raise ApiError(404, f"no measurement {measurement_id!r}")
     return path
 
@@ -411,8 +413,8 @@ def _details(history: History, path: Path) -> dict:
         raise ApiError(404, f"{path.name} has no readable measurement.json")
     out: dict[str, object] = {"measurement": row}
     try:
-        out["meta"] = json.loads((path / "measurement.json").read_text())
-        out["parameters"] = parameters = json.loads((path / "parameters.json").read_text())
+        out["meta"] = json.loads(read_regular_text(path / "measurement.json"))
+        out["parameters"] = parameters = json.loads(read_regular_text(path / "parameters.json"))
     except (OSError, ValueError, UnicodeDecodeError) as exc:
         raise ApiError(500, f"{path.name}: its files cannot be read ({exc})") from None
     flags = parameters.get("combined", {}).get("flags") or []
@@ -423,7 +425,7 @@ def _details(history: History, path: Path) -> dict:
                 counts[name] = counts.get(name, 0) + 1
     out["flag_counts"] = counts
     out["advice"] = advice(flags, max(1, len(row["thicknesses_mm"])))
-    out["files"] = sorted(p.name for p in path.iterdir() if p.is_file() and not p.is_symlink())
+    out["files"] = [p.name for p in regular_files(path)]
     return out
 
 
@@ -439,20 +441,35 @@ async def measurement_file(request: web.Request) -> web.StreamResponse:
     name = request.match_info["name"]
     if "/" in name or "\\" in name or ".." in name or name.startswith(".") or "\0" in name:
         raise ApiError(400, f"{name!r} is not a file name (no paths, no '..')")
+    if len(name.encode("utf-8", "surrogatepass")) > NAME_MAX:
+        raise ApiError(404, f"{path.name} has no file {name[:40]!r}… (longer than any file name)")
     target = path / name
-    if not target.is_file() or target.is_symlink():
+
+    def read() -> bytes | None:
+        try:  # opened without following a link, refused unless a regular file: never a read outside the record
+            return read_regular_bytes(target)
+        except OSError:
+            return None
+
+    data = await _blocking(request, read)
+    if data is None:
         raise ApiError(404, f"{path.name} has no file {name!r}")
     disposition = "inline" if target.suffix in (".png", ".json") else "attachment"
-    return web.FileResponse(target, headers={"Content-Disposition": f'{disposition}; filename="{name}"',
-                                             "Cache-Control": "no-cache"})
+    content_type = mimetypes.guess_type(name)[0] or "application/octet-stream"
+    return web.Response(body=data, content_type=content_type,
+                        headers={"Content-Disposition": f'{disposition}; filename="{name}"',
+                                 "Cache-Control": "no-cache"})
 
 
 def _zip(path: Path) -> bytes:
     buffer = io.BytesIO()
     with zipfile.ZipFile(buffer, "w", zipfile.ZIP_DEFLATED) as z:
-        for file in sorted(path.iterdir()):
-            if file.is_file() and not file.is_symlink():
-                z.write(file, f"{path.name}/{file.name}")
+        for file in regular_files(path):
+            try:
+                data = read_regular_bytes(file)
+            except OSError:  # replaced by something else meanwhile: left out, as a link would be
+                continue
+            z.writestr(f"{path.name}/{file.name}", data)
     return buffer.getvalue()
 
 
@@ -485,8 +502,8 @@ async def refit_route(request: web.Request) -> web.StreamResponse:
 
     def run(job: Job) -> str:
         try:
-            meta = json.loads((path / "measurement.json").read_text())
-        except (OSError, ValueError, UnicodeDecodeError) as exc:
+            meta = json.loads(read_regular_text(path / "measurement.json"))
+        except (OSError, ValueError, UnicodeDecodeError, RecursionError) as exc:
             raise InputError(f"{path.name}: its measurement.json cannot be read ({exc})") from None
         maps: list[MapRef]
         if names:

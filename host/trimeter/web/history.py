@@ -21,6 +21,7 @@ import numpy as np
 
 from trimeter.errors import InputError, OutputError
 from trimeter.inversion.flags import FitFlag, describe
+from trimeter.paths import read_regular_text, real_subdirectory
 from trimeter.results.writer import PARTIAL_PREFIX
 
 SCHEMA_VERSION = 1
@@ -64,19 +65,19 @@ def _stamp_of(name: str) -> str:
 
 def summarize(directory: Path) -> dict | None:
     """The index row of one results directory, or None when it is not one (no readable measurement.json)."""
-    if not is_measurement_id(directory.name):
+    if not is_measurement_id(directory.name) or real_subdirectory(directory.parent, directory.name) is None:
         return None
     try:
-        meta = json.loads((directory / MEASUREMENT_FILE).read_text())
+        meta = json.loads(read_regular_text(directory / MEASUREMENT_FILE))
         mtime = (directory / MEASUREMENT_FILE).stat().st_mtime
-    except (OSError, ValueError, UnicodeDecodeError):
+    except (OSError, ValueError, UnicodeDecodeError, RecursionError):
         return None
     if not isinstance(meta, dict):
         return None
     try:
-        flags = np.asarray(json.loads((directory / "parameters.json").read_text())["combined"]["flags"], np.int64)
-    except (OSError, ValueError, KeyError, TypeError, UnicodeDecodeError):
-        flags = np.zeros(0, np.int64)
+        flags = np.asarray(json.loads(read_regular_text(directory / "parameters.json"))["combined"]["flags"], np.int64)
+    except (OSError, ValueError, KeyError, TypeError, UnicodeDecodeError, RecursionError, OverflowError):
+        flags = np.zeros(0, np.int64)  # no fit to index (a damaged or missing parameters.json): listed unflagged
     written = meta.get("written_utc")
     try:
         written = datetime.fromisoformat(str(written)).astimezone(timezone.utc).isoformat(timespec="seconds")
@@ -203,7 +204,8 @@ class History:
         on_disk = {}
         if self.root.is_dir():
             for path in self.root.iterdir():
-                if not path.name.startswith(PARTIAL_PREFIX) and path.is_dir() and is_measurement_id(path.name):
+                if not path.name.startswith(PARTIAL_PREFIX) and is_measurement_id(path.name) \
+                        and real_subdirectory(self.root, path.name) is not None:
                     try:
                         on_disk[path.name] = (path / MEASUREMENT_FILE).stat().st_mtime
                     except OSError:

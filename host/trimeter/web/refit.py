@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 from collections.abc import Callable, Sequence
 from dataclasses import replace
 from pathlib import Path
@@ -21,6 +22,7 @@ from trimeter.domain.measurement import MapRef
 from trimeter.errors import InputError, MapFileError, OutputError, TrimeterError
 from trimeter.inversion.flags import advice
 from trimeter.maps.appearance import AppearanceMap
+from trimeter.paths import open_regular, read_regular_text
 from trimeter.maps.device_table import SHA256_HEX, SUFFIX, DeviceTable, cache_dir
 from trimeter.results.writer import file_tags, write_measurement
 from trimeter.sequences.measure import prepare_fit
@@ -31,7 +33,7 @@ SETUPS = ("black", "white", "collimated")
 def read_columns(path: Path) -> dict[str, np.ndarray]:
     """A results CSV (one header line of names, then numbers) as columns."""
     try:
-        with open(path) as f:
+        with os.fdopen(open_regular(path)) as f:  # never a FIFO or a link: a refit must not block or read outside
             names = f.readline().strip().split(",")
             table = np.loadtxt(f, delimiter=",", ndmin=2)
     except (OSError, ValueError, UnicodeDecodeError) as exc:
@@ -58,7 +60,7 @@ def _reflectances(columns: dict) -> Reflectances:
 def load_capture(directory: Path) -> tuple[Calibration, list[RawSample], list[Reflectances], dict]:
     """(calibration, raw samples, reflectances, measurement.json) of a results directory."""
     try:
-        meta = json.loads((directory / "measurement.json").read_text())
+        meta = json.loads(read_regular_text(directory / "measurement.json"))
         thicknesses = [float(t) for t in meta["thicknesses_mm"]]
     except (OSError, ValueError, KeyError, TypeError, UnicodeDecodeError) as exc:
         raise InputError(f"{directory.name}: its measurement.json cannot be read ({exc})") from None
