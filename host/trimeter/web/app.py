@@ -542,22 +542,15 @@ async def put_config(request: web.Request) -> web.StreamResponse:
         raise ApiError(400, "host and device must be objects of NAME: value, save true or false")
     # every check before anything changes: a bad item leaves both configurations as they were
     stored, running = HostSettings.load(), copy.deepcopy(jobs.service.settings)
-    for key, value in host.items():
-        stored.set(key, value, source="PUT /api/config")
-        running.set(key, value, source="PUT /api/config")
+    stored.update(host, source="PUT /api/config")
+    running.update(host, source="PUT /api/config")
     if unknown := [n for n in device if n not in CONFIG_NAMES]:
         raise ApiError(400, f"not device configuration items: {', '.join(unknown)} (see device_writable)")
     for name, value in device.items():
-        if isinstance(value, (dict, list)) or value is None:
-            raise ApiError(400, f"{name}: {value!r} is not a number or a name")
         encode(regs.BY_NAME[name], value)
     if (device or save) and jobs.current is not None:
         raise Busy(jobs.current)
-    if host:
-        await _blocking(request, stored.save)
-        for key in host:  # the running loop reads its settings object: changed in place
-            setattr(jobs.service.settings, key, getattr(running, key))
-    if device or save:
+    if device or save:  # the device first: when it refuses, the host's part is not saved either
         def write(service: Service) -> dict:
             connected = service.connected_device()
             if device:
@@ -570,6 +563,10 @@ async def put_config(request: web.Request) -> web.StreamResponse:
         if jobs.service.device is None:
             raise ApiError(503, "the instrument is not connected")
         jobs.set_device_config(await _device_call(request, write))
+    if host:
+        await _blocking(request, stored.save)
+        for key in host:  # the running loop reads its settings object: changed in place
+            setattr(jobs.service.settings, key, getattr(running, key))
     return web.json_response({"host": jobs.service.settings.as_dict(), "device": jobs.device_config,
                               "saved": save})
 
