@@ -28,6 +28,8 @@ from collections.abc import Sequence
 from typing import TYPE_CHECKING, Awaitable, Callable, TypeVar
 
 from aiohttp import ClientSession, ClientTimeout, WSMsgType, web
+from aiohttp.http_exceptions import HttpProcessingError
+from aiohttp.web_protocol import RequestPayloadError
 
 from trimeter import registers as regs
 from trimeter.device.client import CONFIG_NAMES, encode
@@ -41,7 +43,7 @@ from trimeter.sequences.measure import map_for_thickness
 from trimeter.sequences.service import EMPTY_HOLDER, NEXT_SAMPLE
 from trimeter.sequences.settings import HostSettings
 from trimeter.web import auth
-from trimeter.web.history import History, is_measurement_id, parse_day_or_time
+from trimeter.web.history import History, IndexUnavailable, is_measurement_id, parse_day_or_time
 from trimeter.web.jobs import Busy, Job, Jobs
 
 if TYPE_CHECKING:
@@ -55,6 +57,11 @@ log = logging.getLogger("trimeter.web")
 
 STATIC = Path(__file__).resolve().parent / "static"   # package data (pyproject)
 MAX_BODY_BYTES = 64 * 1024          # every request body is a small JSON object
+MAX_JSON_DEPTH = 16                 # the deepest body the API takes is two levels
+BODY_TIMEOUT_S = 10.0               # a body that small arrives at once; a client holding one back is dropped
+# A connection must complete its request's headers within this of opening or of its previous answer (aiohttp's
+# keep-alive timer, which also runs until the first request): a client sending them slowly is dropped.
+HEADER_TIMEOUT_S = 15.0
 EVENT_QUEUE = 256                   # events buffered per websocket client; a client that falls further behind is closed
 DEVICE_CALL_TIMEOUT_S = 15.0
 WEBHOOK_TIMEOUT_S = 5.0
@@ -82,13 +89,23 @@ SECURITY_HEADERS = {
 
 
 class ApiError(Exception):
-    def __init__(self, status: int, message: str, **extra: object) -> None:
+    """An answer of `status` with `message`; `headers` sent with it; `close`: the connection is closed after
+    it (its request body was not or could not be read to its end)."""
+
+    def __init__(self, status: int, message: str, *, headers: dict[str, str] | None = None, close: bool = False,
+                 **extra: object) -> None:
         super().__init__(message)
         self.status, self.message, self.extra = status, message, extra
+        self.headers, self.close = headers or {}, close
 
 
-def _error(status: int, message: str, **extra: object) -> web.Response:
-    return web.json_response({"error": {"status": status, "message": message, **extra}}, status=status)
+def _error(status: int, message: str, *, headers: dict[str, str] | None = None, close: bool = False,
+           **extra: object) -> web.Response:
+    response = web.json_response({"error": {"status": status, "message": message, **extra}}, status=status,
+                                 headers=headers)
+    if close:
+        response.force_close()
+    return response
 
 
 # ------------------------------------------------------------------------------------ middleware
@@ -98,9 +115,11 @@ async def errors_middleware(request: web.Request, handler: Handler) -> web.Strea
     try:
         return await handler(request)
     except ApiError as exc:
-        return _error(exc.status, exc.message, **exc.extra)
+        return _error(exc.status, exc.message, headers=exc.headers, close=exc.close, **exc.extra)
     except Busy as exc:
         return _error(409, f"the instrument is busy: {exc}", job=exc.job.to_json())
+    except IndexUnavailable as exc:
+        return _error(503, str(exc), headers={"Retry-After": str(IndexUnavailable.RETRY_AFTER_S)})
     except TrimeterError as exc:
         return _error(400, str(exc))
     except web.HTTPException as exc:
@@ -139,20 +158,43 @@ async def auth_middleware(request: web.Request, handler: Handler) -> web.StreamR
 # ------------------------------------------------------------------------------------- helpers
 async def json_body(request: web.Request, allowed: tuple[str, ...]) -> dict:
     """The request's JSON object (empty body: {}); unknown keys are refused, not ignored."""
-    raw = await request.read()
+    try:
+        raw = await asyncio.wait_for(request.read(), BODY_TIMEOUT_S)
+    except RequestPayloadError as exc:  # e.g. a Content-Encoding it is not in
+        raise ApiError(400, f"the body cannot be read ({' '.join(str(exc).split())})", close=True) from None
+    except asyncio.TimeoutError:
+        raise ApiError(408, f"the body did not arrive within {BODY_TIMEOUT_S:g} s", close=True) from None
     if not raw.strip():
         return {}
     if request.content_type not in ("application/json", "application/octet-stream", ""):
         raise ApiError(415, f"the body must be JSON (Content-Type application/json), not {request.content_type}")
+    if json_depth(raw) > MAX_JSON_DEPTH:  # before parsing: a deep one would exhaust the parser's recursion
+        raise ApiError(400, f"the body is nested deeper than {MAX_JSON_DEPTH} levels")
     try:
         body = json.loads(raw)
-    except (ValueError, UnicodeDecodeError) as exc:
-        raise ApiError(400, f"the body is not valid JSON ({exc})") from None
+    except (ValueError, UnicodeDecodeError, RecursionError) as exc:
+        raise ApiError(400, f"the body is not valid JSON ({str(exc)[:200]})") from None
     if not isinstance(body, dict):
         raise ApiError(400, f"the body must be a JSON object, not {type(body).__name__}")
     if unknown := [k for k in body if k not in allowed]:
         raise ApiError(400, f"unknown field(s) {', '.join(map(repr, unknown))}; allowed: {', '.join(allowed)}")
     return body
+
+
+def json_depth(raw: bytes) -> int:
+    """The deepest nesting of arrays and objects in JSON text, without parsing it (strings skipped)."""
+    depth = deepest = 0
+    for token in _JSON_NESTING.finditer(raw):
+        char = token.group()
+        if char in (b"[", b"{"):
+            depth += 1
+            deepest = max(deepest, depth)
+        elif char in (b"]", b"}"):
+            depth -= 1
+    return deepest
+
+
+_JSON_NESTING = re.compile(rb'"(?:[^"\\]|\\.)*"|[\[\]{}]')
 
 
 def number(body: dict, key: str, *, default: float | None = None, minimum: float = 0.0, maximum: float = math.inf,
@@ -412,12 +454,19 @@ def _details(history: History, path: Path) -> dict:
     if row is None:
         raise ApiError(404, f"{path.name} has no readable measurement.json")
     out: dict[str, object] = {"measurement": row}
-    try:
-        out["meta"] = json.loads(read_regular_text(path / "measurement.json"))
-        out["parameters"] = parameters = json.loads(read_regular_text(path / "parameters.json"))
-    except (OSError, ValueError, UnicodeDecodeError) as exc:
-        raise ApiError(500, f"{path.name}: its files cannot be read ({exc})") from None
-    flags = parameters.get("combined", {}).get("flags") or []
+    problems: list[str] = []
+    for key, name in (("meta", "measurement.json"), ("parameters", "parameters.json")):
+        try:  # a record with a damaged file is shown with what it has, and says what it lacks
+            out[key] = json.loads(read_regular_text(path / name))
+        except (OSError, ValueError, UnicodeDecodeError, RecursionError) as exc:
+            out[key] = None
+            problems.append(f"{name} cannot be read ({exc.strerror if isinstance(exc, OSError) else exc})")
+    flags = _flag_words(out["parameters"])
+    if flags is None:
+        flags = []
+        if out["parameters"] is not None:
+            problems.append("parameters.json holds no list of flag words (integers)")
+    out["problems"] = problems
     counts: dict[str, int] = {}
     for value in flags:
         for name in describe(value).split("|"):
@@ -427,6 +476,16 @@ def _details(history: History, path: Path) -> dict:
     out["advice"] = advice(flags, max(1, len(row["thicknesses_mm"])))
     out["files"] = [p.name for p in regular_files(path)]
     return out
+
+
+def _flag_words(parameters: object) -> list[int] | None:
+    """The combined fit's flag words of a parameters.json, or None when it holds no list of them (a flag
+    word is a non-negative integer that fits the 64-bit words the index stores)."""
+    combined = parameters.get("combined") if isinstance(parameters, dict) else None
+    flags = combined.get("flags") if isinstance(combined, dict) else None
+    if not isinstance(flags, list) or not all(type(v) is int and 0 <= v < 2**63 for v in flags):
+        return None
+    return flags
 
 
 @routes.get("/api/measurements/{id}")
@@ -489,7 +548,7 @@ async def refit_route(request: web.Request) -> web.StreamResponse:
     body = await json_body(request, ("maps", "method"))
     jobs = request.app[JOBS]
     method = body.get("method", jobs.service.settings.method)
-    if method not in METHODS:
+    if not isinstance(method, str) or method not in METHODS:
         raise ApiError(400, f"method: {method!r} is not one of {', '.join(METHODS)}")
     names = body.get("maps")
     catalog = await _blocking(request, map_catalog, jobs.service.settings)
@@ -668,12 +727,32 @@ def create_app(jobs: Jobs, history: History, token: str, *, webhook: str | None 
     return app
 
 
+class ClientErrorsInOneLine(logging.Filter):
+    """aiohttp logs a request it could not parse (malformed headers, a Content-Encoding it cannot decode) with a
+    traceback at ERROR, though it answered the client 400, and so a body it drains after the answer that turns
+    out undecodable: a client's mistake is one warning line here."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        exc = record.exc_info[1] if record.exc_info else None
+        client_error = isinstance(exc, HttpProcessingError) and 400 <= (exc.code or 400) < 500
+        if client_error or isinstance(exc, RequestPayloadError):
+            record.msg = f"{record.getMessage()}: {' '.join(str(getattr(exc, 'message', exc)).split())}"
+            record.args, record.exc_info, record.exc_text = (), None, None
+            record.levelno, record.levelname = logging.WARNING, "WARNING"
+        return True
+
+
+CLIENT_ERRORS_FILTER = ClientErrorsInOneLine()
+
+
 class WebServer:
     """The app on its own thread and event loop (the instrument's worker has another thread; the main
     thread waits for Ctrl-C)."""
 
-    def __init__(self, app: web.Application, host: str, port: int) -> None:
+    def __init__(self, app: web.Application, host: str, port: int, *, header_timeout_s: float = HEADER_TIMEOUT_S
+                 ) -> None:
         self.app, self.host, self.port = app, host, port
+        self.header_timeout_s = header_timeout_s
         self._loop = asyncio.new_event_loop()
         self._ready = threading.Event()
         self._error: BaseException | None = None
@@ -681,6 +760,9 @@ class WebServer:
         self.url = ""
 
     def start(self) -> "WebServer":
+        server_log = logging.getLogger("aiohttp.server")
+        if CLIENT_ERRORS_FILTER not in server_log.filters:
+            server_log.addFilter(CLIENT_ERRORS_FILTER)
         self._thread.start()
         self._ready.wait(30)
         if self._error is not None:
@@ -689,7 +771,7 @@ class WebServer:
 
     def _run(self) -> None:
         asyncio.set_event_loop(self._loop)
-        runner = web.AppRunner(self.app, access_log=None, handle_signals=False)
+        runner = web.AppRunner(self.app, access_log=None, handle_signals=False, keepalive_timeout=self.header_timeout_s)
         try:
             self._loop.run_until_complete(runner.setup())
             site = web.TCPSite(runner, self.host, self.port, backlog=256)
