@@ -393,8 +393,13 @@ def _table_fit_columns(data: Chunk, rows: np.ndarray, table: DeviceTable,
 def _thickness_std(column: np.ndarray, groups: list[np.ndarray], amaps: Sequence[FitSource], path: Path) -> list[float]:
     """One thickness std per map from the column: the same value on every row of that thickness."""
     out = []
+    if not np.isfinite(column).all():  # a NaN std is no "exact thickness": refused, never read as 0
+        bad = np.flatnonzero(~np.isfinite(column))
+        raise InputError(f"--input {path}: column thickness_std_mm is not a finite number on row(s) "
+                         f"{', '.join(str(i + 1) for i in bad[:5])}{', …' if len(bad) > 5 else ''} (0: the thickness "
+                         f"is exact)")
     for rows, amap in zip(groups, amaps, strict=True):
-        values = np.unique(column[rows][np.isfinite(column[rows])])
+        values = np.unique(column[rows])
         if len(values) > 1:
             raise InputError(f"--input {path}: column thickness_std_mm differs between the rows of thickness "
                              f"{amap.thickness_mm:g} mm ({values[0]:g}, {values[1]:g}, …): one sample, one std")
