@@ -223,41 +223,37 @@ class _BandModel:
         self.B = _basis(self.knots, self.lam, basis)                               # (pairs, K)
         self.rho_b, self.rho_w = rho_b[self.channel], rho_w[self.channel]
         self.coords = _Coordinates(grid)
+        # per channel its weights over the pairs: a band integral is one matrix product
+        self.Sd, self.Sc = np.zeros((self.C, len(self.lam))), np.zeros((self.C, len(self.lam)))
+        self.Sd[self.channel, np.arange(len(self.lam))] = self.wd
+        self.Sc[self.channel, np.arange(len(self.lam))] = self.wc
 
     def spectra(self, u: np.ndarray, B: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(α, σt, g) (3, pairs) for knot values u (3, K), and d(param)/du."""
         return self.coords.to_params(u @ (self.B if B is None else B).T)
 
-    def band_sum(self, values: np.ndarray, weight: np.ndarray) -> np.ndarray:
-        """Per channel the weighted sum of per-pair values (pairs, …) → (C, …)."""
-        out = np.zeros((self.C, *values.shape[1:]))
-        np.add.at(out, self.channel, weight.reshape(-1, *([1] * (values.ndim - 1))) * values)
-        return out
-
     def readings(self, u: np.ndarray) -> np.ndarray:
         """(3, C): the channels' I_b, I_w, I_c."""
         p = self.spectra(u)[0]
         obs = self.grid.intensities(p[0], p[1], p[2], self.rho_b, self.rho_w)
-        return np.stack([np.bincount(self.channel, w * o, self.C)
-                         for o, w in zip(obs, (self.wd, self.wd, self.wc), strict=True)])
+        return np.stack([self.Sd @ obs[0], self.Sd @ obs[1], self.Sc @ obs[2]])
 
     def jacobian(self, u: np.ndarray) -> np.ndarray:
         """(3, C, 3, K): ∂ reading / ∂ knot value. I_b, I_w analytic on the map; I_c (with the
-        in-scattering correction) by central differences."""
+        in-scattering correction) by forward differences."""
         p, dp = self.spectra(u)
         J = self.grid.jacobian(p[0], p[1], p[2], self.rho_b, self.rho_w)          # (pairs, 3 obs, 3 par)
-        for j in range(3):
+        base = self.grid.collimated_measured(*p)
+        for j in range(3):  # forward differences: the model is smooth, and LM needs no more
             step = np.zeros_like(p)
-            step[j] = 1e-4 * (p[1] if j == 1 else 1.0)
-            up, down = p + step, p - step
-            J[:, 2, j] = (self.grid.collimated_measured(*up) - self.grid.collimated_measured(*down)) / (2 * step[j])
+            step[j] = 1e-5 * (p[1] if j == 1 else 1.0)
+            J[:, 2, j] = (self.grid.collimated_measured(*(p + step)) - base) / step[j]
         Ju = J * dp.T[:, None, :]                                                   # ∂obs/∂u per pair
         # ∂ reading[o, c] / ∂ u[j, k] = Σ_pairs of c  w · Ju[pair, o, j] · B[pair, k]
-        terms = Ju[:, :, :, None] * self.B[:, None, None, :]                       # (pairs, 3, 3, K)
-        out = np.empty((3, self.C, 3, len(self.knots)))
-        for o, w in ((0, self.wd), (1, self.wd), (2, self.wc)):
-            out[o] = self.band_sum(terms[:, o], w)
-        return out
+        K = len(self.knots)
+        terms = (Ju[:, :, :, None] * self.B[:, None, None, :]).reshape(len(self.lam), 3, 3 * K)
+        return np.stack([(S @ terms[:, o]).reshape(self.C, 3, K)
+                         for o, S in ((0, self.Sd), (1, self.Sd), (2, self.Sc))])
 
 
 def fit_bands(model: FitModel, weights: BandWeights, I_b: ArrayLike, I_w: ArrayLike, I_c: ArrayLike,
