@@ -73,6 +73,11 @@ class BandWeights:
     def __post_init__(self) -> None:
         object.__setattr__(self, "centre_nm", self.diffuse @ self.wavelength_nm)
 
+    def densities(self) -> tuple[np.ndarray, np.ndarray]:
+        """(diffuse, collimated) per nm: what band_weights takes to give these weights back."""
+        step = np.gradient(self.wavelength_nm)
+        return self.diffuse / step, self.collimated / step
+
     def select(self, names: list[str] | tuple[str, ...], where: str = "CHANNELS") -> BandWeights:
         """The weights of these channels, in this order (an unknown name: InputError)."""
         missing = [n for n in names if n not in self.channels]
