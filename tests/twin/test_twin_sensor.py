@@ -93,3 +93,19 @@ def test_a_bad_bands_reply_is_a_device_error(optics):
             spec.band_weights()
     finally:
         server.close()
+
+
+def test_a_twin_with_an_as7341_reads_nine_channels_and_hands_out_its_weights(ideal_map):
+    from trimeter.twin import Twin
+
+    with Twin(time_scale=100, appearance_map=ideal_map, sensor="as7341") as twin:
+        with open_spectrometer(twin.spectrometer_url) as spec:
+            assert spec.description.model == "AS7341-TWIN" and spec.description.pixels == 9
+            assert spec.description.dark_pixels == ()
+            spec.integration_time_us = spec.integration_time_us_limits[0]
+            counts = spec.intensities()
+            assert counts.shape == (9,) and np.all(counts <= spec.saturation_counts)
+            weights = spec.band_weights()
+            assert weights is not None and weights.channels[-1] == "NIR"
+    with pytest.raises(InputError, match="sensor must be one of"):
+        Twin(appearance_map=ideal_map, sensor="webcam").start()
