@@ -87,3 +87,15 @@ def test_a_sensor_without_band_weights_is_flagged_per_channel(tmp_path, monkeypa
     np.testing.assert_allclose(p.wavelengths_nm, CENTRES)
     assert np.all(p.flags & int(FitFlag.PER_CHANNEL_BANDS))
     assert any("PER_CHANNEL_BANDS" in note for note in outcome.measurement.provenance.advice)
+
+
+def test_a_refit_takes_the_recorded_sensor(amap):
+    from trimeter.sequences.measure import for_recorded_sensor, prepare_fit
+
+    prepared = prepare_fit([Sample(0.4, amap)], "lut")
+    assert for_recorded_sensor(prepared, {"model": "fake", "extra": {}}) == prepared
+    channels = list(CHANNEL_NM)
+    as7341 = for_recorded_sensor(prepared, {"model": "AS7341", "extra": {"channels": channels}})
+    assert as7341.bands is not None and as7341.bands.channels == tuple(channels) and as7341.multichannel
+    twin = for_recorded_sensor(prepared, {"model": "AS7341-TWIN", "extra": {"channels": channels}})
+    assert twin.bands is None and twin.multichannel

@@ -200,6 +200,21 @@ def for_sensor(prepared: PreparedFit, spectrometer: Spectrometer) -> PreparedFit
     return replace(prepared, bands=bands, multichannel=multichannel)
 
 
+def for_recorded_sensor(prepared: PreparedFit, spectrometer: dict) -> PreparedFit:
+    """A re-fit of saved captures, for the detector the calibration recorded (its description's dict):
+    an AS7341 build band-aware with its built-in weights; another multichannel sensor (the twin's, whose
+    weights the record does not hold) per channel, flagged PER_CHANNEL_BANDS."""
+    extra = spectrometer.get("extra") or {}
+    if not extra.get("channels"):
+        return prepared
+    bands = None
+    if spectrometer.get("model") == "AS7341":
+        from trimeter.spectrometer.sensors import as7341_weights
+
+        bands = as7341_weights().select(list(extra["channels"]), where="the recorded AS7341")
+    return replace(prepared, bands=bands, multichannel=True)
+
+
 def check_calibration(calibration: Calibration | None) -> Calibration:
     """The calibration a measurement may use, or why not."""
     if calibration is None:

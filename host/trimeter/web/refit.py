@@ -23,7 +23,7 @@ from trimeter.inversion.flags import advice
 from trimeter.maps.appearance import AppearanceMap
 from trimeter.maps.device_table import SHA256_HEX, SUFFIX, DeviceTable, cache_dir
 from trimeter.results.writer import file_tags, write_measurement
-from trimeter.sequences.measure import prepare_fit
+from trimeter.sequences.measure import for_recorded_sensor, prepare_fit
 
 SETUPS = ("black", "white", "collimated")
 
@@ -139,7 +139,8 @@ def refit(directory: Path, maps: Sequence[MapRef], method: str) -> Path:
     declared = meta.get("declared_thicknesses_mm") or meta["thicknesses_mm"]
     if len(maps) != len(refls) or len(declared) != len(refls):
         raise InputError(f"{len(maps)} map(s) for {len(refls)} measured thickness(es)")
-    prepared = prepare_fit([Sample(float(t), amap) for t, amap in zip(declared, maps, strict=True)], method)
+    prepared = for_recorded_sensor(prepare_fit([Sample(float(t), amap) for t, amap in zip(declared, maps, strict=True)],
+                                               method), calibration.spectrometer)
     captures = [SampleCapture(sample, raw, refl) for sample, raw, refl in zip(prepared.samples, raws, refls,
                                                                                strict=True)]
     combined, per = prepared.fit(captures)
