@@ -140,3 +140,25 @@ def test_bases_interpolate_the_knots_in_any_order(kind):
     assert np.allclose(B @ values, values)
     lam = np.linspace(380, 760, 50)
     assert np.allclose(_basis(knots, lam, kind).sum(axis=1), 1.0)  # constants are reproduced
+
+
+def test_readings_no_spectrum_explains_are_flagged_not_converged(inks):
+    model, weights, materials = inks
+    (I_b, I_w, I_c, rb, rw), _ = materials["black-ink"]
+    I_w = I_w.copy()
+    I_w[4] = min(0.99, I_w[4] * 3)  # far more light over white than a sample this dark can pass
+    fit = fit_bands(model, weights, I_b, I_w, I_c, rb, rw, check_resolved=False).at_centres
+    assert fit.flags[4] & int(FitFlag.NOT_CONVERGED)
+
+
+def test_a_non_scattering_sample_has_no_g(inks):
+    model, weights, _ = inks
+    lam = weights.wavelength_nm
+    grid = model.grid
+    rho_b, rho_w = model.reference_rhos
+    n = lam.size
+    I = grid.intensities(np.full(n, 0.005), np.full(n, 2.0), np.full(n, 0.5), np.full(n, rho_b), np.full(n, rho_w))
+    fit = fit_bands(model, weights, weights.diffuse @ I[0], weights.diffuse @ I[1], weights.collimated @ I[2],
+                    check_resolved=False).at_centres
+    assert np.all(fit.flags & int(FitFlag.G_UNDEFINED)) and np.all(np.isnan(fit.g))
+    np.testing.assert_allclose(fit.sigma_t, 2.0, rtol=0.01)

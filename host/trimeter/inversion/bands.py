@@ -57,6 +57,11 @@ SMOOTHNESS = 0.03
 # these (α absolute, σt relative, g absolute): the band-aware fit's targets
 UNRESOLVED_ALPHA, UNRESOLVED_SIGMA_T_REL, UNRESOLVED_G = 0.01, 0.02, 0.03
 UNRESOLVED_BASIS = "not-a-knot"
+# NOT_CONVERGED where a channel's readings stay this many stds off the fitted spectra's
+MISFIT_SIGMAS = 5.0
+# OUTSIDE_MAP where a value ran onto the map's range edge (in the squashed coordinate: tanh of the knot value)
+EDGE_TANH = 1 - 1e-6
+ALPHA_MIN_G = 0.02  # the per-wavelength fit's default: g undefined below
 BASES = ("cubic", "not-a-knot", "linear")
 
 
@@ -326,7 +331,8 @@ def fit_bands(model: FitModel, weights: BandWeights, I_b: ArrayLike, I_w: ArrayL
     cov = _covariance(J, mask.sum())
     result = _evaluate(band, u, cov, _basis(band.knots, band.knots, basis), grid,
                        UNDERDETERMINED_ALPHA_STD, UNDERDETERMINED_G_STD)
-    flags = result.flags | input_flags
+    misfit = np.max(np.abs(np.where(mask, (band.readings(u) - meas) / sigma, 0.0)), axis=0)
+    flags = result.flags | input_flags | np.where(misfit > MISFIT_SIGMAS, int(FitFlag.NOT_CONVERGED), 0)
     if check_resolved and basis == "cubic":
         other = fit_bands(model, weights, r_b, r_w, r_c, rb, rw, I_b_std=I_b_std, I_w_std=I_w_std, I_c_std=I_c_std,
                           basis=UNRESOLVED_BASIS, smoothness=smoothness, noise_rel=noise_rel, noise_abs=noise_abs,
@@ -413,12 +419,19 @@ def _evaluate(band: _BandModel, u: np.ndarray, cov: np.ndarray, B: np.ndarray, g
     M, K = B.shape
     values = u @ B.T                                                              # (3, M)
     p, dp = band.coords.to_params(values)
+    at_edge = np.any(np.abs(np.tanh(values)) > EDGE_TANH, axis=0)
     stds = np.empty((3, M))
     for j in range(3):
         block = cov[j * K:(j + 1) * K, j * K:(j + 1) * K]
         stds[j] = np.abs(dp[j]) * np.sqrt(np.maximum(np.einsum("mk,kl,ml->m", B, block, B), 0.0))
-    flags = np.where((stds[0] > under_a) | (stds[2] > under_g), int(FitFlag.UNDERDETERMINED), 0).astype(np.int64)
+    flags = (np.where((stds[0] > under_a) | (stds[2] > under_g), int(FitFlag.UNDERDETERMINED), 0)
+             | np.where(at_edge, int(FitFlag.OUTSIDE_MAP), 0)).astype(np.int64)
     beer = grid.setup.beer_lambert_sigma_t(grid.collimated_measured(p[0], p[1], p[2]))
+    # as the per-wavelength fit: nothing scatters, the phase function is unobservable
+    g_undefined = p[0] < ALPHA_MIN_G
+    flags |= np.where(g_undefined, int(FitFlag.G_UNDEFINED), 0)
+    p[2] = np.where(g_undefined, np.nan, p[2])
+    stds[2] = np.where(g_undefined, np.nan, stds[2])
     return FitResult(p[0], p[1], p[2], stds[0], stds[1], stds[2], flags, beer, method="bands")
 
 
