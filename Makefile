@@ -18,6 +18,7 @@ export OPENBLAS_NUM_THREADS ?= 1
 
 help:
 	@echo "make demo   - set up, start the twin with a virtual sample, run a press-button measurement, plot it"
+	@echo "              (SENSOR=as7341: the twin reads like the AS7341 build, fitted band-aware)"
 	@echo "make test   - set up, lint, build firmware (sim + stm32f405), run C unit tests, fuzz, and pytest"
 	@echo "make bench  - the speed/accuracy benchmarks (map building, inversion)"
 
@@ -91,8 +92,9 @@ pytest: setup firmware native
 
 test: setup check-gen lint firmware firmware-test native-portable fuzz pytest
 
+SENSOR ?= spectrometer
 demo: setup firmware native
-	$(PY) -m trimeter demo
+	$(PY) -m trimeter demo --sensor $(SENSOR)
 
 bench: setup firmware native
 	$(PY) -m trimeter bench mapbuild
