@@ -547,7 +547,7 @@ def resolve_backend(name: str = "auto") -> str:
 
 def _import_drjit():
     llvm = "/usr/lib/x86_64-linux-gnu/libLLVM-19.so"
-    if os.path.exists(llvm):  # the machine's default LLVM aborts at JIT time (shared/NOTES.md)
+    if os.path.exists(llvm):  # the machine's default LLVM aborts at JIT time (docs/platform-notes.md)
         os.environ.setdefault("DRJIT_LIBLLVM_PATH", llvm)
     _keep_freed_memory()
     import drjit as dr
