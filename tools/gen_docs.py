@@ -332,6 +332,13 @@ def results_page() -> str:
 # The names `import trimeter` is meant to offer; a name not (yet) there is left out, and the page
 # goes stale (check-gen fails) when one appears, so the reference follows the package.
 PUBLIC_NAMES = ("load", "Measurement", "fit", "predict")
+# What a public name hands on to, documented beside it (its options, its result).
+SEE_ALSO = {"fit": ("trimeter.inversion.api.fit", "trimeter.domain.parameters.FitResult")}
+
+
+def _directive(path: str) -> list[str]:
+    return [f"::: {path}", "    options:", "      show_root_heading: true", "      show_root_full_path: true",
+            "      heading_level: 3", ""]
 
 
 def python_page() -> str:
@@ -347,8 +354,9 @@ def python_page() -> str:
         except AttributeError:
             continue
         # the defining module's path: `trimeter.fit` is imported lazily, which a static reader cannot follow
-        lines += [f"## `trimeter.{name}`", "", f"::: {obj.__module__}.{obj.__qualname__}", "    options:",
-                  "      show_root_heading: false", "      heading_level: 3", ""]
+        lines += [f"## `trimeter.{name}`", "", *_directive(f"{obj.__module__}.{obj.__qualname__}")]
+        for path in SEE_ALSO.get(name, ()):
+            lines += _directive(path)
     return "\n".join(lines).rstrip() + "\n"
 
 
