@@ -107,9 +107,13 @@ def _command_section(parser: argparse.ArgumentParser, path: list[str], summary: 
 
 
 def cli_page() -> str:
+    from unittest import mock
+
     from trimeter.cli import build_parser
 
-    parser = build_parser()
+    # a help text may state this machine's core count; the page says N, whatever machine generates it
+    with mock.patch("os.cpu_count", return_value="N"):
+        parser = build_parser()
     commands = _subparsers(parser)
     lines = [BANNER, "# Command line", "",
              "Every `trimeter` command, generated from its argparse parser (`trimeter.cli`, one module per "

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import re
 
 import pytest
@@ -69,6 +70,7 @@ def test_no_machine_specific_text(monkeypatch):
         text = make()
         assert "/nonexistent-home" not in text
         assert str(gen_docs.ROOT) not in text
+        assert f"{os.cpu_count()} cores" not in text     # `map build --workers` states the machine's cores
 
 
 def test_check_names_a_stale_page_and_writes_nothing(tmp_path, monkeypatch, capsys):
