@@ -335,7 +335,7 @@ def results_page() -> str:
 # ------------------------------------------------------------------------------------- Python API
 # The names `import trimeter` is meant to offer; a name not (yet) there is left out, and the page
 # goes stale (check-gen fails) when one appears, so the reference follows the package.
-PUBLIC_NAMES = ("load", "Measurement", "fit", "predict")
+PUBLIC_NAMES = ("load", "Measurement", "fit", "predict", "open_map")
 # What a public name hands on to, documented beside it (its options, its result).
 SEE_ALSO = {"fit": ("trimeter.inversion.api.fit", "trimeter.domain.parameters.FitResult")}
 
