@@ -315,11 +315,14 @@ def _first_paragraph(doc: str | None) -> str:
 # ------------------------------------------------------------------------------ results directory
 def results_page() -> str:
     from trimeter.domain.parameters import FitResult
-    from trimeter.results import writer
+    from trimeter.results import tables, writer
 
     lines = [BANNER, "# Results directory", "",
              "What one measurement writes (`trimeter measure`, `serve`, the web page, `make demo`), from "
              "`trimeter.results.writer`:", "", "```text", inspect.cleandoc(writer.__doc__ or ""), "```", "",
+             "`trimeter.load(DIR)` reads it (`trimeter.results.reader`, the one reader: the web page, export "
+             f"and refits use it too); each file is read only if it is a regular file of at most "
+             f"{tables.MAX_RESULT_FILE_BYTES / 1e6:g} MB.", "",
              "## `parameters.csv`", "",
              "One row per wavelength bin: `wavelength_nm`, then the fit's columns "
              + ", ".join(f"`{c}`" for c in FitResult.COLUMNS)
