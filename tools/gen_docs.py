@@ -29,6 +29,7 @@ import tokenize
 from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
+from unittest import mock
 
 ROOT = Path(__file__).resolve().parent.parent
 OUT_DIR = ROOT / "docs" / "reference"
@@ -107,8 +108,6 @@ def _command_section(parser: argparse.ArgumentParser, path: list[str], summary: 
 
 
 def cli_page() -> str:
-    from unittest import mock
-
     from trimeter.cli import build_parser
 
     # a help text may state this machine's core count; the page says N, whatever machine generates it
@@ -383,8 +382,11 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     # a terminal's width must never reach a generated page; nothing here fits, so the inversion's kernel
     # is named outright (else a clone without `make native` warns that the C kernel is not built)
-    os.environ["COLUMNS"] = "100"
-    os.environ.setdefault("TRIMETER_KERNEL", "numpy")
+    with mock.patch.dict(os.environ, {"COLUMNS": "100", "TRIMETER_KERNEL": os.environ.get("TRIMETER_KERNEL", "numpy")}):
+        return _generate(check=args.check)
+
+
+def _generate(*, check: bool) -> int:
     stale = []
     for name, make in PAGES.items():
         path = OUT_DIR / name
@@ -392,7 +394,7 @@ def main(argv: list[str] | None = None) -> int:
         old = path.read_text(encoding="utf-8") if path.exists() else ""
         if old == text:
             continue
-        if args.check:
+        if check:
             stale.append(name)
             diff = difflib.unified_diff(old.splitlines(), text.splitlines(), str(path), "generated", lineterm="", n=1)
             sys.stderr.write("\n".join(list(diff)[:20]) + "\n")
