@@ -8,6 +8,7 @@ Outputs (committed, each opens with a "generated - do not edit" comment), all un
     cli.md          every `trimeter` command and sub-command, from the argparse parsers (trimeter.cli)
     http-api.md     the web API, from the OpenAPI description the app serves (trimeter.web.app.openapi)
     flags.md        the fit's per-bin flags and the advice given for each (trimeter.inversion.flags)
+    settings.md     the host settings (trimeter.sequences.settings) and the environment variables read
     file-formats.md the container (.tmap, .tins) and its schemas, the device table (.tlut), the fit CSVs
     results.md      the results directory a measurement writes (trimeter.results.writer)
     python-api.md   mkdocstrings directives for the public Python API (what `trimeter` exports)
@@ -55,7 +56,9 @@ def _help_of(parser: argparse.ArgumentParser, name: str) -> str:
 
 
 def _cell(text: str) -> str:
-    return " ".join(text.split()).replace("|", "\\|")
+    """One table cell: one line, pipes escaped, and outside code spans `<…>` shown, not read as HTML."""
+    parts = " ".join(text.split()).replace("|", "\\|").split("`")
+    return "`".join(part if i % 2 else part.replace("<", "&lt;").replace(">", "&gt;") for i, part in enumerate(parts))
 
 
 def _option_name(action: argparse.Action) -> str:
@@ -171,7 +174,7 @@ def _schema_type(schema: dict) -> str:
 
 # ------------------------------------------------------------------------------------------ flags
 def _member_comments(cls: type) -> dict[str, str]:
-    """`NAME = value  # comment` and the comment lines right above a member, from the class's source."""
+    """`NAME[: type] = value  # comment` and the comment lines right above a member, from the class's source."""
     source = inspect.getsource(cls)
     comments: dict[int, str] = {}
     for tok in tokenize.generate_tokens(io.StringIO(source).readline):
@@ -180,14 +183,15 @@ def _member_comments(cls: type) -> dict[str, str]:
     out = {}
     lines = source.splitlines()
     for node in ast.parse(source).body[0].body:  # type: ignore[attr-defined]
-        if isinstance(node, ast.Assign) and isinstance(node.targets[0], ast.Name):
+        target = node.targets[0] if isinstance(node, ast.Assign) else getattr(node, "target", None)
+        if isinstance(node, (ast.Assign, ast.AnnAssign)) and isinstance(target, ast.Name):
             above: list[str] = []
             line = node.lineno - 1
             while line >= 1 and lines[line - 1].strip().startswith("#"):
                 above.insert(0, comments[line])
                 line -= 1
-            text = " ".join([*above, comments.get(node.lineno, "")]).strip()
-            out[node.targets[0].id] = text
+            text = "; ".join(part for part in (" ".join(above), comments.get(node.lineno, "")) if part)
+            out[target.id] = text
     return out
 
 
@@ -215,6 +219,35 @@ def flags_page() -> str:
             continue
         words = flags.advice(np.array([int(flag)] + [0] * 99))
         lines.append(f"| `{flag.name}` | {_cell('; '.join(words)) or '(none: the value is usable as it is)'} |")
+    return "\n".join(lines).rstrip() + "\n"
+
+
+# ---------------------------------------------------------------------------------- host settings
+def settings_page() -> str:
+    import dataclasses
+    import re
+
+    from trimeter.sequences import settings
+
+    comments = _member_comments(settings.HostSettings)
+    lines = [BANNER, "# Host settings", "", inspect.cleandoc(settings.__doc__ or ""), "",
+             f"The file is `{settings.CONFIG_FILE_NAME}` in the configuration directory; "
+             "`trimeter config list --host` shows the values in force, `trimeter config set NAME VALUE --host` "
+             "changes one (checked first). The device's own items are registers: [Register map]"
+             "(../hardware/registers.md).", "",
+             "| setting | type | default | what |", "|---|---|---|---|"]
+    for f in dataclasses.fields(settings.HostSettings):
+        default = "" if f.default is dataclasses.MISSING else repr(f.default)
+        lines.append(f"| `{f.name}` | {f.type} | `{default}` | {_cell(comments.get(f.name, ''))} |")
+    readers: dict[str, set[str]] = {}
+    package = ROOT / "host" / "trimeter"
+    for path in sorted(package.rglob("*.py")):
+        for name in re.findall(r"[\"'](TRIMETER_[A-Z_]+)[\"']", path.read_text(encoding="utf-8")):
+            module = ".".join(path.relative_to(package.parent).with_suffix("").parts).removesuffix(".__init__")
+            readers.setdefault(name, set()).add(module)
+    lines += ["", "## Environment variables", "", "Read by the code (found in its source):", "",
+              "| variable | read in |", "|---|---|"]
+    lines += [f"| `{name}` | {', '.join(f'`{m}`' for m in sorted(mods))} |" for name, mods in sorted(readers.items())]
     return "\n".join(lines).rstrip() + "\n"
 
 
@@ -370,6 +403,7 @@ PAGES: dict[str, Callable[[], str]] = {
     "cli.md": cli_page,
     "http-api.md": http_page,
     "flags.md": flags_page,
+    "settings.md": settings_page,
     "file-formats.md": formats_page,
     "results.md": results_page,
     "python-api.md": python_page,

@@ -52,6 +52,18 @@ def test_every_flag_has_its_meaning_and_advice():
     assert "second thickness" in page                 # UNDERDETERMINED's advice, from flags.advice
 
 
+def test_host_settings_page_lists_every_setting_and_environment_variable():
+    import dataclasses
+
+    from trimeter.sequences.settings import HostSettings
+
+    page = gen_docs.settings_page()
+    for f in dataclasses.fields(HostSettings):
+        assert f"| `{f.name}` |" in page, f.name
+    assert "| `TRIMETER_DATA_DIR` |" in page and "| `TRIMETER_KERNEL` |" in page
+    assert "&lt;data dir&gt;" in page          # `<data dir>` in a comment is shown, not taken for HTML
+
+
 def test_file_formats_page_states_the_schemas():
     from trimeter.maps.appearance import MAP_SCHEMA
     from trimeter.maps.inscatter_file import INSCATTER_SCHEMA
