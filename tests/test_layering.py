@@ -85,7 +85,7 @@ def test_the_check_passes(snippet):
 LAYERS = (
     {"__version__", "errors", "crc"},
     {"validation", "paths", "atomic"},
-    {"geometry", "registers"},
+    {"geometry", "registers", "tables"},
     {"domain"},                         # plain data: captures, calibrations, reflectances, measurements, parameters
     {"model"},                          # the forward model: what the instrument reads for a material and a set-up
     {"forward", "inversion"},           # simulating the physics / solving the inverse, both on the model

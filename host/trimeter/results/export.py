@@ -33,7 +33,7 @@ from trimeter import __version__
 from trimeter.atomic import atomic_write
 from trimeter.errors import InputError
 from trimeter.results.medium import VARIANT_NOTE, SpectralMaterial, write_medium
-from trimeter.results.tables import MAX_RESULT_FILE_BYTES, read_columns, read_text
+from trimeter.tables import MAX_RESULT_FILE_BYTES, read_columns, read_text
 
 if TYPE_CHECKING:
     from trimeter.domain.measurement import SpectralColumns

@@ -24,7 +24,7 @@ import numpy as np
 from trimeter.domain import Calibration, Capture, Provenance, RawSample, Reflectances
 from trimeter.domain.parameters import FitResult
 from trimeter.errors import InputError
-from trimeter.results.tables import MAX_RESULT_FILE_BYTES, open_checked, read_columns, read_text
+from trimeter.tables import MAX_RESULT_FILE_BYTES, open_checked, read_columns, read_text
 from trimeter.results.writer import PARAMETER_COLUMNS, Parameters, file_tags
 
 MEASUREMENT_FILE = "measurement.json"
