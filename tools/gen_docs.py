@@ -311,13 +311,13 @@ def _schema_section(title: str, intro: str, schema: Any) -> list[str]:
 
 
 def formats_page() -> str:
-    from trimeter.cli import cmd_fit
+    from trimeter.cli import cmd_fit, fit_stream
     from trimeter.maps import appearance, container, device_table, inscatter_file
 
     lines = [BANNER, "# File formats", "",
              "Generated from the readers' own declarations: the container (`trimeter.maps.container`), the "
              "schema of each file kind (`trimeter.maps.schema` and the modules that declare them), the device "
-             "table (`trimeter.maps.device_table`) and the fit's CSV columns (`trimeter.cli.cmd_fit`). "
+             "table (`trimeter.maps.device_table`) and the fit's CSV columns (`trimeter.cli.fit_stream`). "
              "Every reader checks a file against these before it uses any array; a defect is one error naming "
              "the field.", "",
              "## The container (`.tmap`, `.tins`)", "", inspect.cleandoc(container.__doc__ or ""), "",
@@ -329,11 +329,14 @@ def formats_page() -> str:
     lines += ["## Device table (`.tlut`)", "", inspect.cleandoc(device_table.__doc__ or ""), "",
               "## Fit CSVs (`trimeter fit`)", "",
               "Input: a CSV with a header row. Required columns: "
-              + ", ".join(f"`{c}`" for c in cmd_fit.REQUIRED) + "; optional: "
-              + ", ".join(f"`{c}`" for c in cmd_fit.OPTIONAL) + ". Other columns are ignored; an empty cell "
-              "reads as NaN (that bin is flagged, not fitted).", "",
+              + ", ".join(f"`{c}`" for c in fit_stream.REQUIRED) + "; optional: "
+              + ", ".join(f"`{c}`" for c in fit_stream.OPTIONAL) + ". Other columns are ignored; an empty cell "
+              "reads as NaN (that bin is flagged, not fitted). Size limits: "
+              f"{fit_stream.MAX_INPUT_BYTES / 1e9:g} GB for any input (read in chunks, then in wavelength order "
+              f"above {fit_stream.WHOLE_INPUT_BYTES / 1e6:g} MB), {fit_stream.WHOLE_FIT_BYTES / 1e6:g} MB for "
+              "the fits that read it whole (two thicknesses, `--json`, `--on-device`).", "",
               "Output columns (`-o FILE.csv`; `--json` gives the same columns as lists): "
-              + ", ".join(f"`{c}`" for c in cmd_fit.OUTPUT) + ". `flags` is the sum of the "
+              + ", ".join(f"`{c}`" for c in fit_stream.OUTPUT) + ". `flags` is the sum of the "
               "[fit flags](flags.md).", "",
               "The full description of the options is in the [command line reference](cli.md#trimeter-fit):", "",
               "```text", inspect.cleandoc(cmd_fit.__doc__ or ""), "```", ""]
@@ -347,7 +350,8 @@ def _first_paragraph(doc: str | None) -> str:
 # ------------------------------------------------------------------------------ results directory
 def results_page() -> str:
     from trimeter.domain.parameters import FitResult
-    from trimeter.results import tables, writer
+    from trimeter import tables
+    from trimeter.results import writer
 
     lines = [BANNER, "# Results directory", "",
              "What one measurement writes (`trimeter measure`, `serve`, the web page, `make demo`), from "
@@ -383,7 +387,8 @@ def _directive(path: str) -> list[str]:
 def python_page() -> str:
     import trimeter
 
-    names = getattr(trimeter, "__all__", None) or PUBLIC_NAMES
+    exported = list(getattr(trimeter, "__all__", None) or PUBLIC_NAMES)
+    names = [n for n in PUBLIC_NAMES if n in exported] + [n for n in exported if n not in PUBLIC_NAMES]
     lines = [BANNER, "# Python API", "",
              "What `import trimeter` offers, with the signatures and docstrings of the code "
              "(rendered by mkdocstrings from the source, without running it).", ""]
