@@ -56,7 +56,7 @@ UNDERDETERMINED_ALPHA_STD, UNDERDETERMINED_G_STD = 0.1, 0.2  # FitFlag.UNDERDETE
 # std (the noise model's): further steps only wander along what the data cannot tell apart (thick,
 # dark bins would take every step). Larger fractions stop underdetermined bins too far from the map's
 # exact solution. A bin also stops when its step shrank at least 4× and the next one would be below
-# that fraction (newton.step_is_small). The figures behind the value: maps/README.md.
+# that fraction (newton.step_is_small). The figures behind the value: the git history of maps/README.md.
 POLISH_TOL_STD = 3e-3
 # The in-scattering correction's relative std: how far the map's table and independent, longer traces
 # differ over the measurable gamut, with room for the tracer's approximations (trimeter.forward.inscatter).
