@@ -467,7 +467,9 @@ def _tracer_section(tracer: dict[str, Any] | None, png: Path | None, page: Path)
               f"|mean z| ≤ {Z_MEAN_MAX} per geometry. At this size the renders' own noise is large, so the check "
               f"resolves only differences of that order (the median combined standard error is "
               f"{_pct(_median_rel_stderr(tracer['rows']), 2)} of the value), and p95 of few values is nearly their "
-              f"largest. The full check: `{full}` (tens of minutes on two cores).", ""]
+              f"largest. \"Ideal vs adding-doubling\": the ideal geometry's tracer against Prahl's "
+              f"adding-doubling (exact there), over the tracer's standard error alone. The full check: `{full}` "
+              "(tens of minutes on two cores).", ""]
     if png is not None:
         lines += [f"![tracer against volpath: z-scores]({_rel(png, page)})", ""]
     lines += _table(["group", "n", "mean z", "std", "p95 \\|z\\|", "max \\|z\\|", "goal"],
