@@ -92,7 +92,7 @@ LAYERS = (
     {"device", "spectrometer"},         # the instrument's two devices
     {"maps"},                           # files and artifacts (a table is read from a device)
     {"twin", "results"},
-    {"sequences", "predict"},
+    {"sequences", "prediction"},
     {"web", "bench"},
     {"cli", "<package>"},
     {"__main__"},

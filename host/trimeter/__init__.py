@@ -8,11 +8,15 @@ from typing import Any
 __version__ = "0.1.0"
 
 
-def __getattr__(name: str) -> Any:
-    # `trimeter.fit(...)` is the inversion entry point on maps by name or path (trimeter.maps.artifacts);
-    # imported lazily so `import trimeter` stays light.
-    if name == "fit":
-        from trimeter.maps.artifacts import fit
+# The Python API, each name imported from its module on first use so `import trimeter` stays light: `fit` the
+# inversion on maps by name or path, `load` a results directory, `predict` a slab's look, `open_map` by name.
+_LAZY = {"fit": "trimeter.maps.artifacts", "load": "trimeter.results.reader", "Measurement": "trimeter.results.reader",
+         "predict": "trimeter.prediction", "open_map": "trimeter.maps.artifacts"}
 
-        return fit
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        import importlib
+
+        return getattr(importlib.import_module(_LAZY[name]), name)
     raise AttributeError(f"module 'trimeter' has no attribute {name!r}")

@@ -409,13 +409,15 @@ def _details(history: History, path: Path) -> dict:
     row = history.get(path.name) or history.add(path)
     if row is None:
         raise ApiError(404, f"{path.name} has no readable measurement.json")
+    from trimeter.results.reader import load
+
     out: dict[str, object] = {"measurement": row}
     try:
-        out["meta"] = json.loads((path / "measurement.json").read_text())
-        out["parameters"] = parameters = json.loads((path / "parameters.json").read_text())
-    except (OSError, ValueError, UnicodeDecodeError) as exc:
+        stored = load(path)
+    except InputError as exc:
         raise ApiError(500, f"{path.name}: its files cannot be read ({exc})") from None
-    flags = parameters.get("combined", {}).get("flags") or []
+    out["meta"], out["parameters"] = stored.record, stored.parameters_document()
+    flags = stored.flags.tolist()
     counts: dict[str, int] = {}
     for value in flags:
         for name in describe(value).split("|"):
@@ -484,10 +486,9 @@ async def refit_route(request: web.Request) -> web.StreamResponse:
                                 f"(GET /api/maps lists them: {', '.join(sorted(catalog))})")
 
     def run(job: Job) -> str:
-        try:
-            meta = json.loads((path / "measurement.json").read_text())
-        except (OSError, ValueError, UnicodeDecodeError) as exc:
-            raise InputError(f"{path.name}: its measurement.json cannot be read ({exc})") from None
+        from trimeter.results.reader import read_record
+
+        meta = read_record(path)
         maps: list[MapRef]
         if names:
             chosen, maps = names, [AppearanceMap.load(catalog[name]) for name in names]

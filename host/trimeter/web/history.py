@@ -21,10 +21,10 @@ import numpy as np
 
 from trimeter.errors import InputError, OutputError
 from trimeter.inversion.flags import FitFlag, describe
+from trimeter.results.reader import MEASUREMENT_FILE, read_parameters, read_record
 from trimeter.results.writer import PARTIAL_PREFIX
 
 SCHEMA_VERSION = 1
-MEASUREMENT_FILE = "measurement.json"
 # A results directory's name: the writer's UTC stamp, an optional label and a uniqueness suffix.
 ID_PATTERN = re.compile(r"\d{8}T\d{6}Z(?:-[A-Za-z0-9._-]+)?")
 MAX_PAGE = 500
@@ -67,15 +67,13 @@ def summarize(directory: Path) -> dict | None:
     if not is_measurement_id(directory.name):
         return None
     try:
-        meta = json.loads((directory / MEASUREMENT_FILE).read_text())
+        meta = read_record(directory)
         mtime = (directory / MEASUREMENT_FILE).stat().st_mtime
-    except (OSError, ValueError, UnicodeDecodeError):
-        return None
-    if not isinstance(meta, dict):
+    except (OSError, InputError):
         return None
     try:
-        flags = np.asarray(json.loads((directory / "parameters.json").read_text())["combined"]["flags"], np.int64)
-    except (OSError, ValueError, KeyError, TypeError, UnicodeDecodeError):
+        flags = read_parameters(directory)[0].flags
+    except InputError:
         flags = np.zeros(0, np.int64)
     written = meta.get("written_utc")
     try:
