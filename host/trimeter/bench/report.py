@@ -344,7 +344,7 @@ def _accuracy_section(results: dict[str, Any], figures: dict[str, Path], page: P
                   f"{m['materials']} held-out materials ({m['measurable']} in the measurable gamut), "
                   f"ℓ = {m['thickness_mm']:g} mm, {m['geometry']} geometry; references: {m['heldout_source']}.", ""]
         lines += _table(["method", "ms per 1024 bins", "α p95", "σt rel. p95", "g p95", "α / g p95 well-cond.",
-                         "NaN in gamut", "flagged"],
+                         "NaN in gamut", "flagged (all materials)"],
                         [[r["method"], r["time"], _f(r["alpha_p95"]), _pct(r["sigma_rel_p95"], 3), _f(r["g_p95"]),
                           f"{_f(r['alpha_p95_well'])} / {_f(r['g_p95_well'])}", _pct(r.get("nan_rate_measurable")),
                           _pct(r.get("flag_rate"))] for r in rows])
