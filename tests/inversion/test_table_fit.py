@@ -9,7 +9,6 @@ import importlib.util
 import inspect
 import shutil
 import struct
-import subprocess
 import sys
 import zlib
 from pathlib import Path
@@ -24,8 +23,6 @@ from trimeter.inversion.flags import UNUSABLE, FitFlag
 from trimeter.inversion.native import invert_h
 
 ROOT = Path(__file__).resolve().parents[2]
-NATIVE_DIR = ROOT / "host" / "trimeter" / "inversion" / "native"
-FIRMWARE_CORE = ROOT / "firmware" / "core"
 # the flag the table fit never sets (it returns no stds to qualify)
 NOT_SET = int(FitFlag.STD_APPROXIMATE)
 
@@ -61,14 +58,11 @@ def heldout():
 @pytest.fixture(scope="module")
 def single_library(tmp_path_factory):
     """The kernel compiled with -DTR_SINGLE: the table fit in float, as the MCU runs it."""
-    cc = shutil.which("cc") or shutil.which("gcc")
-    if cc is None:
+    from trimeter.bench._firmware import single_precision_library
+
+    if not (shutil.which("cc") or shutil.which("gcc")):
         pytest.skip("no C compiler")
-    out = tmp_path_factory.mktemp("single") / "libtrimeter_invert_single.so"
-    sources = sorted(str(p) for p in NATIVE_DIR.glob("*.c"))
-    subprocess.run([cc, "-O2", "-std=c11", "-Wall", "-Wextra", "-Werror", "-shared", "-fPIC", "-DTR_SINGLE",
-                    f"-I{FIRMWARE_CORE}", "-o", str(out), *sources, "-lm"], check=True, capture_output=True)
-    return out
+    return single_precision_library(tmp_path_factory.mktemp("single"))
 
 
 def _differences(fit, reference):

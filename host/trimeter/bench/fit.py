@@ -553,6 +553,16 @@ def _bench_backgrounds(amap: AppearanceMap, h: Heldout, budget: dict[str, Any], 
 
 
 def run(args: argparse.Namespace) -> int:
+    report = measure(args)
+    atomic_write(args.out / "results.json", json.dumps(report, indent=1, default=float))
+    print(f"\nall figures: {args.out / 'results.json'}")
+    return 0
+
+
+def measure(args: argparse.Namespace) -> dict[str, Any]:
+    """Run the bench as `run` does (printing its tables, writing the Pareto plots into args.out) and
+    return every figure: per map its rows (per noise level and variant), map-exact rows, error budget
+    and target verdicts; the two-thickness rows when two maps hold the same materials."""
     from trimeter.inversion import native
     from trimeter.maps.artifacts import ArtifactCache
     from trimeter.maps.device_table import build_from_map
@@ -613,14 +623,15 @@ def run(args: argparse.Namespace) -> int:
         targets = _print_targets(amap.name, [r for r in rows if r["noise"] == 0])
         png = _pareto(rows, exact_rows, summary, amap, args.out)
         print(f"   Pareto plot: {png}")
-        report["maps"].append({"map": amap.name, "heldout": str(path), "rows": rows, "map_exact_rows": exact_rows,
+        report["maps"].append({"map": amap.name, "geometry": amap.recipe.get("geometry"),
+                               "thickness_mm": amap.thickness_mm, "heldout": str(path),
+                               "heldout_source": meta.get("source"), "materials": len(a),
+                               "measurable": int(measurable.sum()), "rows": rows, "map_exact_rows": exact_rows,
                                "background_rows": background_rows, "paper_hull_split": hull, "budget": summary,
                                "targets": targets})
     if len(report["maps"]) >= 2:
         report["two_thicknesses"] = two_thicknesses(amaps, args.repeats)
-    atomic_write(args.out / "results.json", json.dumps(report, indent=1, default=float))
-    print(f"\nall figures: {args.out / 'results.json'}")
-    return 0
+    return report
 
 
 def _print_table(sub: list[Row], title: str) -> None:
