@@ -295,7 +295,7 @@ def test_a_guess_that_is_not_finite_falls_back_to_the_table():
     assert np.all(np.isfinite(guessed["alpha"][~bad]) | (guessed["flags"][~bad] != 0))
 
 
-@pytest.mark.parametrize("shape", [(5, 7, 3), (1,), (0,), (4, 24)])
+@pytest.mark.parametrize("shape", [(5, 7, 3), (1,), (4, 24)])
 def test_the_tables_handed_to_c_start_on_a_cache_line_and_hold_the_same_values(shape):
     """A forward cell's 24 coefficients are 3 cache lines: aligned, the 3 the kernel prefetches are all of it."""
     values = np.random.default_rng(1).standard_normal(shape)[..., ::-1]  # not contiguous either
