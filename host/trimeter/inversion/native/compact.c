@@ -25,7 +25,7 @@ static uint32_t get_u32(const uint8_t *p) {
 static float get_f32(const uint8_t *p) {
     uint32_t u = get_u32(p);
     float f;
-    memcpy(&f, &u, sizeof f);
+    __builtin_memcpy(&f, &u, sizeof f); /* a register move, not a freestanding build's byte loop */
     return f;
 }
 
@@ -439,9 +439,12 @@ void tr_inverse_guess(const tr_table *t, tr_real log_sigma_t, tr_real I_b, tr_re
 
 static tr_real lerp(tr_real a, tr_real b, tr_real w) { return a + (b - a) * w; }
 
-/* model.cells.regular_cell: cell and weight at p = (x − x0)/step on n evenly spaced nodes */
+/* model.cells.regular_cell: cell and weight at p = (x − x0)/step on n evenly spaced nodes. The cell is
+ * index_clamp(floor(p), n − 2), taken without floor (a library call on the MCU): NaN and p < 0 give 0,
+ * p ≥ n − 2 gives n − 2, and in between the conversion to int truncates, which is floor for p ≥ 0. */
 static int regular_cell(tr_real p, int n, tr_real *w) {
-    tr_real f = index_clamp(R_FLOOR(p), R(n - 2));
+    tr_real hi = R(n - 2);
+    tr_real f = !(p >= R(0.0)) ? R(0.0) : (p >= hi ? hi : (tr_real)(int)p);
     *w = tr_clamp(p - f, R(0.0), R(1.0));
     return (int)f;
 }
