@@ -14,7 +14,7 @@ endif
 # 2-core machine idle OpenBLAS threads spin-wait under load, which stalled scipy's Delaunay for minutes.
 export OPENBLAS_NUM_THREADS ?= 1
 
-.PHONY: help setup native native-portable gen check-gen hardware lint typecheck firmware firmware-test fuzz pytest docs test demo bench clean
+.PHONY: help setup native native-portable gen check-gen hardware lint typecheck firmware firmware-test fuzz pytest docs test demo bench gpu-check clean
 
 help:
 	@echo "make demo   - set up, start the twin with a virtual sample, run a press-button measurement, plot it"
@@ -106,6 +106,11 @@ demo: setup firmware native
 bench: setup firmware native
 	$(PY) -m trimeter bench mapbuild
 	$(PY) -m trimeter bench fit
+
+# On a machine with an NVIDIA GPU: the map tracer's CUDA backend against LLVM on a few columns of each
+# shipped recipe, then the inversion's tests (docs/maps-gpu-check.md). Elsewhere it prints SKIPPED, exit 0.
+gpu-check: setup native
+	$(PY) -m trimeter bench gpu-check
 
 clean:
 	$(MAKE) -C firmware clean || true
