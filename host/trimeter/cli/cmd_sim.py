@@ -67,6 +67,7 @@ def run(args: argparse.Namespace) -> int:
     if args.list_materials:
         for name, description in material_names().items():
             print(f"{name:14s} {description}")
+        print("mixtures by volume fractions: MATERIAL:FRACTION+MATERIAL:FRACTION…, e.g. cyan-ink:0.5+yellow-ink:0.5")
         return 0
     if args.thickness <= 0:
         raise InputError(f"--thickness must be positive, got {args.thickness:g}")

@@ -73,13 +73,19 @@ def _material(parameters: SpectralColumns, path: Path) -> SpectralMaterial:
         raise InputError(f"{path}: {exc}") from None
 
 
+def loaded_parameters(parameters: SpectralColumns, source: dict, where: str | Path) -> LoadedResult:
+    """Fitted parameters (with their stds: a measurement's, a library material's) and their origin, as an
+    export takes them; `where` names them in errors."""
+    return LoadedResult(_material(parameters, Path(where)), source)
+
+
 def loaded_measurement(m: StoredMeasurement) -> LoadedResult:
     """A results directory read by trimeter.load, as an export takes it."""
     source: dict = {"path": str(m.path.resolve()), "measurement": m.name}
     source.update({k: m.record[k] for k in SOURCE_KEYS if k in m.record})
     if m.parameters.thickness_mm is not None:
         source["thickness_mm"] = m.parameters.thickness_mm
-    return LoadedResult(_material(m.parameters, m.path / "parameters.json"), source)
+    return loaded_parameters(m.parameters, source, m.path / "parameters.json")
 
 
 def _from_json(path: Path) -> tuple[SpectralMaterial, dict]:
@@ -376,7 +382,10 @@ def export(result: LoadedResult, fmt: str, out_dir: str | Path, *, step_nm: floa
     name = str(result.source.get("sample") or result.source.get("label") or result.source.get("measurement")
                or Path(result.source.get("path", "trimeter_sample")).stem)
     now = datetime.now(timezone.utc).isoformat(timespec="seconds")
-    origin = f"{result.source.get('measurement') or result.source.get('path', '?')}, trimeter {__version__}, {now}"
+    what = (result.source.get("measurement") or result.source.get("path")
+            or (f"library material {result.source['library_material']}" if "library_material" in result.source
+                else "?"))
+    origin = f"{what}, trimeter {__version__}, {now}"
     opts = {"step_nm": step_nm, "reference_thickness_mm": float(reference_thickness_mm), "illuminant": illuminant,
             "scene_unit_mm": unit, "name": name, "origin_line": origin}
     out.mkdir(parents=True, exist_ok=True)

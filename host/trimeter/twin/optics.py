@@ -54,11 +54,37 @@ def material_names() -> dict[str, str]:
     return {name: m.get("description", "") for name, m in _catalogue()["material"].items()}
 
 
+def parse_mixture(name: str) -> list[tuple[str, float]] | None:
+    """A mixture's catalogue materials and volume fractions from its name, e.g. "cyan-ink:0.25+yellow-ink:0.75"
+    (trimeter.results.medium.parse_fractions), or None for a plain material name."""
+    from trimeter.results.medium import FRACTION_SEPARATOR, parse_fractions
+
+    if FRACTION_SEPARATOR not in name:
+        return None
+    parts = parse_fractions(name)
+    unknown = [c for c, _ in parts if c not in _catalogue()["material"]]
+    if unknown:
+        raise InputError(f"mixture {name!r}: {unknown[0]!r} is not a catalogue material "
+                         f"({', '.join(_catalogue()['material'])})")
+    return parts
+
+
 def material_spectra(name: str, wavelengths_nm: np.ndarray) -> dict[str, np.ndarray]:
-    """α(λ), σt(λ) [1/mm], g(λ) of a catalogue material on the given wavelengths."""
+    """α(λ), σt(λ) [1/mm], g(λ) of a catalogue material, or of a mixture of them by volume fractions
+    (`parse_mixture`: σa and σs add by fraction, g is σs-weighted: SpectralMaterial.mixture), on the
+    given wavelengths."""
+    mixture = parse_mixture(name)
+    if mixture is not None:
+        from trimeter.results.medium import SpectralMaterial
+
+        lam = np.asarray(wavelengths_nm, dtype=float)
+        parts = [SpectralMaterial(lam, **material_spectra(c, lam)) for c, _ in mixture]
+        mixed = SpectralMaterial.mixture(parts, [f for _, f in mixture])
+        return {"alpha": mixed.alpha, "sigma_t": mixed.sigma_t, "g": mixed.g}
     materials = _catalogue()["material"]
     if name not in materials:
-        raise InputError(f"sample must be one of {', '.join(materials)}, got {name!r}")
+        raise InputError(f"sample must be one of {', '.join(materials)} or a mixture like "
+                         f"'cyan-ink:0.5+yellow-ink:0.5', got {name!r}")
     m = materials[name]
     lam = np.asarray(wavelengths_nm, dtype=float)
     sigma_s = m["scattering_at_500nm"] * (lam / 500.0) ** (-m["scattering_power"])
@@ -241,7 +267,7 @@ class Optics:
                                  f"{amap.name}'s {axis[0]:.4g}..{axis[-1]:.4g} at {lam[0]:.0f}-{lam[-1]:.0f} nm")
         traced = traced_setup(str(amap.recipe.get("geometry")), amap.n, thickness_mm)
         alpha, sigma_t, g = spectra["alpha"], spectra["sigma_t"], spectra["g"]
-        if traced is not None:
+        if traced is not None and name in _catalogue()["material"]:  # a mixture was not traced: the map renders it
             geometry_params = load_geometry(traced.geometry)
             observed = traced.observables(name, _catalogue()["material"][name], geometry_params,
                                           self.wavelengths_nm, self.rho_black, self.rho_white)

@@ -43,6 +43,7 @@ from trimeter.sequences.measure import map_for_thickness
 from trimeter.sequences.service import EMPTY_HOLDER, NEXT_SAMPLE
 from trimeter.sequences.settings import HostSettings
 from trimeter.web import auth
+from trimeter.web import library_routes
 from trimeter.web.history import History, IndexUnavailable, is_measurement_id, parse_day_or_time
 from trimeter.web.jobs import Busy, Job, Jobs
 
@@ -702,6 +703,7 @@ def create_app(jobs: Jobs, history: History, token: str, *, webhook: str | None 
     app[JOBS], app[HISTORY], app[TOKEN] = jobs, history, token
     app[STATE] = {"clients": set(), "executor": ThreadPoolExecutor(1, thread_name_prefix="trimeter-web-files")}
     app.add_routes(routes)
+    library_routes.register(app)
     app.router.add_static("/static/", STATIC, show_index=False)
     app.on_response_prepare.append(security_headers)
 
@@ -876,5 +878,6 @@ def openapi() -> dict:
                                           "save": {"type": "boolean"}})},
             "/api/events": {"get": op("websocket: the service's events, progress and jobs as JSON, live")},
             "/api/openapi.json": {"get": op("this description")},
+            **library_routes.OPENAPI_PATHS,
         },
     }
