@@ -23,9 +23,9 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from trimeter.errors import DeviceError, InputError
+from trimeter.errors import DeviceError, InputError, OutputError
 from trimeter.inversion.methods import METHODS
-from trimeter.paths import REPO_ROOT
+from trimeter.paths import data_dir
 
 if TYPE_CHECKING:
     from trimeter.sequences.service import Event
@@ -45,6 +45,12 @@ def _wait_for(events: queue.Queue[Event], kind: str, timeout_s: float, log: Call
             return event
         if event.kind == "failed":
             raise DeviceError(f"demo: the service reported: {event.message}")
+
+
+def demo_dir(out: str | None) -> Path:
+    """Where the demo writes: --out, else the user's data directory (never the package or the repository,
+    which for an installed package would be site-packages)."""
+    return Path(out) if out else data_dir() / "demo"
 
 
 def run(args: argparse.Namespace) -> None:
@@ -73,8 +79,12 @@ def run(args: argparse.Namespace) -> None:
                              f"the appearance map: give --map {amap.name}")
     # a stale table or model fails now, not after the warm-up
     prepare_fit([Sample(args.thickness, table if table is not None and not args.map else amap)], args.method)
-    out = Path(args.out or REPO_ROOT / "out" / "demo") / time.strftime("%Y%m%dT%H%M%S")
-    out.mkdir(parents=True, exist_ok=True)
+    out = demo_dir(args.out) / time.strftime("%Y%m%dT%H%M%S")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(f"demo: cannot create {out} ({exc.strerror or exc}); give --out DIR") from None
+    print(f"demo: writing into {out}")
     os.environ["TRIMETER_DATA_DIR"] = str(out)  # the demo's calibration never touches the user's
     settings = HostSettings()
     settings.set("results_dir", str(out / "results"))
@@ -197,5 +207,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="the build the twin reads like: the spectrometer's pixels, or the AS7341's nine channels "
                         "(fitted band-aware)")
     p.add_argument("--seed", type=int, default=1)
-    p.add_argument("--out", help="output directory (default: out/demo)")
+    p.add_argument("--out", help="output directory (default: the user data directory's demo/, printed; "
+                                 "TRIMETER_DATA_DIR overrides it)")
     p.set_defaults(func=run)

@@ -52,15 +52,18 @@ def describe(value: int) -> str:
     return "|".join(names) if names else "NONE"
 
 
-def advice(flags: np.ndarray | list[int], thicknesses: int = 1) -> list[str]:
+def advice(flags: np.ndarray | list[int], thicknesses: int = 1, *,
+           counts: np.ndarray | list[int] | None = None) -> list[str]:
     """What a person should do about a fit's flagged bins: one sentence per kind of problem, with how
     many of the bins it concerns (empty when nothing needs doing). `thicknesses`: how many samples
-    were fitted together."""
+    were fitted together. `counts`: how many bins carry each word of `flags` (a streamed fit's tally of
+    distinct words), instead of one word per bin."""
     flags = np.asarray(flags, dtype=np.int64)
-    n = len(flags)
+    weights = np.ones(len(flags), np.int64) if counts is None else np.asarray(counts, dtype=np.int64)
+    n = int(weights.sum())
 
     def count(flag: int) -> int:
-        return int(np.count_nonzero(flags & int(flag)))
+        return int(weights[(flags & int(flag)) != 0].sum())
 
     notes = []
     if k := count(UNUSABLE):

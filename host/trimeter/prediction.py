@@ -105,6 +105,47 @@ def predict_slab(material: SpectralMaterial, thickness_mm: float, *, geometry: s
     return Prediction(m.wavelengths_nm, out[0], out[1], out[2], out[3], srgb[0], srgb[1], info)
 
 
+def predict(materials: object, thickness_mm: float, *, fractions: ArrayLike | None = None,
+            **options: object) -> Prediction:
+    """`trimeter.predict`: the reflectance and colour of a slab of a measured material, or of a mixture.
+
+    Parameters
+    ----------
+    materials : Measurement, SpectralMaterial, str or Path, or a list of them
+        What the slab is made of: a loaded measurement (`trimeter.load`), a material, a results
+        directory, a parameters file or ``"sample:NAME"`` (the twin's catalogue). Several: a mixture.
+    thickness_mm : float
+        The slab's thickness.
+    fractions : array_like, optional
+        Volume fractions of the materials in the mixture (one each; required for several).
+    **options
+        geometry ("ideal" or "device"), n, rho_black, rho_white, paths, seed, wavelengths_nm: see
+        `predict_slab`.
+
+    Returns
+    -------
+    Prediction
+        Reflectance factors on black and on white per wavelength node, their standard errors and
+        linear sRGB colours (`hex_colour` turns one into ``#rrggbb``).
+    """
+    listed = materials if isinstance(materials, (list, tuple)) else [materials]
+    return predict_slab(mixture([_as_material(m) for m in listed], fractions), thickness_mm, **options)  # type: ignore[arg-type]
+
+
+def _as_material(spec: object) -> SpectralMaterial:
+    if isinstance(spec, SpectralMaterial):
+        return spec
+    if isinstance(spec, (str, Path)):
+        return load_material(str(spec))[0]
+    material = getattr(spec, "material", None)  # a trimeter.load result
+    if callable(material):
+        found = material()
+        if isinstance(found, SpectralMaterial):
+            return found
+    raise InputError(f"a material is a trimeter.load result, a SpectralMaterial, a results directory or a "
+                     f"parameters file, not {type(spec).__name__}")
+
+
 def hex_colour(linear_rgb: ArrayLike) -> str:
     from trimeter.results.export import srgb_encode
 
