@@ -31,7 +31,7 @@ CHANNEL_OPTIONAL = ("rho_b", "rho_w", "I_b_std", "I_w_std", "I_c_std")
 OUTPUT = ("channel", "wavelength_nm", "alpha", "sigma_t", "g", "alpha_std", "sigma_t_std", "g_std", "flags",
           "sigma_t_beer")
 BUILT_IN = ("as7341",)
-MAX_TABLE_BYTES = 64_000_000  # a weights table on a 0.1 nm grid of a few dozen channels is a few MB
+MAX_TABLE_BYTES = 1_000_000  # a CHANNELS table: one row per channel
 
 
 def read_channels(path: Path) -> tuple[list[str], dict[str, np.ndarray]]:
@@ -56,26 +56,9 @@ def read_channels(path: Path) -> tuple[list[str], dict[str, np.ndarray]]:
 
 def read_weights(spec: str) -> BandWeights:
     """--bands: a WEIGHTS.csv, or a built-in sensor model's name."""
-    from trimeter.inversion.bands import band_weights
+    from trimeter.spectrometer.sensors import as7341_weights, read_band_weights
 
-    if spec in BUILT_IN:
-        from trimeter.spectrometer.sensors import as7341_weights
-
-        return as7341_weights()
-    from trimeter.tables import read_columns
-
-    path = Path(spec)
-    table = read_columns(path, required=("wavelength_nm",), max_bytes=MAX_TABLE_BYTES, what="--bands")
-    names = [c[: -len("_diffuse")] for c in table if c.endswith("_diffuse")]
-    lonely = [c for c in table if c.endswith("_collimated") and c[: -len("_collimated")] not in names]
-    if not names:
-        raise InputError(f"--bands {path}: no <channel>_diffuse columns (have: {', '.join(table)})")
-    without = [n for n in names if f"{n}_collimated" not in table]
-    if without or lonely:
-        raise InputError(f"--bands {path}: each channel needs both <channel>_diffuse and <channel>_collimated "
-                         f"(incomplete: {', '.join(without + [c.rsplit('_', 1)[0] for c in lonely])})")
-    return band_weights(table["wavelength_nm"], names, [table[f"{n}_diffuse"] for n in names],
-                        [table[f"{n}_collimated"] for n in names], where=f"--bands {path}")
+    return as7341_weights() if spec in BUILT_IN else read_band_weights(Path(spec), what="--bands")
 
 
 def parse_grid(text: str) -> np.ndarray:
