@@ -73,6 +73,7 @@ static int finite_in(tr_real x, tr_real lo, tr_real hi) { return isfinite(x) && 
  * table check runs on every call. */
 static int axis_ok(const float *x, int n) {
     if (!isfinite(x[0]) || !isfinite(x[n - 1])) return 0;
+#pragma GCC unroll 4
     for (int i = 1; i < n; i++)
         if (!(x[i] > x[i - 1])) return 0;
     return 1;
@@ -82,6 +83,7 @@ static int axis_ok(const float *x, int n) {
  * the sum (one multiply-add per value, no classification) */
 static int all_finite(const float *x, size_t n) {
     float zero_if_finite = 0.0f;
+#pragma GCC unroll 8
     for (size_t i = 0; i < n; i++) zero_if_finite += x[i] * 0.0f;
     return zero_if_finite == 0.0f;
 }
