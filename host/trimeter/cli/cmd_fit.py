@@ -4,6 +4,7 @@
                  [--json] [--polish N]
     trimeter fit --table TABLE.tlut --input meas.csv [--thickness MM] [--refine [--polish N]] …
     trimeter fit --on-device --port PORT --input meas.csv [--thickness MM] …
+    trimeter fit --map MAP --bands WEIGHTS.csv|as7341 --input channels.csv [--grid START:STOP:STEP] …
 
 `--table` fits from a device table alone (maps/<name>.tlut: the inverse grid, the compact forward
 model, the in-scattering correction, n, ℓ and the reference backgrounds; no map file needed) with the
@@ -23,6 +24,8 @@ belong to which map; both thicknesses must cover the same wavelengths); I_b_std,
 this measurement, not of a default noise model) and thickness_std_mm (the sample thickness's std, one
 value per thickness). Empty cells and "nan" are missing values: those bins come back flagged with NaN
 results, the others are unaffected (a missing std: the default noise model's for that bin).
+`--bands`: a multichannel sensor's band readings, fitted band-aware (trimeter.cli.fit_bands says how).
+
 Output columns: wavelength_nm, alpha, sigma_t, g, alpha_std, sigma_t_std, g_std, flags, sigma_t_beer,
 thickness_mm (flags: trimeter.inversion.flags.FitFlag bits; the JSON form also names them).
 Rows come out in wavelength order. With CSV output the input is read, fitted and written in chunks, so
@@ -85,6 +88,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--thickness", type=float, action="append",
                    help="the sample's thickness in mm (once per --map); a map of another thickness is an error")
     p.add_argument("--method", choices=METHODS, help="inversion method (default: lut)")
+    p.add_argument("--bands", metavar="WEIGHTS.csv",
+                   help="band weights of a multichannel sensor (or 'as7341': the built-in model); --input then "
+                        "holds one row per channel (channel,I_b,I_w,I_c[,rho_b,rho_w,*_std])")
+    p.add_argument("--grid", metavar="START:STOP:STEP", help="with --bands: the spectra on this grid as well (nm)")
     p.add_argument("-o", "--output", type=Path, help="output CSV (default: stdout)")
     p.add_argument("--json", action="store_true", help="print JSON instead of CSV")
     p.set_defaults(func=run)
@@ -162,6 +169,12 @@ def run(args: argparse.Namespace) -> int:
     from trimeter.maps.artifacts import fit
     from trimeter.maps.device_table import DeviceTable
 
+    if args.bands is not None:
+        from trimeter.cli.fit_bands import run_bands
+
+        return run_bands(args)
+    if args.grid is not None:
+        raise InputError("--grid: only with --bands (a per-wavelength fit reports at its input's wavelengths)")
     amaps = _fit_models(args)
     if args.on_device:
         return _run_on_device(args)
@@ -421,8 +434,13 @@ def _table_fit_columns(data: Chunk, rows: np.ndarray, table: DeviceTable,
 def _thickness_std(column: np.ndarray, groups: list[np.ndarray], amaps: Sequence[FitSource], path: Path) -> list[float]:
     """One thickness std per map from the column: the same value on every row of that thickness."""
     out = []
+    if not np.isfinite(column).all():  # a NaN std is no "exact thickness": refused, never read as 0
+        bad = np.flatnonzero(~np.isfinite(column))
+        raise InputError(f"--input {path}: column thickness_std_mm is not a finite number on row(s) "
+                         f"{', '.join(str(i + 1) for i in bad[:5])}{', …' if len(bad) > 5 else ''} (0: the thickness "
+                         f"is exact)")
     for rows, amap in zip(groups, amaps, strict=True):
-        values = np.unique(column[rows][np.isfinite(column[rows])])
+        values = np.unique(column[rows])
         if len(values) > 1:
             raise InputError(f"--input {path}: column thickness_std_mm differs between the rows of thickness "
                              f"{amap.thickness_mm:g} mm ({values[0]:g}, {values[1]:g}, …): one sample, one std")

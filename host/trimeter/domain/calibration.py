@@ -100,8 +100,11 @@ class Calibration:
         try:
             meta = json.loads(read_text(directory / "calibration.json"))
             table = read_columns(directory / "calibration.csv", required=CALIBRATION_COLUMNS)
-        except ValueError as exc:  # an InputError of the reader, or not JSON
+        except (ValueError, RecursionError) as exc:  # an InputError of the reader, or not JSON
             raise InputError(f"calibration in {directory} is corrupt ({exc}); run `trimeter calibrate` again") from None
+        except OSError as exc:  # a FIFO, a link or a device in place of a file, or unreadable
+            raise InputError(f"calibration in {directory} cannot be read ({exc.strerror or exc}: "
+                             f"{Path(exc.filename or '').name}); run `trimeter calibrate` again") from None
         if not isinstance(meta, dict) or meta.get("format_version") != CALIBRATION_FORMAT_VERSION \
                 or len(table["wavelength_nm"]) != meta.get("bins"):
             raise InputError(f"calibration in {directory} has an unknown format or is truncated; calibrate again")
