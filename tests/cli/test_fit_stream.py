@@ -169,4 +169,5 @@ def test_two_thicknesses_must_pair_up(two_thicknesses, tmp_path, monkeypatch, ca
     assert main(["fit", "--map", "device-n1.5-l0.4", "--map", "device-n1.5-l0.8", "--input", str(extra), "-o",
                  str(tmp_path / "out.csv")]) == 2
     assert not (tmp_path / "out.csv").exists()
-    assert "thickness 0.8 mm has 1 more row(s) than another: the thicknesses must cover the same wavelengths" in capsys.readouterr().err
+    assert "thickness 0.8 mm has 1 more row(s) than another: the thicknesses must cover the same wavelengths" \
+        in capsys.readouterr().err

@@ -13,7 +13,6 @@ after them (their `channel` empty).
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import math
 import sys
@@ -24,7 +23,7 @@ import numpy as np
 from trimeter.domain.parameters import FitResult
 from trimeter.errors import InputError
 from trimeter.inversion.bands import BandWeights
-from trimeter.validation import shown
+from trimeter.tables import read_columns
 
 CHANNEL_COLUMNS = ("channel", "I_b", "I_w", "I_c")
 CHANNEL_OPTIONAL = ("rho_b", "rho_w", "I_b_std", "I_w_std", "I_c_std")
@@ -35,41 +34,10 @@ BUILT_IN = ("as7341",)
 
 def read_table(path: Path, option: str, required: tuple[str, ...], text: tuple[str, ...] = (),
                optional: tuple[str, ...] | None = None) -> dict[str, list]:
-    """A CSV's columns by name: `text` columns as stripped strings, the others as floats (empty → NaN);
-    `optional` None: every other column is read too. One clear InputError per problem."""
-    try:
-        raw = path.read_text(encoding="utf-8-sig")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"{option} {path}: cannot read ({getattr(exc, 'strerror', None) or exc})") from None
-    lines = (line for line in raw.splitlines() if line.strip() and not line.lstrip().startswith("#"))
-    try:
-        rows = list(csv.reader(lines))
-    except csv.Error as exc:
-        raise InputError(f"{option} {path}: not a readable CSV ({exc})") from None
-    header = [h.strip() for h in rows[0]] if rows else []
-    duplicated = sorted({h for h in header if header.count(h) > 1})
-    if duplicated:
-        raise InputError(f"{option} {path}: column(s) {', '.join(map(shown, duplicated))} appear more than once")
-    missing = [c for c in required if c not in header]
-    if missing:
-        raise InputError(f"{option} {path}: missing column(s) {', '.join(missing)} (have: "
-                         f"{', '.join(map(shown, header)) or 'none'})")
-    wanted = [c for c in header if c in required or optional is None or c in optional]
-    columns: dict[str, list] = {c: [] for c in wanted}
-    for row_no, row in enumerate(rows[1:], start=2):
-        for c in wanted:
-            i = header.index(c)
-            cell = row[i].strip() if i < len(row) else ""
-            if c in text:
-                columns[c].append(cell)
-                continue
-            try:
-                columns[c].append(float(cell) if cell else math.nan)
-            except ValueError:
-                raise InputError(f"{option} {path}: line {row_no}, column {c}: {shown(cell)} is not a number") from None
-    if len(rows) < 2:
-        raise InputError(f"{option} {path}: no data rows")
-    return columns
+    """A CSV's columns by name (trimeter.tables): `text` columns as stripped strings, the others as floats
+    (empty → NaN); `optional` None: every other column is read too. One clear InputError per problem."""
+    columns = read_columns(path, required=required, optional=optional, text=text, what=option)
+    return {c: v.tolist() for c, v in columns.items()}
 
 
 def read_weights(spec: str) -> BandWeights:
