@@ -91,8 +91,9 @@ LAYERS = (
     {"forward", "inversion"},           # simulating the physics / solving the inverse, both on the model
     {"device", "spectrometer"},         # the instrument's two devices
     {"maps"},                           # files and artifacts (a table is read from a device)
-    {"twin", "results"},
-    {"sequences", "prediction"},
+    {"results"},
+    {"twin"},                           # its virtual samples and mixtures are results' spectral materials
+    {"sequences", "prediction", "library"},
     {"web", "bench"},
     {"cli", "<package>"},
     {"__main__"},

@@ -116,10 +116,3 @@ def test_rows_are_counted_without_columns_asked(tmp_path):
     assert read_columns(path, optional=("c",), min_rows=2) == {}
     with pytest.raises(InputError, match="2 data row.s., at least 3 expected"):
         read_columns(path, optional=("c",), min_rows=3)
-
-
-def test_text_columns_come_back_as_strings_in_header_order(tmp_path):
-    path = _write(tmp_path, "I_b,channel,x\n0.5, F1 ,1\n,\"F,2\",2\n")
-    got = read_columns(path, required=("channel", "I_b"), text=("channel",))
-    assert list(got) == ["I_b", "channel", "x"] and got["channel"].tolist() == ["F1", "F,2"]
-    assert got["I_b"][0] == 0.5 and np.isnan(got["I_b"][1]) and got["x"].tolist() == [1.0, 2.0]

@@ -77,17 +77,15 @@ def read_text(path: str | Path, *, max_bytes: int = MAX_RESULT_FILE_BYTES, what:
 
 
 class TableReader:
-    """A CSV table's header and its rows in chunks of at most `chunk_rows` (as float columns; `text` ones
-    as arrays of stripped strings).
+    """A CSV table's header and its rows in chunks of at most `chunk_rows` (as float columns).
 
     `required` columns must be in the header; `optional` ones are read when there (None: every other
-    column of the header); `columns` lists them in the header's order. Use as a context manager, or call
-    `close`.
+    column of the header). Use as a context manager, or call `close`.
     """
 
     def __init__(self, path: str | Path, *, required: Sequence[str] = (), optional: Sequence[str] | None = None,
                  max_bytes: int = MAX_RESULT_FILE_BYTES, what: str = "", follow_symlinks: bool = True,
-                 chunk_rows: int = DEFAULT_CHUNK_ROWS, text: Sequence[str] = ()) -> None:
+                 chunk_rows: int = DEFAULT_CHUNK_ROWS) -> None:
         self.path = Path(path)
         self.name = f"{what} {self.path}".strip()
         self.chunk_rows = int(chunk_rows)
@@ -112,10 +110,10 @@ class TableReader:
                 raise InputError(f"{self.name}: column(s) {', '.join(map(shown, duplicated))} appear more than once")
             raise InputError(f"{self.name}: missing column(s) {', '.join(missing)} (have: "
                              f"{', '.join(map(shown, self.header)) or 'none'})")
-        wanted = {*required, *(self.header if optional is None else optional)}
-        self.columns = [c for c in self.header if c and c in wanted]
+        wanted = list(required) + [c for c in (self.header if optional is None else optional)
+                                   if c in self.header and c not in required]
+        self.columns = [c for c in wanted if c]
         self._index = [self.header.index(c) for c in self.columns]
-        self._text = {c for c in text if c in self.columns}
 
     def __enter__(self) -> TableReader:
         return self
@@ -149,48 +147,47 @@ class TableReader:
                 raise InputError(f"{self.name}: not a UTF-8 text file") from None
             if not lines:
                 return
-            chunk = self._parse(lines, numbers)
+            table = self._parse(lines, numbers)
             self.rows_read += len(lines)
-            yield chunk
+            yield {c: table[:, i] for i, c in enumerate(self.columns)}
 
-    def _parse(self, lines: list[str], numbers: list[int]) -> dict[str, np.ndarray]:
-        if self._index and not self._text:
-            try:
-                table = np.loadtxt(lines, delimiter=",", usecols=self._index, ndmin=2, comments=None, dtype=float,
-                                   quotechar=None, encoding=None)
-                if table.shape == (len(lines), len(self._index)):
-                    return {c: table[:, j] for j, c in enumerate(self.columns)}
-            except ValueError:
-                pass
+    def _parse(self, lines: list[str], numbers: list[int]) -> np.ndarray:
+        if not self._index:
+            return np.empty((len(lines), 0))
+        try:
+            table = np.loadtxt(lines, delimiter=",", usecols=self._index, ndmin=2, comments=None, dtype=float,
+                               quotechar=None, encoding=None)
+            if table.shape == (len(lines), len(self._index)):
+                return table
+        except ValueError:
+            pass
         return self._parse_cells(lines, numbers)
 
-    def _parse_cells(self, lines: list[str], numbers: list[int]) -> dict[str, np.ndarray]:
+    def _parse_cells(self, lines: list[str], numbers: list[int]) -> np.ndarray:
         """Cell by cell with the csv module: empty or absent cells are NaN; a bad cell is an InputError."""
-        out = {c: np.empty(len(lines), dtype=object if c in self._text else float) for c in self.columns}
+        table = np.empty((len(lines), len(self._index)))
         try:
-            for r, row in enumerate(csv.reader(lines)):
-                for column, i in zip(self.columns, self._index, strict=True):
+            rows = csv.reader(lines)
+            for r, row in enumerate(rows):
+                for j, (column, i) in enumerate(zip(self.columns, self._index, strict=True)):
                     cell = row[i].strip() if i < len(row) else ""
-                    if column in self._text:
-                        out[column][r] = cell
-                        continue
                     try:
-                        out[column][r] = float(cell) if cell else math.nan
+                        table[r, j] = float(cell) if cell else math.nan
                     except ValueError:
                         raise InputError(f"{self.name}: line {numbers[r]}, column {column}: {shown(cell)} is not "
                                          f"a number") from None
-        except csv.Error as exc:  # e.g. a field over the csv module's limit
+        except csv.Error as exc:  # e.g. a field over the csv module's limit, a NUL byte
             raise InputError(f"{self.name}: not a readable CSV ({exc})") from None
-        return out
+        return table
 
 
 def read_columns(path: str | Path, *, required: Sequence[str] = (), optional: Sequence[str] | None = None,
                  max_bytes: int = MAX_RESULT_FILE_BYTES, what: str = "", follow_symlinks: bool = True,
-                 min_rows: int = 1, text: Sequence[str] = ()) -> dict[str, np.ndarray]:
-    """A whole CSV table as {column: float array} (`text` columns: arrays of strings; TableReader's rules);
-    InputError when it has fewer than `min_rows` data rows."""
+                 min_rows: int = 1) -> dict[str, np.ndarray]:
+    """A whole CSV table as {column: float array} (TableReader's rules); InputError when it has fewer
+    than `min_rows` data rows."""
     with TableReader(path, required=required, optional=optional, max_bytes=max_bytes, what=what,
-                     follow_symlinks=follow_symlinks, text=text) as reader:
+                     follow_symlinks=follow_symlinks) as reader:
         parts = list(reader.chunks())
         columns, name, rows = reader.columns, reader.name, reader.rows_read
     if rows < min_rows:

@@ -539,10 +539,11 @@ def speed(amaps: list[AppearanceMap], median_bins: int, repeats: int) -> dict[st
         a, s, g = (hp[k][tp] for k in ("alpha", "sigma_t", "g"))
         forward = [load_artifacts(m).grid.intensities(a, s, g, *m.reference_rhos) for m in pair]
         stacked = [np.stack([f[i] for f in forward]) for i in range(3)]
-        I_b, I_w, I_c = stacked
-        calls[f"lut, {pair[0].name} alone"] = lambda: trimeter.fit(pair[0], I_b[0], I_w[0], I_c[0], method="lut",
-                                                                    **DEFAULT_POLISH)
-        calls["lut, two thicknesses"] = lambda: trimeter.fit(list(pair), I_b, I_w, I_c, method="lut", **DEFAULT_POLISH)
+        first = [x[0] for x in stacked]
+        calls[f"lut, {pair[0].name} alone"] = lambda: trimeter.fit(pair[0], first[0], first[1], first[2],
+                                                                    method="lut", **DEFAULT_POLISH)
+        calls["lut, two thicknesses"] = lambda: trimeter.fit(list(pair), stacked[0], stacked[1], stacked[2],
+                                                             method="lut", **DEFAULT_POLISH)
     best = {name: np.inf for name in calls}
     for fn in calls.values():
         fn()
