@@ -298,8 +298,10 @@ def _header(results: dict[str, Any]) -> list[str]:
         "is compared with Mitsuba 3 in the last section.",
         "- Noise, where there is any, is synthetic: relative Gaussian noise on I_b, I_w and I_c.",
         "- Times are the best of several rounds, all methods of a table timed round-robin in one process on a "
-        "shared machine: compare them within a table. \"On the device\" is an estimate from an instruction count "
-        "under QEMU, not a run on a board.",
+        "shared machine: compare them within a table. On a loaded machine a call longer than the scheduler's time "
+        "slice (the paper rows: tens of milliseconds) is slowed more than a sub-millisecond one (lut), so ratios to "
+        "paper overstate the speed-up; the load average above says how loaded it was. \"On the device\" is an "
+        "estimate from an instruction count under QEMU, not a run on a board.",
         "",
     ]
 
