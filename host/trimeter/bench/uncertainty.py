@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -132,7 +133,7 @@ def _fit(cases, noisy, stds, mode, thickness_std=None):
 
     amaps = [c.amap for c in cases]
     I = [np.stack([n[i] for n in noisy]) for i in range(3)]
-    kw = {}
+    kw: dict[str, Any] = {}
     if mode == "given":
         kw = dict(I_b_std=np.stack([s[0] for s in stds]), I_w_std=np.stack([s[1] for s in stds]),
                   I_c_std=np.stack([s[2] for s in stds]))
@@ -142,7 +143,7 @@ def _fit(cases, noisy, stds, mode, thickness_std=None):
     if len(amaps) == 1:
         I = [x[0] for x in I]
         kw = {k: (v[0] if isinstance(v, np.ndarray) else v) for k, v in kw.items()}
-    return trimeter.fit(maps, *I, method="lut", **kw)
+    return trimeter.fit(maps, I[0], I[1], I[2], method="lut", **kw)
 
 
 def _row(label, level, mode, result, truth):

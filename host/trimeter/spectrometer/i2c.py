@@ -21,6 +21,7 @@ from typing import Any, Callable, Self
 import numpy as np
 
 from trimeter.errors import DeviceError, InputError
+from trimeter.inversion.bands import BandWeights
 from trimeter.spectrometer.base import SpectrometerDescription, check_integration_time
 
 DEFAULT_ADDRESS = 0x39
@@ -179,6 +180,13 @@ class AS7341:
 
     def wavelengths_nm(self) -> np.ndarray:
         return np.array(list(CHANNEL_NM.values()))
+
+    def band_weights(self) -> BandWeights:
+        """Each channel's band weights under the build's lamps: the datasheet's responses and the BOM's
+        LEDs (trimeter.spectrometer.sensors; measured ones go to `fit --bands WEIGHTS.csv`)."""
+        from trimeter.spectrometer.sensors import as7341_weights
+
+        return as7341_weights()
 
     @property
     def description(self) -> SpectrometerDescription:
