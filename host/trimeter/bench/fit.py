@@ -539,9 +539,11 @@ def speed(amaps: list[AppearanceMap], median_bins: int, repeats: int) -> dict[st
         a, s, g = (hp[k][tp] for k in ("alpha", "sigma_t", "g"))
         forward = [load_artifacts(m).grid.intensities(a, s, g, *m.reference_rhos) for m in pair]
         stacked = [np.stack([f[i] for f in forward]) for i in range(3)]
-        calls[f"lut, {pair[0].name} alone"] = lambda: trimeter.fit(pair[0], *(x[0] for x in stacked), method="lut",
-                                                                    **DEFAULT_POLISH)
-        calls["lut, two thicknesses"] = lambda: trimeter.fit(list(pair), *stacked, method="lut", **DEFAULT_POLISH)
+        first = [x[0] for x in stacked]
+        calls[f"lut, {pair[0].name} alone"] = lambda: trimeter.fit(pair[0], first[0], first[1], first[2],
+                                                                    method="lut", **DEFAULT_POLISH)
+        calls["lut, two thicknesses"] = lambda: trimeter.fit(list(pair), stacked[0], stacked[1], stacked[2],
+                                                             method="lut", **DEFAULT_POLISH)
     best = {name: np.inf for name in calls}
     for fn in calls.values():
         fn()
