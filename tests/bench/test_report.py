@@ -61,6 +61,14 @@ def test_the_headline_rows_are_the_benches_figures(made):
     assert "at 1 % noise" in text and f"{noisy['lut p≤8']['alpha_p95']:.4f}" in text
 
 
+def test_the_speed_section_is_bench_fit_s(made):
+    _, text, results = made
+    speed = results["fit"]["speed"]
+    lookup = speed["ms_per_1024"]["bare lookup"]
+    assert "### Speed with uncertainty" in text
+    assert f"| lut | {speed['ms_per_1024']['lut']:.3g} | {speed['ms_per_1024']['lut'] / lookup:.3g} |" in text
+
+
 def test_the_device_row_comes_from_the_single_precision_build_and_the_qemu_count(made):
     _, text, results = made
     tables = results["tables"][MAP]
