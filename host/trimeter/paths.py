@@ -1,6 +1,8 @@
 """Where the repository's declared-once files live (the package is installed editable from the repo)."""
 
+import errno
 import os
+import stat
 from pathlib import Path
 
 import platformdirs
@@ -19,3 +21,72 @@ def config_dir() -> Path:
 def data_dir() -> Path:
     """The user's trimeter data directory: calibration, results, spool (TRIMETER_DATA_DIR overrides it)."""
     return Path(os.environ.get("TRIMETER_DATA_DIR") or platformdirs.user_data_dir("trimeter"))
+
+
+# ------------------------------------------------------------------------ reading results safely
+# A results directory may be written by anyone who can write the results root, and the web API serves
+# it: a symbolic link, a FIFO or a device in place of a directory or a file would read outside it or
+# block a reader forever. Every read of a stored record goes through these.
+NAME_MAX = 255
+
+
+def real_subdirectory(root: Path, name: str) -> Path | None:
+    """root/name when it is a real directory (not a symbolic link) whose resolved path lies directly in
+    the resolved root; None otherwise (missing, a link, a file, a name with a separator or too long)."""
+    if not name or len(name.encode("utf-8", "surrogatepass")) > NAME_MAX or "/" in name or "\\" in name \
+            or "\0" in name or name in (".", ".."):
+        return None
+    path = Path(root) / name
+    try:
+        if not stat.S_ISDIR(os.lstat(path).st_mode):
+            return None
+        if path.resolve(strict=True).parent != Path(root).resolve(strict=True):
+            return None
+    except (OSError, RuntimeError):  # RuntimeError: a link loop on the way to the root
+        return None
+    return path
+
+
+def open_regular(path: Path) -> int:
+    """A read-only descriptor of `path` when it is a regular file reached without following a link at its
+    last component (a FIFO is opened non-blocking, so it is refused at once, not waited on). OSError
+    otherwise: FileNotFoundError for a missing one, an OSError naming the kind for anything else."""
+    fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0))
+    try:
+        mode = os.fstat(fd).st_mode
+        if not stat.S_ISREG(mode):
+            raise OSError(errno.EINVAL, "not a regular file", str(path))
+    except BaseException:
+        os.close(fd)
+        raise
+    return fd
+
+
+def read_regular_bytes(path: Path, limit: int | None = None) -> bytes:
+    """The bytes of a regular file (see open_regular); OSError when it is none or larger than `limit`."""
+    with os.fdopen(open_regular(path), "rb") as f:
+        data = f.read() if limit is None else f.read(limit + 1)
+    if limit is not None and len(data) > limit:
+        raise OSError(errno.EFBIG, f"larger than {limit} bytes", str(path))
+    return data
+
+
+def read_regular_text(path: Path, limit: int | None = None) -> str:
+    """The UTF-8 text of a regular file (see read_regular_bytes); UnicodeDecodeError when it is not text."""
+    return read_regular_bytes(path, limit).decode("utf-8")
+
+
+def regular_files(directory: Path) -> list[Path]:
+    """The regular files (not links, not FIFOs, not subdirectories) directly in `directory`, sorted by name."""
+    out = []
+    try:
+        entries = list(os.scandir(directory))
+    except OSError:
+        return []
+    for entry in entries:
+        try:
+            if entry.is_file(follow_symlinks=False):
+                out.append(Path(entry.path))
+        except OSError:
+            continue
+    return sorted(out)

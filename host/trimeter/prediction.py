@@ -164,16 +164,15 @@ def write_spectra_csv(path: Path, rows: list[tuple[str, Prediction]]) -> None:
 
 def draw_swatches(path: Path, rows: list[tuple[str, Prediction]], *, columns: int, title: str) -> Path:
     """A grid of patches, each split: the slab on white above, on black below (sRGB, D65)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure  # not pyplot: a caller's plotting backend stays as it is
+    from matplotlib.patches import Rectangle
 
     from trimeter.atomic import atomic_output
     from trimeter.results.export import srgb_encode
 
     n_rows = math.ceil(len(rows) / columns)
-    fig, ax = plt.subplots(figsize=(1.6 * columns + 0.4, 1.75 * n_rows + 0.6))
+    fig = Figure(figsize=(1.6 * columns + 0.4, 1.75 * n_rows + 0.6))
+    ax = fig.subplots()
     ax.set_xlim(0, columns)
     ax.set_ylim(n_rows, 0)
     ax.set_axis_off()
@@ -182,10 +181,9 @@ def draw_swatches(path: Path, rows: list[tuple[str, Prediction]], *, columns: in
     for k, (label, p) in enumerate(rows):
         r, c = divmod(k, columns)
         for y0, rgb in ((0.05, p.srgb_white), (0.42, p.srgb_black)):
-            ax.add_patch(plt.Rectangle((c + 0.05, r + y0), 0.9, 0.37, color=srgb_encode(rgb)))
+            ax.add_patch(Rectangle((c + 0.05, r + y0), 0.9, 0.37, color=srgb_encode(rgb)))
         ax.text(c + 0.5, r + 0.9, label.replace("+", "\n+"), ha="center", va="center", fontsize=7, color="white")
     ax.set_title(title, fontsize=9, color="white")
     with atomic_output(path) as f:
         fig.savefig(f, format="png", dpi=110, facecolor=fig.get_facecolor())
-    plt.close(fig)
     return path

@@ -188,10 +188,11 @@ def test_mlp_refuses_a_model_trained_on_another_map(thick_map, ideal_model):
 
 
 @pytest.mark.parametrize("native_kernel", ["1", "0"])
-def test_a_model_that_outputs_nan_costs_only_its_guess(ideal_map, ideal_model, tmp_path, monkeypatch, native_kernel):
+def test_a_model_that_outputs_nan_costs_only_its_guess_and_says_so(ideal_map, ideal_model, tmp_path, monkeypatch,
+                                                                   native_kernel, caplog):
     """A model file that loads and passes its checks but whose weights went bad (NaN out): every
     bin starts from the table's guess instead, so the mlp fit equals the lut fit (C kernel and numpy
-    reference alike)."""
+    reference alike) — and the result counts those bins and a warning says so, never silently."""
     onnx = pytest.importorskip("onnx")
     from onnx import numpy_helper
 
@@ -213,6 +214,10 @@ def test_a_model_that_outputs_nan_costs_only_its_guess(ideal_map, ideal_model, t
     np.testing.assert_allclose(got.alpha, want.alpha, rtol=1e-12)
     np.testing.assert_allclose(got.g, want.g, rtol=1e-12)
     np.testing.assert_array_equal(got.flags, want.flags)
+    assert got.guess_fallback_bins == 3 and want.guess_fallback_bins == 0
+    assert any("not finite on 3 of 3 bins" in r.getMessage() for r in caplog.records if r.levelname == "WARNING")
+    healthy = trimeter.fit(ideal_map, I_b, I_w, I_c, method="mlp", mlp_model=ideal_model, kernel=kernel)
+    assert healthy.guess_fallback_bins == 0
 
 
 def test_lut_never_uses_a_table_built_from_another_map(ideal_map, thick_map, tmp_path):

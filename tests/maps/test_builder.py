@@ -137,3 +137,45 @@ def test_alpha_target_is_validated_and_absent_by_default(tiny_data):
     with pytest.raises(InputError, match="target_alpha_stderr"):
         parse_recipe(tiny_data(target_alpha_stderr=-1))
     assert "target_alpha_stderr" not in parse_recipe(tiny_data()).to_dict()["sampling"]
+
+
+def test_a_non_finite_checkpoint_column_is_quarantined_and_traced_again(tmp_path, tiny_recipe, reference_build):
+    from trimeter.maps.builder import quarantine_dir
+
+    out = tmp_path / "m.tmap"
+    with pytest.raises(Interrupt):
+        build_map(tiny_recipe, out, progress=False, on_column=lambda j, k: (_ for _ in ()).throw(Interrupt()))
+    ckpt = default_checkpoint_dir(out)
+    col = next(ckpt.glob("col_*.npz"))
+    with np.load(col) as z:
+        data = {name: np.array(z[name]) for name in z.files}
+    data["A"][0] = np.nan
+    with open(col, "wb") as f:
+        np.savez(f, **data)
+    calls = []
+    resumed = build_map(tiny_recipe, out, progress=False, resume=True, tracer=counting_tracer(calls))
+    assert len(calls) == len(tiny_recipe.sigma_t) * len(tiny_recipe.g)     # the NaN column traced again
+    np.testing.assert_array_equal(resumed.A, reference_build.A)
+    kept = list(quarantine_dir(ckpt).iterdir())
+    assert [p.name.split(".npz")[0] for p in kept] == [col.stem]            # kept aside, not deleted
+    assert np.isnan(np.load(kept[0])["A"][0])
+
+
+def test_a_column_traced_to_nan_writes_no_map_and_keeps_the_checkpoint(tmp_path, tiny_recipe, monkeypatch):
+    from trimeter.errors import BuildError
+    from trimeter.maps import builder
+
+    traced = builder.trace_column
+
+    def nan_at_first(recipe, stack, j, k, tracer):
+        col = traced(recipe, stack, j, k, tracer)
+        if (j, k) == (0, 0):
+            col.A[...] = np.nan
+        return col
+
+    monkeypatch.setattr(builder, "trace_column", nan_at_first)
+    out = tmp_path / "m.tmap"
+    with pytest.raises(BuildError, match=r"column\(s\) \(0, 0\) traced to a non-finite value"):
+        build_map(tiny_recipe, out, progress=False)
+    assert not out.exists()
+    assert len(list(default_checkpoint_dir(out).glob("col_*.npz"))) == len(tiny_recipe.sigma_t) * len(tiny_recipe.g)

@@ -4,6 +4,7 @@ its checkpoint intact (and --resume finishes it), an unreachable scheduler is on
 One local cluster per worker count for the whole module (start-up costs seconds)."""
 
 import os
+import socket
 import sys
 import time
 
@@ -14,7 +15,7 @@ import pytest
 from trimeter.cli import main
 from trimeter.errors import BuildError, InputError
 from trimeter.maps.builder import MapJob, build_map, build_maps, default_checkpoint_dir
-from trimeter.maps.distributed import local_client, remote_client
+from trimeter.maps.distributed import check_dask_scheduler, local_client, remote_client
 from trimeter.maps.recipe import parse_recipe
 from trimeter.maps.tracer import trace_column
 
@@ -145,3 +146,38 @@ def test_an_unreachable_scheduler_is_one_clear_error(tmp_path, capsys):
         err = capsys.readouterr().err
         assert err.startswith(f"trimeter: error: --scheduler {address}: no Dask scheduler") and err.count("\n") == 1
     assert not (tmp_path / "m.tmap").exists()
+
+
+def test_a_scheduler_address_where_something_else_listens_is_refused_before_anything_is_read(tmp_path):
+    import http.server
+    import threading
+
+    web = http.server.ThreadingHTTPServer(("127.0.0.1", 0), http.server.SimpleHTTPRequestHandler)
+    threading.Thread(target=web.serve_forever, daemon=True).start()
+    talker = socket.create_server(("127.0.0.1", 0))   # answers at once, with text, as an HTTP error page would
+
+    def talk() -> None:
+        conn, _ = talker.accept()
+        with conn:
+            conn.sendall(b"HTTP/1.1 400 Bad Request\r\n\r\n")
+            time.sleep(1)
+
+    threading.Thread(target=talk, daemon=True).start()
+    try:
+        for port, message in ((web.server_address[1], "no Dask scheduler answered"),
+                              (talker.getsockname()[1], "not a Dask scheduler")):
+            t0 = time.perf_counter()
+            with pytest.raises(InputError, match=message):
+                with remote_client(f"tcp://127.0.0.1:{port}", connect_timeout=1):
+                    pass
+            assert time.perf_counter() - t0 < 5
+    finally:
+        web.shutdown()
+        talker.close()
+
+
+def test_a_real_scheduler_passes_the_check():
+    from distributed import LocalCluster
+
+    with LocalCluster(n_workers=0, processes=False, dashboard_address=None) as cluster:
+        check_dask_scheduler(cluster.scheduler_address, connect_timeout=5)

@@ -38,6 +38,8 @@ def test_shipped_recipes_parse_with_the_documented_axes():
     ({"sampling": {"target_stderr": 0}}, "sampling.target_stderr"),
     ({"sampling": {"min_paths": 65536, "max_paths": 4096}}, "sampling.max_paths"),
     ({"sampling": {"truncation": 2}}, "sampling.truncation"),
+    ({"name": "a\0b"}, "name"), ({"name": "a\nb"}, "name"), ({"name": "a\\b"}, "name"), ({"name": ".."}, "name"),
+    ({"name": "x" * 201}, "name"), ({"name": 5}, "name"),
 ])
 def test_impossible_values_are_refused_naming_the_field(change, field, tiny_data):
     data = tiny_data()

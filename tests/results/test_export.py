@@ -174,3 +174,24 @@ def test_bad_options_are_clear_errors(result_dir, capsys):
     assert main(["export", str(result_dir / "nope"), "--to", "rgb"]) == 2
     with pytest.raises(InputError):
         SpectralMaterial.mixture([cyan()], [-1.0])
+
+
+@pytest.mark.parametrize("fmt", ["rgb", "blender"])
+def test_a_material_opaque_at_the_reference_thickness_is_refused_not_made_an_absorber(tmp_path, capsys, fmt):
+    path = tmp_path / "dense.csv"
+    path.write_text("wavelength_nm,alpha,sigma_t,g\n400,0.99,1e300,0\n500,0.99,1e300,0\n600,0.99,1e300,0\n")
+    assert main(["export", str(path), "--to", fmt, "-o", str(tmp_path / fmt)]) == 2
+    err = capsys.readouterr().err
+    assert "opaque in σt" in err and "Traceback" not in err
+    assert not (tmp_path / fmt / f"{fmt}.json").exists()
+    dense = SpectralMaterial.from_coefficients(WL, np.full(WL.size, 0.1), np.full(WL.size, 50.0), np.zeros(WL.size))
+    with pytest.raises(InputError, match="at most 0.27"):   # −ln(1e-6)/50.1 mm
+        linear_srgb_coefficients(dense, 1.0)
+    assert linear_srgb_coefficients(dense, 0.2)["sigma_s"].min() > 40   # thin enough: its scattering kept
+
+
+@pytest.mark.parametrize("step", ["1e-9", "0.01", "-1", "nan", "101"])
+def test_a_resampling_step_too_fine_or_impossible_is_refused(result_dir, capsys, step):
+    assert main(["export", str(result_dir), "--to", "mitsuba", "--step-nm", step, "-o", "/nonexistent/x"]) == 2
+    err = capsys.readouterr().err
+    assert "step" in err and "Traceback" not in err

@@ -11,7 +11,7 @@ import trimeter
 from trimeter.errors import InputError
 from trimeter.results import write_measurement
 from trimeter.results.reader import Measurement, load, read_record
-from trimeter.results.tables import MAX_RESULT_FILE_BYTES
+from trimeter.tables import MAX_RESULT_FILE_BYTES
 
 
 @pytest.fixture(scope="module")

@@ -144,9 +144,9 @@ def _no_instrument() -> object:
 
 
 @contextlib.contextmanager
-def idle_web(root: Path):
+def idle_web(root: Path, **server_options: float):
     """The web app of a host whose instrument loop never starts (no twin): for what the app answers by
-    itself (headers, the map listing), in a fraction of a second."""
+    itself (headers, the map listing), in a fraction of a second. server_options: WebServer's."""
     from trimeter.web.app import WebServer, create_app
     from trimeter.web.auth import load_or_create_token
     from trimeter.web.history import History
@@ -159,7 +159,7 @@ def idle_web(root: Path):
         history = History(settings.results_path, data_dir() / "history.sqlite")
         history.open()
         jobs = Jobs(service, on_measurement=history.add)
-        server = WebServer(create_app(jobs, history, load_or_create_token()), "127.0.0.1", 0).start()
+        server = WebServer(create_app(jobs, history, load_or_create_token()), "127.0.0.1", 0, **server_options).start()
         try:
             yield Web(server.url, load_or_create_token(), None, jobs, history, root)
         finally:

@@ -18,6 +18,7 @@ import pytest
 
 from conftest import web_instrument
 from hil_support import SAMPLE, THICKNESS_MM
+from trimeter.sequences.settings import HostSettings
 
 
 class WebhookReceiver(http.server.ThreadingHTTPServer):
@@ -164,6 +165,10 @@ def test_config_goes_through_the_same_checks(web, measured):
         assert answer.status == 400, (bad, answer.body)
     after = web.call("GET", "/api/config").json
     assert after["host"]["frames"] == 3 and after["device"]["speed_mm_s"] == speed
+    # a PUT whose device part the firmware refuses (a white slot inside the homing back-off) saves no host part
+    refused = web.call("PUT", "/api/config", {"host": {"frames": 4}, "device": {"slot_white_mm": 0.0}})
+    assert refused.status == 400 and "refused" in refused.json["error"]["message"], refused.body
+    assert HostSettings.load().frames == 3 and web.jobs.service.settings.frames == 3
 
 
 def test_events_arrive_live_on_the_websocket_for_every_client(web, measured):

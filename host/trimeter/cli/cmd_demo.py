@@ -99,11 +99,11 @@ def run(args: argparse.Namespace) -> None:
 
     carried = "no map table" if table is None else f"map table {table.name} (sha256 {table.sha256[:12]}…)"
     fitted_with = f"the map {amap.name} (--map)" if args.map else "the table the instrument carries"
-    print(f"demo: twin with '{args.sample}' ℓ = {args.thickness:g} mm and {carried} in its slot; the host fits "
-          f"with {fitted_with}; time scale {args.time_scale:g}×")
+    print(f"demo: twin with '{args.sample}' ℓ = {args.thickness:g} mm and {carried} in its slot, read by its "
+          f"{args.sensor}; the host fits with {fitted_with}; time scale {args.time_scale:g}×")
     with Twin(sample=None, thickness_mm=args.thickness, time_scale=args.time_scale, appearance_map=amap,
               state_dir=out / "twin", seed=args.seed,
-              map_table=None if table is None else table.to_bytes()) as twin:
+              map_table=None if table is None else table.to_bytes(), sensor=args.sensor) as twin:
         settings.set("port", twin.modbus_port)
         settings.set("spectrometer", twin.spectrometer_url)
         events: queue.Queue[Event] = queue.Queue()
@@ -203,6 +203,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                  "shipped map of that thickness)")
     p.add_argument("--method", default="lut", choices=METHODS)
     p.add_argument("--time-scale", type=float, default=20.0, help="twin time runs this many times faster")
+    p.add_argument("--sensor", default="spectrometer", choices=("spectrometer", "as7341"),
+                   help="the build the twin reads like: the spectrometer's pixels, or the AS7341's nine channels "
+                        "(fitted band-aware)")
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--out", help="output directory (default: the user data directory's demo/, printed; "
                                  "TRIMETER_DATA_DIR overrides it)")

@@ -4,6 +4,7 @@
                  [--json] [--polish N]
     trimeter fit --table TABLE.tlut --input meas.csv [--thickness MM] [--refine [--polish N]] …
     trimeter fit --on-device --port PORT --input meas.csv [--thickness MM] …
+    trimeter fit --map MAP --bands WEIGHTS.csv|as7341 --input channels.csv [--grid START:STOP:STEP] …
 
 `--table` fits from a device table alone (maps/<name>.tlut: the inverse grid, the compact forward
 model, the in-scattering correction, n, ℓ and the reference backgrounds; no map file needed) with the
@@ -23,8 +24,14 @@ belong to which map; both thicknesses must cover the same wavelengths); I_b_std,
 this measurement, not of a default noise model) and thickness_std_mm (the sample thickness's std, one
 value per thickness). Empty cells and "nan" are missing values: those bins come back flagged with NaN
 results, the others are unaffected (a missing std: the default noise model's for that bin).
+`--bands`: a multichannel sensor's band readings, fitted band-aware (trimeter.cli.fit_bands says how).
+
 Output columns: wavelength_nm, alpha, sigma_t, g, alpha_std, sigma_t_std, g_std, flags, sigma_t_beer,
 thickness_mm (flags: trimeter.inversion.flags.FitFlag bits; the JSON form also names them).
+Rows come out in wavelength order. With CSV output the input is read, fitted and written in chunks, so
+an input of any length fits in bounded memory (trimeter.cli.fit_stream: a large input must then be in
+wavelength order; a bad row found part way leaves no -o file, while stdout has had the rows before it);
+--json and --on-device read their input whole, up to a size limit.
 The thickness is never assumed silently: σt scales as 1/ℓ, so a map of another thickness than the
 sample's gives σt off by their ratio. The output states the thickness the fit used (the map's; with
 two maps "0.4+0.8"), and so does a line on stderr; `--thickness` declares the sample's, and a map of
@@ -34,7 +41,6 @@ another thickness is then an error.
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import math
 import sys
@@ -45,10 +51,11 @@ from typing import TYPE_CHECKING, Any, SupportsFloat
 import numpy as np
 
 from trimeter.atomic import atomic_write, same_file
+from trimeter.cli import fit_stream
 from trimeter.cli._instrument import add_instrument_args
+from trimeter.cli.fit_stream import OUTPUT, Chunk
 from trimeter.errors import InputError, OutputError
 from trimeter.inversion.methods import METHODS
-from trimeter.validation import shown
 
 if TYPE_CHECKING:
     from trimeter.maps.appearance import AppearanceMap
@@ -57,10 +64,6 @@ if TYPE_CHECKING:
     # what a fit here inverts through: appearance maps (one per thickness) or one device table
     FitSource = AppearanceMap | DeviceTable
 
-REQUIRED = ("wavelength_nm", "I_b", "I_w", "I_c")
-OPTIONAL = ("rho_b", "rho_w", "thickness_mm", "I_b_std", "I_w_std", "I_c_std", "thickness_std_mm")
-OUTPUT = ("wavelength_nm", "alpha", "sigma_t", "g", "alpha_std", "sigma_t_std", "g_std", "flags", "sigma_t_beer",
-          "thickness_mm")
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -85,6 +88,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--thickness", type=float, action="append",
                    help="the sample's thickness in mm (once per --map); a map of another thickness is an error")
     p.add_argument("--method", choices=METHODS, help="inversion method (default: lut)")
+    p.add_argument("--bands", metavar="WEIGHTS.csv",
+                   help="band weights of a multichannel sensor (or 'as7341': the built-in model); --input then "
+                        "holds one row per channel (channel,I_b,I_w,I_c[,rho_b,rho_w,*_std])")
+    p.add_argument("--grid", metavar="START:STOP:STEP", help="with --bands: the spectra on this grid as well (nm)")
     p.add_argument("-o", "--output", type=Path, help="output CSV (default: stdout)")
     p.add_argument("--json", action="store_true", help="print JSON instead of CSV")
     p.set_defaults(func=run)
@@ -98,44 +105,6 @@ def _polish_steps(text: str) -> int:
     if not 0 <= value <= 100:
         raise argparse.ArgumentTypeError(f"{text!r} is not a number of Newton steps in 0..100")
     return value
-
-
-def read_measurements(path: Path) -> dict[str, np.ndarray]:
-    try:
-        text = path.read_text(encoding="utf-8-sig")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"--input {path}: cannot read ({getattr(exc, 'strerror', None) or exc})") from None
-    lines = (line for line in text.splitlines() if line.strip() and not line.lstrip().startswith("#"))
-    try:
-        return _parse_columns(csv.reader(lines), path)
-    except csv.Error as exc:  # e.g. a field over the csv module's limit, a NUL byte
-        raise InputError(f"--input {path}: not a readable CSV ({exc})") from None
-
-
-def _parse_columns(reader: Iterator[list[str]], path: Path) -> dict[str, np.ndarray]:
-    header = [h.strip() for h in next(reader, [])]
-    duplicated = sorted({h for h in header if header.count(h) > 1})
-    if duplicated:
-        raise InputError(f"--input {path}: column(s) {', '.join(map(shown, duplicated))} appear more than once")
-    missing = [c for c in REQUIRED if c not in header]
-    if missing:
-        raise InputError(f"--input {path}: missing column(s) {', '.join(missing)} (have: "
-                         f"{', '.join(map(shown, header)) or 'none'})")
-    columns: dict[str, list[float]] = {c: [] for c in REQUIRED + OPTIONAL if c in header}
-    where = {c: header.index(c) for c in columns}
-    for row_no, row in enumerate(reader, start=2):
-        for c, i in where.items():
-            cell = row[i].strip() if i < len(row) else ""
-            try:
-                columns[c].append(float(cell) if cell else math.nan)
-            except ValueError:
-                raise InputError(f"--input {path}: line {row_no}, column {c}: {shown(cell)} is not a number") from None
-    data = {c: np.array(v, dtype=float) for c, v in columns.items()}
-    if not len(data["wavelength_nm"]):
-        raise InputError(f"--input {path}: no data rows")
-    if not np.all(np.isfinite(data["wavelength_nm"])):
-        raise InputError(f"--input {path}: column wavelength_nm has an empty or non-finite value")
-    return data
 
 
 def _split_thicknesses(data: dict[str, np.ndarray], amaps: Sequence[FitSource], path: Path) -> list[np.ndarray]:
@@ -200,6 +169,12 @@ def run(args: argparse.Namespace) -> int:
     from trimeter.maps.artifacts import fit
     from trimeter.maps.device_table import DeviceTable
 
+    if args.bands is not None:
+        from trimeter.cli.fit_bands import run_bands
+
+        return run_bands(args)
+    if args.grid is not None:
+        raise InputError("--grid: only with --bands (a per-wavelength fit reports at its input's wavelengths)")
     amaps = _fit_models(args)
     if args.on_device:
         return _run_on_device(args)
@@ -211,7 +186,9 @@ def run(args: argparse.Namespace) -> int:
     if len({round(m.thickness_mm, 9) for m in amaps}) != len(amaps):
         raise InputError("--map: the maps must be for different thicknesses")
     check_declared_thickness(args.thickness, amaps)
-    data = read_measurements(args.input)
+    if not args.json:
+        return _run_streamed(args, amaps, method, table_file)
+    data = fit_stream.read_whole(args.input)
     groups = _split_thicknesses(data, amaps, args.input)
     stack = lambda name: np.stack([data[name][rows] for rows in groups])  # noqa: E731
     rho_b = stack("rho_b") if "rho_b" in data else None
@@ -227,16 +204,106 @@ def run(args: argparse.Namespace) -> int:
     for note in notes:  # stderr: stdout may be the CSV
         print(f"note: {note}", file=sys.stderr)
     used = "+".join(f"{m.thickness_mm:g}" for m in amaps)
-    source = "declared with --thickness" if args.thickness else "not declared: the map's" if len(amaps) == 1 \
-        else "not declared: the maps'"
     identity = _table_identity(table_file, "file") if table_file is not None else None
-    fitted = f"table {identity['name']} (sha256 {identity['sha256'][:12]}…), refined at load" if identity else \
-        f"map {', '.join(m.name for m in amaps)}"
-    print(f"thickness: {used} mm ({source}; {fitted})", file=sys.stderr)
+    print(_thickness_line(args, amaps, identity), file=sys.stderr)
     flag_names = [describe(f) for f in result.flags]
     _write_result(args, columns, used, method, [m.thickness_mm for m in amaps], amaps, flag_names, notes,
                   identity)
     return 0
+
+
+def _thickness_line(args: argparse.Namespace, amaps: Sequence[FitSource], identity: dict[str, Any] | None) -> str:
+    """The stderr line that states the thickness the fit used and what it fitted with."""
+    used = "+".join(f"{m.thickness_mm:g}" for m in amaps)
+    source = "declared with --thickness" if args.thickness else "not declared: the map's" if len(amaps) == 1 \
+        else "not declared: the maps'"
+    fitted = f"table {identity['name']} (sha256 {identity['sha256'][:12]}…), refined at load" if identity else \
+        f"map {', '.join(m.name for m in amaps)}"
+    return f"thickness: {used} mm ({source}; {fitted})"
+
+
+def _run_streamed(args: argparse.Namespace, models: Sequence[FitSource], method: str,
+                  table_file: DeviceTable | None) -> int:
+    """The maps (or a table refined at load) with CSV output: the input read, fitted and written in chunks
+    (trimeter.cli.fit_stream), the same output as one fit of every row."""
+    from trimeter.maps.artifacts import fit
+
+    thickness_stds: list[list[float]] = [[] for _ in models]  # fixed by the first chunk: one per sample
+    bins_before = [0]  # the chunk's first bin in the whole input (the paper method's samples)
+
+    def fit_chunk(chunk: Chunk) -> Chunk:
+        groups = _split_thicknesses(chunk, models, args.input)  # checks thickness_mm; in order already
+        stack = lambda name: np.stack([chunk[name][rows] for rows in groups])  # noqa: E731
+        options: dict[str, Any] = {name: stack(name) for name in ("I_b_std", "I_w_std", "I_c_std") if name in chunk}
+        if "thickness_std_mm" in chunk:
+            options["thickness_std_mm"] = [
+                _streamed_thickness_std(chunk["thickness_std_mm"][rows], seen, model, args.input)
+                for rows, seen, model in zip(groups, thickness_stds, models, strict=True)]
+        if args.polish is not None:
+            options["polish"] = args.polish
+        if method == "paper":
+            options["first_row"] = bins_before[0]
+        bins_before[0] += len(groups[0])
+        result = fit(list(models), stack("I_b"), stack("I_w"), stack("I_c"),
+                     stack("rho_b") if "rho_b" in chunk else None, stack("rho_w") if "rho_w" in chunk else None,
+                     method=method, **options)
+        return {"wavelength_nm": chunk["wavelength_nm"][groups[0]], **result.as_dict()}
+
+    identity = _table_identity(table_file, "file") if table_file is not None else None
+    chunks = None if len(models) == 1 else lambda read: _paired(read, models, args.input)
+    tally = fit_stream.fit_csv(args.input, args.output, fit_chunk, "+".join(f"{m.thickness_mm:g}" for m in models),
+                               regroup=chunks)
+    for note in tally.advice(len(models)):
+        print(f"note: {note}", file=sys.stderr)
+    print(_thickness_line(args, models, identity), file=sys.stderr)
+    if args.output is not None:
+        print(f"wrote {args.output}", file=sys.stderr)
+    return 0
+
+
+def _paired(chunks: Iterator[Chunk], models: Sequence[FitSource], path: Path) -> Iterator[Chunk]:
+    """Chunks re-cut so that each holds as many rows of every thickness: the i-th row of one thickness is
+    fitted with the i-th of the others, as in one fit of all rows (rows past the shortest thickness's are
+    carried into the next chunk)."""
+    carry: Chunk | None = None
+    for chunk in chunks:
+        if carry is not None:
+            chunk = {c: np.concatenate([carry[c], v]) for c, v in chunk.items()}
+        if "thickness_mm" not in chunk:
+            raise InputError(f"--input {path}: with {len(models)} maps the column thickness_mm must say "
+                             f"which rows belong to which")
+        member = [np.abs(chunk["thickness_mm"] - m.thickness_mm) <= 1e-6 * max(1.0, m.thickness_mm) for m in models]
+        shortest = min(int(m.sum()) for m in member)
+        keep = ~np.logical_or.reduce(member)  # rows of no thickness: kept, to be refused with the chunk
+        for m in member:
+            keep |= m & (np.cumsum(m) <= shortest)
+        carry = {c: v[~keep] for c, v in chunk.items()}
+        if keep.any():
+            yield {c: v[keep] for c, v in chunk.items()}
+    if carry is not None and len(carry["wavelength_nm"]):
+        counts = [int((np.abs(carry["thickness_mm"] - m.thickness_mm) <= 1e-6 * max(1.0, m.thickness_mm)).sum())
+                  for m in models]
+        longer = models[int(np.argmax(counts))]
+        raise InputError(f"--input {path}: thickness {longer.thickness_mm:g} mm has {max(counts)} more row(s) than "
+                         f"another: the thicknesses must cover the same wavelengths")
+
+
+def _streamed_thickness_std(column: np.ndarray, seen: list[float], model: FitSource, path: Path) -> float:
+    """The sample thickness's std for a chunk of a streamed input: the first chunk's (one value), which every
+    later row must repeat or leave empty."""
+    values = np.unique(column[np.isfinite(column)])
+    first = not seen
+    if first:
+        seen.append(float(values[0]) if len(values) else math.nan)
+    if len(values) > 1 or (len(values) and values[0] != seen[0]):
+        if not first and math.isnan(seen[0]):
+            raise InputError(f"--input {path}: column thickness_std_mm is empty on the first rows but not later; "
+                             f"the rows are fitted as they are read, so give the std from the first row on")
+        shown_values = sorted({*values.tolist(), *([] if math.isnan(seen[0]) else [seen[0]])})
+        raise InputError(f"--input {path}: column thickness_std_mm differs between the rows of thickness "
+                         f"{model.thickness_mm:g} mm ({shown_values[0]:g}, {shown_values[1]:g}, …): one sample, "
+                         f"one std")
+    return 0.0 if math.isnan(seen[0]) else seen[0]
 
 
 def _table_identity(table: DeviceTable, source: str, slot: str | None = None) -> dict[str, Any]:
@@ -264,11 +331,7 @@ def _write_result(args: argparse.Namespace, columns: dict[str, np.ndarray], used
             doc["table"] = table
         _write(args.output, json.dumps(doc, indent=1, allow_nan=False) + "\n")
         return
-    lines = [",".join(OUTPUT)]
-    for i in range(len(columns["wavelength_nm"])):
-        lines.append(",".join([*(str(int(columns[k][i])) if k == "flags" else f"{columns[k][i]:.9g}"
-                                 for k in OUTPUT[:-1]), used]))
-    _write(args.output, "\n".join(lines) + "\n")
+    _write(args.output, ",".join(OUTPUT) + "\n" + fit_stream.csv_rows(columns, used))
 
 
 def _run_table_fit(args: argparse.Namespace, table: DeviceTable) -> int:
@@ -278,19 +341,35 @@ def _run_table_fit(args: argparse.Namespace, table: DeviceTable) -> int:
 
     refuse_output_onto_inputs(args.output, [args.input, args.table])
     check_declared_thickness(args.thickness, [table])
-    data = read_measurements(args.input)
-    rows = _split_thicknesses(data, [table], args.input)[0]
-    ignored = [c for c in ("I_b_std", "I_w_std", "I_c_std", "thickness_std_mm") if c in data]
+    with fit_stream.reader(args.input) as header:
+        ignored = [c for c in ("I_b_std", "I_w_std", "I_c_std", "thickness_std_mm") if c in header.columns]
     if ignored:
         print(f"note: the instrument's fit takes no stds: column(s) {', '.join(ignored)} not used (--refine "
               f"propagates them)", file=sys.stderr)
-    rho_b, rho_w = _backgrounds(data, rows, table)
-    alpha, sigma_t, g, flags = native.TableFitter(table.to_bytes()).fit(data["I_b"][rows], data["I_w"][rows],
-                                                                        data["I_c"][rows], rho_b, rho_w)
+    fitter = native.TableFitter(table.to_bytes())
     source = "declared with --thickness" if args.thickness else "not declared: the table's"
     fitted = f"table {table.name} (sha256 {table.sha256[:12]}…) with the instrument's fit"
+    where = f"thickness: {table.thickness_mm:g} mm ({source}; {fitted})"
+    if not args.json:
+        def fit_chunk(chunk: Chunk) -> Chunk:
+            rows = _split_thicknesses(chunk, [table], args.input)[0]
+            result = fitter.fit(chunk["I_b"][rows], chunk["I_w"][rows], chunk["I_c"][rows],
+                                *_backgrounds(chunk, rows, table))
+            return _table_fit_columns(chunk, rows, table, result)
+
+        tally = fit_stream.fit_csv(args.input, args.output, fit_chunk, f"{table.thickness_mm:g}")
+        for note in tally.advice(1):
+            print(f"note: {note}", file=sys.stderr)
+        print(where, file=sys.stderr)
+        if args.output is not None:
+            print(f"wrote {args.output}", file=sys.stderr)
+        return 0
+    data = fit_stream.read_whole(args.input)
+    rows = _split_thicknesses(data, [table], args.input)[0]
+    rho_b, rho_w = _backgrounds(data, rows, table)
+    alpha, sigma_t, g, flags = fitter.fit(data["I_b"][rows], data["I_w"][rows], data["I_c"][rows], rho_b, rho_w)
     _write_table_fit(args, data, rows, table, (alpha, sigma_t, g, flags), "lut (the instrument's fit)",
-                     _table_identity(table, "file"), f"thickness: {table.thickness_mm:g} mm ({source}; {fitted})")
+                     _table_identity(table, "file"), where)
     return 0
 
 
@@ -301,7 +380,7 @@ def _run_on_device(args: argparse.Namespace) -> int:
     from trimeter.maps.device_table import instrument_table
 
     refuse_output_onto_inputs(args.output, [args.input])
-    data = read_measurements(args.input)
+    data = fit_stream.read_whole(args.input)
     with open_device(settings_from(args)) as device:
         table, slot, _cached = instrument_table(device)
         check_declared_thickness(args.thickness, [table])
@@ -332,11 +411,8 @@ def _write_table_fit(args: argparse.Namespace, data: dict[str, np.ndarray], rows
     computes none), advice and the thickness line on stderr."""
     from trimeter.inversion.flags import advice, describe
 
-    alpha, sigma_t, g, flags = fitted
-    nan = np.full(len(rows), np.nan)
-    columns = {"wavelength_nm": data["wavelength_nm"][rows], "alpha": alpha, "sigma_t": sigma_t, "g": g,
-               "alpha_std": nan, "sigma_t_std": nan, "g_std": nan, "flags": flags,
-               "sigma_t_beer": table.setup.beer_lambert_sigma_t(data["I_c"][rows])}
+    columns = _table_fit_columns(data, rows, table, fitted)
+    flags = columns["flags"]
     notes = advice(flags, 1)
     for note in notes:  # stderr: stdout may be the CSV
         print(f"note: {note}", file=sys.stderr)
@@ -345,11 +421,26 @@ def _write_table_fit(args: argparse.Namespace, data: dict[str, np.ndarray], rows
                   [describe(f) for f in flags], notes, identity)
 
 
+def _table_fit_columns(data: Chunk, rows: np.ndarray, table: DeviceTable,
+                       fitted: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]) -> Chunk:
+    """The instrument's fit as the output's columns: NaN stds (it computes none), the Beer-Lambert σt."""
+    alpha, sigma_t, g, flags = fitted
+    nan = np.full(len(rows), np.nan)
+    return {"wavelength_nm": data["wavelength_nm"][rows], "alpha": alpha, "sigma_t": sigma_t, "g": g,
+            "alpha_std": nan, "sigma_t_std": nan, "g_std": nan, "flags": flags,
+            "sigma_t_beer": table.setup.beer_lambert_sigma_t(data["I_c"][rows])}
+
+
 def _thickness_std(column: np.ndarray, groups: list[np.ndarray], amaps: Sequence[FitSource], path: Path) -> list[float]:
     """One thickness std per map from the column: the same value on every row of that thickness."""
     out = []
+    if not np.isfinite(column).all():  # a NaN std is no "exact thickness": refused, never read as 0
+        bad = np.flatnonzero(~np.isfinite(column))
+        raise InputError(f"--input {path}: column thickness_std_mm is not a finite number on row(s) "
+                         f"{', '.join(str(i + 1) for i in bad[:5])}{', …' if len(bad) > 5 else ''} (0: the thickness "
+                         f"is exact)")
     for rows, amap in zip(groups, amaps, strict=True):
-        values = np.unique(column[rows][np.isfinite(column[rows])])
+        values = np.unique(column[rows])
         if len(values) > 1:
             raise InputError(f"--input {path}: column thickness_std_mm differs between the rows of thickness "
                              f"{amap.thickness_mm:g} mm ({values[0]:g}, {values[1]:g}, …): one sample, one std")

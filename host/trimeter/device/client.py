@@ -49,7 +49,14 @@ Value = Any
 
 
 def encode(reg: regs.Register, value: Any) -> list[int]:
-    """Physical value -> register words (or [0/1] for a bit), refusing out-of-range values by name."""
+    """Physical value -> register words (or [0/1] for a bit), refusing out-of-range values by name. The same
+    checks for the command line, the web API and a backup's import: a boolean is no number or name, a
+    number no boolean unless 0 or 1."""
+    if reg.type == "bool":
+        if not (isinstance(value, (bool, str)) or type(value) is int and value in (0, 1)):
+            raise InputError(f"{reg.name}: {value!r} is not a boolean (on/off, true/false, 1/0)")
+    elif isinstance(value, bool) or not isinstance(value, (int, float, str, np.integer, np.floating)):
+        raise InputError(f"{reg.name}: {value!r} is not a number or a name")
     if reg.enum:
         enum = regs.ENUMS[reg.enum]
         try:
@@ -70,8 +77,8 @@ def encode(reg: regs.Register, value: Any) -> list[int]:
             physical = float(value)
         except (TypeError, ValueError):
             raise InputError(f"{reg.name}: {value!r} is not a number") from None
-        if physical != physical:
-            raise InputError(f"{reg.name}: NaN is not a value")
+        if not np.isfinite(physical):
+            raise InputError(f"{reg.name}: {'NaN' if physical != physical else physical} is not a value")
         raw = physical / reg.scale
         if reg.type != "f32":
             if abs(raw - round(raw)) > 1e-6 * max(1.0, abs(raw)):

@@ -25,6 +25,9 @@ class FitResult:
     # judged on (None: the stds above)
     conditioning_alpha_std: np.ndarray | None = None
     conditioning_g_std: np.ndarray | None = None
+    # bins where the method's own first guess (the MLP's) was not finite and the table's was used instead:
+    # their result is the lut fit's, whatever method is named (over all thicknesses when several)
+    guess_fallback_bins: int = 0
 
     COLUMNS = ("alpha", "sigma_t", "g", "alpha_std", "sigma_t_std", "g_std", "flags", "sigma_t_beer")
 

@@ -19,6 +19,7 @@ thickness's whole flow runs in one C call with the compiled kernel (`tm_fit`); `
 
 from __future__ import annotations
 
+import logging
 from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -38,6 +39,8 @@ from trimeter.inversion.strategy import Method
 from trimeter.model.grid import ForwardGrid
 from trimeter.model.setup import SampleSetup
 
+log = logging.getLogger("trimeter.inversion")
+
 if TYPE_CHECKING:
     from scipy.interpolate import LinearNDInterpolator
 
@@ -53,7 +56,7 @@ UNDERDETERMINED_ALPHA_STD, UNDERDETERMINED_G_STD = 0.1, 0.2  # FitFlag.UNDERDETE
 # std (the noise model's): further steps only wander along what the data cannot tell apart (thick,
 # dark bins would take every step). Larger fractions stop underdetermined bins too far from the map's
 # exact solution. A bin also stops when its step shrank at least 4× and the next one would be below
-# that fraction (newton.step_is_small). The figures behind the value: maps/README.md.
+# that fraction (newton.step_is_small). The figures behind the value: the git history of maps/README.md.
 POLISH_TOL_STD = 3e-3
 # The in-scattering correction's relative std: how far the map's table and independent, longer traces
 # differ over the measurable gamut, with room for the tracer's approximations (trimeter.forward.inscatter).
@@ -113,7 +116,8 @@ def fit(models: FitModel | Sequence[FitModel], I_b: ArrayLike, I_w: ArrayLike, I
         epsilon: float = 0.01,
         seed: int = 0, mlp_model: str | Path | None = None, I_b_std: ArrayLike | None = None,
         I_w_std: ArrayLike | None = None, I_c_std: ArrayLike | None = None,
-        thickness_std_mm: float | ArrayLike = 0.0, inscatter_rel_std: float = INSCATTER_REL_STD) -> FitResult:
+        thickness_std_mm: float | ArrayLike = 0.0, inscatter_rel_std: float = INSCATTER_REL_STD,
+        first_row: int = 0) -> FitResult:
     """Invert measured intensities (arrays over wavelength bins) to α, σt [1/mm], g.
 
     models: a FitModel (trimeter.maps.artifacts.load_artifacts), or a list of them (the same material at
@@ -132,7 +136,9 @@ def fit(models: FitModel | Sequence[FitModel], I_b: ArrayLike, I_w: ArrayLike, I
     guess; None: the method's default_polish); a bin stops once a step moved α and g by at most
     polish_tol, or by less than POLISH_TOL_STD of their noise std, or by a quarter of the step before
     with the next one, extrapolated, below that (polish_tol = 0: every bin takes `polish` steps).
-    samples, epsilon, seed: the paper method's ε-median (samples=0: plain interpolation).
+    samples, epsilon, seed: the paper method's ε-median (samples=0: plain interpolation); first_row: the
+    bins' position in a larger input fitted in parts, so that their ε-samples are those of one fit of it all
+    (every other method fits each bin on its own).
     """
     from trimeter.inversion.methods import get_method  # the table imports the methods, which use this module
     from trimeter.validation import require_number
@@ -163,7 +169,7 @@ def fit(models: FitModel | Sequence[FitModel], I_b: ArrayLike, I_w: ArrayLike, I
                                 inscatter_rel_std=inscatter_rel_std)
     if strategy.fit_all is not None:  # strategy.joint
         return strategy.fit_all(amaps, arrays, stds, thickness_rel, kernel=kernel, samples=samples, epsilon=epsilon,
-                                seed=seed, **opts)
+                                seed=seed, first_row=int(require_number("first_row", first_row, lo=0)), **opts)
     singles = [_fit_one(amap, *arrays[i], sd=stds[i], thickness_rel_std=thickness_rel[i], method=strategy,
                         kernel=kernel, polish=polish, polish_tol=polish_tol, mlp_model=mlp_model, **opts)
                for i, amap in enumerate(amaps)]
@@ -171,7 +177,9 @@ def fit(models: FitModel | Sequence[FitModel], I_b: ArrayLike, I_w: ArrayLike, I
         return singles[0]
     combined = kernel.combine(singles, method, underdetermined_std=(UNDERDETERMINED_ALPHA_STD, UNDERDETERMINED_G_STD),
                               disagree_sigmas=_DISAGREE_SIGMAS)
-    return combine(singles, method) if combined is None else combined
+    combined = combine(singles, method) if combined is None else combined
+    combined.guess_fallback_bins = sum(r.guess_fallback_bins for r in singles)
+    return combined
 
 
 def _shape_inputs(k: int, I_b: ArrayLike, I_w: ArrayLike, I_c: ArrayLike, rho_b: ArrayLike | None,
@@ -274,7 +282,7 @@ def _fit_one(model: FitModel, I_b: np.ndarray, I_w: np.ndarray, I_c: np.ndarray,
     if out is not None:
         if sd is None:  # the noise model's stds: the conditioning stds are the stds themselves
             out["conditioning_alpha_std"] = out["conditioning_g_std"] = None
-        return FitResult(**out, method=method.name)
+        return _said(FitResult(**out, method=method.name))
     p = _prepare(model, grid, I_b, I_w, I_c, rho_b, rho_w, ic_floor)
     floor_sd = _noise_model(p, noise_rel, noise_abs)
     sd = floor_sd if sd is None else sd
@@ -285,6 +293,7 @@ def _fit_one(model: FitModel, I_b: np.ndarray, I_w: np.ndarray, I_c: np.ndarray,
     else:
         alpha0, g0 = guesser.predict(p.ib, p.iw, p.sigma_t, p.rb, p.rw)
         broken = ~(np.isfinite(alpha0) & np.isfinite(g0))  # a guesser gone bad: the table guesses there
+        fallback = int(np.count_nonzero(broken))
         if broken.any():
             table_a, table_g = inverter.initial_guess(p.ib, p.iw, inverter.table_grid.sigma_cell(p.sigma_t))
             alpha0, g0 = np.where(broken, table_a, alpha0), np.where(broken, table_g, g0)
@@ -296,10 +305,22 @@ def _fit_one(model: FitModel, I_b: np.ndarray, I_w: np.ndarray, I_c: np.ndarray,
         a, s, gg, ds = correct_inscatter(grid, alpha, sigma_t, g, J)
         alpha, sigma_t, g = np.where(eligible, a, alpha), np.where(eligible, s, sigma_t), np.where(eligible, gg, g)
         inscatter_ds = np.where(eligible, ds, 0.0)
-    return _finish(grid, p.flags, p.usable, p.ib, p.iw, p.ic, p.rb, p.rw, alpha, sigma_t, g, residual,
-                   p.sigma_beer, method=method.name, kernel=kernel, sd=sd, sigma_t_solved=p.sigma_t,
-                   inscatter_ds=inscatter_ds, inscatter_rel_std=inscatter_rel_std, thickness_rel_std=thickness_rel_std,
-                   alpha_min_g=alpha_min_g, J=J, solved=solved, floor_sd=floor_sd)
+    result = _finish(grid, p.flags, p.usable, p.ib, p.iw, p.ic, p.rb, p.rw, alpha, sigma_t, g, residual,
+                     p.sigma_beer, method=method.name, kernel=kernel, sd=sd, sigma_t_solved=p.sigma_t,
+                     inscatter_ds=inscatter_ds, inscatter_rel_std=inscatter_rel_std,
+                     thickness_rel_std=thickness_rel_std, alpha_min_g=alpha_min_g, J=J, solved=solved,
+                     floor_sd=floor_sd)
+    result.guess_fallback_bins = 0 if guesser is None else fallback
+    return _said(result)
+
+
+def _said(result: FitResult) -> FitResult:
+    """The fit, with a warning when its method's guess failed on some bins (they hold the lut fit's answer)."""
+    if result.guess_fallback_bins:
+        log.warning("%s: the method's first guess was not finite on %d of %d bins (a damaged model?); those bins "
+                    "were solved from the table's guess, as the lut method would", result.method,
+                    result.guess_fallback_bins, len(result))
+    return result
 
 
 def _noise_model(p: _Prepared, noise_rel: float, noise_abs: float) -> np.ndarray:

@@ -140,9 +140,16 @@ class NativeKernel:
         if guesser is None:
             out = solver.fit(I_b, I_w, I_c, rho_b, rho_w, sd=sd, **options)
         else:  # the guesser reads the features C prepares; tm_fit_solve clamps its guess to the map's box
-            out = solver.fit_guessed(I_b, I_w, I_c, rho_b, rho_w, guesser.run, guesser.log_sigma_range, sd=sd,
-                                     **options)
+            broken: list[int] = []
+
+            def guess(features: np.ndarray) -> np.ndarray:
+                y = np.asarray(guesser.run(features))
+                broken.append(int(np.count_nonzero(~np.isfinite(y).all(axis=-1))))  # tm_fit_solve: the table's
+                return y
+
+            out = solver.fit_guessed(I_b, I_w, I_c, rho_b, rho_w, guess, guesser.log_sigma_range, sd=sd, **options)
             out.pop("features")
+            out["guess_fallback_bins"] = sum(broken)
         out.pop("steps")
         return out
 

@@ -209,7 +209,7 @@ def write_material(doc: MaterialDocument, out_dir: str | Path) -> Path:
 
 def read_material(path: str | Path) -> MaterialDocument:
     """A material directory (or its material.json) read and checked; InputError naming the first problem."""
-    from trimeter.results.tables import read_columns, read_text
+    from trimeter.tables import read_columns, read_text
 
     path = Path(path)
     directory = path.parent if path.name == MANIFEST_FILE else path

@@ -56,7 +56,7 @@ def default_path() -> Path:
 
 
 def _sha256(path: Path) -> str | None:
-    from trimeter.results.tables import MAX_RESULT_FILE_BYTES, open_checked
+    from trimeter.tables import MAX_RESULT_FILE_BYTES, open_checked
 
     if not path.exists():
         return None

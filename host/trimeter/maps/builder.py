@@ -2,7 +2,7 @@
 
 - Deterministic: the random stream of column (j, k) batch b is seeded from (recipe seed, j, k, b) only,
   so the same recipe gives the same map whatever the order, interruptions or thread count (the
-  shipped device maps' columns re-trace to within 1.5e-8, not bit for bit: see maps/README.md).
+  shipped device maps' columns re-trace to within 1.5e-8, not bit for bit: see the git history of maps/README.md).
 - Adaptive: a column is traced with `min_paths`, then topped up (at most three times) to reach
   `target_stderr` (the max over α of the std-error of I at both reference backgrounds) and, if the
   recipe sets it, `target_alpha_stderr` (the max over α ∈ [0.02, 0.99] of α's std-error, g held),
@@ -16,7 +16,9 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import math
+import os
 import shutil
 import time
 import zipfile
@@ -43,6 +45,7 @@ if TYPE_CHECKING:
 BUILDER = ("trimeter.maps.tracer: (k, m)-tally path tracer (detector + background paths; B = UT1·UTU where the "
            "geometry factorises), Dr.Jit LLVM symbolic loop")
 _COLUMN_FIELDS = ("A", "B", "C", "std_b", "std_w")
+log = logging.getLogger("trimeter.maps")
 _BATCH_QUANTUM = 4096
 
 
@@ -180,17 +183,39 @@ class Checkpoint:
                              n_paths=int(z["n_paths"]), truncated=int(z["truncated"]),
                              truncation_bound=float(z["truncation_bound"]), seconds=float(z["seconds"]),
                              path_events=int(z["path_events"]))
-        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
-            return None            # a damaged column is simply traced again (deterministically)
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
+            self.quarantine(j, k, f"unreadable ({exc})")   # traced again (deterministically)
+            return None
         if any(getattr(col, f).shape != (len(self.recipe.alpha),) for f in _COLUMN_FIELDS):
+            self.quarantine(j, k, "another shape than the recipe's")
+            return None
+        if not all(np.isfinite(getattr(col, f)).all() for f in _COLUMN_FIELDS):
+            self.quarantine(j, k, "not finite (NaN or inf)")
             return None
         return col
+
+    def quarantine(self, j: int, k: int, why: str) -> None:
+        """Move a column that cannot be used aside (into the directory beside the checkpoint named by
+        quarantine_dir, which a finished build does not remove: it is evidence of what went wrong), so that it
+        is traced again."""
+        target = quarantine_dir(self.dir) / f"{self.path(j, k).name}.{time.strftime('%Y%m%dT%H%M%SZ', time.gmtime())}"
+        try:
+            target.parent.mkdir(exist_ok=True)
+            os.replace(self.path(j, k), target)
+        except OSError as exc:
+            raise BuildError(f"checkpoint column {self.path(j, k)} is {why} and cannot be moved aside ({exc}); "
+                             f"move it out of the way by hand") from None
+        log.warning("checkpoint column %s is %s: moved to %s, traced again", self.path(j, k).name, why, target)
 
     def save(self, j: int, k: int, col: Column) -> None:
         save_column(self.dir, j, k, col)
 
     def remove(self) -> None:
         shutil.rmtree(self.dir, ignore_errors=True)
+
+
+def quarantine_dir(checkpoint: Path) -> Path:
+    return checkpoint.parent / f"{checkpoint.name}.quarantine"
 
 
 def column_path(directory: Path, j: int, k: int) -> Path:
@@ -282,13 +307,19 @@ class _MapState:
             "built_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         }
         arrays = self.arrays
+        broken = sorted({(int(j), int(k)) for f in _COLUMN_FIELDS for _, j, k in np.argwhere(~np.isfinite(arrays[f]))})
+        if broken:  # never written as a map nobody can load; the checkpoint stays for a --resume
+            raise BuildError(f"{self.job.out}: column(s) {', '.join(f'({j}, {k})' for j, k in broken[:5])}"
+                             f"{' …' if len(broken) > 5 else ''} traced to a non-finite value; nothing was written, "
+                             f"the checkpoint {self.ckpt.dir} is kept")
         amap = AppearanceMap(recipe=recipe.to_dict(), alpha=recipe.alpha, sigma_t=recipe.sigma_t, g=recipe.g,
                              A=arrays["A"], B=arrays["B"], C=arrays["C"], std_b=arrays["std_b"],
                              std_w=arrays["std_w"], provenance=provenance)
         amap.save(self.job.out)
+        loaded = AppearanceMap.load(self.job.out)   # the checkpoint goes only once the map reads back
         if not keep_checkpoint:
             self.ckpt.remove()
-        return AppearanceMap.load(self.job.out)
+        return loaded
 
 
 def build_map(recipe: Recipe, out: str | Path, *, checkpoint_dir: str | Path | None = None, resume: bool = False,

@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import logging
 import os
+import socket
+import struct
 from contextlib import contextmanager
 from typing import Callable, Iterator
 
@@ -23,7 +25,7 @@ from trimeter.errors import BuildError, InputError
 
 CONNECT_TIMEOUT_S = 10.0
 # Workers start with Dr.Jit's LLVM backend pointed at Debian's libLLVM 19 (the default LLVM aborts at
-# JIT time, ../shared/NOTES.md), whatever the environment of the process that starts the cluster.
+# JIT time, docs/platform-notes.md), whatever the environment of the process that starts the cluster.
 _LIBLLVM = "/usr/lib/x86_64-linux-gnu/libLLVM-19.so"
 
 
@@ -72,10 +74,47 @@ def local_client(workers: int | None = None, retries: int = 2) -> Iterator:
             cluster.close()
 
 
+# The first message a Dask scheduler sends on a new connection (its handshake) is a few hundred bytes; its
+# first 8 bytes are that size. Whatever else listens there (a web server answering the client's handshake
+# with text) would have the client allocate what those bytes read as.
+MAX_HANDSHAKE_BYTES = 1 << 20
+
+
+def check_dask_scheduler(address: str, connect_timeout: float = CONNECT_TIMEOUT_S) -> None:
+    """InputError unless what listens at a tcp:// `address` speaks first as a Dask scheduler does: its
+    handshake's size within MAX_HANDSHAKE_BYTES, sent unasked within `connect_timeout`. Other schemes
+    (tls://, ucx://, inproc://) are left to Dask."""
+    from distributed.comm.addressing import parse_address, parse_host_port
+
+    try:
+        scheme, location = parse_address(address)
+        if scheme != "tcp":
+            return
+        host, port = parse_host_port(location)
+    except (ValueError, TypeError) as exc:
+        raise InputError(f"--scheduler {address}: not an address ({exc})") from None
+    try:
+        with socket.create_connection((host, port), timeout=connect_timeout) as sock:
+            sock.settimeout(connect_timeout)
+            first = b""
+            while len(first) < 8 and (chunk := sock.recv(8 - len(first))):
+                first += chunk
+    except (OSError, ValueError) as exc:  # refused, unreachable, silent (a timeout is an OSError)
+        raise InputError(f"--scheduler {address}: no Dask scheduler answered within {connect_timeout:g} s "
+                         f"({exc.strerror if isinstance(exc, OSError) and exc.strerror else exc or 'timed out'})"
+                         ) from None
+    size = struct.unpack("<Q", first)[0] if len(first) == 8 else 0
+    if not 0 < size <= MAX_HANDSHAKE_BYTES:
+        raise InputError(f"--scheduler {address}: what answers there is not a Dask scheduler "
+                         f"(its first bytes {first!r} are no Dask handshake)")
+
+
 @contextmanager
 def remote_client(address: str, connect_timeout: float = CONNECT_TIMEOUT_S) -> Iterator:
-    """A Client on the running Dask cluster whose scheduler listens at `address` (tcp://host:8786)."""
+    """A Client on the running Dask cluster whose scheduler listens at `address` (tcp://host:8786), checked to
+    be one before the client reads anything from it."""
     _, distributed = _dask()
+    check_dask_scheduler(address, connect_timeout)
     try:
         client = distributed.Client(address, timeout=connect_timeout)
     except (OSError, TimeoutError, ValueError, TypeError) as exc:

@@ -114,8 +114,11 @@ def parse_recipe(data: dict, default_name: str = "map") -> Recipe:
     rho_w = require_reflectance("reference_rho_w", data.get("reference_rho_w", REFERENCE_RHOS[1]))
     seed = int(require_number("seed", data.get("seed", 1), lo=0, hi=2**31 - 1))
     name = data.get("name", default_name)
-    if not isinstance(name, str) or not name or "/" in name:
-        raise InputError(f"name must be a non-empty string without '/', got {name!r}")
+    # the name becomes a file and checkpoint directory name: nothing a file system refuses or reads as a path
+    if not isinstance(name, str) or not name or len(name) > 200 or name in (".", "..") \
+            or any(c in "/\\" or ord(c) < 0x20 or ord(c) == 0x7F for c in name):
+        raise InputError(f"name must be 1-200 characters without '/', '\\' or control characters (NUL, newline), "
+                         f"got {name[:80]!r}" if isinstance(name, str) else f"name must be a string, got {name!r}")
 
     grid = data.get("grid")
     if not isinstance(grid, dict):

@@ -33,7 +33,7 @@ from trimeter import __version__
 from trimeter.atomic import atomic_write
 from trimeter.errors import InputError
 from trimeter.results.medium import VARIANT_NOTE, SpectralMaterial, write_medium
-from trimeter.results.tables import MAX_RESULT_FILE_BYTES, read_columns, read_text
+from trimeter.tables import MAX_RESULT_FILE_BYTES, read_columns, read_text
 
 if TYPE_CHECKING:
     from trimeter.domain.measurement import SpectralColumns
@@ -44,6 +44,7 @@ MAX_INPUT_BYTES = MAX_RESULT_FILE_BYTES
 CMFS = "CIE 1931 2 Degree Standard Observer"
 COLOUR_RANGE_NM = (360.0, 780.0)
 TRANSMITTANCE_FLOOR = 1e-6  # the darkest channel transmittance kept at the reference thickness
+MIN_STEP_NM = 0.1  # a resampling step finer than any spectrometer's bin only multiplies the output
 DEFAULT_SCENE_UNIT_MM = {"mitsuba": 1.0, "pbrt": 1.0, "blender": 1000.0, "rgb": 1.0}
 
 
@@ -210,6 +211,7 @@ def linear_srgb_coefficients(material: SpectralMaterial, thickness_mm: float = 1
     transmittance = np.exp(-np.stack([material.sigma_t, material.sigma_a]) * thickness_mm)
     rgb = spectra_to_linear_srgb(wl, transmittance, illuminant)
     rgb = rgb / spectra_to_linear_srgb(wl, np.ones_like(wl), illuminant)
+    _refuse_opaque(rgb, material, thickness_mm)
     rgb, saturation = _into_gamut(rgb)
     sigma_t, sigma_a = -np.log(np.clip(rgb, TRANSMITTANCE_FLOOR, 1.0)) / thickness_mm
     sigma_a = np.clip(sigma_a, 0.0, sigma_t) + 0.0
@@ -224,6 +226,22 @@ def linear_srgb_coefficients(material: SpectralMaterial, thickness_mm: float = 1
     return {"sigma_a": sigma_a, "sigma_s": sigma_t - sigma_a, "sigma_t": sigma_t, "g": np.clip(g_rgb, -0.99, 0.99),
             "reference_thickness_mm": float(thickness_mm), "illuminant": illuminant,
             "gamut_saturation": {"sigma_t": float(saturation[0]), "sigma_a": float(saturation[1])}}
+
+
+def _refuse_opaque(rgb: np.ndarray, material: SpectralMaterial, thickness_mm: float) -> None:
+    """InputError when the unscattered (σt) or unabsorbed (σa) transmittance at the reference thickness is
+    darker than TRANSMITTANCE_FLOOR: an RGB coefficient can only say "at least −ln(floor)/d" there, so a dense
+    scatterer would come out as a pure absorber of that density, silently."""
+    luminance = np.nan_to_num(rgb @ np.array([0.2126, 0.7152, 0.0722]), nan=0.0)
+    for row, name in ((0, "σt"), (1, "σa")):
+        if luminance[row] < TRANSMITTANCE_FLOOR:
+            sigma = material.sigma_t if row == 0 else material.sigma_a
+            typical = float(np.nanmedian(np.where(np.isfinite(sigma), sigma, np.nan))) if np.isfinite(sigma).any() \
+                else math.inf
+            hint = (f"; a --reference-thickness of at most {-math.log(TRANSMITTANCE_FLOOR) / typical:.3g} mm keeps it "
+                    f"representable" if 0 < typical < math.inf else "")
+            raise InputError(f"the material is opaque in {name} at the reference thickness {thickness_mm:g} mm "
+                             f"(transmittance below {TRANSMITTANCE_FLOOR:g}): no RGB coefficient represents it{hint}")
 
 
 def _into_gamut(rgb: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
@@ -355,8 +373,8 @@ def export(result: LoadedResult, fmt: str, out_dir: str | Path, *, step_nm: floa
     """Write `fmt`'s files and provenance.json into `out_dir`; return the provenance."""
     if fmt not in FORMATS:
         raise InputError(f"--to must be one of {', '.join(FORMATS)}, got {fmt!r}")
-    if not (math.isfinite(step_nm) and 0 <= step_nm <= 100):
-        raise InputError(f"step must be within 0-100 nm (0: the measured bins), got {step_nm!r}")
+    if not (math.isfinite(step_nm) and (step_nm == 0 or MIN_STEP_NM <= step_nm <= 100)):
+        raise InputError(f"step must be 0 (the measured bins) or within {MIN_STEP_NM:g}-100 nm, got {step_nm!r}")
     unit = DEFAULT_SCENE_UNIT_MM[fmt] if scene_unit_mm is None else float(scene_unit_mm)
     if not (math.isfinite(unit) and unit > 0):
         raise InputError(f"scene unit must be a positive number of millimetres, got {scene_unit_mm!r}")

@@ -24,7 +24,7 @@ import numpy as np
 from trimeter.domain import Calibration, Capture, Provenance, RawSample, Reflectances
 from trimeter.domain.parameters import FitResult
 from trimeter.errors import InputError
-from trimeter.results.tables import MAX_RESULT_FILE_BYTES, open_checked, read_columns, read_text
+from trimeter.tables import MAX_RESULT_FILE_BYTES, open_checked, read_columns, read_text
 from trimeter.results.writer import PARAMETER_COLUMNS, Parameters, file_tags
 
 MEASUREMENT_FILE = "measurement.json"
@@ -94,8 +94,9 @@ def parameters_from_json(doc: object, path: Path, method: str = "") -> Parameter
     for name in PARAMETER_COLUMNS:  # an older writer's file: what it did not record is unknown (NaN, no flags)
         columns.setdefault(name, np.zeros(n) if name == "flags" else np.full(n, math.nan))
     flags = columns.pop("flags")
-    if not np.all(np.isfinite(flags)) or np.any(flags != np.round(flags)) or np.any(flags < 0):
-        raise InputError(f"{path}: flags must be non-negative integers")
+    if not np.all(np.isfinite(flags)) or np.any(flags != np.round(flags)) or np.any(flags < 0) \
+            or np.any(flags >= 2.0**63):  # beyond an int64 word: no FitFlag value, and astype would wrap it
+        raise InputError(f"{path}: flags must be non-negative integer words (below 2**63)")
     thickness = doc.get("thickness_mm")
     if thickness is not None and not (isinstance(thickness, (int, float)) and not isinstance(thickness, bool)
                                       and math.isfinite(thickness) and thickness > 0):

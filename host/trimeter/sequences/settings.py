@@ -9,15 +9,19 @@ the demo, several instruments on one host).
 from __future__ import annotations
 
 import math
+import re
 import tomllib
-from dataclasses import asdict, dataclass, fields
+from collections.abc import Callable, Collection
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
+from trimeter import registers as regs
 from trimeter.atomic import atomic_write
 from trimeter.errors import InputError
 from trimeter.geometry import load_geometry
 from trimeter.paths import config_dir, data_dir
+from trimeter.toml_text import toml_table
 
 CONFIG_FILE_NAME = "config.toml"
 
@@ -82,52 +86,126 @@ class HostSettings:
             return cls()
         try:
             data = tomllib.loads(path.read_text())
-        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        except (tomllib.TOMLDecodeError, UnicodeDecodeError, RecursionError) as exc:
             raise InputError(f"{path}: not valid TOML ({exc}); fix or delete it") from None
+        except OSError as exc:
+            raise InputError(f"{path}: cannot be read ({exc.strerror or exc})") from None
         settings = cls()
-        for key, value in data.items():
-            settings.set(key, value, source=str(path))
+        settings.update(data, source=str(path))
         return settings
 
     def set(self, key: str, value: Any, source: str = "host config") -> None:
-        types = {f.name: str(f.type) for f in fields(self)}  # postponed annotations: already the names
-        if key not in types:
-            raise InputError(f"{key}: no such host setting ({', '.join(types)})")
-        kind = {"str": str, "int": int, "float": float}[types[key]]
-        try:
-            if kind is int and isinstance(value, float) and not value.is_integer():
-                raise ValueError
-            if isinstance(value, (dict, list, bool)) or value is None:  # str() would take any of them
-                raise TypeError
-            converted = kind(value) if kind is not int else int(float(value))
-        except (TypeError, ValueError, OverflowError):  # OverflowError: an int setting given 1e400
-            raise InputError(f"{key}: {value!r} is not a {kind.__name__} ({source})") from None
-        if kind is float and not math.isfinite(converted):
-            raise InputError(f"{key}: {value!r} is not a finite number ({source})")
-        if key in ("frames", "attempts") and converted < 1 or key == "hdr_decades" and not 0 <= converted <= 4:
-            raise InputError(f"{key}: {value!r} is out of range ({source})")
-        if key in ("timeout_s", "warmup_interval_s", "warmup_timeout_s", "warmup_threshold", "thickness_mm",
-                   "calibration_max_age_s", "swap_timeout_s") and converted <= 0:
-            raise InputError(f"{key}: must be > 0, got {value!r} ({source})")
-        if key == "second_thickness_mm" and converted < 0:
-            raise InputError(f"{key}: must be ≥ 0 (0: one sample), got {value!r} ({source})")
-        setattr(self, key, converted)
+        """Set one setting from any source (TOML file, command line, API): converted and checked by SCHEMA."""
+        setattr(self, key, checked(key, value, source))
+
+    def update(self, values: dict[str, Any], source: str = "host config") -> None:
+        """Set several: every value checked first, so a bad one leaves all as they were."""
+        converted = {key: checked(key, value, source) for key, value in values.items()}
+        for key, value in converted.items():
+            setattr(self, key, value)
 
     def save(self) -> Path:
         """Write only what differs from the defaults, so new defaults reach old installs."""
-        path = self.path()
         defaults = asdict(HostSettings())
-        lines = ["# trimeter host configuration (`trimeter config set --host KEY VALUE`)"]
-        for key, value in asdict(self).items():
-            if value != defaults[key]:
-                lines.append(f"{key} = {_toml_value(value)}")
-        return atomic_write(path, "\n".join(lines) + "\n")
+        changed = {key: value for key, value in asdict(self).items() if value != defaults[key]}
+        return atomic_write(self.path(), toml_table(changed, "trimeter host configuration "
+                                                              "(`trimeter config set --host KEY VALUE`)"))
 
     def as_dict(self) -> dict:
         return asdict(self)
 
 
-def _toml_value(value: object) -> str:
-    if isinstance(value, str):
-        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
-    return repr(value)
+
+# ------------------------------------------------------------------------------------ the schema
+@dataclass(frozen=True)
+class Rule:
+    """What one host setting may hold: its type and range (`low`/`high`, `low` excluded when
+    `low_open`), or one of `choices()`; a string holds no control character (it is a path or a name)."""
+    kind: type
+    low: float | None = None
+    high: float | None = None
+    low_open: bool = False
+    choices: Callable[[], Collection] | None = None
+    meaning: str = ""
+
+    def describe(self) -> str:
+        if self.choices is not None:
+            return "one of " + ", ".join(map(str, self.choices()))
+        if self.low is None or self.high is None:
+            return f"a {self.kind.__name__}"
+        return f"within {'(' if self.low_open else '['}{self.low:g}, {self.high:g}]" + (f" ({self.meaning})"
+                                                                                          if self.meaning else "")
+
+
+def _methods() -> Collection[str]:
+    from trimeter.inversion.methods import METHODS  # a plug-in registers its method on import: read it now
+    return list(METHODS)
+
+
+def _baudrates() -> Collection[int]:
+    return regs.BY_NAME["modbus_baud"].allowed or ()
+
+
+DAY_S = 86400.0
+MAX_THICKNESS_MM = 100.0
+MAX_TEXT = 4096
+SCHEMA: dict[str, Rule] = {
+    "port": Rule(str), "spectrometer": Rule(str), "results_dir": Rule(str), "map": Rule(str), "second_map": Rule(str),
+    "address": Rule(int, 1, 247, meaning="a Modbus slave address"),
+    "baudrate": Rule(int, choices=_baudrates),
+    "timeout_s": Rule(float, 0, 60, low_open=True),
+    "attempts": Rule(int, 1, 100),
+    "local_echo": Rule(int, 0, 1),
+    "white_reference_reflectance": Rule(float, 0, 1, meaning="0: hardware/geometry.toml's value"),
+    "warmup_threshold": Rule(float, 0, 1, low_open=True),
+    "warmup_interval_s": Rule(float, 0, 3600, low_open=True),
+    "warmup_timeout_s": Rule(float, 0, DAY_S, low_open=True),
+    "calibration_max_age_s": Rule(float, 0, 365 * DAY_S, low_open=True),
+    "frames": Rule(int, 1, 1000),
+    "hdr_decades": Rule(int, 0, 4),
+    "method": Rule(str, choices=_methods),
+    "thickness_mm": Rule(float, 0, MAX_THICKNESS_MM, low_open=True),
+    "second_thickness_mm": Rule(float, 0, MAX_THICKNESS_MM, meaning="0: one sample"),
+    "swap_timeout_s": Rule(float, 0, DAY_S, low_open=True),
+}
+
+
+def checked(key: str, value: Any, source: str = "host config") -> Any:
+    """`value` as host setting `key` holds it (a str from the command line converted), or InputError naming
+    the key, the value and the source. Booleans are no numbers; integers take only integral values."""
+    rule = SCHEMA.get(key)
+    if rule is None:
+        raise InputError(f"{key}: no such host setting ({', '.join(SCHEMA)}) ({source})")
+    shown = repr(value) if len(repr(value)) <= 80 else repr(value)[:77] + "..."
+    if isinstance(value, bool) or not isinstance(value, (str, int, float)):
+        raise InputError(f"{key}: {shown} is not a {rule.kind.__name__} ({source})")
+    if rule.kind is str:
+        if not isinstance(value, str):
+            raise InputError(f"{key}: {shown} is not text ({source})")
+        if len(value) > MAX_TEXT or any(ord(c) < 0x20 or ord(c) == 0x7F or 0xD800 <= ord(c) <= 0xDFFF for c in value):
+            raise InputError(f"{key}: {shown} holds a control character or is too long ({source})")
+        converted: Any = value
+    else:
+        try:
+            number = float(value)  # a command line's text too; a large int beyond a float's range overflows
+        except (ValueError, OverflowError):
+            raise InputError(f"{key}: {shown} is not a {rule.kind.__name__} ({source})") from None
+        if not math.isfinite(number):
+            raise InputError(f"{key}: {shown} is not a finite number ({source})")
+        if rule.kind is int:
+            if not number.is_integer() or isinstance(value, str) and not _INTEGER.fullmatch(value.strip()):
+                raise InputError(f"{key}: {shown} is not an integer ({source})")
+            converted = int(number)  # exact: every integer setting's range is far below 2**53
+        else:
+            converted = number
+    if rule.choices is not None:
+        if converted not in rule.choices():
+            raise InputError(f"{key}: {shown} is not {rule.describe()} ({source})")
+    elif rule.low is not None and rule.high is not None:
+        low_ok = converted > rule.low if rule.low_open else converted >= rule.low
+        if not (low_ok and converted <= rule.high):
+            raise InputError(f"{key}: {shown} is not {rule.describe()} ({source})")
+    return converted
+
+
+_INTEGER = re.compile(r"[+-]?\d{1,18}(?:\.0*)?")

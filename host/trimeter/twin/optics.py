@@ -29,6 +29,7 @@ from scipy.interpolate import PchipInterpolator
 
 from trimeter.errors import InputError
 from trimeter.geometry import load_geometry
+from trimeter.twin.sensor import As7341Model
 from trimeter.twin.traced import traced_setup
 
 if TYPE_CHECKING:
@@ -38,6 +39,7 @@ if TYPE_CHECKING:
 MapSource: TypeAlias = ("AppearanceMap | str | Path | list[AppearanceMap | str | Path] | "
                         "tuple[AppearanceMap | str | Path, ...] | None")
 
+SENSORS = ("spectrometer", "as7341")  # what the twin's host-side detector can be
 MATERIALS_FILE = Path(__file__).resolve().parents[1] / "data" / "materials.toml"
 
 
@@ -228,7 +230,10 @@ def _load_maps(appearance_map: MapSource) -> list[AppearanceMap]:
 class Optics:
     """The optical bench: sample, backgrounds, two LEDs, one spectrometer."""
 
-    def __init__(self, appearance_map: MapSource = None, white: str = "white", black: str = "black") -> None:
+    def __init__(self, appearance_map: MapSource = None, white: str = "white", black: str = "black",
+                 sensor: str = "spectrometer") -> None:
+        """sensor: what the host reads — "spectrometer" (the pixels) or "as7341" (trimeter.twin.sensor:
+        nine channels of the same light)."""
         self.spectrometer = SpectrometerModel()
         lam = self.spectrometer.wavelengths_nm
         self.rho_white = background_reflectance(white, lam)
@@ -236,6 +241,11 @@ class Optics:
         lights = _catalogue()["light"]
         self.panels = Led(lights["panels"], lam)
         self.collimated = Led(lights["collimated"], lam)
+        if sensor not in SENSORS:
+            raise InputError(f"sensor must be one of {', '.join(SENSORS)}, got {sensor!r}")
+        self.sensor: SpectrometerModel | As7341Model = self.spectrometer
+        if sensor == "as7341":  # its band weights: the lamps warm, as they are after the warm-up
+            self.sensor = As7341Model(lam, self.panels.spectrum(1.0), self.collimated.spectrum(1.0))
         self._map_source = appearance_map
         self._maps: list[AppearanceMap] | None = None
         self.sample: SampleOptics | None = None

@@ -18,6 +18,7 @@ import io
 import json
 import logging
 import math
+import mimetypes
 import re
 import threading
 import zipfile
@@ -27,6 +28,8 @@ from collections.abc import Sequence
 from typing import TYPE_CHECKING, Awaitable, Callable, TypeVar
 
 from aiohttp import ClientSession, ClientTimeout, WSMsgType, web
+from aiohttp.http_exceptions import HttpProcessingError
+from aiohttp.web_protocol import RequestPayloadError
 
 from trimeter import registers as regs
 from trimeter.device.client import CONFIG_NAMES, encode
@@ -35,12 +38,13 @@ from trimeter.inversion.methods import METHODS
 from trimeter.inversion.flags import advice, describe
 from trimeter.maps.appearance import AppearanceMap, find_map, shipped_maps
 from trimeter.maps.device_table import cached_tables
+from trimeter.paths import NAME_MAX, read_regular_bytes, real_subdirectory, regular_files
 from trimeter.sequences.measure import map_for_thickness
 from trimeter.sequences.service import EMPTY_HOLDER, NEXT_SAMPLE
 from trimeter.sequences.settings import HostSettings
 from trimeter.web import auth
 from trimeter.web import library_routes
-from trimeter.web.history import History, is_measurement_id, parse_day_or_time
+from trimeter.web.history import History, IndexUnavailable, is_measurement_id, parse_day_or_time
 from trimeter.web.jobs import Busy, Job, Jobs
 
 if TYPE_CHECKING:
@@ -54,6 +58,11 @@ log = logging.getLogger("trimeter.web")
 
 STATIC = Path(__file__).resolve().parent / "static"   # package data (pyproject)
 MAX_BODY_BYTES = 64 * 1024          # every request body is a small JSON object
+MAX_JSON_DEPTH = 16                 # the deepest body the API takes is two levels
+BODY_TIMEOUT_S = 10.0               # a body that small arrives at once; a client holding one back is dropped
+# A connection must complete its request's headers within this of opening or of its previous answer (aiohttp's
+# keep-alive timer, which also runs until the first request): a client sending them slowly is dropped.
+HEADER_TIMEOUT_S = 15.0
 EVENT_QUEUE = 256                   # events buffered per websocket client; a client that falls further behind is closed
 DEVICE_CALL_TIMEOUT_S = 15.0
 WEBHOOK_TIMEOUT_S = 5.0
@@ -81,13 +90,23 @@ SECURITY_HEADERS = {
 
 
 class ApiError(Exception):
-    def __init__(self, status: int, message: str, **extra: object) -> None:
+    """An answer of `status` with `message`; `headers` sent with it; `close`: the connection is closed after
+    it (its request body was not or could not be read to its end)."""
+
+    def __init__(self, status: int, message: str, *, headers: dict[str, str] | None = None, close: bool = False,
+                 **extra: object) -> None:
         super().__init__(message)
         self.status, self.message, self.extra = status, message, extra
+        self.headers, self.close = headers or {}, close
 
 
-def _error(status: int, message: str, **extra: object) -> web.Response:
-    return web.json_response({"error": {"status": status, "message": message, **extra}}, status=status)
+def _error(status: int, message: str, *, headers: dict[str, str] | None = None, close: bool = False,
+           **extra: object) -> web.Response:
+    response = web.json_response({"error": {"status": status, "message": message, **extra}}, status=status,
+                                 headers=headers)
+    if close:
+        response.force_close()
+    return response
 
 
 # ------------------------------------------------------------------------------------ middleware
@@ -97,9 +116,11 @@ async def errors_middleware(request: web.Request, handler: Handler) -> web.Strea
     try:
         return await handler(request)
     except ApiError as exc:
-        return _error(exc.status, exc.message, **exc.extra)
+        return _error(exc.status, exc.message, headers=exc.headers, close=exc.close, **exc.extra)
     except Busy as exc:
         return _error(409, f"the instrument is busy: {exc}", job=exc.job.to_json())
+    except IndexUnavailable as exc:
+        return _error(503, str(exc), headers={"Retry-After": str(IndexUnavailable.RETRY_AFTER_S)})
     except TrimeterError as exc:
         return _error(400, str(exc))
     except web.HTTPException as exc:
@@ -138,20 +159,43 @@ async def auth_middleware(request: web.Request, handler: Handler) -> web.StreamR
 # ------------------------------------------------------------------------------------- helpers
 async def json_body(request: web.Request, allowed: tuple[str, ...]) -> dict:
     """The request's JSON object (empty body: {}); unknown keys are refused, not ignored."""
-    raw = await request.read()
+    try:
+        raw = await asyncio.wait_for(request.read(), BODY_TIMEOUT_S)
+    except RequestPayloadError as exc:  # e.g. a Content-Encoding it is not in
+        raise ApiError(400, f"the body cannot be read ({' '.join(str(exc).split())})", close=True) from None
+    except asyncio.TimeoutError:
+        raise ApiError(408, f"the body did not arrive within {BODY_TIMEOUT_S:g} s", close=True) from None
     if not raw.strip():
         return {}
     if request.content_type not in ("application/json", "application/octet-stream", ""):
         raise ApiError(415, f"the body must be JSON (Content-Type application/json), not {request.content_type}")
+    if json_depth(raw) > MAX_JSON_DEPTH:  # before parsing: a deep one would exhaust the parser's recursion
+        raise ApiError(400, f"the body is nested deeper than {MAX_JSON_DEPTH} levels")
     try:
         body = json.loads(raw)
-    except (ValueError, UnicodeDecodeError) as exc:
-        raise ApiError(400, f"the body is not valid JSON ({exc})") from None
+    except (ValueError, UnicodeDecodeError, RecursionError) as exc:
+        raise ApiError(400, f"the body is not valid JSON ({str(exc)[:200]})") from None
     if not isinstance(body, dict):
         raise ApiError(400, f"the body must be a JSON object, not {type(body).__name__}")
     if unknown := [k for k in body if k not in allowed]:
         raise ApiError(400, f"unknown field(s) {', '.join(map(repr, unknown))}; allowed: {', '.join(allowed)}")
     return body
+
+
+def json_depth(raw: bytes) -> int:
+    """The deepest nesting of arrays and objects in JSON text, without parsing it (strings skipped)."""
+    depth = deepest = 0
+    for token in _JSON_NESTING.finditer(raw):
+        char = token.group()
+        if char in (b"[", b"{"):
+            depth += 1
+            deepest = max(deepest, depth)
+        elif char in (b"]", b"}"):
+            depth -= 1
+    return deepest
+
+
+_JSON_NESTING = re.compile(rb'"(?:[^"\\]|\\.)*"|[\[\]{}]')
 
 
 def number(body: dict, key: str, *, default: float | None = None, minimum: float = 0.0, maximum: float = math.inf,
@@ -198,8 +242,8 @@ def _measurement_dir(request: web.Request) -> Path:
     history = request.app[HISTORY]
     if not is_measurement_id(measurement_id):
         raise ApiError(400, f"{measurement_id!r} is not a measurement id (a results directory's name)")
-    path = history.root / measurement_id
-    if not path.is_dir():
+    path = real_subdirectory(history.root, measurement_id)
+    if path is None:  # missing, or not a real directory of the results root (a link is never followed)
         raise ApiError(404, f"no measurement {measurement_id!r}")
     return path
 
@@ -410,15 +454,23 @@ def _details(history: History, path: Path) -> dict:
     row = history.get(path.name) or history.add(path)
     if row is None:
         raise ApiError(404, f"{path.name} has no readable measurement.json")
-    from trimeter.results.reader import load
+    from trimeter.results.reader import load, read_record
 
     out: dict[str, object] = {"measurement": row}
+    problems: list[str] = []
+    try:  # a record with a damaged file is shown with what it has, and says what it lacks
+        out["meta"] = read_record(path)
+    except InputError as exc:
+        out["meta"] = None
+        problems.append(str(exc))
     try:
         stored = load(path)
-    except InputError as exc:
-        raise ApiError(500, f"{path.name}: its files cannot be read ({exc})") from None
-    out["meta"], out["parameters"] = stored.record, stored.parameters_document()
-    flags = stored.flags.tolist()
+        out["parameters"] = stored.parameters_document()
+        flags = stored.flags.tolist()
+    except (InputError, OverflowError) as exc:
+        out["parameters"], flags = None, []
+        problems.append(str(exc))
+    out["problems"] = problems
     counts: dict[str, int] = {}
     for value in flags:
         for name in describe(value).split("|"):
@@ -426,8 +478,18 @@ def _details(history: History, path: Path) -> dict:
                 counts[name] = counts.get(name, 0) + 1
     out["flag_counts"] = counts
     out["advice"] = advice(flags, max(1, len(row["thicknesses_mm"])))
-    out["files"] = sorted(p.name for p in path.iterdir() if p.is_file() and not p.is_symlink())
+    out["files"] = [p.name for p in regular_files(path)]
     return out
+
+
+def _flag_words(parameters: object) -> list[int] | None:
+    """The combined fit's flag words of a parameters.json, or None when it holds no list of them (a flag
+    word is a non-negative integer that fits the 64-bit words the index stores)."""
+    combined = parameters.get("combined") if isinstance(parameters, dict) else None
+    flags = combined.get("flags") if isinstance(combined, dict) else None
+    if not isinstance(flags, list) or not all(type(v) is int and 0 <= v < 2**63 for v in flags):
+        return None
+    return flags
 
 
 @routes.get("/api/measurements/{id}")
@@ -442,20 +504,35 @@ async def measurement_file(request: web.Request) -> web.StreamResponse:
     name = request.match_info["name"]
     if "/" in name or "\\" in name or ".." in name or name.startswith(".") or "\0" in name:
         raise ApiError(400, f"{name!r} is not a file name (no paths, no '..')")
+    if len(name.encode("utf-8", "surrogatepass")) > NAME_MAX:
+        raise ApiError(404, f"{path.name} has no file {name[:40]!r}… (longer than any file name)")
     target = path / name
-    if not target.is_file() or target.is_symlink():
+
+    def read() -> bytes | None:
+        try:  # opened without following a link, refused unless a regular file: never a read outside the record
+            return read_regular_bytes(target)
+        except OSError:
+            return None
+
+    data = await _blocking(request, read)
+    if data is None:
         raise ApiError(404, f"{path.name} has no file {name!r}")
     disposition = "inline" if target.suffix in (".png", ".json") else "attachment"
-    return web.FileResponse(target, headers={"Content-Disposition": f'{disposition}; filename="{name}"',
-                                             "Cache-Control": "no-cache"})
+    content_type = mimetypes.guess_type(name)[0] or "application/octet-stream"
+    return web.Response(body=data, content_type=content_type,
+                        headers={"Content-Disposition": f'{disposition}; filename="{name}"',
+                                 "Cache-Control": "no-cache"})
 
 
 def _zip(path: Path) -> bytes:
     buffer = io.BytesIO()
     with zipfile.ZipFile(buffer, "w", zipfile.ZIP_DEFLATED) as z:
-        for file in sorted(path.iterdir()):
-            if file.is_file() and not file.is_symlink():
-                z.write(file, f"{path.name}/{file.name}")
+        for file in regular_files(path):
+            try:
+                data = read_regular_bytes(file)
+            except OSError:  # replaced by something else meanwhile: left out, as a link would be
+                continue
+            z.writestr(f"{path.name}/{file.name}", data)
     return buffer.getvalue()
 
 
@@ -475,7 +552,7 @@ async def refit_route(request: web.Request) -> web.StreamResponse:
     body = await json_body(request, ("maps", "method"))
     jobs = request.app[JOBS]
     method = body.get("method", jobs.service.settings.method)
-    if method not in METHODS:
+    if not isinstance(method, str) or method not in METHODS:
         raise ApiError(400, f"method: {method!r} is not one of {', '.join(METHODS)}")
     names = body.get("maps")
     catalog = await _blocking(request, map_catalog, jobs.service.settings)
@@ -527,22 +604,15 @@ async def put_config(request: web.Request) -> web.StreamResponse:
         raise ApiError(400, "host and device must be objects of NAME: value, save true or false")
     # every check before anything changes: a bad item leaves both configurations as they were
     stored, running = HostSettings.load(), copy.deepcopy(jobs.service.settings)
-    for key, value in host.items():
-        stored.set(key, value, source="PUT /api/config")
-        running.set(key, value, source="PUT /api/config")
+    stored.update(host, source="PUT /api/config")
+    running.update(host, source="PUT /api/config")
     if unknown := [n for n in device if n not in CONFIG_NAMES]:
         raise ApiError(400, f"not device configuration items: {', '.join(unknown)} (see device_writable)")
     for name, value in device.items():
-        if isinstance(value, (dict, list)) or value is None:
-            raise ApiError(400, f"{name}: {value!r} is not a number or a name")
         encode(regs.BY_NAME[name], value)
     if (device or save) and jobs.current is not None:
         raise Busy(jobs.current)
-    if host:
-        await _blocking(request, stored.save)
-        for key in host:  # the running loop reads its settings object: changed in place
-            setattr(jobs.service.settings, key, getattr(running, key))
-    if device or save:
+    if device or save:  # the device first: when it refuses, the host's part is not saved either
         def write(service: Service) -> dict:
             connected = service.connected_device()
             if device:
@@ -555,6 +625,10 @@ async def put_config(request: web.Request) -> web.StreamResponse:
         if jobs.service.device is None:
             raise ApiError(503, "the instrument is not connected")
         jobs.set_device_config(await _device_call(request, write))
+    if host:
+        await _blocking(request, stored.save)
+        for key in host:  # the running loop reads its settings object: changed in place
+            setattr(jobs.service.settings, key, getattr(running, key))
     return web.json_response({"host": jobs.service.settings.as_dict(), "device": jobs.device_config,
                               "saved": save})
 
@@ -657,12 +731,32 @@ def create_app(jobs: Jobs, history: History, token: str, *, webhook: str | None 
     return app
 
 
+class ClientErrorsInOneLine(logging.Filter):
+    """aiohttp logs a request it could not parse (malformed headers, a Content-Encoding it cannot decode) with a
+    traceback at ERROR, though it answered the client 400, and so a body it drains after the answer that turns
+    out undecodable: a client's mistake is one warning line here."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        exc = record.exc_info[1] if record.exc_info else None
+        client_error = isinstance(exc, HttpProcessingError) and 400 <= (exc.code or 400) < 500
+        if client_error or isinstance(exc, RequestPayloadError):
+            record.msg = f"{record.getMessage()}: {' '.join(str(getattr(exc, 'message', exc)).split())}"
+            record.args, record.exc_info, record.exc_text = (), None, None
+            record.levelno, record.levelname = logging.WARNING, "WARNING"
+        return True
+
+
+CLIENT_ERRORS_FILTER = ClientErrorsInOneLine()
+
+
 class WebServer:
     """The app on its own thread and event loop (the instrument's worker has another thread; the main
     thread waits for Ctrl-C)."""
 
-    def __init__(self, app: web.Application, host: str, port: int) -> None:
+    def __init__(self, app: web.Application, host: str, port: int, *, header_timeout_s: float = HEADER_TIMEOUT_S
+                 ) -> None:
         self.app, self.host, self.port = app, host, port
+        self.header_timeout_s = header_timeout_s
         self._loop = asyncio.new_event_loop()
         self._ready = threading.Event()
         self._error: BaseException | None = None
@@ -670,6 +764,9 @@ class WebServer:
         self.url = ""
 
     def start(self) -> "WebServer":
+        server_log = logging.getLogger("aiohttp.server")
+        if CLIENT_ERRORS_FILTER not in server_log.filters:
+            server_log.addFilter(CLIENT_ERRORS_FILTER)
         self._thread.start()
         self._ready.wait(30)
         if self._error is not None:
@@ -678,7 +775,7 @@ class WebServer:
 
     def _run(self) -> None:
         asyncio.set_event_loop(self._loop)
-        runner = web.AppRunner(self.app, access_log=None, handle_signals=False)
+        runner = web.AppRunner(self.app, access_log=None, handle_signals=False, keepalive_timeout=self.header_timeout_s)
         try:
             self._loop.run_until_complete(runner.setup())
             site = web.TCPSite(runner, self.host, self.port, backlog=256)

@@ -9,6 +9,7 @@ from another origin.
 
 from __future__ import annotations
 
+import errno
 import hmac
 import os
 import secrets
@@ -31,24 +32,40 @@ def token_path() -> Path:
 
 def load_or_create_token(path: Path | None = None) -> str:
     """The token in `path` (default: the host config directory's), created there (0600) if missing.
-    A token file others can read is made private again: the token is as good as a password."""
+    A token file others can read is made private again: the token is as good as a password. The file is
+    never reached through a link (O_NOFOLLOW) and its mode is changed on the opened file (fchmod): a link
+    put in its place is refused, not followed to chmod or read whatever it points at."""
     path = path or token_path()
     path.parent.mkdir(parents=True, exist_ok=True)
-    try:
-        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    nofollow = os.O_NOFOLLOW | getattr(os, "O_CLOEXEC", 0)
+    try:  # O_EXCL never follows a link either: a dangling one is EEXIST, then refused below
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | nofollow, 0o600)
     except FileExistsError:
         pass
+    except OSError as exc:
+        raise InputError(f"{path}: the web token cannot be created ({exc.strerror or exc})") from None
     else:
         with os.fdopen(fd, "w") as f:
             f.write(secrets.token_urlsafe(32) + "\n")
             f.flush()
             os.fsync(f.fileno())
     try:
-        if stat.S_IMODE(path.stat().st_mode) & 0o077:
-            path.chmod(0o600)
-        token = path.read_text().strip()
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | nofollow)
+    except OSError as exc:
+        why = "it is a symbolic link" if exc.errno == errno.ELOOP else exc.strerror or str(exc)
+        raise InputError(f"{path}: the web token cannot be read ({why}); delete the file to make a new one") from None
+    try:
+        info = os.fstat(fd)
+        if not stat.S_ISREG(info.st_mode):
+            raise InputError(f"{path}: the web token is not a regular file; delete it to make a new one")
+        if stat.S_IMODE(info.st_mode) & 0o077:
+            os.fchmod(fd, 0o600)
+        with os.fdopen(os.dup(fd), "rb") as f:
+            token = f.read(4096).decode().strip()
     except (OSError, UnicodeDecodeError) as exc:
         raise InputError(f"{path}: the web token cannot be read ({exc}); delete the file to make a new one") from None
+    finally:
+        os.close(fd)
     if len(token) < 16 or not token.isascii() or not token.isprintable() or " " in token:
         raise InputError(f"{path}: not a web token (too short or not printable); delete the file to make a new one")
     return token

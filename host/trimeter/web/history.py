@@ -10,19 +10,25 @@ most that insert, never the file (the next open adds the directory again).
 
 from __future__ import annotations
 
+import contextlib
 import json
+import logging
 import re
 import sqlite3
 import threading
+from collections.abc import Iterator
 from datetime import date, datetime, timedelta, timezone
 from pathlib import Path
 
 import numpy as np
 
-from trimeter.errors import InputError, OutputError
+from trimeter.errors import InputError, OutputError, TrimeterError
 from trimeter.inversion.flags import FitFlag, describe
+from trimeter.paths import real_subdirectory
 from trimeter.results.reader import MEASUREMENT_FILE, read_parameters, read_record
 from trimeter.results.writer import PARTIAL_PREFIX
+
+log = logging.getLogger("trimeter.web")
 
 SCHEMA_VERSION = 1
 # A results directory's name: the writer's UTC stamp, an optional label and a uniqueness suffix.
@@ -64,17 +70,17 @@ def _stamp_of(name: str) -> str:
 
 def summarize(directory: Path) -> dict | None:
     """The index row of one results directory, or None when it is not one (no readable measurement.json)."""
-    if not is_measurement_id(directory.name):
+    if not is_measurement_id(directory.name) or real_subdirectory(directory.parent, directory.name) is None:
         return None
     try:
         meta = read_record(directory)
         mtime = (directory / MEASUREMENT_FILE).stat().st_mtime
-    except (OSError, InputError):
+    except (OSError, InputError, RecursionError):
         return None
     try:
         flags = read_parameters(directory)[0].flags
-    except InputError:
-        flags = np.zeros(0, np.int64)
+    except (InputError, OverflowError):
+        flags = np.zeros(0, np.int64)  # no fit to index (a damaged or missing parameters.json): listed unflagged
     written = meta.get("written_utc")
     try:
         written = datetime.fromisoformat(str(written)).astimezone(timezone.utc).isoformat(timespec="seconds")
@@ -116,19 +122,30 @@ def parse_day_or_time(text: str, name: str, *, end: bool = False) -> str:
         else:
             moment = datetime.fromisoformat(text)
             moment = moment.replace(tzinfo=timezone.utc) if moment.tzinfo is None else moment.astimezone(timezone.utc)
-    except ValueError:
-        raise InputError(f"{name}: {text!r} is not a date (YYYY-MM-DD) or an ISO date-time") from None
+    except (ValueError, OverflowError):  # OverflowError: a day after 9999-12-31 or a UTC time before year 1
+        raise InputError(f"{name}: {text[:64]!r} is not a date (YYYY-MM-DD) or an ISO date-time within "
+                         f"0001-01-01..9999-12-31 UTC") from None
     return moment.isoformat(timespec="seconds")
 
 
+class IndexUnavailable(TrimeterError):
+    """The index was found damaged while serving and is being rebuilt from the results directories."""
+
+    RETRY_AFTER_S = 2
+
+
 class History:
-    """The index of `root`'s results directories, kept in the SQLite file `db_path`."""
+    """The index of `root`'s results directories, kept in the SQLite file `db_path`. An index found damaged
+    while in use (a query fails with a database error) is rebuilt on a thread of its own; meanwhile every
+    call raises IndexUnavailable."""
 
     def __init__(self, root: Path, db_path: Path) -> None:
         self.root = Path(root)
         self.db_path = Path(db_path)
         self._local = threading.local()
         self._write_lock = threading.Lock()
+        self._generation = 0          # bumped by a rebuild: every thread's connection to the old file is replaced
+        self._rebuilding: threading.Thread | None = None
         self.notes: list[str] = []   # what opening found (a rebuild and why)
 
     # ------------------------------------------------------------------------------ opening
@@ -142,9 +159,47 @@ class History:
     @property
     def db(self) -> sqlite3.Connection:
         con = getattr(self._local, "con", None)
+        if con is not None and getattr(self._local, "generation", 0) != self._generation:
+            con.close()
+            con = None
         if con is None:
             con = self._local.con = self._connect()
+            self._local.generation = self._generation
         return con
+
+    @contextlib.contextmanager
+    def _in_use(self) -> Iterator[None]:
+        """Around every query: a database error means a damaged index, rebuilt in the background."""
+        if self._rebuilding is not None:
+            raise IndexUnavailable("the history index is being rebuilt from the results directories")
+        try:
+            yield
+        except sqlite3.DatabaseError as exc:
+            self._start_rebuild(str(exc))
+            raise IndexUnavailable(f"the history index was found damaged ({exc}); it is being rebuilt from the "
+                                   f"results directories") from None
+
+    def _start_rebuild(self, why: str) -> None:
+        with self._write_lock:
+            if self._rebuilding is not None:
+                return
+            log.warning("history index %s damaged (%s): rebuilding it from %s", self.db_path, why, self.root)
+            self._rebuilding = threading.Thread(target=self._rebuild, args=(why,), name="trimeter-history-rebuild",
+                                                daemon=True)
+        self._rebuilding.start()
+
+    def _rebuild(self, why: str) -> None:
+        try:
+            self._generation += 1
+            self._recreate()
+            added, _ = self.sync()
+            self.notes.append(f"history index rebuilt while serving ({why}): {added} measurement(s)")
+        except (sqlite3.Error, OSError) as exc:
+            log.error("the history index %s could not be rebuilt (%s); retried at the next damaged query",
+                      self.db_path, exc)
+        finally:
+            self.close()
+            self._rebuilding = None
 
     def open(self) -> list[str]:
         """Check the index (rebuilding it if needed) and bring it up to date with the directories."""
@@ -201,7 +256,8 @@ class History:
         on_disk = {}
         if self.root.is_dir():
             for path in self.root.iterdir():
-                if not path.name.startswith(PARTIAL_PREFIX) and path.is_dir() and is_measurement_id(path.name):
+                if not path.name.startswith(PARTIAL_PREFIX) and is_measurement_id(path.name) \
+                        and real_subdirectory(self.root, path.name) is not None:
                     try:
                         on_disk[path.name] = (path / MEASUREMENT_FILE).stat().st_mtime
                     except OSError:
@@ -228,7 +284,7 @@ class History:
         row = summarize(Path(directory))
         if row is None:
             return None
-        with self._write_lock:
+        with self._in_use(), self._write_lock:
             self.db.execute(f"INSERT OR REPLACE INTO measurements VALUES ({', '.join('?' * len(_COLUMNS))})",
                             tuple(row[c] for c in _COLUMNS))
         return row_to_json(row)
@@ -237,7 +293,8 @@ class History:
     def get(self, measurement_id: str) -> dict | None:
         if not is_measurement_id(measurement_id):
             return None
-        row = self.db.execute("SELECT * FROM measurements WHERE id = ?", (measurement_id,)).fetchone()
+        with self._in_use():
+            row = self.db.execute("SELECT * FROM measurements WHERE id = ?", (measurement_id,)).fetchone()
         return None if row is None else row_to_json(dict(row))
 
     def search(self, *, label: str | None = None, since: str | None = None, until: str | None = None,
@@ -270,7 +327,8 @@ class History:
         if not 0 <= offset <= MAX_OFFSET:
             raise InputError(f"offset: must be within 0..{MAX_OFFSET}, got {offset}")
         clause = (" WHERE " + " AND ".join(where)) if where else ""
-        total = self.db.execute(f"SELECT COUNT(*) FROM measurements{clause}", args).fetchone()[0]
-        rows = self.db.execute(f"SELECT * FROM measurements{clause} ORDER BY written_utc DESC, id DESC "
-                               f"LIMIT ? OFFSET ?", [*args, limit, offset]).fetchall()
+        with self._in_use():
+            total = self.db.execute(f"SELECT COUNT(*) FROM measurements{clause}", args).fetchone()[0]
+            rows = self.db.execute(f"SELECT * FROM measurements{clause} ORDER BY written_utc DESC, id DESC "
+                                   f"LIMIT ? OFFSET ?", [*args, limit, offset]).fetchall()
         return [row_to_json(dict(r)) for r in rows], total

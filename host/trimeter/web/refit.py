@@ -20,7 +20,7 @@ from trimeter.maps.appearance import AppearanceMap
 from trimeter.maps.device_table import SHA256_HEX, SUFFIX, DeviceTable, cache_dir
 from trimeter.results.reader import load
 from trimeter.results.writer import write_measurement
-from trimeter.sequences.measure import prepare_fit
+from trimeter.sequences.measure import for_recorded_sensor, prepare_fit
 
 
 def cached_table(sha256: str) -> DeviceTable | None:
@@ -87,7 +87,8 @@ def refit(directory: Path, maps: Sequence[MapRef], method: str) -> Path:
     declared = meta.get("declared_thicknesses_mm") or stored.thicknesses_mm
     if len(maps) != len(refls) or len(declared) != len(refls):
         raise InputError(f"{len(maps)} map(s) for {len(refls)} measured thickness(es)")
-    prepared = prepare_fit([Sample(float(t), amap) for t, amap in zip(declared, maps, strict=True)], method)
+    prepared = for_recorded_sensor(prepare_fit([Sample(float(t), amap) for t, amap in zip(declared, maps, strict=True)],
+                                               method), calibration.spectrometer)
     captures = [SampleCapture(sample, raw, refl) for sample, raw, refl in zip(prepared.samples, raws, refls,
                                                                                strict=True)]
     combined, per = prepared.fit(captures)

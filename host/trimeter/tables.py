@@ -90,11 +90,16 @@ class TableReader:
         self.name = f"{what} {self.path}".strip()
         self.chunk_rows = int(chunk_rows)
         self._file = open_checked(path, max_bytes=max_bytes, what=what, follow_symlinks=follow_symlinks)
+        self.size_bytes = os.fstat(self._file.fileno()).st_size
+        self.rows_read = 0
         self._line = 0
         try:
             header_line = self._next_content_line()
             self.header = [h.strip() for h in next(csv.reader([header_line or ""]), [])] if header_line else []
-        except (csv.Error, UnicodeDecodeError) as exc:
+        except UnicodeDecodeError:
+            self.close()
+            raise InputError(f"{self.name}: not a UTF-8 text file") from None
+        except csv.Error as exc:
             self.close()
             raise InputError(f"{self.name}: not a readable CSV ({exc})") from None
         duplicated = sorted({h for h in self.header if self.header.count(h) > 1})
@@ -143,6 +148,7 @@ class TableReader:
             if not lines:
                 return
             table = self._parse(lines, numbers)
+            self.rows_read += len(lines)
             yield {c: table[:, i] for i, c in enumerate(self.columns)}
 
     def _parse(self, lines: list[str], numbers: list[int]) -> np.ndarray:
@@ -183,11 +189,9 @@ def read_columns(path: str | Path, *, required: Sequence[str] = (), optional: Se
     with TableReader(path, required=required, optional=optional, max_bytes=max_bytes, what=what,
                      follow_symlinks=follow_symlinks) as reader:
         parts = list(reader.chunks())
-        columns = reader.columns
-        name = reader.name
-    rows = sum(len(next(iter(p.values()), ())) for p in parts) if columns else 0
+        columns, name, rows = reader.columns, reader.name, reader.rows_read
     if rows < min_rows:
         raise InputError(f"{name}: no data rows" if rows == 0 else f"{name}: {rows} data row(s), at least {min_rows} "
                                                                    f"expected")
-    return {c: np.concatenate([p[c] for p in parts]) for c in columns}
+    return {c: np.concatenate([p[c] for p in parts]) if parts else np.empty(0) for c in columns}
 

@@ -1,0 +1,40 @@
+"""trimeter.paths' safe reads of stored records: real directories and regular files only."""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+
+from trimeter.paths import read_regular_bytes, real_subdirectory, regular_files
+
+
+def test_real_subdirectory_refuses_links_files_and_odd_names(tmp_path):
+    root = tmp_path / "root"
+    (root / "a").mkdir(parents=True)
+    (root / "f").write_text("x")
+    (tmp_path / "elsewhere").mkdir()
+    (root / "link").symlink_to(tmp_path / "elsewhere")
+    assert real_subdirectory(root, "a") == root / "a"
+    for name in ("link", "f", "missing", "..", ".", "", "a/../a", "x" * 256, "a\0"):
+        assert real_subdirectory(root, name) is None, name
+
+
+def test_a_linked_root_is_still_a_root(tmp_path):
+    (tmp_path / "real" / "a").mkdir(parents=True)
+    (tmp_path / "alias").symlink_to(tmp_path / "real")
+    assert real_subdirectory(tmp_path / "alias", "a") == tmp_path / "alias" / "a"
+
+
+def test_regular_reads_refuse_links_fifos_and_too_large_files(tmp_path):
+    (tmp_path / "ok").write_bytes(b"12345")
+    (tmp_path / "link").symlink_to(tmp_path / "ok")
+    os.mkfifo(tmp_path / "fifo")
+    (tmp_path / "sub").mkdir()
+    assert read_regular_bytes(tmp_path / "ok") == b"12345"
+    for name in ("link", "fifo", "sub", "missing"):
+        with pytest.raises(OSError):
+            read_regular_bytes(tmp_path / name)
+    with pytest.raises(OSError, match="larger"):
+        read_regular_bytes(tmp_path / "ok", limit=4)
+    assert [p.name for p in regular_files(tmp_path)] == ["ok"]
