@@ -5,7 +5,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 FUZZ_SECONDS ?= 60
 
-# Mitsuba's llvm_ad_* variants need LLVM >= 16; Debian's libllvm19 provides it (see ../shared/NOTES.md).
+# Mitsuba's llvm_ad_* variants need LLVM >= 16; Debian's libllvm19 provides it (docs/platform-notes.md).
 LIBLLVM := /usr/lib/x86_64-linux-gnu/libLLVM-19.so
 ifneq ($(wildcard $(LIBLLVM)),)
 export DRJIT_LIBLLVM_PATH ?= $(LIBLLVM)
@@ -14,12 +14,14 @@ endif
 # 2-core machine idle OpenBLAS threads spin-wait under load, which stalled scipy's Delaunay for minutes.
 export OPENBLAS_NUM_THREADS ?= 1
 
-.PHONY: help setup native native-portable gen check-gen hardware lint typecheck firmware firmware-test fuzz pytest test demo bench clean
+.PHONY: help setup native native-portable gen check-gen hardware lint typecheck firmware firmware-test fuzz pytest docs test demo bench gpu-check clean
 
 help:
 	@echo "make demo   - set up, start the twin with a virtual sample, run a press-button measurement, plot it"
+	@echo "              (SENSOR=as7341: the twin reads like the AS7341 build, fitted band-aware)"
 	@echo "make test   - set up, lint, build firmware (sim + stm32f405), run C unit tests, fuzz, and pytest"
 	@echo "make bench  - the speed/accuracy benchmarks (map building, inversion)"
+	@echo "make docs   - the documentation site, into build/docs (open build/docs/index.html)"
 
 setup:
 	@bash tools/setup.sh
@@ -53,16 +55,18 @@ native-portable: setup $(NATIVE_GEN)
 	  arm-none-eabi-gcc -O2 -std=c11 -Wall -Wextra -Werror -I$(dir $(FIT_CORE_HEADER)) -c -o build/invert-portable/$$(basename $$src .c).o $$src \
 	  || exit 1; done
 
-# Generated files (register map -> C header, Python module, Markdown) are committed; check-gen fails
-# when one of them is stale, so nobody edits a generated file by hand.
+# Generated files (register map -> C header, Python module, Markdown; the docs' reference pages) are
+# committed; check-gen fails when one of them is stale, so nobody edits a generated file by hand.
 gen: setup
 	$(PY) tools/gen_registers.py
 	$(PY) -m tools.gen_native
+	$(PY) -m tools.gen_docs
 
 check-gen: setup
 	$(PY) tools/gen_registers.py --check
 	$(PY) -m tools.gen_hardware --check
 	$(PY) -m tools.gen_native --check
+	$(PY) -m tools.gen_docs --check
 
 # The build documentation and printable parts (hardware/README.md): bom.md, wiring.md and the pictures
 # in hardware/img (committed), STLs in build/hardware (not committed), all from hardware/*.toml.
@@ -89,14 +93,24 @@ fuzz: setup
 pytest: setup firmware native
 	$(PY) -m pytest -q
 
-test: setup check-gen lint firmware firmware-test native-portable fuzz pytest
+# The documentation site (mkdocs.yml): --strict, so a broken link or anchor fails; nothing downloaded.
+docs: setup
+	NO_MKDOCS_2_WARNING=1 $(PY) -m mkdocs build --strict --quiet
 
+test: setup check-gen lint firmware firmware-test native-portable fuzz pytest docs
+
+SENSOR ?= spectrometer
 demo: setup firmware native
-	$(PY) -m trimeter demo
+	$(PY) -m trimeter demo --sensor $(SENSOR)
 
 bench: setup firmware native
 	$(PY) -m trimeter bench mapbuild
 	$(PY) -m trimeter bench fit
+
+# On a machine with an NVIDIA GPU: the map tracer's CUDA backend against LLVM on a few columns of each
+# shipped recipe, then the inversion's tests (docs/maps-gpu-check.md). Elsewhere it prints SKIPPED, exit 0.
+gpu-check: setup native
+	$(PY) -m trimeter bench gpu-check
 
 clean:
 	$(MAKE) -C firmware clean || true

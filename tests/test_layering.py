@@ -85,14 +85,15 @@ def test_the_check_passes(snippet):
 LAYERS = (
     {"__version__", "errors", "crc"},
     {"validation", "paths", "atomic", "toml_text"},
-    {"geometry", "registers"},
+    {"geometry", "registers", "tables"},
     {"domain"},                         # plain data: captures, calibrations, reflectances, measurements, parameters
     {"model"},                          # the forward model: what the instrument reads for a material and a set-up
     {"forward", "inversion"},           # simulating the physics / solving the inverse, both on the model
     {"device", "spectrometer"},         # the instrument's two devices
     {"maps"},                           # files and artifacts (a table is read from a device)
-    {"twin", "results"},
-    {"sequences", "predict"},
+    {"results"},
+    {"twin"},                           # its virtual samples and mixtures are results' spectral materials
+    {"sequences", "prediction", "library"},
     {"web", "bench"},
     {"cli", "<package>"},
     {"__main__"},

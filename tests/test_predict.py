@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import trimeter.predict as predict
+import trimeter.prediction as predict
 from trimeter.cli import main
 from trimeter.errors import InputError
 from trimeter.forward.nonscattering import nonscattering_coefficients

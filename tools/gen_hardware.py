@@ -18,7 +18,7 @@ import argparse
 import math
 import sys
 import tomllib
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from tools.hardware_parts import HardwareError, build_parts, load_mechanics, tray_name, write_stls
@@ -73,6 +73,7 @@ class Bom:
     options: dict[str, str]          # option id -> title
     prices_as_of: str
     budget_eur: float
+    accuracy: dict[str, str] = field(default_factory=dict)  # option id -> its figures (`trimeter bench sensor`)
 
     def total_eur(self, option: str | None) -> float:
         """The build's total: every common part plus those of one spectrometer option."""
@@ -118,7 +119,8 @@ def load_bom(path: Path = BOM) -> Bom:
                              float(price), option, raw.get("stl")))
     if not parts:
         raise HardwareError(f"{name}: no [[part]]")
-    return Bom(parts, options, str(doc.get("prices_as_of", "")), float(doc.get("budget_eur", 0)))
+    accuracy = {k: str(v["accuracy"]) for k, v in doc.get("options", {}).items() if "accuracy" in v}
+    return Bom(parts, options, str(doc.get("prices_as_of", "")), float(doc.get("budget_eur", 0)), accuracy)
 
 
 def _eur(value: float) -> str:
@@ -152,6 +154,12 @@ def render_bom(bom: Bom) -> str:
     for option, title in bom.options.items():
         lines.append(f"| common parts + {title} | **{_eur(bom.total_eur(option))}** |")
     lines += ["", f"Target: the build with the low-cost sensor under € {bom.budget_eur:,.0f}.", ""]
+    if bom.accuracy:
+        lines += ["## Accuracy of each build", "",
+                  "From `trimeter bench sensor` (the twin's materials at 0.4 mm, traced independently of the map "
+                  "the fit inverts; p95 over the wavelengths each build reports):", ""]
+        lines += [f"- {bom.options[option]}: {text}" for option, text in bom.accuracy.items()]
+        lines.append("")
     return "\n".join(lines)
 
 

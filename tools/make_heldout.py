@@ -22,7 +22,7 @@ Why 16M paths per (σt, g), and more for clear samples: the references must be p
 inversion targets (α p95 0.01, g p95 0.015), and their own MC noise, propagated through the map's Jacobian
 (the "reference noise floor" `trimeter bench fit` prints), falls only as 1/√paths. Clear samples (σt·ℓ < 0.1,
 where I_b, I_w barely change with α) dominate it, so their columns are topped up (once, to at most --max-paths)
-until α's std-error with g held is ≤ --alpha-stderr. The figures are in maps/README.md.
+until α's std-error with g held is ≤ --alpha-stderr. The figures: `trimeter bench fit`'s error budget.
 """
 
 from __future__ import annotations

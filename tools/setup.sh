@@ -24,9 +24,9 @@ if [ ! -x .venv/bin/python ]; then
 fi
 stamp=".venv/.installed-$(sha256sum pyproject.toml | cut -c1-16)"
 if [ ! -f "$stamp" ]; then
-  echo "setup: installing trimeter into .venv (with the maps, hardware and dev extras)"
+  echo "setup: installing trimeter into .venv (with the maps, hardware, docs and dev extras)"
   .venv/bin/python -m pip install -q --upgrade pip
-  .venv/bin/python -m pip install -q -e ".[maps,hardware,dev]"
+  .venv/bin/python -m pip install -q -e ".[maps,hardware,docs,dev]"
   rm -f .venv/.installed-*
   touch "$stamp"
 fi

@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Instructions per call on a Cortex-M4, counted under QEMU (see count.c).
 
-    python3 count.py build/qemu/count.elf [--qemu qemu-system-arm] [--nm arm-none-eabi-nm] [--mhz 168]
+    python3 count.py build/qemu/count.elf [--qemu qemu-system-arm] [--nm arm-none-eabi-nm] [--mhz 168] [--json]
 
 QEMU runs the driver one guest instruction per translation block (-singlestep) with every executed
 block logged (-d exec,nochain), so the log lines between count_begin's and count_end's first instruction
@@ -14,6 +14,7 @@ cycles per instruction.
 from __future__ import annotations
 
 import argparse
+import json
 import re
 import subprocess
 import sys
@@ -62,6 +63,7 @@ def main() -> int:
     ap.add_argument("--nm", default="arm-none-eabi-nm")
     ap.add_argument("--mhz", type=float, default=168.0)
     ap.add_argument("--timeout-s", type=float, default=300.0)
+    ap.add_argument("--json", action="store_true", help="print the counts as one JSON object instead of a table")
     args = ap.parse_args()
     marks = symbol_addresses(args.elf, args.nm, ("count_begin", "count_end"))
     with tempfile.TemporaryDirectory(prefix="qemu-count-") as tmp:
@@ -85,11 +87,17 @@ def main() -> int:
         print(f"count.py: {len(labels)} labels but {len(counts)} measured spans", file=sys.stderr)
         return 1
     base = counts[0]
-    print(f"instructions per call, Cortex-M4 under QEMU netduinoplus2 (markers' {base} subtracted); "
-          f"time at {args.mhz:g} MHz for 1.0-1.5 cycles per instruction")
     seen: dict[str, list[int]] = {}
     for label, n in zip(labels[1:], counts[1:], strict=True):
         seen.setdefault(label, []).append(n - base)
+    if args.json:
+        print(json.dumps({"machine": "netduinoplus2", "mhz": args.mhz, "cycles_per_instruction": [1.0, 1.5],
+                          "markers_subtracted": base,
+                          "instructions": {label: {"mean": sum(v) / len(v), "min": min(v), "max": max(v),
+                                                   "calls": len(v)} for label, v in seen.items()}}))
+        return 0
+    print(f"instructions per call, Cortex-M4 under QEMU netduinoplus2 (markers' {base} subtracted); "
+          f"time at {args.mhz:g} MHz for 1.0-1.5 cycles per instruction")
     for label, values in seen.items():
         lo, hi, mean = min(values), max(values), sum(values) / len(values)
         us = (mean / args.mhz, 1.5 * mean / args.mhz)

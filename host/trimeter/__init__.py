@@ -3,16 +3,27 @@
 Data flows one way: device -> raw spectra -> reflectances -> map inversion -> parameters -> files/plots.
 """
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 __version__ = "0.1.0"
 
+if TYPE_CHECKING:  # what the lazy names below resolve to, for type checkers and the API reference
+    from trimeter.maps.artifacts import fit, open_map
+    from trimeter.prediction import predict
+    from trimeter.results.reader import Measurement, load
+
+__all__ = ["Measurement", "fit", "load", "open_map", "predict"]
+
+
+# The Python API, each name imported from its module on first use so `import trimeter` stays light: `fit` the
+# inversion on maps by name or path, `load` a results directory, `predict` a slab's look, `open_map` by name.
+_LAZY = {"fit": "trimeter.maps.artifacts", "load": "trimeter.results.reader", "Measurement": "trimeter.results.reader",
+         "predict": "trimeter.prediction", "open_map": "trimeter.maps.artifacts"}
+
 
 def __getattr__(name: str) -> Any:
-    # `trimeter.fit(...)` is the inversion entry point on maps by name or path (trimeter.maps.artifacts);
-    # imported lazily so `import trimeter` stays light.
-    if name == "fit":
-        from trimeter.maps.artifacts import fit
+    if name in _LAZY:
+        import importlib
 
-        return fit
+        return getattr(importlib.import_module(_LAZY[name]), name)
     raise AttributeError(f"module 'trimeter' has no attribute {name!r}")

@@ -1,7 +1,7 @@
 """The STM32F405 image boots in QEMU (netduinoplus2) and answers Modbus RTU on USART1.
 
 QEMU emulates the CPU, SysTick, USART1 (RXNE interrupt only) and the NVIC, but not RCC, GPIO, flash
-programming or the watchdog (../shared/NOTES.md), so this checks the port's boot path (vector table,
+programming or the watchdog (docs/platform-notes.md), so this checks the port's boot path (vector table,
 .data/.bss, FPU enable, clock fallback with timeouts), the USART driver and the core's register map
 on the real instruction set — not motion or storage, which the host tests cover. Skipped when
 qemu-system-arm or the image is missing.

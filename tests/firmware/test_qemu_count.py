@@ -74,3 +74,22 @@ def test_qemu_count_counts_the_inverse_core_per_bin_with_a_device_table(tmp_path
     assert 500 < int(check.group(1)) < 20_000
     mean, low, high, calls = (int(x) for x in per_bin.groups())
     assert calls == 8 and 5_000 < low <= mean <= high < 200_000, run.stdout
+
+
+@pytest.mark.skipif(shutil.which("qemu-system-arm") is None or shutil.which("arm-none-eabi-gcc") is None,
+                    reason="needs qemu-system-arm and gcc-arm-none-eabi")
+def test_qemu_count_as_json_holds_the_table_s_counts():
+    """COUNT_ARGS=--json (what `trimeter bench report` reads): the same counts as the table, one object."""
+    import json
+
+    def count(*extra):
+        run = subprocess.run(["make", "-s", "-C", str(ROOT / "firmware"), "qemu-count", *extra], capture_output=True,
+                             text=True, timeout=300)
+        assert run.returncode == 0, run.stderr
+        return run.stdout
+
+    text = count()
+    counts = json.loads(count("COUNT_ARGS=--json").splitlines()[-1])
+    shown = {m.group(1).strip(): int(m.group(2)) for m in re.finditer(r"^  (.+?)\s{2,}(\d+)", text, re.MULTILINE)}
+    assert shown and {k: round(v["mean"]) for k, v in counts["instructions"].items()} == shown
+    assert counts["mhz"] == 168 and counts["cycles_per_instruction"] == [1.0, 1.5]

@@ -52,7 +52,7 @@ def test_alpha0_is_beer_lambert_and_fresnel(geometry, rel):
 def test_a_clear_ideal_slab_on_white_renders_its_closed_form_to_a_few_parts_per_million():
     """4M rays at a clear slab over white, whose value the closed form gives exactly: within 4 std-errors
     (~1e-4) and nothing else. Summed in Mitsuba's float32 film (mi.render) at the sample counts a check
-    needs, a clear slab's render came out many std-errors off (maps/README.md)."""
+    needs, a clear slab's render came out many std-errors off (figures: the git history of maps/README.md)."""
     sigma_t, rho = 1e-4, 0.9
     A, B, C = nonscattering_coefficients("ideal", sigma_t, 0.5, 1.5)
     value, stderr = render_diffuse("ideal", 0.0, sigma_t, 0.0, 1.5, 0.5, rho, 1 << 22, seed=4)

@@ -9,7 +9,6 @@ import importlib.util
 import inspect
 import shutil
 import struct
-import subprocess
 import sys
 import zlib
 from pathlib import Path
@@ -24,8 +23,6 @@ from trimeter.inversion.flags import UNUSABLE, FitFlag
 from trimeter.inversion.native import invert_h
 
 ROOT = Path(__file__).resolve().parents[2]
-NATIVE_DIR = ROOT / "host" / "trimeter" / "inversion" / "native"
-FIRMWARE_CORE = ROOT / "firmware" / "core"
 # the flag the table fit never sets (it returns no stds to qualify)
 NOT_SET = int(FitFlag.STD_APPROXIMATE)
 
@@ -58,17 +55,26 @@ def heldout():
                            budget=error_budget(amap, h, rb, rw), reference=reference)
 
 
-@pytest.fixture(scope="module")
-def single_library(tmp_path_factory):
-    """The kernel compiled with -DTR_SINGLE: the table fit in float, as the MCU runs it."""
-    cc = shutil.which("cc") or shutil.which("gcc")
-    if cc is None:
+def _host_has_fma() -> bool:
+    try:
+        return " fma " in f" {Path('/proc/cpuinfo').read_text()} ".replace("\n", " ")
+    except OSError:
+        return False
+
+
+@pytest.fixture(scope="module", params=["float", "float, fused multiply-adds"])
+def single_library(tmp_path_factory, request):
+    """The kernel compiled with -DTR_SINGLE: the table fit in float, as the MCU runs it; and with its
+    a·b + c fused as the Cortex-M4 build takes them (firmware/Makefile FIT_CORE_MCU_FLAGS), where this
+    CPU has fused multiply-adds to run that build."""
+    from trimeter.bench._firmware import single_precision_library
+
+    if not (shutil.which("cc") or shutil.which("gcc")):
         pytest.skip("no C compiler")
-    out = tmp_path_factory.mktemp("single") / "libtrimeter_invert_single.so"
-    sources = sorted(str(p) for p in NATIVE_DIR.glob("*.c"))
-    subprocess.run([cc, "-O2", "-std=c11", "-Wall", "-Wextra", "-Werror", "-shared", "-fPIC", "-DTR_SINGLE",
-                    f"-I{FIRMWARE_CORE}", "-o", str(out), *sources, "-lm"], check=True, capture_output=True)
-    return out
+    fused = request.param.endswith("multiply-adds")
+    if fused and not _host_has_fma():
+        pytest.skip("this CPU has no fused multiply-add")
+    return single_precision_library(tmp_path_factory.mktemp("single"), fused_multiply_add=fused)
 
 
 def _differences(fit, reference):
@@ -162,6 +168,44 @@ def _resealed(data: bytes, offset: int, new: bytes) -> bytes:
 def test_a_table_the_core_cannot_use_is_refused(heldout, offset, new):
     with pytest.raises(MapFileError, match="not a format-2 table"):
         native.TableFitter(_resealed(heldout.data, offset, new))
+
+
+def _section(data: bytes, index: int) -> int:
+    """The byte offset of section `index` (the header's directory: offset, size per section)."""
+    return struct.unpack_from("<I", data, 156 + 8 * index)[0]
+
+
+@pytest.mark.parametrize("value", [float("inf"), float("-inf"), float("nan")])
+@pytest.mark.parametrize("where", ["alpha first", "alpha middle", "alpha last", "g last", "frame first",
+                                   "frame middle", "frame last"])
+def test_a_non_finite_axis_node_or_frame_value_is_refused_wherever_it_is(heldout, value, where):
+    """The axes are checked as finite ends and strictly increasing steps, the frame by one sum: a
+    non-finite value anywhere in either is refused all the same."""
+    data = heldout.data
+    na, ns, ng = struct.unpack_from("<HHH", data, 116)
+    name, place = where.split()
+    start, count = {"alpha": (_section(data, 0), na), "g": (_section(data, 2), ng),
+                    "frame": (_section(data, 7), ns * 6)}[name]
+    index = {"first": 0, "middle": count // 2, "last": count - 1}[place]
+    with pytest.raises(MapFileError, match="not a format-2 table"):
+        native.TableFitter(_resealed(data, start + 4 * index, struct.pack("<f", value)))
+
+
+def test_bins_outside_the_map_s_box_agree_with_the_reference_too(heldout):
+    """Bins whose solution lies past the box (g held at an edge, α crawling or held too: the polish's
+    clamps keep it where it was), against the numpy reference bin for bin."""
+    from trimeter.maps.device_table import DeviceTable
+
+    tool = _tool()
+    table = DeviceTable.from_bytes(heldout.data)
+    I_b = np.array([0.02, 0.40, 0.60, 0.15, 0.30, 0.01])
+    I_w = np.array([0.05, 0.70, 0.62, 0.90, 0.31, 0.99])
+    I_c = np.array([0.001, 0.40, 0.002, 0.85, 0.0005, 0.9])
+    reference = tool.fit_table(table, tool.on_the_fly_inverter(table), I_b, I_w, I_c)
+    fit = native.TableFitter(heldout.data).fit(I_b, I_w, I_c)
+    assert (reference.flags & int(FitFlag.NOT_CONVERGED)).sum() >= 3  # the case this is about
+    assert max(d.max() for d in _differences(fit, reference)) <= 1e-9
+    assert np.array_equal(fit[3], reference.flags & ~NOT_SET)
 
 
 def test_a_corrupt_or_truncated_table_is_refused(heldout):

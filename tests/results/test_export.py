@@ -155,7 +155,7 @@ def test_csv_parameters_file(tmp_path):
 
 @pytest.mark.parametrize("content, message", [
     ("wavelength_nm,alpha\n1,2\n3,4\n", "no sigma_t, g column"),
-    ("wavelength_nm,alpha,sigma_t,g\n400,x,1,0\n500,0.5,1,0\n", "line 2: alpha is not a number"),
+    ("wavelength_nm,alpha,sigma_t,g\n400,x,1,0\n500,0.5,1,0\n", "line 2, column alpha: 'x' is not a number"),
     ("wavelength_nm,alpha,sigma_t,g\n400,nan,1,0\n500,0.5,1,0\n", "fewer than two wavelengths"),
     ("wavelength_nm,alpha,sigma_t,g\n400,0.5,1,0\n500,0.5,1,1.5\n", "g at 500 nm is 1.5: outside"),
 ])

@@ -28,6 +28,19 @@ def test_writes_a_complete_directory(tmp_path, measurement):
     assert json.loads((out / "measurement.json").read_text())["sample"] == "test ink"
 
 
+def test_writing_the_figure_leaves_the_process_s_plotting_backend_alone(tmp_path, measurement):
+    """A notebook that measures in-process keeps its inline plots: the figure is drawn without pyplot."""
+    import matplotlib
+
+    before = matplotlib.get_backend()
+    matplotlib.use("svg")  # any backend other than the Agg the figure is written with
+    try:
+        write_measurement(tmp_path, measurement)
+        assert matplotlib.get_backend() == "svg"
+    finally:
+        matplotlib.use(before)
+
+
 def test_failure_while_writing_leaves_nothing_that_looks_complete(tmp_path, measurement, monkeypatch):
     import trimeter.results.figure as figure
 

@@ -26,7 +26,10 @@ def fake_result(root: Path, name: str, *, label=None, flags=(0, 0, 0), written="
     (path / "measurement.json").write_text(json.dumps({"label": label, "method": "lut", "maps": ["m"],
                                                        "thicknesses_mm": [0.4], "written_utc": written,
                                                        "advice": []}))
-    (path / "parameters.json").write_text(json.dumps({"combined": {"flags": list(flags)}, "per_thickness": []}))
+    n = len(flags)
+    combined = {"wavelength_nm": [400.0 + i for i in range(n)], "alpha": [0.5] * n, "sigma_t": [1.0] * n,
+                "g": [0.0] * n, "flags": list(flags)}
+    (path / "parameters.json").write_text(json.dumps({"combined": combined, "per_thickness": []}))
     return path
 
 

@@ -38,7 +38,8 @@ def _record(directory, flags) -> None:
     (directory / "measurement.json").write_text(json.dumps({"label": directory.name[17:], "thicknesses_mm": [0.4],
                                                             "maps": ["m"], "method": "lut"}))
     if flags is not None:
-        (directory / "parameters.json").write_text('{"combined": {"flags": [0, %s]}}' % flags)
+        (directory / "parameters.json").write_text('{"combined": {"wavelength_nm": [500, 600], "alpha": [0.5, 0.5], '
+                                                   '"sigma_t": [1, 1], "g": [0, 0], "flags": [0, %s]}}' % flags)
 
 
 @pytest.fixture(scope="module")
@@ -105,7 +106,7 @@ def test_records_with_a_missing_or_overflowing_file_are_listed_and_shown_with_th
     listed = {row["id"]: row for row in web.call("GET", "/api/measurements").json["measurements"]}
     assert set(listed) == set(RECORDS)
     assert listed[NO_PARAMETERS]["bins"] == 0 and listed[HUGE_FLAGS]["bins"] == 0
-    for name, problem in ((NO_PARAMETERS, "parameters.json cannot be read"), (HUGE_FLAGS, "no list of flag words")):
+    for name, problem in ((NO_PARAMETERS, "parameters.json: missing"), (HUGE_FLAGS, "parameters.json")):
         answer = web.call("GET", f"/api/measurements/{name}")
         assert answer.status == 200, answer.body
         assert any(problem in p for p in answer.json["problems"]), answer.json["problems"]

@@ -16,6 +16,7 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 from types import SimpleNamespace
+from typing import Any
 
 import numpy as np
 
@@ -38,6 +39,31 @@ def register(bench_subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.repeats < 1:
+        raise InputError(f"--repeats must be at least 1, not {args.repeats}")
+    if args.library is not None and not args.library.is_file():
+        raise InputError(f"--library: no such file: {args.library}")
+    report = measure(args.table, args.map, args.repeats, args.library)
+    print(f"{report['map']}: {report['materials']} held-out materials, noise-free rendered references; table "
+          f"{report['table_bytes']} B; kernel: {report['kernel']}; cores {report['cores']}")
+    header = "".join(f"{k:>15s}" for k in TARGETS) + f"{'targets':>9s}{'ms/1024':>10s}{'× base':>8s}"
+    print(f"{'variant':40s}{header}")
+    for row in report["rows"]:
+        print(f"{row['variant']:40s}" + "".join(f"{row[k]:15.4g}" for k in TARGETS)
+              + f"{'met' if row['targets_met'] else 'MISSED':>9s}{row['ms_per_1024']:10.3f}{row['x_baseline']:8.2f}")
+    print("targets: " + ", ".join(f"{k} ≤ {v}" for k, v in TARGETS.items()))
+    return 0
+
+
+BASELINE = "map lut, refined grid, C (baseline)"
+
+
+def measure(table_path: Path, map_name: str | None = None, repeats: int = 7,
+            library: Path | None = None) -> dict[str, Any]:
+    """The table's fits on its map's held-out set, scored (bench fit's figures: alpha_p95, sigma_rel_p95,
+    g_p95, …) and timed per 1024 bins, best of `repeats` round-robin beside the map's own lut fit
+    (`x_baseline`: time over the baseline's in this run). `library`: another build of the kernel for the
+    table fit (e.g. single precision); the variant's name says which."""
     import trimeter
     from trimeter.bench.fit import _stats, error_budget, heldout_collimated, heldout_for, heldout_intensities
     from trimeter.inversion import api, native
@@ -45,13 +71,11 @@ def run(args: argparse.Namespace) -> int:
     from trimeter.maps.container import read_bounded
     from trimeter.maps.device_table import MAX_BYTES, DeviceTable
 
-    if args.repeats < 1:
-        raise InputError(f"--repeats must be at least 1, not {args.repeats}")
-    data = read_bounded(args.table, MAX_BYTES, "map table")
-    table = DeviceTable.from_bytes(data, source=str(args.table))
-    amap = AppearanceMap.load(find_map(args.map or table.name))
+    data = read_bounded(table_path, MAX_BYTES, "map table")
+    table = DeviceTable.from_bytes(data, source=str(table_path))
+    amap = AppearanceMap.load(find_map(map_name or table.name))
     if table.parent_sha256 != amap.checksum:
-        raise InputError(f"{args.table} was built from another map than {amap.name} as it is now (parent SHA-256 "
+        raise InputError(f"{table_path} was built from another map than {amap.name} as it is now (parent SHA-256 "
                          f"{table.parent_sha256[:12]}…, the map's {str(amap.checksum)[:12]}…): rebuild it")
     _, _, h = heldout_for(amap)
     rb, rw = amap.reference_rhos
@@ -59,9 +83,7 @@ def run(args: argparse.Namespace) -> int:
     I_c = heldout_collimated(amap, h)
     truth = (h["alpha"], h["sigma_t"], h["g"])
     budget = error_budget(amap, h, rb, rw)
-    if args.library is not None and not args.library.is_file():
-        raise InputError(f"--library: no such file: {args.library}")
-    fitter = native.TableFitter(data, library=args.library)
+    fitter = native.TableFitter(data, library=library)
 
     def table_fit(ib: np.ndarray, iw: np.ndarray, ic: np.ndarray) -> SimpleNamespace:
         alpha, sigma_t, g, flags = fitter.fit(ib, iw, ic)
@@ -75,29 +97,24 @@ def run(args: argparse.Namespace) -> int:
     def refined_fit(ib: np.ndarray, iw: np.ndarray, ic: np.ndarray) -> FitResult:
         return api.fit(refined_model, ib, iw, ic, method="lut")
 
-    precision = "double" if args.library is None else args.library.name
+    precision = "double" if library is None else library.name
     variants: dict[str, Callable[[np.ndarray, np.ndarray, np.ndarray], FitResult | SimpleNamespace]] = {
         f"table alone, C, {precision}": table_fit, "table alone, refined at load (--refine)": refined_fit,
-        "map lut, refined grid, C (baseline)": map_fit}
+        BASELINE: map_fit}
     tile = np.resize(np.arange(len(I_b)), 1024)
     tiled = (I_b[tile], I_w[tile], I_c[tile])
     best = dict.fromkeys(variants, np.inf)
     for fn in variants.values():
         fn(*tiled)  # warm: first calls load and prepare
-    for _ in range(args.repeats):  # round-robin: a slow moment of the machine hits both alike
+    for _ in range(repeats):  # round-robin: a slow moment of the machine hits both alike
         for name, fn in variants.items():
             t0 = time.perf_counter()
             fn(*tiled)
             best[name] = min(best[name], time.perf_counter() - t0)
-    print(f"{amap.name}: {len(I_b)} held-out materials, noise-free rendered references; table {table.size_bytes} B; "
-          f"kernel: {native.status()}; cores {sorted(os.sched_getaffinity(0))}")
-    header = "".join(f"{k:>15s}" for k in TARGETS) + f"{'targets':>9s}{'ms/1024':>10s}{'× base':>8s}"
-    print(f"{'variant':40s}{header}")
-    base = best["map lut, refined grid, C (baseline)"]
+    rows = []
     for name, fn in variants.items():
         st = _stats(fn(I_b, I_w, I_c), truth, budget)
-        met = all(st[k] <= v for k, v in TARGETS.items())
-        print(f"{name:40s}" + "".join(f"{st[k]:15.4g}" for k in TARGETS) + f"{'met' if met else 'MISSED':>9s}"
-              f"{best[name] * 1e3:10.3f}{best[name] / base:8.2f}")
-    print("targets: " + ", ".join(f"{k} ≤ {v}" for k, v in TARGETS.items()))
-    return 0
+        rows.append({"variant": name, **st, "targets_met": all(st[k] <= v for k, v in TARGETS.items()),
+                     "ms_per_1024": best[name] * 1e3, "x_baseline": best[name] / best[BASELINE]})
+    return {"map": amap.name, "table": str(table_path), "table_bytes": table.size_bytes, "materials": len(I_b),
+            "kernel": native.status(), "cores": sorted(os.sched_getaffinity(0)), "repeats": repeats, "rows": rows}

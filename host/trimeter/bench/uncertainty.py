@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -132,7 +133,7 @@ def _fit(cases, noisy, stds, mode, thickness_std=None):
 
     amaps = [c.amap for c in cases]
     I = [np.stack([n[i] for n in noisy]) for i in range(3)]
-    kw = {}
+    kw: dict[str, Any] = {}
     if mode == "given":
         kw = dict(I_b_std=np.stack([s[0] for s in stds]), I_w_std=np.stack([s[1] for s in stds]),
                   I_c_std=np.stack([s[2] for s in stds]))
@@ -142,7 +143,7 @@ def _fit(cases, noisy, stds, mode, thickness_std=None):
     if len(amaps) == 1:
         I = [x[0] for x in I]
         kw = {k: (v[0] if isinstance(v, np.ndarray) else v) for k, v in kw.items()}
-    return trimeter.fit(maps, *I, method="lut", **kw)
+    return trimeter.fit(maps, I[0], I[1], I[2], method="lut", **kw)
 
 
 def _row(label, level, mode, result, truth):
@@ -157,6 +158,18 @@ def _row(label, level, mode, result, truth):
 
 
 def run(args) -> int:
+    report = measure(args)
+    _print(report["rows"], report["map_error"])
+    args.out.mkdir(parents=True, exist_ok=True)
+    path = args.out / "results.json"
+    atomic_write(path, json.dumps(report, indent=1, default=float))
+    print(f"\nall figures: {path}")
+    return 0
+
+
+def measure(args) -> dict:
+    """Every figure `run` prints: {"kernel", "draws", "rows": one per (case, noise, mode) with coverage
+    and mean z per parameter and flag counts, "map_error": the map's own error per (case, mode)}."""
     from trimeter.inversion import native
 
     try:
@@ -200,13 +213,7 @@ def run(args) -> int:
                 thickness_std = [args.thickness_rel_std * c.amap.thickness_mm for c in group]
                 result = _fit(group, noisy, stds, mode, thickness_std if len(group) > 1 else thickness_std[0])
                 rows.append(_row(f"{label}, ℓ ±{args.thickness_rel_std:.0%}", level, mode, result, truth))
-    _print(rows, bias)
-    args.out.mkdir(parents=True, exist_ok=True)
-    path = args.out / "results.json"
-    atomic_write(path, json.dumps({"kernel": native.status(), "draws": args.draws, "rows": rows, "map_error": bias},
-                                  indent=1, default=float))
-    print(f"\nall figures: {path}")
-    return 0
+    return {"kernel": native.status(), "draws": args.draws, "rows": rows, "map_error": bias}
 
 
 def _map_error(label, mode, clean, noisy_result, truth) -> dict:

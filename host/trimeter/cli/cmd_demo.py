@@ -23,9 +23,9 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from trimeter.errors import DeviceError, InputError
+from trimeter.errors import DeviceError, InputError, OutputError
 from trimeter.inversion.methods import METHODS
-from trimeter.paths import REPO_ROOT
+from trimeter.paths import data_dir
 
 if TYPE_CHECKING:
     from trimeter.sequences.service import Event
@@ -45,6 +45,12 @@ def _wait_for(events: queue.Queue[Event], kind: str, timeout_s: float, log: Call
             return event
         if event.kind == "failed":
             raise DeviceError(f"demo: the service reported: {event.message}")
+
+
+def demo_dir(out: str | None) -> Path:
+    """Where the demo writes: --out, else the user's data directory (never the package or the repository,
+    which for an installed package would be site-packages)."""
+    return Path(out) if out else data_dir() / "demo"
 
 
 def run(args: argparse.Namespace) -> None:
@@ -73,8 +79,12 @@ def run(args: argparse.Namespace) -> None:
                              f"the appearance map: give --map {amap.name}")
     # a stale table or model fails now, not after the warm-up
     prepare_fit([Sample(args.thickness, table if table is not None and not args.map else amap)], args.method)
-    out = Path(args.out or REPO_ROOT / "out" / "demo") / time.strftime("%Y%m%dT%H%M%S")
-    out.mkdir(parents=True, exist_ok=True)
+    out = demo_dir(args.out) / time.strftime("%Y%m%dT%H%M%S")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(f"demo: cannot create {out} ({exc.strerror or exc}); give --out DIR") from None
+    print(f"demo: writing into {out}")
     os.environ["TRIMETER_DATA_DIR"] = str(out)  # the demo's calibration never touches the user's
     settings = HostSettings()
     settings.set("results_dir", str(out / "results"))
@@ -89,11 +99,11 @@ def run(args: argparse.Namespace) -> None:
 
     carried = "no map table" if table is None else f"map table {table.name} (sha256 {table.sha256[:12]}…)"
     fitted_with = f"the map {amap.name} (--map)" if args.map else "the table the instrument carries"
-    print(f"demo: twin with '{args.sample}' ℓ = {args.thickness:g} mm and {carried} in its slot; the host fits "
-          f"with {fitted_with}; time scale {args.time_scale:g}×")
+    print(f"demo: twin with '{args.sample}' ℓ = {args.thickness:g} mm and {carried} in its slot, read by its "
+          f"{args.sensor}; the host fits with {fitted_with}; time scale {args.time_scale:g}×")
     with Twin(sample=None, thickness_mm=args.thickness, time_scale=args.time_scale, appearance_map=amap,
               state_dir=out / "twin", seed=args.seed,
-              map_table=None if table is None else table.to_bytes()) as twin:
+              map_table=None if table is None else table.to_bytes(), sensor=args.sensor) as twin:
         settings.set("port", twin.modbus_port)
         settings.set("spectrometer", twin.spectrometer_url)
         events: queue.Queue[Event] = queue.Queue()
@@ -193,6 +203,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                  "shipped map of that thickness)")
     p.add_argument("--method", default="lut", choices=METHODS)
     p.add_argument("--time-scale", type=float, default=20.0, help="twin time runs this many times faster")
+    p.add_argument("--sensor", default="spectrometer", choices=("spectrometer", "as7341"),
+                   help="the build the twin reads like: the spectrometer's pixels, or the AS7341's nine channels "
+                        "(fitted band-aware)")
     p.add_argument("--seed", type=int, default=1)
-    p.add_argument("--out", help="output directory (default: out/demo)")
+    p.add_argument("--out", help="output directory (default: the user data directory's demo/, printed; "
+                                 "TRIMETER_DATA_DIR overrides it)")
     p.set_defaults(func=run)

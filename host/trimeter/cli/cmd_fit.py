@@ -4,6 +4,7 @@
                  [--json] [--polish N]
     trimeter fit --table TABLE.tlut --input meas.csv [--thickness MM] [--refine [--polish N]] …
     trimeter fit --on-device --port PORT --input meas.csv [--thickness MM] …
+    trimeter fit --map MAP --bands WEIGHTS.csv|as7341 --input channels.csv [--grid START:STOP:STEP] …
 
 `--table` fits from a device table alone (maps/<name>.tlut: the inverse grid, the compact forward
 model, the in-scattering correction, n, ℓ and the reference backgrounds; no map file needed) with the
@@ -23,8 +24,13 @@ belong to which map; both thicknesses must cover the same wavelengths); I_b_std,
 this measurement, not of a default noise model) and thickness_std_mm (the sample thickness's std, one
 value per thickness). Empty cells and "nan" are missing values: those bins come back flagged with NaN
 results, the others are unaffected (a missing std: the default noise model's for that bin).
+`--bands`: a multichannel sensor's band readings, fitted band-aware (trimeter.cli.fit_bands says how).
+
 Output columns: wavelength_nm, alpha, sigma_t, g, alpha_std, sigma_t_std, g_std, flags, sigma_t_beer,
 thickness_mm (flags: trimeter.inversion.flags.FitFlag bits; the JSON form also names them).
+Rows come out in wavelength order. One thickness with CSV output is read, fitted and written in chunks, so
+an input of any length fits in bounded memory (trimeter.cli.fit_stream: a large input must then be in
+wavelength order); two thicknesses, --json and --on-device read their input whole, up to a size limit.
 The thickness is never assumed silently: σt scales as 1/ℓ, so a map of another thickness than the
 sample's gives σt off by their ratio. The output states the thickness the fit used (the map's; with
 two maps "0.4+0.8"), and so does a line on stderr; `--thickness` declares the sample's, and a map of
@@ -34,21 +40,21 @@ another thickness is then an error.
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import math
 import sys
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, SupportsFloat
 
 import numpy as np
 
 from trimeter.atomic import atomic_write, same_file
+from trimeter.cli import fit_stream
 from trimeter.cli._instrument import add_instrument_args
+from trimeter.cli.fit_stream import OUTPUT, Chunk
 from trimeter.errors import InputError, OutputError
 from trimeter.inversion.methods import METHODS
-from trimeter.validation import shown
 
 if TYPE_CHECKING:
     from trimeter.maps.appearance import AppearanceMap
@@ -57,10 +63,6 @@ if TYPE_CHECKING:
     # what a fit here inverts through: appearance maps (one per thickness) or one device table
     FitSource = AppearanceMap | DeviceTable
 
-REQUIRED = ("wavelength_nm", "I_b", "I_w", "I_c")
-OPTIONAL = ("rho_b", "rho_w", "thickness_mm", "I_b_std", "I_w_std", "I_c_std", "thickness_std_mm")
-OUTPUT = ("wavelength_nm", "alpha", "sigma_t", "g", "alpha_std", "sigma_t_std", "g_std", "flags", "sigma_t_beer",
-          "thickness_mm")
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -85,6 +87,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--thickness", type=float, action="append",
                    help="the sample's thickness in mm (once per --map); a map of another thickness is an error")
     p.add_argument("--method", choices=METHODS, help="inversion method (default: lut)")
+    p.add_argument("--bands", metavar="WEIGHTS.csv",
+                   help="band weights of a multichannel sensor (or 'as7341': the built-in model); --input then "
+                        "holds one row per channel (channel,I_b,I_w,I_c[,rho_b,rho_w,*_std])")
+    p.add_argument("--grid", metavar="START:STOP:STEP", help="with --bands: the spectra on this grid as well (nm)")
     p.add_argument("-o", "--output", type=Path, help="output CSV (default: stdout)")
     p.add_argument("--json", action="store_true", help="print JSON instead of CSV")
     p.set_defaults(func=run)
@@ -101,41 +107,8 @@ def _polish_steps(text: str) -> int:
 
 
 def read_measurements(path: Path) -> dict[str, np.ndarray]:
-    try:
-        text = path.read_text(encoding="utf-8-sig")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"--input {path}: cannot read ({getattr(exc, 'strerror', None) or exc})") from None
-    lines = (line for line in text.splitlines() if line.strip() and not line.lstrip().startswith("#"))
-    try:
-        return _parse_columns(csv.reader(lines), path)
-    except csv.Error as exc:  # e.g. a field over the csv module's limit, a NUL byte
-        raise InputError(f"--input {path}: not a readable CSV ({exc})") from None
-
-
-def _parse_columns(reader: Iterator[list[str]], path: Path) -> dict[str, np.ndarray]:
-    header = [h.strip() for h in next(reader, [])]
-    duplicated = sorted({h for h in header if header.count(h) > 1})
-    if duplicated:
-        raise InputError(f"--input {path}: column(s) {', '.join(map(shown, duplicated))} appear more than once")
-    missing = [c for c in REQUIRED if c not in header]
-    if missing:
-        raise InputError(f"--input {path}: missing column(s) {', '.join(missing)} (have: "
-                         f"{', '.join(map(shown, header)) or 'none'})")
-    columns: dict[str, list[float]] = {c: [] for c in REQUIRED + OPTIONAL if c in header}
-    where = {c: header.index(c) for c in columns}
-    for row_no, row in enumerate(reader, start=2):
-        for c, i in where.items():
-            cell = row[i].strip() if i < len(row) else ""
-            try:
-                columns[c].append(float(cell) if cell else math.nan)
-            except ValueError:
-                raise InputError(f"--input {path}: line {row_no}, column {c}: {shown(cell)} is not a number") from None
-    data = {c: np.array(v, dtype=float) for c, v in columns.items()}
-    if not len(data["wavelength_nm"]):
-        raise InputError(f"--input {path}: no data rows")
-    if not np.all(np.isfinite(data["wavelength_nm"])):
-        raise InputError(f"--input {path}: column wavelength_nm has an empty or non-finite value")
-    return data
+    """The whole input, for the fits that need every row at once (trimeter.cli.fit_stream.read_whole)."""
+    return fit_stream.read_whole(path)
 
 
 def _split_thicknesses(data: dict[str, np.ndarray], amaps: Sequence[FitSource], path: Path) -> list[np.ndarray]:
@@ -200,6 +173,12 @@ def run(args: argparse.Namespace) -> int:
     from trimeter.maps.artifacts import fit
     from trimeter.maps.device_table import DeviceTable
 
+    if args.bands is not None:
+        from trimeter.cli.fit_bands import run_bands
+
+        return run_bands(args)
+    if args.grid is not None:
+        raise InputError("--grid: only with --bands (a per-wavelength fit reports at its input's wavelengths)")
     amaps = _fit_models(args)
     if args.on_device:
         return _run_on_device(args)
@@ -211,6 +190,8 @@ def run(args: argparse.Namespace) -> int:
     if len({round(m.thickness_mm, 9) for m in amaps}) != len(amaps):
         raise InputError("--map: the maps must be for different thicknesses")
     check_declared_thickness(args.thickness, amaps)
+    if len(amaps) == 1 and not args.json:
+        return _run_streamed(args, amaps[0], method, table_file)
     data = read_measurements(args.input)
     groups = _split_thicknesses(data, amaps, args.input)
     stack = lambda name: np.stack([data[name][rows] for rows in groups])  # noqa: E731
@@ -227,16 +208,86 @@ def run(args: argparse.Namespace) -> int:
     for note in notes:  # stderr: stdout may be the CSV
         print(f"note: {note}", file=sys.stderr)
     used = "+".join(f"{m.thickness_mm:g}" for m in amaps)
-    source = "declared with --thickness" if args.thickness else "not declared: the map's" if len(amaps) == 1 \
-        else "not declared: the maps'"
     identity = _table_identity(table_file, "file") if table_file is not None else None
-    fitted = f"table {identity['name']} (sha256 {identity['sha256'][:12]}…), refined at load" if identity else \
-        f"map {', '.join(m.name for m in amaps)}"
-    print(f"thickness: {used} mm ({source}; {fitted})", file=sys.stderr)
+    print(_thickness_line(args, amaps, identity), file=sys.stderr)
     flag_names = [describe(f) for f in result.flags]
     _write_result(args, columns, used, method, [m.thickness_mm for m in amaps], amaps, flag_names, notes,
                   identity)
     return 0
+
+
+def _thickness_line(args: argparse.Namespace, amaps: Sequence[FitSource], identity: dict[str, Any] | None) -> str:
+    """The stderr line that states the thickness the fit used and what it fitted with."""
+    used = "+".join(f"{m.thickness_mm:g}" for m in amaps)
+    source = "declared with --thickness" if args.thickness else "not declared: the map's" if len(amaps) == 1 \
+        else "not declared: the maps'"
+    fitted = f"table {identity['name']} (sha256 {identity['sha256'][:12]}…), refined at load" if identity else \
+        f"map {', '.join(m.name for m in amaps)}"
+    return f"thickness: {used} mm ({source}; {fitted})"
+
+
+def _run_streamed(args: argparse.Namespace, model: FitSource, method: str, table_file: DeviceTable | None) -> int:
+    """One map (or a table refined at load) with CSV output: the input read, fitted and written in chunks
+    (trimeter.cli.fit_stream), the same output as one fit of every row."""
+    from trimeter.maps.artifacts import fit
+
+    thickness_std: list[float] = []  # fixed by the first chunk: every row of a sample has the same
+    rows_before = [0]                # the chunk's first row in the whole input (the paper method's samples)
+
+    def fit_chunk(chunk: Chunk) -> Chunk:
+        rows = _split_thicknesses(chunk, [model], args.input)[0]  # checks thickness_mm; the chunk is in order
+        one = lambda name: chunk[name][rows][None, :]  # noqa: E731
+        options: dict[str, Any] = {name: one(name) for name in ("I_b_std", "I_w_std", "I_c_std") if name in chunk}
+        if "thickness_std_mm" in chunk:
+            options["thickness_std_mm"] = _streamed_thickness_std(chunk["thickness_std_mm"], thickness_std, model,
+                                                                  args.input)
+        if args.polish is not None:
+            options["polish"] = args.polish
+        if method == "paper":
+            options["first_row"] = rows_before[0]
+        rows_before[0] += len(rows)
+        result = fit([model], one("I_b"), one("I_w"), one("I_c"), one("rho_b") if "rho_b" in chunk else None,
+                     one("rho_w") if "rho_w" in chunk else None, method=method, **options)
+        return {"wavelength_nm": chunk["wavelength_nm"][rows], **result.as_dict()}
+
+    identity = _table_identity(table_file, "file") if table_file is not None else None
+    tally = fit_stream.fit_csv(args.input, args.output, fit_chunk, f"{model.thickness_mm:g}")
+    for note in tally.advice(1):
+        print(f"note: {note}", file=sys.stderr)
+    print(_thickness_line(args, [model], identity), file=sys.stderr)
+    if args.output is not None:
+        print(f"wrote {args.output}", file=sys.stderr)
+    return 0
+
+
+def _streamed_thickness_std(column: np.ndarray, seen: list[float], model: FitSource, path: Path) -> list[float]:
+    """The sample thickness's std for a chunk of a streamed input: the first chunk's (one value), which every
+    later row must repeat or leave empty."""
+    if not seen:
+        _refuse_unknown_std(column, path)
+    elif np.isinf(column).any():
+        _refuse_unknown_std(column[np.isinf(column)], path)
+    values = np.unique(column[np.isfinite(column)])
+    first = not seen
+    if first:
+        seen.append(float(values[0]) if len(values) else math.nan)
+    if len(values) > 1 or (len(values) and values[0] != seen[0]):
+        if not first and math.isnan(seen[0]):
+            raise InputError(f"--input {path}: column thickness_std_mm is empty on the first rows but not later; "
+                             f"the rows are fitted as they are read, so give the std from the first row on")
+        shown_values = sorted({*values.tolist(), *([] if math.isnan(seen[0]) else [seen[0]])})
+        raise InputError(f"--input {path}: column thickness_std_mm differs between the rows of thickness "
+                         f"{model.thickness_mm:g} mm ({shown_values[0]:g}, {shown_values[1]:g}, …): one sample, "
+                         f"one std")
+    return [0.0 if math.isnan(seen[0]) else seen[0]]
+
+
+def _refuse_unknown_std(column: np.ndarray, path: Path) -> None:
+    """A sample's thickness_std_mm cells: an infinite one, or none finite at all (NaN, empty), is refused — never
+    read as 0, an exact thickness. Empty cells beside a finite one repeat it."""
+    if np.isinf(column).any() or not np.isfinite(column).any():
+        raise InputError(f"--input {path}: column thickness_std_mm is not a finite number for a sample (NaN, "
+                         f"empty or infinite; 0: the thickness is exact)")
 
 
 def _table_identity(table: DeviceTable, source: str, slot: str | None = None) -> dict[str, Any]:
@@ -264,11 +315,7 @@ def _write_result(args: argparse.Namespace, columns: dict[str, np.ndarray], used
             doc["table"] = table
         _write(args.output, json.dumps(doc, indent=1, allow_nan=False) + "\n")
         return
-    lines = [",".join(OUTPUT)]
-    for i in range(len(columns["wavelength_nm"])):
-        lines.append(",".join([*(str(int(columns[k][i])) if k == "flags" else f"{columns[k][i]:.9g}"
-                                 for k in OUTPUT[:-1]), used]))
-    _write(args.output, "\n".join(lines) + "\n")
+    _write(args.output, ",".join(OUTPUT) + "\n" + fit_stream.csv_rows(columns, used))
 
 
 def _run_table_fit(args: argparse.Namespace, table: DeviceTable) -> int:
@@ -278,19 +325,35 @@ def _run_table_fit(args: argparse.Namespace, table: DeviceTable) -> int:
 
     refuse_output_onto_inputs(args.output, [args.input, args.table])
     check_declared_thickness(args.thickness, [table])
-    data = read_measurements(args.input)
-    rows = _split_thicknesses(data, [table], args.input)[0]
-    ignored = [c for c in ("I_b_std", "I_w_std", "I_c_std", "thickness_std_mm") if c in data]
+    with fit_stream.reader(args.input) as header:
+        ignored = [c for c in ("I_b_std", "I_w_std", "I_c_std", "thickness_std_mm") if c in header.columns]
     if ignored:
         print(f"note: the instrument's fit takes no stds: column(s) {', '.join(ignored)} not used (--refine "
               f"propagates them)", file=sys.stderr)
-    rho_b, rho_w = _backgrounds(data, rows, table)
-    alpha, sigma_t, g, flags = native.TableFitter(table.to_bytes()).fit(data["I_b"][rows], data["I_w"][rows],
-                                                                        data["I_c"][rows], rho_b, rho_w)
+    fitter = native.TableFitter(table.to_bytes())
     source = "declared with --thickness" if args.thickness else "not declared: the table's"
     fitted = f"table {table.name} (sha256 {table.sha256[:12]}…) with the instrument's fit"
+    where = f"thickness: {table.thickness_mm:g} mm ({source}; {fitted})"
+    if not args.json:
+        def fit_chunk(chunk: Chunk) -> Chunk:
+            rows = _split_thicknesses(chunk, [table], args.input)[0]
+            result = fitter.fit(chunk["I_b"][rows], chunk["I_w"][rows], chunk["I_c"][rows],
+                                *_backgrounds(chunk, rows, table))
+            return _table_fit_columns(chunk, rows, table, result)
+
+        tally = fit_stream.fit_csv(args.input, args.output, fit_chunk, f"{table.thickness_mm:g}")
+        for note in tally.advice(1):
+            print(f"note: {note}", file=sys.stderr)
+        print(where, file=sys.stderr)
+        if args.output is not None:
+            print(f"wrote {args.output}", file=sys.stderr)
+        return 0
+    data = read_measurements(args.input)
+    rows = _split_thicknesses(data, [table], args.input)[0]
+    rho_b, rho_w = _backgrounds(data, rows, table)
+    alpha, sigma_t, g, flags = fitter.fit(data["I_b"][rows], data["I_w"][rows], data["I_c"][rows], rho_b, rho_w)
     _write_table_fit(args, data, rows, table, (alpha, sigma_t, g, flags), "lut (the instrument's fit)",
-                     _table_identity(table, "file"), f"thickness: {table.thickness_mm:g} mm ({source}; {fitted})")
+                     _table_identity(table, "file"), where)
     return 0
 
 
@@ -332,11 +395,8 @@ def _write_table_fit(args: argparse.Namespace, data: dict[str, np.ndarray], rows
     computes none), advice and the thickness line on stderr."""
     from trimeter.inversion.flags import advice, describe
 
-    alpha, sigma_t, g, flags = fitted
-    nan = np.full(len(rows), np.nan)
-    columns = {"wavelength_nm": data["wavelength_nm"][rows], "alpha": alpha, "sigma_t": sigma_t, "g": g,
-               "alpha_std": nan, "sigma_t_std": nan, "g_std": nan, "flags": flags,
-               "sigma_t_beer": table.setup.beer_lambert_sigma_t(data["I_c"][rows])}
+    columns = _table_fit_columns(data, rows, table, fitted)
+    flags = columns["flags"]
     notes = advice(flags, 1)
     for note in notes:  # stderr: stdout may be the CSV
         print(f"note: {note}", file=sys.stderr)
@@ -345,16 +405,22 @@ def _write_table_fit(args: argparse.Namespace, data: dict[str, np.ndarray], rows
                   [describe(f) for f in flags], notes, identity)
 
 
+def _table_fit_columns(data: Chunk, rows: np.ndarray, table: DeviceTable,
+                       fitted: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]) -> Chunk:
+    """The instrument's fit as the output's columns: NaN stds (it computes none), the Beer-Lambert σt."""
+    alpha, sigma_t, g, flags = fitted
+    nan = np.full(len(rows), np.nan)
+    return {"wavelength_nm": data["wavelength_nm"][rows], "alpha": alpha, "sigma_t": sigma_t, "g": g,
+            "alpha_std": nan, "sigma_t_std": nan, "g_std": nan, "flags": flags,
+            "sigma_t_beer": table.setup.beer_lambert_sigma_t(data["I_c"][rows])}
+
+
 def _thickness_std(column: np.ndarray, groups: list[np.ndarray], amaps: Sequence[FitSource], path: Path) -> list[float]:
     """One thickness std per map from the column: the same value on every row of that thickness."""
     out = []
-    if not np.isfinite(column).all():  # a NaN std is no "exact thickness": refused, never read as 0
-        bad = np.flatnonzero(~np.isfinite(column))
-        raise InputError(f"--input {path}: column thickness_std_mm is not a finite number on row(s) "
-                         f"{', '.join(str(i + 1) for i in bad[:5])}{', …' if len(bad) > 5 else ''} (0: the thickness "
-                         f"is exact)")
     for rows, amap in zip(groups, amaps, strict=True):
-        values = np.unique(column[rows])
+        _refuse_unknown_std(column[rows], path)
+        values = np.unique(column[rows][np.isfinite(column[rows])])
         if len(values) > 1:
             raise InputError(f"--input {path}: column thickness_std_mm differs between the rows of thickness "
                              f"{amap.thickness_mm:g} mm ({values[0]:g}, {values[1]:g}, …): one sample, one std")

@@ -5,7 +5,7 @@
   trimeter predict --checker A B C D --thickness 5 -o DIR        # a color checker of the materials and their mixtures
 
 A material is a measurement directory, a parameters file (`trimeter fit -o`) or `sample:NAME` (a virtual material
-of the twin, `trimeter sim --list-materials`). Traced per wavelength node (trimeter.predict), a few seconds each.
+of the twin, `trimeter sim --list-materials`). Traced per wavelength node (trimeter.prediction), a few seconds each.
 """
 
 from __future__ import annotations
@@ -48,7 +48,7 @@ def _options(args) -> dict:
 
 
 def _checker_patches(materials, names, steps: int):
-    from trimeter.predict import mixture
+    from trimeter.prediction import mixture
 
     patches = [(name, m) for name, m in zip(names, materials, strict=True)]
     for (i, a), (j, b) in combinations(enumerate(materials), 2):
@@ -59,7 +59,7 @@ def _checker_patches(materials, names, steps: int):
 
 
 def run(args) -> int:
-    from trimeter.predict import draw_swatches, hex_colour, load_material, mixture, predict_slab, write_spectra_csv
+    from trimeter.prediction import draw_swatches, hex_colour, load_material, mixture, predict_slab, write_spectra_csv
 
     opts = _options(args)
     loaded = [load_material(spec) for spec in args.materials]

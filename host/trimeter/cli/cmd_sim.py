@@ -67,6 +67,7 @@ def run(args: argparse.Namespace) -> int:
     if args.list_materials:
         for name, description in material_names().items():
             print(f"{name:14s} {description}")
+        print("mixtures by volume fractions: MATERIAL:FRACTION+MATERIAL:FRACTION…, e.g. cyan-ink:0.5+yellow-ink:0.5")
         return 0
     if args.thickness <= 0:
         raise InputError(f"--thickness must be positive, got {args.thickness:g}")
@@ -77,7 +78,8 @@ def run(args: argparse.Namespace) -> int:
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
         with Twin(sample=args.sample, thickness_mm=args.thickness, time_scale=args.time_scale, faults=faults,
-                  state_dir=state_dir, appearance_map=args.map, seed=args.seed, white=args.white) as twin:
+                  state_dir=state_dir, appearance_map=args.map, seed=args.seed, white=args.white,
+                  sensor=args.sensor) as twin:
             ports = twin.control.ports()
             if args.json:
                 print(json.dumps(ports), flush=True)
@@ -113,6 +115,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--map", default=None, metavar="PATH",
                    help="appearance map for the sample's thickness (default: the shipped device maps)")
     p.add_argument("--white", default="white", choices=("white", "ptfe"), help="white background material")
+    p.add_argument("--sensor", default="spectrometer", choices=("spectrometer", "as7341"),
+                   help="what the host reads: the spectrometer's pixels or the AS7341's nine channels (counts, gain, "
+                        "integration, noise, saturation; its band weights over BANDS?)")
     p.add_argument("--seed", type=int, default=None, help="noise seed (reproducible spectra)")
     p.add_argument("--json", action="store_true", help="print the ports as one JSON line")
     p.add_argument("--list-materials", action="store_true", help="list the virtual samples and exit")

@@ -8,7 +8,6 @@ with its files: calibration.json (meta) + calibration.csv (per bin).
 from __future__ import annotations
 
 import json
-import os
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
@@ -19,9 +18,11 @@ from numpy.typing import ArrayLike
 from trimeter.domain.capture import Capture, CaptureFlag
 from trimeter.domain.instrument import InstrumentInfo
 from trimeter.errors import InputError
-from trimeter.paths import open_regular, read_regular_text
+from trimeter.tables import read_columns, read_text
 
 CALIBRATION_FORMAT_VERSION = 1
+CALIBRATION_COLUMNS = ("wavelength_nm", "diffuse_counts_per_s", "collimated_counts_per_s", "rho_black", "flags",
+                       "diffuse_rel_std", "collimated_rel_std")
 MIN_REFERENCE_FRACTION = 1e-3   # reference rate below this fraction of its median: no usable light in that bin
 
 
@@ -88,33 +89,32 @@ class Calibration:
                                  nan if self.collimated_rel_std is None else self.collimated_rel_std])
         np.savetxt(directory / "calibration.csv", table, delimiter=",",
                    fmt=["%.4f", "%.8g", "%.8g", "%.8g", "%d", "%.4g", "%.4g"],
-                   header="wavelength_nm,diffuse_counts_per_s,collimated_counts_per_s,rho_black,flags,"
-                          "diffuse_rel_std,collimated_rel_std", comments="")
+                   header=",".join(CALIBRATION_COLUMNS), comments="")
         return directory
 
     @classmethod
     def load(cls, directory: str | Path) -> "Calibration":
         directory = Path(directory)
+        if not all((directory / name).exists() for name in ("calibration.json", "calibration.csv")):
+            raise InputError(f"no calibration in {directory}: run `trimeter calibrate` with the holder empty")
         try:
-            meta = json.loads(read_regular_text(directory / "calibration.json"))
-            with os.fdopen(open_regular(directory / "calibration.csv")) as f:  # never blocks on a FIFO
-                table = np.loadtxt(f, delimiter=",", skiprows=1, ndmin=2)
-        except FileNotFoundError:
-            raise InputError(f"no calibration in {directory}: run `trimeter calibrate` with the holder empty") from None
-        except (ValueError, json.JSONDecodeError, RecursionError) as exc:
+            meta = json.loads(read_text(directory / "calibration.json"))
+            table = read_columns(directory / "calibration.csv", required=CALIBRATION_COLUMNS)
+        except (ValueError, RecursionError) as exc:  # an InputError of the reader, or not JSON
             raise InputError(f"calibration in {directory} is corrupt ({exc}); run `trimeter calibrate` again") from None
         except OSError as exc:  # a FIFO, a link or a device in place of a file, or unreadable
             raise InputError(f"calibration in {directory} cannot be read ({exc.strerror or exc}: "
                              f"{Path(exc.filename or '').name}); run `trimeter calibrate` again") from None
         if not isinstance(meta, dict) or meta.get("format_version") != CALIBRATION_FORMAT_VERSION \
-                or table.shape[1] != 7 or table.shape[0] != meta.get("bins"):
+                or len(table["wavelength_nm"]) != meta.get("bins"):
             raise InputError(f"calibration in {directory} has an unknown format or is truncated; calibrate again")
         try:
             dark = meta.get("dark_counts")
-            return cls(table[:, 0], table[:, 1], table[:, 2], table[:, 3], float(meta["rho_white"]),
-                       table[:, 4].astype(np.int32), float(meta.get("device_time_s", 0.0)),
-                       str(meta.get("created_utc", "")), dict(meta.get("spectrometer") or {}), table[:, 5],
-                       table[:, 6], float("nan") if dark is None else float(dark),
+            c = [table[name] for name in CALIBRATION_COLUMNS]
+            return cls(c[0], c[1], c[2], c[3], float(meta["rho_white"]),
+                       np.nan_to_num(c[4]).astype(np.int32), float(meta.get("device_time_s", 0.0)),
+                       str(meta.get("created_utc", "")), dict(meta.get("spectrometer") or {}), c[5],
+                       c[6], float("nan") if dark is None else float(dark),
                        InstrumentInfo.from_json(meta.get("device")), dict(meta.get("lamp_monitor") or {}))
         except (KeyError, TypeError, ValueError) as exc:
             raise InputError(f"calibration in {directory} has a bad field ({exc}); calibrate again") from None

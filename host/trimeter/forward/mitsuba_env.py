@@ -4,7 +4,7 @@ The device side has no Mitsuba: nothing in trimeter imports it at module level; 
 (scenes, the direct renders, the map builder) ask for it through `mitsuba()`.
 
 Order of preference: `cuda_ad_mono` (a working GPU), `llvm_ad_mono` (needs LLVM ≥ 16: Debian's
-libllvm19 — the LLVM 14/15 this machine otherwise finds aborts at JIT time, ../shared/NOTES.md),
+libllvm19 — the LLVM 14/15 this machine otherwise finds aborts at JIT time, docs/platform-notes.md),
 then `scalar_mono`-class fallbacks. Mitsuba 3.9's pip wheel has no `scalar_mono`, so the scalar
 fallback is `scalar_rgb` only if `scalar_mono` is missing; callers read `.variant()` and record it.
 """

@@ -109,7 +109,7 @@ def render_pixel(scene, integrator, spp: int, seed: int, batches: int = BATCHES)
     """The mean radiance seen by the scene's one-pixel sensor, in `batches` independent batches of
     spp/batches rays (their means, float64): rays from the sensor, `integrator.sample` for each, the
     mean taken in float64. Not mi.render: its film sums a pixel's samples in float32, whose rounding at
-    the sample counts a check needs is far larger than the noise (figures: maps/README.md).
+    the sample counts a check needs is far larger than the noise (figures: the git history of maps/README.md).
     Batch b, launch j is seeded from (seed, b, j)."""
     mi = mitsuba()
     sensor = scene.sensors()[0]
@@ -131,10 +131,10 @@ def render_pixel(scene, integrator, spp: int, seed: int, batches: int = BATCHES)
 # Mitsuba spawns every ray off a surface at ε = RayEpsilon·(1 + max|p|) in float32 (p in scene units, mm
 # here), a fraction of a µm at the sample, where a dense sample's light scatters within tens of µm of the
 # surface. Rays spawned past that layer skip its scattering, so volpath comes out low, the more so the more
-# light is single-scattered just under the surface (figures: maps/README.md). The loss is linear in ε, so a
-# second render with the scene moved away from the origin by OFFSET_SHIFT_MM (ε ∝ 1 + top + shift)
-# extrapolates it to ε = 0; at a quarter of the samples its noise adds ~(1 + top)/shift × 2 of the first
-# render's to the result.
+# light is single-scattered just under the surface (figures: the git history of maps/README.md). The loss
+# is linear in ε, so a second render with the scene moved away from the origin by OFFSET_SHIFT_MM
+# (ε ∝ 1 + top + shift) extrapolates it to ε = 0; at a quarter of the samples its noise adds
+# ~(1 + top)/shift × 2 of the first render's to the result.
 OFFSET_SHIFT_MM = 10.0
 
 

@@ -164,7 +164,7 @@ def _ideal(p: dict, n: float, ell: float, rho: float, spp: int) -> dict:
     for i, (normal, centre) in enumerate(_side_walls(half, -ell / 2)):
         shapes[f"slab_side{i}"] = {**_rect(centre, [-c for c in normal], [half, ell / 2], mirror), "exterior": medium}
     # The air gap is walled in too: through its open sides the sky lit the background at grazing angles
-    # (figures: maps/README.md).
+    # (figures: the git history of maps/README.md).
     for i, (normal, centre) in enumerate(_side_walls(half, -ell - gap / 2)):
         shapes[f"gap_side{i}"] = _rect(centre, [-c for c in normal], [half, gap / 2], mirror)
     return shapes

@@ -56,7 +56,7 @@ UNDERDETERMINED_ALPHA_STD, UNDERDETERMINED_G_STD = 0.1, 0.2  # FitFlag.UNDERDETE
 # std (the noise model's): further steps only wander along what the data cannot tell apart (thick,
 # dark bins would take every step). Larger fractions stop underdetermined bins too far from the map's
 # exact solution. A bin also stops when its step shrank at least 4× and the next one would be below
-# that fraction (newton.step_is_small). The figures behind the value: maps/README.md.
+# that fraction (newton.step_is_small). The figures behind the value: the git history of maps/README.md.
 POLISH_TOL_STD = 3e-3
 # The in-scattering correction's relative std: how far the map's table and independent, longer traces
 # differ over the measurable gamut, with room for the tracer's approximations (trimeter.forward.inscatter).
@@ -116,7 +116,8 @@ def fit(models: FitModel | Sequence[FitModel], I_b: ArrayLike, I_w: ArrayLike, I
         epsilon: float = 0.01,
         seed: int = 0, mlp_model: str | Path | None = None, I_b_std: ArrayLike | None = None,
         I_w_std: ArrayLike | None = None, I_c_std: ArrayLike | None = None,
-        thickness_std_mm: float | ArrayLike = 0.0, inscatter_rel_std: float = INSCATTER_REL_STD) -> FitResult:
+        thickness_std_mm: float | ArrayLike = 0.0, inscatter_rel_std: float = INSCATTER_REL_STD,
+        first_row: int = 0) -> FitResult:
     """Invert measured intensities (arrays over wavelength bins) to α, σt [1/mm], g.
 
     models: a FitModel (trimeter.maps.artifacts.load_artifacts), or a list of them (the same material at
@@ -135,7 +136,9 @@ def fit(models: FitModel | Sequence[FitModel], I_b: ArrayLike, I_w: ArrayLike, I
     guess; None: the method's default_polish); a bin stops once a step moved α and g by at most
     polish_tol, or by less than POLISH_TOL_STD of their noise std, or by a quarter of the step before
     with the next one, extrapolated, below that (polish_tol = 0: every bin takes `polish` steps).
-    samples, epsilon, seed: the paper method's ε-median (samples=0: plain interpolation).
+    samples, epsilon, seed: the paper method's ε-median (samples=0: plain interpolation); first_row: the
+    bins' position in a larger input fitted in parts, so that their ε-samples are those of one fit of it all
+    (every other method fits each bin on its own).
     """
     from trimeter.inversion.methods import get_method  # the table imports the methods, which use this module
     from trimeter.validation import require_number
@@ -166,7 +169,7 @@ def fit(models: FitModel | Sequence[FitModel], I_b: ArrayLike, I_w: ArrayLike, I
                                 inscatter_rel_std=inscatter_rel_std)
     if strategy.fit_all is not None:  # strategy.joint
         return strategy.fit_all(amaps, arrays, stds, thickness_rel, kernel=kernel, samples=samples, epsilon=epsilon,
-                                seed=seed, **opts)
+                                seed=seed, first_row=int(require_number("first_row", first_row, lo=0)), **opts)
     singles = [_fit_one(amap, *arrays[i], sd=stds[i], thickness_rel_std=thickness_rel[i], method=strategy,
                         kernel=kernel, polish=polish, polish_tol=polish_tol, mlp_model=mlp_model, **opts)
                for i, amap in enumerate(amaps)]

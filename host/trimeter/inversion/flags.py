@@ -34,6 +34,13 @@ class FitFlag(enum.IntFlag):
     # (newton.first_order_holds). The truth lies outside ±2σ more often than 5 %; the stds
     # give the scale only.
     STD_APPROXIMATE = 1 << 11
+    # A band-aware fit (trimeter.inversion.bands): the spectra within this channel's band are not pinned
+    # by the readings (another interpolation between the channels fits them as well and moves the value
+    # at the centre beyond the band tolerances), or the wavelength lies beyond the outermost channels.
+    BAND_UNRESOLVED = 1 << 12
+    # A multichannel sensor's band readings fitted per channel as if monochromatic: biased wherever the
+    # spectrum changes within a band (the band-aware fit, `fit --bands`, takes the bands into account).
+    PER_CHANNEL_BANDS = 1 << 13
 
 
 UNUSABLE = FitFlag.NONFINITE_INPUT | FitFlag.NEGATIVE_INPUT | FitFlag.ABOVE_ONE | FitFlag.BAD_BACKGROUND
@@ -45,15 +52,18 @@ def describe(value: int) -> str:
     return "|".join(names) if names else "NONE"
 
 
-def advice(flags: np.ndarray | list[int], thicknesses: int = 1) -> list[str]:
+def advice(flags: np.ndarray | list[int], thicknesses: int = 1, *,
+           counts: np.ndarray | list[int] | None = None) -> list[str]:
     """What a person should do about a fit's flagged bins: one sentence per kind of problem, with how
     many of the bins it concerns (empty when nothing needs doing). `thicknesses`: how many samples
-    were fitted together."""
+    were fitted together. `counts`: how many bins carry each word of `flags` (a streamed fit's tally of
+    distinct words), instead of one word per bin."""
     flags = np.asarray(flags, dtype=np.int64)
-    n = len(flags)
+    weights = np.ones(len(flags), np.int64) if counts is None else np.asarray(counts, dtype=np.int64)
+    n = int(weights.sum())
 
     def count(flag: int) -> int:
-        return int(np.count_nonzero(flags & int(flag)))
+        return int(weights[(flags & int(flag)) != 0].sum())
 
     notes = []
     if k := count(UNUSABLE):
@@ -79,6 +89,14 @@ def advice(flags: np.ndarray | list[int], thicknesses: int = 1) -> list[str]:
         notes.append(f"{k} of {n} bins are STD_APPROXIMATE: the map bends within their ±2σ, so their stds are "
                      f"a scale, not a ±1σ/±2σ that covers the truth at 68/95 %; lower noise (more frames "
                      f"averaged) or a second thickness narrows them to where first order holds")
+    if k := count(FitFlag.PER_CHANNEL_BANDS):
+        notes.append(f"{k} of {n} bins are PER_CHANNEL_BANDS: a multichannel sensor's band readings fitted as if "
+                     f"monochromatic, biased where the spectrum changes within a band; fit them band-aware "
+                     f"(fit --bands WEIGHTS.csv)")
+    if k := count(FitFlag.BAND_UNRESOLVED):
+        notes.append(f"{k} of {n} bins are BAND_UNRESOLVED: the spectrum changes within that channel's band more "
+                     f"than the channels resolve (or the wavelength is beyond the outermost channels); take "
+                     f"the value as the band's, or measure with a spectrometer there")
     if k := count(FitFlag.THICKNESS_DISAGREE):
         notes.append(f"{k} of {n} bins: the thicknesses disagree beyond their uncertainty; check the stated "
                      f"thicknesses and that both samples are the same material")

@@ -103,12 +103,13 @@ def paper_samples(amap: Any, I_b: np.ndarray, I_w: np.ndarray, I_c: np.ndarray, 
 def paper_medians(amaps: Sequence[Any], inputs: Sequence[tuple[np.ndarray, ...]], samples: int = 250,
                   epsilon: float = 0.01, seed: int = 0, chunk_points: int = CHUNK_POINTS,
                   caches: Sequence[OrderedDict[tuple[float, float], LinearNDInterpolator] | None] | None = None,
-                  ) -> tuple[np.ndarray, list[np.ndarray]]:
+                  first_row: int = 0) -> tuple[np.ndarray, list[np.ndarray]]:
     """The ε-median (α, σt, g) of each bin, (N, 3): pooled over the maps (several thicknesses of one
     material) and each map's own, for inputs[i] = (I_b, I_w, I_c, rho_b, rho_w) over the same N bins
     for amaps[i] (map i samples with seed + i). Bins are processed in chunks of about `chunk_points`
     interpolated points, so memory does not grow with N beyond the (N, 3) results. caches: one
-    triangulation cache per map (interpolator), or None."""
+    triangulation cache per map (interpolator), or None. first_row: the bins' position in a larger input
+    fitted in parts (their samples are then those of a fit of the whole)."""
     n = len(inputs[0][0])
     caches = [OrderedDict() for _ in amaps] if caches is None else caches
     k = max(int(samples), 1)
@@ -118,7 +119,7 @@ def paper_medians(amaps: Sequence[Any], inputs: Sequence[tuple[np.ndarray, ...]]
     for start in range(0, n, chunk):
         stop = min(n, start + chunk)
         parts = [paper_samples(amap, *_rows(arrays, start, stop), samples=samples, epsilon=epsilon,
-                               seed=seed + i, first_row=start, cache=caches[i])
+                               seed=seed + i, first_row=first_row + start, cache=caches[i])
                  for i, (amap, arrays) in enumerate(zip(amaps, inputs, strict=True))]
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN bins: outside the hull, flagged by the caller
@@ -140,7 +141,7 @@ def _rows(arrays: tuple[np.ndarray, ...], start: int, stop: int) -> Rows:
 def fit_paper(models: list[FitModel], arrays: list[tuple[np.ndarray, ...]], stds: list[np.ndarray],
               thickness_rel: list[float], *, kernel: Kernel, samples: int, epsilon: float, seed: int,
               noise_rel: float, noise_abs: float, ic_floor: float, alpha_min_g: float,
-              inscatter_rel_std: float) -> FitResult:
+              inscatter_rel_std: float, first_row: int = 0) -> FitResult:
     """The paper method over all thicknesses (trimeter.inversion.api.fit's arguments, shaped): each
     thickness's flags and stds on its own ε-median, the estimate on the pooled one."""
     amaps = [m.map for m in models]
@@ -151,7 +152,7 @@ def fit_paper(models: list[FitModel], arrays: list[tuple[np.ndarray, ...]], stds
         inputs.append((np.where(usable, I_b, np.nan), I_w, I_c, rho_b, rho_w))
         singles.append((amap, flags, usable, I_b, I_w, I_c, rho_b, rho_w))
     pooled_median, own_medians = paper_medians(amaps, inputs, samples=samples, epsilon=epsilon, seed=seed,
-                                               caches=[m.paper_cache for m in models])
+                                               caches=[m.paper_cache for m in models], first_row=first_row)
     results = []
     # Each thickness on its own median (the consistency check), the estimate on the pooled one.
     for i, (med, model, (amap, flags, usable, I_b, I_w, I_c, rho_b, rho_w)) in enumerate(

@@ -144,3 +144,32 @@ def fit(maps, I_b, I_w, I_c, rho_b=None, rho_w=None, method: str = "lut", *, cac
     listed = isinstance(maps, (list, tuple))
     models = [load_artifacts(m, cache) for m in (maps if listed else [maps])]
     return solve(models if listed else models[0], I_b, I_w, I_c, rho_b, rho_w, method, **options)
+
+
+def open_map(name_or_path: str | Path, cache: ArtifactCache | None = None) -> AppearanceMap:
+    """`trimeter.open_map`: an appearance map by the name of a shipped map (e.g. ``"device-n1.5-l0.4"``) or
+    by path, loaded once per process into `cache` (default: the one `trimeter.fit` uses), so a fit with it
+    afterwards does not load it again.
+
+    Parameters
+    ----------
+    name_or_path : str or Path
+        A shipped map's name (``trimeter map list``) or a ``.tmap`` file.
+    cache : ArtifactCache, optional
+        Where loaded maps are kept; default: this process's.
+
+    Returns
+    -------
+    AppearanceMap
+        Its name, thickness_mm, refractive index, checksum and grid; pass it to `trimeter.fit`.
+
+    Raises
+    ------
+    trimeter.errors.InputError
+        No shipped map of that name and no such file.
+    trimeter.errors.MapFileError
+        The file is damaged or of an unknown version.
+    """
+    artifacts = load_artifacts(name_or_path, cache)
+    assert isinstance(artifacts, MapArtifacts)  # a name or a path is a map, never a bare device table
+    return artifacts.map

@@ -2,7 +2,7 @@
 
 - Deterministic: the random stream of column (j, k) batch b is seeded from (recipe seed, j, k, b) only,
   so the same recipe gives the same map whatever the order, interruptions or thread count (the
-  shipped device maps' columns re-trace to within 1.5e-8, not bit for bit: see maps/README.md).
+  shipped device maps' columns re-trace to within 1.5e-8, not bit for bit: see the git history of maps/README.md).
 - Adaptive: a column is traced with `min_paths`, then topped up (at most three times) to reach
   `target_stderr` (the max over α of the std-error of I at both reference backgrounds) and, if the
   recipe sets it, `target_alpha_stderr` (the max over α ∈ [0.02, 0.99] of α's std-error, g held),

@@ -25,7 +25,7 @@ from trimeter.errors import BuildError, InputError
 
 CONNECT_TIMEOUT_S = 10.0
 # Workers start with Dr.Jit's LLVM backend pointed at Debian's libLLVM 19 (the default LLVM aborts at
-# JIT time, ../shared/NOTES.md), whatever the environment of the process that starts the cluster.
+# JIT time, docs/platform-notes.md), whatever the environment of the process that starts the cluster.
 _LIBLLVM = "/usr/lib/x86_64-linux-gnu/libLLVM-19.so"
 
 

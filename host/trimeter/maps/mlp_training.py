@@ -28,7 +28,7 @@ if TYPE_CHECKING:
 
 
 # Size, samples, epochs, schedule and jitter are chosen on the l0.4 held-out set with the network alone (`trimeter
-# bench fit`'s mlp p0 row; the sweep: maps/README.md's MLP section): a constant step size leaves a network short of
+# bench fit`'s mlp p0 row; the sweep: in git, maps/README.md's MLP section): a constant step leaves a network short of
 # what its size can fit, and wider layers then fit the thin samples' weak α and g signal better. jitter: a tenth of
 # the fit's default noise model keeps the guess smooth across noisy bins without blurring that signal.
 class TrainingDefaults(TypedDict):

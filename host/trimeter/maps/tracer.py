@@ -16,7 +16,7 @@ cosine-distributed upward, and tallies by k those that come back to it, C(α) = 
 The maps use that for the device too. But there light that came back returns less each time (it
 spreads over the finite stack and background, and strays further from the panels' view), so a single
 C measured from under the detector overstates a white background's I, most in clear samples (figures:
-maps/README.md). The bounce series is the alternative: detector paths go on to
+the git history of maps/README.md). The bounce series is the alternative: detector paths go on to
 `background_orders` ≥ 3 bounces, I(ρ) = Σ_m c_m(α)ρ^m (the tail geometric), and C is the one return
 coefficient that makes the model equal that series at a reference white (ColumnTally.abc): exact there,
 and close to it over the whites an instrument uses. The paths are traced to their 2nd bounce as for
@@ -25,7 +25,7 @@ last pass cut it with its own random stream (so a path is what one unbroken trac
 the loop carries no per-bounce records). Past the 2nd bounce, Russian roulette with a constant
 survival (a weight, not a power of α: the polynomial stays) spares the long diffusion of light that
 comes back into a dense sample from below; a pilot sets the survival (continuation_share). It is not
-the maps' default yet (its cost: maps/README.md).
+the maps' default yet (its cost: maps/README.md, open points).
 
 No Russian roulette on α (it would break the polynomial): a path is traced until it escapes, is lost
 (sides, past the background), or has K scattering events, where α_max^K ≤ `truncation`. The
@@ -54,8 +54,8 @@ from background paths, only as many of them as C's share of the error needs (`be
 device, whether a path that leaves the top face meets one of the two panels is the main noise of
 every dense column and of light scattered in a clear sample: that 0/1 outcome is replaced by its
 average over the path turned about the vertical through its start (`ROTATIONS` turns; exact wherever
-the turned copies meet no side face or edge, see rotation_average in `trace`; its gain is measured in
-maps/README.md).
+the turned copies meet no side face or edge, see rotation_average in `trace`; its gain was measured in
+the git history of maps/README.md).
 
 The loop is a Dr.Jit symbolic loop (compiled once, material and seed are opaque inputs; all cores
 via the LLVM backend), run in waves that drop finished paths (see `trace`). The
@@ -547,7 +547,7 @@ def resolve_backend(name: str = "auto") -> str:
 
 def _import_drjit():
     llvm = "/usr/lib/x86_64-linux-gnu/libLLVM-19.so"
-    if os.path.exists(llvm):  # the machine's default LLVM aborts at JIT time (shared/NOTES.md)
+    if os.path.exists(llvm):  # the machine's default LLVM aborts at JIT time (docs/platform-notes.md)
         os.environ.setdefault("DRJIT_LIBLLVM_PATH", llvm)
     _keep_freed_memory()
     import drjit as dr
@@ -559,7 +559,7 @@ def _keep_freed_memory() -> None:
     process. Why, twice over:
     - Speed: glibc maps every buffer over 32 MB afresh and unmaps it when freed, so each trace's
       per-path arrays (tens of MB) land on fresh pages, and on a virtual machine touching a fresh page
-      can cost more than the copy into it (maps/README.md has the measurement).
+      can cost more than the copy into it (the git history of maps/README.md has the measurement).
     - A segfault inside Dr.Jit's compiled kernels (on its worker thread, in the background-path
       trace that follows a dense column's detector trace: σt = 50/mm, g = 0.9, 8M paths) in processes
       started with MALLOC_TRIM_THRESHOLD_ set, as Dask's nanny does (65536): every large buffer freed

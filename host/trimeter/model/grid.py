@@ -33,7 +33,7 @@ class SigmaCell:
 # in g, because a cubic spline overshoots between its few noisy nodes. ln σt is refined to ~121
 # nodes because between the nodes of a refined axis the kernel is linear in B, while B (the light
 # through the slab and back) falls like exp(−c·σt·ℓ): coarser cells missed B for dark samples.
-# The figures behind these choices: maps/README.md.
+# The figures behind these choices: `trimeter bench fit`; as first measured, the git history of maps/README.md.
 BETWEEN_NODES_ALPHA = 2
 BETWEEN_NODES_SIGMA_NODES = 121  # ln σt refined to about this many nodes
 BETWEEN_NODES_G = 2

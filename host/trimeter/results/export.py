@@ -18,14 +18,13 @@ repeats the essentials in the files' own comments.
 
 from __future__ import annotations
 
-import csv
-import io
 import json
 import math
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from functools import lru_cache
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -34,9 +33,14 @@ from trimeter import __version__
 from trimeter.atomic import atomic_write
 from trimeter.errors import InputError
 from trimeter.results.medium import VARIANT_NOTE, SpectralMaterial, write_medium
+from trimeter.tables import MAX_RESULT_FILE_BYTES, read_columns, read_text
+
+if TYPE_CHECKING:
+    from trimeter.domain.measurement import SpectralColumns
+    from trimeter.results.reader import Measurement as StoredMeasurement
 
 FORMATS = ("mitsuba", "pbrt", "blender", "rgb")
-MAX_INPUT_BYTES = 50_000_000
+MAX_INPUT_BYTES = MAX_RESULT_FILE_BYTES
 CMFS = "CIE 1931 2 Degree Standard Observer"
 COLOUR_RANGE_NM = (360.0, 780.0)
 TRANSMITTANCE_FLOOR = 1e-6  # the darkest channel transmittance kept at the reference thickness
@@ -58,115 +62,85 @@ class LoadedResult:
 
 
 # ----------------------------------------------------------------------------------------- loading
-def _read_capped(path: Path) -> str:
+PARAMETER_NAMES = ("wavelength_nm", "alpha", "sigma_t", "g")
+SOURCE_KEYS = ("sample", "label", "method", "maps", "map_checksums", "thicknesses_mm", "written_utc", "device")
+
+
+def _material(parameters: SpectralColumns, path: Path) -> SpectralMaterial:
     try:
-        size = path.stat().st_size
-        if size > MAX_INPUT_BYTES:
-            raise InputError(f"{path}: {size} bytes, more than the {MAX_INPUT_BYTES} a parameters file may have")
-        return path.read_text(encoding="utf-8")
-    except UnicodeDecodeError:
-        raise InputError(f"{path}: not a text file") from None
-    except OSError as exc:
-        raise InputError(f"{path}: cannot read ({exc.strerror or exc})") from None
-
-
-def _number_list(values: object, name: str, path: Path) -> np.ndarray:
-    if not isinstance(values, list):
-        raise InputError(f"{path}: {name} must be a list of numbers")
-    out = np.empty(len(values))
-    for i, v in enumerate(values):
-        if v is None:
-            out[i] = np.nan
-        elif isinstance(v, (int, float)) and not isinstance(v, bool):
-            out[i] = float(v)
-        else:
-            raise InputError(f"{path}: {name}[{i}] is not a number")
-    return out
-
-
-class _Columns:
-    """Columns of a fit's parameters, as SpectralMaterial.from_parameters reads them."""
-
-    def __init__(self, columns: dict, path: Path) -> None:
-        lengths = {len(v) for v in columns.values()}
-        if len(lengths) != 1:
-            raise InputError(f"{path}: columns of different lengths")
-        self.wavelengths_nm, self.alpha = columns["wavelength_nm"], columns["alpha"]
-        self.sigma_t, self.g = columns["sigma_t"], columns["g"]
-
-
-def _material(columns: dict, path: Path) -> SpectralMaterial:
-    missing = [k for k in ("wavelength_nm", "alpha", "sigma_t", "g") if k not in columns]
-    if missing:
-        raise InputError(f"{path}: no {', '.join(missing)} column (a trimeter parameters file has wavelength_nm, "
-                         "alpha, sigma_t, g)")
-    try:
-        return SpectralMaterial.from_parameters(_Columns(columns, path))
+        return SpectralMaterial.from_parameters(parameters)
     except InputError as exc:
         raise InputError(f"{path}: {exc}") from None
 
 
+def loaded_parameters(parameters: SpectralColumns, source: dict, where: str | Path) -> LoadedResult:
+    """Fitted parameters (with their stds: a measurement's, a library material's) and their origin, as an
+    export takes them; `where` names them in errors."""
+    return LoadedResult(_material(parameters, Path(where)), source)
+
+
+def loaded_measurement(m: StoredMeasurement) -> LoadedResult:
+    """A results directory read by trimeter.load, as an export takes it."""
+    source: dict = {"path": str(m.path.resolve()), "measurement": m.name}
+    source.update({k: m.record[k] for k in SOURCE_KEYS if k in m.record})
+    if m.parameters.thickness_mm is not None:
+        source["thickness_mm"] = m.parameters.thickness_mm
+    return loaded_parameters(m.parameters, source, m.path / "parameters.json")
+
+
 def _from_json(path: Path) -> tuple[SpectralMaterial, dict]:
+    from trimeter.results.reader import json_numbers
+
     try:
-        doc = json.loads(_read_capped(path))
+        doc = json.loads(read_text(path, max_bytes=MAX_INPUT_BYTES))
     except ValueError as exc:
+        if isinstance(exc, InputError):
+            raise
         raise InputError(f"{path}: not JSON ({exc})") from None
-    if isinstance(doc, dict) and isinstance(doc.get("combined"), dict):
+    if isinstance(doc, dict) and isinstance(doc.get("combined"), dict):     # a results directory's parameters.json
         doc = doc["combined"]
+    elif isinstance(doc, dict) and isinstance(doc.get("columns"), dict):    # `trimeter fit --json`'s output
+        doc = {**doc["columns"], "thickness_mm": doc.get("thickness_mm")}
     if not isinstance(doc, dict):
         raise InputError(f"{path}: expected an object with wavelength_nm, alpha, sigma_t, g")
-    columns = {k: _number_list(doc[k], k, path) for k in ("wavelength_nm", "alpha", "sigma_t", "g") if k in doc}
-    return _material(columns, path), {"thickness_mm": doc.get("thickness_mm")}
+    columns = {k: json_numbers(doc[k], k, path) for k in PARAMETER_NAMES if k in doc}
+    return _material_of_columns(columns, path), {"thickness_mm": doc.get("thickness_mm")}
 
 
 def _from_csv(path: Path) -> tuple[SpectralMaterial, dict]:
-    text = _read_capped(path)
-    try:
-        rows = list(csv.reader(io.StringIO(text)))
-    except csv.Error as exc:
-        raise InputError(f"{path}: not CSV ({exc})") from None
-    rows = [r for r in rows if r and not r[0].startswith("#")]
-    if len(rows) < 3:
-        raise InputError(f"{path}: a header and at least two rows expected")
-    header = [h.strip() for h in rows[0]]
-    wanted = {k: header.index(k) for k in ("wavelength_nm", "alpha", "sigma_t", "g") if k in header}
-    columns = {k: np.empty(len(rows) - 1) for k in wanted}
-    for r, row in enumerate(rows[1:], start=2):
-        for k, i in wanted.items():
-            try:
-                columns[k][r - 2] = float(row[i])
-            except (IndexError, ValueError):
-                raise InputError(f"{path}: line {r}: {k} is not a number") from None
-    return _material(columns, path), {}
+    columns = read_columns(path, optional=PARAMETER_NAMES, max_bytes=MAX_INPUT_BYTES, min_rows=2)
+    return _material_of_columns(columns, path), {}
+
+
+def _material_of_columns(columns: dict, path: Path) -> SpectralMaterial:
+    missing = [k for k in PARAMETER_NAMES if k not in columns]
+    if missing:
+        raise InputError(f"{path}: no {', '.join(missing)} column (a trimeter parameters file has wavelength_nm, "
+                         "alpha, sigma_t, g)")
+    if len({len(v) for v in columns.values()}) != 1:
+        raise InputError(f"{path}: columns of different lengths")
+    return _material(_Columns(columns), path)
+
+
+class _Columns:
+    """Columns of a parameters CSV, as SpectralMaterial.from_parameters reads them."""
+
+    def __init__(self, columns: dict) -> None:
+        self.wavelengths_nm, self.alpha = columns["wavelength_nm"], columns["alpha"]
+        self.sigma_t, self.g = columns["sigma_t"], columns["g"]
 
 
 def load_result(path: str | Path) -> LoadedResult:
     """The material of a measurement directory or a parameters file, with what is known of its origin."""
+    from trimeter.results.reader import load
+
     path = Path(path)
     if not path.exists():
         raise InputError(f"{path}: no such measurement directory or parameters file")
-    source = {"path": str(path.resolve())}
     if path.is_dir():
-        params = path / "parameters.json"
-        if not params.is_file():
-            raise InputError(f"{path}: not a measurement directory (no parameters.json)")
-        material, extra = _from_json(params)
-        source["measurement"] = path.name
-        meta_path = path / "measurement.json"
-        if meta_path.is_file():
-            try:
-                meta = json.loads(_read_capped(meta_path))
-            except ValueError:
-                raise InputError(f"{meta_path}: not JSON") from None
-            if isinstance(meta, dict):
-                for key in ("sample", "label", "method", "maps", "map_checksums", "thicknesses_mm", "written_utc",
-                            "device"):
-                    if key in meta:
-                        source[key] = meta[key]
-    elif path.suffix.lower() == ".json":
-        material, extra = _from_json(path)
-    else:
-        material, extra = _from_csv(path)
+        return loaded_measurement(load(path))
+    material, extra = _from_json(path) if path.suffix.lower() == ".json" else _from_csv(path)
+    source = {"path": str(path.resolve())}
     source.update({k: v for k, v in extra.items() if v is not None})
     return LoadedResult(material, source)
 
@@ -408,7 +382,10 @@ def export(result: LoadedResult, fmt: str, out_dir: str | Path, *, step_nm: floa
     name = str(result.source.get("sample") or result.source.get("label") or result.source.get("measurement")
                or Path(result.source.get("path", "trimeter_sample")).stem)
     now = datetime.now(timezone.utc).isoformat(timespec="seconds")
-    origin = f"{result.source.get('measurement') or result.source.get('path', '?')}, trimeter {__version__}, {now}"
+    what = (result.source.get("measurement") or result.source.get("path")
+            or (f"library material {result.source['library_material']}" if "library_material" in result.source
+                else "?"))
+    origin = f"{what}, trimeter {__version__}, {now}"
     opts = {"step_nm": step_nm, "reference_thickness_mm": float(reference_thickness_mm), "illuminant": illuminant,
             "scene_unit_mm": unit, "name": name, "origin_line": origin}
     out.mkdir(parents=True, exist_ok=True)

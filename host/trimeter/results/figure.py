@@ -14,13 +14,13 @@ from trimeter.domain.measurement import Estimate
 
 def plot_parameters(path: str | Path, combined: Estimate, per_thickness: Sequence[Estimate] = (), *, title: str = "",
                     truth: dict | None = None) -> Path:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    # a Figure of its own, not pyplot's: choosing a backend here would switch off the plots of a notebook
+    # or program that measures in-process
+    from matplotlib.figure import Figure
 
     wl = combined.wavelengths_nm
-    fig, axes = plt.subplots(1, 3, figsize=(13, 3.8), constrained_layout=True)
+    fig = Figure(figsize=(13, 3.8), layout="constrained")
+    axes = fig.subplots(1, 3)
     panels = (("alpha", "albedo α", (0, 1.0)), ("sigma_t", "extinction σt [1/mm]", None),
               ("g", "anisotropy g", (-1, 1)))
     for ax, (name, label, ylim) in zip(axes, panels, strict=True):
@@ -54,11 +54,8 @@ def plot_parameters(path: str | Path, combined: Estimate, per_thickness: Sequenc
         ax.legend(fontsize=7, loc="best")  # each panel: its band's scale may differ
     if title:
         fig.suptitle(title)
-    try:
-        with atomic_output(path) as f:
-            fig.savefig(f, dpi=110, format=Path(path).suffix.lstrip(".") or "png")
-    finally:
-        plt.close(fig)
+    with atomic_output(path) as f:
+        fig.savefig(f, dpi=110, format=Path(path).suffix.lstrip(".") or "png")
     return Path(path)
 
 

@@ -148,6 +148,28 @@ class SpectralMaterial:
         return SpectralMaterial.from_coefficients(lam, sa, ss, np.clip(g, -0.99, 0.99))
 
 
+MIXTURE_SEPARATOR, FRACTION_SEPARATOR = "+", ":"
+
+
+def parse_fractions(spec: str) -> list[tuple[str, float]]:
+    """A mixture written NAME:FRACTION+NAME:FRACTION… (volume fractions > 0 of distinct names, summing to 1)."""
+    parts = []
+    for part in spec.split(MIXTURE_SEPARATOR):
+        name, _, fraction = part.rpartition(FRACTION_SEPARATOR)
+        try:
+            value = float(fraction)
+        except ValueError:
+            value = float("nan")
+        if not name or not (np.isfinite(value) and value > 0):
+            raise InputError(f"mixture {spec!r}: each part is NAME:FRACTION with a fraction > 0, got {part!r}")
+        parts.append((name, value))
+    total = sum(f for _, f in parts)
+    if abs(total - 1.0) > 1e-3 or len({n for n, _ in parts}) != len(parts):
+        raise InputError(f"mixture {spec!r}: volume fractions of distinct materials summing to 1 (they sum to "
+                         f"{total:g})")
+    return parts
+
+
 def medium_spectra(parameters: SpectralColumns,
                    step_nm: float = 5.0) -> tuple[np.ndarray, np.ndarray, np.ndarray, float] | None:
     """(grid, albedo, σt, g_mean) for the Mitsuba medium, or None with fewer than two valid bins."""

@@ -7,17 +7,18 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from trimeter.domain import Calibration, InstrumentInfo, Measurement, Provenance, Sample, SampleCapture
 from trimeter.domain.measurement import THICKNESS_TOLERANCE, DeviceTableCheck, Estimate
+from trimeter.domain.parameters import FitResult
 from trimeter.errors import CheckError, DeviceError, InputError, TrimeterError
 from trimeter.inversion.methods import METHODS
-from trimeter.inversion.flags import advice
+from trimeter.inversion.flags import FitFlag, advice
 from trimeter.maps.appearance import AppearanceMap, find_map, shipped_maps
 from trimeter.maps.device_table import DeviceTable
 from trimeter.results.spool import CaptureSpooled, prepare_results_dir, write_or_spool
@@ -27,6 +28,10 @@ from trimeter.sequences.plans import sample_capture
 from trimeter.sequences.reflectance import reflectances
 from trimeter.sequences.settings import HostSettings
 from trimeter.sequences.steps import Runner
+
+if TYPE_CHECKING:
+    from trimeter.inversion.bands import BandWeights
+    from trimeter.spectrometer import Spectrometer
 
 
 def map_for_thickness(thickness_mm: float, explicit: str | Path | None = None,
@@ -88,6 +93,10 @@ class PreparedFit:
 
     samples: tuple[Sample, ...]
     method: str
+    # a multichannel sensor's band weights (its bins are its channels, in order): the fit is band-aware
+    bands: BandWeights | None = None
+    # the bins are a multichannel sensor's channels: fitted per channel, every value is PER_CHANNEL_BANDS
+    multichannel: bool = False
 
     def fit_table_bytes(self) -> bytes | None:
         """The inverse table the fit of the first sample uses (what the device's active map slot should
@@ -118,17 +127,51 @@ class PreparedFit:
             if all(getattr(r, name) is not None for r in refls):
                 noise[name] = np.stack([getattr(r, name) for r in refls]) if len(refls) > 1 else getattr(refls[0],
                                                                                                          name)
+        if self.bands is not None:
+            return self._fit_bands(captures, noise)
         if len(refls) == 1:
             r = refls[0]
-            result = trimeter.fit(maps[0], r.I_b, r.I_w, r.I_c, rho_b=r.rho_b, rho_w=r.rho_w, method=self.method,
-                                  **noise)
+            result = self._per_channel(trimeter.fit(maps[0], r.I_b, r.I_w, r.I_c, rho_b=r.rho_b, rho_w=r.rho_w,
+                                                    method=self.method, **noise))
             return Parameters.from_fit(wl, result, thickness_mm=maps[0].thickness_mm), []
         stack = {k: np.stack([getattr(r, k) for r in refls]) for k in ("I_b", "I_w", "I_c", "rho_b", "rho_w")}
-        result = trimeter.fit(maps, stack["I_b"], stack["I_w"], stack["I_c"], rho_b=stack["rho_b"],
-                              rho_w=stack["rho_w"], method=self.method, **noise)
+        result = self._per_channel(trimeter.fit(maps, stack["I_b"], stack["I_w"], stack["I_c"], rho_b=stack["rho_b"],
+                                                rho_w=stack["rho_w"], method=self.method, **noise))
         per = [Parameters.from_fit(wl, single, thickness_mm=amap.thickness_mm)
                for single, amap in zip(result.per_thickness, maps, strict=True)]
         return Parameters.from_fit(wl, result), per
+
+    def _per_channel(self, result: FitResult) -> FitResult:
+        """A multichannel sensor's channels fitted as if monochromatic: every value says so."""
+        if self.multichannel:
+            for r in (result, *result.per_thickness):
+                r.flags = r.flags | int(FitFlag.PER_CHANNEL_BANDS)
+        return result
+
+    def _fit_bands(self, captures: list[SampleCapture], noise: dict[str, Any]) -> tuple[Parameters, list[Parameters]]:
+        """The band-aware fit (trimeter.inversion.bands) of each capture, at the channels' centroids;
+        several thicknesses combined by inverse-variance weighting as the per-wavelength fit does."""
+        from trimeter.inversion.api import combine
+        from trimeter.inversion.bands import fit_bands
+        from trimeter.maps.artifacts import load_artifacts
+
+        bands = self.bands
+        assert bands is not None
+        singles = []
+        for i, capture in enumerate(captures):
+            r = capture.reflectances
+            if len(r.I_b) != len(bands.channels):
+                raise InputError(f"the sensor reads {len(r.I_b)} bins but its band weights have "
+                                 f"{len(bands.channels)} channels")
+            stds = {k: (v[i] if len(captures) > 1 else v) for k, v in noise.items() if k.endswith("_std")}
+            fitted = fit_bands(load_artifacts(capture.sample.map), bands, r.I_b, r.I_w, r.I_c, r.rho_b, r.rho_w,
+                               noise_rel=noise.get("noise_rel", 0.005), **stds)
+            singles.append(fitted.at_centres)
+        per = [Parameters.from_fit(bands.centre_nm, single, thickness_mm=c.sample.map.thickness_mm)
+               for single, c in zip(singles, captures, strict=True)]
+        if len(singles) == 1:
+            return per[0], []
+        return Parameters.from_fit(bands.centre_nm, combine(singles, "bands")), per
 
 
 def prepare_fit(samples: Iterable[Sample], method: str) -> PreparedFit:
@@ -146,6 +189,30 @@ def prepare_fit(samples: Iterable[Sample], method: str) -> PreparedFit:
     for sample in samples:
         trimeter.fit(sample.map, [0.2], [0.5], [0.1], method=method)
     return PreparedFit(samples, method)
+
+
+def for_sensor(prepared: PreparedFit, spectrometer: Spectrometer) -> PreparedFit:
+    """The prepared fit for this detector: band-aware when it is a multichannel sensor that has band
+    weights (`band_weights()`), flagged PER_CHANNEL_BANDS when it is one without them."""
+    weights = getattr(spectrometer, "band_weights", None)
+    bands = weights() if callable(weights) else None
+    multichannel = bands is not None or bool(spectrometer.description.extra.get("channels"))
+    return replace(prepared, bands=bands, multichannel=multichannel)
+
+
+def for_recorded_sensor(prepared: PreparedFit, spectrometer: dict) -> PreparedFit:
+    """A re-fit of saved captures, for the detector the calibration recorded (its description's dict):
+    an AS7341 build band-aware with its built-in weights; another multichannel sensor (the twin's, whose
+    weights the record does not hold) per channel, flagged PER_CHANNEL_BANDS."""
+    extra = spectrometer.get("extra") or {}
+    if not extra.get("channels"):
+        return prepared
+    bands = None
+    if spectrometer.get("model") == "AS7341":
+        from trimeter.spectrometer.sensors import as7341_weights
+
+        bands = as7341_weights().select(list(extra["channels"]), where="the recorded AS7341")
+    return replace(prepared, bands=bands, multichannel=True)
 
 
 def check_calibration(calibration: Calibration | None) -> Calibration:
@@ -209,7 +276,7 @@ def measure(runner: Runner, calibration: Calibration | None, samples: list[Sampl
     `device_table(prepared)` says whether the device's active map table is the fit's (None: not asked).
     When `between` raises a TrimeterError, what was captured is still fitted and written, marked incomplete."""
     calibration = check_calibration(calibration)
-    prepared = prepare_fit(samples, settings.method)
+    prepared = for_sensor(prepare_fit(samples, settings.method), runner.spectrometer)
     for note in prepare_results_dir(settings.results_path, n_bins=len(calibration.wavelengths_nm),
                                     n_samples=len(samples)):
         on_warning(note)  # leftovers of interrupted writes, moved to the spool
@@ -236,7 +303,7 @@ def measure(runner: Runner, calibration: Calibration | None, samples: list[Sampl
     device = runner.device
     stats = getattr(device.transport, "stats", None)
     provenance = Provenance(
-        method=prepared.method, label=label, timing=dict(timing),
+        method="bands" if prepared.bands is not None else prepared.method, label=label, timing=dict(timing),
         instrument=None if device.identity is None else InstrumentInfo.of(device.identity),
         device_map_table=table, noise_rel_measured=[c.reflectances.noise_rel() for c in captures],
         incomplete=incomplete, advice=advice(combined.flags, len(captures)),

@@ -2,13 +2,14 @@
 
 Protocol (ASCII, one command per line, exactly one reply line `OK[ payload]` or `ERR message`):
 `*IDN?`, `DESC?` (one-line JSON description), `WL?` (comma-separated nm), `IT <us>`, `IT?`,
-`ACQ` (`<n> <base64 of n little-endian uint16 counts>`), `TIME?`. Full table:
+`ACQ` (`<n> <base64 of n little-endian uint16 counts>`), `TIME?`, `BANDS?` (a multichannel sensor's
+band weights as one-line JSON; a spectrometer answers ERR). Full table:
 host/trimeter/twin/README.md § "Spectrometer line protocol". The server is trimeter.twin.specserver.
 """
 
 from __future__ import annotations
 
-from typing import Any, Self
+from typing import TYPE_CHECKING, Any, Self
 import base64
 import json
 import time
@@ -17,6 +18,9 @@ import numpy as np
 
 from trimeter.errors import DeviceError, InputError
 from trimeter.spectrometer.base import SpectrometerDescription, check_integration_time
+
+if TYPE_CHECKING:
+    from trimeter.inversion.bands import BandWeights
 
 # A reply must come within this much wall time plus the exposure itself (at time scale 1).
 REPLY_TIMEOUT_S = 5.0
@@ -89,7 +93,7 @@ class SimSpectrometer:
                 wavelength_range_nm=(float(first_nm), float(last_nm)),
                 integration_time_us_limits=(int(shortest_us), int(longest_us)),
                 saturation_counts=float(d["saturation_counts"]),
-                dark_pixels=tuple(int(i) for i in d["dark_pixels"]))
+                dark_pixels=tuple(int(i) for i in d["dark_pixels"]), extra=dict(d.get("extra") or {}))
         except (ValueError, KeyError, TypeError) as exc:
             raise DeviceError(f"sim spectrometer at {self.port}: bad DESC? reply ({exc})") from None
 
@@ -100,6 +104,20 @@ class SimSpectrometer:
 
     def wavelengths_nm(self) -> np.ndarray:
         return self._wavelengths.copy()
+
+    def band_weights(self) -> BandWeights | None:
+        """A multichannel sensor's band weights (what each channel reads a weighted mean of), None for
+        a spectrometer."""
+        from trimeter.inversion.bands import band_weights
+
+        if not self._description.extra.get("channels"):
+            return None
+        try:
+            d = json.loads(self._command("BANDS?"))
+            return band_weights(d["wavelength_nm"], d["channels"], d["diffuse"], d["collimated"],
+                                where=f"sim spectrometer at {self.port}: BANDS?")
+        except (ValueError, KeyError, TypeError) as exc:
+            raise DeviceError(f"sim spectrometer at {self.port}: bad BANDS? reply ({exc})") from None
 
     @property
     def integration_time_us(self) -> int:

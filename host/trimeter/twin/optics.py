@@ -29,6 +29,7 @@ from scipy.interpolate import PchipInterpolator
 
 from trimeter.errors import InputError
 from trimeter.geometry import load_geometry
+from trimeter.twin.sensor import As7341Model
 from trimeter.twin.traced import traced_setup
 
 if TYPE_CHECKING:
@@ -38,6 +39,7 @@ if TYPE_CHECKING:
 MapSource: TypeAlias = ("AppearanceMap | str | Path | list[AppearanceMap | str | Path] | "
                         "tuple[AppearanceMap | str | Path, ...] | None")
 
+SENSORS = ("spectrometer", "as7341")  # what the twin's host-side detector can be
 MATERIALS_FILE = Path(__file__).resolve().parents[1] / "data" / "materials.toml"
 
 
@@ -52,11 +54,37 @@ def material_names() -> dict[str, str]:
     return {name: m.get("description", "") for name, m in _catalogue()["material"].items()}
 
 
+def parse_mixture(name: str) -> list[tuple[str, float]] | None:
+    """A mixture's catalogue materials and volume fractions from its name, e.g. "cyan-ink:0.25+yellow-ink:0.75"
+    (trimeter.results.medium.parse_fractions), or None for a plain material name."""
+    from trimeter.results.medium import FRACTION_SEPARATOR, parse_fractions
+
+    if FRACTION_SEPARATOR not in name:
+        return None
+    parts = parse_fractions(name)
+    unknown = [c for c, _ in parts if c not in _catalogue()["material"]]
+    if unknown:
+        raise InputError(f"mixture {name!r}: {unknown[0]!r} is not a catalogue material "
+                         f"({', '.join(_catalogue()['material'])})")
+    return parts
+
+
 def material_spectra(name: str, wavelengths_nm: np.ndarray) -> dict[str, np.ndarray]:
-    """α(λ), σt(λ) [1/mm], g(λ) of a catalogue material on the given wavelengths."""
+    """α(λ), σt(λ) [1/mm], g(λ) of a catalogue material, or of a mixture of them by volume fractions
+    (`parse_mixture`: σa and σs add by fraction, g is σs-weighted: SpectralMaterial.mixture), on the
+    given wavelengths."""
+    mixture = parse_mixture(name)
+    if mixture is not None:
+        from trimeter.results.medium import SpectralMaterial
+
+        lam = np.asarray(wavelengths_nm, dtype=float)
+        parts = [SpectralMaterial(lam, **material_spectra(c, lam)) for c, _ in mixture]
+        mixed = SpectralMaterial.mixture(parts, [f for _, f in mixture])
+        return {"alpha": mixed.alpha, "sigma_t": mixed.sigma_t, "g": mixed.g}
     materials = _catalogue()["material"]
     if name not in materials:
-        raise InputError(f"sample must be one of {', '.join(materials)}, got {name!r}")
+        raise InputError(f"sample must be one of {', '.join(materials)} or a mixture like "
+                         f"'cyan-ink:0.5+yellow-ink:0.5', got {name!r}")
     m = materials[name]
     lam = np.asarray(wavelengths_nm, dtype=float)
     sigma_s = m["scattering_at_500nm"] * (lam / 500.0) ** (-m["scattering_power"])
@@ -186,7 +214,10 @@ def _load_maps(appearance_map: MapSource) -> list[AppearanceMap]:
 class Optics:
     """The optical bench: sample, backgrounds, two LEDs, one spectrometer."""
 
-    def __init__(self, appearance_map: MapSource = None, white: str = "white", black: str = "black") -> None:
+    def __init__(self, appearance_map: MapSource = None, white: str = "white", black: str = "black",
+                 sensor: str = "spectrometer") -> None:
+        """sensor: what the host reads — "spectrometer" (the pixels) or "as7341" (trimeter.twin.sensor:
+        nine channels of the same light)."""
         self.spectrometer = SpectrometerModel()
         lam = self.spectrometer.wavelengths_nm
         self.rho_white = background_reflectance(white, lam)
@@ -194,6 +225,11 @@ class Optics:
         lights = _catalogue()["light"]
         self.panels = Led(lights["panels"], lam)
         self.collimated = Led(lights["collimated"], lam)
+        if sensor not in SENSORS:
+            raise InputError(f"sensor must be one of {', '.join(SENSORS)}, got {sensor!r}")
+        self.sensor: SpectrometerModel | As7341Model = self.spectrometer
+        if sensor == "as7341":  # its band weights: the lamps warm, as they are after the warm-up
+            self.sensor = As7341Model(lam, self.panels.spectrum(1.0), self.collimated.spectrum(1.0))
         self._map_source = appearance_map
         self._maps: list[AppearanceMap] | None = None
         self.sample: SampleOptics | None = None
@@ -231,7 +267,7 @@ class Optics:
                                  f"{amap.name}'s {axis[0]:.4g}..{axis[-1]:.4g} at {lam[0]:.0f}-{lam[-1]:.0f} nm")
         traced = traced_setup(str(amap.recipe.get("geometry")), amap.n, thickness_mm)
         alpha, sigma_t, g = spectra["alpha"], spectra["sigma_t"], spectra["g"]
-        if traced is not None:
+        if traced is not None and name in _catalogue()["material"]:  # a mixture was not traced: the map renders it
             geometry_params = load_geometry(traced.geometry)
             observed = traced.observables(name, _catalogue()["material"][name], geometry_params,
                                           self.wavelengths_nm, self.rho_black, self.rho_white)

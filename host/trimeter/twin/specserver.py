@@ -16,6 +16,7 @@ from typing import Callable
 import numpy as np
 
 from trimeter import __version__
+from trimeter.inversion.bands import BandWeights
 from trimeter.twin._pty import open_raw_pty, read_some, write_all
 
 MAX_LINE = 256
@@ -23,8 +24,14 @@ MAX_LINE = 256
 
 class SpectrometerServer:
     def __init__(self, description: dict, wavelengths_nm: np.ndarray,
-                 expose: Callable[[int], tuple[np.ndarray, float]], integration_time_us: int = 100_000) -> None:
+                 expose: Callable[[int], tuple[np.ndarray, float]], integration_time_us: int = 100_000,
+                 bands: BandWeights | None = None) -> None:
+        """bands: a multichannel sensor's band weights, for `BANDS?` (None: a spectrometer, which has none)."""
         self.description = description
+        self._bands = None if bands is None else json.dumps(
+            {"wavelength_nm": bands.wavelength_nm.tolist(), "channels": list(bands.channels),
+             **dict(zip(("diffuse", "collimated"), (d.tolist() for d in bands.densities()), strict=True))},
+            separators=(",", ":"))
         self._wavelengths = ",".join(f"{x:.4f}" for x in wavelengths_nm)
         self._expose = expose
         self.integration_time_us = int(integration_time_us)
@@ -49,6 +56,8 @@ class SpectrometerServer:
                 return "OK " + json.dumps(self.description, separators=(",", ":"))
             if cmd == "WL?" and not args:
                 return "OK " + self._wavelengths
+            if cmd == "BANDS?" and not args:
+                return "ERR no band weights: this is a spectrometer" if self._bands is None else "OK " + self._bands
             if cmd == "IT?" and not args:
                 return f"OK {self.integration_time_us}"
             if cmd == "TIME?" and not args:

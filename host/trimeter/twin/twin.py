@@ -31,6 +31,7 @@ from trimeter.paths import REPO_ROOT
 from trimeter.twin.faults import FaultConfig, ModbusProxy, as_lamps_emit, as_optics_see_it
 from trimeter.twin.optics import MapSource, Optics, material_names
 from trimeter.twin.plant import PlantClient
+from trimeter.twin.sensor import As7341Model
 from trimeter.twin.specserver import SpectrometerServer
 from trimeter.twin.storage import seed as seed_storage
 from trimeter.twin.storage import table_bytes
@@ -83,9 +84,11 @@ class Twin:
     def __init__(self, sample: str | None = None, thickness_mm: float = 0.4, time_scale: float = 1.0,
                  faults: FaultConfig | None = None, state_dir: str | Path | None = None,
                  appearance_map: MapSource = None, seed: int | None = None, white: str = "white",
-                 firmware: str | Path | None = None, map_table: str | Path | bytes | None = None) -> None:
+                 firmware: str | Path | None = None, map_table: str | Path | bytes | None = None,
+                 sensor: str = "spectrometer") -> None:
         """map_table: a device table (bytes, a .tlut file or a shipped map's name) the twin's storage
-        holds active from the start, as an instrument carries its own; None: empty map slots."""
+        holds active from the start, as an instrument carries its own; None: empty map slots.
+        sensor: what the host reads, "spectrometer" or "as7341" (optics.SENSORS)."""
         try:
             self.time_scale = float(time_scale)
         except (TypeError, ValueError):
@@ -95,7 +98,7 @@ class Twin:
         self.faults = faults or FaultConfig()
         if not isinstance(self.faults, FaultConfig):
             raise InputError("faults must be a FaultConfig")
-        self._sample, self._thickness_mm = sample, thickness_mm
+        self._sample, self._thickness_mm, self._sensor = sample, thickness_mm, sensor
         self._state_dir_arg, self._appearance_map, self._white = state_dir, appearance_map, white
         self._firmware = Path(firmware) if firmware else FIRMWARE_BINARY
         self._rng = np.random.default_rng(seed)
@@ -141,7 +144,7 @@ class Twin:
             socket_dir = Path(tempfile.mkdtemp(prefix="trimeter-"))
             self._closers.append(lambda: shutil.rmtree(socket_dir, ignore_errors=True))
 
-        self.optics = Optics(self._appearance_map, white=self._white)
+        self.optics = Optics(self._appearance_map, white=self._white, sensor=self._sensor)
         if self._sample is not None:  # before anything is launched: a bad sample fails fast
             self.optics.insert_sample(self._sample, self._thickness_mm)
 
@@ -171,8 +174,9 @@ class Twin:
         self._closers.append(self.proxy.close)
         self.modbus_port = self.proxy.port
 
-        model = self.optics.spectrometer
-        self.spectrometer = SpectrometerServer(model.description(), model.wavelengths_nm, self._expose)
+        model = self.optics.sensor
+        bands = model.band_weights() if isinstance(model, As7341Model) else None
+        self.spectrometer = SpectrometerServer(model.description(), model.wavelengths_nm, self._expose, bands=bands)
         self._closers.append(self.spectrometer.close)
         self.spectrometer_port = self.spectrometer.port
 
@@ -309,7 +313,7 @@ class Twin:
             lamp = self.faults.lamp_failure
             start, end = as_lamps_emit(start, self.faults), as_lamps_emit(end, self.faults)
             rate = 0.5 * (self.optics.rate(start, lamp) + self.optics.rate(end, lamp))
-            counts = self.optics.spectrometer.expose(rate, integration_time_us, self._rng)
+            counts = self.optics.sensor.expose(rate, integration_time_us, self._rng)
         return counts, float(end["time_s"])
 
     def _on_request(self, number: int) -> None:

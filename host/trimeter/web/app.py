@@ -39,11 +39,13 @@ from trimeter.inversion.methods import METHODS
 from trimeter.inversion.flags import advice, describe
 from trimeter.maps.appearance import AppearanceMap, find_map, shipped_maps
 from trimeter.maps.device_table import DeviceTable, cached_tables
-from trimeter.paths import NAME_MAX, read_regular_bytes, read_regular_text, real_subdirectory, regular_files
+from trimeter.paths import NAME_MAX, real_subdirectory, regular_files
 from trimeter.sequences.measure import map_for_thickness
 from trimeter.sequences.service import EMPTY_HOLDER, NEXT_SAMPLE
 from trimeter.sequences.settings import HostSettings
+from trimeter.tables import MAX_RESULT_FILE_BYTES, open_checked
 from trimeter.web import auth
+from trimeter.web import library_routes
 from trimeter.web.isolated import run_with_time_limit
 from trimeter.web.history import History, IndexUnavailable, is_measurement_id, parse_day_or_time
 from trimeter.web.jobs import Busy, Job, Jobs
@@ -456,19 +458,22 @@ def _details(history: History, path: Path) -> dict:
     row = history.get(path.name) or history.add(path)
     if row is None:
         raise ApiError(404, f"{path.name} has no readable measurement.json")
+    from trimeter.results.reader import load, read_record
+
     out: dict[str, object] = {"measurement": row}
     problems: list[str] = []
-    for key, name in (("meta", "measurement.json"), ("parameters", "parameters.json")):
-        try:  # a record with a damaged file is shown with what it has, and says what it lacks
-            out[key] = json.loads(read_regular_text(path / name))
-        except (OSError, ValueError, UnicodeDecodeError, RecursionError) as exc:
-            out[key] = None
-            problems.append(f"{name} cannot be read ({exc.strerror if isinstance(exc, OSError) else exc})")
-    flags = _flag_words(out["parameters"])
-    if flags is None:
-        flags = []
-        if out["parameters"] is not None:
-            problems.append("parameters.json holds no list of flag words (integers)")
+    try:  # a record with a damaged file is shown with what it has, and says what it lacks
+        out["meta"] = read_record(path)
+    except InputError as exc:
+        out["meta"] = None
+        problems.append(str(exc))
+    try:
+        stored = load(path)
+        out["parameters"] = stored.parameters_document()
+        flags = stored.flags.tolist()
+    except (InputError, OverflowError) as exc:
+        out["parameters"], flags = None, []
+        problems.append(str(exc))
     out["problems"] = problems
     counts: dict[str, int] = {}
     for value in flags:
@@ -509,8 +514,8 @@ async def measurement_file(request: web.Request) -> web.StreamResponse:
 
     def read() -> bytes | None:
         try:  # opened without following a link, refused unless a regular file: never a read outside the record
-            return read_regular_bytes(target)
-        except OSError:
+            return _record_file_bytes(target)
+        except (InputError, OSError):
             return None
 
     data = await _blocking(request, read)
@@ -523,13 +528,20 @@ async def measurement_file(request: web.Request) -> web.StreamResponse:
                                  "Cache-Control": "no-cache"})
 
 
+def _record_file_bytes(path: Path) -> bytes:
+    """A results directory's file, if it is a regular file (not a link, FIFO or device) within the size limit."""
+    with open_checked(path, max_bytes=MAX_RESULT_FILE_BYTES, follow_symlinks=False, binary=True) as f:
+        data: bytes = f.read(MAX_RESULT_FILE_BYTES + 1)
+    return data
+
+
 def _zip(path: Path) -> bytes:
     buffer = io.BytesIO()
     with zipfile.ZipFile(buffer, "w", zipfile.ZIP_DEFLATED) as z:
         for file in regular_files(path):
             try:
-                data = read_regular_bytes(file)
-            except OSError:  # replaced by something else meanwhile: left out, as a link would be
+                data = _record_file_bytes(file)
+            except (InputError, OSError):  # replaced by something else meanwhile: left out, as a link would be
                 continue
             z.writestr(f"{path.name}/{file.name}", data)
     return buffer.getvalue()
@@ -563,10 +575,9 @@ async def refit_route(request: web.Request) -> web.StreamResponse:
                                 f"(GET /api/maps lists them: {', '.join(sorted(catalog))})")
 
     def run(job: Job) -> str:
-        try:
-            meta = json.loads(read_regular_text(path / "measurement.json"))
-        except (OSError, ValueError, UnicodeDecodeError, RecursionError) as exc:
-            raise InputError(f"{path.name}: its measurement.json cannot be read ({exc})") from None
+        from trimeter.results.reader import read_record
+
+        meta = read_record(path)
         maps: list[MapRef]
         if names:
             chosen, maps = names, [AppearanceMap.load(catalog[name]) for name in names]
@@ -715,6 +726,7 @@ def create_app(jobs: Jobs, history: History, token: str, *, webhook: str | None 
     app[JOBS], app[HISTORY], app[TOKEN] = jobs, history, token
     app[STATE] = {"clients": set(), "executor": ThreadPoolExecutor(1, thread_name_prefix="trimeter-web-files")}
     app.add_routes(routes)
+    library_routes.register(app)
     app.router.add_static("/static/", STATIC, show_index=False)
     app.on_response_prepare.append(security_headers)
 
@@ -889,5 +901,6 @@ def openapi() -> dict:
                                           "save": {"type": "boolean"}})},
             "/api/events": {"get": op("websocket: the service's events, progress and jobs as JSON, live")},
             "/api/openapi.json": {"get": op("this description")},
+            **library_routes.OPENAPI_PATHS,
         },
     }

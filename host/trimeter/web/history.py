@@ -24,13 +24,13 @@ import numpy as np
 
 from trimeter.errors import InputError, OutputError, TrimeterError
 from trimeter.inversion.flags import FitFlag, describe
-from trimeter.paths import read_regular_text, real_subdirectory
+from trimeter.paths import real_subdirectory
+from trimeter.results.reader import MEASUREMENT_FILE, read_parameters, read_record
 from trimeter.results.writer import PARTIAL_PREFIX
 
 log = logging.getLogger("trimeter.web")
 
 SCHEMA_VERSION = 1
-MEASUREMENT_FILE = "measurement.json"
 # A results directory's name: the writer's UTC stamp, an optional label and a uniqueness suffix.
 ID_PATTERN = re.compile(r"\d{8}T\d{6}Z(?:-[A-Za-z0-9._-]+)?")
 MAX_PAGE = 500
@@ -73,15 +73,13 @@ def summarize(directory: Path) -> dict | None:
     if not is_measurement_id(directory.name) or real_subdirectory(directory.parent, directory.name) is None:
         return None
     try:
-        meta = json.loads(read_regular_text(directory / MEASUREMENT_FILE))
+        meta = read_record(directory)
         mtime = (directory / MEASUREMENT_FILE).stat().st_mtime
-    except (OSError, ValueError, UnicodeDecodeError, RecursionError):
-        return None
-    if not isinstance(meta, dict):
+    except (OSError, InputError, RecursionError):
         return None
     try:
-        flags = np.asarray(json.loads(read_regular_text(directory / "parameters.json"))["combined"]["flags"], np.int64)
-    except (OSError, ValueError, KeyError, TypeError, UnicodeDecodeError, RecursionError, OverflowError):
+        flags = read_parameters(directory)[0].flags
+    except (InputError, OverflowError):
         flags = np.zeros(0, np.int64)  # no fit to index (a damaged or missing parameters.json): listed unflagged
     written = meta.get("written_utc")
     try:

@@ -8,74 +8,19 @@ atomic; its measurement.json names the record it came from (`refit_of`).
 from __future__ import annotations
 
 import hashlib
-import json
-import os
 from collections.abc import Callable, Sequence
 from dataclasses import replace
 from pathlib import Path
 
-import numpy as np
-
-from trimeter.domain import (Calibration, Capture, Measurement, Provenance, RawSample, Reflectances, Sample,
-                             SampleCapture)
+from trimeter.domain import Measurement, Provenance, Sample, SampleCapture
 from trimeter.domain.measurement import MapRef
 from trimeter.errors import InputError, MapFileError, OutputError, TrimeterError
 from trimeter.inversion.flags import advice
 from trimeter.maps.appearance import AppearanceMap
-from trimeter.paths import open_regular, read_regular_text
 from trimeter.maps.device_table import SHA256_HEX, SUFFIX, DeviceTable, cache_dir
-from trimeter.results.writer import file_tags, write_measurement
-from trimeter.sequences.measure import prepare_fit
-
-SETUPS = ("black", "white", "collimated")
-
-
-def read_columns(path: Path) -> dict[str, np.ndarray]:
-    """A results CSV (one header line of names, then numbers) as columns."""
-    try:
-        with os.fdopen(open_regular(path)) as f:  # never a FIFO or a link: a refit must not block or read outside
-            names = f.readline().strip().split(",")
-            table = np.loadtxt(f, delimiter=",", ndmin=2)
-    except (OSError, ValueError, UnicodeDecodeError) as exc:
-        raise InputError(f"{path.name}: cannot be read back ({exc})") from None
-    if table.shape[1] != len(names):
-        raise InputError(f"{path.name}: {table.shape[1]} columns for {len(names)} names")
-    return {name: table[:, i] for i, name in enumerate(names)}
-
-
-def _capture(columns: dict) -> Capture:
-    times = [int(n[len("signal_"):-2]) for n in columns if n.startswith("signal_") and n.endswith("us")]
-    rate = columns["rate_counts_per_s"]
-    return Capture(rate=rate, saturated=np.zeros(rate.shape, bool), integration_times_us=np.asarray(times, float),
-                   signals=np.stack([columns[f"signal_{t}us"] for t in times]),
-                   darks=np.stack([columns[f"dark_{t}us"] for t in times]))
-
-
-def _reflectances(columns: dict) -> Reflectances:
-    return Reflectances(columns["wavelength_nm"], columns["I_b"], columns["I_w"], columns["I_c"], columns["rho_b"],
-                        columns["rho_w"], columns["capture_flags"].astype(np.int32),
-                        *(columns.get(name) for name in ("I_b_std", "I_w_std", "I_c_std")))
-
-
-def load_capture(directory: Path) -> tuple[Calibration, list[RawSample], list[Reflectances], dict]:
-    """(calibration, raw samples, reflectances, measurement.json) of a results directory."""
-    try:
-        meta = json.loads(read_regular_text(directory / "measurement.json"))
-        thicknesses = [float(t) for t in meta["thicknesses_mm"]]
-    except (OSError, ValueError, KeyError, TypeError, UnicodeDecodeError) as exc:
-        raise InputError(f"{directory.name}: its measurement.json cannot be read ({exc})") from None
-    calibration = Calibration.load(directory)
-    raws, refls = [], []
-    try:
-        for tag in file_tags(thicknesses):
-            captures = {s: _capture(read_columns(directory / f"raw_{s}{tag}.csv")) for s in SETUPS}
-            refl = _reflectances(read_columns(directory / f"reflectances{tag}.csv"))
-            raws.append(RawSample(refl.wavelengths_nm, black=captures["black"], white=captures["white"],
-                                  collimated=captures["collimated"]))
-            refls.append(refl)
-    except KeyError as exc:
-        raise InputError(f"{directory.name}: a capture file lacks the column {exc}") from None
-    return calibration, raws, refls, meta
+from trimeter.results.reader import load
+from trimeter.results.writer import write_measurement
+from trimeter.sequences.measure import for_recorded_sensor, prepare_fit
 
 
 def cached_table(sha256: str) -> DeviceTable | None:
@@ -137,11 +82,13 @@ def recorded_maps(meta: dict, catalog: dict[str, Path], instrument_table: Callab
 def refit(directory: Path, maps: Sequence[MapRef], method: str) -> Path:
     """Fit `directory`'s capture again with `maps` (appearance maps or instrument tables, one per thickness)
     and `method`; write a new results directory beside it and return its path."""
-    calibration, raws, refls, meta = load_capture(directory)
-    declared = meta.get("declared_thicknesses_mm") or meta["thicknesses_mm"]
+    stored = load(directory)
+    calibration, raws, refls, meta = stored.calibration, stored.raw, stored.reflectances, stored.record
+    declared = meta.get("declared_thicknesses_mm") or stored.thicknesses_mm
     if len(maps) != len(refls) or len(declared) != len(refls):
         raise InputError(f"{len(maps)} map(s) for {len(refls)} measured thickness(es)")
-    prepared = prepare_fit([Sample(float(t), amap) for t, amap in zip(declared, maps, strict=True)], method)
+    prepared = for_recorded_sensor(prepare_fit([Sample(float(t), amap) for t, amap in zip(declared, maps, strict=True)],
+                                               method), calibration.spectrometer)
     captures = [SampleCapture(sample, raw, refl) for sample, raw, refl in zip(prepared.samples, raws, refls,
                                                                                strict=True)]
     combined, per = prepared.fit(captures)

@@ -176,19 +176,21 @@ class NativeSolver:
         nodes inverse_log_sigma_t (the forward grid may be finer in σt)."""
         keep = {name: np.ascontiguousarray(value, dtype=np.float64) for name, value in (
             ("alpha", grid.alpha), ("log_sigma_t", grid.log_sigma_t), ("g", grid.g), ("inv_da", grid._inv_da),
-            ("inv_ds", grid._inv_ds), ("inv_dg", grid._inv_dg), ("poly", grid._poly))}
+            ("inv_ds", grid._inv_ds), ("inv_dg", grid._inv_dg))}
+        keep["poly"] = _cache_aligned(grid._poly)
         na, ns, ng = grid.shape
         self._grid = _ForwardGridC(na, ns, ng, *(_ptr(keep[k]) for k in ("alpha", "log_sigma_t", "g", "inv_da",
                                                                            "inv_ds", "inv_dg", "poly")),
                                    *grid.alpha_range, *grid.g_range, grid.thickness_mm, *grid.stack_constants[:2],
                                    _uniform_step(keep["log_sigma_t"]))
         if grid.inscatter_grid is not None:
-            keep["inscatter_L"], inv_dt, tau_max = grid.inscatter_grid
+            inscatter_L, inv_dt, tau_max = grid.inscatter_grid
+            keep["inscatter_L"] = _cache_aligned(inscatter_L)
             self._grid.in_nt = keep["inscatter_L"].shape[1]
             self._grid.inscatter_L = _ptr(keep["inscatter_L"])
             self._grid.in_inv_dt, self._grid.in_tau_max = inv_dt, tau_max
         if grid.model_var is not None:
-            keep["model_var"] = np.ascontiguousarray(grid.model_var, dtype=np.float64)
+            keep["model_var"] = _cache_aligned(grid.model_var)
             self._grid.model_var = _ptr(keep["model_var"])
         self._table = None
         if inverse_cells is not None:
@@ -325,6 +327,20 @@ def _stds(sd: ArrayLike | None, n: int) -> np.ndarray | None:
     if sd.shape != (n, 3):
         raise ValueError(f"the intensities' stds must be (n, 3) = ({n}, 3), got {sd.shape}")
     return sd
+
+
+CACHE_LINE = 64
+
+
+def _cache_aligned(x: ArrayLike) -> np.ndarray:
+    """A C-ordered float64 copy of x starting on a cache line: a forward cell's polynomial (24 values,
+    three lines) then spans three lines, not four, and the three the kernel prefetches are all of it."""
+    a = np.asarray(x, dtype=np.float64)
+    raw = np.empty(a.nbytes + CACHE_LINE, dtype=np.uint8)
+    start = -raw.ctypes.data % CACHE_LINE
+    out = raw[start:start + a.nbytes].view(np.float64).reshape(a.shape)
+    out[...] = a
+    return out
 
 
 def _uniform_step(axis: np.ndarray) -> float:

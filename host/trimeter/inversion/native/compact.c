@@ -25,7 +25,7 @@ static uint32_t get_u32(const uint8_t *p) {
 static float get_f32(const uint8_t *p) {
     uint32_t u = get_u32(p);
     float f;
-    memcpy(&f, &u, sizeof f);
+    __builtin_memcpy(&f, &u, sizeof f); /* a register move, not a freestanding build's byte loop */
     return f;
 }
 
@@ -68,10 +68,22 @@ static tr_real stack_transmittance(tr_real n, tr_real cover_n, tr_real x) {
 
 static int finite_in(tr_real x, tr_real lo, tr_real hi) { return isfinite(x) && x >= lo && x <= hi; }
 
+/* Finite and strictly increasing. Checked as: both ends finite, every step up (a NaN fails the
+ * comparison), so nothing between the ends can be infinite: one comparison per node, which the
+ * table check runs on every call. */
 static int axis_ok(const float *x, int n) {
-    for (int i = 0; i < n; i++)
-        if (!isfinite(x[i]) || (i > 0 && !(x[i] > x[i - 1]))) return 0;
+    if (!isfinite(x[0]) || !isfinite(x[n - 1])) return 0;
+    for (int i = 1; i < n; i++)
+        if (!(x[i] > x[i - 1])) return 0;
     return 1;
+}
+
+/* Whether all n values are finite: x·0 is 0 for a finite x and NaN for ±∞ or NaN, and a NaN stays in
+ * the sum (one multiply-add per value, no classification) */
+static int all_finite(const float *x, size_t n) {
+    float zero_if_finite = 0.0f;
+    for (size_t i = 0; i < n; i++) zero_if_finite += x[i] * 0.0f;
+    return zero_if_finite == 0.0f;
 }
 
 int tr_table_open(const uint8_t *data, size_t len, tr_table *t) {
@@ -130,8 +142,7 @@ int tr_table_open(const uint8_t *data, size_t len, tr_table *t) {
         if (!isfinite(t->scales[2 * i]) || !isfinite(t->scales[2 * i + 1]) || !(t->scales[2 * i + 1] > 0.0f)) return -1;
     for (int i = TR_SCALE_STD_B; i < TR_SCALE_COUNT; i++)
         if (!(t->scales[2 * i] >= 0.0f)) return -1;
-    for (size_t i = 0; i < (size_t)ns * 6; i++)
-        if (!isfinite(t->inv_frame[i])) return -1;
+    if (!all_finite(t->inv_frame, (size_t)ns * 6)) return -1;
     t->n = R(get_f32(data + 80));
     t->thickness_mm = R(get_f32(data + 84));
     tr_real cover_n = R(get_f32(data + 88));
@@ -261,29 +272,57 @@ void tr_sigma_slice_init(const tr_table *t, tr_real log_sigma_t, tr_sigma_slice 
     slice->window_alpha = slice->window_g = -1;
 }
 
-/* the window's coefficients summed along ln σt with the slice's basis (the codes as they are) */
-static void contract_sigma(const tr_table *t, int ia, int first, int width, tr_sigma_slice *sl) {
+/* One (g node, α row) of the window summed along ln σt with the slice's basis (the codes as they are) */
+static inline void contract_row(const tr_table *t, int ia, int first, int w, int r, tr_sigma_slice *sl) {
     const tr_real *Ns = sl->N, *dNs = sl->dN;
-    const size_t row = (size_t)t->ns * 3u;
-    for (int w = 0; w < width; w++) {
-        const uint16_t *q0 = t->spline + (((size_t)(first + w) * (size_t)t->na + (size_t)ia) * (size_t)t->ns +
-                                          (size_t)sl->first) * 3u;
-#pragma GCC unroll 4
-        for (int r = 0; r < 4; r++) {
-            const uint16_t *q = q0 + (size_t)r * row;
+    const uint16_t *q = t->spline + (((size_t)(first + w) * (size_t)t->na + (size_t)(ia + r)) * (size_t)t->ns +
+                                     (size_t)sl->first) * 3u;
 #pragma GCC unroll 3
-            for (int c = 0; c < 3; c++) {
-                tr_real along = R(0.0), along_d = R(0.0);
+    for (int c = 0; c < 3; c++) {
+        tr_real along = R(0.0), along_d = R(0.0);
 #pragma GCC unroll 4
-                for (int s = 0; s < 4; s++) {
-                    tr_real code = R(q[3 * s + c]);
-                    along += code * Ns[s];
-                    along_d += code * dNs[s];
-                }
-                sl->sum[w][r][c] = along;
-                sl->sum_d[w][r][c] = along_d;
+        for (int s = 0; s < 4; s++) {
+            tr_real code = R(q[3 * s + c]);
+            along += code * Ns[s];
+            along_d += code * dNs[s];
+        }
+        sl->sum[w][r][c] = along;
+        sl->sum_d[w][r][c] = along_d;
+    }
+}
+
+static inline void move_sums(tr_sigma_slice *sl, int w, int r, int from_w, int from_r) {
+    for (int c = 0; c < 3; c++) {
+        sl->sum[w][r][c] = sl->sum[from_w][from_r][c];
+        sl->sum_d[w][r][c] = sl->sum_d[from_w][from_r][c];
+    }
+}
+
+/* The window (α rows ia …, g nodes first …) summed along ln σt. A Newton step that moves the window
+ * along one axis keeps the rows both windows share: those are moved, not summed again (the same sums,
+ * so the results do not depend on it); only the new ones are summed. */
+static void contract_sigma(const tr_table *t, int ia, int first, int width, tr_sigma_slice *sl) {
+    const int da = ia - sl->window_alpha, dg = first - sl->window_g, had = sl->window_alpha >= 0;
+    if (had && dg == 0 && da > -4 && da < 4) {
+        /* rows r ← r + da, in the order that reads each before it is overwritten */
+        for (int k = 0; k < 4; k++) {
+            int r = da > 0 ? k : 3 - k, from = r + da;
+            for (int w = 0; w < width; w++) {
+                if (from >= 0 && from < 4) move_sums(sl, w, r, w, from);
+                else contract_row(t, ia, first, w, r, sl);
             }
         }
+    } else if (had && da == 0 && dg > -width && dg < width) {
+        for (int k = 0; k < width; k++) {
+            int w = dg > 0 ? k : width - 1 - k, from = w + dg;
+            for (int r = 0; r < 4; r++) {
+                if (from >= 0 && from < width) move_sums(sl, w, r, from, r);
+                else contract_row(t, ia, first, w, r, sl);
+            }
+        }
+    } else {
+        for (int w = 0; w < width; w++)
+            for (int r = 0; r < 4; r++) contract_row(t, ia, first, w, r, sl);
     }
     sl->window_alpha = ia;
     sl->window_g = first;
@@ -400,9 +439,12 @@ void tr_inverse_guess(const tr_table *t, tr_real log_sigma_t, tr_real I_b, tr_re
 
 static tr_real lerp(tr_real a, tr_real b, tr_real w) { return a + (b - a) * w; }
 
-/* model.cells.regular_cell: cell and weight at p = (x − x0)/step on n evenly spaced nodes */
+/* model.cells.regular_cell: cell and weight at p = (x − x0)/step on n evenly spaced nodes. The cell is
+ * index_clamp(floor(p), n − 2), taken without floor (a library call on the MCU): NaN and p < 0 give 0,
+ * p ≥ n − 2 gives n − 2, and in between the conversion to int truncates, which is floor for p ≥ 0. */
 static int regular_cell(tr_real p, int n, tr_real *w) {
-    tr_real f = index_clamp(R_FLOOR(p), R(n - 2));
+    tr_real hi = R(n - 2);
+    tr_real f = !(p >= R(0.0)) ? R(0.0) : (p >= hi ? hi : (tr_real)(int)p);
     *w = tr_clamp(p - f, R(0.0), R(1.0));
     return (int)f;
 }

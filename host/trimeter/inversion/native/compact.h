@@ -17,12 +17,13 @@
 #ifdef TR_SINGLE
 typedef float tr_real;
 #define R(x) ((float)(x))
-#define R_SQRT sqrtf
+/* the builtins: a freestanding build (the firmware's) otherwise calls a library function for what the
+ * FPU does in one instruction (VSQRT.F32, VABS.F32) */
+#define R_SQRT __builtin_sqrtf
 #define R_LOG logf
 #define R_LOG1P log1pf
 #define R_EXP expf
-#define R_FABS fabsf
-#define R_FLOOR floorf
+#define R_FABS __builtin_fabsf
 #else
 typedef double tr_real;
 #define R(x) ((double)(x))
@@ -31,7 +32,6 @@ typedef double tr_real;
 #define R_LOG1P log1p
 #define R_EXP exp
 #define R_FABS fabs
-#define R_FLOOR floor
 #endif
 
 /* Section order of the format (trimeter.maps.device_table.SECTIONS) */

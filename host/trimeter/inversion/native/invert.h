@@ -41,7 +41,9 @@ enum tm_flag {
     TM_FLAG_THICKNESS_DISAGREE = 1 << 8,
     TM_FLAG_BAD_BACKGROUND = 1 << 9,
     TM_FLAG_UNDERDETERMINED = 1 << 10,
-    TM_FLAG_STD_APPROXIMATE = 1 << 11
+    TM_FLAG_STD_APPROXIMATE = 1 << 11,
+    TM_FLAG_BAND_UNRESOLVED = 1 << 12,
+    TM_FLAG_PER_CHANNEL_BANDS = 1 << 13
 };
 
 /* The rows of a fit's output block (tm_fit, tm_fit_solve): TM_ROW_COUNT rows of n values, float64

@@ -2,7 +2,7 @@
 
 import ctypes
 
-ABI_HASH = 0xec77c492c692b81e
+ABI_HASH = 0xe642c559216ae559
 STEP_RATIO = 0.25
 INSCATTER_ONCE = 0.001
 TABLE_FIT_NOISE_REL = 0.005
@@ -33,6 +33,8 @@ FLAG_BITS = {
     "BAD_BACKGROUND": 512,
     "UNDERDETERMINED": 1024,
     "STD_APPROXIMATE": 2048,
+    "BAND_UNRESOLVED": 4096,
+    "PER_CHANNEL_BANDS": 8192,
 }
 
 # the rows of a fit's output block, in order (flags: int64, the others float64)

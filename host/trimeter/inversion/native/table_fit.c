@@ -172,6 +172,22 @@ static uint16_t fit_bin(const tr_table *t, tr_real Ib, tr_real Iw, tr_real Ic, t
             evaluated = 1;
             break;
         }
+        if (alpha == alpha0 && g == g0) {
+            /* the clamps held both where they were (a solution outside the map's box): every step
+             * from here would evaluate this point again and take this step again, so the loop's end
+             * is known now — a small step on the next iteration (its last step this one), else the
+             * evaluation after the loop, which would be this one */
+            if (it + 1 < TM_TABLE_FIT_POLISH && step_is_small(st.step_a, last_a, step_var, st.h22, st.det) &&
+                step_is_small(st.step_g, last_g, step_var, st.h11, st.det)) {
+                tr_real r0 = e.residual[0] + e.J[0][0] * R(0.0) + e.J[0][2] * R(0.0);
+                tr_real r1 = e.residual[1] + e.J[1][0] * R(0.0) + e.J[1][2] * R(0.0);
+                residual2 = r0 * r0 + r1 * r1;
+            } else {
+                residual2 = e.residual[0] * e.residual[0] + e.residual[1] * e.residual[1];
+            }
+            evaluated = 1;
+            break;
+        }
     }
     if (!evaluated) {
         evaluate(t, alpha, &slice, s_cell, g, ib, iw, rb, rw, &e);

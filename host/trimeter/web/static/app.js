@@ -291,6 +291,50 @@ async function compareView(a, b) {
   $("c-plot").replaceChildren(plotParameters(series, {}));
 }
 
+// --------------------------------------------------------------------------------- library
+async function libraryView() {
+  mount("tpl-library");
+  const d = await api("/api/library");
+  const rows = d.materials.map((m) => el("tr", {},
+    el("td", {}, el("a", {href: `#/library/${encodeURIComponent(m.name)}`}, m.name)), el("td", {}, m.members),
+    el("td", {}, m.combination), el("td", {}, m.thicknesses_mm.map((t) => `${t} mm`).join(" + ")),
+    el("td", {}, m.disagreeing_bins ? el("span", {class: "flag"}, `${m.disagreeing_bins} bins`) : el("span", {class: "clean"}, "none")),
+    el("td", {}, m.tags.join(", ")), el("td", {}, m.created_utc.replace("T", " ").slice(0, 19))));
+  $("materials").replaceChildren(...(rows.length ? rows
+    : [el("tr", {}, el("td", {colspan: 7}, `No materials yet in ${d.library}.`))]));
+}
+
+async function materialView(name) {
+  mount("tpl-material");
+  const d = await api(`/api/library/${encodeURIComponent(name)}`);
+  $("l-title").textContent = d.name;
+  const fact = (k, v) => el("div", {}, el("b", {}, k), v);
+  $("l-facts").replaceChildren(fact("Combined", d.combination.method),
+    fact("Thickness", d.combination.thicknesses_mm.map((t) => `${t} mm`).join(" + ")),
+    fact("Members", `${d.members.length}${d.origin === "imported" ? " (imported: provenance only)" : ""}`),
+    fact("Tags", d.tags.join(", ") || "—"), fact("Created", d.created_utc.replace("T", " ").slice(0, 19)),
+    ...(d.notes ? [fact("Notes", d.notes)] : []));
+  const s = d.spectra;
+  const spread = {wavelength_nm: s.wavelength_nm};
+  for (const k of ["alpha", "sigma_t", "g"]) { spread[k] = s[k]; spread[`${k}_std`] = s[`${k}_spread`]; }
+  const series = [{params: spread, color: "#8a93a0", band: true, name: "± spread between repeats"},
+    {params: s, color: COLORS[0], band: true, name: "combined ± std"},
+    ...d.members.filter((m) => m.here).map((m, i) => ({params: m.parameters, color: COLORS[1 + (i % 3)],
+      dashed: true, name: m.measurement}))];
+  $("l-legend").replaceChildren(...series.map((q) => el("span", {}, swatch(q.color), q.name)));
+  $("l-plot").replaceChildren(plotParameters(series, {}));
+  const disagree = s.flags.filter((f) => f & 1).length;
+  $("l-problems").replaceChildren(
+    ...(disagree ? [el("div", {class: "advice"}, `The repeats disagree beyond their stds in ${disagree} of ` +
+      `${s.flags.length} bins (χ² p < ${d.combination.disagree_p}): the spread, not the std, is the uncertainty there.`)] : []),
+    ...d.member_problems.map((p) => el("div", {class: "advice"}, `Member ${p}.`)));
+  $("l-members").replaceChildren(...d.members.map((m) => el("tr", {},
+    el("td", {}, m.here ? swatch(COLORS[1 + (d.members.filter((q) => q.here).indexOf(m) % 3)]) : ""),
+    el("td", {}, m.here ? el("a", {href: `#/m/${encodeURIComponent(m.measurement)}`}, m.measurement) : m.measurement),
+    el("td", {}, m.thicknesses_mm.map((t) => `${t} mm`).join(" + ")), el("td", {}, m.method),
+    el("td", {}, m.maps.join(", ")), el("td", {}, m.here ? "yes" : el("span", {class: "flag"}, "missing")))));
+}
+
 // ------------------------------------------------------------------- Fig.-10-style plot (SVG)
 const SVG = "http://www.w3.org/2000/svg";
 function svg(tag, attrs = {}, ...children) {
@@ -371,6 +415,8 @@ async function route() {
     if (parts[0] === "history") await historyView();
     else if (parts[0] === "m" && parts[1]) await measurementView(decodeURIComponent(parts[1]));
     else if (parts[0] === "compare" && parts.length === 3) await compareView(parts[1], parts[2]);
+    else if (parts[0] === "library" && parts[1]) await materialView(decodeURIComponent(parts[1]));
+    else if (parts[0] === "library") await libraryView();
     else await homeView();
   } catch (e) {
     $("view").replaceChildren(el("section", {class: "card"}, el("p", {class: "msg error"}, e.message)));

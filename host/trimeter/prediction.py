@@ -105,6 +105,47 @@ def predict_slab(material: SpectralMaterial, thickness_mm: float, *, geometry: s
     return Prediction(m.wavelengths_nm, out[0], out[1], out[2], out[3], srgb[0], srgb[1], info)
 
 
+def predict(materials: object, thickness_mm: float, *, fractions: ArrayLike | None = None,
+            **options: object) -> Prediction:
+    """`trimeter.predict`: the reflectance and colour of a slab of a measured material, or of a mixture.
+
+    Parameters
+    ----------
+    materials : Measurement, SpectralMaterial, str or Path, or a list of them
+        What the slab is made of: a loaded measurement (`trimeter.load`), a material, a results
+        directory, a parameters file or ``"sample:NAME"`` (the twin's catalogue). Several: a mixture.
+    thickness_mm : float
+        The slab's thickness.
+    fractions : array_like, optional
+        Volume fractions of the materials in the mixture (one each; required for several).
+    **options
+        geometry ("ideal" or "device"), n, rho_black, rho_white, paths, seed, wavelengths_nm: see
+        `predict_slab`.
+
+    Returns
+    -------
+    Prediction
+        Reflectance factors on black and on white per wavelength node, their standard errors and
+        linear sRGB colours (`hex_colour` turns one into ``#rrggbb``).
+    """
+    listed = materials if isinstance(materials, (list, tuple)) else [materials]
+    return predict_slab(mixture([_as_material(m) for m in listed], fractions), thickness_mm, **options)  # type: ignore[arg-type]
+
+
+def _as_material(spec: object) -> SpectralMaterial:
+    if isinstance(spec, SpectralMaterial):
+        return spec
+    if isinstance(spec, (str, Path)):
+        return load_material(str(spec))[0]
+    material = getattr(spec, "material", None)  # a trimeter.load result
+    if callable(material):
+        found = material()
+        if isinstance(found, SpectralMaterial):
+            return found
+    raise InputError(f"a material is a trimeter.load result, a SpectralMaterial, a results directory or a "
+                     f"parameters file, not {type(spec).__name__}")
+
+
 def hex_colour(linear_rgb: ArrayLike) -> str:
     from trimeter.results.export import srgb_encode
 
@@ -123,16 +164,15 @@ def write_spectra_csv(path: Path, rows: list[tuple[str, Prediction]]) -> None:
 
 def draw_swatches(path: Path, rows: list[tuple[str, Prediction]], *, columns: int, title: str) -> Path:
     """A grid of patches, each split: the slab on white above, on black below (sRGB, D65)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure  # not pyplot: a caller's plotting backend stays as it is
+    from matplotlib.patches import Rectangle
 
     from trimeter.atomic import atomic_output
     from trimeter.results.export import srgb_encode
 
     n_rows = math.ceil(len(rows) / columns)
-    fig, ax = plt.subplots(figsize=(1.6 * columns + 0.4, 1.75 * n_rows + 0.6))
+    fig = Figure(figsize=(1.6 * columns + 0.4, 1.75 * n_rows + 0.6))
+    ax = fig.subplots()
     ax.set_xlim(0, columns)
     ax.set_ylim(n_rows, 0)
     ax.set_axis_off()
@@ -141,10 +181,9 @@ def draw_swatches(path: Path, rows: list[tuple[str, Prediction]], *, columns: in
     for k, (label, p) in enumerate(rows):
         r, c = divmod(k, columns)
         for y0, rgb in ((0.05, p.srgb_white), (0.42, p.srgb_black)):
-            ax.add_patch(plt.Rectangle((c + 0.05, r + y0), 0.9, 0.37, color=srgb_encode(rgb)))
+            ax.add_patch(Rectangle((c + 0.05, r + y0), 0.9, 0.37, color=srgb_encode(rgb)))
         ax.text(c + 0.5, r + 0.9, label.replace("+", "\n+"), ha="center", va="center", fontsize=7, color="white")
     ax.set_title(title, fontsize=9, color="white")
     with atomic_output(path) as f:
         fig.savefig(f, format="png", dpi=110, facecolor=fig.get_facecolor())
-    plt.close(fig)
     return path

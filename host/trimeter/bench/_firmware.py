@@ -1,0 +1,62 @@
+"""The firmware's fit measured off the device, from the repository's sources: the inversion kernel compiled
+in the MCU's single precision for this host (its answers), and the fit's instructions on a Cortex-M4
+counted under QEMU (its time, an estimate). Neither is a run on a real board."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+from pathlib import Path
+from typing import Any
+
+from trimeter.errors import BuildError
+from trimeter.paths import REPO_ROOT
+
+FIRMWARE_DIR = REPO_ROOT / "firmware"
+NATIVE_DIR = REPO_ROOT / "host" / "trimeter" / "inversion" / "native"
+FIT_CORE_INCLUDE = FIRMWARE_DIR / "core"  # fit_core.h: the seam the table fit implements for the firmware
+COUNT_LABEL = "tr_fit_bins, 1 bin"  # firmware/qemu/count.c's label for one fitted bin
+
+
+def single_precision_library(out_dir: Path, fused_multiply_add: bool = False) -> Path:
+    """The kernel's C sources compiled with -DTR_SINGLE (float arithmetic, as the firmware links them) into a
+    library `native.TableFitter(..., library=)` loads; with `fused_multiply_add`, a·b + c fused as the
+    Cortex-M4 build takes them (firmware/Makefile FIT_CORE_MCU_FLAGS; the host CPU must have FMA)."""
+    cc = shutil.which("cc") or shutil.which("gcc")
+    if cc is None:
+        raise BuildError("no C compiler (cc or gcc) to build the single-precision kernel")
+    sources = sorted(str(p) for p in NATIVE_DIR.glob("*.c"))
+    if not sources or not FIT_CORE_INCLUDE.is_dir():
+        raise BuildError(f"the kernel's sources ({NATIVE_DIR}) or the firmware's core ({FIT_CORE_INCLUDE}) are "
+                         f"missing: this needs the repository, not an installed package")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    out = out_dir / ("libtrimeter_invert_single_fma.so" if fused_multiply_add else "libtrimeter_invert_single.so")
+    fused = ["-mfma", "-ffp-contract=fast"] if fused_multiply_add else []
+    done = subprocess.run([cc, "-O2", "-std=c11", "-Wall", "-Wextra", "-Werror", "-shared", "-fPIC", "-DTR_SINGLE",
+                           *fused, f"-I{FIT_CORE_INCLUDE}", "-o", str(out), *sources, "-lm"],
+                          capture_output=True, text=True)
+    if done.returncode != 0:
+        raise BuildError(f"compiling the single-precision kernel failed: {done.stderr.strip()[-500:]}")
+    return out
+
+
+def qemu_instruction_counts(table: Path, timeout_s: float = 300.0) -> dict[str, Any]:
+    """`make -C firmware qemu-count` with this table: instructions per call on a Cortex-M4 under QEMU
+    (firmware/qemu/count.py's JSON: per label mean, min, max, calls; the clock and cycles per instruction
+    its time estimate assumes)."""
+    if shutil.which("make") is None or not (FIRMWARE_DIR / "qemu" / "count.py").is_file():
+        raise BuildError(f"counting needs make and the repository's firmware/ ({FIRMWARE_DIR})")
+    try:
+        done = subprocess.run(["make", "-s", "-C", str(FIRMWARE_DIR), "qemu-count", f"COUNT_TABLE={table.resolve()}",
+                               "COUNT_ARGS=--json"], capture_output=True, text=True, timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        raise BuildError(f"the QEMU count did not finish within {timeout_s:g} s") from None
+    lines = [line for line in done.stdout.splitlines() if line.startswith("{")]
+    if done.returncode != 0 or not lines:
+        said = (done.stderr or done.stdout).strip()[-500:]
+        raise BuildError(f"the QEMU count failed (exit {done.returncode}): {said}")
+    counts: dict[str, Any] = json.loads(lines[-1])
+    if COUNT_LABEL not in counts["instructions"]:
+        raise BuildError(f"the QEMU count has no '{COUNT_LABEL}' (was the firmware built without the fit core?)")
+    return counts
