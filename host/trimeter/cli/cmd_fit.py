@@ -291,6 +291,10 @@ def _paired(chunks: Iterator[Chunk], models: Sequence[FitSource], path: Path) ->
 def _streamed_thickness_std(column: np.ndarray, seen: list[float], model: FitSource, path: Path) -> float:
     """The sample thickness's std for a chunk of a streamed input: the first chunk's (one value), which every
     later row must repeat or leave empty."""
+    if not seen:
+        _refuse_unknown_std(column, path)
+    elif np.isinf(column).any():
+        _refuse_unknown_std(column[np.isinf(column)], path)
     values = np.unique(column[np.isfinite(column)])
     first = not seen
     if first:
@@ -304,6 +308,14 @@ def _streamed_thickness_std(column: np.ndarray, seen: list[float], model: FitSou
                          f"{model.thickness_mm:g} mm ({shown_values[0]:g}, {shown_values[1]:g}, …): one sample, "
                          f"one std")
     return 0.0 if math.isnan(seen[0]) else seen[0]
+
+
+def _refuse_unknown_std(column: np.ndarray, path: Path) -> None:
+    """A sample's thickness_std_mm cells: an infinite one, or none finite at all (NaN, empty), is refused — never
+    read as 0, an exact thickness. Empty cells beside a finite one repeat it."""
+    if np.isinf(column).any() or not np.isfinite(column).any():
+        raise InputError(f"--input {path}: column thickness_std_mm is not a finite number for a sample (NaN, "
+                         f"empty or infinite; 0: the thickness is exact)")
 
 
 def _table_identity(table: DeviceTable, source: str, slot: str | None = None) -> dict[str, Any]:
@@ -434,13 +446,9 @@ def _table_fit_columns(data: Chunk, rows: np.ndarray, table: DeviceTable,
 def _thickness_std(column: np.ndarray, groups: list[np.ndarray], amaps: Sequence[FitSource], path: Path) -> list[float]:
     """One thickness std per map from the column: the same value on every row of that thickness."""
     out = []
-    if not np.isfinite(column).all():  # a NaN std is no "exact thickness": refused, never read as 0
-        bad = np.flatnonzero(~np.isfinite(column))
-        raise InputError(f"--input {path}: column thickness_std_mm is not a finite number on row(s) "
-                         f"{', '.join(str(i + 1) for i in bad[:5])}{', …' if len(bad) > 5 else ''} (0: the thickness "
-                         f"is exact)")
     for rows, amap in zip(groups, amaps, strict=True):
-        values = np.unique(column[rows])
+        _refuse_unknown_std(column[rows], path)
+        values = np.unique(column[rows][np.isfinite(column[rows])])
         if len(values) > 1:
             raise InputError(f"--input {path}: column thickness_std_mm differs between the rows of thickness "
                              f"{amap.thickness_mm:g} mm ({values[0]:g}, {values[1]:g}, …): one sample, one std")
