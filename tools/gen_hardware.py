@@ -135,10 +135,11 @@ def load_bom(path: Path = BOM) -> Bom:
     return Bom(parts, options, str(doc.get("prices_as_of", "")), float(doc.get("budget_eur", 0)), accuracy_build)
 
 
-def load_validation(path: Path = VALIDATION_JSON) -> dict:
+def load_validation(path: Path | None = None) -> dict:
     """The figures `trimeter bench report` wrote beside the validation page (its stamp and each build's rows)."""
     import json
 
+    path = path or VALIDATION_JSON
     try:
         doc = json.loads(path.read_text(encoding="utf-8"))
         stamp, runs = doc["stamp"], doc["builds"]["runs"]
