@@ -23,8 +23,8 @@ def solve_alpha_g(grid: ForwardGrid, I_b: np.ndarray, I_w: np.ndarray, cell: Sig
                   rho_w: np.ndarray, alpha0: np.ndarray, g0: np.ndarray, iterations: int = 5, step_tol: float = 0.0,
                   step_var: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
     """Damped Gauss-Newton for (α, g) with I_b, I_w matched at the bins' own ρ_b, ρ_w. Steps are
-    projected onto the map's box (hold_at_edges) and clamped to it. At most `iterations` steps; a bin stops once a step was small in
-    both α and g: at most `step_tol`, or (with step_var, per bin (κ σ_I)², see
+    projected onto the map's box (hold_at_edges) and clamped to it. At most `iterations` steps; a
+    bin stops once a step was small in both α and g: at most `step_tol`, or (with step_var, per bin (κ σ_I)², see
     polish_step_var) below κ of that parameter's noise std, where further steps only move it
     along what the data cannot tell apart. step_tol 0 and no step_var: every bin takes every
     step. Returns (α, g, residual norm, Jacobian at the solution). Where a bin's polish ended on
@@ -111,7 +111,8 @@ def lm_step(j11: np.ndarray, j12: np.ndarray, j21: np.ndarray, j22: np.ndarray, 
     return step_a, step_g, h11, h22, det, b1, b2
 
 
-def hold_at_edges(grid: ForwardGrid, alpha: np.ndarray, g: np.ndarray, step: tuple[np.ndarray, ...]) -> tuple[np.ndarray, ...]:
+def hold_at_edges(grid: ForwardGrid, alpha: np.ndarray, g: np.ndarray,
+                  step: tuple[np.ndarray, ...]) -> tuple[np.ndarray, ...]:
     """The polish's step projected onto the map's box (invert_internal.h hold_at_edges, operation for
     operation). `step`: lm_step's (step_a, step_g, h11, h22, det, b1, b2) from (α, g). A parameter at
     an edge of the box whose step points out of it is held there (step 0) and the other takes the
