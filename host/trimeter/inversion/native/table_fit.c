@@ -221,9 +221,11 @@ static uint16_t fit_bin(const tr_table *t, tr_real Ib, tr_real Iw, tr_real Ic, t
     /* the light scattered into I_c's aperture: σt up by L/ℓ, (α, g) following to first order */
     tr_real ds_in = R(0.0);
     if (usable && !(fl & (TM_FLAG_IC_BELOW_FLOOR | TM_FLAG_OUTSIDE_MAP))) {
-        tr_real s0 = sigma_t, L = tr_inscatter_log1p(t, alpha, s0, g);
+        tr_inscatter_cells cells;
+        tr_inscatter_cells_init(t, alpha, g, &cells);
+        tr_real s0 = sigma_t, L = tr_inscatter_log1p_at(t, &cells, s0);
         tr_real s = s0 + L / t->thickness_mm;
-        if (L > R(TM_INSCATTER_ONCE)) s = s0 + tr_inscatter_log1p(t, alpha, s, g) / t->thickness_mm;
+        if (L > R(TM_INSCATTER_ONCE)) s = s0 + tr_inscatter_log1p_at(t, &cells, s) / t->thickness_mm;
         if (L > R(0.0) && s - s0 > R(0.0)) {
             ds_in = s - s0;
             lm_step_t st = lm_step(e.J[0][0], e.J[0][2], e.J[1][0], e.J[1][2], e.J[0][1] * ds_in, e.J[1][1] * ds_in);
