@@ -515,30 +515,36 @@ static tr_real refined_cell(const float *axis, int n, tr_real x, tr_real node[2]
     return tr_clamp((x - node[0]) * (R(1.0) / (node[1] - node[0])), R(0.0), R(1.0));
 }
 
-tr_real tr_inscatter_log1p(const tr_table *t, tr_real alpha, tr_real sigma_t, tr_real g) {
-    /* the host resamples the table onto its grid's α and g nodes at the table's own optical depths and
-     * interpolates there: the same, on the fly, from the 8 nodes around the point */
+/* the host resamples the table onto its grid's α and g nodes at the table's own optical depths and
+ * interpolates there: the same, on the fly, from the 8 nodes around the point */
+void tr_inscatter_cells_init(const tr_table *t, tr_real alpha, tr_real g, tr_inscatter_cells *c) {
     tr_real an[2], gn[2];
-    tr_real wa = refined_cell(t->alpha, t->na, alpha, an), wg = refined_cell(t->g, t->ng, g, gn);
+    c->wa = refined_cell(t->alpha, t->na, alpha, an);
+    c->wg = refined_cell(t->g, t->ng, g, gn);
+    for (int k = 0; k < 2; k++) {
+        c->iu[k] = u_cell(t, an[k], &c->wu[k]);
+        c->iv[k] = v_cell(t, gn[k], &c->wv[k]);
+    }
+}
+
+tr_real tr_inscatter_log1p_at(const tr_table *t, const tr_inscatter_cells *c, tr_real sigma_t) {
     const int nt = t->nt;
     tr_real tau = sigma_t * t->thickness_mm, wt;
     tau = isfinite(tau) ? tau : R(0.0);
     int it = regular_cell(tr_clamp(tau, R(0.0), t->tau_max) * (R(nt - 1) / t->tau_max), nt, &wt);
     tr_real dt = t->tau_max / R(nt - 1); /* numpy.linspace's step */
-    int iu[2], iv[2], jt[2];
-    tr_real wu[2], wv[2], wjt[2];
+    int jt[2];
+    tr_real wjt[2];
     for (int k = 0; k < 2; k++) {
-        iu[k] = u_cell(t, an[k], &wu[k]);
-        iv[k] = v_cell(t, gn[k], &wv[k]);
         int j = it + k;
         jt[k] = tau_cell(t, (j == nt - 1 ? t->tau_max : R(j) * dt) / t->thickness_mm, &wjt[k]);
     }
     tr_real along_t[2][2];
     for (int da = 0; da < 2; da++)
         for (int k = 0; k < 2; k++)
-            along_t[da][k] = lerp(inscatter_table(t, iu[da], wu[da], jt[k], wjt[k], iv[0], wv[0]),
-                                  inscatter_table(t, iu[da], wu[da], jt[k], wjt[k], iv[1], wv[1]), wg);
-    return lerp(lerp(along_t[0][0], along_t[0][1], wt), lerp(along_t[1][0], along_t[1][1], wt), wa);
+            along_t[da][k] = lerp(inscatter_table(t, c->iu[da], c->wu[da], jt[k], wjt[k], c->iv[0], c->wv[0]),
+                                  inscatter_table(t, c->iu[da], c->wu[da], jt[k], wjt[k], c->iv[1], c->wv[1]), c->wg);
+    return lerp(lerp(along_t[0][0], along_t[0][1], wt), lerp(along_t[1][0], along_t[1][1], wt), c->wa);
 }
 
 void tr_model_variance(const tr_table *t, tr_real alpha, tr_real log_sigma_t, tr_real g, tr_real *var_b,
