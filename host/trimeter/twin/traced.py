@@ -83,6 +83,12 @@ class TracedSetup:
         I_w = A + B * rho_w / (1.0 - C * rho_w)
         return I_b, I_w, L, A
 
+    def source(self) -> str:
+        """How these observables were made: the file and its provenance (tool, paths per node, seed)."""
+        p = self.provenance
+        made = ", ".join(f"{k} {p[k]}" for k in ("tool", "paths_per_node", "seed", "written_utc") if k in p)
+        return f"{self.path.name} ({made or 'no provenance recorded'})"
+
     def collimated(self, sigma_t: np.ndarray, L: np.ndarray, geometry_params: dict) -> np.ndarray:
         """I_c: the analytic unscattered beam times (1 + r), r the traced in-scattered fraction."""
         unscattered = collimated_transmittance(sigma_t, self.thickness_mm, self.n, cover_slide_n(geometry_params))
