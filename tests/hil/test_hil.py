@@ -22,7 +22,7 @@ from trimeter.spectrometer import open_spectrometer
 from hil_support import HIL_MAP, SAMPLE, THICKNESS_MM, TIME_SCALE, HardwareRig, TwinRig, build_hil_map, twin_truth
 
 
-# The twin renders its samples independently of the HIL map, so α also carries the map's interpolation error,
+# The twin traces its samples rather than reading the HIL map, so α also carries the map's interpolation error,
 # of which the reported α std (Monte Carlo and leave-one-out terms, exact map nodes) holds only part.
 ALPHA_WITHIN_3STD = 0.75
 

@@ -1,5 +1,6 @@
-"""The twin's independent physics: virtual samples rendered by the tracer (trimeter.twin.traced), close to
-but not the map the host inverts; stale data is refused; an untraced set-up says it fell back to the map."""
+"""The twin's physics: virtual samples traced by the maps' tracer (trimeter.twin.traced), close to but not
+the map the host inverts; stale data is refused; an untraced set-up says it fell back to the map, and the
+demo's "independent physics" line says what each source can show."""
 
 from __future__ import annotations
 

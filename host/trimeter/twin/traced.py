@@ -1,4 +1,5 @@
-"""The twin's virtual samples rendered directly, independent of any appearance map.
+"""The twin's virtual samples traced directly, not read off any appearance map (but not independent of
+the maps' physics: the same tracer, the same I(ρ) model).
 
 The map the host inverts is an interpolant of the forward model; a twin that made its samples' I_b,
 I_w, I_c with that same map would hide the map's own error (node spacing, its Monte Carlo noise), so
@@ -15,6 +16,9 @@ as well. The unscattered beam is analytic (Beer-Lambert with the Fresnel stack) 
 Data: host/trimeter/data/twin_observables/<geometry>-n<n>-l<ℓ>.json, one file per set-up, with the
 hash of each material's catalogue entry and of the geometry: a material or geometry changed since
 the trace makes the data stale (an error, naming the tool to re-run).
+
+What these observables cannot show: errors the maps' tracer and their I(ρ) model make (e.g. unpolarised
+Fresnel, one return coefficient C), since the twin's samples are made the same way.
 """
 
 from __future__ import annotations
