@@ -486,7 +486,10 @@ def _uncertainty_section(unc: dict[str, Any] | None, png: Path | None, page: Pat
     lines = ["## Uncertainty: do the reported σ cover the truth?", ""]
     if unc is None:
         return lines + ["Not run: no device map among the maps scored.", ""]
-    lines += ["Each held-out material of the device maps drawn "
+    counts = ", ".join(f"{name} {n}" for name, n in unc.get("heldout_materials", {}).items())
+    lines += [f"The {unc.get('heldout_part', 'whole')} part of the device maps' held-out sets ({counts} materials; "
+              "the calibration part, on which the map's error scale in the σ is chosen, is never scored here). "
+              "Each material drawn "
               f"{unc['draws']} times with relative Gaussian noise of known size on I_b, I_w, I_c and fitted by lut. "
               "**given**: the noise's std handed to the fit (with the references' own Monte Carlo error); "
               "**fixed**: the fit's fixed noise model alone. Share of unflagged bins whose truth lies within ±1σ / "

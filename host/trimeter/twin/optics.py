@@ -9,10 +9,12 @@ What the spectrometer sees for a plant state (counts/s per pixel, before noise):
     black slot (or between slots):  panels · (I_b  | ρ_black without a sample)
     white slot:                     panels · (I_w  | ρ_white)
     open slot:                      panels · (I(ρ=0) | 0) + beam · (I_c | 1)
-with (I_b, I_w, I_c) of the inserted sample rendered directly by the tracer for the set-up (geometry, n, ℓ)
-of the chosen map — trimeter.twin.traced, never the map the host inverts, so a round trip includes the
-map's own error. A set-up or material nobody traced falls back to AppearanceMap.query (then `physics` says so and the
-round trip cannot see the map's error).
+with (I_b, I_w, I_c) of the inserted sample traced for the set-up (geometry, n, ℓ) of the chosen map —
+trimeter.twin.traced, not read from the map the host inverts, so a round trip includes the map's
+interpolation and Monte Carlo error. Those traces come from the maps' own tracer, reduced to the maps'
+own I(ρ) model, so they share that tracer's and that model's errors: they are not independent physics.
+A set-up or material nobody traced is rendered by the very map the host inverts (AppearanceMap.query);
+`physics` records which source it was (PHYSICS) and the demo and the HIL suite say so (physics_line).
 """
 
 from __future__ import annotations
@@ -203,6 +205,29 @@ class SpectrometerModel:
 
 
 # ------------------------------------------------------------------------------------------ sample
+# Where a virtual sample's I_b, I_w, I_c come from (SampleOptics.physics), and what a round trip against them
+# can and cannot show.
+PHYSICS = {
+    "traced": "traced by the tracer the maps are built with (trimeter.maps.tracer, tools/make_twin_observables.py) "
+              "and reduced to the maps' own I(ρ) = A + Bρ/(1 − Cρ) model",
+    "map": "queried from the very map the host inverts (no traced observables for this set-up or material)",
+}
+
+
+def physics_line(physics: str, sample: str, map_name: str) -> str:
+    """The demo's "independent physics:" line: where the twin's observables of `sample` came from and what
+    the errors printed against its truth therefore include."""
+    if physics == "traced":
+        return (f"independent physics: partly — the twin's '{sample}' was {PHYSICS['traced']}, not read from the "
+                f"map {map_name} the fit inverts: the errors below include that map's interpolation and Monte Carlo "
+                "error, NOT the tracer's or the I(ρ) model's own (e.g. its unpolarised Fresnel)")
+    if physics == "map":
+        return (f"independent physics: none — the twin's '{sample}' was {PHYSICS['map']}, map {map_name}: the "
+                "errors below are noise, drift and calibration only, NOT the map's own error "
+                "(tools/make_twin_observables.py traces a set-up)")
+    raise InputError(f"physics must be one of {', '.join(PHYSICS)}, got {physics!r}")
+
+
 @dataclass(frozen=True)
 class SampleOptics:
     name: str
@@ -215,7 +240,8 @@ class SampleOptics:
     I_c: np.ndarray
     I_open: np.ndarray  # diffuse reflectance over the open slot (no background: ρ = 0)
     map_name: str
-    physics: str = "map"  # where I_b, I_w, I_c came from: "traced" (independent of the map) or "map"
+    physics: str = "map"  # where I_b, I_w, I_c came from: a key of PHYSICS
+    physics_source: str = ""  # how: the traced data's file and provenance, or the map's name
 
 
 def _load_maps(appearance_map: MapSource) -> list[AppearanceMap]:
@@ -292,12 +318,13 @@ class Optics:
                 I_c = traced.collimated(sigma_t, L, geometry_params)
                 self.sample = SampleOptics(name=name, thickness_mm=thickness_mm, alpha=alpha, sigma_t=sigma_t, g=g,
                                            I_b=I_b, I_w=I_w, I_c=I_c, I_open=I_open, map_name=amap.name,
-                                           physics="traced")
+                                           physics="traced", physics_source=traced.source())
                 return self.sample
         I_b, I_w, I_c = amap.query(spectra["alpha"], spectra["sigma_t"], spectra["g"], self.rho_black, self.rho_white)
         I_open = amap.diffuse(spectra["alpha"], spectra["sigma_t"], spectra["g"], 0.0)
         self.sample = SampleOptics(name=name, thickness_mm=thickness_mm, alpha=alpha, sigma_t=sigma_t, g=g, I_b=I_b,
-                                   I_w=I_w, I_c=I_c, I_open=I_open, map_name=amap.name)
+                                   I_w=I_w, I_c=I_c, I_open=I_open, map_name=amap.name,
+                                   physics="map", physics_source=f"AppearanceMap.query of {amap.name}")
         return self.sample
 
     def remove_sample(self) -> None:
@@ -333,4 +360,4 @@ class Optics:
             return None
         return {"name": s.name, "thickness_mm": s.thickness_mm, "wavelengths_nm": self.wavelengths_nm.copy(),
                 "alpha": s.alpha.copy(), "sigma_t": s.sigma_t.copy(), "g": s.g.copy(), "map": s.map_name,
-                "physics": s.physics}
+                "physics": s.physics, "physics_source": s.physics_source}
