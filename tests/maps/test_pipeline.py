@@ -161,9 +161,9 @@ def test_stage_names_and_rebuild_command():
 def test_cli_backend_cuda_without_a_gpu_is_a_clear_error_and_llvm_builds(tmp_path, capsys, monkeypatch):
     """--backend reaches the column tasks: cuda on a machine without one stops before any work (exit 2,
     one line), llvm builds, and the columns are traced with the backend asked for."""
-    from trimeter.maps import tracer
+    from trimeter.forward import transport
 
-    if tracer.resolve_backend("auto") == "cuda":
+    if transport.resolve_backend("auto") == "cuda":
         pytest.skip("this machine has a CUDA device")
     recipe = tmp_path / "r.toml"
     recipe.write_text(TINY_TOML)
@@ -173,13 +173,13 @@ def test_cli_backend_cuda_without_a_gpu_is_a_clear_error_and_llvm_builds(tmp_pat
     assert not (tmp_path / "pipe-tiny.tmap").exists()
 
     seen = []
-    real = tracer.trace_column
+    real = transport.trace_column
 
     def spy(*args, backend="llvm", **kwargs):
         seen.append(backend)
         return real(*args, backend=backend, **kwargs)
 
-    monkeypatch.setattr(tracer, "trace_column", spy)
+    monkeypatch.setattr(transport, "trace_column", spy)
     pipeline.run([pipeline.Target(parse_recipe(tomllib.loads(TINY_TOML)), None, tmp_path / "p.tmap")], ("tmap",),
                  progress=False, options=pipeline.Options(tracer_backend="llvm"), say=lambda line: None)
     assert seen and set(seen) == {"llvm"}

@@ -120,7 +120,7 @@ def test_shipped_map_columns_re_trace_bit_for_bit(name, j, k):
     """The tracer as it stands re-traces shipped columns of both geometries to the stored bits (A, B, C
     and their std-errors, float32 as the map stores them): a change that moves any path shows here."""
     from trimeter.maps.builder import trace_column
-    from trimeter.maps.tracer import Stack
+    from trimeter.forward.transport import Stack
 
     amap = load(name)
     recipe = load_recipe(MAPS_DIR / "recipes" / f"{name}.toml")

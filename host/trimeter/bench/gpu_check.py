@@ -126,8 +126,8 @@ def compare_column(recipe, j: int, k: int, paths: int, against: str) -> dict:
     """One column traced on `against` and on LLVM with the same seeds: seconds per backend and the
     z-scores of I(ρ) at both reference backgrounds over α."""
     from trimeter.maps import builder
-    from trimeter.maps.tracer import Stack
-    from trimeter.maps.tracer import trace_column as trace_pair
+    from trimeter.forward.transport import Stack
+    from trimeter.forward.transport import trace_column as trace_pair
 
     fixed = dataclasses.replace(recipe, sampling=dataclasses.replace(recipe.sampling, min_paths=paths, max_paths=paths))
     warm = dataclasses.replace(recipe, sampling=dataclasses.replace(recipe.sampling, min_paths=WARM_UP_PATHS,

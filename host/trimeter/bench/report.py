@@ -292,7 +292,7 @@ def _header(results: dict[str, Any]) -> list[str]:
         "simulated.",
         "- The held-out sets (`maps/heldout/`, made by `tools/make_heldout.py`) are random materials off the maps' "
         "grids, rendered directly, never interpolated from a map: for the device geometry by Monte Carlo with this "
-        "project's own tracer (`trimeter.maps.tracer.trace_column`, with far more paths than the maps), for the "
+        "project's own tracer (`trimeter.forward.transport.trace_column`, with far more paths than the maps), for the "
         "ideal geometry by adding-doubling (`iadpython`). Because the device references come from the same tracer "
         "as the device maps, an error of the tracer itself does not show in the accuracy section: the tracer "
         "is compared with Mitsuba 3 in the last section.",

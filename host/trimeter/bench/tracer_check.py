@@ -59,7 +59,7 @@ def check(args: argparse.Namespace) -> dict[str, Any]:
     "seconds", "rows", "summary" (per geometry, per geometry and ρ, ideal against adding-doubling), "ok"}."""
     from trimeter.forward.validate import random_materials
     from trimeter.maps.tracer_validation import require_series_orders, tracer_agreement
-    from trimeter.maps.tracer import resolve_backend
+    from trimeter.forward.transport import resolve_backend
 
     if not 1 <= args.materials <= 10_000:
         raise InputError(f"--materials must be 1…10000, got {args.materials}")

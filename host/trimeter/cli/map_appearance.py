@@ -93,7 +93,7 @@ def load_appearance_map(name_or_path):
 def cmd_build(args) -> int:
     from trimeter.maps import pipeline
     from trimeter.maps.recipe import load_recipe
-    from trimeter.maps.tracer import resolve_backend
+    from trimeter.forward.transport import resolve_backend
 
     stages = pipeline.parse_stages(args.stages)
     backend = resolve_backend(args.backend)

@@ -34,15 +34,15 @@ from trimeter.errors import BuildError, InputError, MapFileError
 from trimeter.geometry import cover_slide_n
 from trimeter.maps.appearance import AppearanceMap
 from trimeter.maps.recipe import Recipe
-from trimeter.maps.tracer import ColumnTally, Stack, k_max_for
-from trimeter.maps.tracer import trace_column as trace_pair
+from trimeter.forward.transport import ColumnTally, Stack, k_max_for
+from trimeter.forward.transport import trace_column as trace_pair
 from trimeter.model.collimated import MEASURABLE_IC, collimated_transmittance
 from trimeter.model.response import background_response
 
 if TYPE_CHECKING:
     from rich.progress import Progress
 
-BUILDER = ("trimeter.maps.tracer: (k, m)-tally path tracer (detector + background paths; B = UT1·UTU where the "
+BUILDER = ("trimeter.forward.transport: (k, m)-tally path tracer (detector + background paths; B = UT1·UTU where the "
            "geometry factorises), Dr.Jit LLVM symbolic loop")
 _COLUMN_FIELDS = ("A", "B", "C", "std_b", "std_w")
 log = logging.getLogger("trimeter.maps")

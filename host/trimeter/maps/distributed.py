@@ -31,9 +31,9 @@ _LIBLLVM = "/usr/lib/x86_64-linux-gnu/libLLVM-19.so"
 
 def set_drjit_threads(count: int) -> None:
     """Dr.Jit's thread pool size in this process (a worker runs one task at a time on one core)."""
-    from trimeter.maps.tracer import _drjit
+    from trimeter.forward.transport.backend import load_drjit
 
-    dr, _ = _drjit()
+    dr, _ = load_drjit()
     if dr.thread_count() != count:
         dr.set_thread_count(count)
 

@@ -3,7 +3,7 @@
 | stage | file | made from the map by | needs |
 |---|---|---|---|
 | tmap | `<name>.tmap` | trimeter.maps.builder (the columns, on Dask or here) | the recipe |
-| tins | `<name>.tins` | trimeter.forward.inscatter.build_inscatter_table | device geometry (skipped otherwise) |
+| tins | `<name>.tins` | trimeter.forward.transport.inscatter_tracer.build_inscatter_table | device geometry only |
 | tlut | `<name>.tlut` | trimeter.maps.device_table.build_from_map | the .tins where the map has one |
 | onnx | `<name>.onnx` | trimeter.maps.mlp_training (scikit-learn → ONNX) | opt-in: minutes of training |
 
@@ -72,7 +72,7 @@ def _shown_path(path: Path) -> str:
 class Options:
     """The map's and the children's settings (the defaults are what the shipped files were made with).
     `tracer_backend`: the Dr.Jit backend the map's columns are traced on, "llvm" or "cuda" (resolved
-    from "auto" by trimeter.maps.tracer.resolve_backend before it gets here)."""
+    from "auto" by trimeter.forward.transport.resolve_backend before it gets here)."""
     tracer_backend: str = "llvm"
     inscatter_photons: int = 30_000
     inscatter_seed: int = 0
@@ -101,7 +101,7 @@ def applies(stage: str, amap) -> str | None:
 def compute(stage: str, amap, options: Options):
     """The stage's product for `amap`, in memory (runs on a Dask worker or here)."""
     if stage == "tins":
-        from trimeter.forward.inscatter import build_inscatter_table
+        from trimeter.forward.transport.inscatter_tracer import build_inscatter_table
 
         return build_inscatter_table(amap.n, amap.thickness_mm, amap.recipe["geometry_params"],
                                      photons=options.inscatter_photons, seed=options.inscatter_seed,
@@ -175,7 +175,7 @@ def run(targets: list[Target], stages: tuple[str, ...], *, client=None, resume: 
     """Run `stages` for every target: the maps (all their columns at once), then each map's children.
     Without the tmap stage the maps must exist and be current against their recipes."""
     from trimeter.maps.builder import MapJob, build_maps, recipe_fingerprint, validation_report
-    from trimeter.maps.tracer import trace_column as trace_pair
+    from trimeter.forward.transport import trace_column as trace_pair
 
     if "tmap" in stages:
         jobs = [MapJob(t.recipe, t.out, checkpoint_dir) for t in targets]

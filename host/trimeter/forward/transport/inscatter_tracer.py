@@ -240,7 +240,8 @@ def build_inscatter_table(n: float, thickness_mm: float, geometry_params: dict, 
                                             photons, seed + 1000 * j + k)
         if progress:
             progress(j, len(taus))
-    provenance = {"builder": "trimeter.forward.inscatter.build_inscatter_table", "photons": photons, "seed": seed,
+    provenance = {"builder": "trimeter.forward.transport.inscatter_tracer.build_inscatter_table", "photons": photons,
+                  "seed": seed,
                   "seconds": round(time.perf_counter() - t0, 1)}
     return InscatterTable(L, u_max=-math.log1p(-alphas[-1]), tau_max=taus[-1], v_max=-math.log1p(-gs[-1]), n=n,
                           thickness_mm=thickness_mm, geometry_params=geometry_params, provenance=provenance)
