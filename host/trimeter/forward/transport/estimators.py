@@ -10,7 +10,8 @@ import math
 import numpy as np
 
 from trimeter.forward.transport.sampling import cosine_direction
-from trimeter.forward.transport.scene import Stack, fresnel, sees_panel
+from trimeter.forward.transport.scene import Stack, sees_panel
+from trimeter.model.fresnel import NUMPY, fresnel, normal_incidence_reflectance
 
 
 def clean_pass_probability(stack: Stack, sigma_t: float) -> float:
@@ -19,7 +20,7 @@ def clean_pass_probability(stack: Stack, sigma_t: float) -> float:
     indices = [float(n) for n in stack.layer_n] + [1.0]
     p = 1.0
     for above, below in zip(indices[:-1], indices[1:], strict=True):
-        p *= 1 - ((above - below) / (above + below)) ** 2
+        p *= 1 - normal_incidence_reflectance(above, below)
     depth = stack.plane_z[stack.sample_layer] - stack.plane_z[stack.sample_layer + 1]
     return p * math.exp(-sigma_t * depth)
 
@@ -65,7 +66,7 @@ def plain_return(stack: Stack, sigma_t: float) -> tuple[float, float]:
     media = np.concatenate([[1.0], layer_n, [1.0]])
     cos_media = np.vstack([mu, cos_l, mu])
     # interface i lies between medium i (above) and i + 1 (below); F is the same from either side
-    reflectance = np.array([fresnel_np(cos_media[i], media[i + 1] / media[i]) for i in range(n_layers + 1)])
+    reflectance = np.array([fresnel(NUMPY, cos_media[i], media[i + 1] / media[i])[0] for i in range(n_layers + 1)])
     up, down = np.zeros((n_layers + 1, len(mu))), np.zeros((n_layers + 1, len(mu)))   # index n_layers: the gap
     up[n_layers] = 1.0
     returned = np.zeros(len(mu))
@@ -91,15 +92,6 @@ def _gauss_legendre() -> tuple[np.ndarray, np.ndarray]:
     eigenvalue problem that, with BLAS threads competing with Dr.Jit's, took longer than the trace)."""
     return np.polynomial.legendre.leggauss(256)
 
-
-
-def fresnel_np(cos_i, eta):
-    """fresnel in numpy (float64)."""
-    sin2_t = (1 - cos_i * cos_i) / (eta * eta)
-    cos_t = np.sqrt(np.maximum(1 - sin2_t, 0.0))
-    rs = (cos_i - eta * cos_t) / (cos_i + eta * cos_t)
-    rp = (eta * cos_i - cos_t) / (eta * cos_i + cos_t)
-    return np.where(sin2_t >= 1, 1.0, 0.5 * (rs * rs + rp * rp))
 
 
 def straight_through(walk, px, py, u_a, u_b):

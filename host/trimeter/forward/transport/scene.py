@@ -109,17 +109,6 @@ def _panel_from_corners(corners) -> Panel:
 
 
 
-def fresnel(dr, cos_i, eta):
-    """Unpolarised Fresnel reflectance for |cos_i| and relative index eta = n_t / n_i; also cos_t."""
-    sin2_t = (1 - cos_i * cos_i) / (eta * eta)
-    tir = sin2_t >= 1
-    cos_t = dr.safe_sqrt(1 - sin2_t)
-    rs = (cos_i - eta * cos_t) / (cos_i + eta * cos_t)
-    rp = (eta * cos_i - cos_t) / (eta * cos_i + cos_t)
-    F = dr.select(tir, 1.0, 0.5 * (rs * rs + rp * rp))
-    return F, cos_t
-
-
 def side_entry(dr, half_width, z_bottom, z_top, px, py, pz, dx, dy, dz):
     """Where a ray in the air outside the stack's footprint (|x| or |y| > half_width), rising, meets
     one of the stack's side faces (between z_bottom and z_top): (meets an x face, meets a y face,

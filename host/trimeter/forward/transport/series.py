@@ -10,9 +10,10 @@ import numpy as np
 
 from trimeter.forward.transport.estimators import straight_through
 from trimeter.forward.transport.sampling import mix64
-from trimeter.forward.transport.scene import Stack, fresnel
+from trimeter.forward.transport.scene import Stack
 from trimeter.forward.transport.tally import N_BACKGROUND_ORDERS, Tally, detector_path_variance, detector_sums
 from trimeter.forward.transport.walk import CARRIED, LOOP_STATE, OUTCOME
+from trimeter.model.fresnel import fresnel
 from trimeter.model.response import REFERENCE_RHOS
 
 LATER_WAVES = 4

@@ -19,6 +19,7 @@ from trimeter.forward.transport.series import trace_on
 from trimeter.forward.transport.tally import (N_BACKGROUND_ORDERS, Tally, add_constant, background_sums,
                                               detector_sums)
 from trimeter.forward.transport.walk import FIRST_BOUNCE_RECORD, OUTCOME, Walk
+from trimeter.model.fresnel import normal_incidence_reflectance
 
 
 @dataclass
@@ -148,7 +149,7 @@ def _background_tally(walk: Walk, passes: Passes, n_paths: int, start_cos) -> Ta
 
 def _top_face_reflectance(walk: Walk) -> float:
     """The first interface (air → top layer) at normal incidence, in closed form."""
-    return ((walk.layer_n[0] - 1.0) / (walk.layer_n[0] + 1.0)) ** 2
+    return normal_incidence_reflectance(walk.layer_n[0], 1.0)
 
 
 def _factorised_tally(walk: Walk, passes: Passes, n_paths: int) -> Tally:

@@ -10,8 +10,9 @@ import numpy as np
 
 from trimeter.forward.transport.backend import load_drjit
 from trimeter.forward.transport.sampling import cosine_direction, henyey_greenstein
-from trimeter.forward.transport.scene import Stack, fresnel, panel_margin, sees_light, side_entry
+from trimeter.forward.transport.scene import Stack, panel_margin, sees_light, side_entry
 from trimeter.forward.transport.tally import N_BACKGROUND_ORDERS
+from trimeter.model.fresnel import fresnel
 
 # A bounce series' count of reflections since the last bounce once it stopped being plain.
 NOT_PLAIN = 255
