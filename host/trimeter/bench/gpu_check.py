@@ -60,7 +60,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from trimeter import __version__
+    from trimeter.version import __version__
     from trimeter.maps.recipe import load_recipe
     from trimeter.paths import MAPS_DIR, REPO_ROOT
 

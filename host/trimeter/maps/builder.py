@@ -237,7 +237,7 @@ def column_task(recipe: Recipe, checkpoint_dir: str, j: int, k: int, tracer: Cal
     `written` is False on a worker that does not see the checkpoint directory (no shared file system):
     the caller then writes the column it receives."""
     if drjit_threads:
-        from trimeter.maps.distributed import set_drjit_threads
+        from trimeter.forward.transport.backend import set_drjit_threads
 
         set_drjit_threads(drjit_threads)
     stack = Stack.from_recipe(recipe.geometry, recipe.geometry_params, recipe.n, recipe.thickness_mm)
@@ -361,7 +361,7 @@ def build_maps(jobs: list[MapJob], *, client=None, resume: bool = False, progres
             from trimeter.maps.distributed import describe_cluster, run_on_cluster
 
             executor = describe_cluster(client)
-            results = run_on_cluster(client, pending, tracer, retries)
+            results = run_on_cluster(client, pending, column_task, tracer, retries)
         for state, j, k, col in results:
             state.add(j, k, col, traced=True)
             advance(state.index)

@@ -73,3 +73,10 @@ def load_drjit(backend: str = "llvm"):
     if backend not in ("llvm", "cuda"):
         raise InputError(f"backend must be 'llvm' or 'cuda' (resolve 'auto' first), got {backend!r}")
     return dr, importlib.import_module(f"drjit.{backend}")
+
+
+def set_drjit_threads(count: int) -> None:
+    """Dr.Jit's thread pool size in this process (a worker runs one task at a time on one core)."""
+    dr, _ = load_drjit()
+    if dr.thread_count() != count:
+        dr.set_thread_count(count)
