@@ -7,7 +7,7 @@ one small warm-up column per recipe and backend, so kernel compilation is not co
 of I(ρ) = A + B·q at both reference backgrounds and every α of the grid,
 z = (I_cuda − I_llvm) / √(se_cuda² + se_llvm²). The same seeds give the same paths on either backend up
 to their floating-point differences, so the z-scores sit near 0 unless a backend is wrong; the check
-is the tracer check's rule on their distribution (trimeter.maps.tracer_validation.z_summary).
+is the tracer check's rule on their distribution (trimeter.forward.transport.agreement.z_summary).
 Then the inversion's tests (pytest tests/inversion), where the checkout has them.
 
 Without a CUDA device it prints one `SKIPPED: …` line saying why and exits 0. `--against llvm` traces the
@@ -158,7 +158,7 @@ def column_z(recipe, a, b) -> np.ndarray:
 
 
 def agreement(z: np.ndarray) -> dict:
-    from trimeter.maps.tracer_validation import z_summary
+    from trimeter.forward.transport.agreement import z_summary
 
     return z_summary(z)
 

@@ -449,7 +449,7 @@ def _uncertainty_section(unc: dict[str, Any] | None, png: Path | None, page: Pat
 
 
 def _tracer_section(tracer: dict[str, Any] | None, png: Path | None, page: Path) -> list[str]:
-    from trimeter.maps.tracer_validation import Z_MEAN_MAX, Z_P95_MAX
+    from trimeter.forward.transport.agreement import Z_MEAN_MAX, Z_P95_MAX
 
     lines = ["## The map tracer against Mitsuba 3", ""]
     full = "trimeter bench tracer-check --paths 4194304 --spp 4194304"
@@ -576,7 +576,7 @@ def _plot_coverage(unc: dict[str, Any], img: Path) -> Path:
 
 def _plot_tracer(tracer: dict[str, Any], img: Path) -> Path:
     """z per material and background, per geometry, and the ideal geometry against adding-doubling."""
-    from trimeter.maps.tracer_validation import Z_P95_MAX
+    from trimeter.forward.transport.agreement import Z_P95_MAX
 
     plt = _pyplot()
     groups: list[tuple[str, list[float]]] = []

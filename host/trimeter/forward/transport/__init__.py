@@ -78,8 +78,8 @@ The package, by concern: `scene` (the stack, its surroundings and lights; inters
 `estimators` (next-event estimates and the control variates' expectations), `series` (a bounce
 series' passes past the 2nd bounce), `tally` (the sums over paths and their statistics), `trace` (one
 trace of one kind of path; not re-exported here, where its name would hide the module), `column` (a
-column's traces, the map builder's call), `backend` (Dr.Jit).
-The collimated beam's in-scattering has a tracer of its own (`inscatter_tracer`, numpy).
+column's traces, the map builder's call), `backend` (Dr.Jit), `agreement` (the tracer against Mitsuba's
+volpath). The collimated beam's in-scattering has a tracer of its own (`inscatter_tracer`, numpy).
 """
 
 from trimeter.forward.transport.backend import resolve_backend
