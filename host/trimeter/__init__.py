@@ -5,14 +5,14 @@ Data flows one way: device -> raw spectra -> reflectances -> map inversion -> pa
 
 from typing import TYPE_CHECKING, Any
 
-from trimeter.version import __version__
+from trimeter.version import __version__ as __version__  # re-exported: `trimeter.__version__`
 
 if TYPE_CHECKING:  # what the lazy names below resolve to, for type checkers and the API reference
     from trimeter.maps.artifacts import fit, open_map
     from trimeter.prediction import predict
     from trimeter.results.reader import Measurement, load
 
-__all__ = ["Measurement", "__version__", "fit", "load", "open_map", "predict"]
+__all__ = ["Measurement", "fit", "load", "open_map", "predict"]
 
 
 # The Python API, each name imported from its module on first use so `import trimeter` stays light: `fit` the

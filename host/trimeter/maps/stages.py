@@ -5,6 +5,7 @@ readers and writers can name them without reaching up into it."""
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Protocol
 
 from trimeter.errors import InputError
 from trimeter.paths import MAPS_DIR
@@ -30,7 +31,17 @@ def stage_producer(stage: str) -> dict:
     return {"name": f"trimeter map build --stages {stage}", "version": __version__}
 
 
-def rebuild_command(amap, stage: str) -> str:
+class _MapFile(Protocol):
+    """What a rebuild command needs of a map (an AppearanceMap, without importing it)."""
+
+    @property
+    def name(self) -> str: ...
+
+    @property
+    def path(self) -> Path | None: ...
+
+
+def rebuild_command(amap: _MapFile, stage: str) -> str:
     """The command that rebuilds `stage` of this map in place (the shipped recipe's path when it has one)."""
     recipe = MAPS_DIR / "recipes" / f"{amap.name}.toml"
     recipe_arg = _shown_path(recipe) if recipe.is_file() else "RECIPE.toml"

@@ -8,15 +8,16 @@ cosθ = 1 (the collimated beam, the detector's first interface), checked against
 from __future__ import annotations
 
 from types import SimpleNamespace
+from typing import Any
 
 import numpy as np
 
 
-def _safe_sqrt(x):
+def _safe_sqrt(x: Any) -> Any:
     return np.sqrt(np.maximum(x, 0.0))
 
 
-def _select(condition, a, b):
+def _select(condition: Any, a: Any, b: Any) -> Any:
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.where(condition, a, b)
 
@@ -25,7 +26,7 @@ def _select(condition, a, b):
 NUMPY = SimpleNamespace(safe_sqrt=_safe_sqrt, select=_select)
 
 
-def fresnel(xp, cos_i, eta):
+def fresnel(xp: Any, cos_i: Any, eta: Any) -> tuple[Any, Any]:
     """Unpolarised Fresnel reflectance F for the incidence cosine cos_i ∈ [0, 1] and the relative index
     eta = n_t / n_i (1 beyond total internal reflection), and the transmitted direction's cosine cos_t.
     `xp`: NUMPY or drjit (then cos_i, eta are Dr.Jit arrays or floats of one backend)."""
@@ -38,6 +39,6 @@ def fresnel(xp, cos_i, eta):
     return xp.select(tir, 1.0, 0.5 * (rs * rs + rp * rp)), cos_t
 
 
-def normal_incidence_reflectance(n1, n2):
+def normal_incidence_reflectance(n1: Any, n2: Any) -> Any:
     """`fresnel` at cos_i = 1 in closed form: ((n1 − n2)/(n1 + n2))²."""
     return ((n1 - n2) / (n1 + n2)) ** 2
