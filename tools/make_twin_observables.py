@@ -4,9 +4,9 @@
     .venv/bin/python tools/make_twin_observables.py --setup device:0.4 --paths 2097152
 
 Per set-up (geometry preset, n, ℓ) and catalogue material, at wavelength nodes every --step-nm over the
-spectrometer's range: one tracer column (trimeter.maps.tracer.trace_column) at the material's own σt and g,
+spectrometer's range: one tracer column (trimeter.forward.transport.trace_column) at the material's own σt and g,
 evaluated at its own α → A, B, C; for the device, the collimated beam's in-scattering from
-trimeter.forward.inscatter's direct tracer → L. The nodes of one material share a seed (common random
+trimeter.forward.transport.inscatter_tracer's direct tracer → L. The nodes of one material share a seed (common random
 numbers), so the Monte Carlo error varies smoothly with λ. See trimeter.twin.traced for how the twin uses it.
 Each material records its paths and seed; the file's provenance is the last run over the whole catalogue
 (a run over some materials or mixtures, --material / --twin-mixtures, adds to the file and leaves it).
@@ -23,9 +23,9 @@ from datetime import datetime, timezone
 import numpy as np
 
 from trimeter import __version__
-from trimeter.forward.inscatter import traced_log1p_ratio
+from trimeter.forward.transport.inscatter_tracer import traced_log1p_ratio
 from trimeter.geometry import load_geometry
-from trimeter.maps.tracer import Stack, k_max_for, trace_column
+from trimeter.forward.transport import Stack, k_max_for, trace_column
 from trimeter.twin.optics import catalogue_entry, material_names, material_spectra
 from trimeter.twin.traced import DATA_DIR, FORMAT_VERSION, content_hash, setup_name
 

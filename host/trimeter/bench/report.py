@@ -310,7 +310,7 @@ def _header(results: dict[str, Any]) -> list[str]:
         "simulated.",
         "- The held-out sets (`maps/heldout/`, made by `tools/make_heldout.py`) are random materials off the maps' "
         "grids, rendered directly, never interpolated from a map: for the device geometry by Monte Carlo with this "
-        "project's own tracer (`trimeter.maps.tracer.trace_column`, with far more paths than the maps), for the "
+        "project's own tracer (`trimeter.forward.transport.trace_column`, with far more paths than the maps), for the "
         "ideal geometry by adding-doubling (`iadpython`). Because the device references come from the same tracer "
         "as the device maps, an error of the tracer itself does not show in the accuracy section: the tracer "
         "is compared with Mitsuba 3 in the last section.",
@@ -519,7 +519,7 @@ def _uncertainty_section(unc: dict[str, Any] | None, png: Path | None, page: Pat
 
 
 def _tracer_section(tracer: dict[str, Any] | None, png: Path | None, page: Path) -> list[str]:
-    from trimeter.maps.tracer_validation import Z_MEAN_MAX, Z_P95_MAX
+    from trimeter.forward.transport.agreement import Z_MEAN_MAX, Z_P95_MAX
 
     lines = ["## The map tracer against Mitsuba 3", ""]
     full = "trimeter bench tracer-check --paths 4194304 --spp 4194304"
@@ -649,7 +649,7 @@ def _plot_coverage(unc: dict[str, Any], img: Path) -> Path:
 
 def _plot_tracer(tracer: dict[str, Any], img: Path) -> Path:
     """z per material and background, per geometry, and the ideal geometry against adding-doubling."""
-    from trimeter.maps.tracer_validation import Z_P95_MAX
+    from trimeter.forward.transport.agreement import Z_P95_MAX
 
     plt = _pyplot()
     groups: list[tuple[str, list[float]]] = []

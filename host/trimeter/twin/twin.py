@@ -150,7 +150,7 @@ class Twin:
 
         binary = ensure_firmware(self._firmware)
         if self._map_table is not None:
-            seed_storage(self.state_dir / "storage.bin", binary, self._map_table)
+            seed_storage(self.state_dir / "storage.bin", binary, self._map_table, Twin)
         fw_modbus = self.state_dir / "firmware-modbus"
         plant_path = socket_dir / "plant.sock"
         # The firmware removes these on a clean exit; after a crash (SIGKILL) the twin does.
