@@ -5,9 +5,9 @@ The map the host inverts is an interpolant of the forward model; a twin that mad
 I_w, I_c with that same map would hide the map's own error (node spacing, its Monte Carlo noise), so
 every round trip would look better than a real instrument can. Instead, `tools/make_twin_observables.py`
 traces each catalogue material once per set-up (geometry, n, ℓ) with the project's tracer
-(trimeter.maps.tracer, at the material's own α, σt, g — no map), at a coarse set of wavelength nodes,
+(trimeter.forward.transport, at the material's own α, σt, g — no map), at a coarse set of wavelength nodes,
 and stores per node the background-response coefficients (A, B, C of I(ρ) = A + Bρ/(1 − Cρ)) and the
-collimated beam's in-scattering L = ln(1 + r) (trimeter.forward.inscatter's direct tracer; 0 for the
+collimated beam's in-scattering L = ln(1 + r) (trimeter.forward.transport.inscatter_tracer's direct tracer; 0 for the
 ideal geometry, whose detector takes only the unscattered beam). Between the nodes the coefficients
 are interpolated with a cubic spline in λ: the materials are smooth sums of Gaussian bands of ≥ 35 nm
 width, and all nodes of one material share their random numbers, so the Monte Carlo error is smooth in λ
