@@ -223,8 +223,14 @@ static const char *set_chip(chip_t *c, const char *line)
     return NULL;
 }
 
-bool chip_handle_request(chip_t *c, const char *line, char *out, size_t cap, size_t *len)
+bool chip_handle_request(chip_t *c, const char *raw, char *out, size_t cap, size_t *len)
 {
+    /* none of these requests has a space inside a string: compact the line so the matching is exact */
+    static char line[4097];
+    size_t n = 0;
+    for (const char *s = raw; *s && n < sizeof line - 1; s++)
+        if (*s != ' ' && *s != '\t') line[n++] = *s;
+    line[n] = 0;
     if (strstr(line, "\"cmd\":\"spectro_light\"")) *len = reply(out, cap, set_light(c, line));
     else if (strstr(line, "\"cmd\":\"spectro\"")) *len = reply(out, cap, set_chip(c, line));
     else return false;
