@@ -25,7 +25,9 @@ void chip_init(chip_t *c)
     c->dark_counts_per_s = 40.0;
     c->offset_counts = 300.0;
     c->read_noise_counts = 2.0;
-    c->video_full_scale_counts = 3600.0;
+    /* the front end maps the chip's saturation output above the ADC's full scale, so that a saturated pixel
+     * reads 4095 and the driver flags it */
+    c->video_full_scale_counts = 4200.0;
     c->grid_n = 0;
     c->noise_state = 0xD1B54A32D192ED03ull;
     weights_valid = false;

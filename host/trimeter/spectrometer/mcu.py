@@ -60,15 +60,19 @@ class McuSpectrometer:
             raise InputError(f"mcu: gain must be one of {list(regs.BY_NAME['spectro_gain'].allowed)}, got {gain!r}")
         if not np.isfinite(self._linearity) or abs(self._linearity) > 1e-3:
             raise InputError(f"mcu: linearity must be a small quadratic coefficient (|c| ≤ 1e-3), got {linearity!r}")
+        self._owns_device = False
         if device is None:
             from trimeter.device import Device
+            from trimeter.device.transport import live_transport
 
             if not port:
                 raise InputError("mcu: give the instrument's Modbus port, e.g. mcu:/dev/ttyUSB0")
-            device = Device.open(port, address=address, timeout_s=float(timeout_s))
-            self._owns_device = True
-        else:
-            self._owns_device = False
+            shared = live_transport(port, address)  # the instrument's link, already open in this process
+            if shared is not None:
+                device = Device(shared, check=False)
+            else:
+                device = Device.open(port, address=address, timeout_s=float(timeout_s))
+                self._owns_device = True
         self.device = device
         try:
             self._setup(port)
