@@ -110,8 +110,8 @@ def run(args: Any) -> int:
     chip_nm = chip_nm[(chip_nm >= lam[0] + 1.5 * C12880_FWHM_NM) & (chip_nm <= lam[-1] - 1.5 * C12880_FWHM_NM)]
     chip_scored = (chip_nm >= lo) & (chip_nm <= hi)
     chip = resample_matrix(lam, chip_nm, C12880_FWHM_NM)
-    builds = ("ideal spectrometer", "seabreeze (slit)", "c12880ma", "AS7341 per-channel", "AS7341 per-channel at centroids",
-              "AS7341 band-aware")
+    builds = ("ideal spectrometer", "seabreeze (slit)", "c12880ma", "AS7341 per-channel",
+              "AS7341 per-channel at centroids", "AS7341 band-aware")
     errors: dict[str, dict[str, list]] = {b: {} for b in builds}
     flags: dict[str, dict[str, list]] = {b: {} for b in builds}
     seconds: dict[str, float] = dict.fromkeys(builds, 0.0)
