@@ -201,8 +201,12 @@ def test_bad_stds_are_clear_errors(tmp_path, capsys):
     assert "one sample, one std" in capsys.readouterr().err
     for bad in ("nan", "inf", ""):  # a NaN std is refused, never read as an exact thickness (0)
         csv.write_text(f"wavelength_nm,I_b,I_w,I_c,thickness_std_mm\n500,0.2,0.5,0.1,{bad}\n")
-        assert main(["fit", "--map", str(DEVICE), "--input", str(csv)]) == 2
-        assert "thickness_std_mm is not a finite number on row(s) 1" in capsys.readouterr().err
+        for output in ([], ["--json"]):  # streamed CSV out, and the whole input at once
+            assert main(["fit", "--map", str(DEVICE), "--input", str(csv), *output]) == 2
+            assert "thickness_std_mm is not a finite number for a sample" in capsys.readouterr().err
+    csv.write_text("wavelength_nm,I_b,I_w,I_c,thickness_std_mm\n500,0.2,0.5,0.1,0.01\n510,0.2,0.5,0.1,inf\n")
+    assert main(["fit", "--map", str(DEVICE), "--input", str(csv)]) == 2
+    assert "not a finite number" in capsys.readouterr().err
 
 
 def test_the_fit_cli_takes_std_columns(tmp_path, capsys):

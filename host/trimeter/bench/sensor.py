@@ -76,7 +76,42 @@ def _noisy(values: np.ndarray, level: float, rng: np.random.Generator) -> np.nda
     return values * (1 + level * rng.standard_normal(values.shape)) + 2e-4 * rng.standard_normal(values.shape)
 
 
+def build_id(name: str) -> str:
+    """A build's stable name for other files to refer to it by ("AS7341 band-aware" -> "as7341-band-aware")."""
+    return "-".join("".join(c if c.isalnum() else " " for c in name.lower()).split())
+
+
 def run(args: Any) -> int:
+    doc = measure(args)
+    print(f"map {doc['map']}, {doc['material_count']} materials at {doc['thickness_mm']:g} mm (physics: "
+          f"{', '.join(doc['physics'])}), noise {doc['noise']:g} x {doc['draws']} draw(s); spectrometers scored at "
+          f"{doc['scored_pixels']} pixels {doc['band_nm'][0]:g}-{doc['band_nm'][1]:g} nm (c12880ma at "
+          f"{doc['c12880ma_pixels']} pixels {doc['c12880ma_nm'][0]:.0f}-{doc['c12880ma_nm'][1]:.0f} nm), "
+          f"AS7341 at {doc['channels']} channels")
+    print(f"{'build':34s} {'materials':9s} {'α p95':>7s} {'σt p95':>7s} {'g p95':>7s} {'flagged':>11s} "
+          f"{'ms/spectrum':>11s} {'x ideal':>7s}")
+    for r in doc["builds"]:
+        print(f"{r['build']:34s} {r['materials']:9s} {r['alpha_p95']:7.4f} {100 * r['sigma_t_rel_p95']:6.2f}% "
+              f"{r['g_p95']:7.4f} {r['flagged']:5d} of {r['values']:<4d} {r['ms_per_spectrum']:11.1f} "
+              f"{r['time_ratio_to_ideal']:7.2f}")
+    print("\nband-aware bases on the inks (p95 and max over channels; BAND_UNRESOLVED is judged with the cubic only):")
+    print(f"{'basis smoothness':20s} {'α p95':>7s} {'α max':>7s} {'σt p95':>7s} {'σt max':>7s} {'g p95':>7s} "
+          f"{'flagged':>9s}")
+    for r in doc["bases"]:
+        print(f"{r['basis smoothness']:20s} {r['alpha_p95']:7.4f} {r['alpha_max']:7.4f} "
+              f"{100 * r['sigma_t_rel_p95']:6.2f}% {100 * r['sigma_t_rel_max']:6.2f}% {r['g_p95']:7.4f} "
+              f"{r['flagged']:3d} of {r['values']}")
+    args.out.mkdir(parents=True, exist_ok=True)
+    path = args.out / "sensor.json"
+    atomic_write(path, json.dumps({k: doc[k] for k in ("map", "thickness_mm", "noise", "draws", "builds", "bases")},
+                                  indent=1) + "\n")
+    print(f"wrote {path}")
+    return 0
+
+
+def measure(args: Any) -> dict[str, Any]:
+    """Every build's figures from one run (the options of `register`, as a namespace), as a JSON-able dict:
+    "builds" one row per build and material set (its "id" from `build_id`), "bases" the band-aware fit's bases."""
     from trimeter.inversion.bands import fit_bands
     from trimeter.inversion.api import fit as fit_map
     from trimeter.maps.artifacts import load_artifacts
@@ -178,7 +213,7 @@ def run(args: Any) -> int:
             e = np.concatenate([x for n in names for x in errors[build][n]], axis=1)
             f = np.concatenate([x for n in names for x in flags[build][n]])
             p95 = np.nanpercentile(e, 95, axis=1)
-            rows.append({"build": build, "materials": label, "alpha_p95": float(p95[0]),
+            rows.append({"id": build_id(build), "build": build, "materials": label, "alpha_p95": float(p95[0]),
                          "sigma_t_rel_p95": float(p95[1]), "g_p95": float(p95[2]),
                          "flagged": int(f.sum()), "values": int(f.size),
                          "ms_per_spectrum": 1e3 * seconds[build] / spectra,
@@ -191,28 +226,9 @@ def run(args: Any) -> int:
         basis_rows.append({"basis smoothness": key, "alpha_p95": float(p95[0]), "sigma_t_rel_p95": float(p95[1]),
                            "g_p95": float(p95[2]), "alpha_max": float(np.nanmax(e[0])),
                            "sigma_t_rel_max": float(np.nanmax(e[1])), "flagged": int(f.sum()), "values": int(f.size)})
-    physics = sorted({m.physics for m in materials})
-    print(f"map {model.name}, {len(materials)} materials at {args.thickness:g} mm (physics: {', '.join(physics)}), "
-          f"noise {args.noise:g} x {draws} draw(s); spectrometers scored at {int(scored.sum())} pixels "
-          f"{lo:g}-{hi:g} nm (c12880ma at {int(chip_scored.sum())} pixels {chip_nm[chip_scored][0]:.0f}-"
-          f"{chip_nm[chip_scored][-1]:.0f} nm), "
-          f"AS7341 at {len(weights.channels)} channels")
-    print(f"{'build':34s} {'materials':9s} {'α p95':>7s} {'σt p95':>7s} {'g p95':>7s} {'flagged':>11s} "
-          f"{'ms/spectrum':>11s} {'x ideal':>7s}")
-    for r in rows:
-        print(f"{r['build']:34s} {r['materials']:9s} {r['alpha_p95']:7.4f} {100 * r['sigma_t_rel_p95']:6.2f}% "
-              f"{r['g_p95']:7.4f} {r['flagged']:5d} of {r['values']:<4d} {r['ms_per_spectrum']:11.1f} "
-              f"{r['time_ratio_to_ideal']:7.2f}")
-    print("\nband-aware bases on the inks (p95 and max over channels; BAND_UNRESOLVED is judged with the cubic only):")
-    print(f"{'basis smoothness':20s} {'α p95':>7s} {'α max':>7s} {'σt p95':>7s} {'σt max':>7s} {'g p95':>7s} "
-          f"{'flagged':>9s}")
-    for r in basis_rows:
-        print(f"{r['basis smoothness']:20s} {r['alpha_p95']:7.4f} {r['alpha_max']:7.4f} "
-              f"{100 * r['sigma_t_rel_p95']:6.2f}% {100 * r['sigma_t_rel_max']:6.2f}% {r['g_p95']:7.4f} "
-              f"{r['flagged']:3d} of {r['values']}")
-    args.out.mkdir(parents=True, exist_ok=True)
-    path = args.out / "sensor.json"
-    atomic_write(path, json.dumps({"map": model.name, "thickness_mm": args.thickness, "noise": args.noise,
-                                   "draws": draws, "builds": rows, "bases": basis_rows}, indent=1) + "\n")
-    print(f"wrote {path}")
-    return 0
+    return {"map": model.name, "thickness_mm": args.thickness, "noise": args.noise, "draws": draws,
+            "material_count": len(materials), "physics": sorted({m.physics for m in materials}),
+            "scored_pixels": int(scored.sum()), "band_nm": [lo, hi], "channels": len(weights.channels),
+            "c12880ma_pixels": int(chip_scored.sum()),
+            "c12880ma_nm": [float(chip_nm[chip_scored][0]), float(chip_nm[chip_scored][-1])],
+            "builds": rows, "bases": basis_rows}

@@ -109,6 +109,7 @@ class LinkStats:
     timeouts: int = 0         # attempts that got no reply within the timeout
     reconnects: int = 0
     failures: int = 0
+    resumed_reads: int = 0    # a long read (a map table) went on from where a lost request stopped it
     busy_s: float = field(default=0.0)  # wall time spent inside requests (host + protocol overhead)
 
 

@@ -15,7 +15,7 @@ from trimeter.spectrometer.base import Spectrometer, SpectrometerDescription
 __all__ = ["Spectrometer", "SpectrometerDescription", "open_spectrometer", "BACKENDS"]
 
 BACKENDS = ("sim", "i2c", "seabreeze", "mcu")
-OPTIONS = {"sim": ("timeout_s",), "i2c": ("address", "gain", "integration_time_us", "valid_timeout_s"),
+OPTIONS = {"sim": ("timeout_s",), "i2c": ("address", "gain", "integration_time_us", "valid_timeout_s", "weights"),
            "seabreeze": ("integration_time_us",), "mcu": ("address", "frames", "gain", "linearity", "timeout_s")}
 
 

@@ -18,14 +18,18 @@ These are models, not measurements, and say so:
   C12880_FWHM_NM (the datasheet gives 15 nm as the maximum; 12 nm is a typical unit's).
 
 A channel's effective weight is response × emission (the white reference is flat: the geometry's);
-trimeter.inversion.bands normalises it.
+trimeter.inversion.bands normalises it. Measured weights come as a CSV (read_band_weights):
+`wavelength_nm` and per channel `<CH>_diffuse`, `<CH>_collimated`.
 """
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 from numpy.typing import ArrayLike
 
+from trimeter.errors import InputError
 from trimeter.inversion.bands import BandWeights, band_weights
 
 # channel: (peak nm, FWHM nm) — DS000504's table; NIR's width assumed
@@ -39,6 +43,7 @@ LED_FLOOR = 0.004
 SLIT_FWHM_NM = 2.5
 C12880_FWHM_NM = 12.0
 C12880_PIXELS = 288
+MAX_WEIGHTS_BYTES = 64_000_000  # a weights table on a 0.1 nm grid of a few dozen channels is a few MB
 # the wavelength grid of the built-in weights: wide enough for every channel's band to fall to zero
 WEIGHTS_GRID_NM = (350.0, 1000.0, 1.0)
 
@@ -104,3 +109,22 @@ def resample_matrix(source_nm: ArrayLike, target_nm: ArrayLike, fwhm_nm: float) 
     total = M.sum(axis=1, keepdims=True)
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.where(total > 1e-6 * fwhm_nm, M / total, np.nan)
+def read_band_weights(path: str | Path, what: str = "weights") -> BandWeights:
+    """Measured band weights from a CSV (`wavelength_nm`, `<CH>_diffuse`, `<CH>_collimated` per channel),
+    read by trimeter.tables; every problem is one InputError."""
+    from trimeter.tables import read_columns
+
+    path = Path(path)
+    name = f"{what} {path}"
+    table = read_columns(path, required=("wavelength_nm",), max_bytes=MAX_WEIGHTS_BYTES, what=what)
+    names = [c[: -len("_diffuse")] for c in table if c.endswith("_diffuse")]
+    lonely = [c[: -len("_collimated")] for c in table if c.endswith("_collimated")
+              and c[: -len("_collimated")] not in names]
+    if not names:
+        raise InputError(f"{name}: no <channel>_diffuse columns (have: {', '.join(table)})")
+    without = [n for n in names if f"{n}_collimated" not in table]
+    if without or lonely:
+        raise InputError(f"{name}: each channel needs both <channel>_diffuse and <channel>_collimated "
+                         f"(incomplete: {', '.join(without + lonely)})")
+    return band_weights(table["wavelength_nm"], names, [table[f"{n}_diffuse"] for n in names],
+                        [table[f"{n}_collimated"] for n in names], where=name)

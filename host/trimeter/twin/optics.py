@@ -57,8 +57,8 @@ def material_names() -> dict[str, str]:
 
 def parse_mixture(name: str) -> list[tuple[str, float]] | None:
     """A mixture's catalogue materials and volume fractions from its name, e.g. "cyan-ink:0.25+yellow-ink:0.75"
-    (trimeter.results.medium.parse_fractions), or None for a plain material name."""
-    from trimeter.results.medium import FRACTION_SEPARATOR, parse_fractions
+    (trimeter.model.mixing.parse_fractions), or None for a plain material name."""
+    from trimeter.model.mixing import FRACTION_SEPARATOR, parse_fractions
 
     if FRACTION_SEPARATOR not in name:
         return None
@@ -70,18 +70,34 @@ def parse_mixture(name: str) -> list[tuple[str, float]] | None:
     return parts
 
 
+def catalogue_entry(name: str) -> dict:
+    """What defines a sample: its catalogue entry, or a mixture's fractions with its components' entries
+    (the traced observables are stamped with its hash: trimeter.twin.traced)."""
+    mixture = parse_mixture(name)
+    if mixture is None:
+        materials = _catalogue()["material"]
+        if name not in materials:
+            raise InputError(f"sample must be one of {', '.join(materials)} or a mixture like "
+                             f"'cyan-ink:0.5+yellow-ink:0.5', got {name!r}")
+        return dict(materials[name])
+    return {"mixture": [[c, f] for c, f in mixture], "components": {c: dict(_catalogue()["material"][c])
+                                                                   for c, _ in mixture}}
+
+
 def material_spectra(name: str, wavelengths_nm: np.ndarray) -> dict[str, np.ndarray]:
     """α(λ), σt(λ) [1/mm], g(λ) of a catalogue material, or of a mixture of them by volume fractions
-    (`parse_mixture`: σa and σs add by fraction, g is σs-weighted: SpectralMaterial.mixture), on the
+    (`parse_mixture`; trimeter.model.mixing: σa and σs add by fraction, g is σs-weighted), on the
     given wavelengths."""
     mixture = parse_mixture(name)
     if mixture is not None:
-        from trimeter.results.medium import SpectralMaterial
+        from trimeter.model.mixing import mix_coefficients
 
-        lam = np.asarray(wavelengths_nm, dtype=float)
-        parts = [SpectralMaterial(lam, **material_spectra(c, lam)) for c, _ in mixture]
-        mixed = SpectralMaterial.mixture(parts, [f for _, f in mixture])
-        return {"alpha": mixed.alpha, "sigma_t": mixed.sigma_t, "g": mixed.g}
+        parts = [material_spectra(c, wavelengths_nm) for c, _ in mixture]
+        sigma_a, sigma_s, g = mix_coefficients([(1 - p["alpha"]) * p["sigma_t"] for p in parts],
+                                               [p["alpha"] * p["sigma_t"] for p in parts], [p["g"] for p in parts],
+                                               [f for _, f in mixture])
+        sigma_t = sigma_a + sigma_s
+        return {"alpha": sigma_s / sigma_t, "sigma_t": sigma_t, "g": g}
     materials = _catalogue()["material"]
     if name not in materials:
         raise InputError(f"sample must be one of {', '.join(materials)} or a mixture like "
@@ -268,9 +284,9 @@ class Optics:
                                  f"{amap.name}'s {axis[0]:.4g}..{axis[-1]:.4g} at {lam[0]:.0f}-{lam[-1]:.0f} nm")
         traced = traced_setup(str(amap.recipe.get("geometry")), amap.n, thickness_mm)
         alpha, sigma_t, g = spectra["alpha"], spectra["sigma_t"], spectra["g"]
-        if traced is not None and name in _catalogue()["material"]:  # a mixture was not traced: the map renders it
+        if traced is not None:
             geometry_params = load_geometry(traced.geometry)
-            observed = traced.observables(name, _catalogue()["material"][name], geometry_params,
+            observed = traced.observables(name, catalogue_entry(name), geometry_params,
                                           self.wavelengths_nm, self.rho_black, self.rho_white)
             if observed is not None:
                 I_b, I_w, L, I_open = observed
