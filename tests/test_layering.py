@@ -89,7 +89,8 @@ LAYERS = (
     {"domain"},                         # plain data: captures, calibrations, reflectances, measurements, parameters
     {"model"},                          # the forward model: what the instrument reads for a material and a set-up
     {"forward", "inversion"},           # simulating the physics / solving the inverse, both on the model
-    {"device", "spectrometer"},         # the instrument's two devices
+    {"device"},                         # the instrument, over Modbus
+    {"spectrometer"},                   # its detector (the mcu backend reads the firmware's over the device's link)
     {"maps"},                           # files and artifacts (a table is read from a device)
     {"results"},
     {"twin"},                           # its virtual samples and mixtures are results' spectral materials

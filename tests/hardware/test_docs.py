@@ -29,10 +29,11 @@ def test_check_names_a_stale_file(tmp_path, monkeypatch, capsys):
 def test_low_cost_build_is_under_budget_and_totals_add_up():
     bom = gen_hardware.load_bom()
     assert bom.prices_as_of == "2026-12"
-    assert set(bom.options) == {"as7341", "seabreeze"}
+    assert set(bom.options) == {"as7341", "c12880ma", "seabreeze"}
     low_cost = bom.total_eur("as7341")
     assert low_cost < bom.budget_eur <= 300
-    assert bom.total_eur("seabreeze") > low_cost
+    # the micro-spectrometer sits between the two: spectral at a fraction of the USB spectrometer's price
+    assert low_cost < bom.total_eur("c12880ma") < bom.total_eur("seabreeze") / 3
     common = sum(p.qty * p.unit_eur for p in bom.parts if p.option is None)
     assert bom.total_eur("as7341") == pytest.approx(common + sum(p.qty * p.unit_eur for p in bom.parts
                                                                   if p.option == "as7341"))

@@ -7,6 +7,10 @@ as each build reads them:
 - seabreeze: each pixel through the spectrometer's slit (trimeter.spectrometer.sensors.slit_matrix)
   under the panels' and the beam's LEDs (the slit blurs the counts; a reading is sample counts over
   reference counts), fitted per wavelength;
+- c12880ma: the micro-spectrometer build: 288 pixels at a typical unit's test-sheet polynomial, each through
+  the C12880MA's line-spread function (trimeter.spectrometer.sensors.resample_matrix, C12880_FWHM_NM) under the
+  panels' and the beam's LEDs, ρ_black as its calibration measures it (blurred alike), fitted per pixel;
+  scored at the pixels whose line-spread function lies inside the twin's pixels;
 - AS7341 per-channel: each channel's band reading (the AS7341 model's weights) fitted per channel as
   if monochromatic, the values reported at the datasheet's centres (what the `i2c` backend gives
   today); "at centroids": the same fit scored at the centroid of each channel's weight;
@@ -82,7 +86,8 @@ def run(args: Any) -> int:
     doc = measure(args)
     print(f"map {doc['map']}, {doc['material_count']} materials at {doc['thickness_mm']:g} mm (physics: "
           f"{', '.join(doc['physics'])}), noise {doc['noise']:g} x {doc['draws']} draw(s); spectrometers scored at "
-          f"{doc['scored_pixels']} pixels {doc['band_nm'][0]:g}-{doc['band_nm'][1]:g} nm, "
+          f"{doc['scored_pixels']} pixels {doc['band_nm'][0]:g}-{doc['band_nm'][1]:g} nm (c12880ma at "
+          f"{doc['c12880ma_pixels']} pixels {doc['c12880ma_nm'][0]:.0f}-{doc['c12880ma_nm'][1]:.0f} nm), "
           f"AS7341 at {doc['channels']} channels")
     print(f"{'build':34s} {'materials':9s} {'α p95':>7s} {'σt p95':>7s} {'g p95':>7s} {'flagged':>11s} "
           f"{'ms/spectrum':>11s} {'x ideal':>7s}")
@@ -112,7 +117,8 @@ def measure(args: Any) -> dict[str, Any]:
     from trimeter.inversion.api import fit as fit_map
     from trimeter.maps.artifacts import load_artifacts
     from trimeter.spectrometer.i2c import CHANNEL_NM
-    from trimeter.spectrometer.sensors import BEAM_LED, PANEL_LEDS, as7341_weights, emission, slit_matrix
+    from trimeter.spectrometer.sensors import (BEAM_LED, C12880_FWHM_NM, PANEL_LEDS, as7341_weights,
+                                               c12880_wavelengths_nm, emission, resample_matrix, slit_matrix)
     from trimeter.twin.optics import Optics, material_names
 
     if args.thickness not in MAP_FOR:
@@ -136,8 +142,12 @@ def measure(args: Any) -> dict[str, Any]:
     panels, beam = emission(PANEL_LEDS, lam), emission(BEAM_LED, lam)
     rng = np.random.default_rng(args.seed)
     draws = args.draws if args.noise > 0 else 1
-    builds = ("ideal spectrometer", "seabreeze (slit)", "AS7341 per-channel", "AS7341 per-channel at centroids",
-              "AS7341 band-aware")
+    chip_nm = c12880_wavelengths_nm()
+    chip_nm = chip_nm[(chip_nm >= lam[0] + 1.5 * C12880_FWHM_NM) & (chip_nm <= lam[-1] - 1.5 * C12880_FWHM_NM)]
+    chip_scored = (chip_nm >= lo) & (chip_nm <= hi)
+    chip = resample_matrix(lam, chip_nm, C12880_FWHM_NM)
+    builds = ("ideal spectrometer", "seabreeze (slit)", "c12880ma", "AS7341 per-channel",
+              "AS7341 per-channel at centroids", "AS7341 band-aware")
     errors: dict[str, dict[str, list]] = {b: {} for b in builds}
     flags: dict[str, dict[str, list]] = {b: {} for b in builds}
     seconds: dict[str, float] = dict.fromkeys(builds, 0.0)
@@ -165,6 +175,14 @@ def measure(args: Any) -> dict[str, Any]:
                          m.rho[1][scored])
             seconds["seabreeze (slit)"] += time.perf_counter() - t0
             record("seabreeze (slit)", m, _errors(sb, m.truth[:, scored]), sb.flags)
+            chip_d, chip_c = chip @ panels, chip @ beam
+            read = _noisy(np.stack([chip @ (panels * m.I[0]) / chip_d, chip @ (panels * m.I[1]) / chip_d,
+                                    chip @ (beam * m.I[2]) / chip_c]), args.noise, rng)
+            chip_rho = np.stack([chip @ (panels * m.rho[0]) / chip_d, chip @ (panels * m.rho[1]) / chip_d])
+            t0 = time.perf_counter()
+            c12 = fit_map(model, *(r[chip_scored] for r in read), *(r[chip_scored] for r in chip_rho))
+            seconds["c12880ma"] += time.perf_counter() - t0
+            record("c12880ma", m, _errors(c12, m.truth_at(chip_nm[chip_scored])), c12.flags)
             readings = _noisy(np.stack([weights.diffuse @ m.I[0], weights.diffuse @ m.I[1],
                                         weights.collimated @ m.I[2]]), args.noise, rng)
             r_b, r_w, r_c = readings
@@ -212,4 +230,6 @@ def measure(args: Any) -> dict[str, Any]:
     return {"map": model.name, "thickness_mm": args.thickness, "noise": args.noise, "draws": draws,
             "material_count": len(materials), "physics": sorted({m.physics for m in materials}),
             "scored_pixels": int(scored.sum()), "band_nm": [lo, hi], "channels": len(weights.channels),
+            "c12880ma_pixels": int(chip_scored.sum()),
+            "c12880ma_nm": [float(chip_nm[chip_scored][0]), float(chip_nm[chip_scored][-1])],
             "builds": rows, "bases": basis_rows}

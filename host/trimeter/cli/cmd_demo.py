@@ -201,9 +201,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                  "shipped map of that thickness)")
     p.add_argument("--method", default="lut", choices=METHODS)
     p.add_argument("--time-scale", type=float, default=20.0, help="twin time runs this many times faster")
-    p.add_argument("--sensor", default="spectrometer", choices=("spectrometer", "as7341"),
-                   help="the build the twin reads like: the spectrometer's pixels, or the AS7341's nine channels "
-                        "(fitted band-aware)")
+    p.add_argument("--sensor", default="spectrometer", choices=("spectrometer", "as7341", "c12880ma"),
+                   help="the build the twin reads like: the spectrometer's pixels, the AS7341's nine channels "
+                        "(fitted band-aware), or the C12880MA micro-spectrometer captured by the firmware (mcu:)")
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--out", help="output directory (default: the user data directory's demo/, printed; "
                                  "TRIMETER_DATA_DIR overrides it)")

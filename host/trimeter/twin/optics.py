@@ -41,7 +41,8 @@ if TYPE_CHECKING:
 MapSource: TypeAlias = ("AppearanceMap | str | Path | list[AppearanceMap | str | Path] | "
                         "tuple[AppearanceMap | str | Path, ...] | None")
 
-SENSORS = ("spectrometer", "as7341")  # what the twin's host-side detector can be
+# what the twin's detector can be: "c12880ma" is read by the firmware (trimeter.twin.c12880), the others by the host
+SENSORS = ("spectrometer", "as7341", "c12880ma")
 MATERIALS_FILE = Path(__file__).resolve().parents[1] / "data" / "materials.toml"
 
 
