@@ -59,7 +59,8 @@ UNDERDETERMINED_ALPHA_STD, UNDERDETERMINED_G_STD = 0.1, 0.2  # FitFlag.UNDERDETE
 # that fraction (newton.step_is_small). The figures behind the value: the git history of maps/README.md.
 POLISH_TOL_STD = 3e-3
 # The in-scattering correction's relative std: how far the map's table and independent, longer traces
-# differ over the measurable gamut, with room for the tracer's approximations (trimeter.forward.transport.inscatter_tracer).
+# differ over the measurable gamut, with room for the tracer's approximations
+# (trimeter.forward.transport.inscatter_tracer).
 INSCATTER_REL_STD = 0.05
 # First order is checked (_std_approximate) only where a bin's α or g std is above these, a fifth of
 # the UNDERDETERMINED thresholds: below them the check changes no coverage figure noticeably, and it

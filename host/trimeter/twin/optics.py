@@ -209,8 +209,8 @@ class SpectrometerModel:
 # Where a virtual sample's I_b, I_w, I_c come from (SampleOptics.physics), and what a round trip against them
 # can and cannot show.
 PHYSICS = {
-    "traced": "traced by the tracer the maps are built with (trimeter.forward.transport, tools/make_twin_observables.py) "
-              "and reduced to the maps' own I(ρ) = A + Bρ/(1 − Cρ) model",
+    "traced": "traced by the tracer the maps are built with (trimeter.forward.transport, "
+              "tools/make_twin_observables.py) and reduced to the maps' own I(ρ) = A + Bρ/(1 − Cρ) model",
     "map": "queried from the very map the host inverts (no traced observables for this set-up or material)",
 }
 
