@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from trimeter.maps import AppearanceMap
+from trimeter.formats.appearance import AppearanceMap
 
 HIL_MAP = Path(__file__).resolve().parent / "hil" / "data" / "hil-ideal-l0.4.tmap"
 TIME_SCALE = 50.0

@@ -88,10 +88,11 @@ LAYERS = (
     {"geometry", "registers", "tables"},
     {"domain"},                         # plain data: captures, calibrations, reflectances, measurements, parameters
     {"model"},                          # the forward model: what the instrument reads for a material and a set-up
+    {"formats"},                        # the files: appearance map, in-scattering table, device table, container
     {"forward", "inversion"},           # simulating the physics / solving the inverse, both on the model
-    {"device"},                         # the instrument, over Modbus
+    {"device"},                         # the instrument, over Modbus (and the table in its map slot)
     {"spectrometer"},                   # its detector (the mcu backend reads the firmware's over the device's link)
-    {"maps"},                           # files and artifacts (a table is read from a device)
+    {"maps"},                           # building maps and their children; the artifacts a fit loads
     {"results"},
     {"twin"},                           # its virtual samples and mixtures are results' spectral materials
     {"sequences", "prediction", "library"},

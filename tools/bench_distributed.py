@@ -99,7 +99,7 @@ def main(argv=None) -> int:
     scale = full_columns / columns            # per-map time: the reduced recipe's, scaled by columns or paths
     shipped = Path(args.recipe).parent.parent / f"{full.name}.tmap"
     if args.flat_paths and shipped.is_file():
-        from trimeter.maps.appearance import AppearanceMap
+        from trimeter.formats.appearance import AppearanceMap
 
         total = AppearanceMap.load(shipped).provenance["paths_per_column"]["total"]
         scale = total / (columns * args.flat_paths)

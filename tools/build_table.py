@@ -17,7 +17,7 @@ from pathlib import Path
 
 def main(argv=None) -> int:
     from trimeter.errors import TrimeterError
-    from trimeter.maps.appearance import AppearanceMap, find_map
+    from trimeter.formats.appearance import AppearanceMap, find_map
     from trimeter.maps.pipeline import Options, make_child
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])

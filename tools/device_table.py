@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""The self-sufficient device table (`.tlut` v2, trimeter.maps.device_table): build it from a map and
+"""The self-sufficient device table (`.tlut` v2, trimeter.formats.device_table): build it from a map and
 its in-scattering table, fit from it alone, and score that fit on the map's held-out set with
 `trimeter bench fit`'s scoring.
 
@@ -19,6 +19,7 @@ the same fit with the forward coefficients at float64/32/16, L unquantized and s
 from __future__ import annotations
 
 import argparse
+import copy
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -34,8 +35,9 @@ from trimeter.model.grid import ForwardGrid, SigmaCell
 
 if TYPE_CHECKING:
     from trimeter.domain.parameters import FitResult
-    from trimeter.maps.appearance import AppearanceMap
-    from trimeter.maps.device_table import DeviceTable, DeviceTableModel
+    from trimeter.formats.appearance import AppearanceMap
+    from trimeter.formats.device_table import DeviceTable
+    from trimeter.inversion.table_model import DeviceTableModel
 
     # one way of fitting (I_b, I_w, I_c) bins, as measure() and budget() score them
     Fitter = Callable[[np.ndarray, np.ndarray, np.ndarray], FitResult | SimpleNamespace]
@@ -44,8 +46,8 @@ if TYPE_CHECKING:
 
 # ------------------------------------------------------------------------------------------- build
 def build(amap: AppearanceMap, n_inverse: int | None = None) -> DeviceTable:
-    """The v2 table of an AppearanceMap (the pipeline's tlut stage: trimeter.maps.device_table.build_from_map)."""
-    from trimeter.maps.device_table import build_from_map
+    """The v2 table of an AppearanceMap (the pipeline's tlut stage: trimeter.maps.table_builder.build_from_map)."""
+    from trimeter.maps.table_builder import build_from_map
 
     return build_from_map(amap, n_inverse)
 
@@ -56,15 +58,14 @@ def table_model(table: DeviceTable, forward: CompactForward | None = None,
     """The fit's view of the table alone (DeviceTableModel); forward, inscatter_L: other coefficients or
     L than the table's (for the precision study)."""
     from trimeter.inversion.lut import TableInverter
-    from trimeter.maps.device_table import DeviceTableModel
+    from trimeter.inversion.table_model import DeviceTableModel
 
     if forward is None and inscatter_L is None:
-        return table.fit_model()
-    source: DeviceTable | SimpleNamespace = table
-    if forward is not None:
-        source = SimpleNamespace(**{k: getattr(table, k) for k in (
-            "alpha", "log_sigma_t", "g", "setup", "mc_stderr", "inv_alpha_q", "inv_frame", "inverse_alpha",
-            "inverse_g")}, coefficients_grid=forward.nodes())
+        return DeviceTableModel(table)
+    source = table
+    if forward is not None:  # the same table with another forward model: its node values overridden
+        source = copy.copy(table)
+        vars(source)["coefficients_grid"] = forward.nodes()
     axes = tuple(np.asarray(a, dtype=np.float64) for a in (table.alpha, table.log_sigma_t, table.g))
     return DeviceTableModel(table, TableInverter(source, inscatter=table.inscatter_table(inscatter_L),
                                                  model_variance=(table.model_variance(), axes)))
@@ -99,7 +100,7 @@ def on_the_fly_inverter(table: DeviceTable) -> DeviceTableModel:
 
 def fit_table(table: DeviceTable, model: DeviceTableModel, I_b: np.ndarray, I_w: np.ndarray, I_c: np.ndarray,
               rho_b: np.ndarray | None = None, rho_w: np.ndarray | None = None, **options: Any) -> FitResult:
-    """trimeter.inversion.api.fit's lut path on a fit model of `table` (table.fit_model(), table_model
+    """trimeter.inversion.api.fit's lut path on a fit model of `table` (DeviceTableModel(table), table_model
     or on_the_fly_inverter), on the numpy kernel where the polish evaluates the compact model."""
     from trimeter.inversion.api import fit
     from trimeter.inversion.kernel import NumpyKernel
@@ -112,7 +113,9 @@ def fit_table(table: DeviceTable, model: DeviceTableModel, I_b: np.ndarray, I_w:
 def on_the_fly_model(table: DeviceTable) -> DeviceTableModel:
     """The table's fit model with the polish on the compact model itself (run it on the numpy kernel:
     the compiled one reads the refined cells)."""
-    model = table.fit_model()
+    from trimeter.inversion.table_model import DeviceTableModel
+
+    model = DeviceTableModel(table)
     model.inverter.grid = OnTheFlyGrid(model.inverter.grid, table.forward())
     return model
 
@@ -127,6 +130,7 @@ def measure(amap: AppearanceMap, noise_levels: Sequence[float], seed: int = 0,
             say: Say = print) -> list[dict[str, Any]]:
     from trimeter.bench.fit import _stats, error_budget, heldout_collimated, heldout_for, heldout_intensities
     from trimeter.inversion import native
+    from trimeter.inversion.table_model import DeviceTableModel
     from trimeter.maps.artifacts import fit as fit_maps
 
     t0 = time.perf_counter()
@@ -142,7 +146,7 @@ def measure(amap: AppearanceMap, noise_levels: Sequence[float], seed: int = 0,
     I_b0, I_w0 = heldout_intensities(h, rb, rw)
     I_c0 = heldout_collimated(amap, h)
     t0 = time.perf_counter()
-    host = table.fit_model()
+    host = DeviceTableModel(table)
     say(f"   fit model from the table alone: {time.perf_counter() - t0:.2f} s")
     fly = on_the_fly_model(table)
     variants: dict[str, Fitter] = {
@@ -186,7 +190,7 @@ def budget(amap: AppearanceMap, say: Say = print) -> list[dict[str, Any]]:
     forward coefficients at other precisions, with L unquantized, and with smaller inverse grids."""
     from trimeter.bench.fit import _stats, error_budget, heldout_collimated, heldout_for, heldout_intensities
     from trimeter.inversion.api import fit
-    from trimeter.maps.device_table import MAX_BYTES, table_size
+    from trimeter.formats.device_table import MAX_BYTES, table_size
 
     table = build(amap)
     _, _, h = heldout_for(amap)
@@ -253,7 +257,7 @@ def _warm_ms(fn: Callable[[], object], repeats: int = 5) -> float:
 
 def main(argv: Sequence[str] | None = None) -> int:
     from trimeter.errors import TrimeterError
-    from trimeter.maps.appearance import AppearanceMap, find_map
+    from trimeter.formats.appearance import AppearanceMap, find_map
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = ap.add_subparsers(dest="command", required=True)

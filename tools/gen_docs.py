@@ -278,7 +278,7 @@ def settings_page() -> str:
 
 # ----------------------------------------------------------------------------------- file formats
 def _spec_text(spec: Any) -> str:
-    from trimeter.maps import schema as s
+    from trimeter.formats import schema as s
 
     if isinstance(spec, s.Number):
         kind = "integer" if spec.integer else "number"
@@ -303,7 +303,7 @@ def _spec_text(spec: Any) -> str:
 
 
 def _table_rows(table: Any, prefix: str) -> Iterable[str]:
-    from trimeter.maps import schema as s
+    from trimeter.formats import schema as s
 
     for name, spec in table.fields.items():
         where = f"{prefix}.{name}"
@@ -337,12 +337,12 @@ def _schema_section(title: str, intro: str, schema: Any) -> list[str]:
 
 def formats_page() -> str:
     from trimeter.cli import cmd_fit, fit_stream
-    from trimeter.maps import appearance, container, device_table, inscatter_file
+    from trimeter.formats import appearance, container, device_table, inscatter_file
 
     lines = [BANNER, "# File formats", "",
-             "Generated from the readers' own declarations: the container (`trimeter.maps.container`), the "
-             "schema of each file kind (`trimeter.maps.schema` and the modules that declare them), the device "
-             "table (`trimeter.maps.device_table`) and the fit's CSV columns (`trimeter.cli.fit_stream`). "
+             "Generated from the readers' own declarations: the container (`trimeter.formats.container`), the "
+             "schema of each file kind (`trimeter.formats.schema` and the modules that declare them), the device "
+             "table (`trimeter.formats.device_table`) and the fit's CSV columns (`trimeter.cli.fit_stream`). "
              "Every reader checks a file against these before it uses any array; a defect is one error naming "
              "the field.", "",
              "## The container (`.tmap`, `.tins`)", "", inspect.cleandoc(container.__doc__ or ""), "",

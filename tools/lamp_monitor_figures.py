@@ -20,7 +20,7 @@ import numpy as np
 
 from trimeter.device import Device
 from trimeter.domain import Sample, SampleCapture
-from trimeter.maps import AppearanceMap
+from trimeter.formats.appearance import AppearanceMap
 from trimeter.sequences import checks, lamp_monitor
 from trimeter.sequences.measure import prepare_fit
 from trimeter.sequences.plans import calibration, sample_capture, warm_up

@@ -100,7 +100,7 @@ def from_recipe(recipe_path, pairs, alphas, paths, seed, alpha_stderr=None, max_
 
 def from_ideal(map_path, count, seed):
     from trimeter.forward.adding_doubling import ideal_abc
-    from trimeter.maps.appearance import AppearanceMap
+    from trimeter.formats.appearance import AppearanceMap
 
     m = AppearanceMap.load(map_path)
     rng = np.random.default_rng(seed)
@@ -120,7 +120,7 @@ def from_ideal(map_path, count, seed):
 
 
 def save(name, meta, rows, out=None) -> Path:
-    from trimeter.maps.container import write_container
+    from trimeter.formats.container import write_container
 
     out = Path(out) if out else HELDOUT_DIR / f"{name}.held"
     names = ("alpha", "sigma_t", "g", "A", "B", "C", "std_b", "std_w")
@@ -133,7 +133,7 @@ def add_inscatter(path: Path, photons: int, seed: int) -> Path:
     """Trace the in-scattered light of every material of a device held-out set and store
     ln(1 + in-scattered / unscattered) as its array inscatter_log1p (the rest of the file unchanged)."""
     from trimeter.forward.transport.inscatter_tracer import traced_log1p_ratio
-    from trimeter.maps.container import write_container
+    from trimeter.formats.container import write_container
 
     meta, arrays = load_heldout(path)
     recipe = meta["recipe"]
@@ -154,7 +154,7 @@ def add_inscatter(path: Path, photons: int, seed: int) -> Path:
 
 def load_heldout(path) -> tuple[dict, dict]:
     """(meta, arrays) of a held-out set."""
-    from trimeter.maps.container import read_container
+    from trimeter.formats.container import read_container
 
     meta, arrays, _ = read_container(path, HELDOUT_KIND)
     return meta, {k: np.asarray(v) for k, v in arrays.items()}

@@ -22,7 +22,7 @@ __all__ = ["export", "network_graph", "train", "training_set", "main"]
 
 def main(argv=None) -> int:
     from trimeter.errors import TrimeterError
-    from trimeter.maps.appearance import AppearanceMap, find_map
+    from trimeter.formats.appearance import AppearanceMap, find_map
     from trimeter.maps.pipeline import Options, make_child
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])

@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 
 from trimeter.bench import fit as bench
-from trimeter.maps.appearance import AppearanceMap
+from trimeter.formats.appearance import AppearanceMap
 from trimeter.maps.artifacts import ArtifactCache
-from trimeter.maps.device_table import build_from_map
+from trimeter.maps.table_builder import build_from_map
 
 DATA = Path(__file__).resolve().parents[1] / "inversion" / "data"
 

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from trimeter.cli import fit_stream, main
-from trimeter.maps import AppearanceMap
+from trimeter.formats.appearance import AppearanceMap
 from trimeter.paths import MAPS_DIR
 
 NAME = "device-n1.5-l0.4"

@@ -14,8 +14,9 @@ import numpy as np
 import pytest
 
 from trimeter.cli import main
-from trimeter.maps import AppearanceMap
-from trimeter.maps.device_table import DeviceTable
+from trimeter.formats.appearance import AppearanceMap
+from trimeter.formats.device_table import DeviceTable
+from trimeter.inversion.table_model import DeviceTableModel
 from trimeter.paths import MAPS_DIR
 
 NAME = "device-n1.5-l0.4"
@@ -37,7 +38,7 @@ def measured_materials():
 @pytest.fixture
 def alone(tmp_path, monkeypatch, measured_materials):
     """A directory holding the table and the CSV only, as the working directory; map files out of reach."""
-    from trimeter.maps import container
+    from trimeter.formats import container
 
     work = tmp_path / "alone"
     work.mkdir()
@@ -90,14 +91,14 @@ def test_fit_from_the_table_alone(alone, measured_materials, capsys):
     assert main(["fit", "--table", "t.tlut", "--refine", "--input", "meas.csv", "-o", "refined.csv"]) == 0
     assert "refined at load" in capsys.readouterr().err
     refined = _read(alone / "refined.csv")
-    lut = fit(table.fit_model(), I_b, I_w, I_c, method="lut")
+    lut = fit(DeviceTableModel(table), I_b, I_w, I_c, method="lut")
     np.testing.assert_allclose(refined["alpha"], lut.alpha, rtol=1e-8)
     assert np.isfinite(refined["alpha_std"]).all()
     # --polish 0: the table's raw guess, which the default polish then moves
     assert main(["fit", "--table", "t.tlut", "--refine", "--input", "meas.csv", "--polish", "0", "-o",
                  "raw.csv"]) == 0
     raw = _read(alone / "raw.csv")
-    guess = fit(table.fit_model(), I_b, I_w, I_c, method="lut", polish=0)
+    guess = fit(DeviceTableModel(table), I_b, I_w, I_c, method="lut", polish=0)
     np.testing.assert_allclose(raw["alpha"], guess.alpha, rtol=1e-8)
     assert np.max(np.abs(raw["alpha"] - refined["alpha"])) > 1e-4
     capsys.readouterr()

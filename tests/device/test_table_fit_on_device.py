@@ -41,7 +41,7 @@ def device(tmp_path_factory):
 def heldout():
     """The l0.4 map's v2 table (tools/device_table.py build) and its held-out set's intensities."""
     from trimeter.bench.fit import heldout_collimated, heldout_for, heldout_intensities
-    from trimeter.maps.appearance import AppearanceMap, find_map
+    from trimeter.formats.appearance import AppearanceMap, find_map
 
     if not native.available():
         pytest.skip("the compiled kernel is not built (make native)")

@@ -58,7 +58,7 @@ def test_qemu_count_counts_the_inverse_core_per_bin_with_a_device_table(tmp_path
     """With COUNT_TABLE (the l0.4 map's format-2 table), tr_fit_bins too: the table check per call and
     a spread of single bins, each a Newton polish on the compact model (tens of thousands of instructions:
     a few model evaluations of a few thousand each; far fewer would mean the fit did not run)."""
-    from trimeter.maps.appearance import AppearanceMap, find_map
+    from trimeter.formats.appearance import AppearanceMap, find_map
 
     spec = importlib.util.spec_from_file_location("device_table_tool", ROOT / "tools" / "device_table.py")
     tool = importlib.util.module_from_spec(spec)

@@ -8,7 +8,7 @@ import pytest
 
 from trimeter.errors import BuildError
 from trimeter.forward.adding_doubling import ideal_abc
-from trimeter.maps.appearance import AppearanceMap
+from trimeter.formats.appearance import AppearanceMap
 
 IDEAL_MAP = Path(__file__).resolve().parents[1] / "inversion" / "data" / "ideal-l0.5.tmap"
 

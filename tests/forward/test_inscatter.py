@@ -55,8 +55,8 @@ def test_the_inscatter_table_round_trips_and_refuses_another_map(tmp_path):
 
     from trimeter.errors import MapFileError
     from trimeter.forward.transport.inscatter_tracer import build_inscatter_table
-    from trimeter.maps.appearance import AppearanceMap, find_map
-    from trimeter.maps.inscatter_file import load_inscatter, save_inscatter
+    from trimeter.formats.appearance import AppearanceMap, find_map
+    from trimeter.formats.inscatter_file import load_inscatter, save_inscatter
     from trimeter.model.inscatter import InscatterTable
 
     geometry = load_geometry("device")

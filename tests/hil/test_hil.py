@@ -14,7 +14,7 @@ import pytest
 from trimeter import registers as regs
 from trimeter.cli import main
 from trimeter.device import Device
-from trimeter.maps import AppearanceMap
+from trimeter.formats.appearance import AppearanceMap
 from trimeter.sequences.service import Service
 from trimeter.sequences.settings import HostSettings
 from trimeter.spectrometer import open_spectrometer
@@ -194,7 +194,7 @@ def test_config_backup_restores_by_name_after_a_register_map_change(start_twin, 
 
 
 def _table_bytes(hil_map):
-    from trimeter.maps.device_table import build_from_map
+    from trimeter.maps.table_builder import build_from_map
 
     return build_from_map(hil_map).to_bytes()
 

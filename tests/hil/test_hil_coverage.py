@@ -23,7 +23,7 @@ import pytest
 from hil_support import twin_truth
 from trimeter.bench.uncertainty import coverage
 from trimeter.device import Device
-from trimeter.maps import AppearanceMap
+from trimeter.formats.appearance import AppearanceMap
 from trimeter.paths import MAPS_DIR
 from trimeter.sequences.service import Service
 from trimeter.sequences.settings import HostSettings

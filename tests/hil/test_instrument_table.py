@@ -14,7 +14,7 @@ import pytest
 
 from hil_support import SAMPLE, THICKNESS_MM, TIME_SCALE, twin_truth
 from trimeter.cli import main
-from trimeter.maps import AppearanceMap
+from trimeter.formats.appearance import AppearanceMap
 
 
 @pytest.fixture
@@ -27,7 +27,7 @@ def no_maps_host(tmp_path, monkeypatch, hil_map):
     monkeypatch.chdir(tmp_path / "cwd")
 
     def out_of_reach() -> None:
-        from trimeter.maps import container
+        from trimeter.formats import container
         from trimeter.sequences import measure
 
         def no_map_file(*args, **kwargs):
@@ -49,7 +49,7 @@ def hil_map():
 
 @pytest.fixture
 def table_file(tmp_path, hil_map):
-    from trimeter.maps.device_table import build_from_map
+    from trimeter.maps.table_builder import build_from_map
 
     return build_from_map(hil_map).save(tmp_path / "hil.tlut")
 
@@ -65,7 +65,7 @@ def _twin(request, tmp_path, hil_map, **options):
 
 def test_measure_fits_with_the_instruments_table_on_a_host_without_maps(request, tmp_path, hil_map, table_file,
                                                                           no_maps_host, capsys):
-    from trimeter.maps.device_table import DeviceTable
+    from trimeter.formats.device_table import DeviceTable
 
     table = DeviceTable.load(table_file)
     with _twin(request, tmp_path, hil_map, map_table=table_file) as twin:
@@ -98,7 +98,8 @@ def test_measure_fits_with_the_instruments_table_on_a_host_without_maps(request,
 def test_a_corrupt_cache_entry_is_read_again_and_no_table_is_a_clear_error(request, tmp_path, hil_map, table_file,
                                                                            no_maps_host, capsys):
     from trimeter.device import Device
-    from trimeter.maps.device_table import DeviceTable, cache_dir, instrument_table
+    from trimeter.device.table_cache import cache_dir, instrument_table
+    from trimeter.formats.device_table import DeviceTable
 
     table = DeviceTable.load(table_file)
     with _twin(request, tmp_path, hil_map, map_table=table_file) as twin, Device.open(twin.modbus_port) as device:
@@ -129,7 +130,7 @@ def _columns(path: Path) -> dict:
 
 def test_fit_on_device_agrees_with_fit_from_the_same_table(request, tmp_path, hil_map, table_file, no_maps_host,
                                                           capsys):
-    from trimeter.maps.device_table import DeviceTable
+    from trimeter.formats.device_table import DeviceTable
 
     table = DeviceTable.load(table_file)
     rng = np.random.default_rng(5)

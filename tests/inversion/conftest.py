@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from trimeter.maps.appearance import AppearanceMap
+from trimeter.formats.appearance import AppearanceMap
 
 from inversion_support import DATA
 

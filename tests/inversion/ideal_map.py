@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from trimeter.forward.adding_doubling import ideal_abc
-from trimeter.maps.appearance import AppearanceMap
+from trimeter.formats.appearance import AppearanceMap
 
 DATA_DIR = Path(__file__).resolve().parent / "data"
 IDEAL_MAP = DATA_DIR / "ideal-l0.5.tmap"

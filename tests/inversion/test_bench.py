@@ -49,7 +49,7 @@ def test_bench_fit_reports_figures_and_plot(tmp_path, capsys):
 
 def test_speed_times_two_thicknesses_where_two_maps_differ_only_in_thickness(capsys):
     from trimeter.bench.fit import SPEED_TWO_MS_MAX, speed
-    from trimeter.maps.appearance import AppearanceMap
+    from trimeter.formats.appearance import AppearanceMap
 
     maps = [AppearanceMap.load(DATA / name) for name in ("ideal-l0.5.tmap", "ideal-l1.0.tmap")]
     report = speed(maps, 4, 1)
@@ -69,7 +69,7 @@ def test_per_wavelength_backgrounds_case_scores_the_fit_at_the_bins_own_backgrou
 
     from trimeter.bench.fit import DEFAULT_POLISH, _bench_backgrounds, error_budget, heldout_for
     from trimeter.maps.artifacts import load_artifacts
-    from trimeter.maps.appearance import AppearanceMap
+    from trimeter.formats.appearance import AppearanceMap
 
     amap = AppearanceMap.load(DATA / "ideal-l0.5.tmap")
     _, _, h = heldout_for(amap)
@@ -89,7 +89,7 @@ def test_two_thicknesses_case_fits_the_shipped_pair_together(capsys, monkeypatch
     joint fit resolves what l0.8 alone cannot (its optically thick samples), and sets of different
     materials are refused rather than scored together."""
     from trimeter.bench import fit as bench
-    from trimeter.maps.appearance import AppearanceMap, find_map
+    from trimeter.formats.appearance import AppearanceMap, find_map
 
     pair = [AppearanceMap.load(find_map(n)) for n in ("device-n1.5-l0.4", "device-n1.5-l0.8")]
     report = bench.two_thicknesses(pair, repeats=1)

@@ -16,8 +16,8 @@ import pytest
 from trimeter.bench.fit import error_budget, heldout_intensities
 from trimeter.cli import main
 from trimeter.inversion.kernel import default_kernel
-from trimeter.maps.appearance import AppearanceMap
-from trimeter.maps.container import write_container
+from trimeter.formats.appearance import AppearanceMap
+from trimeter.formats.container import write_container
 from trimeter.model.grid import ForwardGrid
 
 from inversion_support import DATA

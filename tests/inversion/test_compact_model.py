@@ -92,7 +92,7 @@ def test_on_the_shipped_map_it_stays_within_the_refined_grids_own_error():
     """The compact model and today's refined trilinear grid differ by that grid's cell error only: the
     bounds are about twice their difference on device-n1.5-l0.4, which trilinear interpolation on the
     raw nodes (the device's model before this table) exceeds several times over."""
-    from trimeter.maps.appearance import AppearanceMap, find_map
+    from trimeter.formats.appearance import AppearanceMap, find_map
 
     amap = AppearanceMap.load(find_map("device-n1.5-l0.4"))
     # copies: a container's arrays can be unaligned, which scipy refuses

@@ -1,4 +1,4 @@
-"""The self-sufficient device table (.tlut v2, trimeter.maps.device_table): round trip, every defect
+"""The self-sufficient device table (.tlut v2, trimeter.formats.device_table): round trip, every defect
 refused with the field named, and a fit from the table alone on the held-out set."""
 
 from __future__ import annotations
@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 
 from trimeter.errors import MapFileError
-from trimeter.maps.device_table import HEADER_SIZE, MAX_BYTES, SECTIONS, DeviceTable
+from trimeter.formats.device_table import HEADER_SIZE, MAX_BYTES, SECTIONS, DeviceTable
+from trimeter.inversion.table_model import DeviceTableModel
 from trimeter.model.compact import CompactForward
 
 from test_compact_model import random_points, smooth_map
@@ -142,7 +143,7 @@ def test_a_version_1_table_is_refused_by_name_with_the_command_that_rebuilds_it(
 
 
 def test_the_shipped_tables_are_version_2_of_their_maps():
-    from trimeter.maps.appearance import AppearanceMap
+    from trimeter.formats.appearance import AppearanceMap
 
     for path in sorted((ROOT / "maps").glob("*.tlut")):
         table = DeviceTable.load(path)
@@ -163,10 +164,10 @@ def test_the_shipped_map_s_table_fits_the_slot_and_fits_held_out_materials_from_
     """The issue's targets on the l0.4 held-out set, noise-free: α p95 ≤ 0.01, σt relative p95 ≤ 1 %,
     g p95 ≤ 0.015 (α ≥ 0.5), from the table file alone (written, then loaded back, with every other
     map file out of reach)."""
-    import trimeter.maps.container as container
+    import trimeter.formats.container as container
     from trimeter.bench.fit import _stats, error_budget, heldout_collimated, heldout_for, heldout_intensities
     from trimeter.inversion.api import fit
-    from trimeter.maps.appearance import AppearanceMap, find_map
+    from trimeter.formats.appearance import AppearanceMap, find_map
 
     tool = _tool()
     amap = AppearanceMap.load(find_map("device-n1.5-l0.4"))
@@ -185,7 +186,7 @@ def test_the_shipped_map_s_table_fits_the_slot_and_fits_held_out_materials_from_
     monkeypatch.setattr(AppearanceMap, "load", no_other_file)
     table = DeviceTable.load(path)
     assert table.parent_sha256 == amap.checksum and table.inscatter_sha256 == amap.inscatter.checksum
-    res = fit(table.fit_model(), I_b, I_w, I_c, method="lut")
+    res = fit(DeviceTableModel(table), I_b, I_w, I_c, method="lut")
     monkeypatch.undo()
     st = _stats(res, (h["alpha"], h["sigma_t"], h["g"]), scoring)
     assert st["alpha_p95"] <= 0.01 and st["sigma_rel_p95"] <= 0.01 and st["g_p95"] <= 0.015, st
@@ -207,4 +208,4 @@ def test_methods_that_need_more_than_the_table_are_refused_by_name(method, messa
     from trimeter.inversion.api import fit
 
     with pytest.raises(MapFileError, match=message):
-        fit(small_table().fit_model(), [0.1], [0.3], [0.5], method=method)
+        fit(DeviceTableModel(small_table()), [0.1], [0.3], [0.5], method=method)

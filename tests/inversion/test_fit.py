@@ -97,7 +97,7 @@ def test_a_clear_sample_gives_sigma_t_zero_not_nan(monkeypatch, kernel):
     map's float64 one.)"""
     from trimeter.inversion import native
     from trimeter.inversion.kernel import NativeKernel, NumpyKernel
-    from trimeter.maps.appearance import AppearanceMap
+    from trimeter.formats.appearance import AppearanceMap
     from trimeter.paths import MAPS_DIR
 
     if kernel == "compiled" and not native.available():
@@ -223,7 +223,7 @@ def test_a_model_that_outputs_nan_costs_only_its_guess_and_says_so(ideal_map, id
 def test_lut_never_uses_a_table_built_from_another_map(ideal_map, thick_map, tmp_path):
     import shutil
 
-    from trimeter.maps.appearance import AppearanceMap
+    from trimeter.formats.appearance import AppearanceMap
     from trimeter.maps.artifacts import ArtifactCache
 
     shutil.copy(thick_map.path, tmp_path / "x.tmap")
@@ -241,7 +241,7 @@ def test_lut_never_uses_a_table_built_from_another_map(ideal_map, thick_map, tmp
 def test_accuracy_on_exact_held_out_materials(ideal_map, ideal_model, method):
     """Against iadpython's exact answers at off-grid materials (tests/inversion/data/ideal-l0.5.held):
     what is left is the map's own interpolation error. Measured: α p95 ≈ 0.018, g p95 ≈ 0.018."""
-    from trimeter.maps.container import read_container
+    from trimeter.formats.container import read_container
 
     from inversion_support import DATA
 
@@ -260,7 +260,7 @@ def test_accuracy_on_exact_held_out_materials(ideal_map, ideal_model, method):
 def test_optically_thick_samples_are_flagged_underdetermined():
     """Where the background no longer shows through (I_b ≈ I_w), only a combination of α and g is
     determined: the fit says so with UNDERDETERMINED and a large α std; a moderate sample is clean."""
-    from trimeter.maps.appearance import AppearanceMap
+    from trimeter.formats.appearance import AppearanceMap
     from trimeter.paths import MAPS_DIR
 
     amap = AppearanceMap.load(MAPS_DIR / "device-n1.5-l0.8.tmap")
@@ -277,7 +277,7 @@ def test_optically_thick_samples_are_flagged_underdetermined():
 def test_a_second_thickness_that_determines_the_material_clears_underdetermined():
     """σt 7.5/mm: underdetermined at 0.8 mm (σt·ℓ 6), well determined at 0.4 mm; combined, the
     material is determined, so the flag is judged on the combined stds, not OR-ed from one thickness."""
-    from trimeter.maps.appearance import AppearanceMap
+    from trimeter.formats.appearance import AppearanceMap
     from trimeter.paths import MAPS_DIR
 
     maps = [AppearanceMap.load(MAPS_DIR / f"device-n1.5-l{ell}.tmap") for ell in ("0.4", "0.8")]
@@ -307,7 +307,7 @@ def test_light_scattered_into_the_aperture_no_longer_reads_as_a_lower_sigma_t():
     unscattered, I_c gives σt too low (by ln(1 + r)/(σt·ℓ)). With the map's in-scattering table the fit
     takes it out; I_c here is traced independently of that table (another trace, another seed)."""
     from trimeter.forward.transport.inscatter_tracer import traced_log1p_ratio
-    from trimeter.maps.appearance import AppearanceMap
+    from trimeter.formats.appearance import AppearanceMap
     from trimeter.maps.artifacts import load_artifacts
     from trimeter.paths import MAPS_DIR
 

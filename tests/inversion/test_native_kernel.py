@@ -12,7 +12,7 @@ from trimeter.inversion import native
 from trimeter.inversion.kernel import NativeKernel, NumpyKernel
 from trimeter.inversion.lut import TableInverter
 from trimeter.maps.artifacts import load_artifacts
-from trimeter.maps.device_table import DeviceTable
+from trimeter.formats.device_table import DeviceTable
 from trimeter.model.grid import ForwardGrid
 from trimeter.paths import MAPS_DIR
 
@@ -81,7 +81,7 @@ def test_the_stds_from_the_converging_step_are_those_at_the_solution():
     solution itself, to a small fraction (measured: ≤ 0.4 % for α, ≤ 0.7 % for g here, ≤ 1.2 % on
     l0.8; a last step that crossed a cell boundary, where the map's derivatives jump, had moved an
     ill-conditioned bin's std by up to 50 %, hence the same-cell rule)."""
-    from trimeter.maps.appearance import AppearanceMap
+    from trimeter.formats.appearance import AppearanceMap
 
     amap = AppearanceMap.load(MAPS_DIR / "device-n1.5-l0.4.tmap")
     # without its in-scattering table: that correction moves σt after the Jacobian (first order: the
@@ -130,7 +130,7 @@ def _fit_inputs(rng, n=4000):
                                                          ("mlp", 8, 1e-6)])
 def test_the_whole_fit_in_c_matches_the_numpy_reference_bin_for_bin(monkeypatch, method, polish, polish_tol):
     """tm_fit (flags, σt from I_c, guess, adaptive polish, stds, blanking) against api's numpy path."""
-    from trimeter.maps.appearance import AppearanceMap
+    from trimeter.formats.appearance import AppearanceMap
 
     amap = AppearanceMap.load(MAPS_DIR / "device-n1.5-l0.4.tmap")
     assert amap.inscatter is not None  # so the in-scattering correction is compared too
@@ -165,7 +165,7 @@ FitResultColumns = ("alpha", "sigma_t", "g", "alpha_std", "sigma_t_std", "g_std"
 def test_four_bins_per_step_give_bit_for_bit_the_scalar_result(method):
     """The AVX2 polish (four bins per Newton step) against the scalar loop, over the whole input
     space with its edges: every column identical, not merely close."""
-    from trimeter.maps.appearance import AppearanceMap
+    from trimeter.formats.appearance import AppearanceMap
 
     if not native.set_simd(True):
         pytest.skip("this CPU has no AVX2: only the scalar loop runs")
@@ -190,7 +190,7 @@ def test_four_bins_per_step_give_bit_for_bit_the_scalar_result(method):
 
 @pytest.mark.skipif(not native.available(), reason=native.status())
 def test_the_adaptive_polish_stops_converged_bins_early_with_the_same_result():
-    from trimeter.maps.appearance import AppearanceMap
+    from trimeter.formats.appearance import AppearanceMap
 
     amap = AppearanceMap.load(MAPS_DIR / "device-n1.5-l0.4.tmap")
     rng = np.random.default_rng(3)
@@ -228,7 +228,7 @@ def test_the_mlp_features_from_c_match_the_numpy_preparation():
     mlp.features of api._prepare, on inputs with every kind of bad value."""
     import trimeter.inversion.api as api
     from trimeter.inversion.mlp import features
-    from trimeter.maps.appearance import AppearanceMap
+    from trimeter.formats.appearance import AppearanceMap
 
     amap = AppearanceMap.load(MAPS_DIR / "device-n1.5-l0.4.tmap")
     args = _fit_inputs(np.random.default_rng(11))
@@ -255,7 +255,7 @@ def test_the_mlp_features_from_c_match_the_numpy_preparation():
 @pytest.mark.skipif(not native.available(), reason=native.status())
 def test_a_guess_of_the_wrong_shape_is_refused():
     import trimeter.inversion.api as api
-    from trimeter.maps.appearance import AppearanceMap
+    from trimeter.formats.appearance import AppearanceMap
 
     amap = AppearanceMap.load(MAPS_DIR / "device-n1.5-l0.4.tmap")
     inverter = load_artifacts(amap).inverter
@@ -272,7 +272,7 @@ def test_a_guess_that_is_not_finite_falls_back_to_the_table():
     """A broken network (NaN or inf out) costs nothing but its guess: those bins start from the
     table's, so they come out exactly as the lut fit's; the other bins keep the network's guess."""
     import trimeter.inversion.api as api
-    from trimeter.maps.appearance import AppearanceMap
+    from trimeter.formats.appearance import AppearanceMap
 
     amap = AppearanceMap.load(MAPS_DIR / "device-n1.5-l0.4.tmap")
     inverter = load_artifacts(amap).inverter

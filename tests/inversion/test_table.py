@@ -12,9 +12,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from trimeter.errors import MapFileError
-from trimeter.maps.device_table import (HEADER_SIZE, MAGIC, MAX_BYTES, DeviceTable, build_from_map, describe_table,
-                                        table_path_for)
-from trimeter.maps.table import _from_frame
+from trimeter.formats.device_table import DeviceTable, HEADER_SIZE, MAGIC, MAX_BYTES, describe_table, table_path_for
+from trimeter.maps.table_builder import build_from_map
+from trimeter.maps.table_builder import _from_frame
 from trimeter.model.grid import ForwardGrid
 
 

@@ -41,7 +41,7 @@ def _tool():
 def heldout():
     """The l0.4 map's v2 table, its held-out set's intensities and truth, and the numpy reference fit."""
     from trimeter.bench.fit import error_budget, heldout_collimated, heldout_for, heldout_intensities
-    from trimeter.maps.appearance import AppearanceMap, find_map
+    from trimeter.formats.appearance import AppearanceMap, find_map
 
     tool = _tool()
     amap = AppearanceMap.load(find_map("device-n1.5-l0.4"))
@@ -182,7 +182,7 @@ def test_a_non_finite_axis_node_or_frame_value_is_refused_wherever_it_is(heldout
 def test_bins_outside_the_map_s_box_agree_with_the_reference_too(heldout):
     """Bins whose solution lies past the box (g held at an edge, α crawling or held too: the polish's
     clamps keep it where it was), against the numpy reference bin for bin."""
-    from trimeter.maps.device_table import DeviceTable
+    from trimeter.formats.device_table import DeviceTable
 
     tool = _tool()
     table = DeviceTable.from_bytes(heldout.data)

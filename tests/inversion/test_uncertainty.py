@@ -72,7 +72,7 @@ def test_the_map_error_is_its_mc_error_where_the_splines_are_exact():
 
 
 def test_given_stds_set_the_uncertainty_and_thickness_widens_sigma_t_only():
-    from trimeter.maps.appearance import AppearanceMap
+    from trimeter.formats.appearance import AppearanceMap
     from trimeter.maps.artifacts import load_artifacts
 
     amap = AppearanceMap.load(DEVICE)
@@ -103,7 +103,7 @@ def test_given_stds_set_the_uncertainty_and_thickness_widens_sigma_t_only():
 
 def test_the_maps_own_error_enters_the_stds():
     from trimeter.inversion.kernel import NumpyKernel
-    from trimeter.maps.appearance import AppearanceMap
+    from trimeter.formats.appearance import AppearanceMap
     from trimeter.maps.artifacts import ArtifactCache
 
     amap = AppearanceMap.load(DEVICE)
@@ -122,7 +122,7 @@ def test_the_maps_own_error_enters_the_stds():
 @pytest.mark.parametrize("method", ["lut", "mlp"])
 def test_c_and_numpy_agree_with_given_stds_and_thicknesses(monkeypatch, method):
     from trimeter.inversion.kernel import NumpyKernel
-    from trimeter.maps.appearance import AppearanceMap
+    from trimeter.formats.appearance import AppearanceMap
 
     amap = AppearanceMap.load(DEVICE)
     I_b, I_w, I_c = _materials(amap, n=600, seed=4)
@@ -149,7 +149,7 @@ def test_underdetermined_is_judged_at_no_less_than_the_noise_model(monkeypatch, 
     and two alike."""
     from trimeter.inversion.flags import FitFlag
     from trimeter.inversion.kernel import NativeKernel, NumpyKernel
-    from trimeter.maps.appearance import AppearanceMap
+    from trimeter.formats.appearance import AppearanceMap
     from trimeter.maps.artifacts import load_artifacts
 
     kernel = NativeKernel() if native_kernel else NumpyKernel()
@@ -179,7 +179,7 @@ def test_underdetermined_is_judged_at_no_less_than_the_noise_model(monkeypatch, 
 
 
 def test_bad_stds_are_clear_errors(tmp_path, capsys):
-    from trimeter.maps.appearance import AppearanceMap
+    from trimeter.formats.appearance import AppearanceMap
 
     amap = AppearanceMap.load(DEVICE)
     with pytest.raises(InputError, match="I_b_std must not be negative"):
@@ -210,7 +210,7 @@ def test_bad_stds_are_clear_errors(tmp_path, capsys):
 
 
 def test_the_fit_cli_takes_std_columns(tmp_path, capsys):
-    from trimeter.maps.appearance import AppearanceMap
+    from trimeter.formats.appearance import AppearanceMap
 
     amap = AppearanceMap.load(DEVICE)
     I_b, I_w, I_c = (x[:3] for x in _materials(amap, n=3))
@@ -242,7 +242,7 @@ def test_bench_uncertainty_prints_its_table(tmp_path, capsys):
 
 def test_the_held_out_split_keeps_columns_whole_and_parts_apart():
     from trimeter.bench.fit import CALIBRATION_EVERY, heldout_for, heldout_part
-    from trimeter.maps import AppearanceMap
+    from trimeter.formats.appearance import AppearanceMap
 
     _, _, h = heldout_for(AppearanceMap.load(DEVICE))
     cal, scored = heldout_part(h, "calibration"), heldout_part(h, "scored")
@@ -289,7 +289,7 @@ def test_std_approximate_marks_where_first_order_fails():
     from trimeter.bench.uncertainty import Case
     from trimeter.inversion.api import STD_CHECK_ALPHA, STD_CHECK_G
     from trimeter.inversion.flags import FitFlag
-    from trimeter.maps.appearance import AppearanceMap
+    from trimeter.formats.appearance import AppearanceMap
 
     case = Case(AppearanceMap.load(DEVICE), draws=4)
     (I_b, I_w, I_c), (sb, sw, sc) = case.draw(0.01, np.random.default_rng(5))

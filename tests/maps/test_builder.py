@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from trimeter.errors import InputError
-from trimeter.maps.appearance import AppearanceMap
+from trimeter.formats.appearance import AppearanceMap
 from trimeter.maps.builder import build_map, default_checkpoint_dir, validation_report
 from trimeter.maps.recipe import parse_recipe
 from trimeter.forward.transport import trace_column

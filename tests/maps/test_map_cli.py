@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from trimeter.cli import main
-from trimeter.maps.appearance import AppearanceMap, shipped_maps
-from trimeter.maps.container import write_container
+from trimeter.formats.appearance import AppearanceMap, shipped_maps
+from trimeter.formats.container import write_container
 
 from tiny_toml import tiny_toml
 

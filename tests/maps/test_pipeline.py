@@ -10,10 +10,11 @@ import pytest
 from trimeter import __version__
 from trimeter.cli import main
 from trimeter.errors import MapFileError
-from trimeter.maps import pipeline, stages
-from trimeter.maps.appearance import AppearanceMap
-from trimeter.maps.inscatter_file import load_inscatter, save_inscatter
-from trimeter.maps.device_table import DeviceTable
+from trimeter.formats import stages
+from trimeter.maps import pipeline
+from trimeter.formats.appearance import AppearanceMap
+from trimeter.formats.inscatter_file import load_inscatter, save_inscatter
+from trimeter.formats.device_table import DeviceTable
 from trimeter.maps.recipe import parse_recipe
 
 from tiny_toml import tiny_toml

@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from trimeter.maps.appearance import AppearanceMap, shipped_maps
+from trimeter.formats.appearance import AppearanceMap, shipped_maps
 from trimeter.maps.builder import recipe_fingerprint, validation_report
 from trimeter.maps.recipe import load_recipe
 from trimeter.paths import MAPS_DIR

@@ -23,7 +23,7 @@ from trimeter.cli import main
 from trimeter.device.client import Device
 from trimeter.domain import Sample
 from trimeter.errors import OutputError
-from trimeter.maps import AppearanceMap
+from trimeter.formats.appearance import AppearanceMap
 from trimeter.results.spool import CaptureSpooled, prepare_results_dir, recover_partials, write_or_spool
 from trimeter.results.writer import expected_size_bytes, partial_name, write_measurement
 from trimeter.sequences.service import Service

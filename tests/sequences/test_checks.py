@@ -14,7 +14,7 @@ from hil_support import HIL_MAP
 from trimeter import registers as regs
 from trimeter.device.client import Device
 from trimeter.errors import CheckError, InputError
-from trimeter.maps import AppearanceMap
+from trimeter.formats.appearance import AppearanceMap
 from trimeter.sequences.calibrate import previous_calibration
 from trimeter.sequences.checks import calibration_problems, shot_problems, surface_floor
 from trimeter.domain import Calibration, Reflectances, Sample

@@ -11,7 +11,7 @@ from hil_support import HIL_MAP
 from trimeter.device.client import Device
 from trimeter.domain import Sample
 from trimeter.inversion.flags import FitFlag
-from trimeter.maps import AppearanceMap
+from trimeter.formats.appearance import AppearanceMap
 from trimeter.maps.artifacts import load_artifacts
 from trimeter.sequences import Runner, calibration
 from trimeter.sequences.measure import measure

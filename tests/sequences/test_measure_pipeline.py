@@ -12,7 +12,7 @@ from hil_support import HIL_MAP
 from trimeter.device.client import Device
 from trimeter.domain import InstrumentInfo, Sample
 from trimeter.errors import CheckError, DeviceError, InputError, TrimeterError
-from trimeter.maps import AppearanceMap
+from trimeter.formats.appearance import AppearanceMap
 from trimeter.sequences import Runner, calibration
 from trimeter.sequences.calibrate import calibrate, previous_calibration
 from trimeter.sequences.measure import measure, prepare_fit

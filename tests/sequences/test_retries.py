@@ -178,7 +178,7 @@ class FlakyOutsideSequences(FlakyLink):
 
 def service_rig(tmp_path, monkeypatch, policy):
     from hil_support import HIL_MAP
-    from trimeter.maps import AppearanceMap
+    from trimeter.formats.appearance import AppearanceMap
     from trimeter.sequences.service import Service
     from trimeter.sequences.settings import HostSettings
 

@@ -10,7 +10,7 @@ from hil_support import HIL_MAP
 from trimeter import registers as regs
 from trimeter.device.client import Device
 from trimeter.domain import Sample
-from trimeter.maps import AppearanceMap
+from trimeter.formats.appearance import AppearanceMap
 from trimeter.sequences.service import Service, calibration_is_stale  # noqa: F401
 from trimeter.sequences.settings import HostSettings
 

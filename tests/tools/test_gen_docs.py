@@ -78,8 +78,8 @@ def test_host_settings_page_lists_every_setting_and_environment_variable():
 
 
 def test_file_formats_page_states_the_schemas():
-    from trimeter.maps.appearance import MAP_SCHEMA
-    from trimeter.maps.inscatter_file import INSCATTER_SCHEMA
+    from trimeter.formats.appearance import MAP_SCHEMA
+    from trimeter.formats.inscatter_file import INSCATTER_SCHEMA
 
     page = gen_docs.formats_page()
     for schema in (MAP_SCHEMA, INSCATTER_SCHEMA):

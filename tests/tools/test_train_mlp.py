@@ -22,7 +22,7 @@ _spec.loader.exec_module(train_mlp)
 @pytest.mark.parametrize("activation", ["relu", "tanh"])
 def test_the_exported_graph_is_gemm_layers_that_reproduce_the_pipeline(tmp_path, activation):
     from trimeter.inversion.mlp import MlpInverter, ScatterRange, features, network_inputs
-    from trimeter.maps.appearance import AppearanceMap
+    from trimeter.formats.appearance import AppearanceMap
 
     amap = AppearanceMap.load(ROOT / "tests" / "inversion" / "data" / "ideal-l0.5.tmap")
     model, stats = train_mlp.train(amap, hidden=(8, 6), samples=2000, epochs=3, activation=activation)
@@ -72,7 +72,7 @@ def test_training_follows_the_schedule_and_reports_the_scored_g(monkeypatch):
     from sklearn.neural_network import MLPRegressor
 
     from trimeter.maps import mlp_training
-    from trimeter.maps.appearance import AppearanceMap
+    from trimeter.formats.appearance import AppearanceMap
 
     seen = []
     original = MLPRegressor.partial_fit

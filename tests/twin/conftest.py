@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from trimeter.maps import AppearanceMap
+from trimeter.formats.appearance import AppearanceMap
 
 THICKNESS_MM = 0.4
 N = 1.5

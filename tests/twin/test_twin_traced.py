@@ -13,7 +13,7 @@ import pytest
 
 from trimeter.errors import InputError
 from trimeter.geometry import load_geometry
-from trimeter.maps import AppearanceMap
+from trimeter.formats.appearance import AppearanceMap
 from trimeter.paths import REPO_ROOT
 from trimeter.twin import traced
 from trimeter.twin.optics import Optics, _catalogue, physics_line

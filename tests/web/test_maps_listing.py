@@ -1,5 +1,5 @@
 """GET /api/maps: besides the maps a refit may name, the tables read from instruments into this host's cache
-(trimeter.maps.device_table.cached_tables), described from their headers alone; a cache file that is no
+(trimeter.device.table_cache.cached_tables), described from their headers alone; a cache file that is no
 readable table is listed with a note saying why, and the listing never fails over it."""
 
 from __future__ import annotations
@@ -13,7 +13,8 @@ import pytest
 from conftest import idle_web
 from hil_support import HIL_MAP
 from trimeter.errors import MapFileError
-from trimeter.maps.device_table import HEADER_SIZE, SECTIONS, DeviceTable, cached_tables, read_header
+from trimeter.device.table_cache import cached_tables
+from trimeter.formats.device_table import DeviceTable, HEADER_SIZE, SECTIONS, read_header
 
 GEOMETRY_ENTRY = HEADER_SIZE - 12 - 8  # the directory's last (offset, length) pair, before the reserved bytes
 
@@ -21,8 +22,8 @@ GEOMETRY_ENTRY = HEADER_SIZE - 12 - 8  # the directory's last (offset, length) p
 @pytest.fixture(scope="module")
 def table():
     """The HIL map's table (an ideal map's carries no geometry: given one here, as a device map's would)."""
-    from trimeter.maps import AppearanceMap
-    from trimeter.maps.device_table import build_from_map
+    from trimeter.formats.appearance import AppearanceMap
+    from trimeter.maps.table_builder import build_from_map
 
     built = build_from_map(AppearanceMap.load(HIL_MAP))
     geometry = {"description": "a test's", "detector": {"distance_mm": 150.0}, "cover_slides": True}

@@ -11,7 +11,7 @@ import pytest
 
 from conftest import web_instrument
 from hil_support import HIL_MAP, SAMPLE, THICKNESS_MM
-from trimeter.maps import AppearanceMap
+from trimeter.formats.appearance import AppearanceMap
 
 
 @pytest.fixture(scope="module")
@@ -21,14 +21,14 @@ def hil_map():
 
 @pytest.fixture(scope="module")
 def table(hil_map):
-    from trimeter.maps.device_table import build_from_map
+    from trimeter.maps.table_builder import build_from_map
 
     return build_from_map(hil_map)
 
 
 @pytest.fixture(scope="module")
 def web(tmp_path_factory, hil_map, table):
-    from trimeter.maps import appearance, container
+    from trimeter.formats import appearance, container
 
     root = tmp_path_factory.mktemp("nomaps")
     with pytest.MonkeyPatch.context() as patch:
@@ -64,7 +64,7 @@ def _refit(web, measurement_id: str) -> dict:
 
 
 def test_the_pipeline_measures_with_the_instruments_table(web, table):
-    from trimeter.maps.device_table import instrument_table
+    from trimeter.device.table_cache import instrument_table
     from trimeter.sequences.measure import measure, resolve_samples
     from trimeter.sequences.steps import Runner
 

@@ -59,7 +59,7 @@ if TYPE_CHECKING:
     import argparse
 
     from trimeter.domain.parameters import FitResult
-    from trimeter.maps.appearance import AppearanceMap
+    from trimeter.formats.appearance import AppearanceMap
     from trimeter.inversion.api import FitModel
     from trimeter.maps.artifacts import ArtifactCache
 
@@ -105,7 +105,7 @@ def register(bench_subparsers: argparse._SubParsersAction) -> None:
 
 
 def _maps(specs: Sequence[str] | None) -> list[AppearanceMap]:
-    from trimeter.maps.appearance import AppearanceMap, find_map, shipped_maps
+    from trimeter.formats.appearance import AppearanceMap, find_map, shipped_maps
 
     if specs:
         return [AppearanceMap.load(find_map(s)) for s in specs]
@@ -115,7 +115,7 @@ def _maps(specs: Sequence[str] | None) -> list[AppearanceMap]:
 
 def heldout_for(amap: AppearanceMap) -> tuple[Path, dict[str, Any], Heldout]:
     from trimeter.errors import MapFileError
-    from trimeter.maps.container import read_container
+    from trimeter.formats.container import read_container
 
     # a set next to the map first: a map built elsewhere is scored on its own set, not on the shipped one
     candidates = [amap.path.with_suffix(".held")] if amap.path is not None else []
@@ -666,7 +666,7 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
     and target verdicts; the two-thickness rows when two maps hold the same materials."""
     from trimeter.inversion import native
     from trimeter.maps.artifacts import ArtifactCache
-    from trimeter.maps.device_table import build_from_map
+    from trimeter.maps.table_builder import build_from_map
 
     noise_levels = [float(x) for x in args.noise.split(",")]
     args.out.mkdir(parents=True, exist_ok=True)

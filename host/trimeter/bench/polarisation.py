@@ -79,7 +79,7 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
     """{"variants", "spp", "geometries": [{"geometry", "map", "rows": per material and background the two I's
     and their difference, "fits": per material the fitted values, shifts and σ's}]}."""
     from trimeter.forward.mitsuba_env import mitsuba
-    from trimeter.maps.appearance import AppearanceMap, find_map
+    from trimeter.formats.appearance import AppearanceMap, find_map
 
     if args.spp < 16:
         raise InputError("--spp must be ≥ 16")

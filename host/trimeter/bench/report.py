@@ -176,8 +176,8 @@ def _tables(fit_map: dict[str, Any], args: argparse.Namespace) -> dict[str, Any]
     """The map's device table fitted alone (double; single precision as the firmware) and counted under QEMU."""
     from trimeter.bench import table_fit
     from trimeter.bench._firmware import COUNT_LABEL, qemu_instruction_counts, single_precision_library
-    from trimeter.maps.appearance import find_map
-    from trimeter.maps.device_table import table_path_for
+    from trimeter.formats.appearance import find_map
+    from trimeter.formats.device_table import table_path_for
 
     path = table_path_for(find_map(fit_map["map"]))
     if not path.is_file():

@@ -5,7 +5,7 @@ targets, and the time per 1024 bins beside the map's own lut fit (its refined gr
 run, timed round-robin, best of --repeats. Run it on one core for the per-core figure:
 `taskset -c 1 trimeter bench table-fit --table FILE`. The first row is what `trimeter fit --table`
 runs; a second row: the same table's forward model sampled onto the refined grid at load
-(DeviceTable.fit_model, `fit --table --refine`).
+(trimeter.inversion.table_model.DeviceTableModel, `fit --table --refine`).
 """
 
 from __future__ import annotations
@@ -67,9 +67,10 @@ def measure(table_path: Path, map_name: str | None = None, repeats: int = 7,
     import trimeter
     from trimeter.bench.fit import _stats, error_budget, heldout_collimated, heldout_for, heldout_intensities
     from trimeter.inversion import api, native
-    from trimeter.maps.appearance import AppearanceMap, find_map
-    from trimeter.maps.container import read_bounded
-    from trimeter.maps.device_table import MAX_BYTES, DeviceTable
+    from trimeter.formats.appearance import AppearanceMap, find_map
+    from trimeter.formats.container import read_bounded
+    from trimeter.formats.device_table import MAX_BYTES, DeviceTable
+    from trimeter.inversion.table_model import DeviceTableModel
 
     data = read_bounded(table_path, MAX_BYTES, "map table")
     table = DeviceTable.from_bytes(data, source=str(table_path))
@@ -92,7 +93,7 @@ def measure(table_path: Path, map_name: str | None = None, repeats: int = 7,
     def map_fit(ib: np.ndarray, iw: np.ndarray, ic: np.ndarray) -> FitResult:
         return trimeter.fit(amap, ib, iw, ic, method="lut")
 
-    refined_model = table.fit_model()
+    refined_model = DeviceTableModel(table)
 
     def refined_fit(ib: np.ndarray, iw: np.ndarray, ic: np.ndarray) -> FitResult:
         return api.fit(refined_model, ib, iw, ic, method="lut")

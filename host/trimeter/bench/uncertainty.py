@@ -93,7 +93,7 @@ def goal_met(c1: float, c2: float) -> bool:
 
 def _maps(specs):
     from trimeter.bench.fit import HELDOUT_DIR
-    from trimeter.maps.appearance import AppearanceMap, find_map, shipped_maps
+    from trimeter.formats.appearance import AppearanceMap, find_map, shipped_maps
 
     if specs:
         return [AppearanceMap.load(find_map(s)) for s in specs]

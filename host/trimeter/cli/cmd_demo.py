@@ -58,7 +58,7 @@ def demo_dir(out: str | None) -> Path:
 def run(args: argparse.Namespace) -> None:
     from trimeter.device import Device
     from trimeter.domain import Sample
-    from trimeter.maps.device_table import DeviceTable, table_path_for
+    from trimeter.formats.device_table import DeviceTable, table_path_for
     from trimeter.results.figure import plot_parameters
     from trimeter.sequences.measure import map_for_thickness, prepare_fit
     from trimeter.sequences.service import Service

@@ -58,8 +58,8 @@ from trimeter.errors import InputError, OutputError
 from trimeter.inversion.methods import METHODS
 
 if TYPE_CHECKING:
-    from trimeter.maps.appearance import AppearanceMap
-    from trimeter.maps.device_table import DeviceTable
+    from trimeter.formats.appearance import AppearanceMap
+    from trimeter.formats.device_table import DeviceTable
 
     # what a fit here inverts through: appearance maps (one per thickness) or one device table
     FitSource = AppearanceMap | DeviceTable
@@ -139,7 +139,7 @@ def _split_thicknesses(data: dict[str, np.ndarray], amaps: Sequence[FitSource], 
 
 def _fit_models(args: argparse.Namespace) -> list[FitSource]:
     """What the fit inverts through: the maps, or one device table (from a file, or the instrument's)."""
-    from trimeter.maps.appearance import AppearanceMap, find_map
+    from trimeter.formats.appearance import AppearanceMap, find_map
 
     if args.refine and args.table is None:
         raise InputError("--refine: only with --table (it names how the table's model is fitted)")
@@ -151,7 +151,7 @@ def _fit_models(args: argparse.Namespace) -> list[FitSource]:
         raise InputError(f"--method {args.method}: a device table fits with method lut (the paper and mlp methods "
                          f"need the map and its network: use --map)")
     if args.table is not None:
-        from trimeter.maps.device_table import DeviceTable
+        from trimeter.formats.device_table import DeviceTable
 
         if args.port:
             raise InputError("--port: only with --on-device (--table fits here, from the file)")
@@ -167,7 +167,7 @@ def _fit_models(args: argparse.Namespace) -> list[FitSource]:
 def run(args: argparse.Namespace) -> int:
     from trimeter.inversion.flags import advice, describe
     from trimeter.maps.artifacts import fit
-    from trimeter.maps.device_table import DeviceTable
+    from trimeter.formats.device_table import DeviceTable
 
     if args.bands is not None:
         from trimeter.cli.fit_bands import run_bands
@@ -389,7 +389,7 @@ def _run_on_device(args: argparse.Namespace) -> int:
     """The bins fitted by the instrument (Device.fit) with the table in its active slot, which is read
     (or found in the cache) first: its ℓ and reference backgrounds, and its identity for the output."""
     from trimeter.cli._instrument import open_device, settings_from
-    from trimeter.maps.device_table import instrument_table
+    from trimeter.device.table_cache import instrument_table
 
     refuse_output_onto_inputs(args.output, [args.input])
     data = fit_stream.read_whole(args.input)

@@ -15,7 +15,7 @@ from trimeter.cli._instrument import add_instrument_args, open_device, open_spec
 from trimeter.domain.measurement import Estimate
 from trimeter.errors import InputError
 from trimeter.inversion.methods import METHODS
-from trimeter.maps.device_table import DeviceTable
+from trimeter.formats.device_table import DeviceTable
 from trimeter.sequences.measure import resolve_samples
 from trimeter.sequences.service import Service, calibration_is_stale
 

@@ -75,7 +75,7 @@ def run_bands(args: argparse.Namespace) -> int:
     from trimeter.cli.cmd_fit import _write, check_declared_thickness, refuse_output_onto_inputs
     from trimeter.inversion.bands import fit_bands
     from trimeter.inversion.flags import advice
-    from trimeter.maps.appearance import AppearanceMap, find_map
+    from trimeter.formats.appearance import AppearanceMap, find_map
     from trimeter.maps.artifacts import load_artifacts
 
     if not args.maps or len(args.maps) != 1:

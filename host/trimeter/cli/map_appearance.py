@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 
 from trimeter.errors import InputError, MapFileError
-from trimeter.maps.stages import DEFAULT_STAGES, STAGES, parse_stages
+from trimeter.formats.stages import DEFAULT_STAGES, STAGES, parse_stages
 from trimeter.validation import require_material, require_reflectance
 
 
@@ -79,7 +79,7 @@ def register(subparsers) -> None:
 
 def load_appearance_map(name_or_path):
     """Load a map, with a clear message when the file is some other trimeter file (e.g. a map table)."""
-    from trimeter.maps.appearance import MAP_KIND, AppearanceMap, find_map
+    from trimeter.formats.appearance import MAP_KIND, AppearanceMap, find_map
 
     path = find_map(name_or_path)
     try:
@@ -158,7 +158,7 @@ def _describe(amap) -> dict:
 
 
 def cmd_list(args) -> int:
-    from trimeter.maps.appearance import shipped_maps
+    from trimeter.formats.appearance import shipped_maps
 
     rows: list[dict[str, Any]] = []
     for path in shipped_maps():
@@ -216,7 +216,7 @@ def cmd_info(args) -> int:
 
 def _table_info(args) -> int:
     """`map info` of a device table (.tlut)."""
-    from trimeter.maps.device_table import describe_table
+    from trimeter.formats.device_table import describe_table
 
     info = describe_table(args.map)
     if args.json:

@@ -18,8 +18,8 @@ from trimeter.errors import DeviceError
 
 
 def _read_table(path: str) -> bytes:
-    from trimeter.maps.container import read_bounded
-    from trimeter.maps.device_table import MAX_BYTES, DeviceTable
+    from trimeter.formats.container import read_bounded
+    from trimeter.formats.device_table import MAX_BYTES, DeviceTable
 
     data = read_bounded(Path(path), MAX_BYTES, "map table")  # a larger file is refused unread
     DeviceTable.from_bytes(data, source=path)  # MapFileError (one line) on any defect: never flash garbage

@@ -35,7 +35,7 @@ class BackgroundCoefficients(Protocol):
 
 
 class MapRef(BackgroundCoefficients, Protocol):
-    """What a measurement needs to know of an appearance map (trimeter.maps.appearance.AppearanceMap is one)."""
+    """What a measurement needs to know of an appearance map (trimeter.formats.appearance.AppearanceMap is one)."""
 
     @property
     def name(self) -> str: ...

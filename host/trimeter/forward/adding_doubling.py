@@ -3,7 +3,7 @@ background under uniform hemispherical light, seen along the normal. It makes th
 ideal held-out sets, never a shipped map; iadpython is a dev dependency the device side does not have.
 
 Per material, `Sample(a=α, b=σt·ℓ, g, d=ℓ, n, n_above=1, n_below=1).rt()` gives (UR1, UT1, URU, UTU), and
-I(ρ) = A + Bρ/(1 − Cρ) with A = UR1, B = UT1·UTU, C = URU (see trimeter.maps.appearance).
+I(ρ) = A + Bρ/(1 − Cρ) with A = UR1, B = UT1·UTU, C = URU (see trimeter.formats.appearance).
 """
 
 from __future__ import annotations

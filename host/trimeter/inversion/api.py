@@ -44,6 +44,7 @@ log = logging.getLogger("trimeter.inversion")
 if TYPE_CHECKING:
     from scipy.interpolate import LinearNDInterpolator
 
+    from trimeter.formats.appearance import AppearanceMap
     from trimeter.inversion.mlp import MlpInverter
 
 # one thickness's (I_b, I_w, I_c, ρ_b, ρ_w) over its bins
@@ -94,9 +95,9 @@ class FitModel(Protocol):
     @property
     def inverter(self) -> TableInverter: ...
 
-    # the appearance map's nodes, A, B, C and collimated_measured (paper); maps sits above the inversion
+    # the appearance map's nodes, A, B, C and collimated_measured (paper)
     @property
-    def map(self) -> Any: ...
+    def map(self) -> AppearanceMap: ...
 
     # the paper method's triangulations of this map (None: none kept)
     @property

@@ -14,7 +14,7 @@ same algorithm); initial_guess below is the numpy reference of the C guess.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -22,14 +22,14 @@ from trimeter.inversion.strategy import Method
 from trimeter.model.grid import ForwardGrid, SigmaCell
 
 if TYPE_CHECKING:
+    from trimeter.formats.device_table import DeviceTable
     from trimeter.model.inscatter import InscatterTable
 
 
 class TableInverter:
-    # table: a trimeter.maps.device_table.DeviceTable, not named here: maps sits above the inversion
-    def __init__(self, table: Any, inscatter: InscatterTable | None = None,
+    def __init__(self, table: DeviceTable, inscatter: InscatterTable | None = None,
                  model_variance: tuple[np.ndarray, tuple[np.ndarray, ...]] | None = None) -> None:
-        """table: a device table (trimeter.maps.device_table.DeviceTable: its forward model, inverse slices and
+        """table: a device table (trimeter.formats.device_table.DeviceTable: its forward model, inverse slices and
         set-up); inscatter: the map's in-scattering table (trimeter.model.inscatter.InscatterTable), or
         None; model_variance: the map's own error at its nodes ((variances, axes) as
         ForwardGrid.attach_model_variance takes them), or None."""

@@ -22,7 +22,7 @@ import warnings
 from collections import OrderedDict
 from collections.abc import Sequence
 
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -33,6 +33,7 @@ from trimeter.inversion.strategy import Method
 from trimeter.model.response import background_response
 
 if TYPE_CHECKING:
+    from trimeter.formats.appearance import AppearanceMap
     from trimeter.inversion.api import FitModel
     from trimeter.inversion.kernel import Kernel
     from scipy.interpolate import LinearNDInterpolator
@@ -48,8 +49,7 @@ def coordinates(I_b: np.ndarray, I_w: np.ndarray, I_c: np.ndarray) -> np.ndarray
     return np.column_stack([I_b, I_w, np.log10(np.maximum(I_c, _LOG_IC_FLOOR))])
 
 
-# amap: a trimeter.maps.appearance.AppearanceMap (maps sits above the inversion, so not named here)
-def interpolator(amap: Any, rho_b: float, rho_w: float,
+def interpolator(amap: AppearanceMap, rho_b: float, rho_w: float,
                  cache: OrderedDict[tuple[float, float], LinearNDInterpolator] | None = None) -> LinearNDInterpolator:
     """The paper's interpolant of `amap` (its nodes, arrays A, B, C and collimated_measured) at these
     backgrounds; `cache`: the map's triangulations by (ρ_b, ρ_w), least recently used dropped first."""
@@ -73,8 +73,8 @@ def interpolator(amap: Any, rho_b: float, rho_w: float,
     return interp
 
 
-def paper_samples(amap: Any, I_b: np.ndarray, I_w: np.ndarray, I_c: np.ndarray, rho_b: np.ndarray, rho_w: np.ndarray,
-                  samples: int = 250, epsilon: float = 0.01, seed: int = 0, first_row: int = 0,
+def paper_samples(amap: AppearanceMap, I_b: np.ndarray, I_w: np.ndarray, I_c: np.ndarray, rho_b: np.ndarray,
+                  rho_w: np.ndarray, samples: int = 250, epsilon: float = 0.01, seed: int = 0, first_row: int = 0,
                   cache: OrderedDict[tuple[float, float], LinearNDInterpolator] | None = None) -> np.ndarray:
     """Interpolated (α, σt, g) for each bin: shape (N, max(samples, 1), 3), NaN outside the hull.
     `first_row`: the bins' position in the whole input (which ε-offsets of the seed's stream are theirs)."""
@@ -100,7 +100,7 @@ def paper_samples(amap: Any, I_b: np.ndarray, I_w: np.ndarray, I_c: np.ndarray, 
     return out
 
 
-def paper_medians(amaps: Sequence[Any], inputs: Sequence[tuple[np.ndarray, ...]], samples: int = 250,
+def paper_medians(amaps: Sequence[AppearanceMap], inputs: Sequence[tuple[np.ndarray, ...]], samples: int = 250,
                   epsilon: float = 0.01, seed: int = 0, chunk_points: int = CHUNK_POINTS,
                   caches: Sequence[OrderedDict[tuple[float, float], LinearNDInterpolator] | None] | None = None,
                   first_row: int = 0) -> tuple[np.ndarray, list[np.ndarray]]:

@@ -44,7 +44,7 @@ from trimeter.model.mixing import parse_fractions
 from trimeter.results.medium import SpectralMaterial
 
 if TYPE_CHECKING:
-    from trimeter.maps.appearance import AppearanceMap
+    from trimeter.formats.appearance import AppearanceMap
 
 TWIN_INKS = ("cyan-ink", "magenta-ink", "yellow-ink")
 TWIN_THICKNESSES_MM = (0.4, 0.8)

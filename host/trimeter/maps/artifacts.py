@@ -15,9 +15,12 @@ import numpy as np
 from trimeter.errors import MapFileError
 from trimeter.inversion.lut import TableInverter
 from trimeter.inversion.mlp import MlpInverter
-from trimeter.maps.appearance import AppearanceMap, find_map
-from trimeter.maps.container import read_bounded
-from trimeter.maps.device_table import DeviceTable, DeviceTableModel, build_from_map, map_model_variance, table_path_for
+from trimeter.formats.appearance import AppearanceMap, find_map
+from trimeter.formats.container import read_bounded
+from trimeter.formats.appearance import map_model_variance
+from trimeter.formats.device_table import DeviceTable, table_path_for
+from trimeter.inversion.table_model import DeviceTableModel
+from trimeter.maps.table_builder import build_from_map
 from trimeter.model.grid import ForwardGrid
 from trimeter.model.setup import SampleSetup
 
@@ -113,7 +116,7 @@ class ArtifactCache:
         (the table alone)."""
         if isinstance(spec, DeviceTable):
             if spec.sha256 not in self._loaded:
-                self._loaded[spec.sha256] = spec.fit_model()
+                self._loaded[spec.sha256] = DeviceTableModel(spec)
             return self._loaded[spec.sha256]
         amap = spec if isinstance(spec, AppearanceMap) else AppearanceMap.load(find_map(spec))
         inscatter = amap.inscatter

@@ -32,7 +32,7 @@ import numpy as np
 from trimeter.atomic import atomic_output, atomic_write
 from trimeter.errors import BuildError, InputError, MapFileError
 from trimeter.geometry import cover_slide_n
-from trimeter.maps.appearance import AppearanceMap
+from trimeter.formats.appearance import AppearanceMap
 from trimeter.maps.recipe import Recipe
 from trimeter.forward.transport import ColumnTally, Stack, k_max_for
 from trimeter.forward.transport import trace_column as trace_pair

@@ -24,7 +24,7 @@ from numpy.typing import ArrayLike
 if TYPE_CHECKING:
     import onnx
 
-    from trimeter.maps.appearance import AppearanceMap
+    from trimeter.formats.appearance import AppearanceMap
 
 
 # Size, samples, epochs, schedule and jitter are chosen on the l0.4 held-out set with the network alone (`trimeter
@@ -179,7 +179,7 @@ def export(model: Any, amap: AppearanceMap, path: Path, hidden: tuple[int, ...],
 
     from trimeter.atomic import atomic_write
     from trimeter.inversion.mlp import INPUTS, MODEL_FORMAT, MODEL_KIND
-    from trimeter.maps.stages import stage_producer
+    from trimeter.formats.stages import stage_producer
 
     producer = producer or stage_producer("onnx")
 

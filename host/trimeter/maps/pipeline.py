@@ -4,14 +4,14 @@
 |---|---|---|---|
 | tmap | `<name>.tmap` | trimeter.maps.builder (the columns, on Dask or here) | the recipe |
 | tins | `<name>.tins` | trimeter.forward.transport.inscatter_tracer.build_inscatter_table | device geometry only |
-| tlut | `<name>.tlut` | trimeter.maps.device_table.build_from_map | the .tins where the map has one |
+| tlut | `<name>.tlut` | trimeter.maps.table_builder.build_from_map | the .tins where the map has one |
 | onnx | `<name>.onnx` | trimeter.maps.mlp_training (scikit-learn → ONNX) | opt-in: minutes of training |
 
 Every child is derived from the `.tmap` alone, so each records the map's SHA-256 as its parent (the
 .tins and .onnx metadata, the .tlut's fixed header, which also names its .tins's SHA-256) and its producer
 (name and trimeter version; the .tlut's fixed C layout has no room for it: its format version stands
 for it). The tlut stage therefore runs after tins. A child whose map changed
-is refused where it is loaded, with `rebuild_command` (trimeter.maps.stages) naming the command that rebuilds it.
+is refused where it is loaded, with `rebuild_command` (trimeter.formats.stages) naming the command that rebuilds it.
 
 With a Dask client the children's computations run on the cluster too (one task per map and stage);
 the files are always written here, next to the map.
@@ -27,10 +27,10 @@ from typing import TYPE_CHECKING, Callable
 
 from trimeter.errors import BuildError, InputError
 from trimeter.maps.mlp_training import DEFAULTS as MLP_DEFAULTS
-from trimeter.maps.stages import STAGES, SUFFIX, rebuild_command, stage_producer
+from trimeter.formats.stages import STAGES, SUFFIX, rebuild_command, stage_producer
 
 if TYPE_CHECKING:
-    from trimeter.maps.appearance import AppearanceMap
+    from trimeter.formats.appearance import AppearanceMap
     from trimeter.maps.recipe import Recipe
 
 @dataclass(frozen=True)
@@ -57,7 +57,7 @@ def applies(stage: str, amap) -> str | None:
                             or "collimated" not in amap.recipe.get("geometry_params", {})):
         return "in-scattering needs the device geometry's collimated set-up"
     if stage == "tlut":
-        from trimeter.maps.device_table import too_coarse
+        from trimeter.maps.table_builder import too_coarse
 
         return too_coarse(amap)
     return None
@@ -72,7 +72,7 @@ def compute(stage: str, amap, options: Options):
                                      photons=options.inscatter_photons, seed=options.inscatter_seed,
                                      shape=options.inscatter_shape)
     if stage == "tlut":
-        from trimeter.maps.device_table import build_from_map
+        from trimeter.maps.table_builder import build_from_map
 
         return build_from_map(amap, n_inverse=options.table_n_xy)
     if stage == "onnx":
@@ -88,7 +88,7 @@ def write(stage: str, amap, product, options: Options, out: Path | None = None) 
     to `out`), read it back; returns (path, one-line description)."""
     out = Path(out) if out else amap.path.with_suffix(SUFFIX[stage])
     if stage == "tins":
-        from trimeter.maps.inscatter_file import load_inscatter, save_inscatter
+        from trimeter.formats.inscatter_file import load_inscatter, save_inscatter
 
         product.parent_sha256, product.producer = amap.checksum, stage_producer(stage)
         checksum = save_inscatter(product, out)
@@ -96,7 +96,7 @@ def write(stage: str, amap, product, options: Options, out: Path | None = None) 
         return out, (f"{product.L.shape} grid, {options.inscatter_photons} photons per column, largest ln(1 + r) "
                      f"{product.L.max():.3f}, sha256 {checksum[:12]}…")
     if stage == "tlut":
-        from trimeter.maps.device_table import describe_table
+        from trimeter.formats.device_table import describe_table
 
         product.save(out)
         info = describe_table(out)  # read back: every check of the reader
@@ -186,7 +186,7 @@ def _write_all(runnable, client, options: Options, say: Callable[[str], None]) -
 
 
 def _existing_map(path: Path) -> AppearanceMap:
-    from trimeter.maps.appearance import AppearanceMap
+    from trimeter.formats.appearance import AppearanceMap
 
     if not path.is_file():
         raise InputError(f"map {path} does not exist: build it first (--stages tmap, the default includes it)")

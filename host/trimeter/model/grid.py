@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -18,6 +18,48 @@ from trimeter.model.setup import SampleSetup
 
 if TYPE_CHECKING:
     from trimeter.model.inscatter import InscatterTable
+
+class MapNodes(Protocol):
+    """What a grid is built from on an appearance map's own nodes (trimeter.formats.appearance.AppearanceMap
+    is one; the formats sit above the model)."""
+
+    @property
+    def alpha(self) -> np.ndarray: ...
+    @property
+    def sigma_t(self) -> np.ndarray: ...
+    @property
+    def g(self) -> np.ndarray: ...
+    @property
+    def A(self) -> np.ndarray: ...
+    @property
+    def B(self) -> np.ndarray: ...
+    @property
+    def C(self) -> np.ndarray: ...
+    @property
+    def std_b(self) -> np.ndarray: ...
+    @property
+    def std_w(self) -> np.ndarray: ...
+    @property
+    def setup(self) -> SampleSetup: ...
+
+
+class TableNodes(Protocol):
+    """What a grid is built from on a device table's forward section (trimeter.formats.device_table.DeviceTable
+    is one)."""
+
+    @property
+    def alpha(self) -> np.ndarray: ...
+    @property
+    def log_sigma_t(self) -> np.ndarray: ...
+    @property
+    def g(self) -> np.ndarray: ...
+    @property
+    def coefficients_grid(self) -> np.ndarray: ...
+    @property
+    def setup(self) -> SampleSetup: ...
+    @property
+    def mc_stderr(self) -> float: ...
+
 
 @dataclass(frozen=True)
 class SigmaCell:
@@ -80,14 +122,14 @@ class ForwardGrid:
         self.model_var: np.ndarray | None = None
 
     @classmethod
-    def from_map(cls, amap: Any) -> ForwardGrid:  # an AppearanceMap: maps sits above the model
+    def from_map(cls, amap: MapNodes) -> ForwardGrid:
         """The grid on an appearance map's own nodes (anything with its arrays and `setup`)."""
         mc = float(np.median(np.concatenate([amap.std_b.ravel(), amap.std_w.ravel()])))
         return cls(amap.alpha, np.log(amap.sigma_t), amap.g, np.stack([amap.A, amap.B, amap.C], axis=-1),
                    setup=amap.setup, mc_stderr=mc)
 
     @classmethod
-    def from_table(cls, table: Any) -> ForwardGrid:  # a DeviceTable: maps sits above the model
+    def from_table(cls, table: TableNodes) -> ForwardGrid:
         """The grid on a map table's forward section (its f32 set-up: what the device fits with)."""
         return cls(table.alpha, table.log_sigma_t, table.g, table.coefficients_grid, setup=table.setup,
                    mc_stderr=table.mc_stderr)

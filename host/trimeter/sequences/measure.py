@@ -19,8 +19,8 @@ from trimeter.domain.parameters import FitResult
 from trimeter.errors import CheckError, DeviceError, InputError, TrimeterError
 from trimeter.inversion.methods import METHODS
 from trimeter.inversion.flags import FitFlag, advice
-from trimeter.maps.appearance import AppearanceMap, find_map, shipped_maps
-from trimeter.maps.device_table import DeviceTable
+from trimeter.formats.appearance import AppearanceMap, find_map, shipped_maps
+from trimeter.formats.device_table import DeviceTable
 from trimeter.results.spool import CaptureSpooled, prepare_results_dir, write_or_spool
 from trimeter.results.writer import Parameters
 from trimeter.sequences.checks import calibration_problems, fit_problems, shot_problems, usable_bins

@@ -34,7 +34,8 @@ from trimeter.device.backup import config_source_warning
 from trimeter.domain import Calibration, InstrumentInfo, Sample
 from trimeter.domain.measurement import DeviceTableCheck, Estimate
 from trimeter.errors import CheckError, DeviceError, TrimeterError
-from trimeter.maps.device_table import DeviceTable, instrument_table
+from trimeter.device.table_cache import instrument_table
+from trimeter.formats.device_table import DeviceTable
 from trimeter.results.spool import recover_partials
 from trimeter.sequences import measure as pipeline
 from trimeter.sequences.calibrate import calibrate, previous_calibration
@@ -355,7 +356,7 @@ class Service:
         return pipeline.resolve_samples(requests, instrument_table=self.instrument_table)
 
     def instrument_table(self) -> DeviceTable:
-        """The table in the device's active slot (trimeter.maps.device_table.instrument_table: cached by its
+        """The table in the device's active slot (trimeter.device.table_cache.instrument_table: cached by its
         SHA-256); an event says which, and whether it was read from the device or the cache."""
         t0 = time.monotonic()
         table, slot, cached = self._on_device("reading the device's map table", instrument_table)

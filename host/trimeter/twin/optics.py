@@ -35,7 +35,7 @@ from trimeter.twin.sensor import As7341Model
 from trimeter.twin.traced import traced_setup
 
 if TYPE_CHECKING:
-    from trimeter.maps import AppearanceMap
+    from trimeter.formats.appearance import AppearanceMap
 
 # The maps the twin renders with: None (the shipped ones), a map or its path, or a list of them.
 MapSource: TypeAlias = ("AppearanceMap | str | Path | list[AppearanceMap | str | Path] | "
@@ -246,7 +246,7 @@ class SampleOptics:
 
 
 def _load_maps(appearance_map: MapSource) -> list[AppearanceMap]:
-    from trimeter.maps import AppearanceMap, shipped_maps
+    from trimeter.formats.appearance import AppearanceMap, shipped_maps
 
     if appearance_map is None:
         return [AppearanceMap.load(p) for p in shipped_maps()]

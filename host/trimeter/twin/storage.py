@@ -26,7 +26,7 @@ def _template_dir() -> Path:
 def table_bytes(table: str | Path | bytes) -> bytes:
     """A table given as bytes or a file (a shipped map's name: maps/<name>.tlut), checked as the device
     would be given it (`trimeter map flash` refuses the same)."""
-    from trimeter.maps.device_table import SUFFIX, DeviceTable
+    from trimeter.formats.device_table import SUFFIX, DeviceTable
     from trimeter.paths import MAPS_DIR
 
     if isinstance(table, bytes):

@@ -37,8 +37,9 @@ from trimeter.device.client import CONFIG_NAMES, encode
 from trimeter.errors import DeviceError, InputError, TrimeterError
 from trimeter.inversion.methods import METHODS
 from trimeter.inversion.flags import advice, describe
-from trimeter.maps.appearance import AppearanceMap, find_map, shipped_maps
-from trimeter.maps.device_table import DeviceTable, cached_tables
+from trimeter.formats.appearance import AppearanceMap, find_map, shipped_maps
+from trimeter.device.table_cache import cached_tables
+from trimeter.formats.device_table import DeviceTable
 from trimeter.paths import NAME_MAX, real_subdirectory, regular_files
 from trimeter.sequences.measure import map_for_thickness
 from trimeter.sequences.service import EMPTY_HOLDER, NEXT_SAMPLE

@@ -16,8 +16,9 @@ from trimeter.domain import Measurement, Provenance, Sample, SampleCapture
 from trimeter.domain.measurement import MapRef
 from trimeter.errors import InputError, MapFileError, OutputError, TrimeterError
 from trimeter.inversion.flags import advice
-from trimeter.maps.appearance import AppearanceMap
-from trimeter.maps.device_table import SHA256_HEX, SUFFIX, DeviceTable, cache_dir
+from trimeter.formats.appearance import AppearanceMap
+from trimeter.device.table_cache import SHA256_HEX, cache_dir
+from trimeter.formats.device_table import DeviceTable, SUFFIX
 from trimeter.results.reader import load
 from trimeter.results.writer import write_measurement
 from trimeter.sequences.measure import for_recorded_sensor, prepare_fit

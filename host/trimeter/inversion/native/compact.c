@@ -1,6 +1,6 @@
 /* The device table read in place: the v2 reader (every field checked before any array is used) and
  * what the fit evaluates from it at one point. Each function is the numpy reference's operation for
- * operation (trimeter.maps.device_table, trimeter.model.compact, TableInverter.initial_guess,
+ * operation (trimeter.formats.device_table, trimeter.model.compact, TableInverter.initial_guess,
  * ForwardGrid.inscatter_log1p / model_variance), so that the host build agrees with it to rounding.
  *
  * The CRC-32 is not checked here: the firmware's storage checks it when a slot is written and when

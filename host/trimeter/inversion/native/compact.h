@@ -1,4 +1,4 @@
-/* The self-sufficient device table (.tlut v2, trimeter.maps.device_table) as the fit from it reads it
+/* The self-sufficient device table (.tlut v2, trimeter.formats.device_table) as the fit from it reads it
  * in place: a checked view of its header and sections, the compact forward model evaluated on the
  * fly (trimeter.model.compact.CompactForward), the inverse table's guess, the in-scattering table and
  * the map's error at its nodes. Shared by compact.c and table_fit.c; callers see invert.h and
@@ -34,7 +34,7 @@ typedef double tr_real;
 #define R_FABS fabs
 #endif
 
-/* Section order of the format (trimeter.maps.device_table.SECTIONS) */
+/* Section order of the format (trimeter.formats.device_table.SECTIONS) */
 enum {
     TR_SEC_ALPHA,
     TR_SEC_LOG_SIGMA_T,

@@ -110,7 +110,7 @@ typedef struct {
     int32_t iterations;
 } tm_fit_options;
 
-/* The fit from a self-sufficient device table (.tlut v2, trimeter.maps.device_table) alone, one bin at
+/* The fit from a self-sufficient device table (.tlut v2, trimeter.formats.device_table) alone, one bin at
  * a time with no allocation (table_fit.c, the source the firmware links as tr_fit_bins,
  * firmware/core/fit_core.h): fit()'s lut fit with these settings, fixed (a test checks them against
  * trimeter.inversion.api's defaults). */

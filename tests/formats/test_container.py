@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from trimeter.errors import MapFileError
-from trimeter.maps.appearance import AppearanceMap
-from trimeter.maps.container import write_container
+from trimeter.formats.appearance import AppearanceMap
+from trimeter.formats.container import write_container
 
 
 def small_map() -> AppearanceMap:

@@ -6,8 +6,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from trimeter.errors import MapFileError
-from trimeter.maps.container import read_container, write_container
-from trimeter.maps.schema import (GEOMETRY_PARAMS, PARENT_SHA256, PRODUCER, PROVENANCE, SAMPLE_N, THICKNESS_MM,
+from trimeter.formats.container import read_container, write_container
+from trimeter.formats.schema import (GEOMETRY_PARAMS, PARENT_SHA256, PRODUCER, PROVENANCE, SAMPLE_N, THICKNESS_MM,
                                   ArraySpec, ContainerSchema, Number, Table)
 from trimeter.model.inscatter import InscatterTable
 
@@ -15,7 +15,7 @@ INSCATTER_KIND = "inscatter-table"
 INSCATTER_FORMAT_VERSION = 1
 INSCATTER_SUFFIX = ".tins"
 _EXTENT = Number(lo=0.0, lo_open=True, hi=50.0)  # u_max, v_max: −ln(1 − 0.999) ≈ 6.9; τ_max: TAU_MAX
-# What an in-scatter table file must hold, checked before it is used (trimeter.maps.schema).
+# What an in-scatter table file must hold, checked before it is used (trimeter.formats.schema).
 INSCATTER_SCHEMA = ContainerSchema(
     version=("format_version", "in-scatter table format version", INSCATTER_FORMAT_VERSION),
     meta=Table({"u_max": _EXTENT, "tau_max": _EXTENT, "v_max": _EXTENT, "n": SAMPLE_N, "thickness_mm": THICKNESS_MM,

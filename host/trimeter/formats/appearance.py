@@ -15,7 +15,7 @@ Representation (one concept, one place):
 Axes are strictly increasing. Between the nodes the map is evaluated as the inversion polishes on it
 (AppearanceMap.between_nodes: cubic in α and ln σt, PCHIP in g, refined, then trilinear).
 
-File: a trimeter container (trimeter.maps.container) of kind "appearance-map" whose meta holds the
+File: a trimeter container (trimeter.formats.container) of kind "appearance-map" whose meta holds the
 recipe (geometry preset + its parameters, n, thickness_mm, reference ρ's, sampling), provenance
 (Mitsuba version, builder, timings) and the map format version.
 """
@@ -29,11 +29,11 @@ from pathlib import Path
 import numpy as np
 
 from trimeter.errors import InputError, MapFileError
-from trimeter.maps.container import read_container, write_container
-from trimeter.maps.schema import (GEOMETRY_PARAMS, PROVENANCE, REFLECTANCE, SAMPLE_N, THICKNESS_MM, ArraySpec,
+from trimeter.formats.container import read_container, write_container
+from trimeter.formats.schema import (GEOMETRY_PARAMS, PROVENANCE, REFLECTANCE, SAMPLE_N, THICKNESS_MM, ArraySpec,
                                   ContainerSchema, Table, Text)
-from trimeter.maps.stages import rebuild_command
-from trimeter.model.grid import ForwardGrid
+from trimeter.formats.stages import rebuild_command
+from trimeter.model.grid import ForwardGrid, node_model_variance
 from trimeter.model.inscatter import InscatterTable
 from trimeter.model.response import background_response
 from trimeter.model.setup import SampleSetup
@@ -45,7 +45,7 @@ MAP_SUFFIX = ".tmap"
 _COEFFS = ("A", "B", "C")
 _REQUIRED = ("alpha", "sigma_t", "g", *_COEFFS, "std_b", "std_w")
 _GRID = ("n_alpha", "n_sigma_t", "n_g")
-# What a map file must hold, checked before it is used (trimeter.maps.schema). A, B, C are fractions of
+# What a map file must hold, checked before it is used (trimeter.formats.schema). A, B, C are fractions of
 # light (Monte Carlo noise aside, in [0, 1]); C < 1 keeps I(ρ) finite for every ρ ≤ 1.
 MAP_SCHEMA = ContainerSchema(
     version=("map_format_version", "map format version", MAP_FORMAT_VERSION),
@@ -186,7 +186,7 @@ class AppearanceMap:
         """The in-scattering table traced for this map (`<map>.tins` next to it, `trimeter map inscatter`),
         or None: then I_c is modelled as the unscattered beam alone. A table that does not belong to
         the map (another n, ℓ or geometry) is an error, not ignored."""
-        from trimeter.maps.inscatter_file import inscatter_path_for, load_inscatter
+        from trimeter.formats.inscatter_file import inscatter_path_for, load_inscatter
 
         if self.path is None or not inscatter_path_for(self.path).is_file():
             return None
@@ -242,3 +242,13 @@ def inscatter_mismatch(table: InscatterTable, amap: AppearanceMap) -> str | None
         return (f"{made_for}, and this map is {amap.checksum[:12]}… (rebuilt since?); rebuild the table: "
                 f"{rebuild_command(amap, 'tins')}")
     return None
+
+
+def map_model_variance(amap: AppearanceMap) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """The map's own error variance of (I_b, I_w) at its nodes, at its reference backgrounds:
+    (variances (na, ns, ng, 2), α, ln σt, g axes) for ForwardGrid.attach_model_variance."""
+    rb, rw = amap.reference_rhos
+    values = np.stack([background_response(amap.A, amap.B, amap.C, rho) for rho in (rb, rw)], axis=-1)
+    axes = (np.asarray(amap.alpha, float), np.log(np.asarray(amap.sigma_t, float)), np.asarray(amap.g, float))
+    var = node_model_variance(values, np.stack([amap.std_b, amap.std_w], axis=-1), *axes)
+    return var, axes

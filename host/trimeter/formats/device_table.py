@@ -45,33 +45,26 @@ first defect in a MapFileError; `load` refuses a file larger than the slot befor
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import json
 import os
-import re
 import struct
 import zlib
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any, NoReturn
+from typing import Any, NoReturn
 
 import numpy as np
 
-from trimeter.errors import MapFileError, OutputError
-from trimeter.inversion.lut import TableInverter
+from trimeter.atomic import atomic_write
+from trimeter.errors import MapFileError
+from trimeter.formats.container import read_bounded
 from trimeter.model.compact import CompactForward
-from trimeter.model.grid import ForwardGrid, node_model_variance
 from trimeter.model.inscatter import InscatterTable
-from trimeter.model.response import background_response
 from trimeter.model.setup import SampleSetup
-from trimeter.registers import MAP_SLOT_CAPACITY_BYTES, MapSlot
-
-if TYPE_CHECKING:
-    from trimeter.device.client import Device
-    from trimeter.maps.appearance import AppearanceMap
+from trimeter.registers import MAP_SLOT_CAPACITY_BYTES
 
 MAGIC = b"\x89TRLUT\r\n"
 FORMAT_VERSION = 2
@@ -86,7 +79,6 @@ _HEAD = struct.Struct("<8sHHI32s32s6f3f8H24s")
 _DIRECTORY = struct.Struct(f"<{2 * len(SECTIONS)}I")
 _RESERVED = HEADER_SIZE - _HEAD.size - _DIRECTORY.size
 _Q = 65535.0
-SHA256_HEX = re.compile(r"[0-9a-f]{64}")  # a table's name in the cache
 # the fewest (α, σt, g) nodes the compact model's splines take (cubic along α and ln σt, PCHIP along g)
 MIN_NODES = (4, 4, 3)
 
@@ -301,12 +293,6 @@ class DeviceTable:
         return InscatterTable(self.inscatter_L() if L is None else L, u_max=u_max, tau_max=tau_max, v_max=v_max,
                               n=self.n, thickness_mm=self.thickness_mm, geometry_params=self.geometry)
 
-    def fit_model(self) -> DeviceTableModel:
-        """What trimeter.inversion.api.fit takes to fit from this table alone: the lut fit on the table's
-        model refined at load (stds included; `fit --table --refine`). The instrument's own fit, which
-        `fit --table` runs, is trimeter.inversion.native.TableFitter on to_bytes()."""
-        return DeviceTableModel(self)
-
     def _geometry_bytes(self) -> bytes:
         return geometry_bytes(self.geometry)
 
@@ -454,16 +440,12 @@ class DeviceTable:
                    inv_frame=arrays["inv_frame"], inv_alpha_q=arrays["inv_alpha_q"], inv_g_q=arrays["inv_g_q"])
 
     def save(self, path: str | Path) -> Path:
-        from trimeter.atomic import atomic_write
-
         path = Path(path)
         atomic_write(path, self.to_bytes())
         return path
 
     @classmethod
     def load(cls, path: str | Path) -> DeviceTable:
-        from trimeter.maps.container import read_bounded
-
         path = Path(path)
         table = cls.from_bytes(read_bounded(path, MAX_BYTES, "map table"), source=str(path))
         object.__setattr__(table, "path", path)
@@ -510,198 +492,8 @@ def table_path_for(map_path: str | Path) -> Path:
     return Path(map_path).with_suffix(SUFFIX)
 
 
-def map_model_variance(amap: AppearanceMap) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    """The map's own error variance of (I_b, I_w) at its nodes, at its reference backgrounds:
-    (variances (na, ns, ng, 2), α, ln σt, g axes) for ForwardGrid.attach_model_variance."""
-    rb, rw = amap.reference_rhos
-    values = np.stack([background_response(amap.A, amap.B, amap.C, rho) for rho in (rb, rw)], axis=-1)
-    axes = (np.asarray(amap.alpha, float), np.log(np.asarray(amap.sigma_t, float)), np.asarray(amap.g, float))
-    var = node_model_variance(values, np.stack([amap.std_b, amap.std_w], axis=-1), *axes)
-    return var, axes
-
-
-# A map without the device's in-scattering (an ideal map) stores the smallest all-zero section: no correction.
-_NO_INSCATTER: tuple[np.ndarray, tuple[float, float, float], dict[str, Any]] = (
-    np.zeros((2, 2, 2)), (1.0, 1.0, 1.0), {})
-
-
-def largest_inverse_side(na: int, ns: int, ng: int, inscatter_shape: tuple[int, int, int], geometry_len: int) -> int:
-    """The largest inverse grid side that fits the slot with these counts (MapFileError: none does)."""
-    fits = [k for k in range(2, 129) if table_size(na, ns, ng, k, *inscatter_shape, geometry_len) <= MAX_BYTES]
-    if not fits:
-        raise MapFileError(f"a {na}×{ns}×{ng} map does not fit the {MAX_BYTES}-byte slot")
-    return max(fits)
-
-
-def too_coarse(amap: AppearanceMap) -> str | None:
-    """Why a map cannot have a device table (too few nodes for its splines), or None."""
-    shape = amap.A.shape
-    if any(n < least for n, least in zip(shape, MIN_NODES, strict=True)):
-        return (f"a device table needs at least {MIN_NODES[0]} α, {MIN_NODES[1]} σt and {MIN_NODES[2]} g nodes; "
-                f"the map has {shape[0]}×{shape[1]}×{shape[2]}")
-    return None
-
-
-def build_from_map(amap: AppearanceMap, n_inverse: int | None = None) -> DeviceTable:
-    """The device table of an AppearanceMap and its in-scattering table (.tins, when the map has one);
-    n_inverse: the inverse grid's side (default: the largest that fits the slot)."""
-    from trimeter.maps.table import inverse_grid
-
-    if why := too_coarse(amap):
-        raise MapFileError(f"map {amap.name}: {why}")
-    tins = amap.inscatter
-    if tins is None:
-        L, ends, geometry = _NO_INSCATTER
-        tins_sha = ""
-    else:
-        if abs(tins.n - amap.n) > 1e-6 or abs(tins.thickness_mm - amap.thickness_mm) > 1e-6:
-            raise MapFileError(f"{amap.name}: its .tins was traced for n {tins.n}, ℓ {tins.thickness_mm}, the map "
-                               f"is for n {amap.n}, ℓ {amap.thickness_mm}")
-        L, ends, geometry = tins.L, (tins.u_max, tins.tau_max, tins.v_max), tins.geometry_params
-        tins_sha = tins.checksum or ""
-    na, ns, ng = amap.A.shape
-    geometry_len = len(geometry_bytes(geometry))
-    nu, nt, nv = L.shape
-    if n_inverse is None:
-        n_inverse = largest_inverse_side(na, ns, ng, (nu, nt, nv), geometry_len)
-    elif n_inverse < 2 or table_size(na, ns, ng, n_inverse, nu, nt, nv, geometry_len) > MAX_BYTES:
-        raise MapFileError(f"an inverse grid of {n_inverse}×{n_inverse} is below 2×2 or does not fit the "
-                           f"{MAX_BYTES}-byte slot")
-    # the inverse slices over the map's own σt nodes, the axes the table stores
-    frames, inv_a, inv_g = inverse_grid(ForwardGrid.from_map(amap), n_inverse, amap.reference_rhos)
-    var, _axes = map_model_variance(amap)
-    return DeviceTable.build(
-        name=amap.name, parent_sha256=amap.checksum or "", inscatter_sha256=tins_sha, n=amap.n,
-        thickness_mm=amap.thickness_mm, cover_slide_n=amap.cover_slide_n, reference_rhos=amap.reference_rhos,
-        mc_stderr=float(np.median(np.concatenate([amap.std_b.ravel(), amap.std_w.ravel()]))),
-        alpha=amap.alpha, log_sigma_t=np.log(amap.sigma_t), g=amap.g, nodes=np.stack([amap.A, amap.B, amap.C], -1),
-        model_std=np.sqrt(var), inscatter_L=L, inscatter_ends=ends, inv_frame=frames, inv_alpha_q=inv_a,
-        inv_g_q=inv_g, geometry=geometry)
-
-
 def describe_table(path_or_bytes: str | Path | bytes) -> dict:
     """`trimeter map info` for a .tlut file (path) or raw table bytes (e.g. read back from a slot)."""
     if isinstance(path_or_bytes, (bytes, bytearray, memoryview)):
         return DeviceTable.from_bytes(bytes(path_or_bytes)).info()
     return DeviceTable.load(path_or_bytes).info()
-
-
-class DeviceTableModel:
-    """A fit's view of a device table alone (a trimeter.inversion.api.FitModel): the lut method's guess
-    and polish, with the in-scattering correction and the map's node error it carries. It holds no
-    appearance map and no network, so the paper and mlp methods are refused by name."""
-
-    paper_cache = None
-
-    def __init__(self, table: DeviceTable, inverter: TableInverter | None = None) -> None:
-        """inverter: another guess-and-polish over this table (default: TableInverter on it, its
-        forward model refined at load by ForwardGrid.between_nodes)."""
-        self.table = table
-        self.name = table.name
-        self.reference_rhos = table.reference_rhos
-        self.setup = table.setup
-        axes = tuple(np.asarray(a, dtype=np.float64) for a in (table.alpha, table.log_sigma_t, table.g))
-        self.inverter = inverter or TableInverter(table, inscatter=table.inscatter_table(),
-                                                  model_variance=(table.model_variance(), axes))
-
-    @property
-    def grid(self) -> ForwardGrid:
-        return self.inverter.grid
-
-    @property
-    def map(self) -> NoReturn:
-        where = f" ({self.table.path})" if self.table.path else ""
-        raise MapFileError(f"{self.name}: a device table{where} carries no appearance map; the paper method needs "
-                           f"the map (.tmap): fit from the table with method lut")
-
-    def mlp(self, model: str | Path | None = None) -> NoReturn:
-        raise MapFileError(f"{self.name}: a device table carries no MLP model; fit from it with method lut")
-
-
-# ------------------------------------------------------------------------------ the instrument's own table
-def cache_dir() -> Path:
-    """Where tables read from instruments are kept, one file per table named by its SHA-256
-    (TRIMETER_CACHE_DIR overrides the user cache directory)."""
-    import platformdirs
-
-    return Path(os.environ.get("TRIMETER_CACHE_DIR") or platformdirs.user_cache_dir("trimeter")) / "device-tables"
-
-
-def cached_tables(directory: Path | None = None) -> list[dict[str, Any]]:
-    """What the cache of instruments' tables holds (default: cache_dir()), one entry per file by name: its
-    SHA-256 as named (not recomputed) and read_header's fields, or for a file that is no readable table a
-    `note` saying why (instrument_table checks an entry in full, and deletes a damaged one, when it uses it)."""
-    directory = cache_dir() if directory is None else Path(directory)
-    entries: list[dict[str, Any]] = []
-    for path in sorted(directory.glob("*" + SUFFIX)):
-        entry: dict[str, Any] = {"file": path.name, "sha256": path.stem}
-        try:
-            if not SHA256_HEX.fullmatch(path.stem):
-                raise MapFileError(f"{path}: not named by a SHA-256, so not a cache entry")
-            entry.update(read_header(path))
-        except MapFileError as exc:
-            entry["note"] = f"skipped: {exc}"
-        entries.append(entry)
-    return entries
-
-
-def _cached(directory: Path, length: int, head: bytes, tail_at: int, tail: bytes) -> DeviceTable | None:
-    """The cached table with this length, header and trailing CRC-32, checked against its SHA-256 name;
-    a damaged entry is deleted (the caller then reads the slot again)."""
-    if not directory.is_dir():
-        return None
-    for path in directory.glob("*" + SUFFIX):
-        try:
-            if path.stat().st_size != length:
-                continue
-            data = path.read_bytes()
-        except OSError:
-            continue
-        if data[:len(head)] != head or data[tail_at:] != tail:
-            continue
-        try:
-            if hashlib.sha256(data).hexdigest() != path.stem:
-                raise MapFileError(f"{path}: its SHA-256 is not its name")
-            table = DeviceTable.from_bytes(data, source=str(path))
-        except MapFileError:
-            path.unlink(missing_ok=True)
-            continue
-        return table
-    return None
-
-
-def instrument_table(device: Device, cache: Path | None = None) -> tuple[DeviceTable, str, bool]:
-    """The table in the device's active map slot, (table, slot name, read from the cache). The slot's
-    header and trailing CRC-32 (a few hundred bytes) find it in the cache; otherwise the whole slot is
-    read, checked and cached (atomically, by its SHA-256). `device`: a trimeter.device.Device.
-
-    MapFileError when the device has no active table or its slot holds no usable one (corrupt, or a
-    retired format)."""
-    from trimeter.atomic import atomic_write
-
-    directory = cache_dir() if cache is None else Path(cache)
-    status = device.map_status()
-    active = MapSlot(status["map_active_slot"])
-    if active == MapSlot.NONE:
-        # not a link fault: the service must report it, not reconnect over it
-        raise MapFileError("the device has no active map table: flash one (`trimeter map flash maps/<map>.tlut "
-                           "--port PORT`) or name a map to fit with (--map)")
-    length = int(status[f"map_slot_{active.name.lower()}_length"])
-    if not HEADER_SIZE + 4 <= length <= MAX_BYTES:
-        raise MapFileError(f"the device's slot {active.name} holds {length} bytes, not a map table: flash one "
-                           f"(`trimeter map flash maps/<map>.tlut --port PORT`) or pass --map")
-    head = device.read_map(active, HEADER_SIZE)
-    tail_at = (length - 4) & ~1  # the device reads whole 16-bit words
-    tail = device.read_map(active, length - tail_at, offset=tail_at)
-    table = _cached(directory, length, head, tail_at, tail)
-    if table is not None:
-        return table, active.name, True
-    data = device.read_map(active, length)
-    try:
-        table = DeviceTable.from_bytes(data, source=f"the device's slot {active.name}")
-    except MapFileError as exc:
-        raise MapFileError(f"{exc}; flash a current table (`trimeter map flash maps/<map>.tlut --port PORT`) or "
-                           f"pass --map") from None
-    with contextlib.suppress(OutputError):  # an unwritable cache costs the next run a read, nothing else
-        atomic_write(directory / f"{table.sha256}{SUFFIX}", data)
-    return table, active.name, False

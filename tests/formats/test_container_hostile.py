@@ -21,9 +21,9 @@ from hypothesis import strategies as st
 
 from trimeter.cli import main
 from trimeter.errors import MapFileError
-from trimeter.maps.appearance import AppearanceMap
-from trimeter.maps.container import FORMAT_VERSION, MAGIC, MAX_CONTAINER_BYTES
-from trimeter.maps.inscatter_file import load_inscatter, save_inscatter
+from trimeter.formats.appearance import AppearanceMap
+from trimeter.formats.container import FORMAT_VERSION, MAGIC, MAX_CONTAINER_BYTES
+from trimeter.formats.inscatter_file import load_inscatter, save_inscatter
 from trimeter.model.inscatter import InscatterTable
 
 from test_container import small_map

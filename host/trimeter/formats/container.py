@@ -11,7 +11,7 @@ Layout (all little-endian):
     end - 32   32 bytes  SHA-256 of every byte before it
 
 A reader checks the file's size (os.fstat, before reading: at most MAX_CONTAINER_BYTES), magic,
-version, checksum, the header's structure (trimeter.maps.schema: every array descriptor's dtype from
+version, checksum, the header's structure (trimeter.formats.schema: every array descriptor's dtype from
 ALLOWED_DTYPES, shape, offset and length inside the payload) and, given the file kind's schema, its
 metadata, array names, shapes and values, so a truncated, tampered or crafted file is refused whole
 with a MapFileError naming the field, never half-loaded. No pickle: dtypes are plain numeric numpy dtypes.
@@ -32,7 +32,7 @@ from typing import NoReturn
 import numpy as np
 
 from trimeter.errors import MapFileError
-from trimeter.maps.schema import ALLOWED_DTYPES, ContainerSchema, Items, Json, Number, SchemaError, Table, Text
+from trimeter.formats.schema import ALLOWED_DTYPES, ContainerSchema, Items, Json, Number, SchemaError, Table, Text
 from trimeter.validation import shown
 
 MAGIC = b"\x89TRMAP\r\n"

@@ -1,0 +1,107 @@
+"""The instrument's own device table: read from its active map slot and kept in a cache on this computer, one
+file per table named by its SHA-256 (the table itself is trimeter.formats.device_table's byte format)."""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import os
+import re
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from trimeter.atomic import atomic_write
+from trimeter.errors import MapFileError, OutputError
+from trimeter.formats.device_table import HEADER_SIZE, MAX_BYTES, SUFFIX, DeviceTable, read_header
+from trimeter.registers import MapSlot
+
+if TYPE_CHECKING:
+    from trimeter.device.client import Device
+
+SHA256_HEX = re.compile(r"[0-9a-f]{64}")  # a table's name in the cache
+
+
+def cache_dir() -> Path:
+    """Where tables read from instruments are kept, one file per table named by its SHA-256
+    (TRIMETER_CACHE_DIR overrides the user cache directory)."""
+    import platformdirs
+
+    return Path(os.environ.get("TRIMETER_CACHE_DIR") or platformdirs.user_cache_dir("trimeter")) / "device-tables"
+
+
+def cached_tables(directory: Path | None = None) -> list[dict[str, Any]]:
+    """What the cache of instruments' tables holds (default: cache_dir()), one entry per file by name: its
+    SHA-256 as named (not recomputed) and read_header's fields, or for a file that is no readable table a
+    `note` saying why (instrument_table checks an entry in full, and deletes a damaged one, when it uses it)."""
+    directory = cache_dir() if directory is None else Path(directory)
+    entries: list[dict[str, Any]] = []
+    for path in sorted(directory.glob("*" + SUFFIX)):
+        entry: dict[str, Any] = {"file": path.name, "sha256": path.stem}
+        try:
+            if not SHA256_HEX.fullmatch(path.stem):
+                raise MapFileError(f"{path}: not named by a SHA-256, so not a cache entry")
+            entry.update(read_header(path))
+        except MapFileError as exc:
+            entry["note"] = f"skipped: {exc}"
+        entries.append(entry)
+    return entries
+
+
+def _cached(directory: Path, length: int, head: bytes, tail_at: int, tail: bytes) -> DeviceTable | None:
+    """The cached table with this length, header and trailing CRC-32, checked against its SHA-256 name;
+    a damaged entry is deleted (the caller then reads the slot again)."""
+    if not directory.is_dir():
+        return None
+    for path in directory.glob("*" + SUFFIX):
+        try:
+            if path.stat().st_size != length:
+                continue
+            data = path.read_bytes()
+        except OSError:
+            continue
+        if data[:len(head)] != head or data[tail_at:] != tail:
+            continue
+        try:
+            if hashlib.sha256(data).hexdigest() != path.stem:
+                raise MapFileError(f"{path}: its SHA-256 is not its name")
+            table = DeviceTable.from_bytes(data, source=str(path))
+        except MapFileError:
+            path.unlink(missing_ok=True)
+            continue
+        return table
+    return None
+
+
+def instrument_table(device: Device, cache: Path | None = None) -> tuple[DeviceTable, str, bool]:
+    """The table in the device's active map slot, (table, slot name, read from the cache). The slot's
+    header and trailing CRC-32 (a few hundred bytes) find it in the cache; otherwise the whole slot is
+    read, checked and cached (atomically, by its SHA-256). `device`: a trimeter.device.Device.
+
+    MapFileError when the device has no active table or its slot holds no usable one (corrupt, or a
+    retired format)."""
+    directory = cache_dir() if cache is None else Path(cache)
+    status = device.map_status()
+    active = MapSlot(status["map_active_slot"])
+    if active == MapSlot.NONE:
+        # not a link fault: the service must report it, not reconnect over it
+        raise MapFileError("the device has no active map table: flash one (`trimeter map flash maps/<map>.tlut "
+                           "--port PORT`) or name a map to fit with (--map)")
+    length = int(status[f"map_slot_{active.name.lower()}_length"])
+    if not HEADER_SIZE + 4 <= length <= MAX_BYTES:
+        raise MapFileError(f"the device's slot {active.name} holds {length} bytes, not a map table: flash one "
+                           f"(`trimeter map flash maps/<map>.tlut --port PORT`) or pass --map")
+    head = device.read_map(active, HEADER_SIZE)
+    tail_at = (length - 4) & ~1  # the device reads whole 16-bit words
+    tail = device.read_map(active, length - tail_at, offset=tail_at)
+    table = _cached(directory, length, head, tail_at, tail)
+    if table is not None:
+        return table, active.name, True
+    data = device.read_map(active, length)
+    try:
+        table = DeviceTable.from_bytes(data, source=f"the device's slot {active.name}")
+    except MapFileError as exc:
+        raise MapFileError(f"{exc}; flash a current table (`trimeter map flash maps/<map>.tlut --port PORT`) or "
+                           f"pass --map") from None
+    with contextlib.suppress(OutputError):  # an unwritable cache costs the next run a read, nothing else
+        atomic_write(directory / f"{table.sha256}{SUFFIX}", data)
+    return table, active.name, False
