@@ -19,7 +19,7 @@ def test_import_trimeter_stays_light():
 
 
 def test_names_resolve_and_unknown_ones_do_not():
-    from trimeter.maps.artifacts import fit, open_map
+    from trimeter.inversion.artifacts import fit, open_map
     from trimeter.prediction import predict
     from trimeter.results.reader import Measurement, load
 

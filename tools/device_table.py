@@ -46,8 +46,8 @@ if TYPE_CHECKING:
 
 # ------------------------------------------------------------------------------------------- build
 def build(amap: AppearanceMap, n_inverse: int | None = None) -> DeviceTable:
-    """The v2 table of an AppearanceMap (the pipeline's tlut stage: trimeter.maps.table_builder.build_from_map)."""
-    from trimeter.maps.table_builder import build_from_map
+    """The v2 table of an AppearanceMap (the pipeline's tlut stage: trimeter.inversion.table_builder.build_from_map)."""
+    from trimeter.inversion.table_builder import build_from_map
 
     return build_from_map(amap, n_inverse)
 
@@ -131,7 +131,7 @@ def measure(amap: AppearanceMap, noise_levels: Sequence[float], seed: int = 0,
     from trimeter.bench.fit import _stats, error_budget, heldout_collimated, heldout_for, heldout_intensities
     from trimeter.inversion import native
     from trimeter.inversion.table_model import DeviceTableModel
-    from trimeter.maps.artifacts import fit as fit_maps
+    from trimeter.inversion.artifacts import fit as fit_maps
 
     t0 = time.perf_counter()
     table = build(amap)

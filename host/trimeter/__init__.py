@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING, Any
 from trimeter.version import __version__ as __version__  # re-exported: `trimeter.__version__`
 
 if TYPE_CHECKING:  # what the lazy names below resolve to, for type checkers and the API reference
-    from trimeter.maps.artifacts import fit, open_map
+    from trimeter.inversion.artifacts import fit, open_map
     from trimeter.prediction import predict
     from trimeter.results.reader import Measurement, load
 
@@ -17,8 +17,9 @@ __all__ = ["Measurement", "fit", "load", "open_map", "predict"]
 
 # The Python API, each name imported from its module on first use so `import trimeter` stays light: `fit` the
 # inversion on maps by name or path, `load` a results directory, `predict` a slab's look, `open_map` by name.
-_LAZY = {"fit": "trimeter.maps.artifacts", "load": "trimeter.results.reader", "Measurement": "trimeter.results.reader",
-         "predict": "trimeter.prediction", "open_map": "trimeter.maps.artifacts"}
+_LAZY = {"fit": "trimeter.inversion.artifacts", "load": "trimeter.results.reader",
+         "Measurement": "trimeter.results.reader", "predict": "trimeter.prediction",
+         "open_map": "trimeter.inversion.artifacts"}
 
 
 def __getattr__(name: str) -> Any:

@@ -9,8 +9,8 @@ import numpy as np
 
 from trimeter.bench import fit as bench
 from trimeter.formats.appearance import AppearanceMap
-from trimeter.maps.artifacts import ArtifactCache
-from trimeter.maps.table_builder import build_from_map
+from trimeter.inversion.artifacts import ArtifactCache
+from trimeter.inversion.table_builder import build_from_map
 
 DATA = Path(__file__).resolve().parents[1] / "inversion" / "data"
 

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from trimeter.cli import main
-from trimeter.maps.artifacts import load_artifacts
+from trimeter.inversion.artifacts import load_artifacts
 from trimeter.spectrometer.sensors import as7341_weights
 
 MAP = "device-n1.5-l0.4"

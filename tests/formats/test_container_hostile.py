@@ -283,7 +283,7 @@ def test_crafted_mlp_metadata_is_refused(tmp_path, key, value, named):
 
 
 def test_oversized_mlp_model_is_refused_before_it_is_read(tmp_path):
-    from trimeter.maps.artifacts import load_mlp
+    from trimeter.inversion.artifacts import load_mlp
 
     path = tmp_path / "m.onnx"
     with open(path, "wb") as f:

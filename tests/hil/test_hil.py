@@ -194,7 +194,7 @@ def test_config_backup_restores_by_name_after_a_register_map_change(start_twin, 
 
 
 def _table_bytes(hil_map):
-    from trimeter.maps.table_builder import build_from_map
+    from trimeter.inversion.table_builder import build_from_map
 
     return build_from_map(hil_map).to_bytes()
 
@@ -372,7 +372,7 @@ def test_two_samples_per_press_swap_on_the_double_blink(rig, hil_map, host_dirs)
 
 
 def test_flash_the_map_table_then_measure_with_it(start_twin, hil_map, host_dirs, tmp_path, capsys, request):
-    from trimeter.maps.artifacts import load_artifacts
+    from trimeter.inversion.artifacts import load_artifacts
 
     twin = start_twin()
     rig = TwinRig(twin)

@@ -49,7 +49,7 @@ def hil_map():
 
 @pytest.fixture
 def table_file(tmp_path, hil_map):
-    from trimeter.maps.table_builder import build_from_map
+    from trimeter.inversion.table_builder import build_from_map
 
     return build_from_map(hil_map).save(tmp_path / "hil.tlut")
 

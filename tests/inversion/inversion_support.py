@@ -21,7 +21,7 @@ def well_conditioned(amap, n, rng, alpha=(0.3, 0.995), tau=(0.2, 4.0), g=(0.0, 0
 def forward(amap, alpha, sigma_t, g, rho_b, rho_w):
     """(I_b, I_w, I_c) by the forward model every method polishes and propagates with (the map
     table's: the map resampled onto refined axes), so round trips test the inversion alone."""
-    from trimeter.maps.artifacts import load_artifacts
+    from trimeter.inversion.artifacts import load_artifacts
 
     n = len(np.atleast_1d(alpha))
     b = lambda v: np.broadcast_to(np.asarray(v, float), (n,)).copy()  # noqa: E731

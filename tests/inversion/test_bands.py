@@ -10,7 +10,7 @@ import pytest
 from trimeter.errors import InputError
 from trimeter.inversion.bands import _basis, band_weights, fit_bands
 from trimeter.inversion.flags import FitFlag
-from trimeter.maps.artifacts import load_artifacts
+from trimeter.inversion.artifacts import load_artifacts
 from trimeter.spectrometer.sensors import as7341_weights
 
 INKS = ("cyan-ink", "magenta-ink", "yellow-ink", "black-ink")

@@ -68,7 +68,7 @@ def test_per_wavelength_backgrounds_case_scores_the_fit_at_the_bins_own_backgrou
     import numpy as np
 
     from trimeter.bench.fit import DEFAULT_POLISH, _bench_backgrounds, error_budget, heldout_for
-    from trimeter.maps.artifacts import load_artifacts
+    from trimeter.inversion.artifacts import load_artifacts
     from trimeter.formats.appearance import AppearanceMap
 
     amap = AppearanceMap.load(DATA / "ideal-l0.5.tmap")

@@ -31,7 +31,7 @@ def amap():
 
 
 def model(amap) -> ForwardGrid:
-    from trimeter.maps.artifacts import load_artifacts
+    from trimeter.inversion.artifacts import load_artifacts
 
     return load_artifacts(amap).grid
 

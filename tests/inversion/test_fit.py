@@ -224,7 +224,7 @@ def test_lut_never_uses_a_table_built_from_another_map(ideal_map, thick_map, tmp
     import shutil
 
     from trimeter.formats.appearance import AppearanceMap
-    from trimeter.maps.artifacts import ArtifactCache
+    from trimeter.inversion.artifacts import ArtifactCache
 
     shutil.copy(thick_map.path, tmp_path / "x.tmap")
     shutil.copy(ideal_map.path.with_suffix(".tlut"), tmp_path / "x.tlut")
@@ -308,7 +308,7 @@ def test_light_scattered_into_the_aperture_no_longer_reads_as_a_lower_sigma_t():
     takes it out; I_c here is traced independently of that table (another trace, another seed)."""
     from trimeter.forward.transport.inscatter_tracer import traced_log1p_ratio
     from trimeter.formats.appearance import AppearanceMap
-    from trimeter.maps.artifacts import load_artifacts
+    from trimeter.inversion.artifacts import load_artifacts
     from trimeter.paths import MAPS_DIR
 
     amap = AppearanceMap.load(MAPS_DIR / "device-n1.5-l0.8.tmap")

@@ -13,7 +13,7 @@ from trimeter.inversion import native
 from trimeter.inversion.kernel import NativeKernel, NumpyKernel
 from trimeter.inversion.methods import METHODS, register, unregister
 from trimeter.inversion.strategy import Method
-from trimeter.maps.artifacts import ArtifactCache, load_artifacts
+from trimeter.inversion.artifacts import ArtifactCache, load_artifacts
 
 from inversion_support import forward
 

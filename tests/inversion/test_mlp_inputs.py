@@ -41,7 +41,7 @@ def test_the_inputs_place_each_intensity_between_the_maps_least_and_most_scatter
 def test_the_ends_are_the_forward_models_own(ideal_map, refined):
     """ScatterRange's lookups equal grid.intensities at the map's α ends (g = 0) at any σt and ρ, on the
     map between its nodes and on the fit's grid (the table's, refined)."""
-    from trimeter.maps.artifacts import load_artifacts
+    from trimeter.inversion.artifacts import load_artifacts
 
     grid = load_artifacts(ideal_map).grid if refined else ideal_map.between_nodes
     rng = np.random.default_rng(7)

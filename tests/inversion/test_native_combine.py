@@ -74,7 +74,7 @@ def test_thicknesses_fitted_into_one_block_combine_as_gathered_ones(ideal_map, t
     """fit() writes each thickness's fused fit into its place of one (k, rows, n) block and combines
     that block as it is: the same result, bit for bit, as each thickness fitted alone and combined
     from its columns (with and without the intensities' own stds, i.e. conditioning rows)."""
-    from trimeter.maps.artifacts import load_artifacts
+    from trimeter.inversion.artifacts import load_artifacts
 
     rng = np.random.default_rng(8)
     n = 301

@@ -11,7 +11,7 @@ import trimeter
 from trimeter.inversion import native
 from trimeter.inversion.kernel import NativeKernel, NumpyKernel
 from trimeter.inversion.lut import TableInverter
-from trimeter.maps.artifacts import load_artifacts
+from trimeter.inversion.artifacts import load_artifacts
 from trimeter.formats.device_table import DeviceTable
 from trimeter.model.grid import ForwardGrid
 from trimeter.paths import MAPS_DIR

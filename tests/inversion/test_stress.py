@@ -80,7 +80,7 @@ def _perturbation_ratio(amap, method, kw, rng, n=2000, h=1e-6):
     r1 = trimeter.fit(amap, *(I + d), method=method, **kw)
     clean = (r0.flags == 0) & (r1.flags == 0)
     dtheta = np.stack([r1.alpha - r0.alpha, r1.sigma_t - r0.sigma_t, r1.g - r0.g])
-    from trimeter.maps.artifacts import load_artifacts
+    from trimeter.inversion.artifacts import load_artifacts
 
     J = load_artifacts(amap).grid.jacobian(r0.alpha, r0.sigma_t, r0.g, np.full(n, 0.02), np.full(n, 0.99))
     inv_norm = np.linalg.norm(np.linalg.inv(J), ord=2, axis=(1, 2))

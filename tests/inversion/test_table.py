@@ -13,8 +13,8 @@ from hypothesis import strategies as st
 
 from trimeter.errors import MapFileError
 from trimeter.formats.device_table import DeviceTable, HEADER_SIZE, MAGIC, MAX_BYTES, describe_table, table_path_for
-from trimeter.maps.table_builder import build_from_map
-from trimeter.maps.table_builder import _from_frame
+from trimeter.inversion.table_builder import build_from_map
+from trimeter.inversion.table_builder import _from_frame
 from trimeter.model.grid import ForwardGrid
 
 

@@ -21,7 +21,7 @@ DEVICE = MAPS_DIR / "device-n1.5-l0.4.tmap"
 
 def _materials(amap, n=400, seed=0):
     """Clean, well-conditioned bins of the map: intensities from its own forward model."""
-    from trimeter.maps.artifacts import load_artifacts
+    from trimeter.inversion.artifacts import load_artifacts
 
     rng = np.random.default_rng(seed)
     alpha, g = rng.uniform(0.5, 0.97, n), rng.uniform(0.1, 0.8, n)
@@ -73,7 +73,7 @@ def test_the_map_error_is_its_mc_error_where_the_splines_are_exact():
 
 def test_given_stds_set_the_uncertainty_and_thickness_widens_sigma_t_only():
     from trimeter.formats.appearance import AppearanceMap
-    from trimeter.maps.artifacts import load_artifacts
+    from trimeter.inversion.artifacts import load_artifacts
 
     amap = AppearanceMap.load(DEVICE)
     I_b, I_w, I_c = _materials(amap)
@@ -104,7 +104,7 @@ def test_given_stds_set_the_uncertainty_and_thickness_widens_sigma_t_only():
 def test_the_maps_own_error_enters_the_stds():
     from trimeter.inversion.kernel import NumpyKernel
     from trimeter.formats.appearance import AppearanceMap
-    from trimeter.maps.artifacts import ArtifactCache
+    from trimeter.inversion.artifacts import ArtifactCache
 
     amap = AppearanceMap.load(DEVICE)
     I_b, I_w, I_c = _materials(amap)
@@ -150,7 +150,7 @@ def test_underdetermined_is_judged_at_no_less_than_the_noise_model(monkeypatch, 
     from trimeter.inversion.flags import FitFlag
     from trimeter.inversion.kernel import NativeKernel, NumpyKernel
     from trimeter.formats.appearance import AppearanceMap
-    from trimeter.maps.artifacts import load_artifacts
+    from trimeter.inversion.artifacts import load_artifacts
 
     kernel = NativeKernel() if native_kernel else NumpyKernel()
     fit = lambda *args, **kw: trimeter.fit(*args, kernel=kernel, **kw)  # noqa: E731

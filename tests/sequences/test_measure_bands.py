@@ -12,7 +12,7 @@ from trimeter.device.client import Device
 from trimeter.domain import Sample
 from trimeter.inversion.flags import FitFlag
 from trimeter.formats.appearance import AppearanceMap
-from trimeter.maps.artifacts import load_artifacts
+from trimeter.inversion.artifacts import load_artifacts
 from trimeter.sequences import Runner, calibration
 from trimeter.sequences.measure import measure
 from trimeter.sequences.settings import HostSettings

@@ -23,7 +23,7 @@ GEOMETRY_ENTRY = HEADER_SIZE - 12 - 8  # the directory's last (offset, length) p
 def table():
     """The HIL map's table (an ideal map's carries no geometry: given one here, as a device map's would)."""
     from trimeter.formats.appearance import AppearanceMap
-    from trimeter.maps.table_builder import build_from_map
+    from trimeter.inversion.table_builder import build_from_map
 
     built = build_from_map(AppearanceMap.load(HIL_MAP))
     geometry = {"description": "a test's", "detector": {"distance_mm": 150.0}, "cover_slides": True}

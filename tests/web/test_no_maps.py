@@ -21,7 +21,7 @@ def hil_map():
 
 @pytest.fixture(scope="module")
 def table(hil_map):
-    from trimeter.maps.table_builder import build_from_map
+    from trimeter.inversion.table_builder import build_from_map
 
     return build_from_map(hil_map)
 

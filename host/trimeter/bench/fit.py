@@ -61,7 +61,7 @@ if TYPE_CHECKING:
     from trimeter.domain.parameters import FitResult
     from trimeter.formats.appearance import AppearanceMap
     from trimeter.inversion.api import FitModel
-    from trimeter.maps.artifacts import ArtifactCache
+    from trimeter.inversion.artifacts import ArtifactCache
 
     # (label, method name, fit options, the map's loaded artifacts)
     Variant = tuple[str, str, dict[str, Any], FitModel]
@@ -311,7 +311,7 @@ def error_budget(amap: AppearanceMap, h: Heldout, rho_b: float, rho_w: float,
     (measurable gamut, g scored, well-conditioned for α and for g). artifacts: the map's, loaded
     (default: through the process's cache)."""
     from trimeter.inversion.kernel import default_kernel
-    from trimeter.maps.artifacts import load_artifacts
+    from trimeter.inversion.artifacts import load_artifacts
     from trimeter.model.grid import ForwardGrid
 
     a, s, g = h["alpha"], h["sigma_t"], h["g"]
@@ -534,7 +534,7 @@ def speed(amaps: list[AppearanceMap], median_bins: int, repeats: int) -> dict[st
     forward model, fitted together; the one-thickness fit of the first of them is timed beside it."""
     import trimeter
     from trimeter.inversion.paper import coordinates, interpolator
-    from trimeter.maps.artifacts import load_artifacts
+    from trimeter.inversion.artifacts import load_artifacts
 
     amap = next((m for m in amaps if m.recipe.get("geometry") == "ideal"), amaps[0])
     artifacts = load_artifacts(amap)
@@ -665,8 +665,8 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
     return every figure: per map its rows (per noise level and variant), map-exact rows, error budget
     and target verdicts; the two-thickness rows when two maps hold the same materials."""
     from trimeter.inversion import native
-    from trimeter.maps.artifacts import ArtifactCache
-    from trimeter.maps.table_builder import build_from_map
+    from trimeter.inversion.artifacts import ArtifactCache
+    from trimeter.inversion.table_builder import build_from_map
 
     noise_levels = [float(x) for x in args.noise.split(",")]
     args.out.mkdir(parents=True, exist_ok=True)

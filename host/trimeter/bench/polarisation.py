@@ -124,7 +124,7 @@ def _stats(batches: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _compare(amap, geometry: str, materials, unpol: np.ndarray, pol: np.ndarray) -> dict[str, Any]:
-    from trimeter.maps.artifacts import fit
+    from trimeter.inversion.artifacts import fit
 
     I_u, se_u = _stats(unpol)
     I_p, se_p = _stats(pol)

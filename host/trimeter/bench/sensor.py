@@ -115,7 +115,7 @@ def measure(args: Any) -> dict[str, Any]:
     "builds" one row per build and material set (its "id" from `build_id`), "bases" the band-aware fit's bases."""
     from trimeter.inversion.bands import fit_bands
     from trimeter.inversion.api import fit as fit_map
-    from trimeter.maps.artifacts import load_artifacts
+    from trimeter.inversion.artifacts import load_artifacts
     from trimeter.spectrometer.i2c import CHANNEL_NM
     from trimeter.spectrometer.sensors import (BEAM_LED, C12880_FWHM_NM, PANEL_LEDS, as7341_weights,
                                                c12880_wavelengths_nm, emission, resample_matrix, slit_matrix)

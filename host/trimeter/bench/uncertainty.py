@@ -131,7 +131,7 @@ class Case:
     def at_thickness(self, ratio):
         """The intensities of these materials cut `ratio` × the map's thickness, read on the map: the
         renders moved by the forward model's change from σt to σt·ratio (its own error cancels)."""
-        from trimeter.maps.artifacts import load_artifacts
+        from trimeter.inversion.artifacts import load_artifacts
 
         grid = load_artifacts(self.amap).grid
         a, s, g = (self.truth[k] for k in PARAMS)
@@ -141,7 +141,7 @@ class Case:
 
 
 def _fit(cases, noisy, stds, mode, thickness_std=None, cache=None):
-    from trimeter.maps.artifacts import fit
+    from trimeter.inversion.artifacts import fit
 
     amaps = [c.amap for c in cases]
     I = [np.stack([n[i] for n in noisy]) for i in range(3)]
@@ -254,7 +254,7 @@ def measure(args) -> dict:
         raise InputError("--draws must be ≥ 1")
     if not (0 <= args.thickness_rel_std < 0.5):
         raise InputError("--thickness-rel-std must be in [0, 0.5)")
-    from trimeter.maps.artifacts import ArtifactCache
+    from trimeter.inversion.artifacts import ArtifactCache
     from trimeter.model import grid
 
     print(f"inversion kernel: {native.status()}")

@@ -166,7 +166,7 @@ def _fit_models(args: argparse.Namespace) -> list[FitSource]:
 
 def run(args: argparse.Namespace) -> int:
     from trimeter.inversion.flags import advice, describe
-    from trimeter.maps.artifacts import fit
+    from trimeter.inversion.artifacts import fit
     from trimeter.formats.device_table import DeviceTable
 
     if args.bands is not None:
@@ -226,7 +226,7 @@ def _run_streamed(args: argparse.Namespace, models: Sequence[FitSource], method:
                   table_file: DeviceTable | None) -> int:
     """The maps (or a table refined at load) with CSV output: the input read, fitted and written in chunks
     (trimeter.cli.fit_stream), the same output as one fit of every row."""
-    from trimeter.maps.artifacts import fit
+    from trimeter.inversion.artifacts import fit
 
     thickness_stds: list[list[float]] = [[] for _ in models]  # fixed by the first chunk: one per sample
     bins_before = [0]  # the chunk's first bin in the whole input (the paper method's samples)

@@ -76,7 +76,7 @@ def run_bands(args: argparse.Namespace) -> int:
     from trimeter.inversion.bands import fit_bands
     from trimeter.inversion.flags import advice
     from trimeter.formats.appearance import AppearanceMap, find_map
-    from trimeter.maps.artifacts import load_artifacts
+    from trimeter.inversion.artifacts import load_artifacts
 
     if not args.maps or len(args.maps) != 1:
         raise InputError("--bands: fits with one --map (one thickness)")

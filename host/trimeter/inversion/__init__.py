@@ -1,6 +1,6 @@
 """Inversion of the forward model: measured (I_b, I_w, I_c) per wavelength → (α, σt, g) with per-bin
 uncertainty and flags. It only solves: what it solves comes in as model objects (trimeter.model,
-loaded from map files by trimeter.maps.artifacts).
+loaded from map files by trimeter.inversion.artifacts).
 
     trimeter.fit(maps, I_b, I_w, I_c, rho_b=None, rho_w=None, method="lut") -> FitResult
 

@@ -10,7 +10,7 @@ the thickness's uncertainty. Several thicknesses are then combined by inverse-va
 paper's method pools its samples and takes the median, as written) and checked against each other.
 
 The fit takes what it solves as model objects (FitModel: a map's forward grid, table inverter, MLP
-session, its nodes for the paper method), loaded by trimeter.maps.artifacts (`trimeter.fit` takes map
+session, its nodes for the paper method), loaded by trimeter.inversion.artifacts (`trimeter.fit` takes map
 names and paths and loads them there), and the kernel (numpy or C, trimeter.inversion.kernel) it is
 handed. Methods come from one table (trimeter.inversion.methods). For a guess-and-polish method, one
 thickness's whole flow runs in one C call with the compiled kernel (`tm_fit`); `_prepare` + the solve
@@ -79,7 +79,7 @@ def _polish_tol_std(polish_tol: float) -> float:
 
 
 class FitModel(Protocol):
-    """What a fit needs of one map (thickness): trimeter.maps.artifacts.MapArtifacts is one."""
+    """What a fit needs of one map (thickness): trimeter.inversion.artifacts.MapArtifacts is one."""
     # read-only: a fit never sets them (properties, so that a model may compute them)
     @property
     def name(self) -> str: ...
@@ -122,7 +122,7 @@ def fit(models: FitModel | Sequence[FitModel], I_b: ArrayLike, I_w: ArrayLike, I
         first_row: int = 0) -> FitResult:
     """Invert measured intensities (arrays over wavelength bins) to α, σt [1/mm], g.
 
-    models: a FitModel (trimeter.maps.artifacts.load_artifacts), or a list of them (the same material at
+    models: a FitModel (trimeter.inversion.artifacts.load_artifacts), or a list of them (the same material at
     several thicknesses); with k maps, I_b, I_w, I_c (and ρ's, if per-thickness) have shape (k, N).
     method: a name in trimeter.inversion.methods; kernel: numpy or C (default: default_kernel()).
     rho_b, rho_w: per-bin background reflectances (default: each map's reference backgrounds).
@@ -161,7 +161,7 @@ def fit(models: FitModel | Sequence[FitModel], I_b: ArrayLike, I_w: ArrayLike, I
     if not amaps:
         raise InputError("maps must name at least one map")
     if not all(hasattr(m, "inverter") for m in amaps):  # a map, a path or a name: trimeter.fit loads those
-        raise InputError("inversion.api.fit takes loaded maps (trimeter.maps.artifacts.load_artifacts); "
+        raise InputError("inversion.api.fit takes loaded maps (trimeter.inversion.artifacts.load_artifacts); "
                          "trimeter.fit takes maps, paths and names")
     k = len(amaps)
     arrays = _shape_inputs(k, I_b, I_w, I_c, rho_b, rho_w, amaps)

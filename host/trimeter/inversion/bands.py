@@ -273,7 +273,7 @@ def fit_bands(model: FitModel, weights: BandWeights, I_b: ArrayLike, I_w: ArrayL
               noise_abs: float = 2e-4, check_resolved: bool = True, kernel: Kernel | None = None) -> BandFit:
     """Fit the channels' band readings (arrays over weights.channels, in that order) of one sample.
 
-    model: a loaded map (trimeter.maps.artifacts.load_artifacts: its forward grid, as the per-channel
+    model: a loaded map (trimeter.inversion.artifacts.load_artifacts: its forward grid, as the per-channel
     fit's); rho_b, rho_w: per-channel backgrounds (default: the map's reference backgrounds);
     *_std: the readings' stds (default: the fit's noise model σ = noise_rel·I + noise_abs);
     grid_nm: wavelengths to report the spectra on as well; basis: "cubic" (natural spline through the

@@ -104,7 +104,7 @@ def network_inputs(x: np.ndarray, scatter_range: ScatterRange) -> np.ndarray:
 class MlpInverter:
     def __init__(self, model: bytes, path: str | Path, map_checksum: str, log_sigma_range: tuple[float, float],
                  alpha_range: tuple[float, float], g_range: tuple[float, float]) -> None:
-        """model: the ONNX file's bytes (trimeter.maps.artifacts reads them), path: where they came from
+        """model: the ONNX file's bytes (trimeter.inversion.artifacts reads them), path: where they came from
         (for messages); the ranges: the map's ln σt, α and g boxes."""
         import onnxruntime as ort
 

@@ -142,7 +142,7 @@ def combine(members: Sequence[Measurement], *, joint: bool = True) -> Combined:
 
 def joint_refit(members: Sequence[Measurement], thicknesses: Sequence[float]) -> FitResult:
     """One fit of every thickness's member-averaged reflectances together (module docstring)."""
-    from trimeter.maps.artifacts import fit
+    from trimeter.inversion.artifacts import fit
 
     per: dict[float, list] = {t: [] for t in thicknesses}
     maps: dict[float, str] = {}

@@ -133,7 +133,7 @@ def on_twin(mixtures: Sequence[Sequence[tuple[str, float]]] | None = None, *, no
             seed: int = 0) -> tuple[dict[str, SpectralMaterial], list[MixtureObservation], dict]:
     """Components measured (two thicknesses, fitted jointly) and mixtures measured (0.4 mm) on the twin's
     optics (module docstring). Returns (components, mixtures, what was done)."""
-    from trimeter.maps.artifacts import fit, open_map
+    from trimeter.inversion.artifacts import fit, open_map
     from trimeter.results.writer import Parameters
     from trimeter.twin.optics import Optics
 
@@ -184,7 +184,7 @@ def component_material(source: str, library_db: str | None = None) -> SpectralMa
 
 def observed_mixture(spec: str, result: str, forward: str | None = None) -> MixtureObservation:
     """A mixture `spec` (NAME:FRACTION+…, names of components) measured in the results directory `result`."""
-    from trimeter.maps.artifacts import open_map
+    from trimeter.inversion.artifacts import open_map
     from trimeter.results.reader import load
 
     fractions = parse_fractions(spec)

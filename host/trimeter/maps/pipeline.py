@@ -4,7 +4,7 @@
 |---|---|---|---|
 | tmap | `<name>.tmap` | trimeter.maps.builder (the columns, on Dask or here) | the recipe |
 | tins | `<name>.tins` | trimeter.forward.transport.inscatter_tracer.build_inscatter_table | device geometry only |
-| tlut | `<name>.tlut` | trimeter.maps.table_builder.build_from_map | the .tins where the map has one |
+| tlut | `<name>.tlut` | trimeter.inversion.table_builder.build_from_map | the .tins where the map has one |
 | onnx | `<name>.onnx` | trimeter.maps.mlp_training (scikit-learn → ONNX) | opt-in: minutes of training |
 
 Every child is derived from the `.tmap` alone, so each records the map's SHA-256 as its parent (the
@@ -57,7 +57,7 @@ def applies(stage: str, amap) -> str | None:
                             or "collimated" not in amap.recipe.get("geometry_params", {})):
         return "in-scattering needs the device geometry's collimated set-up"
     if stage == "tlut":
-        from trimeter.maps.table_builder import too_coarse
+        from trimeter.inversion.table_builder import too_coarse
 
         return too_coarse(amap)
     return None
@@ -72,7 +72,7 @@ def compute(stage: str, amap, options: Options):
                                      photons=options.inscatter_photons, seed=options.inscatter_seed,
                                      shape=options.inscatter_shape)
     if stage == "tlut":
-        from trimeter.maps.table_builder import build_from_map
+        from trimeter.inversion.table_builder import build_from_map
 
         return build_from_map(amap, n_inverse=options.table_n_xy)
     if stage == "onnx":

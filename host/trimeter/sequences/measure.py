@@ -103,7 +103,7 @@ class PreparedFit:
         hold), or None when the method fits without one."""
         if self.method != "lut":
             return None
-        from trimeter.maps.artifacts import load_artifacts
+        from trimeter.inversion.artifacts import load_artifacts
 
         return load_artifacts(self.samples[0].map).inverter.table.to_bytes()
 
@@ -153,7 +153,7 @@ class PreparedFit:
         several thicknesses combined by inverse-variance weighting as the per-wavelength fit does."""
         from trimeter.inversion.api import combine
         from trimeter.inversion.bands import fit_bands
-        from trimeter.maps.artifacts import load_artifacts
+        from trimeter.inversion.artifacts import load_artifacts
 
         bands = self.bands
         assert bands is not None

@@ -1,6 +1,9 @@
-"""Building a map's device table (the `.tlut` file, trimeter.formats.device_table): build_from_map, and the
-inverse grid it stores, the `lut` method's
-first guess, for each σt node of a forward grid, of (α, g) over a regular (u, v) grid in [0, 1]², where
+"""Building a map's device table (the `.tlut` file, trimeter.formats.device_table): build_from_map and the
+inverse grid it stores. It sits with the inversion because that grid is the `lut` method's own first guess,
+polished by the inversion's Newton kernel; the map pipeline's tlut stage (trimeter.maps.pipeline) and a fit
+from a map without a current `.tlut` (trimeter.inversion.artifacts) both build it here.
+
+The inverse grid: for each σt node of a forward grid, (α, g) over a regular (u, v) grid in [0, 1]², where
 (u, v) is an affine image of (x, y) = (√I_b, √I_w) at the reference backgrounds, aligned with that
 slice's gamut (its principal axes), so the grid covers the gamut tightly. The codes are u16:
 α = α_0 + (α_last − α_0) · q / 65535, likewise g.

@@ -8,21 +8,31 @@ import os
 import stat
 import warnings
 from collections import OrderedDict
+from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
-from trimeter.errors import MapFileError
+from trimeter.domain.parameters import FitResult
+
+from trimeter.domain.measurement import MapRef
+from trimeter.errors import InputError, MapFileError
+from trimeter.formats.appearance import AppearanceMap, find_map, map_model_variance
+from trimeter.formats.container import read_bounded
+from trimeter.formats.device_table import DeviceTable, table_path_for
+from trimeter.formats.stages import rebuild_command
 from trimeter.inversion.lut import TableInverter
 from trimeter.inversion.mlp import MlpInverter
-from trimeter.formats.appearance import AppearanceMap, find_map
-from trimeter.formats.container import read_bounded
-from trimeter.formats.appearance import map_model_variance
-from trimeter.formats.device_table import DeviceTable, table_path_for
+from trimeter.inversion.table_builder import build_from_map
 from trimeter.inversion.table_model import DeviceTableModel
-from trimeter.maps.table_builder import build_from_map
 from trimeter.model.grid import ForwardGrid
 from trimeter.model.setup import SampleSetup
+
+# what names a map to fit with: the map itself, its path, a shipped map's name, or a device table alone (a
+# measurement's MapRef is one of the first two)
+MapSpec = AppearanceMap | DeviceTable | MapRef | str | Path
 
 MODEL_SUFFIX = ".onnx"
 MAX_MODEL_BYTES = 64 * 2**20  # the shipped models are ~6 KB; onnxruntime would parse anything given
@@ -90,8 +100,6 @@ def map_table(amap: AppearanceMap) -> DeviceTable:
     """The map's table: maps/<name>.tlut if it exists and was built from this very map; else built in
     memory from the map. A stale .tlut (built from an earlier version of the map) is never used: it is
     rebuilt in memory with a warning, since the map is the source of truth and the file only a cache."""
-    from trimeter.maps.pipeline import rebuild_command
-
     if amap.path is not None and (path := table_path_for(amap.path)).is_file():
         table = DeviceTable.load(path)  # a damaged or format-1 file is a MapFileError, never ignored
         if not amap.checksum or table.parent_sha256 == amap.checksum:
@@ -111,13 +119,16 @@ class ArtifactCache:
         self._loaded: dict = {}
         self.tables = dict(tables or {})
 
-    def get(self, spec) -> MapArtifacts | DeviceTableModel:
+    def get(self, spec: MapSpec) -> MapArtifacts | DeviceTableModel:
         """The artifacts of an AppearanceMap, a map path or a shipped map's name; a DeviceTable's fit model
         (the table alone)."""
         if isinstance(spec, DeviceTable):
             if spec.sha256 not in self._loaded:
                 self._loaded[spec.sha256] = DeviceTableModel(spec)
             return self._loaded[spec.sha256]
+        if not isinstance(spec, (AppearanceMap, str, Path)):
+            raise InputError(f"{spec!r} is no map: give an appearance map, its path, a shipped map's name or a "
+                             f"device table")
         amap = spec if isinstance(spec, AppearanceMap) else AppearanceMap.load(find_map(spec))
         inscatter = amap.inscatter
         key = (amap.checksum or id(amap), inscatter.checksum if inscatter is not None else None)
@@ -133,20 +144,23 @@ class ArtifactCache:
 DEFAULT_CACHE = ArtifactCache()
 
 
-def load_artifacts(spec, cache: ArtifactCache | None = None) -> MapArtifacts | DeviceTableModel:
+def load_artifacts(spec: MapSpec, cache: ArtifactCache | None = None) -> MapArtifacts | DeviceTableModel:
     return (DEFAULT_CACHE if cache is None else cache).get(spec)
 
 
-def fit(maps, I_b, I_w, I_c, rho_b=None, rho_w=None, method: str = "lut", *, cache: ArtifactCache | None = None,
-        **options):
+def fit(maps: MapSpec | Sequence[MapSpec], I_b: ArrayLike, I_w: ArrayLike, I_c: ArrayLike,
+        rho_b: ArrayLike | None = None, rho_w: ArrayLike | None = None, method: str = "lut", *,
+        cache: ArtifactCache | None = None, **options: Any) -> FitResult:
     """`trimeter.fit`: trimeter.inversion.api.fit on maps given as AppearanceMaps, map paths, shipped
     maps' names or DeviceTables (one, or a list for several thicknesses), loaded through `cache` (default: this
     process's). Every other option: trimeter.inversion.api.fit's."""
     from trimeter.inversion.api import fit as solve
 
-    listed = isinstance(maps, (list, tuple))
-    models = [load_artifacts(m, cache) for m in (maps if listed else [maps])]
-    return solve(models if listed else models[0], I_b, I_w, I_c, rho_b, rho_w, method, **options)
+    if isinstance(maps, (list, tuple)):
+        return solve([load_artifacts(m, cache) for m in maps], I_b, I_w, I_c, rho_b, rho_w, method, **options)
+    if isinstance(maps, Sequence) and not isinstance(maps, str):
+        raise InputError(f"several maps go in a list or a tuple, not a {type(maps).__name__}")
+    return solve(load_artifacts(maps, cache), I_b, I_w, I_c, rho_b, rho_w, method, **options)
 
 
 def open_map(name_or_path: str | Path, cache: ArtifactCache | None = None) -> AppearanceMap:
