@@ -52,7 +52,7 @@ def load_material(spec: str) -> tuple[SpectralMaterial, str]:
         name = spec[len(SKY_SAMPLE_PREFIX):]
         lam = np.arange(340.0, 1001.0, 5.0)
         return SpectralMaterial(lam, **material_spectra(name, lam)), name
-    from trimeter.results.export import load_result
+    from trimeter.results.reader import load_result
 
     result = load_result(spec)
     return result.material, str(result.source.get("sample") or result.source.get("label") or Path(spec).name)

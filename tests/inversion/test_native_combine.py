@@ -1,4 +1,4 @@
-"""The thicknesses' combination in C (tm_combine through NativeKernel.combine) against api.combine, the
+"""The thicknesses' combination in C (tm_combine through NativeKernel.combine) against finish.combine, the
 numpy reference it mirrors: the same columns and flags bit for bit, on random fits with NaN, ±inf and
 zero values and stds, any flag bits, with and without conditioning stds, one to four thicknesses."""
 
@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 
 from trimeter.domain.parameters import FitResult
-from trimeter.inversion import api, native
+from trimeter.inversion import api, finish, native
 from trimeter.inversion.flags import FitFlag
 from trimeter.inversion.kernel import NativeKernel, NumpyKernel
 
-THRESHOLDS = dict(underdetermined_std=(api.UNDERDETERMINED_ALPHA_STD, api.UNDERDETERMINED_G_STD),
-                  disagree_sigmas=api._DISAGREE_SIGMAS)
+THRESHOLDS = dict(underdetermined_std=(finish.UNDERDETERMINED_ALPHA_STD, finish.UNDERDETERMINED_G_STD),
+                  disagree_sigmas=finish.DISAGREE_SIGMAS)
 
 
 def _random_fit(rng, n):
@@ -55,7 +55,7 @@ def test_c_combination_is_the_numpy_one_bit_for_bit():
         k, n = int(rng.integers(1, 5)), int(rng.integers(1, 50))
         fits = [_random_fit(rng, n) for _ in range(k)]
         with np.errstate(all="ignore"):
-            expected = api.combine(fits, "x")
+            expected = finish.combine(fits, "x")
             got = kernel.combine(fits, "x", **THRESHOLDS)
         _assert_identical(got, expected)
         seen |= np.bitwise_or.reduce(expected.flags)

@@ -11,7 +11,7 @@ import trimeter
 from trimeter.bench.uncertainty import coverage, mean_signed_z
 from trimeter.cli import main
 from trimeter.errors import InputError
-from trimeter.inversion import api, native
+from trimeter.inversion import api, finish, native
 from trimeter.model.grid import ForwardGrid, node_model_variance
 from trimeter.model.setup import SampleSetup
 from trimeter.paths import MAPS_DIR
@@ -167,8 +167,8 @@ def test_underdetermined_is_judged_at_no_less_than_the_noise_model(monkeypatch, 
     # the capture's own, smaller stds are what is reported (the map's error alone), on some bins below the
     # thresholds: those are the bins the capture alone would have let through
     assert np.median(quiet.alpha_std / default.alpha_std) < 0.5
-    hidden = (quiet.flags & under != 0) & (quiet.alpha_std <= api.UNDERDETERMINED_ALPHA_STD) & ~(
-        quiet.g_std > api.UNDERDETERMINED_G_STD)
+    hidden = (quiet.flags & under != 0) & (quiet.alpha_std <= finish.UNDERDETERMINED_ALPHA_STD) & ~(
+        quiet.g_std > finish.UNDERDETERMINED_G_STD)
     assert hidden.sum() >= 10
     loud = fit(amap, I_b, I_w, I_c, I_b_std=0.05, I_w_std=0.05, I_c_std=0.05)
     assert np.all(loud.flags & under)
@@ -287,7 +287,7 @@ def test_std_approximate_marks_where_first_order_fails():
     whose truth falls outside ±2σ far more often; those it keeps are near 95 %. Bins whose α and g
     stds are under the check's thresholds are never flagged (they are not checked)."""
     from trimeter.bench.uncertainty import Case
-    from trimeter.inversion.api import STD_CHECK_ALPHA, STD_CHECK_G
+    from trimeter.inversion.finish import STD_CHECK_ALPHA, STD_CHECK_G
     from trimeter.inversion.flags import FitFlag
     from trimeter.formats.appearance import AppearanceMap
 

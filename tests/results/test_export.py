@@ -13,7 +13,8 @@ import pytest
 
 from trimeter.cli import main
 from trimeter.errors import InputError
-from trimeter.results.export import (export, linear_srgb_coefficients, load_result, spectra_to_linear_srgb)
+from trimeter.results.export import export, linear_srgb_coefficients, spectra_to_linear_srgb
+from trimeter.results.reader import load_result
 from trimeter.results.medium import SpectralMaterial
 
 WL = np.arange(400.0, 701.0, 4.0)  # not the 5 nm default step: step 0 must keep these bins

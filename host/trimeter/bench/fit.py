@@ -60,7 +60,7 @@ if TYPE_CHECKING:
 
     from trimeter.domain.parameters import FitResult
     from trimeter.formats.appearance import AppearanceMap
-    from trimeter.inversion.api import FitModel
+    from trimeter.inversion.fit_model import FitModel
     from trimeter.inversion.artifacts import ArtifactCache
 
     # (label, method name, fit options, the map's loaded artifacts)

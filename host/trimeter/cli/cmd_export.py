@@ -30,7 +30,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from trimeter.results.export import export, load_result
+    from trimeter.results.export import export
+    from trimeter.results.reader import load_result
 
     step = require_number("--step-nm", args.step_nm, lo=0.0, hi=100.0)
     thickness = (require_number("--reference-thickness", args.reference_thickness, lo=0.0, lo_open=True, hi=1e4)

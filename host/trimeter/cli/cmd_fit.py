@@ -44,17 +44,16 @@ import argparse
 import json
 import math
 import sys
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, SupportsFloat
 
 import numpy as np
 
-from trimeter.atomic import atomic_write, same_file
 from trimeter.cli import fit_stream
 from trimeter.cli._instrument import add_instrument_args
-from trimeter.cli.fit_stream import OUTPUT, Chunk
-from trimeter.errors import InputError, OutputError
+from trimeter.cli.fit_stream import OUTPUT, Chunk, check_declared_thickness, refuse_output_onto_inputs, write_output
+from trimeter.errors import InputError
 from trimeter.inversion.methods import METHODS
 
 if TYPE_CHECKING:
@@ -341,9 +340,9 @@ def _write_result(args: argparse.Namespace, columns: dict[str, np.ndarray], used
                "flag_names": flag_names, "advice": notes}
         if table is not None:
             doc["table"] = table
-        _write(args.output, json.dumps(doc, indent=1, allow_nan=False) + "\n")
+        write_output(args.output, json.dumps(doc, indent=1, allow_nan=False) + "\n")
         return
-    _write(args.output, ",".join(OUTPUT) + "\n" + fit_stream.csv_rows(columns, used))
+    write_output(args.output, ",".join(OUTPUT) + "\n" + fit_stream.csv_rows(columns, used))
 
 
 def _run_table_fit(args: argparse.Namespace, table: DeviceTable) -> int:
@@ -456,43 +455,6 @@ def _thickness_std(column: np.ndarray, groups: list[np.ndarray], amaps: Sequence
     return out
 
 
-def check_declared_thickness(declared: list[float] | None, amaps: Sequence[FitSource]) -> None:
-    """Each declared thickness must be a map's (or table's) ℓ, one per map: another thickness scales σt."""
-    if not declared:
-        return
-    if len(declared) != len(amaps):
-        raise InputError(f"--thickness: give one per --map ({len(amaps)}), got {len(declared)}")
-    for thickness in declared:
-        if not (math.isfinite(thickness) and thickness > 0):
-            raise InputError(f"--thickness: {thickness:g} is not a positive thickness in mm")
-    for thickness, amap in zip(sorted(declared), sorted(amaps, key=lambda m: m.thickness_mm), strict=True):
-        if abs(thickness - amap.thickness_mm) > 1e-6 * max(1.0, thickness):
-            kind = "table" if hasattr(amap, "parent_sha256") else "map"
-            raise InputError(f"--thickness {thickness:g}: {kind} {amap.name} is for ℓ = {amap.thickness_mm:g} mm, not "
-                             f"the sample's {thickness:g} mm (σt would come out ×{thickness / amap.thickness_mm:.3g}); "
-                             f"use a {kind} built for {thickness:g} mm")
-
-
 def _json_number(v: SupportsFloat) -> float | None:
     v = float(v)
     return v if math.isfinite(v) else None
-
-
-def refuse_output_onto_inputs(output: Path | None, inputs: Iterable[str | Path]) -> None:
-    """-o naming one of the inputs (itself, a symlink or a hard link to it) would destroy it: refuse up front."""
-    if output is None:
-        return
-    for source in inputs:
-        if Path(source).exists() and same_file(output, source):
-            raise InputError(f"-o {output}: is the input {source}; choose another output file")
-
-
-def _write(path: Path | None, text: str) -> None:
-    if path is None:
-        sys.stdout.write(text)
-        return
-    try:
-        atomic_write(path, text)
-    except OutputError as exc:
-        raise OutputError(f"-o: {exc}") from None
-    print(f"wrote {path}", file=sys.stderr)

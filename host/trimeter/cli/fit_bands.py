@@ -72,7 +72,7 @@ def parse_grid(text: str) -> np.ndarray:
 
 
 def run_bands(args: argparse.Namespace) -> int:
-    from trimeter.cli.cmd_fit import _write, check_declared_thickness, refuse_output_onto_inputs
+    from trimeter.cli.fit_stream import check_declared_thickness, refuse_output_onto_inputs, write_output
     from trimeter.inversion.bands import fit_bands
     from trimeter.inversion.flags import advice
     from trimeter.formats.appearance import AppearanceMap, find_map
@@ -114,7 +114,7 @@ def run_bands(args: argparse.Namespace) -> int:
                "channels": _columns(*parts[0]), "advice": notes}
         if len(parts) > 1:
             doc["grid"] = _columns(*parts[1])
-        _write(args.output, json.dumps(doc, indent=1, allow_nan=False) + "\n")
+        write_output(args.output, json.dumps(doc, indent=1, allow_nan=False) + "\n")
         return 0
     lines = [",".join((*OUTPUT, "thickness_mm"))]
     for labels, lam, r in parts:
@@ -122,7 +122,7 @@ def run_bands(args: argparse.Namespace) -> int:
             values = [f"{v[i]:.9g}" for v in (lam, r.alpha, r.sigma_t, r.g, r.alpha_std, r.sigma_t_std, r.g_std)]
             lines.append(",".join([label, *values, str(int(r.flags[i])), f"{r.sigma_t_beer[i]:.9g}",
                                    f"{amap.thickness_mm:g}"]))
-    _write(args.output, "\n".join(lines) + "\n")
+    write_output(args.output, "\n".join(lines) + "\n")
     return 0
 
 

@@ -15,16 +15,22 @@ from __future__ import annotations
 
 import math
 import sys
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
-from typing import IO, Protocol
+from typing import IO, TYPE_CHECKING, Protocol
 
 import numpy as np
 
-from trimeter.atomic import atomic_output
+from trimeter.atomic import atomic_output, atomic_write, same_file
 from trimeter.errors import InputError, OutputError
 from trimeter.tables import TableReader
+
+if TYPE_CHECKING:
+    from trimeter.formats.appearance import AppearanceMap
+    from trimeter.formats.device_table import DeviceTable
+
+    FitSource = AppearanceMap | DeviceTable
 
 REQUIRED = ("wavelength_nm", "I_b", "I_w", "I_c")
 OPTIONAL = ("rho_b", "rho_w", "thickness_mm", "I_b_std", "I_w_std", "I_c_std", "thickness_std_mm")
@@ -179,3 +185,42 @@ def fit_csv(path: Path, out: Path | None, fit_chunk: Callable[[Chunk], Chunk], u
 def _chain(first: Chunk, rest: Iterator[Chunk]) -> Iterator[Chunk]:
     yield first
     yield from rest
+
+
+# ------------------------------------------------- shared by `trimeter fit` and its band-aware form (fit_bands)
+def check_declared_thickness(declared: list[float] | None, amaps: Sequence[FitSource]) -> None:
+    """Each declared thickness must be a map's (or table's) ℓ, one per map: another thickness scales σt."""
+    if not declared:
+        return
+    if len(declared) != len(amaps):
+        raise InputError(f"--thickness: give one per --map ({len(amaps)}), got {len(declared)}")
+    for thickness in declared:
+        if not (math.isfinite(thickness) and thickness > 0):
+            raise InputError(f"--thickness: {thickness:g} is not a positive thickness in mm")
+    for thickness, amap in zip(sorted(declared), sorted(amaps, key=lambda m: m.thickness_mm), strict=True):
+        if abs(thickness - amap.thickness_mm) > 1e-6 * max(1.0, thickness):
+            kind = "table" if hasattr(amap, "parent_sha256") else "map"
+            raise InputError(f"--thickness {thickness:g}: {kind} {amap.name} is for ℓ = {amap.thickness_mm:g} mm, not "
+                             f"the sample's {thickness:g} mm (σt would come out ×{thickness / amap.thickness_mm:.3g}); "
+                             f"use a {kind} built for {thickness:g} mm")
+
+
+def refuse_output_onto_inputs(output: Path | None, inputs: Iterable[str | Path]) -> None:
+    """-o naming one of the inputs (itself, a symlink or a hard link to it) would destroy it: refuse up front."""
+    if output is None:
+        return
+    for source in inputs:
+        if Path(source).exists() and same_file(output, source):
+            raise InputError(f"-o {output}: is the input {source}; choose another output file")
+
+
+def write_output(path: Path | None, text: str) -> None:
+    """The output: to `path` atomically, or to stdout when None."""
+    if path is None:
+        sys.stdout.write(text)
+        return
+    try:
+        atomic_write(path, text)
+    except OutputError as exc:
+        raise OutputError(f"-o: {exc}") from None
+    print(f"wrote {path}", file=sys.stderr)

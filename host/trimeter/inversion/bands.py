@@ -40,7 +40,7 @@ from trimeter.inversion.flags import UNUSABLE, FitFlag
 from trimeter.model.grid import ForwardGrid
 
 if TYPE_CHECKING:
-    from trimeter.inversion.api import FitModel
+    from trimeter.inversion.fit_model import FitModel
     from trimeter.inversion.kernel import Kernel
 
 # Weights below this fraction of a channel's peak are outside its band (left out of its integral).
@@ -281,7 +281,7 @@ def fit_bands(model: FitModel, weights: BandWeights, I_b: ArrayLike, I_w: ArrayL
     """
     from scipy.optimize import least_squares
 
-    from trimeter.inversion.api import UNDERDETERMINED_ALPHA_STD, UNDERDETERMINED_G_STD
+    from trimeter.inversion.finish import UNDERDETERMINED_ALPHA_STD, UNDERDETERMINED_G_STD
     from trimeter.inversion.api import fit as fit_per_channel
 
     C = len(weights.channels)

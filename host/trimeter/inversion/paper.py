@@ -27,14 +27,14 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from trimeter.domain.parameters import FitResult
-from trimeter.inversion import api
+from trimeter.inversion import finish
 from trimeter.inversion.flags import UNUSABLE, FitFlag
 from trimeter.inversion.strategy import Method
 from trimeter.model.response import background_response
 
 if TYPE_CHECKING:
     from trimeter.formats.appearance import AppearanceMap
-    from trimeter.inversion.api import FitModel
+    from trimeter.inversion.fit_model import FitModel
     from trimeter.inversion.kernel import Kernel
     from scipy.interpolate import LinearNDInterpolator
 
@@ -147,7 +147,7 @@ def fit_paper(models: list[FitModel], arrays: list[tuple[np.ndarray, ...]], stds
     amaps = [m.map for m in models]
     inputs, singles = [], []
     for amap, (I_b, I_w, I_c, rho_b, rho_w) in zip(amaps, arrays, strict=True):
-        flags = api._input_flags(I_b, I_w, I_c, rho_b, rho_w)
+        flags = finish.input_flags(I_b, I_w, I_c, rho_b, rho_w)
         usable = (flags & int(UNUSABLE)) == 0
         inputs.append((np.where(usable, I_b, np.nan), I_w, I_c, rho_b, rho_w))
         singles.append((amap, flags, usable, I_b, I_w, I_c, rho_b, rho_w))
@@ -158,7 +158,7 @@ def fit_paper(models: list[FitModel], arrays: list[tuple[np.ndarray, ...]], stds
     for i, (med, model, (amap, flags, usable, I_b, I_w, I_c, rho_b, rho_w)) in enumerate(
             zip(own_medians, models, singles, strict=True)):
         grid = model.grid
-        ib, iw, ic = api._sanitize(I_b, 0, 1, 0), api._sanitize(I_w, 0, 1, 1), api._sanitize(I_c, 0, 1, 1)
+        ib, iw, ic = finish.sanitize(I_b, 0, 1, 0), finish.sanitize(I_w, 0, 1, 1), finish.sanitize(I_c, 0, 1, 1)
         ref = amap.reference_rhos
         rb, rw = np.where(usable, rho_b, ref[0]), np.where(usable, rho_w, ref[1])
         flags = flags | np.where(usable & (ic < ic_floor), int(FitFlag.IC_BELOW_FLOOR), 0)
@@ -174,7 +174,7 @@ def fit_paper(models: list[FitModel], arrays: list[tuple[np.ndarray, ...]], stds
         # the ε-median has no separate in-scattering correction to propagate: its map's I_c holds it.
         # The interpolated median does not solve the map exactly: STD_APPROXIMATE's re-fits start from
         # the map's own intensities there, so that its residual does not count as the map's bend.
-        r = api._finish(grid, flags, usable, ib, iw, ic, rb, rw, alpha, sigma_t, g, residual, sigma_beer,
+        r = finish.finish(grid, flags, usable, ib, iw, ic, rb, rw, alpha, sigma_t, g, residual, sigma_beer,
                     method="paper", kernel=kernel, sd=sd, sigma_t_solved=sigma_t, inscatter_ds=None,
                     inscatter_rel_std=inscatter_rel_std, thickness_rel_std=thickness_rel[i], alpha_min_g=alpha_min_g,
                     solved=(alpha, g, I_model[0], I_model[1]), floor_sd=floor_sd)
@@ -183,7 +183,7 @@ def fit_paper(models: list[FitModel], arrays: list[tuple[np.ndarray, ...]], stds
         results.append(r)
     if len(results) == 1:
         return results[0]
-    combined = api.combine(results, "paper")
+    combined = finish.combine(results, "paper")
     # As written: the pooled median is the estimate; the stds come from the inverse-variance combination.
     med = pooled_median
     combined.alpha, combined.sigma_t, combined.g = med[:, 0], med[:, 1], med[:, 2]

@@ -177,7 +177,7 @@ def component_material(source: str, library_db: str | None = None) -> SpectralMa
 
         with Library(library_db) as lib:
             return lib.get(source[len("library:"):]).material()
-    from trimeter.results.export import load_result
+    from trimeter.results.reader import load_result
 
     return load_result(source).material
 

@@ -32,12 +32,11 @@ from numpy.typing import ArrayLike
 from trimeter.atomic import atomic_write
 from trimeter.errors import InputError
 from trimeter.results.medium import VARIANT_NOTE, SpectralMaterial, write_medium
-from trimeter.tables import MAX_RESULT_FILE_BYTES, read_columns, read_text
+from trimeter.tables import MAX_RESULT_FILE_BYTES
 from trimeter.version import __version__
 
 if TYPE_CHECKING:
     from trimeter.domain.measurement import SpectralColumns
-    from trimeter.results.reader import Measurement as StoredMeasurement
 
 FORMATS = ("mitsuba", "pbrt", "blender", "rgb")
 MAX_INPUT_BYTES = MAX_RESULT_FILE_BYTES
@@ -61,11 +60,6 @@ class LoadedResult:
         return None
 
 
-# ----------------------------------------------------------------------------------------- loading
-PARAMETER_NAMES = ("wavelength_nm", "alpha", "sigma_t", "g")
-SOURCE_KEYS = ("sample", "label", "method", "maps", "map_checksums", "thicknesses_mm", "written_utc", "device")
-
-
 def _material(parameters: SpectralColumns, path: Path) -> SpectralMaterial:
     try:
         return SpectralMaterial.from_parameters(parameters)
@@ -77,72 +71,6 @@ def loaded_parameters(parameters: SpectralColumns, source: dict, where: str | Pa
     """Fitted parameters (with their stds: a measurement's, a library material's) and their origin, as an
     export takes them; `where` names them in errors."""
     return LoadedResult(_material(parameters, Path(where)), source)
-
-
-def loaded_measurement(m: StoredMeasurement) -> LoadedResult:
-    """A results directory read by trimeter.load, as an export takes it."""
-    source: dict = {"path": str(m.path.resolve()), "measurement": m.name}
-    source.update({k: m.record[k] for k in SOURCE_KEYS if k in m.record})
-    if m.parameters.thickness_mm is not None:
-        source["thickness_mm"] = m.parameters.thickness_mm
-    return loaded_parameters(m.parameters, source, m.path / "parameters.json")
-
-
-def _from_json(path: Path) -> tuple[SpectralMaterial, dict]:
-    from trimeter.results.reader import json_numbers
-
-    try:
-        doc = json.loads(read_text(path, max_bytes=MAX_INPUT_BYTES))
-    except ValueError as exc:
-        if isinstance(exc, InputError):
-            raise
-        raise InputError(f"{path}: not JSON ({exc})") from None
-    if isinstance(doc, dict) and isinstance(doc.get("combined"), dict):     # a results directory's parameters.json
-        doc = doc["combined"]
-    elif isinstance(doc, dict) and isinstance(doc.get("columns"), dict):    # `trimeter fit --json`'s output
-        doc = {**doc["columns"], "thickness_mm": doc.get("thickness_mm")}
-    if not isinstance(doc, dict):
-        raise InputError(f"{path}: expected an object with wavelength_nm, alpha, sigma_t, g")
-    columns = {k: json_numbers(doc[k], k, path) for k in PARAMETER_NAMES if k in doc}
-    return _material_of_columns(columns, path), {"thickness_mm": doc.get("thickness_mm")}
-
-
-def _from_csv(path: Path) -> tuple[SpectralMaterial, dict]:
-    columns = read_columns(path, optional=PARAMETER_NAMES, max_bytes=MAX_INPUT_BYTES, min_rows=2)
-    return _material_of_columns(columns, path), {}
-
-
-def _material_of_columns(columns: dict, path: Path) -> SpectralMaterial:
-    missing = [k for k in PARAMETER_NAMES if k not in columns]
-    if missing:
-        raise InputError(f"{path}: no {', '.join(missing)} column (a trimeter parameters file has wavelength_nm, "
-                         "alpha, sigma_t, g)")
-    if len({len(v) for v in columns.values()}) != 1:
-        raise InputError(f"{path}: columns of different lengths")
-    return _material(_Columns(columns), path)
-
-
-class _Columns:
-    """Columns of a parameters CSV, as SpectralMaterial.from_parameters reads them."""
-
-    def __init__(self, columns: dict) -> None:
-        self.wavelengths_nm, self.alpha = columns["wavelength_nm"], columns["alpha"]
-        self.sigma_t, self.g = columns["sigma_t"], columns["g"]
-
-
-def load_result(path: str | Path) -> LoadedResult:
-    """The material of a measurement directory or a parameters file, with what is known of its origin."""
-    from trimeter.results.reader import load
-
-    path = Path(path)
-    if not path.exists():
-        raise InputError(f"{path}: no such measurement directory or parameters file")
-    if path.is_dir():
-        return loaded_measurement(load(path))
-    material, extra = _from_json(path) if path.suffix.lower() == ".json" else _from_csv(path)
-    source = {"path": str(path.resolve())}
-    source.update({k: v for k, v in extra.items() if v is not None})
-    return LoadedResult(material, source)
 
 
 # ------------------------------------------------------------------------------------- colour

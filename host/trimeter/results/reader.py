@@ -25,6 +25,8 @@ from trimeter.domain import Calibration, Capture, Provenance, RawSample, Reflect
 from trimeter.domain.parameters import FitResult
 from trimeter.errors import InputError
 from trimeter.tables import MAX_RESULT_FILE_BYTES, open_checked, read_columns, read_text
+from trimeter.results.export import LoadedResult, loaded_parameters
+from trimeter.results.medium import SpectralMaterial
 from trimeter.results.writer import PARAMETER_COLUMNS, Parameters, file_tags
 
 MEASUREMENT_FILE = "measurement.json"
@@ -363,7 +365,7 @@ class Measurement:
         dict
             The provenance written beside the files (its "files" lists them).
         """
-        from trimeter.results.export import export, loaded_measurement
+        from trimeter.results.export import export
 
         result = loaded_measurement(self)
         options.setdefault("reference_thickness_mm", result.measured_thickness_mm() or 1.0)
@@ -391,3 +393,70 @@ def load(path: str | Path) -> Measurement:
         a symbolic link or not a regular file.
     """
     return Measurement(path)
+
+
+# ------------------------------------------------------------- what an export takes: a material and its origin
+PARAMETER_NAMES = ("wavelength_nm", "alpha", "sigma_t", "g")
+SOURCE_KEYS = ("sample", "label", "method", "maps", "map_checksums", "thicknesses_mm", "written_utc", "device")
+
+
+def loaded_measurement(m: Measurement) -> LoadedResult:
+    """A results directory read by trimeter.load, as an export takes it."""
+    source: dict = {"path": str(m.path.resolve()), "measurement": m.name}
+    source.update({k: m.record[k] for k in SOURCE_KEYS if k in m.record})
+    if m.parameters.thickness_mm is not None:
+        source["thickness_mm"] = m.parameters.thickness_mm
+    return loaded_parameters(m.parameters, source, m.path / "parameters.json")
+
+
+def _from_json(path: Path) -> tuple[SpectralMaterial, dict]:
+    try:
+        doc = json.loads(read_text(path, max_bytes=MAX_RESULT_FILE_BYTES))
+    except ValueError as exc:
+        if isinstance(exc, InputError):
+            raise
+        raise InputError(f"{path}: not JSON ({exc})") from None
+    if isinstance(doc, dict) and isinstance(doc.get("combined"), dict):     # a results directory's parameters.json
+        doc = doc["combined"]
+    elif isinstance(doc, dict) and isinstance(doc.get("columns"), dict):    # `trimeter fit --json`'s output
+        doc = {**doc["columns"], "thickness_mm": doc.get("thickness_mm")}
+    if not isinstance(doc, dict):
+        raise InputError(f"{path}: expected an object with wavelength_nm, alpha, sigma_t, g")
+    columns = {k: json_numbers(doc[k], k, path) for k in PARAMETER_NAMES if k in doc}
+    return _material_of_columns(columns, path), {"thickness_mm": doc.get("thickness_mm")}
+
+
+def _from_csv(path: Path) -> tuple[SpectralMaterial, dict]:
+    columns = read_columns(path, optional=PARAMETER_NAMES, max_bytes=MAX_RESULT_FILE_BYTES, min_rows=2)
+    return _material_of_columns(columns, path), {}
+
+
+def _material_of_columns(columns: dict, path: Path) -> SpectralMaterial:
+    missing = [k for k in PARAMETER_NAMES if k not in columns]
+    if missing:
+        raise InputError(f"{path}: no {', '.join(missing)} column (a trimeter parameters file has wavelength_nm, "
+                         "alpha, sigma_t, g)")
+    if len({len(v) for v in columns.values()}) != 1:
+        raise InputError(f"{path}: columns of different lengths")
+    return loaded_parameters(_Columns(columns), {}, path).material
+
+
+class _Columns:
+    """Columns of a parameters CSV, as SpectralMaterial.from_parameters reads them."""
+
+    def __init__(self, columns: dict) -> None:
+        self.wavelengths_nm, self.alpha = columns["wavelength_nm"], columns["alpha"]
+        self.sigma_t, self.g = columns["sigma_t"], columns["g"]
+
+
+def load_result(path: str | Path) -> LoadedResult:
+    """The material of a measurement directory or a parameters file, with what is known of its origin."""
+    path = Path(path)
+    if not path.exists():
+        raise InputError(f"{path}: no such measurement directory or parameters file")
+    if path.is_dir():
+        return loaded_measurement(load(path))
+    material, extra = _from_json(path) if path.suffix.lower() == ".json" else _from_csv(path)
+    source = {"path": str(path.resolve())}
+    source.update({k: v for k, v in extra.items() if v is not None})
+    return LoadedResult(material, source)

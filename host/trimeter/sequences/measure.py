@@ -151,7 +151,7 @@ class PreparedFit:
     def _fit_bands(self, captures: list[SampleCapture], noise: dict[str, Any]) -> tuple[Parameters, list[Parameters]]:
         """The band-aware fit (trimeter.inversion.bands) of each capture, at the channels' centroids;
         several thicknesses combined by inverse-variance weighting as the per-wavelength fit does."""
-        from trimeter.inversion.api import combine
+        from trimeter.inversion.finish import combine
         from trimeter.inversion.bands import fit_bands
         from trimeter.inversion.artifacts import load_artifacts
 

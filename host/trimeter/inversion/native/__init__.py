@@ -319,7 +319,7 @@ def _fit_options(*, noise_rel: float, noise_abs: float, mc_stderr: float, ic_flo
                  step_tol: float, step_tol_std: float, underdetermined_std: tuple[float, float],
                  thickness_rel_std: float, inscatter_rel_std: float,
                  std_check: tuple[float, float, float, float]) -> _FitOptionsC:
-    """std_check: (α std, g std, σs, tolerance) of the STD_APPROXIMATE check (api.STD_CHECK_*)."""
+    """std_check: (α std, g std, σs, tolerance) of the STD_APPROXIMATE check (finish.STD_CHECK_*)."""
     return _FitOptionsC(noise_rel, noise_abs, mc_stderr, ic_floor, alpha_min_g, input_tolerance, *ref_rho, t_max,
                         t_valid, step_tol, step_tol_std, *underdetermined_std, thickness_rel_std, inscatter_rel_std,
                         *std_check, iterations)
@@ -379,7 +379,7 @@ def propagate(J: np.ndarray, sigma_I: np.ndarray,
 
 def combine(fits: np.ndarray, underdetermined_std: tuple[float, float], disagree_sigmas: float) -> np.ndarray:
     """tm_combine: several thicknesses' fits (k, rows, n), laid out as tm_fit's output blocks, into one
-    (rows, n) block — trimeter.inversion.api.combine in C, bit for bit."""
+    (rows, n) block — trimeter.inversion.finish.combine in C, bit for bit."""
     k, _, n = fits.shape
     fits = np.ascontiguousarray(fits, dtype=np.float64)
     out = np.empty(fits.shape[1:])

@@ -1,4 +1,4 @@
-/* The whole single-thickness fit: api._fit_one + _finish, bin by bin (the module comment of
+/* The whole single-thickness fit: api._fit_one + finish.finish, bin by bin (the module comment of
  * invert_internal.h says where the other stages live). */
 #include "invert_internal.h"
 #include "invert_abi.h"
@@ -28,7 +28,7 @@ static inline void propagate_one(const double *Ji, double var_b, double var_w, d
     *std_s = sqrt(var_s);
 }
 
-/* trimeter.inversion.api._fit_one + _finish for one thickness, bin by bin: input flags → σt from
+/* trimeter.inversion.api._fit_one + finish.finish for one thickness, bin by bin: input flags → σt from
  * I_c (exact inverse of the Fresnel stack; the floor's σt, a lower bound, under ic_floor) → (α, g)
  * by guess + polish → flags for not converged / outside the map / g undefined → first-order stds →
  * NaN for unusable bins. The numpy path in api.py is the reference (same operations, same order);
@@ -391,7 +391,7 @@ size_t tm_fit_scratch_size(size_t n) {
 }
 
 
-/* api._weighted for one column of one bin over k thicknesses (v, s: a value and its std per thickness,
+/* finish._weighted for one column of one bin over k thicknesses (v, s: a value and its std per thickness,
  * `stride` apart): the inverse-variance mean and its std; where no std is usable, the plain mean of
  * the finite values and the smallest of their stds; NaN where no value is finite. As numpy reduces:
  * sums from +0 (so even a zero's sign agrees), the smallest from the first thickness's. v2 (or NULL):

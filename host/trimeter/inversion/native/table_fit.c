@@ -1,7 +1,7 @@
 /* The fit from the device table alone, one bin at a time, bounded stack, no state, no allocation:
  * what the firmware links (tr_fit_bins, firmware/core/fit_core.h) and the host calls in double
  * precision (tm_table_fit, invert.h). Per bin, the host's lut fit with fit()'s defaults (the
- * TM_TABLE_FIT_* constants; trimeter.inversion.api._prepare / _finish) with the compact model in place of
+ * TM_TABLE_FIT_* constants; trimeter.inversion.api._prepare, trimeter.inversion.finish.finish) with the compact model in place of
  * the refined grid: input flags → σt from I_c (exact inverse of the Fresnel stack) → the inverse
  * table's guess → damped Gauss-Newton polish of (α, g) on the compact model → in-scattering
  * correction → NOT_CONVERGED / OUTSIDE_MAP / G_UNDEFINED / UNDERDETERMINED → NaN for unusable bins.
@@ -234,7 +234,7 @@ static uint16_t fit_bin(const tr_table *t, tr_real Ib, tr_real Iw, tr_real Ic, t
             sigma_t = s;
         }
     }
-    /* flags at the solution (api._finish) */
+    /* flags at the solution (finish.finish) */
     const tr_real tolerance = R(3.0) * R_SQRT(sb * sb + mc2 + sw * sw + mc2) + R(1e-4);
     const int not_conv = !(residual <= tolerance);
     const int at_edge = (g <= g_lo + R(1e-9) && g_lo > R(-1.0 + 1e-6)) || (g >= g_hi - R(1e-9) && g_hi < R(1.0 - 1e-6));
