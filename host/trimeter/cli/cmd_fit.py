@@ -112,7 +112,7 @@ def _split_thicknesses(data: dict[str, np.ndarray], amaps: Sequence[FitSource], 
     if len(amaps) == 1:
         if "thickness_mm" in data:
             t = data["thickness_mm"]
-            if np.any(np.isfinite(t) & (np.abs(t - amaps[0].thickness_mm) > 1e-6 * max(1.0, amaps[0].thickness_mm))):
+            if np.any(np.isfinite(t) & ~amaps[0].setup.matches_thickness(t)):
                 raise InputError(f"--input {path}: column thickness_mm has rows not matching the map's "
                                  f"thickness {amaps[0].thickness_mm:g} mm")
         return [np.argsort(data["wavelength_nm"], kind="stable")]
@@ -121,7 +121,7 @@ def _split_thicknesses(data: dict[str, np.ndarray], amaps: Sequence[FitSource], 
                          f"which rows belong to which")
     groups, used = [], np.zeros(n, bool)
     for amap in amaps:
-        rows = np.flatnonzero(np.abs(data["thickness_mm"] - amap.thickness_mm) <= 1e-6 * max(1.0, amap.thickness_mm))
+        rows = np.flatnonzero(amap.setup.matches_thickness(data["thickness_mm"]))
         if not len(rows):
             raise InputError(f"--input {path}: no rows with thickness_mm = {amap.thickness_mm:g} (map {amap.name})")
         used[rows] = True
@@ -271,7 +271,7 @@ def _paired(chunks: Iterator[Chunk], models: Sequence[FitSource], path: Path) ->
         if "thickness_mm" not in chunk:
             raise InputError(f"--input {path}: with {len(models)} maps the column thickness_mm must say "
                              f"which rows belong to which")
-        member = [np.abs(chunk["thickness_mm"] - m.thickness_mm) <= 1e-6 * max(1.0, m.thickness_mm) for m in models]
+        member = [m.setup.matches_thickness(chunk["thickness_mm"]) for m in models]
         shortest = min(int(m.sum()) for m in member)
         keep = ~np.logical_or.reduce(member)  # rows of no thickness: kept, to be refused with the chunk
         for m in member:
@@ -280,7 +280,7 @@ def _paired(chunks: Iterator[Chunk], models: Sequence[FitSource], path: Path) ->
         if keep.any():
             yield {c: v[keep] for c, v in chunk.items()}
     if carry is not None and len(carry["wavelength_nm"]):
-        counts = [int((np.abs(carry["thickness_mm"] - m.thickness_mm) <= 1e-6 * max(1.0, m.thickness_mm)).sum())
+        counts = [int(m.setup.matches_thickness(carry["thickness_mm"]).sum())
                   for m in models]
         longer = models[int(np.argmax(counts))]
         raise InputError(f"--input {path}: thickness {longer.thickness_mm:g} mm has {max(counts)} more row(s) than "

@@ -198,7 +198,7 @@ def check_declared_thickness(declared: list[float] | None, amaps: Sequence[FitSo
         if not (math.isfinite(thickness) and thickness > 0):
             raise InputError(f"--thickness: {thickness:g} is not a positive thickness in mm")
     for thickness, amap in zip(sorted(declared), sorted(amaps, key=lambda m: m.thickness_mm), strict=True):
-        if abs(thickness - amap.thickness_mm) > 1e-6 * max(1.0, thickness):
+        if not amap.setup.matches_thickness(thickness):
             kind = "table" if hasattr(amap, "parent_sha256") else "map"
             raise InputError(f"--thickness {thickness:g}: {kind} {amap.name} is for ℓ = {amap.thickness_mm:g} mm, not "
                              f"the sample's {thickness:g} mm (σt would come out ×{thickness / amap.thickness_mm:.3g}); "

@@ -86,6 +86,13 @@ class Estimate(SpectralColumns, Protocol):
 THICKNESS_TOLERANCE = 1e-6
 
 
+def thickness_matches(of_map_mm: float, declared_mm: ArrayLike) -> np.ndarray:
+    """Whether a declared thickness (or each of an array of them) is a map's ℓ, to rounding (relative to ℓ,
+    absolute below 1 mm). The one thickness match: trimeter.model.setup.SampleSetup.matches_thickness."""
+    return np.asarray(np.abs(np.asarray(declared_mm, dtype=float) - of_map_mm)
+                      <= THICKNESS_TOLERANCE * max(1.0, of_map_mm))
+
+
 @dataclass(frozen=True)
 class MapIdentity:
     """A map as a measurement records it: enough to find it again and to tell it was not changed."""
@@ -117,7 +124,7 @@ class Sample:
 
     def check_map(self) -> None:
         """InputError unless the map is for this sample's thickness."""
-        if abs(self.map.thickness_mm - self.thickness_mm) > THICKNESS_TOLERANCE * max(1.0, self.thickness_mm):
+        if not thickness_matches(self.map.thickness_mm, self.thickness_mm):
             raise InputError(f"map {self.map.name} is for ℓ = {self.map.thickness_mm:g} mm, not the declared "
                              f"{self.thickness_mm:g} mm")
 

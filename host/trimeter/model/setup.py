@@ -9,6 +9,7 @@ from functools import cached_property
 import numpy as np
 from numpy.typing import ArrayLike
 
+from trimeter.domain.measurement import thickness_matches
 from trimeter.geometry import cover_slide_n
 from trimeter.model.collimated import (beer_lambert_limit, beer_lambert_sigma_t, collimated_derivative,
                                        collimated_transmittance, stack_constants)
@@ -30,6 +31,11 @@ class SampleSetup:
         params = recipe.get("geometry_params", {}) or {}
         return cls(float(recipe["n"]), float(recipe["thickness_mm"]), cover_slide_n(params),
                    str(recipe.get("geometry", "")), recipe.get("geometry_params"))
+
+    def matches_thickness(self, declared_mm: ArrayLike) -> np.ndarray:
+        """Whether a declared thickness (or each of an array of them) is this set-up's ℓ: a map or table of
+        another ℓ scales σt by the ratio (trimeter.domain.measurement.thickness_matches)."""
+        return thickness_matches(self.thickness_mm, declared_mm)
 
     # ------------------------------------------------------------------------- the collimated beam
     def collimated(self, sigma_t: ArrayLike) -> np.ndarray:

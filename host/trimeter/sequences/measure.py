@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from trimeter.domain import Calibration, InstrumentInfo, Measurement, Provenance, Sample, SampleCapture
-from trimeter.domain.measurement import THICKNESS_TOLERANCE, DeviceTableCheck, Estimate
+from trimeter.domain.measurement import DeviceTableCheck, Estimate
 from trimeter.domain.parameters import FitResult
 from trimeter.errors import CheckError, DeviceError, InputError, TrimeterError
 from trimeter.inversion.methods import METHODS
@@ -47,7 +47,7 @@ def map_for_thickness(thickness_mm: float, explicit: str | Path | None = None,
             amap = AppearanceMap.load(path)
         except Exception:  # a broken map file must not hide the good ones; `trimeter map info` names it
             continue
-        if abs(amap.thickness_mm - thickness_mm) <= 1e-6:
+        if amap.setup.matches_thickness(thickness_mm):
             candidates.append(amap)
     if not candidates:
         raise InputError(f"thickness: no appearance map for ℓ = {thickness_mm:g} mm (give one with --map, or build "
@@ -71,7 +71,7 @@ def resolve_samples(requests: Iterable[tuple[float, str | Path | None]],
         if table is None:
             table = instrument_table()
             check_instrument_table(table, thickness)
-        if abs(table.thickness_mm - thickness) <= THICKNESS_TOLERANCE * max(1.0, thickness):
+        if table.setup.matches_thickness(thickness):
             samples.append(Sample(thickness, table))
         else:
             samples.append(Sample(thickness, map_for_thickness(thickness)))
@@ -80,7 +80,7 @@ def resolve_samples(requests: Iterable[tuple[float, str | Path | None]],
 
 def check_instrument_table(table: DeviceTable, thickness_mm: float) -> None:
     """InputError unless the instrument's table is for the declared thickness."""
-    if abs(table.thickness_mm - thickness_mm) > THICKNESS_TOLERANCE * max(1.0, thickness_mm):
+    if not table.setup.matches_thickness(thickness_mm):
         raise InputError(f"thickness: the instrument's map table {table.name} is for ℓ = {table.thickness_mm:g} mm, "
                          f"not the declared {thickness_mm:g} mm (σt would come out ×"
                          f"{thickness_mm / table.thickness_mm:.3g}); flash the table for {thickness_mm:g} mm "
