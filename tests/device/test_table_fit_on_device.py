@@ -39,13 +39,13 @@ def device(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def heldout():
-    """The l0.4 map's v2 table (tools/device_table.py build) and its held-out set's intensities."""
+    """The l0.4 map's v2 table (tools/device_table_study.py build) and its held-out set's intensities."""
     from trimeter.bench.fit import heldout_collimated, heldout_for, heldout_intensities
     from trimeter.formats.appearance import AppearanceMap, find_map
 
     if not native.available():
         pytest.skip("the compiled kernel is not built (make native)")
-    spec = importlib.util.spec_from_file_location("device_table_tool", ROOT / "tools" / "device_table.py")
+    spec = importlib.util.spec_from_file_location("device_table_tool", ROOT / "tools" / "device_table_study.py")
     tool = importlib.util.module_from_spec(spec)
     sys.modules["device_table_tool"] = tool
     spec.loader.exec_module(tool)

@@ -60,7 +60,7 @@ def test_qemu_count_counts_the_inverse_core_per_bin_with_a_device_table(tmp_path
     a few model evaluations of a few thousand each; far fewer would mean the fit did not run)."""
     from trimeter.formats.appearance import AppearanceMap, find_map
 
-    spec = importlib.util.spec_from_file_location("device_table_tool", ROOT / "tools" / "device_table.py")
+    spec = importlib.util.spec_from_file_location("device_table_tool", ROOT / "tools" / "device_table_study.py")
     tool = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(tool)
     table = tool.build(AppearanceMap.load(find_map("device-n1.5-l0.4"))).save(tmp_path / "l04.tlut")

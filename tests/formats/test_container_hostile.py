@@ -24,7 +24,7 @@ from trimeter.errors import MapFileError
 from trimeter.formats.appearance import AppearanceMap
 from trimeter.formats.container import FORMAT_VERSION, MAGIC, MAX_CONTAINER_BYTES
 from trimeter.formats.inscatter_file import load_inscatter, save_inscatter
-from trimeter.model.inscatter import InscatterTable
+from trimeter.model.inscatter_table import InscatterTable
 
 from test_container import small_map
 

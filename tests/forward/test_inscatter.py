@@ -57,7 +57,7 @@ def test_the_inscatter_table_round_trips_and_refuses_another_map(tmp_path):
     from trimeter.forward.transport.inscatter_tracer import build_inscatter_table
     from trimeter.formats.appearance import AppearanceMap, find_map
     from trimeter.formats.inscatter_file import load_inscatter, save_inscatter
-    from trimeter.model.inscatter import InscatterTable
+    from trimeter.model.inscatter_table import InscatterTable
 
     geometry = load_geometry("device")
     table = build_inscatter_table(1.5, 0.8, geometry, photons=3000, shape=(4, 3, 3))

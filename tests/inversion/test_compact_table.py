@@ -153,7 +153,7 @@ def test_the_shipped_tables_are_version_2_of_their_maps():
 
 # ----------------------------------------------------------------------------- the fit from it alone
 def _tool():
-    spec = importlib.util.spec_from_file_location("device_table_tool", ROOT / "tools" / "device_table.py")
+    spec = importlib.util.spec_from_file_location("device_table_tool", ROOT / "tools" / "device_table_study.py")
     tool = importlib.util.module_from_spec(spec)
     sys.modules["device_table_tool"] = tool
     spec.loader.exec_module(tool)
@@ -200,7 +200,7 @@ def test_the_shipped_map_s_table_fits_the_slot_and_fits_held_out_materials_from_
 def test_the_tool_names_what_is_wrong_and_exits_2(argv, message, capsys, tmp_path):
     assert _tool().main([*argv, "-o", str(tmp_path / "t.tlut")]) == 2
     err = capsys.readouterr().err
-    assert err.startswith("device_table: error: ") and message in err and "Traceback" not in err
+    assert err.startswith("device_table_study: error: ") and message in err and "Traceback" not in err
 
 
 @pytest.mark.parametrize("method, message", [("paper", "carries no appearance map"), ("mlp", "carries no MLP")])

@@ -1,5 +1,5 @@
 """The C fit from a device table alone (native.TableFitter, table_fit.c; the source the firmware links
-as tr_fit_bins): agreement with the numpy reference (tools/device_table.py's fit with the compact model
+as tr_fit_bins): agreement with the numpy reference (tools/device_table_study.py's fit with the compact model
 on the fly), in double and in single precision, the issue's accuracy on the l0.4 held-out set, and
 every bad table or input refused or flagged, never a crash."""
 
@@ -30,7 +30,7 @@ pytestmark = pytest.mark.skipif(not native.available(), reason="the compiled ker
 
 
 def _tool():
-    spec = importlib.util.spec_from_file_location("device_table_tool", ROOT / "tools" / "device_table.py")
+    spec = importlib.util.spec_from_file_location("device_table_tool", ROOT / "tools" / "device_table_study.py")
     tool = importlib.util.module_from_spec(spec)
     sys.modules["device_table_tool"] = tool
     spec.loader.exec_module(tool)

@@ -13,7 +13,7 @@ from trimeter.cli import main
 from trimeter.errors import InputError
 from trimeter.inversion import api, finish, native
 from trimeter.model.grid import ForwardGrid, node_model_variance
-from trimeter.model.setup import SampleSetup
+from trimeter.model.sample_setup import SampleSetup
 from trimeter.paths import MAPS_DIR
 
 DEVICE = MAPS_DIR / "device-n1.5-l0.4.tmap"

@@ -3,7 +3,7 @@
 import numpy as np
 
 from trimeter.domain.measurement import THICKNESS_TOLERANCE
-from trimeter.model.setup import SampleSetup
+from trimeter.model.sample_setup import SampleSetup
 
 
 def test_a_thickness_matches_to_rounding_relative_to_the_map_above_one_mm():

@@ -30,7 +30,7 @@ TARGETS = {"alpha_p95": 0.01, "sigma_rel_p95": 0.01, "g_p95": 0.015}
 def register(bench_subparsers: argparse._SubParsersAction) -> None:
     p = bench_subparsers.add_parser("table-fit", help="the C fit from a device table alone: accuracy and speed",
                                     description=__doc__.split("\n\n")[0])
-    p.add_argument("--table", type=Path, required=True, help="a .tlut v2 file (tools/device_table.py build)")
+    p.add_argument("--table", type=Path, required=True, help="a .tlut v2 file (tools/device_table_study.py build)")
     p.add_argument("--map", help="its map (default: the map the table names)")
     p.add_argument("--repeats", type=int, default=7, help="timed runs per variant (best kept; default 7)")
     p.add_argument("--library", type=Path, help="another build of the kernel to fit the table with (e.g. one compiled "

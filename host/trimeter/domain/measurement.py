@@ -88,7 +88,7 @@ THICKNESS_TOLERANCE = 1e-6
 
 def thickness_matches(of_map_mm: float, declared_mm: ArrayLike) -> np.ndarray:
     """Whether a declared thickness (or each of an array of them) is a map's ℓ, to rounding (relative to ℓ,
-    absolute below 1 mm). The one thickness match: trimeter.model.setup.SampleSetup.matches_thickness."""
+    absolute below 1 mm). The one thickness match: trimeter.model.sample_setup.SampleSetup.matches_thickness."""
     return np.asarray(np.abs(np.asarray(declared_mm, dtype=float) - of_map_mm)
                       <= THICKNESS_TOLERANCE * max(1.0, of_map_mm))
 

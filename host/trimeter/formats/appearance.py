@@ -34,9 +34,9 @@ from trimeter.formats.schema import (GEOMETRY_PARAMS, PROVENANCE, REFLECTANCE, S
                                   ContainerSchema, Table, Text)
 from trimeter.formats.stages import rebuild_command
 from trimeter.model.grid import ForwardGrid, node_model_variance
-from trimeter.model.inscatter import InscatterTable
+from trimeter.model.inscatter_table import InscatterTable
 from trimeter.model.response import background_response
-from trimeter.model.setup import SampleSetup
+from trimeter.model.sample_setup import SampleSetup
 from trimeter.paths import MAPS_DIR
 
 MAP_KIND = "appearance-map"

@@ -62,8 +62,8 @@ from trimeter.atomic import atomic_write
 from trimeter.errors import MapFileError
 from trimeter.formats.container import read_bounded
 from trimeter.model.compact import CompactForward
-from trimeter.model.inscatter import InscatterTable
-from trimeter.model.setup import SampleSetup
+from trimeter.model.inscatter_table import InscatterTable
+from trimeter.model.sample_setup import SampleSetup
 from trimeter.registers import MAP_SLOT_CAPACITY_BYTES
 
 MAGIC = b"\x89TRLUT\r\n"

@@ -1,4 +1,4 @@
-"""`<map>.tins`: the in-scattering table (trimeter.model.inscatter.InscatterTable) as a trimeter
+"""`<map>.tins`: the in-scattering table (trimeter.model.inscatter_table.InscatterTable) as a trimeter
 container next to its map."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ from trimeter.errors import MapFileError
 from trimeter.formats.container import read_container, write_container
 from trimeter.formats.schema import (GEOMETRY_PARAMS, PARENT_SHA256, PRODUCER, PROVENANCE, SAMPLE_N, THICKNESS_MM,
                                   ArraySpec, ContainerSchema, Number, Table)
-from trimeter.model.inscatter import InscatterTable
+from trimeter.model.inscatter_table import InscatterTable
 
 INSCATTER_KIND = "inscatter-table"
 INSCATTER_FORMAT_VERSION = 1

@@ -28,7 +28,7 @@ from trimeter.inversion.mlp import MlpInverter
 from trimeter.inversion.table_builder import build_from_map
 from trimeter.inversion.table_model import DeviceTableModel
 from trimeter.model.grid import ForwardGrid
-from trimeter.model.setup import SampleSetup
+from trimeter.model.sample_setup import SampleSetup
 
 # what names a map to fit with: the map itself, its path, a shipped map's name, or a device table alone (a
 # measurement's MapRef is one of the first two)

@@ -14,7 +14,7 @@ if TYPE_CHECKING:
     from trimeter.inversion.lut import TableInverter
     from trimeter.inversion.mlp import MlpInverter
     from trimeter.model.grid import ForwardGrid
-    from trimeter.model.setup import SampleSetup
+    from trimeter.model.sample_setup import SampleSetup
 
 
 class FitModel(Protocol):

@@ -23,14 +23,14 @@ from trimeter.model.grid import ForwardGrid, SigmaCell
 
 if TYPE_CHECKING:
     from trimeter.formats.device_table import DeviceTable
-    from trimeter.model.inscatter import InscatterTable
+    from trimeter.model.inscatter_table import InscatterTable
 
 
 class TableInverter:
     def __init__(self, table: DeviceTable, inscatter: InscatterTable | None = None,
                  model_variance: tuple[np.ndarray, tuple[np.ndarray, ...]] | None = None) -> None:
         """table: a device table (trimeter.formats.device_table.DeviceTable: its forward model, inverse slices and
-        set-up); inscatter: the map's in-scattering table (trimeter.model.inscatter.InscatterTable), or
+        set-up); inscatter: the map's in-scattering table (trimeter.model.inscatter_table.InscatterTable), or
         None; model_variance: the map's own error at its nodes ((variances, axes) as
         ForwardGrid.attach_model_variance takes them), or None."""
         self.table = table

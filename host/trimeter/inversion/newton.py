@@ -5,7 +5,7 @@ trimeter.model.grid.ForwardGrid, the in-scattering correction and first-order un
 Why (α, g) at known σt: the unscattered beam, I_c's main part, depends on σt alone
 (trimeter.model.collimated), so the square 3×3 system's solution takes σt from I_c (Beer-Lambert with
 Fresnel, exact inverse) and leaves two equations in two unknowns. The light scattered into the
-detector's aperture (trimeter.model.inscatter) depends on α and g too: with a map's in-scattering
+detector's aperture (trimeter.model.inscatter_table) depends on α and g too: with a map's in-scattering
 table, σt and then (α, g) are corrected for it once (α, g) are solved, to first order
 (correct_inscatter). No Python loop per bin: every step is a gather + array arithmetic.
 """

@@ -3,7 +3,7 @@ with incoherent Fresnel inter-reflections at normal incidence (paper Sec. 3.2, E
 
 I_c is normalised by the open-slot reference (no sample, no slides), as the calibration measures it,
 so it is exactly the stack's transmittance. Light scattered into the detector aperture is a separate
-factor (trimeter.model.inscatter).
+factor (trimeter.model.inscatter_table).
 """
 
 from __future__ import annotations

@@ -14,10 +14,10 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from trimeter.model.cells import cubic_resample, linear_resample, refine_axis, regular_cell, trilinear
-from trimeter.model.setup import SampleSetup
+from trimeter.model.sample_setup import SampleSetup
 
 if TYPE_CHECKING:
-    from trimeter.model.inscatter import InscatterTable
+    from trimeter.model.inscatter_table import InscatterTable
 
 class MapNodes(Protocol):
     """What a grid is built from on an appearance map's own nodes (trimeter.formats.appearance.AppearanceMap
@@ -201,7 +201,7 @@ class ForwardGrid:
         return self.setup.collimated(sigma_t)
 
     def attach_inscatter(self, table: InscatterTable | None) -> None:
-        """Take in-scattered light into I_c into account (a trimeter.model.inscatter.InscatterTable,
+        """Take in-scattered light into I_c into account (a trimeter.model.inscatter_table.InscatterTable,
         or None): the table resampled onto this grid's own α and g nodes, at its evenly spaced optical
         depths, so that a bin's lookup reuses the polish's α and g cells (no logarithms per bin)."""
         if table is None:

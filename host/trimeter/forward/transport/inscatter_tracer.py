@@ -2,7 +2,7 @@
 
 The unscattered transmittance is analytic (trimeter.model.collimated). A real detector accepts a
 finite solid angle, so light scattered forward near the beam adds to it: I_c = T(σt)·(1 + r), and read
-as unscattered it gives σt too low by ln(1 + r)/(σt·ℓ). trimeter.model.inscatter.InscatterTable tabulates
+as unscattered it gives σt too low by ln(1 + r)/(σt·ℓ). trimeter.model.inscatter_table.InscatterTable tabulates
 L = ln(1 + r) per map (`trimeter map inscatter`, <map>.tins; build_inscatter_table traces it); the fit
 takes it out (trimeter.inversion.newton.correct_inscatter). This is a
 small volumetric light tracer for the device's `collimated` set-up (hardware/geometry.toml): a beam of
@@ -35,7 +35,7 @@ import numpy as np
 from trimeter.geometry import cover_slide_n, cover_slide_thickness_mm, load_geometry
 from trimeter.model.collimated import MEASURABLE_IC, beer_lambert_sigma_t, collimated_transmittance
 from trimeter.model.fresnel import NUMPY, fresnel
-from trimeter.model.inscatter import InscatterTable
+from trimeter.model.inscatter_table import InscatterTable
 
 SIXTEEN_BIT_FLOOR = 2.0**-16
 

@@ -11,7 +11,7 @@ from numpy.typing import ArrayLike
 
 from trimeter.errors import MapFileError
 from trimeter.model.cells import regular_cell, trilinear
-from trimeter.model.setup import SampleSetup
+from trimeter.model.sample_setup import SampleSetup
 
 TAU_MAX = 10.0  # beyond, I_c is far under any noise floor (e^-10): σt is only a lower bound there anyway
 

@@ -3,9 +3,9 @@
 its in-scattering table, fit from it alone, and score that fit on the map's held-out set with
 `trimeter bench fit`'s scoring.
 
-    .venv/bin/python tools/device_table.py build MAP [-o FILE] [--n-inverse N]
-    .venv/bin/python tools/device_table.py measure MAP [MAP…] [--noise 0,0.005]
-    .venv/bin/python tools/device_table.py budget MAP [MAP…]
+    .venv/bin/python tools/device_table_study.py build MAP [-o FILE] [--n-inverse N]
+    .venv/bin/python tools/device_table_study.py measure MAP [MAP…] [--noise 0,0.005]
+    .venv/bin/python tools/device_table_study.py budget MAP [MAP…]
 
 `build` prints the bytes per part. `measure` prints, per map and noise level, α abs / σt relative /
 g abs (α ≥ 0.5) p50 and p95 over the measurable gamut for: the map's own lut fit (`trimeter.fit`,
@@ -291,7 +291,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             for spec in args.maps:
                 measure(AppearanceMap.load(find_map(spec)), levels, args.seed)
     except TrimeterError as exc:
-        print(f"device_table: error: {exc}", file=sys.stderr)
+        print(f"device_table_study: error: {exc}", file=sys.stderr)
         return 2
     return 0
 
