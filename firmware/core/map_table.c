@@ -38,7 +38,7 @@ static uint64_t padded8(uint64_t n) { return (n + 7u) / 8u * 8u; }
 uint32_t map_table_v2_size(uint32_t na, uint32_t ns, uint32_t ng, uint32_t ni, uint32_t nu, uint32_t nt, uint32_t nv,
                            uint32_t geometry_bytes)
 {
-    /* the sections in order (maps/device_table.py SECTIONS), each padded to 8 bytes; 64 bits as above */
+    /* the sections in order (formats/device_table.py SECTIONS), each padded to 8 bytes; 64 bits as above */
     uint64_t forward = (uint64_t)na * ns * ng, inverse = (uint64_t)ns * ni * ni;
     uint64_t sections[] = {4u * (uint64_t)na, 4u * (uint64_t)ns, 4u * (uint64_t)ng, 48u, 6u * forward, 4u * forward,
                            2u * (uint64_t)nu * nt * nv, 24u * (uint64_t)ns, 2u * inverse, 2u * inverse, geometry_bytes};

@@ -5,7 +5,7 @@
  *   1  host/trimeter/maps/table.py: header 128 bytes, the source map's SHA-256, six f32 (n, thickness_mm,
  *      cover_slide_n, rho_b_ref, rho_w_ref, mc_stderr), u16 grid counts n_alpha, n_sigma, n_g, n_x, n_y,
  *      then the payload.
- *   2  the self-sufficient device table, host/trimeter/maps/device_table.py: header 256 bytes, two
+ *   2  the self-sufficient device table, host/trimeter/formats/device_table.py: header 256 bytes, two
  *      SHA-256s, six f32 as above at offset 80, u16 counts n_alpha, n_sigma, n_g, n_inverse, n_u, n_tau,
  *      n_v at 116, a directory of (offset, length) per section at 156, then the sections, each padded to
  *      8 bytes. The inverse core fits with this one (fit_core.h).

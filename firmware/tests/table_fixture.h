@@ -8,7 +8,7 @@
 /* Writes a table with every grid count = `grid` (>= 2) and a payload picked by `seed` into out
  * (capacity cap); returns its length, 0 if it does not fit. */
 uint32_t fixture_table(uint8_t *out, uint32_t cap, uint16_t grid, uint8_t seed);
-/* Writes a format-2 table (maps/device_table.py's layout: the smallest counts, axes and a set-up the
+/* Writes a format-2 table (formats/device_table.py's layout: the smallest counts, axes and a set-up the
  * inverse core accepts, codes picked by `seed`: a valid table of a made-up material model) into out
  * (capacity cap, 8-byte aligned for the core); returns its length, 0 if it does not fit. */
 uint32_t fixture_table_v2(uint8_t *out, uint32_t cap, uint8_t seed);

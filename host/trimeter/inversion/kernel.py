@@ -3,7 +3,7 @@
 NumpyKernel is the reference (trimeter.inversion.newton); NativeKernel runs the same algorithm in the
 compiled library (trimeter.inversion.native, tested to agree to ~1e-9, flags bit for bit) and also
 fuses one thickness's whole fit into one call, and combines several thicknesses (bit for bit
-api.combine's). A method never asks which one it has.
+finish.combine's). A method never asks which one it has.
 """
 
 from __future__ import annotations
@@ -64,8 +64,8 @@ class Kernel(Protocol):
 
     def combine(self, results: list[FitResult], method: str, *, underdetermined_std: tuple[float, float],
                 disagree_sigmas: float, blocks: np.ndarray | None = None) -> FitResult | None:
-        """Several thicknesses' fits combined (api.combine, whose thresholds are passed in), or None where
-        the kernel has no such path and api.combine runs. blocks: output_blocks' array where the results
+        """Several thicknesses' fits combined (finish.combine, whose thresholds are passed in), or None where
+        the kernel has no such path and finish.combine runs. blocks: output_blocks' array where the results
         were fused into it, read as it is."""
 
 

@@ -143,7 +143,7 @@ int tm_set_simd(int enabled);
  * malformed grid or a missing guess, -2 when out of memory, else the number of Newton steps taken. */
 long long tm_fit(const tm_forward_grid *f, const tm_inverse_table *table, const tm_fit_options *o, size_t n, const double *I_b, const double *I_w, const double *I_c, const double *rho_b, const double *rho_w, const double *sd_in, const double *alpha0, const double *g0, double *outputs);
 
-/* Several thicknesses' fits of the same bins combined (trimeter.inversion.api.combine, operation for
+/* Several thicknesses' fits of the same bins combined (trimeter.inversion.finish.combine, operation for
  * operation): fits holds k output blocks one after the other (k × TM_ROW_COUNT × n, each as tm_fit
  * writes it; its conditioning rows the α and g stds where that fit has none), outputs one more. The
  * inverse-variance mean and std, flags merged, STD_APPROXIMATE where a flagged thickness carries a
