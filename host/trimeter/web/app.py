@@ -407,7 +407,7 @@ def _search_args(request: web.Request) -> dict:
     flagged = q.get("flagged")
     if flagged is not None and flagged.lower() not in ("true", "false", "yes", "no", "1", "0"):
         raise ApiError(400, f"flagged: {flagged!r} is not true or false")
-    return {"label": q.get("label") or None,
+    return {"label": q.get("label") or None, "instrument": q.get("instrument") or None,
             "since": parse_day_or_time(q["since"], "since") if q.get("since") else None,
             "until": parse_day_or_time(q["until"], "until", end=True) if q.get("until") else None,
             "flagged": None if flagged is None else flagged.lower() in ("true", "yes", "1"),

@@ -1,0 +1,38 @@
+"""Several instruments on one page: GET /api/instruments (each one's state, calibration age, active table and
+jobs), and each instrument's whole API under /instruments/{name}/ (…/api/status, …/api/calibrate,
+…/api/measure, …/api/jobs/{id}, …/api/events), served by the same app as a single instrument's, mounted once per
+instrument. The root API (/api/status, /api/calibrate …) is the first instrument's, so a page or script made for
+one instrument keeps working; the history is shared, each measurement tagged with its instrument.
+"""
+
+from __future__ import annotations
+
+from aiohttp import web
+
+from trimeter.sequences.instruments import Instrument
+from trimeter.web.history import History
+from trimeter.web.jobs import Jobs
+
+INSTRUMENTS = web.AppKey("instruments", list)
+
+
+def instrument_status(instrument: Instrument, jobs: Jobs) -> dict:
+    return {"name": instrument.name, "port": instrument.port, "address": instrument.address,
+            "api": f"/instruments/{instrument.name}/api/", **jobs.status()}
+
+
+async def instruments_route(request: web.Request) -> web.StreamResponse:
+    return web.json_response({"instruments": [instrument_status(i, jobs) for i, jobs in request.app[INSTRUMENTS]]})
+
+
+def create_lab_app(lab: list[tuple[Instrument, Jobs]], history: History, token: str, *,
+                   webhook: str | None = None) -> web.Application:
+    """The root app (the first instrument's) with every instrument mounted under /instruments/{name}/."""
+    from trimeter.web.app import create_app
+
+    app = create_app(lab[0][1], history, token)  # its jobs' webhook goes out through its own mount below
+    app[INSTRUMENTS] = list(lab)
+    app.router.add_get("/api/instruments", instruments_route)
+    for instrument, jobs in lab:
+        app.add_subapp(f"/instruments/{instrument.name}/", create_app(jobs, history, token, webhook=webhook))
+    return app

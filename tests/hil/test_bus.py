@@ -1,0 +1,211 @@
+"""Three twins on one simulated RS-485 bus, served by one host and one page (`serve` with [[instruments]]):
+each calibrated and measured through its own API under /instruments/{name}/, the history tagged by instrument,
+and a link fault on one instrument's branch of the bus that the other two do not feel. Prints the cycle time of
+a measurement on each of three instruments measuring at once against one measuring alone (the bus throughput)."""
+
+from __future__ import annotations
+
+import json
+import time
+import urllib.error
+import urllib.request
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+import pytest
+
+from hil_support import HIL_MAP, SAMPLE, THICKNESS_MM, TIME_SCALE
+from trimeter.bench._rig import host_dirs
+from trimeter.paths import data_dir
+from trimeter.results.reader import read_parameters
+from trimeter.sequences.instruments import Lab
+from trimeter.sequences.settings import HostSettings
+
+NAMES = ("left", "middle", "right")
+FAULTY = "middle"
+# Link faults on the middle instrument's branch only: its requests are retried on the shared bus, and a drained
+# late reply or a garbled one must never reach another instrument's request.
+FAULTS = {"corrupt": 0.002, "drop": 0.03}
+
+
+class Page:
+    def __init__(self, url: str, token: str) -> None:
+        self.url, self.token = url, token
+
+    def call(self, method: str, path: str, body: dict | None = None) -> tuple[int, dict]:
+        data = None if body is None else json.dumps(body).encode()
+        request = urllib.request.Request(self.url + path, data=data, method=method,
+                                         headers={"Authorization": f"Bearer {self.token}",
+                                                  "Content-Type": "application/json"})
+        try:
+            with urllib.request.urlopen(request, timeout=30) as response:
+                return response.status, json.loads(response.read())
+        except urllib.error.HTTPError as exc:
+            return exc.code, json.loads(exc.read() or b"{}")
+
+    def wait_job(self, name: str, job_id: str, timeout_s: float = 180.0) -> dict:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            job = self.call("GET", f"/instruments/{name}/api/jobs/{job_id}")[1]["job"]
+            if job["state"] in ("done", "failed"):
+                return job
+            time.sleep(0.1)
+        raise AssertionError(f"{name}: job {job_id} not finished within {timeout_s} s")
+
+    def calibrate(self, name: str) -> dict:
+        state = self.call("GET", f"/instruments/{name}/api/status")[1]["state"]
+        if state != "asking_empty_holder":
+            status, asked = self.call("POST", f"/instruments/{name}/api/calibrate", {})
+            assert status == 202, asked
+            self.wait_job(name, asked["job"]["id"])
+        status, confirmed = self.call("POST", f"/instruments/{name}/api/calibrate", {"holder_empty": True})
+        assert status == 202, confirmed
+        return self.wait_job(name, confirmed["job"]["id"])
+
+    def measure(self, name: str) -> tuple[dict, float]:
+        started = time.monotonic()
+        status, answer = self.call("POST", f"/instruments/{name}/api/measure", {"thickness_mm": THICKNESS_MM})
+        assert status == 202, answer
+        job = self.wait_job(name, answer["job"]["id"])
+        return job, time.monotonic() - started
+
+    def wait_state(self, name: str, state: str, timeout_s: float = 60.0) -> None:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if self.call("GET", f"/instruments/{name}/api/status")[1]["state"] == state:
+                return
+            time.sleep(0.05)
+        raise AssertionError(f"{name}: state {state!r} not reached within {timeout_s} s")
+
+
+def _errors(results_dir, truth) -> dict:
+    """p95 |error| of σt (relative) and α over 420-720 nm, and the fraction of non-finite α bins."""
+    p = read_parameters(results_dir)[0]
+    wl = p.wavelengths_nm
+    band = (wl >= 420) & (wl <= 720)
+    alpha = np.interp(wl, truth["wavelengths_nm"], truth["alpha"])[band]
+    sigma_t = np.interp(wl, truth["wavelengths_nm"], truth["sigma_t"])[band]
+    return {"nan": float(np.mean(~np.isfinite(p.alpha[band]))),
+            "sigma_t": float(np.nanpercentile(np.abs(p.sigma_t[band] / sigma_t - 1), 95)),
+            "alpha": float(np.nanpercentile(np.abs(p.alpha[band] - alpha), 95))}
+
+
+@pytest.fixture
+def lab_page(request, tmp_path):
+    if request.config.getoption("--port"):
+        pytest.skip("needs the twin (three instruments on one simulated bus)")
+    from trimeter.twin import FaultConfig
+    from trimeter.twin.bus import TwinBus
+    from trimeter.web.app import WebServer
+    from trimeter.web.auth import load_or_create_token
+    from trimeter.web.history import History
+    from trimeter.web.instruments_routes import create_lab_app
+    from trimeter.web.jobs import Jobs
+
+    faults = [FaultConfig(**FAULTS) if name == FAULTY else None for name in NAMES]
+    with host_dirs(tmp_path), TwinBus(3, faults=faults, sample=None, thickness_mm=THICKNESS_MM, time_scale=TIME_SCALE,
+                                      appearance_map=str(HIL_MAP), state_dir=tmp_path / "bus", seed=11) as bus:
+        settings = HostSettings()
+        settings.update({"results_dir": str(tmp_path / "results"), "map": str(HIL_MAP), "warmup_threshold": 0.003,
+                         "timeout_s": 0.1, "attempts": 8,
+                         "instruments": [{"name": name, "port": bus.modbus_port, "address": twin.address,
+                                          "spectrometer": twin.spectrometer_url}
+                                         for name, twin in zip(NAMES, bus.twins, strict=True)]})
+        lab = Lab(settings)
+        lab.check_buses()
+        history = History(settings.results_path, data_dir() / "history.sqlite")
+        history.open()
+        served = [(instrument, Jobs(lab.service(instrument, device_clock=twin.sim_time), on_measurement=history.add))
+                  for instrument, twin in zip(lab.instruments, bus.twins, strict=True)]
+        server = WebServer(create_lab_app(served, history, load_or_create_token()), "127.0.0.1", 0).start()
+        for _, jobs in served:
+            jobs.start()
+        try:
+            yield Page(server.url, load_or_create_token()), dict(zip(NAMES, bus.twins, strict=True)), settings.results_path
+        finally:
+            server.close()
+            for _, jobs in served:
+                jobs.stop()
+            for _, jobs in served:
+                jobs.service.close()
+            lab.close()
+
+
+def test_three_instruments_on_one_bus_calibrate_and_measure_from_one_page_and_a_fault_stays_on_its_own(lab_page):
+    page, twins, results = lab_page
+    status, listing = page.call("GET", "/api/instruments")
+    assert status == 200
+    assert [(i["name"], i["address"]) for i in listing["instruments"]] == [(n, twins[n].address) for n in NAMES]
+    assert len({i["port"] for i in listing["instruments"]}) == 1  # one bus
+    for name in NAMES:
+        page.wait_state(name, "asking_empty_holder")  # no calibration yet: each asks for an empty holder
+
+    with ThreadPoolExecutor(3) as pool:  # calibrated side by side, on one bus
+        calibrations = dict(zip(NAMES, pool.map(page.calibrate, NAMES), strict=True))
+    for name, job in calibrations.items():
+        assert job["state"] == "done" and job["outcome"] == "calibrated", (name, job)
+
+    for twin in twins.values():
+        twin.control.insert_sample(SAMPLE, THICKNESS_MM)
+    alone, alone_s = page.measure("left")  # the baseline: one instrument measuring while the others idle
+    assert alone["state"] == "done", alone
+    with ThreadPoolExecutor(3) as pool:
+        together = dict(zip(NAMES, pool.map(page.measure, NAMES), strict=True))
+    cycle = {name: round(seconds, 2) for name, (_, seconds) in together.items()}
+    print(f"\nbus throughput (twin, time scale {TIME_SCALE:g}): one measurement alone {alone_s:.2f} s; three at once "
+          f"on one bus {cycle} s each, {max(cycle.values()) / alone_s:.2f}× the one alone; "
+          f"faults on {FAULTY}: {FAULTS}")
+
+    listing = page.call("GET", "/api/instruments")[1]["instruments"]
+    for name, (job, _) in together.items():
+        assert job["state"] == "done" and job["measurement"], (name, job["outcome"], job["message"])
+        errors = _errors(results / job["measurement"], twins[name].control.truth())
+        assert errors["nan"] == 0 and errors["sigma_t"] < 0.02 and errors["alpha"] < 0.05, (name, errors)
+        shown = next(i for i in listing if i["name"] == name)
+        assert shown["calibration"]["age_s"] is not None and shown["last_measurement"] == job["measurement"]
+        assert job["id"] in [j["id"] for j in shown["recent_jobs"]]
+
+    counters = twins[FAULTY].control.state()["counters"]
+    assert counters["replies_dropped"] + counters["bytes_corrupted"] > 5, counters  # the fault really happened
+    for name in NAMES:  # the others' branches carried no fault at all
+        if name != FAULTY:
+            clean = twins[name].control.state()["counters"]
+            assert clean["replies_dropped"] == clean["bytes_corrupted"] == 0, (name, clean)
+
+    # the history: every measurement tagged with the instrument that made it, and searchable by it
+    history = page.call("GET", "/api/measurements?limit=50")[1]
+    tags = {row["id"]: row["instrument"] for row in history["measurements"]}
+    for name, (job, _) in together.items():
+        assert tags[job["measurement"]] == name
+    only = page.call("GET", f"/api/measurements?instrument={FAULTY}")[1]["measurements"]
+    assert {row["instrument"] for row in only} == {FAULTY} and len(only) == 1
+
+
+def test_two_twins_answering_at_one_address_are_one_clear_error(request, tmp_path):
+    if request.config.getoption("--port"):
+        pytest.skip("needs the twin")
+    from trimeter.errors import DeviceError
+    from trimeter.twin.bus import TwinBus
+
+    with host_dirs(tmp_path), TwinBus(addresses=[1, 2, 2], sample=None, time_scale=TIME_SCALE,
+                                      appearance_map=str(HIL_MAP), state_dir=tmp_path / "bus") as bus:
+        def lab_of(addresses: list[int]) -> Lab:
+            settings = HostSettings()
+            settings.set("instruments", [{"name": f"i{a}", "port": bus.modbus_port, "address": a,
+                                          "spectrometer": t.spectrometer_url}
+                                         for a, t in zip(addresses, bus.twins, strict=False)])
+            return Lab(settings)
+
+        lab = lab_of([1, 2])
+        try:
+            with pytest.raises(DeviceError, match=r"^instrument 'i2': address collision on the bus .*: more than one "
+                                                  r"device answers at Modbus address 2"):
+                lab.check_buses()
+        finally:
+            lab.close()
+        lab = lab_of([1, 3])
+        try:
+            with pytest.raises(DeviceError, match=r"^instrument 'i3': no instrument answers at Modbus address 3"):
+                lab.check_buses()
+        finally:
+            lab.close()
