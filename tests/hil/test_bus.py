@@ -121,7 +121,8 @@ def lab_page(request, tmp_path):
         for _, jobs in served:
             jobs.start()
         try:
-            yield Page(server.url, load_or_create_token()), dict(zip(NAMES, bus.twins, strict=True)), settings.results_path
+            twins = dict(zip(NAMES, bus.twins, strict=True))
+            yield Page(server.url, load_or_create_token()), twins, settings.results_path
         finally:
             server.close()
             for _, jobs in served:

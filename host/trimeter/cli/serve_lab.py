@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import threading
+from collections.abc import Callable
 from datetime import datetime
 
 from trimeter.sequences.instruments import Instrument, Lab
@@ -12,7 +13,7 @@ from trimeter.sequences.service import Event, Service
 from trimeter.sequences.settings import HostSettings
 
 
-def _printer(name: str) -> "callable[[Event], None]":  # type: ignore[valid-type]
+def _printer(name: str) -> Callable[[Event], None]:
     def show(event: Event) -> None:
         print(f"{datetime.now():%H:%M:%S} {name:<12} {event.kind:<12} {event.message}", flush=True)
     return show

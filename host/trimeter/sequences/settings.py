@@ -220,7 +220,7 @@ def checked_instruments(value: Any, source: str = "host config") -> list[dict[st
         if unknown:
             raise InputError(f"{where}.{unknown[0]}: no such instrument setting ({', '.join(INSTRUMENT_SCHEMA)}) "
                              f"({source})")
-        item = {"name": "", "port": "", "address": 1, "spectrometer": ""}
+        item: dict[str, Any] = {"name": "", "port": "", "address": 1, "spectrometer": ""}
         for key, raw in entry.items():
             item[key] = _checked_by(INSTRUMENT_SCHEMA[key], f"{where}.{key}", raw, source)
         checked_name(f"{where}.name", item["name"], source, required=True)

@@ -42,7 +42,7 @@ CREATE TABLE measurements (
     id TEXT PRIMARY KEY,
     written_utc TEXT NOT NULL,
     label TEXT,
-    instrument TEXT,                   -- the name of the instrument that measured it (host config `name`)
+    instrument TEXT,                   -- the name of the instrument that measured it
     method TEXT,
     thicknesses_mm TEXT NOT NULL,      -- JSON list
     maps TEXT NOT NULL,                -- JSON list
@@ -56,8 +56,8 @@ CREATE TABLE measurements (
 );
 CREATE INDEX measurements_written ON measurements (written_utc);
 """
-_COLUMNS = ("id", "written_utc", "label", "instrument", "method", "thicknesses_mm", "maps", "bins", "flagged_bins", "flags",
-            "incomplete", "refit_of", "advice", "mtime")
+_COLUMNS = ("id", "written_utc", "label", "instrument", "method", "thicknesses_mm", "maps", "bins", "flagged_bins",
+            "flags", "incomplete", "refit_of", "advice", "mtime")
 
 
 def is_measurement_id(text: str) -> bool:
@@ -299,9 +299,9 @@ class History:
             row = self.db.execute("SELECT * FROM measurements WHERE id = ?", (measurement_id,)).fetchone()
         return None if row is None else row_to_json(dict(row))
 
-    def search(self, *, label: str | None = None, instrument: str | None = None, since: str | None = None, until: str | None = None,
-               flagged: bool | None = None, flag: str | None = None, limit: int = 50, offset: int = 0
-               ) -> tuple[list[dict], int]:
+    def search(self, *, label: str | None = None, instrument: str | None = None, since: str | None = None,
+               until: str | None = None, flagged: bool | None = None, flag: str | None = None, limit: int = 50,
+               offset: int = 0) -> tuple[list[dict], int]:
         """(one page of rows, newest first; how many match). Dates as parse_day_or_time gives them."""
         where: list[str] = []
         args: list[object] = []
