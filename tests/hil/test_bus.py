@@ -6,76 +6,31 @@ a measurement on each of three instruments measuring at once against one measuri
 from __future__ import annotations
 
 import json
-import time
-import urllib.error
-import urllib.request
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
 
 from hil_support import HIL_MAP, SAMPLE, THICKNESS_MM, TIME_SCALE
+from lab_support import NAMES, served_lab
 from trimeter.bench._rig import host_dirs
-from trimeter.paths import data_dir
 from trimeter.results.reader import read_parameters
 from trimeter.sequences.instruments import Lab
 from trimeter.sequences.settings import HostSettings
 
-NAMES = ("left", "middle", "right")
 FAULTY = "middle"
 # Link faults on the middle instrument's branch only: its requests are retried on the shared bus, and a drained
 # late reply or a garbled one must never reach another instrument's request.
 FAULTS = {"corrupt": 0.002, "drop": 0.03}
 
 
-class Page:
-    def __init__(self, url: str, token: str) -> None:
-        self.url, self.token = url, token
-
-    def call(self, method: str, path: str, body: dict | None = None) -> tuple[int, dict]:
-        data = None if body is None else json.dumps(body).encode()
-        request = urllib.request.Request(self.url + path, data=data, method=method,
-                                         headers={"Authorization": f"Bearer {self.token}",
-                                                  "Content-Type": "application/json"})
-        try:
-            with urllib.request.urlopen(request, timeout=30) as response:
-                return response.status, json.loads(response.read())
-        except urllib.error.HTTPError as exc:
-            return exc.code, json.loads(exc.read() or b"{}")
-
-    def wait_job(self, name: str, job_id: str, timeout_s: float = 180.0) -> dict:
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            job = self.call("GET", f"/instruments/{name}/api/jobs/{job_id}")[1]["job"]
-            if job["state"] in ("done", "failed"):
-                return job
-            time.sleep(0.1)
-        raise AssertionError(f"{name}: job {job_id} not finished within {timeout_s} s")
-
-    def calibrate(self, name: str) -> dict:
-        state = self.call("GET", f"/instruments/{name}/api/status")[1]["state"]
-        if state != "asking_empty_holder":
-            status, asked = self.call("POST", f"/instruments/{name}/api/calibrate", {})
-            assert status == 202, asked
-            self.wait_job(name, asked["job"]["id"])
-        status, confirmed = self.call("POST", f"/instruments/{name}/api/calibrate", {"holder_empty": True})
-        assert status == 202, confirmed
-        return self.wait_job(name, confirmed["job"]["id"])
-
-    def measure(self, name: str) -> tuple[dict, float]:
-        started = time.monotonic()
-        status, answer = self.call("POST", f"/instruments/{name}/api/measure", {"thickness_mm": THICKNESS_MM})
-        assert status == 202, answer
-        job = self.wait_job(name, answer["job"]["id"])
-        return job, time.monotonic() - started
-
-    def wait_state(self, name: str, state: str, timeout_s: float = 60.0) -> None:
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            if self.call("GET", f"/instruments/{name}/api/status")[1]["state"] == state:
-                return
-            time.sleep(0.05)
-        raise AssertionError(f"{name}: state {state!r} not reached within {timeout_s} s")
+def _link(results_dir) -> dict:
+    """One measurement's Modbus requests (its own, from its timing) and the bus wait its instrument has had so far."""
+    record = json.loads((results_dir / "measurement.json").read_text())
+    timing = record["timing"]
+    return {"wall_s": round(timing["wall_s"], 2), "requests": timing["requests"],
+            "request_wall_s": round(timing["request_wall_s"], 2), "retries": timing["request_retries"],
+            "bus_wait_s_so_far": round(record["link"]["bus_wait_s"], 2)}
 
 
 def _errors(results_dir, truth) -> dict:
@@ -94,42 +49,8 @@ def _errors(results_dir, truth) -> dict:
 def lab_page(request, tmp_path):
     if request.config.getoption("--port"):
         pytest.skip("needs the twin (three instruments on one simulated bus)")
-    from trimeter.twin import FaultConfig
-    from trimeter.twin.bus import TwinBus
-    from trimeter.web.app import WebServer
-    from trimeter.web.auth import load_or_create_token
-    from trimeter.web.history import History
-    from trimeter.web.instruments_routes import create_lab_app
-    from trimeter.web.jobs import Jobs
-
-    faults = [FaultConfig(**FAULTS) if name == FAULTY else None for name in NAMES]
-    with host_dirs(tmp_path), TwinBus(3, faults=faults, sample=None, thickness_mm=THICKNESS_MM, time_scale=TIME_SCALE,
-                                      appearance_map=str(HIL_MAP), state_dir=tmp_path / "bus", seed=11) as bus:
-        settings = HostSettings()
-        settings.update({"results_dir": str(tmp_path / "results"), "map": str(HIL_MAP), "warmup_threshold": 0.003,
-                         "timeout_s": 0.1, "attempts": 8,
-                         "instruments": [{"name": name, "port": bus.modbus_port, "address": twin.address,
-                                          "spectrometer": twin.spectrometer_url}
-                                         for name, twin in zip(NAMES, bus.twins, strict=True)]})
-        lab = Lab(settings)
-        lab.check_buses()
-        history = History(settings.results_path, data_dir() / "history.sqlite")
-        history.open()
-        served = [(instrument, Jobs(lab.service(instrument, device_clock=twin.sim_time), on_measurement=history.add))
-                  for instrument, twin in zip(lab.instruments, bus.twins, strict=True)]
-        server = WebServer(create_lab_app(served, history, load_or_create_token()), "127.0.0.1", 0).start()
-        for _, jobs in served:
-            jobs.start()
-        try:
-            twins = dict(zip(NAMES, bus.twins, strict=True))
-            yield Page(server.url, load_or_create_token()), twins, settings.results_path
-        finally:
-            server.close()
-            for _, jobs in served:
-                jobs.stop()
-            for _, jobs in served:
-                jobs.service.close()
-            lab.close()
+    with served_lab(tmp_path, {FAULTY: FAULTS}) as served:
+        yield served
 
 
 def test_three_instruments_on_one_bus_calibrate_and_measure_from_one_page_and_a_fault_stays_on_its_own(lab_page):
@@ -153,9 +74,10 @@ def test_three_instruments_on_one_bus_calibrate_and_measure_from_one_page_and_a_
     with ThreadPoolExecutor(3) as pool:
         together = dict(zip(NAMES, pool.map(page.measure, NAMES), strict=True))
     cycle = {name: round(seconds, 2) for name, (_, seconds) in together.items()}
-    print(f"\nbus throughput (twin, time scale {TIME_SCALE:g}): one measurement alone {alone_s:.2f} s; three at once "
-          f"on one bus {cycle} s each, {max(cycle.values()) / alone_s:.2f}× the one alone; "
-          f"faults on {FAULTY}: {FAULTS}")
+    links = {name: _link(results / job["measurement"]) for name, (job, _) in together.items() if job["measurement"]}
+    print(f"\nbus throughput (twin, time scale {TIME_SCALE:g}): one measurement alone {alone_s:.2f} s "
+          f"(link {_link(results / alone['measurement'])}); three at once on one bus {cycle} s each, "
+          f"{max(cycle.values()) / alone_s:.2f}x the one alone; links {links}; faults on {FAULTY}: {FAULTS}")
 
     listing = page.call("GET", "/api/instruments")[1]["instruments"]
     for name, (job, _) in together.items():

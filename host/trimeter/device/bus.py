@@ -56,7 +56,9 @@ class SharedBus:
     @contextlib.contextmanager
     def turn(self, member: BusMember) -> Iterator[Any]:
         """The port, addressed to `member`, for one request (the bus lock held)."""
+        asked = time.monotonic()
         with self.lock:
+            member.stats.bus_wait_s += time.monotonic() - asked
             rtu = self._rtu
             rtu.address, rtu.stats = member.address, member.stats
             saved = rtu._slow_reply_s

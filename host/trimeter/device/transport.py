@@ -109,6 +109,7 @@ class LinkStats:
     reconnects: int = 0
     failures: int = 0
     busy_s: float = field(default=0.0)  # wall time spent inside requests (host + protocol overhead)
+    bus_wait_s: float = 0.0   # wall time waiting for the turn on a bus shared with other instruments (device.bus)
 
 
 class RtuTransport:
