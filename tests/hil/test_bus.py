@@ -132,3 +132,42 @@ def test_two_twins_answering_at_one_address_are_one_clear_error(request, tmp_pat
                 lab.check_buses()
         finally:
             lab.close()
+
+
+def test_serve_refuses_a_bus_with_two_instruments_at_one_address_in_one_line(request, tmp_path, capsys):
+    if request.config.getoption("--port"):
+        pytest.skip("needs the twin")
+    from trimeter.cli import main
+    from trimeter.twin.bus import TwinBus
+
+    with host_dirs(tmp_path), TwinBus(addresses=[1, 1], sample=None, time_scale=TIME_SCALE,
+                                      appearance_map=str(HIL_MAP), state_dir=tmp_path / "bus") as bus:
+        settings = HostSettings()
+        settings.set("instruments", [{"name": "a", "port": bus.modbus_port, "address": 1},
+                                     {"name": "b", "port": bus.modbus_port, "address": 2}])
+        settings.save()
+        assert main(["serve"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("trimeter: error: instrument 'a': address collision on the bus"), err
+
+
+def test_calibrate_and_measure_reach_one_instrument_of_the_bus_by_its_address(request, tmp_path, capsys):
+    if request.config.getoption("--port"):
+        pytest.skip("needs the twin")
+    from trimeter.cli import main
+    from trimeter.twin.bus import TwinBus
+
+    with host_dirs(tmp_path), TwinBus(2, sample=None, thickness_mm=THICKNESS_MM, time_scale=TIME_SCALE,
+                                      appearance_map=str(HIL_MAP), state_dir=tmp_path / "bus", seed=5) as bus:
+        twin = bus.twin(2)
+        where = ["--port", str(bus.modbus_port), "--address", "2", "--spectrometer", twin.spectrometer_url]
+        assert main(["config", "set", "--host", "map", str(HIL_MAP)]) == 0
+        assert main(["config", "set", "--host", "results_dir", str(tmp_path / "results")]) == 0
+        assert main(["calibrate", *where]) == 0
+        twin.control.insert_sample(SAMPLE, THICKNESS_MM)
+        assert main(["measure", *where, "--thickness", str(THICKNESS_MM), "--map", str(HIL_MAP)]) == 0
+        other = bus.twin(1).control.state()
+        assert other["spectrometer"]["acquisitions"] == 0  # the instrument at address 1 was never asked to measure
+        (result,) = (tmp_path / "results").iterdir()
+        errors = _errors(result, twin.control.truth())
+        assert errors["nan"] == 0 and errors["sigma_t"] < 0.02, errors
