@@ -4,6 +4,24 @@ The device's own configuration lives in the device (holding registers, `save_con
 holds what only the host knows: where the instrument and spectrometer are, where results go, the
 sequence parameters. `TRIMETER_CONFIG_DIR` / `TRIMETER_DATA_DIR` override the directories (tests,
 the demo, several instruments on one host).
+
+Several instruments on one host (`trimeter serve` takes them all; one page shows them all): one
+`[[instruments]]` table each, after the plain settings. Instruments on one serial port share it as an
+RS-485 bus, each at its own Modbus address (the device's `modbus_address`, saved in it); two at one
+address of one port are refused here, two devices answering at one address when `serve` starts:
+
+    [[instruments]]
+    name = "left"                 # the page, the history and its calibration know it by this
+    port = "/dev/ttyUSB0"
+    address = 1
+    spectrometer = "seabreeze:"
+    [[instruments]]
+    name = "right"
+    port = "/dev/ttyUSB0"         # the same bus
+    address = 2
+    spectrometer = "i2c:1"
+
+Every other setting applies to each instrument alike. `--port`/`--address` on `serve` take one alone.
 """
 
 from __future__ import annotations
@@ -52,9 +70,7 @@ class HostSettings:
     second_thickness_mm: float = 0.0   # 0: one sample per press
     second_map: str = ""               # its map; empty = the shipped map of that thickness
     swap_timeout_s: float = 600.0      # no press for the second sample within this: the first is written alone
-    # `serve` with several instruments: [[instruments]] tables {name, port, address, spectrometer} (INSTRUMENT_SCHEMA);
-    # empty: the one instrument of `port`, `address`, `spectrometer`
-    instruments: list[dict[str, Any]] = field(default_factory=list)
+    instruments: list[dict[str, Any]] = field(default_factory=list)  # `serve` with several ([[instruments]], above)
 
     # ---------------------------------------------------------------------------------------
     @property

@@ -43,7 +43,7 @@ from trimeter.sequences.measure import map_for_thickness
 from trimeter.sequences.service import EMPTY_HOLDER, NEXT_SAMPLE
 from trimeter.sequences.settings import HostSettings
 from trimeter.web import auth
-from trimeter.web import library_routes
+from trimeter.web import instruments_routes, library_routes
 from trimeter.web.history import History, IndexUnavailable, is_measurement_id, parse_day_or_time
 from trimeter.web.jobs import Busy, Job, Jobs
 
@@ -831,6 +831,7 @@ def openapi() -> dict:
     mid = ("id", "path", "string", "a results directory's name")
     search = [("label", "query", "string", "part of the label"), ("since", "query", "string", "YYYY-MM-DD or ISO time"),
               ("until", "query", "string", "YYYY-MM-DD (inclusive) or ISO time"),
+              ("instrument", "query", "string", "only those of the instrument of this name"),
               ("flagged", "query", "boolean", "only measurements with (true) / without (false) flagged bins"),
               ("flag", "query", "string", "only those with this FitFlag (e.g. UNDERDETERMINED)"),
               ("limit", "query", "integer", "page size, 1..500 (default 50)"), ("offset", "query", "integer", ""),
@@ -879,5 +880,6 @@ def openapi() -> dict:
             "/api/events": {"get": op("websocket: the service's events, progress and jobs as JSON, live")},
             "/api/openapi.json": {"get": op("this description")},
             **library_routes.OPENAPI_PATHS,
+            **instruments_routes.OPENAPI_PATHS,
         },
     }

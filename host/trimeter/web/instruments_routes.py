@@ -14,6 +14,18 @@ from trimeter.web.history import History
 from trimeter.web.jobs import Jobs
 
 INSTRUMENTS = web.AppKey("instruments", list)
+OPENAPI_PATHS = {
+    "/api/instruments": {"get": {
+        "summary": "serve with several instruments: each one's name, port, Modbus address, API prefix and status (as "
+                   "/api/status); the root API is the first instrument's",
+        "responses": {"200": {"description": "OK"}, "404": {"description": "one instrument only"}}}},
+    "/instruments/{name}/api/...": {"get": {
+        "summary": "that instrument's whole API (status, jobs, calibrate, measure, next-sample, events, config …), "
+                   "as the root API is the first one's",
+        "parameters": [{"name": "name", "in": "path", "required": True, "schema": {"type": "string"},
+                        "description": "the instrument's name"}],
+        "responses": {"200": {"description": "OK"}}}},
+}
 
 
 def instrument_status(instrument: Instrument, jobs: Jobs) -> dict:
