@@ -121,3 +121,26 @@ def test_sim_instruments_prints_the_bus_and_each_instrument_and_ctl_reaches_one(
         process.wait(timeout=30)
     assert process.returncode == 0
     assert not (tmp_path / "ports.json").exists() and not (tmp_path / "instrument-1" / "ports.json").exists()
+
+
+def test_the_firmware_address_is_configurable_and_saved_and_an_override_wins(tmp_path, monkeypatch):
+    """`config set modbus_address` + `config save`: after a reset the firmware answers at the new address only;
+    a twin started with an address (a bus position) answers there whatever is saved."""
+    from trimeter.cli import main
+    from trimeter.twin import Twin
+
+    monkeypatch.setenv("TRIMETER_CONFIG_DIR", str(tmp_path / "config"))
+    monkeypatch.setenv("TRIMETER_DATA_DIR", str(tmp_path / "data"))
+    with Twin(time_scale=20.0, state_dir=tmp_path / "twin") as twin:
+        port = str(twin.modbus_port)
+        assert main(["config", "set", "modbus_address", "7", "--port", port]) == 0
+        assert _read(port, 1) == [regs.VENDOR_ID]  # takes effect at the next boot
+        assert main(["config", "save", "--port", port]) == 0
+        twin.control.reset_firmware()
+        time.sleep(0.3)
+        assert _read(port, 7, attempts=3) == [regs.VENDOR_ID] and _read(port, 1) is None
+    with Twin(time_scale=20.0, state_dir=tmp_path / "twin", address=3) as twin:
+        assert _read(str(twin.modbus_port), 3, attempts=3) == [regs.VENDOR_ID]
+        assert _read(str(twin.modbus_port), 7) is None
+    with pytest.raises(InputError, match="within 1..247"):
+        Twin(address=0)
