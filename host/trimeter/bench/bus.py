@@ -20,6 +20,7 @@ import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 from trimeter.bench._rig import host_dirs
 from trimeter.domain import Sample
@@ -43,7 +44,7 @@ def _lab(root: Path, count: int, *, shared: bool, time_scale: float, seed: int
     host = HostSettings()
     table = table_bytes(map_for_thickness(host.thickness_mm).name)
     with contextlib.ExitStack() as stack:
-        options = {"time_scale": time_scale, "map_table": table, "sample": None}
+        options: dict[str, Any] = {"time_scale": time_scale, "map_table": table, "sample": None}
         if shared:
             bus = stack.enter_context(TwinBus(count, state_dir=root / "bus", seed=seed, **options))
             twins, ports = bus.twins, [str(bus.modbus_port)] * count
@@ -96,6 +97,11 @@ def _measure(service: Service) -> None:
     service.measure([Sample(THICKNESS_MM, map_for_thickness(THICKNESS_MM, service.settings.map or None))])
 
 
+def _link_counters(service: Service) -> dict:
+    stats = getattr(service.device.transport, "stats", None) if service.device is not None else None
+    return dict(vars(stats)) if stats is not None else {"bus_wait_s": 0.0, "requests": 0}
+
+
 def run(args) -> int:
     if not 2 <= args.instruments <= MAX_INSTRUMENTS:
         raise InputError(f"--instruments must be within 2..{MAX_INSTRUMENTS}, got {args.instruments}")
@@ -111,7 +117,7 @@ def run(args) -> int:
                                               seed=args.seed) as (_, services):
             alone = [_together([lambda: _measure(services[0])])[0] for _ in range(args.rounds)]
             bus = [_together([lambda s=s: _measure(s) for s in services]) for _ in range(args.rounds)]
-            links = [vars(s.device.transport.stats).copy() for s in services if s.device is not None]
+            links = [_link_counters(s) for s in services]
         with host_dirs(root / "ports"), _lab(root / "ports", n, shared=False, time_scale=args.time_scale,
                                              seed=args.seed) as (_, services):
             ports = [_together([lambda s=s: _measure(s) for s in services]) for _ in range(args.rounds)]
