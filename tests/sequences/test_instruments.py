@@ -135,6 +135,8 @@ def test_the_lab_opens_one_bus_per_port_and_checks_every_shared_one(monkeypatch)
     assert len(devices) == 3 and FakeBus.opened == ["/dev/ttyUSB0", "/dev/ttyUSB1"]
     with pytest.raises(InputError, match="no instrument named 'nope' \\(left, middle, other-port\\)"):
         lab.by_name("nope")
+    polls = [lab.service(i).poll_s for i in lab.instruments]
+    assert polls == pytest.approx([0.1, 0.1, 0.05])  # two instruments share /dev/ttyUSB0: each polls half as often
     buses = list(lab.buses.values())
     lab.close()
     assert all(bus.closed for bus in buses)

@@ -147,22 +147,10 @@ def probe_address(bus: SharedBus, address: int, *, listen_s: float | None = None
     """DeviceError unless exactly one device answers at `address` on the bus: none answering names the address,
     several (or replies that collide, every round) names the collision."""
     with bus.lock:
-        serial = bus._rtu._client.socket
-        if serial is None:
-            bus._rtu.reopen()
-            serial = bus._rtu._client.socket
         listen = listen_s if listen_s is not None else bus._rtu.request_timeout_s(8, 7) + 0.05
         results = []
         for _ in range(PROBE_ROUNDS):
-            serial.reset_input_buffer()
-            serial.write(probe_request(address))
-            serial.flush()
-            deadline, data = time.monotonic() + listen, b""
-            while time.monotonic() < deadline:  # everything that answers, not just the first reply
-                waiting = serial.in_waiting
-                data += serial.read(waiting) if waiting else b""
-                time.sleep(0.002)
-            results.append(count_replies(data, address))
+            results.append(count_replies(bus._rtu.listen_after(probe_request(address), listen), address))
             if results[-1] == 1:
                 return
         if all(n == 0 for n in results):

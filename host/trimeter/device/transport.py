@@ -193,6 +193,24 @@ class RtuTransport:
     def close(self) -> None:
         self._client.close()
 
+    def listen_after(self, frame: bytes, listen_s: float) -> bytes:
+        """Send raw `frame` and return every byte that arrives within `listen_s` — all the answers, not the
+        first reply pymodbus would frame (trimeter.device.bus counts them to find two devices at one address)."""
+        if self._client.socket is None:
+            self.reopen()
+        sock = self._client.socket
+        if sock is None:
+            raise LinkError(f"cannot open serial port {self.port}")
+        sock.reset_input_buffer()
+        sock.write(frame)
+        sock.flush()
+        data, deadline = b"", time.monotonic() + listen_s
+        while time.monotonic() < deadline:
+            waiting = sock.in_waiting
+            data += sock.read(waiting) if waiting else b""
+            time.sleep(0.002)
+        return data
+
     def _trace_packet(self, sending: bool, data: bytes) -> bytes:
         """pymodbus hands every receive buffer through here (all bytes since the request: its RTU framer
         consumes nothing until it finds a frame): keep them, and stop waiting as soon as they are as long

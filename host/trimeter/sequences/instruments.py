@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Any
 
 from trimeter.device.bus import SharedBus, probe_address
 from trimeter.errors import DeviceError, InputError
-from trimeter.sequences.service import Event, Service
+from trimeter.sequences.service import POLL_S, Event, Service
 from trimeter.sequences.settings import HostSettings
 
 if TYPE_CHECKING:
@@ -105,9 +105,12 @@ class Lab:
 
     def service(self, instrument: Instrument, *, on_event: Callable[[Event], None] | None = None,
                 **kwargs: Any) -> Service:
-        """A Service for one instrument, its own settings, device and spectrometer."""
-        return Service(lambda: self.open_device(instrument), lambda: self.open_spectrometer(instrument),
-                       settings_for(self.settings, instrument), on_event=on_event, **kwargs)
+        """A Service for one instrument, its own settings, device and spectrometer. Its button poll is slower by
+        the number of instruments on its bus, so their polls together load the bus as one instrument's would."""
+        service = Service(lambda: self.open_device(instrument), lambda: self.open_spectrometer(instrument),
+                          settings_for(self.settings, instrument), on_event=on_event, **kwargs)
+        service.poll_s = POLL_S * sum(i.port == instrument.port for i in self.instruments)
+        return service
 
     def close(self) -> None:
         for bus in self.buses.values():

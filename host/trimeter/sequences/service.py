@@ -76,6 +76,9 @@ def calibration_is_stale(calibration: Calibration | None, uptime_s: float, max_a
     return None
 
 
+POLL_S = 0.05  # the button poll's interval: a press is seen within it
+
+
 class Service:
     """The press-button loop. `open_device()` / `open_spectrometer()` are factories so it can reconnect."""
 
@@ -91,6 +94,7 @@ class Service:
         self.label = label
         self.device_clock = device_clock
         self.retry = retry
+        self.poll_s = POLL_S  # longer for an instrument sharing its bus (sequences.instruments)
         self.device: Device | None = None
         self.spectrometer: Spectrometer | None = None
         self.calibration: Calibration | None = None
@@ -174,9 +178,10 @@ class Service:
         return None if self._uptime < 0 else float(self._uptime)
 
     # --------------------------------------------------------------------------------- loop
-    def serve(self, stop: Callable[[], bool] = lambda: False, poll_s: float = 0.05,
+    def serve(self, stop: Callable[[], bool] = lambda: False, poll_s: float | None = None,
               reconnect_s: float = 0.5, between_polls: Callable[[str | None], None] | None = None) -> None:
-        """Run until `stop()` is true. Survives resets, lost links and failed measurements.
+        """Run until `stop()` is true. Survives resets, lost links and failed measurements. `poll_s`: the
+        button poll's interval (default: self.poll_s).
         `between_polls(outcome of the poll)` runs on this thread after each button poll: work asked for
         elsewhere (the web page's jobs) shares the device with the button this way; a DeviceError it raises
         reconnects like the button's."""
@@ -194,7 +199,7 @@ class Service:
                 self.close()
                 time.sleep(reconnect_s)
                 continue
-            time.sleep(poll_s)
+            time.sleep(self.poll_s if poll_s is None else poll_s)
         self.close()
 
     def poll_once(self) -> str | None:
