@@ -53,7 +53,7 @@ def _lab(root: Path, count: int, *, shared: bool, time_scale: float, seed: int
                      for i in range(count)]
             ports = [str(t.modbus_port) for t in twins]
         host.update({"map": map_for_thickness(host.thickness_mm).name, "results_dir": str(root / "results"),
-                     "instruments": [{"name": f"i{i + 1}", "port": port, "address": twin.address,
+                     "instruments": [{"name": f"i{i + 1}", "port": port, "address": twin.address or 1,
                                       "spectrometer": twin.spectrometer_url}
                                      for i, (port, twin) in enumerate(zip(ports, twins, strict=True))]},
                     source="benchmark")
