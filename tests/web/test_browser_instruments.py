@@ -16,6 +16,23 @@ pytestmark = pytest.mark.skipif(not (CHROMIUM and DRIVER),
                                 reason="needs Debian's chromium and chromium-driver (tools/setup.sh installs them)")
 
 
+def click_live(wait, locator) -> None:
+    """Click an element the panel may rebuild at any moment: retried until a click lands on one still in the page."""
+    from selenium.common.exceptions import StaleElementReferenceException
+
+    def attempt(driver) -> bool:
+        try:
+            element = driver.find_element(*locator)
+            if not (element.is_displayed() and element.is_enabled()):
+                return False
+            element.click()
+            return True
+        except StaleElementReferenceException:
+            return False
+
+    wait.until(attempt)
+
+
 @pytest.fixture
 def browser():
     from selenium import webdriver
@@ -36,8 +53,6 @@ def browser():
 def test_the_page_shows_every_instrument_and_measures_on_one_of_them(tmp_path, browser):
     from selenium.webdriver.common.by import By
     from selenium.webdriver.support.ui import WebDriverWait
-
-    from test_browser import click_live
 
     wait = WebDriverWait(browser, 120)
 
