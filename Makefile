@@ -19,6 +19,7 @@ export OPENBLAS_NUM_THREADS ?= 1
 help:
 	@echo "make demo   - set up, start the twin with a virtual sample, run a press-button measurement, plot it"
 	@echo "              (SENSOR=as7341: the twin reads like the AS7341 build, fitted band-aware)"
+	@echo "              (SENSOR=c12880ma: the C12880MA build, spectra captured by the firmware)"
 	@echo "make test   - set up, lint, build firmware (sim + stm32f405), run C unit tests, fuzz, and pytest"
 	@echo "make bench  - the speed/accuracy benchmarks (map building, inversion)"
 	@echo "make docs   - the documentation site, into build/docs (open build/docs/index.html)"

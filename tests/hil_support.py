@@ -43,6 +43,28 @@ def build_hil_map(path, thickness_mm: float = THICKNESS_MM, n: float = 1.5) -> A
 
 
 
+def twin_truth(twin, request) -> dict:
+    """The twin's truth of its sample, with where it came from recorded on the test (user property
+    `twin_physics`, in the JUnit XML). What a round trip against it can show depends on that source
+    (trimeter.twin.optics.PHYSICS): "traced" truths come from the tracer the maps are built with, reduced
+    to the maps' I(ρ) model — the map's interpolation and Monte Carlo error show, the tracer's and the
+    model's do not; a "map" truth is the very map the host inverts — only the chain (protocol,
+    calibration, noise) shows. A test must say which it checks: a map truth in a test not marked
+    `map_truth` fails (no silent fallback), and so does the marker on a traced truth."""
+    import pytest
+
+    truth = twin.control.truth()
+    assert truth is not None, "the twin holds no sample"
+    request.node.user_properties.append(("twin_physics", truth["physics"]))
+    marked = request.node.get_closest_marker("map_truth") is not None
+    if truth["physics"] == "map" and not marked:
+        pytest.fail(f"the twin's truth is the map the host inverts ({truth.get('physics_source')}): this test cannot "
+                    "see the map's error; trace the set-up (tools/make_twin_observables.py) or mark it map_truth")
+    if marked and truth["physics"] != "map":
+        pytest.fail(f"marked map_truth, but the twin's truth was {truth['physics']} ({truth.get('physics_source')})")
+    return truth
+
+
 @contextlib.contextmanager
 def empty_twin(tmp_path, monkeypatch, seed: int):
     """A twin with the HIL map and an empty holder; host config and data kept under tmp_path."""

@@ -78,7 +78,7 @@ def served_lab(root: Path, faults: dict | None = None, seed: int = 11):
     from trimeter.web.app import WebServer
     from trimeter.web.auth import load_or_create_token
     from trimeter.web.history import History
-    from trimeter.web.instruments_routes import create_lab_app
+    from trimeter.web.app import create_lab_app
     from trimeter.web.jobs import Jobs
 
     twin_faults = [FaultConfig(**(faults or {})[name]) if name in (faults or {}) else None for name in NAMES]

@@ -83,16 +83,18 @@ def test_the_check_passes(snippet):
 # subpackages on one layer are independent of each other. Imports inside functions count: deferring an import
 # hides a cycle from Python, not from a reader.
 LAYERS = (
-    {"__version__", "errors", "crc"},
+    {"version", "errors", "crc"},
     {"validation", "paths", "atomic", "toml_text"},
     {"geometry", "registers", "tables"},
     {"domain"},                         # plain data: captures, calibrations, reflectances, measurements, parameters
     {"model"},                          # the forward model: what the instrument reads for a material and a set-up
     {"forward", "inversion"},           # simulating the physics / solving the inverse, both on the model
-    {"device", "spectrometer"},         # the instrument's two devices
+    {"device"},                         # the instrument, over Modbus
+    {"spectrometer"},                   # its detector (the mcu backend reads the firmware's over the device's link)
     {"maps"},                           # files and artifacts (a table is read from a device)
-    {"twin", "results"},
-    {"sequences", "prediction"},
+    {"results"},
+    {"twin"},                           # its virtual samples and mixtures are results' spectral materials
+    {"sequences", "prediction", "library"},
     {"web", "bench"},
     {"cli", "<package>"},
     {"__main__"},
@@ -153,3 +155,126 @@ def test_imports_only_go_down():
 def test_the_edge_finder_sees(source, edge):
     assert edge in import_edges(source, PACKAGE / "inversion" / "api.py")
     assert RANK[edge[1]] >= RANK[edge[0]]  # each of these is an upward import the layer test would refuse
+
+
+# ------------------------------------------------------------------ module level: no import cycles between files
+def _module(path: Path, package: Path = PACKAGE) -> str:
+    parts = list(path.relative_to(package.parent).with_suffix("").parts)
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def module_imports(source: str, path: Path, modules: set[str], root: Path = PACKAGE) -> set[str]:
+    """The package's modules that `source` (the file at `path`) imports, relative imports resolved;
+    `from package import name` counts as the submodule where `name` is one, else as the package. Imports
+    inside functions and under TYPE_CHECKING count: each is a file that needs another."""
+    me = _module(path, root)
+    package = me.split(".") if path.name == "__init__.py" else me.split(".")[:-1]
+    found = set()
+    for node in ast.walk(ast.parse(source, str(path))):
+        if isinstance(node, ast.Import):
+            names = [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            base = package[:len(package) - node.level + 1] if node.level else []
+            module = ".".join(base + ([node.module] if node.module else []))
+            names = [f"{module}.{a.name}" if f"{module}.{a.name}" in modules else module for a in node.names]
+        else:
+            continue
+        for name in names:
+            while name and name not in modules:     # trimeter.x.y.attribute → the module trimeter.x.y
+                name = name.rpartition(".")[0]
+            if name and name != me:
+                found.add(name)
+    return found
+
+
+def module_graph(paths, root: Path = PACKAGE) -> dict[str, set[str]]:
+    paths = list(paths)
+    modules = {_module(p, root) for p in paths}
+    return {_module(p, root): module_imports(p.read_text(encoding="utf-8"), p, modules, root) for p in paths}
+
+
+def import_cycles(graph: dict[str, set[str]]) -> set[frozenset[str]]:
+    """The strongly connected components of more than one module (Tarjan's algorithm, iteratively)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    cycles = set()
+    for root in graph:
+        if root in index:
+            continue
+        work = [(root, iter(sorted(graph[root])))]
+        index[root] = low[root] = len(index)
+        stack.append(root)
+        on_stack.add(root)
+        while work:
+            node, edges = work[-1]
+            for nxt in edges:
+                if nxt not in graph:
+                    continue
+                if nxt not in index:
+                    index[nxt] = low[nxt] = len(index)
+                    stack.append(nxt)
+                    on_stack.add(nxt)
+                    work.append((nxt, iter(sorted(graph[nxt]))))
+                    break
+                if nxt in on_stack:
+                    low[node] = min(low[node], index[nxt])
+            else:
+                work.pop()
+                if work:
+                    low[work[-1][0]] = min(low[work[-1][0]], low[node])
+                if low[node] == index[node]:
+                    component = set()
+                    while True:
+                        member = stack.pop()
+                        on_stack.discard(member)
+                        component.add(member)
+                        if member == node:
+                            break
+                    if len(component) > 1:
+                        cycles.add(frozenset(component))
+    return cycles
+
+
+# Cycles between modules still open, each to be broken where those files are being redesigned; any other
+# cycle (or a module joining one of these) fails test_no_import_cycles_between_modules. Remove an entry
+# when its cycle is broken (test_open_cycles_are_still_open says when).
+OPEN_CYCLES = {
+    # paper calls api's _finish, _input_flags and _sanitize; api reaches paper through the methods' registry
+    frozenset({"trimeter.inversion.api", "trimeter.inversion.methods", "trimeter.inversion.paper"}),
+    # the fit command and its band selection call each other
+    frozenset({"trimeter.cli.cmd_fit", "trimeter.cli.fit_bands"}),
+    # Measurement.export calls the exporter; the exporter loads results directories with the reader
+    frozenset({"trimeter.results.export", "trimeter.results.reader"}),
+}
+
+
+def _package_cycles() -> set[frozenset[str]]:
+    return import_cycles(module_graph(PACKAGE.rglob("*.py")))
+
+
+def test_no_import_cycles_between_modules():
+    new = _package_cycles() - OPEN_CYCLES
+    assert not new, "import cycles between modules: " + "; ".join(" <-> ".join(sorted(c)) for c in new)
+
+
+def test_open_cycles_are_still_open():
+    closed = OPEN_CYCLES - _package_cycles()
+    assert not closed, "broken since, take them off OPEN_CYCLES: " + "; ".join(" <-> ".join(sorted(c)) for c in closed)
+
+
+def test_the_cycle_finder_sees_imports_in_functions_and_submodules_by_name(tmp_path):
+    package = tmp_path / "trimeter"
+    (package / "sub").mkdir(parents=True)
+    files = {"__init__.py": "", "sub/__init__.py": "",
+             "sub/a.py": "from trimeter.sub import b\n",                      # a submodule named in a from-import
+             "sub/b.py": "def f():\n    from .c import thing\n",            # relative, inside a function
+             "sub/c.py": "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    import trimeter.sub.a\n",
+             "sub/d.py": "from trimeter.sub.a import x\nfrom trimeter import sub\n"}   # d needs them, none needs d
+    for name, text in files.items():
+        (package / name).write_text(text)
+    graph = module_graph(package.rglob("*.py"), package)
+    assert graph["trimeter.sub.d"] == {"trimeter.sub.a", "trimeter.sub"}
+    assert import_cycles(graph) == {frozenset({"trimeter.sub.a", "trimeter.sub.b", "trimeter.sub.c"})}
+    assert import_cycles({"a": {"b"}, "b": {"c"}, "c": set()}) == set()

@@ -77,7 +77,7 @@ def main(argv=None) -> int:
         t0 = time.perf_counter()
         with local_client(workers) as client, tempfile.TemporaryDirectory() as tmp:
             start_up = time.perf_counter() - t0
-            client.run(lambda: __import__("trimeter.maps.tracer"))   # imports outside the timing
+            client.run(lambda: __import__("trimeter.forward.transport"))   # imports outside the timing
             t1 = time.perf_counter()
             amap = build_maps([MapJob(recipe, Path(tmp) / "m.tmap")], client=client, progress=False,
                               keep_checkpoint=True)[0]

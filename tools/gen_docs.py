@@ -25,7 +25,9 @@ import difflib
 import inspect
 import io
 import os
+import re
 import sys
+import textwrap
 import tokenize
 from collections.abc import Callable, Iterable
 from pathlib import Path
@@ -59,6 +61,30 @@ def _cell(text: str) -> str:
     """One table cell: one line, pipes escaped, and outside code spans `<…>` shown, not read as HTML."""
     parts = " ".join(text.split()).replace("|", "\\|").split("`")
     return "`".join(part if i % 2 else part.replace("<", "&lt;").replace(">", "&gt;") for i, part in enumerate(parts))
+
+
+def _escape_brackets(line: str) -> str:
+    """`[--x]` in prose is usage, not a Markdown link (nor a cross-reference); code spans stay as written."""
+    parts = line.split("`")
+    return "`".join(part if i % 2 else part.replace("[", "\\[").replace("]", "\\]") for i, part in enumerate(parts))
+
+
+def _prose(text: str) -> str:
+    """A docstring or argparse description as Markdown: its text as paragraphs, its indented lines (usage
+    examples) as code blocks."""
+    out: list[str] = []
+    code: list[str] = []
+    for line in inspect.cleandoc(text).splitlines():
+        if line.startswith((" ", "\t")):
+            code.append(line)
+            continue
+        if code:
+            out += ["", "```text", *textwrap.dedent("\n".join(code)).splitlines(), "```", ""]
+            code = []
+        out.append(_escape_brackets(line))
+    if code:
+        out += ["", "```text", *textwrap.dedent("\n".join(code)).splitlines(), "```"]
+    return re.sub(r"\n{3,}", "\n\n", "\n".join(out)).strip("\n")
 
 
 def _option_name(action: argparse.Action) -> str:
@@ -95,7 +121,7 @@ def _command_section(parser: argparse.ArgumentParser, path: list[str], summary: 
     if summary:
         lines += [_cell(summary), ""]
     if parser.description and parser.description != summary:
-        lines += [inspect.cleandoc(parser.description), ""]
+        lines += [_prose(parser.description), ""]
     rows = []
     for action in parser._actions:
         if isinstance(action, (argparse._HelpAction, argparse._SubParsersAction)) or action.help == argparse.SUPPRESS:
@@ -104,7 +130,7 @@ def _command_section(parser: argparse.ArgumentParser, path: list[str], summary: 
     if rows:
         lines += ["| argument | what |", "|---|---|", *rows, ""]
     if parser.epilog:
-        lines += [inspect.cleandoc(parser.epilog), ""]
+        lines += [_prose(parser.epilog), ""]
     for name, child in _subparsers(parser).items():
         lines += _command_section(child, [*path, name], _help_of(parser, name), depth + 1)
     return lines
@@ -225,7 +251,6 @@ def flags_page() -> str:
 # ---------------------------------------------------------------------------------- host settings
 def settings_page() -> str:
     import dataclasses
-    import re
 
     from trimeter.sequences import settings
 

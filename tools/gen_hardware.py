@@ -7,7 +7,8 @@
                                             # their pictures img/<part>.png, img/assembly.png (needs build123d)
 
 Sources: bom.toml (parts, prices), wiring.toml (where each wire goes), pinout.toml (the MCU's pins,
-the firmware's own source), geometry.toml (the parts' dimensions, via tools/hardware_parts.py).
+the firmware's own source), geometry.toml (the parts' dimensions, via tools/hardware_parts.py), and
+docs/validation.json (each build's accuracy, as `trimeter bench report` measured it).
 The Markdown is checked for staleness (make check-gen, tests/hardware); the pictures are regenerated
 by `make hardware` and not compared byte for byte (matplotlib's output varies between releases).
 """
@@ -28,6 +29,8 @@ HW = ROOT / "hardware"
 BOM = HW / "bom.toml"
 WIRING = HW / "wiring.toml"
 PINOUT = HW / "pinout.toml"
+VALIDATION_JSON = ROOT / "docs" / "validation.json"
+VALIDATION_SECTION = "validation.md#each-build"  # the page beside the JSON, and its section of every build
 OUT_BOM_MD = HW / "bom.md"
 OUT_WIRING_MD = HW / "wiring.md"
 IMG = HW / "img"
@@ -73,7 +76,7 @@ class Bom:
     options: dict[str, str]          # option id -> title
     prices_as_of: str
     budget_eur: float
-    accuracy: dict[str, str] = field(default_factory=dict)  # option id -> its figures (`trimeter bench sensor`)
+    accuracy_build: dict[str, str] = field(default_factory=dict)  # option id -> its build in `trimeter bench sensor`
 
     def total_eur(self, option: str | None) -> float:
         """The build's total: every common part plus those of one spectrometer option."""
@@ -89,6 +92,16 @@ def load_bom(path: Path = BOM) -> Bom:
     if doc.get("schema") != 1 or doc.get("currency") != "EUR":
         raise HardwareError(f"{name}: schema must be 1 and currency EUR")
     options = {k: str(v.get("title", k)) for k, v in doc.get("options", {}).items()}
+    accuracy_build = {}
+    for k, v in doc.get("options", {}).items():
+        if "accuracy" in v:
+            raise HardwareError(f"{name}: [options.{k}] accuracy is measured, not typed: name the build of "
+                                "`trimeter bench sensor` it is with accuracy_build = \"...\"")
+        if "accuracy_build" in v:
+            if not isinstance(v["accuracy_build"], str) or not v["accuracy_build"]:
+                raise HardwareError(f"{name}: [options.{k}] accuracy_build must name a build, e.g. "
+                                    "\"ideal-spectrometer\"")
+            accuracy_build[k] = v["accuracy_build"]
     parts, seen = [], set()
     for i, raw in enumerate(doc.get("part", [])):
         where = f"{name}: part {raw.get('id', f'#{i + 1}')}"
@@ -119,15 +132,30 @@ def load_bom(path: Path = BOM) -> Bom:
                              float(price), option, raw.get("stl")))
     if not parts:
         raise HardwareError(f"{name}: no [[part]]")
-    accuracy = {k: str(v["accuracy"]) for k, v in doc.get("options", {}).items() if "accuracy" in v}
-    return Bom(parts, options, str(doc.get("prices_as_of", "")), float(doc.get("budget_eur", 0)), accuracy)
+    return Bom(parts, options, str(doc.get("prices_as_of", "")), float(doc.get("budget_eur", 0)), accuracy_build)
+
+
+def load_validation(path: Path | None = None) -> dict:
+    """The figures `trimeter bench report` wrote beside the validation page (its stamp and each build's rows)."""
+    import json
+
+    path = path or VALIDATION_JSON
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+        stamp, runs = doc["stamp"], doc["builds"]["runs"]
+        if not (isinstance(stamp["commit"], str) and isinstance(stamp["date_utc"], str) and runs):
+            raise TypeError("no stamp or no runs")
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise HardwareError(f"cannot read each build's accuracy from {_rel(path)} ({exc!r}): run "
+                            "`trimeter bench report`") from None
+    return doc
 
 
 def _eur(value: float) -> str:
     return f"{value:,.2f}"
 
 
-def render_bom(bom: Bom) -> str:
+def render_bom(bom: Bom, validation: dict | None = None) -> str:
     lines = [BANNER.format(src="bom.toml"), "", "# Bill of materials", "",
              f"Prices are **estimates** in EUR incl. VAT, single quantities, as of {bom.prices_as_of}; "
              "example parts are examples of the description, not checked for stock. Printed parts cost "
@@ -154,13 +182,41 @@ def render_bom(bom: Bom) -> str:
     for option, title in bom.options.items():
         lines.append(f"| common parts + {title} | **{_eur(bom.total_eur(option))}** |")
     lines += ["", f"Target: the build with the low-cost sensor under € {bom.budget_eur:,.0f}.", ""]
-    if bom.accuracy:
-        lines += ["## Accuracy of each build", "",
-                  "From `trimeter bench sensor` (the twin's materials at 0.4 mm, traced independently of the map "
-                  "the fit inverts; p95 over the wavelengths each build reports):", ""]
-        lines += [f"- {bom.options[option]}: {text}" for option, text in bom.accuracy.items()]
-        lines.append("")
+    if bom.accuracy_build:
+        if validation is None:
+            raise HardwareError("bom.toml names accuracy builds: render it with the validation figures")
+        lines += _render_accuracy(bom, validation)
     return "\n".join(lines)
+
+
+def _render_accuracy(bom: Bom, validation: dict) -> list[str]:
+    """Each option's build as `trimeter bench report` measured it (all the twin's materials, every noise level)."""
+    stamp, builds = validation["stamp"], validation["builds"]
+    runs = builds["runs"]
+    link = "../docs/" + VALIDATION_SECTION
+    commit = stamp["commit"][:12] + (" with uncommitted changes" if stamp.get("uncommitted_changes") else "")
+    first = runs[0]
+    lines = ["## Accuracy of each build", "",
+             f"Measured by `trimeter bench report` (its `trimeter bench sensor` part) from commit `{commit}` on "
+             f"{stamp['date_utc']}: the twin's {first['material_count']} materials at {builds['thickness_mm']:g} mm, "
+             f"traced independently of the map the fit inverts, read as each build reads them; p95 over the values "
+             f"each build reports, and how many of them carry a flag. Simulated, not measured on a built instrument. "
+             f"How, and every build the bench measures (e.g. the AS7341's readings fitted per channel): "
+             f"[Validation: each build]({link}). Copied from `docs/validation.json` by `make hardware`.", "",
+             "| build | bench build | noise | α p95 | σt rel. p95 | g p95 | flagged |",
+             "|---|---|---|---:|---:|---:|---:|"]
+    for option, build in bom.accuracy_build.items():
+        for run in runs:
+            row = next((r for r in run["builds"] if r.get("id") == build and r.get("materials") == "all"), None)
+            if row is None:
+                known = sorted({r.get("id") for r in run["builds"]})
+                raise HardwareError(f"bom.toml: [options.{option}] accuracy_build {build!r} is not a build of "
+                                    f"{_rel(VALIDATION_JSON)} ({', '.join(map(str, known))})")
+            noise = "none" if run["noise"] == 0 else f"{100 * run['noise']:g} % ({run['draws']} draws)"
+            lines.append(f"| {bom.options[option]} | {row['build']} | {noise} | {row['alpha_p95']:.4f} | "
+                         f"{100 * row['sigma_t_rel_p95']:.2f} % | {row['g_p95']:.4f} | "
+                         f"{row['flagged']} of {row['values']} |")
+    return lines + [""]
 
 
 # ------------------------------------------------------------------------------------------- wiring
@@ -378,7 +434,8 @@ def outputs() -> dict[Path, str]:
                 *(tray_name(ell) for ell in load_mechanics().thicknesses)}
     if stl_names != expected:
         raise HardwareError(f"bom.toml: printed parts name {sorted(stl_names)}, the CAD makes {sorted(expected)}")
-    return {OUT_BOM_MD: render_bom(bom), OUT_WIRING_MD: render_wiring_md(wiring, pinout)}
+    validation = load_validation() if bom.accuracy_build else None
+    return {OUT_BOM_MD: render_bom(bom, validation), OUT_WIRING_MD: render_wiring_md(wiring, pinout)}
 
 
 def main(argv: list[str] | None = None) -> int:

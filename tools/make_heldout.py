@@ -8,14 +8,14 @@ as a committed data file (so the benchmark never re-renders): maps/heldout/<reci
 
 Materials are random and OFF the map grid (α, σt, g all drawn continuously; any draw within 1e-3 of a
 grid node on every axis is redrawn), rendered directly — never interpolated from a map:
-- device/recipe maps: the builder's Dr.Jit tracer (trimeter.maps.tracer.trace_column: detector and
+- device/recipe maps: the builder's Dr.Jit tracer (trimeter.forward.transport.trace_column: detector and
   background paths, validated against Mitsuba volpath by the map helpers) at each random (σt, g),
   with `--paths` paths; one trace serves several random α. Records A, B, C per material and their MC
   std-error at the reference backgrounds.
 - --ideal: Prahl's adding-doubling (iadpython), exact for the ideal geometry.
 I_b, I_w at any ρ follow from A, B, C; I_c is analytic (trimeter.model.collimated), times
 e^inscatter_log1p for device sets: the light scattered into the detector's aperture, traced per
-material (`--inscatter SET`: trimeter.forward.inscatter, one trace per (σt, g) column for all its α,
+material (`--inscatter SET`: trimeter.forward.transport.inscatter_tracer, one trace per (σt, g) column for all its α,
 independent of the map's own in-scattering table).
 
 Why 16M paths per (σt, g), and more for clear samples: the references must be precise enough to check the
@@ -58,7 +58,8 @@ def from_recipe(recipe_path, pairs, alphas, paths, seed, alpha_stderr=None, max_
     os.environ.setdefault("DRJIT_LIBLLVM_PATH", "/usr/lib/x86_64-linux-gnu/libLLVM-19.so")
     from trimeter.maps.recipe import load_recipe
     from trimeter.maps.builder import paths_to_reach, worst_alpha_stderr
-    from trimeter.maps.tracer import Stack, _mix64, k_max_for, trace_column
+    from trimeter.forward.transport import Stack, k_max_for, trace_column
+    from trimeter.forward.transport.sampling import mix64
 
     r = load_recipe(recipe_path)
     rng = np.random.default_rng(seed)
@@ -82,7 +83,7 @@ def from_recipe(recipe_path, pairs, alphas, paths, seed, alpha_stderr=None, max_
             short = worst_alpha_stderr(tally, al, r.reference_rho_b, r.reference_rho_w) / alpha_stderr
             more = paths_to_reach(tally.n_paths, short, int(max_paths or paths)) - tally.n_paths
             if short > 1 and more > 0:
-                tally += trace_column(stack, float(s), float(g), int(more), _mix64(col_seed), k_max)
+                tally += trace_column(stack, float(s), float(g), int(more), mix64(col_seed), k_max)
         A, B, C = tally.abc(al)
         sb, sw = tally.stderr(al, r.reference_rho_b), tally.stderr(al, r.reference_rho_w)
         for j in range(alphas):
@@ -92,7 +93,7 @@ def from_recipe(recipe_path, pairs, alphas, paths, seed, alpha_stderr=None, max_
     print(file=sys.stderr)
     budget = (f"{paths} paths per (sigma_t, g)" if alpha_stderr is None else
               f"{paths}-{max_paths} paths per (sigma_t, g) (α std-error ≤ {alpha_stderr:g} where reachable)")
-    meta = {"recipe": r.to_dict(), "source": f"trimeter.maps.tracer.trace_column, {budget}, off-grid",
+    meta = {"recipe": r.to_dict(), "source": f"trimeter.forward.transport.trace_column, {budget}, off-grid",
             "seed": seed, "seconds": round(time.perf_counter() - t0, 1)}
     return r.name, meta, np.array(rows)
 
@@ -131,7 +132,7 @@ def save(name, meta, rows, out=None) -> Path:
 def add_inscatter(path: Path, photons: int, seed: int) -> Path:
     """Trace the in-scattered light of every material of a device held-out set and store
     ln(1 + in-scattered / unscattered) as its array inscatter_log1p (the rest of the file unchanged)."""
-    from trimeter.forward.inscatter import traced_log1p_ratio
+    from trimeter.forward.transport.inscatter_tracer import traced_log1p_ratio
     from trimeter.maps.container import write_container
 
     meta, arrays = load_heldout(path)
@@ -145,8 +146,8 @@ def add_inscatter(path: Path, photons: int, seed: int) -> Path:
         L[rows] = traced_log1p_ratio(arrays["alpha"][rows], sigma_t, g, ell, n, geometry, photons, seed + j)
         print(f"\r{j + 1}/{len(columns)} (σt, g) columns traced", end="", file=sys.stderr, flush=True)
     print(file=sys.stderr)
-    meta = {**meta, "inscatter": {"tracer": "trimeter.forward.inscatter.traced_log1p_ratio", "photons": photons,
-                                  "seed": seed, "seconds": round(time.perf_counter() - t0, 1)}}
+    meta = {**meta, "inscatter": {"tracer": "trimeter.forward.transport.inscatter_tracer.traced_log1p_ratio",
+                                  "photons": photons, "seed": seed, "seconds": round(time.perf_counter() - t0, 1)}}
     write_container(path, HELDOUT_KIND, meta, {**arrays, "inscatter_log1p": L})
     return path
 

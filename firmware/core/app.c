@@ -268,6 +268,26 @@ static uint8_t run_fit_command(uint16_t command)
     }
 }
 
+static uint8_t run_spectro_command(uint16_t command)
+{
+    const hal_t *h = app.hal;
+    uint32_t integration_us = regmap_get_u32(&app.hr[REG_HR_SPECTRO_INTEGRATION_US]);
+    uint16_t frames = app.hr[REG_HR_SPECTRO_FRAMES], gain = app.hr[REG_HR_SPECTRO_GAIN];
+    switch (command) {
+    case TRIMETER_SPECTRO_COMMAND_CAPTURE:
+    case TRIMETER_SPECTRO_COMMAND_CAPTURE_DARK: {
+        if (mb_request_is_broadcast(&app.mb)) return MB_EX_ILLEGAL_FUNCTION;
+        bool dark = command == TRIMETER_SPECTRO_COMMAND_CAPTURE_DARK;
+        uint8_t ex = c12880_start(&app.spectro, h, dark, frames, integration_us, gain, now());
+        if (!ex && dark)
+            for (int s = 0; s < HAL_SHUTTER_COUNT; s++) set_shutter((enum hal_shutter)s, false);
+        return ex;
+    }
+    case TRIMETER_SPECTRO_COMMAND_ABORT: c12880_abort(&app.spectro); return MB_OK;
+    default: return MB_OK;
+    }
+}
+
 /* ---------------------------------------------------------------- Modbus data callbacks */
 
 static bool get_bit(const uint8_t *bits, unsigned i) { return (bits[i / 8] >> (i % 8)) & 1u; }
@@ -367,6 +387,16 @@ static void fill_input_registers(uint16_t *ir)
     ir[REG_IR_FIT_BINS_DONE] = app.fit.done;
     ir[REG_IR_FIT_AVAILABLE] = fit_available();
     regmap_put_u32(&ir[REG_IR_FIT_TABLE_CRC32], app.fit.table ? app.fit.table_crc32 : 0);
+    const c12880_t *sp = &app.spectro;
+    uint32_t clock_hz = app.hal->spectro_clock_hz ? app.hal->spectro_clock_hz(app.hal->ctx) : 0u;
+    ir[REG_IR_SPECTRO_STATUS] = (uint16_t)sp->status;
+    ir[REG_IR_SPECTRO_FRAMES_DONE] = sp->frames_done;
+    ir[REG_IR_SPECTRO_PEAK_COUNTS] = sp->peak;
+    ir[REG_IR_SPECTRO_DARK_VALID] = sp->dark_valid;
+    regmap_put_u32(&ir[REG_IR_SPECTRO_CAPTURE_US], sp->capture_us);
+    ir[REG_IR_SPECTRO_SEQUENCE] = sp->sequence;
+    ir[REG_IR_SPECTRO_PIXELS] = clock_hz ? C12880_PIXELS : 0u;
+    regmap_put_u32(&ir[REG_IR_SPECTRO_CLOCK_HZ], clock_hz);
 }
 
 uint8_t app_read_regs(void *ctx, mb_table_t table, uint16_t addr, uint16_t n, uint16_t *out)
@@ -414,6 +444,7 @@ uint8_t app_write_regs(void *ctx, uint16_t addr, uint16_t n, const uint16_t *val
     app.cfg = candidate;
     if (covers(addr, n, REG_HR_COMMAND)) ex = run_command(app.hr[REG_HR_COMMAND]);
     if (!ex && covers(addr, n, REG_HR_FIT_COMMAND)) ex = run_fit_command(app.hr[REG_HR_FIT_COMMAND]);
+    if (!ex && covers(addr, n, REG_HR_SPECTRO_COMMAND)) ex = run_spectro_command(app.hr[REG_HR_SPECTRO_COMMAND]);
     if (ex) {
         memcpy(app.hr, before, sizeof before);
         app.cfg = previous;
@@ -450,6 +481,7 @@ uint8_t app_read_file(void *ctx, uint16_t file, uint16_t record, uint16_t n, uin
     (void)ctx;
     static uint8_t bytes[2 * 125];
     if (fit_is_file(file)) return fit_read_records(&app.fit, file, record, n, out);
+    if (c12880_is_file(file)) return c12880_read_records(&app.spectro, file, record, n, out);
     uint16_t which = app.hr[REG_HR_MAP_READ_SLOT];
     int slot = which == TRIMETER_MAP_SLOT_NONE ? storage_map_active(&app.storage) : (int)which - TRIMETER_MAP_SLOT_A;
     uint32_t offset;
@@ -469,6 +501,7 @@ uint8_t app_write_file(void *ctx, uint16_t file, uint16_t record, uint16_t n, co
     (void)ctx;
     static uint8_t bytes[2 * 125];
     uint32_t offset;
+    if (c12880_is_file(file)) return MB_EX_ILLEGAL_DATA_ADDRESS; /* read-only */
     if (fit_is_file(file)) {
         if (mb_request_is_broadcast(&app.mb)) return MB_EX_ILLEGAL_FUNCTION;
         write_arrives();
@@ -511,6 +544,7 @@ void app_init(const hal_t *hal)
     actuators_init(&app.act, hal, app.boot_us);
     lamp_monitor_init(&app.lamp_monitor);
     fit_init(&app.fit);
+    c12880_init(&app.spectro);
     for (int s = 0; s < HAL_SHUTTER_COUNT; s++) set_shutter((enum hal_shutter)s, false);
 
     app.mb_io = (mb_io_t){.read = io_read, .write = io_write, .now_us = io_now, .ctx = (void *)hal};
@@ -543,6 +577,7 @@ void app_poll(void)
     motion_poll(&app.motion, t);
     storage_poll(&app.storage, t);
     fit_poll(&app.fit);
+    c12880_poll(&app.spectro, app.hal, !actuators_busy(&app.act), t);
     if (app.unlock_open && t - app.unlock_us >= APP_UNLOCK_WINDOW_US) unlock_close(); /* before the clock wraps */
 
     bool moving = motion_busy(&app.motion);

@@ -38,6 +38,7 @@
 #include <stdint.h>
 
 #include "actuators.h"
+#include "c12880.h"
 #include "config.h"
 #include "fit.h"
 #include "hal.h"
@@ -60,6 +61,7 @@ typedef struct app {
     storage_t storage;
     storage_map_session_t upload;
     fit_t fit;
+    c12880_t spectro;
     uint16_t map_op_status;
     trimeter_fault_t app_fault; /* faults not from motion (storage) */
     int pending_command;        /* TRIMETER_COMMAND_* queued behind a running motion, 0 = none */

@@ -31,6 +31,9 @@ void config_decode(const uint16_t hr[REG_HR_SPAN], config_t *c)
     c->led_pwm_hz = hr[REG_HR_LED_PWM_HZ];
     c->modbus_address = (uint8_t)hr[REG_HR_MODBUS_ADDRESS];
     c->modbus_baud = regmap_get_u32(&hr[REG_HR_MODBUS_BAUD]);
+    static const uint16_t wl[C12880_WL_COEFFS] = {REG_HR_SPECTRO_WL_A0, REG_HR_SPECTRO_WL_B1, REG_HR_SPECTRO_WL_B2,
+                                                  REG_HR_SPECTRO_WL_B3, REG_HR_SPECTRO_WL_B4, REG_HR_SPECTRO_WL_B5};
+    for (int i = 0; i < C12880_WL_COEFFS; i++) c->spectro_wl[i] = regmap_get_f32(&hr[wl[i]]);
 }
 
 static int32_t mm_to_steps(float mm, float steps_per_mm)
@@ -82,6 +85,7 @@ bool config_check(const config_t *c, const char **field)
     /* a seek over the whole travel that can't end before the timeout would fail every homing */
     else if (!((CONFIG_TRAVEL_MM + CONFIG_SEEK_MARGIN_MM) / homing_speed(c) * 1000.0f < (float)c->homing_timeout_ms))
         bad = "homing_timeout_ms";
+    else if (!c12880_wavelengths_valid(c->spectro_wl)) bad = "spectro_wl_a0";
     for (int s = 0; !bad && s < CONFIG_SLOT_COUNT; s++) {
         /* inside the back-off the endstop would trip a normal move */
         int32_t steps = config_slot_steps(c, (enum config_slot)s);

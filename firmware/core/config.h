@@ -12,6 +12,7 @@
 #include <stdbool.h>
 #include <stdint.h>
 
+#include "c12880.h"
 #include "hal.h"
 #include "motion.h"
 #include "registers_gen.h"
@@ -43,6 +44,7 @@ typedef struct config {
     uint16_t led_pwm_hz;
     uint8_t modbus_address;
     uint32_t modbus_baud;
+    float spectro_wl[C12880_WL_COEFFS]; /* the spectrometer unit's wavelength polynomial */
 } config_t;
 
 /* The persisted words are hr[STORAGE_CONFIG_FIRST .. REG_HR_SPAN). */

@@ -40,6 +40,26 @@ enum hal_region {
 #define HAL_CONFIG_REGION_SIZE (16u * 1024u)
 #define HAL_MAP_REGION_SIZE (128u * 1024u)
 
+
+/* One frame of a CLK/ST/TRG/EOS line sensor (the C12880MA micro-spectrometer; core/c12880.h plans it):
+ * ST high for st_high_clocks CLK periods, then low for st_low_clocks; after ST falls, the video of
+ * pixel k (0-based) is sampled by the ADC at the TRG rising edge of CLK number first_video_clock + k,
+ * and EOS must be high at CLK number eos_clock. */
+typedef struct hal_spectro_timing {
+    uint32_t st_high_clocks;
+    uint32_t st_low_clocks;
+    uint16_t first_video_clock;
+    uint16_t pixels;
+    uint16_t eos_clock;
+    uint16_t gain; /* the analog front end's gain: 1, 2, 4, 8 */
+} hal_spectro_timing_t;
+
+enum hal_spectro_result {
+    HAL_SPECTRO_OK = 0,      /* the frame is in the caller's buffer */
+    HAL_SPECTRO_PENDING = 1, /* still integrating / reading out */
+    HAL_SPECTRO_NO_EOS = -1, /* the frame ended without EOS at eos_clock (or not `pixels` TRG samples) */
+};
+
 typedef struct hal {
     void *ctx;
 
@@ -80,6 +100,14 @@ typedef struct hal {
      * (0..4095, dark offset included); may take a few µs (one conversion). NULL when the board has no
      * monitor (the lamp_monitor_* registers then read 0). */
     uint16_t (*lamp_monitor)(void *ctx, enum hal_led lamp);
+
+    /* Micro-spectrometer. spectro_clock_hz: the CLK rate the port generates (a timer), 0 or NULL = no
+     * spectrometer on this board. spectro_start begins one frame with this timing (returns 0, or negative
+     * when one is still running); spectro_read copies the frame's `pixels` 12-bit ADC samples (taken by the
+     * ADC on TRG, by DMA on the MCU) into video once it is complete. Non-blocking. */
+    uint32_t (*spectro_clock_hz)(void *ctx);
+    int (*spectro_start)(void *ctx, const hal_spectro_timing_t *timing);
+    enum hal_spectro_result (*spectro_read)(void *ctx, uint16_t *video, size_t pixels);
 
     /* Storage. Return 0 on success, negative on an I/O error or out-of-range access. */
     int (*storage_read)(void *ctx, enum hal_region region, uint32_t offset, void *buf, size_t len);

@@ -2,6 +2,7 @@
 #include "registers_gen.h"
 
 static const uint32_t allowed_unlock[] = {0u, 23294u};
+static const uint32_t allowed_spectro_gain[] = {1u, 2u, 4u, 8u};
 static const uint32_t allowed_modbus_baud[] = {9600u, 19200u, 38400u, 57600u, 115200u};
 
 const regmap_entry_t regmap_entries[REGMAP_ENTRY_COUNT] = {
@@ -55,6 +56,14 @@ const regmap_entry_t regmap_entries[REGMAP_ENTRY_COUNT] = {
     {"fit_bins_done", 81, REGMAP_INPUT_REGISTER, REGMAP_U16, 1, 0, 0, 0, 0LL, 65535LL, 0LL, 0.0f, 0.0f, 0.0f},
     {"fit_available", 82, REGMAP_INPUT_REGISTER, REGMAP_U16, 1, 0, 0, 0, 0LL, 1LL, 0LL, 0.0f, 0.0f, 0.0f},
     {"fit_table_crc32", 84, REGMAP_INPUT_REGISTER, REGMAP_U32, 2, 0, 0, 0, 0LL, 4294967295LL, 0LL, 0.0f, 0.0f, 0.0f},
+    {"spectro_status", 96, REGMAP_INPUT_REGISTER, REGMAP_U16, 1, 0, 0, 0, 0LL, 6LL, 0LL, 0.0f, 0.0f, 0.0f},
+    {"spectro_frames_done", 97, REGMAP_INPUT_REGISTER, REGMAP_U16, 1, 0, 0, 0, 0LL, 65535LL, 0LL, 0.0f, 0.0f, 0.0f},
+    {"spectro_peak_counts", 98, REGMAP_INPUT_REGISTER, REGMAP_U16, 1, 0, 0, 0, 0LL, 65535LL, 0LL, 0.0f, 0.0f, 0.0f},
+    {"spectro_dark_valid", 99, REGMAP_INPUT_REGISTER, REGMAP_U16, 1, 0, 0, 0, 0LL, 1LL, 0LL, 0.0f, 0.0f, 0.0f},
+    {"spectro_capture_us", 100, REGMAP_INPUT_REGISTER, REGMAP_U32, 2, 0, 0, 0, 0LL, 4294967295LL, 0LL, 0.0f, 0.0f, 0.0f},
+    {"spectro_sequence", 102, REGMAP_INPUT_REGISTER, REGMAP_U16, 1, 0, 0, 0, 0LL, 65535LL, 0LL, 0.0f, 0.0f, 0.0f},
+    {"spectro_pixels", 103, REGMAP_INPUT_REGISTER, REGMAP_U16, 1, 0, 0, 0, 0LL, 65535LL, 0LL, 0.0f, 0.0f, 0.0f},
+    {"spectro_clock_hz", 104, REGMAP_INPUT_REGISTER, REGMAP_U32, 2, 0, 0, 0, 0LL, 4294967295LL, 0LL, 0.0f, 0.0f, 0.0f},
     {"command", 0, REGMAP_HOLDING_REGISTER, REGMAP_U16, 1, 1, 0, 0, 0LL, 8LL, 0LL, 0.0f, 0.0f, 0.0f},
     {"unlock", 1, REGMAP_HOLDING_REGISTER, REGMAP_U16, 1, 1, 2, allowed_unlock, 0LL, 23294LL, 0LL, 0.0f, 0.0f, 0.0f},
     {"led_panels_level", 2, REGMAP_HOLDING_REGISTER, REGMAP_U16, 1, 1, 0, 0, 0LL, 1000LL, 1000LL, 0.0f, 0.0f, 0.0f},
@@ -68,6 +77,10 @@ const regmap_entry_t regmap_entries[REGMAP_ENTRY_COUNT] = {
     {"fit_bin_count", 24, REGMAP_HOLDING_REGISTER, REGMAP_U16, 1, 1, 0, 0, 1LL, 256LL, 1LL, 0.0f, 0.0f, 0.0f},
     {"fit_thickness_mm", 25, REGMAP_HOLDING_REGISTER, REGMAP_F32, 2, 1, 0, 0, 0, 0, 0, 0.0f, 100.0f, 0.0f},
     {"fit_command", 27, REGMAP_HOLDING_REGISTER, REGMAP_U16, 1, 1, 0, 0, 0LL, 2LL, 0LL, 0.0f, 0.0f, 0.0f},
+    {"spectro_command", 32, REGMAP_HOLDING_REGISTER, REGMAP_U16, 1, 1, 0, 0, 0LL, 3LL, 0LL, 0.0f, 0.0f, 0.0f},
+    {"spectro_frames", 33, REGMAP_HOLDING_REGISTER, REGMAP_U16, 1, 1, 0, 0, 1LL, 64LL, 4LL, 0.0f, 0.0f, 0.0f},
+    {"spectro_integration_us", 34, REGMAP_HOLDING_REGISTER, REGMAP_U32, 2, 1, 0, 0, 11LL, 1000000LL, 10000LL, 0.0f, 0.0f, 0.0f},
+    {"spectro_gain", 36, REGMAP_HOLDING_REGISTER, REGMAP_U16, 1, 1, 4, allowed_spectro_gain, 0LL, 65535LL, 1LL, 0.0f, 0.0f, 0.0f},
     {"steps_per_mm", 64, REGMAP_HOLDING_REGISTER, REGMAP_F32, 2, 1, 0, 0, 0, 0, 0, 1.0f, 10000.0f, 80.0f},
     {"slot_black_mm", 66, REGMAP_HOLDING_REGISTER, REGMAP_F32, 2, 1, 0, 0, 0, 0, 0, 0.0f, 120.0f, 6.0f},
     {"slot_white_mm", 68, REGMAP_HOLDING_REGISTER, REGMAP_F32, 2, 1, 0, 0, 0, 0, 0, 0.0f, 120.0f, 60.0f},
@@ -90,4 +103,10 @@ const regmap_entry_t regmap_entries[REGMAP_ENTRY_COUNT] = {
     {"homing_backoff_mm", 90, REGMAP_HOLDING_REGISTER, REGMAP_F32, 2, 1, 0, 0, 0, 0, 0, 0.5f, 10.0f, 2.0f},
     {"modbus_address", 92, REGMAP_HOLDING_REGISTER, REGMAP_U16, 1, 1, 0, 0, 1LL, 247LL, 1LL, 0.0f, 0.0f, 0.0f},
     {"modbus_baud", 93, REGMAP_HOLDING_REGISTER, REGMAP_U32, 2, 1, 5, allowed_modbus_baud, 9600LL, 115200LL, 19200LL, 0.0f, 0.0f, 0.0f},
+    {"spectro_wl_a0", 95, REGMAP_HOLDING_REGISTER, REGMAP_F32, 2, 1, 0, 0, 0, 0, 0, -10000.0f, 10000.0f, 305.5400085449219f},
+    {"spectro_wl_b1", 97, REGMAP_HOLDING_REGISTER, REGMAP_F32, 2, 1, 0, 0, 0, 0, 0, -10000.0f, 10000.0f, 2.717400074005127f},
+    {"spectro_wl_b2", 99, REGMAP_HOLDING_REGISTER, REGMAP_F32, 2, 1, 0, 0, 0, 0, 0, -10000.0f, 10000.0f, -0.0011967000318691134f},
+    {"spectro_wl_b3", 101, REGMAP_HOLDING_REGISTER, REGMAP_F32, 2, 1, 0, 0, 0, 0, 0, -10000.0f, 10000.0f, -7.70110000303248e-06f},
+    {"spectro_wl_b4", 103, REGMAP_HOLDING_REGISTER, REGMAP_F32, 2, 1, 0, 0, 0, 0, 0, -10000.0f, 10000.0f, 9.249600196881147e-09f},
+    {"spectro_wl_b5", 105, REGMAP_HOLDING_REGISTER, REGMAP_F32, 2, 1, 0, 0, 0, 0, 0, -10000.0f, 10000.0f, 8.15080034716198e-12f},
 };

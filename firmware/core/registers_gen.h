@@ -8,7 +8,7 @@
 #include <stdint.h>
 
 /* ---- identity */
-#define TRIMETER_REGMAP_HASH 0x3FD4B190u
+#define TRIMETER_REGMAP_HASH 0x938F7E93u
 #define TRIMETER_FIRMWARE_VERSION "0.1.0"
 #define TRIMETER_FIRMWARE_VERSION_MAJOR 0u
 #define TRIMETER_FIRMWARE_VERSION_MINOR 1u
@@ -292,6 +292,56 @@ static inline const char *trimeter_fit_status_name(unsigned value) /* else "unkn
     }
 }
 typedef enum {
+    TRIMETER_SPECTRO_COMMAND_NONE = 0,
+    TRIMETER_SPECTRO_COMMAND_CAPTURE = 1,
+    TRIMETER_SPECTRO_COMMAND_CAPTURE_DARK = 2,
+    TRIMETER_SPECTRO_COMMAND_ABORT = 3,
+} trimeter_spectro_command_t;
+static inline const char *trimeter_spectro_command_name(unsigned value) /* else "unknown" */
+{
+    switch (value) {
+    case 0u: return "none";
+    case 1u: return "capture";
+    case 2u: return "capture_dark";
+    case 3u: return "abort";
+    default: return "unknown";
+    }
+}
+typedef enum {
+    TRIMETER_SPECTRO_STATUS_IDLE = 0,
+    TRIMETER_SPECTRO_STATUS_BUSY = 1,
+    TRIMETER_SPECTRO_STATUS_DONE = 2,
+    TRIMETER_SPECTRO_STATUS_SATURATED = 3,
+    TRIMETER_SPECTRO_STATUS_ABORTED = 4,
+    TRIMETER_SPECTRO_STATUS_ERROR_NO_EOS = 5,
+    TRIMETER_SPECTRO_STATUS_ERROR_NO_SENSOR = 6,
+} trimeter_spectro_status_t;
+static inline const char *trimeter_spectro_status_name(unsigned value) /* else "unknown" */
+{
+    switch (value) {
+    case 0u: return "idle";
+    case 1u: return "busy";
+    case 2u: return "done";
+    case 3u: return "saturated";
+    case 4u: return "aborted";
+    case 5u: return "error_no_eos";
+    case 6u: return "error_no_sensor";
+    default: return "unknown";
+    }
+}
+typedef enum {
+    TRIMETER_SPECTRO_FILE_LIGHT = 110,
+    TRIMETER_SPECTRO_FILE_DARK = 111,
+} trimeter_spectro_file_t;
+static inline const char *trimeter_spectro_file_name(unsigned value) /* else "unknown" */
+{
+    switch (value) {
+    case 110u: return "light";
+    case 111u: return "dark";
+    default: return "unknown";
+    }
+}
+typedef enum {
     TRIMETER_UNLOCK_LOCKED = 0,
     TRIMETER_UNLOCK_KEY = 23294,
 } trimeter_unlock_t;
@@ -340,7 +390,7 @@ static inline const char *trimeter_unlock_name(unsigned value) /* else "unknown"
 #define REG_DI_HOMED 4u
 
 /* ---- input_registers */
-#define REG_IR_SPAN 86u /* one past the highest used address */
+#define REG_IR_SPAN 106u /* one past the highest used address */
 #define REG_IR_VENDOR_ID 0u
 #define REG_IR_MODEL_ID 1u
 #define REG_IR_FIRMWARE_VERSION_MAJOR 2u
@@ -380,9 +430,17 @@ static inline const char *trimeter_unlock_name(unsigned value) /* else "unknown"
 #define REG_IR_FIT_BINS_DONE 81u
 #define REG_IR_FIT_AVAILABLE 82u
 #define REG_IR_FIT_TABLE_CRC32 84u
+#define REG_IR_SPECTRO_STATUS 96u
+#define REG_IR_SPECTRO_FRAMES_DONE 97u
+#define REG_IR_SPECTRO_PEAK_COUNTS 98u
+#define REG_IR_SPECTRO_DARK_VALID 99u
+#define REG_IR_SPECTRO_CAPTURE_US 100u
+#define REG_IR_SPECTRO_SEQUENCE 102u
+#define REG_IR_SPECTRO_PIXELS 103u
+#define REG_IR_SPECTRO_CLOCK_HZ 104u
 
 /* ---- holding_registers */
-#define REG_HR_SPAN 95u /* one past the highest used address */
+#define REG_HR_SPAN 107u /* one past the highest used address */
 #define REG_HR_COMMAND 0u
 #define REG_HR_COMMAND_DEFAULT 0u
 #define REG_HR_COMMAND_MIN 0u
@@ -523,6 +581,46 @@ static inline const char *trimeter_unlock_name(unsigned value) /* else "unknown"
 #define REG_HR_MODBUS_BAUD_DEFAULT 19200u
 #define REG_HR_MODBUS_BAUD_MIN 9600u
 #define REG_HR_MODBUS_BAUD_MAX 115200u
+#define REG_HR_SPECTRO_COMMAND 32u
+#define REG_HR_SPECTRO_COMMAND_DEFAULT 0u
+#define REG_HR_SPECTRO_COMMAND_MIN 0u
+#define REG_HR_SPECTRO_COMMAND_MAX 3u
+#define REG_HR_SPECTRO_FRAMES 33u
+#define REG_HR_SPECTRO_FRAMES_DEFAULT 4u
+#define REG_HR_SPECTRO_FRAMES_MIN 1u
+#define REG_HR_SPECTRO_FRAMES_MAX 64u
+#define REG_HR_SPECTRO_INTEGRATION_US 34u
+#define REG_HR_SPECTRO_INTEGRATION_US_DEFAULT 10000u
+#define REG_HR_SPECTRO_INTEGRATION_US_MIN 11u
+#define REG_HR_SPECTRO_INTEGRATION_US_MAX 1000000u
+#define REG_HR_SPECTRO_GAIN 36u
+#define REG_HR_SPECTRO_GAIN_DEFAULT 1u
+#define REG_HR_SPECTRO_GAIN_MIN 0u
+#define REG_HR_SPECTRO_GAIN_MAX 65535u
+#define REG_HR_SPECTRO_WL_A0 95u
+#define REG_HR_SPECTRO_WL_A0_DEFAULT 305.5400085449219f
+#define REG_HR_SPECTRO_WL_A0_MIN -10000.0f
+#define REG_HR_SPECTRO_WL_A0_MAX 10000.0f
+#define REG_HR_SPECTRO_WL_B1 97u
+#define REG_HR_SPECTRO_WL_B1_DEFAULT 2.717400074005127f
+#define REG_HR_SPECTRO_WL_B1_MIN -10000.0f
+#define REG_HR_SPECTRO_WL_B1_MAX 10000.0f
+#define REG_HR_SPECTRO_WL_B2 99u
+#define REG_HR_SPECTRO_WL_B2_DEFAULT -0.0011967000318691134f
+#define REG_HR_SPECTRO_WL_B2_MIN -10000.0f
+#define REG_HR_SPECTRO_WL_B2_MAX 10000.0f
+#define REG_HR_SPECTRO_WL_B3 101u
+#define REG_HR_SPECTRO_WL_B3_DEFAULT -7.70110000303248e-06f
+#define REG_HR_SPECTRO_WL_B3_MIN -10000.0f
+#define REG_HR_SPECTRO_WL_B3_MAX 10000.0f
+#define REG_HR_SPECTRO_WL_B4 103u
+#define REG_HR_SPECTRO_WL_B4_DEFAULT 9.249600196881147e-09f
+#define REG_HR_SPECTRO_WL_B4_MIN -10000.0f
+#define REG_HR_SPECTRO_WL_B4_MAX 10000.0f
+#define REG_HR_SPECTRO_WL_B5 105u
+#define REG_HR_SPECTRO_WL_B5_DEFAULT 8.15080034716198e-12f
+#define REG_HR_SPECTRO_WL_B5_MIN -10000.0f
+#define REG_HR_SPECTRO_WL_B5_MAX 10000.0f
 
 /* ---- descriptor table (registers_gen.c), sorted by table then address */
 typedef enum { REGMAP_COIL = 0, REGMAP_DISCRETE_INPUT = 1, REGMAP_INPUT_REGISTER = 3,
@@ -541,7 +639,7 @@ typedef struct {
     float min_f, max_f, def_f; /* f32 */
 } regmap_entry_t;
 
-#define REGMAP_ENTRY_COUNT 85u
+#define REGMAP_ENTRY_COUNT 103u
 extern const regmap_entry_t regmap_entries[REGMAP_ENTRY_COUNT];
 
 #endif

@@ -21,7 +21,10 @@
  *   - the on-device fit (a stand-in for the inverse core, defined here, checks the seam's contract): the
  *     core is called only during a run, with the active slot's bytes in place and its committed length,
  *     at most FIT_BINS_PER_POLL bins at a time; the table it reads stays valid to the run's end;
- *     fit_status stays in its enum and fit_bins_done never exceeds the run's count. */
+ *     fit_status stays in its enum and fit_bins_done never exceeds the run's count;
+ *   - the micro-spectrometer: spectro_status stays in its enum, a capture never counts more frames than it
+ *     asked for, the frame timing the port is given is always within the C12880MA's limits, and the live
+ *     wavelength polynomial is always one the driver accepts (monotonic, in range). */
 #include <stdbool.h>
 #include <stdlib.h>
 #include <string.h>
@@ -151,6 +154,13 @@ static void check_state(void)
     const fit_t *fit = &app_get()->fit;
     if ((unsigned)fit->status > TRIMETER_FIT_STATUS_ERROR_CORE || fit->done > fit->count || fit->count > FIT_MAX_BINS)
         abort();
+    const c12880_t *sp = &app_get()->spectro;
+    if ((unsigned)sp->status > TRIMETER_SPECTRO_STATUS_ERROR_NO_SENSOR || sp->frames_done > sp->frames) abort();
+    if (f->spectro_frames && (f->spectro_timing.st_high_clocks < C12880_ST_HIGH_MIN_CLOCKS ||
+                              f->spectro_timing.st_low_clocks < C12880_ST_LOW_MIN_CLOCKS ||
+                              f->spectro_timing.pixels != C12880_PIXELS))
+        abort();
+    if (!c12880_wavelengths_valid(app_get()->cfg.spectro_wl)) abort();
     /* the rate limit: a burst, then one per refill interval */
     uint64_t budget = STORAGE_ERASE_BURST + (f->now_us - boot_us) / STORAGE_ERASE_REFILL_US;
     if (erases - erases_at_boot > budget) abort();
@@ -366,9 +376,40 @@ static void op_fit(cursor_t *c)
     deliver(read, 10);
 }
 
+/* The micro-spectrometer: a board with or without it, a chip that loses EOS or saturates, raw parameter
+ * words (any integration time, frame count, gain, wavelength coefficient), a command, some time, a file read
+ * at raw records. */
+static void op_spectro(cursor_t *c)
+{
+    static const uint32_t clocks[4] = {0u, 200000u, 500000u, 5000000u};
+    uint8_t how = take(c);
+    f->spectro_clock_hz = clocks[how & 3u];
+    f->spectro_no_eos = how & 4u;
+    uint16_t level = how & 8u ? 4095u : take16(c) % 4096u;
+    for (unsigned p = 0; p < 288; p++) f->spectro_video[p] = level;
+    uint16_t params[REG_HR_SPECTRO_GAIN - REG_HR_SPECTRO_COMMAND + 1];
+    for (unsigned i = 0; i < sizeof params / sizeof *params; i++) params[i] = take16(c);
+    if (how & 0x10u) { /* mostly valid parameters, so that captures run */
+        params[REG_HR_SPECTRO_FRAMES - REG_HR_SPECTRO_COMMAND] = (uint16_t)(1u + params[1] % 8u);
+        regmap_put_u32(&params[REG_HR_SPECTRO_INTEGRATION_US - REG_HR_SPECTRO_COMMAND], 100u + params[2] % 50000u);
+        params[REG_HR_SPECTRO_GAIN - REG_HR_SPECTRO_COMMAND] = (uint16_t)(1u << (params[4] % 4u));
+        params[0] = (uint16_t)(params[0] % 4u);
+    }
+    write_regs(pick_address(how >> 6), REG_HR_SPECTRO_COMMAND, (uint16_t)(sizeof params / sizeof *params), params);
+    if (how & 0x20u) { /* a wavelength coefficient, raw */
+        uint16_t w[2] = {take16(c), take16(c)};
+        write_regs(our_address(), (uint16_t)(REG_HR_SPECTRO_WL_A0 + 2u * (take(c) % C12880_WL_COEFFS)), 2, w);
+    }
+    run_ms(take(c) % 128u);
+    uint16_t rec = take16(c) % 400u, n = (uint16_t)(1u + take(c) % 125u);
+    uint8_t read[] = {our_address(), 0x14, 7, 6, 0, how & 0x01u ? TRIMETER_SPECTRO_FILE_DARK : TRIMETER_SPECTRO_FILE_LIGHT,
+                      (uint8_t)(rec >> 8), (uint8_t)rec, 0, (uint8_t)n, 0, 0};
+    deliver(read, 10);
+}
+
 static void run_op(cursor_t *c)
 {
-    switch (take(c) % 11u) {
+    switch (take(c) % 12u) {
     case 0: op_frame(c); break;
     case 1: op_write_holding(c); break;
     case 2: op_raw(c); break;
@@ -379,6 +420,7 @@ static void run_op(cursor_t *c)
     case 7: op_unlocked_command(c); break;
     case 8: op_upload_table(c); break;
     case 10: op_fit(c); break;
+    case 11: op_spectro(c); break;
     default: /* factory-fresh flash: lets the fuzzer get out of a state it cannot leave */
         if (take(c) == 0xA5u) {
             memset(f->config, 0xFF, sizeof f->config);

@@ -56,8 +56,9 @@ SEEDS = {
 }
 
 
-# fuzz_app programs: one byte picks the operation (run_op: value % 10), its arguments follow.
+# fuzz_app programs: one byte picks the operation (run_op: value % 12), its arguments follow.
 FRAME, WRITE_HOLDING, RAW, TIME, REBOOT, POWER_CUT, PLANT, UNLOCKED_COMMAND, UPLOAD = range(9)
+SPECTRO = 11  # op_spectro: how (clock, no EOS, saturate, valid params, a coefficient, address), words...
 FIT = 10  # op_fit: how (0x01 the table's thickness, 0x02 abort, 0x20 an offset, 0xC0/0x0C addresses), bins, words...
 F32_04 = struct.pack(">f", 0.4)
 F32_NAN = struct.pack(">f", float("nan"))
@@ -71,6 +72,11 @@ APP_SEEDS = {
     # a table, then 3 bins (one NaN I_c) fitted with the table's thickness, 20 ms, results read back
     "fit_three_bins": bytes([UPLOAD, 0x0B, 1, 0, FIT, 0x45, 2]) + (F32_04 * 2 + F32_NAN + F32_04 * 2) * 3
     + bytes([20, 0, 20]),
+    # a 500 kHz board, 2 frames at a valid time, then a read of the light file; one losing EOS; one saturating
+    "spectro_capture": bytes([SPECTRO, 0x12, 0x08, 0x00]) + bytes([0, 1, 0, 2, 0, 0, 0x27, 0x10, 0, 1]) + bytes([60, 0, 0, 100]),
+    "spectro_no_eos": bytes([SPECTRO, 0x16, 0x08, 0x00]) + bytes([0, 1, 0, 2, 0, 0, 0x27, 0x10, 0, 1]) + bytes([60, 0, 0, 10]),
+    "spectro_saturated_bad_coeff": bytes([SPECTRO, 0x3A]) + bytes([0, 1, 0, 1, 0, 0, 0x03, 0xE8, 0, 0])
+    + bytes([0xC0, 0x2C, 0, 0, 1, 40, 0, 0, 5]),
     "fit_without_table": bytes([FIT, 0x44, 0]) + F32_04 * 5 + bytes([5, 0, 7]),
     "upload_table_bad_magic": bytes([UPLOAD, 0x0B, 2, 1, 0x00, 0x05, 0x77]),
     "upload_junk_with_fixed_crc": bytes([UPLOAD, 0x08 | 0x02, 3, 2, 0x00, 0x48, 0x09, 0x00, 0x50, 0x01]),

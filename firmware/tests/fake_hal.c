@@ -134,6 +134,32 @@ static const uint8_t *f_map_bytes(void *ctx, enum hal_region r)
     return r == HAL_REGION_MAP_A || r == HAL_REGION_MAP_B ? region(ctx, r, 0, HAL_MAP_REGION_SIZE) : NULL;
 }
 
+static uint32_t f_spectro_clock(void *ctx) { return ((fake_hal_t *)ctx)->spectro_clock_hz; }
+
+static int f_spectro_start(void *ctx, const hal_spectro_timing_t *t)
+{
+    fake_hal_t *f = ctx;
+    if (f->spectro_running) return -1;
+    f->spectro_timing = *t;
+    f->spectro_running = true;
+    f->spectro_frames++;
+    uint64_t clocks = (uint64_t)t->st_high_clocks + t->st_low_clocks;
+    f->spectro_done_us = f->now_us + (clocks * 1000000u + f->spectro_clock_hz - 1u) / f->spectro_clock_hz;
+    return 0;
+}
+
+static enum hal_spectro_result f_spectro_read(void *ctx, uint16_t *video, size_t pixels)
+{
+    fake_hal_t *f = ctx;
+    if (!f->spectro_running) return HAL_SPECTRO_NO_EOS;
+    if (f->now_us < f->spectro_done_us) return HAL_SPECTRO_PENDING;
+    f->spectro_running = false;
+    if (f->spectro_no_eos || pixels > 288) return HAL_SPECTRO_NO_EOS;
+    for (size_t i = 0; i < pixels; i++)
+        video[i] = (uint16_t)(f->spectro_video[i] + (f->spectro_ramp ? f->spectro_frames - 1u : 0u));
+    return HAL_SPECTRO_OK;
+}
+
 fake_hal_t *fake_hal_new(void)
 {
     fake_hal_t *f = calloc(1, sizeof *f);
@@ -164,6 +190,9 @@ fake_hal_t *fake_hal_new(void)
         .status_led = f_status,
         .button_pressed = f_button,
         .lamp_monitor = f_lamp,
+        .spectro_clock_hz = f_spectro_clock,
+        .spectro_start = f_spectro_start,
+        .spectro_read = f_spectro_read,
         .storage_read = f_read,
         .storage_write = f_write,
         .storage_erase = f_erase,

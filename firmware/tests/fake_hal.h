@@ -43,6 +43,16 @@ typedef struct fake_hal {
     uint16_t lamp_adc[HAL_LED_COUNT]; /* what each lamp-monitor photodiode's ADC sample reads */
     uint32_t lamp_samples;            /* lamp_monitor calls */
 
+    /* micro-spectrometer: the CLK rate (0 = none), the timing of every frame started, and what a frame
+     * reads: spectro_video, or spectro_video + frame number when spectro_ramp (to check the averaging);
+     * spectro_no_eos: frames end without EOS. A frame takes its planned time. */
+    uint32_t spectro_clock_hz;
+    hal_spectro_timing_t spectro_timing;
+    uint32_t spectro_frames;
+    bool spectro_running, spectro_no_eos, spectro_ramp;
+    uint64_t spectro_done_us;
+    uint16_t spectro_video[288];
+
     /* storage: NOR flash with a power-cut budget (bytes programmed/erased before power is lost;
      * negative = unlimited). After the cut every write/erase fails and changes nothing. */
     uint8_t config[2][HAL_CONFIG_REGION_SIZE];

@@ -5,7 +5,7 @@ Data flows one way: device -> raw spectra -> reflectances -> map inversion -> pa
 
 from typing import TYPE_CHECKING, Any
 
-__version__ = "0.1.0"
+from trimeter.version import __version__ as __version__  # re-exported: `trimeter.__version__`
 
 if TYPE_CHECKING:  # what the lazy names below resolve to, for type checkers and the API reference
     from trimeter.maps.artifacts import fit, open_map

@@ -1,6 +1,5 @@
 """Where the repository's declared-once files live (the package is installed editable from the repo)."""
 
-import errno
 import os
 import stat
 from pathlib import Path
@@ -25,8 +24,8 @@ def data_dir() -> Path:
 
 # ------------------------------------------------------------------------ reading results safely
 # A results directory may be written by anyone who can write the results root, and the web API serves
-# it: a symbolic link, a FIFO or a device in place of a directory or a file would read outside it or
-# block a reader forever. Every read of a stored record goes through these.
+# it: a symbolic link in place of a record would read outside it. The directories of the root go through
+# these; their files through trimeter.tables.open_checked (regular files only, not followed, bounded).
 NAME_MAX = 255
 
 
@@ -45,35 +44,6 @@ def real_subdirectory(root: Path, name: str) -> Path | None:
     except (OSError, RuntimeError):  # RuntimeError: a link loop on the way to the root
         return None
     return path
-
-
-def open_regular(path: Path) -> int:
-    """A read-only descriptor of `path` when it is a regular file reached without following a link at its
-    last component (a FIFO is opened non-blocking, so it is refused at once, not waited on). OSError
-    otherwise: FileNotFoundError for a missing one, an OSError naming the kind for anything else."""
-    fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0))
-    try:
-        mode = os.fstat(fd).st_mode
-        if not stat.S_ISREG(mode):
-            raise OSError(errno.EINVAL, "not a regular file", str(path))
-    except BaseException:
-        os.close(fd)
-        raise
-    return fd
-
-
-def read_regular_bytes(path: Path, limit: int | None = None) -> bytes:
-    """The bytes of a regular file (see open_regular); OSError when it is none or larger than `limit`."""
-    with os.fdopen(open_regular(path), "rb") as f:
-        data = f.read() if limit is None else f.read(limit + 1)
-    if limit is not None and len(data) > limit:
-        raise OSError(errno.EFBIG, f"larger than {limit} bytes", str(path))
-    return data
-
-
-def read_regular_text(path: Path, limit: int | None = None) -> str:
-    """The UTF-8 text of a regular file (see read_regular_bytes); UnicodeDecodeError when it is not text."""
-    return read_regular_bytes(path, limit).decode("utf-8")
 
 
 def regular_files(directory: Path) -> list[Path]:

@@ -2,7 +2,7 @@
 white, for a measured material or a mixture by volume fractions (paper Sec. 5.2: a color checker of ink
 mixtures 5 mm thick, predicted from parameters measured on 0.4 and 0.8 mm samples).
 
-Computed with the project's tracer (trimeter.maps.tracer, public API: Stack.from_recipe, trace_column):
+Computed with the project's tracer (trimeter.forward.transport, public API: Stack.from_recipe, trace_column):
 per wavelength node one column at the material's σt and g, evaluated at its α, gives A, B, C of
 I(ρ) = A + Bρ/(1 − Cρ), so both backgrounds come from one trace. A trace per spectrometer pixel would be
 slow; the slab is traced at WAVELENGTHS_NM (31 nodes, 400-700 nm every 10 nm: where the colour-matching
@@ -73,7 +73,7 @@ def predict_slab(material: SpectralMaterial, thickness_mm: float, *, geometry: s
                  wavelengths_nm: ArrayLike | None = None) -> Prediction:
     """Reflectance of a slab of `material`, `thickness_mm` thick, on backgrounds ρ_black and ρ_white."""
     from trimeter.geometry import load_geometry
-    from trimeter.maps.tracer import Stack, k_max_for, trace_column
+    from trimeter.forward.transport import Stack, k_max_for, trace_column
     from trimeter.results.export import spectra_to_linear_srgb
 
     for name, value, lo, hi in (("thickness", thickness_mm, 0.0, 1e4), ("n", n, 1.0, 4.0),
@@ -101,7 +101,7 @@ def predict_slab(material: SpectralMaterial, thickness_mm: float, *, geometry: s
     info = {"thickness_mm": float(thickness_mm), "geometry": geometry, "n": float(n), "rho_black": rho_black,
             "rho_white": rho_white, "paths_per_node": int(paths), "nodes": len(m.wavelengths_nm),
             "seconds": round(time.monotonic() - t0, 2), "illuminant": "D65",
-            "method": "trimeter.maps.tracer per wavelength node (A, B, C at the material's α)"}
+            "method": "trimeter.forward.transport per wavelength node (A, B, C at the material's α)"}
     return Prediction(m.wavelengths_nm, out[0], out[1], out[2], out[3], srgb[0], srgb[1], info)
 
 

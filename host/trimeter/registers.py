@@ -9,7 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from enum import IntEnum
 
-REGMAP_HASH = 0x3FD4B190
+REGMAP_HASH = 0x938F7E93
 FIRMWARE_VERSION = (0, 1, 0)
 VENDOR_NAME = 'trimeter project'
 PRODUCT_CODE = 'TRIMETER-1'
@@ -147,6 +147,28 @@ class FitStatus(IntEnum):
     ERROR_CORE = 8
 
 
+class SpectroCommand(IntEnum):
+    NONE = 0
+    CAPTURE = 1
+    CAPTURE_DARK = 2
+    ABORT = 3
+
+
+class SpectroStatus(IntEnum):
+    IDLE = 0
+    BUSY = 1
+    DONE = 2
+    SATURATED = 3
+    ABORTED = 4
+    ERROR_NO_EOS = 5
+    ERROR_NO_SENSOR = 6
+
+
+class SpectroFile(IntEnum):
+    LIGHT = 110
+    DARK = 111
+
+
 class Unlock(IntEnum):
     LOCKED = 0
     KEY = 23294
@@ -167,6 +189,9 @@ ENUMS: dict[str, type[IntEnum]] = {
     'fit_output_word': FitOutputWord,
     'fit_command': FitCommand,
     'fit_status': FitStatus,
+    'spectro_command': SpectroCommand,
+    'spectro_status': SpectroStatus,
+    'spectro_file': SpectroFile,
     'unlock': Unlock,
 }
 
@@ -292,6 +317,22 @@ REGISTERS: tuple[Register, ...] = (
              '1 when this firmware was built with the inverse core; 0: fit_command = run answers exception 01 (error_unavailable).'),
     Register('fit_table_crc32', 'input_register', 84, 'u32', 2, 'r', 1.0, '', 0, 4294967295, 0, None, (),
              "The own CRC-32 of the map table the current (or last) run fits with (its last 4 bytes: the CRC-32 of every byte before them), 0 before any run: the master compares it with its table's, to know the device fitted with that table. (A CRC-32 over a whole table, map_slot_*_crc32, is the same constant for every valid table.)"),
+    Register('spectro_status', 'input_register', 96, 'u16', 1, 'r', 1.0, '', 0, 6, 0, 'spectro_status', (),
+             'The current or last capture (enums.spectro_status).'),
+    Register('spectro_frames_done', 'input_register', 97, 'u16', 1, 'r', 1.0, '', 0, 65535, 0, None, (),
+             'Frames of the current capture read so far.'),
+    Register('spectro_peak_counts', 'input_register', 98, 'u16', 1, 'r', 1.0, 'counts', 0, 65535, 0, None, (),
+             "The highest pixel of the last capture's average, ADC counts (12-bit full scale 4095): what auto-exposure aims with."),
+    Register('spectro_dark_valid', 'input_register', 99, 'u16', 1, 'r', 1.0, '', 0, 1, 0, None, (),
+             '1 once a dark capture completed since boot (file spectro_dark holds it).'),
+    Register('spectro_capture_us', 'input_register', 100, 'u32', 2, 'r', 1.0, 'us', 0, 4294967295, 0, None, (),
+             "How long the last capture took, from the command to its last frame (the shutters' settle included for a dark one)."),
+    Register('spectro_sequence', 'input_register', 102, 'u16', 1, 'r', 1.0, '', 0, 65535, 0, None, (),
+             'Captures completed since boot (wraps): a master sees a new spectrum by this changing.'),
+    Register('spectro_pixels', 'input_register', 103, 'u16', 1, 'r', 1.0, '', 0, 65535, 0, None, (),
+             'Pixels per frame: 288, or 0 on a board without a spectrometer.'),
+    Register('spectro_clock_hz', 'input_register', 104, 'u32', 2, 'r', 1.0, 'Hz', 0, 4294967295, 0, None, (),
+             "The CLK rate the port drives the chip at (0: no spectrometer); the integration time's resolution is one CLK period."),
     Register('command', 'holding_register', 0, 'u16', 1, 'rw', 1.0, '', 0, 8, 0, 'command', (),
              'Write to start an action; reads back the last accepted command. Motion commands only set a target. save_config and load_defaults need `unlock` first (else exception 01); a save refused by the erase rate limit: exception 06.'),
     Register('unlock', 'holding_register', 1, 'u16', 1, 'rw', 1.0, '', 0, 23294, 0, 'unlock', (0, 23294),
@@ -362,6 +403,26 @@ REGISTERS: tuple[Register, ...] = (
              'Modbus slave address; takes effect after save_config, at the next boot.'),
     Register('modbus_baud', 'holding_register', 93, 'u32', 2, 'rw', 1.0, 'baud', 9600, 115200, 19200, None, (9600, 19200, 38400, 57600, 115200),
              'UART baud rate, 8N1 (one of the allowed values); takes effect after save_config and reboot.'),
+    Register('spectro_command', 'holding_register', 32, 'u16', 1, 'rw', 1.0, '', 0, 3, 0, 'spectro_command', (),
+             'Capture a spectrum (enums.spectro_command); write spectro_frames, spectro_integration_us and spectro_gain first, or in the same FC 0x10 before it. Refusals: 01 no spectrometer or by broadcast, 03 an integration time the chip cannot do at this CLK, 06 a capture runs. Poll spectro_status.'),
+    Register('spectro_frames', 'holding_register', 33, 'u16', 1, 'rw', 1.0, '', 1, 64, 4, None, (),
+             'Frames averaged on the device per capture.'),
+    Register('spectro_integration_us', 'holding_register', 34, 'u32', 2, 'rw', 1.0, 'us', 11, 1000000, 10000, None, (),
+             'Integration time = ST high + 48 CLK periods (datasheet); rounded to a whole CLK period. Below (6 + 48) CLK periods the capture is refused (03).'),
+    Register('spectro_gain', 'holding_register', 36, 'u16', 1, 'rw', 1.0, '', 0, 65535, 1, None, (1, 2, 4, 8),
+             "The analog front end's gain between the chip's video output and the ADC."),
+    Register('spectro_wl_a0', 'holding_register', 95, 'f32', 2, 'rw', 1.0, 'nm', -10000.0, 10000.0, 305.5400085449219, None, (),
+             'Wavelength polynomial A0 (nm): lambda(p) = A0 + B1 p + B2 p^2 + B3 p^3 + B4 p^4 + B5 p^5, p = 1..288.'),
+    Register('spectro_wl_b1', 'holding_register', 97, 'f32', 2, 'rw', 1.0, 'nm', -10000.0, 10000.0, 2.717400074005127, None, (),
+             'Wavelength polynomial B1 (coefficient of p^1).'),
+    Register('spectro_wl_b2', 'holding_register', 99, 'f32', 2, 'rw', 1.0, 'nm', -10000.0, 10000.0, -0.0011967000318691134, None, (),
+             'Wavelength polynomial B2 (coefficient of p^2).'),
+    Register('spectro_wl_b3', 'holding_register', 101, 'f32', 2, 'rw', 1.0, 'nm', -10000.0, 10000.0, -7.70110000303248e-06, None, (),
+             'Wavelength polynomial B3 (coefficient of p^3).'),
+    Register('spectro_wl_b4', 'holding_register', 103, 'f32', 2, 'rw', 1.0, 'nm', -10000.0, 10000.0, 9.249600196881147e-09, None, (),
+             'Wavelength polynomial B4 (coefficient of p^4).'),
+    Register('spectro_wl_b5', 'holding_register', 105, 'f32', 2, 'rw', 1.0, 'nm', -10000.0, 10000.0, 8.15080034716198e-12, None, (),
+             'Wavelength polynomial B5 (coefficient of p^5).'),
 )
 
 BY_NAME: dict[str, Register] = {r.name: r for r in REGISTERS}
@@ -369,4 +430,4 @@ COILS: dict[str, Register] = {r.name: r for r in REGISTERS if r.table == 'coil'}
 DISCRETE_INPUTS: dict[str, Register] = {r.name: r for r in REGISTERS if r.table == 'discrete_input'}
 INPUT_REGISTERS: dict[str, Register] = {r.name: r for r in REGISTERS if r.table == 'input_register'}
 HOLDING_REGISTERS: dict[str, Register] = {r.name: r for r in REGISTERS if r.table == 'holding_register'}
-SPANS: dict[str, int] = {'coil': 6, 'discrete_input': 5, 'input_register': 86, 'holding_register': 95}
+SPANS: dict[str, int] = {'coil': 6, 'discrete_input': 5, 'input_register': 106, 'holding_register': 107}

@@ -51,10 +51,10 @@ def test_llvm_against_llvm_runs_the_whole_check_in_its_stable_format(capsys):
 
 
 def test_the_cuda_half_asks_the_tracer_for_cuda(monkeypatch, capsys):
-    from trimeter.maps import tracer
+    from trimeter.forward import transport
 
     asked = []
-    real = tracer.trace_column
+    real = transport.trace_column
 
     def stand_in(*args, backend, **kwargs):
         asked.append(backend)
@@ -62,7 +62,7 @@ def test_the_cuda_half_asks_the_tracer_for_cuda(monkeypatch, capsys):
 
     monkeypatch.setattr(gpu_check, "missing_backend", lambda backend: None)
     monkeypatch.setattr(gpu_check, "gpu_name", lambda: "stand-in")
-    monkeypatch.setattr(tracer, "trace_column", stand_in)
+    monkeypatch.setattr(transport, "trace_column", stand_in)
     assert main(["bench", "gpu-check", *TINY]) == 0
     lines = capsys.readouterr().out.splitlines()
     assert HEADER.match(lines[0]) and lines[0].startswith("gpu-check v1 | cuda vs llvm")

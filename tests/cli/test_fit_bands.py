@@ -126,3 +126,15 @@ def test_bad_options(files, capsys, argv, message):
 def test_grid_needs_bands(files, capsys):
     _, ch, _, _, _ = files
     assert "--grid: only with --bands" in _error(capsys, ["fit", "--map", MAP, "--input", str(ch), "--grid", "1:2:1"])
+
+
+@pytest.mark.parametrize("header, rows, message", [
+    (["name", "I_b", "I_w", "I_c"], [["F1", 0.1, 0.5, 0.3], ["F2", 0.1, 0.5, 0.3]], "missing column channel"),
+    (["channel", "I_b", "I_w"], [["F1", 0.1, 0.5], ["F2", 0.1, 0.5]], "missing column(s) I_c"),
+    (["channel", "I_b", "I_w", "I_c"], [["F1", 0.1, 0.5, 0.3], ["F1", 0.1, 0.5, 0.3]], "repeated: F1"),
+    (["channel", "I_b", "I_w", "I_c"], [["F1", "dark", 0.5, 0.3], ["F2", 0.1, 0.5, 0.3]], "'dark' is not a number"),
+])
+def test_bad_channels_file(files, tmp_path, capsys, header, rows, message):
+    w, _, _, _, _ = files
+    ch = _write(tmp_path / "c.csv", header, rows)
+    assert message in _error(capsys, ["fit", "--map", MAP, "--bands", str(w), "--input", str(ch)])

@@ -127,3 +127,47 @@ def test_whole_input_fits_are_bounded(measured, tmp_path, monkeypatch, capsys):
     monkeypatch.setattr(fit_stream, "WHOLE_FIT_BYTES", 1000)
     assert main(["fit", "--map", NAME, "--input", str(measured), "--json"]) == 2
     assert "reads its input whole, up to 1000 bytes" in capsys.readouterr().err
+
+
+@pytest.fixture(scope="module")
+def two_thicknesses(tmp_path_factory):
+    """0.4 and 0.8 mm rows of the same materials, interleaved by wavelength (the 0.8 mm ones a hair longer, within
+    the pairing's tolerance), with a thickness std per sample."""
+    rng = np.random.default_rng(8)
+    n = 1500
+    alpha, sigma_t, g = rng.uniform(0.5, 0.99, n), rng.uniform(1.0, 20.0, n), rng.uniform(0.0, 0.8, n)
+    wl = np.sort(rng.uniform(400, 700, n))
+    lines = ["wavelength_nm,I_b,I_w,I_c,thickness_mm,thickness_std_mm"]
+    rows = []
+    for thickness, std, shift in ((0.4, 0.01, 0.0), (0.8, 0.02, 1e-4)):
+        amap = AppearanceMap.load(MAPS_DIR / f"device-n1.5-l{thickness}.tmap")
+        I_b, I_w, _ = amap.query(alpha, sigma_t, g, *amap.reference_rhos)
+        I_c = amap.collimated_measured(alpha, sigma_t, g)
+        rows += [(wl[i] + shift, f"{wl[i] + shift:.17g},{I_b[i]:.17g},{I_w[i]:.17g},{I_c[i]:.17g},{thickness},{std}")
+                 for i in range(n)]
+    lines += [text for _, text in sorted(rows, key=lambda r: r[0])]
+    path = tmp_path_factory.mktemp("two") / "two.csv"
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+@pytest.mark.parametrize("method", ["lut", "mlp"])
+def test_two_thicknesses_stream_alike(two_thicknesses, tmp_path, monkeypatch, method):
+    extra = ["--map", "device-n1.5-l0.4", "--map", "device-n1.5-l0.8", "--method", method]
+    whole = _fit(extra, two_thicknesses, tmp_path / "whole.csv", monkeypatch, streamed=False)
+    chunked = _fit(extra, two_thicknesses, tmp_path / "chunked.csv", monkeypatch, streamed=True)
+    assert whole.count(b"\n") == 1501 and whole.splitlines()[1].endswith(b",0.4+0.8")
+    assert chunked == whole
+
+
+def test_two_thicknesses_must_pair_up(two_thicknesses, tmp_path, monkeypatch, capsys):
+    lines = two_thicknesses.read_text().splitlines(keepends=True)
+    extra = tmp_path / "extra.csv"
+    extra.write_text("".join(lines) + "701,0.1,0.5,0.1,0.8,0.02\n")  # a 0.8 mm row without its 0.4 mm one
+    monkeypatch.setattr(fit_stream, "WHOLE_INPUT_BYTES", 0)
+    monkeypatch.setattr(fit_stream, "CHUNK_ROWS", 256)
+    assert main(["fit", "--map", "device-n1.5-l0.4", "--map", "device-n1.5-l0.8", "--input", str(extra), "-o",
+                 str(tmp_path / "out.csv")]) == 2
+    assert not (tmp_path / "out.csv").exists()
+    assert "thickness 0.8 mm has 1 more row(s) than another: the thicknesses must cover the same wavelengths" \
+        in capsys.readouterr().err

@@ -19,7 +19,10 @@ def _values():
     values = {}
     for name in CONFIG_NAMES:
         reg = regs.BY_NAME[name]
-        values[name] = 0.1 + reg.default if reg.type == "f32" else int(reg.default)
+        # f32 defaults off their default; a tiny one (a wavelength polynomial's high-order coefficient) scaled,
+        # since 0.1 + 9e-9 is 0.10000001 in its shortest form
+        tiny = reg.type == "f32" and 0 < abs(reg.default) < 1e-3
+        values[name] = (1.5 * reg.default if tiny else 0.1 + reg.default) if reg.type == "f32" else int(reg.default)
     return values
 
 

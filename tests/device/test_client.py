@@ -209,3 +209,40 @@ def test_rate_limited_erases_and_rejected_tables_get_clear_messages():
     with pytest.raises(DeviceError, match="does not accept these bytes as a map table"):
         dev.flash_map(b"table" * 100, version=1)
     assert fake.active == regs.MapSlot.NONE
+
+
+class _LossyInstrument(FakeInstrument):
+    """Every `every`-th file record request is lost for good (all its transport attempts failed), and a reopen
+    clears the slot selection as a reset device would."""
+
+    def __init__(self, every: int):
+        super().__init__()
+        self.every, self.calls, self.reopens = every, 0, 0
+
+    def read_file_records(self, file_number, record_number, count):
+        self.calls += 1
+        if self.calls % self.every == 0:
+            from trimeter.device.transport import LinkError
+
+            raise LinkError("no reply")
+        return super().read_file_records(file_number, record_number, count)
+
+    def reopen(self):
+        self.reopens += 1
+        self.hr[regs.BY_NAME["map_read_slot"].address] = 0
+
+
+def test_a_map_read_resumes_where_a_lost_record_stopped_it():
+    from trimeter.device.transport import LinkError
+
+    fake = _LossyInstrument(every=4)
+    dev = Device(fake)
+    table = bytes(range(256)) * 100 + b"x"
+    fake.every = 10**9
+    dev.flash_map(table, version=1)
+    fake.every, fake.calls = 4, 0
+    assert dev.read_map("a") == table           # a quarter of the records lost, the read goes on from each
+    assert fake.reopens > 5 and fake.hr[regs.BY_NAME["map_read_slot"].address] == 0
+    fake.every = 1                               # nothing gets through: given up when the budget is spent
+    with pytest.raises(LinkError):
+        dev.read_map("a", time_budget_s=0.05)

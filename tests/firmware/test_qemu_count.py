@@ -74,6 +74,11 @@ def test_qemu_count_counts_the_inverse_core_per_bin_with_a_device_table(tmp_path
     assert 500 < int(check.group(1)) < 20_000
     mean, low, high, calls = (int(x) for x in per_bin.groups())
     assert calls == 8 and 5_000 < low <= mean <= high < 200_000, run.stdout
+    # the same 8 bins in one call: the table checked once, the fits as one per call
+    together = re.search(r"^  tr_fit_bins, the 8 bins in one call\s+(\d+)", run.stdout, re.MULTILINE)
+    assert together, run.stdout
+    separately = 8 * (mean - int(check.group(1))) + int(check.group(1))
+    assert abs(int(together.group(1)) - separately) < 0.02 * separately, run.stdout
 
 
 @pytest.mark.skipif(shutil.which("qemu-system-arm") is None or shutil.which("arm-none-eabi-gcc") is None,

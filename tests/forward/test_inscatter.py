@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from trimeter.forward.inscatter import collimated_with_inscatter
+from trimeter.forward.transport.inscatter_tracer import collimated_with_inscatter
 from trimeter.geometry import load_geometry
 
 
@@ -37,7 +37,7 @@ def test_inscattering_is_negligible_where_ic_is_measurable(thickness):
 def test_one_trace_serves_every_albedo():
     """Light by scattering order: α = 0 leaves only the unscattered beam, and the in-scattered light grows
     with α as a polynomial with non-negative coefficients; a separate trace agrees within its noise."""
-    from trimeter.forward.inscatter import _trace_orders
+    from trimeter.forward.transport.inscatter_tracer import _trace_orders
 
     unscattered, tally, _ = _trace_orders(5.0, 0.9, 0.8, 1.5, 20_000, 7, None, nee=True)
     assert tally[0] == 0.0 and np.all(tally >= 0) and tally[1:].sum() > 0
@@ -54,7 +54,7 @@ def test_the_inscatter_table_round_trips_and_refuses_another_map(tmp_path):
     import shutil
 
     from trimeter.errors import MapFileError
-    from trimeter.forward.inscatter import build_inscatter_table
+    from trimeter.forward.transport.inscatter_tracer import build_inscatter_table
     from trimeter.maps.appearance import AppearanceMap, find_map
     from trimeter.maps.inscatter_file import load_inscatter, save_inscatter
     from trimeter.model.inscatter import InscatterTable

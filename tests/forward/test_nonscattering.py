@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from trimeter.model.collimated import collimated_transmittance
-from trimeter.forward.nonscattering import fresnel_unpolarized, nonscattering_coefficients, stack_rt
+from trimeter.forward.nonscattering import nonscattering_coefficients, stack_rt
 
 iadpython = pytest.importorskip("iadpython")
 
@@ -26,12 +26,6 @@ def test_normal_incidence_transmittance_is_the_collimated_model():
             depths = [s * 0.8] if cover is None else [0.0, s * 0.8, 0.0]
             _, T = stack_rt(np.ones(1), indices, depths)
             assert T[0] == pytest.approx(float(collimated_transmittance(s, 0.8, 1.5, cover)), rel=1e-12)
-
-
-def test_fresnel_limits():
-    assert float(fresnel_unpolarized(1.0, 1.0, 1.5)) == pytest.approx(0.04, rel=1e-12)
-    assert float(fresnel_unpolarized(0.0, 1.0, 1.5)) == pytest.approx(1.0)
-    assert float(fresnel_unpolarized(0.5, 1.5, 1.0)) == 1.0          # beyond the critical angle
 
 
 def test_device_alpha0_has_no_specular_term_and_sane_coefficients():

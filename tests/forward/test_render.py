@@ -116,7 +116,7 @@ def test_the_offset_free_render_of_a_dense_dark_sample_meets_the_tracer():
     scatters within tens of µm of its face, renders dark. Extrapolated to no offset (a second render
     with the scene moved 10 mm) it meets the map tracer, which intersects planes exactly; the
     extrapolation lifts the render by far more than its noise."""
-    from trimeter.maps.tracer import Stack, k_max_for, trace_column
+    from trimeter.forward.transport import Stack, k_max_for, trace_column
     from trimeter.model.response import background_response
 
     alpha, sigma_t, g, ell = 0.72283, 36.6378, 0.0254, 0.4

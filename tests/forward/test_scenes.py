@@ -20,7 +20,7 @@ def _types(scene):
 
 def test_importing_the_forward_package_does_not_import_mitsuba():
     code = ("import sys, trimeter.forward.render, trimeter.forward.scenes, trimeter.forward.validate, "
-            "trimeter.forward.inscatter, trimeter.cli.cmd_forward; print('mitsuba' in sys.modules)")
+            "trimeter.forward.transport.inscatter_tracer, trimeter.cli.cmd_forward; print('mitsuba' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
 

@@ -2,6 +2,7 @@
 map's --check), the low-cost build under its budget, every MCU pin of pinout.toml wired, and bad
 source files refused with a message naming the item."""
 
+import json
 import tomllib
 
 import pytest
@@ -28,10 +29,11 @@ def test_check_names_a_stale_file(tmp_path, monkeypatch, capsys):
 def test_low_cost_build_is_under_budget_and_totals_add_up():
     bom = gen_hardware.load_bom()
     assert bom.prices_as_of == "2026-12"
-    assert set(bom.options) == {"as7341", "seabreeze"}
+    assert set(bom.options) == {"as7341", "c12880ma", "seabreeze"}
     low_cost = bom.total_eur("as7341")
     assert low_cost < bom.budget_eur <= 300
-    assert bom.total_eur("seabreeze") > low_cost
+    # the micro-spectrometer sits between the two: spectral at a fraction of the USB spectrometer's price
+    assert low_cost < bom.total_eur("c12880ma") < bom.total_eur("seabreeze") / 3
     common = sum(p.qty * p.unit_eur for p in bom.parts if p.option is None)
     assert bom.total_eur("as7341") == pytest.approx(common + sum(p.qty * p.unit_eur for p in bom.parts
                                                                   if p.option == "as7341"))
@@ -93,3 +95,78 @@ def test_cli_reports_a_bad_source_without_a_traceback(tmp_path, monkeypatch, cap
     assert gen_hardware.main(["--check"]) == 2
     err = capsys.readouterr().err
     assert err.startswith("gen_hardware: error:") and "Traceback" not in err
+
+
+def _validation(alpha: float = 0.0031) -> dict:
+    """The shape `trimeter bench report` writes to docs/validation.json (its stamp and bench sensor's runs)."""
+    def row(build_id, build, a):
+        return {"id": build_id, "build": build, "materials": "all", "alpha_p95": a, "sigma_t_rel_p95": 0.0114,
+                "g_p95": 0.0084, "flagged": 4, "values": 54}
+    runs = [{"noise": noise, "draws": draws, "material_count": 6,
+             "builds": [row("seabreeze-slit", "seabreeze (slit)", 0.0019 + noise),
+                        {**row("as7341-band-aware", "AS7341 band-aware", alpha + noise), "materials": "inks"},
+                        row("as7341-band-aware", "AS7341 band-aware", alpha + noise)]}
+            for noise, draws in ((0.0, 1), (0.005, 3))]
+    return {"stamp": {"commit": "0123456789abcdef", "date_utc": "2026-12-06 04:30 UTC", "uncommitted_changes": False},
+            "builds": {"thickness_mm": 0.4, "runs": runs}}
+
+
+def test_accuracy_section_is_each_option_s_bench_build_with_where_and_when_it_was_measured():
+    bom = gen_hardware.load_bom()
+    text = gen_hardware.render_bom(bom, _validation()).split("## Accuracy of each build", 1)[1]
+    assert "from commit `0123456789ab` on 2026-12-06 04:30 UTC" in text
+    assert "(../docs/validation.md#each-build)" in text
+    title = bom.options["as7341"]
+    assert f"| {title} | AS7341 band-aware | none | 0.0031 | 1.14 % | 0.0084 | 4 of 54 |" in text
+    assert f"| {title} | AS7341 band-aware | 0.5 % (3 draws) | 0.0081 |" in text
+    assert f"| {bom.options['seabreeze']} | seabreeze (slit) | none | 0.0019 |" in text
+    assert text.count("AS7341 band-aware") == 2  # the materials-set "all" rows only, one per noise level
+
+
+def test_check_fails_when_bom_md_is_stale_against_the_measured_figures(tmp_path, monkeypatch, capsys):
+    figures = tmp_path / "validation.json"
+    figures.write_text(json.dumps(_validation()), encoding="utf-8")
+    monkeypatch.setattr(gen_hardware, "VALIDATION_JSON", figures)
+    bom_md = tmp_path / "bom.md"
+    bom_md.write_text(gen_hardware.outputs()[gen_hardware.OUT_BOM_MD], encoding="utf-8")
+    outputs = gen_hardware.outputs
+    monkeypatch.setattr(gen_hardware, "outputs", lambda: {bom_md: outputs()[gen_hardware.OUT_BOM_MD]})
+    assert gen_hardware.main(["--check"]) == 0
+    figures.write_text(json.dumps(_validation(alpha=0.0042)), encoding="utf-8")  # a new bench report
+    assert gen_hardware.main(["--check"]) == 1
+    assert "bom.md is stale" in capsys.readouterr().err
+
+
+def test_the_committed_bom_links_a_section_the_validation_page_has():
+    text = (HW / "bom.md").read_text(encoding="utf-8")
+    assert "../docs/validation.md#each-build" in text
+    page = (ROOT / "docs" / "validation.md").read_text(encoding="utf-8")
+    assert "\n## Each build\n" in page
+
+
+@pytest.mark.parametrize("change, message", [
+    (('accuracy_build = "as7341-band-aware"', 'accuracy = "α p95 0.003"'), "accuracy is measured, not typed"),
+    (('accuracy_build = "as7341-band-aware"', "accuracy_build = 3"), "accuracy_build must name a build"),
+])
+def test_bad_accuracy_build_is_refused(tmp_path, change, message):
+    text = (HW / "bom.toml").read_text(encoding="utf-8")
+    assert change[0] in text
+    path = tmp_path / "bom.toml"
+    path.write_text(text.replace(change[0], change[1], 1), encoding="utf-8")
+    with pytest.raises(gen_hardware.HardwareError, match=message):
+        gen_hardware.load_bom(path)
+
+
+def test_a_build_the_figures_lack_or_no_figures_are_refused_clearly(tmp_path):
+    bom = gen_hardware.load_bom()
+    doc = _validation()
+    for run in doc["builds"]["runs"]:
+        run["builds"] = [r for r in run["builds"] if r["id"] != "seabreeze-slit"]
+    with pytest.raises(gen_hardware.HardwareError, match=r"\[options.seabreeze\] accuracy_build 'seabreeze-slit' is "
+                                                         r"not a build of .*\(as7341-band-aware\)"):
+        gen_hardware.render_bom(bom, doc)
+    with pytest.raises(gen_hardware.HardwareError, match="run `trimeter bench report`"):
+        gen_hardware.load_validation(tmp_path / "missing.json")
+    (tmp_path / "bad.json").write_text('{"stamp": {}}', encoding="utf-8")
+    with pytest.raises(gen_hardware.HardwareError, match="bad.json"):
+        gen_hardware.load_validation(tmp_path / "bad.json")

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hil_support import SAMPLE, THICKNESS_MM, TIME_SCALE
+from hil_support import SAMPLE, THICKNESS_MM, TIME_SCALE, twin_truth
 from trimeter.cli import main
 from trimeter.maps import AppearanceMap
 
@@ -82,7 +82,7 @@ def test_measure_fits_with_the_instruments_table_on_a_host_without_maps(request,
         for label in ("first", "second"):
             assert main(["measure", *port, "--label", label]) == 0
             runs.append(capsys.readouterr().out)
-        truth = twin.control.truth()
+        truth = twin_truth(twin, request)
     assert f"the instrument's map table {table.name}" in runs[0] and f"sha256 {table.sha256[:12]}" in runs[0]
     assert all("from the cache" in run for run in runs)  # read once, by the refused attempt
     assert (tmp_path / "cache" / "device-tables" / f"{table.sha256}.tlut").read_bytes() == table.to_bytes()

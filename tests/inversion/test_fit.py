@@ -306,7 +306,7 @@ def test_light_scattered_into_the_aperture_no_longer_reads_as_a_lower_sigma_t():
     """Forward-scattering white samples send light into the collimated detector's aperture: read as
     unscattered, I_c gives σt too low (by ln(1 + r)/(σt·ℓ)). With the map's in-scattering table the fit
     takes it out; I_c here is traced independently of that table (another trace, another seed)."""
-    from trimeter.forward.inscatter import traced_log1p_ratio
+    from trimeter.forward.transport.inscatter_tracer import traced_log1p_ratio
     from trimeter.maps.appearance import AppearanceMap
     from trimeter.maps.artifacts import load_artifacts
     from trimeter.paths import MAPS_DIR

@@ -36,7 +36,11 @@ def _random_fit(rng, n):
 def _assert_identical(a: FitResult, b: FitResult):
     for field in dataclasses.fields(FitResult):
         x, y = getattr(a, field.name), getattr(b, field.name)
-        if field.name == "per_thickness" or isinstance(x, str):
+        if field.name == "per_thickness":
+            assert len(x) == len(y)
+            for one, other in zip(x, y, strict=True):
+                _assert_identical(one, other)
+        elif x is None or isinstance(x, (str, int)):
             assert x == y
         else:
             assert x.dtype == y.dtype and x.tobytes() == y.tobytes(), field.name
@@ -62,3 +66,38 @@ def test_c_combination_is_the_numpy_one_bit_for_bit():
 
 def test_the_numpy_kernel_leaves_the_combination_to_api():
     assert NumpyKernel().combine([], "x", **THRESHOLDS) is None
+
+
+@pytest.mark.skipif(not native.available(), reason=native.status())
+@pytest.mark.parametrize("sd", [None, 2e-3])
+def test_thicknesses_fitted_into_one_block_combine_as_gathered_ones(ideal_map, thick_map, sd):
+    """fit() writes each thickness's fused fit into its place of one (k, rows, n) block and combines
+    that block as it is: the same result, bit for bit, as each thickness fitted alone and combined
+    from its columns (with and without the intensities' own stds, i.e. conditioning rows)."""
+    from trimeter.maps.artifacts import load_artifacts
+
+    rng = np.random.default_rng(8)
+    n = 301
+    alpha, g = rng.uniform(0.3, 0.99, n), rng.uniform(0, 0.9, n)
+    sigma_t = np.exp(rng.uniform(np.log(0.5), np.log(15.0), n))
+    models = [load_artifacts(m) for m in (ideal_map, thick_map)]
+    I = [np.stack(x) for x in zip(*(m.grid.intensities(alpha, sigma_t, g, *m.reference_rhos) for m in models),
+                                 strict=True)]
+    stds = {} if sd is None else dict(I_b_std=sd, I_w_std=sd, I_c_std=sd)
+    kernel = NativeKernel()
+    together = api.fit(models, *I, method="lut", kernel=kernel, **stds)
+    assert together.per_thickness[0].alpha.base is together.per_thickness[1].alpha.base  # one block
+    alone = [api.fit(m, *(x[i] for x in I), method="lut", kernel=kernel,
+                     **{key: np.full(n, v) for key, v in stds.items()}) for i, m in enumerate(models)]
+    gathered = kernel.combine(alone, "lut", **THRESHOLDS)
+    gathered.guess_fallback_bins = 0
+    _assert_identical(together, gathered)
+
+
+def test_an_output_block_of_the_wrong_shape_is_refused():
+    from trimeter.inversion.native import _fit_outputs
+
+    with pytest.raises(ValueError, match="output block"):
+        _fit_outputs(4, np.empty((3, 4)))
+    with pytest.raises(ValueError, match="output block"):
+        _fit_outputs(4, np.empty((len(native.invert_h.OUTPUT_ROWS), 8))[:, ::2])

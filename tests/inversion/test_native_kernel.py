@@ -303,3 +303,41 @@ def test_the_tables_handed_to_c_start_on_a_cache_line_and_hold_the_same_values(s
     copy = native._cache_aligned(values)
     assert copy.ctypes.data % native.CACHE_LINE == 0 and copy.flags.c_contiguous
     assert copy.shape == values.shape and np.array_equal(copy, values)
+
+
+@pytest.mark.skipif(not native.available(), reason=native.status())
+def test_a_bin_held_at_the_box_s_edge_ends_at_the_best_alpha_along_it_in_every_implementation():
+    """newton.hold_at_edges: where g's step points out of the box at its edge, g is held and α takes a
+    step of its own, so such a bin ends at the α that fits best along the edge (the unprojected 2×2
+    step, clamped, only crawled there: up to half the residual left); numpy, C and C four bins wide
+    agree on those bins as on the rest."""
+    table = DeviceTable.load(TABLE)
+    grid = ForwardGrid.from_table(table)
+    rng = np.random.default_rng(5)
+    n = 4000
+    I_b = rng.uniform(0.0, 0.6, n)
+    I_w = I_b + rng.uniform(0.0, 0.9, n)
+    sigma_t = np.exp(rng.uniform(np.log(0.2), np.log(20.0), n))
+    rho_b, rho_w = np.full(n, 0.02), np.full(n, 0.95)
+    cell = grid.sigma_cell(sigma_t)
+    start = (np.full(n, 0.7), np.full(n, 0.5))
+    alpha, g, _, _ = expected = NumpyKernel().solve_alpha_g(grid, I_b, I_w, cell, rho_b, rho_w, *start,
+                                                            iterations=12, step_tol=1e-12)
+    (a_lo, a_hi), (g_lo, g_hi) = grid.alpha_range, grid.g_range
+    edge = ((g == g_lo) | (g == g_hi)) & (alpha > a_lo + 0.02) & (alpha < a_hi - 0.02)
+    assert edge.sum() > n // 10  # random intensities: many solutions lie past the map's g range
+
+    def residual(a):
+        return grid.residual_and_jacobian(I_b, I_w, cell, rho_b, rho_w, np.clip(a, a_lo, a_hi), g)[0][edge]
+
+    at, best_neighbour = residual(alpha), np.minimum(residual(alpha + 1e-4), residual(alpha - 1e-4))
+    assert np.all(best_neighbour >= at * (1 - 1e-3))
+    try:
+        for simd in (False, True):
+            native.set_simd(simd)
+            compiled = NativeKernel().solve_alpha_g(grid, I_b, I_w, cell, rho_b, rho_w, *start, iterations=12,
+                                                    step_tol=1e-12)
+            for got, want in zip(compiled, expected, strict=True):
+                np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-12)
+    finally:
+        native.set_simd(True)

@@ -55,26 +55,14 @@ def heldout():
                            budget=error_budget(amap, h, rb, rw), reference=reference)
 
 
-def _host_has_fma() -> bool:
-    try:
-        return " fma " in f" {Path('/proc/cpuinfo').read_text()} ".replace("\n", " ")
-    except OSError:
-        return False
-
-
-@pytest.fixture(scope="module", params=["float", "float, fused multiply-adds"])
-def single_library(tmp_path_factory, request):
-    """The kernel compiled with -DTR_SINGLE: the table fit in float, as the MCU runs it; and with its
-    a·b + c fused as the Cortex-M4 build takes them (firmware/Makefile FIT_CORE_MCU_FLAGS), where this
-    CPU has fused multiply-adds to run that build."""
+@pytest.fixture(scope="module")
+def single_library(tmp_path_factory):
+    """The kernel compiled with -DTR_SINGLE: the table fit in float, as the MCU runs it."""
     from trimeter.bench._firmware import single_precision_library
 
     if not (shutil.which("cc") or shutil.which("gcc")):
         pytest.skip("no C compiler")
-    fused = request.param.endswith("multiply-adds")
-    if fused and not _host_has_fma():
-        pytest.skip("this CPU has no fused multiply-add")
-    return single_precision_library(tmp_path_factory.mktemp("single"), fused_multiply_add=fused)
+    return single_precision_library(tmp_path_factory.mktemp("single"))
 
 
 def _differences(fit, reference):

@@ -201,8 +201,12 @@ def test_bad_stds_are_clear_errors(tmp_path, capsys):
     assert "one sample, one std" in capsys.readouterr().err
     for bad in ("nan", "inf", ""):  # a NaN std is refused, never read as an exact thickness (0)
         csv.write_text(f"wavelength_nm,I_b,I_w,I_c,thickness_std_mm\n500,0.2,0.5,0.1,{bad}\n")
-        assert main(["fit", "--map", str(DEVICE), "--input", str(csv)]) == 2
-        assert "thickness_std_mm is not a finite number on row(s) 1" in capsys.readouterr().err
+        for output in ([], ["--json"]):  # streamed CSV out, and the whole input at once
+            assert main(["fit", "--map", str(DEVICE), "--input", str(csv), *output]) == 2
+            assert "thickness_std_mm is not a finite number for a sample" in capsys.readouterr().err
+    csv.write_text("wavelength_nm,I_b,I_w,I_c,thickness_std_mm\n500,0.2,0.5,0.1,0.01\n510,0.2,0.5,0.1,inf\n")
+    assert main(["fit", "--map", str(DEVICE), "--input", str(csv)]) == 2
+    assert "not a finite number" in capsys.readouterr().err
 
 
 def test_the_fit_cli_takes_std_columns(tmp_path, capsys):
@@ -234,6 +238,42 @@ def test_bench_uncertainty_prints_its_table(tmp_path, capsys):
     assert all(np.isfinite(r[p]["mean_z"]) for r in rows for p in ("alpha", "sigma_t", "g"))
     assert main(["bench", "uncertainty", "--noise", "2"]) == 2
     assert "--noise" in capsys.readouterr().err
+
+
+def test_the_held_out_split_keeps_columns_whole_and_parts_apart():
+    from trimeter.bench.fit import CALIBRATION_EVERY, heldout_for, heldout_part
+    from trimeter.maps import AppearanceMap
+
+    _, _, h = heldout_for(AppearanceMap.load(DEVICE))
+    cal, scored = heldout_part(h, "calibration"), heldout_part(h, "scored")
+    assert len(cal["alpha"]) + len(scored["alpha"]) == len(h["alpha"])
+    pairs = {k: {tuple(x) for x in np.column_stack([part["sigma_t"], part["g"]])} for k, part in
+             (("cal", cal), ("scored", scored))}
+    assert not pairs["cal"] & pairs["scored"]  # a (σt, g) column is in one part only
+    all_pairs = len({tuple(x) for x in np.column_stack([h["sigma_t"], h["g"]])})
+    assert len(pairs["cal"]) == -(-all_pairs // CALIBRATION_EVERY)
+    with pytest.raises(InputError, match="held-out part must be one of scored, calibration"):
+        heldout_part(h, "all")
+
+
+def test_bench_uncertainty_sweeps_the_map_error_scale_on_the_calibration_part(tmp_path, capsys):
+    from trimeter.model import grid
+
+    shipped = grid.LEAVE_ONE_OUT_SCALE
+    assert main(["bench", "uncertainty", "--map", str(DEVICE), "--noise", "0.002", "--draws", "1",
+                 "--thickness-rel-std", "0", "--modes", "given", "--part", "calibration",
+                 "--leave-one-out-scale", "0,1", "--out", str(tmp_path)]) == 0
+    assert shipped == grid.LEAVE_ONE_OUT_SCALE  # restored
+    out = capsys.readouterr().out
+    assert "held-out materials (calibration part): device-n1.5-l0.4 80" in out
+    assert "LEAVE_ONE_OUT_SCALE 0 " in out and "← nearest" in out
+    import json
+
+    sweep = json.loads((tmp_path / "results.json").read_text())["sweep"]
+    assert [r["leave_one_out_scale"] for r in sweep] == [0.0, 1.0]
+    # a larger scale widens the σ, so more truths fall within them
+    assert sweep[1]["rows"][0]["alpha"]["within_1sigma"] > sweep[0]["rows"][0]["alpha"]["within_1sigma"]
+    assert main(["bench", "uncertainty", "--leave-one-out-scale", "x"]) == 2
 
 
 def test_forward_grid_without_model_variance_reports_zero():

@@ -13,8 +13,8 @@ import trimeter
 from library_support import WL, fit_result, write_member
 from trimeter.cli import main
 from trimeter.errors import InputError
-from trimeter.library.mixtures import (MixtureObservation, default_twin_mixtures, on_twin, predict_square,
-                                       write_outputs)
+from trimeter.library.mixtures import (MixtureObservation, default_twin_mixtures, mixture_label, on_twin,
+                                       predict_square, write_outputs)
 from trimeter.results.medium import SpectralMaterial
 from trimeter.twin.optics import Optics, material_spectra
 
@@ -41,16 +41,47 @@ def test_bad_mixture_names(name, message):
         material_spectra(name, np.linspace(400, 700, 5))
 
 
-def test_the_twin_renders_a_mixture_with_the_map():
+def test_the_twin_traces_the_checks_mixtures_and_renders_others_with_the_map():
     optics = Optics(appearance_map=[trimeter.open_map("device-n1.5-l0.4").path])
-    s = optics.insert_sample("cyan-ink:0.5+magenta-ink:0.5", 0.4)
+    for fractions in default_twin_mixtures():
+        assert optics.insert_sample(mixture_label(fractions), 0.4).physics == "traced"
+    s = optics.insert_sample("cyan-ink:0.2+magenta-ink:0.8", 0.4)
     assert s.physics == "map" and np.all(np.isfinite(s.I_b)) and np.all(s.I_w > s.I_b)
+
+
+def test_a_traced_mixture_is_stamped_with_its_components(tmp_path, monkeypatch):
+    """The tool traces a mixture; a change of a component's recipe or of a fraction makes it stale."""
+    pytest.importorskip("drjit")
+    import importlib.util
+
+    from trimeter.geometry import load_geometry
+    from trimeter.paths import REPO_ROOT
+    from trimeter.twin import traced
+    from trimeter.twin.optics import catalogue_entry
+
+    spec = importlib.util.spec_from_file_location("make_twin_observables",
+                                                  REPO_ROOT / "tools" / "make_twin_observables.py")
+    tool = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(tool)
+    monkeypatch.setattr(tool, "DATA_DIR", tmp_path)
+    name = "cyan-ink:0.5+yellow-ink:0.5"
+    assert tool.main(["--setup", "ideal:0.3", "--material", name, "--paths", "4096", "--step-nm", "150"]) == 0
+    setup = traced._load(tmp_path / "ideal-n1.5-l0.3.json")
+    params, lam = load_geometry("ideal"), np.linspace(400, 900, 20)
+    I_b, I_w, _, _ = setup.observables(name, catalogue_entry(name), params, lam, 0.03, 0.99)
+    assert np.all(I_w > I_b)
+    changed = catalogue_entry(name)
+    changed["components"]["cyan-ink"]["scattering_at_500nm"] += 0.1
+    with pytest.raises(InputError, match="stale"):
+        setup.observables(name, changed, params, lam, 0.03, 0.99)
+    assert setup.materials[name]["paths_per_node"] == 4096
 
 
 def test_mixture_check_on_the_twin(tmp_path):
     """The issue's criterion: at least 8 mixtures of 3 inks, median ΔE2000 ≤ 1.0."""
     components, observed, info = on_twin()
     assert sorted(components) == ["cyan-ink", "magenta-ink", "yellow-ink"] and len(observed) >= 8
+    assert all(o.source.endswith("rendered by traced") for o in observed)   # physics independent of the map
     squares = [predict_square(components, o) for o in observed]
     every = np.concatenate([s.delta_e for s in squares])
     assert np.median(every) <= 1.0

@@ -218,3 +218,21 @@ def test_schema_file_with_jsonschema_when_installed(exported):
     bad = {**doc, "version": 2}
     with pytest.raises(jsonschema.ValidationError):
         jsonschema.validate(bad, schema())
+
+
+def test_a_library_material_is_a_material_for_predictions_and_mixtures(tmp_path, members):
+    from trimeter.prediction import _as_material
+
+    m = Library(tmp_path / "a.sqlite").add("cyan", members)
+    material = _as_material(m)
+    assert np.array_equal(material.wavelengths_nm, m.document.columns["wavelength_nm"])
+
+
+def test_a_damaged_library_file_is_one_clear_error(tmp_path, capsys):
+    db = tmp_path / "library.sqlite"
+    db.write_bytes(b"not a database at all" * 100)
+    with pytest.raises(InputError, match="not a usable library database"):
+        Library(db)
+    assert main(["library", "--db", str(db), "list"]) == 2
+    assert "not a usable library database" in capsys.readouterr().err
+    assert db.read_bytes().startswith(b"not a database")   # left as it was

@@ -10,7 +10,7 @@ from trimeter.errors import InputError
 from trimeter.maps.appearance import AppearanceMap
 from trimeter.maps.builder import build_map, default_checkpoint_dir, validation_report
 from trimeter.maps.recipe import parse_recipe
-from trimeter.maps.tracer import trace_column
+from trimeter.forward.transport import trace_column
 
 FIELDS = ("A", "B", "C", "std_b", "std_w")
 
@@ -108,7 +108,7 @@ def test_alpha_target_spends_paths_where_alpha_is_noisy(tmp_path, tiny_data):
     more paths than the dense one (2.5) and ends nearer its α target; without the option every
     column stops at min_paths, as before."""
     from trimeter.maps.builder import worst_alpha_stderr
-    from trimeter.maps.tracer import Stack
+    from trimeter.forward.transport import Stack
 
     paths = {}
 

@@ -17,7 +17,7 @@ from trimeter.errors import BuildError, InputError
 from trimeter.maps.builder import MapJob, build_map, build_maps, default_checkpoint_dir
 from trimeter.maps.distributed import check_dask_scheduler, local_client, remote_client
 from trimeter.maps.recipe import parse_recipe
-from trimeter.maps.tracer import trace_column
+from trimeter.forward.transport import trace_column
 
 FIELDS = ("A", "B", "C", "std_b", "std_w")
 # The test tracers below run on the workers: shipped by value, since the workers cannot import this file.

@@ -93,7 +93,7 @@ def test_map_inscatter_traces_a_device_maps_table_and_refuses_an_ideal_map(tmp_p
     the full one takes 90 s; tests/forward/test_inscatter.py checks the tracing itself.)"""
     import shutil
 
-    from trimeter.forward import inscatter
+    from trimeter.forward.transport import inscatter_tracer as inscatter
     from trimeter.paths import MAPS_DIR
 
     build = inscatter.build_inscatter_table

@@ -10,7 +10,7 @@ import pytest
 from trimeter import __version__
 from trimeter.cli import main
 from trimeter.errors import MapFileError
-from trimeter.maps import pipeline
+from trimeter.maps import pipeline, stages
 from trimeter.maps.appearance import AppearanceMap
 from trimeter.maps.inscatter_file import load_inscatter, save_inscatter
 from trimeter.maps.device_table import DeviceTable
@@ -148,22 +148,22 @@ def test_a_malformed_recipe_names_the_field(tmp_path, capsys, edit, named):
 
 
 def test_stage_names_and_rebuild_command():
-    assert pipeline.parse_stages("onnx, tmap") == ("tmap", "onnx")
+    assert stages.parse_stages("onnx, tmap") == ("tmap", "onnx")
     from trimeter.paths import MAPS_DIR
 
     amap = AppearanceMap.load(MAPS_DIR / "ideal-n1.5-l0.5.tmap")
-    assert pipeline.rebuild_command(amap, "tlut").startswith("trimeter map build ")
-    assert pipeline.rebuild_command(amap, "tlut").endswith("recipes/ideal-n1.5-l0.5.toml --out "
-                                                           f"{pipeline._shown_path(amap.path)} --stages tlut")
-    assert np.all(pipeline.SUFFIX[s].endswith(s) for s in pipeline.STAGES)
+    assert stages.rebuild_command(amap, "tlut").startswith("trimeter map build ")
+    assert stages.rebuild_command(amap, "tlut").endswith("recipes/ideal-n1.5-l0.5.toml --out "
+                                                           f"{stages._shown_path(amap.path)} --stages tlut")
+    assert np.all(stages.SUFFIX[s].endswith(s) for s in stages.STAGES)
 
 
 def test_cli_backend_cuda_without_a_gpu_is_a_clear_error_and_llvm_builds(tmp_path, capsys, monkeypatch):
     """--backend reaches the column tasks: cuda on a machine without one stops before any work (exit 2,
     one line), llvm builds, and the columns are traced with the backend asked for."""
-    from trimeter.maps import tracer
+    from trimeter.forward import transport
 
-    if tracer.resolve_backend("auto") == "cuda":
+    if transport.resolve_backend("auto") == "cuda":
         pytest.skip("this machine has a CUDA device")
     recipe = tmp_path / "r.toml"
     recipe.write_text(TINY_TOML)
@@ -173,13 +173,13 @@ def test_cli_backend_cuda_without_a_gpu_is_a_clear_error_and_llvm_builds(tmp_pat
     assert not (tmp_path / "pipe-tiny.tmap").exists()
 
     seen = []
-    real = tracer.trace_column
+    real = transport.trace_column
 
     def spy(*args, backend="llvm", **kwargs):
         seen.append(backend)
         return real(*args, backend=backend, **kwargs)
 
-    monkeypatch.setattr(tracer, "trace_column", spy)
+    monkeypatch.setattr(transport, "trace_column", spy)
     pipeline.run([pipeline.Target(parse_recipe(tomllib.loads(TINY_TOML)), None, tmp_path / "p.tmap")], ("tmap",),
                  progress=False, options=pipeline.Options(tracer_backend="llvm"), say=lambda line: None)
     assert seen and set(seen) == {"llvm"}

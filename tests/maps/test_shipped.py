@@ -112,3 +112,20 @@ def test_shipped_models_have_no_subnormal_weights(path):
     for init in onnx.load(str(path)).graph.initializer:
         weights = numpy_helper.to_array(init)
         np.testing.assert_array_equal(weights, flush_subnormals(weights), err_msg=f"{path.name}: {init.name}")
+
+
+@pytest.mark.parametrize("name, j, k", [("ideal-n1.5-l0.5", 12, 5), ("ideal-n1.5-l0.5", 0, 9),
+                                        ("device-n1.5-l0.4", 8, 3)])
+def test_shipped_map_columns_re_trace_bit_for_bit(name, j, k):
+    """The tracer as it stands re-traces shipped columns of both geometries to the stored bits (A, B, C
+    and their std-errors, float32 as the map stores them): a change that moves any path shows here."""
+    from trimeter.maps.builder import trace_column
+    from trimeter.forward.transport import Stack
+
+    amap = load(name)
+    recipe = load_recipe(MAPS_DIR / "recipes" / f"{name}.toml")
+    stack = Stack.from_recipe(recipe.geometry, recipe.geometry_params, recipe.n, recipe.thickness_mm)
+    col = trace_column(recipe, stack, j, k)
+    for field in ("A", "B", "C", "std_b", "std_w"):
+        np.testing.assert_array_equal(np.float32(getattr(col, field)), np.float32(getattr(amap, field)[:, j, k]),
+                                      err_msg=f"{name} column (σt index {j}, g index {k}): {field}")

@@ -12,9 +12,10 @@ import pytest
 
 from trimeter.geometry import load_geometry
 from trimeter.errors import InputError
-from trimeter.maps.tracer import ColumnTally, Stack, Tally, _detector_sums, k_max_for, resolve_backend
+from trimeter.forward.transport import ColumnTally, Stack, Tally, k_max_for, resolve_backend
+from trimeter.forward.transport.tally import detector_sums
 from trimeter.model.response import background_response
-from trimeter.maps.tracer import trace_column as trace
+from trimeter.forward.transport import trace_column as trace
 
 from maps_direct_render import render_black_panels
 
@@ -93,7 +94,7 @@ def test_next_event_sums_equal_per_path_values(averaged):
                                 (3, m3, [(every, nee_k, nee_value, 1), (twice, k2, value2, 2),
                                          (few, nee_k[few], rng.uniform(0.0, 1.0, len(few)), 2)])):
         own = (every, k, np.where(m_of < orders, hit, 0.0), m_of)
-        counts, second = _detector_sums(n, [own, *terms], orders)
+        counts, second = detector_sums(n, [own, *terms], orders)
         tally = Tally(counts=counts, n_paths=n, weight=0.7, specular=0.0, truncated=0, k_max=100, second=second)
         value = np.zeros((n, len(alpha)))
         for paths, kj, v, r in [own, *terms]:
@@ -166,7 +167,7 @@ def test_tally_does_not_depend_on_the_wave_length(geometry, ell, from_below):
     """Waves only decide when finished paths are dropped and their records copied out (the first
     wave copies every lane, later ones scatter the live lanes): one long wave, the default and
     three-iteration waves record the same paths."""
-    from trimeter.maps.tracer import trace as trace_one
+    from trimeter.forward.transport.trace import trace as trace_one
 
     stack = Stack.from_recipe(geometry, load_geometry(geometry), N, ell)
     tallies = [trace_one(stack, 5.0, 0.6, 4096, 3, K_MAX, wave=wave, from_below=from_below)
@@ -181,11 +182,11 @@ def test_large_traces_run_in_chunks_that_keep_small_traces_unchanged(ideal, monk
     """Memory: a request above TRACE_CHUNK paths is traced chunk by chunk and summed; a request of
     at most one chunk is bit for bit what it was (the shipped maps' first batches), and the chunked
     sum agrees with one unchunked trace of the same size within the MC error."""
-    from trimeter.maps import tracer
+    from trimeter.forward.transport import column
 
     whole = trace(ideal, 3.0, 0.5, 3 * 8192 + 100, 11, K_MAX)
     small = trace(ideal, 3.0, 0.5, 8192, 11, K_MAX)
-    monkeypatch.setattr(tracer, "TRACE_CHUNK", 8192)
+    monkeypatch.setattr(column, "TRACE_CHUNK", 8192)
     np.testing.assert_array_equal(trace(ideal, 3.0, 0.5, 8192, 11, K_MAX).above.counts, small.above.counts)
     chunked = trace(ideal, 3.0, 0.5, 3 * 8192 + 100, 11, K_MAX)
     assert chunked.n_paths == whole.n_paths == 3 * 8192 + 100
@@ -260,9 +261,10 @@ def test_a_ray_rising_from_the_rim_meets_the_stacks_side_face_only_where_it_is()
     towards the far panel enters the near side face; one steep enough passes over the top, one flat
     enough passes under the back face (it meets the bottom face instead), one heading away or from
     under the footprint meets nothing; the y faces likewise; a corner is entered through one face."""
-    from trimeter.maps.tracer import _drjit, _side_entry
+    from trimeter.forward.transport.backend import load_drjit
+    from trimeter.forward.transport.scene import side_entry
 
-    dr, B = _drjit("llvm")
+    dr, B = load_drjit("llvm")
     W, bottom, top, z0 = 20.0, 0.0, 1.1, -0.5
     s2 = math.sqrt(0.5)
     rays = [  # (x, y, dx, dy, dz): expected (meets x, meets y, distance or None)
@@ -277,7 +279,7 @@ def test_a_ray_rising_from_the_rim_meets_the_stacks_side_face_only_where_it_is()
     ]
     cols = list(zip(*[r for r, _ in rays], strict=True))
     px, py, dx, dy, dz = (B.Float(c) for c in cols)
-    meets_x, meets_y, dist = _side_entry(dr, W, bottom, top, px, py, B.Float([z0] * len(rays)), dx, dy, dz)
+    meets_x, meets_y, dist = side_entry(dr, W, bottom, top, px, py, B.Float([z0] * len(rays)), dx, dy, dz)
     meets_x, meets_y, dist = (np.asarray(v) for v in (meets_x, meets_y, dist))
     for i, (_, (ex, ey, ed)) in enumerate(rays):
         assert (bool(meets_x[i]), bool(meets_y[i])) == (ex, ey), (i, rays[i])
@@ -294,8 +296,8 @@ def test_next_event_estimate_and_a_paths_own_way_out_count_the_rims_light_once(o
     on to 4 bounces (an estimate at each), the same bounce series. A way counted by both, or by neither,
     shows up here, e.g. a next-event estimate that lets rim rays through the side faces while the paths
     enter them (a thinner stack over a narrower rim is too weak to tell)."""
-    from trimeter.maps.tracer import _detector_path_variance
-    from trimeter.maps.tracer import trace as trace_paths
+    from trimeter.forward.transport.tally import detector_path_variance
+    from trimeter.forward.transport.trace import trace as trace_paths
 
     params = {**load_geometry("device"), "background_width_mm": 120.0}
     stack = Stack.from_recipe("device", params, N, 6.0)
@@ -307,7 +309,7 @@ def test_next_event_estimate_and_a_paths_own_way_out_count_the_rims_light_once(o
         c = tally.orders([alpha])
         assert len(c) == orders
         values.append(float(sum(c[r][0] * q**r for r in range(orders))))
-        variances.append(float(_detector_path_variance(tally, [alpha], q)[0]) / (tally.n_paths - 1))
+        variances.append(float(detector_path_variance(tally, [alpha], q)[0]) / (tally.n_paths - 1))
     z = (values[0] - values[1]) / math.sqrt(sum(variances))
     assert abs(z) < 4, f"with next-event estimate {values[0]:.5f}, without {values[1]:.5f} (z = {z:.2f})"
 
@@ -357,14 +359,14 @@ def test_a_bounce_series_control_variate_predicts_the_returns_it_replaces(monkey
     """The bounce series' control variate replaces the next-event estimate at a path's second bounce,
     when the path came back from its first by one Fresnel reflection and nothing else, by its
     expectation given the first bounce's position: the probabilities and landing points of those returns
-    (_single_reflection_returns, over cosine-distributed directions there) must be those of the traced
+    (series.single_reflection_returns, over cosine-distributed directions there) must be those of the traced
     paths (their number within Poisson noise of Σ P, and as far from their first bounce on average as
     the P-weighted landings); and with the control variates the series agrees with the plain
     estimator's and is more precise on white."""
-    from trimeter.maps import tracer
+    from trimeter.forward.transport import series as series_module
 
     seen = {}
-    real = tracer._returns_control_variate
+    real = series_module.returns_control_variate
 
     def spy(dr, B, stack, sigma_t, seed, straight_through, final, second_bounce, at, value):
         bounced, returned = np.flatnonzero(final["m"] >= 1), at[final["reflections"][at] == 1]
@@ -374,7 +376,7 @@ def test_a_bounce_series_control_variate_predicts_the_returns_it_replaces(monkey
         for _ in range(4):
             u1, u2 = rng.random((2, len(bounced)))
             r, phi = np.sqrt(u1), 2 * math.pi * u2
-            P, landings = tracer._single_reflection_returns(dr, stack, sigma_t, *(B.Float(v) for v in (
+            P, landings = series_module.single_reflection_returns(dr, stack, sigma_t, *(B.Float(v) for v in (
                 x1[bounced], y1[bounced], r * np.cos(phi), r * np.sin(phi), np.sqrt(1 - u1))))
             P = np.array([np.asarray(p) for p in P])
             landed = np.array([[np.asarray(c) for c in xy] for xy in landings])
@@ -385,7 +387,7 @@ def test_a_bounce_series_control_variate_predicts_the_returns_it_replaces(monkey
                     sem=distance.std(ddof=1) / math.sqrt(len(returned)))
         return real(dr, B, stack, sigma_t, seed, straight_through, final, second_bounce, at, value)
 
-    monkeypatch.setattr(tracer, "_returns_control_variate", spy)
+    monkeypatch.setattr(series_module, "returns_control_variate", spy)
     device = Stack.from_recipe("device", load_geometry("device"), N, 0.8)
     series = trace(device, 0.05, 0.0, 1 << 20, 7, K_MAX, background_orders=4)
     assert abs(seen["returned"] - seen["expected"]) < 4 * math.sqrt(seen["expected"]), seen
@@ -401,11 +403,12 @@ def test_a_bounce_series_row_does_not_depend_on_how_far_the_paths_go_on(monkeypa
     """A bounce series traces the paths on past each bounce in a pass of their own, from where the last
     pass cut them, with their own random streams: row m of a trace to N orders is, bit for bit, the
     same for every N > m + 1 (roulette past the 2nd bounce off, so that every path goes on)."""
-    from trimeter.maps import tracer
+    from trimeter.forward.transport import series
+    from trimeter.forward.transport.trace import trace as trace_paths
 
-    monkeypatch.setattr(tracer, "CONTINUATION_PILOT", 1)
+    monkeypatch.setattr(series, "CONTINUATION_PILOT", 1)
     device = Stack.from_recipe("device", load_geometry("device"), N, 0.4)
-    rows = {orders: tracer.trace(device, 0.3, 0.5, 1 << 17, 5, K_MAX, background_orders=orders).counts
+    rows = {orders: trace_paths(device, 0.3, 0.5, 1 << 17, 5, K_MAX, background_orders=orders).counts
             for orders in (3, 4, 6)}
     for orders in (4, 6):
         for m in range(3):
@@ -422,14 +425,15 @@ def test_russian_roulette_past_the_second_bounce_saves_work_and_changes_no_value
     pilot sets, weighted by its inverse). Same column, same seeds: the series with roulette and with
     every path going on agree within their errors, and the roulette did less work. A clear column,
     whose later bounces carry much of I on white, keeps every path."""
-    from trimeter.maps import tracer
+    from trimeter.forward.transport import series as series_module
+    from trimeter.forward.transport.trace import trace as trace_paths
 
     device = Stack.from_recipe("device", load_geometry("device"), N, 0.4)
     alpha = np.array([0.9, 0.99, 0.999])
 
     def series(sigma_t, pilot):
-        monkeypatch.setattr(tracer, "CONTINUATION_PILOT", pilot)
-        tally = tracer.trace(device, sigma_t, 0.5, 1 << 19, 9, K_MAX, background_orders=5)
+        monkeypatch.setattr(series_module, "CONTINUATION_PILOT", pilot)
+        tally = trace_paths(device, sigma_t, 0.5, 1 << 19, 9, K_MAX, background_orders=5)
         return tally, ColumnTally(tally, None).bounce_series(alpha, 0.9)
 
     (rouletted, (value, error)), (every, (value_all, error_all)) = series(20.0, 8), series(20.0, 1)
@@ -475,7 +479,7 @@ print("traced", col.n_paths)
 def test_dense_device_column_survives_the_dask_nannys_malloc_trim_threshold():
     """σt = 50/mm, g = 0.9 at 8M paths segfaulted (inside Dr.Jit's kernels) in a process started with
     MALLOC_TRIM_THRESHOLD_=65536, the Dask nanny's default; the tracer overrides glibc's settings (see
-    trimeter.maps.tracer._keep_freed_memory)."""
+    trimeter.forward.transport.backend._keep_freed_memory)."""
     import os
     import subprocess
     import sys
@@ -491,7 +495,7 @@ def test_dense_device_column_survives_the_dask_nannys_malloc_trim_threshold():
 def test_added_constant_sums_equal_per_path_values():
     """A control variate adds its expectation c·q^r to every path's value: the tallies' mean and
     second moment at any (α, q) equal the explicit per-path ones."""
-    from trimeter.maps.tracer import _add_constant
+    from trimeter.forward.transport.tally import add_constant
 
     rng = np.random.default_rng(5)
     n = 300
@@ -500,8 +504,8 @@ def test_added_constant_sums_equal_per_path_values():
     nee_value = np.where(m >= 1, rng.uniform(0.0, 2.0, n), 0.0)
     hit = rng.random(n) < 0.5
     every = np.arange(n)
-    counts, second = _detector_sums(n, [(every, k, np.where(m < 2, hit, 0.0), m), (every, nee_k, nee_value, 1)])
-    counts, second = _add_constant(counts, second, n, 0.37, row=1)
+    counts, second = detector_sums(n, [(every, k, np.where(m < 2, hit, 0.0), m), (every, nee_k, nee_value, 1)])
+    counts, second = add_constant(counts, second, n, 0.37, row=1)
     tally = Tally(counts=counts, n_paths=n, weight=0.7, specular=0.0, truncated=0, k_max=100, second=second)
     alpha, q = np.array([0.0, 0.4, 0.97]), 0.8
     h = (hit & (m < 2))[:, None]
@@ -516,14 +520,15 @@ def test_plain_returns_happen_as_often_as_their_expectation_says(geometry, ell):
     """The background paths' control variate: the share of paths that come straight back (no
     scattering, within PLAIN_RETURN_ITERATIONS) equals _plain_return's integral within MC error. Both
     estimators on the same paths differ by exactly n·E − (plain returns)."""
-    from trimeter.maps.tracer import _plain_return, trace as trace_one
+    from trimeter.forward.transport.estimators import plain_return
+    from trimeter.forward.transport.trace import trace as trace_one
 
     stack = Stack.from_recipe(geometry, load_geometry(geometry), N, ell)
     n = 1 << 20
     for sigma_t in (0.05, 3.0):
         plain = trace_one(stack, sigma_t, 0.5, n, 21, K_MAX, from_below=True, control_variates=False)
         varied = trace_one(stack, sigma_t, 0.5, n, 21, K_MAX, from_below=True)
-        _, expected = _plain_return(stack, sigma_t)
+        _, expected = plain_return(stack, sigma_t)
         share = (plain.counts[0, 0] - varied.counts[0, 0]) / n + expected
         assert 0.05 < expected < 0.2
         assert abs(share - expected) < 4 * math.sqrt(expected * (1 - expected) / n), (sigma_t, share, expected)
@@ -554,16 +559,16 @@ def test_control_variates_keep_the_values_and_cut_the_noise_of_clear_samples(geo
 
 def test_rotation_average_keeps_the_values_and_cuts_the_noise_of_the_devices_panels(monkeypatch):
     """Device: a detector path's own way to a panel, averaged over its copies turned about its start
-    (tracer.ROTATIONS), against the 0/1 outcome on other seeds: the same I within the MC error at
-    every α and both backgrounds, and a clearly smaller std-error where light that scattered in the
+    (trimeter.forward.transport.walk.ROTATIONS), against the 0/1 outcome on other seeds: the same I within the MC
+    error at every α and both backgrounds, and a clearly smaller std-error where light that scattered in the
     sample reaches the panels itself (black background, or α near 1 on white)."""
-    from trimeter.maps import tracer
+    from trimeter.forward.transport import walk
 
     stack = Stack.from_recipe("device", load_geometry("device"), N, 0.4)
     alpha = np.array([0.0, 0.5, 0.9, 0.99])
     for sigma_t, g in ((0.05, 0.0), (2.0, 0.5), (50.0, 0.9)):
         averaged = trace(stack, sigma_t, g, 1 << 18, 41, K_MAX)
-        monkeypatch.setattr(tracer, "ROTATIONS", 1)
+        monkeypatch.setattr(walk, "ROTATIONS", 1)
         single = trace(stack, sigma_t, g, 1 << 18, 42, K_MAX)
         monkeypatch.undo()
         for rho in (0.02, 0.9):
@@ -581,7 +586,7 @@ def background_response_of(tally, alpha, rho):
 def test_background_paths_follow_their_share_of_the_error():
     """below_share: few background paths where C hardly matters (it adds no variance), more where its
     variance matters, never fewer than the pilot's share nor more than one per detector path."""
-    from trimeter.maps.tracer import BELOW_PILOT, below_share
+    from trimeter.forward.transport.column import BELOW_PILOT, below_share
 
     above = Tally(counts=np.array([[100.0, 50.0], [300.0, 20.0]]), n_paths=1000, weight=1.0, specular=0.0,
                   truncated=0, k_max=10, path_events=20000)
@@ -605,7 +610,7 @@ def test_factorised_bookkeeping_equals_per_path_sums():
     computation — a detector path's value is its A term + q·UTU × its UT1 term; a background path
     moves I through C (× B·q²) and UTU (× UT1·q), its two outcomes exclusive; constants added to rows
     (as control variates add them) included."""
-    from trimeter.maps.tracer import _add_constant, _background_sums
+    from trimeter.forward.transport.tally import add_constant, background_sums
 
     rng = np.random.default_rng(3)
     n, nb = 600, 400
@@ -615,14 +620,14 @@ def test_factorised_bookkeeping_equals_per_path_sums():
     nee_k = np.where(m == 1, k, 0)
     v = np.where((m == 1) & (rng.random(n) < 0.8), 1.0, 0.0)
     every = np.arange(n)
-    counts, second = _detector_sums(n, [(every, k, np.where(m < 2, hit, 0.0), m), (every, nee_k, v, 1)])
-    counts, second = _add_constant(counts, second, n, 0.15, row=1)
+    counts, second = detector_sums(n, [(every, k, np.where(m < 2, hit, 0.0), m), (every, nee_k, v, 1)])
+    counts, second = add_constant(counts, second, n, 0.15, row=1)
     kb = rng.integers(0, 25, nb)
     outcome = rng.random(nb)
     returned, escaped = outcome < 0.3, outcome > 0.5
-    bc, bs = _background_sums(kb, returned, escaped)
-    bc, bs = _add_constant(bc, bs, nb, 0.05, row=0)
-    bc, bs = _add_constant(bc, bs, nb, 0.2, row=1)
+    bc, bs = background_sums(kb, returned, escaped)
+    bc, bs = add_constant(bc, bs, nb, 0.05, row=0)
+    bc, bs = add_constant(bc, bs, nb, 0.2, row=1)
     above = Tally(counts=counts, n_paths=n, weight=0.9, specular=0.04, truncated=0, k_max=100, second=second)
     below = Tally(counts=bc, n_paths=nb, weight=1.0, specular=0.0, truncated=0, k_max=100, second=bs)
     tally = ColumnTally(above, below, factorised=True)

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from trimeter.forward.validate import random_materials
-from trimeter.maps.tracer_validation import Z_P95_MAX, tracer_agreement, z_summary
+from trimeter.forward.transport.agreement import Z_P95_MAX, tracer_agreement, z_summary
 
 MATERIALS = 8
 P95_MAX = 3.0          # for 16 z-scores (see the module's docstring); the bench's 80 are held to Z_P95_MAX

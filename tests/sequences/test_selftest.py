@@ -5,6 +5,7 @@ fix, while the checks it does not touch still pass and those it makes impossible
 from __future__ import annotations
 
 import json
+from types import SimpleNamespace
 
 import pytest
 
@@ -17,6 +18,7 @@ from trimeter.spectrometer import open_spectrometer
 from trimeter.twin import FaultConfig, Twin
 
 NAMES = [name for name, _ in CHECKS]
+LAMPS = "lamps vs calibration"
 COLLIMATED = ["exposure collimated", "LED collimated", "shutter collimated"]
 PANEL_LIGHTS = ["exposure panels", "LED panel left", "LED panel right", "shutter panel left", "shutter panel right"]
 
@@ -36,11 +38,11 @@ def twin_with(tmp_path):
         twin.close()
 
 
-def selftest(twin) -> dict:
+def selftest(twin, calibration=None) -> dict:
     """Run the self-test on a twin: {check name: CheckResult}."""
     with Device.open(twin.modbus_port, timeout_s=0.1, attempts=8) as device, \
             open_spectrometer(twin.spectrometer_url) as spectrometer:
-        report = run_selftest(device, spectrometer, device_clock=twin.sim_time)
+        report = run_selftest(device, spectrometer, device_clock=twin.sim_time, calibration=calibration)
         assert not any(device.read_many("led_panel_left_on", "led_panel_right_on", "led_collimated_on",
                                         "shutter_panel_left_open", "shutter_panel_right_open",
                                         "shutter_collimated_open").values()), "lights left on"
@@ -60,7 +62,9 @@ def test_a_healthy_twin_passes_every_check_and_the_cli_exits_0(twin_with, tmp_pa
     rc = main(["selftest", "--port", twin.modbus_port, "--spectrometer", twin.spectrometer_url, "--json"])
     report = json.loads(capsys.readouterr().out)
     assert rc == 0 and report["passed"] is True
-    assert {c["name"]: c["status"] for c in report["checks"]} == {name: PASS for name in NAMES}
+    assert {c["name"]: c["status"] for c in report["checks"]} == {name: PASS for name in NAMES if name != LAMPS} | {
+        LAMPS: SKIP}   # no calibration on this host: the lamps are not judged, and it says so
+    assert "no calibration" in next(c["message"] for c in report["checks"] if c["name"] == LAMPS)
     figures = {c["name"]: c["figures"] for c in report["checks"]}
     assert figures["slot white"]["position_mm"] == pytest.approx(figures["slot white"]["target_mm"], abs=0.1)
     assert figures["backgrounds"]["white_over_black"] > 5            # ρ_white 0.99 against a ~3-30 % black
@@ -77,7 +81,7 @@ def test_stuck_slider_fails_homing_and_every_slot_while_the_lights_still_report(
     rc = main(["selftest", "--port", twin.modbus_port, "--spectrometer", twin.spectrometer_url])
     out = capsys.readouterr().out
     assert rc == 1
-    assert "FAIL" in out and "stepper" in out and "4 of 15 checks failed" in out
+    assert "FAIL" in out and "stepper" in out and "4 of 16 checks failed" in out
 
     results = selftest(twin)
     homing = results["homing"]
@@ -145,7 +149,7 @@ def test_a_shutter_stuck_open_fails_its_shutter_check(twin_with):
     shutter = results["shutter panel right"]
     assert shutter.status == FAIL and shutter.figures["transmitted_when_closed"] > 0.9
     assert "servo_panel_right PA7" in shutter.message and "servo_panel_right_closed_us" in shutter.message
-    others = [n for n in NAMES if n != "shutter panel right"]
+    others = [n for n in NAMES if n not in ("shutter panel right", LAMPS)]
     assert statuses(results, others) == {name: PASS for name in others}
 
 
@@ -167,3 +171,43 @@ def test_selftest_without_an_instrument_or_spectrometer_is_a_clear_error(twin_wi
     assert "spectrometer must be '<backend>:<address>'" in capsys.readouterr().err
     assert main(["selftest", "--spectrometer", "sim:/nonexistent"]) == 2
     assert "no instrument port" in capsys.readouterr().err
+
+
+def _monitor_calibration(twin) -> SimpleNamespace:
+    """What a calibration records of the lamp monitor (LEDs on; all shutters closed, then each set-up's open),
+    read from this twin now: the reference the lamps are judged against."""
+    from trimeter import registers as regs
+    from trimeter.sequences import lamp_monitor
+
+    def readings(device, open_: tuple[str, ...]) -> list[dict]:
+        coils = [False] * regs.SPANS["coil"]
+        for light in ("panel_left", "panel_right", "collimated"):
+            coils[regs.COILS[f"led_{light}_on"].address] = True
+            coils[regs.COILS[f"shutter_{light}_open"].address] = light in open_
+        device.transport.write_bits(0, coils)
+        device.wait_idle(10)
+        values = device.read_many(*(f"lamp_monitor_{lamp}" for lamp in lamp_monitor.LAMPS))
+        return [{lamp: values[f"lamp_monitor_{lamp}"] for lamp in lamp_monitor.LAMPS}]
+
+    with Device.open(twin.modbus_port, timeout_s=0.1, attempts=8) as device:
+        records = {"dark": lamp_monitor.record(False, False, readings(device, ())),
+                   "white": lamp_monitor.record(True, False, readings(device, ("panel_left", "panel_right"))),
+                   "open": lamp_monitor.record(False, True, readings(device, ("collimated",)))}
+        device.transport.write_bits(0, [False] * regs.SPANS["coil"])
+    return SimpleNamespace(lamp_monitor=records, created_utc="2026-12-06T03:00:00+00:00")
+
+
+@pytest.mark.parametrize("dimmed, wrong", [("panels:0.5", ["left panel", "right panel"]),
+                                           ("collimated:0.05", ["collimated"]),
+                                           ("both:1.9", ["left panel", "right panel", "collimated"])])
+def test_lamps_off_their_calibrated_level_fail_against_the_last_calibration(twin_with, dimmed, wrong):
+    twin = twin_with()
+    calibration = _monitor_calibration(twin)
+    healthy = selftest(twin, calibration)[LAMPS]
+    assert healthy.status == PASS, healthy.message
+    twin.control.set_fault(lamp_dimmed=dimmed)
+    lamps = selftest(twin, calibration)[LAMPS]
+    assert lamps.status == FAIL, lamps.message
+    for name in wrong:
+        assert f"the {name} gives" in lamps.message
+    assert lamps.message.count(" gives ") == len(wrong)

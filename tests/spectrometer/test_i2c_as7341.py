@@ -8,7 +8,7 @@ import pytest
 from fake_as7341 import FakeAS7341Bus, FakeClock
 from trimeter.errors import DeviceError, InputError
 from trimeter.spectrometer import Spectrometer
-from trimeter.spectrometer.i2c import AS7341
+from trimeter.spectrometer.i2c import AS7341, CHANNEL_NM
 
 FLUX = {"F1": 1.0, "F2": 2.0, "F3": 3.0, "F4": 4.0, "F5": 5.0, "F6": 6.0, "F7": 7.0, "F8": 8.0,
         "Clear": 20.0, "NIR": 0.5}  # counts per ms at 1x gain
@@ -97,3 +97,31 @@ def test_i2c_urls_are_checked_before_touching_a_bus():
         open_spectrometer("i2c:one")
     with pytest.raises(DeviceError, match="/dev/i2c-99"):
         open_spectrometer("i2c:99")  # no such adapter on this machine (nor on most)
+
+
+def test_band_weights_built_in_or_measured(tmp_path):
+    """The backend's band weights: the built-in model's, or a measured CSV's (channels in the chip's
+    order whatever the file's); a bad file is one InputError, raised when the weights are asked for."""
+    from trimeter.spectrometer.sensors import as7341_weights
+
+    chip, _, _ = make()
+    built_in = chip.band_weights()
+    assert built_in.channels == tuple(CHANNEL_NM)
+    np.testing.assert_allclose(built_in.diffuse, as7341_weights().diffuse)
+    lam = np.arange(350.0, 1001.0, 2.0)
+    names = list(CHANNEL_NM)[::-1]
+    columns = {"wavelength_nm": lam}
+    for name in names:
+        bump = np.exp(-0.5 * ((lam - CHANNEL_NM[name]) / 12.0) ** 2)
+        columns[f"{name}_diffuse"], columns[f"{name}_collimated"] = bump, 2 * bump
+    path = tmp_path / "measured.csv"
+    path.write_text(",".join(columns) + "\n" + "\n".join(",".join(f"{v[i]:.9g}" for v in columns.values())
+                                                           for i in range(lam.size)) + "\n")
+    clock = FakeClock()
+    bus = FakeAS7341Bus(clock, FLUX)
+    measured = AS7341(bus, gain=1, clock=clock.now, sleep=clock.sleep, weights=str(path)).band_weights()
+    assert measured.channels == tuple(CHANNEL_NM)
+    np.testing.assert_allclose(measured.centre_nm, list(CHANNEL_NM.values()), atol=0.5)
+    path.write_text("wavelength_nm,F1_diffuse\n400,1\n")
+    with pytest.raises(InputError, match="needs both <channel>_diffuse and <channel>_collimated"):
+        AS7341(bus, gain=1, clock=clock.now, sleep=clock.sleep, weights=str(path)).band_weights()

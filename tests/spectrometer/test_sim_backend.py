@@ -136,3 +136,11 @@ def test_a_description_whose_limits_are_not_pairs_is_refused(field, value):
             open_spectrometer(f"sim:{server.port}")
     finally:
         server.close()
+
+
+def test_a_port_in_use_is_refused_as_the_instrument_port_is(server):
+    with open_spectrometer(f"sim:{server.port}"):
+        with pytest.raises(DeviceError, match="in use by another program"):
+            open_spectrometer(f"sim:{server.port}")
+    with open_spectrometer(f"sim:{server.port}") as again:   # free again once the first has closed it
+        assert again.description.pixels == 1024

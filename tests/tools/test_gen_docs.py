@@ -35,6 +35,19 @@ def test_every_command_and_option_is_in_the_cli_page():
                 assert f"`{option}" in page, option
 
 
+def test_help_text_is_prose_and_its_indented_usage_is_code():
+    text = """`trimeter x`: does things [--flag].
+
+      trimeter x A [--notes TEXT]    # an example
+      trimeter x B
+
+    More prose, `[kept]` in code."""
+    md = gen_docs._prose(text)
+    assert "does things \\[--flag\\]." in md                 # not a Markdown link
+    assert "```text\ntrimeter x A [--notes TEXT]    # an example\ntrimeter x B\n```" in md
+    assert "`[kept]`" in md
+
+
 def test_every_endpoint_is_in_the_http_page():
     page = gen_docs.http_page()
     for path, operations in openapi()["paths"].items():

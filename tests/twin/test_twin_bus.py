@@ -24,7 +24,7 @@ UPTIME = regs.BY_NAME["uptime_s"]
 VENDOR = regs.BY_NAME["vendor_id"]
 
 
-def _read(port: str, address: int, register=VENDOR, attempts: int = 1) -> list[int] | None:
+def _read(port: str, address: int, register=VENDOR, attempts: int = 3) -> list[int] | None:
     master = RtuMaster(port, address=address, timeout_s=0.3)
     try:
         for _ in range(attempts):

@@ -1,5 +1,6 @@
-"""The twin's independent physics: virtual samples rendered by the tracer (trimeter.twin.traced), close to
-but not the map the host inverts; stale data is refused; an untraced set-up says it fell back to the map."""
+"""The twin's physics: virtual samples traced by the maps' tracer (trimeter.twin.traced), close to but not
+the map the host inverts; stale data is refused; an untraced set-up says it fell back to the map, and the
+demo's "independent physics" line says what each source can show."""
 
 from __future__ import annotations
 
@@ -15,7 +16,7 @@ from trimeter.geometry import load_geometry
 from trimeter.maps import AppearanceMap
 from trimeter.paths import REPO_ROOT
 from trimeter.twin import traced
-from trimeter.twin.optics import Optics, _catalogue
+from trimeter.twin.optics import Optics, _catalogue, physics_line
 
 DEVICE_MAP = REPO_ROOT / "maps" / "device-n1.5-l0.4.tmap"
 
@@ -36,8 +37,28 @@ def test_traced_sample_agrees_with_the_map_but_is_not_it():
 
 def test_untraced_setup_falls_back_to_the_map_and_says_so(ideal_map):
     other = dataclasses.replace(ideal_map, recipe={**ideal_map.recipe, "thickness_mm": 0.37}, path=None)
-    s = Optics(other).insert_sample("milk", 0.37)
+    optics = Optics(other)
+    s = optics.insert_sample("milk", 0.37)
     assert s.physics == "map"
+    truth = optics.truth()
+    assert truth["physics"] == "map" and other.name in truth["physics_source"]
+    line = physics_line(truth["physics"], "milk", other.name)
+    assert line.startswith("independent physics: none") and "NOT the map's own error" in line
+
+
+@pytest.mark.skipif(traced.traced_setup("device", 1.5, 0.4) is None, reason="needs the traced device observables")
+def test_traced_truth_names_its_source_and_what_it_shares_with_the_maps():
+    optics = Optics(AppearanceMap.load(DEVICE_MAP))
+    optics.insert_sample("milk", 0.4)
+    truth = optics.truth()
+    assert truth["physics"] == "traced"
+    assert truth["physics_source"].startswith("device-n1.5-l0.4.json (tool tools/make_twin_observables.py")
+    line = physics_line("traced", "milk", "device-n1.5-l0.4")
+    # honest: the same tracer and the same I(ρ) model as the maps, so not independent of them
+    assert line.startswith("independent physics: partly") and "I(ρ) = A + Bρ/(1 − Cρ)" in line
+    assert "NOT the tracer's or the I(ρ) model's own" in line
+    with pytest.raises(InputError, match="physics must be one of traced, map"):
+        physics_line("mitsuba", "milk", "x")
 
 
 def _tool():

@@ -152,6 +152,38 @@ def test_refit_writes_a_new_record_and_leaves_the_original(web, measured):
     assert refused.status == 400 and "not known here" in refused.json["error"]["message"]
 
 
+def test_a_refit_runs_beside_the_instrument_and_is_stopped_at_its_time_limit(web, measured, monkeypatch):
+    from trimeter.web import app
+
+    monkeypatch.setattr(app, "REFIT_TIME_LIMIT_S", 0.05)
+    records = web.call("GET", "/api/measurements").json["total"]
+    answer = web.call("POST", f"/api/measurements/{measured}/refit", {"maps": ["device-n1.5-l0.4"], "method": "lut"})
+    assert answer.status == 202
+    assert web.call("GET", "/api/status").json["job"] is None   # not on the instrument's queue
+    job = web.wait_job(answer.json["job"]["id"])
+    assert job["state"] == "failed" and "took longer than 0.05 s and was stopped" in job["message"], job
+    assert web.call("GET", "/api/measurements").json["total"] == records
+
+
+def test_a_refit_of_a_record_with_a_fifo_fails_at_once(web, measured):
+    import os
+    import shutil
+    import time
+
+    copy = web.history.root / f"{measured[:16]}-fifo"
+    shutil.copytree(web.history.root / measured, copy)
+    raw = next(copy.glob("raw_black*.csv"))
+    raw.unlink()
+    os.mkfifo(raw)
+    started = time.monotonic()
+    answer = web.call("POST", f"/api/measurements/{copy.name}/refit", {"maps": ["device-n1.5-l0.4"], "method": "lut"})
+    job = web.wait_job(answer.json["job"]["id"], timeout_s=60)
+    assert job["state"] == "failed" and raw.name in job["message"], job
+    assert time.monotonic() - started < 60
+    status = web.call("GET", "/api/status").json
+    assert status["state"] == "ready" and status["job"] is None
+
+
 def test_config_goes_through_the_same_checks(web, measured):
     config = web.call("GET", "/api/config").json
     assert config["device_source"] == "read" and "speed_mm_s" in config["device"]

@@ -91,3 +91,31 @@ def test_a_history_index_failure_does_not_reach_the_measurement():
     jobs.listeners.append(seen.append)
     jobs.on_event(Event("measured", "measured", {"path": "/results/20260301T000000Z-red"}))
     assert seen[-1]["data"]["measurement"] == "20260301T000000Z-red"  # still told to the page
+
+
+def test_work_apart_runs_beside_the_queue_one_at_a_time():
+    import threading
+
+    from trimeter.web.jobs import Busy
+
+    jobs = _jobs()
+    release = threading.Event()
+    apart = jobs.run_apart("refit", {}, lambda job: (release.wait(10), "refitted")[1])
+    assert jobs.current is None and jobs.job(apart.id) is apart and apart.state == "running"
+    queued = jobs.submit("measure", {}, lambda job: "measured")   # the instrument's queue is free meanwhile
+    assert jobs.current is queued
+    with pytest.raises(Busy):
+        jobs.run_apart("refit", {}, lambda job: "refitted")
+    release.set()
+    deadline = time.monotonic() + 10
+    while apart.state == "running" and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert apart.state == "done" and jobs.apart is None and jobs.current is queued
+
+    def lost_link(job):
+        raise DeviceError("the link is gone")
+
+    failed = jobs.run_apart("refit", {}, lost_link)
+    while failed.state == "running" and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert failed.state == "failed" and "link is gone" in failed.message

@@ -19,6 +19,7 @@
 #include <unistd.h>
 
 #include "app.h"
+#include "c12880_chip.h"
 #include "plant.h"
 
 #define SLICE_US 1000u           /* the main loop runs at least once per simulated ms */
@@ -52,6 +53,7 @@ static struct sim {
     int storage_fd;
     _Alignas(8) uint8_t storage[STORAGE_BYTES]; /* the inverse core reads a map slot in place */
     plant_t plant;
+    chip_t chip; /* the micro-spectrometer, physical: survives a reset */
     uint8_t address_override;
 } sim;
 
@@ -124,6 +126,17 @@ static void h_status(void *ctx, bool on) { (void)ctx; sim.plant.status_led = on;
 static bool h_button(void *ctx) { (void)ctx; return plant_button(&sim.plant, sim.now_us); }
 static void h_kick(void *ctx) { (void)ctx; }
 static uint16_t h_lamp(void *ctx, enum hal_led l) { (void)ctx; return plant_lamp_monitor(&sim.plant, l); }
+static uint32_t h_spectro_clock(void *ctx) { (void)ctx; return chip_clock_hz(&sim.chip); }
+static int h_spectro_start(void *ctx, const hal_spectro_timing_t *t)
+{
+    (void)ctx;
+    return chip_start(&sim.chip, &sim.plant, t, sim.now_us);
+}
+static enum hal_spectro_result h_spectro_read(void *ctx, uint16_t *video, size_t pixels)
+{
+    (void)ctx;
+    return chip_read(&sim.chip, video, pixels, sim.now_us);
+}
 
 static const uint32_t region_offset[HAL_REGION_COUNT] = {
     0, HAL_CONFIG_REGION_SIZE, 2 * HAL_CONFIG_REGION_SIZE, 2 * HAL_CONFIG_REGION_SIZE + HAL_MAP_REGION_SIZE};
@@ -199,6 +212,9 @@ static const hal_t sim_hal = {
     .status_led = h_status,
     .button_pressed = h_button,
     .lamp_monitor = h_lamp,
+    .spectro_clock_hz = h_spectro_clock,
+    .spectro_start = h_spectro_start,
+    .spectro_read = h_spectro_read,
     .storage_read = h_read,
     .storage_write = h_write,
     .storage_erase = h_erase,
@@ -324,7 +340,9 @@ static void handle_line(client_t *c)
     static char reply[4096];
     bool reset = false;
     c->line[c->len] = 0;
-    size_t n = plant_handle_request(&sim.plant, c->line, sim.now_us, reply, sizeof reply, &reset);
+    size_t n;
+    if (!chip_handle_request(&sim.chip, c->line, reply, sizeof reply, &n))
+        n = plant_handle_request(&sim.plant, c->line, sim.now_us, reply, sizeof reply, &reset);
     if (reset) reboot_firmware();
     send_all(c->fd, reply, n);
 }
@@ -434,6 +452,7 @@ int main(int argc, char **argv)
 
     open_storage(storage);
     plant_init(&sim.plant, steps_per_mm, slider_mm);
+    chip_init(&sim.chip);
     clock_gettime(CLOCK_MONOTONIC, &sim.wall_start);
     reboot_firmware();
     open_pty(modbus_link);

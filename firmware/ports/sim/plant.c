@@ -84,6 +84,18 @@ static double shutter_opening(const plant_t *p, int s)
     return f < 0 ? 0 : f > 1 ? 1 : f;
 }
 
+double plant_shutter_opening(const plant_t *p, enum hal_shutter s) { return shutter_opening(p, (int)s); }
+
+int plant_slot(const plant_t *p)
+{
+    static const float slots_mm[3] = {REG_HR_SLOT_BLACK_MM_DEFAULT, REG_HR_SLOT_WHITE_MM_DEFAULT,
+                                      REG_HR_SLOT_OPEN_MM_DEFAULT};
+    double mm = p->position_steps / p->steps_per_mm;
+    for (int s = 0; s < 3; s++)
+        if (fabs(mm - slots_mm[s]) <= SLOT_TOLERANCE_MM) return s;
+    return -1;
+}
+
 uint16_t plant_lamp_monitor(plant_t *p, enum hal_led lamp)
 {
     /* each LED channel sits behind the shutter of the same index (hal.h) */
@@ -190,13 +202,9 @@ static const char *fault_name(trimeter_fault_t f)
 
 static const char *slot_name(const plant_t *p)
 {
-    static const float slots_mm[3] = {REG_HR_SLOT_BLACK_MM_DEFAULT, REG_HR_SLOT_WHITE_MM_DEFAULT,
-                                      REG_HR_SLOT_OPEN_MM_DEFAULT};
     static const char *const names[3] = {"\"black\"", "\"white\"", "\"open\""};
-    double mm = p->position_steps / p->steps_per_mm;
-    for (int s = 0; s < 3; s++)
-        if (fabs(mm - slots_mm[s]) <= SLOT_TOLERANCE_MM) return names[s];
-    return "null";
+    int s = plant_slot(p);
+    return s < 0 ? "null" : names[s];
 }
 
 static size_t reply_state(const plant_t *p, uint64_t now_us, char *out, size_t cap)

@@ -44,6 +44,10 @@ bool plant_button(const plant_t *p, uint64_t now_us);
 /* One ADC sample of the photodiode that watches `lamp` past its shutter: dark offset + light through the
  * shutter's opening × LED level × emission, with ADC noise. */
 uint16_t plant_lamp_monitor(plant_t *p, enum hal_led lamp);
+/* How far a shutter's blade uncovers its aperture, 0..1 (1 for the leaking one). */
+double plant_shutter_opening(const plant_t *p, enum hal_shutter s);
+/* The slot within ±0.5 mm of the slider: 0 black, 1 white, 2 open, -1 between slots. */
+int plant_slot(const plant_t *p);
 
 /* Handles one request line; writes one reply line (with '\n') into out (size cap). Sets
  * *reset_requested for {"cmd":"reset"} (the caller reboots the firmware before replying). */

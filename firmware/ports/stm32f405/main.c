@@ -13,6 +13,7 @@
 #include <stdint.h>
 
 #include "app.h"
+#include "c12880_port.h"
 #include "flash.h"
 #include "pinout_gen.h"
 #include "ramfunc.h"
@@ -105,6 +106,11 @@ static void gpio_init(void)
     PIN_INIT(MONITOR_PANEL_LEFT, MODE_ANALOG);
     PIN_INIT(MONITOR_PANEL_RIGHT, MODE_ANALOG);
     PIN_INIT(MONITOR_COLLIMATED, MODE_ANALOG);
+    PIN_INIT(SPECTRO_CLK, MODE_AF);
+    PIN_INIT(SPECTRO_ST, MODE_AF);
+    PIN_INIT(SPECTRO_TRG, MODE_INPUT);
+    PIN_INIT(SPECTRO_EOS, MODE_INPUT);
+    PIN_INIT(SPECTRO_VIDEO, MODE_ANALOG);
 }
 
 /* ---------------------------------------------------------------- time base */
@@ -380,6 +386,9 @@ static hal_t board_hal = {
     .status_led = h_status,
     .button_pressed = h_button,
     .lamp_monitor = h_lamp,
+    .spectro_clock_hz = spectro_clock_hz,
+    .spectro_start = spectro_start,
+    .spectro_read = spectro_read,
     .storage_read = flash_region_read,
     .storage_write = flash_region_write,
     .storage_erase = flash_region_erase,
@@ -395,6 +404,8 @@ int main(void)
     step_timer_init();
     watchdog_init();
     adc_init();
+    /* TIM1 runs at APB2 × 2 when APB2 is divided (the PLL set-up), else at APB2 (the HSI fallback) */
+    spectro_init(apb2_hz == sysclk_hz ? apb2_hz : 2u * apb2_hz);
     app_init(&board_hal);
     const app_t *app = app_get();
     pwm_setup(app->cfg.led_pwm_hz);

@@ -140,4 +140,55 @@
 #define IRQ_USART1 37u
 #define IRQ_TIM5 50u
 
+/* ---- the micro-spectrometer (c12880_port.c): TIM1 CLK, TIM2 ST counted in CLK periods, ADC2 + DMA2 on TRG
+ * (EXTI line 11), EXTI line 12 for EOS. RM0090 sections 17-18 (TIM1/TIM2), 13 (ADC), 10 (DMA), 12 (EXTI). */
+#define TIM1_BASE 0x40010000u
+#define TIM2_BASE 0x40000000u
+#define TIM_CR2(t) REG32((t) + 0x04)
+#define TIM_SMCR(t) REG32((t) + 0x08)
+#define TIM_BDTR(t) REG32((t) + 0x44)
+#define TIM_CR1_OPM (1u << 3)
+#define TIM_DIER_CC1IE (1u << 1)
+#define TIM_SR_CC1IF (1u << 1)
+#define TIM_CR2_MMS_UPDATE (2u << 4)      /* TRGO on update: one per CLK period */
+#define TIM_SMCR_ECM1_ITR0 (7u | (0u << 4)) /* external clock mode 1 from ITR0 (TIM2: TIM1's TRGO) */
+#define TIM_BDTR_MOE (1u << 15)
+#define RCC_APB1ENR_TIM2 (1u << 0)
+#define RCC_APB2ENR_TIM1 (1u << 0)
+#define RCC_APB2ENR_ADC2 (1u << 9)
+#define RCC_APB2ENR_SYSCFG (1u << 14)
+#define RCC_AHB1ENR_DMA2 (1u << 22)
+#define ADC2_BASE 0x40012100u
+#define ADC2_SR REG32(ADC2_BASE + 0x00)
+#define ADC2_CR1 REG32(ADC2_BASE + 0x04)
+#define ADC2_CR2 REG32(ADC2_BASE + 0x08)
+#define ADC2_SMPR1 REG32(ADC2_BASE + 0x0C)
+#define ADC2_SMPR2 REG32(ADC2_BASE + 0x10)
+#define ADC2_SQR1 REG32(ADC2_BASE + 0x2C)
+#define ADC2_SQR3 REG32(ADC2_BASE + 0x34)
+#define ADC2_DR_ADDR (ADC2_BASE + 0x4C)
+#define ADC_CR2_DMA (1u << 8)
+#define ADC_CR2_EXTSEL_EXTI11 (15u << 24)
+#define ADC_CR2_EXTEN_RISING (1u << 28)
+#define ADC_SMP_15_CYCLES 1u
+#define DMA2_BASE 0x40026400u
+#define DMA2_LIFCR REG32(DMA2_BASE + 0x08)
+#define DMA2_S2CR REG32(DMA2_BASE + 0x10 + 0x18 * 2)
+#define DMA2_S2NDTR REG32(DMA2_BASE + 0x14 + 0x18 * 2)
+#define DMA2_S2PAR REG32(DMA2_BASE + 0x18 + 0x18 * 2)
+#define DMA2_S2M0AR REG32(DMA2_BASE + 0x1C + 0x18 * 2)
+#define DMA_SXCR_EN (1u << 0)
+#define DMA_SXCR_MINC (1u << 10)
+#define DMA_SXCR_PSIZE_16 (1u << 11)
+#define DMA_SXCR_MSIZE_16 (1u << 13)
+#define DMA_SXCR_CHSEL(n) ((uint32_t)(n) << 25)
+#define DMA2_LIFCR_STREAM2 (0x3Du << 16)
+#define SYSCFG_EXTICR(n) REG32(0x40013800u + 0x08 + 4u * (n)) /* n = 0..3: EXTI 4n..4n+3 */
+#define EXTI_IMR REG32(0x40013C00u + 0x00)
+#define EXTI_EMR REG32(0x40013C00u + 0x04)
+#define EXTI_RTSR REG32(0x40013C00u + 0x08)
+#define EXTI_PR REG32(0x40013C00u + 0x14)
+#define IRQ_TIM2 28u
+#define IRQ_EXTI15_10 40u
+
 #endif

@@ -16,6 +16,8 @@ void default_handler(void);
 void SysTick_Handler(void);
 void USART1_IRQHandler(void);
 void TIM5_IRQHandler(void);
+void TIM2_IRQHandler(void);
+void EXTI15_10_IRQHandler(void);
 
 static void (*const vector_table[VECTORS])(void);
 /* VTOR wants the table aligned to its size rounded up to a power of two: 98 × 4 B → 512 B. */
@@ -55,4 +57,6 @@ __attribute__((section(".isr_vector"), used)) static void (*const vector_table[V
     [16 ... VECTORS - 1] = default_handler,
     [16 + IRQ_USART1] = USART1_IRQHandler,
     [16 + IRQ_TIM5] = TIM5_IRQHandler,
+    [16 + IRQ_TIM2] = TIM2_IRQHandler,
+    [16 + IRQ_EXTI15_10] = EXTI15_10_IRQHandler,
 };

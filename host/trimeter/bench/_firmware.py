@@ -19,10 +19,9 @@ FIT_CORE_INCLUDE = FIRMWARE_DIR / "core"  # fit_core.h: the seam the table fit i
 COUNT_LABEL = "tr_fit_bins, 1 bin"  # firmware/qemu/count.c's label for one fitted bin
 
 
-def single_precision_library(out_dir: Path, fused_multiply_add: bool = False) -> Path:
+def single_precision_library(out_dir: Path) -> Path:
     """The kernel's C sources compiled with -DTR_SINGLE (float arithmetic, as the firmware links them) into a
-    library `native.TableFitter(..., library=)` loads; with `fused_multiply_add`, a·b + c fused as the
-    Cortex-M4 build takes them (firmware/Makefile FIT_CORE_MCU_FLAGS; the host CPU must have FMA)."""
+    library `native.TableFitter(..., library=)` loads."""
     cc = shutil.which("cc") or shutil.which("gcc")
     if cc is None:
         raise BuildError("no C compiler (cc or gcc) to build the single-precision kernel")
@@ -31,11 +30,9 @@ def single_precision_library(out_dir: Path, fused_multiply_add: bool = False) ->
         raise BuildError(f"the kernel's sources ({NATIVE_DIR}) or the firmware's core ({FIT_CORE_INCLUDE}) are "
                          f"missing: this needs the repository, not an installed package")
     out_dir.mkdir(parents=True, exist_ok=True)
-    out = out_dir / ("libtrimeter_invert_single_fma.so" if fused_multiply_add else "libtrimeter_invert_single.so")
-    fused = ["-mfma", "-ffp-contract=fast"] if fused_multiply_add else []
+    out = out_dir / "libtrimeter_invert_single.so"
     done = subprocess.run([cc, "-O2", "-std=c11", "-Wall", "-Wextra", "-Werror", "-shared", "-fPIC", "-DTR_SINGLE",
-                           *fused, f"-I{FIT_CORE_INCLUDE}", "-o", str(out), *sources, "-lm"],
-                          capture_output=True, text=True)
+                           f"-I{FIT_CORE_INCLUDE}", "-o", str(out), *sources, "-lm"], capture_output=True, text=True)
     if done.returncode != 0:
         raise BuildError(f"compiling the single-precision kernel failed: {done.stderr.strip()[-500:]}")
     return out

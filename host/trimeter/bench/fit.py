@@ -50,6 +50,7 @@ from typing import TYPE_CHECKING, Any, TypedDict
 import numpy as np
 
 from trimeter.atomic import atomic_output, atomic_write
+from trimeter.errors import InputError
 from trimeter.model.collimated import MEASURABLE_IC
 from trimeter.inversion.flags import FitFlag
 from trimeter.paths import MAPS_DIR
@@ -254,6 +255,26 @@ def _core(variant: Variant, I_b: np.ndarray, I_w: np.ndarray, I_c: np.ndarray, r
         return kernel.solve_alpha_g(grid, I_b, I_w, grid.sigma_cell(s), rho_b, rho_w, a0, g0, iterations=polish,
                                     step_tol=tol, step_var=step_var())
     return run
+
+
+# The held-out materials are split once, here: every CALIBRATION_EVERY-th (σt, g) column (materials that
+# share σt and g were traced together, so their errors are correlated: a column stays whole) in the order
+# the set lists them is the calibration part, on which map-error constants are chosen
+# (trimeter.model.grid.LEAVE_ONE_OUT_SCALE); the rest, the scored part, is what coverage is reported on.
+CALIBRATION_EVERY = 4
+HELDOUT_PARTS = ("scored", "calibration")
+
+
+def heldout_part(h: Heldout, part: str) -> Heldout:
+    """The `part` ("scored" or "calibration") of a held-out set: its arrays restricted to those materials."""
+    if part not in HELDOUT_PARTS:
+        raise InputError(f"held-out part must be one of {', '.join(HELDOUT_PARTS)}, got {part!r}")
+    pairs = np.column_stack([h["sigma_t"], h["g"]])
+    _, first, column = np.unique(pairs, axis=0, return_index=True, return_inverse=True)
+    order = np.argsort(np.argsort(first))  # each column's rank by where it first appears
+    calibration = order[column.ravel()] % CALIBRATION_EVERY == 0
+    keep = calibration if part == "calibration" else ~calibration
+    return {k: v[keep] for k, v in h.items()}
 
 
 def heldout_intensities(h: Heldout, rho_b: float | np.ndarray,

@@ -7,7 +7,7 @@ one small warm-up column per recipe and backend, so kernel compilation is not co
 of I(ρ) = A + B·q at both reference backgrounds and every α of the grid,
 z = (I_cuda − I_llvm) / √(se_cuda² + se_llvm²). The same seeds give the same paths on either backend up
 to their floating-point differences, so the z-scores sit near 0 unless a backend is wrong; the check
-is the tracer check's rule on their distribution (trimeter.maps.tracer_validation.z_summary).
+is the tracer check's rule on their distribution (trimeter.forward.transport.agreement.z_summary).
 Then the inversion's tests (pytest tests/inversion), where the checkout has them.
 
 Without a CUDA device it prints one `SKIPPED: …` line saying why and exits 0. `--against llvm` traces the
@@ -60,7 +60,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from trimeter import __version__
+    from trimeter.version import __version__
     from trimeter.maps.recipe import load_recipe
     from trimeter.paths import MAPS_DIR, REPO_ROOT
 
@@ -126,8 +126,8 @@ def compare_column(recipe, j: int, k: int, paths: int, against: str) -> dict:
     """One column traced on `against` and on LLVM with the same seeds: seconds per backend and the
     z-scores of I(ρ) at both reference backgrounds over α."""
     from trimeter.maps import builder
-    from trimeter.maps.tracer import Stack
-    from trimeter.maps.tracer import trace_column as trace_pair
+    from trimeter.forward.transport import Stack
+    from trimeter.forward.transport import trace_column as trace_pair
 
     fixed = dataclasses.replace(recipe, sampling=dataclasses.replace(recipe.sampling, min_paths=paths, max_paths=paths))
     warm = dataclasses.replace(recipe, sampling=dataclasses.replace(recipe.sampling, min_paths=WARM_UP_PATHS,
@@ -158,7 +158,7 @@ def column_z(recipe, a, b) -> np.ndarray:
 
 
 def agreement(z: np.ndarray) -> dict:
-    from trimeter.maps.tracer_validation import z_summary
+    from trimeter.forward.transport.agreement import z_summary
 
     return z_summary(z)
 

@@ -77,7 +77,7 @@ def compare_estimators(recipe_path: str, n_paths: int, seed: int) -> int:
     """Print each column's projected time to the recipe's criterion with both estimators, and the ratio."""
     from trimeter.maps.builder import criterion_shortfall
     from trimeter.maps.recipe import load_recipe
-    from trimeter.maps.tracer import Stack, k_max_for, trace_column
+    from trimeter.forward.transport import Stack, k_max_for, trace_column
 
     if n_paths < 65536:
         raise InputError(f"--paths must be ≥ 65536 (the projection scales the std-error it measures), got {n_paths}")
@@ -171,7 +171,7 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--spp must be ≥ 4096 (a render of 4096 samples is the overhead measured), got {args.spp}")
     from trimeter.forward.render import render_diffuse
     from trimeter.maps.builder import build_map
-    from trimeter.maps.tracer import trace_column
+    from trimeter.forward.transport import trace_column
 
     probe = bench_recipe(1e-3)
     rhos = (probe.reference_rho_b, probe.reference_rho_w)

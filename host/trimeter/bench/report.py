@@ -9,8 +9,11 @@ What it runs, each through the bench's own code (their figures are theirs; this 
   precision (`trimeter fit --table`), refined at load (`--refine`), and in the firmware's single precision
   built for this host; the device's time from an instruction count under QEMU (trimeter.bench._firmware);
 - `bench uncertainty` (trimeter.bench.uncertainty.measure): coverage of the reported ±1σ / ±2σ;
+- `bench sensor` (trimeter.bench.sensor.measure): every build's accuracy (each spectrometer and sensor, each fit
+  of its readings) on the twin's materials at the thinner sample, noise-free and with noise;
 - `bench tracer-check` (trimeter.bench.tracer_check.check) at a small size (`--tracer-materials 0`: not run).
-The benches' own output goes to --work (logs and JSON), the page and its figures to --docs.
+The benches' own output goes to --work (logs and JSON), the page, its figures and every figure as JSON
+(validation.json, with the page's stamp: what tools/gen_hardware.py quotes in the BOM) to --docs.
 """
 
 from __future__ import annotations
@@ -34,6 +37,9 @@ from trimeter.errors import BuildError, InputError
 from trimeter.paths import REPO_ROOT
 
 PAGE = "validation.md"
+FIGURES_JSON = "validation.json"  # beside the page: its figures and stamp, machine-readable
+BUILDS_SECTION = "Each build"  # the page's heading that hardware/bom.md links to
+BUILDS_THICKNESS_MM = 0.4  # the thinner sample, as the demo and the twin use
 IMG_DIR = "img/validation"  # under --docs; the page links its figures relative to itself
 HEADLINE_MAP = "device-n1.5-l0.4"  # the instrument's thinner sample: the map the demo and the twin use
 DEVICE_LABEL = "on the device (firmware's C, single precision)"
@@ -70,6 +76,9 @@ def register(bench_subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--repeats", type=int, default=5, help="timed rounds per variant, best kept (default 5)")
     p.add_argument("--median-bins", type=int, default=128, help="bins timed for the paper's ε-median (default 128)")
     p.add_argument("--draws", type=int, default=8, help="bench uncertainty's noise draws per material (default 8)")
+    p.add_argument("--sensor-noise", default="0,0.005",
+                   help="bench sensor's relative noise levels for the builds' table (must include 0)")
+    p.add_argument("--sensor-draws", type=int, default=3, help="bench sensor's noise draws per material (default 3)")
     p.add_argument("--tracer-materials", type=int, default=8,
                    help="random materials per geometry for the tracer check (default 8; 0: not run)")
     p.add_argument("--tracer-paths", type=int, default=1 << 18, help="tracer paths per material (default 262144)")
@@ -81,27 +90,30 @@ def register(bench_subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     start = time.perf_counter()
-    noise = _noise_levels(args.noise)
-    if args.repeats < 1 or args.draws < 1 or args.median_bins < 1:
-        raise InputError("--repeats, --draws and --median-bins must be at least 1")
+    noise = _noise_levels(args.noise, "--noise")
+    sensor_noise = _noise_levels(args.sensor_noise, "--sensor-noise")
+    if args.repeats < 1 or args.draws < 1 or args.median_bins < 1 or args.sensor_draws < 1:
+        raise InputError("--repeats, --draws, --median-bins and --sensor-draws must be at least 1")
     if args.tracer_materials < 0:
         raise InputError(f"--tracer-materials must be ≥ 0, got {args.tracer_materials}")
     args.work.mkdir(parents=True, exist_ok=True)
-    results = measure(args, noise)
+    results = measure(args, noise, sensor_noise)
     results["seconds"] = round(time.perf_counter() - start, 1)
-    atomic_write(args.work / "report.json", json.dumps(results, indent=1, default=_jsonable))
+    text = json.dumps(results, indent=1, default=_jsonable) + "\n"
+    atomic_write(args.work / "report.json", text)
     page = write_page(results, args.docs)
+    atomic_write(args.docs / FIGURES_JSON, text)
     print(f"{page} written in {results['seconds']:.0f} s (the benches' logs and JSON: {args.work})")
     return 0
 
 
-def _noise_levels(text: str) -> list[float]:
+def _noise_levels(text: str, option: str) -> list[float]:
     try:
         levels = [float(x) for x in text.split(",") if x.strip()]
     except ValueError:
-        raise InputError(f"--noise: {text!r} is not a comma-separated list of numbers") from None
+        raise InputError(f"{option}: {text!r} is not a comma-separated list of numbers") from None
     if 0.0 not in levels or any(not (0 <= x < 0.5) for x in levels):
-        raise InputError("--noise: levels in [0, 0.5), including 0 (the headline figures are noise-free)")
+        raise InputError(f"{option}: levels in [0, 0.5), including 0 (the headline figures are noise-free)")
     return levels
 
 
@@ -125,14 +137,14 @@ def _step(title: str, log: Path) -> Iterator[None]:
     print(f"{time.perf_counter() - t0:.0f} s (log: {log})", flush=True)
 
 
-def measure(args: argparse.Namespace, noise: list[float]) -> dict[str, Any]:
+def measure(args: argparse.Namespace, noise: list[float], sensor_noise: list[float]) -> dict[str, Any]:
     """Run the benches; every figure the page shows, as one JSON-able dict."""
-    from trimeter.bench import fit, tracer_check, uncertainty
+    from trimeter.bench import fit, sensor, tracer_check, uncertainty
 
     work: Path = args.work
     results: dict[str, Any] = {"stamp": machine_stamp(), "settings": {
         k: getattr(args, k) for k in ("maps", "noise", "repeats", "median_bins", "draws", "tracer_materials",
-                                      "tracer_paths", "tracer_spp", "no_device")}}
+                                      "tracer_paths", "tracer_spp", "no_device", "sensor_noise", "sensor_draws")}}
     with _step("accuracy and speed (bench fit)", work / "fit.log"):
         results["fit"] = fit.measure(argparse.Namespace(
             maps=args.maps, noise=",".join(map(str, noise)), median_bins=args.median_bins, repeats=args.repeats,
@@ -146,6 +158,10 @@ def measure(args: argparse.Namespace, noise: list[float]) -> dict[str, Any]:
             results["uncertainty"] = uncertainty.measure(argparse.Namespace(
                 maps=device_maps, noise="0.002,0.005,0.01", draws=args.draws, thickness_rel_std=0.02,
                 modes="given,fixed", out=work / "uncertainty", seed=0))
+    with _step("every build's accuracy (bench sensor)", work / "sensor.log"):
+        results["builds"] = {"thickness_mm": BUILDS_THICKNESS_MM, "runs": [sensor.measure(argparse.Namespace(
+            thickness=BUILDS_THICKNESS_MM, noise=level, draws=args.sensor_draws, band_nm="400:950", seed=0))
+            for level in sensor_noise]}
     results["tracer"] = None
     if args.tracer_materials:
         with _step("the map tracer against Mitsuba (bench tracer-check)", work / "tracer-check.log"):
@@ -208,7 +224,8 @@ def machine_stamp() -> dict[str, Any]:
         return done.stdout.strip() if done.returncode == 0 else ""
 
     # the page and its figures are this command's output: rewriting them does not make the code dirty
-    changed = git("status", "--porcelain", "--untracked-files=no", "--", ".", f":!docs/{PAGE}", f":!docs/{IMG_DIR}")
+    changed = git("status", "--porcelain", "--untracked-files=no", "--", ".", f":!docs/{PAGE}", f":!docs/{IMG_DIR}",
+                  f":!docs/{FIGURES_JSON}")
     cpu = platform.processor() or "?"
     with contextlib.suppress(OSError):
         for line in Path("/proc/cpuinfo").read_text().splitlines():
@@ -238,6 +255,7 @@ def write_page(results: dict[str, Any], docs: Path) -> Path:
     page = docs / PAGE
     lines = _header(results)
     lines += _accuracy_section(results, figures, page)
+    lines += _builds_section(results["builds"])
     lines += _uncertainty_section(results["uncertainty"], coverage_png, page)
     lines += _tracer_section(results["tracer"], tracer_png, page)
     lines += _reproduce_section(results)
@@ -292,14 +310,16 @@ def _header(results: dict[str, Any]) -> list[str]:
         "simulated.",
         "- The held-out sets (`maps/heldout/`, made by `tools/make_heldout.py`) are random materials off the maps' "
         "grids, rendered directly, never interpolated from a map: for the device geometry by Monte Carlo with this "
-        "project's own tracer (`trimeter.maps.tracer.trace_column`, with far more paths than the maps), for the "
+        "project's own tracer (`trimeter.forward.transport.trace_column`, with far more paths than the maps), for the "
         "ideal geometry by adding-doubling (`iadpython`). Because the device references come from the same tracer "
         "as the device maps, an error of the tracer itself does not show in the accuracy section: the tracer "
         "is compared with Mitsuba 3 in the last section.",
         "- Noise, where there is any, is synthetic: relative Gaussian noise on I_b, I_w and I_c.",
         "- Times are the best of several rounds, all methods of a table timed round-robin in one process on a "
-        "shared machine: compare them within a table. \"On the device\" is an estimate from an instruction count "
-        "under QEMU, not a run on a board.",
+        "shared machine: compare them within a table. On a loaded machine a call longer than the scheduler's time "
+        "slice (the paper rows: tens of milliseconds) is slowed more than a sub-millisecond one (lut), so ratios to "
+        "paper overstate the speed-up; the load average above says how loaded it was. \"On the device\" is an "
+        "estimate from an instruction count under QEMU, not a run on a board.",
         "",
     ]
 
@@ -369,6 +389,8 @@ def _accuracy_section(results: dict[str, Any], figures: dict[str, Path], page: P
         lines += _noise_table(m)
         lines += _budget_lines(m)
         lines += _targets_lines(m)
+    if fit.get("speed"):
+        lines += _speed_lines(fit["speed"])
     if fit.get("two_thicknesses"):
         two = fit["two_thicknesses"]
         lines += ["### Both thicknesses fitted together", "",
@@ -378,6 +400,24 @@ def _accuracy_section(results: dict[str, Any], figures: dict[str, Path], page: P
                         [[r["variant"], _g(r["ms_per_1024"]), _f(r["alpha_p95"]), _f(r["g_p95"])]
                          for r in two["rows"]])
     return lines
+
+
+def _speed_lines(speed: dict[str, Any]) -> list[str]:
+    """bench fit's speed section: the whole lut fit (flags and stds included) against a bare scipy lookup."""
+    times = speed["ms_per_1024"]
+    lookup = times["bare lookup"]
+    lines = ["### Speed with uncertainty", "",
+             f"{speed['map']}: 1024 bins (its held-out materials inside the hull of the map's nodes, noise-free), "
+             "the whole lut fit, with per-bin σ and flags, against a bare scipy `LinearNDInterpolator` lookup of "
+             "the same bins on the map's nodes (the paper's interpolant, built beforehand: the call alone), timed "
+             "round-robin in the same run; the paper's ε-median on fewer bins, scaled.", ""]
+    lines += _table(["", "ms per 1024 bins", "× bare lookup"],
+                    [[name, _g(ms), _g(ms / lookup)] for name, ms in times.items()])
+    for key, t in speed["targets"].items():
+        label = {"lut_over_lookup": "whole lut fit over a bare lookup",
+                 "two_thicknesses_ms": "two thicknesses fitted together, ms per 1024 bins"}.get(key, key)
+        lines.append(f"- {label}: {_g(t['value'])} (target ≤ {t['max']:g}): {'met' if t['met'] else 'missed'}")
+    return lines + [""]
 
 
 def _noise_table(m: dict[str, Any]) -> list[str]:
@@ -415,11 +455,41 @@ def _targets_lines(m: dict[str, Any]) -> list[str]:
     return (["Targets, judged in this run:", "", *lines, ""]) if lines else []
 
 
+def _builds_section(builds: dict[str, Any]) -> list[str]:
+    """bench sensor's table: one row per build (and the inks alone), per noise level."""
+    runs = builds["runs"]
+    first = runs[0]
+    lines = [f"## {BUILDS_SECTION}", "",
+             f"What each build of the instrument would measure, from `trimeter bench sensor`: the twin's "
+             f"{first['material_count']} catalogue materials at {builds['thickness_mm']:g} mm, their I_b, I_w, I_c "
+             f"traced directly (independently of the map {first['map']} that the fits invert), read as each build "
+             f"reads them: the ideal spectrometer every pixel as it is; the USB spectrometer (seabreeze) through its "
+             f"slit under the build's LEDs; the AS7341 its {first['channels']} channels' band readings, fitted per "
+             f"channel as if monochromatic (reported at the datasheet's centres, or scored at each band's centroid) "
+             f"or band-aware (`trimeter fit --bands`). The spectrometers are scored at {first['scored_pixels']} "
+             f"pixels {first['band_nm'][0]:g}–{first['band_nm'][1]:g} nm. p95 over the reported values of |Δα|, "
+             f"|Δσt|/σt and |Δg| against the material's own spectra at the reported wavelengths, and how many "
+             f"reported values carry any flag. \"inks\": the four smooth ink-like materials alone. Noise: relative "
+             f"Gaussian on each reading plus 2e-4 absolute. The hardware's bill of materials quotes its builds' rows "
+             f"from this section's JSON (`docs/{FIGURES_JSON}`).", ""]
+    for run in runs:
+        lines += [("Noise-free:" if run["noise"] == 0 else
+                   f"With {100 * run['noise']:g} % noise ({run['draws']} draws per material):"), ""]
+        lines += _table(["build", "materials", "α p95", "σt rel. p95", "g p95", "flagged"],
+                        [[r["build"], r["materials"], _f(r["alpha_p95"]), _pct(r["sigma_t_rel_p95"], 2),
+                          _f(r["g_p95"]), f"{r['flagged']} of {r['values']} ({_pct(r['flagged'] / r['values'], 0)})"]
+                         for r in run["builds"]])
+    return lines
+
+
 def _uncertainty_section(unc: dict[str, Any] | None, png: Path | None, page: Path) -> list[str]:
     lines = ["## Uncertainty: do the reported σ cover the truth?", ""]
     if unc is None:
         return lines + ["Not run: no device map among the maps scored.", ""]
-    lines += ["Each held-out material of the device maps drawn "
+    counts = ", ".join(f"{name} {n}" for name, n in unc.get("heldout_materials", {}).items())
+    lines += [f"The {unc.get('heldout_part', 'whole')} part of the device maps' held-out sets ({counts} materials; "
+              "the calibration part, on which the map's error scale in the σ is chosen, is never scored here). "
+              "Each material drawn "
               f"{unc['draws']} times with relative Gaussian noise of known size on I_b, I_w, I_c and fitted by lut. "
               "**given**: the noise's std handed to the fit (with the references' own Monte Carlo error); "
               "**fixed**: the fit's fixed noise model alone. Share of unflagged bins whose truth lies within ±1σ / "
@@ -449,7 +519,7 @@ def _uncertainty_section(unc: dict[str, Any] | None, png: Path | None, page: Pat
 
 
 def _tracer_section(tracer: dict[str, Any] | None, png: Path | None, page: Path) -> list[str]:
-    from trimeter.maps.tracer_validation import Z_MEAN_MAX, Z_P95_MAX
+    from trimeter.forward.transport.agreement import Z_MEAN_MAX, Z_P95_MAX
 
     lines = ["## The map tracer against Mitsuba 3", ""]
     full = "trimeter bench tracer-check --paths 4194304 --spp 4194304"
@@ -489,14 +559,17 @@ def _reproduce_section(results: dict[str, Any]) -> list[str]:
     argv = ["trimeter bench report"]
     for key, flag in (("noise", "--noise"), ("repeats", "--repeats"), ("median_bins", "--median-bins"),
                       ("draws", "--draws"), ("tracer_materials", "--tracer-materials"),
-                      ("tracer_paths", "--tracer-paths"), ("tracer_spp", "--tracer-spp")):
+                      ("tracer_paths", "--tracer-paths"), ("tracer_spp", "--tracer-spp"),
+                      ("sensor_noise", "--sensor-noise"), ("sensor_draws", "--sensor-draws")):
         argv.append(f"{flag} {s[key]}")
     argv += [f"--map {m}" for m in s["maps"] or ()] + (["--no-device"] if s["no_device"] else [])
     return ["## Reproduce", "",
-            "This page, its figures and the benches' JSON (under `out/bench-report/`):", "",
+            f"This page, its figures, its figures as JSON (`{FIGURES_JSON}`) and the benches' logs and JSON (under "
+            "`out/bench-report/`):", "",
             "```", " ".join(argv), "```", "",
             "Each part on its own, with more options: `trimeter bench fit`, `trimeter bench table-fit --table "
-            "maps/device-n1.5-l0.4.tlut`, `trimeter bench uncertainty`, `trimeter bench tracer-check`, and the "
+            "maps/device-n1.5-l0.4.tlut`, `trimeter bench uncertainty`, `trimeter bench sensor`, "
+            "`trimeter bench tracer-check`, and the "
             "device's instruction count `make -C firmware qemu-count COUNT_TABLE=maps/device-n1.5-l0.4.tlut`."]
 
 
@@ -576,7 +649,7 @@ def _plot_coverage(unc: dict[str, Any], img: Path) -> Path:
 
 def _plot_tracer(tracer: dict[str, Any], img: Path) -> Path:
     """z per material and background, per geometry, and the ideal geometry against adding-doubling."""
-    from trimeter.maps.tracer_validation import Z_P95_MAX
+    from trimeter.forward.transport.agreement import Z_P95_MAX
 
     plt = _pyplot()
     groups: list[tuple[str, list[float]]] = []

@@ -1,11 +1,16 @@
 """`trimeter bench sensor`: every build's accuracy on the twin's materials, from one run.
 
 The twin's catalogue materials at --thickness, their I_b, I_w, I_c per pixel traced directly
-(trimeter.twin.traced: independent of the map the fits invert), read as each build reads them:
+(trimeter.twin.traced: not read off the map the fits invert, though traced by the same tracer), read
+as each build reads them:
 - ideal spectrometer: the pixels as they are, fitted per wavelength (lut);
 - seabreeze: each pixel through the spectrometer's slit (trimeter.spectrometer.sensors.slit_matrix)
   under the panels' and the beam's LEDs (the slit blurs the counts; a reading is sample counts over
   reference counts), fitted per wavelength;
+- c12880ma: the micro-spectrometer build: 288 pixels at a typical unit's test-sheet polynomial, each through
+  the C12880MA's line-spread function (trimeter.spectrometer.sensors.resample_matrix, C12880_FWHM_NM) under the
+  panels' and the beam's LEDs, ρ_black as its calibration measures it (blurred alike), fitted per pixel;
+  scored at the pixels whose line-spread function lies inside the twin's pixels;
 - AS7341 per-channel: each channel's band reading (the AS7341 model's weights) fitted per channel as
   if monochromatic, the values reported at the datasheet's centres (what the `i2c` backend gives
   today); "at centroids": the same fit scored at the centroid of each channel's weight;
@@ -72,12 +77,48 @@ def _noisy(values: np.ndarray, level: float, rng: np.random.Generator) -> np.nda
     return values * (1 + level * rng.standard_normal(values.shape)) + 2e-4 * rng.standard_normal(values.shape)
 
 
+def build_id(name: str) -> str:
+    """A build's stable name for other files to refer to it by ("AS7341 band-aware" -> "as7341-band-aware")."""
+    return "-".join("".join(c if c.isalnum() else " " for c in name.lower()).split())
+
+
 def run(args: Any) -> int:
+    doc = measure(args)
+    print(f"map {doc['map']}, {doc['material_count']} materials at {doc['thickness_mm']:g} mm (physics: "
+          f"{', '.join(doc['physics'])}), noise {doc['noise']:g} x {doc['draws']} draw(s); spectrometers scored at "
+          f"{doc['scored_pixels']} pixels {doc['band_nm'][0]:g}-{doc['band_nm'][1]:g} nm (c12880ma at "
+          f"{doc['c12880ma_pixels']} pixels {doc['c12880ma_nm'][0]:.0f}-{doc['c12880ma_nm'][1]:.0f} nm), "
+          f"AS7341 at {doc['channels']} channels")
+    print(f"{'build':34s} {'materials':9s} {'α p95':>7s} {'σt p95':>7s} {'g p95':>7s} {'flagged':>11s} "
+          f"{'ms/spectrum':>11s} {'x ideal':>7s}")
+    for r in doc["builds"]:
+        print(f"{r['build']:34s} {r['materials']:9s} {r['alpha_p95']:7.4f} {100 * r['sigma_t_rel_p95']:6.2f}% "
+              f"{r['g_p95']:7.4f} {r['flagged']:5d} of {r['values']:<4d} {r['ms_per_spectrum']:11.1f} "
+              f"{r['time_ratio_to_ideal']:7.2f}")
+    print("\nband-aware bases on the inks (p95 and max over channels; BAND_UNRESOLVED is judged with the cubic only):")
+    print(f"{'basis smoothness':20s} {'α p95':>7s} {'α max':>7s} {'σt p95':>7s} {'σt max':>7s} {'g p95':>7s} "
+          f"{'flagged':>9s}")
+    for r in doc["bases"]:
+        print(f"{r['basis smoothness']:20s} {r['alpha_p95']:7.4f} {r['alpha_max']:7.4f} "
+              f"{100 * r['sigma_t_rel_p95']:6.2f}% {100 * r['sigma_t_rel_max']:6.2f}% {r['g_p95']:7.4f} "
+              f"{r['flagged']:3d} of {r['values']}")
+    args.out.mkdir(parents=True, exist_ok=True)
+    path = args.out / "sensor.json"
+    atomic_write(path, json.dumps({k: doc[k] for k in ("map", "thickness_mm", "noise", "draws", "builds", "bases")},
+                                  indent=1) + "\n")
+    print(f"wrote {path}")
+    return 0
+
+
+def measure(args: Any) -> dict[str, Any]:
+    """Every build's figures from one run (the options of `register`, as a namespace), as a JSON-able dict:
+    "builds" one row per build and material set (its "id" from `build_id`), "bases" the band-aware fit's bases."""
     from trimeter.inversion.bands import fit_bands
     from trimeter.inversion.api import fit as fit_map
     from trimeter.maps.artifacts import load_artifacts
     from trimeter.spectrometer.i2c import CHANNEL_NM
-    from trimeter.spectrometer.sensors import BEAM_LED, PANEL_LEDS, as7341_weights, emission, slit_matrix
+    from trimeter.spectrometer.sensors import (BEAM_LED, C12880_FWHM_NM, PANEL_LEDS, as7341_weights,
+                                               c12880_wavelengths_nm, emission, resample_matrix, slit_matrix)
     from trimeter.twin.optics import Optics, material_names
 
     if args.thickness not in MAP_FOR:
@@ -101,8 +142,12 @@ def run(args: Any) -> int:
     panels, beam = emission(PANEL_LEDS, lam), emission(BEAM_LED, lam)
     rng = np.random.default_rng(args.seed)
     draws = args.draws if args.noise > 0 else 1
-    builds = ("ideal spectrometer", "seabreeze (slit)", "AS7341 per-channel", "AS7341 per-channel at centroids",
-              "AS7341 band-aware")
+    chip_nm = c12880_wavelengths_nm()
+    chip_nm = chip_nm[(chip_nm >= lam[0] + 1.5 * C12880_FWHM_NM) & (chip_nm <= lam[-1] - 1.5 * C12880_FWHM_NM)]
+    chip_scored = (chip_nm >= lo) & (chip_nm <= hi)
+    chip = resample_matrix(lam, chip_nm, C12880_FWHM_NM)
+    builds = ("ideal spectrometer", "seabreeze (slit)", "c12880ma", "AS7341 per-channel",
+              "AS7341 per-channel at centroids", "AS7341 band-aware")
     errors: dict[str, dict[str, list]] = {b: {} for b in builds}
     flags: dict[str, dict[str, list]] = {b: {} for b in builds}
     seconds: dict[str, float] = dict.fromkeys(builds, 0.0)
@@ -130,6 +175,14 @@ def run(args: Any) -> int:
                          m.rho[1][scored])
             seconds["seabreeze (slit)"] += time.perf_counter() - t0
             record("seabreeze (slit)", m, _errors(sb, m.truth[:, scored]), sb.flags)
+            chip_d, chip_c = chip @ panels, chip @ beam
+            read = _noisy(np.stack([chip @ (panels * m.I[0]) / chip_d, chip @ (panels * m.I[1]) / chip_d,
+                                    chip @ (beam * m.I[2]) / chip_c]), args.noise, rng)
+            chip_rho = np.stack([chip @ (panels * m.rho[0]) / chip_d, chip @ (panels * m.rho[1]) / chip_d])
+            t0 = time.perf_counter()
+            c12 = fit_map(model, *(r[chip_scored] for r in read), *(r[chip_scored] for r in chip_rho))
+            seconds["c12880ma"] += time.perf_counter() - t0
+            record("c12880ma", m, _errors(c12, m.truth_at(chip_nm[chip_scored])), c12.flags)
             readings = _noisy(np.stack([weights.diffuse @ m.I[0], weights.diffuse @ m.I[1],
                                         weights.collimated @ m.I[2]]), args.noise, rng)
             r_b, r_w, r_c = readings
@@ -161,7 +214,7 @@ def run(args: Any) -> int:
             e = np.concatenate([x for n in names for x in errors[build][n]], axis=1)
             f = np.concatenate([x for n in names for x in flags[build][n]])
             p95 = np.nanpercentile(e, 95, axis=1)
-            rows.append({"build": build, "materials": label, "alpha_p95": float(p95[0]),
+            rows.append({"id": build_id(build), "build": build, "materials": label, "alpha_p95": float(p95[0]),
                          "sigma_t_rel_p95": float(p95[1]), "g_p95": float(p95[2]),
                          "flagged": int(f.sum()), "values": int(f.size),
                          "ms_per_spectrum": 1e3 * seconds[build] / spectra,
@@ -174,27 +227,9 @@ def run(args: Any) -> int:
         basis_rows.append({"basis smoothness": key, "alpha_p95": float(p95[0]), "sigma_t_rel_p95": float(p95[1]),
                            "g_p95": float(p95[2]), "alpha_max": float(np.nanmax(e[0])),
                            "sigma_t_rel_max": float(np.nanmax(e[1])), "flagged": int(f.sum()), "values": int(f.size)})
-    physics = sorted({m.physics for m in materials})
-    print(f"map {model.name}, {len(materials)} materials at {args.thickness:g} mm (physics: {', '.join(physics)}), "
-          f"noise {args.noise:g} x {draws} draw(s); spectrometers scored at {int(scored.sum())} pixels "
-          f"{lo:g}-{hi:g} nm, "
-          f"AS7341 at {len(weights.channels)} channels")
-    print(f"{'build':34s} {'materials':9s} {'α p95':>7s} {'σt p95':>7s} {'g p95':>7s} {'flagged':>11s} "
-          f"{'ms/spectrum':>11s} {'x ideal':>7s}")
-    for r in rows:
-        print(f"{r['build']:34s} {r['materials']:9s} {r['alpha_p95']:7.4f} {100 * r['sigma_t_rel_p95']:6.2f}% "
-              f"{r['g_p95']:7.4f} {r['flagged']:5d} of {r['values']:<4d} {r['ms_per_spectrum']:11.1f} "
-              f"{r['time_ratio_to_ideal']:7.2f}")
-    print("\nband-aware bases on the inks (p95 and max over channels; BAND_UNRESOLVED is judged with the cubic only):")
-    print(f"{'basis smoothness':20s} {'α p95':>7s} {'α max':>7s} {'σt p95':>7s} {'σt max':>7s} {'g p95':>7s} "
-          f"{'flagged':>9s}")
-    for r in basis_rows:
-        print(f"{r['basis smoothness']:20s} {r['alpha_p95']:7.4f} {r['alpha_max']:7.4f} "
-              f"{100 * r['sigma_t_rel_p95']:6.2f}% {100 * r['sigma_t_rel_max']:6.2f}% {r['g_p95']:7.4f} "
-              f"{r['flagged']:3d} of {r['values']}")
-    args.out.mkdir(parents=True, exist_ok=True)
-    path = args.out / "sensor.json"
-    atomic_write(path, json.dumps({"map": model.name, "thickness_mm": args.thickness, "noise": args.noise,
-                                   "draws": draws, "builds": rows, "bases": basis_rows}, indent=1) + "\n")
-    print(f"wrote {path}")
-    return 0
+    return {"map": model.name, "thickness_mm": args.thickness, "noise": args.noise, "draws": draws,
+            "material_count": len(materials), "physics": sorted({m.physics for m in materials}),
+            "scored_pixels": int(scored.sum()), "band_nm": [lo, hi], "channels": len(weights.channels),
+            "c12880ma_pixels": int(chip_scored.sum()),
+            "c12880ma_nm": [float(chip_nm[chip_scored][0]), float(chip_nm[chip_scored][-1])],
+            "builds": rows, "bases": basis_rows}

@@ -142,8 +142,11 @@ def _reason(message: str) -> str:
 
 
 def run_soak(cycles: int, *, seed: int = 0, time_scale: float = 300.0, calibration_max_age_s: float = 14400.0,
-             progress=lambda line: print(line, flush=True), root: Path | None = None) -> SoakReport:
-    """`root`: where the twin's state, the calibration and the results go (default: a temporary directory)."""
+             progress=lambda line: print(line, flush=True), root: Path | None = None,
+             device_table: bool = False) -> SoakReport:
+    """`root`: where the twin's state, the calibration and the results go (default: a temporary directory).
+    `device_table`: the host names no map, so every fit uses the table read from the instrument (serve's
+    default configuration) over the same faulty link."""
     if cycles < 1:
         raise InputError(f"--cycles must be ≥ 1, got {cycles}")
     rng = np.random.default_rng(seed)
@@ -151,7 +154,9 @@ def run_soak(cycles: int, *, seed: int = 0, time_scale: float = 300.0, calibrati
     report = SoakReport()
     weights = np.array([w for w, _ in LINK_LEVELS])
     started = time.monotonic()
-    settings = {"calibration_max_age_s": calibration_max_age_s}
+    settings: dict[str, object] = {"calibration_max_age_s": calibration_max_age_s}
+    if device_table:
+        settings["map"] = ""
     with twin_and_service(time_scale=time_scale, seed=seed, settings=settings, on_event=events.put, root=root) as (
             twin, service, _):
         operator = Operator(twin, rng)
@@ -254,7 +259,7 @@ def print_report(report: SoakReport) -> None:
 
 def run(args) -> int:
     report = run_soak(args.cycles, seed=args.seed, time_scale=args.time_scale,
-                      calibration_max_age_s=args.calibration_max_age)
+                      calibration_max_age_s=args.calibration_max_age, device_table=args.device_table)
     print_report(report)
     if args.json:
         Path(args.json).write_text(json.dumps(report.to_dict(), indent=1, default=str) + "\n")
@@ -269,5 +274,7 @@ def register(bench_subparsers) -> None:
     p.add_argument("--time-scale", type=float, default=300.0, help="twin time scale (default: %(default)s)")
     p.add_argument("--calibration-max-age", type=float, default=14400.0,
                    help="calibration_max_age_s for the service, device seconds (default: %(default)s)")
+    p.add_argument("--device-table", action="store_true",
+                   help="fit with the table read from the instrument (serve's default, no map named)")
     p.add_argument("--json", help="also write the report as JSON here")
     p.set_defaults(func=run)

@@ -58,8 +58,8 @@ def check(args: argparse.Namespace) -> dict[str, Any]:
     """Trace and render every material (printing each row as it comes) and judge the z-scores: {"settings",
     "seconds", "rows", "summary" (per geometry, per geometry and ρ, ideal against adding-doubling), "ok"}."""
     from trimeter.forward.validate import random_materials
-    from trimeter.maps.tracer_validation import require_series_orders, tracer_agreement
-    from trimeter.maps.tracer import resolve_backend
+    from trimeter.forward.transport.agreement import require_series_orders, tracer_agreement
+    from trimeter.forward.transport import resolve_backend
 
     if not 1 <= args.materials <= 10_000:
         raise InputError(f"--materials must be 1…10000, got {args.materials}")
@@ -106,7 +106,7 @@ def _print_rows(part: list[dict], geometry: str, ell: float) -> None:
 def summarise(rows: list[dict], geometries: tuple[str, ...]) -> tuple[dict[str, dict], bool]:
     """z summaries per geometry, per geometry and background, and of the ideal geometry against
     adding-doubling; ok when every geometry (and adding-doubling, where there is one) meets the goal."""
-    from trimeter.maps.tracer_validation import z_summary
+    from trimeter.forward.transport.agreement import z_summary
 
     summary: dict[str, dict] = {}
     ok = True
@@ -128,7 +128,7 @@ IAD_KEY = "ideal vs adding-doubling"
 
 
 def _print_summary(report: dict[str, Any]) -> None:
-    from trimeter.maps.tracer_validation import Z_MEAN_MAX, Z_P95_MAX
+    from trimeter.forward.transport.agreement import Z_MEAN_MAX, Z_P95_MAX
 
     print(f"{report['seconds']:.0f} s; z = (tracer − volpath) / combined std-error; targets p95 |z| ≤ {Z_P95_MAX}, "
           f"|mean z| ≤ {Z_MEAN_MAX}")

@@ -1,8 +1,11 @@
 """`trimeter bench uncertainty`: does the reported ±1σ cover the truth 68 % of the time (±2σ: 95 %)?
 
-Held-out materials (maps/heldout, as `bench fit` loads them: rendered off-grid, never map nodes), each
-drawn several times with relative Gaussian noise of known size on I_b, I_w, I_c, fitted by `lut`
-(fit()'s defaults) per device map and on both thicknesses together. Two ways to fit each draw:
+Held-out materials (maps/heldout, as `bench fit` loads them: rendered off-grid, never map nodes) — by
+default only their scored part (trimeter.bench.fit.heldout_part): the calibration part is where the
+map-error scale in the reported σ (LEAVE_ONE_OUT_SCALE) is chosen, with `--part calibration
+--leave-one-out-scale a,b,…` (per scale, the given-stds rows' mean distance from the goal, goal_distance;
+the nearest is marked) — each drawn several times with relative Gaussian noise of known size on I_b,
+I_w, I_c, fitted by `lut` (fit()'s defaults) per device map and on both thicknesses together. Two ways to fit each draw:
 - given: the noise the draw got is handed to fit() as I_b_std, I_w_std, I_c_std (with the
   held-out renders' own MC std-error in quadrature on I_b, I_w: it is noise of known size too);
 - fixed: fit()'s fixed noise model alone (σ_I = 0.005·I + 2e-4), whatever the noise was.
@@ -19,6 +22,7 @@ map's own error: the noise-free fit's |error| over the σ fit() reports at the l
 
 from __future__ import annotations
 
+import contextlib
 import json
 from pathlib import Path
 from typing import Any
@@ -26,6 +30,7 @@ from typing import Any
 import numpy as np
 
 from trimeter.atomic import atomic_write
+from trimeter.bench.fit import HELDOUT_PARTS
 from trimeter.errors import InputError
 from trimeter.inversion.flags import FitFlag
 
@@ -43,6 +48,12 @@ def register(bench_subparsers) -> None:
     p.add_argument("--thickness-rel-std", type=float, default=0.02,
                    help="relative std of the sample's thickness in the thickness case (default 0.02; 0: no case)")
     p.add_argument("--modes", default="given,fixed", help="given (stds handed to fit), fixed (fit's noise model)")
+    p.add_argument("--part", choices=HELDOUT_PARTS, default="scored",
+                   help="which part of the held-out sets: scored (default; the map-error scale never saw it) or "
+                        "calibration (where that scale is chosen)")
+    p.add_argument("--leave-one-out-scale", default=None, metavar="S[,S…]",
+                   help="map-error scale(s) to score instead of the shipped LEAVE_ONE_OUT_SCALE (several: a sweep, "
+                        "for choosing it on --part calibration)")
     p.add_argument("--out", type=Path, default=Path("out/bench-uncertainty"))
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(func=run)
@@ -96,10 +107,11 @@ def _maps(specs):
 class Case:
     """One map's held-out materials, tiled `draws` times: truth and noise-free intensities."""
 
-    def __init__(self, amap, draws: int):
-        from trimeter.bench.fit import heldout_collimated, heldout_for, heldout_intensities
+    def __init__(self, amap, draws: int, part: str = "scored"):
+        from trimeter.bench.fit import heldout_collimated, heldout_for, heldout_intensities, heldout_part
 
         _, _, h = heldout_for(amap)
+        h = heldout_part(h, part)
         idx = np.tile(np.arange(len(h["alpha"])), draws)
         self.amap = amap
         self.truth = {k: h[k][idx] for k in PARAMS}
@@ -128,8 +140,8 @@ class Case:
         return tuple(x + m - h for x, m, h in zip(self.I, moved, here, strict=True))
 
 
-def _fit(cases, noisy, stds, mode, thickness_std=None):
-    import trimeter
+def _fit(cases, noisy, stds, mode, thickness_std=None, cache=None):
+    from trimeter.maps.artifacts import fit
 
     amaps = [c.amap for c in cases]
     I = [np.stack([n[i] for n in noisy]) for i in range(3)]
@@ -143,7 +155,7 @@ def _fit(cases, noisy, stds, mode, thickness_std=None):
     if len(amaps) == 1:
         I = [x[0] for x in I]
         kw = {k: (v[0] if isinstance(v, np.ndarray) else v) for k, v in kw.items()}
-    return trimeter.fit(maps, I[0], I[1], I[2], method="lut", **kw)
+    return fit(maps, I[0], I[1], I[2], method="lut", cache=cache, **kw)
 
 
 def _row(label, level, mode, result, truth):
@@ -158,13 +170,70 @@ def _row(label, level, mode, result, truth):
 
 
 def run(args) -> int:
-    report = measure(args)
-    _print(report["rows"], report["map_error"])
+    from trimeter.model import grid
+
+    scales = _scales(args.leave_one_out_scale)
+    reports = []
+    for scale in scales:
+        with _leave_one_out_scale(scale):
+            print(f"\nheld-out sets: their {args.part} part; map-error scale LEAVE_ONE_OUT_SCALE = "
+                  f"{grid.LEAVE_ONE_OUT_SCALE:g}" + (" (shipped)" if scale is None else ""))
+            report = measure(args)
+            _print(report["rows"], report["map_error"])
+            reports.append(report)
+    if len(reports) > 1:
+        _print_sweep(reports)
     args.out.mkdir(parents=True, exist_ok=True)
     path = args.out / "results.json"
-    atomic_write(path, json.dumps(report, indent=1, default=float))
+    atomic_write(path, json.dumps(reports[0] if len(reports) == 1 else {"sweep": reports}, indent=1, default=float))
     print(f"\nall figures: {path}")
     return 0
+
+
+def _scales(spec: str | None) -> list[float | None]:
+    if spec is None:
+        return [None]
+    try:
+        scales = [float(x) for x in spec.split(",") if x.strip()]
+    except ValueError:
+        raise InputError(f"--leave-one-out-scale: {spec!r} is not a comma-separated list of numbers") from None
+    if not scales or any(not (0 <= x < 10) for x in scales):
+        raise InputError("--leave-one-out-scale: each scale must be in [0, 10)")
+    return list(scales)
+
+
+@contextlib.contextmanager
+def _leave_one_out_scale(scale: float | None):
+    """The map-error scale the maps loaded inside are given (None: the shipped one). The bench loads its maps
+    into a cache of its own (measure), so the shipped process-wide ones are not touched."""
+    from trimeter.model import grid
+
+    saved = grid.LEAVE_ONE_OUT_SCALE
+    if scale is not None:
+        grid.LEAVE_ONE_OUT_SCALE = scale
+    try:
+        yield
+    finally:
+        grid.LEAVE_ONE_OUT_SCALE = saved
+
+
+def goal_distance(rows) -> float:
+    """Mean of |±1σ share − 68 %| + |±2σ share − 95 %| over the parameters and the rows fitted with the noise's
+    stds given (where the σ fit() reports can be right, the map's error term is what is left to set; the fixed
+    noise model's rows measure that model): how a map-error scale is chosen."""
+    given = [r for r in rows if r["mode"] == "given"] or rows
+    d = [abs(r[p]["within_1sigma"] - GOAL_1[0]) + abs(r[p]["within_2sigma"] - GOAL_2[0]) for r in given for p in PARAMS]
+    return float(np.nanmean(d))
+
+
+def _print_sweep(reports) -> None:
+    distances = [goal_distance(r["rows"]) for r in reports]
+    best = int(np.nanargmin(distances))
+    print("\nmap-error scale sweep: mean |1σ share − 68 %| + |2σ share − 95 %| over the rows with given stds and "
+          "the parameters (goal_distance)")
+    for i, (r, d) in enumerate(zip(reports, distances, strict=True)):
+        mark = "  ← nearest" if i == best else ""
+        print(f"   LEAVE_ONE_OUT_SCALE {r['leave_one_out_scale']:<6g} {d * 100:6.2f} points{mark}")
 
 
 def measure(args) -> dict:
@@ -185,8 +254,15 @@ def measure(args) -> dict:
         raise InputError("--draws must be ≥ 1")
     if not (0 <= args.thickness_rel_std < 0.5):
         raise InputError("--thickness-rel-std must be in [0, 0.5)")
+    from trimeter.maps.artifacts import ArtifactCache
+    from trimeter.model import grid
+
     print(f"inversion kernel: {native.status()}")
-    cases = [Case(m, args.draws) for m in _maps(args.maps)]
+    part = getattr(args, "part", "scored")
+    cache = ArtifactCache()  # the maps' error terms at this run's LEAVE_ONE_OUT_SCALE
+    cases = [Case(m, args.draws, part) for m in _maps(args.maps)]
+    print(f"held-out materials ({part} part): " + ", ".join(f"{c.amap.name} {len(c.truth['alpha']) // args.draws}"
+                                                            for c in cases))
     groups = [(c.amap.name, [c]) for c in cases]
     if len(cases) == 2 and all(np.array_equal(cases[0].truth[k], cases[1].truth[k]) for k in PARAMS):
         groups.append(("both thicknesses", cases))
@@ -194,12 +270,12 @@ def measure(args) -> dict:
     rows, bias = [], []
     for label, group in groups:
         truth = group[0].truth
-        clean = _fit(group, [c.I for c in group], [c.render_std for c in group], "fixed")
+        clean = _fit(group, [c.I for c in group], [c.render_std for c in group], "fixed", cache=cache)
         for level in levels:
             draws = [c.draw(level, rng) for c in group]
             noisy, stds = [d[0] for d in draws], [d[1] for d in draws]
             for mode in modes:
-                result = _fit(group, noisy, stds, mode)
+                result = _fit(group, noisy, stds, mode, cache=cache)
                 rows.append(_row(label, level, mode, result, truth))
                 if level == min(levels):
                     bias.append(_map_error(label, mode, clean, result, truth))
@@ -211,9 +287,12 @@ def measure(args) -> dict:
             noisy, stds = [d[0] for d in draws], [d[1] for d in draws]
             for mode in modes:
                 thickness_std = [args.thickness_rel_std * c.amap.thickness_mm for c in group]
-                result = _fit(group, noisy, stds, mode, thickness_std if len(group) > 1 else thickness_std[0])
+                result = _fit(group, noisy, stds, mode, thickness_std if len(group) > 1 else thickness_std[0],
+                              cache=cache)
                 rows.append(_row(f"{label}, ℓ ±{args.thickness_rel_std:.0%}", level, mode, result, truth))
-    return {"kernel": native.status(), "draws": args.draws, "rows": rows, "map_error": bias}
+    return {"kernel": native.status(), "draws": args.draws, "heldout_part": part,
+            "heldout_materials": {c.amap.name: len(c.truth["alpha"]) // args.draws for c in cases},
+            "leave_one_out_scale": grid.LEAVE_ONE_OUT_SCALE, "rows": rows, "map_error": bias}
 
 
 def _map_error(label, mode, clean, noisy_result, truth) -> dict:

@@ -15,7 +15,7 @@ import pkgutil
 import signal
 import sys
 
-from trimeter import __version__
+from trimeter.version import __version__
 from trimeter.errors import TrimeterError
 
 

@@ -4,8 +4,10 @@ Starts the twin (the real firmware core built for the `sim` port, plant, optics,
 empty holder, runs the press-button service exactly as `trimeter serve` does, presses the button
 (warm-up + calibration), inserts a virtual ink, presses again (capture + fit + results), then prints
 α, σt, g at a few wavelengths beside the twin's truth, the timing split (physical vs. host overhead)
-and the path of the figure. The twin's sample is rendered directly (independent physics: trimeter.twin.traced),
-so the printed errors include the appearance map's own.
+and the path of the figure. Its "independent physics:" line says where the twin's observables came from
+(trimeter.twin.optics.physics_line): traced by the maps' own tracer and reduced to their I(ρ) model (the
+errors include the map's interpolation and Monte Carlo error, not the tracer's or the model's), or, for a
+set-up nobody traced, the very map the fit inverts (the errors are the chain's alone).
 
 The host runs as a host with no map files would: the twin starts with the shipped table of that map in
 its active slot and the service fits with the table it reads from the instrument (`--map` overrides)."""
@@ -63,6 +65,7 @@ def run(args: argparse.Namespace) -> None:
     from trimeter.sequences.settings import HostSettings
     from trimeter.spectrometer import open_spectrometer
     from trimeter.twin import Twin
+    from trimeter.twin.optics import physics_line
 
     wall_start = time.monotonic()
     amap = map_for_thickness(args.thickness, args.map)  # the twin's optics (the instrument side) render with it
@@ -138,13 +141,8 @@ def run(args: argparse.Namespace) -> None:
         read = service.last_instrument_table
         print(f"\nfitted with the instrument's map table {read['name']} (sha256 {read['sha256'][:12]}…, slot "
               f"{read['slot']}, {'from the host cache' if read['cached'] else 'read from the device'})")
-    if truth.get("physics") == "traced":
-        print(f"independent physics: the twin rendered '{args.sample}' with the tracer for this set-up "
-              f"(trimeter.twin.traced), not with the map {amap.name} the fit inverts — the errors below include the "
-              "map's own")
-    else:
-        print(f"same physics as the fit: no traced observables for this set-up, so the twin used the map {amap.name} "
-              "itself — the errors below do NOT include the map's own (tools/make_twin_observables.py traces them)")
+    print(physics_line(truth.get("physics", "map"), args.sample, amap.name))
+    print(f"  source: {truth.get('physics_source') or 'not recorded'}")
     print("α, σt [1/mm], g — measured (± 1σ) beside the twin's truth")
     print(f"{'λ nm':>6} {'α':>16} {'truth':>7} {'σt':>18} {'truth':>7} {'g':>15} {'truth':>6}")
     tw = np.asarray(truth["wavelengths_nm"])
@@ -203,9 +201,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                  "shipped map of that thickness)")
     p.add_argument("--method", default="lut", choices=METHODS)
     p.add_argument("--time-scale", type=float, default=20.0, help="twin time runs this many times faster")
-    p.add_argument("--sensor", default="spectrometer", choices=("spectrometer", "as7341"),
-                   help="the build the twin reads like: the spectrometer's pixels, or the AS7341's nine channels "
-                        "(fitted band-aware)")
+    p.add_argument("--sensor", default="spectrometer", choices=("spectrometer", "as7341", "c12880ma"),
+                   help="the build the twin reads like: the spectrometer's pixels, the AS7341's nine channels "
+                        "(fitted band-aware), or the C12880MA micro-spectrometer captured by the firmware (mcu:)")
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--out", help="output directory (default: the user data directory's demo/, printed; "
                                  "TRIMETER_DATA_DIR overrides it)")

@@ -28,9 +28,10 @@ results, the others are unaffected (a missing std: the default noise model's for
 
 Output columns: wavelength_nm, alpha, sigma_t, g, alpha_std, sigma_t_std, g_std, flags, sigma_t_beer,
 thickness_mm (flags: trimeter.inversion.flags.FitFlag bits; the JSON form also names them).
-Rows come out in wavelength order. One thickness with CSV output is read, fitted and written in chunks, so
+Rows come out in wavelength order. With CSV output the input is read, fitted and written in chunks, so
 an input of any length fits in bounded memory (trimeter.cli.fit_stream: a large input must then be in
-wavelength order); two thicknesses, --json and --on-device read their input whole, up to a size limit.
+wavelength order; a bad row found part way leaves no -o file, while stdout has had the rows before it);
+--json and --on-device read their input whole, up to a size limit.
 The thickness is never assumed silently: σt scales as 1/ℓ, so a map of another thickness than the
 sample's gives σt off by their ratio. The output states the thickness the fit used (the map's; with
 two maps "0.4+0.8"), and so does a line on stderr; `--thickness` declares the sample's, and a map of
@@ -43,7 +44,7 @@ import argparse
 import json
 import math
 import sys
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, SupportsFloat
 
@@ -104,11 +105,6 @@ def _polish_steps(text: str) -> int:
     if not 0 <= value <= 100:
         raise argparse.ArgumentTypeError(f"{text!r} is not a number of Newton steps in 0..100")
     return value
-
-
-def read_measurements(path: Path) -> dict[str, np.ndarray]:
-    """The whole input, for the fits that need every row at once (trimeter.cli.fit_stream.read_whole)."""
-    return fit_stream.read_whole(path)
 
 
 def _split_thicknesses(data: dict[str, np.ndarray], amaps: Sequence[FitSource], path: Path) -> list[np.ndarray]:
@@ -190,9 +186,9 @@ def run(args: argparse.Namespace) -> int:
     if len({round(m.thickness_mm, 9) for m in amaps}) != len(amaps):
         raise InputError("--map: the maps must be for different thicknesses")
     check_declared_thickness(args.thickness, amaps)
-    if len(amaps) == 1 and not args.json:
-        return _run_streamed(args, amaps[0], method, table_file)
-    data = read_measurements(args.input)
+    if not args.json:
+        return _run_streamed(args, amaps, method, table_file)
+    data = fit_stream.read_whole(args.input)
     groups = _split_thicknesses(data, amaps, args.input)
     stack = lambda name: np.stack([data[name][rows] for rows in groups])  # noqa: E731
     rho_b = stack("rho_b") if "rho_b" in data else None
@@ -226,43 +222,79 @@ def _thickness_line(args: argparse.Namespace, amaps: Sequence[FitSource], identi
     return f"thickness: {used} mm ({source}; {fitted})"
 
 
-def _run_streamed(args: argparse.Namespace, model: FitSource, method: str, table_file: DeviceTable | None) -> int:
-    """One map (or a table refined at load) with CSV output: the input read, fitted and written in chunks
+def _run_streamed(args: argparse.Namespace, models: Sequence[FitSource], method: str,
+                  table_file: DeviceTable | None) -> int:
+    """The maps (or a table refined at load) with CSV output: the input read, fitted and written in chunks
     (trimeter.cli.fit_stream), the same output as one fit of every row."""
     from trimeter.maps.artifacts import fit
 
-    thickness_std: list[float] = []  # fixed by the first chunk: every row of a sample has the same
-    rows_before = [0]                # the chunk's first row in the whole input (the paper method's samples)
+    thickness_stds: list[list[float]] = [[] for _ in models]  # fixed by the first chunk: one per sample
+    bins_before = [0]  # the chunk's first bin in the whole input (the paper method's samples)
 
     def fit_chunk(chunk: Chunk) -> Chunk:
-        rows = _split_thicknesses(chunk, [model], args.input)[0]  # checks thickness_mm; the chunk is in order
-        one = lambda name: chunk[name][rows][None, :]  # noqa: E731
-        options: dict[str, Any] = {name: one(name) for name in ("I_b_std", "I_w_std", "I_c_std") if name in chunk}
+        groups = _split_thicknesses(chunk, models, args.input)  # checks thickness_mm; in order already
+        stack = lambda name: np.stack([chunk[name][rows] for rows in groups])  # noqa: E731
+        options: dict[str, Any] = {name: stack(name) for name in ("I_b_std", "I_w_std", "I_c_std") if name in chunk}
         if "thickness_std_mm" in chunk:
-            options["thickness_std_mm"] = _streamed_thickness_std(chunk["thickness_std_mm"], thickness_std, model,
-                                                                  args.input)
+            options["thickness_std_mm"] = [
+                _streamed_thickness_std(chunk["thickness_std_mm"][rows], seen, model, args.input)
+                for rows, seen, model in zip(groups, thickness_stds, models, strict=True)]
         if args.polish is not None:
             options["polish"] = args.polish
         if method == "paper":
-            options["first_row"] = rows_before[0]
-        rows_before[0] += len(rows)
-        result = fit([model], one("I_b"), one("I_w"), one("I_c"), one("rho_b") if "rho_b" in chunk else None,
-                     one("rho_w") if "rho_w" in chunk else None, method=method, **options)
-        return {"wavelength_nm": chunk["wavelength_nm"][rows], **result.as_dict()}
+            options["first_row"] = bins_before[0]
+        bins_before[0] += len(groups[0])
+        result = fit(list(models), stack("I_b"), stack("I_w"), stack("I_c"),
+                     stack("rho_b") if "rho_b" in chunk else None, stack("rho_w") if "rho_w" in chunk else None,
+                     method=method, **options)
+        return {"wavelength_nm": chunk["wavelength_nm"][groups[0]], **result.as_dict()}
 
     identity = _table_identity(table_file, "file") if table_file is not None else None
-    tally = fit_stream.fit_csv(args.input, args.output, fit_chunk, f"{model.thickness_mm:g}")
-    for note in tally.advice(1):
+    chunks = None if len(models) == 1 else lambda read: _paired(read, models, args.input)
+    tally = fit_stream.fit_csv(args.input, args.output, fit_chunk, "+".join(f"{m.thickness_mm:g}" for m in models),
+                               regroup=chunks)
+    for note in tally.advice(len(models)):
         print(f"note: {note}", file=sys.stderr)
-    print(_thickness_line(args, [model], identity), file=sys.stderr)
+    print(_thickness_line(args, models, identity), file=sys.stderr)
     if args.output is not None:
         print(f"wrote {args.output}", file=sys.stderr)
     return 0
 
 
-def _streamed_thickness_std(column: np.ndarray, seen: list[float], model: FitSource, path: Path) -> list[float]:
+def _paired(chunks: Iterator[Chunk], models: Sequence[FitSource], path: Path) -> Iterator[Chunk]:
+    """Chunks re-cut so that each holds as many rows of every thickness: the i-th row of one thickness is
+    fitted with the i-th of the others, as in one fit of all rows (rows past the shortest thickness's are
+    carried into the next chunk)."""
+    carry: Chunk | None = None
+    for chunk in chunks:
+        if carry is not None:
+            chunk = {c: np.concatenate([carry[c], v]) for c, v in chunk.items()}
+        if "thickness_mm" not in chunk:
+            raise InputError(f"--input {path}: with {len(models)} maps the column thickness_mm must say "
+                             f"which rows belong to which")
+        member = [np.abs(chunk["thickness_mm"] - m.thickness_mm) <= 1e-6 * max(1.0, m.thickness_mm) for m in models]
+        shortest = min(int(m.sum()) for m in member)
+        keep = ~np.logical_or.reduce(member)  # rows of no thickness: kept, to be refused with the chunk
+        for m in member:
+            keep |= m & (np.cumsum(m) <= shortest)
+        carry = {c: v[~keep] for c, v in chunk.items()}
+        if keep.any():
+            yield {c: v[keep] for c, v in chunk.items()}
+    if carry is not None and len(carry["wavelength_nm"]):
+        counts = [int((np.abs(carry["thickness_mm"] - m.thickness_mm) <= 1e-6 * max(1.0, m.thickness_mm)).sum())
+                  for m in models]
+        longer = models[int(np.argmax(counts))]
+        raise InputError(f"--input {path}: thickness {longer.thickness_mm:g} mm has {max(counts)} more row(s) than "
+                         f"another: the thicknesses must cover the same wavelengths")
+
+
+def _streamed_thickness_std(column: np.ndarray, seen: list[float], model: FitSource, path: Path) -> float:
     """The sample thickness's std for a chunk of a streamed input: the first chunk's (one value), which every
     later row must repeat or leave empty."""
+    if not seen:
+        _refuse_unknown_std(column, path)
+    elif np.isinf(column).any():
+        _refuse_unknown_std(column[np.isinf(column)], path)
     values = np.unique(column[np.isfinite(column)])
     first = not seen
     if first:
@@ -275,7 +307,15 @@ def _streamed_thickness_std(column: np.ndarray, seen: list[float], model: FitSou
         raise InputError(f"--input {path}: column thickness_std_mm differs between the rows of thickness "
                          f"{model.thickness_mm:g} mm ({shown_values[0]:g}, {shown_values[1]:g}, …): one sample, "
                          f"one std")
-    return [0.0 if math.isnan(seen[0]) else seen[0]]
+    return 0.0 if math.isnan(seen[0]) else seen[0]
+
+
+def _refuse_unknown_std(column: np.ndarray, path: Path) -> None:
+    """A sample's thickness_std_mm cells: an infinite one, or none finite at all (NaN, empty), is refused — never
+    read as 0, an exact thickness. Empty cells beside a finite one repeat it."""
+    if np.isinf(column).any() or not np.isfinite(column).any():
+        raise InputError(f"--input {path}: column thickness_std_mm is not a finite number for a sample (NaN, "
+                         f"empty or infinite; 0: the thickness is exact)")
 
 
 def _table_identity(table: DeviceTable, source: str, slot: str | None = None) -> dict[str, Any]:
@@ -336,7 +376,7 @@ def _run_table_fit(args: argparse.Namespace, table: DeviceTable) -> int:
         if args.output is not None:
             print(f"wrote {args.output}", file=sys.stderr)
         return 0
-    data = read_measurements(args.input)
+    data = fit_stream.read_whole(args.input)
     rows = _split_thicknesses(data, [table], args.input)[0]
     rho_b, rho_w = _backgrounds(data, rows, table)
     alpha, sigma_t, g, flags = fitter.fit(data["I_b"][rows], data["I_w"][rows], data["I_c"][rows], rho_b, rho_w)
@@ -352,7 +392,7 @@ def _run_on_device(args: argparse.Namespace) -> int:
     from trimeter.maps.device_table import instrument_table
 
     refuse_output_onto_inputs(args.output, [args.input])
-    data = read_measurements(args.input)
+    data = fit_stream.read_whole(args.input)
     with open_device(settings_from(args)) as device:
         table, slot, _cached = instrument_table(device)
         check_declared_thickness(args.thickness, [table])
@@ -406,13 +446,9 @@ def _table_fit_columns(data: Chunk, rows: np.ndarray, table: DeviceTable,
 def _thickness_std(column: np.ndarray, groups: list[np.ndarray], amaps: Sequence[FitSource], path: Path) -> list[float]:
     """One thickness std per map from the column: the same value on every row of that thickness."""
     out = []
-    if not np.isfinite(column).all():  # a NaN std is no "exact thickness": refused, never read as 0
-        bad = np.flatnonzero(~np.isfinite(column))
-        raise InputError(f"--input {path}: column thickness_std_mm is not a finite number on row(s) "
-                         f"{', '.join(str(i + 1) for i in bad[:5])}{', …' if len(bad) > 5 else ''} (0: the thickness "
-                         f"is exact)")
     for rows, amap in zip(groups, amaps, strict=True):
-        values = np.unique(column[rows])
+        _refuse_unknown_std(column[rows], path)
+        values = np.unique(column[rows][np.isfinite(column[rows])])
         if len(values) > 1:
             raise InputError(f"--input {path}: column thickness_std_mm differs between the rows of thickness "
                              f"{amap.thickness_mm:g} mm ({values[0]:g}, {values[1]:g}, …): one sample, one std")

@@ -117,7 +117,7 @@ def _validate(args: argparse.Namespace) -> int:
                     f"{c['rendered']:.5f} ± {c['stderr']:.5f}, closed form {c['closed_form']:.5f} "
                     f"({c['abs_err']:+.5f}, {c['rel_err_pct']:+.3f} %)")
     if args.inscatter:
-        from trimeter.forward.inscatter import inscatter_report
+        from trimeter.forward.transport.inscatter_tracer import inscatter_report
 
         report["inscatter"] = inscatter_report(seed=args.seed, say=say)
     if args.json:

@@ -10,10 +10,12 @@ import json
 from typing import TYPE_CHECKING
 
 from trimeter.cli._instrument import add_instrument_args, open_device, open_spectrometer, settings_from
+from trimeter.sequences.calibrate import previous_calibration
 from trimeter.sequences.selftest import FAIL, PASS, SKIP, CheckResult, SelfTestReport, run_selftest
 
 if TYPE_CHECKING:
     from trimeter.device import Device
+    from trimeter.domain import Calibration
     from trimeter.spectrometer import Spectrometer
 
 _STYLE = {PASS: ("PASS", "green"), FAIL: ("FAIL", "bold red"), SKIP: ("not judged", "yellow")}
@@ -25,7 +27,9 @@ def run(args: argparse.Namespace) -> int:
     try:
         spectrometer = open_spectrometer(settings)
         try:
-            report = run_selftest(device, spectrometer) if args.json else _run_with_progress(device, spectrometer)
+            calibration = previous_calibration(settings)
+            report = (run_selftest(device, spectrometer, calibration=calibration) if args.json
+                      else _run_with_progress(device, spectrometer, calibration))
         finally:
             spectrometer.close()
     finally:
@@ -37,7 +41,8 @@ def run(args: argparse.Namespace) -> int:
     return 0 if report.passed else 1
 
 
-def _run_with_progress(device: Device, spectrometer: Spectrometer) -> SelfTestReport:
+def _run_with_progress(device: Device, spectrometer: Spectrometer, calibration: Calibration | None
+                       ) -> SelfTestReport:
     from rich.console import Console
 
     console = Console()
@@ -48,7 +53,7 @@ def _run_with_progress(device: Device, spectrometer: Spectrometer) -> SelfTestRe
             if index + 1 < total:
                 status.update(f"selftest: check {index + 2} of {total}")
 
-        return run_selftest(device, spectrometer, on_result=on_result)
+        return run_selftest(device, spectrometer, calibration=calibration, on_result=on_result)
 
 
 def _print_table(report: SelfTestReport) -> None:

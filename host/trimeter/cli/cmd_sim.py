@@ -124,9 +124,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--map", default=None, metavar="PATH",
                    help="appearance map for the sample's thickness (default: the shipped device maps)")
     p.add_argument("--white", default="white", choices=("white", "ptfe"), help="white background material")
-    p.add_argument("--sensor", default="spectrometer", choices=("spectrometer", "as7341"),
+    p.add_argument("--sensor", default="spectrometer", choices=("spectrometer", "as7341", "c12880ma"),
                    help="what the host reads: the spectrometer's pixels or the AS7341's nine channels (counts, gain, "
-                        "integration, noise, saturation; its band weights over BANDS?)")
+                        "integration, noise, saturation; its band weights over BANDS?), or the firmware's C12880MA "
+                        "micro-spectrometer (read over Modbus: the spectrometer URL is mcu:<modbus port>)")
     p.add_argument("--seed", type=int, default=None, help="noise seed (reproducible spectra)")
     p.add_argument("--json", action="store_true", help="print the ports as one JSON line")
     p.add_argument("--list-materials", action="store_true", help="list the virtual samples and exit")

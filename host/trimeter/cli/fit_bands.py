@@ -31,67 +31,34 @@ CHANNEL_OPTIONAL = ("rho_b", "rho_w", "I_b_std", "I_w_std", "I_c_std")
 OUTPUT = ("channel", "wavelength_nm", "alpha", "sigma_t", "g", "alpha_std", "sigma_t_std", "g_std", "flags",
           "sigma_t_beer")
 BUILT_IN = ("as7341",)
+MAX_TABLE_BYTES = 1_000_000  # a CHANNELS table: one row per channel
 
 
-def read_table(path: Path, option: str, required: tuple[str, ...], text: tuple[str, ...] = (),
-               optional: tuple[str, ...] | None = None) -> dict[str, list]:
-    """A CSV's columns by name: `text` columns as stripped strings, the others as floats (empty → NaN);
-    `optional` None: every other column is read too. One clear InputError per problem."""
-    try:
-        raw = path.read_text(encoding="utf-8-sig")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"{option} {path}: cannot read ({getattr(exc, 'strerror', None) or exc})") from None
-    lines = (line for line in raw.splitlines() if line.strip() and not line.lstrip().startswith("#"))
+def read_channels(path: Path) -> tuple[list[str], dict[str, np.ndarray]]:
+    """CHANNELS: the channel names (the one text column) and the number columns, through the tables
+    reader's rules (trimeter.tables); one clear InputError per problem."""
+    from trimeter.tables import read_columns, read_text
+
+    numbers = read_columns(path, required=CHANNEL_COLUMNS[1:], optional=CHANNEL_OPTIONAL, max_bytes=MAX_TABLE_BYTES,
+                           what="--input")
+    lines = [line for line in read_text(path, max_bytes=MAX_TABLE_BYTES, what="--input").splitlines()
+             if line.strip() and not line.lstrip().startswith("#")]
     try:
         rows = list(csv.reader(lines))
     except csv.Error as exc:
-        raise InputError(f"{option} {path}: not a readable CSV ({exc})") from None
-    header = [h.strip() for h in rows[0]] if rows else []
-    duplicated = sorted({h for h in header if header.count(h) > 1})
-    if duplicated:
-        raise InputError(f"{option} {path}: column(s) {', '.join(map(shown, duplicated))} appear more than once")
-    missing = [c for c in required if c not in header]
-    if missing:
-        raise InputError(f"{option} {path}: missing column(s) {', '.join(missing)} (have: "
-                         f"{', '.join(map(shown, header)) or 'none'})")
-    wanted = [c for c in header if c in required or optional is None or c in optional]
-    columns: dict[str, list] = {c: [] for c in wanted}
-    for row_no, row in enumerate(rows[1:], start=2):
-        for c in wanted:
-            i = header.index(c)
-            cell = row[i].strip() if i < len(row) else ""
-            if c in text:
-                columns[c].append(cell)
-                continue
-            try:
-                columns[c].append(float(cell) if cell else math.nan)
-            except ValueError:
-                raise InputError(f"{option} {path}: line {row_no}, column {c}: {shown(cell)} is not a number") from None
-    if len(rows) < 2:
-        raise InputError(f"{option} {path}: no data rows")
-    return columns
+        raise InputError(f"--input {path}: not a readable CSV ({exc})") from None
+    header = [h.strip() for h in rows[0]]
+    if "channel" not in header:
+        raise InputError(f"--input {path}: missing column channel (have: {', '.join(map(shown, header))})")
+    i = header.index("channel")
+    return [row[i].strip() if i < len(row) else "" for row in rows[1:]], numbers
 
 
 def read_weights(spec: str) -> BandWeights:
     """--bands: a WEIGHTS.csv, or a built-in sensor model's name."""
-    from trimeter.inversion.bands import band_weights
+    from trimeter.spectrometer.sensors import as7341_weights, read_band_weights
 
-    if spec in BUILT_IN:
-        from trimeter.spectrometer.sensors import as7341_weights
-
-        return as7341_weights()
-    path = Path(spec)
-    table = read_table(path, "--bands", ("wavelength_nm",))
-    names = [c[: -len("_diffuse")] for c in table if c.endswith("_diffuse")]
-    lonely = [c for c in table if c.endswith("_collimated") and c[: -len("_collimated")] not in names]
-    if not names:
-        raise InputError(f"--bands {path}: no <channel>_diffuse columns (have: {', '.join(table)})")
-    without = [n for n in names if f"{n}_collimated" not in table]
-    if without or lonely:
-        raise InputError(f"--bands {path}: each channel needs both <channel>_diffuse and <channel>_collimated "
-                         f"(incomplete: {', '.join(without + [c.rsplit('_', 1)[0] for c in lonely])})")
-    return band_weights(table["wavelength_nm"], names, [table[f"{n}_diffuse"] for n in names],
-                        [table[f"{n}_collimated"] for n in names], where=f"--bands {path}")
+    return as7341_weights() if spec in BUILT_IN else read_band_weights(Path(spec), what="--bands")
 
 
 def parse_grid(text: str) -> np.ndarray:
@@ -120,8 +87,7 @@ def run_bands(args: argparse.Namespace) -> int:
     refuse_output_onto_inputs(args.output, [args.input, args.bands, *([amap.path] if amap.path else [])])
     grid_nm = parse_grid(args.grid) if args.grid else None
     weights = read_weights(args.bands)
-    table = read_table(args.input, "--input", CHANNEL_COLUMNS, text=("channel",), optional=CHANNEL_OPTIONAL)
-    names = table["channel"]
+    names, col = read_channels(args.input)
     repeated = sorted({n for n in names if names.count(n) > 1})
     if "" in names or repeated:
         raise InputError(f"--input {args.input}: every row names its channel once ("
@@ -130,7 +96,6 @@ def run_bands(args: argparse.Namespace) -> int:
         raise InputError(f"--input {args.input}: one channel only; a band-aware fit needs at least 2 (it fits "
                          f"spectra across them)")
     weights = weights.select(names, where=f"--input {args.input}")
-    col = {k: np.asarray(v, dtype=float) for k, v in table.items() if k != "channel"}
     result = fit_bands(load_artifacts(amap), weights, col["I_b"], col["I_w"], col["I_c"], col.get("rho_b"),
                        col.get("rho_w"), I_b_std=col.get("I_b_std"), I_w_std=col.get("I_w_std"),
                        I_c_std=col.get("I_c_std"), grid_nm=grid_nm)

@@ -1,13 +1,14 @@
 """`trimeter fit`'s input and CSV output in chunks of rows: read, fitted and written a chunk at a time, so memory
 stays bounded for any number of rows, and the output is the same, bit for bit, as one fit of every row
-(each bin is fitted on its own; chunks are whole multiples of the kernel's vector width).
+(each bin is fitted on its own, whatever its place in a batch; the paper method's samples are placed by
+the bin's row in the whole input).
 
 The output lists the rows in wavelength order. An input up to WHOLE_INPUT_BYTES is read whole and sorted
 (its rows in any order), then fitted and written in chunks; a larger one is streamed and must come in
-wavelength order already (`sort -t, -k1,1g` sorts one), checked as it is read. Fits that need every row at
-once (two thicknesses: rows are paired by wavelength; JSON output: written by column; the instrument's fit)
-read inputs up to WHOLE_FIT_BYTES whole. Inputs over MAX_INPUT_BYTES, and anything but a regular file (a
-FIFO, /dev/zero), are refused before a row is read.
+wavelength order already (`sort -t, -k1,1g` sorts one), checked as it is read. Two thicknesses are
+paired row by row within each chunk as in one fit of all rows. Fits that need every row at once (JSON
+output: written by column; the instrument's fit) read inputs up to WHOLE_FIT_BYTES whole. Inputs over
+MAX_INPUT_BYTES, and anything but a regular file (a FIFO, /dev/zero), are refused before a row is read.
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ OUTPUT = ("wavelength_nm", "alpha", "sigma_t", "g", "alpha_std", "sigma_t_std", 
 MAX_INPUT_BYTES = 16_000_000_000    # ~2e8 rows: beyond, split the input
 WHOLE_INPUT_BYTES = 32_000_000      # read whole (any row order) up to this; stream (in wavelength order) above
 WHOLE_FIT_BYTES = 200_000_000       # the fits that need every row at once (two thicknesses, JSON, on the device)
-CHUNK_ROWS = 1 << 16                # a multiple of every SIMD width, so no bin moves between a vector and a tail
+CHUNK_ROWS = 1 << 16
 
 Chunk = dict[str, np.ndarray]
 
@@ -49,15 +50,15 @@ def _check_wavelengths(chunk: Chunk, path: Path) -> None:
 
 
 def read_whole(path: Path, max_bytes: int | None = None) -> Chunk:
-    """Every row of the input as columns (for the fits that need them all at once: two thicknesses, JSON
-    output, the instrument's fit); an input over `max_bytes` is refused with what to do instead."""
+    """Every row of the input as columns (for the fits that need them all at once: JSON output, the
+    instrument's fit); an input over `max_bytes` is refused with what to do instead."""
     max_bytes = WHOLE_FIT_BYTES if max_bytes is None else max_bytes
     with reader(path) as table:
         size = table.size_bytes
         if size > max_bytes:
-            raise InputError(f"--input {path}: {size} bytes; this fit (two thicknesses, --json or --on-device) "
-                             f"reads its input whole, up to {max_bytes} bytes: fit one thickness at a time with "
-                             f"CSV output, which streams inputs of any size")
+            raise InputError(f"--input {path}: {size} bytes; this fit (--json or --on-device) reads its input "
+                             f"whole, up to {max_bytes} bytes: fit with CSV output, which streams inputs of any "
+                             f"size")
         parts = list(table.chunks())
         columns = table.columns
     if not parts:
@@ -156,11 +157,15 @@ class _TextSink:
 
 
 def fit_csv(path: Path, out: Path | None, fit_chunk: Callable[[Chunk], Chunk], used: str, *,
-            chunk_rows: int | None = None, whole_bytes: int | None = None) -> FlagTally:
+            chunk_rows: int | None = None, whole_bytes: int | None = None,
+            regroup: Callable[[Iterator[Chunk]], Iterator[Chunk]] | None = None) -> FlagTally:
     """Fit the input `path` chunk by chunk with `fit_chunk` (input columns → OUTPUT columns but the last) and
-    write the CSV to `out` (None: stdout); returns the flags' tally."""
+    write the CSV to `out` (None: stdout); returns the flags' tally. `regroup` re-cuts the sorted chunks
+    (e.g. so that each holds whole pairs of thicknesses)."""
     tally = FlagTally()
     chunks = sorted_chunks(path, chunk_rows, whole_bytes)
+    if regroup is not None:
+        chunks = regroup(chunks)
     first = next(chunks)  # the input's errors found up to here come before any output
     with output(out) as f:
         f.write((",".join(OUTPUT) + "\n").encode())

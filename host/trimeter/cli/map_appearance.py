@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 
 from trimeter.errors import InputError, MapFileError
-from trimeter.maps.pipeline import DEFAULT_STAGES, STAGES
+from trimeter.maps.stages import DEFAULT_STAGES, STAGES, parse_stages
 from trimeter.validation import require_material, require_reflectance
 
 
@@ -93,9 +93,9 @@ def load_appearance_map(name_or_path):
 def cmd_build(args) -> int:
     from trimeter.maps import pipeline
     from trimeter.maps.recipe import load_recipe
-    from trimeter.maps.tracer import resolve_backend
+    from trimeter.forward.transport import resolve_backend
 
-    stages = pipeline.parse_stages(args.stages)
+    stages = parse_stages(args.stages)
     backend = resolve_backend(args.backend)
     if len(args.recipe) > 1 and (args.out or args.checkpoint):
         raise InputError("--out and --checkpoint name one map's files: with several recipes use --out-dir")

@@ -60,7 +60,7 @@ def _serve_http(args: argparse.Namespace, settings: HostSettings, services: list
     from trimeter.web.app import WebServer, parse_bind
     from trimeter.web.auth import load_or_create_token
     from trimeter.web.history import History
-    from trimeter.web.instruments_routes import create_lab_app
+    from trimeter.web.app import create_lab_app
     from trimeter.web.jobs import Jobs
 
     host, port = parse_bind(args.http)

@@ -30,8 +30,8 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from trimeter import registers as regs
-from trimeter.device.transport import (MAX_FILE_RECORD_WORDS, MAX_READ_BITS, MAX_READ_WORDS, ModbusExceptionReply,
-                                       RtuTransport, Transport)
+from trimeter.device.transport import (MAX_FILE_RECORD_WORDS, MAX_READ_BITS, MAX_READ_WORDS, LinkError,
+                                       ModbusExceptionReply, RtuTransport, Transport)
 from trimeter.errors import DeviceError, InputError
 
 _STRUCT = {"u16": ">H", "i16": ">h", "u32": ">I", "i32": ">i", "f32": ">f"}
@@ -47,6 +47,9 @@ CONFIG_NAMES = tuple(r.name for r in regs.REGISTERS if r.table == "holding_regis
 # map at run time, so callers see Any.
 Value = Any
 
+
+# How long a map table read may keep resuming after lost records (a full table on a clean line takes seconds).
+MAP_READ_BUDGET_S = 120.0
 
 def encode(reg: regs.Register, value: Any) -> list[int]:
     """Physical value -> register words (or [0/1] for a bit), refusing out-of-range values by name. The same
@@ -640,24 +643,47 @@ class Device:
         return np.frombuffer(data, dtype=FIT_OUTPUT_DTYPE)
 
     def read_map(self, slot: regs.MapSlot | str, length: int | None = None, *, offset: int = 0,
-                 progress: Callable[[int, int], None] | None = None) -> bytes:
-        """Read `length` bytes of a slot from `offset` (even) through file records (map_read_slot selects it)."""
+                 progress: Callable[[int, int], None] | None = None,
+                 time_budget_s: float = MAP_READ_BUDGET_S) -> bytes:
+        """Read `length` bytes of a slot from `offset` (even) through file records (map_read_slot selects it).
+
+        Resumable: a record the link loses (every transport attempt failed) is asked for again after the link
+        is reopened and the slot selected again, from where the read stopped, for as long as `time_budget_s`
+        allows; only then the LinkError is raised. A table is hundreds of records: on a noisy line, restarting
+        it whole at each lost one would rarely finish."""
         slot = regs.MapSlot[slot.upper()] if isinstance(slot, str) else regs.MapSlot(slot)
         if offset % 2:
             raise InputError("map read offset must be even (16-bit records)")
         if length is None:
             length = self.read(f"map_slot_{slot.name.lower()}_length") - offset
-        self.write("map_read_slot", slot)
+        deadline = time.monotonic() + time_budget_s
         out = bytearray()
         total = length + length % 2
+        selected = False
         try:
             while len(out) < total:
                 record = (offset + len(out)) // 2
                 file_number, record_number = record // regs.MAP_RECORDS_PER_FILE + 1, record % regs.MAP_RECORDS_PER_FILE
                 words = min(MAX_FILE_RECORD_WORDS, regs.MAP_RECORDS_PER_FILE - record_number, (total - len(out)) // 2)
-                out += self.transport.read_file_records(file_number, record_number, words)
+                try:
+                    if not selected:
+                        self.write("map_read_slot", slot)
+                        selected = True
+                    out += self.transport.read_file_records(file_number, record_number, words)
+                except LinkError:
+                    if time.monotonic() >= deadline:
+                        raise
+                    if (stats := getattr(self.transport, "stats", None)) is not None:
+                        stats.resumed_reads += 1
+                    selected = False  # a reopened link may find a reset device: select the slot again
+                    reopen = getattr(self.transport, "reopen", None)
+                    if reopen is not None:
+                        reopen()
+                    continue
                 if progress:
                     progress(len(out), total)
         finally:
-            self.write("map_read_slot", regs.MapSlot.NONE)
+            if selected:
+                with contextlib.suppress(LinkError):  # unselecting is tidiness; the read itself is done or raising
+                    self.write("map_read_slot", regs.MapSlot.NONE)
         return bytes(out[:length])

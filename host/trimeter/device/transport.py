@@ -34,6 +34,7 @@ import asyncio
 import contextlib
 import logging
 import time
+import weakref
 from dataclasses import dataclass, field
 from collections.abc import Iterator
 from typing import Any, Callable, Protocol
@@ -108,8 +109,20 @@ class LinkStats:
     timeouts: int = 0         # attempts that got no reply within the timeout
     reconnects: int = 0
     failures: int = 0
+    resumed_reads: int = 0    # a long read (a map table) went on from where a lost request stopped it
     busy_s: float = field(default=0.0)  # wall time spent inside requests (host + protocol overhead)
     bus_wait_s: float = 0.0   # wall time waiting for the turn on a bus shared with other instruments (device.bus)
+
+
+# The transports open in this process by port: a serial port opens once (exclusively), so a second user of the
+# same link in the process — the instrument's own spectrometer (trimeter.spectrometer.mcu) — shares it.
+_LIVE: "weakref.WeakValueDictionary[str, RtuTransport]" = weakref.WeakValueDictionary()
+
+
+def live_transport(port: str, address: int) -> "RtuTransport | None":
+    """The open transport on `port` to slave `address` in this process, if there is one."""
+    transport = _LIVE.get(port)
+    return transport if transport is not None and transport.address == address and transport.is_open else None
 
 
 class RtuTransport:
@@ -139,7 +152,10 @@ class RtuTransport:
         self._received = b""
         self._expected_reply_bytes = 0  # length of the normal reply to the request in flight (0: unknown)
         self._quiet_s = max(0.02, 10 * 11 / baudrate)  # line quiet this long after a garbled reply: it is over
+        self.is_open = False
         self._open(deadline=time.monotonic() + reconnect_timeout_s)
+        self.is_open = True
+        _LIVE[port] = self
 
     # ------------------------------------------------------------------------------------ link care
     def _open(self, deadline: float) -> None:
@@ -191,6 +207,9 @@ class RtuTransport:
         sock.reset_input_buffer()
 
     def close(self) -> None:
+        self.is_open = False
+        if _LIVE.get(self.port) is self:
+            del _LIVE[self.port]
         self._client.close()
 
     def listen_after(self, frame: bytes, listen_s: float) -> bytes:

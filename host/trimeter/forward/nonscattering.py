@@ -23,21 +23,10 @@ import numpy as np
 
 from trimeter.forward.scenes import panel_corners, resolve_geometry
 from trimeter.geometry import cover_slide_n
+from trimeter.model.fresnel import NUMPY, fresnel
 
 _MU, _MU_W = np.polynomial.legendre.leggauss(256)
 _MU, _MU_W = (_MU + 1) / 2, _MU_W / 2           # nodes and weights on [0, 1]
-
-
-def fresnel_unpolarized(cos_i, n1: float, n2: float):
-    """Unpolarised Fresnel reflectance from medium n1 into n2 at incidence cosine cos_i (1 beyond TIR)."""
-    cos_i = np.clip(np.asarray(cos_i, dtype=float), 0.0, 1.0)
-    sin_t2 = (n1 / n2) ** 2 * (1.0 - cos_i**2)
-    tir = sin_t2 >= 1.0
-    cos_t = np.sqrt(np.clip(1.0 - sin_t2, 0.0, 1.0))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        rs = ((n1 * cos_i - n2 * cos_t) / (n1 * cos_i + n2 * cos_t)) ** 2
-        rp = ((n1 * cos_t - n2 * cos_i) / (n1 * cos_t + n2 * cos_i)) ** 2
-    return np.where(tir, 1.0, np.nan_to_num(0.5 * (rs + rp), nan=1.0))
 
 
 def stack_rt(mu_air, indices, optical_depths):
@@ -51,7 +40,7 @@ def stack_rt(mu_air, indices, optical_depths):
     for j in range(len(indices) - 1):
         n1, n2 = indices[j], indices[j + 1]
         cos1 = np.sqrt(np.clip(1.0 - sin2 / n1**2, 0.0, 1.0))
-        r = fresnel_unpolarized(cos1, n1, n2)
+        r = fresnel(NUMPY, cos1, n2 / n1)[0]
         if j > 0:
             # cross layer j (medium indices[j]) along its internal direction
             x = np.exp(-np.asarray(optical_depths[j - 1], dtype=float) / np.maximum(cos1, 1e-300))

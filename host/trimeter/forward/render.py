@@ -85,6 +85,14 @@ def render_diffuse(geometry, alpha: float, sigma_t: float, g: float, n: float, t
     """Reflectance factor I and its Monte Carlo std-error for one material on a Lambertian background
     of reflectance ρ, rendered with volpath. σt in 1/mm, ℓ in mm; `geometry` a preset name or dict;
     `z_offset` [mm]: the scene moved along its normal (render_diffuse_offset_free)."""
+    means = render_diffuse_batches(geometry, alpha, sigma_t, g, n, thickness_mm, rho, spp, seed, z_offset)
+    return float(means.mean()), float(means.std(ddof=1) / math.sqrt(BATCHES))
+
+
+def render_diffuse_batches(geometry, alpha: float, sigma_t: float, g: float, n: float, thickness_mm: float,
+                           rho: float, spp: int = DEFAULT_SPP, seed: int = 0, z_offset: float = 0.0) -> np.ndarray:
+    """render_diffuse's BATCHES batch means (reflectance factors), for comparisons whose renders share
+    seeds: their batch-wise differences give the difference's own std-error, smaller than either's."""
     alpha, sigma_t, g = require_material(alpha, sigma_t, g)
     n, thickness_mm = require_sample(n, thickness_mm)
     rho = require_reflectance("rho", rho)
@@ -97,8 +105,7 @@ def render_diffuse(geometry, alpha: float, sigma_t: float, g: float, n: float, t
         p[PARAM_KEYS[name]] = value
     p.update()
     integrator, _ = _integrator(mi, alpha)
-    means = render_pixel(loaded.scene, integrator, spp, seed) * loaded.scale
-    return float(means.mean()), float(means.std(ddof=1) / math.sqrt(BATCHES))
+    return render_pixel(loaded.scene, integrator, spp, seed) * loaded.scale
 
 
 # Rays per launch of render_pixel (memory: volpath's state is a few hundred bytes per ray).
@@ -123,7 +130,10 @@ def render_pixel(scene, integrator, spp: int, seed: int, batches: int = BATCHES)
             sampler.seed(((seed * batches + b) * 4096 + j) & 0xFFFFFFFF, lanes)
             ray, weight = sensor.sample_ray(0.0, sampler.next_1d(), sampler.next_2d(), sampler.next_2d())
             radiance, _, _ = integrator.sample(scene, sampler, ray, None, True)    # the sensors are in air
-            total += float(np.asarray(radiance * weight, dtype=np.float64).sum())
+            value = radiance * weight
+            if mi.is_polarized:  # a Mueller matrix per ray: the unpolarised detector reads its intensity element
+                value = mi.unpolarized_spectrum(value)
+            total += float(np.asarray(value, dtype=np.float64).sum())
         means[b] = total / per_batch
     return means
 

@@ -59,7 +59,8 @@ UNDERDETERMINED_ALPHA_STD, UNDERDETERMINED_G_STD = 0.1, 0.2  # FitFlag.UNDERDETE
 # that fraction (newton.step_is_small). The figures behind the value: the git history of maps/README.md.
 POLISH_TOL_STD = 3e-3
 # The in-scattering correction's relative std: how far the map's table and independent, longer traces
-# differ over the measurable gamut, with room for the tracer's approximations (trimeter.forward.inscatter).
+# differ over the measurable gamut, with room for the tracer's approximations
+# (trimeter.forward.transport.inscatter_tracer).
 INSCATTER_REL_STD = 0.05
 # First order is checked (_std_approximate) only where a bin's α or g std is above these, a fifth of
 # the UNDERDETERMINED thresholds: below them the check changes no coverage figure noticeably, and it
@@ -170,13 +171,18 @@ def fit(models: FitModel | Sequence[FitModel], I_b: ArrayLike, I_w: ArrayLike, I
     if strategy.fit_all is not None:  # strategy.joint
         return strategy.fit_all(amaps, arrays, stds, thickness_rel, kernel=kernel, samples=samples, epsilon=epsilon,
                                 seed=seed, first_row=int(require_number("first_row", first_row, lo=0)), **opts)
+    # several thicknesses: each fitted into its place in the kernel's combine layout (no gathering after)
+    blocks = kernel.output_blocks(k, arrays[0][0].shape[0]) if k > 1 else None
     singles = [_fit_one(amap, *arrays[i], sd=stds[i], thickness_rel_std=thickness_rel[i], method=strategy,
-                        kernel=kernel, polish=polish, polish_tol=polish_tol, mlp_model=mlp_model, **opts)
+                        kernel=kernel, polish=polish, polish_tol=polish_tol, mlp_model=mlp_model,
+                        block=None if blocks is None else blocks[i], **opts)
                for i, amap in enumerate(amaps)]
     if k == 1:
         return singles[0]
+    # (a kernel whose fused path declined a thickness left that one's columns elsewhere: gathered then)
+    fused = blocks is not None and all(r.alpha.base is blocks for r in singles)
     combined = kernel.combine(singles, method, underdetermined_std=(UNDERDETERMINED_ALPHA_STD, UNDERDETERMINED_G_STD),
-                              disagree_sigmas=_DISAGREE_SIGMAS)
+                              disagree_sigmas=_DISAGREE_SIGMAS, blocks=blocks if fused else None)
     combined = combine(singles, method) if combined is None else combined
     combined.guess_fallback_bins = sum(r.guess_fallback_bins for r in singles)
     return combined
@@ -271,14 +277,16 @@ def _sanitize(x: np.ndarray, lo: float, hi: float, fill: float) -> np.ndarray:
 def _fit_one(model: FitModel, I_b: np.ndarray, I_w: np.ndarray, I_c: np.ndarray, rho_b: np.ndarray,
              rho_w: np.ndarray, *, sd: np.ndarray | None, thickness_rel_std: float, method: Method, kernel: Kernel,
              polish: int, polish_tol: float, mlp_model: str | Path | None, noise_rel: float, noise_abs: float,
-             ic_floor: float, alpha_min_g: float, inscatter_rel_std: float) -> FitResult:
+             ic_floor: float, alpha_min_g: float, inscatter_rel_std: float,
+             block: np.ndarray | None = None) -> FitResult:
     inverter = model.inverter
     grid = inverter.grid
     guesser = None if method.guesser is None else method.guesser(model, {"mlp_model": mlp_model})
     options = native_options(model, grid, polish=polish, polish_tol=polish_tol, noise_rel=noise_rel,
                              noise_abs=noise_abs, ic_floor=ic_floor, alpha_min_g=alpha_min_g,
                              thickness_rel_std=thickness_rel_std, inscatter_rel_std=inscatter_rel_std)
-    out = kernel.fused_fit(inverter, I_b, I_w, I_c, rho_b, rho_w, sd=sd, guesser=guesser, options=options)
+    out = kernel.fused_fit(inverter, I_b, I_w, I_c, rho_b, rho_w, sd=sd, guesser=guesser, options=options,
+                           block=block)
     if out is not None:
         if sd is None:  # the noise model's stds: the conditioning stds are the stds themselves
             out["conditioning_alpha_std"] = out["conditioning_g_std"] = None

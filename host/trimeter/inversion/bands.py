@@ -210,7 +210,7 @@ class BandFit:
     grid_nm: np.ndarray | None = None
     on_grid: FitResult | None = None
     basis: str = "cubic"
-    iterations: int = 0
+    evaluations: int = 0  # of the readings, by the solver
 
 
 class _BandModel:
@@ -340,7 +340,7 @@ def fit_bands(model: FitModel, weights: BandWeights, I_b: ArrayLike, I_w: ArrayL
         flags |= np.where(_unresolved(result, other), int(FitFlag.BAND_UNRESOLVED), 0)
     result.flags = np.where(usable, flags, start.flags)
     _blank(result, ~usable)
-    out = BandFit(weights.centre_nm.copy(), result, start, basis=basis, iterations=int(solution.nfev))
+    out = BandFit(weights.centre_nm.copy(), result, start, basis=basis, evaluations=int(solution.nfev))
     if grid_nm is not None:
         lam = np.asarray(grid_nm, dtype=float)
         on_grid = _evaluate(band, u, cov, _basis(band.knots, lam, basis), grid, UNDERDETERMINED_ALPHA_STD,

@@ -52,15 +52,21 @@ class Kernel(Protocol):
         """First-order stds of (α, σt, g) (newton.propagate)."""
 
     def fused_fit(self, inverter: TableInverter, I_b: np.ndarray, I_w: np.ndarray, I_c: np.ndarray, rho_b: np.ndarray,
-                  rho_w: np.ndarray, *, sd: Any, guesser: Guesser | None,
-                  options: dict[str, Any]) -> dict[str, Any] | None:
+                  rho_w: np.ndarray, *, sd: Any, guesser: Guesser | None, options: dict[str, Any],
+                  block: np.ndarray | None = None) -> dict[str, Any] | None:
         """One thickness's whole fit in one call (FitResult columns), or None where the kernel has no
-        fused path and the fit runs its steps one by one."""
+        fused path and the fit runs its steps one by one. block: where to write it, one of
+        output_blocks' (its columns are then views of it)."""
+
+    def output_blocks(self, k: int, n: int) -> np.ndarray | None:
+        """Room for k thicknesses' fused fits of n bins, laid out as combine reads them (None: the
+        kernel has no such layout)."""
 
     def combine(self, results: list[FitResult], method: str, *, underdetermined_std: tuple[float, float],
-                disagree_sigmas: float) -> FitResult | None:
+                disagree_sigmas: float, blocks: np.ndarray | None = None) -> FitResult | None:
         """Several thicknesses' fits combined (api.combine, whose thresholds are passed in), or None where
-        the kernel has no such path and api.combine runs."""
+        the kernel has no such path and api.combine runs. blocks: output_blocks' array where the results
+        were fused into it, read as it is."""
 
 
 class NumpyKernel:
@@ -84,12 +90,15 @@ class NumpyKernel:
         return newton.propagate(J, sigma_I, sigma_t_var)
 
     def fused_fit(self, inverter: TableInverter, I_b: np.ndarray, I_w: np.ndarray, I_c: np.ndarray, rho_b: np.ndarray,
-                  rho_w: np.ndarray, *, sd: Any, guesser: Guesser | None,
-                  options: dict[str, Any]) -> dict[str, Any] | None:
+                  rho_w: np.ndarray, *, sd: Any, guesser: Guesser | None, options: dict[str, Any],
+                  block: np.ndarray | None = None) -> dict[str, Any] | None:
+        return None
+
+    def output_blocks(self, k: int, n: int) -> np.ndarray | None:
         return None
 
     def combine(self, results: list[FitResult], method: str, *, underdetermined_std: tuple[float, float],
-                disagree_sigmas: float) -> FitResult | None:
+                disagree_sigmas: float, blocks: np.ndarray | None = None) -> FitResult | None:
         return None
 
 
@@ -134,11 +143,11 @@ class NativeKernel:
         return native.propagate(J, sigma_I, sigma_t_var)
 
     def fused_fit(self, inverter: TableInverter, I_b: np.ndarray, I_w: np.ndarray, I_c: np.ndarray, rho_b: np.ndarray,
-                  rho_w: np.ndarray, *, sd: Any, guesser: Guesser | None,
-                  options: dict[str, Any]) -> dict[str, Any] | None:
+                  rho_w: np.ndarray, *, sd: Any, guesser: Guesser | None, options: dict[str, Any],
+                  block: np.ndarray | None = None) -> dict[str, Any] | None:
         solver = self._table_solver(inverter)
         if guesser is None:
-            out = solver.fit(I_b, I_w, I_c, rho_b, rho_w, sd=sd, **options)
+            out = solver.fit(I_b, I_w, I_c, rho_b, rho_w, sd=sd, block=block, **options)
         else:  # the guesser reads the features C prepares; tm_fit_solve clamps its guess to the map's box
             broken: list[int] = []
 
@@ -147,15 +156,29 @@ class NativeKernel:
                 broken.append(int(np.count_nonzero(~np.isfinite(y).all(axis=-1))))  # tm_fit_solve: the table's
                 return y
 
-            out = solver.fit_guessed(I_b, I_w, I_c, rho_b, rho_w, guess, guesser.log_sigma_range, sd=sd, **options)
+            out = solver.fit_guessed(I_b, I_w, I_c, rho_b, rho_w, guess, guesser.log_sigma_range, sd=sd, block=block,
+                                     **options)
             out.pop("features")
             out["guess_fallback_bins"] = sum(broken)
         out.pop("steps")
         return out
 
+    def output_blocks(self, k: int, n: int) -> np.ndarray | None:
+        return np.empty((k, len(_ROWS), n))
+
     def combine(self, results: list[FitResult], method: str, *, underdetermined_std: tuple[float, float],
-                disagree_sigmas: float) -> FitResult | None:
-        """tm_combine over the fits' columns, laid out as tm_fit's output blocks, one per thickness."""
+                disagree_sigmas: float, blocks: np.ndarray | None = None) -> FitResult | None:
+        """tm_combine over the fits' columns, laid out as tm_fit's output blocks, one per thickness:
+        `blocks` where the fits were written there (their conditioning rows are then the stds where a
+        result has none, as tm_fit writes them), else gathered from the results."""
+        fits = blocks if blocks is not None else self._gathered(results)
+        out = native.combine(fits, underdetermined_std, disagree_sigmas)
+        columns = dict(zip(_ROWS, out, strict=True))
+        columns["flags"] = columns["flags"].view(np.int64)
+        return FitResult(**columns, method=method, per_thickness=results)
+
+    @staticmethod
+    def _gathered(results: list[FitResult]) -> np.ndarray:
         k, n = len(results), len(results[0])
         fits = np.empty((k, len(_ROWS), n))
         for block, result in zip(fits, results, strict=True):
@@ -167,10 +190,7 @@ class NativeKernel:
                     row.view(np.int64)[:] = column
                 else:
                     row[:] = column
-        out = native.combine(fits, underdetermined_std, disagree_sigmas)
-        columns = dict(zip(_ROWS, out, strict=True))
-        columns["flags"] = columns["flags"].view(np.int64)
-        return FitResult(**columns, method=method, per_thickness=results)
+        return fits
 
 
 _DEFAULT: list[Kernel] = []

@@ -23,8 +23,8 @@ def solve_alpha_g(grid: ForwardGrid, I_b: np.ndarray, I_w: np.ndarray, cell: Sig
                   rho_w: np.ndarray, alpha0: np.ndarray, g0: np.ndarray, iterations: int = 5, step_tol: float = 0.0,
                   step_var: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
     """Damped Gauss-Newton for (α, g) with I_b, I_w matched at the bins' own ρ_b, ρ_w. Steps are
-    clamped to the map's box. At most `iterations` steps; a bin stops once a step was small in
-    both α and g: at most `step_tol`, or (with step_var, per bin (κ σ_I)², see
+    projected onto the map's box (hold_at_edges) and clamped to it. At most `iterations` steps; a
+    bin stops once a step was small in both α and g: at most `step_tol`, or (with step_var, per bin (κ σ_I)², see
     polish_step_var) below κ of that parameter's noise std, where further steps only move it
     along what the data cannot tell apart. step_tol 0 and no step_var: every bin takes every
     step. Returns (α, g, residual norm, Jacobian at the solution). Where a bin's polish ended on
@@ -98,7 +98,7 @@ def lm_step(j11: np.ndarray, j12: np.ndarray, j21: np.ndarray, j22: np.ndarray, 
             rw: np.ndarray) -> tuple[np.ndarray, ...]:
     """(step_a, step_g, h11, h22, det): the damped Gauss-Newton (Levenberg-Marquardt) step on the
     2×2 normal equations of (I_b, I_w) in (α, g) for residuals (rb, rw), capped to a trust region
-    (invert.c lm_step)."""
+    (invert.c lm_step), and the right-hand sides b1, b2 (hold_at_edges)."""
     # The damping keeps it finite where ∂I/∂g → 0 (α → 0).
     h11, h22, h12 = j11 * j11 + j21 * j21, j12 * j12 + j22 * j22, j11 * j12 + j21 * j22
     mu = 1e-9 + 1e-6 * (h11 + h22)
@@ -108,7 +108,30 @@ def lm_step(j11: np.ndarray, j12: np.ndarray, j21: np.ndarray, j22: np.ndarray, 
     # Trust region: a piecewise-trilinear map is only locally linear; cap the step at a few cells.
     step_a = np.minimum(np.maximum(-(h22 * b1 - h12 * b2) / det, -0.25), 0.25)
     step_g = np.minimum(np.maximum(-(h11 * b2 - h12 * b1) / det, -0.5), 0.5)
-    return step_a, step_g, h11, h22, det
+    return step_a, step_g, h11, h22, det, b1, b2
+
+
+def hold_at_edges(grid: ForwardGrid, alpha: np.ndarray, g: np.ndarray,
+                  step: tuple[np.ndarray, ...]) -> tuple[np.ndarray, ...]:
+    """The polish's step projected onto the map's box (invert_internal.h hold_at_edges, operation for
+    operation). `step`: lm_step's (step_a, step_g, h11, h22, det, b1, b2) from (α, g). A parameter at
+    an edge of the box whose step points out of it is held there (step 0) and the other takes the
+    Gauss-Newton step of its own (−b/h, capped as in lm_step): the 2×2 step assumed the held one moves,
+    so clamped it only crawls towards the solution on the edge. The other's variance per unit intensity
+    variance is then 1/h (returned as h' = 1, det' = h, for step_is_small); both held: both steps 0.
+    Returns (step_a, step_g, h11, h22, det) as lm_step's."""
+    step_a, step_g, h11, h22, det, b1, b2 = step
+    (a_lo, a_hi), (g_lo, g_hi) = grid.alpha_range, grid.g_range
+    hold_a = ((alpha <= a_lo) & (step_a < 0.0)) | ((alpha >= a_hi) & (step_a > 0.0))
+    hold_g = ((g <= g_lo) & (step_g < 0.0)) | ((g >= g_hi) & (step_g > 0.0))
+    only_a, only_g = hold_a & ~hold_g, hold_g & ~hold_a
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        along_a = np.minimum(np.maximum(-b1 / h11, -0.25), 0.25)
+        along_g = np.minimum(np.maximum(-b2 / h22, -0.5), 0.5)
+    new_a = np.where(hold_a, 0.0, np.where(only_g, along_a, step_a))
+    new_g = np.where(hold_g, 0.0, np.where(only_a, along_g, step_g))
+    new_det = np.where(only_g, h11, np.where(only_a, h22, det))
+    return (new_a, new_g, np.where(only_a, 1.0, h11), np.where(only_g, 1.0, h22), new_det)
 
 
 def _newton_step(grid: ForwardGrid, I_b: np.ndarray, I_w: np.ndarray, cell: SigmaCell, rho_b: np.ndarray,
@@ -121,7 +144,7 @@ def _newton_step(grid: ForwardGrid, I_b: np.ndarray, I_w: np.ndarray, cell: Sigm
     rb, rw = Ib - I_b, Iw - I_w
     j11, j12 = grid.directional(fb, hb, d_a), grid.directional(fb, hb, d_g)
     j21, j22 = grid.directional(fw, hw, d_a), grid.directional(fw, hw, d_g)
-    step_a, step_g, h11, h22, det = lm_step(j11, j12, j21, j22, rb, rw)
+    step_a, step_g, h11, h22, det = hold_at_edges(grid, alpha, g, lm_step(j11, j12, j21, j22, rb, rw))
     (a_lo, a_hi), (g_lo, g_hi) = grid.alpha_range, grid.g_range
     s = np.exp(cell.log_sigma_t)
     J_step = np.stack([np.stack([j11, grid.directional(fb, hb, d_ls) / s, j12], axis=-1),

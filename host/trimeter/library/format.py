@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from trimeter import __version__
+from trimeter.version import __version__
 from trimeter.errors import InputError
 
 FORMAT = "trimeter-material"

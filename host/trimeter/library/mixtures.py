@@ -19,9 +19,10 @@ Where the numbers come from:
   components are fitted on both thicknesses jointly with the shipped device maps (`trimeter.fit`, lut).
   This skips the firmware, the Modbus link and the spectrometer's exposures — what `trimeter measure`
   adds to a capture is covered by its own tests; a full-loop run is `trimeter sim --sample
-  cyan-ink:0.5+yellow-ink:0.5` + `trimeter measure`, then `take`. The components are traced
-  independently of the map (trimeter.twin.traced); a mixture was never traced, so the twin renders it
-  with the map, and the check sees the components' fit errors, not the map's error on the mixture.
+  cyan-ink:0.5+yellow-ink:0.5` + `trimeter measure`, then `take`. The twin traces its samples
+  independently of the map (trimeter.twin.traced; the check's mixtures too: tools/make_twin_observables.py
+  --twin-mixtures), so the check sees the map's own error on inks and mixtures and the inks' fit errors;
+  a mixture nobody traced is rendered with the map (mixtures.json says which).
 """
 
 from __future__ import annotations
@@ -39,7 +40,8 @@ import numpy as np
 
 from trimeter.errors import InputError
 from trimeter.library.colour import delta_e_2000, reflectance_to_xyz, xyz_to_lab
-from trimeter.results.medium import SpectralMaterial, parse_fractions
+from trimeter.model.mixing import parse_fractions
+from trimeter.results.medium import SpectralMaterial
 
 if TYPE_CHECKING:
     from trimeter.maps.appearance import AppearanceMap
@@ -69,6 +71,7 @@ class Square:
     """One mixture's predicted and measured colours (CIELAB, sRGB) and their ΔE2000 on black and on white."""
     label: str
     fractions: list[tuple[str, float]]
+    source: str                   # where the mixture was measured
     lab_predicted: np.ndarray     # (2, 3): on black, on white
     lab_measured: np.ndarray
     srgb_predicted: np.ndarray    # (2, 3) linear sRGB
@@ -109,7 +112,8 @@ def predict_square(components: dict[str, SpectralMaterial], obs: MixtureObservat
     from trimeter.results.export import spectra_to_linear_srgb
 
     lab_p, lab_m = (xyz_to_lab(reflectance_to_xyz(lam[usable], s[:, usable])) for s in (predicted, measured))
-    return Square(obs.label, obs.fractions, lab_p, lab_m, spectra_to_linear_srgb(lam[usable], predicted[:, usable]),
+    return Square(obs.label, obs.fractions, obs.source, lab_p, lab_m,
+                  spectra_to_linear_srgb(lam[usable], predicted[:, usable]),
                   spectra_to_linear_srgb(lam[usable], measured[:, usable]), delta_e_2000(lab_p, lab_m))
 
 
@@ -156,8 +160,9 @@ def on_twin(mixtures: Sequence[Sequence[tuple[str, float]]] | None = None, *, no
     for fractions in mixtures:
         label = mixture_label(fractions)
         I_b, I_w, _ = _twin_capture(optics, label, TWIN_THICKNESSES_MM[0], rng, noise_rel, keep)
+        physics = optics.sample.physics if optics.sample is not None else "?"
         observed.append(MixtureObservation(label, list(fractions), wl, I_b, I_w, rho_b, rho_w, maps[0],
-                                           f"twin optics, {TWIN_THICKNESSES_MM[0]:g} mm"))
+                                           f"twin optics, {TWIN_THICKNESSES_MM[0]:g} mm, rendered by {physics}"))
     info = {"source": "twin optics", "components": inks, "component_thicknesses_mm": list(TWIN_THICKNESSES_MM),
             "mixture_thickness_mm": TWIN_THICKNESSES_MM[0], "noise_rel": noise_rel, "seed": seed,
             "maps": [m.name for m in maps], "method": "lut"}
@@ -227,8 +232,8 @@ def draw_checker(path: Path, squares: Sequence[Square], *, columns: int = 5, tit
     for k, s in enumerate(squares):
         r, c = divmod(k, columns)
         for y0, i in ((0.05, 1), (0.40, 0)):   # white above, black below
-            for x0, rgb in ((0.05, s.srgb_predicted[i]), (0.5, s.srgb_measured[i])):
-                ax.add_patch(plt.Rectangle((c + x0, r + y0), 0.45, 0.35, color=srgb_encode(rgb)))
+            for x0, rgb in ((0.05, s.srgb_predicted[i]), (0.51, s.srgb_measured[i])):   # a hairline between
+                ax.add_patch(plt.Rectangle((c + x0, r + y0), 0.44, 0.35, color=srgb_encode(rgb)))
         parts = [f"{name.removesuffix('-ink')} {f:.2f}" for name, f in s.fractions]
         ax.text(c + 0.5, r + 0.88, " + ".join(parts[:2]) + ("\n+ " + " + ".join(parts[2:]) if parts[2:] else "")
                 + f"\nΔE00 {s.delta_e[1]:.2f} / {s.delta_e[0]:.2f}", ha="center", va="center", fontsize=6,
@@ -246,7 +251,8 @@ def write_outputs(out: Path, squares: Sequence[Square], info: dict) -> dict:
 
     out.mkdir(parents=True, exist_ok=True)
     every = np.concatenate([s.delta_e for s in squares])
-    summary = {**info, "mixtures": [{"mixture": s.label, "delta_e2000_black": float(s.delta_e[0]),
+    summary = {**info, "mixtures": [{"mixture": s.label, "measured": s.source,
+                                     "delta_e2000_black": float(s.delta_e[0]),
                                      "delta_e2000_white": float(s.delta_e[1]),
                                      "lab_predicted": s.lab_predicted.tolist(), "lab_measured": s.lab_measured.tolist()}
                                     for s in squares],
@@ -304,6 +310,11 @@ def run(args: argparse.Namespace) -> int:
                 "mixture_results": [o.source for o in observed]}
     squares = [predict_square(components, o) for o in observed]
     print(table(squares))
+    sources: dict[str, int] = {}
+    for o in observed:
+        sources[o.source] = sources.get(o.source, 0) + 1
+    if len(sources) < len(observed):   # the twin's: how they were rendered (taken ones: mixtures.json)
+        print("mixtures measured: " + "; ".join(f"{k} ×{n}" for k, n in sources.items()))
     out = Path(args.output) if args.output else data_dir() / "mixture-check" / time.strftime("%Y%m%dT%H%M%S")
     summary = write_outputs(out, squares, info)
     verdict = "within" if summary["median_delta_e2000"] <= PASS_MEDIAN_DE else "above"

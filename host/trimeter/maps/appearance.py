@@ -32,7 +32,9 @@ from trimeter.errors import InputError, MapFileError
 from trimeter.maps.container import read_container, write_container
 from trimeter.maps.schema import (GEOMETRY_PARAMS, PROVENANCE, REFLECTANCE, SAMPLE_N, THICKNESS_MM, ArraySpec,
                                   ContainerSchema, Table, Text)
+from trimeter.maps.stages import rebuild_command
 from trimeter.model.grid import ForwardGrid
+from trimeter.model.inscatter import InscatterTable
 from trimeter.model.response import background_response
 from trimeter.model.setup import SampleSetup
 from trimeter.paths import MAPS_DIR
@@ -184,7 +186,7 @@ class AppearanceMap:
         """The in-scattering table traced for this map (`<map>.tins` next to it, `trimeter map inscatter`),
         or None: then I_c is modelled as the unscattered beam alone. A table that does not belong to
         the map (another n, ℓ or geometry) is an error, not ignored."""
-        from trimeter.maps.inscatter_file import inscatter_mismatch, inscatter_path_for, load_inscatter
+        from trimeter.maps.inscatter_file import inscatter_path_for, load_inscatter
 
         if self.path is None or not inscatter_path_for(self.path).is_file():
             return None
@@ -229,3 +231,14 @@ def find_map(name_or_path: str | Path) -> Path:
     raise InputError(f"map {str(name_or_path)!r} is neither a file nor a shipped map (shipped: {names})")
 
 
+def inscatter_mismatch(table: InscatterTable, amap: AppearanceMap) -> str | None:
+    """Why the table does not belong to the map (None when it does): another n, ℓ or geometry, or a
+    parent stamp that is not this map's SHA-256 (a table is only as good as the map it was made for)."""
+    if why := table.setup_mismatch(amap.setup):
+        return why
+    if amap.checksum and table.parent_sha256 != amap.checksum:
+        made_for = (f"it was made for map {table.parent_sha256[:12]}…" if table.parent_sha256 else
+                    "it does not record the map it was made for")
+        return (f"{made_for}, and this map is {amap.checksum[:12]}… (rebuilt since?); rebuild the table: "
+                f"{rebuild_command(amap, 'tins')}")
+    return None

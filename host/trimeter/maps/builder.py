@@ -34,15 +34,15 @@ from trimeter.errors import BuildError, InputError, MapFileError
 from trimeter.geometry import cover_slide_n
 from trimeter.maps.appearance import AppearanceMap
 from trimeter.maps.recipe import Recipe
-from trimeter.maps.tracer import ColumnTally, Stack, k_max_for
-from trimeter.maps.tracer import trace_column as trace_pair
+from trimeter.forward.transport import ColumnTally, Stack, k_max_for
+from trimeter.forward.transport import trace_column as trace_pair
 from trimeter.model.collimated import MEASURABLE_IC, collimated_transmittance
 from trimeter.model.response import background_response
 
 if TYPE_CHECKING:
     from rich.progress import Progress
 
-BUILDER = ("trimeter.maps.tracer: (k, m)-tally path tracer (detector + background paths; B = UT1·UTU where the "
+BUILDER = ("trimeter.forward.transport: (k, m)-tally path tracer (detector + background paths; B = UT1·UTU where the "
            "geometry factorises), Dr.Jit LLVM symbolic loop")
 _COLUMN_FIELDS = ("A", "B", "C", "std_b", "std_w")
 log = logging.getLogger("trimeter.maps")
@@ -237,7 +237,7 @@ def column_task(recipe: Recipe, checkpoint_dir: str, j: int, k: int, tracer: Cal
     `written` is False on a worker that does not see the checkpoint directory (no shared file system):
     the caller then writes the column it receives."""
     if drjit_threads:
-        from trimeter.maps.distributed import set_drjit_threads
+        from trimeter.forward.transport.backend import set_drjit_threads
 
         set_drjit_threads(drjit_threads)
     stack = Stack.from_recipe(recipe.geometry, recipe.geometry_params, recipe.n, recipe.thickness_mm)
@@ -361,7 +361,7 @@ def build_maps(jobs: list[MapJob], *, client=None, resume: bool = False, progres
             from trimeter.maps.distributed import describe_cluster, run_on_cluster
 
             executor = describe_cluster(client)
-            results = run_on_cluster(client, pending, tracer, retries)
+            results = run_on_cluster(client, pending, column_task, tracer, retries)
         for state, j, k, col in results:
             state.add(j, k, col, traced=True)
             advance(state.index)

@@ -1,15 +1,16 @@
 """Map builds on Dask (`dask.distributed`): every unfinished (map, σt, g) column is one task.
 
 - Embedded default: `local_client(workers)` starts a LocalCluster of `workers` spawned worker
-  processes with one thread each, and each task runs Dr.Jit on one thread (`set_drjit_threads`), so N
-  workers use N cores and never oversubscribe them.
+  processes with one thread each, and each task runs Dr.Jit on one thread
+  (trimeter.forward.transport.backend.set_drjit_threads), so N workers use N cores and never
+  oversubscribe them.
 - An existing cluster: `remote_client(address)` (`dask scheduler` / `dask worker` by hand, or
   dask-jobqueue on SLURM: maps/README.md). An address nobody answers at is one clear error after
   `connect_timeout` seconds, never a hang.
-- Tasks are `trimeter.maps.builder.column_task`: pure functions of (recipe, j, k) that write their
-  column into the map's checkpoint. A task whose worker dies (killed, out of memory: the nanny restarts
-  it) or that raises is run again, up to `retries` more times; after that the build stops with the
-  column named, and the finished columns stay in the checkpoint for `--resume`.
+- Tasks are `trimeter.maps.builder.column_task` (passed in by the builder): pure functions of (recipe,
+  j, k) that write their column into the map's checkpoint. A task whose worker dies (killed, out of
+  memory: the nanny restarts it) or that raises is run again, up to `retries` more times; after that the
+  build stops with the column named, and the finished columns stay in the checkpoint for `--resume`.
 """
 
 from __future__ import annotations
@@ -27,15 +28,6 @@ CONNECT_TIMEOUT_S = 10.0
 # Workers start with Dr.Jit's LLVM backend pointed at Debian's libLLVM 19 (the default LLVM aborts at
 # JIT time, docs/platform-notes.md), whatever the environment of the process that starts the cluster.
 _LIBLLVM = "/usr/lib/x86_64-linux-gnu/libLLVM-19.so"
-
-
-def set_drjit_threads(count: int) -> None:
-    """Dr.Jit's thread pool size in this process (a worker runs one task at a time on one core)."""
-    from trimeter.maps.tracer import _drjit
-
-    dr, _ = _drjit()
-    if dr.thread_count() != count:
-        dr.set_thread_count(count)
 
 
 def _dask():
@@ -134,12 +126,11 @@ def describe_cluster(client) -> str:
     return f"dask ({len(workers)} workers, {threads} threads)"
 
 
-def run_on_cluster(client, pending, tracer: Callable, retries: int):
+def run_on_cluster(client, pending, column_task: Callable, tracer: Callable, retries: int):
     """Submit every pending (map state, j, k) column at once (a library build fills the cluster with
-    every column of every map) and yield (state, j, k, column) as they finish, in any order."""
+    every column of every map) as `column_task` (the builder's) and yield (state, j, k, column) as they
+    finish, in any order."""
     from distributed import as_completed
-
-    from trimeter.maps.builder import column_task
 
     futures = {}
     for state, j, k in pending:

@@ -4,16 +4,12 @@ container next to its map."""
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 from trimeter.errors import MapFileError
 from trimeter.maps.container import read_container, write_container
 from trimeter.maps.schema import (GEOMETRY_PARAMS, PARENT_SHA256, PRODUCER, PROVENANCE, SAMPLE_N, THICKNESS_MM,
                                   ArraySpec, ContainerSchema, Number, Table)
 from trimeter.model.inscatter import InscatterTable
-
-if TYPE_CHECKING:
-    from trimeter.maps.appearance import AppearanceMap
 
 INSCATTER_KIND = "inscatter-table"
 INSCATTER_FORMAT_VERSION = 1
@@ -58,18 +54,3 @@ def load_inscatter(path: str | Path) -> InscatterTable:
         raise MapFileError(f"{path}: {exc}") from None
     table.checksum = checksum
     return table
-
-
-def inscatter_mismatch(table: InscatterTable, amap: AppearanceMap) -> str | None:
-    """Why the table does not belong to the map (None when it does): another n, ℓ or geometry, or a
-    parent stamp that is not this map's SHA-256 (a table is only as good as the map it was made for)."""
-    if why := table.setup_mismatch(amap.setup):
-        return why
-    if amap.checksum and table.parent_sha256 != amap.checksum:
-        from trimeter.maps.pipeline import rebuild_command
-
-        made_for = (f"it was made for map {table.parent_sha256[:12]}…" if table.parent_sha256 else
-                    "it does not record the map it was made for")
-        return (f"{made_for}, and this map is {amap.checksum[:12]}… (rebuilt since?); rebuild the table: "
-                f"{rebuild_command(amap, 'tins')}")
-    return None

@@ -179,7 +179,7 @@ def export(model: Any, amap: AppearanceMap, path: Path, hidden: tuple[int, ...],
 
     from trimeter.atomic import atomic_write
     from trimeter.inversion.mlp import INPUTS, MODEL_FORMAT, MODEL_KIND
-    from trimeter.maps.pipeline import stage_producer
+    from trimeter.maps.stages import stage_producer
 
     producer = producer or stage_producer("onnx")
 

@@ -3,7 +3,7 @@
 | stage | file | made from the map by | needs |
 |---|---|---|---|
 | tmap | `<name>.tmap` | trimeter.maps.builder (the columns, on Dask or here) | the recipe |
-| tins | `<name>.tins` | trimeter.forward.inscatter.build_inscatter_table | device geometry (skipped otherwise) |
+| tins | `<name>.tins` | trimeter.forward.transport.inscatter_tracer.build_inscatter_table | device geometry only |
 | tlut | `<name>.tlut` | trimeter.maps.device_table.build_from_map | the .tins where the map has one |
 | onnx | `<name>.onnx` | trimeter.maps.mlp_training (scikit-learn → ONNX) | opt-in: minutes of training |
 
@@ -11,7 +11,7 @@ Every child is derived from the `.tmap` alone, so each records the map's SHA-256
 .tins and .onnx metadata, the .tlut's fixed header, which also names its .tins's SHA-256) and its producer
 (name and trimeter version; the .tlut's fixed C layout has no room for it: its format version stands
 for it). The tlut stage therefore runs after tins. A child whose map changed
-is refused where it is loaded, with `rebuild_command` naming the command that rebuilds it.
+is refused where it is loaded, with `rebuild_command` (trimeter.maps.stages) naming the command that rebuilds it.
 
 With a Dask client the children's computations run on the cluster too (one task per map and stage);
 the files are always written here, next to the map.
@@ -25,54 +25,19 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Callable
 
-from trimeter import __version__
 from trimeter.errors import BuildError, InputError
 from trimeter.maps.mlp_training import DEFAULTS as MLP_DEFAULTS
-from trimeter.paths import MAPS_DIR
+from trimeter.maps.stages import STAGES, SUFFIX, rebuild_command, stage_producer
 
 if TYPE_CHECKING:
     from trimeter.maps.appearance import AppearanceMap
     from trimeter.maps.recipe import Recipe
 
-STAGES = ("tmap", "tins", "tlut", "onnx")
-DEFAULT_STAGES = ("tmap", "tins", "tlut")
-SUFFIX = {"tmap": ".tmap", "tins": ".tins", "tlut": ".tlut", "onnx": ".onnx"}
-
-
-def parse_stages(text: str) -> tuple[str, ...]:
-    """'tmap,tins' → the stages in pipeline order; an unknown name is an InputError naming it."""
-    names = [s.strip() for s in str(text).split(",") if s.strip()]
-    unknown = [s for s in names if s not in STAGES]
-    if unknown or not names:
-        raise InputError(f"--stages: {unknown[0] if unknown else 'nothing'!r} is not a stage "
-                         f"(stages: {', '.join(STAGES)}, comma-separated)")
-    return tuple(s for s in STAGES if s in names)
-
-
-def stage_producer(stage: str) -> dict:
-    """The producer stamp of a stage's files."""
-    return {"name": f"trimeter map build --stages {stage}", "version": __version__}
-
-
-def rebuild_command(amap, stage: str) -> str:
-    """The command that rebuilds `stage` of this map in place (the shipped recipe's path when it has one)."""
-    recipe = MAPS_DIR / "recipes" / f"{amap.name}.toml"
-    recipe_arg = _shown_path(recipe) if recipe.is_file() else "RECIPE.toml"
-    out = f" --out {_shown_path(amap.path)}" if amap.path is not None else ""
-    return f"trimeter map build {recipe_arg}{out} --stages {stage}"
-
-
-def _shown_path(path: Path) -> str:
-    """Relative to the working directory when inside it (maps/…), else as it is."""
-    path = Path(path).absolute()
-    return str(path.relative_to(Path.cwd())) if path.is_relative_to(Path.cwd()) else str(path)
-
-
 @dataclass(frozen=True)
 class Options:
     """The map's and the children's settings (the defaults are what the shipped files were made with).
     `tracer_backend`: the Dr.Jit backend the map's columns are traced on, "llvm" or "cuda" (resolved
-    from "auto" by trimeter.maps.tracer.resolve_backend before it gets here)."""
+    from "auto" by trimeter.forward.transport.resolve_backend before it gets here)."""
     tracer_backend: str = "llvm"
     inscatter_photons: int = 30_000
     inscatter_seed: int = 0
@@ -101,7 +66,7 @@ def applies(stage: str, amap) -> str | None:
 def compute(stage: str, amap, options: Options):
     """The stage's product for `amap`, in memory (runs on a Dask worker or here)."""
     if stage == "tins":
-        from trimeter.forward.inscatter import build_inscatter_table
+        from trimeter.forward.transport.inscatter_tracer import build_inscatter_table
 
         return build_inscatter_table(amap.n, amap.thickness_mm, amap.recipe["geometry_params"],
                                      photons=options.inscatter_photons, seed=options.inscatter_seed,
@@ -175,7 +140,7 @@ def run(targets: list[Target], stages: tuple[str, ...], *, client=None, resume: 
     """Run `stages` for every target: the maps (all their columns at once), then each map's children.
     Without the tmap stage the maps must exist and be current against their recipes."""
     from trimeter.maps.builder import MapJob, build_maps, recipe_fingerprint, validation_report
-    from trimeter.maps.tracer import trace_column as trace_pair
+    from trimeter.forward.transport import trace_column as trace_pair
 
     if "tmap" in stages:
         jobs = [MapJob(t.recipe, t.out, checkpoint_dir) for t in targets]

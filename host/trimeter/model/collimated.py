@@ -12,14 +12,12 @@ from functools import lru_cache
 
 import numpy as np
 
+from trimeter.model.fresnel import normal_incidence_reflectance
+
 
 # The measurable gamut: below this collimated transmittance the spectrometer's I_c is noise, σt only
 # a lower bound (FitFlag.SIGMA_LOWER_BOUND territory); benchmarks score and maps refine only above it.
 MEASURABLE_IC = 1e-3
-
-
-def _fresnel_normal(n1: float, n2: float) -> float:
-    return ((n1 - n2) / (n1 + n2)) ** 2
 
 
 def _combine(a, b):
@@ -37,11 +35,11 @@ def stack_transmittance(indices, internal_transmittances):
     (Beer-Lambert) transmittances of the k-1 layers between them. Arrays broadcast."""
     if len(internal_transmittances) != len(indices) - 2:
         raise ValueError("need one internal transmittance per layer between the outer media")
-    r = _fresnel_normal(indices[0], indices[1])
+    r = normal_incidence_reflectance(indices[0], indices[1])
     element = (r, r, 1.0 - r)
     for layer_t, (n1, n2) in zip(internal_transmittances, zip(indices[1:-1], indices[2:], strict=True), strict=True):
         element = _combine(element, (0.0, 0.0, layer_t))
-        r = _fresnel_normal(n1, n2)
+        r = normal_incidence_reflectance(n1, n2)
         element = _combine(element, (r, r, 1.0 - r))
     return element[2]
 

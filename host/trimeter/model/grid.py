@@ -313,8 +313,9 @@ class ForwardGrid:
 # kinds); that prediction spans twice the node spacing (a cubic's error grows like h⁴ with it) and the
 # three axes' estimates overlap, so it overstates the error between the nodes the fit interpolates
 # over. The factor is chosen for coverage, not for an rms of 1: an rms is set by the few largest errors
-# and left most bins' ±1σ far too wide (fitted with `trimeter bench uncertainty` on device-n1.5-l0.4's
-# held-out set; device-n1.5-l0.8's is the check).
+# and left most bins' ±1σ far too wide. It is chosen on the calibration part of the device maps' held-out
+# sets (trimeter.bench.fit.heldout_part; `trimeter bench uncertainty --part calibration
+# --leave-one-out-scale …` prints the sweep), never on the scored part the bench reports coverage on.
 LEAVE_ONE_OUT_SCALE = 0.1
 
 

@@ -1,6 +1,6 @@
 """The in-scattering table: how much forward-scattered light the collimated measurement picks up besides
 the unscattered beam, as L = ln(1 + r) per material. I_c = T(σt)·e^L; the fit takes σt from I_c·e^−L.
-trimeter.forward.inscatter traces it, trimeter.maps.inscatter_file reads and writes `<map>.tins`."""
+trimeter.forward.transport.inscatter_tracer traces it, trimeter.maps.inscatter_file reads and writes `<map>.tins`."""
 
 from __future__ import annotations
 

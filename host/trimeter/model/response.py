@@ -6,7 +6,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 # The reference backgrounds of a map recipe unless it names its own (black, white): where a map's
-# std-errors are reported; where a bounce series' return coefficient is matched (trimeter.maps.tracer).
+# std-errors are reported; where a bounce series' return coefficient is matched (trimeter.forward.transport).
 REFERENCE_RHOS = (0.02, 0.9)
 
 

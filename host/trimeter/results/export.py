@@ -29,11 +29,11 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import ArrayLike
 
-from trimeter import __version__
 from trimeter.atomic import atomic_write
 from trimeter.errors import InputError
 from trimeter.results.medium import VARIANT_NOTE, SpectralMaterial, write_medium
 from trimeter.tables import MAX_RESULT_FILE_BYTES, read_columns, read_text
+from trimeter.version import __version__
 
 if TYPE_CHECKING:
     from trimeter.domain.measurement import SpectralColumns

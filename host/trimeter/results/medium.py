@@ -129,45 +129,17 @@ class SpectralMaterial:
 
     @staticmethod
     def mixture(materials: Iterable[SpectralMaterial], fractions: ArrayLike) -> SpectralMaterial:
-        """A mixture by volume fractions on the first material's wavelengths: σa and σs add in
-        proportion (each material's particles keep their cross-sections), g is the σs-weighted mean."""
+        """A mixture by volume fractions on the first material's wavelengths (trimeter.model.mixing: σa and
+        σs add in proportion, g is the σs-weighted mean)."""
+        from trimeter.model.mixing import mix_coefficients
+
         materials = list(materials)
-        f = np.asarray(fractions, dtype=float)
-        if len(materials) == 0 or f.shape != (len(materials),):
+        if len(materials) == 0:
             raise InputError("a mixture needs one volume fraction per material")
-        if not np.all(np.isfinite(f)) or (f < 0).any() or f.sum() <= 0:
-            raise InputError("volume fractions must be finite, ≥ 0 and not all 0")
-        f = f / f.sum()
         lam = materials[0].wavelengths_nm
         on = [m.at(lam) for m in materials]
-        sa = sum(fi * m.sigma_a for fi, m in zip(f, on, strict=True))
-        ss = sum(fi * m.sigma_s for fi, m in zip(f, on, strict=True))
-        ssg = sum(fi * m.sigma_s * m.g for fi, m in zip(f, on, strict=True))
-        with np.errstate(invalid="ignore", divide="ignore"):
-            g = np.where(ss > 0, ssg / ss, sum(fi * m.g for fi, m in zip(f, on, strict=True)))
+        sa, ss, g = mix_coefficients([m.sigma_a for m in on], [m.sigma_s for m in on], [m.g for m in on], fractions)
         return SpectralMaterial.from_coefficients(lam, sa, ss, np.clip(g, -0.99, 0.99))
-
-
-MIXTURE_SEPARATOR, FRACTION_SEPARATOR = "+", ":"
-
-
-def parse_fractions(spec: str) -> list[tuple[str, float]]:
-    """A mixture written NAME:FRACTION+NAME:FRACTION… (volume fractions > 0 of distinct names, summing to 1)."""
-    parts = []
-    for part in spec.split(MIXTURE_SEPARATOR):
-        name, _, fraction = part.rpartition(FRACTION_SEPARATOR)
-        try:
-            value = float(fraction)
-        except ValueError:
-            value = float("nan")
-        if not name or not (np.isfinite(value) and value > 0):
-            raise InputError(f"mixture {spec!r}: each part is NAME:FRACTION with a fraction > 0, got {part!r}")
-        parts.append((name, value))
-    total = sum(f for _, f in parts)
-    if abs(total - 1.0) > 1e-3 or len({n for n, _ in parts}) != len(parts):
-        raise InputError(f"mixture {spec!r}: volume fractions of distinct materials summing to 1 (they sum to "
-                         f"{total:g})")
-    return parts
 
 
 def medium_spectra(parameters: SpectralColumns,

@@ -26,12 +26,14 @@ import numpy as np
 from trimeter import registers as regs
 from trimeter.errors import TrimeterError
 from trimeter.paths import HARDWARE_DIR
+from trimeter.sequences import lamp_monitor
 from trimeter.sequences.plans import EXPOSURE_TARGET, NO_LIGHT_FRACTION, SATURATION_FRACTION, auto_expose
 from trimeter.sequences.steps import Acquire, Expose, Plan, Runner
 from trimeter.spectrometer.base import Spectrometer
 
 if TYPE_CHECKING:
     from trimeter.device.client import Device, Value
+    from trimeter.domain import Calibration
 
 PASS, FAIL, SKIP = "pass", "fail", "skip"
 # What a check finds: its status, a message saying what to fix, and the figures it judged by.
@@ -151,6 +153,7 @@ class _Bench:
         self.light_seen: dict[str, bool] = {}
         self._sources: dict[str, dict] = {}
         self._darks: dict[float, np.ndarray] = {}
+        self.calibration: Calibration | None = None
 
     # ------------------------------------------------------------------------------- device
     def now(self) -> float:
@@ -530,6 +533,40 @@ def check_backgrounds(bench: _Bench) -> Outcome:
     return _outcome(PASS, f"under the panels, white is {ratio:.1f}× brighter than black", **figures)
 
 
+LAMP_LEVEL_BOUND = 0.2   # a lamp's light off its calibrated level by more than this fails (an aged or overdriven LED)
+
+
+def check_lamps_against_calibration(bench: _Bench) -> Outcome:
+    """Each lamp's light on its lamp-monitor photodiode (LEDs on, only its shutter open) as a fraction of what
+    the last calibration recorded: a lamp far from it makes every measurement against that calibration wrong."""
+    calibration = bench.calibration
+    if calibration is None:
+        return _outcome(SKIP, "not judged: this host has no calibration to compare the lamps with (calibrate, then "
+                              "run the selftest again)")
+    references = lamp_monitor.references(calibration.lamp_monitor or {})
+    if set(references) != set(LIGHTS):
+        return _outcome(SKIP, "not judged: the last calibration holds no lamp-monitor readings of every lamp "
+                              "(calibrate again)")
+    figures: dict[str, object] = {}
+    wrong = []
+    for light in LIGHTS:
+        bench.lights(on=LIGHTS, open_=(light,))
+        reading = float(bench.device.read(f"lamp_monitor_{light}"))
+        dark, lit = references[light]
+        level = (reading - dark) / max(lit - dark, 1.0)
+        figures[f"{light}_level"] = level
+        if abs(level - 1.0) > LAMP_LEVEL_BOUND:
+            wrong.append(f"the {_LABEL[light]} gives {level:.0%} of its calibrated light")
+    bench.lights()
+    figures["calibration_utc"] = calibration.created_utc
+    if wrong:
+        return _outcome(FAIL, "; ".join(wrong) + f" (bound ±{LAMP_LEVEL_BOUND:.0%}, calibration of "
+                              f"{calibration.created_utc}): check the LED currents and levels, then calibrate again",
+                        **figures)
+    return _outcome(PASS, f"every lamp within ±{LAMP_LEVEL_BOUND:.0%} of its light at the calibration of "
+                          f"{calibration.created_utc}", **figures)
+
+
 CHECKS: tuple[tuple[str, Check], ...] = (
     ("device", check_device),
     ("homing", check_homing),
@@ -546,19 +583,22 @@ CHECKS: tuple[tuple[str, Check], ...] = (
     ("exposure collimated", _check_exposure("collimated")),
     ("LED collimated", _check_led("collimated")),
     ("shutter collimated", _check_shutter("collimated")),
+    ("lamps vs calibration", check_lamps_against_calibration),
 )
 
 
 def run_selftest(device: Device, spectrometer: Spectrometer, *, frames: int = FRAMES,
-                 device_clock: Callable[[], float] | None = None,
+                 device_clock: Callable[[], float] | None = None, calibration: Calibration | None = None,
                  on_result: Callable[[CheckResult, int, int], None] | None = None,
                  clock: Callable[[], float] = time.monotonic, sleep: Callable[[float], None] = time.sleep
                  ) -> SelfTestReport:
     """Run every check in CHECKS against an open Device and Spectrometer; never raises for what it finds.
 
     `device_clock`: the device's own seconds (the twin's simulated clock) for the times reported;
-    without it, wall time. `on_result(result, index, total)` is called as each check finishes."""
+    without it, wall time. `calibration`: the host's last, which the lamps are checked against (None: that
+    check says there is none). `on_result(result, index, total)` is called as each check finishes."""
     bench = _Bench(device, spectrometer, frames=frames, device_clock=device_clock, clock=clock, sleep=sleep)
+    bench.calibration = calibration
     pattern = device.read("status_pattern")
     device.write("status_pattern", "fast_blink")
     results = []

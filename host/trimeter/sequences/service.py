@@ -204,10 +204,16 @@ class Service:
 
     def poll_once(self) -> str | None:
         """Check the button once; run whatever a press asks for. Returns what was done, if anything."""
-        button, uptime, lamps = self._on_device("polling the button", lambda d: (
-            *d.read_many("button_events", "uptime_s").values(), d.read("led_panel_left_on")))
+        def poll(device: Device) -> tuple[int, int, bool]:
+            return (*device.read_many("button_events", "uptime_s").values(), device.read("led_panel_left_on"))
+
+        button, uptime, lamps = self._on_device("polling the button", poll)
         # A reset restarts the counters and darkens the lamps (which this service keeps on); uptime alone
-        # misses a reset within a second of the last poll.
+        # misses a reset within a second of the last poll. RTU replies carry no transaction id: a reply to an
+        # earlier poll arriving late has the shape of this one's and an older uptime, so a reset is believed
+        # only when a second poll says so too.
+        if uptime < self._uptime or not lamps:
+            button, uptime, lamps = self._on_device("confirming a device reset", poll)
         if uptime < self._uptime or not lamps:
             self._emit("reset", f"device reset detected (uptime {self._uptime} → {uptime} s, lamps "
                                 f"{'on' if lamps else 'off'}); lamps back on, calibration marked stale")

@@ -3,6 +3,7 @@
     open_spectrometer("sim:/dev/pts/5")   # the twin's spectrometer (line protocol, see README.md)
     open_spectrometer("i2c:1")            # an AS7341 on /dev/i2c-1 (`i2c:1?address=0x39&gain=64`)
     open_spectrometer("seabreeze:")       # the first Ocean spectrometer (`seabreeze:SERIAL` for one)
+    open_spectrometer("mcu:/dev/ttyUSB0") # the instrument's own C12880MA, read by its firmware over Modbus
 """
 
 from __future__ import annotations
@@ -13,9 +14,9 @@ from trimeter.spectrometer.base import Spectrometer, SpectrometerDescription
 
 __all__ = ["Spectrometer", "SpectrometerDescription", "open_spectrometer", "BACKENDS"]
 
-BACKENDS = ("sim", "i2c", "seabreeze")
-OPTIONS = {"sim": ("timeout_s",), "i2c": ("address", "gain", "integration_time_us", "valid_timeout_s"),
-           "seabreeze": ("integration_time_us",)}
+BACKENDS = ("sim", "i2c", "seabreeze", "mcu")
+OPTIONS = {"sim": ("timeout_s",), "i2c": ("address", "gain", "integration_time_us", "valid_timeout_s", "weights"),
+           "seabreeze": ("integration_time_us",), "mcu": ("address", "frames", "gain", "linearity", "timeout_s")}
 
 
 def open_spectrometer(url: str, **options: Any) -> Spectrometer:
@@ -45,4 +46,8 @@ def open_spectrometer(url: str, **options: Any) -> Spectrometer:
         from trimeter.spectrometer.seabreeze import SeaBreezeSpectrometer
 
         return SeaBreezeSpectrometer(address or None, **options)
+    if backend == "mcu":
+        from trimeter.spectrometer.mcu import McuSpectrometer
+
+        return McuSpectrometer(address, **options)
     raise InputError(f"spectrometer backend must be one of {', '.join(BACKENDS)}, got {backend!r} in {url!r}")

@@ -67,8 +67,11 @@ def _code_for_gain(gain: Any) -> int:
 class AS7341:
     def __init__(self, bus: Any, address: int = DEFAULT_ADDRESS, gain: float = 64, integration_time_us: int = 100_000,
                  valid_timeout_s: float | None = None, clock: Callable[[], float] = time.monotonic,
-                 sleep: Callable[[float], None] = time.sleep, owns_bus: bool = False) -> None:
+                 sleep: Callable[[float], None] = time.sleep, owns_bus: bool = False,
+                 weights: str | None = None) -> None:
+        """weights: a CSV of measured band weights (else the built-in model's; band_weights)."""
         self._bus, self.address, self._clock, self._sleep = bus, int(address), clock, sleep
+        self._weights_path = weights or None
         self._owns_bus = owns_bus
         try:
             self._valid_timeout_s = None if valid_timeout_s is None else float(valid_timeout_s)
@@ -182,11 +185,15 @@ class AS7341:
         return np.array(list(CHANNEL_NM.values()))
 
     def band_weights(self) -> BandWeights:
-        """Each channel's band weights under the build's lamps: the datasheet's responses and the BOM's
-        LEDs (trimeter.spectrometer.sensors; measured ones go to `fit --bands WEIGHTS.csv`)."""
-        from trimeter.spectrometer.sensors import as7341_weights
+        """Each channel's band weights under the build's lamps: measured ones (the `weights` option, a
+        CSV as `fit --bands` takes), else the datasheet's responses and the BOM's LEDs
+        (trimeter.spectrometer.sensors)."""
+        from trimeter.spectrometer.sensors import as7341_weights, read_band_weights
 
-        return as7341_weights()
+        if self._weights_path is None:
+            return as7341_weights()
+        return read_band_weights(self._weights_path, what="i2c spectrometer option weights").select(
+            list(CHANNEL_NM), where=f"i2c spectrometer option weights {self._weights_path}")
 
     @property
     def description(self) -> SpectrometerDescription:

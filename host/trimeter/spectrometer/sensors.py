@@ -13,16 +13,23 @@ These are models, not measurements, and say so:
   the parts' published spectra.
 - Spectrometer slit: a Gaussian line-spread function of SLIT_FWHM_NM (a compact VIS-NIR spectrometer
   with a 25-50 µm slit), sampled at its own pixels.
+- C12880MA micro-spectrometer: 288 pixels at the unit's test-sheet polynomial (a typical unit's are the
+  register map's defaults, spectro_wl_*), each reading through a Gaussian line-spread function of
+  C12880_FWHM_NM (the datasheet gives 15 nm as the maximum; 12 nm is a typical unit's).
 
 A channel's effective weight is response × emission (the white reference is flat: the geometry's);
-trimeter.inversion.bands normalises it.
+trimeter.inversion.bands normalises it. Measured weights come as a CSV (read_band_weights):
+`wavelength_nm` and per channel `<CH>_diffuse`, `<CH>_collimated`.
 """
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 from numpy.typing import ArrayLike
 
+from trimeter.errors import InputError
 from trimeter.inversion.bands import BandWeights, band_weights
 
 # channel: (peak nm, FWHM nm) — DS000504's table; NIR's width assumed
@@ -34,6 +41,9 @@ PANEL_LEDS = ((450.0, 20.0, 0.55), (535.0, 95.0, 0.85), (630.0, 90.0, 1.0))
 BEAM_LED = ((405.0, 16.0, 0.6), (590.0, 210.0, 1.0))
 LED_FLOOR = 0.004
 SLIT_FWHM_NM = 2.5
+C12880_FWHM_NM = 12.0
+C12880_PIXELS = 288
+MAX_WEIGHTS_BYTES = 64_000_000  # a weights table on a 0.1 nm grid of a few dozen channels is a few MB
 # the wavelength grid of the built-in weights: wide enough for every channel's band to fall to zero
 WEIGHTS_GRID_NM = (350.0, 1000.0, 1.0)
 
@@ -75,3 +85,46 @@ def slit_matrix(wavelengths_nm: ArrayLike, fwhm_nm: float = SLIT_FWHM_NM) -> np.
     lam = np.asarray(wavelengths_nm, dtype=float)
     M = _gaussian(lam[:, None] - lam[None, :], 0.0, fwhm_nm) * np.gradient(lam)[None, :]
     return M / M.sum(axis=1, keepdims=True)
+
+
+def c12880_coefficients() -> tuple[float, ...]:
+    """A typical unit's test-sheet polynomial (A0, B1..B5): the register map's defaults."""
+    from trimeter import registers as regs
+
+    return tuple(float(regs.BY_NAME[f"spectro_wl_{k}"].default) for k in ("a0", "b1", "b2", "b3", "b4", "b5"))
+
+
+def c12880_wavelengths_nm(coefficients: ArrayLike | None = None) -> np.ndarray:
+    """Each pixel's wavelength, nm, from a test-sheet polynomial λ(p) = A0 + B1 p + … + B5 p⁵, p = 1..288."""
+    c = np.asarray(c12880_coefficients() if coefficients is None else coefficients, dtype=float)
+    return np.polynomial.polynomial.polyval(np.arange(1, C12880_PIXELS + 1, dtype=float), c)
+
+
+def resample_matrix(source_nm: ArrayLike, target_nm: ArrayLike, fwhm_nm: float) -> np.ndarray:
+    """(targets, sources): what a detector with pixels at target_nm and a Gaussian line-spread function of
+    fwhm_nm reads of a spectrum sampled at source_nm (rows sum to 1: a weighted mean; rows whose line-spread
+    function misses the source grid are NaN)."""
+    src, dst = np.asarray(source_nm, dtype=float), np.asarray(target_nm, dtype=float)
+    M = _gaussian(src[None, :] - dst[:, None], 0.0, fwhm_nm) * np.gradient(src)[None, :]
+    total = M.sum(axis=1, keepdims=True)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(total > 1e-6 * fwhm_nm, M / total, np.nan)
+def read_band_weights(path: str | Path, what: str = "weights") -> BandWeights:
+    """Measured band weights from a CSV (`wavelength_nm`, `<CH>_diffuse`, `<CH>_collimated` per channel),
+    read by trimeter.tables; every problem is one InputError."""
+    from trimeter.tables import read_columns
+
+    path = Path(path)
+    name = f"{what} {path}"
+    table = read_columns(path, required=("wavelength_nm",), max_bytes=MAX_WEIGHTS_BYTES, what=what)
+    names = [c[: -len("_diffuse")] for c in table if c.endswith("_diffuse")]
+    lonely = [c[: -len("_collimated")] for c in table if c.endswith("_collimated")
+              and c[: -len("_collimated")] not in names]
+    if not names:
+        raise InputError(f"{name}: no <channel>_diffuse columns (have: {', '.join(table)})")
+    without = [n for n in names if f"{n}_collimated" not in table]
+    if without or lonely:
+        raise InputError(f"{name}: each channel needs both <channel>_diffuse and <channel>_collimated "
+                         f"(incomplete: {', '.join(without + lonely)})")
+    return band_weights(table["wavelength_nm"], names, [table[f"{n}_diffuse"] for n in names],
+                        [table[f"{n}_collimated"] for n in names], where=name)

@@ -32,10 +32,12 @@ class SimSpectrometer:
 
         if not port:
             raise DeviceError("sim spectrometer needs a port: sim:/dev/pts/N")
-        try:
-            self._serial = serial.Serial(port, 115200, timeout=0.05)
+        try:  # exclusive (flock), as pymodbus opens the instrument's port: two programs on one port garble both
+            self._serial = serial.Serial(port, 115200, timeout=0.05, exclusive=True)
         except (OSError, serial.SerialException) as exc:
-            raise DeviceError(f"cannot open sim spectrometer at {port}: {exc}") from None
+            in_use = "exclusively lock" in str(exc)
+            raise DeviceError(f"cannot open sim spectrometer at {port}: "
+                              f"{'it is in use by another program (serve?)' if in_use else exc}") from None
         self.port = port
         try:
             self._timeout_s = float(timeout_s)

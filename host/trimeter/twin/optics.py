@@ -9,10 +9,12 @@ What the spectrometer sees for a plant state (counts/s per pixel, before noise):
     black slot (or between slots):  panels · (I_b  | ρ_black without a sample)
     white slot:                     panels · (I_w  | ρ_white)
     open slot:                      panels · (I(ρ=0) | 0) + beam · (I_c | 1)
-with (I_b, I_w, I_c) of the inserted sample rendered directly by the tracer for the set-up (geometry, n, ℓ)
-of the chosen map — trimeter.twin.traced, never the map the host inverts, so a round trip includes the
-map's own error. A set-up or material nobody traced falls back to AppearanceMap.query (then `physics` says so and the
-round trip cannot see the map's error).
+with (I_b, I_w, I_c) of the inserted sample traced for the set-up (geometry, n, ℓ) of the chosen map —
+trimeter.twin.traced, not read from the map the host inverts, so a round trip includes the map's
+interpolation and Monte Carlo error. Those traces come from the maps' own tracer, reduced to the maps'
+own I(ρ) model, so they share that tracer's and that model's errors: they are not independent physics.
+A set-up or material nobody traced is rendered by the very map the host inverts (AppearanceMap.query);
+`physics` records which source it was (PHYSICS) and the demo and the HIL suite say so (physics_line).
 """
 
 from __future__ import annotations
@@ -39,7 +41,8 @@ if TYPE_CHECKING:
 MapSource: TypeAlias = ("AppearanceMap | str | Path | list[AppearanceMap | str | Path] | "
                         "tuple[AppearanceMap | str | Path, ...] | None")
 
-SENSORS = ("spectrometer", "as7341")  # what the twin's host-side detector can be
+# what the twin's detector can be: "c12880ma" is read by the firmware (trimeter.twin.c12880), the others by the host
+SENSORS = ("spectrometer", "as7341", "c12880ma")
 MATERIALS_FILE = Path(__file__).resolve().parents[1] / "data" / "materials.toml"
 
 
@@ -56,8 +59,8 @@ def material_names() -> dict[str, str]:
 
 def parse_mixture(name: str) -> list[tuple[str, float]] | None:
     """A mixture's catalogue materials and volume fractions from its name, e.g. "cyan-ink:0.25+yellow-ink:0.75"
-    (trimeter.results.medium.parse_fractions), or None for a plain material name."""
-    from trimeter.results.medium import FRACTION_SEPARATOR, parse_fractions
+    (trimeter.model.mixing.parse_fractions), or None for a plain material name."""
+    from trimeter.model.mixing import FRACTION_SEPARATOR, parse_fractions
 
     if FRACTION_SEPARATOR not in name:
         return None
@@ -69,18 +72,34 @@ def parse_mixture(name: str) -> list[tuple[str, float]] | None:
     return parts
 
 
+def catalogue_entry(name: str) -> dict:
+    """What defines a sample: its catalogue entry, or a mixture's fractions with its components' entries
+    (the traced observables are stamped with its hash: trimeter.twin.traced)."""
+    mixture = parse_mixture(name)
+    if mixture is None:
+        materials = _catalogue()["material"]
+        if name not in materials:
+            raise InputError(f"sample must be one of {', '.join(materials)} or a mixture like "
+                             f"'cyan-ink:0.5+yellow-ink:0.5', got {name!r}")
+        return dict(materials[name])
+    return {"mixture": [[c, f] for c, f in mixture], "components": {c: dict(_catalogue()["material"][c])
+                                                                   for c, _ in mixture}}
+
+
 def material_spectra(name: str, wavelengths_nm: np.ndarray) -> dict[str, np.ndarray]:
     """α(λ), σt(λ) [1/mm], g(λ) of a catalogue material, or of a mixture of them by volume fractions
-    (`parse_mixture`: σa and σs add by fraction, g is σs-weighted: SpectralMaterial.mixture), on the
+    (`parse_mixture`; trimeter.model.mixing: σa and σs add by fraction, g is σs-weighted), on the
     given wavelengths."""
     mixture = parse_mixture(name)
     if mixture is not None:
-        from trimeter.results.medium import SpectralMaterial
+        from trimeter.model.mixing import mix_coefficients
 
-        lam = np.asarray(wavelengths_nm, dtype=float)
-        parts = [SpectralMaterial(lam, **material_spectra(c, lam)) for c, _ in mixture]
-        mixed = SpectralMaterial.mixture(parts, [f for _, f in mixture])
-        return {"alpha": mixed.alpha, "sigma_t": mixed.sigma_t, "g": mixed.g}
+        parts = [material_spectra(c, wavelengths_nm) for c, _ in mixture]
+        sigma_a, sigma_s, g = mix_coefficients([(1 - p["alpha"]) * p["sigma_t"] for p in parts],
+                                               [p["alpha"] * p["sigma_t"] for p in parts], [p["g"] for p in parts],
+                                               [f for _, f in mixture])
+        sigma_t = sigma_a + sigma_s
+        return {"alpha": sigma_s / sigma_t, "sigma_t": sigma_t, "g": g}
     materials = _catalogue()["material"]
     if name not in materials:
         raise InputError(f"sample must be one of {', '.join(materials)} or a mixture like "
@@ -187,6 +206,29 @@ class SpectrometerModel:
 
 
 # ------------------------------------------------------------------------------------------ sample
+# Where a virtual sample's I_b, I_w, I_c come from (SampleOptics.physics), and what a round trip against them
+# can and cannot show.
+PHYSICS = {
+    "traced": "traced by the tracer the maps are built with (trimeter.forward.transport, "
+              "tools/make_twin_observables.py) and reduced to the maps' own I(ρ) = A + Bρ/(1 − Cρ) model",
+    "map": "queried from the very map the host inverts (no traced observables for this set-up or material)",
+}
+
+
+def physics_line(physics: str, sample: str, map_name: str) -> str:
+    """The demo's "independent physics:" line: where the twin's observables of `sample` came from and what
+    the errors printed against its truth therefore include."""
+    if physics == "traced":
+        return (f"independent physics: partly — the twin's '{sample}' was {PHYSICS['traced']}, not read from the "
+                f"map {map_name} the fit inverts: the errors below include that map's interpolation and Monte Carlo "
+                "error, NOT the tracer's or the I(ρ) model's own (e.g. its unpolarised Fresnel)")
+    if physics == "map":
+        return (f"independent physics: none — the twin's '{sample}' was {PHYSICS['map']}, map {map_name}: the "
+                "errors below are noise, drift and calibration only, NOT the map's own error "
+                "(tools/make_twin_observables.py traces a set-up)")
+    raise InputError(f"physics must be one of {', '.join(PHYSICS)}, got {physics!r}")
+
+
 @dataclass(frozen=True)
 class SampleOptics:
     name: str
@@ -199,7 +241,8 @@ class SampleOptics:
     I_c: np.ndarray
     I_open: np.ndarray  # diffuse reflectance over the open slot (no background: ρ = 0)
     map_name: str
-    physics: str = "map"  # where I_b, I_w, I_c came from: "traced" (independent of the map) or "map"
+    physics: str = "map"  # where I_b, I_w, I_c came from: a key of PHYSICS
+    physics_source: str = ""  # how: the traced data's file and provenance, or the map's name
 
 
 def _load_maps(appearance_map: MapSource) -> list[AppearanceMap]:
@@ -267,21 +310,22 @@ class Optics:
                                  f"{amap.name}'s {axis[0]:.4g}..{axis[-1]:.4g} at {lam[0]:.0f}-{lam[-1]:.0f} nm")
         traced = traced_setup(str(amap.recipe.get("geometry")), amap.n, thickness_mm)
         alpha, sigma_t, g = spectra["alpha"], spectra["sigma_t"], spectra["g"]
-        if traced is not None and name in _catalogue()["material"]:  # a mixture was not traced: the map renders it
+        if traced is not None:
             geometry_params = load_geometry(traced.geometry)
-            observed = traced.observables(name, _catalogue()["material"][name], geometry_params,
+            observed = traced.observables(name, catalogue_entry(name), geometry_params,
                                           self.wavelengths_nm, self.rho_black, self.rho_white)
             if observed is not None:
                 I_b, I_w, L, I_open = observed
                 I_c = traced.collimated(sigma_t, L, geometry_params)
                 self.sample = SampleOptics(name=name, thickness_mm=thickness_mm, alpha=alpha, sigma_t=sigma_t, g=g,
                                            I_b=I_b, I_w=I_w, I_c=I_c, I_open=I_open, map_name=amap.name,
-                                           physics="traced")
+                                           physics="traced", physics_source=traced.source())
                 return self.sample
         I_b, I_w, I_c = amap.query(spectra["alpha"], spectra["sigma_t"], spectra["g"], self.rho_black, self.rho_white)
         I_open = amap.diffuse(spectra["alpha"], spectra["sigma_t"], spectra["g"], 0.0)
         self.sample = SampleOptics(name=name, thickness_mm=thickness_mm, alpha=alpha, sigma_t=sigma_t, g=g, I_b=I_b,
-                                   I_w=I_w, I_c=I_c, I_open=I_open, map_name=amap.name)
+                                   I_w=I_w, I_c=I_c, I_open=I_open, map_name=amap.name,
+                                   physics="map", physics_source=f"AppearanceMap.query of {amap.name}")
         return self.sample
 
     def remove_sample(self) -> None:
@@ -317,4 +361,4 @@ class Optics:
             return None
         return {"name": s.name, "thickness_mm": s.thickness_mm, "wavelengths_nm": self.wavelengths_nm.copy(),
                 "alpha": s.alpha.copy(), "sigma_t": s.sigma_t.copy(), "g": s.g.copy(), "map": s.map_name,
-                "physics": s.physics}
+                "physics": s.physics, "physics_source": s.physics_source}

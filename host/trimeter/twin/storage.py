@@ -10,6 +10,7 @@ import os
 import shutil
 import tempfile
 from pathlib import Path
+from typing import Callable
 
 from trimeter.atomic import atomic_write
 from trimeter.errors import InputError
@@ -42,19 +43,19 @@ def table_bytes(table: str | Path | bytes) -> bytes:
     return data
 
 
-def seed(storage: Path, binary: Path, table: bytes) -> None:
-    """Write a storage image holding `table` active in slot A to `storage` (made once, then copied)."""
+def seed(storage: Path, binary: Path, table: bytes, twin: Callable) -> None:
+    """Write a storage image holding `table` active in slot A to `storage` (made once, then copied).
+    `twin`: the Twin class (passed in: the twin is above its storage), started to make the image."""
     fw = hashlib.sha256(binary.read_bytes()).hexdigest()[:16]
     template = _template_dir() / f"{fw}-{hashlib.sha256(table).hexdigest()[:16]}.bin"
     if not template.is_file():
-        _make_template(template, binary, table)
+        _make_template(template, binary, table, twin)
     storage.parent.mkdir(parents=True, exist_ok=True)
     shutil.copyfile(template, storage)
 
 
-def _make_template(template: Path, binary: Path, table: bytes) -> None:
+def _make_template(template: Path, binary: Path, table: bytes, Twin: Callable) -> None:
     from trimeter.device import Device
-    from trimeter.twin.twin import Twin
 
     with tempfile.TemporaryDirectory(prefix="trimeter-seed-") as tmp:
         with Twin(state_dir=tmp, firmware=binary) as twin:

@@ -1,12 +1,13 @@
-"""The twin's virtual samples rendered directly, independent of any appearance map.
+"""The twin's virtual samples traced directly, not read off any appearance map (but not independent of
+the maps' physics: the same tracer, the same I(ρ) model).
 
 The map the host inverts is an interpolant of the forward model; a twin that made its samples' I_b,
 I_w, I_c with that same map would hide the map's own error (node spacing, its Monte Carlo noise), so
 every round trip would look better than a real instrument can. Instead, `tools/make_twin_observables.py`
 traces each catalogue material once per set-up (geometry, n, ℓ) with the project's tracer
-(trimeter.maps.tracer, at the material's own α, σt, g — no map), at a coarse set of wavelength nodes,
+(trimeter.forward.transport, at the material's own α, σt, g — no map), at a coarse set of wavelength nodes,
 and stores per node the background-response coefficients (A, B, C of I(ρ) = A + Bρ/(1 − Cρ)) and the
-collimated beam's in-scattering L = ln(1 + r) (trimeter.forward.inscatter's direct tracer; 0 for the
+collimated beam's in-scattering L = ln(1 + r) (trimeter.forward.transport.inscatter_tracer's direct tracer; 0 for the
 ideal geometry, whose detector takes only the unscattered beam). Between the nodes the coefficients
 are interpolated with a cubic spline in λ: the materials are smooth sums of Gaussian bands of ≥ 35 nm
 width, and all nodes of one material share their random numbers, so the Monte Carlo error is smooth in λ
@@ -15,6 +16,9 @@ as well. The unscattered beam is analytic (Beer-Lambert with the Fresnel stack) 
 Data: host/trimeter/data/twin_observables/<geometry>-n<n>-l<ℓ>.json, one file per set-up, with the
 hash of each material's catalogue entry and of the geometry: a material or geometry changed since
 the trace makes the data stale (an error, naming the tool to re-run).
+
+What these observables cannot show: errors the maps' tracer and their I(ρ) model make (e.g. unpolarised
+Fresnel, one return coefficient C), since the twin's samples are made the same way.
 """
 
 from __future__ import annotations
@@ -82,6 +86,12 @@ class TracedSetup:
         I_b = A + B * rho_b / (1.0 - C * rho_b)
         I_w = A + B * rho_w / (1.0 - C * rho_w)
         return I_b, I_w, L, A
+
+    def source(self) -> str:
+        """How these observables were made: the file and its provenance (tool, paths per node, seed)."""
+        p = self.provenance
+        made = ", ".join(f"{k} {p[k]}" for k in ("tool", "paths_per_node", "seed", "written_utc") if k in p)
+        return f"{self.path.name} ({made or 'no provenance recorded'})"
 
     def collimated(self, sigma_t: np.ndarray, L: np.ndarray, geometry_params: dict) -> np.ndarray:
         """I_c: the analytic unscattered beam times (1 + r), r the traced in-scattered fraction."""

@@ -28,6 +28,7 @@ import numpy as np
 
 from trimeter.errors import DeviceError, InputError, TrimeterError
 from trimeter.paths import REPO_ROOT
+from trimeter.twin.c12880 import C12880Light
 from trimeter.twin.faults import FaultConfig, ModbusProxy, as_lamps_emit, as_optics_see_it
 from trimeter.twin.optics import MapSource, Optics, material_names
 from trimeter.twin.plant import PlantClient
@@ -90,7 +91,8 @@ class Twin:
         would); None: the saved one (1 by default).
         map_table: a device table (bytes, a .tlut file or a shipped map's name) the twin's storage
         holds active from the start, as an instrument carries its own; None: empty map slots.
-        sensor: what the host reads, "spectrometer" or "as7341" (optics.SENSORS)."""
+        sensor: what the host reads, "spectrometer" or "as7341" (optics.SENSORS), or "c12880ma": the firmware's
+        micro-spectrometer, read by the host over Modbus (spectrometer_url mcu:…)."""
         try:
             self.time_scale = float(time_scale)
         except (TypeError, ValueError):
@@ -121,6 +123,7 @@ class Twin:
         self.last_plant_state: dict | None = None
         self.poll_error: str | None = None
         self._monitor_sent: dict | None = None  # what the plant's photodiode model was last given
+        self._chip_light: C12880Light | None = None
 
     # ---------------------------------------------------------------------------------- lifecycle
     def __enter__(self) -> "Twin":
@@ -156,7 +159,7 @@ class Twin:
 
         binary = ensure_firmware(self._firmware)
         if self._map_table is not None:
-            seed_storage(self.state_dir / "storage.bin", binary, self._map_table)
+            seed_storage(self.state_dir / "storage.bin", binary, self._map_table, Twin)
         fw_modbus = self.state_dir / "firmware-modbus"
         plant_path = socket_dir / "plant.sock"
         # The firmware removes these on a clean exit; after a crash (SIGKILL) the twin does.
@@ -171,6 +174,8 @@ class Twin:
             self.plant.request(cmd="set", endstop_broken=True)
         self._poll_once()
         self._feed_lamp_monitor()
+        self._chip_light = C12880Light(self.optics) if self._sensor == "c12880ma" else None
+        self._feed_chip_light(force=True)
 
         poller = threading.Thread(target=self._poll, name="twin-plant-poller", daemon=True)
         poller.start()
@@ -266,6 +271,8 @@ class Twin:
     # ------------------------------------------------------------------------------- simulation
     @property
     def spectrometer_url(self) -> str:
+        if self._sensor == "c12880ma":  # the firmware captures: the host reads it over the Modbus link
+            return f"mcu:{self.modbus_port}"
         return f"sim:{self.spectrometer_port}"
 
     def sim_time(self) -> float:
@@ -299,11 +306,22 @@ class Twin:
         self.plant.request(cmd="set", **wanted)
         self._monitor_sent = wanted
 
+    def _feed_chip_light(self, force: bool = False) -> None:
+        """The firmware sim's C12880MA composes its light from the plant's state; the twin gives it the
+        optics' components when they change (trimeter.twin.c12880)."""
+        if self._chip_light is None:
+            return
+        with self._optics_lock:
+            requests = self._chip_light.requests(self.optics, force)
+        for request in requests:
+            self.plant.request(**request)
+
     def _poll(self) -> None:
         while not self._stop.wait(POLL_INTERVAL_S):
             try:
                 self._poll_once()
                 self._feed_lamp_monitor()
+                self._feed_chip_light()
                 self.poll_error = None
             except TrimeterError as exc:
                 self.poll_error = str(exc)
@@ -337,10 +355,12 @@ class TwinControl:
     def insert_sample(self, name: str, thickness_mm: float = 0.4) -> None:
         with self._twin._optics_lock:
             self._twin.optics.insert_sample(name, thickness_mm)
+        self._twin._feed_chip_light()
 
     def remove_sample(self) -> None:
         with self._twin._optics_lock:
             self._twin.optics.remove_sample()
+        self._twin._feed_chip_light()
 
     def press_button(self) -> None:
         self._twin.plant.request(cmd="press_button")

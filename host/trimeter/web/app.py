@@ -11,6 +11,7 @@ how the button and the page share the instrument.
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
 import copy
 import csv
 import functools
@@ -37,13 +38,16 @@ from trimeter.errors import DeviceError, InputError, TrimeterError
 from trimeter.inversion.methods import METHODS
 from trimeter.inversion.flags import advice, describe
 from trimeter.maps.appearance import AppearanceMap, find_map, shipped_maps
-from trimeter.maps.device_table import cached_tables
-from trimeter.paths import NAME_MAX, read_regular_bytes, real_subdirectory, regular_files
+from trimeter.maps.device_table import DeviceTable, cached_tables
+from trimeter.paths import NAME_MAX, real_subdirectory, regular_files
 from trimeter.sequences.measure import map_for_thickness
+from trimeter.sequences.instruments import Instrument
 from trimeter.sequences.service import EMPTY_HOLDER, NEXT_SAMPLE
 from trimeter.sequences.settings import HostSettings
+from trimeter.tables import MAX_RESULT_FILE_BYTES, open_checked
 from trimeter.web import auth
 from trimeter.web import instruments_routes, library_routes
+from trimeter.web.isolated import run_with_time_limit
 from trimeter.web.history import History, IndexUnavailable, is_measurement_id, parse_day_or_time
 from trimeter.web.jobs import Busy, Job, Jobs
 
@@ -65,6 +69,7 @@ BODY_TIMEOUT_S = 10.0               # a body that small arrives at once; a clien
 HEADER_TIMEOUT_S = 15.0
 EVENT_QUEUE = 256                   # events buffered per websocket client; a client that falls further behind is closed
 DEVICE_CALL_TIMEOUT_S = 15.0
+REFIT_TIME_LIMIT_S = 300.0          # a re-fit runs in a child process, stopped at this
 WEBHOOK_TIMEOUT_S = 5.0
 LABEL = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
 MAX_THICKNESS_MM = 100.0
@@ -510,8 +515,8 @@ async def measurement_file(request: web.Request) -> web.StreamResponse:
 
     def read() -> bytes | None:
         try:  # opened without following a link, refused unless a regular file: never a read outside the record
-            return read_regular_bytes(target)
-        except OSError:
+            return _record_file_bytes(target)
+        except (InputError, OSError):
             return None
 
     data = await _blocking(request, read)
@@ -524,13 +529,20 @@ async def measurement_file(request: web.Request) -> web.StreamResponse:
                                  "Cache-Control": "no-cache"})
 
 
+def _record_file_bytes(path: Path) -> bytes:
+    """A results directory's file, if it is a regular file (not a link, FIFO or device) within the size limit."""
+    with open_checked(path, max_bytes=MAX_RESULT_FILE_BYTES, follow_symlinks=False, binary=True) as f:
+        data: bytes = f.read(MAX_RESULT_FILE_BYTES + 1)
+    return data
+
+
 def _zip(path: Path) -> bytes:
     buffer = io.BytesIO()
     with zipfile.ZipFile(buffer, "w", zipfile.ZIP_DEFLATED) as z:
         for file in regular_files(path):
             try:
-                data = read_regular_bytes(file)
-            except OSError:  # replaced by something else meanwhile: left out, as a link would be
+                data = _record_file_bytes(file)
+            except (InputError, OSError):  # replaced by something else meanwhile: left out, as a link would be
                 continue
             z.writestr(f"{path.name}/{file.name}", data)
     return buffer.getvalue()
@@ -572,14 +584,26 @@ async def refit_route(request: web.Request) -> web.StreamResponse:
             chosen, maps = names, [AppearanceMap.load(catalog[name]) for name in names]
         else:
             chosen = meta.get("maps") or []
-            maps = recorded_maps(meta, catalog, jobs.service.instrument_table)
-        new = refit(path, maps, method)
+            maps = recorded_maps(meta, catalog, functools.partial(_instrument_table, jobs))
+        # beside the instrument's queue and in a process of its own: a slow or stuck fit neither holds the
+        # instrument nor runs past the limit
+        new = run_with_time_limit(refit, (path, maps, method), REFIT_TIME_LIMIT_S, "the re-fit")
         jobs.on_measurement(new)
         job.measurement = new.name
         job.message = f"re-fitted with {', '.join(chosen)} ({method}) into {new.name}"
         return "refitted"
 
-    return _accepted(jobs.submit("refit", {"of": path.name, "maps": names, "method": method}, run))
+    return _accepted(jobs.run_apart("refit", {"of": path.name, "maps": names, "method": method}, run))
+
+
+def _instrument_table(jobs: Jobs) -> DeviceTable:
+    """The instrument's active table, read on the worker thread that owns the link (from another thread)."""
+    future = jobs.call(lambda service: service.instrument_table())
+    try:
+        return future.result(DEVICE_CALL_TIMEOUT_S)
+    except concurrent.futures.TimeoutError:
+        future.cancel()
+        raise DeviceError(f"the instrument did not answer within {DEVICE_CALL_TIMEOUT_S:g} s") from None
 
 
 # ----------------------------------------------------------------------------------- config
@@ -729,6 +753,14 @@ def create_app(jobs: Jobs, history: History, token: str, *, webhook: str | None 
     app.on_startup.append(started)
     app.on_cleanup.append(stopping)
     return app
+
+
+def create_lab_app(lab: list[tuple[Instrument, Jobs]], history: History, token: str, *,
+                   webhook: str | None = None) -> web.Application:
+    """Several instruments (trimeter.web.instruments_routes): the root API is the first one's, every one's whole
+    API under /instruments/{name}/; the webhook goes out from the instruments' own apps (once per job)."""
+    return instruments_routes.mount(create_app(lab[0][1], history, token), lab,
+                                    lambda jobs: create_app(jobs, history, token, webhook=webhook))
 
 
 class ClientErrorsInOneLine(logging.Filter):

@@ -7,10 +7,11 @@ one instrument keeps working; the history is shared, each measurement tagged wit
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 from aiohttp import web
 
 from trimeter.sequences.instruments import Instrument
-from trimeter.web.history import History
 from trimeter.web.jobs import Jobs
 
 INSTRUMENTS = web.AppKey("instruments", list)
@@ -37,14 +38,12 @@ async def instruments_route(request: web.Request) -> web.StreamResponse:
     return web.json_response({"instruments": [instrument_status(i, jobs) for i, jobs in request.app[INSTRUMENTS]]})
 
 
-def create_lab_app(lab: list[tuple[Instrument, Jobs]], history: History, token: str, *,
-                   webhook: str | None = None) -> web.Application:
-    """The root app (the first instrument's) with every instrument mounted under /instruments/{name}/."""
-    from trimeter.web.app import create_app
-
-    app = create_app(lab[0][1], history, token)  # its jobs' webhook goes out through its own mount below
+def mount(app: web.Application, lab: list[tuple[Instrument, Jobs]],
+          instrument_app: Callable[[Jobs], web.Application]) -> web.Application:
+    """`app` (the first instrument's) with GET /api/instruments and every instrument's `instrument_app(jobs)` mounted
+    under /instruments/{name}/ (trimeter.web.app.create_lab_app)."""
     app[INSTRUMENTS] = list(lab)
     app.router.add_get("/api/instruments", instruments_route)
     for instrument, jobs in lab:
-        app.add_subapp(f"/instruments/{instrument.name}/", create_app(jobs, history, token, webhook=webhook))
+        app.add_subapp(f"/instruments/{instrument.name}/", instrument_app(jobs))
     return app

@@ -76,6 +76,7 @@ class Jobs:
         self._queue: collections.deque[tuple[Job, Callable[[Job], str]]] = collections.deque()
         self._calls: collections.deque[tuple[concurrent.futures.Future, Callable]] = collections.deque()
         self.current: Job | None = None
+        self.apart: Job | None = None      # the job running beside the queue (run_apart), if any
         self.recent: collections.deque[Job] = collections.deque(maxlen=RECENT_JOBS)
         self.events: collections.deque[dict] = collections.deque(maxlen=RECENT_EVENTS)
         self._status: dict[str, Any] = {"connected": False, "step": None, "progress": None, "lamp_drift": None,
@@ -153,21 +154,28 @@ class Jobs:
 
     def _run_job(self, job: Job, action: Callable[[Job], str]) -> None:
         try:
-            outcome = action(job)
+            outcome = self._outcome(job, action)
         except DeviceError as exc:
             job.message = str(exc)
             self._finish(job, "failed")
             raise  # Service.serve reconnects
+        self._finish(job, outcome)
+
+    @staticmethod
+    def _outcome(job: Job, action: Callable[[Job], str]) -> str:
+        """action(job)'s outcome; "failed" with the reason in job.message (a DeviceError is raised)."""
+        try:
+            return action(job)
+        except DeviceError:
+            raise
         except TrimeterError as exc:
             job.message = str(exc)
-            outcome = "failed"
         except Exception as exc:
             # A bug in one job (a re-fit of a damaged record, say) must fail that job, not end the
             # instrument loop and leave the job "running" so that every later request is Busy.
             log.exception("job %s (%s) failed", job.id, job.kind)
             job.message = f"internal error: {type(exc).__name__}: {exc} (the serve log has the details)"
-            outcome = "failed"
-        self._finish(job, outcome)
+        return "failed"
 
     def _finish(self, job: Job, outcome: str) -> None:
         with self._lock:
@@ -176,8 +184,10 @@ class Jobs:
             job.finished_utc = utc_now()
             if self.current is job:
                 self.current = None
+                self._status["step"], self._status["progress"] = None, None
+            if self.apart is job:
+                self.apart = None
             self.recent.appendleft(job)
-            self._status["step"], self._status["progress"] = None, None
         self._tell({"type": "job", "job": job.to_json()})
 
     def _read_device(self) -> None:
@@ -256,6 +266,26 @@ class Jobs:
         self._tell({"type": "job", "job": job.to_json()})
         return job
 
+    def run_apart(self, kind: str, params: dict, action: Callable[[Job], str]) -> Job:
+        """Run `action(job)` on a thread of its own, beside the instrument's queue (work on stored records that
+        needs no device: a re-fit). One at a time: Busy while another runs. A DeviceError it raises (from a
+        call it made through `call`) fails only that job."""
+        with self._lock:
+            if self.apart is not None:
+                raise Busy(self.apart)
+            job = self.apart = Job(kind, "web", params, state="running")
+        self._tell({"type": "job", "job": job.to_json()})
+
+        def run() -> None:
+            try:
+                outcome = self._outcome(job, action)
+            except DeviceError as exc:
+                job.message, outcome = str(exc), "failed"
+            self._finish(job, outcome)
+
+        threading.Thread(target=run, name=f"trimeter-{kind}", daemon=True).start()
+        return job
+
     def call(self, fn: Callable[[Service], object]) -> concurrent.futures.Future:
         """Run `fn(service)` on the worker thread between polls (a short device read or write)."""
         future: concurrent.futures.Future = concurrent.futures.Future()
@@ -265,7 +295,7 @@ class Jobs:
 
     def job(self, job_id: str) -> Job | None:
         with self._lock:
-            for job in [self.current, *self.recent]:
+            for job in [self.current, self.apart, *self.recent]:
                 if job is not None and job.id == job_id:
                     return job
         return None

@@ -249,11 +249,12 @@ class NativeSolver:
 
     def fit(self, I_b: np.ndarray, I_w: ArrayLike, I_c: ArrayLike, rho_b: ArrayLike, rho_w: ArrayLike, *,
             sd: ArrayLike | None = None, alpha0: ArrayLike | None = None, g0: ArrayLike | None = None,
-            **options: Any) -> dict[str, Any]:
+            block: np.ndarray | None = None, **options: Any) -> dict[str, Any]:
         """One thickness's whole fit in one call (invert.h `tm_fit`, api._fit_one's reference path
         operation for operation): a dict of the FitResult columns and `steps`, the Newton steps taken.
         sd: the intensities' stds (n, 3), or None for the noise model of `options`
-        (trimeter.inversion.api.native_options(…))."""
+        (trimeter.inversion.api.native_options(…)). block: the output block to write (rows
+        invert_h.OUTPUT_ROWS × n, float64, C-contiguous), else a new one."""
         n = len(I_b)
         args = [_f64(v, n) for v in (I_b, I_w, I_c, rho_b, rho_w)]
         sd = _stds(sd, n)
@@ -262,7 +263,7 @@ class NativeSolver:
         guess = [None, None] if alpha0 is None or g0 is None else [_f64(alpha0, n), _f64(g0, n)]
         if alpha0 is None and self._table is None:
             raise ValueError("this solver has no inverse table: pass alpha0 and g0")
-        block, out = _fit_outputs(n)
+        block, out = _fit_outputs(n, block)
         steps = _library().tm_fit(self._grid_ref, self._table_ref if alpha0 is None else None, self._options(options),
                                   n, *(_addr(a) for a in args), None if sd is None else _addr(sd),
                                   *(None if v is None else _addr(v) for v in guess), _addr(block))
@@ -272,7 +273,7 @@ class NativeSolver:
 
     def fit_guessed(self, I_b: np.ndarray, I_w: ArrayLike, I_c: ArrayLike, rho_b: ArrayLike, rho_w: ArrayLike,
                     guess: Callable[[np.ndarray], ArrayLike], log_sigma_range: tuple[float, float], *,
-                    sd: ArrayLike | None = None, **options: Any) -> dict[str, Any]:
+                    sd: ArrayLike | None = None, block: np.ndarray | None = None, **options: Any) -> dict[str, Any]:
         """fit() with the initial (α, g) from guess(features) → (n, 2), e.g. the MLP: the bins are
         prepared once (invert.h `tm_fit_prepare`, which also writes the features, mlp.features with
         ln σt clamped to log_sigma_range), then solved from that guess (`tm_fit_solve`; where the
@@ -280,7 +281,7 @@ class NativeSolver:
         n = len(I_b)
         args = [_f64(v, n) for v in (I_b, I_w, I_c, rho_b, rho_w)]
         sd = _stds(sd, n)
-        block, out = _fit_outputs(n)
+        block, out = _fit_outputs(n, block)
         scratch = np.empty(_library().tm_fit_scratch_size(n), dtype=np.uint8)
         features = np.empty((n, 5), dtype=np.float32)
         opts = self._options(options)
@@ -299,10 +300,15 @@ class NativeSolver:
         return out
 
 
-def _fit_outputs(n: int) -> tuple[np.ndarray, dict[str, Any]]:
-    """tm_fit's output block (rows invert_h.OUTPUT_ROWS; flags int64): one allocation, one address;
-    and the FitResult columns as its rows."""
-    block = np.empty((len(_OUTPUT_ROWS), n))
+def _fit_outputs(n: int, block: np.ndarray | None = None) -> tuple[np.ndarray, dict[str, Any]]:
+    """tm_fit's output block (rows invert_h.OUTPUT_ROWS; flags int64): one allocation, one address (or
+    the caller's `block`, checked); and the FitResult columns as its rows."""
+    if block is None:
+        block = np.empty((len(_OUTPUT_ROWS), n))
+    elif block.shape != (len(_OUTPUT_ROWS), n) or block.dtype != np.float64 or not block.flags.c_contiguous \
+            or not block.flags.writeable:
+        raise ValueError(f"the output block must be a writeable C-contiguous float64 array of shape "
+                         f"({len(_OUTPUT_ROWS)}, {n}), got {block.dtype} {block.shape}")
     out = dict(zip(_OUTPUT_ROWS, block, strict=True))
     out["flags"] = out["flags"].view(np.int64)
     return block, out

@@ -73,6 +73,7 @@ static int finite_in(tr_real x, tr_real lo, tr_real hi) { return isfinite(x) && 
  * table check runs on every call. */
 static int axis_ok(const float *x, int n) {
     if (!isfinite(x[0]) || !isfinite(x[n - 1])) return 0;
+#pragma GCC unroll 4
     for (int i = 1; i < n; i++)
         if (!(x[i] > x[i - 1])) return 0;
     return 1;
@@ -82,6 +83,7 @@ static int axis_ok(const float *x, int n) {
  * the sum (one multiply-add per value, no classification) */
 static int all_finite(const float *x, size_t n) {
     float zero_if_finite = 0.0f;
+#pragma GCC unroll 8
     for (size_t i = 0; i < n; i++) zero_if_finite += x[i] * 0.0f;
     return zero_if_finite == 0.0f;
 }
@@ -194,13 +196,17 @@ static int bspline_basis(const float *x, int n, tr_real xq, tr_real N[4], tr_rea
     if (R(x[n - 1]) <= xq) j = n - 1;
     int i = j + 2 < 3 ? 3 : (j + 2 > n - 1 ? n - 1 : j + 2);
     tr_real kt[8]; /* knots i − 3 … i + 4: the only ones the recurrence and its derivative read */
+#pragma GCC unroll 8
     for (int m = 0; m < 8; m++) kt[m] = knot(x, n, i - 3 + m);
 #define T(k) kt[(k) - (i - 3)]
     tr_real cur[4] = {R(1.0)}, lower[5] = {R(0.0)};
+    /* unrolled: every loop below has a fixed count, so the arrays stay in registers */
+#pragma GCC unroll 3
     for (int d = 1; d <= 3; d++) {
         if (d == 3)
             for (int r = 0; r < 3; r++) lower[r + 1] = cur[r];
         tr_real saved = R(0.0), next[4];
+#pragma GCC unroll 3
         for (int r = 0; r < d; r++) {
             tr_real right = T(i + r + 1) - xq, left = xq - T(i + r + 1 - d);
             tr_real temp = cur[r] / (right + left);
@@ -208,16 +214,19 @@ static int bspline_basis(const float *x, int n, tr_real xq, tr_real N[4], tr_rea
             saved = left * temp;
         }
         next[d] = saved;
+#pragma GCC unroll 4
         for (int r = 0; r <= d; r++) cur[r] = next[r];
     }
     /* dN_r = 3·(q_r − q_{r+1}), q_j = lower_j / (t_{i−3+j+3} − t_{i−3+j}): each quotient serves two
      * functions; lower_0 = lower_4 = 0 */
     tr_real q[5] = {R(0.0), R(0.0), R(0.0), R(0.0), R(0.0)};
+#pragma GCC unroll 3
     for (int j = 1; j < 4; j++) {
         int m = i - 3 + j;
         tr_real d = T(m + 3) - T(m);
         q[j] = lower[j] / (d > R(0.0) ? d : R(1.0));
     }
+#pragma GCC unroll 4
     for (int r = 0; r < 4; r++) {
         N[r] = cur[r];
         dN[r] = R(3.0) * (q[r] - q[r + 1]);
@@ -232,22 +241,31 @@ static int sgn(tr_real x) { return (x > R(0.0)) - (x < R(0.0)); }
  * `at` + 1 only (the Hermite cubic's ends): slopes d of values y (node spacings 1/inv_h) and their
  * tangents dd (of the tangents dy, in α and ln σt). Divisions by reciprocals taken once: they are
  * most of an evaluation's cost otherwise. */
-static void pchip_slopes(int w, int at, const tr_real *h, const tr_real *inv_h, const tr_real *y,
-                         const tr_real dy[2][4], tr_real d[2], tr_real dd[2][2]) {
-    tr_real m[3], dm[2][3], im[3]; /* im: 1/m, shared by the two nodes around an interval (∞ at m = 0: unused) */
+static inline __attribute__((always_inline)) void pchip_slopes(int w, int at, const tr_real *h, const tr_real *inv_h,
+                                                               const tr_real *y, const tr_real dy[2][4], tr_real d[2],
+                                                               tr_real dd[2][2]) {
+    /* im: 1/m, shared by the two nodes around an interval (∞ at m = 0: unused); sm: sgn(m), likewise.
+     * Inlined with w a constant, the loops unroll; the zeros only quieten the compiler's flow analysis. */
+    tr_real m[3] = {R(0.0)}, dm[2][3] = {{R(0.0)}}, im[3] = {R(0.0)};
+    int sm[3] = {0};
+#pragma GCC unroll 3
     for (int i = 0; i < w - 1; i++) {
         m[i] = (y[i + 1] - y[i]) * inv_h[i];
         im[i] = R(1.0) / m[i];
+        sm[i] = sgn(m[i]);
+#pragma GCC unroll 2
         for (int k = 0; k < 2; k++) dm[k][i] = (dy[k][i + 1] - dy[k][i]) * inv_h[i];
     }
+#pragma GCC unroll 2
     for (int out = 0; out < 2; out++) {
         int i = at + out;
         if (i > 0 && i < w - 1) {
             tr_real h0 = h[i - 1], h1 = h[i], w1 = R(2.0) * h1 + h0, w2 = h1 + R(2.0) * h0, m0 = m[i - 1], m1 = m[i];
             d[out] = dd[0][out] = dd[1][out] = R(0.0);
-            if (sgn(m0) == sgn(m1) && m0 != R(0.0) && m1 != R(0.0)) {
+            if (sm[i - 1] == sm[i] && m0 != R(0.0) && m1 != R(0.0)) {
                 tr_real im0 = im[i - 1], im1 = im[i], iden = R(1.0) / (w1 * im0 + w2 * im1);
                 d[out] = (w1 + w2) * iden;
+#pragma GCC unroll 2
                 for (int k = 0; k < 2; k++)
                     dd[k][out] = (w1 + w2) * (w1 * dm[k][i - 1] * im0 * im0 + w2 * dm[k][i] * im1 * im1) * iden * iden;
             }
@@ -257,9 +275,10 @@ static void pchip_slopes(int w, int at, const tr_real *h, const tr_real *inv_h, 
         int a = i ? w - 2 : 0, b = i ? w - 3 : 1;
         tr_real e0 = h[a], e1 = h[b], ma = m[a], mb = m[b], inv_e = R(1.0) / (e0 + e1);
         tr_real de = ((R(2.0) * e0 + e1) * ma - e0 * mb) * inv_e;
-        int zero = sgn(de) != sgn(ma);
-        int cap = !zero && sgn(ma) != sgn(mb) && R_FABS(de) > R(3.0) * R_FABS(ma);
+        int zero = sgn(de) != sm[a];
+        int cap = !zero && sm[a] != sm[b] && R_FABS(de) > R(3.0) * R_FABS(ma);
         d[out] = zero ? R(0.0) : (cap ? R(3.0) * ma : de);
+#pragma GCC unroll 2
         for (int k = 0; k < 2; k++) {
             tr_real dde = ((R(2.0) * e0 + e1) * dm[k][a] - e0 * dm[k][b]) * inv_e;
             dd[k][out] = zero ? R(0.0) : (cap ? R(3.0) * dm[k][a] : dde);
@@ -328,10 +347,14 @@ static void contract_sigma(const tr_table *t, int ia, int first, int width, tr_s
     sl->window_g = first;
 }
 
-void tr_compact_eval(const tr_table *t, tr_real alpha, tr_sigma_slice *sigma, tr_real g, tr_abc *out) {
+/* tr_compact_eval on a window of `width` g nodes: inlined with width a constant (3 or 4), so that its
+ * loops unroll and their arrays stay in registers */
+static inline __attribute__((always_inline)) void compact_eval(const tr_table *t, tr_real alpha,
+                                                               tr_sigma_slice *sigma, tr_real g, tr_abc *out,
+                                                               const int width) {
     tr_real Na[4], dNa[4];
     int ia = bspline_basis(t->alpha, t->na, alpha, Na, dNa);
-    const int ng = t->ng, width = ng < 4 ? ng : 4;
+    const int ng = t->ng;
     tr_real gq = tr_clamp(g, R(t->g[0]), R(t->g[ng - 1]));
     int k = last_at_or_below(t->g, ng, gq);
     int first = k - 1 < 0 ? 0 : (k - 1 > ng - width ? ng - width : k - 1);
@@ -340,6 +363,7 @@ void tr_compact_eval(const tr_table *t, tr_real alpha, tr_sigma_slice *sigma, tr
      * summed as they are and decoded once (value = offset + step·code): the basis sums to one and its
      * derivatives to zero, so the offset enters the value alone. */
     tr_real y[3][4], dy[3][2][4], h[3];
+#pragma GCC unroll 4
     for (int w = 0; w < width; w++) {
         tr_real v[3] = {R(0.0)}, va[3] = {R(0.0)}, vs[3] = {R(0.0)};
 #pragma GCC unroll 4
@@ -351,6 +375,7 @@ void tr_compact_eval(const tr_table *t, tr_real alpha, tr_sigma_slice *sigma, tr
                 va[c] += dNa[r] * along;
                 vs[c] += Na[r] * along_d;
             }
+#pragma GCC unroll 3
         for (int c = 0; c < 3; c++) {
             const tr_real off = R(t->scales[2 * c]), step = R(t->scales[2 * c + 1]);
             y[c][w] = off + step * v[c];
@@ -366,8 +391,10 @@ void tr_compact_eval(const tr_table *t, tr_real alpha, tr_sigma_slice *sigma, tr
     tr_real e00 = (R(6.0) * s2 - R(6.0) * s) / hk, e10 = R(3.0) * s2 - R(4.0) * s + R(1.0),
             e01 = -e00, e11 = R(3.0) * s2 - R(2.0) * s;
     int at = k - first;
-    tr_real inv_h[3];
+    tr_real inv_h[3] = {R(1.0), R(1.0), R(1.0)}; /* width − 1 of them set below; the ones quieten flow analysis */
+#pragma GCC unroll 3
     for (int i = 0; i < width - 1; i++) inv_h[i] = R(1.0) / h[i];
+#pragma GCC unroll 3
     for (int c = 0; c < 3; c++) {
         tr_real d[2], dd[2][2];
         pchip_slopes(width, at, h, inv_h, y[c], dy[c], d, dd);
@@ -382,6 +409,11 @@ void tr_compact_eval(const tr_table *t, tr_real alpha, tr_sigma_slice *sigma, tr
         out->v[2] = tr_clamp(out->v[2], R(0.0), R(0.999));
         out->da[2] = out->ds[2] = out->dg[2] = R(0.0);
     }
+}
+
+void tr_compact_eval(const tr_table *t, tr_real alpha, tr_sigma_slice *sigma, tr_real g, tr_abc *out) {
+    if (t->ng >= 4) compact_eval(t, alpha, sigma, g, out, 4);
+    else compact_eval(t, alpha, sigma, g, out, t->ng); /* 3: the reader takes no fewer */
 }
 
 /* ------------------------------------------------------------------------------- the other tables */
@@ -483,30 +515,36 @@ static tr_real refined_cell(const float *axis, int n, tr_real x, tr_real node[2]
     return tr_clamp((x - node[0]) * (R(1.0) / (node[1] - node[0])), R(0.0), R(1.0));
 }
 
-tr_real tr_inscatter_log1p(const tr_table *t, tr_real alpha, tr_real sigma_t, tr_real g) {
-    /* the host resamples the table onto its grid's α and g nodes at the table's own optical depths and
-     * interpolates there: the same, on the fly, from the 8 nodes around the point */
+/* the host resamples the table onto its grid's α and g nodes at the table's own optical depths and
+ * interpolates there: the same, on the fly, from the 8 nodes around the point */
+void tr_inscatter_cells_init(const tr_table *t, tr_real alpha, tr_real g, tr_inscatter_cells *c) {
     tr_real an[2], gn[2];
-    tr_real wa = refined_cell(t->alpha, t->na, alpha, an), wg = refined_cell(t->g, t->ng, g, gn);
+    c->wa = refined_cell(t->alpha, t->na, alpha, an);
+    c->wg = refined_cell(t->g, t->ng, g, gn);
+    for (int k = 0; k < 2; k++) {
+        c->iu[k] = u_cell(t, an[k], &c->wu[k]);
+        c->iv[k] = v_cell(t, gn[k], &c->wv[k]);
+    }
+}
+
+tr_real tr_inscatter_log1p_at(const tr_table *t, const tr_inscatter_cells *c, tr_real sigma_t) {
     const int nt = t->nt;
     tr_real tau = sigma_t * t->thickness_mm, wt;
     tau = isfinite(tau) ? tau : R(0.0);
     int it = regular_cell(tr_clamp(tau, R(0.0), t->tau_max) * (R(nt - 1) / t->tau_max), nt, &wt);
     tr_real dt = t->tau_max / R(nt - 1); /* numpy.linspace's step */
-    int iu[2], iv[2], jt[2];
-    tr_real wu[2], wv[2], wjt[2];
+    int jt[2];
+    tr_real wjt[2];
     for (int k = 0; k < 2; k++) {
-        iu[k] = u_cell(t, an[k], &wu[k]);
-        iv[k] = v_cell(t, gn[k], &wv[k]);
         int j = it + k;
         jt[k] = tau_cell(t, (j == nt - 1 ? t->tau_max : R(j) * dt) / t->thickness_mm, &wjt[k]);
     }
     tr_real along_t[2][2];
     for (int da = 0; da < 2; da++)
         for (int k = 0; k < 2; k++)
-            along_t[da][k] = lerp(inscatter_table(t, iu[da], wu[da], jt[k], wjt[k], iv[0], wv[0]),
-                                  inscatter_table(t, iu[da], wu[da], jt[k], wjt[k], iv[1], wv[1]), wg);
-    return lerp(lerp(along_t[0][0], along_t[0][1], wt), lerp(along_t[1][0], along_t[1][1], wt), wa);
+            along_t[da][k] = lerp(inscatter_table(t, c->iu[da], c->wu[da], jt[k], wjt[k], c->iv[0], c->wv[0]),
+                                  inscatter_table(t, c->iu[da], c->wu[da], jt[k], wjt[k], c->iv[1], c->wv[1]), c->wg);
+    return lerp(lerp(along_t[0][0], along_t[0][1], wt), lerp(along_t[1][0], along_t[1][1], wt), c->wa);
 }
 
 void tr_model_variance(const tr_table *t, tr_real alpha, tr_real log_sigma_t, tr_real g, tr_real *var_b,

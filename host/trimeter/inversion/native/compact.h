@@ -92,8 +92,14 @@ void tr_compact_eval(const tr_table *t, tr_real alpha, tr_sigma_slice *sigma, tr
 void tr_inverse_guess(const tr_table *t, tr_real log_sigma_t, tr_real I_b, tr_real I_w, tr_real *alpha, tr_real *g);
 
 /* L = ln(1 + r) of the in-scattered light at (α, σt, g), as the host's lut fit takes it
- * (ForwardGrid.inscatter_log1p on the table's grid refined at load) */
-tr_real tr_inscatter_log1p(const tr_table *t, tr_real alpha, tr_real sigma_t, tr_real g);
+ * (ForwardGrid.inscatter_log1p on the table's grid refined at load), in two halves: the (α, g) cells
+ * once, then L at each σt (the fit takes it at two) */
+typedef struct {
+    tr_real wa, wg, wu[2], wv[2];
+    int iu[2], iv[2];
+} tr_inscatter_cells;
+void tr_inscatter_cells_init(const tr_table *t, tr_real alpha, tr_real g, tr_inscatter_cells *cells);
+tr_real tr_inscatter_log1p_at(const tr_table *t, const tr_inscatter_cells *cells, tr_real sigma_t);
 
 /* The map's error variances of I_b, I_w at (α, ln σt, g), trilinear on the nodes (ForwardGrid.model_variance) */
 void tr_model_variance(const tr_table *t, tr_real alpha, tr_real log_sigma_t, tr_real g, tr_real *var_b,

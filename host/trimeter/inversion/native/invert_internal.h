@@ -195,7 +195,7 @@ static inline void keep_final_eval(const tm_forward_grid *f, sigma_cell_t *cell,
 /* The damped Gauss-Newton (Levenberg-Marquardt) step on the 2×2 normal equations of (I_b, I_w) in
  * (α, g) for residuals (rb, rw), capped to a trust region (ForwardGrid._lm_step); h11, h22 and det
  * also give the step's variance (step_is_small). newton_step4 does the same lane by lane. */
-typedef struct { double step_a, step_g, h11, h22, det; } lm_step_t;
+typedef struct { double step_a, step_g, h11, h22, det, b1, b2; } lm_step_t;
 
 static inline lm_step_t lm_step(double j11, double j12, double j21, double j22, double rb, double rw) {
     lm_step_t st;
@@ -211,7 +211,32 @@ static inline lm_step_t lm_step(double j11, double j12, double j21, double j22, 
     st.h11 = h11;
     st.h22 = h22;
     st.det = det;
+    st.b1 = b1;
+    st.b2 = b2;
     return st;
+}
+
+/* The polish's step projected onto the map's box (ForwardGrid.hold_at_edges, operation for operation;
+ * newton_step4 lane by lane, table_fit.c in its own precision): a parameter at an edge whose step
+ * points out of the box is held (step 0) and the other takes its own Gauss-Newton step, −b/h capped as
+ * in lm_step — the 2×2 step assumed the held one moves, so clamped it only crawls along the edge. The
+ * free one's variance per unit intensity variance is then 1/h: h' = 1, det' = h. Both held: no step. */
+static inline void hold_at_edges(const tm_forward_grid *f, double alpha, double g, lm_step_t *st) {
+    int hold_a = (alpha <= f->alpha_lo && st->step_a < 0.0) || (alpha >= f->alpha_hi && st->step_a > 0.0);
+    int hold_g = (g <= f->g_lo && st->step_g < 0.0) || (g >= f->g_hi && st->step_g > 0.0);
+    if (hold_a && hold_g) {
+        st->step_a = st->step_g = 0.0;
+    } else if (hold_g) {
+        st->step_a = clampd(-st->b1 / st->h11, -0.25, 0.25);
+        st->step_g = 0.0;
+        st->det = st->h11;
+        st->h22 = 1.0;
+    } else if (hold_a) {
+        st->step_g = clampd(-st->b2 / st->h22, -0.5, 0.5);
+        st->step_a = 0.0;
+        st->det = st->h22;
+        st->h11 = 1.0;
+    }
 }
 
 /* ∂I_c/∂σt at the clamped σt (ForwardGrid.collimated_derivative ∘ clamp_sigma_t). */

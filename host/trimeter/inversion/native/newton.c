@@ -15,6 +15,7 @@ static int newton_step(const tm_forward_grid *f, sigma_cell_t *cell, double I_b,
     double j11 = directional(fb, hb, c.da), j12 = directional(fb, hb, c.dg);
     double j21 = directional(fw, hw, c.da), j22 = directional(fw, hw, c.dg);
     lm_step_t st = lm_step(j11, j12, j21, j22, rb, rw);
+    hold_at_edges(f, *alpha, *g, &st);
     double step_a = st.step_a, step_g = st.step_g, h11 = st.h11, h22 = st.h22, det = st.det;
     double alpha0 = *alpha, g0 = *g;
     *alpha = clampd(*alpha + step_a, f->alpha_lo, f->alpha_hi);

@@ -95,7 +95,8 @@ __attribute__((target("avx2"))) static inline void coefficients4(const tm_forwar
 
 /* lm_step() for four lanes: the damped, trust-region-capped step and h11, h22, det */
 __attribute__((target("avx2"))) static inline void lm_step4(v4 j11, v4 j12, v4 j21, v4 j22, v4 rb, v4 rw, v4 *step_a,
-                                                            v4 *step_g, v4 *h11_out, v4 *h22_out, v4 *det_out) {
+                                                            v4 *step_g, v4 *h11_out, v4 *h22_out, v4 *det_out,
+                                                            v4 *b1_out, v4 *b2_out) {
     v4 h11 = _mm256_add_pd(_mm256_mul_pd(j11, j11), _mm256_mul_pd(j21, j21));
     v4 h22 = _mm256_add_pd(_mm256_mul_pd(j12, j12), _mm256_mul_pd(j22, j22));
     v4 h12 = _mm256_add_pd(_mm256_mul_pd(j11, j12), _mm256_mul_pd(j21, j22));
@@ -113,6 +114,32 @@ __attribute__((target("avx2"))) static inline void lm_step4(v4 j11, v4 j12, v4 j
     *h11_out = h11;
     *h22_out = h22;
     *det_out = det;
+    *b1_out = b1;
+    *b2_out = b2;
+}
+
+/* hold_at_edges (invert_internal.h), four lanes: the lanes' choices as blends of the same values */
+__attribute__((target("avx2"))) static inline void hold_at_edges4(const tm_forward_grid *f, v4 A0, v4 G0, v4 *step_a,
+                                                                  v4 *step_g, v4 *h11, v4 *h22, v4 *det, v4 b1,
+                                                                  v4 b2) {
+    const v4 zero = _mm256_setzero_pd(), one = _mm256_set1_pd(1.0), sign = _mm256_set1_pd(-0.0);
+    v4 hold_a = _mm256_or_pd(_mm256_and_pd(_mm256_cmp_pd(A0, _mm256_set1_pd(f->alpha_lo), _CMP_LE_OQ),
+                                           _mm256_cmp_pd(*step_a, zero, _CMP_LT_OQ)),
+                             _mm256_and_pd(_mm256_cmp_pd(A0, _mm256_set1_pd(f->alpha_hi), _CMP_GE_OQ),
+                                           _mm256_cmp_pd(*step_a, zero, _CMP_GT_OQ)));
+    v4 hold_g = _mm256_or_pd(_mm256_and_pd(_mm256_cmp_pd(G0, _mm256_set1_pd(f->g_lo), _CMP_LE_OQ),
+                                           _mm256_cmp_pd(*step_g, zero, _CMP_LT_OQ)),
+                             _mm256_and_pd(_mm256_cmp_pd(G0, _mm256_set1_pd(f->g_hi), _CMP_GE_OQ),
+                                           _mm256_cmp_pd(*step_g, zero, _CMP_GT_OQ)));
+    if (_mm256_movemask_pd(_mm256_or_pd(hold_a, hold_g)) == 0) return;
+    v4 only_a = _mm256_andnot_pd(hold_g, hold_a), only_g = _mm256_andnot_pd(hold_a, hold_g);
+    v4 along_a = clamp4(_mm256_div_pd(_mm256_xor_pd(sign, b1), *h11), _mm256_set1_pd(-0.25), _mm256_set1_pd(0.25));
+    v4 along_g = clamp4(_mm256_div_pd(_mm256_xor_pd(sign, b2), *h22), _mm256_set1_pd(-0.5), _mm256_set1_pd(0.5));
+    *step_a = _mm256_blendv_pd(_mm256_blendv_pd(*step_a, along_a, only_g), zero, hold_a);
+    *step_g = _mm256_blendv_pd(_mm256_blendv_pd(*step_g, along_g, only_a), zero, hold_g);
+    *det = _mm256_blendv_pd(_mm256_blendv_pd(*det, *h11, only_g), *h22, only_a);
+    *h11 = _mm256_blendv_pd(*h11, one, only_a);
+    *h22 = _mm256_blendv_pd(*h22, one, only_g);
 }
 
 /* newton_step for the bins idx[0..3]; done[l] as newton_step returns it */
@@ -141,10 +168,11 @@ __attribute__((target("avx2"))) void tmi_newton_step4(const tm_forward_grid *f, 
                           set4(I_w[idx[0]], I_w[idx[1]], I_w[idx[2]], I_w[idx[3]]));
     v4 j11 = directional4(fb, hb, DA[0], DA[1], DA[2]), j12 = directional4(fb, hb, DG[0], DG[1], DG[2]);
     v4 j21 = directional4(fw, hw, DA[0], DA[1], DA[2]), j22 = directional4(fw, hw, DG[0], DG[1], DG[2]);
-    v4 step_a, step_g, h11, h22, det;
-    lm_step4(j11, j12, j21, j22, rb, rw, &step_a, &step_g, &h11, &h22, &det);
+    v4 step_a, step_g, h11, h22, det, b1, b2;
+    lm_step4(j11, j12, j21, j22, rb, rw, &step_a, &step_g, &h11, &h22, &det, &b1, &b2);
     const v4 sign = _mm256_set1_pd(-0.0);
     v4 A0 = _mm256_loadu_pd(a0), G0 = _mm256_loadu_pd(g0);
+    hold_at_edges4(f, A0, G0, &step_a, &step_g, &h11, &h22, &det, b1, b2);
     v4 A1 = clamp4(_mm256_add_pd(A0, step_a), _mm256_set1_pd(f->alpha_lo), _mm256_set1_pd(f->alpha_hi));
     v4 G1 = clamp4(_mm256_add_pd(G0, step_g), _mm256_set1_pd(f->g_lo), _mm256_set1_pd(f->g_hi));
     double last_a[4], last_g[4], var[4];
@@ -208,10 +236,10 @@ __attribute__((target("avx2"))) void tmi_check_step4(const tm_forward_grid *f, s
     v4 hb = _mm256_mul_pd(_mm256_mul_pd(V[1], fb), fb), hw = _mm256_mul_pd(_mm256_mul_pd(V[1], fw), fw);
     v4 rb = _mm256_sub_pd(_mm256_add_pd(V[0], _mm256_mul_pd(V[1], fb)), _mm256_loadu_pd(tb));
     v4 rw = _mm256_sub_pd(_mm256_add_pd(V[0], _mm256_mul_pd(V[1], fw)), _mm256_loadu_pd(tw));
-    v4 step_a, step_g, h11, h22, det;
+    v4 step_a, step_g, h11, h22, det, b1, b2;
     lm_step4(directional4(fb, hb, DA[0], DA[1], DA[2]), directional4(fb, hb, DG[0], DG[1], DG[2]),
              directional4(fw, hw, DA[0], DA[1], DA[2]), directional4(fw, hw, DG[0], DG[1], DG[2]), rb, rw, &step_a,
-             &step_g, &h11, &h22, &det);
+             &step_g, &h11, &h22, &det, &b1, &b2);
     _mm256_storeu_pd(a2, clamp4(_mm256_add_pd(_mm256_loadu_pd(a1), step_a), _mm256_set1_pd(f->alpha_lo),
                                 _mm256_set1_pd(f->alpha_hi)));
     _mm256_storeu_pd(g2, clamp4(_mm256_add_pd(_mm256_loadu_pd(g1), step_g), _mm256_set1_pd(f->g_lo),

@@ -46,7 +46,7 @@ static void evaluate(const tr_table *t, tr_real alpha, tr_sigma_slice *slice, tr
 }
 
 /* The damped Gauss-Newton step on the 2×2 normal equations, capped to a trust region (newton.lm_step) */
-typedef struct { tr_real step_a, step_g, h11, h22, det; } lm_step_t;
+typedef struct { tr_real step_a, step_g, h11, h22, det, b1, b2; } lm_step_t;
 
 static lm_step_t lm_step(tr_real j11, tr_real j12, tr_real j21, tr_real j22, tr_real rb, tr_real rw) {
     lm_step_t st;
@@ -65,7 +65,30 @@ static lm_step_t lm_step(tr_real j11, tr_real j12, tr_real j21, tr_real j22, tr_
     st.h11 = h11;
     st.h22 = h22;
     st.det = det;
+    st.b1 = b1;
+    st.b2 = b2;
     return st;
+}
+
+/* The step projected onto the box (newton.hold_at_edges): a parameter at an edge whose step points
+ * out is held, the other takes its own Gauss-Newton step, its variance per unit variance 1/h */
+static void hold_at_edges(tr_real alpha, tr_real g, tr_real a_lo, tr_real a_hi, tr_real g_lo, tr_real g_hi,
+                          lm_step_t *st) {
+    int hold_a = (alpha <= a_lo && st->step_a < R(0.0)) || (alpha >= a_hi && st->step_a > R(0.0));
+    int hold_g = (g <= g_lo && st->step_g < R(0.0)) || (g >= g_hi && st->step_g > R(0.0));
+    if (hold_a && hold_g) {
+        st->step_a = st->step_g = R(0.0);
+    } else if (hold_g) {
+        st->step_a = tr_clamp(-st->b1 / st->h11, R(-0.25), R(0.25));
+        st->step_g = R(0.0);
+        st->det = st->h11;
+        st->h22 = R(1.0);
+    } else if (hold_a) {
+        st->step_g = tr_clamp(-st->b2 / st->h22, R(-0.5), R(0.5));
+        st->step_a = R(0.0);
+        st->det = st->h22;
+        st->h11 = R(1.0);
+    }
 }
 
 /* newton.step_is_small, multiplied out as there */
@@ -156,6 +179,7 @@ static uint16_t fit_bin(const tr_table *t, tr_real Ib, tr_real Iw, tr_real Ic, t
     for (int it = 0; it < TM_TABLE_FIT_POLISH; it++) {
         evaluate(t, alpha, &slice, s_cell, g, ib, iw, rb, rw, &e);
         lm_step_t st = lm_step(e.J[0][0], e.J[0][2], e.J[1][0], e.J[1][2], e.residual[0], e.residual[1]);
+        hold_at_edges(alpha, g, a_lo, a_hi, g_lo, g_hi, &st);
         tr_real alpha0 = alpha, g0 = g;
         alpha = tr_clamp(alpha + st.step_a, a_lo, a_hi);
         g = tr_clamp(g + st.step_g, g_lo, g_hi);
@@ -197,9 +221,11 @@ static uint16_t fit_bin(const tr_table *t, tr_real Ib, tr_real Iw, tr_real Ic, t
     /* the light scattered into I_c's aperture: σt up by L/ℓ, (α, g) following to first order */
     tr_real ds_in = R(0.0);
     if (usable && !(fl & (TM_FLAG_IC_BELOW_FLOOR | TM_FLAG_OUTSIDE_MAP))) {
-        tr_real s0 = sigma_t, L = tr_inscatter_log1p(t, alpha, s0, g);
+        tr_inscatter_cells cells;
+        tr_inscatter_cells_init(t, alpha, g, &cells);
+        tr_real s0 = sigma_t, L = tr_inscatter_log1p_at(t, &cells, s0);
         tr_real s = s0 + L / t->thickness_mm;
-        if (L > R(TM_INSCATTER_ONCE)) s = s0 + tr_inscatter_log1p(t, alpha, s, g) / t->thickness_mm;
+        if (L > R(TM_INSCATTER_ONCE)) s = s0 + tr_inscatter_log1p_at(t, &cells, s) / t->thickness_mm;
         if (L > R(0.0) && s - s0 > R(0.0)) {
             ds_in = s - s0;
             lm_step_t st = lm_step(e.J[0][0], e.J[0][2], e.J[1][0], e.J[1][2], e.J[0][1] * ds_in, e.J[1][1] * ds_in);

@@ -1,4 +1,4 @@
-"""The map tracer (trimeter.maps.tracer) against Mitsuba's volpath (trimeter.forward.render): shared by
+"""The map tracer (trimeter.forward.transport) against Mitsuba's volpath (trimeter.forward.render): shared by
 `trimeter bench tracer-check` and tests/maps.
 
 Many random materials (trimeter.forward.validate.random_materials), both reference backgrounds, each
@@ -29,7 +29,7 @@ def tracer_agreement(geometry: str, materials: ArrayLike, n: float, thickness_mm
                      rhos: tuple[float, ...] = CHECK_RHOS, paths: int = 1 << 21, spp: int = 1 << 19, seed: int = 0,
                      backend: str = "llvm", progress: Callable[[int, int], None] | None = None,
                      series_orders: int | None = None) -> list[dict]:
-    """Per material: one tracer column (trimeter.maps.tracer.trace_column, its (σt, g) at `paths`
+    """Per material: one tracer column (trimeter.forward.transport.trace_column, its (σt, g) at `paths`
     detector paths) evaluated at the material's α and each ρ, against volpath per ρ extrapolated to no
     ray offset (trimeter.forward.render.render_diffuse_offset_free: `spp` samples, and a quarter as many
     with the scene moved; the render as made is in `volpath_as_rendered`). For the ideal geometry the rows also carry
@@ -39,7 +39,7 @@ def tracer_agreement(geometry: str, materials: ArrayLike, n: float, thickness_mm
     (ColumnTally.bounce_series), the model (C then matched to that series at the recipes' default white,
     ColumnTally.abc) carried as `tracer_model`."""
     from trimeter.geometry import load_geometry
-    from trimeter.maps.tracer import N_BACKGROUND_ORDERS, Stack, k_max_for, trace_column
+    from trimeter.forward.transport import N_BACKGROUND_ORDERS, Stack, k_max_for, trace_column
 
     require_series_orders(geometry, series_orders)
 

@@ -15,7 +15,7 @@ from trimeter.paths import REPO_ROOT
 def test_import_trimeter_stays_light():
     code = "import sys, trimeter; print(sorted(m for m in sys.modules if m.startswith('trimeter')))"
     loaded = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
-    assert loaded.strip() == "['trimeter']"
+    assert loaded.strip() == "['trimeter', 'trimeter.version']"   # the version: one line, no imports
 
 
 def test_names_resolve_and_unknown_ones_do_not():

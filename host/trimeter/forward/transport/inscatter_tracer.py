@@ -32,9 +32,9 @@ import math
 
 import numpy as np
 
-from trimeter.forward.nonscattering import fresnel_unpolarized
 from trimeter.geometry import cover_slide_n, cover_slide_thickness_mm, load_geometry
 from trimeter.model.collimated import MEASURABLE_IC, beer_lambert_sigma_t, collimated_transmittance
+from trimeter.model.fresnel import NUMPY, fresnel
 from trimeter.model.inscatter import InscatterTable
 
 SIXTEEN_BIT_FLOOR = 2.0**-16
@@ -43,11 +43,11 @@ SIXTEEN_BIT_FLOOR = 2.0**-16
 def _boundary_reflectance(cos_in, n: float, n_slide: float | None):
     """Reflectance of the sample's face (to air, through a cover slide if any) seen from inside."""
     if n_slide is None:
-        return fresnel_unpolarized(cos_in, n, 1.0)
-    r1 = fresnel_unpolarized(cos_in, n, n_slide)
+        return fresnel(NUMPY, cos_in, 1.0 / n)[0]
+    r1 = fresnel(NUMPY, cos_in, n_slide / n)[0]
     sin2 = (n / n_slide) ** 2 * (1.0 - cos_in**2)
     cos_glass = np.sqrt(np.clip(1.0 - sin2, 0.0, 1.0))
-    r2 = np.where(sin2 >= 1.0, 1.0, fresnel_unpolarized(cos_glass, n_slide, 1.0))
+    r2 = np.where(sin2 >= 1.0, 1.0, fresnel(NUMPY, cos_glass, 1.0 / n_slide)[0])
     return np.where(r1 >= 1.0, 1.0, r1 + (1 - r1) ** 2 * r2 / (1 - r1 * r2))
 
 
@@ -240,7 +240,8 @@ def build_inscatter_table(n: float, thickness_mm: float, geometry_params: dict, 
                                             photons, seed + 1000 * j + k)
         if progress:
             progress(j, len(taus))
-    provenance = {"builder": "trimeter.forward.inscatter.build_inscatter_table", "photons": photons, "seed": seed,
+    provenance = {"builder": "trimeter.forward.transport.inscatter_tracer.build_inscatter_table", "photons": photons,
+                  "seed": seed,
                   "seconds": round(time.perf_counter() - t0, 1)}
     return InscatterTable(L, u_max=-math.log1p(-alphas[-1]), tau_max=taus[-1], v_max=-math.log1p(-gs[-1]), n=n,
                           thickness_mm=thickness_mm, geometry_params=geometry_params, provenance=provenance)
