@@ -404,11 +404,13 @@ static void fill_input_registers(uint16_t *ir)
     ir[REG_IR_STANDALONE_BINS] = st->bins;
     ir[REG_IR_STANDALONE_SEQUENCE] = st->sequence;
     ir[REG_IR_STANDALONE_CALIBRATED] = st->calibrated;
-    regmap_put_f32(&ir[REG_IR_STANDALONE_RHO_WHITE], st->rho_white);
     regmap_put_f32(&ir[REG_IR_STANDALONE_THICKNESS_MM], st->thickness_mm);
     regmap_put_u32(&ir[REG_IR_STANDALONE_TABLE_CRC32], st->table_crc32);
     ir[REG_IR_STANDALONE_FLAGGED_BINS] = st->flagged_bins;
-    regmap_put_u32(&ir[REG_IR_STANDALONE_INTEGRATION_US], st->integration_us);
+    static const uint16_t integration[STANDALONE_SETUPS] = {
+        REG_IR_STANDALONE_INTEGRATION_BLACK_US, REG_IR_STANDALONE_INTEGRATION_WHITE_US,
+        REG_IR_STANDALONE_INTEGRATION_OPEN_US};
+    for (int k = 0; k < STANDALONE_SETUPS; k++) regmap_put_u32(&ir[integration[k]], st->integration_us[k]);
 }
 
 uint8_t app_read_regs(void *ctx, mb_table_t table, uint16_t addr, uint16_t n, uint16_t *out)
@@ -542,6 +544,12 @@ uint8_t app_write_file(void *ctx, uint16_t file, uint16_t record, uint16_t n, co
 
 enum press_step { PRESS_NONE, PRESS_HOMING, PRESS_MOVING, PRESS_LIGHTS, PRESS_CAPTURE, PRESS_DARK, PRESS_FIT };
 
+/* Auto-exposure: a saturated capture is taken again at half the time, one whose brightest pixel is below
+ * PRESS_DIM_FRACTION of full scale at twice the time (while that stays within the register's range and
+ * below saturation by linearity), at most PRESS_EXPOSURE_TRIES captures per set-up. */
+#define PRESS_DIM_FRACTION 0.4f
+#define PRESS_EXPOSURE_TRIES 6
+
 /* Shutters and LEDs of one set-up: the panels (black, white) or the collimated beam (open); both false: dark. */
 static void press_lights(bool panels, bool collimated)
 {
@@ -576,8 +584,19 @@ static void press_move(void)
 
 static uint8_t press_capture(bool dark)
 {
+    app.press_tries++;
     return c12880_start(&app.spectro, app.hal, dark, app.hr[REG_HR_SPECTRO_FRAMES],
-                        regmap_get_u32(&app.hr[REG_HR_SPECTRO_INTEGRATION_US]), app.hr[REG_HR_SPECTRO_GAIN], now());
+                        app.standalone.integration_us[app.press_setup], app.hr[REG_HR_SPECTRO_GAIN], now());
+}
+
+/* After a light capture: a new integration time to capture again with, or 0 to keep this one. */
+static uint32_t press_exposure_change(void)
+{
+    uint32_t t = app.standalone.integration_us[app.press_setup];
+    if (app.press_tries >= PRESS_EXPOSURE_TRIES) return 0;
+    if (app.spectro.status == TRIMETER_SPECTRO_STATUS_SATURATED) return t / 2u >= REG_HR_SPECTRO_INTEGRATION_US_MIN ? t / 2u : 0;
+    bool dim = (float)app.spectro.peak < PRESS_DIM_FRACTION * (float)C12880_ADC_FULL_SCALE;
+    return dim && t <= REG_HR_SPECTRO_INTEGRATION_US_MAX / 2u ? 2u * t : 0;
 }
 
 static bool capture_ok(void)
@@ -607,7 +626,7 @@ static void press_begin(void)
     app.press_calibrating = mode == TRIMETER_STANDALONE_MODE_CALIBRATE;
     app.press_setup = STANDALONE_BLACK;
     st->status = TRIMETER_STANDALONE_STATUS_BUSY;
-    st->integration_us = regmap_get_u32(&app.hr[REG_HR_SPECTRO_INTEGRATION_US]);
+    for (int k = 0; k < STANDALONE_SETUPS; k++) st->integration_us[k] = regmap_get_u32(&app.hr[REG_HR_SPECTRO_INTEGRATION_US]);
     press_lights(false, false);
     if (app.motion.homed) {
         app.press_step = PRESS_HOMING; /* waits for any motion a host started, then moves */
@@ -660,6 +679,7 @@ static void press_poll(void)
     case PRESS_MOVING:
         if (!motion_idle()) return;
         press_lights(app.press_setup != STANDALONE_OPEN, app.press_setup == STANDALONE_OPEN);
+        app.press_tries = 0;
         app.press_step = PRESS_LIGHTS;
         return;
     case PRESS_LIGHTS:
@@ -670,18 +690,19 @@ static void press_poll(void)
         }
         app.press_step = PRESS_CAPTURE;
         return;
-    case PRESS_CAPTURE:
+    case PRESS_CAPTURE: {
         if (c12880_busy(&app.spectro)) return;
         if (!capture_ok()) {
             press_end(TRIMETER_STANDALONE_STATUS_ERROR_SPECTRO);
             return;
         }
-        memcpy(st->light[app.press_setup], app.spectro.light, sizeof st->light[0]);
-        if (++app.press_setup < STANDALONE_SETUPS) {
-            press_lights(false, false);
-            press_move();
+        uint32_t again = press_exposure_change();
+        if (again) {
+            st->integration_us[app.press_setup] = again;
+            if (press_capture(false) != MB_OK) press_end(TRIMETER_STANDALONE_STATUS_ERROR_SPECTRO);
             return;
         }
+        memcpy(st->light[app.press_setup], app.spectro.light, sizeof st->light[0]);
         press_lights(false, false); /* every shutter closed: the dark capture waits for them to settle */
         if (press_capture(true) != MB_OK) {
             press_end(TRIMETER_STANDALONE_STATUS_ERROR_SPECTRO);
@@ -689,24 +710,24 @@ static void press_poll(void)
         }
         app.press_step = PRESS_DARK;
         return;
+    }
     case PRESS_DARK: {
         if (c12880_busy(&app.spectro)) return;
         if (!capture_ok()) {
             press_end(TRIMETER_STANDALONE_STATUS_ERROR_SPECTRO);
             return;
         }
-        standalone_reduce(st, app.spectro.dark, st->integration_us, app.cfg.spectro_wl);
+        memcpy(st->dark[app.press_setup], app.spectro.dark, sizeof st->dark[0]);
+        if (++app.press_setup < STANDALONE_SETUPS) {
+            press_move();
+            return;
+        }
+        standalone_reduce(st, app.cfg.spectro_wl);
         if (!app.press_calibrating) {
             press_fit();
             return;
         }
-        uint32_t length = 0;
-        const uint8_t *table = storage_map_active_bytes(&app.storage, &length);
-        if (!table) {
-            press_end(TRIMETER_STANDALONE_STATUS_ERROR_NO_TABLE);
-            return;
-        }
-        standalone_calibrate(st, map_table_rho_white_ref(table));
+        standalone_calibrate(st, regmap_get_f32(&app.hr[REG_HR_WHITE_REFERENCE_REFLECTANCE]));
         app.hr[REG_HR_STANDALONE_MODE] = TRIMETER_STANDALONE_MODE_MEASURE;
         press_end(TRIMETER_STANDALONE_STATUS_CALIBRATED);
         return;

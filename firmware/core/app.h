@@ -70,6 +70,7 @@ typedef struct app {
     standalone_t standalone;
     int press_step;             /* a standalone press's step (app.c), 0 = none runs */
     int press_setup;            /* ... the set-up it captures (enum standalone_setup) */
+    int press_tries;            /* ... captures of this set-up so far (auto-exposure) */
     bool press_calibrating;
     uint16_t press_events_seen; /* button_events the press logic has seen */
     uint16_t map_op_status;

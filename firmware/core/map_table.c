@@ -23,8 +23,6 @@ static uint32_t setup_offset(const uint8_t *header) { return get16(header + 8) =
 
 float map_table_thickness_mm(const uint8_t *header) { return getf(header + setup_offset(header) + 4); }
 
-float map_table_rho_white_ref(const uint8_t *header) { return getf(header + setup_offset(header) + 16); }
-
 uint32_t map_table_size(uint32_t na, uint32_t ns, uint32_t ng, uint32_t nx, uint32_t ny)
 {
     /* header, axes + (offset, step) of A, B, C, the u16 coefficients, the inverse frames, the two

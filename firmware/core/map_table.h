@@ -46,8 +46,6 @@ enum map_table_verdict map_table_check(const uint8_t *header, uint32_t length, u
 
 /* The sample thickness ℓ in mm the table was built for (header of a table map_table_check accepted, either format). */
 float map_table_thickness_mm(const uint8_t *header);
-/* The white reference's reflectance rho_w_ref the table was built for (same header). */
-float map_table_rho_white_ref(const uint8_t *header);
 
 /* The total size of a format-1 table with these grid counts (0 if it would not fit in 32 bits). */
 uint32_t map_table_size(uint32_t n_alpha, uint32_t n_sigma, uint32_t n_g, uint32_t n_x, uint32_t n_y);

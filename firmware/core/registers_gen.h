@@ -8,7 +8,7 @@
 #include <stdint.h>
 
 /* ---- identity */
-#define TRIMETER_REGMAP_HASH 0xB4748099u
+#define TRIMETER_REGMAP_HASH 0x29B0152Cu
 #define TRIMETER_FIRMWARE_VERSION "0.1.0"
 #define TRIMETER_FIRMWARE_VERSION_MAJOR 0u
 #define TRIMETER_FIRMWARE_VERSION_MINOR 1u
@@ -476,7 +476,7 @@ static inline const char *trimeter_unlock_name(unsigned value) /* else "unknown"
 #define REG_DI_HOMED 4u
 
 /* ---- input_registers */
-#define REG_IR_SPAN 125u /* one past the highest used address */
+#define REG_IR_SPAN 127u /* one past the highest used address */
 #define REG_IR_VENDOR_ID 0u
 #define REG_IR_MODEL_ID 1u
 #define REG_IR_FIRMWARE_VERSION_MAJOR 2u
@@ -528,14 +528,15 @@ static inline const char *trimeter_unlock_name(unsigned value) /* else "unknown"
 #define REG_IR_STANDALONE_BINS 113u
 #define REG_IR_STANDALONE_SEQUENCE 114u
 #define REG_IR_STANDALONE_CALIBRATED 115u
-#define REG_IR_STANDALONE_RHO_WHITE 116u
-#define REG_IR_STANDALONE_THICKNESS_MM 118u
-#define REG_IR_STANDALONE_TABLE_CRC32 120u
-#define REG_IR_STANDALONE_FLAGGED_BINS 122u
-#define REG_IR_STANDALONE_INTEGRATION_US 123u
+#define REG_IR_STANDALONE_THICKNESS_MM 116u
+#define REG_IR_STANDALONE_TABLE_CRC32 118u
+#define REG_IR_STANDALONE_FLAGGED_BINS 120u
+#define REG_IR_STANDALONE_INTEGRATION_BLACK_US 121u
+#define REG_IR_STANDALONE_INTEGRATION_WHITE_US 123u
+#define REG_IR_STANDALONE_INTEGRATION_OPEN_US 125u
 
 /* ---- holding_registers */
-#define REG_HR_SPAN 107u /* one past the highest used address */
+#define REG_HR_SPAN 109u /* one past the highest used address */
 #define REG_HR_COMMAND 0u
 #define REG_HR_COMMAND_DEFAULT 0u
 #define REG_HR_COMMAND_MIN 0u
@@ -720,6 +721,10 @@ static inline const char *trimeter_unlock_name(unsigned value) /* else "unknown"
 #define REG_HR_STANDALONE_MODE_DEFAULT 0u
 #define REG_HR_STANDALONE_MODE_MIN 0u
 #define REG_HR_STANDALONE_MODE_MAX 2u
+#define REG_HR_WHITE_REFERENCE_REFLECTANCE 107u
+#define REG_HR_WHITE_REFERENCE_REFLECTANCE_DEFAULT 0.9900000095367432f
+#define REG_HR_WHITE_REFERENCE_REFLECTANCE_MIN 0.5f
+#define REG_HR_WHITE_REFERENCE_REFLECTANCE_MAX 1.0f
 
 /* ---- descriptor table (registers_gen.c), sorted by table then address */
 typedef enum { REGMAP_COIL = 0, REGMAP_DISCRETE_INPUT = 1, REGMAP_INPUT_REGISTER = 3,
@@ -738,7 +743,7 @@ typedef struct {
     float min_f, max_f, def_f; /* f32 */
 } regmap_entry_t;
 
-#define REGMAP_ENTRY_COUNT 113u
+#define REGMAP_ENTRY_COUNT 115u
 extern const regmap_entry_t regmap_entries[REGMAP_ENTRY_COUNT];
 
 #endif

@@ -14,13 +14,10 @@ void standalone_init(standalone_t *s) { memset(s, 0, sizeof *s); }
 static float word_f32(const standalone_t *s, unsigned bin, unsigned word) { return regmap_get_f32(&s->words[bin * STRIDE + word]); }
 static void put_f32(standalone_t *s, unsigned bin, unsigned word, float v) { regmap_put_f32(&s->words[bin * STRIDE + word], v); }
 
-void standalone_reduce(standalone_t *s, const uint16_t dark[C12880_PIXELS], uint32_t integration_us,
-                       const float wl_coeff[C12880_WL_COEFFS])
+void standalone_reduce(standalone_t *s, const float wl_coeff[C12880_WL_COEFFS])
 {
     static const unsigned rate_word[STANDALONE_SETUPS] = {TRIMETER_STANDALONE_WORD_BLACK, TRIMETER_STANDALONE_WORD_WHITE,
                                                           TRIMETER_STANDALONE_WORD_OPEN};
-    /* records are mean counts x 16: one record per (count x 16) per integration time */
-    float per_record = 1e6f / ((float)C12880_RECORD_SCALE * (float)integration_us);
     for (unsigned b = 0; b < STANDALONE_BINS; b++) {
         unsigned p0 = b * STANDALONE_PIXELS_PER_BIN;
         float wl = 0.0f;
@@ -28,11 +25,13 @@ void standalone_reduce(standalone_t *s, const uint16_t dark[C12880_PIXELS], uint
         put_f32(s, b, TRIMETER_STANDALONE_WORD_WAVELENGTH_NM, wl / (float)STANDALONE_PIXELS_PER_BIN);
         s->saturated[b] = false;
         for (unsigned setup = 0; setup < STANDALONE_SETUPS; setup++) {
+            /* records are mean counts x 16 */
+            float per_record = 1e6f / ((float)C12880_RECORD_SCALE * (float)s->integration_us[setup]);
             float net = 0.0f;
             for (unsigned k = 0; k < STANDALONE_PIXELS_PER_BIN; k++) {
                 uint16_t light = s->light[setup][p0 + k];
                 if (light >= STANDALONE_SATURATED_COUNTS * C12880_RECORD_SCALE) s->saturated[b] = true;
-                net += (float)light - (float)dark[p0 + k];
+                net += (float)light - (float)s->dark[setup][p0 + k];
             }
             put_f32(s, b, rate_word[setup], net * per_record / (float)STANDALONE_PIXELS_PER_BIN);
         }
@@ -50,6 +49,7 @@ void standalone_calibrate(standalone_t *s, float rho_white)
         if (s->collimated[b] > max_collimated) max_collimated = s->collimated[b];
     }
     for (unsigned b = 0; b < STANDALONE_BINS; b++) {
+        s->calibration_saturated[b] = s->saturated[b];
         s->lit[b] = !s->saturated[b] && s->diffuse[b] >= STANDALONE_LIT_FRACTION * max_diffuse && max_diffuse > 0.0f &&
                     s->collimated[b] >= STANDALONE_LIT_FRACTION * max_collimated && max_collimated > 0.0f;
         s->rho_black[b] = s->lit[b] ? word_f32(s, b, TRIMETER_STANDALONE_WORD_BLACK) / s->diffuse[b] : NAN;
@@ -87,8 +87,8 @@ uint16_t standalone_fit_input(standalone_t *s, uint16_t *fit_in)
         for (unsigned w = TRIMETER_STANDALONE_WORD_ALPHA; w <= TRIMETER_STANDALONE_WORD_G; w += 2) put_f32(s, b, w, NAN);
         s->words[b * STRIDE + TRIMETER_STANDALONE_WORD_FIT_FLAGS] = 0;
         s->words[b * STRIDE + TRIMETER_STANDALONE_WORD_CAPTURE_FLAGS] =
-            (uint16_t)((s->saturated[b] ? STANDALONE_CAPTURE_SATURATED : 0u) |
-                       (s->lit[b] ? 0u : STANDALONE_CAPTURE_NO_REFERENCE_LIGHT));
+            (uint16_t)((s->saturated[b] || s->calibration_saturated[b] ? STANDALONE_CAPTURE_SATURATED : 0u) |
+                       (s->lit[b] || s->calibration_saturated[b] ? 0u : STANDALONE_CAPTURE_NO_REFERENCE_LIGHT));
     }
     return STANDALONE_BINS;
 }
@@ -103,7 +103,7 @@ void standalone_take_fit(standalone_t *s, const uint16_t *fit_out, uint16_t n)
         for (unsigned k = 0; k < 3; k++) put_f32(s, b, TRIMETER_STANDALONE_WORD_ALPHA + 2u * k, regmap_get_f32(&o[out_word[k]]));
         uint16_t flags = o[TRIMETER_FIT_OUTPUT_WORD_FLAGS];
         s->words[b * STRIDE + TRIMETER_STANDALONE_WORD_FIT_FLAGS] = flags;
-        if (s->lit[b] && (flags || s->saturated[b])) flagged++;
+        if (s->calibration_saturated[b] || (s->lit[b] && (flags || s->saturated[b]))) flagged++;
     }
     s->flagged_bins = flagged;
     s->status = flagged ? TRIMETER_STANDALONE_STATUS_FLAGGED : TRIMETER_STANDALONE_STATUS_DONE;

@@ -3,8 +3,9 @@
  * captures into bins, keeps the calibration, builds the fit's input and keeps the result (file
  * standalone_result), so it can be tested without a port.
  *
- * Bins: adjacent pixel pairs (1-2, 3-4, ...), 144 of them, within the fit's capacity; each bin's rate is
- * the pair's mean of (light - dark) in counts/s. A bin is lit when the calibration's diffuse and collimated
+ * Each set-up is captured at its own integration time (the press's auto-exposure, app.c) with a dark
+ * capture at that time right after it. Bins: adjacent pixel pairs (1-2, 3-4, ...), 144 of them, within the
+ * fit's capacity; each bin's rate is the pair's mean of (light - dark) in counts/s. A bin is lit when the calibration's diffuse and collimated
  * rates are both at least STANDALONE_LIT_FRACTION of their maxima: an unlit bin gets NaN inputs (the fit
  * flags it unusable) and the no-reference-light capture flag, and does not make a result "flagged". */
 #ifndef TRIMETER_STANDALONE_H
@@ -30,14 +31,16 @@ enum standalone_setup { STANDALONE_BLACK, STANDALONE_WHITE, STANDALONE_OPEN, STA
 typedef struct standalone {
     uint16_t words[STANDALONE_BINS * TRIMETER_STANDALONE_WORD_STRIDE]; /* file standalone_result */
     uint16_t light[STANDALONE_SETUPS][C12880_PIXELS];                  /* this press's captures, counts x 16 */
+    uint16_t dark[STANDALONE_SETUPS][C12880_PIXELS];                   /* ... each set-up's dark */
+    uint32_t integration_us[STANDALONE_SETUPS];                        /* ... each set-up's integration time */
     float diffuse[STANDALONE_BINS], collimated[STANDALONE_BINS], rho_black[STANDALONE_BINS]; /* calibration */
     bool lit[STANDALONE_BINS];
     bool saturated[STANDALONE_BINS]; /* this press: some pixel of the bin saturated in some set-up */
+    bool calibration_saturated[STANDALONE_BINS];
     bool calibrated;
     float rho_white;
     float thickness_mm;     /* the last measurement's: the active table's */
     uint32_t table_crc32;   /* ... and that table's own CRC-32 */
-    uint32_t integration_us;
     uint16_t bins;          /* bins readable in words */
     uint16_t flagged_bins;
     uint16_t sequence;
@@ -46,10 +49,9 @@ typedef struct standalone {
 
 void standalone_init(standalone_t *s);
 
-/* This press's bins from the set-ups' captures (s->light) and the dark capture: wavelengths (from the
- * unit's polynomial) and rates into the result's words; saturation per bin. integration_us > 0. */
-void standalone_reduce(standalone_t *s, const uint16_t dark[C12880_PIXELS], uint32_t integration_us,
-                       const float wl_coeff[C12880_WL_COEFFS]);
+/* This press's bins from the set-ups' captures (light, dark, integration_us > 0): wavelengths (from the
+ * unit's polynomial) and rates into the result's words; saturation per bin. */
+void standalone_reduce(standalone_t *s, const float wl_coeff[C12880_WL_COEFFS]);
 
 /* A calibration press: the reduced rates become the calibration (diffuse = white / rho_white). */
 void standalone_calibrate(standalone_t *s, float rho_white);

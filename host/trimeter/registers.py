@@ -9,7 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from enum import IntEnum
 
-REGMAP_HASH = 0xB4748099
+REGMAP_HASH = 0x29B0152C
 FIRMWARE_VERSION = (0, 1, 0)
 VENDOR_NAME = 'trimeter project'
 PRODUCT_CODE = 'TRIMETER-1'
@@ -381,19 +381,21 @@ REGISTERS: tuple[Register, ...] = (
     Register('standalone_bins', 'input_register', 113, 'u16', 1, 'r', 1.0, '', 0, 65535, 0, None, (),
              'Bins in file standalone_result (0 before the first press completed its captures).'),
     Register('standalone_sequence', 'input_register', 114, 'u16', 1, 'r', 1.0, '', 0, 65535, 0, None, (),
-             'Standalone presses completed since boot (wraps): a host sees a new result by this changing.'),
+             'Standalone presses ended since boot, refusals included (wraps): a host sees a new result by this changing.'),
     Register('standalone_calibrated', 'input_register', 115, 'u16', 1, 'r', 1.0, '', 0, 1, 0, None, (),
              '1 once a calibration press completed since boot.'),
-    Register('standalone_rho_white', 'input_register', 116, 'f32', 2, 'r', 1.0, '', -3.4028234663852886e+38, 3.4028234663852886e+38, 0.0, None, (),
-             "The white reference reflectance the calibration divided by (the active table's rho_w)."),
-    Register('standalone_thickness_mm', 'input_register', 118, 'f32', 2, 'r', 1.0, 'mm', -3.4028234663852886e+38, 3.4028234663852886e+38, 0.0, None, (),
+    Register('standalone_thickness_mm', 'input_register', 116, 'f32', 2, 'r', 1.0, 'mm', -3.4028234663852886e+38, 3.4028234663852886e+38, 0.0, None, (),
              "The sample thickness the last measurement was fitted for: the active table's."),
-    Register('standalone_table_crc32', 'input_register', 120, 'u32', 2, 'r', 1.0, '', 0, 4294967295, 0, None, (),
+    Register('standalone_table_crc32', 'input_register', 118, 'u32', 2, 'r', 1.0, '', 0, 4294967295, 0, None, (),
              'The map table the last measurement was fitted with (its own CRC-32, as fit_table_crc32); 0: none.'),
-    Register('standalone_flagged_bins', 'input_register', 122, 'u16', 1, 'r', 1.0, '', 0, 65535, 0, None, (),
+    Register('standalone_flagged_bins', 'input_register', 120, 'u16', 1, 'r', 1.0, '', 0, 65535, 0, None, (),
              'Lit bins of the last measurement with a fit or capture flag (the status is flagged when > 0).'),
-    Register('standalone_integration_us', 'input_register', 123, 'u32', 2, 'r', 1.0, 'us', 0, 4294967295, 0, None, (),
-             "The integration time of the last press's captures (every set-up and the dark), as the device used it."),
+    Register('standalone_integration_black_us', 'input_register', 121, 'u32', 2, 'r', 1.0, 'us', 0, 4294967295, 0, None, (),
+             "The last press's integration time in the black set-up (its light and dark captures): the device's auto-exposure, from spectro_integration_us."),
+    Register('standalone_integration_white_us', 'input_register', 123, 'u32', 2, 'r', 1.0, 'us', 0, 4294967295, 0, None, (),
+             'As standalone_integration_black_us, white set-up.'),
+    Register('standalone_integration_open_us', 'input_register', 125, 'u32', 2, 'r', 1.0, 'us', 0, 4294967295, 0, None, (),
+             'As standalone_integration_black_us, open set-up (collimated beam).'),
     Register('command', 'holding_register', 0, 'u16', 1, 'rw', 1.0, '', 0, 8, 0, 'command', (),
              'Write to start an action; reads back the last accepted command. Motion commands only set a target. save_config and load_defaults need `unlock` first (else exception 01); a save refused by the erase rate limit: exception 06.'),
     Register('unlock', 'holding_register', 1, 'u16', 1, 'rw', 1.0, '', 0, 23294, 0, 'unlock', (0, 23294),
@@ -486,6 +488,8 @@ REGISTERS: tuple[Register, ...] = (
              'Wavelength polynomial B5 (coefficient of p^5).'),
     Register('standalone_mode', 'holding_register', 44, 'u16', 1, 'rw', 1.0, '', 0, 2, 0, 'standalone_mode', (),
              'What a press of the front button does (enums.standalone_mode): off leaves it to the host; calibrate / measure run the press on the device. Uses spectro_frames, spectro_integration_us and spectro_gain as they are.'),
+    Register('white_reference_reflectance', 'holding_register', 107, 'f32', 2, 'rw', 1.0, '', 0.5, 1.0, 0.9900000095367432, None, (),
+             "The white reference's reflectance (hardware/geometry.toml, calibration.white_reference_reflectance): a standalone calibration divides the white slot's light by it, as the host's calibration does."),
 )
 
 BY_NAME: dict[str, Register] = {r.name: r for r in REGISTERS}
@@ -493,4 +497,4 @@ COILS: dict[str, Register] = {r.name: r for r in REGISTERS if r.table == 'coil'}
 DISCRETE_INPUTS: dict[str, Register] = {r.name: r for r in REGISTERS if r.table == 'discrete_input'}
 INPUT_REGISTERS: dict[str, Register] = {r.name: r for r in REGISTERS if r.table == 'input_register'}
 HOLDING_REGISTERS: dict[str, Register] = {r.name: r for r in REGISTERS if r.table == 'holding_register'}
-SPANS: dict[str, int] = {'coil': 6, 'discrete_input': 5, 'input_register': 125, 'holding_register': 107}
+SPANS: dict[str, int] = {'coil': 6, 'discrete_input': 5, 'input_register': 127, 'holding_register': 109}
