@@ -1,12 +1,14 @@
 """A host-less press: on a twin with the C12880MA and a table in its slot, a calibration press (holder empty)
 and a measurement press run with no host attached; a host that connects afterwards reads the device's
-result, and it matches a host fit (`trimeter fit --table`, double precision) of the same capture within
-the on-device tolerances."""
+result (`trimeter device last-result`, into a results directory), and it matches a host fit (`trimeter fit
+--table`, double precision) of the same capture within the on-device tolerances."""
 
 from __future__ import annotations
 
 import csv
+import json
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -39,24 +41,41 @@ def _press(twin, timeout_s: float = 120.0) -> str:
     raise AssertionError("the standalone press did not end")
 
 
-def test_a_hostless_press_leaves_a_result_that_matches_a_host_fit(request, tmp_path, hil_map):
+def test_a_hostless_press_leaves_a_result_that_matches_a_host_fit(request, tmp_path, hil_map, monkeypatch, capsys):
     if request.config.getoption("--port"):
         pytest.skip("needs the twin (its storage seeded with a table)")
     from trimeter.device import Device
     from trimeter.maps.device_table import build_from_map
     from trimeter.twin import Twin
 
+    for name in ("DATA", "CONFIG", "CACHE"):
+        monkeypatch.setenv(f"TRIMETER_{name}_DIR", str(tmp_path / name.lower()))
     table_file = build_from_map(hil_map).save(tmp_path / "hil.tlut")
     with Twin(sample=None, thickness_mm=THICKNESS_MM, time_scale=TIME_SCALE, appearance_map=hil_map,
               state_dir=tmp_path / "twin", seed=3, map_table=table_file.read_bytes(), sensor="c12880ma") as twin:
+        port = ["--port", twin.modbus_port]
         with Device.open(twin.modbus_port) as device:  # set up once, then the host goes away
-            device.write_many({"spectro_integration_us": 4000, "spectro_frames": 4,
-                               "standalone_mode": regs.StandaloneMode.CALIBRATE})
+            device.write_many({"spectro_integration_us": 4000, "spectro_frames": 4})
+        assert main(["device", "last-result", *port]) == 2
+        assert "no standalone result: no press since it started" in capsys.readouterr().err
+        assert main(["device", "standalone", "calibrate", *port]) == 0
         assert _press(twin) == "on"  # calibrated
+        capsys.readouterr()
+        assert main(["device", "last-result", *port]) == 2
+        assert "was a calibration: insert a sample and press again" in capsys.readouterr().err
         twin.control.insert_sample(SAMPLE, THICKNESS_MM)
         pattern = _press(twin)
+        truth = twin.control.truth()
         with Device.open(twin.modbus_port) as device:  # a host connects later
             result = device.standalone_result()
+        assert main(["device", "last-result", *port, "--out", str(tmp_path / "results"), "--no-figure"]) == 0
+        out = capsys.readouterr().out
+    written = Path([line.split(": ", 1)[1] for line in out.splitlines() if line.startswith("results: ")][0])
+    meta = json.loads((written / "measurement.json").read_text())
+    assert meta["fitted_on"] == "device" and meta["hostless"] and meta["method"] == "lut"
+    assert meta["device_map_table"]["matches_fit_table"] and meta["declared_thicknesses_mm"] == [pytest.approx(THICKNESS_MM)]
+    written_fit = np.genfromtxt(written / "parameters.csv", delimiter=",", names=True)
+    np.testing.assert_allclose(written_fit["alpha"], result.bins["alpha"], rtol=1e-7)  # the device's fit, as is (%.8g)
     assert pattern in ("on", "double_blink")
     assert result.status in (regs.StandaloneStatus.DONE, regs.StandaloneStatus.FLAGGED)
     assert result.thickness_mm == pytest.approx(THICKNESS_MM)
@@ -87,3 +106,11 @@ def test_a_hostless_press_leaves_a_result_that_matches_a_host_fit(request, tmp_p
     print(f"standalone vs host fit over {both.sum()} bins: max |Δα| {d_alpha:.2e}, max |Δσt|/σt {d_sigma:.2e}, "
           f"max |Δg| {d_g:.2e}; status {result.status.name.lower()}, {result.flagged_bins} flagged lit bins")
     assert d_alpha <= 1e-3 and d_sigma <= 1e-3 and d_g <= 2e-3  # the on-device fit's tolerances
+    # against the twin's truth (the device corrects no lamp drift between its calibration and the press)
+    wl = b["wavelength_nm"][lit][both]
+    want = {k: np.interp(wl, truth["wavelengths_nm"], truth[k]) for k in ("alpha", "sigma_t", "g")}
+    band = (wl > 420) & (wl < 720)
+    print(f"standalone vs twin truth over 420-720 nm ({band.sum()} bins): |Δα| p95 "
+          f"{np.percentile(np.abs(on_device['alpha'][both] - want['alpha'])[band], 95):.4f}, |Δσt|/σt p95 "
+          f"{np.percentile(np.abs(on_device['sigma_t'][both] / want['sigma_t'] - 1)[band], 95):.2%}, |Δg| p95 "
+          f"{np.percentile(np.abs(on_device['g'][both] - want['g'])[band], 95):.3f}")
