@@ -73,7 +73,8 @@ def test_a_hostless_press_leaves_a_result_that_matches_a_host_fit(request, tmp_p
     written = Path([line.split(": ", 1)[1] for line in out.splitlines() if line.startswith("results: ")][0])
     meta = json.loads((written / "measurement.json").read_text())
     assert meta["fitted_on"] == "device" and meta["hostless"] and meta["method"] == "lut"
-    assert meta["device_map_table"]["matches_fit_table"] and meta["declared_thicknesses_mm"] == [pytest.approx(THICKNESS_MM)]
+    assert meta["device_map_table"]["matches_fit_table"]
+    assert meta["declared_thicknesses_mm"] == [pytest.approx(THICKNESS_MM)]
     written_fit = np.genfromtxt(written / "parameters.csv", delimiter=",", names=True)
     np.testing.assert_allclose(written_fit["alpha"], result.bins["alpha"], rtol=1e-7)  # the device's fit, as is (%.8g)
     assert pattern in ("on", "double_blink")

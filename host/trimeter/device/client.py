@@ -671,9 +671,9 @@ class Device:
                                                          min(per_request, count - first) * stride)
                         for first in range(0, count, per_request))
         return StandaloneResult(regs.StandaloneStatus(status), int(values["standalone_sequence"]),
-                                np.frombuffer(data, dtype=STANDALONE_DTYPE), float(values["white_reference_reflectance"]),
-                                float(values["standalone_thickness_mm"]), int(values["standalone_table_crc32"]),
-                                int(values["standalone_flagged_bins"]),
+                                np.frombuffer(data, dtype=STANDALONE_DTYPE),
+                                float(values["white_reference_reflectance"]), float(values["standalone_thickness_mm"]),
+                                int(values["standalone_table_crc32"]), int(values["standalone_flagged_bins"]),
                                 {k: int(values[f"standalone_integration_{k}_us"]) for k in setups})
 
     def _read_fit_results(self, count: int) -> np.ndarray:
