@@ -48,7 +48,7 @@ from trimeter.web import auth
 from trimeter.web import library_routes
 from trimeter.web.isolated import run_with_time_limit
 from trimeter.web.history import History, IndexUnavailable, is_measurement_id, parse_day_or_time
-from trimeter.web.jobs import Busy, Job, Jobs
+from trimeter.web.jobs import Busy, Job, Jobs, LinkDown
 
 if TYPE_CHECKING:
     from trimeter.domain.measurement import MapRef
@@ -68,6 +68,7 @@ BODY_TIMEOUT_S = 10.0               # a body that small arrives at once; a clien
 HEADER_TIMEOUT_S = 15.0
 EVENT_QUEUE = 256                   # events buffered per websocket client; a client that falls further behind is closed
 DEVICE_CALL_TIMEOUT_S = 15.0
+LINK_DOWN_RETRY_AFTER_S = 5         # work asked for while the device link is being tried again
 REFIT_TIME_LIMIT_S = 300.0          # a re-fit runs in a child process, stopped at this
 WEBHOOK_TIMEOUT_S = 5.0
 LABEL = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
@@ -123,6 +124,8 @@ async def errors_middleware(request: web.Request, handler: Handler) -> web.Strea
         return _error(exc.status, exc.message, headers=exc.headers, close=exc.close, **exc.extra)
     except Busy as exc:
         return _error(409, f"the instrument is busy: {exc}", job=exc.job.to_json())
+    except LinkDown as exc:
+        return _error(503, str(exc), headers={"Retry-After": str(LINK_DOWN_RETRY_AFTER_S)})
     except IndexUnavailable as exc:
         return _error(503, str(exc), headers={"Retry-After": str(IndexUnavailable.RETRY_AFTER_S)})
     except TrimeterError as exc:
