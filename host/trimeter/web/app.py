@@ -560,7 +560,7 @@ async def measurement_zip(request: web.Request) -> web.StreamResponse:
 
 @routes.post("/api/measurements/{id}/refit")
 async def refit_route(request: web.Request) -> web.StreamResponse:
-    from trimeter.web.refit import recorded_maps, refit
+    from trimeter.web.refit import paper_refit_problem, recorded_maps, refit
 
     path = _measurement_dir(request)
     body = await json_body(request, ("maps", "method"))
@@ -577,16 +577,22 @@ async def refit_route(request: web.Request) -> web.StreamResponse:
             raise ApiError(400, f"maps: {', '.join(map(repr, unknown))} not known here "
                                 f"(GET /api/maps lists them: {', '.join(sorted(catalog))})")
 
-    def run(job: Job) -> str:
+    def resolve() -> tuple[list[str], list[MapRef]]:
         from trimeter.results.reader import read_record
 
-        meta = read_record(path)
-        maps: list[MapRef]
         if names:
-            chosen, maps = names, [AppearanceMap.load(catalog[name]) for name in names]
-        else:
-            chosen = meta.get("maps") or []
-            maps = recorded_maps(meta, catalog, functools.partial(_instrument_table, jobs))
+            return names, [AppearanceMap.load(catalog[name]) for name in names]
+        meta = read_record(path)
+        return meta.get("maps") or [], recorded_maps(meta, catalog, functools.partial(_instrument_table, jobs))
+
+    resolved: tuple[list[str], list[MapRef]] | None = None
+    if method == "paper":  # its cost is known before it runs: too large a one is refused, not started
+        resolved = await _blocking(request, resolve)
+        if problem := await _blocking(request, paper_refit_problem, path, resolved[1]):
+            raise ApiError(400, problem)
+
+    def run(job: Job) -> str:
+        chosen, maps = resolved or resolve()
         # beside the instrument's queue and in a process of its own: a slow or stuck fit neither holds the
         # instrument nor runs past the limit
         new = run_with_time_limit(refit, (path, maps, method), REFIT_TIME_LIMIT_S, "the re-fit")
