@@ -22,12 +22,13 @@ What this layer guarantees to the client above it (trimeter.device.client):
   reply, which was this request's answer, until the line is quiet). A reply later than that, of
   the same shape, cannot be told apart from the answer by its bytes (RTU has no transaction ids), so
   for `late_reply_horizon_s` after a read went unanswered every read whose reply has that read's shape
-  is confirmed. A register or bit read (a live value: two reads may rightly differ) waits out its
-  timeout after the reply: the answer to this request comes within it, so a second frame means one of
-  the two was a late reply, and both are discarded. A file-record read (stored data, many of them in a
-  map table) is asked again until two replies in a row are byte for byte the same (a late reply comes
-  once, so it cannot agree with itself). Writes are not repeated (a command coil would act twice);
-  their echo names the address and count;
+  is confirmed: asked again, and taken when the two replies are byte for byte the same (a late reply
+  comes once, so it cannot agree with itself). When they differ, a file-record read (stored data) is
+  asked until two in a row agree; a register or bit read (a live value: two reads may rightly differ)
+  is taken once the line stayed quiet until its answer was due (the answer to this request comes within
+  its timeout, so a second frame means one of the two was late: both are discarded). A read whose reply
+  arrived within the drain is not suspected (its late reply came). Writes are not repeated (a command
+  coil would act twice); their echo names the address and count;
 - when the serial adapter disappears (USB unplugged, twin restarted) the port is closed and reopened
   until `reconnect_timeout_s` runs out; a Modbus exception reply is raised at once (never retried)
   as ModbusExceptionReply carrying the exception code;
@@ -181,15 +182,16 @@ class RtuTransport:
         or a second stop, stop) plus the answering allowance and any slow_reply()."""
         return self.timeout_s + self._slow_reply_s + (request_bytes + reply_bytes) * 11 / self.baudrate
 
-    def _drain(self, *, answered: bool = False) -> None:
+    def _drain(self, *, answered: bool = False) -> bool:
         """After a failure: discard everything that arrives for the whole late-reply window, then flush.
         Stopping at the first quiet moment would let a reply that is merely late land in the next
         request's read — and a stale `busy` or `uptime_s` of the right shape is indistinguishable.
         `answered`: the request's reply did arrive (garbled), so nothing of it is still on its way and
-        draining until the line is quiet suffices."""
+        draining until the line is quiet suffices. Returns whether anything arrived (a late reply did)."""
         sock = self._client.socket
+        heard = False
         if sock is None:
-            return
+            return heard
         now = time.monotonic()
         window = self._request_timeout_s if self.late_reply_window_s is None else self.late_reply_window_s
         end, quiet_until = now + window, now + self._quiet_s
@@ -197,9 +199,11 @@ class RtuTransport:
             waiting = sock.in_waiting
             if waiting:
                 sock.read(waiting)
+                heard = True
                 quiet_until = min(end, time.monotonic() + self._quiet_s)
             time.sleep(0.002)
         sock.reset_input_buffer()
+        return heard
 
     def close(self) -> None:
         self._client.close()
@@ -236,14 +240,15 @@ class RtuTransport:
         """The reply is the PDU class of the request's function code (bits, registers or records), hence Any.
         `request_bytes`, `reply_bytes`: the lengths of the request frame and of its normal (non-exception)
         reply frame, address and CRC included. `read`: asking again is harmless, so a reply that a late one
-        could be mistaken for is confirmed (see the module's docstring): "live" by a quiet line until the
-        timeout, "stored" by a second reply that agrees."""
+        could be mistaken for is confirmed (see the module's docstring): by a second reply that agrees, then
+        for "live" values by a quiet line until the answer is due, for "stored" ones by two that agree."""
         started = time.monotonic()
         self.stats.requests += 1
         self._request_timeout_s = timeout = self.request_timeout_s(request_bytes, reply_bytes)
         self._client.comm_params.timeout_connect = timeout  # what pymodbus's serial client waits for a reply
         last_failure = "no attempt"
         candidate: bytes | None = None  # a reply waiting for its confirmation
+        quiet = False
         try:
             for attempt in range(self.attempts + 1):
                 if attempt == self.attempts and candidate is None:
@@ -268,17 +273,18 @@ class RtuTransport:
                         # pymodbus's own wording ("… CLOSING CONNECTION") describes a close it does not do
                         # on a serial client; what happened is that no whole reply came back in time.
                         self.stats.timeouts += 1
-                        if read is not None:
-                            self._unanswered.append((time.monotonic() + self.late_reply_horizon_s,
-                                                     function_code, reply_bytes))
+                        unanswered = not self._received
                         last_failure = (f"no reply within {timeout:.3g} s" if not self._received else
                                         f"an incomplete reply within {timeout:.3g} s ({self._received.hex(' ')})")
                     else:
                         last_failure = str(exc).strip() or type(exc).__name__
+                        unanswered = False
                     if isinstance(exc, (ConnectionException, OSError)) or self._client.socket is None:
                         self.reopen()
-                    else:
-                        self._drain()
+                    elif not self._drain() and unanswered and read is not None:
+                        # its reply did not come within the drain either: it may still, for the horizon
+                        self._unanswered.append((time.monotonic() + self.late_reply_horizon_s, function_code,
+                                                 reply_bytes))
                     continue
                 if not is_one_whole_frame(self._received):
                     # pymodbus's framer also accepts a CRC over a prefix of the buffer (it hunts for frames
@@ -296,22 +302,24 @@ class RtuTransport:
                     last_failure = f"a reply that answers another request ({type(reply).__name__})"
                     self._drain()
                     continue
-                if read == "live" and self._late_reply_possible(function_code, reply_bytes):
-                    self.stats.confirmations += 1
-                    if self._another_frame_by(answer_by):
-                        self.stats.stale_replies += 1
-                        last_failure = "two replies to one read (one was a late reply to an earlier read)"
-                        self._drain(answered=True)
-                        continue
-                elif read == "stored" and candidate != self._received and self._late_reply_possible(function_code,
-                                                                                                 reply_bytes):
-                    if candidate is not None:
-                        self.stats.stale_replies += 1
-                        last_failure = "replies that disagree (a late reply to an earlier read)"
-                    candidate = self._received
-                    self.stats.confirmations += 1
+                if read is None or not self._late_reply_possible(function_code, reply_bytes):
+                    return reply
+                if quiet:  # a reply counts once nothing else arrived by the time this request's answer is due
+                    if not self._another_frame_by(answer_by):
+                        return reply
+                    self.stats.stale_replies += 1
+                    last_failure = "two replies to one read (one was a late reply to an earlier read)"
+                    self._drain(answered=True)
                     continue
-                return reply
+                if candidate == self._received:
+                    return reply  # two asks agree: a late reply comes once, it cannot agree with itself
+                if candidate is not None:
+                    self.stats.stale_replies += 1
+                    last_failure = "replies that disagree (a late reply to an earlier read)"
+                    # a live value may rightly change between two asks: from now on, the quiet line decides
+                    quiet = read == "live"
+                candidate = self._received
+                self.stats.confirmations += 1
             self.stats.failures += 1
             raise LinkError(f"no valid reply from the device on {self.port} to {what} "
                             f"after {self.attempts} attempts (last: {last_failure})")
