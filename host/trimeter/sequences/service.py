@@ -30,6 +30,7 @@ from pathlib import Path
 from typing import Callable, TypeVar
 
 from trimeter.device import Device
+from trimeter.device.transport import LinkError
 from trimeter.device.backup import config_source_warning
 from trimeter.domain import Calibration, InstrumentInfo, Sample
 from trimeter.domain.measurement import DeviceTableCheck, Estimate
@@ -52,7 +53,7 @@ T = TypeVar("T")
 @dataclass
 class Event:
     # connected | press | empty_holder | calibrating | refused | warmed_up | calibrated | next_sample | advice |
-    # measured | failed | warning | reset | reconnecting
+    # measured | failed | warning | reset | reconnecting | link_lost | link_restored
     kind: str
     message: str
     data: dict = field(default_factory=dict)
@@ -155,8 +156,24 @@ class Service:
         again after a backoff and a reopen; a reset or a refusal is not. Every action here sets a state or
         reads one, so it is safe to repeat."""
         device = self.connected_device()
-        return retry_on_link_error(lambda: action(device), what, self.retry, device.transport,
-                                   abandoned="gave up on the device link")
+        lost = False
+
+        def attempt() -> T:
+            # Told at the first failed try, not after the retries give up (tens of seconds): the status drops
+            # the device and queued work expires while the link is being tried again.
+            nonlocal lost
+            try:
+                result = action(device)
+            except LinkError as exc:
+                if not lost:
+                    lost = True
+                    self._emit("link_lost", f"the device stopped answering while {what} ({exc}); trying again")
+                raise
+            if lost:
+                self._emit("link_restored", "the device answers again")
+            return result
+
+        return retry_on_link_error(attempt, what, self.retry, device.transport, abandoned="gave up on the device link")
 
     def connected_device(self) -> Device:
         """The open device: a DeviceError, which the loop answers by reconnecting, when there is none."""
