@@ -3,6 +3,7 @@
 
 #include <string.h>
 
+#include "map_table.h"
 #include "regmap.h"
 
 static app_t app;
@@ -155,6 +156,7 @@ static uint8_t run_command(uint16_t command)
     case TRIMETER_COMMAND_GOTO_WHITE:
     case TRIMETER_COMMAND_GOTO_OPEN:
         if (app_fault() != TRIMETER_FAULT_NONE) return MB_EX_ILLEGAL_FUNCTION;
+        if (app.press_step) return MB_EX_SERVER_DEVICE_BUSY; /* a standalone press moves the slider */
         if (motion_busy(&app.motion)) {
             app.pending_command = command; /* runs when the current motion ends */
             return MB_OK;
@@ -397,6 +399,18 @@ static void fill_input_registers(uint16_t *ir)
     ir[REG_IR_SPECTRO_SEQUENCE] = sp->sequence;
     ir[REG_IR_SPECTRO_PIXELS] = clock_hz ? C12880_PIXELS : 0u;
     regmap_put_u32(&ir[REG_IR_SPECTRO_CLOCK_HZ], clock_hz);
+    const standalone_t *st = &app.standalone;
+    ir[REG_IR_STANDALONE_STATUS] = (uint16_t)st->status;
+    ir[REG_IR_STANDALONE_BINS] = st->bins;
+    ir[REG_IR_STANDALONE_SEQUENCE] = st->sequence;
+    ir[REG_IR_STANDALONE_CALIBRATED] = st->calibrated;
+    regmap_put_f32(&ir[REG_IR_STANDALONE_THICKNESS_MM], st->thickness_mm);
+    regmap_put_u32(&ir[REG_IR_STANDALONE_TABLE_CRC32], st->table_crc32);
+    ir[REG_IR_STANDALONE_FLAGGED_BINS] = st->flagged_bins;
+    static const uint16_t integration[STANDALONE_SETUPS] = {
+        REG_IR_STANDALONE_INTEGRATION_BLACK_US, REG_IR_STANDALONE_INTEGRATION_WHITE_US,
+        REG_IR_STANDALONE_INTEGRATION_OPEN_US};
+    for (int k = 0; k < STANDALONE_SETUPS; k++) regmap_put_u32(&ir[integration[k]], st->integration_us[k]);
 }
 
 uint8_t app_read_regs(void *ctx, mb_table_t table, uint16_t addr, uint16_t n, uint16_t *out)
@@ -482,6 +496,7 @@ uint8_t app_read_file(void *ctx, uint16_t file, uint16_t record, uint16_t n, uin
     static uint8_t bytes[2 * 125];
     if (fit_is_file(file)) return fit_read_records(&app.fit, file, record, n, out);
     if (c12880_is_file(file)) return c12880_read_records(&app.spectro, file, record, n, out);
+    if (standalone_is_file(file)) return standalone_read_records(&app.standalone, file, record, n, out);
     uint16_t which = app.hr[REG_HR_MAP_READ_SLOT];
     int slot = which == TRIMETER_MAP_SLOT_NONE ? storage_map_active(&app.storage) : (int)which - TRIMETER_MAP_SLOT_A;
     uint32_t offset;
@@ -501,7 +516,7 @@ uint8_t app_write_file(void *ctx, uint16_t file, uint16_t record, uint16_t n, co
     (void)ctx;
     static uint8_t bytes[2 * 125];
     uint32_t offset;
-    if (c12880_is_file(file)) return MB_EX_ILLEGAL_DATA_ADDRESS; /* read-only */
+    if (c12880_is_file(file) || standalone_is_file(file)) return MB_EX_ILLEGAL_DATA_ADDRESS; /* read-only */
     if (fit_is_file(file)) {
         if (mb_request_is_broadcast(&app.mb)) return MB_EX_ILLEGAL_FUNCTION;
         write_arrives();
@@ -525,6 +540,211 @@ uint8_t app_write_file(void *ctx, uint16_t file, uint16_t record, uint16_t n, co
     return MB_OK;
 }
 
+/* ---------------------------------------------------------------- standalone presses */
+
+enum press_step { PRESS_NONE, PRESS_HOMING, PRESS_MOVING, PRESS_LIGHTS, PRESS_CAPTURE, PRESS_DARK, PRESS_FIT };
+
+/* Auto-exposure: a saturated capture is taken again at half the time, one whose brightest pixel is below
+ * PRESS_DIM_FRACTION of full scale at twice the time (while that stays within the register's range and
+ * below saturation by linearity), at most PRESS_EXPOSURE_TRIES captures per set-up. */
+#define PRESS_DIM_FRACTION 0.4f
+#define PRESS_EXPOSURE_TRIES 6
+
+/* Shutters and LEDs of one set-up: the panels (black, white) or the collimated beam (open); both false: dark. */
+static void press_lights(bool panels, bool collimated)
+{
+    bool on[HAL_LED_COUNT] = {[HAL_LED_PANEL_LEFT] = panels, [HAL_LED_PANEL_RIGHT] = panels,
+                              [HAL_LED_COLLIMATED] = collimated};
+    for (int l = 0; l < HAL_LED_COUNT; l++) {
+        set_shutter((enum hal_shutter)l, on[l]); /* shutter l covers LED l */
+        actuators_set_led(&app.act, (enum hal_led)l, on[l], led_level((enum hal_led)l), app.cfg.led_settle_ms, now());
+    }
+}
+
+static void press_end(trimeter_standalone_status_t status)
+{
+    press_lights(false, false);
+    if (app.spectro.running) c12880_abort(&app.spectro);
+    app.press_step = PRESS_NONE;
+    app.standalone.status = status;
+    app.standalone.sequence++;
+}
+
+static bool motion_idle(void)
+{
+    return !motion_busy(&app.motion) && !actuators_busy(&app.act) && !app.pending_command;
+}
+
+static void press_move(void)
+{
+    uint8_t ex = start_motion(TRIMETER_COMMAND_GOTO_BLACK + app.press_setup);
+    if (ex) press_end(TRIMETER_STANDALONE_STATUS_ERROR_MOTION);
+    else app.press_step = PRESS_MOVING;
+}
+
+static uint8_t press_capture(bool dark)
+{
+    app.press_tries++;
+    return c12880_start(&app.spectro, app.hal, dark, app.hr[REG_HR_SPECTRO_FRAMES],
+                        app.standalone.integration_us[app.press_setup], app.hr[REG_HR_SPECTRO_GAIN], now());
+}
+
+/* After a light capture: a new integration time to capture again with, or 0 to keep this one. */
+static uint32_t press_exposure_change(void)
+{
+    uint32_t t = app.standalone.integration_us[app.press_setup];
+    if (app.press_tries >= PRESS_EXPOSURE_TRIES) return 0;
+    if (app.spectro.status == TRIMETER_SPECTRO_STATUS_SATURATED) return t / 2u >= REG_HR_SPECTRO_INTEGRATION_US_MIN ? t / 2u : 0;
+    bool dim = (float)app.spectro.peak < PRESS_DIM_FRACTION * (float)C12880_ADC_FULL_SCALE;
+    return dim && t <= REG_HR_SPECTRO_INTEGRATION_US_MAX / 2u ? 2u * t : 0;
+}
+
+static bool capture_ok(void)
+{
+    return app.spectro.status == TRIMETER_SPECTRO_STATUS_DONE || app.spectro.status == TRIMETER_SPECTRO_STATUS_SATURATED;
+}
+
+/* A press of the button: starts a standalone press when the mode asks for one and nothing stops it. */
+static void press_begin(void)
+{
+    uint16_t mode = app.hr[REG_HR_STANDALONE_MODE];
+    standalone_t *st = &app.standalone;
+    if (mode == TRIMETER_STANDALONE_MODE_OFF || app.press_step) return;
+    uint32_t length = 0;
+    const uint8_t *table = storage_map_active_bytes(&app.storage, &length);
+    uint32_t clock_hz = app.hal->spectro_clock_hz ? app.hal->spectro_clock_hz(app.hal->ctx) : 0u;
+    trimeter_standalone_status_t refusal = TRIMETER_STANDALONE_STATUS_NONE;
+    if (app_fault() != TRIMETER_FAULT_NONE) refusal = TRIMETER_STANDALONE_STATUS_ERROR_MOTION;
+    else if (!table || !fit_available()) refusal = TRIMETER_STANDALONE_STATUS_ERROR_NO_TABLE;
+    else if (mode == TRIMETER_STANDALONE_MODE_MEASURE && !st->calibrated)
+        refusal = TRIMETER_STANDALONE_STATUS_ERROR_NO_CALIBRATION;
+    else if (!clock_hz) refusal = TRIMETER_STANDALONE_STATUS_ERROR_SPECTRO;
+    if (refusal) {
+        st->status = refusal;
+        return;
+    }
+    app.press_calibrating = mode == TRIMETER_STANDALONE_MODE_CALIBRATE;
+    app.press_setup = STANDALONE_BLACK;
+    st->status = TRIMETER_STANDALONE_STATUS_BUSY;
+    for (int k = 0; k < STANDALONE_SETUPS; k++) st->integration_us[k] = regmap_get_u32(&app.hr[REG_HR_SPECTRO_INTEGRATION_US]);
+    press_lights(false, false);
+    if (app.motion.homed) {
+        app.press_step = PRESS_HOMING; /* waits for any motion a host started, then moves */
+    } else if (!motion_busy(&app.motion) && start_motion(TRIMETER_COMMAND_HOME) != MB_OK) {
+        press_end(TRIMETER_STANDALONE_STATUS_ERROR_MOTION);
+    } else {
+        app.press_step = PRESS_HOMING;
+    }
+}
+
+/* The fit of a measurement press, once its captures are reduced. */
+static void press_fit(void)
+{
+    standalone_t *st = &app.standalone;
+    uint32_t length = 0;
+    const uint8_t *table = storage_map_active_bytes(&app.storage, &length);
+    if (!table) {
+        press_end(TRIMETER_STANDALONE_STATUS_ERROR_NO_TABLE);
+        return;
+    }
+    uint16_t n = standalone_fit_input(st, app.fit.in);
+    st->thickness_mm = map_table_thickness_mm(table);
+    if (fit_start(&app.fit, &app.storage, n, st->thickness_mm) != MB_OK) {
+        st->table_crc32 = 0;
+        press_end(TRIMETER_STANDALONE_STATUS_ERROR_FIT);
+        return;
+    }
+    st->table_crc32 = app.fit.table_crc32;
+    app.press_step = PRESS_FIT;
+}
+
+static void press_poll(void)
+{
+    standalone_t *st = &app.standalone;
+    if (app.press_step == PRESS_NONE) return;
+    if (app_fault() != TRIMETER_FAULT_NONE) {
+        if (app.press_step == PRESS_FIT) fit_abort(&app.fit);
+        press_end(TRIMETER_STANDALONE_STATUS_ERROR_MOTION);
+        return;
+    }
+    switch (app.press_step) {
+    case PRESS_HOMING:
+        if (!motion_idle()) return;
+        if (!app.motion.homed) {
+            press_end(TRIMETER_STANDALONE_STATUS_ERROR_MOTION);
+            return;
+        }
+        press_move();
+        return;
+    case PRESS_MOVING:
+        if (!motion_idle()) return;
+        press_lights(app.press_setup != STANDALONE_OPEN, app.press_setup == STANDALONE_OPEN);
+        app.press_tries = 0;
+        app.press_step = PRESS_LIGHTS;
+        return;
+    case PRESS_LIGHTS:
+        if (actuators_busy(&app.act)) return;
+        if (press_capture(false) != MB_OK) {
+            press_end(TRIMETER_STANDALONE_STATUS_ERROR_SPECTRO);
+            return;
+        }
+        app.press_step = PRESS_CAPTURE;
+        return;
+    case PRESS_CAPTURE: {
+        if (c12880_busy(&app.spectro)) return;
+        if (!capture_ok()) {
+            press_end(TRIMETER_STANDALONE_STATUS_ERROR_SPECTRO);
+            return;
+        }
+        uint32_t again = press_exposure_change();
+        if (again) {
+            st->integration_us[app.press_setup] = again;
+            if (press_capture(false) != MB_OK) press_end(TRIMETER_STANDALONE_STATUS_ERROR_SPECTRO);
+            return;
+        }
+        memcpy(st->light[app.press_setup], app.spectro.light, sizeof st->light[0]);
+        press_lights(false, false); /* every shutter closed: the dark capture waits for them to settle */
+        if (press_capture(true) != MB_OK) {
+            press_end(TRIMETER_STANDALONE_STATUS_ERROR_SPECTRO);
+            return;
+        }
+        app.press_step = PRESS_DARK;
+        return;
+    }
+    case PRESS_DARK: {
+        if (c12880_busy(&app.spectro)) return;
+        if (!capture_ok()) {
+            press_end(TRIMETER_STANDALONE_STATUS_ERROR_SPECTRO);
+            return;
+        }
+        memcpy(st->dark[app.press_setup], app.spectro.dark, sizeof st->dark[0]);
+        if (++app.press_setup < STANDALONE_SETUPS) {
+            press_move();
+            return;
+        }
+        standalone_reduce(st, app.cfg.spectro_wl);
+        if (!app.press_calibrating) {
+            press_fit();
+            return;
+        }
+        standalone_calibrate(st, regmap_get_f32(&app.hr[REG_HR_WHITE_REFERENCE_REFLECTANCE]));
+        app.hr[REG_HR_STANDALONE_MODE] = TRIMETER_STANDALONE_MODE_MEASURE;
+        press_end(TRIMETER_STANDALONE_STATUS_CALIBRATED);
+        return;
+    }
+    case PRESS_FIT:
+        if (fit_busy(&app.fit)) return;
+        if (app.fit.status != TRIMETER_FIT_STATUS_DONE) {
+            press_end(TRIMETER_STANDALONE_STATUS_ERROR_FIT);
+            return;
+        }
+        standalone_take_fit(st, app.fit.out, app.fit.done);
+        press_end(st->status);
+        return;
+    default: return;
+    }
+}
+
 /* ---------------------------------------------------------------- lifecycle */
 
 void app_init(const hal_t *hal)
@@ -545,6 +765,7 @@ void app_init(const hal_t *hal)
     lamp_monitor_init(&app.lamp_monitor);
     fit_init(&app.fit);
     c12880_init(&app.spectro);
+    standalone_init(&app.standalone);
     for (int s = 0; s < HAL_SHUTTER_COUNT; s++) set_shutter((enum hal_shutter)s, false);
 
     app.mb_io = (mb_io_t){.read = io_read, .write = io_write, .now_us = io_now, .ctx = (void *)hal};
@@ -594,9 +815,16 @@ void app_poll(void)
     }
     app.was_moving = moving;
 
-    actuators_set_pattern(&app.act, app_fault() != TRIMETER_FAULT_NONE
-                                        ? STATUS_FAST_BLINK
-                                        : (enum status_pattern)app.hr[REG_HR_STATUS_PATTERN]);
+    if (app.act.button_events != app.press_events_seen) {
+        app.press_events_seen = app.act.button_events;
+        press_begin();
+    }
+    press_poll();
+
+    enum status_pattern pattern = (enum status_pattern)app.hr[REG_HR_STATUS_PATTERN];
+    if (app.hr[REG_HR_STANDALONE_MODE] != TRIMETER_STANDALONE_MODE_OFF || app.press_step)
+        pattern = (enum status_pattern)standalone_pattern(app.standalone.status);
+    actuators_set_pattern(&app.act, app_fault() != TRIMETER_FAULT_NONE ? STATUS_FAST_BLINK : pattern);
     actuators_poll(&app.act, t);
     lamp_monitor_poll(&app.lamp_monitor, app.hal, t);
 

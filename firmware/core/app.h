@@ -30,7 +30,11 @@
  *   - verify accepts only a map table whose header the firmware accepts (map_table.h): error_table.
  * On-device fit (fit_command, files fit_input / fit_output; fit.h): run is refused with an exception and
  *   fit_status saying why; never by broadcast; while it runs, map begin_write / activate are refused
- *   (error_state), so the table it reads in place cannot be erased under it. */
+ *   (error_state), so the table it reads in place cannot be erased under it.
+ * Standalone presses (standalone_mode not off; standalone.h): a press of the button runs the whole
+ *   measurement on the device (home, black / white / open captures, one dark, the fit into file
+ *   standalone_result); it writes fit_input / fit_output as a host's run would. While it runs, motion
+ *   commands answer exception 06 and presses are ignored. */
 #ifndef TRIMETER_APP_H
 #define TRIMETER_APP_H
 
@@ -46,6 +50,7 @@
 #include "modbus.h"
 #include "motion.h"
 #include "registers_gen.h"
+#include "standalone.h"
 #include "storage.h"
 
 #define APP_UNLOCK_WINDOW_US 2000000u /* an unlock allows one destructive command this long */
@@ -62,6 +67,12 @@ typedef struct app {
     storage_map_session_t upload;
     fit_t fit;
     c12880_t spectro;
+    standalone_t standalone;
+    int press_step;             /* a standalone press's step (app.c), 0 = none runs */
+    int press_setup;            /* ... the set-up it captures (enum standalone_setup) */
+    int press_tries;            /* ... captures of this set-up so far (auto-exposure) */
+    bool press_calibrating;
+    uint16_t press_events_seen; /* button_events the press logic has seen */
     uint16_t map_op_status;
     trimeter_fault_t app_fault; /* faults not from motion (storage) */
     int pending_command;        /* TRIMETER_COMMAND_* queued behind a running motion, 0 = none */

@@ -8,7 +8,7 @@
 #include <stdint.h>
 
 /* ---- identity */
-#define TRIMETER_REGMAP_HASH 0x938F7E93u
+#define TRIMETER_REGMAP_HASH 0x29B0152Cu
 #define TRIMETER_FIRMWARE_VERSION "0.1.0"
 #define TRIMETER_FIRMWARE_VERSION_MAJOR 0u
 #define TRIMETER_FIRMWARE_VERSION_MINOR 1u
@@ -342,6 +342,92 @@ static inline const char *trimeter_spectro_file_name(unsigned value) /* else "un
     }
 }
 typedef enum {
+    TRIMETER_STANDALONE_MODE_OFF = 0,
+    TRIMETER_STANDALONE_MODE_CALIBRATE = 1,
+    TRIMETER_STANDALONE_MODE_MEASURE = 2,
+} trimeter_standalone_mode_t;
+static inline const char *trimeter_standalone_mode_name(unsigned value) /* else "unknown" */
+{
+    switch (value) {
+    case 0u: return "off";
+    case 1u: return "calibrate";
+    case 2u: return "measure";
+    default: return "unknown";
+    }
+}
+typedef enum {
+    TRIMETER_STANDALONE_STATUS_NONE = 0,
+    TRIMETER_STANDALONE_STATUS_BUSY = 1,
+    TRIMETER_STANDALONE_STATUS_DONE = 2,
+    TRIMETER_STANDALONE_STATUS_FLAGGED = 3,
+    TRIMETER_STANDALONE_STATUS_CALIBRATED = 4,
+    TRIMETER_STANDALONE_STATUS_ERROR_NO_TABLE = 5,
+    TRIMETER_STANDALONE_STATUS_ERROR_NO_CALIBRATION = 6,
+    TRIMETER_STANDALONE_STATUS_ERROR_SPECTRO = 7,
+    TRIMETER_STANDALONE_STATUS_ERROR_MOTION = 8,
+    TRIMETER_STANDALONE_STATUS_ERROR_FIT = 9,
+} trimeter_standalone_status_t;
+static inline const char *trimeter_standalone_status_name(unsigned value) /* else "unknown" */
+{
+    switch (value) {
+    case 0u: return "none";
+    case 1u: return "busy";
+    case 2u: return "done";
+    case 3u: return "flagged";
+    case 4u: return "calibrated";
+    case 5u: return "error_no_table";
+    case 6u: return "error_no_calibration";
+    case 7u: return "error_spectro";
+    case 8u: return "error_motion";
+    case 9u: return "error_fit";
+    default: return "unknown";
+    }
+}
+typedef enum {
+    TRIMETER_STANDALONE_FILE_RESULT = 120,
+} trimeter_standalone_file_t;
+static inline const char *trimeter_standalone_file_name(unsigned value) /* else "unknown" */
+{
+    switch (value) {
+    case 120u: return "result";
+    default: return "unknown";
+    }
+}
+typedef enum {
+    TRIMETER_STANDALONE_WORD_WAVELENGTH_NM = 0,
+    TRIMETER_STANDALONE_WORD_DIFFUSE = 2,
+    TRIMETER_STANDALONE_WORD_COLLIMATED = 4,
+    TRIMETER_STANDALONE_WORD_RHO_BLACK = 6,
+    TRIMETER_STANDALONE_WORD_BLACK = 8,
+    TRIMETER_STANDALONE_WORD_WHITE = 10,
+    TRIMETER_STANDALONE_WORD_OPEN = 12,
+    TRIMETER_STANDALONE_WORD_ALPHA = 14,
+    TRIMETER_STANDALONE_WORD_SIGMA_T = 16,
+    TRIMETER_STANDALONE_WORD_G = 18,
+    TRIMETER_STANDALONE_WORD_FIT_FLAGS = 20,
+    TRIMETER_STANDALONE_WORD_CAPTURE_FLAGS = 21,
+    TRIMETER_STANDALONE_WORD_STRIDE = 22,
+} trimeter_standalone_word_t;
+static inline const char *trimeter_standalone_word_name(unsigned value) /* else "unknown" */
+{
+    switch (value) {
+    case 0u: return "wavelength_nm";
+    case 2u: return "diffuse";
+    case 4u: return "collimated";
+    case 6u: return "rho_black";
+    case 8u: return "black";
+    case 10u: return "white";
+    case 12u: return "open";
+    case 14u: return "alpha";
+    case 16u: return "sigma_t";
+    case 18u: return "g";
+    case 20u: return "fit_flags";
+    case 21u: return "capture_flags";
+    case 22u: return "stride";
+    default: return "unknown";
+    }
+}
+typedef enum {
     TRIMETER_UNLOCK_LOCKED = 0,
     TRIMETER_UNLOCK_KEY = 23294,
 } trimeter_unlock_t;
@@ -390,7 +476,7 @@ static inline const char *trimeter_unlock_name(unsigned value) /* else "unknown"
 #define REG_DI_HOMED 4u
 
 /* ---- input_registers */
-#define REG_IR_SPAN 106u /* one past the highest used address */
+#define REG_IR_SPAN 127u /* one past the highest used address */
 #define REG_IR_VENDOR_ID 0u
 #define REG_IR_MODEL_ID 1u
 #define REG_IR_FIRMWARE_VERSION_MAJOR 2u
@@ -438,9 +524,19 @@ static inline const char *trimeter_unlock_name(unsigned value) /* else "unknown"
 #define REG_IR_SPECTRO_SEQUENCE 102u
 #define REG_IR_SPECTRO_PIXELS 103u
 #define REG_IR_SPECTRO_CLOCK_HZ 104u
+#define REG_IR_STANDALONE_STATUS 112u
+#define REG_IR_STANDALONE_BINS 113u
+#define REG_IR_STANDALONE_SEQUENCE 114u
+#define REG_IR_STANDALONE_CALIBRATED 115u
+#define REG_IR_STANDALONE_THICKNESS_MM 116u
+#define REG_IR_STANDALONE_TABLE_CRC32 118u
+#define REG_IR_STANDALONE_FLAGGED_BINS 120u
+#define REG_IR_STANDALONE_INTEGRATION_BLACK_US 121u
+#define REG_IR_STANDALONE_INTEGRATION_WHITE_US 123u
+#define REG_IR_STANDALONE_INTEGRATION_OPEN_US 125u
 
 /* ---- holding_registers */
-#define REG_HR_SPAN 107u /* one past the highest used address */
+#define REG_HR_SPAN 109u /* one past the highest used address */
 #define REG_HR_COMMAND 0u
 #define REG_HR_COMMAND_DEFAULT 0u
 #define REG_HR_COMMAND_MIN 0u
@@ -621,6 +717,14 @@ static inline const char *trimeter_unlock_name(unsigned value) /* else "unknown"
 #define REG_HR_SPECTRO_WL_B5_DEFAULT 8.15080034716198e-12f
 #define REG_HR_SPECTRO_WL_B5_MIN -10000.0f
 #define REG_HR_SPECTRO_WL_B5_MAX 10000.0f
+#define REG_HR_STANDALONE_MODE 44u
+#define REG_HR_STANDALONE_MODE_DEFAULT 0u
+#define REG_HR_STANDALONE_MODE_MIN 0u
+#define REG_HR_STANDALONE_MODE_MAX 2u
+#define REG_HR_WHITE_REFERENCE_REFLECTANCE 107u
+#define REG_HR_WHITE_REFERENCE_REFLECTANCE_DEFAULT 0.9900000095367432f
+#define REG_HR_WHITE_REFERENCE_REFLECTANCE_MIN 0.5f
+#define REG_HR_WHITE_REFERENCE_REFLECTANCE_MAX 1.0f
 
 /* ---- descriptor table (registers_gen.c), sorted by table then address */
 typedef enum { REGMAP_COIL = 0, REGMAP_DISCRETE_INPUT = 1, REGMAP_INPUT_REGISTER = 3,
@@ -639,7 +743,7 @@ typedef struct {
     float min_f, max_f, def_f; /* f32 */
 } regmap_entry_t;
 
-#define REGMAP_ENTRY_COUNT 103u
+#define REGMAP_ENTRY_COUNT 115u
 extern const regmap_entry_t regmap_entries[REGMAP_ENTRY_COUNT];
 
 #endif

@@ -24,7 +24,10 @@
  *     fit_status stays in its enum and fit_bins_done never exceeds the run's count;
  *   - the micro-spectrometer: spectro_status stays in its enum, a capture never counts more frames than it
  *     asked for, the frame timing the port is given is always within the C12880MA's limits, and the live
- *     wavelength polynomial is always one the driver accepts (monotonic, in range). */
+ *     wavelength polynomial is always one the driver accepts (monotonic, in range);
+ *   - standalone presses: standalone_status stays in its enum, the result never holds more than its bins,
+ *     the auto-exposure never leaves the integration time's register range, and a press that is not
+ *     running leaves every LED off. */
 #include <stdbool.h>
 #include <stdlib.h>
 #include <string.h>
@@ -161,6 +164,12 @@ static void check_state(void)
                               f->spectro_timing.pixels != C12880_PIXELS))
         abort();
     if (!c12880_wavelengths_valid(app_get()->cfg.spectro_wl)) abort();
+    const standalone_t *sa = &app_get()->standalone;
+    if ((unsigned)sa->status > TRIMETER_STANDALONE_STATUS_ERROR_FIT || sa->bins > STANDALONE_BINS) abort();
+    for (int k = 0; k < STANDALONE_SETUPS; k++)
+        if (sa->status != TRIMETER_STANDALONE_STATUS_NONE && sa->integration_us[k] &&
+            (sa->integration_us[k] < REG_HR_SPECTRO_INTEGRATION_US_MIN || sa->integration_us[k] > REG_HR_SPECTRO_INTEGRATION_US_MAX))
+            abort();
     /* the rate limit: a burst, then one per refill interval */
     uint64_t budget = STORAGE_ERASE_BURST + (f->now_us - boot_us) / STORAGE_ERASE_REFILL_US;
     if (erases - erases_at_boot > budget) abort();
@@ -383,7 +392,7 @@ static void op_spectro(cursor_t *c)
 {
     static const uint32_t clocks[4] = {0u, 200000u, 500000u, 5000000u};
     uint8_t how = take(c);
-    f->spectro_clock_hz = clocks[how & 3u];
+    if (!app_get()->spectro.running) f->spectro_clock_hz = clocks[how & 3u]; /* a board keeps its clock mid-frame */
     f->spectro_no_eos = how & 4u;
     uint16_t level = how & 8u ? 4095u : take16(c) % 4096u;
     for (unsigned p = 0; p < 288; p++) f->spectro_video[p] = level;
@@ -407,9 +416,26 @@ static void op_spectro(cursor_t *c)
     deliver(read, 10);
 }
 
+/* A standalone press: a mode (raw or valid), the button held some time, some time, a read of file
+ * standalone_result at raw records. */
+static void op_standalone(cursor_t *c)
+{
+    uint8_t how = take(c);
+    uint16_t mode = how & 0x01u ? take16(c) : (uint16_t)(how >> 1) % 3u;
+    write_regs(pick_address(how >> 6), REG_HR_STANDALONE_MODE, 1, &mode);
+    f->button = true;
+    run_ms(20u + take(c) % 64u);
+    f->button = false;
+    run_ms(take(c) * 16u);
+    uint16_t rec = take16(c) % 4000u, n = (uint16_t)(1u + take(c) % 125u);
+    uint8_t read[] = {our_address(), 0x14, 7, 6, 0, TRIMETER_STANDALONE_FILE_RESULT, (uint8_t)(rec >> 8), (uint8_t)rec,
+                      0, (uint8_t)n, 0, 0};
+    deliver(read, 10);
+}
+
 static void run_op(cursor_t *c)
 {
-    switch (take(c) % 12u) {
+    switch (take(c) % 13u) {
     case 0: op_frame(c); break;
     case 1: op_write_holding(c); break;
     case 2: op_raw(c); break;
@@ -421,6 +447,7 @@ static void run_op(cursor_t *c)
     case 8: op_upload_table(c); break;
     case 10: op_fit(c); break;
     case 11: op_spectro(c); break;
+    case 12: op_standalone(c); break;
     default: /* factory-fresh flash: lets the fuzzer get out of a state it cannot leave */
         if (take(c) == 0xA5u) {
             memset(f->config, 0xFF, sizeof f->config);

@@ -11,6 +11,7 @@
 #include "../core/regmap.h"
 #include "check.h"
 #include "fake_hal.h"
+#include "app_fixture.h"
 #include "table_fixture.h"
 
 #define MAP_GRID 4
@@ -109,24 +110,7 @@ static void fresh_device(void)
 static void activate_table(void)
 {
     CHECK_EQ_INT(fixture_table(map_data, MAP_BYTES, MAP_GRID, 3), MAP_BYTES);
-    uint16_t params[7];
-    regmap_put_u32(&params[0], MAP_BYTES);
-    regmap_put_u32(&params[2], crc32_update(0, map_data, MAP_BYTES));
-    params[4] = 1;
-    params[5] = 0;
-    params[6] = TRIMETER_MAP_COMMAND_BEGIN_WRITE;
-    CHECK_EQ_INT(write_reg(REG_HR_UNLOCK, TRIMETER_UNLOCK_KEY), MB_OK);
-    CHECK_EQ_INT(app_write_regs(NULL, REG_HR_MAP_EXPECTED_LENGTH, 7, params), MB_OK);
-    uint16_t words[MAP_BYTES / 2];
-    for (unsigned i = 0; i < MAP_BYTES / 2; i++) words[i] = (uint16_t)(map_data[2 * i] << 8 | map_data[2 * i + 1]);
-    for (unsigned rec = 0; rec < MAP_BYTES / 2; rec += 100) {
-        uint16_t n = (uint16_t)(MAP_BYTES / 2 - rec < 100 ? MAP_BYTES / 2 - rec : 100);
-        CHECK_EQ_INT(app_write_file(NULL, 1, (uint16_t)rec, n, &words[rec]), MB_OK);
-    }
-    CHECK_EQ_INT(write_reg(REG_HR_MAP_COMMAND, TRIMETER_MAP_COMMAND_VERIFY), MB_OK);
-    CHECK_EQ_INT(write_reg(REG_HR_UNLOCK, TRIMETER_UNLOCK_KEY), MB_OK);
-    CHECK_EQ_INT(write_reg(REG_HR_MAP_COMMAND, TRIMETER_MAP_COMMAND_ACTIVATE), MB_OK);
-    CHECK_EQ_INT(ir(REG_IR_MAP_OP_STATUS), TRIMETER_MAP_OP_STATUS_ACTIVATED);
+    CHECK_EQ_INT(fixture_activate_table(map_data, MAP_BYTES), 0);
 }
 
 /* Bin k's inputs, distinct per bin and per field. */

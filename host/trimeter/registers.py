@@ -9,7 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from enum import IntEnum
 
-REGMAP_HASH = 0x938F7E93
+REGMAP_HASH = 0x29B0152C
 FIRMWARE_VERSION = (0, 1, 0)
 VENDOR_NAME = 'trimeter project'
 PRODUCT_CODE = 'TRIMETER-1'
@@ -169,6 +169,45 @@ class SpectroFile(IntEnum):
     DARK = 111
 
 
+class StandaloneMode(IntEnum):
+    OFF = 0
+    CALIBRATE = 1
+    MEASURE = 2
+
+
+class StandaloneStatus(IntEnum):
+    NONE = 0
+    BUSY = 1
+    DONE = 2
+    FLAGGED = 3
+    CALIBRATED = 4
+    ERROR_NO_TABLE = 5
+    ERROR_NO_CALIBRATION = 6
+    ERROR_SPECTRO = 7
+    ERROR_MOTION = 8
+    ERROR_FIT = 9
+
+
+class StandaloneFile(IntEnum):
+    RESULT = 120
+
+
+class StandaloneWord(IntEnum):
+    WAVELENGTH_NM = 0
+    DIFFUSE = 2
+    COLLIMATED = 4
+    RHO_BLACK = 6
+    BLACK = 8
+    WHITE = 10
+    OPEN = 12
+    ALPHA = 14
+    SIGMA_T = 16
+    G = 18
+    FIT_FLAGS = 20
+    CAPTURE_FLAGS = 21
+    STRIDE = 22
+
+
 class Unlock(IntEnum):
     LOCKED = 0
     KEY = 23294
@@ -192,6 +231,10 @@ ENUMS: dict[str, type[IntEnum]] = {
     'spectro_command': SpectroCommand,
     'spectro_status': SpectroStatus,
     'spectro_file': SpectroFile,
+    'standalone_mode': StandaloneMode,
+    'standalone_status': StandaloneStatus,
+    'standalone_file': StandaloneFile,
+    'standalone_word': StandaloneWord,
     'unlock': Unlock,
 }
 
@@ -333,6 +376,26 @@ REGISTERS: tuple[Register, ...] = (
              'Pixels per frame: 288, or 0 on a board without a spectrometer.'),
     Register('spectro_clock_hz', 'input_register', 104, 'u32', 2, 'r', 1.0, 'Hz', 0, 4294967295, 0, None, (),
              "The CLK rate the port drives the chip at (0: no spectrometer); the integration time's resolution is one CLK period."),
+    Register('standalone_status', 'input_register', 112, 'u16', 1, 'r', 1.0, '', 0, 9, 0, 'standalone_status', (),
+             'The current or last standalone press (enums.standalone_status); the status LED shows it: busy slow blink, done / calibrated on, flagged double blink, an error fast blink.'),
+    Register('standalone_bins', 'input_register', 113, 'u16', 1, 'r', 1.0, '', 0, 65535, 0, None, (),
+             'Bins in file standalone_result (0 before the first press completed its captures).'),
+    Register('standalone_sequence', 'input_register', 114, 'u16', 1, 'r', 1.0, '', 0, 65535, 0, None, (),
+             'Standalone presses ended since boot, refusals included (wraps): a host sees a new result by this changing.'),
+    Register('standalone_calibrated', 'input_register', 115, 'u16', 1, 'r', 1.0, '', 0, 1, 0, None, (),
+             '1 once a calibration press completed since boot.'),
+    Register('standalone_thickness_mm', 'input_register', 116, 'f32', 2, 'r', 1.0, 'mm', -3.4028234663852886e+38, 3.4028234663852886e+38, 0.0, None, (),
+             "The sample thickness the last measurement was fitted for: the active table's."),
+    Register('standalone_table_crc32', 'input_register', 118, 'u32', 2, 'r', 1.0, '', 0, 4294967295, 0, None, (),
+             'The map table the last measurement was fitted with (its own CRC-32, as fit_table_crc32); 0: none.'),
+    Register('standalone_flagged_bins', 'input_register', 120, 'u16', 1, 'r', 1.0, '', 0, 65535, 0, None, (),
+             'Lit bins of the last measurement with a fit or capture flag (the status is flagged when > 0).'),
+    Register('standalone_integration_black_us', 'input_register', 121, 'u32', 2, 'r', 1.0, 'us', 0, 4294967295, 0, None, (),
+             "The last press's integration time in the black set-up (its light and dark captures): the device's auto-exposure, from spectro_integration_us."),
+    Register('standalone_integration_white_us', 'input_register', 123, 'u32', 2, 'r', 1.0, 'us', 0, 4294967295, 0, None, (),
+             'As standalone_integration_black_us, white set-up.'),
+    Register('standalone_integration_open_us', 'input_register', 125, 'u32', 2, 'r', 1.0, 'us', 0, 4294967295, 0, None, (),
+             'As standalone_integration_black_us, open set-up (collimated beam).'),
     Register('command', 'holding_register', 0, 'u16', 1, 'rw', 1.0, '', 0, 8, 0, 'command', (),
              'Write to start an action; reads back the last accepted command. Motion commands only set a target. save_config and load_defaults need `unlock` first (else exception 01); a save refused by the erase rate limit: exception 06.'),
     Register('unlock', 'holding_register', 1, 'u16', 1, 'rw', 1.0, '', 0, 23294, 0, 'unlock', (0, 23294),
@@ -423,6 +486,10 @@ REGISTERS: tuple[Register, ...] = (
              'Wavelength polynomial B4 (coefficient of p^4).'),
     Register('spectro_wl_b5', 'holding_register', 105, 'f32', 2, 'rw', 1.0, 'nm', -10000.0, 10000.0, 8.15080034716198e-12, None, (),
              'Wavelength polynomial B5 (coefficient of p^5).'),
+    Register('standalone_mode', 'holding_register', 44, 'u16', 1, 'rw', 1.0, '', 0, 2, 0, 'standalone_mode', (),
+             'What a press of the front button does (enums.standalone_mode): off leaves it to the host; calibrate / measure run the press on the device. Uses spectro_frames, spectro_integration_us and spectro_gain as they are.'),
+    Register('white_reference_reflectance', 'holding_register', 107, 'f32', 2, 'rw', 1.0, '', 0.5, 1.0, 0.9900000095367432, None, (),
+             "The white reference's reflectance (hardware/geometry.toml, calibration.white_reference_reflectance): a standalone calibration divides the white slot's light by it, as the host's calibration does."),
 )
 
 BY_NAME: dict[str, Register] = {r.name: r for r in REGISTERS}
@@ -430,4 +497,4 @@ COILS: dict[str, Register] = {r.name: r for r in REGISTERS if r.table == 'coil'}
 DISCRETE_INPUTS: dict[str, Register] = {r.name: r for r in REGISTERS if r.table == 'discrete_input'}
 INPUT_REGISTERS: dict[str, Register] = {r.name: r for r in REGISTERS if r.table == 'input_register'}
 HOLDING_REGISTERS: dict[str, Register] = {r.name: r for r in REGISTERS if r.table == 'holding_register'}
-SPANS: dict[str, int] = {'coil': 6, 'discrete_input': 5, 'input_register': 106, 'holding_register': 107}
+SPANS: dict[str, int] = {'coil': 6, 'discrete_input': 5, 'input_register': 127, 'holding_register': 109}

@@ -22,7 +22,8 @@ def _values():
         # f32 defaults off their default; a tiny one (a wavelength polynomial's high-order coefficient) scaled,
         # since 0.1 + 9e-9 is 0.10000001 in its shortest form
         tiny = reg.type == "f32" and 0 < abs(reg.default) < 1e-3
-        values[name] = (1.5 * reg.default if tiny else 0.1 + reg.default) if reg.type == "f32" else int(reg.default)
+        off = 0.1 if reg.max is None or reg.default + 0.1 <= reg.max else -0.1  # within the range (a reflectance)
+        values[name] = (1.5 * reg.default if tiny else off + reg.default) if reg.type == "f32" else int(reg.default)
     return values
 
 

@@ -33,3 +33,14 @@ def test_a_bins_samples_do_not_depend_on_where_the_chunk_starts(ideal_map):
     tail = paper_samples(ideal_map, I_b[12:], I_w[12:], I_c[12:], rho_b[12:], rho_w[12:], samples=8, seed=3,
                          first_row=12)
     np.testing.assert_array_equal(tail, full[12:])
+
+
+def test_the_triangulation_cost_counts_each_distinct_background_pair_once():
+    from types import SimpleNamespace
+
+    from trimeter.inversion.paper import triangulated_nodes
+
+    amap = SimpleNamespace(alpha=np.zeros(4), sigma_t=np.zeros(5), g=np.zeros(3))
+    rho_b = np.array([0.03, 0.0301, 0.0312, 0.05, np.nan])  # the first two round to one pair; NaN: no pair
+    rho_w = np.full(5, 0.99)
+    assert triangulated_nodes(amap, rho_b, rho_w) == 3 * 60

@@ -179,3 +179,29 @@ def test_a_column_traced_to_nan_writes_no_map_and_keeps_the_checkpoint(tmp_path,
         build_map(tiny_recipe, out, progress=False)
     assert not out.exists()
     assert len(list(default_checkpoint_dir(out).glob("col_*.npz"))) == len(tiny_recipe.sigma_t) * len(tiny_recipe.g)
+
+
+def test_a_build_without_a_terminal_says_what_it_traces_and_how_long_is_left(tmp_path, tiny_recipe, capsys):
+    build_map(tiny_recipe, tmp_path / "tiny.tmap", progress=True)
+    err = capsys.readouterr().err.splitlines()
+    assert err[0] == ("tiny: tracing 4 of 4 (σt, g) columns (0 from the checkpoint), 8,192 photon paths each "
+                      "(up to 32,768 paths in all)")
+    assert err[-1].startswith("tiny: 4/4 columns, 0:00:") and err[-1].endswith("elapsed, the build is done")
+
+
+def test_progress_lines_come_at_most_every_interval_with_an_estimate_from_the_pace():
+    import io
+
+    from trimeter.maps.builder import ProgressLines, work_line
+
+    now, out = [0.0], io.StringIO()
+    lines = ProgressLines([("a", 10, 2), ("b", 4, 0)], every_s=30.0, clock=lambda: now[0], out=out)
+    for t in (10.0, 40.0, 50.0):  # one column each: 10 s apart, then 30 s, then 10 s
+        now[0] = t
+        lines.advance(0)
+    # at 40 s: 2 columns traced, 10 + 4 − 4 = 10 left at 20 s a column; none at 10 s or 50 s (within 30 s)
+    assert out.getvalue() == "a: 4/10 columns, 0:00:40 elapsed, about 0:03:20 left\n"
+    huge = parse_recipe({"name": "huge", "geometry": "ideal", "n": 1.5, "thickness_mm": 0.5, "seed": 1,
+                         "grid": {"alpha": {"max": 0.99, "count": 6}, "sigma_t": [0.5, 5.0], "g": [0.0, 0.5]},
+                         "sampling": {"min_paths": 1_000_000_000, "max_paths": 1_000_000_000}})
+    assert "1,000,000,000 photon paths each (up to 4,000,000,000 paths in all)" in work_line(huge, 4, 0)

@@ -1,7 +1,7 @@
 """The lamp monitor against the twin (the real firmware reading the plant's photodiodes): after a good
-calibration, a diffuse panel dimmed to 80 %, the collimated LED dimmed to 50 % or a panel shutter stuck
-open make `measure` exit 2 with nothing written, saying which lamp and by how much; a drift within the
-±3 % bound is measured."""
+calibration, a diffuse panel dimmed to 80 %, the collimated LED dimmed to 50 % or a panel or the
+collimated shutter stuck open make `measure` exit 2 with nothing written, saying which lamp or shutter and
+by how much; a drift within the ±3 % bound is measured."""
 
 from __future__ import annotations
 
@@ -65,3 +65,17 @@ def test_calibration_with_a_panel_shutter_stuck_open_is_refused(twin, capsys):
                  "--no-warm-up"]) == 2
     err = capsys.readouterr().err
     assert "right diffuse panel's shutter does not block its lamp-monitor photodiode" in err, err
+
+
+def test_a_collimated_shutter_stuck_open_is_named(twin, tmp_path, capsys):
+    port = ["--port", twin.modbus_port, "--spectrometer", twin.spectrometer_url]
+    assert main(["calibrate", *port, "--no-warm-up"]) == 0
+    capsys.readouterr()
+    twin.control.insert_sample(SAMPLE, THICKNESS_MM)
+    twin.control.set_fault(stuck_shutter_open="collimated")
+    assert main(["measure", *port, "--thickness", "0.4", "--map", str(HIL_MAP), "--results",
+                 str(tmp_path / "results")]) == 2
+    err = capsys.readouterr().err
+    assert "the collimated LED's shutter did not close" in err, err
+    # the spectra's consequences (a lit dark frame makes I_w look panel-less) point at what the monitor found
+    assert "diffuse panels gave" not in err and "what the lamp monitor found explains it" in err, err

@@ -252,3 +252,28 @@ def test_second_sample_settings_are_checked():
     s.set("second_thickness_mm", 0.8)
     s.set("map", "a.tmap")
     assert s.serve_samples == [(0.4, "a.tmap"), (0.8, None)]
+
+
+def test_a_poll_that_the_link_fails_says_so_at_its_first_failed_try_and_again_when_it_answers(rig):
+    from trimeter.device.transport import LinkError
+    from trimeter.sequences.steps import RetryPolicy
+
+    service, fake, optics, events, truth, sample, tmp = rig
+    service.retry = RetryPolicy(attempts=3, backoff_s=0.0)
+    service.connect()
+    transport = service.device.transport
+    read_words, failures = transport.read_words, []
+
+    def flaky(*args, **kwargs):
+        if len(failures) < 2:
+            failures.append(len(events))
+            raise LinkError("no valid reply")
+        return read_words(*args, **kwargs)
+
+    transport.read_words = flaky
+    transport.reopen = lambda: None
+    assert service.poll_once() is None
+    kinds = [e.kind for e in events]
+    # told once, at the first failed try (before the retries), and once when the device answers again
+    assert kinds.count("link_lost") == 1 and kinds.count("link_restored") == 1
+    assert kinds.index("link_lost") == failures[0] and kinds.index("link_restored") > kinds.index("link_lost")

@@ -165,6 +165,20 @@ def test_a_refit_runs_beside_the_instrument_and_is_stopped_at_its_time_limit(web
     assert web.call("GET", "/api/measurements").json["total"] == records
 
 
+def test_a_paper_refit_above_its_size_is_refused_up_front_with_the_limit(web, measured, monkeypatch):
+    from trimeter.web import refit
+
+    records = web.call("GET", "/api/measurements").json["total"]
+    monkeypatch.setattr(refit, "PAPER_MAX_TRIANGULATED_NODES", 1000)  # under one triangulation of the map
+    answer = web.call("POST", f"/api/measurements/{measured}/refit", {"maps": ["device-n1.5-l0.4"], "method": "paper"})
+    assert answer.status == 400, answer.json
+    assert "map nodes" in answer.json["error"]["message"] and "the limit is 1,000" in answer.json["error"]["message"]
+    refused = web.call("POST", f"/api/measurements/{measured}/refit", {"method": "paper"})  # the recorded map
+    assert refused.status == 400 and "the limit is 1,000" in refused.json["error"]["message"]
+    assert web.call("GET", "/api/measurements").json["total"] == records
+    assert web.call("GET", "/api/status").json["job"] is None
+
+
 def test_a_refit_of_a_record_with_a_fifo_fails_at_once(web, measured):
     import os
     import shutil

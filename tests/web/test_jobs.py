@@ -14,7 +14,7 @@ from trimeter.errors import DeviceError, InputError
 from trimeter.web.app import WebServer, create_app
 from trimeter.web.history import History
 from trimeter.sequences.service import Event
-from trimeter.web.jobs import Jobs
+from trimeter.web.jobs import Jobs, LinkDown
 
 
 def _jobs() -> Jobs:
@@ -119,3 +119,55 @@ def test_work_apart_runs_beside_the_queue_one_at_a_time():
     while failed.state == "running" and time.monotonic() < deadline:
         time.sleep(0.01)
     assert failed.state == "failed" and "link is gone" in failed.message
+
+
+def test_queued_work_expires_with_the_link_and_none_is_taken_until_it_answers():
+    jobs = _jobs()
+    ran = []
+    job = jobs.submit("calibrate", {"holder_empty": True}, lambda job: ran.append(job) or "calibrated")
+    jobs.on_event(Event("link_lost", "the device stopped answering while polling the button; trying again"))
+    assert (job.state, job.outcome, jobs.current) == ("failed", "expired", None)
+    assert "expired before it ran: the device stopped answering" in job.message
+    with pytest.raises(LinkDown, match="the device is not answering"):
+        jobs.submit("calibrate", {"holder_empty": True}, lambda job: "calibrated")
+    jobs.on_event(Event("link_restored", "the device answers again"))
+    jobs.between_polls(None)
+    assert ran == []  # the expired confirmation never runs, after the link came back either
+    again = jobs.submit("calibrate", {"holder_empty": True}, lambda job: ran.append(job) or "calibrated")
+    jobs.between_polls(None)
+    assert ran == [again] and again.state == "done"
+    jobs.on_event(Event("reconnecting", "device link problem; reconnecting"))
+    with pytest.raises(LinkDown):
+        jobs.submit("measure", {}, lambda job: "measured")
+
+
+def test_status_drops_the_device_as_soon_as_the_link_is_lost():
+    identity = SimpleNamespace(vendor_id=1, model_id=2, firmware_version=(0, 1, 0), regmap_hash=3)
+    service = SimpleNamespace(on_event=lambda event: None, on_progress=None, pattern="on", calibration=None,
+                              device=SimpleNamespace(identity=identity), device_uptime_s=5.0, last_result=None,
+                              settings=SimpleNamespace(port="/dev/ttyX", serve_samples=[]))
+    jobs = Jobs(service)
+    jobs.on_event(Event("connected", "connected (firmware 0.1.0)"))
+    assert jobs.status()["device"]["firmware"] == "0.1.0"
+    jobs.on_event(Event("link_lost", "the device stopped answering; trying again"))
+    assert jobs.status()["device"] is None and jobs.status()["state"] == "connecting"
+    jobs.on_event(Event("link_restored", "the device answers again"))
+    assert jobs.status()["device"]["firmware"] == "0.1.0"
+
+
+def test_work_asked_for_while_the_link_is_down_is_a_503_with_retry_after(tmp_path):
+    jobs = Jobs(SimpleNamespace(on_event=lambda event: None, on_progress=None, pattern="on"))
+    jobs.on_event(Event("link_lost", "the device stopped answering; trying again"))
+    token = "t" * 32
+    server = WebServer(create_app(jobs, History(tmp_path / "results", tmp_path / "h.sqlite"), token),
+                       "127.0.0.1", 0).start()
+    try:
+        request = urllib.request.Request(server.url + "/api/calibrate", data=b"{}", method="POST",
+                                         headers={"Authorization": f"Bearer {token}",
+                                                  "Content-Type": "application/json"})
+        with pytest.raises(urllib.error.HTTPError) as answer:
+            urllib.request.urlopen(request, timeout=30)
+        assert answer.value.code == 503 and answer.value.headers["Retry-After"]
+        assert "the device is not answering" in json.loads(answer.value.read())["error"]["message"]
+    finally:
+        server.close()

@@ -67,6 +67,10 @@ def run(args: argparse.Namespace) -> None:
         else:  # checked against the sample's thickness at each press, as the active slot may change
             fitted = "the map table the instrument carries"
         print(f"sample {number}: thickness {thickness:g} mm ({source}), {fitted}", flush=True)
+    if settings.instruments and not (args.port or args.address):  # --port/--address: that one instrument alone
+        from trimeter.cli.serve_lab import serve_lab
+
+        return serve_lab(args, settings)
     stop = threading.Event()
 
     def show(event: Event) -> None:

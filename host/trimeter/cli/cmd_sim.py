@@ -46,11 +46,16 @@ def _ctl(args: argparse.Namespace) -> int:
     control = args.control
     if control is None:
         ports_file = Path(args.state_dir or _default_state_dir()) / "ports.json"
+        from trimeter.cli.sim_bus import control_path_of
+
         try:
-            control = json.loads(ports_file.read_text())["control_path"]
-        except (OSError, ValueError, KeyError):
+            ports = json.loads(ports_file.read_text())
+            if not isinstance(ports, dict):
+                raise ValueError
+        except (OSError, ValueError):
             raise DeviceError(f"no running twin found ({ports_file} missing or unreadable); "
                               f"give --control PATH") from None
+        control = control_path_of(ports, args.address)
     with TwinClient(control) as client:
         reply = client._call(command, **fields)
     reply.pop("ok", None)
@@ -77,6 +82,10 @@ def run(args: argparse.Namespace) -> int:
     stop = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
+        if args.instruments is not None:
+            from trimeter.cli.sim_bus import run_bus
+
+            return run_bus(args, stop, state_dir)
         with Twin(sample=args.sample, thickness_mm=args.thickness, time_scale=args.time_scale, faults=faults,
                   state_dir=state_dir, appearance_map=args.map, seed=args.seed, white=args.white,
                   sensor=args.sensor) as twin:
@@ -127,4 +136,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "(ports, state, sim_time, insert_sample, remove_sample, press_button, reset_firmware, "
                         "set_fault, truth, materials)")
     p.add_argument("--control", default=None, metavar="PATH", help="with --ctl: the twin's control socket")
+    p.add_argument("--instruments", type=int, default=None, metavar="N",
+                   help="N instruments on one shared bus (one Modbus pty, addresses 1..N; --json prints modbus_port "
+                        "and instruments: [{address, spectrometer_url, control_path}]); --faults applies to each")
+    p.add_argument("--address", type=int, default=None, metavar="A",
+                   help="with --ctl on a bus: the instrument at this address")
     p.set_defaults(func=run)

@@ -165,6 +165,10 @@ def _record_dtype(words: type[IntEnum], types: dict[str, str]) -> np.dtype:
 FIT_INPUT_FIELDS = ("i_b", "i_w", "i_c", "rho_b", "rho_w")
 FIT_INPUT_DTYPE = _record_dtype(regs.FitInputWord, dict.fromkeys(FIT_INPUT_FIELDS, ">f4"))
 FIT_OUTPUT_DTYPE = _record_dtype(regs.FitOutputWord, {"alpha": ">f4", "sigma_t": ">f4", "g": ">f4", "flags": ">u2"})
+# One bin of file standalone_result (a standalone press: its calibration, rates and the device's fit).
+STANDALONE_DTYPE = _record_dtype(regs.StandaloneWord, {
+    **dict.fromkeys(("wavelength_nm", "diffuse", "collimated", "rho_black", "black", "white", "open", "alpha",
+                     "sigma_t", "g"), ">f4"), "fit_flags": ">u2", "capture_flags": ">u2"})
 # Why a run was refused or stopped (fit_status), as the person at the instrument can act on it.
 _FIT_REFUSALS = {
     regs.FitStatus.ERROR_UNAVAILABLE: "this device's firmware was built without the inverse core (input register "
@@ -184,6 +188,22 @@ def table_own_crc32(table: bytes) -> int:
     if len(table) < 8 or zlib.crc32(table[:-4]) != int.from_bytes(table[-4:], "little"):
         raise InputError("not a map table: its last 4 bytes are not the CRC-32 of the bytes before them")
     return int.from_bytes(table[-4:], "little")
+
+
+@dataclass(frozen=True)
+class StandaloneResult:
+    """The last standalone press as the device keeps it (registers.toml, enums.standalone_*): its status,
+    the bins of file standalone_result (STANDALONE_DTYPE: NaN α, σt, g where not fitted or unusable), and
+    what it was fitted with."""
+
+    status: regs.StandaloneStatus
+    sequence: int
+    bins: np.ndarray
+    rho_white: float            # the white reference's reflectance the calibration divided by
+    thickness_mm: float
+    table_crc32: int
+    flagged_bins: int
+    integration_us: dict[str, int]  # per set-up (black, white, open): the device's auto-exposure
 
 
 @dataclass(frozen=True)
@@ -633,6 +653,28 @@ class Device:
                 raise DeviceError(f"the device fitted {values['fit_bins_done']} of {count} bins in {timeout_s:g} s; "
                                   "aborted")
             self._sleep(0.005)
+
+    def standalone_result(self) -> StandaloneResult:
+        """The last standalone press's result; DeviceError while a press runs or before any press."""
+        setups = ("black", "white", "open")
+        values = self.read_many("standalone_status", "standalone_bins", "standalone_sequence",
+                                "white_reference_reflectance", "standalone_thickness_mm", "standalone_table_crc32",
+                                "standalone_flagged_bins", *(f"standalone_integration_{k}_us" for k in setups))
+        status = values["standalone_status"]
+        if status == regs.StandaloneStatus.BUSY:
+            raise DeviceError("a standalone press is running on the device: wait for its status LED")
+        if status == regs.StandaloneStatus.NONE or not values["standalone_bins"]:
+            raise DeviceError("the device holds no standalone result: no press since it started")
+        count, stride = int(values["standalone_bins"]), int(regs.StandaloneWord.STRIDE)
+        per_request = MAX_FILE_RECORD_WORDS // stride
+        data = b"".join(self.transport.read_file_records(regs.StandaloneFile.RESULT, first * stride,
+                                                         min(per_request, count - first) * stride)
+                        for first in range(0, count, per_request))
+        return StandaloneResult(regs.StandaloneStatus(status), int(values["standalone_sequence"]),
+                                np.frombuffer(data, dtype=STANDALONE_DTYPE),
+                                float(values["white_reference_reflectance"]), float(values["standalone_thickness_mm"]),
+                                int(values["standalone_table_crc32"]), int(values["standalone_flagged_bins"]),
+                                {k: int(values[f"standalone_integration_{k}_us"]) for k in setups})
 
     def _read_fit_results(self, count: int) -> np.ndarray:
         stride = int(regs.FitOutputWord.STRIDE)

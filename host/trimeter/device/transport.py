@@ -19,8 +19,16 @@ What this layer guarantees to the client above it (trimeter.device.client):
   (writes echo them), same length (reads). RTU has no transaction ids, so a late reply to an earlier
   request of a different shape is recognised and discarded, and after a request went unanswered
   everything arriving within `late_reply_window_s` (default: that request's timeout) is discarded (after a garbled
-  reply, which was this request's answer, until the line is quiet). A reply later than that, of the
-  same shape, cannot be told apart by any RTU master: the window is the documented bound;
+  reply, which was this request's answer, until the line is quiet). A reply later than that, of
+  the same shape, cannot be told apart from the answer by its bytes (RTU has no transaction ids), so
+  for `late_reply_horizon_s` after a read went unanswered every read whose reply has that read's shape
+  is confirmed: asked again, and taken when the two replies are byte for byte the same (a late reply
+  comes once, so it cannot agree with itself). When they differ, a file-record read (stored data) is
+  asked until two in a row agree; a register or bit read (a live value: two reads may rightly differ)
+  is taken once the line stayed quiet until its answer was due (the answer to this request comes within
+  its timeout, so a second frame means one of the two was late: both are discarded). A read whose reply
+  arrived within the drain is not suspected (its late reply came). Writes are not repeated (a command
+  coil would act twice); their echo names the address and count;
 - when the serial adapter disappears (USB unplugged, twin restarted) the port is closed and reopened
   until `reconnect_timeout_s` runs out; a Modbus exception reply is raised at once (never retried)
   as ModbusExceptionReply carrying the exception code;
@@ -105,12 +113,14 @@ class LinkStats:
     requests: int = 0
     retries: int = 0
     stale_replies: int = 0
+    confirmations: int = 0    # reads asked again because a late reply of the same shape may still arrive
     garbled_replies: int = 0  # bytes of a whole reply arrived but were not exactly one frame with a good CRC
     timeouts: int = 0         # attempts that got no reply within the timeout
     reconnects: int = 0
     failures: int = 0
     resumed_reads: int = 0    # a long read (a map table) went on from where a lost request stopped it
     busy_s: float = field(default=0.0)  # wall time spent inside requests (host + protocol overhead)
+    bus_wait_s: float = 0.0   # wall time waiting for the turn on a bus shared with other instruments (device.bus)
 
 
 # The transports open in this process by port: a serial port opens once (exclusively), so a second user of the
@@ -128,8 +138,8 @@ class RtuTransport:
     """Modbus RTU master on one serial port, for one slave address."""
 
     def __init__(self, port: str, *, address: int = 1, baudrate: int = 19200, timeout_s: float = 0.15,
-                 attempts: int = 6, late_reply_window_s: float | None = None, reconnect_timeout_s: float = 10.0,
-                 local_echo: bool = False) -> None:
+                 attempts: int = 6, late_reply_window_s: float | None = None, late_reply_horizon_s: float = 10.0,
+                 reconnect_timeout_s: float = 10.0, local_echo: bool = False) -> None:
         """local_echo: an RS-485 adapter that hears its own transmission (half duplex without echo
         suppression); pymodbus then strips the echoed request before framing the reply."""
         if not 1 <= address <= 247:
@@ -140,6 +150,9 @@ class RtuTransport:
         self.baudrate = baudrate
         self.attempts = max(1, attempts)
         self.late_reply_window_s = late_reply_window_s  # None: each request's own timeout
+        self.late_reply_horizon_s = late_reply_horizon_s
+        # (until when, function code, reply length) of each read that went unanswered: its reply may still come
+        self._unanswered: list[tuple[float, int, int]] = []
         self._slow_reply_s = 0.0
         self._request_timeout_s = timeout_s
         self.reconnect_timeout_s = reconnect_timeout_s
@@ -185,15 +198,16 @@ class RtuTransport:
         or a second stop, stop) plus the answering allowance and any slow_reply()."""
         return self.timeout_s + self._slow_reply_s + (request_bytes + reply_bytes) * 11 / self.baudrate
 
-    def _drain(self, *, answered: bool = False) -> None:
+    def _drain(self, *, answered: bool = False) -> bool:
         """After a failure: discard everything that arrives for the whole late-reply window, then flush.
         Stopping at the first quiet moment would let a reply that is merely late land in the next
         request's read — and a stale `busy` or `uptime_s` of the right shape is indistinguishable.
         `answered`: the request's reply did arrive (garbled), so nothing of it is still on its way and
-        draining until the line is quiet suffices."""
+        draining until the line is quiet suffices. Returns whether anything arrived (a late reply did)."""
         sock = self._client.socket
+        heard = False
         if sock is None:
-            return
+            return heard
         now = time.monotonic()
         window = self._request_timeout_s if self.late_reply_window_s is None else self.late_reply_window_s
         end, quiet_until = now + window, now + self._quiet_s
@@ -201,15 +215,35 @@ class RtuTransport:
             waiting = sock.in_waiting
             if waiting:
                 sock.read(waiting)
+                heard = True
                 quiet_until = min(end, time.monotonic() + self._quiet_s)
             time.sleep(0.002)
         sock.reset_input_buffer()
+        return heard
 
     def close(self) -> None:
         self.is_open = False
         if _LIVE.get(self.port) is self:
             del _LIVE[self.port]
         self._client.close()
+
+    def listen_after(self, frame: bytes, listen_s: float) -> bytes:
+        """Send raw `frame` and return every byte that arrives within `listen_s` — all the answers, not the
+        first reply pymodbus would frame (trimeter.device.bus counts them to find two devices at one address)."""
+        if self._client.socket is None:
+            self.reopen()
+        sock = self._client.socket
+        if sock is None:
+            raise LinkError(f"cannot open serial port {self.port}")
+        sock.reset_input_buffer()
+        sock.write(frame)
+        sock.flush()
+        data, deadline = b"", time.monotonic() + listen_s
+        while time.monotonic() < deadline:
+            waiting = sock.in_waiting
+            data += sock.read(waiting) if waiting else b""
+            time.sleep(0.002)
+        return data
 
     def _trace_packet(self, sending: bool, data: bytes) -> bytes:
         """pymodbus hands every receive buffer through here (all bytes since the request: its RTU framer
@@ -222,18 +256,40 @@ class RtuTransport:
         return data
 
     # ------------------------------------------------------------------------------------- requests
+    def _late_reply_possible(self, function_code: int, reply_bytes: int) -> bool:
+        """Whether an unanswered read's reply of this shape may still arrive (within the horizon)."""
+        now = time.monotonic()
+        self._unanswered = [entry for entry in self._unanswered if entry[0] > now]
+        return any(entry[1:] == (function_code, reply_bytes) for entry in self._unanswered)
+
+    def _another_frame_by(self, deadline: float) -> bool:
+        """Whether any byte arrives before `deadline` (the time by which this request's answer has come)."""
+        sock = self._client.socket
+        while sock is not None and not sock.in_waiting:
+            if time.monotonic() >= deadline:
+                return False
+            time.sleep(0.002)
+        return sock is not None
+
     def _execute(self, what: str, function_code: int, call: Callable[[ModbusSerialClient], Any],
-                 answers: Callable[[Any], bool], request_bytes: int, reply_bytes: int) -> Any:
+                 answers: Callable[[Any], bool], request_bytes: int, reply_bytes: int, *,
+                 read: str | None = None) -> Any:
         """The reply is the PDU class of the request's function code (bits, registers or records), hence Any.
         `request_bytes`, `reply_bytes`: the lengths of the request frame and of its normal (non-exception)
-        reply frame, address and CRC included."""
+        reply frame, address and CRC included. `read`: asking again is harmless, so a reply that a late one
+        could be mistaken for is confirmed (see the module's docstring): by a second reply that agrees, then
+        for "live" values by a quiet line until the answer is due, for "stored" ones by two that agree."""
         started = time.monotonic()
         self.stats.requests += 1
         self._request_timeout_s = timeout = self.request_timeout_s(request_bytes, reply_bytes)
         self._client.comm_params.timeout_connect = timeout  # what pymodbus's serial client waits for a reply
         last_failure = "no attempt"
+        candidate: bytes | None = None  # a reply waiting for its confirmation
+        quiet = False
         try:
-            for attempt in range(self.attempts):
+            for attempt in range(self.attempts + 1):
+                if attempt == self.attempts and candidate is None:
+                    break  # the extra attempt only confirms the last attempt's reply
                 if attempt:
                     self.stats.retries += 1
                 try:
@@ -241,6 +297,7 @@ class RtuTransport:
                         self.reopen()
                     self._received = b""
                     self._expected_reply_bytes = reply_bytes
+                    answer_by = time.monotonic() + timeout
                     reply = call(self._client)
                 except _GarbledReply:
                     self.stats.garbled_replies += 1
@@ -253,14 +310,18 @@ class RtuTransport:
                         # pymodbus's own wording ("… CLOSING CONNECTION") describes a close it does not do
                         # on a serial client; what happened is that no whole reply came back in time.
                         self.stats.timeouts += 1
+                        unanswered = not self._received
                         last_failure = (f"no reply within {timeout:.3g} s" if not self._received else
                                         f"an incomplete reply within {timeout:.3g} s ({self._received.hex(' ')})")
                     else:
                         last_failure = str(exc).strip() or type(exc).__name__
+                        unanswered = False
                     if isinstance(exc, (ConnectionException, OSError)) or self._client.socket is None:
                         self.reopen()
-                    else:
-                        self._drain()
+                    elif not self._drain() and unanswered and read is not None:
+                        # its reply did not come within the drain either: it may still, for the horizon
+                        self._unanswered.append((time.monotonic() + self.late_reply_horizon_s, function_code,
+                                                 reply_bytes))
                     continue
                 if not is_one_whole_frame(self._received):
                     # pymodbus's framer also accepts a CRC over a prefix of the buffer (it hunts for frames
@@ -278,7 +339,24 @@ class RtuTransport:
                     last_failure = f"a reply that answers another request ({type(reply).__name__})"
                     self._drain()
                     continue
-                return reply
+                if read is None or not self._late_reply_possible(function_code, reply_bytes):
+                    return reply
+                if quiet:  # a reply counts once nothing else arrived by the time this request's answer is due
+                    if not self._another_frame_by(answer_by):
+                        return reply
+                    self.stats.stale_replies += 1
+                    last_failure = "two replies to one read (one was a late reply to an earlier read)"
+                    self._drain(answered=True)
+                    continue
+                if candidate == self._received:
+                    return reply  # two asks agree: a late reply comes once, it cannot agree with itself
+                if candidate is not None:
+                    self.stats.stale_replies += 1
+                    last_failure = "replies that disagree (a late reply to an earlier read)"
+                    # a live value may rightly change between two asks: from now on, the quiet line decides
+                    quiet = read == "live"
+                candidate = self._received
+                self.stats.confirmations += 1
             self.stats.failures += 1
             raise LinkError(f"no valid reply from the device on {self.port} to {what} "
                             f"after {self.attempts} attempts (last: {last_failure})")
@@ -293,7 +371,7 @@ class RtuTransport:
         reply = self._execute(
             f"a read of {count} {table}s at {address}", fc,
             lambda c: getattr(c, method)(address, count=count, device_id=self.address),
-            lambda r: r.function_code == fc and len(r.bits) == padded, 8, 5 + padded // 8)
+            lambda r: r.function_code == fc and len(r.bits) == padded, 8, 5 + padded // 8, read="live")
         return [bool(b) for b in reply.bits[:count]]
 
     def read_words(self, table: str, address: int, count: int) -> list[int]:
@@ -302,7 +380,7 @@ class RtuTransport:
         reply = self._execute(
             f"a read of {count} {table}s at {address}", fc,
             lambda c: getattr(c, method)(address, count=count, device_id=self.address),
-            lambda r: r.function_code == fc and len(r.registers) == count, 8, 5 + 2 * count)
+            lambda r: r.function_code == fc and len(r.registers) == count, 8, 5 + 2 * count, read="live")
         return list(reply.registers)
 
     def write_bits(self, address: int, values: list[bool]) -> None:
@@ -325,7 +403,7 @@ class RtuTransport:
             f"a file-record read of file {file_number} record {record_number} (+{count})", 0x14,
             lambda c: c.read_file_record(request, device_id=self.address),
             lambda r: r.function_code == 0x14 and len(r.records) == 1 and len(r.records[0].record_data) == 2 * count,
-            12, 7 + 2 * count)
+            12, 7 + 2 * count, read="stored")
         return bytes(reply.records[0].record_data)
 
     def write_file_records(self, file_number: int, record_number: int, data: bytes) -> None:

@@ -25,6 +25,7 @@ from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from trimeter.domain.parameters import FitResult
 from trimeter.inversion import finish
@@ -73,6 +74,21 @@ def interpolator(amap: AppearanceMap, rho_b: float, rho_w: float,
     return interp
 
 
+def background_pairs(rho_b: np.ndarray, rho_w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The distinct (ρ_b, ρ_w) pairs as the triangulations are keyed (rounded), and each bin's pair's index;
+    non-finite pairs are left out (those bins cannot be placed)."""
+    pairs = np.round(np.column_stack([rho_b, rho_w]), _RHO_DECIMALS)
+    unique, group = np.unique(pairs[np.all(np.isfinite(pairs), axis=1)], axis=0, return_inverse=True)
+    return unique, group.ravel()
+
+
+def triangulated_nodes(amap: AppearanceMap, rho_b: ArrayLike, rho_w: ArrayLike) -> int:
+    """What a fit of these bins' backgrounds costs before any bin is placed: one Delaunay triangulation of
+    the map's nodes per distinct background pair, counted in nodes triangulated."""
+    unique, _ = background_pairs(np.asarray(rho_b, dtype=float), np.asarray(rho_w, dtype=float))
+    return len(unique) * int(np.size(amap.alpha) * np.size(amap.sigma_t) * np.size(amap.g))
+
+
 def paper_samples(amap: AppearanceMap, I_b: np.ndarray, I_w: np.ndarray, I_c: np.ndarray, rho_b: np.ndarray,
                   rho_w: np.ndarray, samples: int = 250, epsilon: float = 0.01, seed: int = 0, first_row: int = 0,
                   cache: OrderedDict[tuple[float, float], LinearNDInterpolator] | None = None) -> np.ndarray:
@@ -90,11 +106,10 @@ def paper_samples(amap: AppearanceMap, I_b: np.ndarray, I_w: np.ndarray, I_c: np
     if samples and samples > 0:  # PCG64 draws one 64-bit word per double: bin r's offsets start at word 3k·r
         stream = np.random.Generator(np.random.PCG64(seed).advance(3 * k * int(first_row)))
         pts = pts + stream.uniform(-epsilon, epsilon, (n, k, 3))
-    pairs = np.round(np.column_stack([rho_b, rho_w])[ok], _RHO_DECIMALS)
-    unique, group = np.unique(pairs, axis=0, return_inverse=True)
+    unique, group = background_pairs(rho_b[ok], rho_w[ok])
     rows = np.flatnonzero(ok)
     for j, (rb, rw) in enumerate(unique):  # one triangulation per distinct background pair
-        sel = rows[group.ravel() == j]
+        sel = rows[group == j]
         interp = interpolator(amap, float(rb), float(rw), cache)
         out[sel] = interp(np.broadcast_to(pts[sel], (len(sel), k, 3)).reshape(-1, 3)).reshape(len(sel), k, 3)
     return out

@@ -20,6 +20,7 @@ import logging
 import math
 import os
 import shutil
+import sys
 import time
 import zipfile
 from dataclasses import dataclass
@@ -47,6 +48,7 @@ BUILDER = ("trimeter.forward.transport: (k, m)-tally path tracer (detector + bac
 _COLUMN_FIELDS = ("A", "B", "C", "std_b", "std_w")
 log = logging.getLogger("trimeter.maps")
 _BATCH_QUANTUM = 4096
+PROGRESS_EVERY_S = 30.0  # without a terminal (a log, a pipe): a progress line at most this often, and at the end
 
 
 @dataclass
@@ -353,6 +355,9 @@ def build_maps(jobs: list[MapJob], *, client=None, resume: bool = False, progres
             else:
                 state.add(j, k, col, traced=False)
     start = time.perf_counter()
+    if progress:  # before the first column, which on a large recipe alone takes long: what the build will do
+        for state in states:
+            print(work_line(state.recipe, len(state.columns()), state.reused), file=sys.stderr, flush=True)
     with _progress(progress, [(s.recipe.name, len(s.columns()), s.reused) for s in states]) as advance:
         if client is None:
             executor = "in-process"
@@ -390,9 +395,54 @@ def _version(package: str) -> str | None:
         return None
 
 
+def work_line(recipe: Recipe, columns: int, reused: int) -> str:
+    """What a map's build will trace: its columns and the photon paths each takes (up to the cap)."""
+    s = recipe.sampling
+    todo = columns - reused
+    each = f"{s.min_paths:,} photon paths each" if s.max_paths == s.min_paths else \
+        f"{s.min_paths:,} to {s.max_paths:,} photon paths each"
+    return (f"{recipe.name}: tracing {todo} of {columns} (σt, g) columns ({reused} from the checkpoint), {each} "
+            f"(up to {todo * s.max_paths:,} paths in all)")
+
+
+def _duration(seconds: float) -> str:
+    seconds = int(round(seconds))
+    return f"{seconds // 3600}:{seconds // 60 % 60:02d}:{seconds % 60:02d}"
+
+
+class ProgressLines:
+    """Progress without a terminal: a line per map at most every `every_s` seconds and when it is done,
+    with the columns traced, the time elapsed and an estimate of the time left (from this run's pace)."""
+
+    def __init__(self, maps: list[tuple[str, int, int]], every_s: float = PROGRESS_EVERY_S,
+                 clock: Callable[[], float] = time.monotonic, out=None):
+        self.maps, self.every_s, self.clock = maps, every_s, clock
+        self.out = out if out is not None else sys.stderr
+        self.start = clock()
+        self.done = [reused for _, _, reused in maps]
+        self.last = [self.start] * len(maps)
+
+    def advance(self, index: int) -> None:
+        name, total, reused = self.maps[index]
+        self.done[index] += 1
+        now = self.clock()
+        if now - self.last[index] < self.every_s and self.done[index] < total:
+            return
+        self.last[index] = now
+        elapsed = now - self.start
+        # the pace over every map of the build (their columns interleave): the time left for all of them
+        traced = sum(done - m[2] for done, m in zip(self.done, self.maps, strict=True))
+        left = sum(m[1] for m in self.maps) - sum(self.done)
+        mine = "this map is done, " if self.done[index] >= total else ""
+        state = f"{mine}about {_duration(left * elapsed / traced)} left" if left else "the build is done"
+        print(f"{name}: {self.done[index]}/{total} columns, {_duration(elapsed)} elapsed, {state}", file=self.out,
+              flush=True)
+
+
 class _progress:
     """One progress view over every map of a build: a bar per map and, for several, one for all columns
-    (or nothing, for tests and pipes). Entering returns advance(map index)."""
+    on a terminal; ProgressLines otherwise (a log, a pipe); nothing for tests. Entering returns
+    advance(map index)."""
 
     def __init__(self, enabled: bool, maps: list[tuple[str, int, int]]):
         self.enabled, self.maps = enabled, maps
@@ -401,6 +451,8 @@ class _progress:
     def __enter__(self):
         if not self.enabled:
             return lambda index: None
+        if not sys.stderr.isatty():
+            return ProgressLines(self.maps).advance
         from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn, TimeRemainingColumn
 
         bar = self._bar = Progress("[bold]{task.description}", BarColumn(), MofNCompleteColumn(),

@@ -109,13 +109,17 @@ def write_measurement(root: str | Path, measurement: Measurement, *, label: str 
     root = Path(root)
     root.mkdir(parents=True, exist_ok=True)
     name = new_name(label)
-    final = root / name
     suffix = 1
-    while final.exists():
+    while True:
+        final = root / (name if suffix == 1 else f"{name}-{suffix}")
+        partial = root / partial_name(final.name)
+        if not final.exists():
+            try:
+                partial.mkdir()  # the claim: another thread of this process (another instrument) may want this name
+                break
+            except FileExistsError:
+                pass
         suffix += 1
-        final = root / f"{name}-{suffix}"
-    partial = root / partial_name(final.name)
-    partial.mkdir()
     try:
         _write_all(partial, measurement, figure=figure, medium=medium)
         _fsync_tree(partial)

@@ -166,8 +166,8 @@ def shot_problems(refl: Reflectances, amap: BackgroundCoefficients) -> list[str]
         checks = (
             (refl.I_w + 3 * sw < FLOOR_FRACTION * floor,
              f"I_w is under half the sample surface's own reflection (the map's floor {floor:.3f})",
-             "the diffuse panels gave (almost) no light during the capture: a failed panel lamp or a shutter "
-             "that did not open"),
+             "the diffuse panels gave (almost) no light during the capture (a failed panel lamp or a panel "
+             "shutter that did not open), or light reached the dark frames (a shutter that did not close)"),
             (refl.I_b - refl.I_w > BLACK_ABOVE_WHITE_TOLERANCE * refl.I_w + 3 * np.hypot(sb, sw),
              "I_b is above I_w (no sample is brighter on black than on white)",
              "the panel light changed between the black and white captures, or the slider stopped at the "
@@ -181,7 +181,11 @@ def shot_problems(refl: Reflectances, amap: BackgroundCoefficients) -> list[str]
     for bad, seen, cause in checks:
         k = int(np.count_nonzero(bad & usable))
         if k > BAD_BIN_FRACTION * n:
-            problems.append(f"{seen} in {k} of {n} usable bins: {cause}")
+            # The lamp monitor sees each lamp and shutter directly and names it; a guess from the spectra
+            # would point elsewhere (a collimated shutter stuck open lights the dark frames, so I_w looks
+            # as if the panels were off).
+            problems.append(f"{seen} in {k} of {n} usable bins: "
+                            f"{'what the lamp monitor found explains it' if lamps else cause}")
     return problems
 
 

@@ -307,7 +307,8 @@ def measure(runner: Runner, calibration: Calibration | None, samples: list[Sampl
         instrument=None if device.identity is None else InstrumentInfo.of(device.identity),
         device_map_table=table, noise_rel_measured=[c.reflectances.noise_rel() for c in captures],
         incomplete=incomplete, advice=advice(combined.flags, len(captures)),
-        link={} if stats is None else vars(stats).copy())
+        link={} if stats is None else vars(stats).copy(),
+        extra={"instrument": settings.name} if settings.name else {})
     measurement = Measurement(calibration, captures, combined, per, provenance)
     t0 = time.monotonic()
     try:

@@ -30,6 +30,7 @@ from pathlib import Path
 from typing import Callable, TypeVar
 
 from trimeter.device import Device
+from trimeter.device.transport import LinkError
 from trimeter.device.backup import config_source_warning
 from trimeter.domain import Calibration, InstrumentInfo, Sample
 from trimeter.domain.measurement import DeviceTableCheck, Estimate
@@ -53,7 +54,7 @@ T = TypeVar("T")
 @dataclass
 class Event:
     # connected | press | empty_holder | calibrating | refused | warmed_up | calibrated | next_sample | advice |
-    # measured | failed | warning | reset | reconnecting
+    # measured | failed | warning | reset | reconnecting | link_lost | link_restored
     kind: str
     message: str
     data: dict = field(default_factory=dict)
@@ -77,6 +78,9 @@ def calibration_is_stale(calibration: Calibration | None, uptime_s: float, max_a
     return None
 
 
+POLL_S = 0.05  # the button poll's interval: a press is seen within it
+
+
 class Service:
     """The press-button loop. `open_device()` / `open_spectrometer()` are factories so it can reconnect."""
 
@@ -92,6 +96,7 @@ class Service:
         self.label = label
         self.device_clock = device_clock
         self.retry = retry
+        self.poll_s = POLL_S  # longer for an instrument sharing its bus (sequences.instruments)
         self.device: Device | None = None
         self.spectrometer: Spectrometer | None = None
         self.calibration: Calibration | None = None
@@ -152,8 +157,24 @@ class Service:
         again after a backoff and a reopen; a reset or a refusal is not. Every action here sets a state or
         reads one, so it is safe to repeat."""
         device = self.connected_device()
-        return retry_on_link_error(lambda: action(device), what, self.retry, device.transport,
-                                   abandoned="gave up on the device link")
+        lost = False
+
+        def attempt() -> T:
+            # Told at the first failed try, not after the retries give up (tens of seconds): the status drops
+            # the device and queued work expires while the link is being tried again.
+            nonlocal lost
+            try:
+                result = action(device)
+            except LinkError as exc:
+                if not lost:
+                    lost = True
+                    self._emit("link_lost", f"the device stopped answering while {what} ({exc}); trying again")
+                raise
+            if lost:
+                self._emit("link_restored", "the device answers again")
+            return result
+
+        return retry_on_link_error(attempt, what, self.retry, device.transport, abandoned="gave up on the device link")
 
     def connected_device(self) -> Device:
         """The open device: a DeviceError, which the loop answers by reconnecting, when there is none."""
@@ -175,9 +196,10 @@ class Service:
         return None if self._uptime < 0 else float(self._uptime)
 
     # --------------------------------------------------------------------------------- loop
-    def serve(self, stop: Callable[[], bool] = lambda: False, poll_s: float = 0.05,
+    def serve(self, stop: Callable[[], bool] = lambda: False, poll_s: float | None = None,
               reconnect_s: float = 0.5, between_polls: Callable[[str | None], None] | None = None) -> None:
-        """Run until `stop()` is true. Survives resets, lost links and failed measurements.
+        """Run until `stop()` is true. Survives resets, lost links and failed measurements. `poll_s`: the
+        button poll's interval (default: self.poll_s).
         `between_polls(outcome of the poll)` runs on this thread after each button poll: work asked for
         elsewhere (the web page's jobs) shares the device with the button this way; a DeviceError it raises
         reconnects like the button's."""
@@ -195,7 +217,7 @@ class Service:
                 self.close()
                 time.sleep(reconnect_s)
                 continue
-            time.sleep(poll_s)
+            time.sleep(self.poll_s if poll_s is None else poll_s)
         self.close()
 
     def poll_once(self) -> str | None:

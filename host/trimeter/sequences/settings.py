@@ -4,6 +4,24 @@ The device's own configuration lives in the device (holding registers, `save_con
 holds what only the host knows: where the instrument and spectrometer are, where results go, the
 sequence parameters. `TRIMETER_CONFIG_DIR` / `TRIMETER_DATA_DIR` override the directories (tests,
 the demo, several instruments on one host).
+
+Several instruments on one host (`trimeter serve` takes them all; one page shows them all): one
+`[[instruments]]` table each, after the plain settings. Instruments on one serial port share it as an
+RS-485 bus, each at its own Modbus address (the device's `modbus_address`, saved in it); two at one
+address of one port are refused here, two devices answering at one address when `serve` starts:
+
+    [[instruments]]
+    name = "left"                 # the page, the history and its calibration know it by this
+    port = "/dev/ttyUSB0"
+    address = 1
+    spectrometer = "seabreeze:"
+    [[instruments]]
+    name = "right"
+    port = "/dev/ttyUSB0"         # the same bus
+    address = 2
+    spectrometer = "i2c:1"
+
+Every other setting applies to each instrument alike. `--port`/`--address` on `serve` take one alone.
 """
 
 from __future__ import annotations
@@ -12,7 +30,7 @@ import math
 import re
 import tomllib
 from collections.abc import Callable, Collection
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -28,6 +46,7 @@ CONFIG_FILE_NAME = "config.toml"
 
 @dataclass
 class HostSettings:
+    name: str = ""                     # the instrument's name (its measurements and calibration are kept under it)
     port: str = ""                     # serial port of the instrument (e.g. /dev/ttyUSB0)
     address: int = 1                   # Modbus slave address
     baudrate: int = 19200
@@ -51,6 +70,7 @@ class HostSettings:
     second_thickness_mm: float = 0.0   # 0: one sample per press
     second_map: str = ""               # its map; empty = the shipped map of that thickness
     swap_timeout_s: float = 600.0      # no press for the second sample within this: the first is written alone
+    instruments: list[dict[str, Any]] = field(default_factory=list)  # `serve` with several ([[instruments]], above)
 
     # ---------------------------------------------------------------------------------------
     @property
@@ -73,7 +93,12 @@ class HostSettings:
 
     @property
     def calibration_path(self) -> Path:
-        return data_dir() / "calibration"
+        """One calibration per instrument: by its name when it has one, else by its Modbus address (address 1
+        where every single-instrument host has always kept it)."""
+        base = data_dir() / "calibration"
+        if self.name:
+            return base / "instruments" / self.name
+        return base if self.address == 1 else base / f"address-{self.address}"
 
     @classmethod
     def path(cls) -> Path:
@@ -108,8 +133,11 @@ class HostSettings:
         """Write only what differs from the defaults, so new defaults reach old installs."""
         defaults = asdict(HostSettings())
         changed = {key: value for key, value in asdict(self).items() if value != defaults[key]}
-        return atomic_write(self.path(), toml_table(changed, "trimeter host configuration "
-                                                              "(`trimeter config set --host KEY VALUE`)"))
+        instruments = changed.pop("instruments", [])
+        text = toml_table(changed, "trimeter host configuration (`trimeter config set --host KEY VALUE`)")
+        for instrument in instruments:
+            text += "\n[[instruments]]\n" + toml_table(instrument)
+        return atomic_write(self.path(), text)
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -127,6 +155,7 @@ class Rule:
     low_open: bool = False
     choices: Callable[[], Collection] | None = None
     meaning: str = ""
+    check: Callable[[Any, str], Any] | None = None  # a structured value's own checker (value, source) → value
 
     def describe(self) -> str:
         if self.choices is not None:
@@ -150,6 +179,7 @@ DAY_S = 86400.0
 MAX_THICKNESS_MM = 100.0
 MAX_TEXT = 4096
 SCHEMA: dict[str, Rule] = {
+    "name": Rule(str, meaning="an instrument name", check=lambda value, source: checked_name("name", value, source)),
     "port": Rule(str), "spectrometer": Rule(str), "results_dir": Rule(str), "map": Rule(str), "second_map": Rule(str),
     "address": Rule(int, 1, 247, meaning="a Modbus slave address"),
     "baudrate": Rule(int, choices=_baudrates),
@@ -167,7 +197,63 @@ SCHEMA: dict[str, Rule] = {
     "thickness_mm": Rule(float, 0, MAX_THICKNESS_MM, low_open=True),
     "second_thickness_mm": Rule(float, 0, MAX_THICKNESS_MM, meaning="0: one sample"),
     "swap_timeout_s": Rule(float, 0, DAY_S, low_open=True),
+    "instruments": Rule(list, meaning="[[instruments]] tables", check=lambda value, source: checked_instruments(
+        value, source)),
 }
+# One instrument of `instruments`: where it is (port + Modbus address: several on one RS-485 bus share a port),
+# its spectrometer, and the name the page and the history know it by.
+INSTRUMENT_SCHEMA: dict[str, Rule] = {
+    "name": Rule(str), "port": Rule(str), "spectrometer": Rule(str),
+    "address": Rule(int, 1, 247, meaning="a Modbus slave address"),
+}
+MAX_INSTRUMENTS = 64
+_INSTRUMENT_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,39}")
+
+
+def checked_name(key: str, value: Any, source: str = "host config", *, required: bool = False) -> str:
+    """An instrument name (a path component and a URL segment: 1..40 of A-Z a-z 0-9 . _ -, a letter or digit
+    first), or "" when not `required`."""
+    text = _checked_by(Rule(str), key, value, source)
+    if (text or required) and not _INSTRUMENT_NAME.fullmatch(text):
+        raise InputError(f"{key}: {text!r} is not an instrument name (1..40 of A-Z a-z 0-9 . _ -, a letter or "
+                         f"digit first) ({source})")
+    return text
+
+
+def checked_instruments(value: Any, source: str = "host config") -> list[dict[str, Any]]:
+    """The `instruments` list, each entry checked by INSTRUMENT_SCHEMA, or InputError: a missing name or port, a
+    name twice, or two instruments at one address of one port (an address collision on the bus)."""
+    if not isinstance(value, list) or len(value) > MAX_INSTRUMENTS:
+        raise InputError(f"instruments: must be a list of at most {MAX_INSTRUMENTS} [[instruments]] tables ({source})")
+    out: list[dict[str, Any]] = []
+    seen_names: dict[str, int] = {}
+    seen_addresses: dict[tuple[str, int], str] = {}
+    for number, entry in enumerate(value, start=1):
+        where = f"instruments[{number}]"
+        if not isinstance(entry, dict):
+            raise InputError(f"{where}: must be a table {{name, port, address, spectrometer}} ({source})")
+        unknown = sorted(set(entry) - set(INSTRUMENT_SCHEMA))
+        if unknown:
+            raise InputError(f"{where}.{unknown[0]}: no such instrument setting ({', '.join(INSTRUMENT_SCHEMA)}) "
+                             f"({source})")
+        item: dict[str, Any] = {"name": "", "port": "", "address": 1, "spectrometer": ""}
+        for key, raw in entry.items():
+            item[key] = _checked_by(INSTRUMENT_SCHEMA[key], f"{where}.{key}", raw, source)
+        checked_name(f"{where}.name", item["name"], source, required=True)
+        if not item["port"]:
+            raise InputError(f"{where}.port: instrument {item['name']!r} names no serial port ({source})")
+        if item["name"] in seen_names:
+            raise InputError(f"{where}.name: {item['name']!r} is already instruments[{seen_names[item['name']]}] "
+                             f"({source})")
+        bus_address = (item["port"], item["address"])
+        if bus_address in seen_addresses:
+            raise InputError(f"{where}: address collision on the bus {item['port']}: {item['name']!r} and "
+                             f"{seen_addresses[bus_address]!r} are both at Modbus address {item['address']} "
+                             f"(give each instrument on one port its own address) ({source})")
+        seen_names[item["name"]] = number
+        seen_addresses[bus_address] = item["name"]
+        out.append(item)
+    return out
 
 
 def checked(key: str, value: Any, source: str = "host config") -> Any:
@@ -176,6 +262,12 @@ def checked(key: str, value: Any, source: str = "host config") -> Any:
     rule = SCHEMA.get(key)
     if rule is None:
         raise InputError(f"{key}: no such host setting ({', '.join(SCHEMA)}) ({source})")
+    if rule.check is not None:
+        return rule.check(value, source)
+    return _checked_by(rule, key, value, source)
+
+
+def _checked_by(rule: Rule, key: str, value: Any, source: str) -> Any:
     shown = repr(value) if len(repr(value)) <= 80 else repr(value)[:77] + "..."
     if isinstance(value, bool) or not isinstance(value, (str, int, float)):
         raise InputError(f"{key}: {shown} is not a {rule.kind.__name__} ({source})")

@@ -86,8 +86,10 @@ class Twin:
                  faults: FaultConfig | None = None, state_dir: str | Path | None = None,
                  appearance_map: MapSource = None, seed: int | None = None, white: str = "white",
                  firmware: str | Path | None = None, map_table: str | Path | bytes | None = None,
-                 sensor: str = "spectrometer") -> None:
-        """map_table: a device table (bytes, a .tlut file or a shipped map's name) the twin's storage
+                 sensor: str = "spectrometer", address: int | None = None) -> None:
+        """address: the firmware's Modbus address, over the one its saved configuration holds (as a jumper
+        would); None: the saved one (1 by default).
+        map_table: a device table (bytes, a .tlut file or a shipped map's name) the twin's storage
         holds active from the start, as an instrument carries its own; None: empty map slots.
         sensor: what the host reads, "spectrometer" or "as7341" (optics.SENSORS), or "c12880ma": the firmware's
         micro-spectrometer, read by the host over Modbus (spectrometer_url mcu:…)."""
@@ -100,6 +102,10 @@ class Twin:
         self.faults = faults or FaultConfig()
         if not isinstance(self.faults, FaultConfig):
             raise InputError("faults must be a FaultConfig")
+        if address is not None and (isinstance(address, bool) or not isinstance(address, int)
+                                    or not 1 <= address <= 247):
+            raise InputError(f"address must be a Modbus address within 1..247, got {address!r}")
+        self.address = address
         self._sample, self._thickness_mm, self._sensor = sample, thickness_mm, sensor
         self._state_dir_arg, self._appearance_map, self._white = state_dir, appearance_map, white
         self._firmware = Path(firmware) if firmware else FIRMWARE_BINARY
@@ -203,7 +209,8 @@ class Twin:
         self._closers.append(log.close)
         self._process = process = subprocess.Popen(
             [str(binary), "--storage", str(self.state_dir / "storage.bin"), "--modbus-link", str(fw_modbus),
-             "--plant-link", str(plant_path), "--time-scale", repr(self.time_scale)],
+             "--plant-link", str(plant_path), "--time-scale", repr(self.time_scale),
+             *(["--address", str(self.address)] if self.address is not None else [])],
             stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=log,
             # PDEATHSIG fires when the *thread* that forked exits: only safe from the main thread.
             preexec_fn=_die_with_parent if threading.current_thread() is threading.main_thread() else None)

@@ -42,14 +42,15 @@ from trimeter.device.table_cache import cached_tables
 from trimeter.formats.device_table import DeviceTable
 from trimeter.paths import NAME_MAX, real_subdirectory, regular_files
 from trimeter.sequences.measure import map_for_thickness
+from trimeter.sequences.instruments import Instrument
 from trimeter.sequences.service import EMPTY_HOLDER, NEXT_SAMPLE
 from trimeter.sequences.settings import HostSettings
 from trimeter.tables import MAX_RESULT_FILE_BYTES, open_checked
 from trimeter.web import auth
-from trimeter.web import library_routes
+from trimeter.web import instruments_routes, library_routes
 from trimeter.web.isolated import run_with_time_limit
 from trimeter.web.history import History, IndexUnavailable, is_measurement_id, parse_day_or_time
-from trimeter.web.jobs import Busy, Job, Jobs
+from trimeter.web.jobs import Busy, Job, Jobs, LinkDown
 
 if TYPE_CHECKING:
     from trimeter.domain.measurement import MapRef
@@ -69,6 +70,7 @@ BODY_TIMEOUT_S = 10.0               # a body that small arrives at once; a clien
 HEADER_TIMEOUT_S = 15.0
 EVENT_QUEUE = 256                   # events buffered per websocket client; a client that falls further behind is closed
 DEVICE_CALL_TIMEOUT_S = 15.0
+LINK_DOWN_RETRY_AFTER_S = 5         # work asked for while the device link is being tried again
 REFIT_TIME_LIMIT_S = 300.0          # a re-fit runs in a child process, stopped at this
 WEBHOOK_TIMEOUT_S = 5.0
 LABEL = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
@@ -124,6 +126,8 @@ async def errors_middleware(request: web.Request, handler: Handler) -> web.Strea
         return _error(exc.status, exc.message, headers=exc.headers, close=exc.close, **exc.extra)
     except Busy as exc:
         return _error(409, f"the instrument is busy: {exc}", job=exc.job.to_json())
+    except LinkDown as exc:
+        return _error(503, str(exc), headers={"Retry-After": str(LINK_DOWN_RETRY_AFTER_S)})
     except IndexUnavailable as exc:
         return _error(503, str(exc), headers={"Retry-After": str(IndexUnavailable.RETRY_AFTER_S)})
     except TrimeterError as exc:
@@ -412,7 +416,7 @@ def _search_args(request: web.Request) -> dict:
     flagged = q.get("flagged")
     if flagged is not None and flagged.lower() not in ("true", "false", "yes", "no", "1", "0"):
         raise ApiError(400, f"flagged: {flagged!r} is not true or false")
-    return {"label": q.get("label") or None,
+    return {"label": q.get("label") or None, "instrument": q.get("instrument") or None,
             "since": parse_day_or_time(q["since"], "since") if q.get("since") else None,
             "until": parse_day_or_time(q["until"], "until", end=True) if q.get("until") else None,
             "flagged": None if flagged is None else flagged.lower() in ("true", "yes", "1"),
@@ -558,7 +562,7 @@ async def measurement_zip(request: web.Request) -> web.StreamResponse:
 
 @routes.post("/api/measurements/{id}/refit")
 async def refit_route(request: web.Request) -> web.StreamResponse:
-    from trimeter.web.refit import recorded_maps, refit
+    from trimeter.web.refit import paper_refit_problem, recorded_maps, refit
 
     path = _measurement_dir(request)
     body = await json_body(request, ("maps", "method"))
@@ -575,16 +579,22 @@ async def refit_route(request: web.Request) -> web.StreamResponse:
             raise ApiError(400, f"maps: {', '.join(map(repr, unknown))} not known here "
                                 f"(GET /api/maps lists them: {', '.join(sorted(catalog))})")
 
-    def run(job: Job) -> str:
+    def resolve() -> tuple[list[str], list[MapRef]]:
         from trimeter.results.reader import read_record
 
-        meta = read_record(path)
-        maps: list[MapRef]
         if names:
-            chosen, maps = names, [AppearanceMap.load(catalog[name]) for name in names]
-        else:
-            chosen = meta.get("maps") or []
-            maps = recorded_maps(meta, catalog, functools.partial(_instrument_table, jobs))
+            return names, [AppearanceMap.load(catalog[name]) for name in names]
+        meta = read_record(path)
+        return meta.get("maps") or [], recorded_maps(meta, catalog, functools.partial(_instrument_table, jobs))
+
+    resolved: tuple[list[str], list[MapRef]] | None = None
+    if method == "paper":  # its cost is known before it runs: too large a one is refused, not started
+        resolved = await _blocking(request, resolve)
+        if problem := await _blocking(request, paper_refit_problem, path, resolved[1]):
+            raise ApiError(400, problem)
+
+    def run(job: Job) -> str:
+        chosen, maps = resolved or resolve()
         # beside the instrument's queue and in a process of its own: a slow or stuck fit neither holds the
         # instrument nor runs past the limit
         new = run_with_time_limit(refit, (path, maps, method), REFIT_TIME_LIMIT_S, "the re-fit")
@@ -755,6 +765,14 @@ def create_app(jobs: Jobs, history: History, token: str, *, webhook: str | None 
     return app
 
 
+def create_lab_app(lab: list[tuple[Instrument, Jobs]], history: History, token: str, *,
+                   webhook: str | None = None) -> web.Application:
+    """Several instruments (trimeter.web.instruments_routes): the root API is the first one's, every one's whole
+    API under /instruments/{name}/; the webhook goes out from the instruments' own apps (once per job)."""
+    return instruments_routes.mount(create_app(lab[0][1], history, token), lab,
+                                    lambda jobs: create_app(jobs, history, token, webhook=webhook))
+
+
 class ClientErrorsInOneLine(logging.Filter):
     """aiohttp logs a request it could not parse (malformed headers, a Content-Encoding it cannot decode) with a
     traceback at ERROR, though it answered the client 400, and so a body it drains after the answer that turns
@@ -855,6 +873,7 @@ def openapi() -> dict:
     mid = ("id", "path", "string", "a results directory's name")
     search = [("label", "query", "string", "part of the label"), ("since", "query", "string", "YYYY-MM-DD or ISO time"),
               ("until", "query", "string", "YYYY-MM-DD (inclusive) or ISO time"),
+              ("instrument", "query", "string", "only those of the instrument of this name"),
               ("flagged", "query", "boolean", "only measurements with (true) / without (false) flagged bins"),
               ("flag", "query", "string", "only those with this FitFlag (e.g. UNDERDETERMINED)"),
               ("limit", "query", "integer", "page size, 1..500 (default 50)"), ("offset", "query", "integer", ""),
@@ -903,5 +922,6 @@ def openapi() -> dict:
             "/api/events": {"get": op("websocket: the service's events, progress and jobs as JSON, live")},
             "/api/openapi.json": {"get": op("this description")},
             **library_routes.OPENAPI_PATHS,
+            **instruments_routes.OPENAPI_PATHS,
         },
     }

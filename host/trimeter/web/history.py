@@ -30,7 +30,7 @@ from trimeter.results.writer import PARTIAL_PREFIX
 
 log = logging.getLogger("trimeter.web")
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 # A results directory's name: the writer's UTC stamp, an optional label and a uniqueness suffix.
 ID_PATTERN = re.compile(r"\d{8}T\d{6}Z(?:-[A-Za-z0-9._-]+)?")
 MAX_PAGE = 500
@@ -42,6 +42,7 @@ CREATE TABLE measurements (
     id TEXT PRIMARY KEY,
     written_utc TEXT NOT NULL,
     label TEXT,
+    instrument TEXT,                   -- the name of the instrument that measured it
     method TEXT,
     thicknesses_mm TEXT NOT NULL,      -- JSON list
     maps TEXT NOT NULL,                -- JSON list
@@ -55,8 +56,8 @@ CREATE TABLE measurements (
 );
 CREATE INDEX measurements_written ON measurements (written_utc);
 """
-_COLUMNS = ("id", "written_utc", "label", "method", "thicknesses_mm", "maps", "bins", "flagged_bins", "flags",
-            "incomplete", "refit_of", "advice", "mtime")
+_COLUMNS = ("id", "written_utc", "label", "instrument", "method", "thicknesses_mm", "maps", "bins", "flagged_bins",
+            "flags", "incomplete", "refit_of", "advice", "mtime")
 
 
 def is_measurement_id(text: str) -> bool:
@@ -92,6 +93,7 @@ def summarize(directory: Path) -> dict | None:
         return value if isinstance(value, list) else []
 
     return {"id": directory.name, "written_utc": written, "label": _text(meta.get("label")),
+            "instrument": _text(meta.get("instrument")),
             "method": _text(meta.get("method")), "thicknesses_mm": json.dumps(listed("thicknesses_mm")),
             "maps": json.dumps(listed("maps")), "bins": int(flags.size),
             "flagged_bins": int(np.count_nonzero(flags)),
@@ -297,15 +299,18 @@ class History:
             row = self.db.execute("SELECT * FROM measurements WHERE id = ?", (measurement_id,)).fetchone()
         return None if row is None else row_to_json(dict(row))
 
-    def search(self, *, label: str | None = None, since: str | None = None, until: str | None = None,
-               flagged: bool | None = None, flag: str | None = None, limit: int = 50, offset: int = 0
-               ) -> tuple[list[dict], int]:
+    def search(self, *, label: str | None = None, instrument: str | None = None, since: str | None = None,
+               until: str | None = None, flagged: bool | None = None, flag: str | None = None, limit: int = 50,
+               offset: int = 0) -> tuple[list[dict], int]:
         """(one page of rows, newest first; how many match). Dates as parse_day_or_time gives them."""
         where: list[str] = []
         args: list[object] = []
         if label:
             where.append("label LIKE ? ESCAPE '\\'")
             args.append("%" + re.sub(r"([%_\\])", r"\\\1", label) + "%")
+        if instrument:
+            where.append("instrument = ?")
+            args.append(instrument)
         if since:
             where.append("written_utc >= ?")
             args.append(since)

@@ -33,7 +33,7 @@ STATES = {READY: "ready", WORKING: "working", EMPTY_HOLDER: "asking_empty_holder
           FAILED: "failed"}
 # a press's outcome (Service.handle_press) → the job's end state
 OUTCOMES = {"calibrated": "done", "measured": "done", "asked": "done", "refitted": "done", "refused": "failed",
-            "failed": "failed", "incomplete": "failed"}
+            "failed": "failed", "incomplete": "failed", "expired": "failed"}
 
 
 def utc_now() -> str:
@@ -64,6 +64,11 @@ class Busy(Exception):
         self.job = job
 
 
+class LinkDown(Exception):
+    """Work for the instrument asked for while its link is down: what it was asked under (the holder the
+    operator emptied, the sample in place) cannot be vouched for once the device answers again."""
+
+
 class Jobs:
     """The worker around one Service. `listeners` get every event and finished job as JSON (on the
     worker thread: hand them to another thread quickly)."""
@@ -82,6 +87,7 @@ class Jobs:
         self._status: dict[str, Any] = {"connected": False, "step": None, "progress": None, "lamp_drift": None,
                         "asking_reason": None, "map_table": None, "device_config": None}
         self._refresh_device = False
+        self._link_down = False  # the device stopped answering (a poll's first failed try) and has not answered since
         self._stop = threading.Event()
         self.stopped: str | None = None   # why the worker ended on its own
         self._thread: threading.Thread | None = None
@@ -218,11 +224,17 @@ class Jobs:
         with self._lock:
             self.events.appendleft(record)
             job = self.current
-            if event.kind == "connected":
-                self._status["connected"] = True
-                self._refresh_device = True
-            elif event.kind == "reconnecting":
-                self._status["connected"] = False
+            expired = []
+            if event.kind in ("connected", "link_restored"):
+                self._status["connected"], self._link_down = True, False
+                self._refresh_device = self._refresh_device or event.kind == "connected"
+            elif event.kind in ("reconnecting", "link_lost"):
+                self._status["connected"], self._link_down = False, True
+                # queued work expires with the link: a confirmation given before is not one for the device
+                # that answers next (it may have been reset, the holder changed meanwhile)
+                expired, self._queue = [queued for queued, _ in self._queue], collections.deque()
+                if self.current in expired:
+                    self.current = None
             elif event.kind == "warmed_up":
                 self._status["lamp_drift"] = {"drift": event.data.get("drift"), "time_utc": record["time_utc"]}
             elif event.kind == "empty_holder":
@@ -238,6 +250,9 @@ class Jobs:
                     job.flagged = True
                 elif event.kind in ("failed", "refused") or (event.kind == "empty_holder" and not job.message):
                     job.message = event.message
+        for queued in expired:
+            queued.message = f"expired before it ran: {event.message}; ask again once the device answers"
+            self._finish(queued, "expired")
         if event.kind == "measured" and path is not None:
             try:
                 self.on_measurement(Path(path))
@@ -261,6 +276,9 @@ class Jobs:
         with self._lock:
             if self.current is not None:
                 raise Busy(self.current)
+            if self._link_down:
+                raise LinkDown("the device is not answering (the link is being tried again): ask again once the "
+                               "status shows it connected")
             job = self.current = Job(kind, "web", params)
             self._queue.append((job, action))
         self._tell({"type": "job", "job": job.to_json()})
@@ -327,7 +345,7 @@ class Jobs:
                 else round(uptime - calibration.device_time_s, 1),
                 "max_age_s": service.settings.calibration_max_age_s,
                 "due": service.calibration_stale_reason or service.calibration_requested},
-            "device": None if identity is None else {
+            "device": None if identity is None or not snapshot["connected"] else {
                 "port": service.settings.port, "vendor_id": identity.vendor_id, "model_id": identity.model_id,
                 "firmware": ".".join(map(str, identity.firmware_version)),
                 "regmap_hash": f"0x{identity.regmap_hash:08X}"},

@@ -23,6 +23,10 @@ from trimeter.results.reader import load
 from trimeter.results.writer import write_measurement
 from trimeter.sequences.measure import for_recorded_sensor, prepare_fit
 
+# A `paper` re-fit triangulates the map's nodes once per distinct background pair before placing any bin; above
+# this many nodes triangulated it is refused up front rather than run into the re-fit's time limit.
+PAPER_MAX_TRIANGULATED_NODES = 2_000_000
+
 
 def cached_table(sha256: str) -> DeviceTable | None:
     """The instrument table with this SHA-256 from the host's table cache, or None (not there, or damaged)."""
@@ -78,6 +82,22 @@ def recorded_maps(meta: dict, catalog: dict[str, Path], instrument_table: Callab
                              f"map to re-fit with (GET /api/maps)")
         found.append(table)
     return found
+
+
+def paper_refit_problem(directory: Path, maps: Sequence[MapRef]) -> str | None:
+    """Why a `paper` re-fit of `directory` with `maps` is too large to run (None: it is not)."""
+    from trimeter.inversion.paper import triangulated_nodes
+
+    refls = load(directory).reflectances
+    if len(maps) != len(refls):
+        return None  # refit() says what is wrong
+    work = sum(triangulated_nodes(amap, refl.rho_b, refl.rho_w)
+               for amap, refl in zip(maps, refls, strict=True) if isinstance(amap, AppearanceMap))
+    if work <= PAPER_MAX_TRIANGULATED_NODES:
+        return None
+    return (f"a paper re-fit of this record would triangulate {work:,} map nodes (one Delaunay triangulation of "
+            f"the map per distinct background pair; the limit is {PAPER_MAX_TRIANGULATED_NODES:,}): re-fit with "
+            f"another method, or a smaller map")
 
 
 def refit(directory: Path, maps: Sequence[MapRef], method: str) -> Path:

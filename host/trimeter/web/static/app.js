@@ -170,6 +170,55 @@ async function homeView() {
     act(() => api("/api/calibrate", {json: {}}), "empty the holder, then confirm above"));
   status = await api("/api/status");
   renderStatus();
+  renderInstruments();
+}
+
+// ------------------------------------------------------------- several instruments (serve with [[instruments]])
+let instrumentsTimer = null;
+async function renderInstruments() {
+  clearTimeout(instrumentsTimer);
+  const body = $("instruments");
+  if (!body) return;  // another view is shown
+  let listing;
+  try { listing = await api("/api/instruments"); } catch (e) { return; }  // one instrument: no panel
+  $("instruments-card").classList.remove("hidden");
+  body.replaceChildren(...listing.instruments.map(instrumentRow));
+  instrumentsTimer = setTimeout(renderInstruments, 2000);
+}
+
+function instrumentRow(i) {
+  const base = `/instruments/${encodeURIComponent(i.name)}/api`;
+  const cal = i.calibration;
+  const table = i.map_table;
+  const say = (text, error = false) => {
+    $("instruments-msg").className = error ? "msg error" : "msg";
+    $("instruments-msg").textContent = `${i.name}: ${text}`;
+  };
+  const post = async (path, json, note) => {
+    try { await api(`${base}/${path}`, {json}); say(note); } catch (e) { say(e.message, true); }
+    renderInstruments();
+  };
+  const measure = () => {
+    const form = $("measure-form");
+    const thickness = form && form.thickness_mm.value ? Number(form.thickness_mm.value) : i.samples[0].thickness_mm;
+    post("measure", {thickness_mm: thickness}, "measuring…");
+  };
+  const asking = i.state === "asking_empty_holder";
+  const busy = i.job !== null;
+  const jobs = i.recent_jobs.slice(0, 3).map((j) => el("div", {class: j.state === "failed" ? "flag" : ""},
+    `${j.kind} ${j.outcome || j.state} `, j.measurement ? el("a", {href: `#/m/${j.measurement}`}, j.measurement) : ""));
+  if (i.job) jobs.unshift(el("div", {}, `${i.job.kind} ${i.job.state}…`));
+  return el("tr", {"data-instrument": i.name},
+    el("td", {}, el("b", {}, i.name)), el("td", {}, `${i.port} @${i.address}`),
+    el("td", {class: `state ${i.state}`}, STATE_WORDS[i.state] || i.state),
+    el("td", {}, !cal ? "none yet" : cal.due ? `due: ${cal.due}` : `${fmtAge(cal.age_s)} old`),
+    el("td", {}, !table ? "—" : table.error ? table.error : !table.slot ? "none active" : `slot ${table.slot}`),
+    el("td", {}, jobs.length ? jobs : "—"),
+    el("td", {},
+      asking ? el("button", {onclick: () => post("calibrate", {holder_empty: true}, "calibrating…")}, "Holder is empty")
+        : el("button", {class: "secondary", disabled: busy, onclick: () => post("calibrate", {},
+          "empty its holder, then confirm")}, "Calibrate…"),
+      el("button", {disabled: busy || asking, onclick: measure}, "Measure")));
 }
 
 async function followJob(id) {
@@ -197,7 +246,7 @@ async function historyView() {
   const form = $("search");
   const query = () => {
     const q = new URLSearchParams();
-    for (const k of ["label", "since", "until", "flagged"]) if (form[k].value) q.set(k, form[k].value);
+    for (const k of ["label", "instrument", "since", "until", "flagged"]) if (form[k].value) q.set(k, form[k].value);
     return q;
   };
   const selected = new Set();
@@ -214,6 +263,7 @@ async function historyView() {
       }})),
       el("td", {}, m.written_utc.replace("T", " ").slice(0, 19)),
       el("td", {}, m.label || "—", m.refit_of ? el("span", {class: "msg"}, " (re-fit)") : ""),
+      el("td", {}, m.instrument || "—"),
       el("td", {}, m.thicknesses_mm.map((t) => `${t} mm`).join(" + ")),
       el("td", {}, m.maps.join(", ")), el("td", {}, m.method || ""),
       el("td", {}, m.flagged_bins ? el("span", {class: "flag", title: m.flag_names.join(", ")},

@@ -1,0 +1,74 @@
+/* Standalone presses: what the device computes from a press's captures (registers.toml, enums.standalone_*).
+ * The press sequence itself (moves, shutters, LEDs, captures, the fit) is app.c's; this module turns the
+ * captures into bins, keeps the calibration, builds the fit's input and keeps the result (file
+ * standalone_result), so it can be tested without a port.
+ *
+ * Each set-up is captured at its own integration time (the press's auto-exposure, app.c) with a dark
+ * capture at that time right after it. Bins: adjacent pixel pairs (1-2, 3-4, ...), 144 of them, within the
+ * fit's capacity; each bin's rate is the pair's mean of (light - dark) in counts/s. A bin is lit when the calibration's diffuse and collimated
+ * rates are both at least STANDALONE_LIT_FRACTION of their maxima: an unlit bin gets NaN inputs (the fit
+ * flags it unusable) and the no-reference-light capture flag, and does not make a result "flagged". */
+#ifndef TRIMETER_STANDALONE_H
+#define TRIMETER_STANDALONE_H
+
+#include <stdbool.h>
+#include <stdint.h>
+
+#include "c12880.h"
+#include "registers_gen.h"
+
+#define STANDALONE_PIXELS_PER_BIN 2u
+#define STANDALONE_BINS (C12880_PIXELS / STANDALONE_PIXELS_PER_BIN)
+#define STANDALONE_LIT_FRACTION 0.01f
+/* A pixel whose frame average is this close to the ADC's full scale saturated in (nearly) every frame. */
+#define STANDALONE_SATURATED_COUNTS (C12880_ADC_FULL_SCALE - 16u)
+/* trimeter.domain.capture.CaptureFlag */
+#define STANDALONE_CAPTURE_SATURATED 1u
+#define STANDALONE_CAPTURE_NO_REFERENCE_LIGHT 4u
+
+enum standalone_setup { STANDALONE_BLACK, STANDALONE_WHITE, STANDALONE_OPEN, STANDALONE_SETUPS };
+
+typedef struct standalone {
+    uint16_t words[STANDALONE_BINS * TRIMETER_STANDALONE_WORD_STRIDE]; /* file standalone_result */
+    uint16_t light[STANDALONE_SETUPS][C12880_PIXELS];                  /* this press's captures, counts x 16 */
+    uint16_t dark[STANDALONE_SETUPS][C12880_PIXELS];                   /* ... each set-up's dark */
+    uint32_t integration_us[STANDALONE_SETUPS];                        /* ... each set-up's integration time */
+    float diffuse[STANDALONE_BINS], collimated[STANDALONE_BINS], rho_black[STANDALONE_BINS]; /* calibration */
+    bool lit[STANDALONE_BINS];
+    bool saturated[STANDALONE_BINS]; /* this press: some pixel of the bin saturated in some set-up */
+    bool calibration_saturated[STANDALONE_BINS];
+    bool calibrated;
+    float rho_white;
+    float thickness_mm;     /* the last measurement's: the active table's */
+    uint32_t table_crc32;   /* ... and that table's own CRC-32 */
+    uint16_t bins;          /* bins readable in words */
+    uint16_t flagged_bins;
+    uint16_t sequence;
+    trimeter_standalone_status_t status;
+} standalone_t;
+
+void standalone_init(standalone_t *s);
+
+/* This press's bins from the set-ups' captures (light, dark, integration_us > 0): wavelengths (from the
+ * unit's polynomial) and rates into the result's words; saturation per bin. */
+void standalone_reduce(standalone_t *s, const float wl_coeff[C12880_WL_COEFFS]);
+
+/* A calibration press: the reduced rates become the calibration (diffuse = white / rho_white). */
+void standalone_calibrate(standalone_t *s, float rho_white);
+
+/* A measurement press: the fit's input (file fit_input's layout, fit.h) for every bin, I_b = black /
+ * diffuse, I_w = white / diffuse, I_c = open / collimated, rho_b = the calibration's, rho_w = rho_white;
+ * NaN for an unlit or saturated bin. Returns the bin count. */
+uint16_t standalone_fit_input(standalone_t *s, uint16_t *fit_in);
+
+/* The fit's output (file fit_output's layout) into the result; counts the flagged lit bins and sets the
+ * status done or flagged. */
+void standalone_take_fit(standalone_t *s, const uint16_t *fit_out, uint16_t n);
+
+/* The status LED's pattern for the status (status_pattern values). */
+trimeter_status_pattern_t standalone_pattern(trimeter_standalone_status_t status);
+
+bool standalone_is_file(uint16_t file);
+uint8_t standalone_read_records(const standalone_t *s, uint16_t file, uint16_t record, uint16_t n, uint16_t *out);
+
+#endif

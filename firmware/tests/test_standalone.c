@@ -1,0 +1,302 @@
+/* Standalone presses through the app: a press with standalone_mode set homes, captures the black, white
+ * and open set-ups (each with its own auto-exposed integration time and dark), calibrates or fits against
+ * a stand-in inverse core (defined here, transparent: alpha = I_b, sigma_t = 10 I_w, g = I_c - rho_b - rho_w)
+ * and keeps the result in file standalone_result; the refusals, the LED and the bins' arithmetic. */
+#include <math.h>
+#include <string.h>
+
+#include "../core/app.h"
+#include "../core/crc.h"
+#include "../core/fit_core.h"
+#include "../core/regmap.h"
+#include "../core/standalone.h"
+#include "check.h"
+#include "fake_hal.h"
+#include "app_fixture.h"
+#include "table_fixture.h"
+
+#define MAP_GRID 4
+#define MAP_BYTES 940
+#define FLAG_NONFINITE_INPUT 0x1u /* trimeter.inversion.flags.FitFlag */
+#define DARK_COUNTS 100u
+#define UNLIT_PIXELS 10u          /* the first pixels see no light in any set-up */
+
+static fake_hal_t *f;
+static uint8_t map_data[MAP_BYTES];
+
+int tr_fit_bins(const uint8_t *table, size_t len, const float *in, size_t n, float *out, uint16_t *flags)
+{
+    (void)table;
+    (void)len;
+    for (size_t i = 0; i < n; i++) {
+        const float *b = &in[i * TR_FIT_IN_PER_BIN];
+        float *o = &out[i * TR_FIT_OUT_PER_BIN];
+        bool finite = true;
+        for (int k = 0; k < TR_FIT_IN_PER_BIN; k++) finite = finite && isfinite(b[k]);
+        flags[i] = finite ? 0u : FLAG_NONFINITE_INPUT;
+        o[TR_FIT_OUT_ALPHA] = finite ? b[TR_FIT_IN_I_B] : NAN;
+        o[TR_FIT_OUT_SIGMA_T] = finite ? 10.0f * b[TR_FIT_IN_I_W] : NAN;
+        o[TR_FIT_OUT_G] = finite ? b[TR_FIT_IN_I_C] - b[TR_FIT_IN_RHO_B] - b[TR_FIT_IN_RHO_W] : NAN;
+    }
+    return TR_FIT_OK;
+}
+
+/* ---- a plant for the chip: each set-up's light, counts per ms of integration, by slot and shutters */
+static struct {
+    float black, white, open; /* panels on the black / white slot, the beam through the open slot */
+} light;
+
+static void feed_chip(void)
+{
+    const app_t *a = app_get();
+    uint16_t slot = TRIMETER_SLOT_UNKNOWN;
+    uint16_t w = 0;
+    app_read_regs(NULL, MB_TABLE_INPUT_REGISTERS, REG_IR_POSITION_SLOT, 1, &w);
+    slot = w;
+    float rate = 0.0f; /* counts per ms */
+    bool panels = a->act.shutter_open[HAL_SHUTTER_PANEL_LEFT] && a->act.led_on[HAL_LED_PANEL_LEFT];
+    bool beam = a->act.shutter_open[HAL_SHUTTER_COLLIMATED] && a->act.led_on[HAL_LED_COLLIMATED];
+    if (panels && slot == TRIMETER_SLOT_BLACK) rate += light.black;
+    if (panels && slot == TRIMETER_SLOT_WHITE) rate += light.white;
+    if (beam && slot == TRIMETER_SLOT_OPEN) rate += light.open;
+    float ms = (float)a->standalone.integration_us[a->press_setup < STANDALONE_SETUPS ? a->press_setup : 0] / 1000.0f;
+    for (unsigned p = 0; p < C12880_PIXELS; p++) {
+        float v = DARK_COUNTS + (p < UNLIT_PIXELS ? 0.0f : rate * ms);
+        f->spectro_video[p] = (uint16_t)(v > C12880_ADC_FULL_SCALE ? C12880_ADC_FULL_SCALE : v);
+    }
+}
+
+static uint32_t isr(void *ctx)
+{
+    (void)ctx;
+    return app_step_isr();
+}
+
+static void run_ms(uint32_t ms)
+{
+    for (uint32_t i = 0; i < ms; i++) {
+        feed_chip();
+        fake_hal_run_until(f, f->now_us + 1000, isr, NULL);
+        app_poll();
+    }
+}
+
+static uint16_t ir(uint16_t addr)
+{
+    uint16_t v = 0xDEAD;
+    CHECK_EQ_INT(app_read_regs(NULL, MB_TABLE_INPUT_REGISTERS, addr, 1, &v), MB_OK);
+    return v;
+}
+
+static uint32_t ir32(uint16_t addr)
+{
+    uint16_t w[2];
+    app_read_regs(NULL, MB_TABLE_INPUT_REGISTERS, addr, 2, w);
+    return regmap_get_u32(w);
+}
+
+static uint8_t write_reg(uint16_t addr, uint16_t v) { return app_write_regs(NULL, addr, 1, &v); }
+
+static void fresh_device(bool spectrometer)
+{
+    if (f) fake_hal_free(f);
+    f = fake_hal_new();
+    f->spectro_clock_hz = spectrometer ? 1000000u : 0u;
+    app_init(&f->hal);
+    run_ms(1);
+}
+
+/* Uploads, verifies and activates the fixture table as `trimeter map flash` does. */
+static void activate_table(void)
+{
+    CHECK_EQ_INT(fixture_table(map_data, MAP_BYTES, MAP_GRID, 3), MAP_BYTES);
+    CHECK_EQ_INT(fixture_activate_table(map_data, MAP_BYTES), 0);
+}
+
+/* A press of the button, then the main loop until the press ended (or limit_ms). */
+static uint16_t press(uint32_t limit_ms)
+{
+    f->button = true;
+    run_ms(60);
+    f->button = false;
+    for (uint32_t i = 0; i < limit_ms && (i < 100 || ir(REG_IR_STANDALONE_STATUS) == TRIMETER_STANDALONE_STATUS_BUSY); i++)
+        run_ms(1);
+    return ir(REG_IR_STANDALONE_STATUS);
+}
+
+static float result_f32(unsigned bin, unsigned word)
+{
+    uint16_t w[2] = {0};
+    CHECK_EQ_INT(app_read_file(NULL, TRIMETER_STANDALONE_FILE_RESULT,
+                               (uint16_t)(bin * TRIMETER_STANDALONE_WORD_STRIDE + word), 2, w),
+                 MB_OK);
+    return regmap_get_f32(w);
+}
+
+static uint16_t result_u16(unsigned bin, unsigned word)
+{
+    uint16_t w = 0;
+    CHECK_EQ_INT(app_read_file(NULL, TRIMETER_STANDALONE_FILE_RESULT,
+                               (uint16_t)(bin * TRIMETER_STANDALONE_WORD_STRIDE + word), 1, &w),
+                 MB_OK);
+    return w;
+}
+
+static bool near(float a, float b, float rel) { return fabsf(a - b) <= rel * fabsf(b); }
+
+/* ---------------------------------------------------------------- tests */
+
+static void test_mode_off_leaves_presses_to_the_host(void)
+{
+    fresh_device(true);
+    activate_table();
+    press(200);
+    CHECK_EQ_INT(ir(REG_IR_BUTTON_EVENTS), 1);
+    CHECK_EQ_INT(ir(REG_IR_STANDALONE_STATUS), TRIMETER_STANDALONE_STATUS_NONE);
+    CHECK(!app_get()->motion.homed && !motion_busy(&app_get()->motion));
+}
+
+static void test_refusals(void)
+{
+    fresh_device(true); /* no table */
+    CHECK_EQ_INT(write_reg(REG_HR_STANDALONE_MODE, TRIMETER_STANDALONE_MODE_CALIBRATE), MB_OK);
+    CHECK_EQ_INT(press(200), TRIMETER_STANDALONE_STATUS_ERROR_NO_TABLE);
+    CHECK_EQ_INT(app_get()->act.pattern, STATUS_FAST_BLINK);
+    activate_table();
+    CHECK_EQ_INT(write_reg(REG_HR_STANDALONE_MODE, TRIMETER_STANDALONE_MODE_MEASURE), MB_OK);
+    CHECK_EQ_INT(press(200), TRIMETER_STANDALONE_STATUS_ERROR_NO_CALIBRATION);
+    CHECK_EQ_INT(ir(REG_IR_STANDALONE_BINS), 0);
+    uint16_t w;
+    CHECK_EQ_INT(app_read_file(NULL, TRIMETER_STANDALONE_FILE_RESULT, 0, 1, &w), MB_EX_ILLEGAL_DATA_ADDRESS);
+
+    fresh_device(false); /* a board without the spectrometer */
+    activate_table();
+    CHECK_EQ_INT(write_reg(REG_HR_STANDALONE_MODE, TRIMETER_STANDALONE_MODE_CALIBRATE), MB_OK);
+    CHECK_EQ_INT(press(200), TRIMETER_STANDALONE_STATUS_ERROR_SPECTRO);
+}
+
+static void test_calibration_then_measurement(void)
+{
+    fresh_device(true);
+    activate_table();
+    uint16_t it[2];
+    regmap_put_u32(it, 4000);
+    CHECK_EQ_INT(app_write_regs(NULL, REG_HR_SPECTRO_INTEGRATION_US, 2, it), MB_OK);
+    CHECK_EQ_INT(write_reg(REG_HR_SPECTRO_FRAMES, 2), MB_OK);
+    CHECK_EQ_INT(write_reg(REG_HR_STANDALONE_MODE, TRIMETER_STANDALONE_MODE_CALIBRATE), MB_OK);
+    light.black = 50.0f, light.white = 250.0f, light.open = 400.0f;
+
+    f->button = true;
+    run_ms(60);
+    f->button = false;
+    run_ms(200);
+    CHECK_EQ_INT(ir(REG_IR_STANDALONE_STATUS), TRIMETER_STANDALONE_STATUS_BUSY);
+    CHECK_EQ_INT(app_get()->act.pattern, STATUS_SLOW_BLINK);
+    CHECK_EQ_INT(write_reg(REG_HR_COMMAND, TRIMETER_COMMAND_GOTO_WHITE), MB_EX_SERVER_DEVICE_BUSY); /* the press moves */
+    uint16_t status = TRIMETER_STANDALONE_STATUS_BUSY;
+    for (int i = 0; i < 120000 && status == TRIMETER_STANDALONE_STATUS_BUSY; i++) {
+        run_ms(1);
+        status = ir(REG_IR_STANDALONE_STATUS);
+    }
+    CHECK_EQ_INT(status, TRIMETER_STANDALONE_STATUS_CALIBRATED);
+    CHECK_EQ_INT(app_get()->act.pattern, STATUS_ON);
+    CHECK_EQ_INT(ir(REG_IR_STANDALONE_CALIBRATED), 1);
+    CHECK_EQ_INT(app_get()->hr[REG_HR_STANDALONE_MODE], TRIMETER_STANDALONE_MODE_MEASURE);
+    /* auto-exposure: each set-up doubled from 4 ms until its brightest pixel was >= 40 % of full scale */
+    CHECK_EQ_INT(ir32(REG_IR_STANDALONE_INTEGRATION_BLACK_US), 32000);
+    CHECK_EQ_INT(ir32(REG_IR_STANDALONE_INTEGRATION_WHITE_US), 8000);
+    CHECK_EQ_INT(ir32(REG_IR_STANDALONE_INTEGRATION_OPEN_US), 4000);
+    /* every shutter closed and every LED off after the press */
+    for (int s = 0; s < HAL_SHUTTER_COUNT; s++) CHECK(!app_get()->act.shutter_open[s] && !app_get()->act.led_on[s]);
+    CHECK(near(result_f32(20, TRIMETER_STANDALONE_WORD_DIFFUSE), 250e3f / 0.99f, 1e-3f));
+    CHECK(near(result_f32(20, TRIMETER_STANDALONE_WORD_COLLIMATED), 400e3f, 1e-3f));
+    CHECK(near(result_f32(20, TRIMETER_STANDALONE_WORD_RHO_BLACK), 50.0f * 0.99f / 250.0f, 1e-3f));
+    CHECK_EQ_INT(result_u16(2, TRIMETER_STANDALONE_WORD_CAPTURE_FLAGS), STANDALONE_CAPTURE_NO_REFERENCE_LIGHT);
+    CHECK_EQ_INT(result_u16(20, TRIMETER_STANDALONE_WORD_CAPTURE_FLAGS), 0);
+
+    /* a sample in the holder: less light everywhere */
+    light.black = 30.0f, light.white = 200.0f, light.open = 100.0f;
+    CHECK_EQ_INT(press(120000), TRIMETER_STANDALONE_STATUS_DONE);
+    CHECK_EQ_INT(app_get()->act.pattern, STATUS_ON);
+    CHECK_EQ_INT(ir(REG_IR_STANDALONE_BINS), STANDALONE_BINS);
+    CHECK_EQ_INT(ir(REG_IR_STANDALONE_FLAGGED_BINS), 0);
+    CHECK_EQ_INT(ir(REG_IR_STANDALONE_SEQUENCE), 2);
+    CHECK(ir32(REG_IR_STANDALONE_TABLE_CRC32) != 0);
+    float diffuse = 250e3f / 0.99f, rho_b = 50.0f * 0.99f / 250.0f;
+    for (unsigned b = UNLIT_PIXELS / 2; b < STANDALONE_BINS; b += 37) {
+        CHECK(near(result_f32(b, TRIMETER_STANDALONE_WORD_BLACK), 30e3f, 1e-3f));
+        CHECK(near(result_f32(b, TRIMETER_STANDALONE_WORD_ALPHA), 30e3f / diffuse, 1e-3f));
+        CHECK(near(result_f32(b, TRIMETER_STANDALONE_WORD_SIGMA_T), 10.0f * 200e3f / diffuse, 1e-3f));
+        CHECK(fabsf(result_f32(b, TRIMETER_STANDALONE_WORD_G) - (100.0f / 400.0f - rho_b - 0.99f)) < 1e-3f);
+        CHECK_EQ_INT(result_u16(b, TRIMETER_STANDALONE_WORD_FIT_FLAGS), 0);
+    }
+    /* an unlit bin: NaN inputs, flagged by the fit, not counted as a flagged result */
+    CHECK(isnan(result_f32(0, TRIMETER_STANDALONE_WORD_ALPHA)));
+    CHECK_EQ_INT(result_u16(0, TRIMETER_STANDALONE_WORD_FIT_FLAGS), FLAG_NONFINITE_INPUT);
+    /* wavelengths: the mean of each pair's, increasing */
+    float wl0 = result_f32(0, TRIMETER_STANDALONE_WORD_WAVELENGTH_NM);
+    float want0 = 0.5f * (c12880_wavelength_nm(app_get()->cfg.spectro_wl, 1) + c12880_wavelength_nm(app_get()->cfg.spectro_wl, 2));
+    CHECK(fabsf(wl0 - want0) < 1e-3f);
+    CHECK(result_f32(STANDALONE_BINS - 1, TRIMETER_STANDALONE_WORD_WAVELENGTH_NM) > wl0);
+    /* the file: read-only, nothing past the last bin */
+    uint16_t w[2] = {0};
+    CHECK_EQ_INT(app_write_file(NULL, TRIMETER_STANDALONE_FILE_RESULT, 0, 1, w), MB_EX_ILLEGAL_DATA_ADDRESS);
+    CHECK_EQ_INT(app_read_file(NULL, TRIMETER_STANDALONE_FILE_RESULT,
+                               (uint16_t)(STANDALONE_BINS * TRIMETER_STANDALONE_WORD_STRIDE - 1), 2, w),
+                 MB_EX_ILLEGAL_DATA_ADDRESS);
+}
+
+static void test_a_flagged_lit_bin_flags_the_result(void)
+{
+    static standalone_t s;
+    standalone_init(&s);
+    static const float wl[C12880_WL_COEFFS] = {300.0f, 2.0f, 0, 0, 0, 0};
+    for (int k = 0; k < STANDALONE_SETUPS; k++) {
+        s.integration_us[k] = 1000;
+        for (unsigned p = 0; p < C12880_PIXELS; p++) {
+            s.dark[k][p] = 16u * DARK_COUNTS;
+            s.light[k][p] = (uint16_t)(16u * (DARK_COUNTS + (p < UNLIT_PIXELS ? 0u : 1000u + p)));
+        }
+    }
+    s.light[STANDALONE_WHITE][100] = 16u * C12880_ADC_FULL_SCALE; /* saturated in the calibration */
+    standalone_reduce(&s, wl);
+    /* a bin is its pair's mean rate: pixels 20, 21 at 1020, 1021 counts in 1 ms */
+    CHECK(near(regmap_get_f32(&s.words[10 * TRIMETER_STANDALONE_WORD_STRIDE + TRIMETER_STANDALONE_WORD_BLACK]),
+               1020.5e3f, 1e-5f));
+    CHECK(near(regmap_get_f32(&s.words[10 * TRIMETER_STANDALONE_WORD_STRIDE + TRIMETER_STANDALONE_WORD_WAVELENGTH_NM]),
+               300.0f + 2.0f * 21.5f, 1e-5f));
+    standalone_calibrate(&s, 0.99f);
+    CHECK(s.calibration_saturated[50] && !s.lit[50] && s.lit[60] && !s.lit[0]);
+    s.light[STANDALONE_WHITE][100] = s.light[STANDALONE_WHITE][99];
+    standalone_reduce(&s, wl);
+    static uint16_t in[STANDALONE_BINS * TRIMETER_FIT_INPUT_WORD_STRIDE], out[STANDALONE_BINS * TRIMETER_FIT_OUTPUT_WORD_STRIDE];
+    CHECK_EQ_INT(standalone_fit_input(&s, in), STANDALONE_BINS);
+    CHECK(isnan(regmap_get_f32(&in[50 * TRIMETER_FIT_INPUT_WORD_STRIDE + TRIMETER_FIT_INPUT_WORD_I_B])));
+    CHECK(near(regmap_get_f32(&in[60 * TRIMETER_FIT_INPUT_WORD_STRIDE + TRIMETER_FIT_INPUT_WORD_I_W]), 0.99f, 1e-5f));
+    memset(out, 0, sizeof out);
+    standalone_take_fit(&s, out, STANDALONE_BINS);
+    CHECK_EQ_INT(s.status, TRIMETER_STANDALONE_STATUS_FLAGGED); /* the calibration's saturated bin */
+    CHECK_EQ_INT(s.flagged_bins, 1);
+    CHECK_EQ_INT(s.words[50 * TRIMETER_STANDALONE_WORD_STRIDE + TRIMETER_STANDALONE_WORD_CAPTURE_FLAGS],
+                 STANDALONE_CAPTURE_SATURATED);
+    standalone_calibrate(&s, 0.99f); /* a clean calibration */
+    standalone_fit_input(&s, in);
+    out[0 * TRIMETER_FIT_OUTPUT_WORD_STRIDE + TRIMETER_FIT_OUTPUT_WORD_FLAGS] = FLAG_NONFINITE_INPUT; /* unlit bin */
+    standalone_take_fit(&s, out, STANDALONE_BINS);
+    CHECK_EQ_INT(s.status, TRIMETER_STANDALONE_STATUS_DONE);
+    out[70 * TRIMETER_FIT_OUTPUT_WORD_STRIDE + TRIMETER_FIT_OUTPUT_WORD_FLAGS] = 0x10u; /* a lit bin's fit flag */
+    standalone_take_fit(&s, out, STANDALONE_BINS);
+    CHECK_EQ_INT(s.status, TRIMETER_STANDALONE_STATUS_FLAGGED);
+    CHECK_EQ_INT(standalone_pattern(TRIMETER_STANDALONE_STATUS_FLAGGED), TRIMETER_STATUS_PATTERN_DOUBLE_BLINK);
+    CHECK_EQ_INT(standalone_pattern(TRIMETER_STANDALONE_STATUS_ERROR_FIT), TRIMETER_STATUS_PATTERN_FAST_BLINK);
+}
+
+int main(void)
+{
+    RUN_TEST(test_mode_off_leaves_presses_to_the_host);
+    RUN_TEST(test_refusals);
+    RUN_TEST(test_calibration_then_measurement);
+    RUN_TEST(test_a_flagged_lit_bin_flags_the_result);
+    if (f) fake_hal_free(f);
+    return CHECK_SUMMARY();
+}

@@ -1,0 +1,117 @@
+"""A host-less press: on a twin with the C12880MA and a table in its slot, a calibration press (holder empty)
+and a measurement press run with no host attached; a host that connects afterwards reads the device's
+result (`trimeter device last-result`, into a results directory), and it matches a host fit (`trimeter fit
+--table`, double precision) of the same capture within the on-device tolerances."""
+
+from __future__ import annotations
+
+import csv
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hil_support import SAMPLE, THICKNESS_MM, TIME_SCALE
+from trimeter import registers as regs
+from trimeter.cli import main
+
+
+@pytest.fixture(scope="module")
+def hil_map():
+    from hil_support import HIL_MAP, build_hil_map
+    from trimeter.formats.appearance import AppearanceMap
+
+    return AppearanceMap.load(HIL_MAP) if HIL_MAP.exists() else build_hil_map(HIL_MAP)
+
+
+def _press(twin, timeout_s: float = 120.0) -> str:
+    """Press the button and wait, watching only the twin's status LED (no Modbus), until the press ended."""
+    twin.control.press_button()
+    deadline = time.monotonic() + timeout_s
+    started = False
+    while time.monotonic() < deadline:
+        pattern = twin.control.state()["plant"]["status_pattern"]
+        if pattern == "slow_blink":
+            started = True
+        elif started:
+            return pattern
+        time.sleep(0.02)
+    raise AssertionError("the standalone press did not end")
+
+
+def test_a_hostless_press_leaves_a_result_that_matches_a_host_fit(request, tmp_path, hil_map, monkeypatch, capsys):
+    if request.config.getoption("--port"):
+        pytest.skip("needs the twin (its storage seeded with a table)")
+    from trimeter.device import Device
+    from trimeter.inversion.table_builder import build_from_map
+    from trimeter.twin import Twin
+
+    for name in ("DATA", "CONFIG", "CACHE"):
+        monkeypatch.setenv(f"TRIMETER_{name}_DIR", str(tmp_path / name.lower()))
+    table_file = build_from_map(hil_map).save(tmp_path / "hil.tlut")
+    with Twin(sample=None, thickness_mm=THICKNESS_MM, time_scale=TIME_SCALE, appearance_map=hil_map,
+              state_dir=tmp_path / "twin", seed=3, map_table=table_file.read_bytes(), sensor="c12880ma") as twin:
+        port = ["--port", twin.modbus_port]
+        with Device.open(twin.modbus_port) as device:  # set up once, then the host goes away
+            device.write_many({"spectro_integration_us": 4000, "spectro_frames": 4})
+        assert main(["device", "last-result", *port]) == 2
+        assert "no standalone result: no press since it started" in capsys.readouterr().err
+        assert main(["device", "standalone", "calibrate", *port]) == 0
+        assert _press(twin) == "on"  # calibrated
+        capsys.readouterr()
+        assert main(["device", "last-result", *port]) == 2
+        assert "was a calibration: insert a sample and press again" in capsys.readouterr().err
+        twin.control.insert_sample(SAMPLE, THICKNESS_MM)
+        pattern = _press(twin)
+        truth = twin.control.truth()
+        with Device.open(twin.modbus_port) as device:  # a host connects later
+            result = device.standalone_result()
+        assert main(["device", "last-result", *port, "--out", str(tmp_path / "results"), "--no-figure"]) == 0
+        out = capsys.readouterr().out
+    written = Path([line.split(": ", 1)[1] for line in out.splitlines() if line.startswith("results: ")][0])
+    meta = json.loads((written / "measurement.json").read_text())
+    assert meta["fitted_on"] == "device" and meta["hostless"] and meta["method"] == "lut"
+    assert meta["device_map_table"]["matches_fit_table"]
+    assert meta["declared_thicknesses_mm"] == [pytest.approx(THICKNESS_MM)]
+    written_fit = np.genfromtxt(written / "parameters.csv", delimiter=",", names=True)
+    np.testing.assert_allclose(written_fit["alpha"], result.bins["alpha"], rtol=1e-7)  # the device's fit, as is (%.8g)
+    assert pattern in ("on", "double_blink")
+    assert result.status in (regs.StandaloneStatus.DONE, regs.StandaloneStatus.FLAGGED)
+    assert result.thickness_mm == pytest.approx(THICKNESS_MM)
+    b = result.bins
+    lit = (b["capture_flags"] & 4) == 0
+    assert lit.sum() > 100 and not np.any(b["capture_flags"] & 1)  # nothing saturated at this integration time
+    # the host's own ratios from the device's rates, in double precision, fitted by the host with the same table
+    diffuse, collimated = b["diffuse"].astype(float), b["collimated"].astype(float)
+    measured = tmp_path / "capture.csv"
+    with open(measured, "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(["wavelength_nm", "I_b", "I_w", "I_c", "rho_b", "rho_w"])
+        for k in np.flatnonzero(lit):
+            writer.writerow([float(b["wavelength_nm"][k]), b["black"][k] / diffuse[k], b["white"][k] / diffuse[k],
+                             b["open"][k] / collimated[k], float(b["rho_black"][k]), result.rho_white])
+    host = tmp_path / "host.csv"
+    assert main(["fit", "--table", str(table_file), "--input", str(measured), "-o", str(host)]) == 0
+    with open(host, newline="") as f:
+        rows = list(csv.DictReader(f))
+    on_host = {k: np.array([float(r[k]) for r in rows]) for k in ("alpha", "sigma_t", "g")}
+    on_device = {k: b[k][lit].astype(float) for k in ("alpha", "sigma_t", "g")}
+    both = np.isfinite(on_host["alpha"]) & np.isfinite(on_device["alpha"])
+    np.testing.assert_array_equal(np.isfinite(on_device["alpha"]), np.isfinite(on_host["alpha"]))
+    assert both.sum() > 100
+    d_alpha = np.max(np.abs(on_device["alpha"] - on_host["alpha"])[both])
+    d_sigma = np.max(np.abs(on_device["sigma_t"] / on_host["sigma_t"] - 1)[both])
+    d_g = np.max(np.abs(on_device["g"] - on_host["g"])[both])
+    print(f"standalone vs host fit over {both.sum()} bins: max |Δα| {d_alpha:.2e}, max |Δσt|/σt {d_sigma:.2e}, "
+          f"max |Δg| {d_g:.2e}; status {result.status.name.lower()}, {result.flagged_bins} flagged lit bins")
+    assert d_alpha <= 1e-3 and d_sigma <= 1e-3 and d_g <= 2e-3  # the on-device fit's tolerances
+    # against the twin's truth (the device corrects no lamp drift between its calibration and the press)
+    wl = b["wavelength_nm"][lit][both]
+    want = {k: np.interp(wl, truth["wavelengths_nm"], truth[k]) for k in ("alpha", "sigma_t", "g")}
+    band = (wl > 420) & (wl < 720)
+    print(f"standalone vs twin truth over 420-720 nm ({band.sum()} bins): |Δα| p95 "
+          f"{np.percentile(np.abs(on_device['alpha'][both] - want['alpha'])[band], 95):.4f}, |Δσt|/σt p95 "
+          f"{np.percentile(np.abs(on_device['sigma_t'][both] / want['sigma_t'] - 1)[band], 95):.2%}, |Δg| p95 "
+          f"{np.percentile(np.abs(on_device['g'][both] - want['g'])[band], 95):.3f}")
