@@ -105,7 +105,8 @@ def _validation(alpha: float = 0.0031) -> dict:
     runs = [{"noise": noise, "draws": draws, "material_count": 6,
              "builds": [row("seabreeze-slit", "seabreeze (slit)", 0.0019 + noise),
                         {**row("as7341-band-aware", "AS7341 band-aware", alpha + noise), "materials": "inks"},
-                        row("as7341-band-aware", "AS7341 band-aware", alpha + noise)]}
+                        row("as7341-band-aware", "AS7341 band-aware", alpha + noise),
+                        row("c12880ma", "c12880ma", 0.0039 + noise)]}
             for noise, draws in ((0.0, 1), (0.005, 3))]
     return {"stamp": {"commit": "0123456789abcdef", "date_utc": "2026-12-06 04:30 UTC", "uncommitted_changes": False},
             "builds": {"thickness_mm": 0.4, "runs": runs}}
@@ -163,7 +164,7 @@ def test_a_build_the_figures_lack_or_no_figures_are_refused_clearly(tmp_path):
     for run in doc["builds"]["runs"]:
         run["builds"] = [r for r in run["builds"] if r["id"] != "seabreeze-slit"]
     with pytest.raises(gen_hardware.HardwareError, match=r"\[options.seabreeze\] accuracy_build 'seabreeze-slit' is "
-                                                         r"not a build of .*\(as7341-band-aware\)"):
+                                                         r"not a build of .*\(as7341-band-aware, c12880ma\)"):
         gen_hardware.render_bom(bom, doc)
     with pytest.raises(gen_hardware.HardwareError, match="run `trimeter bench report`"):
         gen_hardware.load_validation(tmp_path / "missing.json")

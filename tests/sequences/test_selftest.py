@@ -58,6 +58,7 @@ def statuses(results: dict, names) -> dict:
 
 def test_a_healthy_twin_passes_every_check_and_the_cli_exits_0(twin_with, tmp_path, monkeypatch, capsys):
     monkeypatch.setenv("TRIMETER_CONFIG_DIR", str(tmp_path / "config"))
+    monkeypatch.setenv("TRIMETER_DATA_DIR", str(tmp_path / "data"))  # no calibration on this host, whatever ran before
     twin = twin_with()
     rc = main(["selftest", "--port", twin.modbus_port, "--spectrometer", twin.spectrometer_url, "--json"])
     report = json.loads(capsys.readouterr().out)
