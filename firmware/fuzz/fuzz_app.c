@@ -34,7 +34,7 @@
 
 #include "../core/app.h"
 #include "../core/crc.h"
-#include "../core/fit_core.h"
+#include "fit_core.h"
 #include "../core/map_table.h"
 #include "../core/regmap.h"
 #include "../tests/fake_hal.h"

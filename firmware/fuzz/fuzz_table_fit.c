@@ -14,7 +14,7 @@
 #include <stdlib.h>
 #include <string.h>
 
-#include "../core/fit_core.h"
+#include "fit_core.h"
 #include "../tests/table_fixture.h"
 
 #define FLAGS_UNUSABLE 0x207u /* NONFINITE_INPUT | NEGATIVE_INPUT | ABOVE_ONE | BAD_BACKGROUND */

@@ -7,7 +7,7 @@
 
 #include "../core/app.h"
 #include "../core/crc.h"
-#include "../core/fit_core.h"
+#include "fit_core.h"
 #include "../core/regmap.h"
 #include "../core/standalone.h"
 #include "check.h"

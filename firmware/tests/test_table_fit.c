@@ -6,7 +6,7 @@
 #include <math.h>
 #include <string.h>
 
-#include "../core/fit_core.h"
+#include "fit_core.h"
 #include "check.h"
 #include "table_fixture.h"
 

@@ -10,6 +10,8 @@ REPO_ROOT = Path(__file__).resolve().parents[2]
 HARDWARE_DIR = REPO_ROOT / "hardware"
 MAPS_DIR = REPO_ROOT / "maps"
 GEOMETRY_FILE = HARDWARE_DIR / "geometry.toml"
+# the C the host's compiled kernel shares with the firmware (the inverse core, fit_core.h)
+FIT_CORE_DIR = REPO_ROOT / "fit_core"
 
 
 def config_dir() -> Path:

@@ -1,4 +1,5 @@
-"""The compiled inversion kernel (the C sources next to this file), bound with ctypes.
+"""The compiled inversion kernel (the C sources next to this file and the inverse core it shares with the
+firmware, fit_core/ at the repository's root), bound with ctypes.
 
 `make native` (part of `make setup`, so of `make test` and `make demo`) compiles it into
 libtrimeter_invert.so here. Its boundary is declared once, in invert.h: tools/gen_native.py generates
@@ -28,6 +29,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from trimeter.errors import TrimeterError
+from trimeter.paths import FIT_CORE_DIR
 from trimeter.inversion.native import invert_h
 
 if TYPE_CHECKING:
@@ -59,12 +61,15 @@ class NativeKernelWarning(UserWarning):
     """The compiled kernel is missing, stale or does not load: the numpy kernel runs instead."""
 
 
-def source_hash(directory: Path = LIBRARY.parent) -> int | None:
+def source_hash(directories: tuple[Path, ...] = (LIBRARY.parent, FIT_CORE_DIR)) -> int | None:
     """The hash `make native` compiles into the library (tm_source_hash): 64 bits of SHA-256 over the
-    kernel's .c and .h files in name order; None where the sources are not installed."""
-    files = sorted(p for p in directory.iterdir() if p.suffix in (".c", ".h"))
-    if not files:
+    kernel's .c and .h files, directory after directory (its own, then the inverse core it shares with
+    the firmware), each in name order; None where the sources are not all there (an installed package)."""
+    per_directory = [sorted(p for p in d.iterdir() if p.suffix in (".c", ".h")) if d.is_dir() else []
+                     for d in directories]
+    if not all(per_directory):
         return None
+    files = [p for found in per_directory for p in found]
     digest = hashlib.sha256(b"".join(p.read_bytes() for p in files)).hexdigest()
     return int(digest[:16], 16)
 
@@ -388,8 +393,8 @@ def combine(fits: np.ndarray, underdetermined_std: tuple[float, float], disagree
 
 
 class TableFitter:
-    """The fit from a self-sufficient device table (.tlut v2) alone, in C (table_fit.c: the source the
-    firmware links as tr_fit_bins, here in double precision): the lut fit with fit()'s defaults, bin by
+    """The fit from a self-sufficient device table (.tlut v2) alone, in C (fit_core/table_fit.c: the
+    source the firmware links as tr_fit_bins, here in double precision): the lut fit with fit()'s defaults, bin by
     bin, from the table's bytes and nothing else. Returns α, σt, g and the FitFlag bits (NaN where a
     bin is unusable); STD_APPROXIMATE is never set (the fit returns no stds).
 
