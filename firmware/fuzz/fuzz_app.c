@@ -37,6 +37,7 @@
 #include "fit_core.h"
 #include "../core/map_table.h"
 #include "../core/regmap.h"
+#include "../tests/app_fixture.h"
 #include "../tests/fake_hal.h"
 #include "../tests/table_fixture.h"
 
@@ -60,20 +61,6 @@ static int counting_write(void *ctx, enum hal_region region, uint32_t offset, co
 {
     writes++;
     return real_write(ctx, region, offset, buf, len);
-}
-
-static uint32_t isr(void *ctx)
-{
-    (void)ctx;
-    return app_step_isr();
-}
-
-static void run_ms(uint32_t ms)
-{
-    for (uint32_t i = 0; i < ms; i++) {
-        fake_hal_run_until(f, f->now_us + 1000, isr, NULL);
-        app_poll();
-    }
 }
 
 static void boot(void)
@@ -218,9 +205,10 @@ static void write_regs(uint8_t address, uint16_t reg, uint16_t n, const uint16_t
     deliver(adu, 7u + 2u * n);
 }
 
-static void write_reg(uint16_t reg, uint16_t v) { write_regs(our_address(), reg, 1, &v); }
+/* one register as an FC 0x10 frame through the slave (the fixture's write_reg calls the callback directly) */
+static void framed_write_reg(uint16_t reg, uint16_t v) { write_regs(our_address(), reg, 1, &v); }
 
-static void unlock(void) { write_reg(REG_HR_UNLOCK, TRIMETER_UNLOCK_KEY); }
+static void unlock(void) { framed_write_reg(REG_HR_UNLOCK, TRIMETER_UNLOCK_KEY); }
 
 /* FC 0x15: `n` records (<= 120) of the open upload from linear record index k. */
 static void write_records(uint32_t k, const uint8_t *bytes, uint32_t nbytes)
@@ -324,9 +312,9 @@ static void op_unlocked_command(cursor_t *c)
                                             TRIMETER_MAP_COMMAND_ACTIVATE, TRIMETER_MAP_COMMAND_ABORT};
     uint8_t sel = take(c);
     if (!(sel & 0x40u)) unlock();
-    if (sel & 0x80u) write_reg(REG_HR_MAP_COMMAND, map_commands[sel % 4u]);
-    else write_reg(REG_HR_COMMAND, commands[sel % 4u]);
-    if (sel & 0x20u) write_reg(REG_HR_COMMAND, commands[sel % 4u]); /* a retry or a second try */
+    if (sel & 0x80u) framed_write_reg(REG_HR_MAP_COMMAND, map_commands[sel % 4u]);
+    else framed_write_reg(REG_HR_COMMAND, commands[sel % 4u]);
+    if (sel & 0x20u) framed_write_reg(REG_HR_COMMAND, commands[sel % 4u]); /* a retry or a second try */
 }
 
 /* A whole upload, as `trimeter map flash` does it, of a fixture table with a few bytes changed. */
@@ -349,9 +337,9 @@ static void op_upload_table(cursor_t *c)
     unlock();
     write_regs(our_address(), REG_HR_MAP_EXPECTED_LENGTH, 7, params);
     for (uint32_t off = 0; off < len; off += 240) write_records(off / 2, table + off, len - off < 240 ? len - off : 240);
-    write_reg(REG_HR_MAP_COMMAND, TRIMETER_MAP_COMMAND_VERIFY);
+    framed_write_reg(REG_HR_MAP_COMMAND, TRIMETER_MAP_COMMAND_VERIFY);
     if (!(how & 0x10u)) unlock();
-    write_reg(REG_HR_MAP_COMMAND, TRIMETER_MAP_COMMAND_ACTIVATE);
+    framed_write_reg(REG_HR_MAP_COMMAND, TRIMETER_MAP_COMMAND_ACTIVATE);
 }
 
 /* Bins into file fit_input (raw words from the input, so NaN, inf and anything else), then one FC 0x10 of
@@ -462,7 +450,7 @@ static void run_op(cursor_t *c)
 int LLVMFuzzerTestOneInput(const uint8_t *data, size_t size)
 {
     if (!f) {
-        f = fake_hal_new();
+        f = fixture_fresh_hal();
         if (!f) abort();
         f->carriage_steps = 3000;
         f->endstop_steps = 0;

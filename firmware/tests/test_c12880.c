@@ -6,6 +6,7 @@
 #include "../core/app.h"
 #include "../core/c12880.h"
 #include "../core/regmap.h"
+#include "app_fixture.h"
 #include "check.h"
 #include "fake_hal.h"
 
@@ -21,38 +22,15 @@
 
 static fake_hal_t *f;
 
-static uint32_t isr(void *ctx)
-{
-    (void)ctx;
-    return app_step_isr();
-}
-
-static void run_ms(uint32_t ms)
-{
-    for (uint32_t i = 0; i < ms; i++) {
-        fake_hal_run_until(f, f->now_us + 1000, isr, NULL);
-        app_poll();
-    }
-}
-
 static void boot(uint32_t clock_hz)
 {
     f->spectro_clock_hz = clock_hz;
     f->spectro_no_eos = f->spectro_ramp = false;
     f->spectro_frames = 0;
     f->spectro_running = false;
-    app_init(&f->hal);
-    run_ms(1);
+    fixture_boot();
 }
 
-static uint16_t ir(uint16_t addr)
-{
-    uint16_t v = 0xDEAD;
-    CHECK_EQ_INT(app_read_regs(NULL, MB_TABLE_INPUT_REGISTERS, addr, 1, &v), MB_OK);
-    return v;
-}
-
-static uint8_t write_reg(uint16_t addr, uint16_t v) { return app_write_regs(NULL, addr, 1, &v); }
 
 static uint8_t set_integration(uint32_t us)
 {
@@ -246,7 +224,7 @@ static void test_wavelength_polynomial(void)
 
 int main(void)
 {
-    f = fake_hal_new();
+    f = fixture_fresh_hal();
     if (!f) return 2;
     RUN_TEST(test_timing_within_datasheet_limits);
     RUN_TEST(test_plan_refuses_clock_out_of_range);
@@ -257,6 +235,6 @@ int main(void)
     RUN_TEST(test_saturated_frame_is_flagged);
     RUN_TEST(test_refusals);
     RUN_TEST(test_wavelength_polynomial);
-    fake_hal_free(f);
+    fixture_free_hal();
     return CHECK_SUMMARY();
 }

@@ -1,13 +1,15 @@
 /* Standalone presses through the app: a press with standalone_mode set homes, captures the black, white
  * and open set-ups (each with its own auto-exposed integration time and dark), calibrates or fits against
- * a stand-in inverse core (defined here, transparent: alpha = I_b, sigma_t = 10 I_w, g = I_c - rho_b - rho_w)
- * and keeps the result in file standalone_result; the refusals, the LED and the bins' arithmetic. */
+ * the stand-in inverse core (standin/fit_core_standin.c, linked into this test only; transparent:
+ * alpha = I_b, sigma_t = 10 I_w, g = I_c - rho_b - rho_w) and keeps the result in file standalone_result;
+ * the refusals, the LED and the bins' arithmetic. */
 #include <math.h>
 #include <string.h>
 
 #include "../core/app.h"
 #include "../core/crc.h"
 #include "fit_core.h"
+#include "table_fit.h"
 #include "../core/regmap.h"
 #include "../core/standalone.h"
 #include "check.h"
@@ -17,29 +19,11 @@
 
 #define MAP_GRID 4
 #define MAP_BYTES 940
-#define FLAG_NONFINITE_INPUT 0x1u /* trimeter.inversion.flags.FitFlag */
 #define DARK_COUNTS 100u
 #define UNLIT_PIXELS 10u          /* the first pixels see no light in any set-up */
 
 static fake_hal_t *f;
 static uint8_t map_data[MAP_BYTES];
-
-int tr_fit_bins(const uint8_t *table, size_t len, const float *in, size_t n, float *out, uint16_t *flags)
-{
-    (void)table;
-    (void)len;
-    for (size_t i = 0; i < n; i++) {
-        const float *b = &in[i * TR_FIT_IN_PER_BIN];
-        float *o = &out[i * TR_FIT_OUT_PER_BIN];
-        bool finite = true;
-        for (int k = 0; k < TR_FIT_IN_PER_BIN; k++) finite = finite && isfinite(b[k]);
-        flags[i] = finite ? 0u : FLAG_NONFINITE_INPUT;
-        o[TR_FIT_OUT_ALPHA] = finite ? b[TR_FIT_IN_I_B] : NAN;
-        o[TR_FIT_OUT_SIGMA_T] = finite ? 10.0f * b[TR_FIT_IN_I_W] : NAN;
-        o[TR_FIT_OUT_G] = finite ? b[TR_FIT_IN_I_C] - b[TR_FIT_IN_RHO_B] - b[TR_FIT_IN_RHO_W] : NAN;
-    }
-    return TR_FIT_OK;
-}
 
 /* ---- a plant for the chip: each set-up's light, counts per ms of integration, by slot and shutters */
 static struct {
@@ -66,44 +50,12 @@ static void feed_chip(void)
     }
 }
 
-static uint32_t isr(void *ctx)
-{
-    (void)ctx;
-    return app_step_isr();
-}
-
-static void run_ms(uint32_t ms)
-{
-    for (uint32_t i = 0; i < ms; i++) {
-        feed_chip();
-        fake_hal_run_until(f, f->now_us + 1000, isr, NULL);
-        app_poll();
-    }
-}
-
-static uint16_t ir(uint16_t addr)
-{
-    uint16_t v = 0xDEAD;
-    CHECK_EQ_INT(app_read_regs(NULL, MB_TABLE_INPUT_REGISTERS, addr, 1, &v), MB_OK);
-    return v;
-}
-
-static uint32_t ir32(uint16_t addr)
-{
-    uint16_t w[2];
-    app_read_regs(NULL, MB_TABLE_INPUT_REGISTERS, addr, 2, w);
-    return regmap_get_u32(w);
-}
-
-static uint8_t write_reg(uint16_t addr, uint16_t v) { return app_write_regs(NULL, addr, 1, &v); }
-
 static void fresh_device(bool spectrometer)
 {
-    if (f) fake_hal_free(f);
-    f = fake_hal_new();
+    f = fixture_fresh_hal();
     f->spectro_clock_hz = spectrometer ? 1000000u : 0u;
-    app_init(&f->hal);
-    run_ms(1);
+    fixture_each_ms(feed_chip); /* the chip sees each set-up's light as the main loop runs */
+    fixture_boot();
 }
 
 /* Uploads, verifies and activates the fixture table as `trimeter map flash` does. */
@@ -232,7 +184,7 @@ static void test_calibration_then_measurement(void)
     }
     /* an unlit bin: NaN inputs, flagged by the fit, not counted as a flagged result */
     CHECK(isnan(result_f32(0, TRIMETER_STANDALONE_WORD_ALPHA)));
-    CHECK_EQ_INT(result_u16(0, TRIMETER_STANDALONE_WORD_FIT_FLAGS), FLAG_NONFINITE_INPUT);
+    CHECK_EQ_INT(result_u16(0, TRIMETER_STANDALONE_WORD_FIT_FLAGS), TM_FLAG_NONFINITE_INPUT);
     /* wavelengths: the mean of each pair's, increasing */
     float wl0 = result_f32(0, TRIMETER_STANDALONE_WORD_WAVELENGTH_NM);
     float want0 = 0.5f * (c12880_wavelength_nm(app_get()->cfg.spectro_wl, 1) + c12880_wavelength_nm(app_get()->cfg.spectro_wl, 2));
@@ -281,7 +233,7 @@ static void test_a_flagged_lit_bin_flags_the_result(void)
                  STANDALONE_CAPTURE_SATURATED);
     standalone_calibrate(&s, 0.99f); /* a clean calibration */
     standalone_fit_input(&s, in);
-    out[0 * TRIMETER_FIT_OUTPUT_WORD_STRIDE + TRIMETER_FIT_OUTPUT_WORD_FLAGS] = FLAG_NONFINITE_INPUT; /* unlit bin */
+    out[0 * TRIMETER_FIT_OUTPUT_WORD_STRIDE + TRIMETER_FIT_OUTPUT_WORD_FLAGS] = TM_FLAG_NONFINITE_INPUT; /* unlit bin */
     standalone_take_fit(&s, out, STANDALONE_BINS);
     CHECK_EQ_INT(s.status, TRIMETER_STANDALONE_STATUS_DONE);
     out[70 * TRIMETER_FIT_OUTPUT_WORD_STRIDE + TRIMETER_FIT_OUTPUT_WORD_FLAGS] = 0x10u; /* a lit bin's fit flag */
@@ -297,6 +249,6 @@ int main(void)
     RUN_TEST(test_refusals);
     RUN_TEST(test_calibration_then_measurement);
     RUN_TEST(test_a_flagged_lit_bin_flags_the_result);
-    if (f) fake_hal_free(f);
+    fixture_free_hal();
     return CHECK_SUMMARY();
 }
