@@ -1,4 +1,4 @@
-/* The inverse core the firmware links (tr_fit_bins, fit_core.h; host/trimeter/inversion/native/table_fit.c)
+/* The inverse core the firmware links (tr_fit_bins, fit_core.h; fit_core/table_fit.c at the root)
  * under the sanitizers, in single precision as on the MCU: a format-2 table is taken, any float input is a
  * flagged bin (NaN outputs where unusable) and never a fault, and a table the core cannot use — a defect
  * anywhere in its header, bytes changed anywhere else, a short or misaligned buffer — is refused or fitted
