@@ -153,8 +153,9 @@ def _run_on_the_twin(args: argparse.Namespace, out: Path, amap: AppearanceMap, t
     print("α, σt [1/mm], g — measured (± 1σ) beside the twin's truth")
     print(f"{'λ nm':>6} {'α':>16} {'truth':>7} {'σt':>18} {'truth':>7} {'g':>15} {'truth':>6}")
     tw = np.asarray(truth["wavelengths_nm"])
-    for w in SHOW_NM:
-        i = int(np.argmin(np.abs(params.wavelengths_nm - w)))
+    # a multichannel sensor has fewer bins than SHOW_NM: each bin is printed once
+    shown = dict.fromkeys(int(np.argmin(np.abs(params.wavelengths_nm - w))) for w in SHOW_NM)
+    for i in shown:
         t = {k: float(np.interp(params.wavelengths_nm[i], tw, np.asarray(truth[k]))) for k in ("alpha", "sigma_t", "g")}
         print(f"{params.wavelengths_nm[i]:6.1f} {params.alpha[i]:8.4f}±{params.alpha_std[i]:<7.4f} {t['alpha']:7.4f} "
               f"{params.sigma_t[i]:9.3f}±{params.sigma_t_std[i]:<8.3f} {t['sigma_t']:7.3f} "
