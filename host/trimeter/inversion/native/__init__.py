@@ -391,7 +391,8 @@ class TableFitter:
     """The fit from a self-sufficient device table (.tlut v2) alone, in C (table_fit.c: the source the
     firmware links as tr_fit_bins, here in double precision): the lut fit with fit()'s defaults, bin by
     bin, from the table's bytes and nothing else. Returns α, σt, g and the FitFlag bits (NaN where a
-    bin is unusable); STD_APPROXIMATE is never set (the fit returns no stds).
+    bin is unusable); STD_APPROXIMATE is never set (the fit returns no stds: trimeter.inversion.table_std adds
+    them on the host from the same table).
 
     table_bytes: the file's bytes; its CRC-32 is checked here, every other field by the C reader.
     library: another build of the kernel (a path; e.g. the single-precision one a test compiles),
