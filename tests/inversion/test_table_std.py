@@ -134,3 +134,29 @@ def test_table_fit_coverage_on_held_out_materials(capsys):
     args.sources = "maps"
     with pytest.raises(Exception, match="--sources"):
         uncertainty.measure(args)
+
+
+def test_the_c_evaluation_of_the_table_model_is_the_numpy_one(table, monkeypatch, materials):
+    """native.TableModel (tm_table_eval, what the stds take their Jacobian from) evaluates CompactForward, clamped
+    to the box, NaN as the box's lower end; the stds from the numpy model are the same."""
+    from trimeter.inversion import table_std
+
+    model = native.TableModel(table.to_bytes())
+    forward = table.forward()
+    rng = np.random.default_rng(2)
+    n = 500
+    ls_lo, ls_hi = float(table.log_sigma_t[0]), float(table.log_sigma_t[-1])
+    alpha, ls, g = rng.uniform(-0.1, 1.1, n), rng.uniform(ls_lo - 0.5, ls_hi + 0.5, n), rng.uniform(-0.2, 1.0, n)
+    got, want = model.evaluate(alpha, ls, g), forward.evaluate(alpha, np.clip(ls, ls_lo, ls_hi), g)
+    for a, b in zip(got, want, strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12)
+    nan_point = model.evaluate([np.nan], [np.nan], [np.nan])
+    corner = forward.evaluate(table.alpha[:1], table.log_sigma_t[:1], table.g[:1])
+    np.testing.assert_allclose(nan_point[0], corner[0], rtol=1e-9)
+    _, with_c = _table_fit(table, *materials)
+    monkeypatch.setattr(table_std.native, "available", lambda: False)
+    _, with_numpy = _table_fit(table, *materials)
+    assert not isinstance(table_std.CompactGrid(table).compact, native.TableModel)
+    for name in ("alpha_std", "sigma_t_std", "g_std"):
+        np.testing.assert_allclose(getattr(with_numpy, name), getattr(with_c, name), rtol=1e-7)
+    np.testing.assert_array_equal(with_numpy.flags, with_c.flags)

@@ -28,7 +28,9 @@ from trimeter.inversion.api import shape_stds
 from trimeter.inversion.finish import conditioning_stds, sanitize, std_approximate, underdetermined
 from trimeter.inversion.flags import UNUSABLE, FitFlag
 from trimeter.inversion.kernel import Kernel, default_kernel
+from trimeter.inversion import native
 from trimeter.inversion.native import invert_h
+from trimeter.model.compact import CompactForward
 from trimeter.model.grid import ForwardGrid, SigmaCell
 
 if TYPE_CHECKING:
@@ -48,7 +50,9 @@ class CompactGrid(ForwardGrid):
     def __init__(self, table: DeviceTable) -> None:
         super().__init__(table.alpha, table.log_sigma_t, table.g, table.coefficients_grid, setup=table.setup,
                          mc_stderr=table.mc_stderr)
-        self.compact = table.forward()
+        # the C evaluation where the kernel is loaded (the numpy one, CompactForward, is its reference)
+        self.compact: native.TableModel | CompactForward = \
+            native.TableModel(table.to_bytes()) if native.available() else table.forward()
         self.attach_model_variance(table.model_variance(), self.alpha, self.log_sigma_t, self.g)
 
     def coefficients(self, alpha: np.ndarray, cell: SigmaCell, g: np.ndarray,
