@@ -160,3 +160,16 @@ def test_the_c_evaluation_of_the_table_model_is_the_numpy_one(table, monkeypatch
     for name in ("alpha_std", "sigma_t_std", "g_std"):
         np.testing.assert_allclose(getattr(with_numpy, name), getattr(with_c, name), rtol=1e-7)
     np.testing.assert_array_equal(with_numpy.flags, with_c.flags)
+
+
+@pytest.mark.parametrize("name", ["device-n1.5-l0.4", "device-n1.5-l0.8"])
+def test_the_shipped_tables_carry_their_maps_error_at_the_shipped_scale(name):
+    """The table stds take the map's error from the table: a shipped table built before LEAVE_ONE_OUT_SCALE
+    (or its map) changed would give other stds than its map's fit; rebuild it with the map pipeline then."""
+    from trimeter.formats.appearance import map_model_variance
+
+    amap = AppearanceMap.load(MAPS_DIR / f"{name}.tmap")
+    table = DeviceTable.load(MAPS_DIR / f"{name}.tlut")
+    assert table.parent_sha256 == amap.checksum
+    want = np.sqrt(map_model_variance(amap)[0])
+    np.testing.assert_allclose(np.sqrt(table.model_variance()), want, rtol=0, atol=float(table.scales[3:5, 1].max()))
