@@ -117,6 +117,11 @@ def test_flagged_bins_get_the_map_fits_stds_conventions(table):
     assert np.isfinite(got.alpha_std[1]) and np.isfinite(got.g_std[1])
     undefined = (got.flags & int(FitFlag.G_UNDEFINED)) != 0
     assert np.isnan(got.g_std[undefined]).all()
+    from trimeter.errors import InputError
+    from trimeter.inversion.table_std import TableStds
+
+    with pytest.raises(InputError, match="same bins"):
+        TableStds(table).result(fitted, I_b[:3], I_w, I_c, rb, rw)
 
 
 def test_table_fit_coverage_on_held_out_materials(capsys):

@@ -24,6 +24,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from trimeter.domain.parameters import FitResult
+from trimeter.errors import InputError
 from trimeter.inversion.api import shape_stds
 from trimeter.inversion.finish import conditioning_stds, sanitize, std_approximate, underdetermined
 from trimeter.inversion.flags import UNUSABLE, FitFlag
@@ -81,6 +82,9 @@ class TableStds:
         ib, iw, ic, rb, rw = (np.atleast_1d(np.asarray(x, dtype=np.float64)) for x in (I_b, I_w, I_c, rho_b, rho_w))
         alpha, sigma_t, g = (np.asarray(x, dtype=np.float64) for x in fitted[:3])
         flags = np.asarray(fitted[3], dtype=np.int64).copy()
+        if len({x.shape for x in (ib, iw, ic, rb, rw, alpha, sigma_t, g, flags)}) != 1 or ib.ndim != 1:
+            raise InputError("table stds: the fit's α, σt, g, flags and the bins' I_b, I_w, I_c, rho_b, rho_w must "
+                             "be arrays over the same bins")
         usable = (flags & int(UNUSABLE)) == 0
         ib, iw, ic = sanitize(ib, 0.0, 1.0, 0.0), sanitize(iw, 0.0, 1.0, 1.0), sanitize(ic, 0.0, 1.0, 1.0)
         rb = np.where(usable, rb, self.table.rho_b_ref)
