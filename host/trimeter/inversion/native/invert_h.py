@@ -2,7 +2,7 @@
 
 import ctypes
 
-ABI_HASH = 0xe642c559216ae559
+ABI_HASH = 0x46cd3977afc54aa4
 STEP_RATIO = 0.25
 INSCATTER_ONCE = 0.001
 TABLE_FIT_NOISE_REL = 0.005
@@ -192,6 +192,15 @@ FUNCTIONS = {
         ctypes.c_size_t,
         ctypes.c_void_p,
         ctypes.c_size_t,
+        ctypes.c_void_p,
+        ctypes.c_void_p,
+    ]),
+    "tm_table_eval": (ctypes.c_int, [
+        ctypes.c_void_p,
+        ctypes.c_size_t,
+        ctypes.c_size_t,
+        ctypes.c_void_p,
+        ctypes.c_void_p,
         ctypes.c_void_p,
         ctypes.c_void_p,
     ]),
