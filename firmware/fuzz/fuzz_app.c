@@ -26,8 +26,9 @@
  *     asked for, the frame timing the port is given is always within the C12880MA's limits, and the live
  *     wavelength polynomial is always one the driver accepts (monotonic, in range);
  *   - standalone presses: standalone_status stays in its enum, the result never holds more than its bins,
- *     the auto-exposure never leaves the integration time's register range, and a press that is not
- *     running leaves every LED off. */
+ *     the auto-exposure never leaves the integration time's register range, and lamp_changed comes only
+ *     with a lamp compared and beyond the tolerance. */
+#include <math.h>
 #include <stdbool.h>
 #include <stdlib.h>
 #include <string.h>
@@ -152,7 +153,13 @@ static void check_state(void)
         abort();
     if (!c12880_wavelengths_valid(app_get()->cfg.spectro_wl)) abort();
     const standalone_t *sa = &app_get()->standalone;
-    if ((unsigned)sa->status > TRIMETER_STANDALONE_STATUS_ERROR_FIT || sa->bins > STANDALONE_BINS) abort();
+    if ((unsigned)sa->status > TRIMETER_STANDALONE_STATUS_LAMP_CHANGED || sa->bins > STANDALONE_BINS) abort();
+    if (sa->status == TRIMETER_STANDALONE_STATUS_LAMP_CHANGED) {
+        bool changed = false;
+        for (int l = 0; l < HAL_LED_COUNT; l++)
+            changed = changed || fabsf(sa->lamp_level[l] - 1.0f) > STANDALONE_LAMP_TOLERANCE; /* NaN: false */
+        if (!changed) abort();
+    }
     for (int k = 0; k < STANDALONE_SETUPS; k++)
         if (sa->status != TRIMETER_STANDALONE_STATUS_NONE && sa->integration_us[k] &&
             (sa->integration_us[k] < REG_HR_SPECTRO_INTEGRATION_US_MIN || sa->integration_us[k] > REG_HR_SPECTRO_INTEGRATION_US_MAX))
@@ -302,6 +309,8 @@ static void op_plant(cursor_t *c)
     f->endstop_broken = b & 2u;
     f->stuck = b & 4u;
     f->has_stall_output = b & 8u;
+    if (b & 16u) /* the lamp-monitor photodiodes read anything the ADC can */
+        for (int l = 0; l < HAL_LED_COUNT; l++) f->lamp_adc[l] = (uint16_t)(take16(c) % 4096u);
 }
 
 static void op_unlocked_command(cursor_t *c)
@@ -404,17 +413,20 @@ static void op_spectro(cursor_t *c)
     deliver(read, 10);
 }
 
-/* A standalone press: a mode (raw or valid), the button held some time, some time, a read of file
- * standalone_result at raw records. */
+/* A standalone press: a warm-up of a few seconds at most (the default's minutes would keep every press
+ * waiting), a mode (raw or valid), the button held some time, some time, a read of file standalone_result
+ * at raw records. */
 static void op_standalone(cursor_t *c)
 {
     uint8_t how = take(c);
+    uint16_t warmup = take(c) % 4u;
+    write_regs(our_address(), REG_HR_STANDALONE_WARMUP_S, 1, &warmup);
     uint16_t mode = how & 0x01u ? take16(c) : (uint16_t)(how >> 1) % 3u;
     write_regs(pick_address(how >> 6), REG_HR_STANDALONE_MODE, 1, &mode);
     f->button = true;
     run_ms(20u + take(c) % 64u);
     f->button = false;
-    run_ms(take(c) * 16u);
+    run_ms(take(c) * 64u); /* up to 16 s: a whole press (home, three set-ups, the fit) fits in */
     uint16_t rec = take16(c) % 4000u, n = (uint16_t)(1u + take(c) % 125u);
     uint8_t read[] = {our_address(), 0x14, 7, 6, 0, TRIMETER_STANDALONE_FILE_RESULT, (uint8_t)(rec >> 8), (uint8_t)rec,
                       0, (uint8_t)n, 0, 0};

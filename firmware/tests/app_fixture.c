@@ -29,7 +29,7 @@ void fixture_each_ms(void (*hook)(void)) { each_ms = hook; }
 
 void fixture_loop_every_us(uint32_t period_us) { loop_period_us = period_us; }
 
-static uint32_t step_isr(void *ctx)
+uint32_t fixture_step_isr(void *ctx)
 {
     (void)ctx;
     return app_step_isr();
@@ -40,7 +40,7 @@ void run_ms(uint32_t ms)
     for (uint32_t i = 0; i < ms; i++) {
         if (each_ms) each_ms();
         for (uint32_t turn = 0; turn < 1000 / loop_period_us; turn++) {
-            fake_hal_run_until(hal, hal->now_us + loop_period_us, step_isr, NULL);
+            fake_hal_run_until(hal, hal->now_us + loop_period_us, fixture_step_isr, NULL);
             app_poll();
         }
     }

@@ -24,6 +24,9 @@ void fixture_each_ms(void (*hook)(void));
 /* How often run_ms turns the main loop: every `period_us` (a divisor of 1000) of simulated time. */
 void fixture_loop_every_us(uint32_t period_us);
 
+/* The app's step-timer ISR in the fake HAL's form, for a test that runs the loop its own way. */
+uint32_t fixture_step_isr(void *ctx);
+
 /* Simulated time passes with the main loop running, as on the device: in slices of the loop's period
  * (1 ms unless set), the step timer's ISR at its own instants, then app_poll. */
 void run_ms(uint32_t ms);

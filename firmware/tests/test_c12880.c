@@ -10,12 +10,13 @@
 #include "check.h"
 #include "fake_hal.h"
 
-/* The datasheet's numbers, restated here on purpose: the test checks the driver against them, not
- * against its own constants. */
+/* The datasheet's numbers (KACC1226E pp. 2, 7-8), restated here on purpose: the test checks the driver
+ * against them, not against its own constants. */
 #define DS_CLOCK_MIN_HZ 200000.0
 #define DS_CLOCK_MAX_HZ 5000000.0
 #define DS_ST_HIGH_MIN 6u
 #define DS_ST_LOW_MIN 375u
+#define DS_ST_CYCLE_MIN 381u /* tpi(ST) */
 #define DS_INTEGRATION_EXTRA 48u
 #define DS_FIRST_VIDEO 89u
 #define DS_PIXELS 288u
@@ -53,6 +54,7 @@ static void check_timing(uint32_t clock_hz, uint32_t integration_us)
     CHECK(clock_hz >= DS_CLOCK_MIN_HZ && clock_hz <= DS_CLOCK_MAX_HZ);
     CHECK(t.st_high_clocks >= DS_ST_HIGH_MIN);
     CHECK(t.st_low_clocks >= DS_ST_LOW_MIN);
+    CHECK(t.st_high_clocks + t.st_low_clocks >= DS_ST_CYCLE_MIN);
     CHECK_EQ_INT(t.pixels, DS_PIXELS);
     CHECK_EQ_INT(t.first_video_clock, DS_FIRST_VIDEO);
     CHECK_EQ_INT(t.eos_clock, DS_FIRST_VIDEO + DS_PIXELS); /* EOS right after the last pixel */

@@ -15,7 +15,9 @@ from trimeter.paths import FIT_CORE_DIR, REPO_ROOT
 
 FIRMWARE_DIR = REPO_ROOT / "firmware"
 NATIVE_DIR = REPO_ROOT / "host" / "trimeter" / "inversion" / "native"
-COUNT_LABEL = "tr_fit_bins, 1 bin"  # firmware/qemu/count.c's label for one fitted bin
+# firmware/qemu/count.c's label for a call as the device makes it (core/fit.c's fit_poll: FIT_BINS_PER_POLL bins)
+COUNT_LABEL = "tr_fit_bins, one fit_poll's 4 bins"
+COUNT_BINS_PER_CALL = 4
 
 
 def single_precision_library(out_dir: Path) -> Path:

@@ -116,6 +116,13 @@ size_t tm_fit_scratch_size(size_t n);
 void tm_fit_prepare(const tm_forward_grid *f, const tm_fit_options *o, size_t n, const double *I_b, const double *I_w, const double *I_c, const double *rho_b, const double *rho_w, const double *sd_in, void *scratch, double *outputs, double log_lo, double log_hi, float *features);
 long long tm_fit_solve(const tm_forward_grid *f, const tm_inverse_table *table, const tm_fit_options *o, size_t n, const double *alpha0, const double *g0, void *scratch, double *outputs);
 
+/* The device table's compact model at n points, as the table fit evaluates it (tr_compact_eval;
+ * trimeter.model.compact.CompactForward.evaluate, clamped to the map's box): out[12 i …] = A, B, C, then
+ * their derivatives in α, in ln σt and in g. The host's stds of the table fit take its Jacobian from here
+ * (trimeter.inversion.table_std). Host library only (library.c). Returns 0 or TM_TABLE_FIT_ERR_*. */
+int tm_table_eval(const uint8_t *table, size_t len, size_t n, const double *alpha, const double *log_sigma_t,
+                  const double *g, double *out);
+
 /* The parts for the numpy-side callers: the guess and polish at a given ln σt (J: n × 3 × 3; with
  * scratch from malloc, host library only) and the first-order stds from given Jacobians. */
 int tm_solve_alpha_g(const tm_forward_grid *f, const tm_inverse_table *table, size_t n, const double *I_b, const double *I_w, const double *log_sigma_t, const double *rho_b, const double *rho_w, int iterations, double step_tol, const double *step_var, double *alpha, double *g, double *residual, double *J);

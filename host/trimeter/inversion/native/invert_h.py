@@ -2,7 +2,7 @@
 
 import ctypes
 
-ABI_HASH = 0xd94f4fd9717f583a
+ABI_HASH = 0x0cefca51996d9dd1
 STEP_RATIO = 0.25
 INSCATTER_ONCE = 0.001
 TABLE_FIT_NOISE_REL = 0.005
@@ -189,6 +189,15 @@ FUNCTIONS = {
         ctypes.POINTER(ForwardGridStruct),
         ctypes.POINTER(InverseTableStruct),
         ctypes.POINTER(FitOptionsStruct),
+        ctypes.c_size_t,
+        ctypes.c_void_p,
+        ctypes.c_void_p,
+        ctypes.c_void_p,
+        ctypes.c_void_p,
+    ]),
+    "tm_table_eval": (ctypes.c_int, [
+        ctypes.c_void_p,
+        ctypes.c_size_t,
         ctypes.c_size_t,
         ctypes.c_void_p,
         ctypes.c_void_p,
