@@ -249,3 +249,75 @@ def test_reads_are_confirmed_only_within_the_horizon_after_an_unanswered_read(sl
     assert link.read_words("holding_register", 5, 2) == [5, 6]
     assert slave.requests == 3 and link.stats.confirmations == 0
     link.close()
+
+
+class FileRecordSlave(ScriptedSlave):
+    """Answers FC 0x14 reads from `data` (file 1, 16-bit records); on a line that garbles long frames, every
+    reply of more than `longest_clean_words` records arrives with a flipped bit."""
+
+    def __init__(self, data, longest_clean_words=None):
+        super().__init__()
+        self.data, self.longest_clean_words = data, longest_clean_words
+
+    def frames(self):
+        buffer = b""
+        while not self.stop:
+            try:
+                ready, _, _ = select.select([self.master], [], [], 0.01)
+                if ready:
+                    buffer += os.read(self.master, 512)
+                    continue
+            except (OSError, ValueError):
+                return
+            if len(buffer) < 12:
+                continue
+            frame, buffer = buffer[:12], b""
+            self.requests += 1
+            yield frame
+
+    def run(self):
+        for frame in self.frames():
+            address, fc, _, _, _, record, words = struct.unpack(">BBBBHHH", frame[:10])
+            chunk = self.data[2 * record:2 * (record + words)]
+            body = bytes([address, fc, 2 + len(chunk), 1 + len(chunk), 6]) + chunk
+            reply = bytearray(body + crc16(body))
+            if self.longest_clean_words is not None and words > self.longest_clean_words:
+                reply[5] ^= 0x04
+            os.write(self.master, bytes(reply))
+
+
+def _read_all(link, total_words):
+    """What a long transfer (a map table) does: records of the link's current size, one after another, a
+    lost one asked for again."""
+    from trimeter.device.transport import LinkError, record_words
+
+    out, lost = b"", 0
+    while len(out) < 2 * total_words:
+        words = min(record_words(link), total_words - len(out) // 2)
+        try:
+            out += link.read_file_records(1, len(out) // 2, words)
+        except LinkError:
+            lost += 1
+            assert lost < 60, "the records never shrank to what the line carries"
+    return out, lost
+
+
+def test_long_transfers_shrink_their_records_on_a_line_that_garbles_long_frames(slave_factory):
+    data = bytes(range(256)) * 8  # 1024 records
+    slave = slave_factory(cls=lambda _: FileRecordSlave(data, longest_clean_words=24))
+    link = RtuTransport(slave.port, timeout_s=0.3)
+    got, lost = _read_all(link, len(data) // 2)
+    # it shrinks to what the line carries, grows back a quarter per clean record, and loses one record each
+    # time it outgrows the line again: never at 120 words, where no record would ever pass
+    assert got == data and 1 <= lost < 60 and link.record_words <= 30
+
+
+def test_a_clean_line_keeps_the_longest_records(slave_factory):
+    from trimeter.device.transport import MAX_FILE_RECORD_WORDS
+
+    data = bytes(range(256)) * 4
+    slave = slave_factory(cls=lambda _: FileRecordSlave(data))
+    link = RtuTransport(slave.port, timeout_s=0.3)
+    got, lost = _read_all(link, len(data) // 2)
+    assert got == data and lost == 0 and link.record_words == MAX_FILE_RECORD_WORDS
+    assert slave.requests == -(-len(data) // 2 // MAX_FILE_RECORD_WORDS)  # ceil: the fewest requests

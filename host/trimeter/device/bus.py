@@ -23,7 +23,7 @@ from typing import Any, Callable
 
 from trimeter import registers as regs
 from trimeter.crc import crc16_modbus, crc16_modbus_bytes
-from trimeter.device.transport import LinkStats, RtuTransport
+from trimeter.device.transport import LinkStats, RtuTransport, record_words
 from trimeter.errors import DeviceError
 
 # The register every instrument answers with the same shape (the identity's first word).
@@ -111,6 +111,11 @@ class BusMember:
     def write_words(self, address: int, values: list[int]) -> None:
         with self.bus.turn(self) as rtu:
             rtu.write_words(address, values)
+
+    @property
+    def record_words(self) -> int:
+        """The bus's file-record size now: one wire, one line quality for every instrument on it."""
+        return record_words(self.bus._rtu)
 
     def read_file_records(self, file_number: int, record_number: int, count: int) -> bytes:
         with self.bus.turn(self) as rtu:

@@ -30,7 +30,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from trimeter import registers as regs
-from trimeter.device.transport import (MAX_FILE_RECORD_WORDS, MAX_READ_BITS, MAX_READ_WORDS, LinkError,
+from trimeter.device.transport import (MAX_FILE_RECORD_WORDS, record_words, MAX_READ_BITS, MAX_READ_WORDS, LinkError,
                                        ModbusExceptionReply, RtuTransport, Transport)
 from trimeter.errors import DeviceError, InputError
 
@@ -481,7 +481,7 @@ class Device:
         while offset < total:
             record = offset // 2
             file_number, record_number = record // regs.MAP_RECORDS_PER_FILE + 1, record % regs.MAP_RECORDS_PER_FILE
-            words = min(MAX_FILE_RECORD_WORDS, regs.MAP_RECORDS_PER_FILE - record_number, (total - offset) // 2)
+            words = min(record_words(self.transport), regs.MAP_RECORDS_PER_FILE - record_number, (total - offset) // 2)
             self.transport.write_file_records(file_number, record_number, padded[offset:offset + 2 * words])
             offset += 2 * words
             if progress:
@@ -616,15 +616,18 @@ class Device:
                          table_crc32=int(used))
 
     def _write_fit_bins(self, bins: np.ndarray) -> None:
-        per_request = MAX_FILE_RECORD_WORDS // int(regs.FitInputWord.STRIDE)
-        for first in range(0, len(bins), per_request):
+        stride = int(regs.FitInputWord.STRIDE)
+        first = 0
+        while first < len(bins):
+            per_request = max(1, record_words(self.transport) // stride)
             try:
-                self.transport.write_file_records(regs.FitFile.INPUT, first * int(regs.FitInputWord.STRIDE),
+                self.transport.write_file_records(regs.FitFile.INPUT, first * stride,
                                                   bins[first:first + per_request].tobytes())
             except ModbusExceptionReply as exc:
                 if exc.code == 6:
                     raise DeviceError("the device is busy with another fit (another master?): try again") from None
                 raise
+            first += per_request
 
     def _run_fit(self, count: int, thickness_words: list[int], thickness_mm: float, timeout_s: float) -> int:
         """One run over bins 0..count-1; returns the CRC-32 of the table it used."""
@@ -677,11 +680,8 @@ class Device:
             raise DeviceError("a standalone press is running on the device: wait for its status LED")
         if status == regs.StandaloneStatus.NONE or not values["standalone_bins"]:
             raise DeviceError("the device holds no standalone result: no press since it started")
-        count, stride = int(values["standalone_bins"]), int(regs.StandaloneWord.STRIDE)
-        per_request = MAX_FILE_RECORD_WORDS // stride
-        data = b"".join(self.transport.read_file_records(regs.StandaloneFile.RESULT, first * stride,
-                                                         min(per_request, count - first) * stride)
-                        for first in range(0, count, per_request))
+        data = self._read_rows(regs.StandaloneFile.RESULT, int(values["standalone_bins"]),
+                               int(regs.StandaloneWord.STRIDE))
         return StandaloneResult(regs.StandaloneStatus(status), int(values["standalone_sequence"]),
                                 np.frombuffer(data, dtype=STANDALONE_DTYPE),
                                 float(values["white_reference_reflectance"]), float(values["standalone_thickness_mm"]),
@@ -690,12 +690,17 @@ class Device:
                                 {lamp: float(values[f"standalone_lamp_{lamp}"]) for lamp in STANDALONE_LAMPS})
 
     def _read_fit_results(self, count: int) -> np.ndarray:
-        stride = int(regs.FitOutputWord.STRIDE)
-        per_request = MAX_FILE_RECORD_WORDS // stride
-        data = b"".join(self.transport.read_file_records(regs.FitFile.OUTPUT, first * stride,
-                                                         min(per_request, count - first) * stride)
-                        for first in range(0, count, per_request))
-        return np.frombuffer(data, dtype=FIT_OUTPUT_DTYPE)
+        return np.frombuffer(self._read_rows(regs.FitFile.OUTPUT, count, int(regs.FitOutputWord.STRIDE)),
+                             dtype=FIT_OUTPUT_DTYPE)
+
+    def _read_rows(self, file_number: int, count: int, stride: int) -> bytes:
+        """`count` rows of `stride` words from a file, as many whole rows per request as the line carries now."""
+        out, first = bytearray(), 0
+        while first < count:
+            rows = min(max(1, record_words(self.transport) // stride), count - first)
+            out += self.transport.read_file_records(file_number, first * stride, rows * stride)
+            first += rows
+        return bytes(out)
 
     def read_map(self, slot: regs.MapSlot | str, length: int | None = None, *, offset: int = 0,
                  progress: Callable[[int, int], None] | None = None,
@@ -719,7 +724,8 @@ class Device:
             while len(out) < total:
                 record = (offset + len(out)) // 2
                 file_number, record_number = record // regs.MAP_RECORDS_PER_FILE + 1, record % regs.MAP_RECORDS_PER_FILE
-                words = min(MAX_FILE_RECORD_WORDS, regs.MAP_RECORDS_PER_FILE - record_number, (total - len(out)) // 2)
+                words = min(record_words(self.transport), regs.MAP_RECORDS_PER_FILE - record_number,
+                            (total - len(out)) // 2)
                 try:
                     if not selected:
                         self.write("map_read_slot", slot)

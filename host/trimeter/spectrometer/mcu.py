@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 
 from trimeter import registers as regs
+from trimeter.device.transport import record_words
 from trimeter.errors import DeviceError, InputError
 from trimeter.spectrometer.base import SpectrometerDescription, check_integration_time
 from trimeter.spectrometer.sensors import C12880_FWHM_NM, C12880_PIXELS, c12880_wavelengths_nm
@@ -173,10 +174,12 @@ class McuSpectrometer:
         if status not in (regs.SpectroStatus.DONE, regs.SpectroStatus.SATURATED):
             raise DeviceError(f"the micro-spectrometer's capture ended {status.name.lower()}")
         words = np.empty(C12880_PIXELS, dtype=np.float64)
-        for first in range(0, C12880_PIXELS, RECORDS_PER_READ):
-            n = min(RECORDS_PER_READ, C12880_PIXELS - first)
+        first = 0
+        while first < C12880_PIXELS:
+            n = min(RECORDS_PER_READ, record_words(d.transport), C12880_PIXELS - first)
             data = d.transport.read_file_records(int(file), first, n)
             words[first:first + n] = np.frombuffer(data, dtype=">u2")
+            first += n
         counts = words / RECORD_SCALE
         if self._linearity:
             over = np.maximum(counts - LINEARITY_KNEE_COUNTS, 0.0)
