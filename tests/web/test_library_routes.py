@@ -16,7 +16,8 @@ from aiohttp.test_utils import TestClient, TestServer
 from library_support import fit_result, write_member
 from trimeter.library.store import Library
 from trimeter.web import library_routes
-from trimeter.web.app import TOKEN, auth_middleware, errors_middleware
+from trimeter.web.handler_tools import TOKEN
+from trimeter.web.middleware import auth_middleware, errors_middleware
 
 TOKEN_VALUE = "t" * 43
 
@@ -67,7 +68,7 @@ def test_errors_and_access(tmp_path):
 
 
 def test_create_app_registers_them_and_describes_them():
-    from trimeter.web.app import openapi
+    from trimeter.web.openapi import openapi
 
     assert {"/api/library", "/api/library/{name}"} <= set(openapi()["paths"])
 
@@ -77,7 +78,8 @@ CHROMIUM, DRIVER = shutil.which("chromium"), shutil.which("chromedriver")
 
 def _page_app(db: Path) -> web.Application:
     """The page's files, the library's routes and the page's security headers (no instrument)."""
-    from trimeter.web.app import STATIC, security_headers
+    from trimeter.web.app import STATIC
+    from trimeter.web.middleware import security_headers
 
     app = web.Application(middlewares=[errors_middleware])
     async def index(request: web.Request) -> web.FileResponse:

@@ -32,7 +32,7 @@ from trimeter.sequences.settings import HostSettings
 
 
 def show_token(args: argparse.Namespace) -> None:
-    from trimeter.web.app import parse_bind
+    from trimeter.web.server import parse_bind
     from trimeter.web.auth import load_or_create_token, token_path
 
     token = load_or_create_token()
@@ -108,7 +108,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def serve_http(args: argparse.Namespace, service: Service, settings: HostSettings) -> None:
     """The press-button loop on a worker thread, the web app on another; Ctrl-C stops both."""
     from trimeter.paths import data_dir
-    from trimeter.web.app import WebServer, create_app, parse_bind
+    from trimeter.web.app import create_app
+    from trimeter.web.server import WebServer, parse_bind
     from trimeter.web.auth import load_or_create_token
     from trimeter.web.history import History
     from trimeter.web.jobs import Jobs

@@ -57,7 +57,7 @@ def _serve_buttons(services: list[tuple[Instrument, Service]], where: str, setti
 def _serve_http(args: argparse.Namespace, settings: HostSettings, services: list[tuple[Instrument, Service]],
                 where: str) -> None:
     from trimeter.paths import data_dir
-    from trimeter.web.app import WebServer, parse_bind
+    from trimeter.web.server import WebServer, parse_bind
     from trimeter.web.auth import load_or_create_token
     from trimeter.web.history import History
     from trimeter.web.app import create_lab_app
