@@ -167,3 +167,13 @@ def idle_web(root: Path, **server_options: float):
         finally:
             server.close()
             history.close()
+
+
+@pytest.fixture
+def browser():
+    """A headless chromium (browser_support.chrome), quit after the test."""
+    from browser_support import chrome
+
+    driver = chrome()
+    yield driver
+    driver.quit()

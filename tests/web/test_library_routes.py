@@ -9,10 +9,10 @@ from pathlib import Path
 from urllib.parse import quote
 
 import numpy as np
-import pytest
 from aiohttp import web
 from aiohttp.test_utils import TestClient, TestServer
 
+from browser_support import chrome, needs_browser
 from library_support import fit_result, write_member
 from trimeter.library.store import Library
 from trimeter.web import library_routes
@@ -73,7 +73,6 @@ def test_create_app_registers_them_and_describes_them():
     assert {"/api/library", "/api/library/{name}"} <= set(openapi()["paths"])
 
 
-CHROMIUM, DRIVER = shutil.which("chromium"), shutil.which("chromedriver")
 
 
 def _page_app(db: Path) -> web.Application:
@@ -92,13 +91,11 @@ def _page_app(db: Path) -> web.Application:
     return app
 
 
-@pytest.mark.skipif(not (CHROMIUM and DRIVER), reason="needs Debian's chromium and chromium-driver")
+@needs_browser
 def test_the_library_view_in_a_browser(tmp_path):
     """The list, one material's plot with its members overlaid and a missing member, no console error."""
     import threading
 
-    from selenium import webdriver
-    from selenium.webdriver.chrome.service import Service
     from selenium.webdriver.common.by import By
     from selenium.webdriver.support import expected_conditions as EC
     from selenium.webdriver.support.ui import WebDriverWait
@@ -115,13 +112,7 @@ def test_the_library_view_in_a_browser(tmp_path):
     port = runner.addresses[0][1]
     thread = threading.Thread(target=loop.run_forever, daemon=True)
     thread.start()
-    options = webdriver.ChromeOptions()
-    options.binary_location = CHROMIUM
-    for arg in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage", "--window-size=1280,1100",
-                "--disable-gpu"):
-        options.add_argument(arg)
-    options.set_capability("goog:loggingPrefs", {"browser": "ALL"})
-    driver = webdriver.Chrome(service=Service(executable_path=DRIVER), options=options)
+    driver = chrome("1280,1100")
     try:
         wait = WebDriverWait(driver, 20)
         driver.get(f"http://127.0.0.1:{port}/#/library")
