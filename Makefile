@@ -30,18 +30,20 @@ setup:
 # The compiled inversion kernel, loaded with ctypes (trimeter.inversion.native), rebuilt whenever one
 # of its sources changes. Its boundary is invert.h; invert_abi.h and invert_h.py are generated from it.
 # The library carries a hash of its sources: Python names a library older than them and runs numpy.
+# Its sources are the host's own (NATIVE_DIR) and the inverse core it shares with the firmware
+# (FIT_CORE_DIR: the table fit, tm_table_fit; one include path for both builds), hashed in that order.
 NATIVE_DIR := host/trimeter/inversion/native
+FIT_CORE_DIR := fit_core
 NATIVE_LIB := $(NATIVE_DIR)/libtrimeter_invert.so
 NATIVE_GEN := $(NATIVE_DIR)/invert_abi.h $(NATIVE_DIR)/invert_h.py
-NATIVE_SOURCES = $(sort $(wildcard $(NATIVE_DIR)/*.c $(NATIVE_DIR)/*.h) $(NATIVE_DIR)/invert_abi.h)
-# the core the firmware links too (library.c adds the host's malloc'd entry points)
-NATIVE_CORE := $(addprefix $(NATIVE_DIR)/,lookups.c newton.c simd.c pipeline.c compact.c table_fit.c)
-# the seam the table fit (table_fit.c) implements for the firmware: tr_fit_bins
-FIT_CORE_HEADER := firmware/core/fit_core.h
-$(NATIVE_GEN) &: $(NATIVE_DIR)/invert.h tools/gen_native.py
+FIT_CORE_SOURCES = $(sort $(wildcard $(FIT_CORE_DIR)/*.c $(FIT_CORE_DIR)/*.h))
+NATIVE_SOURCES = $(sort $(wildcard $(NATIVE_DIR)/*.c $(NATIVE_DIR)/*.h) $(NATIVE_DIR)/invert_abi.h) $(FIT_CORE_SOURCES)
+# the kernel without library.c (the host's malloc'd entry points)
+NATIVE_CORE := $(addprefix $(NATIVE_DIR)/,lookups.c newton.c simd.c pipeline.c) $(filter %.c,$(FIT_CORE_SOURCES))
+$(NATIVE_GEN) &: $(NATIVE_DIR)/invert.h $(FIT_CORE_DIR)/table_fit.h tools/gen_native.py
 	python3 -m tools.gen_native
-$(NATIVE_LIB): $(NATIVE_SOURCES) $(NATIVE_GEN) $(FIT_CORE_HEADER)
-	$(CC) -O2 -std=c11 -Wall -Wextra -Werror -shared -fPIC -I$(dir $(FIT_CORE_HEADER)) \
+$(NATIVE_LIB): $(NATIVE_SOURCES) $(NATIVE_GEN)
+	$(CC) -O2 -std=c11 -Wall -Wextra -Werror -shared -fPIC -I$(FIT_CORE_DIR) \
 	  -DTM_SOURCE_HASH=0x$$(cat $(NATIVE_SOURCES) | sha256sum | cut -c1-16)ULL \
 	  -o $@ $(filter %.c,$(NATIVE_SOURCES)) -lm
 
@@ -53,7 +55,7 @@ native: $(NATIVE_LIB)
 native-portable: setup $(NATIVE_GEN)
 	@mkdir -p build/invert-portable
 	for src in $(NATIVE_CORE); do \
-	  arm-none-eabi-gcc -O2 -std=c11 -Wall -Wextra -Werror -I$(dir $(FIT_CORE_HEADER)) -c -o build/invert-portable/$$(basename $$src .c).o $$src \
+	  arm-none-eabi-gcc -O2 -std=c11 -Wall -Wextra -Werror -I$(FIT_CORE_DIR) -c -o build/invert-portable/$$(basename $$src .c).o $$src \
 	  || exit 1; done
 
 # Generated files (register map -> C header, Python module, Markdown; the docs' reference pages) are

@@ -272,3 +272,51 @@ def test_the_cycle_finder_sees_imports_in_functions_and_submodules_by_name(tmp_p
     assert graph["trimeter.sub.d"] == {"trimeter.sub.a", "trimeter.sub"}
     assert import_cycles(graph) == {frozenset({"trimeter.sub.a", "trimeter.sub.b", "trimeter.sub.c"})}
     assert import_cycles({"a": {"b"}, "b": {"c"}, "c": set()}) == set()
+
+
+# ------------------------------------------------------------------ the C: which directory may include which
+# Each C directory with the directories its quoted includes may resolve into (its own first, then its
+# include path). The inverse core (fit_core/) is shared by the firmware and the host's compiled kernel and
+# includes neither; the firmware's core includes no port (a port fills a hal_t, firmware/core/hal.h); the
+# host's kernel does not reach into the firmware.
+C_INCLUDES = {
+    "fit_core": ("fit_core",),
+    "firmware/core": ("firmware/core", "fit_core"),
+    "host/trimeter/inversion/native": ("host/trimeter/inversion/native", "fit_core"),
+}
+
+
+def c_include_problems(path: Path, source: str, allowed: tuple[str, ...], root: Path = ROOT) -> list[str]:
+    """Each `#include "…"` in `source` (the file at `path`) that resolves, as the compiler would (the
+    including file's directory, then the allowed ones), outside the allowed directories or nowhere."""
+    problems = []
+    dirs = [(root / d).resolve() for d in allowed]
+    for number, line in enumerate(source.splitlines(), 1):
+        name = line.split('#include "', 1)[1].split('"', 1)[0] if line.lstrip().startswith('#include "') else None
+        if name is None:
+            continue
+        found = next((c.resolve() for c in [path.parent / name, *(d / name for d in dirs)] if c.is_file()), None)
+        if found is None or not any(found.parent == d for d in dirs):
+            problems.append(f"{path.relative_to(root)}:{number}: includes {name}"
+                            f"{'' if found is None else ' (' + str(found.relative_to(root.resolve())) + ')'}")
+    return problems
+
+
+def test_c_includes_stay_in_their_layers():
+    problems = [problem for directory, allowed in C_INCLUDES.items()
+                for path in sorted((ROOT / directory).glob("*.[ch]"))
+                for problem in c_include_problems(path, path.read_text(encoding="utf-8"), allowed)]
+    assert problems == [], f"C includes outside their layer: {problems}"
+
+
+@pytest.mark.parametrize("directory, line", [
+    ("firmware/core", '#include "../ports/sim/plant.h"'),            # a port header, by a relative path
+    ("firmware/core", '#include "ramfunc.h"'),                       # a port header no include path has
+    ("fit_core", '#include "invert.h"'),                             # the host's boundary
+    ("fit_core", '#include "../firmware/core/hal.h"'),               # the firmware's core
+    ("host/trimeter/inversion/native", '#include "../../../../firmware/core/app.h"'),
+])
+def test_the_c_include_check_sees(directory, line):
+    path = ROOT / directory / "anything.c"
+    assert c_include_problems(path, f"#include <math.h>\n{line}\n", C_INCLUDES[directory]) != []
+    assert c_include_problems(path, "#include <math.h>\n", C_INCLUDES[directory]) == []

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import os
 
+import pytest
+
 from trimeter.paths import real_subdirectory, regular_files
 
 
@@ -30,3 +32,14 @@ def test_regular_files_lists_neither_links_nor_fifos_nor_directories(tmp_path):
     os.mkfifo(tmp_path / "fifo")
     (tmp_path / "sub").mkdir()
     assert [p.name for p in regular_files(tmp_path)] == ["ok"]
+
+
+def test_user_dirs_at_restores_the_environment_also_after_an_error(monkeypatch, tmp_path):
+    from trimeter.paths import config_dir, data_dir, user_dirs_at
+
+    monkeypatch.setenv("TRIMETER_DATA_DIR", str(tmp_path / "mine"))
+    monkeypatch.delenv("TRIMETER_CONFIG_DIR", raising=False)
+    with pytest.raises(RuntimeError), user_dirs_at(data=tmp_path / "demo", config=tmp_path / "cfg"):
+        assert data_dir() == tmp_path / "demo" and config_dir() == tmp_path / "cfg"
+        raise RuntimeError("mid-demo")
+    assert data_dir() == tmp_path / "mine" and "TRIMETER_CONFIG_DIR" not in os.environ

@@ -391,8 +391,10 @@ def results_page() -> str:
              "unusable). With two thicknesses, `parameters_<ℓ>.csv` holds each thickness's own fit.", "",
              "## `reflectances.csv`", "",
              "One row per wavelength bin: `wavelength_nm`, `I_b`, `I_w`, `I_c`, `rho_b`, `rho_w`, "
-             "`capture_flags`, and `I_b_std`, `I_w_std`, `I_c_std` when the capture measured them "
-             "(`trimeter.domain.Reflectances.as_columns`). It is a valid input of `trimeter fit`.", ""]
+             "`capture_flags`, `I_b_std`, `I_w_std`, `I_c_std` when the capture measured them "
+             "(`trimeter.domain.Reflectances.as_columns`), and `thickness_mm`, the thickness the sample was "
+             "declared with (older results lack it). It is a valid input of `trimeter fit`, which refuses a map "
+             "of another thickness for it.", ""]
     return "\n".join(lines).rstrip() + "\n"
 
 

@@ -3,8 +3,9 @@
     python -m tools.gen_native           # (re)write the generated files
     python -m tools.gen_native --check   # exit 1 naming each stale file; write nothing
 
-Reads host/trimeter/inversion/native/invert.h and writes, beside it (committed, each with a
-"generated - do not edit" banner):
+Reads host/trimeter/inversion/native/invert.h, with its `#include "table_fit.h"` in place (the part of
+the boundary shared with the firmware's inverse core: fit_core/table_fit.h), and writes, beside invert.h
+(committed, each with a "generated - do not edit" banner):
     invert_abi.h   TM_ABI_HASH, the hash of the header without comments and spacing, compiled into
                    the library (tm_abi_hash)
     invert_h.py    the same hash, the constants, flag bits and output rows, the ctypes structures and
@@ -24,6 +25,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 NATIVE_DIR = ROOT / "host" / "trimeter" / "inversion" / "native"
+FIT_CORE_DIR = ROOT / "fit_core"  # the C the host kernel shares with the firmware (trimeter.paths.FIT_CORE_DIR)
 HEADER = NATIVE_DIR / "invert.h"
 OUT_C = NATIVE_DIR / "invert_abi.h"
 OUT_PY = NATIVE_DIR / "invert_h.py"
@@ -37,6 +39,20 @@ SCALARS = {"int": "c_int", "int32_t": "c_int32", "int64_t": "c_int64", "uint64_t
 
 class HeaderError(ValueError):
     """invert.h holds something outside the subset this generator reads."""
+
+
+def header_text(text: str | None = None) -> str:
+    """invert.h (or `text` in its place) with each `#include "NAME"` replaced by fit_core/NAME: the one
+    text the ABI hash and the Python side are generated from. Includes of system headers stay."""
+    text = HEADER.read_text(encoding="utf-8") if text is None else text
+
+    def included(match: re.Match[str]) -> str:
+        path = FIT_CORE_DIR / match.group(1)
+        if not path.is_file():
+            raise HeaderError(f"invert.h: #include \"{match.group(1)}\" is not a header in {FIT_CORE_DIR}")
+        return path.read_text(encoding="utf-8")
+
+    return re.sub(r'^#include\s+"([^"/]+)"[ \t]*$', included, text, flags=re.M)
 
 
 def strip_comments(text: str) -> str:
@@ -153,7 +169,7 @@ def render_py(text: str) -> str:
 
 
 def outputs() -> dict[Path, str]:
-    text = HEADER.read_text(encoding="utf-8")
+    text = header_text()
     return {OUT_C: render_c(text), OUT_PY: render_py(text)}
 
 

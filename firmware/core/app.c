@@ -88,6 +88,26 @@ static void set_shutter(enum hal_shutter s, bool open)
     actuators_set_shutter(&app.act, s, open, pulse, app.cfg.shutter_settle_ms, now());
 }
 
+/* Every lamp on (a lamp that was off starts its warm-up again); the shutters are left as they are. */
+static void lamps_on(void)
+{
+    for (int l = 0; l < HAL_LED_COUNT; l++)
+        actuators_set_led(&app.act, (enum hal_led)l, true, led_level((enum hal_led)l), app.cfg.led_settle_ms, now());
+}
+
+static bool lamps_lit(void)
+{
+    for (int l = 0; l < HAL_LED_COUNT; l++)
+        if (!app.act.led_on[l]) return false;
+    return true;
+}
+
+static uint16_t warmup_remaining_s(void)
+{
+    uint16_t warmup = app.hr[REG_HR_STANDALONE_WARMUP_S];
+    return app.lamps_lit_s >= warmup ? 0u : (uint16_t)(warmup - app.lamps_lit_s);
+}
+
 /* ---------------------------------------------------------------- unlock window */
 
 static bool unlock_window_open(void) { return app.unlock_open && now() - app.unlock_us < APP_UNLOCK_WINDOW_US; }
@@ -411,6 +431,10 @@ static void fill_input_registers(uint16_t *ir)
         REG_IR_STANDALONE_INTEGRATION_BLACK_US, REG_IR_STANDALONE_INTEGRATION_WHITE_US,
         REG_IR_STANDALONE_INTEGRATION_OPEN_US};
     for (int k = 0; k < STANDALONE_SETUPS; k++) regmap_put_u32(&ir[integration[k]], st->integration_us[k]);
+    static const uint16_t lamp_level[HAL_LED_COUNT] = {REG_IR_STANDALONE_LAMP_PANEL_LEFT, REG_IR_STANDALONE_LAMP_PANEL_RIGHT,
+                                                       REG_IR_STANDALONE_LAMP_COLLIMATED};
+    for (int l = 0; l < HAL_LED_COUNT; l++) regmap_put_f32(&ir[lamp_level[l]], st->lamp_level[l]);
+    ir[REG_IR_STANDALONE_WARMUP_REMAINING_S] = lamps_lit() ? warmup_remaining_s() : app.hr[REG_HR_STANDALONE_WARMUP_S];
 }
 
 uint8_t app_read_regs(void *ctx, mb_table_t table, uint16_t addr, uint16_t n, uint16_t *out)
@@ -465,6 +489,9 @@ uint8_t app_write_regs(void *ctx, uint16_t addr, uint16_t n, const uint16_t *val
         return ex;
     }
     if (covers(addr, n, REG_HR_MAP_COMMAND)) run_map_command(app.hr[REG_HR_MAP_COMMAND]);
+    /* standalone presses: the lamps come on now and stay on, so they are warm by the first press */
+    if (covers(addr, n, REG_HR_STANDALONE_MODE) && app.hr[REG_HR_STANDALONE_MODE] != TRIMETER_STANDALONE_MODE_OFF)
+        lamps_on();
     if (covers(addr, n, REG_HR_UNLOCK)) {
         /* after this write's commands: an unlock serves the requests that follow it */
         unlock_close();
@@ -542,7 +569,7 @@ uint8_t app_write_file(void *ctx, uint16_t file, uint16_t record, uint16_t n, co
 
 /* ---------------------------------------------------------------- standalone presses */
 
-enum press_step { PRESS_NONE, PRESS_HOMING, PRESS_MOVING, PRESS_LIGHTS, PRESS_CAPTURE, PRESS_DARK, PRESS_FIT };
+enum press_step { PRESS_NONE, PRESS_WARMING, PRESS_HOMING, PRESS_MOVING, PRESS_LIGHTS, PRESS_CAPTURE, PRESS_DARK, PRESS_FIT };
 
 /* Auto-exposure: a saturated capture is taken again at half the time, one whose brightest pixel is below
  * PRESS_DIM_FRACTION of full scale at twice the time (while that stays within the register's range and
@@ -550,14 +577,26 @@ enum press_step { PRESS_NONE, PRESS_HOMING, PRESS_MOVING, PRESS_LIGHTS, PRESS_CA
 #define PRESS_DIM_FRACTION 0.4f
 #define PRESS_EXPOSURE_TRIES 6
 
-/* Shutters and LEDs of one set-up: the panels (black, white) or the collimated beam (open); both false: dark. */
+/* The shutters of one set-up: the panels' (black, white) or the collimated beam's (open); both false: dark.
+ * The lamps stay on throughout, as the host's sequences keep them: a lamp switched per set-up would be
+ * captured cold, and its photodiode could not be compared with the calibration's. */
 static void press_lights(bool panels, bool collimated)
 {
-    bool on[HAL_LED_COUNT] = {[HAL_LED_PANEL_LEFT] = panels, [HAL_LED_PANEL_RIGHT] = panels,
-                              [HAL_LED_COLLIMATED] = collimated};
+    bool open[HAL_SHUTTER_COUNT] = {[HAL_SHUTTER_PANEL_LEFT] = panels, [HAL_SHUTTER_PANEL_RIGHT] = panels,
+                                    [HAL_SHUTTER_COLLIMATED] = collimated};
+    for (int s = 0; s < HAL_SHUTTER_COUNT; s++) set_shutter((enum hal_shutter)s, open[s]); /* shutter l covers LED l */
+    lamps_on();
+}
+
+/* The lamp-monitor photodiodes at the end of a capture: behind the set-up's open shutters (lit) or every one
+ * closed (dark). */
+static void press_read_lamps(bool dark)
+{
+    standalone_t *st = &app.standalone;
     for (int l = 0; l < HAL_LED_COUNT; l++) {
-        set_shutter((enum hal_shutter)l, on[l]); /* shutter l covers LED l */
-        actuators_set_led(&app.act, (enum hal_led)l, on[l], led_level((enum hal_led)l), app.cfg.led_settle_ms, now());
+        uint16_t counts = lamp_monitor_counts(&app.lamp_monitor, (enum hal_led)l);
+        if (dark) st->lamp_dark[l] = counts;
+        else if (app.act.shutter_open[l]) st->lamp_lit[l] = counts;
     }
 }
 
@@ -628,6 +667,15 @@ static void press_begin(void)
     st->status = TRIMETER_STANDALONE_STATUS_BUSY;
     for (int k = 0; k < STANDALONE_SETUPS; k++) st->integration_us[k] = regmap_get_u32(&app.hr[REG_HR_SPECTRO_INTEGRATION_US]);
     press_lights(false, false);
+    /* A real instrument waits rather than flags: the operator pressed once and gets a trustworthy result a
+     * few minutes later (the LED says busy) instead of a flagged one and a second press; and a calibration
+     * taken cold would bias every measurement after it without any later check seeing it. */
+    app.press_step = PRESS_WARMING;
+}
+
+/* The press's first move, once the lamps are warm. */
+static void press_home(void)
+{
     if (app.motion.homed) {
         app.press_step = PRESS_HOMING; /* waits for any motion a host started, then moves */
     } else if (!motion_busy(&app.motion) && start_motion(TRIMETER_COMMAND_HOME) != MB_OK) {
@@ -668,6 +716,10 @@ static void press_poll(void)
         return;
     }
     switch (app.press_step) {
+    case PRESS_WARMING:
+        if (!lamps_lit()) lamps_on(); /* a host switched one off: its warm-up starts again */
+        else if (warmup_remaining_s() == 0) press_home();
+        return;
     case PRESS_HOMING:
         if (!motion_idle()) return;
         if (!app.motion.homed) {
@@ -703,6 +755,7 @@ static void press_poll(void)
             return;
         }
         memcpy(st->light[app.press_setup], app.spectro.light, sizeof st->light[0]);
+        press_read_lamps(false);
         press_lights(false, false); /* every shutter closed: the dark capture waits for them to settle */
         if (press_capture(true) != MB_OK) {
             press_end(TRIMETER_STANDALONE_STATUS_ERROR_SPECTRO);
@@ -718,6 +771,7 @@ static void press_poll(void)
             return;
         }
         memcpy(st->dark[app.press_setup], app.spectro.dark, sizeof st->dark[0]);
+        press_read_lamps(true);
         if (++app.press_setup < STANDALONE_SETUPS) {
             press_move();
             return;
@@ -828,9 +882,13 @@ void app_poll(void)
     actuators_poll(&app.act, t);
     lamp_monitor_poll(&app.lamp_monitor, app.hal, t);
 
+    /* the lamps' warm-up clock: whole seconds with every lamp on, from 0 whenever one is off */
+    bool lit = lamps_lit();
+    if (!lit) app.lamps_lit_s = 0;
     while (t - app.uptime_mark_us >= 1000000u) {
         app.uptime_mark_us += 1000000u;
         app.uptime_s++;
+        if (lit && app.lamps_lit_s < UINT16_MAX) app.lamps_lit_s++;
     }
 }
 

@@ -34,7 +34,10 @@
  * Standalone presses (standalone_mode not off; standalone.h): a press of the button runs the whole
  *   measurement on the device (home, black / white / open captures, one dark, the fit into file
  *   standalone_result); it writes fit_input / fit_output as a host's run would. While it runs, motion
- *   commands answer exception 06 and presses are ignored. */
+ *   commands answer exception 06 and presses are ignored. Setting the mode to calibrate / measure switches
+ *   every lamp on; they stay on between presses (shutters closed), and a press first waits until they have
+ *   been on for standalone_warmup_s. Each press compares the lamps' photodiodes with the calibration's
+ *   (standalone.h): a lamp changed beyond the tolerance ends it lamp_changed. */
 #ifndef TRIMETER_APP_H
 #define TRIMETER_APP_H
 
@@ -73,6 +76,7 @@ typedef struct app {
     int press_tries;            /* ... captures of this set-up so far (auto-exposure) */
     bool press_calibrating;
     uint16_t press_events_seen; /* button_events the press logic has seen */
+    uint16_t lamps_lit_s;       /* whole seconds every lamp has been on (saturates): the presses' warm-up */
     uint16_t map_op_status;
     trimeter_fault_t app_fault; /* faults not from motion (storage) */
     int pending_command;        /* TRIMETER_COMMAND_* queued behind a running motion, 0 = none */

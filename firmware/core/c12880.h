@@ -2,10 +2,11 @@
  * CLK/ST/TRG/EOS frame operations (hal.h: spectro_*), frames averaged here; the register map's spectro_*
  * items (registers.toml).
  *
- * The chip's timing (datasheet KACC1226 as the constants below state it): CLK 0.2-5 MHz; ST high at least
- * 6 CLK periods and low at least 375; the integration time is ST's high period + 48 CLK periods; after ST
- * falls the 288 pixels come out one per CLK from the 89th, each sampled at its TRG rising edge, and EOS
- * rises at the CLK after the last pixel. c12880_plan turns an integration time into that timing, or
+ * The chip's timing, checked against Hamamatsu's datasheet KACC1226E (electrical characteristics p. 2,
+ * timing chart and operation example pp. 7-8): CLK 0.2-5 MHz; ST high at least 6 CLK periods, low at least
+ * 375 (so a start-pulse cycle of at least 381); the integration time is ST's high period + 48 CLK periods;
+ * counting the first TRG after ST falls as the first, pixel 1 is sampled at the rising edge of the 89th TRG,
+ * the 288 pixels one per CLK, and EOS rises after the last pixel. c12880_plan turns an integration time into that timing, or
  * refuses it; the port generates it (a timer for CLK and ST, the ADC + DMA triggered by TRG).
  *
  * A capture: spectro_frames frames, each checked for EOS and for a pixel at the ADC's full scale

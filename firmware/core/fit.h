@@ -2,9 +2,10 @@
  * table (read in place), and the results read back; the register map's fit_* items (registers.toml).
  *
  * A run fits FIT_BINS_PER_POLL bins per fit_poll(), so the main loop keeps answering Modbus and the motion
- * keeps its timing while a fit works. The fit itself is fit_core.h's tr_fit_bins, linked when the Makefile
- * compiles the inverse core in (FIT_CORE_SRC); without it fit_available() is false and every run is refused
- * as error_unavailable — the firmware never makes results up. */
+ * keeps its timing while a fit works. The fit itself is fit_core.h's tr_fit_bins (the inverse core shared
+ * with the host, fit_core/ at the repository's root), linked when the Makefile compiles it in
+ * (FIT_CORE_SRC); without it fit_available() is false and every run is refused as error_unavailable — the
+ * firmware never makes results up. */
 #ifndef TRIMETER_FIT_H
 #define TRIMETER_FIT_H
 

@@ -8,7 +8,7 @@
 #include <stdint.h>
 
 /* ---- identity */
-#define TRIMETER_REGMAP_HASH 0x29B0152Cu
+#define TRIMETER_REGMAP_HASH 0x6BF8C063u
 #define TRIMETER_FIRMWARE_VERSION "0.1.0"
 #define TRIMETER_FIRMWARE_VERSION_MAJOR 0u
 #define TRIMETER_FIRMWARE_VERSION_MINOR 1u
@@ -366,6 +366,7 @@ typedef enum {
     TRIMETER_STANDALONE_STATUS_ERROR_SPECTRO = 7,
     TRIMETER_STANDALONE_STATUS_ERROR_MOTION = 8,
     TRIMETER_STANDALONE_STATUS_ERROR_FIT = 9,
+    TRIMETER_STANDALONE_STATUS_LAMP_CHANGED = 10,
 } trimeter_standalone_status_t;
 static inline const char *trimeter_standalone_status_name(unsigned value) /* else "unknown" */
 {
@@ -380,6 +381,17 @@ static inline const char *trimeter_standalone_status_name(unsigned value) /* els
     case 7u: return "error_spectro";
     case 8u: return "error_motion";
     case 9u: return "error_fit";
+    case 10u: return "lamp_changed";
+    default: return "unknown";
+    }
+}
+typedef enum {
+    TRIMETER_STANDALONE_LAMP_TOLERANCE_PERMILLE = 20,
+} trimeter_standalone_lamp_t;
+static inline const char *trimeter_standalone_lamp_name(unsigned value) /* else "unknown" */
+{
+    switch (value) {
+    case 20u: return "tolerance_permille";
     default: return "unknown";
     }
 }
@@ -476,7 +488,7 @@ static inline const char *trimeter_unlock_name(unsigned value) /* else "unknown"
 #define REG_DI_HOMED 4u
 
 /* ---- input_registers */
-#define REG_IR_SPAN 127u /* one past the highest used address */
+#define REG_IR_SPAN 134u /* one past the highest used address */
 #define REG_IR_VENDOR_ID 0u
 #define REG_IR_MODEL_ID 1u
 #define REG_IR_FIRMWARE_VERSION_MAJOR 2u
@@ -534,9 +546,13 @@ static inline const char *trimeter_unlock_name(unsigned value) /* else "unknown"
 #define REG_IR_STANDALONE_INTEGRATION_BLACK_US 121u
 #define REG_IR_STANDALONE_INTEGRATION_WHITE_US 123u
 #define REG_IR_STANDALONE_INTEGRATION_OPEN_US 125u
+#define REG_IR_STANDALONE_LAMP_PANEL_LEFT 127u
+#define REG_IR_STANDALONE_LAMP_PANEL_RIGHT 129u
+#define REG_IR_STANDALONE_LAMP_COLLIMATED 131u
+#define REG_IR_STANDALONE_WARMUP_REMAINING_S 133u
 
 /* ---- holding_registers */
-#define REG_HR_SPAN 109u /* one past the highest used address */
+#define REG_HR_SPAN 110u /* one past the highest used address */
 #define REG_HR_COMMAND 0u
 #define REG_HR_COMMAND_DEFAULT 0u
 #define REG_HR_COMMAND_MIN 0u
@@ -725,6 +741,10 @@ static inline const char *trimeter_unlock_name(unsigned value) /* else "unknown"
 #define REG_HR_WHITE_REFERENCE_REFLECTANCE_DEFAULT 0.9900000095367432f
 #define REG_HR_WHITE_REFERENCE_REFLECTANCE_MIN 0.5f
 #define REG_HR_WHITE_REFERENCE_REFLECTANCE_MAX 1.0f
+#define REG_HR_STANDALONE_WARMUP_S 109u
+#define REG_HR_STANDALONE_WARMUP_S_DEFAULT 300u
+#define REG_HR_STANDALONE_WARMUP_S_MIN 0u
+#define REG_HR_STANDALONE_WARMUP_S_MAX 3600u
 
 /* ---- descriptor table (registers_gen.c), sorted by table then address */
 typedef enum { REGMAP_COIL = 0, REGMAP_DISCRETE_INPUT = 1, REGMAP_INPUT_REGISTER = 3,
@@ -743,7 +763,7 @@ typedef struct {
     float min_f, max_f, def_f; /* f32 */
 } regmap_entry_t;
 
-#define REGMAP_ENTRY_COUNT 115u
+#define REGMAP_ENTRY_COUNT 120u
 extern const regmap_entry_t regmap_entries[REGMAP_ENTRY_COUNT];
 
 #endif

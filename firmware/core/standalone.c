@@ -9,7 +9,13 @@
 
 #define STRIDE TRIMETER_STANDALONE_WORD_STRIDE
 
-void standalone_init(standalone_t *s) { memset(s, 0, sizeof *s); }
+void standalone_init(standalone_t *s)
+{
+    memset(s, 0, sizeof *s);
+    for (int l = 0; l < HAL_LED_COUNT; l++) s->lamp_level[l] = NAN;
+}
+
+static float lamp_light(const standalone_t *s, int lamp) { return (float)s->lamp_lit[lamp] - (float)s->lamp_dark[lamp]; }
 
 static float word_f32(const standalone_t *s, unsigned bin, unsigned word) { return regmap_get_f32(&s->words[bin * STRIDE + word]); }
 static void put_f32(standalone_t *s, unsigned bin, unsigned word, float v) { regmap_put_f32(&s->words[bin * STRIDE + word], v); }
@@ -62,6 +68,10 @@ void standalone_calibrate(standalone_t *s, float rho_white)
             (uint16_t)((s->saturated[b] ? STANDALONE_CAPTURE_SATURATED : 0u) |
                        (s->lit[b] || s->saturated[b] ? 0u : STANDALONE_CAPTURE_NO_REFERENCE_LIGHT));
     }
+    for (int l = 0; l < HAL_LED_COUNT; l++) {
+        s->lamp_span[l] = lamp_light(s, l);
+        s->lamp_level[l] = NAN;
+    }
     s->rho_white = rho_white;
     s->calibrated = true;
     s->flagged_bins = 0;
@@ -105,8 +115,16 @@ void standalone_take_fit(standalone_t *s, const uint16_t *fit_out, uint16_t n)
         s->words[b * STRIDE + TRIMETER_STANDALONE_WORD_FIT_FLAGS] = flags;
         if (s->calibration_saturated[b] || (s->lit[b] && (flags || s->saturated[b]))) flagged++;
     }
+    bool lamp_changed = false;
+    for (int l = 0; l < HAL_LED_COUNT; l++) {
+        bool seen = s->lamp_span[l] >= STANDALONE_LAMP_MIN_SPAN_COUNTS;
+        s->lamp_level[l] = seen ? lamp_light(s, l) / s->lamp_span[l] : NAN;
+        if (seen && fabsf(s->lamp_level[l] - 1.0f) > STANDALONE_LAMP_TOLERANCE) lamp_changed = true;
+    }
     s->flagged_bins = flagged;
-    s->status = flagged ? TRIMETER_STANDALONE_STATUS_FLAGGED : TRIMETER_STANDALONE_STATUS_DONE;
+    s->status = lamp_changed ? TRIMETER_STANDALONE_STATUS_LAMP_CHANGED
+                : flagged    ? TRIMETER_STANDALONE_STATUS_FLAGGED
+                             : TRIMETER_STANDALONE_STATUS_DONE;
 }
 
 trimeter_status_pattern_t standalone_pattern(trimeter_standalone_status_t status)
@@ -116,7 +134,8 @@ trimeter_status_pattern_t standalone_pattern(trimeter_standalone_status_t status
     case TRIMETER_STANDALONE_STATUS_BUSY: return TRIMETER_STATUS_PATTERN_SLOW_BLINK;
     case TRIMETER_STANDALONE_STATUS_DONE:
     case TRIMETER_STANDALONE_STATUS_CALIBRATED: return TRIMETER_STATUS_PATTERN_ON;
-    case TRIMETER_STANDALONE_STATUS_FLAGGED: return TRIMETER_STATUS_PATTERN_DOUBLE_BLINK;
+    case TRIMETER_STANDALONE_STATUS_FLAGGED:
+    case TRIMETER_STANDALONE_STATUS_LAMP_CHANGED: return TRIMETER_STATUS_PATTERN_DOUBLE_BLINK;
     default: return TRIMETER_STATUS_PATTERN_FAST_BLINK;
     }
 }

@@ -7,7 +7,14 @@
  * capture at that time right after it. Bins: adjacent pixel pairs (1-2, 3-4, ...), 144 of them, within the
  * fit's capacity; each bin's rate is the pair's mean of (light - dark) in counts/s. A bin is lit when the calibration's diffuse and collimated
  * rates are both at least STANDALONE_LIT_FRACTION of their maxima: an unlit bin gets NaN inputs (the fit
- * flags it unusable) and the no-reference-light capture flag, and does not make a result "flagged". */
+ * flags it unusable) and the no-reference-light capture flag, and does not make a result "flagged".
+ *
+ * The lamps: each press keeps, per lamp, its lamp-monitor photodiode's reading with the lamp's shutter open
+ * (the set-up's light capture, after it) and with every shutter closed (the dark capture, after it); their
+ * difference is the lamp's light. A measurement press compares it with the calibration press's: off by more
+ * than STANDALONE_LAMP_TOLERANCE (registers.toml, enums.standalone_lamp, says what bias that is) the result
+ * is kept but its status is lamp_changed (recalibrate). A calibration photodiode span under
+ * STANDALONE_LAMP_MIN_SPAN_COUNTS (no photodiode fitted, or it saw no lamp) leaves that lamp unchecked (NaN). */
 #ifndef TRIMETER_STANDALONE_H
 #define TRIMETER_STANDALONE_H
 
@@ -15,6 +22,7 @@
 #include <stdint.h>
 
 #include "c12880.h"
+#include "hal.h"
 #include "registers_gen.h"
 
 #define STANDALONE_PIXELS_PER_BIN 2u
@@ -25,6 +33,9 @@
 /* trimeter.domain.capture.CaptureFlag */
 #define STANDALONE_CAPTURE_SATURATED 1u
 #define STANDALONE_CAPTURE_NO_REFERENCE_LIGHT 4u
+#define STANDALONE_LAMP_TOLERANCE (TRIMETER_STANDALONE_LAMP_TOLERANCE_PERMILLE / 1000.0f)
+/* trimeter.sequences.lamp_monitor.MIN_SPAN_COUNTS: a lamp through its open shutter adds at least this */
+#define STANDALONE_LAMP_MIN_SPAN_COUNTS 300.0f
 
 enum standalone_setup { STANDALONE_BLACK, STANDALONE_WHITE, STANDALONE_OPEN, STANDALONE_SETUPS };
 
@@ -33,6 +44,9 @@ typedef struct standalone {
     uint16_t light[STANDALONE_SETUPS][C12880_PIXELS];                  /* this press's captures, counts x 16 */
     uint16_t dark[STANDALONE_SETUPS][C12880_PIXELS];                   /* ... each set-up's dark */
     uint32_t integration_us[STANDALONE_SETUPS];                        /* ... each set-up's integration time */
+    uint16_t lamp_lit[HAL_LED_COUNT], lamp_dark[HAL_LED_COUNT];        /* ... each lamp-monitor photodiode, counts */
+    float lamp_span[HAL_LED_COUNT];                                    /* calibration: lit - dark, counts */
+    float lamp_level[HAL_LED_COUNT]; /* this measurement's lamp light / the calibration's (NaN: not compared) */
     float diffuse[STANDALONE_BINS], collimated[STANDALONE_BINS], rho_black[STANDALONE_BINS]; /* calibration */
     bool lit[STANDALONE_BINS];
     bool saturated[STANDALONE_BINS]; /* this press: some pixel of the bin saturated in some set-up */
@@ -61,8 +75,8 @@ void standalone_calibrate(standalone_t *s, float rho_white);
  * NaN for an unlit or saturated bin. Returns the bin count. */
 uint16_t standalone_fit_input(standalone_t *s, uint16_t *fit_in);
 
-/* The fit's output (file fit_output's layout) into the result; counts the flagged lit bins and sets the
- * status done or flagged. */
+/* The fit's output (file fit_output's layout) into the result; counts the flagged lit bins, compares the
+ * lamps with the calibration's and sets the status done, flagged or lamp_changed (which wins). */
 void standalone_take_fit(standalone_t *s, const uint16_t *fit_out, uint16_t n);
 
 /* The status LED's pattern for the status (status_pattern values). */

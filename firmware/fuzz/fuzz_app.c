@@ -26,17 +26,19 @@
  *     asked for, the frame timing the port is given is always within the C12880MA's limits, and the live
  *     wavelength polynomial is always one the driver accepts (monotonic, in range);
  *   - standalone presses: standalone_status stays in its enum, the result never holds more than its bins,
- *     the auto-exposure never leaves the integration time's register range, and a press that is not
- *     running leaves every LED off. */
+ *     the auto-exposure never leaves the integration time's register range, and lamp_changed comes only
+ *     with a lamp compared and beyond the tolerance. */
+#include <math.h>
 #include <stdbool.h>
 #include <stdlib.h>
 #include <string.h>
 
 #include "../core/app.h"
 #include "../core/crc.h"
-#include "../core/fit_core.h"
+#include "fit_core.h"
 #include "../core/map_table.h"
 #include "../core/regmap.h"
+#include "../tests/app_fixture.h"
 #include "../tests/fake_hal.h"
 #include "../tests/table_fixture.h"
 
@@ -60,20 +62,6 @@ static int counting_write(void *ctx, enum hal_region region, uint32_t offset, co
 {
     writes++;
     return real_write(ctx, region, offset, buf, len);
-}
-
-static uint32_t isr(void *ctx)
-{
-    (void)ctx;
-    return app_step_isr();
-}
-
-static void run_ms(uint32_t ms)
-{
-    for (uint32_t i = 0; i < ms; i++) {
-        fake_hal_run_until(f, f->now_us + 1000, isr, NULL);
-        app_poll();
-    }
 }
 
 static void boot(void)
@@ -165,7 +153,13 @@ static void check_state(void)
         abort();
     if (!c12880_wavelengths_valid(app_get()->cfg.spectro_wl)) abort();
     const standalone_t *sa = &app_get()->standalone;
-    if ((unsigned)sa->status > TRIMETER_STANDALONE_STATUS_ERROR_FIT || sa->bins > STANDALONE_BINS) abort();
+    if ((unsigned)sa->status > TRIMETER_STANDALONE_STATUS_LAMP_CHANGED || sa->bins > STANDALONE_BINS) abort();
+    if (sa->status == TRIMETER_STANDALONE_STATUS_LAMP_CHANGED) {
+        bool changed = false;
+        for (int l = 0; l < HAL_LED_COUNT; l++)
+            changed = changed || fabsf(sa->lamp_level[l] - 1.0f) > STANDALONE_LAMP_TOLERANCE; /* NaN: false */
+        if (!changed) abort();
+    }
     for (int k = 0; k < STANDALONE_SETUPS; k++)
         if (sa->status != TRIMETER_STANDALONE_STATUS_NONE && sa->integration_us[k] &&
             (sa->integration_us[k] < REG_HR_SPECTRO_INTEGRATION_US_MIN || sa->integration_us[k] > REG_HR_SPECTRO_INTEGRATION_US_MAX))
@@ -218,9 +212,10 @@ static void write_regs(uint8_t address, uint16_t reg, uint16_t n, const uint16_t
     deliver(adu, 7u + 2u * n);
 }
 
-static void write_reg(uint16_t reg, uint16_t v) { write_regs(our_address(), reg, 1, &v); }
+/* one register as an FC 0x10 frame through the slave (the fixture's write_reg calls the callback directly) */
+static void framed_write_reg(uint16_t reg, uint16_t v) { write_regs(our_address(), reg, 1, &v); }
 
-static void unlock(void) { write_reg(REG_HR_UNLOCK, TRIMETER_UNLOCK_KEY); }
+static void unlock(void) { framed_write_reg(REG_HR_UNLOCK, TRIMETER_UNLOCK_KEY); }
 
 /* FC 0x15: `n` records (<= 120) of the open upload from linear record index k. */
 static void write_records(uint32_t k, const uint8_t *bytes, uint32_t nbytes)
@@ -314,6 +309,8 @@ static void op_plant(cursor_t *c)
     f->endstop_broken = b & 2u;
     f->stuck = b & 4u;
     f->has_stall_output = b & 8u;
+    if (b & 16u) /* the lamp-monitor photodiodes read anything the ADC can */
+        for (int l = 0; l < HAL_LED_COUNT; l++) f->lamp_adc[l] = (uint16_t)(take16(c) % 4096u);
 }
 
 static void op_unlocked_command(cursor_t *c)
@@ -324,9 +321,9 @@ static void op_unlocked_command(cursor_t *c)
                                             TRIMETER_MAP_COMMAND_ACTIVATE, TRIMETER_MAP_COMMAND_ABORT};
     uint8_t sel = take(c);
     if (!(sel & 0x40u)) unlock();
-    if (sel & 0x80u) write_reg(REG_HR_MAP_COMMAND, map_commands[sel % 4u]);
-    else write_reg(REG_HR_COMMAND, commands[sel % 4u]);
-    if (sel & 0x20u) write_reg(REG_HR_COMMAND, commands[sel % 4u]); /* a retry or a second try */
+    if (sel & 0x80u) framed_write_reg(REG_HR_MAP_COMMAND, map_commands[sel % 4u]);
+    else framed_write_reg(REG_HR_COMMAND, commands[sel % 4u]);
+    if (sel & 0x20u) framed_write_reg(REG_HR_COMMAND, commands[sel % 4u]); /* a retry or a second try */
 }
 
 /* A whole upload, as `trimeter map flash` does it, of a fixture table with a few bytes changed. */
@@ -349,9 +346,9 @@ static void op_upload_table(cursor_t *c)
     unlock();
     write_regs(our_address(), REG_HR_MAP_EXPECTED_LENGTH, 7, params);
     for (uint32_t off = 0; off < len; off += 240) write_records(off / 2, table + off, len - off < 240 ? len - off : 240);
-    write_reg(REG_HR_MAP_COMMAND, TRIMETER_MAP_COMMAND_VERIFY);
+    framed_write_reg(REG_HR_MAP_COMMAND, TRIMETER_MAP_COMMAND_VERIFY);
     if (!(how & 0x10u)) unlock();
-    write_reg(REG_HR_MAP_COMMAND, TRIMETER_MAP_COMMAND_ACTIVATE);
+    framed_write_reg(REG_HR_MAP_COMMAND, TRIMETER_MAP_COMMAND_ACTIVATE);
 }
 
 /* Bins into file fit_input (raw words from the input, so NaN, inf and anything else), then one FC 0x10 of
@@ -416,17 +413,20 @@ static void op_spectro(cursor_t *c)
     deliver(read, 10);
 }
 
-/* A standalone press: a mode (raw or valid), the button held some time, some time, a read of file
- * standalone_result at raw records. */
+/* A standalone press: a warm-up of a few seconds at most (the default's minutes would keep every press
+ * waiting), a mode (raw or valid), the button held some time, some time, a read of file standalone_result
+ * at raw records. */
 static void op_standalone(cursor_t *c)
 {
     uint8_t how = take(c);
+    uint16_t warmup = take(c) % 4u;
+    write_regs(our_address(), REG_HR_STANDALONE_WARMUP_S, 1, &warmup);
     uint16_t mode = how & 0x01u ? take16(c) : (uint16_t)(how >> 1) % 3u;
     write_regs(pick_address(how >> 6), REG_HR_STANDALONE_MODE, 1, &mode);
     f->button = true;
     run_ms(20u + take(c) % 64u);
     f->button = false;
-    run_ms(take(c) * 16u);
+    run_ms(take(c) * 64u); /* up to 16 s: a whole press (home, three set-ups, the fit) fits in */
     uint16_t rec = take16(c) % 4000u, n = (uint16_t)(1u + take(c) % 125u);
     uint8_t read[] = {our_address(), 0x14, 7, 6, 0, TRIMETER_STANDALONE_FILE_RESULT, (uint8_t)(rec >> 8), (uint8_t)rec,
                       0, (uint8_t)n, 0, 0};
@@ -462,7 +462,7 @@ static void run_op(cursor_t *c)
 int LLVMFuzzerTestOneInput(const uint8_t *data, size_t size)
 {
     if (!f) {
-        f = fake_hal_new();
+        f = fixture_fresh_hal();
         if (!f) abort();
         f->carriage_steps = 3000;
         f->endstop_steps = 0;

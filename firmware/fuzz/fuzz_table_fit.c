@@ -1,4 +1,4 @@
-/* libFuzzer target over the inverse core the firmware links (tr_fit_bins, core/fit_core.h), in single
+/* libFuzzer target over the inverse core the firmware links (tr_fit_bins, fit_core/fit_core.h), in single
  * precision as on the MCU: a format-2 device table (tests/table_fixture.c's) with bytes changed anywhere,
  * the length cut or not, and up to 8 bins of arbitrary floats.
  *
@@ -14,7 +14,7 @@
 #include <stdlib.h>
 #include <string.h>
 
-#include "../core/fit_core.h"
+#include "fit_core.h"
 #include "../tests/table_fixture.h"
 
 #define FLAGS_UNUSABLE 0x207u /* NONFINITE_INPUT | NEGATIVE_INPUT | ABOVE_ONE | BAD_BACKGROUND */

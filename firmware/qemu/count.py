@@ -103,6 +103,11 @@ def main() -> int:
         us = (mean / args.mhz, 1.5 * mean / args.mhz)
         spread = f" (min {lo}, max {hi}, {len(values)} calls)" if len(values) > 1 else ""
         print(f"  {label:<44} {mean:>9.0f}{spread}   {us[0]:.1f}-{us[1]:.1f} us")
+    for label, values in seen.items():  # a call fitting several bins: what one bin costs in it
+        several = re.search(r"(\d+) bins", label)
+        if several:
+            n = int(several.group(1))
+            print(f"  per bin in '{label}': {sum(values) / len(values) / n:,.0f}")
     return 0
 
 

@@ -5,26 +5,12 @@
 #include "../core/app.h"
 #include "../core/crc.h"
 #include "../core/regmap.h"
+#include "app_fixture.h"
 #include "check.h"
 #include "fake_hal.h"
 #include "table_fixture.h"
 
 static fake_hal_t *f;
-
-static uint32_t isr(void *ctx)
-{
-    (void)ctx;
-    return app_step_isr();
-}
-
-/* Simulated time passes in 1 ms slices with the main loop running, as on the device. */
-static void run_ms(uint32_t ms)
-{
-    for (uint32_t i = 0; i < ms; i++) {
-        fake_hal_run_until(f, f->now_us + 1000, isr, NULL);
-        app_poll();
-    }
-}
 
 /* Runs until busy clears (or the limit); returns true if it did. */
 static bool run_until_idle(uint32_t limit_ms)
@@ -36,15 +22,7 @@ static bool run_until_idle(uint32_t limit_ms)
     return !app_busy();
 }
 
-static void boot(void)
-{
-    app_init(&f->hal);
-    run_ms(1);
-}
-
-static uint8_t write_reg(uint16_t addr, uint16_t v) { return app_write_regs(NULL, addr, 1, &v); }
 static uint8_t command(uint16_t c) { return write_reg(REG_HR_COMMAND, c); }
-static void send_frame(const uint8_t *adu, size_t len);
 static void unlock(void) { CHECK_EQ_INT(write_reg(REG_HR_UNLOCK, TRIMETER_UNLOCK_KEY), MB_OK); }
 /* A destructive command, unlocked right before as the host does. */
 static uint8_t unlocked_command(uint16_t c)
@@ -67,20 +45,6 @@ static float read_f32_hr(uint16_t addr)
     return regmap_get_f32(w);
 }
 
-static uint16_t ir(uint16_t addr)
-{
-    uint16_t v = 0xDEAD;
-    CHECK_EQ_INT(app_read_regs(NULL, MB_TABLE_INPUT_REGISTERS, addr, 1, &v), MB_OK);
-    return v;
-}
-
-static uint32_t ir32(uint16_t addr)
-{
-    uint16_t w[2];
-    app_read_regs(NULL, MB_TABLE_INPUT_REGISTERS, addr, 2, w);
-    return regmap_get_u32(w);
-}
-
 static bool di(uint16_t addr)
 {
     uint8_t b = 0;
@@ -96,12 +60,11 @@ static uint8_t write_coil(uint16_t addr, bool v)
 
 static void fresh_device(void)
 {
-    if (f) fake_hal_free(f);
-    f = fake_hal_new();
+    f = fixture_fresh_hal();
     f->carriage_steps = 3000; /* somewhere mid-travel at power-on */
     f->endstop_steps = 0;
     f->hard_stop_steps = -40;
-    boot();
+    fixture_boot();
 }
 
 static void home_device(void)
@@ -290,17 +253,17 @@ static void test_config_persists_across_reboot(void)
 {
     fresh_device();
     CHECK_EQ_INT(write_f32(REG_HR_SLOT_WHITE_MM, 70.0f), MB_OK);
-    boot(); /* not saved: lost */
+    fixture_boot(); /* not saved: lost */
     CHECK(read_f32_hr(REG_HR_SLOT_WHITE_MM) == 60.0f);
     CHECK_EQ_INT(write_f32(REG_HR_SLOT_WHITE_MM, 70.0f), MB_OK);
     CHECK_EQ_INT(unlocked_command(TRIMETER_COMMAND_SAVE_CONFIG), MB_OK);
-    boot();
+    fixture_boot();
     CHECK(read_f32_hr(REG_HR_SLOT_WHITE_MM) == 70.0f);
     CHECK_EQ_INT(app_get()->config_source, TRIMETER_CONFIG_SOURCE_SAVED);
     CHECK_EQ_INT(ir(REG_IR_CONFIG_SOURCE), TRIMETER_CONFIG_SOURCE_SAVED);
     CHECK_EQ_INT(unlocked_command(TRIMETER_COMMAND_LOAD_DEFAULTS), MB_OK);
     CHECK(read_f32_hr(REG_HR_SLOT_WHITE_MM) == 60.0f);
-    boot(); /* defaults were not saved: the saved 70 comes back */
+    fixture_boot(); /* defaults were not saved: the saved 70 comes back */
     CHECK(read_f32_hr(REG_HR_SLOT_WHITE_MM) == 70.0f);
     /* flash refuses the save: storage fault, exception 04, old copy still loads */
     f->power_budget = f->bytes_programmed + 10;
@@ -308,7 +271,7 @@ static void test_config_persists_across_reboot(void)
     CHECK_EQ_INT(unlocked_command(TRIMETER_COMMAND_SAVE_CONFIG), MB_EX_SERVER_DEVICE_FAILURE);
     CHECK_EQ_INT(ir(REG_IR_FAULT_CODE), TRIMETER_FAULT_STORAGE);
     fake_hal_power_on(f);
-    boot();
+    fixture_boot();
     CHECK(read_f32_hr(REG_HR_SLOT_WHITE_MM) == 70.0f);
 }
 
@@ -343,16 +306,16 @@ static void test_config_source_says_why_defaults_run(void)
     CHECK_EQ_INT(ir(REG_IR_CONFIG_SOURCE), TRIMETER_CONFIG_SOURCE_SAVED);
     /* a firmware update that changed the register map: the saved words can't be read, defaults run */
     edit_saved_records(TRIMETER_REGMAP_HASH ^ 0x1u, -1, 0);
-    boot();
+    fixture_boot();
     CHECK_EQ_INT(ir(REG_IR_CONFIG_SOURCE), TRIMETER_CONFIG_SOURCE_OTHER_REGISTER_MAP);
     CHECK(read_f32_hr(REG_HR_SLOT_WHITE_MM) == 60.0f);
     CHECK_EQ_INT(unlocked_command(TRIMETER_COMMAND_SAVE_CONFIG), MB_OK); /* saving anew makes it this map's */
     CHECK_EQ_INT(ir(REG_IR_CONFIG_SOURCE), TRIMETER_CONFIG_SOURCE_SAVED);
-    boot();
+    fixture_boot();
     CHECK_EQ_INT(ir(REG_IR_CONFIG_SOURCE), TRIMETER_CONFIG_SOURCE_SAVED);
     /* a saved record of this map that fails the checks (homing_direction 0): refused, defaults run */
     edit_saved_records(0, REG_HR_HOMING_DIRECTION - STORAGE_CONFIG_FIRST, 0);
-    boot();
+    fixture_boot();
     CHECK_EQ_INT(ir(REG_IR_CONFIG_SOURCE), TRIMETER_CONFIG_SOURCE_REFUSED);
     CHECK_EQ_INT((int16_t)app_get()->hr[REG_HR_HOMING_DIRECTION], (int16_t)REG_HR_HOMING_DIRECTION_DEFAULT);
     CHECK_EQ_INT(unlocked_command(TRIMETER_COMMAND_LOAD_DEFAULTS), MB_OK);
@@ -520,7 +483,7 @@ static void test_map_upload_over_file_records(void)
     CHECK_EQ_INT(ir(REG_IR_MAP_SLOT_A_VALID), 1);
     CHECK_EQ_INT(ir32(REG_IR_MAP_SLOT_A_LENGTH), MAP_BYTES);
     CHECK_EQ_INT(ir(REG_IR_MAP_SLOT_A_VERSION), 42);
-    boot(); /* survives a reboot, and reads back record by record */
+    fixture_boot(); /* survives a reboot, and reads back record by record */
     CHECK_EQ_INT(ir(REG_IR_MAP_ACTIVE_SLOT), TRIMETER_MAP_SLOT_A);
     uint16_t back[1];
     CHECK_EQ_INT(app_read_file(NULL, 1, 469, 1, back), MB_OK); /* the last record */
@@ -613,7 +576,7 @@ static void test_destructive_commands_need_an_unlock_right_before(void)
     CHECK_EQ_INT(command(TRIMETER_COMMAND_SAVE_CONFIG), MB_EX_ILLEGAL_FUNCTION);
     CHECK_EQ_INT(unlocked_command(TRIMETER_COMMAND_SAVE_CONFIG), MB_OK);
     CHECK_EQ_INT(erases(), 2);
-    boot();
+    fixture_boot();
     CHECK(read_f32_hr(REG_HR_SLOT_WHITE_MM) == 75.0f);
     /* save_config with nothing changed: acknowledged, no erase, no byte programmed */
     long programmed = f->bytes_programmed;
@@ -626,11 +589,11 @@ static void test_destructive_commands_need_an_unlock_right_before(void)
     CHECK_EQ_INT(erases(), 3);
     /* the saved copy refused at boot: the defaults run, and saving them is no no-op */
     edit_saved_records(0, REG_HR_HOMING_DIRECTION - STORAGE_CONFIG_FIRST, 0);
-    boot();
+    fixture_boot();
     CHECK_EQ_INT(ir(REG_IR_CONFIG_SOURCE), TRIMETER_CONFIG_SOURCE_REFUSED);
     CHECK_EQ_INT(unlocked_command(TRIMETER_COMMAND_SAVE_CONFIG), MB_OK);
     CHECK_EQ_INT(erases(), 4);
-    boot();
+    fixture_boot();
     CHECK_EQ_INT(ir(REG_IR_CONFIG_SOURCE), TRIMETER_CONFIG_SOURCE_SAVED);
 }
 
@@ -705,7 +668,7 @@ static void test_erases_are_rate_limited_and_counted(void)
     CHECK_EQ_INT(unlocked_command(TRIMETER_COMMAND_SAVE_CONFIG), MB_OK);
     uint32_t before = erases();
     CHECK_EQ_INT(before, STORAGE_ERASE_BURST + 2);
-    boot();
+    fixture_boot();
     CHECK_EQ_INT(erases(), before);
     CHECK_EQ_INT(ir32(REG_IR_ERASE_COUNT_MAP_A), 1);
     CHECK_EQ_INT(ir(REG_IR_ERASE_REFUSALS), 0); /* since boot */
@@ -740,18 +703,6 @@ static void test_without_the_inverse_core_a_fit_is_refused_as_unavailable(void)
     /* the refused write changed nothing, the command included */
     CHECK_EQ_INT(app_read_regs(NULL, MB_TABLE_HOLDING_REGISTERS, REG_HR_FIT_COMMAND, 1, out), MB_OK);
     CHECK_EQ_INT(out[0], TRIMETER_FIT_COMMAND_NONE);
-}
-
-static void send_frame(const uint8_t *adu, size_t len)
-{
-    uint16_t crc = crc16_modbus(adu, len);
-    memcpy(f->rx, adu, len);
-    f->rx[len] = (uint8_t)crc;
-    f->rx[len + 1] = (uint8_t)(crc >> 8);
-    f->rx_len = len + 2;
-    f->rx_pos = 0;
-    f->tx_len = 0;
-    run_ms(4); /* > t3.5 (2.0 ms at 19200 baud) of silence: the frame is handled */
 }
 
 static void test_random_requests_never_break_the_app(void)
@@ -806,6 +757,6 @@ int main(void)
     RUN_TEST(test_erases_are_rate_limited_and_counted);
     RUN_TEST(test_without_the_inverse_core_a_fit_is_refused_as_unavailable);
     RUN_TEST(test_random_requests_never_break_the_app);
-    fake_hal_free(f);
+    fixture_free_hal();
     return CHECK_SUMMARY();
 }

@@ -6,34 +6,22 @@
 #include "../core/app.h"
 #include "../core/c12880.h"
 #include "../core/regmap.h"
+#include "app_fixture.h"
 #include "check.h"
 #include "fake_hal.h"
 
-/* The datasheet's numbers, restated here on purpose: the test checks the driver against them, not
- * against its own constants. */
+/* The datasheet's numbers (KACC1226E pp. 2, 7-8), restated here on purpose: the test checks the driver
+ * against them, not against its own constants. */
 #define DS_CLOCK_MIN_HZ 200000.0
 #define DS_CLOCK_MAX_HZ 5000000.0
 #define DS_ST_HIGH_MIN 6u
 #define DS_ST_LOW_MIN 375u
+#define DS_ST_CYCLE_MIN 381u /* tpi(ST) */
 #define DS_INTEGRATION_EXTRA 48u
 #define DS_FIRST_VIDEO 89u
 #define DS_PIXELS 288u
 
 static fake_hal_t *f;
-
-static uint32_t isr(void *ctx)
-{
-    (void)ctx;
-    return app_step_isr();
-}
-
-static void run_ms(uint32_t ms)
-{
-    for (uint32_t i = 0; i < ms; i++) {
-        fake_hal_run_until(f, f->now_us + 1000, isr, NULL);
-        app_poll();
-    }
-}
 
 static void boot(uint32_t clock_hz)
 {
@@ -41,18 +29,9 @@ static void boot(uint32_t clock_hz)
     f->spectro_no_eos = f->spectro_ramp = false;
     f->spectro_frames = 0;
     f->spectro_running = false;
-    app_init(&f->hal);
-    run_ms(1);
+    fixture_boot();
 }
 
-static uint16_t ir(uint16_t addr)
-{
-    uint16_t v = 0xDEAD;
-    CHECK_EQ_INT(app_read_regs(NULL, MB_TABLE_INPUT_REGISTERS, addr, 1, &v), MB_OK);
-    return v;
-}
-
-static uint8_t write_reg(uint16_t addr, uint16_t v) { return app_write_regs(NULL, addr, 1, &v); }
 
 static uint8_t set_integration(uint32_t us)
 {
@@ -75,6 +54,7 @@ static void check_timing(uint32_t clock_hz, uint32_t integration_us)
     CHECK(clock_hz >= DS_CLOCK_MIN_HZ && clock_hz <= DS_CLOCK_MAX_HZ);
     CHECK(t.st_high_clocks >= DS_ST_HIGH_MIN);
     CHECK(t.st_low_clocks >= DS_ST_LOW_MIN);
+    CHECK(t.st_high_clocks + t.st_low_clocks >= DS_ST_CYCLE_MIN);
     CHECK_EQ_INT(t.pixels, DS_PIXELS);
     CHECK_EQ_INT(t.first_video_clock, DS_FIRST_VIDEO);
     CHECK_EQ_INT(t.eos_clock, DS_FIRST_VIDEO + DS_PIXELS); /* EOS right after the last pixel */
@@ -246,7 +226,7 @@ static void test_wavelength_polynomial(void)
 
 int main(void)
 {
-    f = fake_hal_new();
+    f = fixture_fresh_hal();
     if (!f) return 2;
     RUN_TEST(test_timing_within_datasheet_limits);
     RUN_TEST(test_plan_refuses_clock_out_of_range);
@@ -257,6 +237,6 @@ int main(void)
     RUN_TEST(test_saturated_frame_is_flagged);
     RUN_TEST(test_refusals);
     RUN_TEST(test_wavelength_polynomial);
-    fake_hal_free(f);
+    fixture_free_hal();
     return CHECK_SUMMARY();
 }

@@ -7,7 +7,8 @@
 
 #include "../core/app.h"
 #include "../core/crc.h"
-#include "../core/fit_core.h"
+#include "fit_core.h"
+#include "table_fit.h"
 #include "../core/regmap.h"
 #include "check.h"
 #include "fake_hal.h"
@@ -16,8 +17,6 @@
 
 #define MAP_GRID 4
 #define MAP_BYTES 940
-#define FLAG_NONFINITE_INPUT 0x1u /* trimeter.inversion.flags.FitFlag */
-#define FLAG_BAD_BACKGROUND 0x200u
 
 static fake_hal_t *f;
 static uint8_t map_data[MAP_BYTES];
@@ -46,8 +45,8 @@ int tr_fit_bins(const uint8_t *table, size_t len, const float *in, size_t n, flo
         float *o = &out[i * TR_FIT_OUT_PER_BIN];
         bool finite = true;
         for (int k = 0; k < TR_FIT_IN_PER_BIN; k++) finite = finite && isfinite(b[k]);
-        flags[i] = (uint16_t)((finite ? 0u : FLAG_NONFINITE_INPUT) |
-                              (b[TR_FIT_IN_RHO_B] < b[TR_FIT_IN_RHO_W] ? 0u : FLAG_BAD_BACKGROUND));
+        flags[i] = (uint16_t)((finite ? 0u : TM_FLAG_NONFINITE_INPUT) |
+                              (b[TR_FIT_IN_RHO_B] < b[TR_FIT_IN_RHO_W] ? 0u : TM_FLAG_BAD_BACKGROUND));
         o[TR_FIT_OUT_ALPHA] = finite ? b[TR_FIT_IN_I_B] : NAN;
         o[TR_FIT_OUT_SIGMA_T] = b[TR_FIT_IN_I_W] * 10.0f;
         o[TR_FIT_OUT_G] = b[TR_FIT_IN_I_C] - b[TR_FIT_IN_RHO_B] - b[TR_FIT_IN_RHO_W];
@@ -56,36 +55,6 @@ int tr_fit_bins(const uint8_t *table, size_t len, const float *in, size_t n, flo
 }
 
 /* ---- helpers over the app's callbacks */
-static uint32_t isr(void *ctx)
-{
-    (void)ctx;
-    return app_step_isr();
-}
-
-static void run_ms(uint32_t ms)
-{
-    for (uint32_t i = 0; i < ms; i++) {
-        fake_hal_run_until(f, f->now_us + 1000, isr, NULL);
-        app_poll();
-    }
-}
-
-static uint16_t ir(uint16_t addr)
-{
-    uint16_t v = 0xDEAD;
-    CHECK_EQ_INT(app_read_regs(NULL, MB_TABLE_INPUT_REGISTERS, addr, 1, &v), MB_OK);
-    return v;
-}
-
-static uint32_t ir32(uint16_t addr)
-{
-    uint16_t w[2];
-    app_read_regs(NULL, MB_TABLE_INPUT_REGISTERS, addr, 2, w);
-    return regmap_get_u32(w);
-}
-
-static uint8_t write_reg(uint16_t addr, uint16_t v) { return app_write_regs(NULL, addr, 1, &v); }
-
 /* One FC 0x10 over 24..27, as the host sends it: count, thickness, then the command. */
 static uint8_t fit_command(uint16_t count, float thickness_mm, uint16_t command)
 {
@@ -98,12 +67,10 @@ static uint8_t fit_command(uint16_t count, float thickness_mm, uint16_t command)
 
 static void fresh_device(void)
 {
-    if (f) fake_hal_free(f);
-    f = fake_hal_new();
+    f = fixture_fresh_hal();
     memset(&core, 0, sizeof core);
     core.fail_after_calls = -1;
-    app_init(&f->hal);
-    run_ms(1);
+    fixture_boot();
 }
 
 /* Uploads, verifies and activates the fixture table (thickness 0.4 mm) as `trimeter map flash` does. */
@@ -219,9 +186,9 @@ static void test_nan_and_impossible_inputs_reach_the_core_and_come_back_flagged(
     CHECK_EQ_INT(ir(REG_IR_FIT_STATUS), TRIMETER_FIT_STATUS_DONE);
     uint16_t out[2 * TRIMETER_FIT_OUTPUT_WORD_STRIDE];
     CHECK_EQ_INT(app_read_file(NULL, TRIMETER_FIT_FILE_OUTPUT, 0, 2 * TRIMETER_FIT_OUTPUT_WORD_STRIDE, out), MB_OK);
-    CHECK_EQ_INT(out[TRIMETER_FIT_OUTPUT_WORD_FLAGS], FLAG_NONFINITE_INPUT);
+    CHECK_EQ_INT(out[TRIMETER_FIT_OUTPUT_WORD_FLAGS], TM_FLAG_NONFINITE_INPUT);
     CHECK(isnan(regmap_get_f32(&out[TRIMETER_FIT_OUTPUT_WORD_ALPHA])));
-    CHECK_EQ_INT(out[TRIMETER_FIT_OUTPUT_WORD_STRIDE + TRIMETER_FIT_OUTPUT_WORD_FLAGS], FLAG_BAD_BACKGROUND);
+    CHECK_EQ_INT(out[TRIMETER_FIT_OUTPUT_WORD_STRIDE + TRIMETER_FIT_OUTPUT_WORD_FLAGS], TM_FLAG_BAD_BACKGROUND);
 }
 
 static void test_run_is_refused_with_its_reason_before_any_bin_is_fitted(void)
@@ -278,19 +245,6 @@ static void test_while_a_fit_runs_its_inputs_and_table_are_left_alone(void)
     CHECK_EQ_INT(app_write_file(NULL, TRIMETER_FIT_FILE_INPUT, 0, 2, w), MB_OK); /* writable again */
 }
 
-/* A request through the UART (address .. PDU; the CRC is added), handled after the line's silence. */
-static void send_adu(const uint8_t *adu, size_t len)
-{
-    uint16_t crc = crc16_modbus(adu, len);
-    memcpy(f->rx, adu, len);
-    f->rx[len] = (uint8_t)crc;
-    f->rx[len + 1] = (uint8_t)(crc >> 8);
-    f->rx_len = len + 2;
-    f->rx_pos = 0;
-    f->tx_len = 0;
-    run_ms(4); /* > t3.5 at 19200 baud */
-}
-
 static void test_a_broadcast_neither_writes_bins_nor_runs_a_fit(void)
 {
     fresh_device();
@@ -298,7 +252,7 @@ static void test_a_broadcast_neither_writes_bins_nor_runs_a_fit(void)
     write_bins(1);
     /* FC 0x15 to address 0: one record of file fit_input */
     const uint8_t bins[] = {0, 0x15, 9, 6, 0, TRIMETER_FIT_FILE_INPUT, 0, 0, 0, 1, 0x12, 0x34};
-    send_adu(bins, sizeof bins);
+    send_frame(bins, sizeof bins);
     CHECK_EQ_INT(f->tx_len, 0);
     uint16_t back;
     CHECK_EQ_INT(app_read_file(NULL, TRIMETER_FIT_FILE_INPUT, 0, 1, &back), MB_OK);
@@ -306,7 +260,7 @@ static void test_a_broadcast_neither_writes_bins_nor_runs_a_fit(void)
     /* FC 0x10 to address 0 over 24..27: count 1, 0.4 mm (0x3ECCCCCD), run */
     const uint8_t run[] = {0, 0x10, 0, REG_HR_FIT_BIN_COUNT, 0, 4, 8, 0, 1, 0x3E, 0xCC, 0xCC, 0xCD,
                            0, TRIMETER_FIT_COMMAND_RUN};
-    send_adu(run, sizeof run);
+    send_frame(run, sizeof run);
     CHECK_EQ_INT(f->tx_len, 0);
     CHECK_EQ_INT(ir(REG_IR_FIT_STATUS), TRIMETER_FIT_STATUS_IDLE);
     CHECK_EQ_INT(core.bin_calls, 0);
@@ -314,7 +268,7 @@ static void test_a_broadcast_neither_writes_bins_nor_runs_a_fit(void)
     uint8_t unicast[sizeof run];
     memcpy(unicast, run, sizeof run);
     unicast[0] = app_get()->mb.address;
-    send_adu(unicast, sizeof unicast);
+    send_frame(unicast, sizeof unicast);
     CHECK_EQ_INT(ir(REG_IR_FIT_STATUS), TRIMETER_FIT_STATUS_DONE);
     CHECK_EQ_INT(core.bin_calls, 1);
 }
@@ -343,6 +297,6 @@ int main(void)
     RUN_TEST(test_while_a_fit_runs_its_inputs_and_table_are_left_alone);
     RUN_TEST(test_a_core_failure_mid_run_stops_it_with_error_core);
     RUN_TEST(test_a_broadcast_neither_writes_bins_nor_runs_a_fit);
-    fake_hal_free(f);
+    fixture_free_hal();
     return CHECK_SUMMARY();
 }

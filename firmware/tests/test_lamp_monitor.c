@@ -2,32 +2,11 @@
  * served as the lamp_monitor_* input registers; a board without a monitor reads 0. */
 #include "../core/app.h"
 #include "../core/lamp_monitor.h"
+#include "app_fixture.h"
 #include "check.h"
 #include "fake_hal.h"
 
 static fake_hal_t *f;
-
-static uint32_t isr(void *ctx)
-{
-    (void)ctx;
-    return app_step_isr();
-}
-
-/* The main loop runs every 250 µs: the monitor must still sample once per period, not per turn. */
-static void run_ms(uint32_t ms)
-{
-    for (uint32_t i = 0; i < 4 * ms; i++) {
-        fake_hal_run_until(f, f->now_us + 250, isr, NULL);
-        app_poll();
-    }
-}
-
-static uint16_t ir(uint16_t addr)
-{
-    uint16_t v = 0xDEAD;
-    CHECK_EQ_INT(app_read_regs(NULL, MB_TABLE_INPUT_REGISTERS, addr, 1, &v), MB_OK);
-    return v;
-}
 
 static void set_lamps(uint16_t left, uint16_t right, uint16_t collimated)
 {
@@ -39,8 +18,7 @@ static void set_lamps(uint16_t left, uint16_t right, uint16_t collimated)
 static void test_registers_follow_each_photodiode(void)
 {
     set_lamps(3000, 2500, 40);
-    app_init(&f->hal);
-    run_ms(1);
+    fixture_boot();
     CHECK_EQ_INT(ir(REG_IR_LAMP_MONITOR_PANEL_LEFT), 3000); /* the first sample fills the average */
     CHECK_EQ_INT(ir(REG_IR_LAMP_MONITOR_PANEL_RIGHT), 2500);
     CHECK_EQ_INT(ir(REG_IR_LAMP_MONITOR_COLLIMATED), 40);
@@ -103,13 +81,14 @@ static void test_no_monitor_reads_zero(void)
 
 int main(void)
 {
-    f = fake_hal_new();
+    f = fixture_fresh_hal();
     if (!f) return 1;
+    fixture_loop_every_us(250); /* the monitor must still sample once per period, not per loop turn */
     RUN_TEST(test_registers_follow_each_photodiode);
     RUN_TEST(test_one_sample_per_period);
     RUN_TEST(test_noise_is_averaged);
     RUN_TEST(test_out_of_range_samples_are_clipped);
     RUN_TEST(test_no_monitor_reads_zero);
-    fake_hal_free(f);
+    fixture_free_hal();
     return CHECK_SUMMARY();
 }

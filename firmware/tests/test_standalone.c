@@ -1,13 +1,16 @@
 /* Standalone presses through the app: a press with standalone_mode set homes, captures the black, white
  * and open set-ups (each with its own auto-exposed integration time and dark), calibrates or fits against
- * a stand-in inverse core (defined here, transparent: alpha = I_b, sigma_t = 10 I_w, g = I_c - rho_b - rho_w)
- * and keeps the result in file standalone_result; the refusals, the LED and the bins' arithmetic. */
+ * the stand-in inverse core (standin/fit_core_standin.c, linked into this test only; transparent:
+ * alpha = I_b, sigma_t = 10 I_w, g = I_c - rho_b - rho_w) and keeps the result in file standalone_result;
+ * the refusals, the LED and the bins' arithmetic; the lamps' warm-up before a press and their photodiodes
+ * against the calibration's. */
 #include <math.h>
 #include <string.h>
 
 #include "../core/app.h"
 #include "../core/crc.h"
-#include "../core/fit_core.h"
+#include "fit_core.h"
+#include "table_fit.h"
 #include "../core/regmap.h"
 #include "../core/standalone.h"
 #include "check.h"
@@ -17,34 +20,22 @@
 
 #define MAP_GRID 4
 #define MAP_BYTES 940
-#define FLAG_NONFINITE_INPUT 0x1u /* trimeter.inversion.flags.FitFlag */
 #define DARK_COUNTS 100u
 #define UNLIT_PIXELS 10u          /* the first pixels see no light in any set-up */
 
 static fake_hal_t *f;
 static uint8_t map_data[MAP_BYTES];
 
-int tr_fit_bins(const uint8_t *table, size_t len, const float *in, size_t n, float *out, uint16_t *flags)
-{
-    (void)table;
-    (void)len;
-    for (size_t i = 0; i < n; i++) {
-        const float *b = &in[i * TR_FIT_IN_PER_BIN];
-        float *o = &out[i * TR_FIT_OUT_PER_BIN];
-        bool finite = true;
-        for (int k = 0; k < TR_FIT_IN_PER_BIN; k++) finite = finite && isfinite(b[k]);
-        flags[i] = finite ? 0u : FLAG_NONFINITE_INPUT;
-        o[TR_FIT_OUT_ALPHA] = finite ? b[TR_FIT_IN_I_B] : NAN;
-        o[TR_FIT_OUT_SIGMA_T] = finite ? 10.0f * b[TR_FIT_IN_I_W] : NAN;
-        o[TR_FIT_OUT_G] = finite ? b[TR_FIT_IN_I_C] - b[TR_FIT_IN_RHO_B] - b[TR_FIT_IN_RHO_W] : NAN;
-    }
-    return TR_FIT_OK;
-}
-
 /* ---- a plant for the chip: each set-up's light, counts per ms of integration, by slot and shutters */
 static struct {
     float black, white, open; /* panels on the black / white slot, the beam through the open slot */
 } light;
+/* each lamp's emission relative to nominal (an aged LED: < 1); it scales the chip's light and the lamp's
+ * photodiode alike; monitor_missing: a board without lamp-monitor photodiodes (they read 0) */
+static float emission[HAL_LED_COUNT] = {1.0f, 1.0f, 1.0f};
+static bool monitor_missing;
+#define MONITOR_DARK_COUNTS 60.0f
+#define MONITOR_SPAN_COUNTS 3000.0f
 
 static void feed_chip(void)
 {
@@ -56,9 +47,14 @@ static void feed_chip(void)
     float rate = 0.0f; /* counts per ms */
     bool panels = a->act.shutter_open[HAL_SHUTTER_PANEL_LEFT] && a->act.led_on[HAL_LED_PANEL_LEFT];
     bool beam = a->act.shutter_open[HAL_SHUTTER_COLLIMATED] && a->act.led_on[HAL_LED_COLLIMATED];
-    if (panels && slot == TRIMETER_SLOT_BLACK) rate += light.black;
-    if (panels && slot == TRIMETER_SLOT_WHITE) rate += light.white;
-    if (beam && slot == TRIMETER_SLOT_OPEN) rate += light.open;
+    float panel_emission = emission[HAL_LED_PANEL_LEFT];
+    if (panels && slot == TRIMETER_SLOT_BLACK) rate += light.black * panel_emission;
+    if (panels && slot == TRIMETER_SLOT_WHITE) rate += light.white * panel_emission;
+    if (beam && slot == TRIMETER_SLOT_OPEN) rate += light.open * emission[HAL_LED_COLLIMATED];
+    for (int l = 0; l < HAL_LED_COUNT; l++) {
+        bool lit = a->act.shutter_open[l] && a->act.led_on[l];
+        f->lamp_adc[l] = monitor_missing ? 0u : (uint16_t)(MONITOR_DARK_COUNTS + (lit ? MONITOR_SPAN_COUNTS * emission[l] : 0.0f));
+    }
     float ms = (float)a->standalone.integration_us[a->press_setup < STANDALONE_SETUPS ? a->press_setup : 0] / 1000.0f;
     for (unsigned p = 0; p < C12880_PIXELS; p++) {
         float v = DARK_COUNTS + (p < UNLIT_PIXELS ? 0.0f : rate * ms);
@@ -66,44 +62,23 @@ static void feed_chip(void)
     }
 }
 
-static uint32_t isr(void *ctx)
+/* Time passing with nothing to capture, in coarse steps (the warm-up's minutes). */
+static void idle_s(uint32_t s)
 {
-    (void)ctx;
-    return app_step_isr();
-}
-
-static void run_ms(uint32_t ms)
-{
-    for (uint32_t i = 0; i < ms; i++) {
-        feed_chip();
-        fake_hal_run_until(f, f->now_us + 1000, isr, NULL);
+    for (uint32_t i = 0; i < 100u * s; i++) {
+        fake_hal_run_until(f, f->now_us + 10000, fixture_step_isr, NULL);
         app_poll();
     }
 }
 
-static uint16_t ir(uint16_t addr)
-{
-    uint16_t v = 0xDEAD;
-    CHECK_EQ_INT(app_read_regs(NULL, MB_TABLE_INPUT_REGISTERS, addr, 1, &v), MB_OK);
-    return v;
-}
-
-static uint32_t ir32(uint16_t addr)
-{
-    uint16_t w[2];
-    app_read_regs(NULL, MB_TABLE_INPUT_REGISTERS, addr, 2, w);
-    return regmap_get_u32(w);
-}
-
-static uint8_t write_reg(uint16_t addr, uint16_t v) { return app_write_regs(NULL, addr, 1, &v); }
-
 static void fresh_device(bool spectrometer)
 {
-    if (f) fake_hal_free(f);
-    f = fake_hal_new();
+    f = fixture_fresh_hal();
     f->spectro_clock_hz = spectrometer ? 1000000u : 0u;
-    app_init(&f->hal);
-    run_ms(1);
+    for (int l = 0; l < HAL_LED_COUNT; l++) emission[l] = 1.0f;
+    monitor_missing = false;
+    fixture_each_ms(feed_chip); /* the chip sees each set-up's light as the main loop runs */
+    fixture_boot();
 }
 
 /* Uploads, verifies and activates the fixture table as `trimeter map flash` does. */
@@ -183,6 +158,7 @@ static void test_calibration_then_measurement(void)
     regmap_put_u32(it, 4000);
     CHECK_EQ_INT(app_write_regs(NULL, REG_HR_SPECTRO_INTEGRATION_US, 2, it), MB_OK);
     CHECK_EQ_INT(write_reg(REG_HR_SPECTRO_FRAMES, 2), MB_OK);
+    CHECK_EQ_INT(write_reg(REG_HR_STANDALONE_WARMUP_S, 0), MB_OK); /* test_a_press_waits_for_warm_lamps */
     CHECK_EQ_INT(write_reg(REG_HR_STANDALONE_MODE, TRIMETER_STANDALONE_MODE_CALIBRATE), MB_OK);
     light.black = 50.0f, light.white = 250.0f, light.open = 400.0f;
 
@@ -206,8 +182,8 @@ static void test_calibration_then_measurement(void)
     CHECK_EQ_INT(ir32(REG_IR_STANDALONE_INTEGRATION_BLACK_US), 32000);
     CHECK_EQ_INT(ir32(REG_IR_STANDALONE_INTEGRATION_WHITE_US), 8000);
     CHECK_EQ_INT(ir32(REG_IR_STANDALONE_INTEGRATION_OPEN_US), 4000);
-    /* every shutter closed and every LED off after the press */
-    for (int s = 0; s < HAL_SHUTTER_COUNT; s++) CHECK(!app_get()->act.shutter_open[s] && !app_get()->act.led_on[s]);
+    /* every shutter closed after the press, every lamp still on (warm for the next press) */
+    for (int s = 0; s < HAL_SHUTTER_COUNT; s++) CHECK(!app_get()->act.shutter_open[s] && app_get()->act.led_on[s]);
     CHECK(near(result_f32(20, TRIMETER_STANDALONE_WORD_DIFFUSE), 250e3f / 0.99f, 1e-3f));
     CHECK(near(result_f32(20, TRIMETER_STANDALONE_WORD_COLLIMATED), 400e3f, 1e-3f));
     CHECK(near(result_f32(20, TRIMETER_STANDALONE_WORD_RHO_BLACK), 50.0f * 0.99f / 250.0f, 1e-3f));
@@ -232,7 +208,7 @@ static void test_calibration_then_measurement(void)
     }
     /* an unlit bin: NaN inputs, flagged by the fit, not counted as a flagged result */
     CHECK(isnan(result_f32(0, TRIMETER_STANDALONE_WORD_ALPHA)));
-    CHECK_EQ_INT(result_u16(0, TRIMETER_STANDALONE_WORD_FIT_FLAGS), FLAG_NONFINITE_INPUT);
+    CHECK_EQ_INT(result_u16(0, TRIMETER_STANDALONE_WORD_FIT_FLAGS), TM_FLAG_NONFINITE_INPUT);
     /* wavelengths: the mean of each pair's, increasing */
     float wl0 = result_f32(0, TRIMETER_STANDALONE_WORD_WAVELENGTH_NM);
     float want0 = 0.5f * (c12880_wavelength_nm(app_get()->cfg.spectro_wl, 1) + c12880_wavelength_nm(app_get()->cfg.spectro_wl, 2));
@@ -244,6 +220,102 @@ static void test_calibration_then_measurement(void)
     CHECK_EQ_INT(app_read_file(NULL, TRIMETER_STANDALONE_FILE_RESULT,
                                (uint16_t)(STANDALONE_BINS * TRIMETER_STANDALONE_WORD_STRIDE - 1), 2, w),
                  MB_EX_ILLEGAL_DATA_ADDRESS);
+}
+
+static float ir_f32(uint16_t addr)
+{
+    uint16_t w[2];
+    CHECK_EQ_INT(app_read_regs(NULL, MB_TABLE_INPUT_REGISTERS, addr, 2, w), MB_OK);
+    return regmap_get_f32(w);
+}
+
+/* A device calibrated with warm lamps (no warm-up wait: standalone_warmup_s 0), ready to measure. */
+static void calibrated_device(bool monitor)
+{
+    fresh_device(true);
+    monitor_missing = !monitor;
+    activate_table();
+    CHECK_EQ_INT(write_reg(REG_HR_STANDALONE_WARMUP_S, 0), MB_OK);
+    CHECK_EQ_INT(write_reg(REG_HR_STANDALONE_MODE, TRIMETER_STANDALONE_MODE_CALIBRATE), MB_OK);
+    light.black = 50.0f, light.white = 250.0f, light.open = 400.0f;
+    CHECK_EQ_INT(press(120000), TRIMETER_STANDALONE_STATUS_CALIBRATED);
+    CHECK(isnan(ir_f32(REG_IR_STANDALONE_LAMP_COLLIMATED))); /* a calibration compares nothing */
+    light.black = 30.0f, light.white = 200.0f, light.open = 100.0f; /* a sample in the holder */
+}
+
+static void test_a_press_waits_for_warm_lamps(void)
+{
+    fresh_device(true);
+    activate_table();
+    CHECK_EQ_INT(app_get()->hr[REG_HR_STANDALONE_WARMUP_S], 300);
+    CHECK_EQ_INT(ir(REG_IR_STANDALONE_WARMUP_REMAINING_S), 300);
+    CHECK_EQ_INT(write_reg(REG_HR_STANDALONE_MODE, TRIMETER_STANDALONE_MODE_CALIBRATE), MB_OK);
+    for (int l = 0; l < HAL_LED_COUNT; l++) CHECK(app_get()->act.led_on[l]); /* the mode switches the lamps on */
+    for (int s = 0; s < HAL_SHUTTER_COUNT; s++) CHECK(!app_get()->act.shutter_open[s]);
+    idle_s(100);
+    CHECK_EQ_INT(ir(REG_IR_STANDALONE_WARMUP_REMAINING_S), 200);
+    light.black = 50.0f, light.white = 250.0f, light.open = 400.0f;
+    f->button = true;
+    run_ms(60);
+    f->button = false;
+    idle_s(190); /* pressed 100 s into the warm-up: it waits, busy, nothing moves */
+    CHECK_EQ_INT(ir(REG_IR_STANDALONE_STATUS), TRIMETER_STANDALONE_STATUS_BUSY);
+    CHECK_EQ_INT(app_get()->act.pattern, STATUS_SLOW_BLINK);
+    CHECK(!app_get()->motion.homed && !motion_busy(&app_get()->motion));
+    CHECK(ir(REG_IR_STANDALONE_WARMUP_REMAINING_S) > 0 && ir(REG_IR_STANDALONE_WARMUP_REMAINING_S) <= 10);
+    CHECK_EQ_INT(press(0), TRIMETER_STANDALONE_STATUS_BUSY); /* a second press while it waits: ignored */
+    idle_s(12);
+    CHECK_EQ_INT(ir(REG_IR_STANDALONE_WARMUP_REMAINING_S), 0);
+    CHECK(app_get()->motion.homed || motion_busy(&app_get()->motion)); /* warm: the press went on */
+    uint16_t status = TRIMETER_STANDALONE_STATUS_BUSY;
+    for (int i = 0; i < 120000 && status == TRIMETER_STANDALONE_STATUS_BUSY; i++) {
+        run_ms(1);
+        status = ir(REG_IR_STANDALONE_STATUS);
+    }
+    CHECK_EQ_INT(status, TRIMETER_STANDALONE_STATUS_CALIBRATED);
+
+    /* a lamp switched off by a host starts the warm-up again: the next press waits for it */
+    uint8_t off = 0;
+    CHECK_EQ_INT(app_write_bits(NULL, REG_COIL_LED_COLLIMATED_ON, 1, &off), MB_OK);
+    run_ms(2);
+    CHECK_EQ_INT(ir(REG_IR_STANDALONE_WARMUP_REMAINING_S), 300);
+    f->button = true;
+    run_ms(60);
+    f->button = false;
+    idle_s(5);
+    CHECK(app_get()->act.led_on[HAL_LED_COLLIMATED]); /* the press switched it on again */
+    CHECK_EQ_INT(ir(REG_IR_STANDALONE_STATUS), TRIMETER_STANDALONE_STATUS_BUSY);
+    CHECK(ir(REG_IR_STANDALONE_WARMUP_REMAINING_S) >= 294);
+}
+
+static void test_a_lamp_changed_since_the_calibration_flags_the_result(void)
+{
+    calibrated_device(true);
+    CHECK_EQ_INT(press(120000), TRIMETER_STANDALONE_STATUS_DONE); /* unchanged lamps */
+    CHECK(fabsf(ir_f32(REG_IR_STANDALONE_LAMP_PANEL_LEFT) - 1.0f) < 1e-3f);
+    CHECK(fabsf(ir_f32(REG_IR_STANDALONE_LAMP_COLLIMATED) - 1.0f) < 1e-3f);
+
+    emission[HAL_LED_PANEL_LEFT] = emission[HAL_LED_PANEL_RIGHT] = 0.97f; /* the panels dimmed by 3 % */
+    CHECK_EQ_INT(press(120000), TRIMETER_STANDALONE_STATUS_LAMP_CHANGED);
+    CHECK_EQ_INT(app_get()->act.pattern, STATUS_DOUBLE_BLINK);
+    CHECK(fabsf(ir_f32(REG_IR_STANDALONE_LAMP_PANEL_RIGHT) - 0.97f) < 1e-3f);
+    CHECK(fabsf(ir_f32(REG_IR_STANDALONE_LAMP_COLLIMATED) - 1.0f) < 1e-3f);
+    CHECK_EQ_INT(ir(REG_IR_STANDALONE_FLAGGED_BINS), 0); /* the bins fitted; the lamps make it unreliable */
+    CHECK(ir(REG_IR_STANDALONE_BINS) == STANDALONE_BINS && !isnan(result_f32(20, TRIMETER_STANDALONE_WORD_ALPHA)));
+
+    emission[HAL_LED_PANEL_LEFT] = emission[HAL_LED_PANEL_RIGHT] = 0.99f; /* within the tolerance */
+    emission[HAL_LED_COLLIMATED] = 1.015f;
+    CHECK_EQ_INT(press(120000), TRIMETER_STANDALONE_STATUS_DONE);
+    CHECK(fabsf(ir_f32(REG_IR_STANDALONE_LAMP_COLLIMATED) - 1.015f) < 1e-3f);
+
+    emission[HAL_LED_COLLIMATED] = 1.03f; /* brighter counts too: the ratio is off either way */
+    CHECK_EQ_INT(press(120000), TRIMETER_STANDALONE_STATUS_LAMP_CHANGED);
+
+    /* a board without lamp-monitor photodiodes: nothing to compare, nothing flagged (NaN levels) */
+    calibrated_device(false);
+    emission[HAL_LED_COLLIMATED] = 0.9f;
+    CHECK_EQ_INT(press(120000), TRIMETER_STANDALONE_STATUS_DONE);
+    CHECK(isnan(ir_f32(REG_IR_STANDALONE_LAMP_COLLIMATED)));
 }
 
 static void test_a_flagged_lit_bin_flags_the_result(void)
@@ -281,7 +353,7 @@ static void test_a_flagged_lit_bin_flags_the_result(void)
                  STANDALONE_CAPTURE_SATURATED);
     standalone_calibrate(&s, 0.99f); /* a clean calibration */
     standalone_fit_input(&s, in);
-    out[0 * TRIMETER_FIT_OUTPUT_WORD_STRIDE + TRIMETER_FIT_OUTPUT_WORD_FLAGS] = FLAG_NONFINITE_INPUT; /* unlit bin */
+    out[0 * TRIMETER_FIT_OUTPUT_WORD_STRIDE + TRIMETER_FIT_OUTPUT_WORD_FLAGS] = TM_FLAG_NONFINITE_INPUT; /* unlit bin */
     standalone_take_fit(&s, out, STANDALONE_BINS);
     CHECK_EQ_INT(s.status, TRIMETER_STANDALONE_STATUS_DONE);
     out[70 * TRIMETER_FIT_OUTPUT_WORD_STRIDE + TRIMETER_FIT_OUTPUT_WORD_FLAGS] = 0x10u; /* a lit bin's fit flag */
@@ -296,7 +368,9 @@ int main(void)
     RUN_TEST(test_mode_off_leaves_presses_to_the_host);
     RUN_TEST(test_refusals);
     RUN_TEST(test_calibration_then_measurement);
+    RUN_TEST(test_a_press_waits_for_warm_lamps);
+    RUN_TEST(test_a_lamp_changed_since_the_calibration_flags_the_result);
     RUN_TEST(test_a_flagged_lit_bin_flags_the_result);
-    if (f) fake_hal_free(f);
+    fixture_free_hal();
     return CHECK_SUMMARY();
 }

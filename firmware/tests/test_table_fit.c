@@ -1,4 +1,4 @@
-/* The inverse core the firmware links (tr_fit_bins, fit_core.h; host/trimeter/inversion/native/table_fit.c)
+/* The inverse core the firmware links (tr_fit_bins, fit_core.h; fit_core/table_fit.c at the root)
  * under the sanitizers, in single precision as on the MCU: a format-2 table is taken, any float input is a
  * flagged bin (NaN outputs where unusable) and never a fault, and a table the core cannot use — a defect
  * anywhere in its header, bytes changed anywhere else, a short or misaligned buffer — is refused or fitted
@@ -6,16 +6,12 @@
 #include <math.h>
 #include <string.h>
 
-#include "../core/fit_core.h"
+#include "fit_core.h"
+#include "table_fit.h"
 #include "check.h"
 #include "table_fixture.h"
 
-#define FLAG_NONFINITE_INPUT 0x1u /* trimeter.inversion.flags.FitFlag */
-#define FLAG_NEGATIVE_INPUT 0x2u
-#define FLAG_ABOVE_ONE 0x4u
-#define FLAG_IC_BELOW_FLOOR 0x10u
-#define FLAG_BAD_BACKGROUND 0x200u
-#define FLAGS_UNUSABLE (FLAG_NONFINITE_INPUT | FLAG_NEGATIVE_INPUT | FLAG_ABOVE_ONE | FLAG_BAD_BACKGROUND)
+#define FLAGS_UNUSABLE (TM_FLAG_NONFINITE_INPUT | TM_FLAG_NEGATIVE_INPUT | TM_FLAG_ABOVE_ONE | TM_FLAG_BAD_BACKGROUND)
 /* the bits the core may set: FitFlag up to UNDERDETERMINED, never THICKNESS_DISAGREE (several thicknesses)
  * or STD_APPROXIMATE (it returns no stds) */
 #define FLAGS_KNOWN 0x6FFu
@@ -79,7 +75,7 @@ static void test_any_float_input_is_a_flagged_bin_never_a_fault(void)
             in[k] = specials[s];
             CHECK_EQ_INT(tr_fit_bins(table, length, in, 1, out, &flags), TR_FIT_OK);
             check_outputs(out, &flags, 1);
-            if (!isfinite(specials[s])) CHECK(flags & FLAG_NONFINITE_INPUT);
+            if (!isfinite(specials[s])) CHECK(flags & TM_FLAG_NONFINITE_INPUT);
         }
     /* and random mixes of them */
     for (int trial = 0; trial < 3000; trial++) {
@@ -89,7 +85,7 @@ static void test_any_float_input_is_a_flagged_bin_never_a_fault(void)
     }
     const float dark[TR_FIT_IN_PER_BIN] = {0.1f, 0.3f, 0.0f, 0.02f, 0.95f};
     CHECK_EQ_INT(tr_fit_bins(table, length, dark, 1, out, &flags), TR_FIT_OK);
-    CHECK(flags & FLAG_IC_BELOW_FLOOR);
+    CHECK(flags & TM_FLAG_IC_BELOW_FLOOR);
     CHECK(isfinite(out[TR_FIT_OUT_SIGMA_T])); /* a lower bound */
 }
 

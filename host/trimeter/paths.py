@@ -1,7 +1,9 @@
 """Where the repository's declared-once files live (the package is installed editable from the repo)."""
 
+import contextlib
 import os
 import stat
+from collections.abc import Iterator
 from pathlib import Path
 
 import platformdirs
@@ -10,6 +12,8 @@ REPO_ROOT = Path(__file__).resolve().parents[2]
 HARDWARE_DIR = REPO_ROOT / "hardware"
 MAPS_DIR = REPO_ROOT / "maps"
 GEOMETRY_FILE = HARDWARE_DIR / "geometry.toml"
+# the C the host's compiled kernel shares with the firmware (the inverse core, fit_core.h)
+FIT_CORE_DIR = REPO_ROOT / "fit_core"
 
 
 def config_dir() -> Path:
@@ -20,6 +24,23 @@ def config_dir() -> Path:
 def data_dir() -> Path:
     """The user's trimeter data directory: calibration, results, spool (TRIMETER_DATA_DIR overrides it)."""
     return Path(os.environ.get("TRIMETER_DATA_DIR") or platformdirs.user_data_dir("trimeter"))
+
+
+@contextlib.contextmanager
+def user_dirs_at(*, data: Path, config: Path | None = None) -> Iterator[None]:
+    """TRIMETER_DATA_DIR (and TRIMETER_CONFIG_DIR, if given) pointed at these while the block runs (a demo or a
+    benchmark whose calibration must never touch the user's), restored afterwards, also on an error."""
+    wanted = {"TRIMETER_DATA_DIR": data, "TRIMETER_CONFIG_DIR": config}
+    saved = {key: os.environ.get(key) for key, value in wanted.items() if value is not None}
+    os.environ.update({key: str(value) for key, value in wanted.items() if value is not None})
+    try:
+        yield
+    finally:
+        for key, value in saved.items():
+            if value is None:
+                os.environ.pop(key, None)
+            else:
+                os.environ[key] = value
 
 
 # ------------------------------------------------------------------------ reading results safely

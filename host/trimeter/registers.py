@@ -9,7 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from enum import IntEnum
 
-REGMAP_HASH = 0x29B0152C
+REGMAP_HASH = 0x6BF8C063
 FIRMWARE_VERSION = (0, 1, 0)
 VENDOR_NAME = 'trimeter project'
 PRODUCT_CODE = 'TRIMETER-1'
@@ -186,6 +186,11 @@ class StandaloneStatus(IntEnum):
     ERROR_SPECTRO = 7
     ERROR_MOTION = 8
     ERROR_FIT = 9
+    LAMP_CHANGED = 10
+
+
+class StandaloneLamp(IntEnum):
+    TOLERANCE_PERMILLE = 20
 
 
 class StandaloneFile(IntEnum):
@@ -233,6 +238,7 @@ ENUMS: dict[str, type[IntEnum]] = {
     'spectro_file': SpectroFile,
     'standalone_mode': StandaloneMode,
     'standalone_status': StandaloneStatus,
+    'standalone_lamp': StandaloneLamp,
     'standalone_file': StandaloneFile,
     'standalone_word': StandaloneWord,
     'unlock': Unlock,
@@ -376,7 +382,7 @@ REGISTERS: tuple[Register, ...] = (
              'Pixels per frame: 288, or 0 on a board without a spectrometer.'),
     Register('spectro_clock_hz', 'input_register', 104, 'u32', 2, 'r', 1.0, 'Hz', 0, 4294967295, 0, None, (),
              "The CLK rate the port drives the chip at (0: no spectrometer); the integration time's resolution is one CLK period."),
-    Register('standalone_status', 'input_register', 112, 'u16', 1, 'r', 1.0, '', 0, 9, 0, 'standalone_status', (),
+    Register('standalone_status', 'input_register', 112, 'u16', 1, 'r', 1.0, '', 0, 10, 0, 'standalone_status', (),
              'The current or last standalone press (enums.standalone_status); the status LED shows it: busy slow blink, done / calibrated on, flagged double blink, an error fast blink.'),
     Register('standalone_bins', 'input_register', 113, 'u16', 1, 'r', 1.0, '', 0, 65535, 0, None, (),
              'Bins in file standalone_result (0 before the first press completed its captures).'),
@@ -396,6 +402,14 @@ REGISTERS: tuple[Register, ...] = (
              'As standalone_integration_black_us, white set-up.'),
     Register('standalone_integration_open_us', 'input_register', 125, 'u32', 2, 'r', 1.0, 'us', 0, 4294967295, 0, None, (),
              'As standalone_integration_black_us, open set-up (collimated beam).'),
+    Register('standalone_lamp_panel_left', 'input_register', 127, 'f32', 2, 'r', 1.0, '', -3.4028234663852886e+38, 3.4028234663852886e+38, 0.0, None, (),
+             "The last measurement press's light of the left panel on its lamp-monitor photodiode (shutter open minus closed) relative to the calibration press's: 1 = unchanged; beyond 1 ± standalone_lamp.tolerance_permille / 1000 the status is lamp_changed. NaN: not compared (a calibration press, or no photodiode reading at the calibration)."),
+    Register('standalone_lamp_panel_right', 'input_register', 129, 'f32', 2, 'r', 1.0, '', -3.4028234663852886e+38, 3.4028234663852886e+38, 0.0, None, (),
+             'As standalone_lamp_panel_left, the right panel.'),
+    Register('standalone_lamp_collimated', 'input_register', 131, 'f32', 2, 'r', 1.0, '', -3.4028234663852886e+38, 3.4028234663852886e+38, 0.0, None, (),
+             'As standalone_lamp_panel_left, the collimated LED.'),
+    Register('standalone_warmup_remaining_s', 'input_register', 133, 'u16', 1, 'r', 1.0, 's', 0, 65535, 0, None, (),
+             'Seconds until every lamp has been on for standalone_warmup_s (0: warm). A press waits for it (status busy).'),
     Register('command', 'holding_register', 0, 'u16', 1, 'rw', 1.0, '', 0, 8, 0, 'command', (),
              'Write to start an action; reads back the last accepted command. Motion commands only set a target. save_config and load_defaults need `unlock` first (else exception 01); a save refused by the erase rate limit: exception 06.'),
     Register('unlock', 'holding_register', 1, 'u16', 1, 'rw', 1.0, '', 0, 23294, 0, 'unlock', (0, 23294),
@@ -490,6 +504,8 @@ REGISTERS: tuple[Register, ...] = (
              'What a press of the front button does (enums.standalone_mode): off leaves it to the host; calibrate / measure run the press on the device. Uses spectro_frames, spectro_integration_us and spectro_gain as they are.'),
     Register('white_reference_reflectance', 'holding_register', 107, 'f32', 2, 'rw', 1.0, '', 0.5, 1.0, 0.9900000095367432, None, (),
              "The white reference's reflectance (hardware/geometry.toml, calibration.white_reference_reflectance): a standalone calibration divides the white slot's light by it, as the host's calibration does."),
+    Register('standalone_warmup_s', 'holding_register', 109, 'u16', 1, 'rw', 1.0, 's', 0, 3600, 300, None, (),
+             "How long every lamp must have been on before a standalone press captures (the paper's several minutes of warm-up; a warming LED dims by a few % as it heats). Setting standalone_mode to calibrate or measure switches the lamps on and they stay on (shutters closed) between presses; a press that comes earlier waits, status busy, standalone_warmup_remaining_s counting down."),
 )
 
 BY_NAME: dict[str, Register] = {r.name: r for r in REGISTERS}
@@ -497,4 +513,4 @@ COILS: dict[str, Register] = {r.name: r for r in REGISTERS if r.table == 'coil'}
 DISCRETE_INPUTS: dict[str, Register] = {r.name: r for r in REGISTERS if r.table == 'discrete_input'}
 INPUT_REGISTERS: dict[str, Register] = {r.name: r for r in REGISTERS if r.table == 'input_register'}
 HOLDING_REGISTERS: dict[str, Register] = {r.name: r for r in REGISTERS if r.table == 'holding_register'}
-SPANS: dict[str, int] = {'coil': 6, 'discrete_input': 5, 'input_register': 127, 'holding_register': 109}
+SPANS: dict[str, int] = {'coil': 6, 'discrete_input': 5, 'input_register': 134, 'holding_register': 110}

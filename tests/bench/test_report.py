@@ -79,7 +79,9 @@ def test_the_device_row_comes_from_the_single_precision_build_and_the_qemu_count
     device = tables["device"]
     lo, hi = device["ms_per_1024"]
     assert 0 < lo < hi and hi == pytest.approx(1.5 * lo)
-    assert device["instructions_per_bin"]["calls"] >= 1
+    per_bin = device["instructions_per_bin"]
+    assert per_bin["calls"] >= 1 and per_bin["bins_per_call"] == 4  # as the device's fit loop calls the core
+    assert f"On the device: {per_bin['mean']:,.0f} instructions per bin, fitted 4 per call" in text
     cells = _row(text, report.DEVICE_LABEL)
     assert cells[1] == f"{lo:.0f}–{hi:.0f} (est.)"
     single = next(r for r in tables["single"]["rows"] if r["variant"].startswith("table alone, C"))

@@ -1,5 +1,6 @@
 """`trimeter fit --table FILE`: a fit from a device table alone, in a directory holding nothing else and
-with every map file out of reach: by default the instrument's own fit (native.TableFitter, no stds);
+with every map file out of reach: by default the instrument's own fit (native.TableFitter) with its stds from
+the same table (trimeter.inversion.table_std);
 `--refine` the lut fit on the table's refined model, with `--polish N` (0: the table's raw guess); bad
 tables and option combinations are one clear error line and exit code 2."""
 
@@ -80,20 +81,29 @@ def test_fit_from_the_table_alone(alone, measured_materials, capsys):
     assert np.all(got["thickness_mm"] == 0.4)
     assert np.median(np.abs(got["alpha"] - alpha)) < 0.01 and np.median(np.abs(got["g"] - g)) < 0.05
     assert np.median(np.abs(got["sigma_t"] / sigma_t - 1)) < 0.01
-    # the instrument's fit on the file's bytes, to the digit printed; it computes no stds
+    # the instrument's fit on the file's bytes, to the digit printed, its stds from the same table
+    from trimeter.inversion.table_std import TableStds
+
     _, I_b, I_w, I_c, _ = measured_materials
     want = native.TableFitter(table.to_bytes()).fit(I_b, I_w, I_c)
     for column, value in zip(("alpha", "sigma_t", "g"), want[:3], strict=True):
         np.testing.assert_allclose(got[column], value, rtol=1e-8)
-    np.testing.assert_array_equal(got["flags"], want[3])
-    assert np.isnan(got["alpha_std"]).all() and np.isnan(got["g_std"]).all()
+    rhos = [np.full(len(I_b), r) for r in table.reference_rhos]
+    stds = TableStds(table).result(want, I_b, I_w, I_c, *rhos)
+    np.testing.assert_array_equal(got["flags"], stds.flags)
+    for column in ("alpha_std", "sigma_t_std", "g_std"):
+        assert np.isfinite(got[column]).all()
+        np.testing.assert_allclose(got[column], getattr(stds, column), rtol=1e-8)
     # --refine: the lut fit on the table's refined model, stds included
+    # about the stds of the lut fit on the same table
     assert main(["fit", "--table", "t.tlut", "--refine", "--input", "meas.csv", "-o", "refined.csv"]) == 0
     assert "refined at load" in capsys.readouterr().err
     refined = _read(alone / "refined.csv")
     lut = fit(DeviceTableModel(table), I_b, I_w, I_c, method="lut")
     np.testing.assert_allclose(refined["alpha"], lut.alpha, rtol=1e-8)
     assert np.isfinite(refined["alpha_std"]).all()
+    assert 0.9 < np.median(got["alpha_std"] / refined["alpha_std"]) < 1.1
+    assert 0.9 < np.median(got["g_std"] / refined["g_std"]) < 1.1
     # --polish 0: the table's raw guess, which the default polish then moves
     assert main(["fit", "--table", "t.tlut", "--refine", "--input", "meas.csv", "--polish", "0", "-o",
                  "raw.csv"]) == 0
@@ -105,6 +115,8 @@ def test_fit_from_the_table_alone(alone, measured_materials, capsys):
     assert main(["fit", "--table", "t.tlut", "--input", "meas.csv", "--json"]) == 0
     doc = __import__("json").loads(capsys.readouterr().out)
     assert doc["table"]["sha256"] == table.sha256 and doc["table"]["parent_map_sha256"] == table.parent_sha256
+    assert "computed on the host from this table" in doc["table"]["stds"]
+    np.testing.assert_allclose(doc["columns"]["alpha_std"], got["alpha_std"], rtol=1e-8)
 
 
 def test_without_the_compiled_kernel_the_instruments_fit_is_a_clear_error(alone, monkeypatch, capsys):
@@ -118,11 +130,30 @@ def test_without_the_compiled_kernel_the_instruments_fit_is_a_clear_error(alone,
     assert "Traceback" not in err
 
 
-def test_std_columns_are_named_as_unused_by_the_instruments_fit(alone, capsys):
+@pytest.mark.parametrize("json_output", [False, True])
+def test_std_columns_set_the_table_fits_stds(alone, capsys, json_output):
+    """The readings' stds and the sample thickness's std, given as columns, are propagated (CSV, streamed, and
+    JSON alike); the fitted values stay the instrument's fit's."""
+    import json
+
+    def run(name: str) -> dict:
+        capsys.readouterr()
+        argv = ["fit", "--table", "t.tlut", "--input", name]
+        if json_output:
+            assert main([*argv, "--json"]) == 0
+            return {k: np.array([np.nan if v is None else v for v in vs], dtype=float)
+                    for k, vs in json.loads(capsys.readouterr().out)["columns"].items()}
+        assert main([*argv, "-o", "out.csv"]) == 0
+        return _read(alone / "out.csv")
+
+    plain = run("meas.csv")
     rows = (alone / "meas.csv").read_text().splitlines()
-    (alone / "meas.csv").write_text("\n".join([rows[0] + ",I_b_std", *(r + ",0.001" for r in rows[1:])]) + "\n")
-    assert main(["fit", "--table", "t.tlut", "--input", "meas.csv", "-o", "out.csv"]) == 0
-    assert "column(s) I_b_std not used (--refine propagates them)" in capsys.readouterr().err
+    (alone / "noisy.csv").write_text("\n".join([rows[0] + ",I_b_std,I_w_std,I_c_std,thickness_std_mm",
+                                                *(r + ",0.02,0.02,0.001,0.02" for r in rows[1:])]) + "\n")
+    noisy = run("noisy.csv")
+    assert "not used" not in capsys.readouterr().err
+    np.testing.assert_array_equal(noisy["alpha"], plain["alpha"])
+    assert np.all(noisy["alpha_std"] > plain["alpha_std"]) and np.all(noisy["sigma_t_std"] > plain["sigma_t_std"])
 
 
 def _damaged(data: bytes, offset: int, value: bytes, fix_crc: bool = True) -> bytes:

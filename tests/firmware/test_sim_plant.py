@@ -141,10 +141,17 @@ def test_state_reply_and_scaled_time(sim):
     assert set(s["shutters"]) == {"panel_left", "panel_right", "collimated"}
     assert all(not sh["open"] for sh in s["shutters"].values())
     assert s["leds"]["panels"] == 0 and s["slot"] is None and s["state"] in ("idle", "settling")
-    t0, wall0 = s["time_s"], time.monotonic()
-    time.sleep(0.2)
-    rate = (sim.state()["time_s"] - t0) / (time.monotonic() - wall0)
-    assert 0.7 * TIME_SCALE < rate < 1.1 * TIME_SCALE
+    # Simulated time runs at the scale, and lets time slip rather than chase a backlog when the machine is
+    # starved: never faster than the scale, and at it in at least one of a few windows (a loaded CI machine
+    # may starve one).
+    rates = []
+    for _ in range(5):
+        t0, wall0 = sim.state()["time_s"], time.monotonic()
+        time.sleep(0.2)
+        rates.append((sim.state()["time_s"] - t0) / (time.monotonic() - wall0))
+        if rates[-1] > 0.7 * TIME_SCALE:
+            break
+    assert max(rates) < 1.1 * TIME_SCALE and rates[-1] > 0.7 * TIME_SCALE, rates
 
 
 def test_bad_requests_change_nothing(sim):

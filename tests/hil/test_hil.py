@@ -5,6 +5,7 @@ conftest.py here: `from conftest import` elsewhere would pick this one up)."""
 
 from __future__ import annotations
 
+import os
 import time
 from pathlib import Path
 
@@ -506,8 +507,11 @@ def test_service_survives_the_instrument_going_away_and_coming_back(start_twin, 
 def test_demo_runs_end_to_end_and_reports_against_the_truth(start_twin, hil_map, tmp_path, capsys, monkeypatch):
     """`make demo` in small: the output names the figure, compares with the truth and splits the time."""
     monkeypatch.setenv("TRIMETER_CONFIG_DIR", str(tmp_path / "config"))
+    monkeypatch.setenv("TRIMETER_DATA_DIR", str(tmp_path / "user-data"))
     assert main(["demo", "--map", str(hil_map.path), "--time-scale", "50", "--out", str(tmp_path / "demo")]) == 0
     out = capsys.readouterr().out
+    # the demo's own data directory was for the demo only: a caller in the same process keeps its own
+    assert os.environ["TRIMETER_DATA_DIR"] == str(tmp_path / "user-data")
     figure = Path(next(line.split(":", 1)[1].strip() for line in out.splitlines()
                        if line.startswith("figure vs truth:")))
     assert figure.is_file() and figure.read_bytes()[:4] == b"\x89PNG"

@@ -162,7 +162,11 @@ def test_fit_on_device_agrees_with_fit_from_the_same_table(request, tmp_path, hi
     np.testing.assert_array_equal(np.isfinite(on_device["alpha"]), ok)
     assert ok.all()  # every material inside the map is fitted, on both
     np.testing.assert_allclose(on_device["sigma_t_beer"], on_host["sigma_t_beer"], rtol=1e-9)
-    assert np.isnan(on_device["alpha_std"]).all()
+    assert "stds computed here from the same table" in err and "computed on the host" in doc["table"]["stds"]
+    # the device returns no stds: they are the host's, from the same table at the device's parameters
+    for column in ("alpha_std", "sigma_t_std", "g_std"):
+        assert np.isfinite(on_device[column]).all(), column
+        np.testing.assert_allclose(on_device[column], on_host[column], rtol=0.05)
     # one fit on both, the device's in single precision: the tolerances on every bin
     assert np.max(np.abs(on_device["alpha"] - on_host["alpha"])) <= 1e-3
     assert np.max(np.abs(on_device["sigma_t"] / on_host["sigma_t"] - 1)) <= 1e-3

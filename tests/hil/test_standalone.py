@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import csv
 import json
+import re
 import time
 from pathlib import Path
 
@@ -115,3 +116,60 @@ def test_a_hostless_press_leaves_a_result_that_matches_a_host_fit(request, tmp_p
           f"{np.percentile(np.abs(on_device['alpha'][both] - want['alpha'])[band], 95):.4f}, |Δσt|/σt p95 "
           f"{np.percentile(np.abs(on_device['sigma_t'][both] / want['sigma_t'] - 1)[band], 95):.2%}, |Δg| p95 "
           f"{np.percentile(np.abs(on_device['g'][both] - want['g'])[band], 95):.3f}")
+
+
+def test_a_hostless_press_with_dimmed_lamps_says_recalibrate(request, tmp_path, hil_map, monkeypatch, capsys):
+    """Calibrated on the device, then the panels dim (an aged LED, the twin's lamp_dimmed fault): the press is
+    flagged lamp_changed (status LED double blink) and `trimeter device last-result` tells the operator to
+    recalibrate; with the lamps as calibrated, before and after, the press is not."""
+    if request.config.getoption("--port"):
+        pytest.skip("needs the twin (its storage seeded with a table, its lamps dimmed on demand)")
+    from trimeter.device import Device
+    from trimeter.device.client import STANDALONE_LAMP_TOLERANCE
+    from trimeter.inversion.table_builder import build_from_map
+    from trimeter.twin import Twin
+
+    for name in ("DATA", "CONFIG", "CACHE"):
+        monkeypatch.setenv(f"TRIMETER_{name}_DIR", str(tmp_path / name.lower()))
+    table_file = build_from_map(hil_map).save(tmp_path / "hil.tlut")
+    with Twin(sample=None, thickness_mm=THICKNESS_MM, time_scale=TIME_SCALE, appearance_map=hil_map,
+              state_dir=tmp_path / "twin", seed=5, map_table=table_file.read_bytes(), sensor="c12880ma") as twin:
+        port = ["--port", twin.modbus_port]
+        with Device.open(twin.modbus_port) as device:
+            device.write_many({"spectro_integration_us": 4000, "spectro_frames": 4})
+        assert main(["device", "standalone", "calibrate", *port]) == 0
+        assert re.search(r"warming up: a press waits (29\d|300) s more", capsys.readouterr().out)  # lamps just on
+        assert _press(twin) == "on"  # calibrated, after the warm-up
+        twin.control.insert_sample(SAMPLE, THICKNESS_MM)
+
+        def press_and_read(label: str) -> tuple[str, object, str]:
+            pattern = _press(twin)
+            with Device.open(twin.modbus_port) as device:
+                result = device.standalone_result()
+            capsys.readouterr()
+            assert main(["device", "last-result", *port, "--out", str(tmp_path / "results"), "--label", label,
+                         "--no-figure"]) == 0
+            return pattern, result, capsys.readouterr().out
+
+        pattern, result, out = press_and_read("as-calibrated")
+        assert result.status in (regs.StandaloneStatus.DONE, regs.StandaloneStatus.FLAGGED)
+        assert pattern == ("on" if result.status == regs.StandaloneStatus.DONE else "double_blink")
+        assert all(abs(level - 1) < 0.5 * STANDALONE_LAMP_TOLERANCE for level in result.lamp_levels.values())
+        assert "RECALIBRATE" not in out
+
+        twin.control.set_fault(lamp_dimmed="panels:0.9")
+        pattern, result, out = press_and_read("dimmed")
+        assert result.status == regs.StandaloneStatus.LAMP_CHANGED and pattern == "double_blink"
+        assert result.lamp_levels["panel_left"] == pytest.approx(0.9, abs=0.005)
+        assert result.lamp_levels["collimated"] == pytest.approx(1.0, abs=0.005)
+        recalibrate = [line for line in out.splitlines() if line.startswith("RECALIBRATE: ")]
+        left = f"the left diffuse panel gave {result.lamp_levels['panel_left']:.1%} of its light at the calibration"
+        assert len(recalibrate) == 1 and left in recalibrate[0]
+        assert "trimeter device standalone calibrate" in recalibrate[0]
+        written = Path([line.split(": ", 1)[1] for line in out.splitlines() if line.startswith("results: ")][0])
+        assert json.loads((written / "measurement.json").read_text())["standalone"]["recalibrate"] is True
+
+        twin.control.set_fault(lamp_dimmed=None)  # the lamps as they were at the calibration
+        pattern, result, out = press_and_read("restored")
+        assert result.status in (regs.StandaloneStatus.DONE, regs.StandaloneStatus.FLAGGED)
+        assert "RECALIBRATE" not in out

@@ -18,7 +18,7 @@ _spec = importlib.util.spec_from_file_location(
 gen_native = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(gen_native)
 
-HEADER_TEXT = gen_native.HEADER.read_text(encoding="utf-8")
+HEADER_TEXT = gen_native.header_text()  # invert.h with fit_core/table_fit.h in place of its include
 
 
 def test_the_generated_boundary_is_current():
@@ -44,6 +44,18 @@ def test_the_generator_reads_fields_declared_together_and_refuses_what_it_cannot
     assert [name for name, _ in native._ForwardGridC._fields_] == fields
     with pytest.raises(gen_native.HeaderError, match="unknown type"):
         gen_native.render_py(HEADER_TEXT.replace("double thickness_mm,", "long double thickness_mm,"))
+
+
+def test_the_generator_reads_the_part_of_the_boundary_shared_with_the_firmware_from_fit_core():
+    raw = gen_native.HEADER.read_text(encoding="utf-8")
+    assert '#include "table_fit.h"' in raw and "TM_FLAG_" not in raw  # declared once, in table_fit.h
+    spec = gen_native.parse(HEADER_TEXT)
+    assert "tm_table_fit" in spec["functions"] and "TM_TABLE_FIT_POLISH" in spec["defines"]
+    assert spec["enums"]["tm_flag"]["TM_FLAG_NONFINITE_INPUT"] == 1
+    with pytest.raises(gen_native.HeaderError, match="not a header in"):
+        gen_native.header_text(raw.replace('"table_fit.h"', '"no_such_header.h"'))
+    system_include = raw.replace('"table_fit.h"', "<table_fit.h>")
+    assert gen_native.header_text(system_include) == system_include  # <…> includes stay as they are
 
 
 def test_gen_native_check_names_a_stale_file(tmp_path, monkeypatch, capsys):

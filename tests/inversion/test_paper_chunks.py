@@ -17,7 +17,7 @@ def _inputs(amap, n, seed):
 
 def test_chunk_size_does_not_change_the_medians(ideal_map, thick_map):
     maps = [ideal_map, thick_map]
-    inputs = [_inputs(m, 37, seed=1) for m in maps]
+    inputs = [_inputs(m, 13, seed=1) for m in maps]  # 13 bins: chunks of 1, of 5 (5+5+3) and of 11 (11+2)
     whole = paper_medians(maps, inputs, samples=16, seed=4, chunk_points=10**9)
     for chunk_points in (1, 16 * 2 * 5, 16 * 2 * 11):  # one bin per chunk, 5 and 11 bins per chunk
         chunked = paper_medians(maps, inputs, samples=16, seed=4, chunk_points=chunk_points)

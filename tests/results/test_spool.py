@@ -30,7 +30,6 @@ from trimeter.sequences.service import Service
 from trimeter.sequences.settings import HostSettings
 
 TESTS = Path(__file__).resolve().parents[1]
-IDEAL_MAP = TESTS / "inversion" / "data" / "ideal-l0.5.tmap"
 
 
 def _enospc(*args, **kwargs):
@@ -105,7 +104,7 @@ def test_a_full_disk_during_the_write_keeps_the_capture_in_the_spool(tmp_path, m
     # the re-fit the message names works as written
     command = message.split("re-fit it with `")[1].split("`")[0].split()
     assert command[:3] == ["trimeter", "fit", "--map"] and f"--input {kept / 'reflectances.csv'}" in " ".join(command)
-    command[3] = str(IDEAL_MAP)
+    command[3] = "device-n1.5-l0.4"  # the shipped map of the capture's declared 0.4 mm (the file says so)
     command[command.index("-o") + 1] = str(tmp_path / "params.csv")
     assert main(command[1:]) == 0
     capsys.readouterr()

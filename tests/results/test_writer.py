@@ -28,6 +28,20 @@ def test_writes_a_complete_directory(tmp_path, measurement):
     assert json.loads((out / "measurement.json").read_text())["sample"] == "test ink"
 
 
+def test_the_declared_thickness_travels_with_the_capture_to_a_later_fit(tmp_path, measurement, capsys):
+    """`trimeter fit --input <results>/reflectances.csv` checks its map against the thickness the sample was
+    declared with when captured: a map of another thickness would scale σt by their ratio."""
+    from trimeter.cli import main
+
+    out = write_measurement(tmp_path, measurement)
+    refl = np.genfromtxt(out / "reflectances.csv", delimiter=",", names=True)
+    np.testing.assert_array_equal(refl["thickness_mm"], 0.4)
+    assert main(["fit", "--map", "device-n1.5-l0.8", "--input", str(out / "reflectances.csv")]) == 2
+    assert "thickness_mm has rows not matching the map's thickness 0.8 mm" in capsys.readouterr().err
+    assert main(["fit", "--map", "device-n1.5-l0.4", "--input", str(out / "reflectances.csv"),
+                 "-o", str(tmp_path / "p.csv")]) == 0
+
+
 def test_writing_the_figure_leaves_the_process_s_plotting_backend_alone(tmp_path, measurement):
     """A notebook that measures in-process keeps its inline plots: the figure is drawn without pyplot."""
     import matplotlib

@@ -286,7 +286,7 @@ def test_a_garbled_reply_is_retried_at_once_not_after_the_timeout():
         link.close()
         slave.close()
     assert slave.requests == 2 and link.stats.garbled_replies == 1 and link.stats.timeouts == 0
-    assert elapsed < 0.5, elapsed  # waiting out the timeout (2 s) and the late-reply window (2 s) would be 4 s
+    assert elapsed < 1.5, elapsed  # waiting out the timeout (2 s) and the late-reply window (2 s) would be 4 s
 
 
 def test_a_silent_device_is_a_link_error_naming_the_timeout():

@@ -20,14 +20,16 @@ void chip_init(chip_t *c)
     memset(c, 0, sizeof *c);
     c->clock_hz = SIM_CLOCK_HZ;
     memcpy(c->coeff, DEFAULT_COEFF, sizeof c->coeff);
-    c->fwhm_nm = 12.0;               /* datasheet: 15 nm max */
-    c->electrons_per_count = 20.0;   /* ~80 ke- over the ADC's range at gain 1 */
-    c->dark_counts_per_s = 40.0;
-    c->offset_counts = 300.0;
-    c->read_noise_counts = 2.0;
-    /* the front end maps the chip's saturation output above the ADC's full scale, so that a saturated pixel
-     * reads 4095 and the driver flags it */
-    c->video_full_scale_counts = 4200.0;
+    c->fwhm_nm = 12.0; /* datasheet: 12 typ., 15 max */
+    /* The datasheet's typical electrical figures (KACC1226E, p. 2) through the front end: it scales the video
+     * output so that the chip's saturation (offset Vo 0.5 V + Vsat 4.3 V) lands just above the 12-bit ADC's
+     * full scale, so that a saturated pixel reads 4095 and the driver flags it. */
+    const double volts_per_count = (0.5 + 4.3) / 4200.0;
+    c->electrons_per_count = volts_per_count / 50e-6;   /* conversion efficiency 50 uV/e- */
+    c->dark_counts_per_s = 0.8e-3 / 10e-3 / volts_per_count; /* dark output 0.8 mV at 10 ms */
+    c->offset_counts = 0.5 / volts_per_count;            /* output offset Vo */
+    c->read_noise_counts = 1.8e-3 / volts_per_count;     /* readout noise 1.8 mV rms */
+    c->video_full_scale_counts = 4.3 / volts_per_count;  /* Vsat above the offset */
     c->grid_n = 0;
     c->noise_state = 0xD1B54A32D192ED03ull;
     weights_valid = false;

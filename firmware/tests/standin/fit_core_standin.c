@@ -1,5 +1,6 @@
 /* A stand-in for the inverse core, for testing the fit's plumbing end to end before the real core is
- * linked (tests/device/test_fit_on_device.py builds the sim with it: make sim FIT_CORE_SRC=this file).
+ * linked (tests/device/test_fit_on_device.py builds the sim with it: make sim FIT_CORE_SRC=this file;
+ * tests/test_standalone.c links it).
  * A transparent function of each bin, so a test can predict every output exactly in float32:
  *   alpha = I_b, sigma_t = 10 * I_w, g = I_c - rho_b - rho_w; a bin with a non-finite input has
  *   FitFlag NONFINITE_INPUT and NaN outputs. It accepts a table only if it starts with the map-table magic.
@@ -8,8 +9,7 @@
 #include <string.h>
 
 #include "fit_core.h"
-
-#define FLAG_NONFINITE_INPUT 0x1u
+#include "table_fit.h"
 
 int tr_fit_bins(const uint8_t *table, size_t len, const float *in, size_t n, float *out, uint16_t *flags)
 {
@@ -20,7 +20,7 @@ int tr_fit_bins(const uint8_t *table, size_t len, const float *in, size_t n, flo
         float *o = &out[i * TR_FIT_OUT_PER_BIN];
         int finite = 1;
         for (int k = 0; k < TR_FIT_IN_PER_BIN; k++) finite = finite && isfinite(b[k]);
-        flags[i] = finite ? 0u : FLAG_NONFINITE_INPUT;
+        flags[i] = finite ? 0u : TM_FLAG_NONFINITE_INPUT;
         o[TR_FIT_OUT_ALPHA] = finite ? b[TR_FIT_IN_I_B] : NAN;
         o[TR_FIT_OUT_SIGMA_T] = finite ? 10.0f * b[TR_FIT_IN_I_W] : NAN;
         o[TR_FIT_OUT_G] = finite ? b[TR_FIT_IN_I_C] - b[TR_FIT_IN_RHO_B] - b[TR_FIT_IN_RHO_W] : NAN;

@@ -11,12 +11,13 @@ from pathlib import Path
 from typing import Any
 
 from trimeter.errors import BuildError
-from trimeter.paths import REPO_ROOT
+from trimeter.paths import FIT_CORE_DIR, REPO_ROOT
 
 FIRMWARE_DIR = REPO_ROOT / "firmware"
 NATIVE_DIR = REPO_ROOT / "host" / "trimeter" / "inversion" / "native"
-FIT_CORE_INCLUDE = FIRMWARE_DIR / "core"  # fit_core.h: the seam the table fit implements for the firmware
-COUNT_LABEL = "tr_fit_bins, 1 bin"  # firmware/qemu/count.c's label for one fitted bin
+# firmware/qemu/count.c's label for a call as the device makes it (core/fit.c's fit_poll: FIT_BINS_PER_POLL bins)
+COUNT_LABEL = "tr_fit_bins, one fit_poll's 4 bins"
+COUNT_BINS_PER_CALL = 4
 
 
 def single_precision_library(out_dir: Path) -> Path:
@@ -25,14 +26,15 @@ def single_precision_library(out_dir: Path) -> Path:
     cc = shutil.which("cc") or shutil.which("gcc")
     if cc is None:
         raise BuildError("no C compiler (cc or gcc) to build the single-precision kernel")
-    sources = sorted(str(p) for p in NATIVE_DIR.glob("*.c"))
-    if not sources or not FIT_CORE_INCLUDE.is_dir():
-        raise BuildError(f"the kernel's sources ({NATIVE_DIR}) or the firmware's core ({FIT_CORE_INCLUDE}) are "
+    own, shared = sorted(NATIVE_DIR.glob("*.c")), sorted(FIT_CORE_DIR.glob("*.c"))
+    if not own or not shared:
+        raise BuildError(f"the kernel's sources ({NATIVE_DIR}) or the inverse core's ({FIT_CORE_DIR}) are "
                          f"missing: this needs the repository, not an installed package")
+    sources = [str(p) for p in own + shared]
     out_dir.mkdir(parents=True, exist_ok=True)
     out = out_dir / "libtrimeter_invert_single.so"
     done = subprocess.run([cc, "-O2", "-std=c11", "-Wall", "-Wextra", "-Werror", "-shared", "-fPIC", "-DTR_SINGLE",
-                           f"-I{FIT_CORE_INCLUDE}", "-o", str(out), *sources, "-lm"], capture_output=True, text=True)
+                           f"-I{FIT_CORE_DIR}", "-o", str(out), *sources, "-lm"], capture_output=True, text=True)
     if done.returncode != 0:
         raise BuildError(f"compiling the single-precision kernel failed: {done.stderr.strip()[-500:]}")
     return out

@@ -5,13 +5,13 @@ place so a benchmark never touches the user's calibration or results."""
 from __future__ import annotations
 
 import contextlib
-import os
 import tempfile
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
 from trimeter.device import Device
 from trimeter.errors import InputError
+from trimeter.paths import user_dirs_at
 from trimeter.sequences.measure import map_for_thickness
 from trimeter.sequences.service import Event, Service
 from trimeter.sequences.settings import HostSettings
@@ -20,21 +20,10 @@ from trimeter.twin import FaultConfig, Twin
 from trimeter.twin.storage import table_bytes
 
 
-@contextlib.contextmanager
-def host_dirs(root: Path) -> Iterator[None]:
+def host_dirs(root: Path) -> contextlib.AbstractContextManager[None]:
     """TRIMETER_DATA_DIR / TRIMETER_CONFIG_DIR under `root` while the benchmark runs (the calibration
     path is read from them), restored afterwards."""
-    saved = {key: os.environ.get(key) for key in ("TRIMETER_DATA_DIR", "TRIMETER_CONFIG_DIR")}
-    os.environ["TRIMETER_DATA_DIR"] = str(root / "data")
-    os.environ["TRIMETER_CONFIG_DIR"] = str(root / "config")
-    try:
-        yield
-    finally:
-        for key, value in saved.items():
-            if value is None:
-                os.environ.pop(key, None)
-            else:
-                os.environ[key] = value
+    return user_dirs_at(data=root / "data", config=root / "config")
 
 
 @contextlib.contextmanager

@@ -175,7 +175,8 @@ def measure(args: argparse.Namespace, noise: list[float], sensor_noise: list[flo
 def _tables(fit_map: dict[str, Any], args: argparse.Namespace) -> dict[str, Any]:
     """The map's device table fitted alone (double; single precision as the firmware) and counted under QEMU."""
     from trimeter.bench import table_fit
-    from trimeter.bench._firmware import COUNT_LABEL, qemu_instruction_counts, single_precision_library
+    from trimeter.bench._firmware import (COUNT_BINS_PER_CALL, COUNT_LABEL, qemu_instruction_counts,
+                                          single_precision_library)
     from trimeter.formats.appearance import find_map
     from trimeter.formats.device_table import table_path_for
 
@@ -196,7 +197,10 @@ def _tables(fit_map: dict[str, Any], args: argparse.Namespace) -> dict[str, Any]
     except BuildError as exc:
         out["device_skipped"] = str(exc)
         return out
-    per_bin = counts["instructions"][COUNT_LABEL]
+    call = counts["instructions"][COUNT_LABEL]
+    per_bin = {"mean": call["mean"] / COUNT_BINS_PER_CALL, "min": round(call["min"] / COUNT_BINS_PER_CALL),
+               "max": round(call["max"] / COUNT_BINS_PER_CALL), "calls": call["calls"],
+               "bins_per_call": COUNT_BINS_PER_CALL}
     cpi = counts["cycles_per_instruction"]
     out["device"] = {"instructions_per_bin": per_bin, "mhz": counts["mhz"], "cycles_per_instruction": cpi,
                      "ms_per_1024": [per_bin["mean"] * c * 1024 / (counts["mhz"] * 1e3) for c in cpi]}
@@ -377,8 +381,10 @@ def _accuracy_section(results: dict[str, Any], figures: dict[str, Path], page: P
         if tables.get("device"):
             d = tables["device"]
             per_bin = d["instructions_per_bin"]
-            notes.append(f"On the device: {per_bin['mean']:,.0f} instructions per bin (mean of {per_bin['calls']} "
-                         f"bins in `firmware/qemu/count.c`, {per_bin['min']:,}–{per_bin['max']:,}) at "
+            notes.append(f"On the device: {per_bin['mean']:,.0f} instructions per bin, fitted "
+                         f"{per_bin.get('bins_per_call', 1)} per call as its fit loop does (the table check shared; "
+                         f"{per_bin['calls']} calls in `firmware/qemu/count.c`, {per_bin['min']:,}–{per_bin['max']:,} "
+                         f"per bin) at "
                          f"{d['mhz']:g} MHz and {d['cycles_per_instruction'][0]:g}–{d['cycles_per_instruction'][1]:g} "
                          "cycles per instruction; its errors are the single-precision build's on this host.")
         elif tables.get("device_skipped"):

@@ -143,16 +143,16 @@ def _reason(message: str) -> str:
 
 def run_soak(cycles: int, *, seed: int = 0, time_scale: float = 300.0, calibration_max_age_s: float = 14400.0,
              progress=lambda line: print(line, flush=True), root: Path | None = None,
-             device_table: bool = False) -> SoakReport:
+             device_table: bool = False, link_levels=LINK_LEVELS) -> SoakReport:
     """`root`: where the twin's state, the calibration and the results go (default: a temporary directory).
     `device_table`: the host names no map, so every fit uses the table read from the instrument (serve's
-    default configuration) over the same faulty link."""
+    default configuration) over the same faulty link. `link_levels`: (weight, faults) pairs drawn before
+    each press (a clean link only checks the harness itself, whatever the machine's load)."""
     if cycles < 1:
         raise InputError(f"--cycles must be ≥ 1, got {cycles}")
     rng = np.random.default_rng(seed)
     events: queue.Queue = queue.Queue()
     report = SoakReport()
-    weights = np.array([w for w, _ in LINK_LEVELS])
     started = time.monotonic()
     settings: dict[str, object] = {"calibration_max_age_s": calibration_max_age_s}
     if device_table:
@@ -165,7 +165,7 @@ def run_soak(cycles: int, *, seed: int = 0, time_scale: float = 300.0, calibrati
                                   name="soak-serve", daemon=True)
         server.start()
         try:
-            _operate(cycles, twin, operator, events, report, rng, weights, progress, started)
+            _operate(cycles, twin, operator, events, report, rng, link_levels, progress, started)
         finally:
             stop.set()
             server.join(timeout=30)
@@ -173,13 +173,14 @@ def run_soak(cycles: int, *, seed: int = 0, time_scale: float = 300.0, calibrati
     return report
 
 
-def _operate(cycles, twin, operator, events, report, rng, weights, progress, started) -> None:
+def _operate(cycles, twin, operator, events, report, rng, link_levels, progress, started) -> None:
+    weights = np.array([w for w, _ in link_levels], float)
     truth = None
     next_action = "wait"  # the service asks first (no calibration yet → triple blink)
     checkpoint = max(1, min(10, cycles // 10))  # RSS every 10 cycles at most: a jump is placed to within 10
     while report.cycles < cycles:
         if next_action != "wait":
-            level = LINK_LEVELS[rng.choice(len(LINK_LEVELS), p=weights / weights.sum())][1]
+            level = link_levels[rng.choice(len(link_levels), p=weights / weights.sum())][1]
             twin.control.set_fault(**level)
             if rng.random() < RESET_PROBABILITY:
                 twin.control.reset_firmware()

@@ -5,7 +5,10 @@ default only their scored part (trimeter.bench.heldout.heldout_part): the calibr
 map-error scale in the reported σ (LEAVE_ONE_OUT_SCALE) is chosen, with `--part calibration
 --leave-one-out-scale a,b,…` (per scale, the given-stds rows' mean distance from the goal, goal_distance;
 the nearest is marked) — each drawn several times with relative Gaussian noise of known size on I_b,
-I_w, I_c, fitted by `lut` (fit()'s defaults) per device map and on both thicknesses together. Two ways to fit each draw:
+I_w, I_c, fitted by `lut` (fit()'s defaults) per device map and on both thicknesses together, and (`--sources`
+table) by the instrument's fit from each map's device table (`trimeter fit --table`: native.TableFitter, its stds
+from the table, trimeter.inversion.table_std; the map's error it carries is the one its table was built with,
+whatever --leave-one-out-scale says). Two ways to fit each draw:
 - given: the noise the draw got is handed to fit() as I_b_std, I_w_std, I_c_std (with the
   held-out renders' own MC std-error in quadrature on I_b, I_w: it is noise of known size too);
 - fixed: fit()'s fixed noise model alone (σ_I = 0.005·I + 2e-4), whatever the noise was.
@@ -48,6 +51,9 @@ def register(bench_subparsers) -> None:
     p.add_argument("--thickness-rel-std", type=float, default=0.02,
                    help="relative std of the sample's thickness in the thickness case (default 0.02; 0: no case)")
     p.add_argument("--modes", default="given,fixed", help="given (stds handed to fit), fixed (fit's noise model)")
+    p.add_argument("--sources", default="map,table",
+                   help="what fits: map (the lut fit on the map), table (the instrument's fit from the map's device "
+                        "table, stds from the table); default both")
     p.add_argument("--part", choices=HELDOUT_PARTS, default="scored",
                    help="which part of the held-out sets: scored (default; the map-error scale never saw it) or "
                         "calibration (where that scale is chosen)")
@@ -158,6 +164,37 @@ def _fit(cases, noisy, stds, mode, thickness_std=None, cache=None):
     return fit(maps, I[0], I[1], I[2], method="lut", cache=cache, **kw)
 
 
+class TableCase:
+    """A case's map's device table: the instrument's fit (native.TableFitter) and its stds (TableStds)."""
+
+    def __init__(self, case: Case):
+        from trimeter.inversion import native
+        from trimeter.inversion.artifacts import map_table
+        from trimeter.inversion.table_std import TableStds
+
+        table = map_table(case.amap)
+        self.fitter, self.stds, self.thickness_mm = native.TableFitter(table.to_bytes()), TableStds(table), \
+            table.thickness_mm
+        self.rhos = table.reference_rhos
+
+    def fit(self, noisy, stds, mode, thickness_std=None):
+        I_b, I_w, I_c = noisy
+        rb, rw = (np.full(len(I_b), r) for r in self.rhos)
+        kw: dict[str, Any] = {}
+        if mode == "given":
+            kw = dict(I_b_std=stds[0], I_w_std=stds[1], I_c_std=stds[2])
+            if thickness_std is not None:
+                kw["thickness_rel_std"] = thickness_std / self.thickness_mm
+        return self.stds.result(self.fitter.fit(I_b, I_w, I_c, rb, rw), I_b, I_w, I_c, rb, rw, **kw)
+
+
+def _sources(spec: str) -> list[str]:
+    sources = [s.strip() for s in spec.split(",") if s.strip()]
+    if not sources or any(s not in ("map", "table") for s in sources):
+        raise InputError(f"--sources: {spec!r}: choose from map, table")
+    return sources
+
+
 def _row(label, level, mode, result, truth):
     clean = result.flags == 0
     row = {"case": label, "noise": level, "mode": mode, "bins": int(len(clean)), "unflagged": int(clean.sum()),
@@ -254,6 +291,7 @@ def measure(args) -> dict:
         raise InputError("--draws must be ≥ 1")
     if not (0 <= args.thickness_rel_std < 0.5):
         raise InputError("--thickness-rel-std must be in [0, 0.5)")
+    sources = _sources(getattr(args, "sources", "map"))
     from trimeter.inversion.artifacts import ArtifactCache
     from trimeter.model import grid
 
@@ -263,19 +301,24 @@ def measure(args) -> dict:
     cases = [Case(m, args.draws, part) for m in _maps(args.maps)]
     print(f"held-out materials ({part} part): " + ", ".join(f"{c.amap.name} {len(c.truth['alpha']) // args.draws}"
                                                             for c in cases))
-    groups = [(c.amap.name, [c]) for c in cases]
-    if len(cases) == 2 and all(np.array_equal(cases[0].truth[k], cases[1].truth[k]) for k in PARAMS):
-        groups.append(("both thicknesses", cases))
+    # (label, cases, the fit of one draw: (noisy, stds, mode, thickness std or None) → FitResult)
+    groups = []
+    if "map" in sources:
+        groups = [(c.amap.name, [c], _map_fitter([c], cache)) for c in cases]
+        if len(cases) == 2 and all(np.array_equal(cases[0].truth[k], cases[1].truth[k]) for k in PARAMS):
+            groups.append(("both thicknesses", cases, _map_fitter(cases, cache)))
+    if "table" in sources:  # one thickness per table: the instrument fits one sample
+        groups += [(f"{c.amap.name} table", [c], _table_fitter(TableCase(c))) for c in cases]
     rng = np.random.default_rng(args.seed)
     rows, bias = [], []
-    for label, group in groups:
+    for label, group, fit_draw in groups:
         truth = group[0].truth
-        clean = _fit(group, [c.I for c in group], [c.render_std for c in group], "fixed", cache=cache)
+        clean = fit_draw([c.I for c in group], [c.render_std for c in group], "fixed", None)
         for level in levels:
             draws = [c.draw(level, rng) for c in group]
             noisy, stds = [d[0] for d in draws], [d[1] for d in draws]
             for mode in modes:
-                result = _fit(group, noisy, stds, mode, cache=cache)
+                result = fit_draw(noisy, stds, mode, None)
                 rows.append(_row(label, level, mode, result, truth))
                 if level == min(levels):
                     bias.append(_map_error(label, mode, clean, result, truth))
@@ -287,12 +330,19 @@ def measure(args) -> dict:
             noisy, stds = [d[0] for d in draws], [d[1] for d in draws]
             for mode in modes:
                 thickness_std = [args.thickness_rel_std * c.amap.thickness_mm for c in group]
-                result = _fit(group, noisy, stds, mode, thickness_std if len(group) > 1 else thickness_std[0],
-                              cache=cache)
+                result = fit_draw(noisy, stds, mode, thickness_std if len(group) > 1 else thickness_std[0])
                 rows.append(_row(f"{label}, ℓ ±{args.thickness_rel_std:.0%}", level, mode, result, truth))
     return {"kernel": native.status(), "draws": args.draws, "heldout_part": part,
             "heldout_materials": {c.amap.name: len(c.truth["alpha"]) // args.draws for c in cases},
             "leave_one_out_scale": grid.LEAVE_ONE_OUT_SCALE, "rows": rows, "map_error": bias}
+
+
+def _map_fitter(group, cache):
+    return lambda noisy, stds, mode, thickness_std: _fit(group, noisy, stds, mode, thickness_std, cache=cache)
+
+
+def _table_fitter(table: TableCase):
+    return lambda noisy, stds, mode, thickness_std: table.fit(noisy[0], stds[0], mode, thickness_std)
 
 
 def _map_error(label, mode, clean, noisy_result, truth) -> dict:

@@ -15,7 +15,6 @@ its active slot and the service fits with the table it reads from the instrument
 from __future__ import annotations
 
 import argparse
-import os
 import queue
 import threading
 import time
@@ -27,9 +26,11 @@ import numpy as np
 
 from trimeter.errors import DeviceError, InputError, OutputError
 from trimeter.inversion.methods import METHODS
-from trimeter.paths import data_dir
+from trimeter.paths import data_dir, user_dirs_at
 
 if TYPE_CHECKING:
+    from trimeter.formats.appearance import AppearanceMap
+    from trimeter.formats.device_table import DeviceTable
     from trimeter.sequences.service import Event
 
 SHOW_NM = (450, 500, 550, 600, 650, 700)
@@ -56,16 +57,9 @@ def demo_dir(out: str | None) -> Path:
 
 
 def run(args: argparse.Namespace) -> None:
-    from trimeter.device import Device
     from trimeter.domain import Sample
     from trimeter.formats.device_table import DeviceTable, table_path_for
-    from trimeter.results.figure import plot_parameters
     from trimeter.sequences.measure import map_for_thickness, prepare_fit
-    from trimeter.sequences.service import Service
-    from trimeter.sequences.settings import HostSettings
-    from trimeter.spectrometer import open_spectrometer
-    from trimeter.twin import Twin
-    from trimeter.twin.optics import physics_line
 
     wall_start = time.monotonic()
     amap = map_for_thickness(args.thickness, args.map)  # the twin's optics (the instrument side) render with it
@@ -88,7 +82,20 @@ def run(args: argparse.Namespace) -> None:
     except OSError as exc:
         raise OutputError(f"demo: cannot create {out} ({exc.strerror or exc}); give --out DIR") from None
     print(f"demo: writing into {out}")
-    os.environ["TRIMETER_DATA_DIR"] = str(out)  # the demo's calibration never touches the user's
+    with user_dirs_at(data=out):  # the demo's calibration never touches the user's
+        _run_on_the_twin(args, out, amap, table, wall_start)
+
+
+def _run_on_the_twin(args: argparse.Namespace, out: Path, amap: AppearanceMap, table: DeviceTable | None,
+                     wall_start: float) -> None:
+    from trimeter.device import Device
+    from trimeter.results.figure import plot_parameters
+    from trimeter.sequences.service import Service
+    from trimeter.sequences.settings import HostSettings
+    from trimeter.spectrometer import open_spectrometer
+    from trimeter.twin import Twin
+    from trimeter.twin.optics import physics_line
+
     settings = HostSettings()
     settings.set("results_dir", str(out / "results"))
     settings.set("thickness_mm", args.thickness)
@@ -146,8 +153,9 @@ def run(args: argparse.Namespace) -> None:
     print("α, σt [1/mm], g — measured (± 1σ) beside the twin's truth")
     print(f"{'λ nm':>6} {'α':>16} {'truth':>7} {'σt':>18} {'truth':>7} {'g':>15} {'truth':>6}")
     tw = np.asarray(truth["wavelengths_nm"])
-    for w in SHOW_NM:
-        i = int(np.argmin(np.abs(params.wavelengths_nm - w)))
+    # a multichannel sensor has fewer bins than SHOW_NM: each bin is printed once
+    shown = dict.fromkeys(int(np.argmin(np.abs(params.wavelengths_nm - w))) for w in SHOW_NM)
+    for i in shown:
         t = {k: float(np.interp(params.wavelengths_nm[i], tw, np.asarray(truth[k]))) for k in ("alpha", "sigma_t", "g")}
         print(f"{params.wavelengths_nm[i]:6.1f} {params.alpha[i]:8.4f}±{params.alpha_std[i]:<7.4f} {t['alpha']:7.4f} "
               f"{params.sigma_t[i]:9.3f}±{params.sigma_t_std[i]:<8.3f} {t['sigma_t']:7.3f} "

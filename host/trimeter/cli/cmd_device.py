@@ -20,9 +20,12 @@ def cmd_standalone(args: argparse.Namespace) -> int:
                          f"got {args.mode!r}") from None
     with open_device(settings_from(args)) as device:
         device.write("standalone_mode", mode)
-        values = device.read_many("standalone_status", "standalone_calibrated")
+        values = device.read_many("standalone_status", "standalone_calibrated", "standalone_warmup_remaining_s")
     print(f"standalone mode {mode.name.lower()}; last press: {values['standalone_status'].name.lower()}; "
           f"{'calibrated' if values['standalone_calibrated'] else 'not calibrated'} since the device started")
+    if mode != regs.StandaloneMode.OFF and values["standalone_warmup_remaining_s"]:
+        print(f"the lamps are on and warming up: a press waits {values['standalone_warmup_remaining_s']} s more "
+              "(LED slow blink) before it captures")
     if mode == regs.StandaloneMode.CALIBRATE:
         print("empty the holder and press the button: the device calibrates (LED on when done), then each press "
               "measures")
@@ -31,7 +34,7 @@ def cmd_standalone(args: argparse.Namespace) -> int:
 
 def cmd_last_result(args: argparse.Namespace) -> int:
     from trimeter.results.writer import write_measurement
-    from trimeter.sequences.standalone import read_standalone
+    from trimeter.sequences.standalone import read_standalone, recalibrate_advice
 
     settings = settings_from(args)
     with open_device(settings) as device:
@@ -43,6 +46,9 @@ def cmd_last_result(args: argparse.Namespace) -> int:
           f"{result.flagged_bins} lit bins flagged; fitted on the device with its table {table.name} "
           f"(ℓ = {result.thickness_mm:g} mm), no host attached")
     print(f"results: {out}")
+    advice = recalibrate_advice(result)
+    if advice:
+        print(advice)
     return 0
 
 

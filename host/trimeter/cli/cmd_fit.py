@@ -9,13 +9,16 @@
 `--table` fits from a device table alone (maps/<name>.tlut: the inverse grid, the compact forward
 model, the in-scattering correction, n, ℓ and the reference backgrounds; no map file needed) with the
 instrument's own fit: the C source the firmware runs, here in double precision, so that it gives what
-`--on-device` gives with that table (to the device's single precision). That fit returns no stds (NaN)
-and takes no I_*_std columns. `--refine` fits instead on the table's forward model refined at load
-onto a grid with the map's lut fit (stds, --polish, the std columns; between the table's nodes its α
-and g may differ from the device's). `--on-device` sends the bins to the instrument, which fits them
-with the table in its active slot (identified by its SHA-256 on stderr and in the JSON); the columns
-it does not compute (the stds) are NaN. `--polish N`: at most N Newton steps after the method's guess
-(0: its raw answer; default: the method's own).
+`--on-device` gives with that table (to the device's single precision). That fit returns α, σt, g and
+flags; their stds are computed on the host from the same table (trimeter.inversion.table_std: the
+intensities' stds — the I_*_std columns, else the fit's noise model — and the map's own error the table
+carries, propagated through the table's compact model, as a --map fit propagates them through the map).
+`--refine` fits instead on the table's forward model refined at load onto a grid with the map's lut fit
+(--polish; between the table's nodes its α and g may differ from the device's). `--on-device` sends the
+bins to the instrument, which fits them with the table in its active slot (identified by its SHA-256 on
+stderr and in the JSON); the stds are added here from that table, as with --table, and stderr and the
+JSON say so. `--polish N`: at most N Newton steps after the method's guess (0: its raw answer; default:
+the method's own).
 
 Input columns: wavelength_nm, I_b, I_w, I_c; optional rho_b, rho_w (per-wavelength backgrounds;
 default: the map's reference backgrounds) and thickness_mm (required with two maps: tells which rows
@@ -59,6 +62,7 @@ from trimeter.inversion.methods import METHODS
 if TYPE_CHECKING:
     from trimeter.formats.appearance import AppearanceMap
     from trimeter.formats.device_table import DeviceTable
+    from trimeter.inversion.table_std import TableStds
 
     # what a fit here inverts through: appearance maps (one per thickness) or one device table
     FitSource = AppearanceMap | DeviceTable
@@ -73,11 +77,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="appearance map (file or shipped name); give twice for two thicknesses")
     source.add_argument("--table", type=Path,
                         help="device table (.tlut) to fit from alone, with the instrument's own fit (what "
-                             "--on-device gives with that table, here in double precision; no stds)")
+                             "--on-device gives with that table, here in double precision; stds from the table)")
     source.add_argument("--on-device", action="store_true",
                         help="fit on the instrument (--port) with the table in its active slot")
     p.add_argument("--refine", action="store_true",
-                   help="with --table: fit on the table's model refined at load (the lut fit: stds, --polish) "
+                   help="with --table: fit on the table's model refined at load (the lut fit, --polish) "
                         "instead of the instrument's fit")
     add_instrument_args(p, spectrometer=False)
     p.add_argument("--polish", type=_polish_steps, metavar="N",
@@ -347,26 +351,26 @@ def _write_result(args: argparse.Namespace, columns: dict[str, np.ndarray], used
 
 def _run_table_fit(args: argparse.Namespace, table: DeviceTable) -> int:
     """The bins fitted here with the instrument's own fit (native.TableFitter, double precision) from the
-    table file alone."""
+    table file alone, their stds from the same table (table_std.TableStds)."""
     from trimeter.inversion import native
+    from trimeter.inversion.table_std import TableStds
 
     refuse_output_onto_inputs(args.output, [args.input, args.table])
     check_declared_thickness(args.thickness, [table])
-    with fit_stream.reader(args.input) as header:
-        ignored = [c for c in ("I_b_std", "I_w_std", "I_c_std", "thickness_std_mm") if c in header.columns]
-    if ignored:
-        print(f"note: the instrument's fit takes no stds: column(s) {', '.join(ignored)} not used (--refine "
-              f"propagates them)", file=sys.stderr)
-    fitter = native.TableFitter(table.to_bytes())
+    fitter, stds = native.TableFitter(table.to_bytes()), TableStds(table)
     source = "declared with --thickness" if args.thickness else "not declared: the table's"
-    fitted = f"table {table.name} (sha256 {table.sha256[:12]}…) with the instrument's fit"
+    fitted = f"table {table.name} (sha256 {table.sha256[:12]}…) with the instrument's fit, stds from the same table"
     where = f"thickness: {table.thickness_mm:g} mm ({source}; {fitted})"
     if not args.json:
+        seen: list[float] = []  # the sample thickness's std, fixed by the first chunk
+
         def fit_chunk(chunk: Chunk) -> Chunk:
             rows = _split_thicknesses(chunk, [table], args.input)[0]
+            thickness_std = _streamed_thickness_std(chunk["thickness_std_mm"][rows], seen, table, args.input) \
+                if "thickness_std_mm" in chunk else 0.0
             result = fitter.fit(chunk["I_b"][rows], chunk["I_w"][rows], chunk["I_c"][rows],
                                 *_backgrounds(chunk, rows, table))
-            return _table_fit_columns(chunk, rows, table, result)
+            return _table_fit_columns(chunk, rows, table, stds, result, thickness_std)
 
         tally = fit_stream.fit_csv(args.input, args.output, fit_chunk, f"{table.thickness_mm:g}")
         for note in tally.advice(1):
@@ -378,8 +382,8 @@ def _run_table_fit(args: argparse.Namespace, table: DeviceTable) -> int:
     data = fit_stream.read_whole(args.input)
     rows = _split_thicknesses(data, [table], args.input)[0]
     rho_b, rho_w = _backgrounds(data, rows, table)
-    alpha, sigma_t, g, flags = fitter.fit(data["I_b"][rows], data["I_w"][rows], data["I_c"][rows], rho_b, rho_w)
-    _write_table_fit(args, data, rows, table, (alpha, sigma_t, g, flags), "lut (the instrument's fit)",
+    result = fitter.fit(data["I_b"][rows], data["I_w"][rows], data["I_c"][rows], rho_b, rho_w)
+    _write_table_fit(args, data, rows, table, stds, result, "lut (the instrument's fit)",
                      _table_identity(table, "file"), where)
     return 0
 
@@ -389,6 +393,8 @@ def _run_on_device(args: argparse.Namespace) -> int:
     (or found in the cache) first: its ℓ and reference backgrounds, and its identity for the output."""
     from trimeter.cli._instrument import open_device, settings_from
     from trimeter.device.table_cache import instrument_table
+
+    from trimeter.inversion.table_std import TableStds
 
     refuse_output_onto_inputs(args.output, [args.input])
     data = fit_stream.read_whole(args.input)
@@ -400,10 +406,11 @@ def _run_on_device(args: argparse.Namespace) -> int:
         result = device.fit(data["I_b"][rows], data["I_w"][rows], data["I_c"][rows], rho_b, rho_w,
                             thickness_mm=table.thickness_mm, table=table.to_bytes())
     source = "declared with --thickness" if args.thickness else "not declared: the table's"
-    _write_table_fit(args, data, rows, table, (result.alpha, result.sigma_t, result.g, result.flags),
+    _write_table_fit(args, data, rows, table, TableStds(table), (result.alpha, result.sigma_t, result.g, result.flags),
                      "lut (on the device)", _table_identity(table, "device", slot),
                      f"thickness: {table.thickness_mm:g} mm ({source}; fitted on the device with its table "
-                     f"{table.name}, slot {slot}, sha256 {table.sha256[:12]}…, CRC-32 0x{result.table_crc32:08X})")
+                     f"{table.name}, slot {slot}, sha256 {table.sha256[:12]}…, CRC-32 0x{result.table_crc32:08X}; "
+                     f"stds computed here from the same table)")
     return 0
 
 
@@ -416,30 +423,34 @@ def _backgrounds(data: dict[str, np.ndarray], rows: np.ndarray, table: DeviceTab
 
 
 def _write_table_fit(args: argparse.Namespace, data: dict[str, np.ndarray], rows: np.ndarray, table: DeviceTable,
-                     fitted: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray], method: str,
+                     stds: TableStds, fitted: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray], method: str,
                      identity: dict[str, Any], where: str) -> None:
-    """The output of the instrument's fit (here or on the device): the fit's columns, NaN stds (it
-    computes none), advice and the thickness line on stderr."""
+    """The output of the instrument's fit (here or on the device) with the stds computed here from the
+    same table: the fit's columns, advice and the thickness line on stderr."""
     from trimeter.inversion.flags import advice, describe
 
-    columns = _table_fit_columns(data, rows, table, fitted)
+    thickness_std = _thickness_std(data["thickness_std_mm"], [rows], [table], args.input)[0] \
+        if "thickness_std_mm" in data else 0.0
+    columns = _table_fit_columns(data, rows, table, stds, fitted, thickness_std)
     flags = columns["flags"]
     notes = advice(flags, 1)
     for note in notes:  # stderr: stdout may be the CSV
         print(f"note: {note}", file=sys.stderr)
     print(where, file=sys.stderr)
+    identity = {**identity, "stds": "computed on the host from this table (trimeter.inversion.table_std)"}
     _write_result(args, columns, f"{table.thickness_mm:g}", method, [table.thickness_mm], [table],
                   [describe(f) for f in flags], notes, identity)
 
 
-def _table_fit_columns(data: Chunk, rows: np.ndarray, table: DeviceTable,
-                       fitted: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]) -> Chunk:
-    """The instrument's fit as the output's columns: NaN stds (it computes none), the Beer-Lambert σt."""
-    alpha, sigma_t, g, flags = fitted
-    nan = np.full(len(rows), np.nan)
-    return {"wavelength_nm": data["wavelength_nm"][rows], "alpha": alpha, "sigma_t": sigma_t, "g": g,
-            "alpha_std": nan, "sigma_t_std": nan, "g_std": nan, "flags": flags,
-            "sigma_t_beer": table.setup.beer_lambert_sigma_t(data["I_c"][rows])}
+def _table_fit_columns(data: Chunk, rows: np.ndarray, table: DeviceTable, stds: TableStds,
+                       fitted: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray], thickness_std_mm: float) -> Chunk:
+    """The instrument's fit as the output's columns, with its stds from the table (TableStds.result): the
+    rows' intensity stds where the input gives them, the sample thickness's std."""
+    given = {name: data[name][rows] for name in ("I_b_std", "I_w_std", "I_c_std") if name in data}
+    result = stds.result(fitted, data["I_b"][rows], data["I_w"][rows], data["I_c"][rows],
+                         *_backgrounds(data, rows, table), thickness_rel_std=thickness_std_mm / table.thickness_mm,
+                         **given)
+    return {"wavelength_nm": data["wavelength_nm"][rows], **result.as_dict()}
 
 
 def _thickness_std(column: np.ndarray, groups: list[np.ndarray], amaps: Sequence[FitSource], path: Path) -> list[float]:

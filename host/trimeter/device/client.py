@@ -20,7 +20,7 @@ import contextlib
 import struct
 import time
 import zlib
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from enum import IntEnum
 from collections.abc import Callable
 from contextlib import AbstractContextManager
@@ -190,6 +190,10 @@ def table_own_crc32(table: bytes) -> int:
     return int.from_bytes(table[-4:], "little")
 
 
+STANDALONE_LAMPS = ("panel_left", "panel_right", "collimated")  # input registers standalone_lamp_*
+STANDALONE_LAMP_TOLERANCE = regs.StandaloneLamp.TOLERANCE_PERMILLE / 1000  # the device's bound on a lamp's change
+
+
 @dataclass(frozen=True)
 class StandaloneResult:
     """The last standalone press as the device keeps it (registers.toml, enums.standalone_*): its status,
@@ -204,6 +208,13 @@ class StandaloneResult:
     table_crc32: int
     flagged_bins: int
     integration_us: dict[str, int]  # per set-up (black, white, open): the device's auto-exposure
+    # per lamp (STANDALONE_LAMPS): its light on its lamp-monitor photodiode / the calibration's (NaN: not compared)
+    lamp_levels: dict[str, float] = field(default_factory=dict)
+
+    def changed_lamps(self) -> dict[str, float]:
+        """The lamps whose light differed from the calibration's beyond the device's tolerance."""
+        return {lamp: level for lamp, level in self.lamp_levels.items()
+                if abs(level - 1.0) > STANDALONE_LAMP_TOLERANCE}  # NaN compares False: not compared, not changed
 
 
 @dataclass(frozen=True)
@@ -659,7 +670,8 @@ class Device:
         setups = ("black", "white", "open")
         values = self.read_many("standalone_status", "standalone_bins", "standalone_sequence",
                                 "white_reference_reflectance", "standalone_thickness_mm", "standalone_table_crc32",
-                                "standalone_flagged_bins", *(f"standalone_integration_{k}_us" for k in setups))
+                                "standalone_flagged_bins", *(f"standalone_integration_{k}_us" for k in setups),
+                                *(f"standalone_lamp_{lamp}" for lamp in STANDALONE_LAMPS))
         status = values["standalone_status"]
         if status == regs.StandaloneStatus.BUSY:
             raise DeviceError("a standalone press is running on the device: wait for its status LED")
@@ -674,7 +686,8 @@ class Device:
                                 np.frombuffer(data, dtype=STANDALONE_DTYPE),
                                 float(values["white_reference_reflectance"]), float(values["standalone_thickness_mm"]),
                                 int(values["standalone_table_crc32"]), int(values["standalone_flagged_bins"]),
-                                {k: int(values[f"standalone_integration_{k}_us"]) for k in setups})
+                                {k: int(values[f"standalone_integration_{k}_us"]) for k in setups},
+                                {lamp: float(values[f"standalone_lamp_{lamp}"]) for lamp in STANDALONE_LAMPS})
 
     def _read_fit_results(self, count: int) -> np.ndarray:
         stride = int(regs.FitOutputWord.STRIDE)

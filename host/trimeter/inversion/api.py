@@ -117,7 +117,7 @@ def fit(models: FitModel | Sequence[FitModel], I_b: ArrayLike, I_w: ArrayLike, I
                          "trimeter.fit takes maps, paths and names")
     k = len(amaps)
     arrays = _shape_inputs(k, I_b, I_w, I_c, rho_b, rho_w, amaps)
-    stds = _shape_stds(k, arrays, (I_b_std, I_w_std, I_c_std), noise_rel, noise_abs)
+    stds = shape_stds(k, arrays, (I_b_std, I_w_std, I_c_std), noise_rel, noise_abs)
     thickness_rel = [t / m.setup.thickness_mm for t, m in zip(_thickness_stds(k, thickness_std_mm), amaps, strict=True)]
     opts: dict[str, Any] = dict(noise_rel=noise_rel, noise_abs=noise_abs, ic_floor=ic_floor, alpha_min_g=alpha_min_g,
                                 inscatter_rel_std=inscatter_rel_std)
@@ -167,7 +167,7 @@ def _shape_inputs(k: int, I_b: ArrayLike, I_w: ArrayLike, I_c: ArrayLike, rho_b:
     return [(I_b[i], I_w[i], I_c[i], rhos[0][i], rhos[1][i]) for i in range(k)]
 
 
-def _shape_stds(k: int, arrays: list[Inputs], given: tuple[ArrayLike | None, ...], noise_rel: float,
+def shape_stds(k: int, arrays: list[Inputs], given: tuple[ArrayLike | None, ...], noise_rel: float,
                 noise_abs: float) -> list[np.ndarray | None]:
     """Per thickness, the intensities' stds as an (N, 3) array, or None when none was given (the
     noise model then stands everywhere, computed where it is used). A missing column, or a NaN in

@@ -21,7 +21,7 @@ if TYPE_CHECKING:
 INPUT_TOLERANCE = 1e-3   # intensities this far below 0 / above 1 are still taken as noise around the limit
 DISAGREE_SIGMAS = 3.0
 UNDERDETERMINED_ALPHA_STD, UNDERDETERMINED_G_STD = 0.1, 0.2  # FitFlag.UNDERDETERMINED above these stds
-# First order is checked (_std_approximate) only where a bin's α or g std is above these, a fifth of
+# First order is checked (std_approximate) only where a bin's α or g std is above these, a fifth of
 # the UNDERDETERMINED thresholds: below them the check changes no coverage figure noticeably, and it
 # costs eight forward evaluations per bin checked.
 STD_CHECK_ALPHA, STD_CHECK_G = 0.02, 0.04
@@ -52,9 +52,24 @@ def sanitize(x: np.ndarray, lo: float, hi: float, fill: float) -> np.ndarray:
     return np.clip(np.where(np.isfinite(x), x, fill), lo, hi)
 
 
-def _underdetermined(std_a: np.ndarray, std_g: np.ndarray) -> np.ndarray:
+def underdetermined(std_a: np.ndarray, std_g: np.ndarray) -> np.ndarray:
     with np.errstate(invalid="ignore"):  # NaN std_g (g undefined) does not count
         return (std_a > UNDERDETERMINED_ALPHA_STD) | (std_g > UNDERDETERMINED_G_STD)
+
+
+def conditioning_stds(kernel: Kernel, J: np.ndarray, sd: np.ndarray, floor_sd: np.ndarray | None, model: np.ndarray,
+                      inscatter_var: np.ndarray | None, std_a: np.ndarray, std_g: np.ndarray,
+                      g_undef: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """α's and g's stds with the intensities' stds sd (N, 3) raised to at least the noise model's floor_sd
+    (None: sd stands): what UNDERDETERMINED is judged on. model: (2, N) the map's error variances of I_b,
+    I_w; std_a, std_g: the stds at sd, returned as they are where no std is raised."""
+    if floor_sd is None or not np.any(floor_sd > sd):
+        return std_a, std_g
+    cond_var = np.maximum(sd * sd, floor_sd * floor_sd)
+    cond_I = np.column_stack([np.sqrt(cond_var[:, 0] + model[0]), np.sqrt(cond_var[:, 1] + model[1]),
+                              np.maximum(sd[:, 2], floor_sd[:, 2])])
+    cond_a, _, cond_g = kernel.propagate(J, cond_I, inscatter_var)
+    return cond_a, np.where(g_undef, np.nan, cond_g)
 
 
 # bins whose stds already come with a caveat are not checked for STD_APPROXIMATE
@@ -62,7 +77,7 @@ _STD_CHECK_SKIP = int(UNUSABLE | FitFlag.UNDERDETERMINED | FitFlag.G_UNDEFINED |
                       | FitFlag.NOT_CONVERGED)
 
 
-def _std_approximate(grid: ForwardGrid, flags: np.ndarray, alpha: np.ndarray, sigma_t: np.ndarray, g: np.ndarray,
+def std_approximate(grid: ForwardGrid, flags: np.ndarray, alpha: np.ndarray, sigma_t: np.ndarray, g: np.ndarray,
                      ib: np.ndarray, iw: np.ndarray, rb: np.ndarray, rw: np.ndarray, J: np.ndarray,
                      sigma_I: np.ndarray, std_a: np.ndarray, std_g: np.ndarray) -> np.ndarray:
     """Where FitFlag.STD_APPROXIMATE belongs (invert.c tm_fit_solve does the same): bins whose α or g
@@ -123,15 +138,9 @@ def finish(grid: ForwardGrid, flags: np.ndarray, usable: np.ndarray, ib: np.ndar
     # UNDERDETERMINED is the map's conditioning at no less than the instrument's noise model: a
     # capture's frame scatter alone misses drift and calibration error, and one quiet capture must
     # not make α and g look told apart where a realistic noise leaves them not
-    cond_a, cond_g = std_a, std_g
-    if floor_sd is not None and np.any(floor_sd > sd):
-        cond_var = np.maximum(var_in, floor_sd * floor_sd)
-        cond_I = np.column_stack([np.sqrt(cond_var[:, 0] + model[0]), np.sqrt(cond_var[:, 1] + model[1]),
-                                  np.maximum(sd[:, 2], floor_sd[:, 2])])
-        cond_a, _, cond_g = kernel.propagate(J, cond_I, inscatter_var)
-        cond_g = np.where(g_undef, np.nan, cond_g)
-    flags |= np.where(usable & _underdetermined(cond_a, cond_g), int(FitFlag.UNDERDETERMINED), 0)
-    flags |= np.where(_std_approximate(grid, flags, alpha_solved, sigma_t_solved, g_solved, ib_solved, iw_solved, rb,
+    cond_a, cond_g = conditioning_stds(kernel, J, sd, floor_sd, model, inscatter_var, std_a, std_g, g_undef)
+    flags |= np.where(usable & underdetermined(cond_a, cond_g), int(FitFlag.UNDERDETERMINED), 0)
+    flags |= np.where(std_approximate(grid, flags, alpha_solved, sigma_t_solved, g_solved, ib_solved, iw_solved, rb,
                                        rw, J, sigma_I, std_a, std_g), int(FitFlag.STD_APPROXIMATE), 0)
     blank = ~usable
     nan = np.nan
@@ -179,7 +188,7 @@ def combine(results: list[FitResult], method: str) -> FitResult:
                           for r in results],
                          [r.g_std if r.conditioning_g_std is None else r.conditioning_g_std for r in results]])
         cond_a, cond_g = _weighted(vals[[0, 2]], cond)[1]
-    flags |= np.where(usable & _underdetermined(cond_a, cond_g), int(FitFlag.UNDERDETERMINED), 0)
+    flags |= np.where(usable & underdetermined(cond_a, cond_g), int(FitFlag.UNDERDETERMINED), 0)
     same = cond_a is std[0]
     return FitResult(alpha=value[0], sigma_t=value[1], g=value[2], alpha_std=std[0], sigma_t_std=std[1],
                      g_std=std[2], flags=flags, sigma_t_beer=value[3], method=method, per_thickness=results,

@@ -141,10 +141,11 @@ def _capture(columns: dict[str, np.ndarray], path: Path) -> Capture:
 
 REFLECTANCE_COLUMNS = ("wavelength_nm", "I_b", "I_w", "I_c", "rho_b", "rho_w", "capture_flags")
 REFLECTANCE_STDS = ("I_b_std", "I_w_std", "I_c_std")
+REFLECTANCE_OPTIONAL = (*REFLECTANCE_STDS, "thickness_mm")  # the declared thickness (older results lack it)
 
 
 def _reflectances(path: Path) -> Reflectances:
-    c = read_columns(path, required=REFLECTANCE_COLUMNS, optional=REFLECTANCE_STDS, follow_symlinks=False)
+    c = read_columns(path, required=REFLECTANCE_COLUMNS, optional=REFLECTANCE_OPTIONAL, follow_symlinks=False)
     return Reflectances(c["wavelength_nm"], c["I_b"], c["I_w"], c["I_c"], c["rho_b"], c["rho_w"],
                         np.nan_to_num(c["capture_flags"]).astype(np.int32), c.get("I_b_std"), c.get("I_w_std"),
                         c.get("I_c_std"))

@@ -4,7 +4,7 @@
         measurement.json      what, when, sample, thicknesses, map(s), method, timings, device identity
         calibration.json/.csv the calibration used (diffuse + collimated spectra, ρ_black, flags)
         raw_<setup>[_<ℓ>].csv raw counts: every exposure's mean signal and its dark frame
-        reflectances[_<ℓ>].csv I_b, I_w, I_c, ρ_b, ρ_w, capture flags per wavelength
+        reflectances[_<ℓ>].csv I_b, I_w, I_c, ρ_b, ρ_w, capture flags, declared thickness per wavelength
         parameters.csv/.json  α, σt, g with std, flags, the Beer's-law σt (per thickness too, if two)
         figure.png            like the paper's Fig. 10
         medium.xml / .json    a spectral Mitsuba 3 homogeneous medium, ready to render
@@ -179,7 +179,10 @@ def _write_all(out: Path, m: Measurement, *, figure: bool, medium: bool) -> None
         for setup in ("black", "white", "collimated"):
             write_csv(out / f"raw_{setup}{tag}.csv",
                       _raw_columns(capture.raw.wavelengths_nm, getattr(capture.raw, setup)))
-        write_csv(out / f"reflectances{tag}.csv", capture.reflectances.as_columns())
+        # the declared thickness travels with the capture: `trimeter fit --input` this file checks its map by it
+        columns = capture.reflectances.as_columns()
+        columns["thickness_mm"] = np.full(len(columns["wavelength_nm"]), capture.sample.thickness_mm)
+        write_csv(out / f"reflectances{tag}.csv", columns)
     write_csv(out / "parameters.csv", m.parameters.columns())
     for p, tag in zip(m.per_thickness, file_tags([p.thickness_mm for p in m.per_thickness]), strict=True):
         write_csv(out / f"parameters{tag}.csv", p.columns())

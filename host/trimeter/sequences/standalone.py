@@ -6,6 +6,10 @@ with provenance saying it was captured and fitted on the device with no host att
 Nothing is fitted again here: α, σt, g and their flags are the device's; the reflectances are the device's
 ratios recomputed from the same rates (NaN where the device gave the fit no input: unlit or saturated bins).
 The device computes no standard errors (NaN columns).
+
+A press whose lamps' light differed from the calibration's (status lamp_changed: the device's lamp-monitor
+photodiodes against its calibration press's) is still a measurement, recorded with its lamp levels, but a
+biased one: `recalibrate_advice` says so, in the words the operator reads.
 """
 
 from __future__ import annotations
@@ -21,6 +25,7 @@ from trimeter.domain.measurement import DeviceTableCheck, SampleCapture
 from trimeter.domain.parameters import FitResult
 from trimeter.errors import DeviceError
 from trimeter.results.writer import Parameters
+from trimeter.sequences.lamp_monitor import LAMP_NAMES
 
 if TYPE_CHECKING:
     from trimeter.device import Device
@@ -28,6 +33,7 @@ if TYPE_CHECKING:
     from trimeter.formats.device_table import DeviceTable
 
 SETUPS = (("black", "black"), ("white", "white"), ("collimated", "open"))  # (RawSample field, device set-up)
+MEASUREMENTS = (regs.StandaloneStatus.DONE, regs.StandaloneStatus.FLAGGED, regs.StandaloneStatus.LAMP_CHANGED)
 
 
 def read_standalone(device: Device) -> tuple[Measurement, StandaloneResult]:
@@ -40,7 +46,7 @@ def read_standalone(device: Device) -> tuple[Measurement, StandaloneResult]:
     result = device.standalone_result()
     if result.status == regs.StandaloneStatus.CALIBRATED:
         raise DeviceError("the device's last standalone press was a calibration: insert a sample and press again")
-    if result.status not in (regs.StandaloneStatus.DONE, regs.StandaloneStatus.FLAGGED):
+    if result.status not in MEASUREMENTS:
         raise DeviceError(f"the device's last standalone press ended {result.status.name.lower()}: it holds no "
                           "measurement (hardware/registers.md, standalone_status)")
     identity = device.check_identity()
@@ -49,6 +55,21 @@ def read_standalone(device: Device) -> tuple[Measurement, StandaloneResult]:
         raise DeviceError("the device's active map table changed since its last standalone press: the table that "
                           "fitted it is gone, so its result cannot be recorded with its table")
     return measurement_of(result, table, slot, InstrumentInfo.of(identity)), result
+
+
+def recalibrate_advice(result: StandaloneResult) -> str | None:
+    """The line that tells the operator to calibrate again when the lamps changed since the device's calibration
+    (status lamp_changed); None when they did not."""
+    from trimeter.device.client import STANDALONE_LAMP_TOLERANCE
+
+    if result.status != regs.StandaloneStatus.LAMP_CHANGED:
+        return None
+    changed = result.changed_lamps()
+    what = "; ".join(f"the {LAMP_NAMES[lamp]} gave {level:.1%} of its light at the calibration"
+                     for lamp, level in changed.items()) or "a lamp's light changed"
+    return (f"RECALIBRATE: {what} (lamp monitor, bound ±{STANDALONE_LAMP_TOLERANCE:.0%}): this result is biased "
+            "(α by about a third of the change, σt by up to all of it). Empty the holder, run `trimeter device "
+            "standalone calibrate`, press the button, then measure again (replace a lamp that keeps dimming).")
 
 
 def measurement_of(result: StandaloneResult, table: DeviceTable, slot: str, instrument: InstrumentInfo) -> Measurement:
@@ -88,6 +109,10 @@ def measurement_of(result: StandaloneResult, table: DeviceTable, slot: str, inst
         extra={"fitted_on": "device", "hostless": True,
                "standalone": {"status": result.status.name.lower(), "sequence": result.sequence,
                               "flagged_bins": result.flagged_bins, "integration_us": result.integration_us,
-                              "white_reference_reflectance": result.rho_white}})
+                              "white_reference_reflectance": result.rho_white,
+                              # against the calibration's light; None: not compared
+                              "lamp_levels": {lamp: level if np.isfinite(level) else None
+                                              for lamp, level in result.lamp_levels.items()},
+                              "recalibrate": result.status == regs.StandaloneStatus.LAMP_CHANGED}})
     return Measurement(calibration, [SampleCapture(sample, raw, reflectances)],
                        Parameters.from_fit(wl, fit, thickness_mm=sample.thickness_mm), provenance=provenance)

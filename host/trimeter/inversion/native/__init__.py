@@ -1,4 +1,5 @@
-"""The compiled inversion kernel (the C sources next to this file), bound with ctypes.
+"""The compiled inversion kernel (the C sources next to this file and the inverse core it shares with the
+firmware, fit_core/ at the repository's root), bound with ctypes.
 
 `make native` (part of `make setup`, so of `make test` and `make demo`) compiles it into
 libtrimeter_invert.so here. Its boundary is declared once, in invert.h: tools/gen_native.py generates
@@ -28,6 +29,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from trimeter.errors import TrimeterError
+from trimeter.paths import FIT_CORE_DIR
 from trimeter.inversion.native import invert_h
 
 if TYPE_CHECKING:
@@ -59,12 +61,15 @@ class NativeKernelWarning(UserWarning):
     """The compiled kernel is missing, stale or does not load: the numpy kernel runs instead."""
 
 
-def source_hash(directory: Path = LIBRARY.parent) -> int | None:
+def source_hash(directories: tuple[Path, ...] = (LIBRARY.parent, FIT_CORE_DIR)) -> int | None:
     """The hash `make native` compiles into the library (tm_source_hash): 64 bits of SHA-256 over the
-    kernel's .c and .h files in name order; None where the sources are not installed."""
-    files = sorted(p for p in directory.iterdir() if p.suffix in (".c", ".h"))
-    if not files:
+    kernel's .c and .h files, directory after directory (its own, then the inverse core it shares with
+    the firmware), each in name order; None where the sources are not all there (an installed package)."""
+    per_directory = [sorted(p for p in d.iterdir() if p.suffix in (".c", ".h")) if d.is_dir() else []
+                     for d in directories]
+    if not all(per_directory):
         return None
+    files = [p for found in per_directory for p in found]
     digest = hashlib.sha256(b"".join(p.read_bytes() for p in files)).hexdigest()
     return int(digest[:16], 16)
 
@@ -388,10 +393,11 @@ def combine(fits: np.ndarray, underdetermined_std: tuple[float, float], disagree
 
 
 class TableFitter:
-    """The fit from a self-sufficient device table (.tlut v2) alone, in C (table_fit.c: the source the
-    firmware links as tr_fit_bins, here in double precision): the lut fit with fit()'s defaults, bin by
+    """The fit from a self-sufficient device table (.tlut v2) alone, in C (fit_core/table_fit.c: the
+    source the firmware links as tr_fit_bins, here in double precision): the lut fit with fit()'s defaults, bin by
     bin, from the table's bytes and nothing else. Returns α, σt, g and the FitFlag bits (NaN where a
-    bin is unusable); STD_APPROXIMATE is never set (the fit returns no stds).
+    bin is unusable); STD_APPROXIMATE is never set (the fit returns no stds: trimeter.inversion.table_std adds
+    them on the host from the same table).
 
     table_bytes: the file's bytes; its CRC-32 is checked here, every other field by the C reader.
     library: another build of the kernel (a path; e.g. the single-precision one a test compiles),
@@ -430,6 +436,36 @@ class TableFitter:
             raise NativeKernelError("the table fit refused a table it took before")  # cannot happen: no state
         alpha, sigma_t, g = (np.array(out[:, k]).reshape(shape) for k in range(3))
         return alpha, sigma_t, g, flags.reshape(shape)
+
+
+class TableModel:
+    """A device table's compact forward model evaluated in C (tm_table_eval: tr_compact_eval, what the table
+    fit's polish evaluates), in place of trimeter.model.compact.CompactForward.evaluate where the kernel is
+    loaded: the host's stds of the table fit take their Jacobian from it (trimeter.inversion.table_std).
+
+    table_bytes: a table's bytes as DeviceTable.to_bytes gives them (checked by the C reader here)."""
+
+    def __init__(self, table_bytes: bytes) -> None:
+        from trimeter.errors import MapFileError
+
+        self._table = np.frombuffer(bytes(table_bytes), dtype=np.uint8).copy()  # aligned, as the reader wants
+        self._eval = _library().tm_table_eval
+        if self._eval(_addr(self._table), len(self._table), 0, None, None, None, None) != 0:
+            raise MapFileError("device table: not a format-2 table the C reader reads")
+
+    def evaluate(self, alpha: ArrayLike, log_sigma_t: ArrayLike, g: ArrayLike
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """As CompactForward.evaluate: A, B, C (3, N) and their derivatives in α, ln σt and g, each (3, N),
+        at points clamped to the map's box (a NaN coordinate reads as the box's lower end)."""
+        a, s, g_ = (np.ascontiguousarray(np.ravel(x), dtype=np.float64)
+                    for x in np.broadcast_arrays(*(np.atleast_1d(np.asarray(x, dtype=np.float64))
+                                                   for x in (alpha, log_sigma_t, g))))
+        n = len(a)
+        out = np.empty((n, 12))
+        if n and self._eval(_addr(self._table), len(self._table), n, _addr(a), _addr(s), _addr(g_), _addr(out)) != 0:
+            raise NativeKernelError("the table's model refused a table it took before")  # cannot happen: no state
+        t = out.T
+        return t[0:3], t[3:6], t[6:9], t[9:12]
 
 
 def _bind(lib: ctypes.CDLL) -> ctypes.CDLL:

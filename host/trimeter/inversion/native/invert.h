@@ -1,13 +1,14 @@
-/* The inversion kernel's boundary: everything a caller of the compiled kernel (Python through ctypes,
- * the firmware linking the same sources) sees. tools/gen_native.py reads this file and generates the
- * Python side (invert_h.py: ctypes structures, prototypes, flag bits, constants) and the ABI hash
- * (invert_abi.h, a hash of this file without its comments), so the two sides cannot drift apart:
- * `make check-gen` fails when a generated file is stale, and Python refuses a library whose
- * tm_abi_hash() is another header's.
+/* The inversion kernel's boundary: everything Python (through ctypes) sees of the compiled kernel. The
+ * part shared with the firmware (the FitFlag bits, the polish's constants, the table fit's settings and
+ * tm_table_fit) is declared once in fit_core/table_fit.h, included below. tools/gen_native.py reads this
+ * file, with that include in place, and generates the Python side (invert_h.py: ctypes structures,
+ * prototypes, flag bits, constants) and the ABI hash (invert_abi.h, a hash of both without their
+ * comments), so the two sides cannot drift apart: `make check-gen` fails when a generated file is stale,
+ * and Python refuses a library whose tm_abi_hash() is another header's.
  *
- * Kept to a small C subset the generator parses: `#define TM_NAME number`, enums of `NAME = 1 << k`
- * or plain counters, `typedef struct { … } tm_name;` with fields of int32_t / int64_t / double and
- * pointers to them, and one-line prototypes of tm_ functions.
+ * Kept to a small C subset the generator parses: `#include "table_fit.h"`, `#define TM_NAME number`,
+ * enums of `NAME = 1 << k` or plain counters, `typedef struct { … } tm_name;` with fields of int32_t /
+ * int64_t / double and pointers to them, and one-line prototypes of tm_ functions.
  *
  * Data layouts (C order, float64):
  *   poly  [(na-1)(ns-1)(ng-1)][8 terms][3 coefs]  trilinear polynomial per forward cell, terms
@@ -21,30 +22,7 @@
 #include <stddef.h>
 #include <stdint.h>
 
-/* A polish step at most this fraction of the one before it also ends a bin's polish when the next
- * step, extrapolated at that rate, would be below κ of the noise std (ForwardGrid.step_is_small). */
-#define TM_STEP_RATIO 0.25
-/* The in-scattering correction takes L = ln(1 + r) a second time, at the moved σt, only where the
- * first is above this (ForwardGrid.correct_inscatter). */
-#define TM_INSCATTER_ONCE 1e-3
-
-/* FitFlag bits (trimeter.inversion.flags; a test checks that both agree) */
-enum tm_flag {
-    TM_FLAG_NONFINITE_INPUT = 1 << 0,
-    TM_FLAG_NEGATIVE_INPUT = 1 << 1,
-    TM_FLAG_ABOVE_ONE = 1 << 2,
-    TM_FLAG_BLACK_NOT_BELOW_WHITE = 1 << 3,
-    TM_FLAG_IC_BELOW_FLOOR = 1 << 4,
-    TM_FLAG_G_UNDEFINED = 1 << 5,
-    TM_FLAG_OUTSIDE_MAP = 1 << 6,
-    TM_FLAG_NOT_CONVERGED = 1 << 7,
-    TM_FLAG_THICKNESS_DISAGREE = 1 << 8,
-    TM_FLAG_BAD_BACKGROUND = 1 << 9,
-    TM_FLAG_UNDERDETERMINED = 1 << 10,
-    TM_FLAG_STD_APPROXIMATE = 1 << 11,
-    TM_FLAG_BAND_UNRESOLVED = 1 << 12,
-    TM_FLAG_PER_CHANNEL_BANDS = 1 << 13
-};
+#include "table_fit.h"
 
 /* The rows of a fit's output block (tm_fit, tm_fit_solve): TM_ROW_COUNT rows of n values, float64
  * except flags (int64), so that the caller hands over one address. conditioning_*: α's and g's std
@@ -110,25 +88,6 @@ typedef struct {
     int32_t iterations;
 } tm_fit_options;
 
-/* The fit from a self-sufficient device table (.tlut v2, trimeter.formats.device_table) alone, one bin at
- * a time with no allocation (table_fit.c, the source the firmware links as tr_fit_bins,
- * firmware/core/fit_core.h): fit()'s lut fit with these settings, fixed (a test checks them against
- * trimeter.inversion.api's defaults). */
-#define TM_TABLE_FIT_NOISE_REL 0.005
-#define TM_TABLE_FIT_NOISE_ABS 2e-4
-#define TM_TABLE_FIT_IC_FLOOR 1e-4
-#define TM_TABLE_FIT_ALPHA_MIN_G 0.02
-#define TM_TABLE_FIT_POLISH 8
-#define TM_TABLE_FIT_POLISH_TOL 1e-6
-#define TM_TABLE_FIT_POLISH_TOL_STD 3e-3
-#define TM_TABLE_FIT_INPUT_TOLERANCE 1e-3
-#define TM_TABLE_FIT_UNDERDETERMINED_ALPHA_STD 0.1
-#define TM_TABLE_FIT_UNDERDETERMINED_G_STD 0.2
-#define TM_TABLE_FIT_INSCATTER_REL_STD 0.05
-/* tm_table_fit's returns besides 0 (tr_fit_bins's, checked against fit_core.h at compile time) */
-#define TM_TABLE_FIT_ERR_TABLE -1
-#define TM_TABLE_FIT_ERR_ARGS -2
-
 /* The hash of this header (invert_abi.h) the library was compiled with. */
 uint64_t tm_abi_hash(void);
 /* Host library only: a hash of the sources it was built from (`make native` passes it; 0 when built
@@ -157,11 +116,12 @@ size_t tm_fit_scratch_size(size_t n);
 void tm_fit_prepare(const tm_forward_grid *f, const tm_fit_options *o, size_t n, const double *I_b, const double *I_w, const double *I_c, const double *rho_b, const double *rho_w, const double *sd_in, void *scratch, double *outputs, double log_lo, double log_hi, float *features);
 long long tm_fit_solve(const tm_forward_grid *f, const tm_inverse_table *table, const tm_fit_options *o, size_t n, const double *alpha0, const double *g0, void *scratch, double *outputs);
 
-/* The fit from a device table of len bytes (read in place; its CRC-32 is the caller's to check):
- * in[5 i …] = I_b, I_w, I_c, rho_b, rho_w of bin i, out[3 i …] = α, σt, g (NaN where unusable),
- * flags[i] = FitFlag bits. n = 0 only checks the table. Double precision on the host; the -DTR_SINGLE
- * build fits in single precision inside (as the MCU does). Returns 0 or TM_TABLE_FIT_ERR_*. */
-int tm_table_fit(const uint8_t *table, size_t len, const double *in, size_t n, double *out, int64_t *flags);
+/* The device table's compact model at n points, as the table fit evaluates it (tr_compact_eval;
+ * trimeter.model.compact.CompactForward.evaluate, clamped to the map's box): out[12 i …] = A, B, C, then
+ * their derivatives in α, in ln σt and in g. The host's stds of the table fit take its Jacobian from here
+ * (trimeter.inversion.table_std). Host library only (library.c). Returns 0 or TM_TABLE_FIT_ERR_*. */
+int tm_table_eval(const uint8_t *table, size_t len, size_t n, const double *alpha, const double *log_sigma_t,
+                  const double *g, double *out);
 
 /* The parts for the numpy-side callers: the guess and polish at a given ln σt (J: n × 3 × 3; with
  * scratch from malloc, host library only) and the first-order stds from given Jacobians. */

@@ -2,7 +2,7 @@
 
 import ctypes
 
-ABI_HASH = 0xe642c559216ae559
+ABI_HASH = 0x0cefca51996d9dd1
 STEP_RATIO = 0.25
 INSCATTER_ONCE = 0.001
 TABLE_FIT_NOISE_REL = 0.005
@@ -127,6 +127,14 @@ class FitOptionsStruct(ctypes.Structure):
 
 # tm_ function -> (restype, argtypes)
 FUNCTIONS = {
+    "tm_table_fit": (ctypes.c_int, [
+        ctypes.c_void_p,
+        ctypes.c_size_t,
+        ctypes.c_void_p,
+        ctypes.c_size_t,
+        ctypes.c_void_p,
+        ctypes.c_void_p,
+    ]),
     "tm_abi_hash": (ctypes.c_uint64, [
     ]),
     "tm_source_hash": (ctypes.c_uint64, [
@@ -187,11 +195,12 @@ FUNCTIONS = {
         ctypes.c_void_p,
         ctypes.c_void_p,
     ]),
-    "tm_table_fit": (ctypes.c_int, [
+    "tm_table_eval": (ctypes.c_int, [
         ctypes.c_void_p,
         ctypes.c_size_t,
-        ctypes.c_void_p,
         ctypes.c_size_t,
+        ctypes.c_void_p,
+        ctypes.c_void_p,
         ctypes.c_void_p,
         ctypes.c_void_p,
     ]),

@@ -2,6 +2,7 @@
  * that allocate their scratch, and the hash of the sources the library was built from. */
 #include <stdlib.h>
 
+#include "compact.h"
 #include "invert_internal.h"
 
 #ifndef TM_SOURCE_HASH
@@ -34,4 +35,29 @@ int tm_solve_alpha_g(const tm_forward_grid *f, const tm_inverse_table *table, si
                                g, residual, J, scratch);
     free(scratch);
     return rc;
+}
+
+static tr_real finite_in_box(double x, float lo, float hi) { return isfinite(x) ? tr_clamp(x, lo, hi) : lo; }
+
+int tm_table_eval(const uint8_t *table, size_t len, size_t n, const double *alpha, const double *log_sigma_t,
+                  const double *g, double *out) {
+    tr_table t;
+    if (tr_table_open(table, len, &t)) return TM_TABLE_FIT_ERR_TABLE;
+    if (n && (!alpha || !log_sigma_t || !g || !out)) return TM_TABLE_FIT_ERR_ARGS;
+    for (size_t i = 0; i < n; i++) {
+        tr_sigma_slice slice;
+        tr_abc c;
+        /* a NaN would index outside the table: it reads as the box's lower corner (the caller's bins with a
+         * NaN point are NaN already) */
+        tr_sigma_slice_init(&t, finite_in_box(log_sigma_t[i], t.log_sigma_t[0], t.log_sigma_t[t.ns - 1]), &slice);
+        tr_compact_eval(&t, finite_in_box(alpha[i], t.alpha[0], t.alpha[t.na - 1]), &slice,
+                        finite_in_box(g[i], t.g[0], t.g[t.ng - 1]), &c);
+        for (int k = 0; k < 3; k++) {
+            out[12 * i + (size_t)k] = c.v[k];
+            out[12 * i + 3 + (size_t)k] = c.da[k];
+            out[12 * i + 6 + (size_t)k] = c.ds[k];
+            out[12 * i + 9 + (size_t)k] = c.dg[k];
+        }
+    }
+    return 0;
 }

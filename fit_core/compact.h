@@ -1,8 +1,8 @@
 /* The self-sufficient device table (.tlut v2, trimeter.formats.device_table) as the fit from it reads it
  * in place: a checked view of its header and sections, the compact forward model evaluated on the
  * fly (trimeter.model.compact.CompactForward), the inverse table's guess, the in-scattering table and
- * the map's error at its nodes. Shared by compact.c and table_fit.c; callers see invert.h and
- * firmware/core/fit_core.h only.
+ * the map's error at its nodes. Shared by compact.c and table_fit.c; callers see fit_core.h and
+ * table_fit.h only.
  *
  * tr_real is double on the host and float on the MCU (-DTR_SINGLE, the Cortex-M4's FPU is single
  * precision): every literal and math call below goes through R() and the R_ functions, so that a

@@ -1,6 +1,6 @@
-/* The one seam between the firmware and the inverse core it shares with the host
- * (host/trimeter/inversion/native/table_fit.c and compact.c, compiled for both ports by firmware/Makefile's
- * FIT_CORE_SRC; the host calls the same source in double precision as tm_table_fit).
+/* The one seam between the firmware and the inverse core it shares with the host (this directory:
+ * table_fit.c and compact.c, compiled for both ports by firmware/Makefile's FIT_CORE_SRC; the host's
+ * kernel builds the same sources in double precision and calls them as tm_table_fit, table_fit.h).
  *
  * tr_fit_bins fits n bins with the map table `table` (len bytes, read in place: flash on the MCU; a
  * format-2 device table, 4-byte aligned; its CRC-32 is the storage's to check, map_table.h):

@@ -1,6 +1,6 @@
 /* The fit from the device table alone, one bin at a time, bounded stack, no state, no allocation:
- * what the firmware links (tr_fit_bins, firmware/core/fit_core.h) and the host calls in double
- * precision (tm_table_fit, invert.h). Per bin, the host's lut fit with fit()'s defaults (the
+ * what the firmware links (tr_fit_bins, fit_core.h) and the host calls in double precision
+ * (tm_table_fit, table_fit.h). Per bin, the host's lut fit with fit()'s defaults (the
  * TM_TABLE_FIT_* constants; trimeter.inversion.api._prepare, trimeter.inversion.finish.finish) with the compact model in place of
  * the refined grid: input flags → σt from I_c (exact inverse of the Fresnel stack) → the inverse
  * table's guess → damped Gauss-Newton polish of (α, g) on the compact model → in-scattering
@@ -10,10 +10,10 @@
 
 #include "compact.h"
 #include "fit_core.h"
-#include "invert.h"
+#include "table_fit.h"
 
 _Static_assert(TM_TABLE_FIT_ERR_TABLE == TR_FIT_ERR_TABLE && TM_TABLE_FIT_ERR_ARGS == TR_FIT_ERR_ARGS,
-               "invert.h and fit_core.h name the same return codes");
+               "the host's and the firmware's entries return the same codes");
 
 enum {
     UNUSABLE = TM_FLAG_NONFINITE_INPUT | TM_FLAG_NEGATIVE_INPUT | TM_FLAG_ABOVE_ONE | TM_FLAG_BAD_BACKGROUND,
