@@ -75,7 +75,7 @@ def served_lab(root: Path, faults: dict | None = None, seed: int = 11):
     yields (Page, {name: twin}, results directory)."""
     from trimeter.twin import FaultConfig
     from trimeter.twin.bus import TwinBus
-    from trimeter.web.app import WebServer
+    from trimeter.web.server import WebServer
     from trimeter.web.auth import load_or_create_token
     from trimeter.web.history import History
     from trimeter.web.app import create_lab_app

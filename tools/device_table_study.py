@@ -121,14 +121,15 @@ def on_the_fly_model(table: DeviceTable) -> DeviceTableModel:
 
 
 # ----------------------------------------------------------------------------------------- measure
-# bench fit's figures (trimeter.bench.fit._stats); "well": the well-conditioned subset, "det": the bins
+# bench fit's figures (trimeter.bench.fit_scoring.error_figures); "well": the well-conditioned subset, "det": the bins
 # the fit does not flag UNDERDETERMINED
 _COLUMNS = (("α p50", "alpha_p50"), ("α p95", "alpha_p95"), ("σt rel p50", "sigma_rel_p50"),
             ("σt rel p95", "sigma_rel_p95"), ("g p50", "g_p50"), ("g p95", "g_p95"), ("α p95 well", "alpha_p95_well"),
             ("g p95 well", "g_p95_well"), ("α p95 det", "alpha_p95_determined"), ("g p95 det", "g_p95_determined"))
 def measure(amap: AppearanceMap, noise_levels: Sequence[float], seed: int = 0,
             say: Say = print) -> list[dict[str, Any]]:
-    from trimeter.bench.fit import _stats, error_budget, heldout_collimated, heldout_for, heldout_intensities
+    from trimeter.bench.fit_scoring import error_budget, error_figures
+    from trimeter.bench.heldout import heldout_collimated, heldout_for, heldout_intensities
     from trimeter.inversion import native
     from trimeter.inversion.table_model import DeviceTableModel
     from trimeter.inversion.artifacts import fit as fit_maps
@@ -172,7 +173,7 @@ def measure(amap: AppearanceMap, noise_levels: Sequence[float], seed: int = 0,
         for name, run in variants.items():
             res = run(ib, iw, ic)
             ms = _warm_ms(partial(run, *tiled))
-            st = _stats(res, truth, budget)
+            st = error_figures(res, truth, budget)
             rows.append({"map": amap.name, "case": label, "variant": name, "ms_per_1024": ms, **st})
             say(f"   {name:30s}" + "".join(f"{st[key]:11.2e}" if "sigma" in key else f"{st[key]:11.4f}"
                                                 for _, key in _COLUMNS) + f"{ms:11.2f}")
@@ -188,7 +189,8 @@ def _c_result(columns: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]) ->
 def budget(amap: AppearanceMap, say: Say = print) -> list[dict[str, Any]]:
     """What the slot's bytes buy: fits from the table (host path, noise-free rendered held-out) with the
     forward coefficients at other precisions, with L unquantized, and with smaller inverse grids."""
-    from trimeter.bench.fit import _stats, error_budget, heldout_collimated, heldout_for, heldout_intensities
+    from trimeter.bench.fit_scoring import error_budget, error_figures
+    from trimeter.bench.heldout import heldout_collimated, heldout_for, heldout_intensities
     from trimeter.inversion.api import fit
     from trimeter.formats.device_table import MAX_BYTES, table_size
 
@@ -222,7 +224,7 @@ def budget(amap: AppearanceMap, say: Say = print) -> list[dict[str, Any]]:
         model = table_model(tab, forward, L)
         res = fit(model, I_b, I_w, I_c, method="lut")
         ms = _warm_ms(partial(fit, model, I_b[tile], I_w[tile], I_c[tile], method="lut"))
-        st = _stats(res, truth, scoring)
+        st = error_figures(res, truth, scoring)
         # the file these coefficients would make with this inverse grid (over the slot: would not fit)
         nu, nt, nv = tab.inscatter.shape
         size = (table_size(na, ns, ng, tab.inv_alpha_q.shape[1], nu, nt, nv, len(tab._geometry_bytes()))

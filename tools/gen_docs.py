@@ -6,7 +6,7 @@
 
 Outputs (committed, each opens with a "generated - do not edit" comment), all under docs/reference/:
     cli.md          every `trimeter` command and sub-command, from the argparse parsers (trimeter.cli)
-    http-api.md     the web API, from the OpenAPI description the app serves (trimeter.web.app.openapi)
+    http-api.md     the web API, from the OpenAPI description the app serves (trimeter.web.openapi.openapi)
     flags.md        the fit's per-bin flags and the advice given for each (trimeter.inversion.flags)
     settings.md     the host settings (trimeter.sequences.settings) and the environment variables read
     file-formats.md the container (.tmap, .tins) and its schemas, the device table (.tlut), the fit CSVs
@@ -156,13 +156,13 @@ def cli_page() -> str:
 
 # -------------------------------------------------------------------------------------- HTTP API
 def http_page() -> str:
-    from trimeter.web.app import openapi
+    from trimeter.web.openapi import openapi
 
     spec = openapi()
     info = spec["info"]
     lines = [BANNER, "# HTTP API", "",
              f"Generated from the OpenAPI {spec['openapi']} description the app serves at `/api/openapi.json` "
-             "(`trimeter.web.app.openapi`). The page, access and the history are described in "
+             "(`trimeter.web.openapi.openapi`). The page, access and the history are described in "
              "[The web page](../web.md).", "", _cell(info.get("description", "")), "",
              "| method | path | what |", "|---|---|---|"]
     for path, operations in spec["paths"].items():

@@ -40,7 +40,7 @@ def device(tmp_path_factory):
 @pytest.fixture(scope="module")
 def heldout():
     """The l0.4 map's v2 table (tools/device_table_study.py build) and its held-out set's intensities."""
-    from trimeter.bench.fit import heldout_collimated, heldout_for, heldout_intensities
+    from trimeter.bench.heldout import heldout_collimated, heldout_for, heldout_intensities
     from trimeter.formats.appearance import AppearanceMap, find_map
 
     if not native.available():

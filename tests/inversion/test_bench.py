@@ -48,7 +48,7 @@ def test_bench_fit_reports_figures_and_plot(tmp_path, capsys):
 
 
 def test_speed_times_two_thicknesses_where_two_maps_differ_only_in_thickness(capsys):
-    from trimeter.bench.fit import SPEED_TWO_MS_MAX, speed
+    from trimeter.bench.fit_speed import SPEED_TWO_MS_MAX, speed
     from trimeter.formats.appearance import AppearanceMap
 
     maps = [AppearanceMap.load(DATA / name) for name in ("ideal-l0.5.tmap", "ideal-l1.0.tmap")]
@@ -67,7 +67,10 @@ def test_per_wavelength_backgrounds_case_scores_the_fit_at_the_bins_own_backgrou
     bins' own backgrounds, fitted with them, score like the reference-background case."""
     import numpy as np
 
-    from trimeter.bench.fit import DEFAULT_POLISH, _bench_backgrounds, error_budget, heldout_for
+    from trimeter.bench.fit import _bench_backgrounds
+    from trimeter.bench.fit_scoring import error_budget
+    from trimeter.bench.fit_variants import DEFAULT_POLISH
+    from trimeter.bench.heldout import heldout_for
     from trimeter.inversion.artifacts import load_artifacts
     from trimeter.formats.appearance import AppearanceMap
 

@@ -13,7 +13,8 @@ import shutil
 import numpy as np
 import pytest
 
-from trimeter.bench.fit import error_budget, heldout_intensities
+from trimeter.bench.fit_scoring import error_budget
+from trimeter.bench.heldout import heldout_intensities
 from trimeter.cli import main
 from trimeter.inversion.kernel import default_kernel
 from trimeter.formats.appearance import AppearanceMap

@@ -165,7 +165,8 @@ def test_the_shipped_map_s_table_fits_the_slot_and_fits_held_out_materials_from_
     g p95 ≤ 0.015 (α ≥ 0.5), from the table file alone (written, then loaded back, with every other
     map file out of reach)."""
     import trimeter.formats.container as container
-    from trimeter.bench.fit import _stats, error_budget, heldout_collimated, heldout_for, heldout_intensities
+    from trimeter.bench.fit_scoring import error_budget, error_figures
+    from trimeter.bench.heldout import heldout_collimated, heldout_for, heldout_intensities
     from trimeter.inversion.api import fit
     from trimeter.formats.appearance import AppearanceMap, find_map
 
@@ -188,7 +189,7 @@ def test_the_shipped_map_s_table_fits_the_slot_and_fits_held_out_materials_from_
     assert table.parent_sha256 == amap.checksum and table.inscatter_sha256 == amap.inscatter.checksum
     res = fit(DeviceTableModel(table), I_b, I_w, I_c, method="lut")
     monkeypatch.undo()
-    st = _stats(res, (h["alpha"], h["sigma_t"], h["g"]), scoring)
+    st = error_figures(res, (h["alpha"], h["sigma_t"], h["g"]), scoring)
     assert st["alpha_p95"] <= 0.01 and st["sigma_rel_p95"] <= 0.01 and st["g_p95"] <= 0.015, st
 
 

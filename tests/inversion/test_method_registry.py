@@ -73,13 +73,13 @@ def test_a_registered_method_fits_through_the_public_fit(ideal_map, centre_metho
 
 
 def test_a_registered_method_is_in_the_bench_and_the_cli(ideal_map, centre_method, capsys):
-    from trimeter.bench.fit import _fit_variant, _variants
+    from trimeter.bench.fit_variants import fit_variant, variants_of
 
     cache = ArtifactCache()
-    variants = {v[0]: v for v in _variants(ideal_map, cache, cache)}
+    variants = {v[0]: v for v in variants_of(ideal_map, cache, cache)}
     assert "centre p≤8" in variants and variants["centre p≤8"][1] == "centre"
     (_, _, _), I = _materials(ideal_map, n=50)
-    benched = _fit_variant(variants["centre p≤8"], *I)
+    benched = fit_variant(variants["centre p≤8"], *I)
     direct = trimeter.fit(ideal_map, *I, method="centre")
     np.testing.assert_array_equal(benched.alpha, direct.alpha)
     assert "centre" in METHODS

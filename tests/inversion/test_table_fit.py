@@ -40,7 +40,8 @@ def _tool():
 @pytest.fixture(scope="module")
 def heldout():
     """The l0.4 map's v2 table, its held-out set's intensities and truth, and the numpy reference fit."""
-    from trimeter.bench.fit import error_budget, heldout_collimated, heldout_for, heldout_intensities
+    from trimeter.bench.fit_scoring import error_budget
+    from trimeter.bench.heldout import heldout_collimated, heldout_for, heldout_intensities
     from trimeter.formats.appearance import AppearanceMap, find_map
 
     tool = _tool()
@@ -127,11 +128,11 @@ def test_single_precision_agrees_within_the_device_tolerances(heldout, single_li
 
 
 def test_the_table_alone_meets_the_accuracy_targets_on_the_held_out_set(heldout):
-    from trimeter.bench.fit import _stats
+    from trimeter.bench.fit_scoring import error_figures
 
     alpha, sigma_t, g, flags = native.TableFitter(heldout.data).fit(*heldout.I)
     res = SimpleNamespace(alpha=alpha, sigma_t=sigma_t, g=g, flags=flags, alpha_std=np.full_like(alpha, np.nan))
-    st = _stats(res, heldout.truth, heldout.budget)
+    st = error_figures(res, heldout.truth, heldout.budget)
     assert st["alpha_p95"] <= 0.01 and st["sigma_rel_p95"] <= 0.01 and st["g_p95"] <= 0.015, st
 
 

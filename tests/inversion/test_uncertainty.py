@@ -241,7 +241,7 @@ def test_bench_uncertainty_prints_its_table(tmp_path, capsys):
 
 
 def test_the_held_out_split_keeps_columns_whole_and_parts_apart():
-    from trimeter.bench.fit import CALIBRATION_EVERY, heldout_for, heldout_part
+    from trimeter.bench.heldout import CALIBRATION_EVERY, heldout_for, heldout_part
     from trimeter.formats.appearance import AppearanceMap
 
     _, _, h = heldout_for(AppearanceMap.load(DEVICE))

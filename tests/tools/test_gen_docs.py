@@ -12,7 +12,7 @@ import pytest
 from tools import gen_docs
 from trimeter.cli import build_parser
 from trimeter.inversion.flags import FitFlag
-from trimeter.web.app import openapi
+from trimeter.web.openapi import openapi
 
 
 def _commands(parser: argparse.ArgumentParser, path: tuple[str, ...] = ("trimeter",)):

@@ -102,7 +102,8 @@ def web_instrument(root: Path, *, webhook: str | None = None, map_table: bytes |
     no map, so the service fits with the instrument's table; twin_map: what the twin renders with (default:
     the HIL map's file, loaded when first needed)."""
     from trimeter.twin import Twin
-    from trimeter.web.app import WebServer, create_app
+    from trimeter.web.app import create_app
+    from trimeter.web.server import WebServer
     from trimeter.web.auth import load_or_create_token
     from trimeter.web.history import History
     from trimeter.web.jobs import Jobs
@@ -147,7 +148,8 @@ def _no_instrument() -> object:
 def idle_web(root: Path, **server_options: float):
     """The web app of a host whose instrument loop never starts (no twin): for what the app answers by
     itself (headers, the map listing), in a fraction of a second. server_options: WebServer's."""
-    from trimeter.web.app import WebServer, create_app
+    from trimeter.web.app import create_app
+    from trimeter.web.server import WebServer
     from trimeter.web.auth import load_or_create_token
     from trimeter.web.history import History
     from trimeter.web.jobs import Jobs
@@ -165,3 +167,13 @@ def idle_web(root: Path, **server_options: float):
         finally:
             server.close()
             history.close()
+
+
+@pytest.fixture
+def browser():
+    """A headless chromium (browser_support.chrome), quit after the test."""
+    from browser_support import chrome
+
+    driver = chrome()
+    yield driver
+    driver.quit()

@@ -153,9 +153,9 @@ def test_refit_writes_a_new_record_and_leaves_the_original(web, measured):
 
 
 def test_a_refit_runs_beside_the_instrument_and_is_stopped_at_its_time_limit(web, measured, monkeypatch):
-    from trimeter.web import app
+    from trimeter.web import refit_routes
 
-    monkeypatch.setattr(app, "REFIT_TIME_LIMIT_S", 0.05)
+    monkeypatch.setattr(refit_routes, "REFIT_TIME_LIMIT_S", 0.05)
     records = web.call("GET", "/api/measurements").json["total"]
     answer = web.call("POST", f"/api/measurements/{measured}/refit", {"maps": ["device-n1.5-l0.4"], "method": "lut"})
     assert answer.status == 202

@@ -8,52 +8,14 @@ stylesheet and the script-set colours must have taken effect."""
 from __future__ import annotations
 
 import os
-import shutil
 from pathlib import Path
 
-import pytest
 
+from browser_support import click_live, csp_violations, needs_browser
 from conftest import web_instrument
 from hil_support import SAMPLE, THICKNESS_MM
 
-CHROMIUM, DRIVER = shutil.which("chromium"), shutil.which("chromedriver")
-pytestmark = pytest.mark.skipif(not (CHROMIUM and DRIVER),
-                                reason="needs Debian's chromium and chromium-driver (tools/setup.sh installs them)")
-
-
-@pytest.fixture
-def browser():
-    from selenium import webdriver
-    from selenium.webdriver.chrome.service import Service
-
-    options = webdriver.ChromeOptions()
-    options.binary_location = CHROMIUM
-    for arg in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage", "--window-size=1280,1000",
-                "--disable-gpu", "--force-device-scale-factor=1"):
-        options.add_argument(arg)
-    options.set_capability("goog:loggingPrefs", {"browser": "ALL"})  # the console: CSP violations land there
-    driver = webdriver.Chrome(service=Service(executable_path=DRIVER), options=options)
-    driver.set_page_load_timeout(30)
-    yield driver
-    driver.quit()
-
-
-def click_live(wait, locator) -> None:
-    """Click an element that the page may rebuild at any moment (each status update re-renders the
-    calibration prompt): retried until a click lands on an element still in the page."""
-    from selenium.common.exceptions import StaleElementReferenceException
-
-    def attempt(driver) -> bool:
-        try:
-            element = driver.find_element(*locator)
-            if not (element.is_displayed() and element.is_enabled()):
-                return False
-            element.click()
-            return True
-        except StaleElementReferenceException:
-            return False
-
-    wait.until(attempt)
+pytestmark = needs_browser
 
 
 def test_the_page_calibrates_measures_and_shows_the_result(tmp_path, browser):
@@ -105,7 +67,6 @@ def test_the_page_calibrates_measures_and_shows_the_result(tmp_path, browser):
         assert measured in browser.find_element(By.ID, "rows").get_attribute("innerHTML")
         browser.save_screenshot(str(shots / "web-history.png"))
         console += browser.get_log("browser")
-    violations = [e["message"] for e in console if "Content Security Policy" in e["message"]]
-    assert not violations, violations
+    assert not csp_violations(console), csp_violations(console)
     for name in ("web-status.png", "web-measurement.png", "web-overlay.png", "web-history.png"):
         assert (shots / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

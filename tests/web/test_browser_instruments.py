@@ -4,50 +4,11 @@ with that instrument. Under the page's Content-Security-Policy, with no violatio
 
 from __future__ import annotations
 
-import shutil
-
-import pytest
-
+from browser_support import click_live, csp_violations, needs_browser
 from hil_support import SAMPLE, THICKNESS_MM
 from lab_support import NAMES, served_lab
 
-CHROMIUM, DRIVER = shutil.which("chromium"), shutil.which("chromedriver")
-pytestmark = pytest.mark.skipif(not (CHROMIUM and DRIVER),
-                                reason="needs Debian's chromium and chromium-driver (tools/setup.sh installs them)")
-
-
-def click_live(wait, locator) -> None:
-    """Click an element the panel may rebuild at any moment: retried until a click lands on one still in the page."""
-    from selenium.common.exceptions import StaleElementReferenceException
-
-    def attempt(driver) -> bool:
-        try:
-            element = driver.find_element(*locator)
-            if not (element.is_displayed() and element.is_enabled()):
-                return False
-            element.click()
-            return True
-        except StaleElementReferenceException:
-            return False
-
-    wait.until(attempt)
-
-
-@pytest.fixture
-def browser():
-    from selenium import webdriver
-    from selenium.webdriver.chrome.service import Service
-
-    options = webdriver.ChromeOptions()
-    options.binary_location = CHROMIUM
-    for arg in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage", "--window-size=1280,1000",
-                "--disable-gpu"):
-        options.add_argument(arg)
-    options.set_capability("goog:loggingPrefs", {"browser": "ALL"})
-    driver = webdriver.Chrome(service=Service(executable_path=DRIVER), options=options)
-    driver.set_page_load_timeout(30)
-    yield driver
-    driver.quit()
+pytestmark = needs_browser
 
 
 def test_the_page_shows_every_instrument_and_measures_on_one_of_them(tmp_path, browser):
@@ -87,5 +48,4 @@ def test_the_page_shows_every_instrument_and_measures_on_one_of_them(tmp_path, b
         cells = [c.text for c in browser.find_elements(By.CSS_SELECTOR, "#rows tr td")]
         assert "right" in cells
         console = browser.get_log("browser")
-    violations = [e["message"] for e in console if "Content Security Policy" in e["message"]]
-    assert not violations, violations
+    assert not csp_violations(console), csp_violations(console)

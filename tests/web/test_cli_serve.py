@@ -8,7 +8,7 @@ import stat
 import pytest
 
 from trimeter.cli import main
-from trimeter.web.app import parse_bind
+from trimeter.web.server import parse_bind
 from trimeter.web.auth import load_or_create_token, token_path
 
 

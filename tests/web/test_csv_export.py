@@ -1,6 +1,6 @@
 """The history's CSV export never hands a spreadsheet a formula."""
 
-from trimeter.web.app import _spreadsheet_safe
+from trimeter.web.history_routes import _spreadsheet_safe
 
 
 def test_text_cells_that_a_spreadsheet_would_evaluate_are_quoted_and_numbers_are_not():

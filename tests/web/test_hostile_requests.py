@@ -16,7 +16,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 
 from conftest import idle_web
-from trimeter.web.app import routes as ROUTES
+from trimeter.web.app import ROUTE_TABLES
 
 GOOD = "20261206T020006Z-good"
 NO_PARAMETERS = "20261206T020007Z-noparams"
@@ -44,9 +44,10 @@ def _record(directory, flags) -> None:
 
 @pytest.fixture(scope="module")
 def web(tmp_path_factory):
-    from trimeter.web import app
+    from trimeter.web import handler_tools
 
-    body_timeout, app.BODY_TIMEOUT_S = app.BODY_TIMEOUT_S, 0.5  # a body held back (chunked, never ended) costs that
+    # a body held back (chunked, never ended) costs that
+    body_timeout, handler_tools.BODY_TIMEOUT_S = handler_tools.BODY_TIMEOUT_S, 0.5
     root = tmp_path_factory.mktemp("hostile")
     _record(root / "results" / GOOD, 0)
     _record(root / "results" / NO_PARAMETERS, None)
@@ -61,7 +62,7 @@ def web(tmp_path_factory):
             instrument.errors = errors
             yield instrument
     finally:
-        app.BODY_TIMEOUT_S = body_timeout
+        handler_tools.BODY_TIMEOUT_S = body_timeout
         for name in ("trimeter", "aiohttp"):
             logging.getLogger(name).removeHandler(errors)
 
@@ -158,7 +159,8 @@ def test_headers_never_finished_are_cut_off(tmp_path):
 # ------------------------------------------------------------------------------------ the route fuzz
 def _app_routes() -> list[tuple[str, str]]:
     """(method, path template) of every route the app declares (the static files' prefix as one more)."""
-    out = [(r.method, r.path) for r in ROUTES if r.method != "HEAD"]  # type: ignore[attr-defined]
+    out = [(r.method, r.path) for table in ROUTE_TABLES for r in table  # type: ignore[attr-defined]
+           if r.method != "HEAD"]
     return out + [("GET", "/static/{name}")]
 
 

@@ -1,6 +1,6 @@
 """The several-instruments API is described in the OpenAPI document the app serves, with the history's filter."""
 
-from trimeter.web.app import openapi
+from trimeter.web.openapi import openapi
 
 
 def test_the_instruments_routes_and_the_instrument_filter_are_described():

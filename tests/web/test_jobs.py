@@ -11,7 +11,8 @@ from types import SimpleNamespace
 import pytest
 
 from trimeter.errors import DeviceError, InputError
-from trimeter.web.app import WebServer, create_app
+from trimeter.web.app import create_app
+from trimeter.web.server import WebServer
 from trimeter.web.history import History
 from trimeter.sequences.service import Event
 from trimeter.web.jobs import Jobs, LinkDown

@@ -9,14 +9,15 @@ from pathlib import Path
 from urllib.parse import quote
 
 import numpy as np
-import pytest
 from aiohttp import web
 from aiohttp.test_utils import TestClient, TestServer
 
+from browser_support import chrome, needs_browser
 from library_support import fit_result, write_member
 from trimeter.library.store import Library
 from trimeter.web import library_routes
-from trimeter.web.app import TOKEN, auth_middleware, errors_middleware
+from trimeter.web.handler_tools import TOKEN
+from trimeter.web.middleware import auth_middleware, errors_middleware
 
 TOKEN_VALUE = "t" * 43
 
@@ -67,17 +68,17 @@ def test_errors_and_access(tmp_path):
 
 
 def test_create_app_registers_them_and_describes_them():
-    from trimeter.web.app import openapi
+    from trimeter.web.openapi import openapi
 
     assert {"/api/library", "/api/library/{name}"} <= set(openapi()["paths"])
 
 
-CHROMIUM, DRIVER = shutil.which("chromium"), shutil.which("chromedriver")
 
 
 def _page_app(db: Path) -> web.Application:
     """The page's files, the library's routes and the page's security headers (no instrument)."""
-    from trimeter.web.app import STATIC, security_headers
+    from trimeter.web.app import STATIC
+    from trimeter.web.middleware import security_headers
 
     app = web.Application(middlewares=[errors_middleware])
     async def index(request: web.Request) -> web.FileResponse:
@@ -90,13 +91,11 @@ def _page_app(db: Path) -> web.Application:
     return app
 
 
-@pytest.mark.skipif(not (CHROMIUM and DRIVER), reason="needs Debian's chromium and chromium-driver")
+@needs_browser
 def test_the_library_view_in_a_browser(tmp_path):
     """The list, one material's plot with its members overlaid and a missing member, no console error."""
     import threading
 
-    from selenium import webdriver
-    from selenium.webdriver.chrome.service import Service
     from selenium.webdriver.common.by import By
     from selenium.webdriver.support import expected_conditions as EC
     from selenium.webdriver.support.ui import WebDriverWait
@@ -113,13 +112,7 @@ def test_the_library_view_in_a_browser(tmp_path):
     port = runner.addresses[0][1]
     thread = threading.Thread(target=loop.run_forever, daemon=True)
     thread.start()
-    options = webdriver.ChromeOptions()
-    options.binary_location = CHROMIUM
-    for arg in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage", "--window-size=1280,1100",
-                "--disable-gpu"):
-        options.add_argument(arg)
-    options.set_capability("goog:loggingPrefs", {"browser": "ALL"})
-    driver = webdriver.Chrome(service=Service(executable_path=DRIVER), options=options)
+    driver = chrome("1280,1100")
     try:
         wait = WebDriverWait(driver, 20)
         driver.get(f"http://127.0.0.1:{port}/#/library")

@@ -1,4 +1,4 @@
-"""Every response of `serve --http` carries the browser-side protections (trimeter.web.app.SECURITY_HEADERS):
+"""Every response of `serve --http` carries the browser-side protections (trimeter.web.middleware.SECURITY_HEADERS):
 the page, its static files, API answers and errors, redirects. The browser test (test_browser.py) checks
 that the page still works under that Content-Security-Policy."""
 

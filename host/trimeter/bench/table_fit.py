@@ -65,7 +65,8 @@ def measure(table_path: Path, map_name: str | None = None, repeats: int = 7,
     (`x_baseline`: time over the baseline's in this run). `library`: another build of the kernel for the
     table fit (e.g. single precision); the variant's name says which."""
     import trimeter
-    from trimeter.bench.fit import _stats, error_budget, heldout_collimated, heldout_for, heldout_intensities
+    from trimeter.bench.fit_scoring import error_budget, error_figures
+    from trimeter.bench.heldout import heldout_collimated, heldout_for, heldout_intensities
     from trimeter.inversion import api, native
     from trimeter.formats.appearance import AppearanceMap, find_map
     from trimeter.formats.container import read_bounded
@@ -114,7 +115,7 @@ def measure(table_path: Path, map_name: str | None = None, repeats: int = 7,
             best[name] = min(best[name], time.perf_counter() - t0)
     rows = []
     for name, fn in variants.items():
-        st = _stats(fn(I_b, I_w, I_c), truth, budget)
+        st = error_figures(fn(I_b, I_w, I_c), truth, budget)
         rows.append({"variant": name, **st, "targets_met": all(st[k] <= v for k, v in TARGETS.items()),
                      "ms_per_1024": best[name] * 1e3, "x_baseline": best[name] / best[BASELINE]})
     return {"map": amap.name, "table": str(table_path), "table_bytes": table.size_bytes, "materials": len(I_b),

@@ -1,7 +1,7 @@
 """`trimeter bench uncertainty`: does the reported ±1σ cover the truth 68 % of the time (±2σ: 95 %)?
 
 Held-out materials (maps/heldout, as `bench fit` loads them: rendered off-grid, never map nodes) — by
-default only their scored part (trimeter.bench.fit.heldout_part): the calibration part is where the
+default only their scored part (trimeter.bench.heldout.heldout_part): the calibration part is where the
 map-error scale in the reported σ (LEAVE_ONE_OUT_SCALE) is chosen, with `--part calibration
 --leave-one-out-scale a,b,…` (per scale, the given-stds rows' mean distance from the goal, goal_distance;
 the nearest is marked) — each drawn several times with relative Gaussian noise of known size on I_b,
@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 
 from trimeter.atomic import atomic_write
-from trimeter.bench.fit import HELDOUT_PARTS
+from trimeter.bench.heldout import HELDOUT_PARTS
 from trimeter.errors import InputError
 from trimeter.inversion.flags import FitFlag
 
@@ -98,7 +98,7 @@ def goal_met(c1: float, c2: float) -> bool:
 
 
 def _maps(specs):
-    from trimeter.bench.fit import HELDOUT_DIR
+    from trimeter.bench.heldout import HELDOUT_DIR
     from trimeter.formats.appearance import AppearanceMap, find_map, shipped_maps
 
     if specs:
@@ -114,7 +114,7 @@ class Case:
     """One map's held-out materials, tiled `draws` times: truth and noise-free intensities."""
 
     def __init__(self, amap, draws: int, part: str = "scored"):
-        from trimeter.bench.fit import heldout_collimated, heldout_for, heldout_intensities, heldout_part
+        from trimeter.bench.heldout import heldout_collimated, heldout_for, heldout_intensities, heldout_part
 
         _, _, h = heldout_for(amap)
         h = heldout_part(h, part)

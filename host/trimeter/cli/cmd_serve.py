@@ -32,7 +32,7 @@ from trimeter.sequences.settings import HostSettings
 
 
 def show_token(args: argparse.Namespace) -> None:
-    from trimeter.web.app import parse_bind
+    from trimeter.web.server import parse_bind
     from trimeter.web.auth import load_or_create_token, token_path
 
     token = load_or_create_token()
@@ -107,28 +107,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def serve_http(args: argparse.Namespace, service: Service, settings: HostSettings) -> None:
     """The press-button loop on a worker thread, the web app on another; Ctrl-C stops both."""
-    from trimeter.paths import data_dir
-    from trimeter.web.app import WebServer, create_app, parse_bind
-    from trimeter.web.auth import load_or_create_token
-    from trimeter.web.history import History
-    from trimeter.web.jobs import Jobs
+    from trimeter.cli.serve_web import serve_web
+    from trimeter.web.app import create_app
 
-    host, port = parse_bind(args.http)
-    token = load_or_create_token()
-    history = History(settings.results_path, data_dir() / "history.sqlite")
-    for note in history.open():
-        print(f"{datetime.now():%H:%M:%S} {'history':<12} {note}", flush=True)
-    history.close()  # this thread's connection; the worker and the web thread open their own
-    jobs = Jobs(service, on_measurement=history.add)
-    server = WebServer(create_app(jobs, history, token, webhook=args.webhook), host, port).start()
-    jobs.start()
-    print(f"serving the instrument on {settings.port}; results in {settings.results_path}; web page on "
-          f"{server.url}/ (`trimeter serve --show-token` prints the link with its token; Ctrl-C stops)", flush=True)
-    try:
-        threading.Event().wait()
-    except KeyboardInterrupt:
-        pass
-    finally:
-        server.close()
-        jobs.stop()
-        service.close()
+    serve_web(args, settings, [service], f"the instrument on {settings.port}",
+              lambda jobs, history, token: create_app(jobs[0], history, token, webhook=args.webhook))

@@ -56,32 +56,10 @@ def _serve_buttons(services: list[tuple[Instrument, Service]], where: str, setti
 
 def _serve_http(args: argparse.Namespace, settings: HostSettings, services: list[tuple[Instrument, Service]],
                 where: str) -> None:
-    from trimeter.paths import data_dir
-    from trimeter.web.app import WebServer, parse_bind
-    from trimeter.web.auth import load_or_create_token
-    from trimeter.web.history import History
+    from trimeter.cli.serve_web import serve_web
     from trimeter.web.app import create_lab_app
-    from trimeter.web.jobs import Jobs
 
-    host, port = parse_bind(args.http)
-    token = load_or_create_token()
-    history = History(settings.results_path, data_dir() / "history.sqlite")
-    for note in history.open():
-        print(f"{datetime.now():%H:%M:%S} {'history':<12} {note}", flush=True)
-    history.close()
-    lab = [(instrument, Jobs(service, on_measurement=history.add)) for instrument, service in services]
-    server = WebServer(create_lab_app(lab, history, token, webhook=args.webhook), host, port).start()
-    for _, jobs in lab:
-        jobs.start()
-    print(f"serving {where}; results in {settings.results_path}; web page on {server.url}/ "
-          f"(`trimeter serve --show-token` prints the link with its token; Ctrl-C stops)", flush=True)
-    try:
-        threading.Event().wait()
-    except KeyboardInterrupt:
-        pass
-    finally:
-        server.close()
-        for _, jobs in lab:
-            jobs.stop()
-        for _, service in services:
-            service.close()
+    instruments = [instrument for instrument, _ in services]
+    serve_web(args, settings, [service for _, service in services], where,
+              lambda jobs, history, token: create_lab_app(list(zip(instruments, jobs, strict=True)), history, token,
+                                                          webhook=args.webhook))

@@ -44,7 +44,7 @@ class TrainingDefaults(TypedDict):
 DEFAULTS: TrainingDefaults = {"hidden": (64, 64), "samples": 300000, "epochs": 60, "seed": 0, "activation": "relu",
                               "jitter": 0.1, "learning_rate": 3e-3}
 LEARNING_RATE_FLOOR = 0.02
-# the validation's g error is taken where g is determined enough to be scored (trimeter.bench.fit's G_MIN_ALPHA)
+# the validation's g error is taken where g is determined enough to be scored (trimeter.bench.fit_scoring.G_MIN_ALPHA)
 G_SCORED_ALPHA = 0.5
 
 

@@ -356,7 +356,7 @@ class ForwardGrid:
 # three axes' estimates overlap, so it overstates the error between the nodes the fit interpolates
 # over. The factor is chosen for coverage, not for an rms of 1: an rms is set by the few largest errors
 # and left most bins' ±1σ far too wide. It is chosen on the calibration part of the device maps' held-out
-# sets (trimeter.bench.fit.heldout_part; `trimeter bench uncertainty --part calibration
+# sets (trimeter.bench.heldout.heldout_part; `trimeter bench uncertainty --part calibration
 # --leave-one-out-scale …` prints the sweep), never on the scored part the bench reports coverage on.
 LEAVE_ONE_OUT_SCALE = 0.1
 
