@@ -18,6 +18,8 @@ from trimeter.crc import crc16_modbus_bytes as crc16
 class ScriptedSlave(threading.Thread):
     """Answers FC 03/04 with register value = address + request number; `script[n]` alters reply n."""
 
+    REQUEST_BYTES = 8  # FC 03/04: address, function, start, count, CRC
+
     def __init__(self, script=None):
         super().__init__(daemon=True)
         self.master, slave = os.openpty()
@@ -31,7 +33,7 @@ class ScriptedSlave(threading.Thread):
         tty.setraw(slave)
 
     def frames(self):
-        """Each 8-byte request as it completes (the line goes quiet), until stopped or closed."""
+        """Each request (REQUEST_BYTES) as it completes (the line goes quiet), until stopped or closed."""
         buffer = b""
         while not self.stop:
             try:  # the test closes the pty to unplug the adapter: either call may then fail
@@ -41,9 +43,9 @@ class ScriptedSlave(threading.Thread):
                     continue
             except (OSError, ValueError):
                 return
-            if len(buffer) < 8:
+            if len(buffer) < self.REQUEST_BYTES:
                 continue
-            frame, buffer = buffer[:8], b""
+            frame, buffer = buffer[:self.REQUEST_BYTES], b""
             self.requests += 1
             yield frame
 
@@ -255,25 +257,11 @@ class FileRecordSlave(ScriptedSlave):
     """Answers FC 0x14 reads from `data` (file 1, 16-bit records); on a line that garbles long frames, every
     reply of more than `longest_clean_words` records arrives with a flipped bit."""
 
+    REQUEST_BYTES = 12  # FC 0x14 with one sub-request
+
     def __init__(self, data, longest_clean_words=None):
         super().__init__()
         self.data, self.longest_clean_words = data, longest_clean_words
-
-    def frames(self):
-        buffer = b""
-        while not self.stop:
-            try:
-                ready, _, _ = select.select([self.master], [], [], 0.01)
-                if ready:
-                    buffer += os.read(self.master, 512)
-                    continue
-            except (OSError, ValueError):
-                return
-            if len(buffer) < 12:
-                continue
-            frame, buffer = buffer[:12], b""
-            self.requests += 1
-            yield frame
 
     def run(self):
         for frame in self.frames():

@@ -5,6 +5,7 @@ result (`trimeter device last-result`, into a results directory), and it matches
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import json
 import re
@@ -42,9 +43,13 @@ def _press(twin, timeout_s: float = 120.0) -> str:
     raise AssertionError("the standalone press did not end")
 
 
-def test_a_hostless_press_leaves_a_result_that_matches_a_host_fit(request, tmp_path, hil_map, monkeypatch, capsys):
+@contextlib.contextmanager
+def _c12880_twin(request, tmp_path, hil_map, monkeypatch, seed):
+    """A twin with the C12880MA and the HIL map's table in its slot (the table also in tmp_path / hil.tlut), set up
+    once by a host that then goes away;
+    yields (twin, its --port arguments)."""
     if request.config.getoption("--port"):
-        pytest.skip("needs the twin (its storage seeded with a table)")
+        pytest.skip("needs the twin (its storage seeded with a table, its lamps dimmed on demand)")
     from trimeter.device import Device
     from trimeter.inversion.table_builder import build_from_map
     from trimeter.twin import Twin
@@ -53,10 +58,16 @@ def test_a_hostless_press_leaves_a_result_that_matches_a_host_fit(request, tmp_p
         monkeypatch.setenv(f"TRIMETER_{name}_DIR", str(tmp_path / name.lower()))
     table_file = build_from_map(hil_map).save(tmp_path / "hil.tlut")
     with Twin(sample=None, thickness_mm=THICKNESS_MM, time_scale=TIME_SCALE, appearance_map=hil_map,
-              state_dir=tmp_path / "twin", seed=3, map_table=table_file.read_bytes(), sensor="c12880ma") as twin:
-        port = ["--port", twin.modbus_port]
-        with Device.open(twin.modbus_port) as device:  # set up once, then the host goes away
+              state_dir=tmp_path / "twin", seed=seed, map_table=table_file.read_bytes(), sensor="c12880ma") as twin:
+        with Device.open(twin.modbus_port) as device:
             device.write_many({"spectro_integration_us": 4000, "spectro_frames": 4})
+        yield twin, ["--port", twin.modbus_port]
+
+
+def test_a_hostless_press_leaves_a_result_that_matches_a_host_fit(request, tmp_path, hil_map, monkeypatch, capsys):
+    from trimeter.device import Device
+
+    with _c12880_twin(request, tmp_path, hil_map, monkeypatch, seed=3) as (twin, port):
         assert main(["device", "last-result", *port]) == 2
         assert "no standalone result: no press since it started" in capsys.readouterr().err
         assert main(["device", "standalone", "calibrate", *port]) == 0
@@ -94,7 +105,7 @@ def test_a_hostless_press_leaves_a_result_that_matches_a_host_fit(request, tmp_p
             writer.writerow([float(b["wavelength_nm"][k]), b["black"][k] / diffuse[k], b["white"][k] / diffuse[k],
                              b["open"][k] / collimated[k], float(b["rho_black"][k]), result.rho_white])
     host = tmp_path / "host.csv"
-    assert main(["fit", "--table", str(table_file), "--input", str(measured), "-o", str(host)]) == 0
+    assert main(["fit", "--table", str(tmp_path / "hil.tlut"), "--input", str(measured), "-o", str(host)]) == 0
     with open(host, newline="") as f:
         rows = list(csv.DictReader(f))
     on_host = {k: np.array([float(r[k]) for r in rows]) for k in ("alpha", "sigma_t", "g")}
@@ -122,21 +133,10 @@ def test_a_hostless_press_with_dimmed_lamps_says_recalibrate(request, tmp_path, 
     """Calibrated on the device, then the panels dim (an aged LED, the twin's lamp_dimmed fault): the press is
     flagged lamp_changed (status LED double blink) and `trimeter device last-result` tells the operator to
     recalibrate; with the lamps as calibrated, before and after, the press is not."""
-    if request.config.getoption("--port"):
-        pytest.skip("needs the twin (its storage seeded with a table, its lamps dimmed on demand)")
     from trimeter.device import Device
     from trimeter.device.client import STANDALONE_LAMP_TOLERANCE
-    from trimeter.inversion.table_builder import build_from_map
-    from trimeter.twin import Twin
 
-    for name in ("DATA", "CONFIG", "CACHE"):
-        monkeypatch.setenv(f"TRIMETER_{name}_DIR", str(tmp_path / name.lower()))
-    table_file = build_from_map(hil_map).save(tmp_path / "hil.tlut")
-    with Twin(sample=None, thickness_mm=THICKNESS_MM, time_scale=TIME_SCALE, appearance_map=hil_map,
-              state_dir=tmp_path / "twin", seed=5, map_table=table_file.read_bytes(), sensor="c12880ma") as twin:
-        port = ["--port", twin.modbus_port]
-        with Device.open(twin.modbus_port) as device:
-            device.write_many({"spectro_integration_us": 4000, "spectro_frames": 4})
+    with _c12880_twin(request, tmp_path, hil_map, monkeypatch, seed=5) as (twin, port):
         assert main(["device", "standalone", "calibrate", *port]) == 0
         assert re.search(r"warming up: a press waits (29\d|300) s more", capsys.readouterr().out)  # lamps just on
         assert _press(twin) == "on"  # calibrated, after the warm-up
