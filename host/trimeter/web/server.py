@@ -37,6 +37,9 @@ class ClientErrorsInOneLine(logging.Filter):
 CLIENT_ERRORS_FILTER = ClientErrorsInOneLine()
 
 
+SHUTDOWN_S = 2.0
+
+
 class WebServer:
     """The app on its own thread and event loop (the instrument's worker has another thread; the main
     thread waits for Ctrl-C)."""
@@ -63,7 +66,10 @@ class WebServer:
 
     def _run(self) -> None:
         asyncio.set_event_loop(self._loop)
-        runner = web.AppRunner(self.app, access_log=None, handle_signals=False, keepalive_timeout=self.header_timeout_s)
+        # On close, requests in flight get SHUTDOWN_S to finish (aiohttp's own default, 60 s, outlasts close()'s
+        # wait for the thread and leaves their handlers pending when the process exits)
+        runner = web.AppRunner(self.app, access_log=None, handle_signals=False, keepalive_timeout=self.header_timeout_s,
+                               shutdown_timeout=SHUTDOWN_S)
         try:
             self._loop.run_until_complete(runner.setup())
             site = web.TCPSite(runner, self.host, self.port, backlog=256)
@@ -79,6 +85,11 @@ class WebServer:
         self._ready.set()
         self._loop.run_forever()
         self._loop.run_until_complete(runner.cleanup())
+        # a kept-alive connection's handler may still wait for its next request: end it before the loop closes
+        pending = asyncio.all_tasks(self._loop)
+        for task in pending:
+            task.cancel()
+        self._loop.run_until_complete(asyncio.gather(*pending, return_exceptions=True))
         self._loop.close()
 
     def close(self) -> None:
