@@ -309,3 +309,17 @@ def test_a_clean_line_keeps_the_longest_records(slave_factory):
     got, lost = _read_all(link, len(data) // 2)
     assert got == data and lost == 0 and link.record_words == MAX_FILE_RECORD_WORDS
     assert slave.requests == -(-len(data) // 2 // MAX_FILE_RECORD_WORDS)  # ceil: the fewest requests
+
+
+def test_a_link_closed_by_another_thread_mid_request_is_a_link_error(slave_factory):
+    """A service stopping while its loop still waits for a reply (the soak's end): the waiting request ends with
+    a DeviceError the service's loop handles, never pyserial's TypeError on a closed port."""
+    slave = slave_factory({n: "drop" for n in range(1, 20)})  # the request waits out its timeout
+    link = RtuTransport(slave.port, timeout_s=0.5, attempts=2)
+    closer = threading.Timer(0.1, link.close)
+    closer.start()
+    try:
+        with pytest.raises(DeviceError, match="closed while a read of 3 holding_registers at 10 waited"):
+            link.read_words("holding_register", 10, 3)
+    finally:
+        closer.join()

@@ -225,7 +225,7 @@ class RtuTransport:
         window = self._request_timeout_s if self.late_reply_window_s is None else self.late_reply_window_s
         end, quiet_until = now + window, now + self._quiet_s
         while time.monotonic() < (quiet_until if answered else end):
-            waiting = sock.in_waiting
+            waiting = self._waiting(sock)
             if waiting:
                 sock.read(waiting)
                 heard = True
@@ -253,7 +253,7 @@ class RtuTransport:
         sock.flush()
         data, deadline = b"", time.monotonic() + listen_s
         while time.monotonic() < deadline:
-            waiting = sock.in_waiting
+            waiting = self._waiting(sock)
             data += sock.read(waiting) if waiting else b""
             time.sleep(0.002)
         return data
@@ -278,11 +278,19 @@ class RtuTransport:
     def _another_frame_by(self, deadline: float) -> bool:
         """Whether any byte arrives before `deadline` (the time by which this request's answer has come)."""
         sock = self._client.socket
-        while sock is not None and not sock.in_waiting:
+        while sock is not None and not self._waiting(sock):
             if time.monotonic() >= deadline:
                 return False
             time.sleep(0.002)
         return sock is not None
+
+    def _waiting(self, sock: Any) -> int:
+        """Bytes waiting on the port; a LinkError when the port was closed under this request (another thread
+        closed the link: pyserial then fails with a TypeError or ValueError, not an OSError)."""
+        try:
+            return int(sock.in_waiting)
+        except (OSError, TypeError, ValueError):
+            raise LinkError(f"the serial port {self.port} was closed while a request waited for its reply") from None
 
     def _execute(self, what: str, function_code: int, call: Callable[[ModbusSerialClient], Any],
                  answers: Callable[[Any], bool], request_bytes: int, reply_bytes: int, *,
@@ -373,6 +381,12 @@ class RtuTransport:
             self.stats.failures += 1
             raise LinkError(f"no valid reply from the device on {self.port} to {what} "
                             f"after {self.attempts} attempts (last: {last_failure})")
+        except (AttributeError, TypeError, ValueError):
+            # pyserial and pymodbus fail this way on a port another thread closed mid-request (a service stopping
+            # while its loop still waits): a lost link, which the caller handles; on an open port, a real bug
+            if self.is_open and self._client.socket is not None:
+                raise
+            raise LinkError(f"the serial port {self.port} was closed while {what} waited for its reply") from None
         finally:
             self._expected_reply_bytes = 0
             self.stats.busy_s += time.monotonic() - started
