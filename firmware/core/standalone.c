@@ -20,6 +20,19 @@ static float lamp_light(const standalone_t *s, int lamp) { return (float)s->lamp
 static float word_f32(const standalone_t *s, unsigned bin, unsigned word) { return regmap_get_f32(&s->words[bin * STRIDE + word]); }
 static void put_f32(standalone_t *s, unsigned bin, unsigned word, float v) { regmap_put_f32(&s->words[bin * STRIDE + word], v); }
 
+/* A bin's calibration words, no fit yet (NaN results) and its capture flags. */
+static void put_bin(standalone_t *s, unsigned b, bool saturated, bool no_reference_light)
+{
+    put_f32(s, b, TRIMETER_STANDALONE_WORD_DIFFUSE, s->diffuse[b]);
+    put_f32(s, b, TRIMETER_STANDALONE_WORD_COLLIMATED, s->collimated[b]);
+    put_f32(s, b, TRIMETER_STANDALONE_WORD_RHO_BLACK, s->rho_black[b]);
+    for (unsigned w = TRIMETER_STANDALONE_WORD_ALPHA; w <= TRIMETER_STANDALONE_WORD_G; w += 2) put_f32(s, b, w, NAN);
+    s->words[b * STRIDE + TRIMETER_STANDALONE_WORD_FIT_FLAGS] = 0;
+    s->words[b * STRIDE + TRIMETER_STANDALONE_WORD_CAPTURE_FLAGS] =
+        (uint16_t)((saturated ? STANDALONE_CAPTURE_SATURATED : 0u) |
+                   (no_reference_light ? STANDALONE_CAPTURE_NO_REFERENCE_LIGHT : 0u));
+}
+
 void standalone_reduce(standalone_t *s, const float wl_coeff[C12880_WL_COEFFS])
 {
     static const unsigned rate_word[STANDALONE_SETUPS] = {TRIMETER_STANDALONE_WORD_BLACK, TRIMETER_STANDALONE_WORD_WHITE,
@@ -59,14 +72,7 @@ void standalone_calibrate(standalone_t *s, float rho_white)
         s->lit[b] = !s->saturated[b] && s->diffuse[b] >= STANDALONE_LIT_FRACTION * max_diffuse && max_diffuse > 0.0f &&
                     s->collimated[b] >= STANDALONE_LIT_FRACTION * max_collimated && max_collimated > 0.0f;
         s->rho_black[b] = s->lit[b] ? word_f32(s, b, TRIMETER_STANDALONE_WORD_BLACK) / s->diffuse[b] : NAN;
-        put_f32(s, b, TRIMETER_STANDALONE_WORD_DIFFUSE, s->diffuse[b]);
-        put_f32(s, b, TRIMETER_STANDALONE_WORD_COLLIMATED, s->collimated[b]);
-        put_f32(s, b, TRIMETER_STANDALONE_WORD_RHO_BLACK, s->rho_black[b]);
-        for (unsigned w = TRIMETER_STANDALONE_WORD_ALPHA; w <= TRIMETER_STANDALONE_WORD_G; w += 2) put_f32(s, b, w, NAN);
-        s->words[b * STRIDE + TRIMETER_STANDALONE_WORD_FIT_FLAGS] = 0;
-        s->words[b * STRIDE + TRIMETER_STANDALONE_WORD_CAPTURE_FLAGS] =
-            (uint16_t)((s->saturated[b] ? STANDALONE_CAPTURE_SATURATED : 0u) |
-                       (s->lit[b] || s->saturated[b] ? 0u : STANDALONE_CAPTURE_NO_REFERENCE_LIGHT));
+        put_bin(s, b, s->saturated[b], !s->lit[b] && !s->saturated[b]);
     }
     for (int l = 0; l < HAL_LED_COUNT; l++) {
         s->lamp_span[l] = lamp_light(s, l);
@@ -91,14 +97,7 @@ uint16_t standalone_fit_input(standalone_t *s, uint16_t *fit_in)
         regmap_put_f32(&in[TRIMETER_FIT_INPUT_WORD_I_C], usable ? i_c : NAN);
         regmap_put_f32(&in[TRIMETER_FIT_INPUT_WORD_RHO_B], usable ? s->rho_black[b] : NAN);
         regmap_put_f32(&in[TRIMETER_FIT_INPUT_WORD_RHO_W], s->rho_white);
-        put_f32(s, b, TRIMETER_STANDALONE_WORD_DIFFUSE, s->diffuse[b]);
-        put_f32(s, b, TRIMETER_STANDALONE_WORD_COLLIMATED, s->collimated[b]);
-        put_f32(s, b, TRIMETER_STANDALONE_WORD_RHO_BLACK, s->rho_black[b]);
-        for (unsigned w = TRIMETER_STANDALONE_WORD_ALPHA; w <= TRIMETER_STANDALONE_WORD_G; w += 2) put_f32(s, b, w, NAN);
-        s->words[b * STRIDE + TRIMETER_STANDALONE_WORD_FIT_FLAGS] = 0;
-        s->words[b * STRIDE + TRIMETER_STANDALONE_WORD_CAPTURE_FLAGS] =
-            (uint16_t)((s->saturated[b] || s->calibration_saturated[b] ? STANDALONE_CAPTURE_SATURATED : 0u) |
-                       (s->lit[b] || s->calibration_saturated[b] ? 0u : STANDALONE_CAPTURE_NO_REFERENCE_LIGHT));
+        put_bin(s, b, s->saturated[b] || s->calibration_saturated[b], !s->lit[b] && !s->calibration_saturated[b]);
     }
     return STANDALONE_BINS;
 }
