@@ -14,7 +14,6 @@ from __future__ import annotations
 import argparse
 import json
 import signal
-import sys
 import threading
 
 from trimeter.errors import InputError
@@ -98,15 +97,13 @@ def run(args: argparse.Namespace) -> int:
                 print(f"control:      {ports['control_path']}")
                 print(f"sample:       {args.sample or 'none'}  time scale {args.time_scale:g}x  state {twin.state_dir}")
                 print("running; Ctrl-C to stop", flush=True)
-            while not stop.wait(0.5):
-                if not twin.running:
-                    print("trimeter sim: the firmware sim exited; see firmware.log in the state directory",
-                          file=sys.stderr)
-                    return 1
+            from trimeter.cli.sim_bus import run_until_stopped
+
+            return run_until_stopped(stop, lambda: twin.running,
+                                     "the firmware sim exited; see firmware.log in the state directory")
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
-    return 0
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:

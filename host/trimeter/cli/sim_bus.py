@@ -6,6 +6,7 @@ import argparse
 import json
 import sys
 import threading
+from collections.abc import Callable
 from pathlib import Path
 
 from trimeter.errors import DeviceError, InputError
@@ -36,13 +37,19 @@ def run_bus(args: argparse.Namespace, stop: threading.Event, state_dir: str) -> 
                           f"control {instrument['control_path']}")
                 print(f"sample: {args.sample or 'none'}  time scale {args.time_scale:g}x  state {state_dir}")
                 print("running; Ctrl-C to stop", flush=True)
-            while not stop.wait(0.5):
-                if not bus.running:
-                    print("trimeter sim: a firmware sim exited; see firmware.log in its state directory",
-                          file=sys.stderr)
-                    return 1
+            return run_until_stopped(stop, lambda: bus.running, "a firmware sim exited; see firmware.log in its state "
+                                     "directory")
         finally:
             ports_file.unlink(missing_ok=True)
+
+
+def run_until_stopped(stop: threading.Event, running: Callable[[], bool], when_dead: str) -> int:
+    """`trimeter sim`'s foreground: 0 once `stop` is set (Ctrl-C), 1 with `when_dead` as soon as the twin is not
+    `running` any more."""
+    while not stop.wait(0.5):
+        if not running():
+            print(f"trimeter sim: {when_dead}", file=sys.stderr)
+            return 1
     return 0
 
 
