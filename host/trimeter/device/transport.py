@@ -65,9 +65,9 @@ MAX_READ_WORDS = 125
 MAX_WRITE_WORDS = 123
 MAX_READ_BITS = 2000
 MAX_FILE_RECORD_WORDS = 120  # FC 0x15: 1 + 7 + 2n <= 253 (one sub-request per frame)
-# A noisy line garbles a long frame far more often than a short one (at 2 % of bytes hit, a 120-word record
-# arrives whole 0.5 % of the time, a 16-word one 40 %): long transfers shrink their records while requests
-# fail and grow them back while they pass (record_words).
+# A noisy line garbles a long frame far more often than a short one (a frame arrives whole with the per-byte
+# odds raised to its length): long transfers shrink their records while requests fail and grow them back
+# while they pass (record_words).
 MIN_FILE_RECORD_WORDS = 8
 
 
