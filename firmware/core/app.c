@@ -434,6 +434,8 @@ static void fill_input_registers(uint16_t *ir)
     static const uint16_t lamp_level[HAL_LED_COUNT] = {REG_IR_STANDALONE_LAMP_PANEL_LEFT, REG_IR_STANDALONE_LAMP_PANEL_RIGHT,
                                                        REG_IR_STANDALONE_LAMP_COLLIMATED};
     for (int l = 0; l < HAL_LED_COUNT; l++) regmap_put_f32(&ir[lamp_level[l]], st->lamp_level[l]);
+    ir[REG_IR_STANDALONE_CHECK] = (uint16_t)st->check;
+    regmap_put_f32(&ir[REG_IR_STANDALONE_CHECK_VALUE], st->check_value);
     ir[REG_IR_STANDALONE_WARMUP_REMAINING_S] = lamps_lit() ? warmup_remaining_s() : app.hr[REG_HR_STANDALONE_WARMUP_S];
 }
 
@@ -662,7 +664,7 @@ static void press_begin(void)
         st->status = refusal;
         return;
     }
-    app.press_calibrating = mode == TRIMETER_STANDALONE_MODE_CALIBRATE;
+    app.press_calibrating = mode == TRIMETER_STANDALONE_MODE_CALIBRATE || mode == TRIMETER_STANDALONE_MODE_CALIBRATE_FORCE;
     app.press_setup = STANDALONE_BLACK;
     st->status = TRIMETER_STANDALONE_STATUS_BUSY;
     for (int k = 0; k < STANDALONE_SETUPS; k++) st->integration_us[k] = regmap_get_u32(&app.hr[REG_HR_SPECTRO_INTEGRATION_US]);
@@ -781,9 +783,11 @@ static void press_poll(void)
             press_fit();
             return;
         }
-        standalone_calibrate(st, regmap_get_f32(&app.hr[REG_HR_WHITE_REFERENCE_REFLECTANCE]));
-        app.hr[REG_HR_STANDALONE_MODE] = TRIMETER_STANDALONE_MODE_MEASURE;
-        press_end(TRIMETER_STANDALONE_STATUS_CALIBRATED);
+        /* a refused calibration leaves the mode as it was: the operator empties the holder and presses again */
+        if (standalone_calibrate(st, regmap_get_f32(&app.hr[REG_HR_WHITE_REFERENCE_REFLECTANCE]),
+                                 app.hr[REG_HR_STANDALONE_MODE] != TRIMETER_STANDALONE_MODE_CALIBRATE_FORCE))
+            app.hr[REG_HR_STANDALONE_MODE] = TRIMETER_STANDALONE_MODE_MEASURE;
+        press_end(st->status);
         return;
     }
     case PRESS_FIT:

@@ -8,7 +8,7 @@
 #include <stdint.h>
 
 /* ---- identity */
-#define TRIMETER_REGMAP_HASH 0x6BF8C063u
+#define TRIMETER_REGMAP_HASH 0x673FDB0Cu
 #define TRIMETER_FIRMWARE_VERSION "0.1.0"
 #define TRIMETER_FIRMWARE_VERSION_MAJOR 0u
 #define TRIMETER_FIRMWARE_VERSION_MINOR 1u
@@ -345,6 +345,7 @@ typedef enum {
     TRIMETER_STANDALONE_MODE_OFF = 0,
     TRIMETER_STANDALONE_MODE_CALIBRATE = 1,
     TRIMETER_STANDALONE_MODE_MEASURE = 2,
+    TRIMETER_STANDALONE_MODE_CALIBRATE_FORCE = 3,
 } trimeter_standalone_mode_t;
 static inline const char *trimeter_standalone_mode_name(unsigned value) /* else "unknown" */
 {
@@ -352,6 +353,7 @@ static inline const char *trimeter_standalone_mode_name(unsigned value) /* else 
     case 0u: return "off";
     case 1u: return "calibrate";
     case 2u: return "measure";
+    case 3u: return "calibrate_force";
     default: return "unknown";
     }
 }
@@ -367,6 +369,7 @@ typedef enum {
     TRIMETER_STANDALONE_STATUS_ERROR_MOTION = 8,
     TRIMETER_STANDALONE_STATUS_ERROR_FIT = 9,
     TRIMETER_STANDALONE_STATUS_LAMP_CHANGED = 10,
+    TRIMETER_STANDALONE_STATUS_CALIBRATION_REFUSED = 11,
 } trimeter_standalone_status_t;
 static inline const char *trimeter_standalone_status_name(unsigned value) /* else "unknown" */
 {
@@ -382,6 +385,7 @@ static inline const char *trimeter_standalone_status_name(unsigned value) /* els
     case 8u: return "error_motion";
     case 9u: return "error_fit";
     case 10u: return "lamp_changed";
+    case 11u: return "calibration_refused";
     default: return "unknown";
     }
 }
@@ -392,6 +396,42 @@ static inline const char *trimeter_standalone_lamp_name(unsigned value) /* else 
 {
     switch (value) {
     case 20u: return "tolerance_permille";
+    default: return "unknown";
+    }
+}
+typedef enum {
+    TRIMETER_STANDALONE_HOLDER_RHO_BLACK_AGREEMENT_PERMILLE = 30,
+    TRIMETER_STANDALONE_HOLDER_BEAM_AGREEMENT_PERMILLE = 100,
+    TRIMETER_STANDALONE_HOLDER_RHO_BLACK_MAX_PERMILLE = 120,
+    TRIMETER_STANDALONE_HOLDER_MIN_LIT_PERMILLE = 500,
+} trimeter_standalone_holder_t;
+static inline const char *trimeter_standalone_holder_name(unsigned value) /* else "unknown" */
+{
+    switch (value) {
+    case 30u: return "rho_black_agreement_permille";
+    case 100u: return "beam_agreement_permille";
+    case 120u: return "rho_black_max_permille";
+    case 500u: return "min_lit_permille";
+    default: return "unknown";
+    }
+}
+typedef enum {
+    TRIMETER_STANDALONE_CHECK_NONE = 0,
+    TRIMETER_STANDALONE_CHECK_LITTLE_LIGHT = 1,
+    TRIMETER_STANDALONE_CHECK_SLOTS_SWAPPED = 2,
+    TRIMETER_STANDALONE_CHECK_HOLDER_NOT_EMPTY = 3,
+    TRIMETER_STANDALONE_CHECK_RHO_BLACK_CHANGED = 4,
+    TRIMETER_STANDALONE_CHECK_BEAM_CHANGED = 5,
+} trimeter_standalone_check_t;
+static inline const char *trimeter_standalone_check_name(unsigned value) /* else "unknown" */
+{
+    switch (value) {
+    case 0u: return "none";
+    case 1u: return "little_light";
+    case 2u: return "slots_swapped";
+    case 3u: return "holder_not_empty";
+    case 4u: return "rho_black_changed";
+    case 5u: return "beam_changed";
     default: return "unknown";
     }
 }
@@ -488,7 +528,7 @@ static inline const char *trimeter_unlock_name(unsigned value) /* else "unknown"
 #define REG_DI_HOMED 4u
 
 /* ---- input_registers */
-#define REG_IR_SPAN 134u /* one past the highest used address */
+#define REG_IR_SPAN 137u /* one past the highest used address */
 #define REG_IR_VENDOR_ID 0u
 #define REG_IR_MODEL_ID 1u
 #define REG_IR_FIRMWARE_VERSION_MAJOR 2u
@@ -550,6 +590,8 @@ static inline const char *trimeter_unlock_name(unsigned value) /* else "unknown"
 #define REG_IR_STANDALONE_LAMP_PANEL_RIGHT 129u
 #define REG_IR_STANDALONE_LAMP_COLLIMATED 131u
 #define REG_IR_STANDALONE_WARMUP_REMAINING_S 133u
+#define REG_IR_STANDALONE_CHECK 134u
+#define REG_IR_STANDALONE_CHECK_VALUE 135u
 
 /* ---- holding_registers */
 #define REG_HR_SPAN 110u /* one past the highest used address */
@@ -736,7 +778,7 @@ static inline const char *trimeter_unlock_name(unsigned value) /* else "unknown"
 #define REG_HR_STANDALONE_MODE 44u
 #define REG_HR_STANDALONE_MODE_DEFAULT 0u
 #define REG_HR_STANDALONE_MODE_MIN 0u
-#define REG_HR_STANDALONE_MODE_MAX 2u
+#define REG_HR_STANDALONE_MODE_MAX 3u
 #define REG_HR_WHITE_REFERENCE_REFLECTANCE 107u
 #define REG_HR_WHITE_REFERENCE_REFLECTANCE_DEFAULT 0.9900000095367432f
 #define REG_HR_WHITE_REFERENCE_REFLECTANCE_MIN 0.5f
@@ -763,7 +805,7 @@ typedef struct {
     float min_f, max_f, def_f; /* f32 */
 } regmap_entry_t;
 
-#define REGMAP_ENTRY_COUNT 120u
+#define REGMAP_ENTRY_COUNT 122u
 extern const regmap_entry_t regmap_entries[REGMAP_ENTRY_COUNT];
 
 #endif

@@ -13,6 +13,8 @@ void standalone_init(standalone_t *s)
 {
     memset(s, 0, sizeof *s);
     for (int l = 0; l < HAL_LED_COUNT; l++) s->lamp_level[l] = NAN;
+    for (unsigned b = 0; b < STANDALONE_BINS; b++) s->diffuse[b] = s->collimated[b] = s->rho_black[b] = NAN;
+    s->check_value = NAN;
 }
 
 static float lamp_light(const standalone_t *s, int lamp) { return (float)s->lamp_lit[lamp] - (float)s->lamp_dark[lamp]; }
@@ -58,20 +60,105 @@ void standalone_reduce(standalone_t *s, const float wl_coeff[C12880_WL_COEFFS])
     s->bins = STANDALONE_BINS;
 }
 
-void standalone_calibrate(standalone_t *s, float rho_white)
+/* The median of v[0..n), reordering it (insertion sort: n is at most the bin count); NaN when n is 0. */
+static float median(float *v, unsigned n)
 {
-    float max_diffuse = 0.0f, max_collimated = 0.0f;
+    if (!n) return NAN;
+    for (unsigned i = 1; i < n; i++) {
+        float x = v[i];
+        unsigned j = i;
+        for (; j > 0 && v[j - 1] > x; j--) v[j] = v[j - 1];
+        v[j] = x;
+    }
+    return n % 2u ? v[n / 2u] : 0.5f * (v[n / 2u - 1u] + v[n / 2u]);
+}
+
+#define HOLDER_BOUND(name) ((float)TRIMETER_STANDALONE_HOLDER_##name##_PERMILLE / 1000.0f)
+
+/* This press's references as a calibration candidate (the reduced rates in the words). */
+typedef struct {
+    float rho_white, max_diffuse, max_collimated;
+} candidate_t;
+
+static float candidate_diffuse(const standalone_t *s, const candidate_t *c, unsigned b)
+{
+    return word_f32(s, b, TRIMETER_STANDALONE_WORD_WHITE) / c->rho_white;
+}
+
+static bool candidate_lit(const standalone_t *s, const candidate_t *c, unsigned b)
+{
+    return !s->saturated[b] && c->max_diffuse > 0.0f && c->max_collimated > 0.0f &&
+           candidate_diffuse(s, c, b) >= STANDALONE_LIT_FRACTION * c->max_diffuse &&
+           word_f32(s, b, TRIMETER_STANDALONE_WORD_OPEN) >= STANDALONE_LIT_FRACTION * c->max_collimated;
+}
+
+static float candidate_rho_black(const standalone_t *s, const candidate_t *c, unsigned b)
+{
+    return word_f32(s, b, TRIMETER_STANDALONE_WORD_BLACK) / candidate_diffuse(s, c, b);
+}
+
+/* The checks of standalone.h, in the order a person would look: light, slots, holder, then agreement. */
+static trimeter_standalone_check_t holder_check(const standalone_t *s, const candidate_t *c, bool against_kept,
+                                                float *value)
+{
+    float v[STANDALONE_BINS];
+    unsigned n = 0;
+    for (unsigned b = 0; b < STANDALONE_BINS; b++)
+        if (candidate_lit(s, c, b)) v[n++] = candidate_rho_black(s, c, b);
+    if ((float)n < HOLDER_BOUND(MIN_LIT) * (float)STANDALONE_BINS) {
+        *value = (float)n / (float)STANDALONE_BINS;
+        return TRIMETER_STANDALONE_CHECK_LITTLE_LIGHT;
+    }
+    float rho = *value = median(v, n);
+    if (!(rho < c->rho_white)) return TRIMETER_STANDALONE_CHECK_SLOTS_SWAPPED;
+    if (rho > HOLDER_BOUND(RHO_BLACK_MAX)) return TRIMETER_STANDALONE_CHECK_HOLDER_NOT_EMPTY;
+    if (!against_kept || !s->calibrated) return TRIMETER_STANDALONE_CHECK_NONE;
+
+    n = 0;
+    for (unsigned b = 0; b < STANDALONE_BINS; b++)
+        if (candidate_lit(s, c, b) && s->lit[b]) v[n++] = fabsf(candidate_rho_black(s, c, b) - s->rho_black[b]);
+    if (!n) return TRIMETER_STANDALONE_CHECK_NONE; /* no bin lit in both: nothing to compare */
+    float change = median(v, n);
+    if (change > HOLDER_BOUND(RHO_BLACK_AGREEMENT)) {
+        *value = change;
+        return TRIMETER_STANDALONE_CHECK_RHO_BLACK_CHANGED;
+    }
+    n = 0;
+    for (unsigned b = 0; b < STANDALONE_BINS; b++)
+        if (candidate_lit(s, c, b) && s->lit[b]) v[n++] = word_f32(s, b, TRIMETER_STANDALONE_WORD_OPEN) / s->collimated[b];
+    float beam = median(v, n);
+    /* per the LED's own light on its photodiode, so an LED that aged or was dimmed is no sample in the beam */
+    float now = lamp_light(s, HAL_LED_COLLIMATED), then = s->lamp_span[HAL_LED_COLLIMATED];
+    if (now >= STANDALONE_LAMP_MIN_SPAN_COUNTS && then >= STANDALONE_LAMP_MIN_SPAN_COUNTS) beam /= now / then;
+    if (!(fabsf(beam - 1.0f) <= HOLDER_BOUND(BEAM_AGREEMENT))) {
+        *value = beam;
+        return TRIMETER_STANDALONE_CHECK_BEAM_CHANGED;
+    }
+    return TRIMETER_STANDALONE_CHECK_NONE;
+}
+
+bool standalone_calibrate(standalone_t *s, float rho_white, bool against_kept)
+{
+    candidate_t c = {rho_white, 0.0f, 0.0f};
     for (unsigned b = 0; b < STANDALONE_BINS; b++) {
-        s->diffuse[b] = word_f32(s, b, TRIMETER_STANDALONE_WORD_WHITE) / rho_white;
-        s->collimated[b] = word_f32(s, b, TRIMETER_STANDALONE_WORD_OPEN);
-        if (s->diffuse[b] > max_diffuse) max_diffuse = s->diffuse[b];
-        if (s->collimated[b] > max_collimated) max_collimated = s->collimated[b];
+        float diffuse = candidate_diffuse(s, &c, b), collimated = word_f32(s, b, TRIMETER_STANDALONE_WORD_OPEN);
+        if (diffuse > c.max_diffuse) c.max_diffuse = diffuse;
+        if (collimated > c.max_collimated) c.max_collimated = collimated;
+    }
+    s->check = holder_check(s, &c, against_kept, &s->check_value);
+    s->flagged_bins = 0;
+    if (s->check != TRIMETER_STANDALONE_CHECK_NONE) {
+        /* the file shows this press's rates beside the calibration still in force (NaN: none) */
+        for (unsigned b = 0; b < STANDALONE_BINS; b++) put_bin(s, b, s->saturated[b], !s->lit[b] && !s->saturated[b]);
+        s->status = TRIMETER_STANDALONE_STATUS_CALIBRATION_REFUSED;
+        return false;
     }
     for (unsigned b = 0; b < STANDALONE_BINS; b++) {
         s->calibration_saturated[b] = s->saturated[b];
-        s->lit[b] = !s->saturated[b] && s->diffuse[b] >= STANDALONE_LIT_FRACTION * max_diffuse && max_diffuse > 0.0f &&
-                    s->collimated[b] >= STANDALONE_LIT_FRACTION * max_collimated && max_collimated > 0.0f;
-        s->rho_black[b] = s->lit[b] ? word_f32(s, b, TRIMETER_STANDALONE_WORD_BLACK) / s->diffuse[b] : NAN;
+        s->lit[b] = candidate_lit(s, &c, b);
+        s->diffuse[b] = candidate_diffuse(s, &c, b);
+        s->collimated[b] = word_f32(s, b, TRIMETER_STANDALONE_WORD_OPEN);
+        s->rho_black[b] = s->lit[b] ? candidate_rho_black(s, &c, b) : NAN;
         put_bin(s, b, s->saturated[b], !s->lit[b] && !s->saturated[b]);
     }
     for (int l = 0; l < HAL_LED_COUNT; l++) {
@@ -80,8 +167,8 @@ void standalone_calibrate(standalone_t *s, float rho_white)
     }
     s->rho_white = rho_white;
     s->calibrated = true;
-    s->flagged_bins = 0;
     s->status = TRIMETER_STANDALONE_STATUS_CALIBRATED;
+    return true;
 }
 
 uint16_t standalone_fit_input(standalone_t *s, uint16_t *fit_in)
@@ -135,6 +222,8 @@ trimeter_status_pattern_t standalone_pattern(trimeter_standalone_status_t status
     case TRIMETER_STANDALONE_STATUS_CALIBRATED: return TRIMETER_STATUS_PATTERN_ON;
     case TRIMETER_STANDALONE_STATUS_FLAGGED:
     case TRIMETER_STANDALONE_STATUS_LAMP_CHANGED: return TRIMETER_STATUS_PATTERN_DOUBLE_BLINK;
+    /* as `trimeter serve` asks for an empty holder */
+    case TRIMETER_STANDALONE_STATUS_CALIBRATION_REFUSED: return TRIMETER_STATUS_PATTERN_TRIPLE_BLINK;
     default: return TRIMETER_STATUS_PATTERN_FAST_BLINK;
     }
 }

@@ -14,7 +14,13 @@
  * difference is the lamp's light. A measurement press compares it with the calibration press's: off by more
  * than STANDALONE_LAMP_TOLERANCE (registers.toml, enums.standalone_lamp, says what bias that is) the result
  * is kept but its status is lamp_changed (recalibrate). A calibration photodiode span under
- * STANDALONE_LAMP_MIN_SPAN_COUNTS (no photodiode fitted, or it saw no lamp) leaves that lamp unchecked (NaN). */
+ * STANDALONE_LAMP_MIN_SPAN_COUNTS (no photodiode fitted, or it saw no lamp) leaves that lamp unchecked (NaN).
+ *
+ * A calibration press checks its references before they become the calibration (registers.toml,
+ * enums.standalone_holder and standalone_check, say what and why): enough lit bins, rho_black below the white
+ * reference's and the empty holder's bound, and, against a calibration kept since boot, the same rho_black and the
+ * same collimated beam per its lamp-monitor light. A refused press keeps the calibration it had, so a sample left
+ * in the holder never becomes the reference every later host-less result is measured against. */
 #ifndef TRIMETER_STANDALONE_H
 #define TRIMETER_STANDALONE_H
 
@@ -59,6 +65,8 @@ typedef struct standalone {
     uint16_t flagged_bins;
     uint16_t sequence;
     trimeter_standalone_status_t status;
+    trimeter_standalone_check_t check; /* the last calibration press's check */
+    float check_value;                 /* ... what it saw (NaN: no calibration press yet) */
 } standalone_t;
 
 void standalone_init(standalone_t *s);
@@ -67,8 +75,10 @@ void standalone_init(standalone_t *s);
  * unit's polynomial) and rates into the result's words; saturation per bin. */
 void standalone_reduce(standalone_t *s, const float wl_coeff[C12880_WL_COEFFS]);
 
-/* A calibration press: the reduced rates become the calibration (diffuse = white / rho_white). */
-void standalone_calibrate(standalone_t *s, float rho_white);
+/* A calibration press: the reduced rates become the calibration (diffuse = white / rho_white) when they pass
+ * the check (against the kept calibration too when `against_kept`); else the kept one stays. Sets check,
+ * check_value and the status (calibrated or calibration_refused); true when calibrated. */
+bool standalone_calibrate(standalone_t *s, float rho_white, bool against_kept);
 
 /* A measurement press: the fit's input (file fit_input's layout, fit.h) for every bin, I_b = black /
  * diffuse, I_w = white / diffuse, I_c = open / collimated, rho_b = the calibration's, rho_w = rho_white;

@@ -160,7 +160,7 @@ static void test_calibration_then_measurement(void)
     CHECK_EQ_INT(write_reg(REG_HR_SPECTRO_FRAMES, 2), MB_OK);
     CHECK_EQ_INT(write_reg(REG_HR_STANDALONE_WARMUP_S, 0), MB_OK); /* test_a_press_waits_for_warm_lamps */
     CHECK_EQ_INT(write_reg(REG_HR_STANDALONE_MODE, TRIMETER_STANDALONE_MODE_CALIBRATE), MB_OK);
-    light.black = 50.0f, light.white = 250.0f, light.open = 400.0f;
+    light.black = 25.0f, light.white = 250.0f, light.open = 400.0f;
 
     f->button = true;
     run_ms(60);
@@ -179,14 +179,14 @@ static void test_calibration_then_measurement(void)
     CHECK_EQ_INT(ir(REG_IR_STANDALONE_CALIBRATED), 1);
     CHECK_EQ_INT(app_get()->hr[REG_HR_STANDALONE_MODE], TRIMETER_STANDALONE_MODE_MEASURE);
     /* auto-exposure: each set-up doubled from 4 ms until its brightest pixel was >= 40 % of full scale */
-    CHECK_EQ_INT(ir32(REG_IR_STANDALONE_INTEGRATION_BLACK_US), 32000);
+    CHECK_EQ_INT(ir32(REG_IR_STANDALONE_INTEGRATION_BLACK_US), 64000);
     CHECK_EQ_INT(ir32(REG_IR_STANDALONE_INTEGRATION_WHITE_US), 8000);
     CHECK_EQ_INT(ir32(REG_IR_STANDALONE_INTEGRATION_OPEN_US), 4000);
     /* every shutter closed after the press, every lamp still on (warm for the next press) */
     for (int s = 0; s < HAL_SHUTTER_COUNT; s++) CHECK(!app_get()->act.shutter_open[s] && app_get()->act.led_on[s]);
     CHECK(near(result_f32(20, TRIMETER_STANDALONE_WORD_DIFFUSE), 250e3f / 0.99f, 1e-3f));
     CHECK(near(result_f32(20, TRIMETER_STANDALONE_WORD_COLLIMATED), 400e3f, 1e-3f));
-    CHECK(near(result_f32(20, TRIMETER_STANDALONE_WORD_RHO_BLACK), 50.0f * 0.99f / 250.0f, 1e-3f));
+    CHECK(near(result_f32(20, TRIMETER_STANDALONE_WORD_RHO_BLACK), 25.0f * 0.99f / 250.0f, 1e-3f));
     CHECK_EQ_INT(result_u16(2, TRIMETER_STANDALONE_WORD_CAPTURE_FLAGS), STANDALONE_CAPTURE_NO_REFERENCE_LIGHT);
     CHECK_EQ_INT(result_u16(20, TRIMETER_STANDALONE_WORD_CAPTURE_FLAGS), 0);
 
@@ -198,7 +198,7 @@ static void test_calibration_then_measurement(void)
     CHECK_EQ_INT(ir(REG_IR_STANDALONE_FLAGGED_BINS), 0);
     CHECK_EQ_INT(ir(REG_IR_STANDALONE_SEQUENCE), 2);
     CHECK(ir32(REG_IR_STANDALONE_TABLE_CRC32) != 0);
-    float diffuse = 250e3f / 0.99f, rho_b = 50.0f * 0.99f / 250.0f;
+    float diffuse = 250e3f / 0.99f, rho_b = 25.0f * 0.99f / 250.0f;
     for (unsigned b = UNLIT_PIXELS / 2; b < STANDALONE_BINS; b += 37) {
         CHECK(near(result_f32(b, TRIMETER_STANDALONE_WORD_BLACK), 30e3f, 1e-3f));
         CHECK(near(result_f32(b, TRIMETER_STANDALONE_WORD_ALPHA), 30e3f / diffuse, 1e-3f));
@@ -237,7 +237,7 @@ static void calibrated_device(bool monitor)
     activate_table();
     CHECK_EQ_INT(write_reg(REG_HR_STANDALONE_WARMUP_S, 0), MB_OK);
     CHECK_EQ_INT(write_reg(REG_HR_STANDALONE_MODE, TRIMETER_STANDALONE_MODE_CALIBRATE), MB_OK);
-    light.black = 50.0f, light.white = 250.0f, light.open = 400.0f;
+    light.black = 25.0f, light.white = 250.0f, light.open = 400.0f;
     CHECK_EQ_INT(press(120000), TRIMETER_STANDALONE_STATUS_CALIBRATED);
     CHECK(isnan(ir_f32(REG_IR_STANDALONE_LAMP_COLLIMATED))); /* a calibration compares nothing */
     light.black = 30.0f, light.white = 200.0f, light.open = 100.0f; /* a sample in the holder */
@@ -254,7 +254,7 @@ static void test_a_press_waits_for_warm_lamps(void)
     for (int s = 0; s < HAL_SHUTTER_COUNT; s++) CHECK(!app_get()->act.shutter_open[s]);
     idle_s(100);
     CHECK_EQ_INT(ir(REG_IR_STANDALONE_WARMUP_REMAINING_S), 200);
-    light.black = 50.0f, light.white = 250.0f, light.open = 400.0f;
+    light.black = 25.0f, light.white = 250.0f, light.open = 400.0f;
     f->button = true;
     run_ms(60);
     f->button = false;
@@ -318,26 +318,34 @@ static void test_a_lamp_changed_since_the_calibration_flags_the_result(void)
     CHECK(isnan(ir_f32(REG_IR_STANDALONE_LAMP_COLLIMATED)));
 }
 
+/* Captures straight into a standalone_t, 1 ms each: white and open 1000 + p counts above the dark, black
+ * `black` counts, the open slot's beam scaled by `beam`; the first UNLIT_PIXELS dark in every set-up. */
+static void references(standalone_t *s, unsigned black, float beam)
+{
+    for (int k = 0; k < STANDALONE_SETUPS; k++) {
+        s->integration_us[k] = 1000;
+        for (unsigned p = 0; p < C12880_PIXELS; p++) {
+            float v = k == STANDALONE_BLACK ? (float)black : (float)(1000u + p) * (k == STANDALONE_OPEN ? beam : 1.0f);
+            s->dark[k][p] = 16u * DARK_COUNTS;
+            s->light[k][p] = (uint16_t)(16.0f * ((float)DARK_COUNTS + (p < UNLIT_PIXELS ? 0.0f : v)));
+        }
+    }
+}
+
 static void test_a_flagged_lit_bin_flags_the_result(void)
 {
     static standalone_t s;
     standalone_init(&s);
     static const float wl[C12880_WL_COEFFS] = {300.0f, 2.0f, 0, 0, 0, 0};
-    for (int k = 0; k < STANDALONE_SETUPS; k++) {
-        s.integration_us[k] = 1000;
-        for (unsigned p = 0; p < C12880_PIXELS; p++) {
-            s.dark[k][p] = 16u * DARK_COUNTS;
-            s.light[k][p] = (uint16_t)(16u * (DARK_COUNTS + (p < UNLIT_PIXELS ? 0u : 1000u + p)));
-        }
-    }
+    references(&s, 50u, 1.0f);
     s.light[STANDALONE_WHITE][100] = 16u * C12880_ADC_FULL_SCALE; /* saturated in the calibration */
     standalone_reduce(&s, wl);
     /* a bin is its pair's mean rate: pixels 20, 21 at 1020, 1021 counts in 1 ms */
-    CHECK(near(regmap_get_f32(&s.words[10 * TRIMETER_STANDALONE_WORD_STRIDE + TRIMETER_STANDALONE_WORD_BLACK]),
+    CHECK(near(regmap_get_f32(&s.words[10 * TRIMETER_STANDALONE_WORD_STRIDE + TRIMETER_STANDALONE_WORD_WHITE]),
                1020.5e3f, 1e-5f));
     CHECK(near(regmap_get_f32(&s.words[10 * TRIMETER_STANDALONE_WORD_STRIDE + TRIMETER_STANDALONE_WORD_WAVELENGTH_NM]),
                300.0f + 2.0f * 21.5f, 1e-5f));
-    standalone_calibrate(&s, 0.99f);
+    CHECK(standalone_calibrate(&s, 0.99f, true));
     CHECK(s.calibration_saturated[50] && !s.lit[50] && s.lit[60] && !s.lit[0]);
     s.light[STANDALONE_WHITE][100] = s.light[STANDALONE_WHITE][99];
     standalone_reduce(&s, wl);
@@ -351,7 +359,7 @@ static void test_a_flagged_lit_bin_flags_the_result(void)
     CHECK_EQ_INT(s.flagged_bins, 1);
     CHECK_EQ_INT(s.words[50 * TRIMETER_STANDALONE_WORD_STRIDE + TRIMETER_STANDALONE_WORD_CAPTURE_FLAGS],
                  STANDALONE_CAPTURE_SATURATED);
-    standalone_calibrate(&s, 0.99f); /* a clean calibration */
+    CHECK(standalone_calibrate(&s, 0.99f, true)); /* a clean calibration, agreeing with the first */
     standalone_fit_input(&s, in);
     out[0 * TRIMETER_FIT_OUTPUT_WORD_STRIDE + TRIMETER_FIT_OUTPUT_WORD_FLAGS] = TM_FLAG_NONFINITE_INPUT; /* unlit bin */
     standalone_take_fit(&s, out, STANDALONE_BINS);
@@ -363,6 +371,103 @@ static void test_a_flagged_lit_bin_flags_the_result(void)
     CHECK_EQ_INT(standalone_pattern(TRIMETER_STANDALONE_STATUS_ERROR_FIT), TRIMETER_STATUS_PATTERN_FAST_BLINK);
 }
 
+/* The empty-holder check of a calibration press, on the captures alone: each refusal keeps the calibration. */
+static void test_a_calibration_checks_for_an_empty_holder(void)
+{
+    static standalone_t s;
+    static const float wl[C12880_WL_COEFFS] = {300.0f, 2.0f, 0, 0, 0, 0};
+    standalone_init(&s);
+    CHECK(isnan(s.check_value) && s.check == TRIMETER_STANDALONE_CHECK_NONE);
+
+    references(&s, 400u, 1.0f); /* a sample in the holder: its own I_b/I_w ~ 0.3 on the black slot */
+    standalone_reduce(&s, wl);
+    CHECK(!standalone_calibrate(&s, 0.99f, true));
+    CHECK_EQ_INT(s.status, TRIMETER_STANDALONE_STATUS_CALIBRATION_REFUSED);
+    CHECK_EQ_INT(s.check, TRIMETER_STANDALONE_CHECK_HOLDER_NOT_EMPTY);
+    CHECK(s.check_value > 0.25f && s.check_value < 0.45f);
+    CHECK(!s.calibrated);
+    CHECK(isnan(regmap_get_f32(&s.words[20 * TRIMETER_STANDALONE_WORD_STRIDE + TRIMETER_STANDALONE_WORD_DIFFUSE])));
+    CHECK_EQ_INT(standalone_pattern(s.status), TRIMETER_STATUS_PATTERN_TRIPLE_BLINK);
+
+    references(&s, 1500u, 1.0f); /* black brighter than white: the slots are swapped */
+    standalone_reduce(&s, wl);
+    CHECK(!standalone_calibrate(&s, 0.99f, true));
+    CHECK_EQ_INT(s.check, TRIMETER_STANDALONE_CHECK_SLOTS_SWAPPED);
+
+    references(&s, 30u, 1.0f);
+    for (unsigned p = 0; p < 200; p++) s.light[STANDALONE_WHITE][p] = 16u * DARK_COUNTS; /* most bins without panels */
+    standalone_reduce(&s, wl);
+    CHECK(!standalone_calibrate(&s, 0.99f, true));
+    CHECK_EQ_INT(s.check, TRIMETER_STANDALONE_CHECK_LITTLE_LIGHT);
+    CHECK(s.check_value < 0.5f);
+
+    references(&s, 30u, 1.0f); /* the empty holder: rho_black ~ 0.02, accepted */
+    standalone_reduce(&s, wl);
+    CHECK(standalone_calibrate(&s, 0.99f, true));
+    CHECK_EQ_INT(s.status, TRIMETER_STANDALONE_STATUS_CALIBRATED);
+    CHECK_EQ_INT(s.check, TRIMETER_STANDALONE_CHECK_NONE);
+    CHECK(s.check_value > 0.01f && s.check_value < 0.05f);
+    float diffuse = s.diffuse[60];
+
+    /* against the kept calibration: a clear sample raises rho_black within the empty-holder bound */
+    references(&s, 100u, 1.0f);
+    standalone_reduce(&s, wl);
+    CHECK(!standalone_calibrate(&s, 0.99f, true));
+    CHECK_EQ_INT(s.check, TRIMETER_STANDALONE_CHECK_RHO_BLACK_CHANGED);
+    CHECK(s.check_value > 0.03f && s.check_value < 0.1f);
+    CHECK(s.calibrated && s.diffuse[60] == diffuse); /* the kept calibration still holds, and the file shows it */
+    CHECK(regmap_get_f32(&s.words[60 * TRIMETER_STANDALONE_WORD_STRIDE + TRIMETER_STANDALONE_WORD_DIFFUSE]) == diffuse);
+
+    references(&s, 30u, 0.8f); /* something in the beam only */
+    standalone_reduce(&s, wl);
+    CHECK(!standalone_calibrate(&s, 0.99f, true));
+    CHECK_EQ_INT(s.check, TRIMETER_STANDALONE_CHECK_BEAM_CHANGED);
+    CHECK(fabsf(s.check_value - 0.8f) < 0.01f);
+    /* ... unless its LED's own photodiode saw it dim as much: an aged LED, no sample */
+    s.lamp_span[HAL_LED_COLLIMATED] = 1000.0f;
+    s.lamp_dark[HAL_LED_COLLIMATED] = 50u, s.lamp_lit[HAL_LED_COLLIMATED] = 850u;
+    CHECK(standalone_calibrate(&s, 0.99f, true));
+
+    /* the operator's word (standalone_mode calibrate_force): the kept calibration is not compared */
+    references(&s, 100u, 1.0f);
+    standalone_reduce(&s, wl);
+    CHECK(standalone_calibrate(&s, 0.99f, false));
+    CHECK_EQ_INT(s.check, TRIMETER_STANDALONE_CHECK_NONE);
+}
+
+/* Through the app: a refused press keeps the mode (the next press calibrates again) and says why. */
+static void test_a_refused_calibration_press(void)
+{
+    fresh_device(true);
+    activate_table();
+    CHECK_EQ_INT(write_reg(REG_HR_STANDALONE_WARMUP_S, 0), MB_OK);
+    CHECK_EQ_INT(write_reg(REG_HR_STANDALONE_MODE, TRIMETER_STANDALONE_MODE_CALIBRATE), MB_OK);
+    light.black = 80.0f, light.white = 200.0f, light.open = 100.0f; /* a sample left in the holder */
+    CHECK_EQ_INT(press(120000), TRIMETER_STANDALONE_STATUS_CALIBRATION_REFUSED);
+    CHECK_EQ_INT(ir(REG_IR_STANDALONE_CHECK), TRIMETER_STANDALONE_CHECK_HOLDER_NOT_EMPTY);
+    CHECK(fabsf(ir_f32(REG_IR_STANDALONE_CHECK_VALUE) - 80.0f * 0.99f / 200.0f) < 1e-3f);
+    CHECK_EQ_INT(ir(REG_IR_STANDALONE_CALIBRATED), 0);
+    CHECK_EQ_INT(app_get()->act.pattern, STATUS_TRIPLE_BLINK);
+    CHECK_EQ_INT(app_get()->hr[REG_HR_STANDALONE_MODE], TRIMETER_STANDALONE_MODE_CALIBRATE);
+    light.black = 25.0f, light.white = 250.0f, light.open = 400.0f; /* emptied */
+    CHECK_EQ_INT(press(120000), TRIMETER_STANDALONE_STATUS_CALIBRATED);
+    CHECK_EQ_INT(ir(REG_IR_STANDALONE_CHECK), TRIMETER_STANDALONE_CHECK_NONE);
+    CHECK_EQ_INT(app_get()->hr[REG_HR_STANDALONE_MODE], TRIMETER_STANDALONE_MODE_MEASURE);
+
+    /* a replaced collimated LED on a board without photodiodes: refused, then forced */
+    monitor_missing = true;
+    light.open = 280.0f;
+    CHECK_EQ_INT(write_reg(REG_HR_STANDALONE_MODE, TRIMETER_STANDALONE_MODE_CALIBRATE), MB_OK);
+    CHECK_EQ_INT(press(120000), TRIMETER_STANDALONE_STATUS_CALIBRATION_REFUSED);
+    CHECK_EQ_INT(ir(REG_IR_STANDALONE_CHECK), TRIMETER_STANDALONE_CHECK_BEAM_CHANGED);
+    CHECK(fabsf(ir_f32(REG_IR_STANDALONE_CHECK_VALUE) - 0.7f) < 0.01f);
+    CHECK(near(result_f32(20, TRIMETER_STANDALONE_WORD_COLLIMATED), 400e3f, 1e-3f)); /* the kept one */
+    CHECK_EQ_INT(write_reg(REG_HR_STANDALONE_MODE, TRIMETER_STANDALONE_MODE_CALIBRATE_FORCE), MB_OK);
+    CHECK_EQ_INT(press(120000), TRIMETER_STANDALONE_STATUS_CALIBRATED);
+    CHECK(near(result_f32(20, TRIMETER_STANDALONE_WORD_COLLIMATED), 280e3f, 1e-3f));
+    CHECK_EQ_INT(app_get()->hr[REG_HR_STANDALONE_MODE], TRIMETER_STANDALONE_MODE_MEASURE);
+}
+
 int main(void)
 {
     RUN_TEST(test_mode_off_leaves_presses_to_the_host);
@@ -371,6 +476,8 @@ int main(void)
     RUN_TEST(test_a_press_waits_for_warm_lamps);
     RUN_TEST(test_a_lamp_changed_since_the_calibration_flags_the_result);
     RUN_TEST(test_a_flagged_lit_bin_flags_the_result);
+    RUN_TEST(test_a_calibration_checks_for_an_empty_holder);
+    RUN_TEST(test_a_refused_calibration_press);
     fixture_free_hal();
     return CHECK_SUMMARY();
 }

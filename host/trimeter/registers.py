@@ -9,7 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from enum import IntEnum
 
-REGMAP_HASH = 0x6BF8C063
+REGMAP_HASH = 0x673FDB0C
 FIRMWARE_VERSION = (0, 1, 0)
 VENDOR_NAME = 'trimeter project'
 PRODUCT_CODE = 'TRIMETER-1'
@@ -173,6 +173,7 @@ class StandaloneMode(IntEnum):
     OFF = 0
     CALIBRATE = 1
     MEASURE = 2
+    CALIBRATE_FORCE = 3
 
 
 class StandaloneStatus(IntEnum):
@@ -187,10 +188,27 @@ class StandaloneStatus(IntEnum):
     ERROR_MOTION = 8
     ERROR_FIT = 9
     LAMP_CHANGED = 10
+    CALIBRATION_REFUSED = 11
 
 
 class StandaloneLamp(IntEnum):
     TOLERANCE_PERMILLE = 20
+
+
+class StandaloneHolder(IntEnum):
+    RHO_BLACK_AGREEMENT_PERMILLE = 30
+    BEAM_AGREEMENT_PERMILLE = 100
+    RHO_BLACK_MAX_PERMILLE = 120
+    MIN_LIT_PERMILLE = 500
+
+
+class StandaloneCheck(IntEnum):
+    NONE = 0
+    LITTLE_LIGHT = 1
+    SLOTS_SWAPPED = 2
+    HOLDER_NOT_EMPTY = 3
+    RHO_BLACK_CHANGED = 4
+    BEAM_CHANGED = 5
 
 
 class StandaloneFile(IntEnum):
@@ -239,6 +257,8 @@ ENUMS: dict[str, type[IntEnum]] = {
     'standalone_mode': StandaloneMode,
     'standalone_status': StandaloneStatus,
     'standalone_lamp': StandaloneLamp,
+    'standalone_holder': StandaloneHolder,
+    'standalone_check': StandaloneCheck,
     'standalone_file': StandaloneFile,
     'standalone_word': StandaloneWord,
     'unlock': Unlock,
@@ -382,8 +402,8 @@ REGISTERS: tuple[Register, ...] = (
              'Pixels per frame: 288, or 0 on a board without a spectrometer.'),
     Register('spectro_clock_hz', 'input_register', 104, 'u32', 2, 'r', 1.0, 'Hz', 0, 4294967295, 0, None, (),
              "The CLK rate the port drives the chip at (0: no spectrometer); the integration time's resolution is one CLK period."),
-    Register('standalone_status', 'input_register', 112, 'u16', 1, 'r', 1.0, '', 0, 10, 0, 'standalone_status', (),
-             'The current or last standalone press (enums.standalone_status); the status LED shows it: busy slow blink, done / calibrated on, flagged double blink, an error fast blink.'),
+    Register('standalone_status', 'input_register', 112, 'u16', 1, 'r', 1.0, '', 0, 11, 0, 'standalone_status', (),
+             'The current or last standalone press (enums.standalone_status); the status LED shows it: busy slow blink, done / calibrated on, flagged / lamp_changed double blink, calibration_refused triple blink, an error fast blink.'),
     Register('standalone_bins', 'input_register', 113, 'u16', 1, 'r', 1.0, '', 0, 65535, 0, None, (),
              'Bins in file standalone_result (0 before the first press completed its captures).'),
     Register('standalone_sequence', 'input_register', 114, 'u16', 1, 'r', 1.0, '', 0, 65535, 0, None, (),
@@ -410,6 +430,10 @@ REGISTERS: tuple[Register, ...] = (
              'As standalone_lamp_panel_left, the collimated LED.'),
     Register('standalone_warmup_remaining_s', 'input_register', 133, 'u16', 1, 'r', 1.0, 's', 0, 65535, 0, None, (),
              'Seconds until every lamp has been on for standalone_warmup_s (0: warm). A press waits for it (status busy).'),
+    Register('standalone_check', 'input_register', 134, 'u16', 1, 'r', 1.0, '', 0, 5, 0, 'standalone_check', (),
+             "The last calibration press's check of its references (enums.standalone_check): none passed; any other value refused it (status calibration_refused)."),
+    Register('standalone_check_value', 'input_register', 135, 'f32', 2, 'r', 1.0, '', -3.4028234663852886e+38, 3.4028234663852886e+38, 0.0, None, (),
+             "What the last calibration press's check saw (its meaning per standalone_check value); NaN before any calibration press."),
     Register('command', 'holding_register', 0, 'u16', 1, 'rw', 1.0, '', 0, 8, 0, 'command', (),
              'Write to start an action; reads back the last accepted command. Motion commands only set a target. save_config and load_defaults need `unlock` first (else exception 01); a save refused by the erase rate limit: exception 06.'),
     Register('unlock', 'holding_register', 1, 'u16', 1, 'rw', 1.0, '', 0, 23294, 0, 'unlock', (0, 23294),
@@ -500,7 +524,7 @@ REGISTERS: tuple[Register, ...] = (
              'Wavelength polynomial B4 (coefficient of p^4).'),
     Register('spectro_wl_b5', 'holding_register', 105, 'f32', 2, 'rw', 1.0, 'nm', -10000.0, 10000.0, 8.15080034716198e-12, None, (),
              'Wavelength polynomial B5 (coefficient of p^5).'),
-    Register('standalone_mode', 'holding_register', 44, 'u16', 1, 'rw', 1.0, '', 0, 2, 0, 'standalone_mode', (),
+    Register('standalone_mode', 'holding_register', 44, 'u16', 1, 'rw', 1.0, '', 0, 3, 0, 'standalone_mode', (),
              'What a press of the front button does (enums.standalone_mode): off leaves it to the host; calibrate / measure run the press on the device. Uses spectro_frames, spectro_integration_us and spectro_gain as they are.'),
     Register('white_reference_reflectance', 'holding_register', 107, 'f32', 2, 'rw', 1.0, '', 0.5, 1.0, 0.9900000095367432, None, (),
              "The white reference's reflectance (hardware/geometry.toml, calibration.white_reference_reflectance): a standalone calibration divides the white slot's light by it, as the host's calibration does."),
@@ -513,4 +537,4 @@ COILS: dict[str, Register] = {r.name: r for r in REGISTERS if r.table == 'coil'}
 DISCRETE_INPUTS: dict[str, Register] = {r.name: r for r in REGISTERS if r.table == 'discrete_input'}
 INPUT_REGISTERS: dict[str, Register] = {r.name: r for r in REGISTERS if r.table == 'input_register'}
 HOLDING_REGISTERS: dict[str, Register] = {r.name: r for r in REGISTERS if r.table == 'holding_register'}
-SPANS: dict[str, int] = {'coil': 6, 'discrete_input': 5, 'input_register': 134, 'holding_register': 110}
+SPANS: dict[str, int] = {'coil': 6, 'discrete_input': 5, 'input_register': 137, 'holding_register': 110}

@@ -173,3 +173,48 @@ def test_a_hostless_press_with_dimmed_lamps_says_recalibrate(request, tmp_path, 
         pattern, result, out = press_and_read("restored")
         assert result.status in (regs.StandaloneStatus.DONE, regs.StandaloneStatus.FLAGGED)
         assert "RECALIBRATE" not in out
+
+
+def test_a_sample_left_in_the_holder_is_not_taken_for_the_calibration(request, tmp_path, hil_map, monkeypatch,
+                                                                       capsys):
+    """A device-side calibration press with a sample in the holder is refused (status LED triple blink, as `trimeter
+    serve` asks for an empty holder), says why, and keeps the calibration the device had: a later measurement is
+    made against that one, not against the sample."""
+    from trimeter.device import Device
+
+    with _c12880_twin(request, tmp_path, hil_map, monkeypatch, seed=7) as (twin, port):
+        assert main(["device", "standalone", "measure", "--force", *port]) == 2
+        assert "--force applies to `calibrate` only" in capsys.readouterr().err
+        twin.control.insert_sample(SAMPLE, THICKNESS_MM)
+        assert main(["device", "standalone", "calibrate", *port]) == 0
+        assert _press(twin) == "triple_blink"  # no calibration at all yet: the empty-holder bound alone refuses it
+        capsys.readouterr()
+        assert main(["device", "last-result", *port]) == 2
+        assert "a calibration it refused: ρ_black" in capsys.readouterr().err
+        assert main(["device", "standalone", "calibrate", *port]) == 0
+        out = capsys.readouterr().out
+        print(out)
+        assert "last press: calibration_refused; not calibrated" in out
+        assert "a sample seems to be in the holder" in out
+
+        twin.control.remove_sample()
+        assert _press(twin) == "on"  # the same mode, the holder emptied: calibrated
+        with Device.open(twin.modbus_port) as device:
+            calibration = device.standalone_result().bins["diffuse"].copy()
+            assert device.read("standalone_check") == regs.StandaloneCheck.NONE
+            assert device.read("standalone_check_value") < 0.12
+
+        twin.control.insert_sample(SAMPLE, THICKNESS_MM)  # a recalibration with the sample still in
+        assert main(["device", "standalone", "calibrate", *port]) == 0
+        assert _press(twin) == "triple_blink"
+        with Device.open(twin.modbus_port) as device:
+            assert device.read("standalone_status") == regs.StandaloneStatus.CALIBRATION_REFUSED
+            assert device.read("standalone_calibrated") == 1
+            print("recalibration with the sample in:", device.read("standalone_check").name.lower(),
+                  device.read("standalone_check_value"))
+        assert main(["device", "standalone", "measure", *port]) == 0
+        assert _press(twin) in ("on", "double_blink")
+        with Device.open(twin.modbus_port) as device:
+            result = device.standalone_result()
+        assert result.status in (regs.StandaloneStatus.DONE, regs.StandaloneStatus.FLAGGED)
+        np.testing.assert_array_equal(result.bins["diffuse"], calibration)  # measured against the kept calibration

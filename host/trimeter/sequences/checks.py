@@ -36,17 +36,20 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike
 
+from trimeter import registers as regs
 from trimeter.domain.measurement import BackgroundCoefficients
 from trimeter.domain import Calibration, Reflectances
 from trimeter.inversion.flags import FitFlag
 from trimeter.model.response import background_response
 from trimeter.sequences import lamp_monitor
 
-RHO_BLACK_MAX = 0.12          # median ρ_black of an empty holder's black background
-RHO_BLACK_AGREEMENT = 0.03    # median |Δρ_black| against the previous good calibration
+# shared with the device's own calibration press (hardware/registers.toml, enums.standalone_holder)
+RHO_BLACK_MAX = regs.StandaloneHolder.RHO_BLACK_MAX_PERMILLE / 1000  # median ρ_black of an empty holder
+# median |Δρ_black| against the previous good calibration
+RHO_BLACK_AGREEMENT = regs.StandaloneHolder.RHO_BLACK_AGREEMENT_PERMILLE / 1000
 LAMP_LEVEL_BOUND = 0.25       # lamp spectrum against the previous one: median ratio within 1 ± this
 LAMP_SHAPE_BOUND = 0.15       # … and its 10-90 % spread relative to the median (a coloured sample)
-MIN_LIT_FRACTION = 0.5        # at least this fraction of bins must have light from both lamps
+MIN_LIT_FRACTION = regs.StandaloneHolder.MIN_LIT_PERMILLE / 1000  # bins with light from both lamps, at least
 DARK_LEVEL_MAX = 0.2          # median dark frame above this fraction of full scale: light leak / bad sensor
 FLOOR_FRACTION = 0.5          # I_w under this fraction of the map's floor: the panels gave no light
 BLACK_ABOVE_WHITE_TOLERANCE = 0.02   # relative, on top of 3 standard errors

@@ -9,7 +9,9 @@ The device computes no standard errors (NaN columns).
 
 A press whose lamps' light differed from the calibration's (status lamp_changed: the device's lamp-monitor
 photodiodes against its calibration press's) is still a measurement, recorded with its lamp levels, but a
-biased one: `recalibrate_advice` says so, in the words the operator reads.
+biased one: `recalibrate_advice` says so, in the words the operator reads. A calibration press the device
+refused (its references did not look like an empty holder; the calibration it had still holds) is explained by
+`calibration_refusal`.
 """
 
 from __future__ import annotations
@@ -44,6 +46,10 @@ def read_standalone(device: Device) -> tuple[Measurement, StandaloneResult]:
     from trimeter.device.table_cache import instrument_table
 
     result = device.standalone_result()
+    if result.status == regs.StandaloneStatus.CALIBRATION_REFUSED:
+        values = device.read_many("standalone_check", "standalone_check_value")
+        raise DeviceError(f"the device's last standalone press was a calibration it refused: "
+                          f"{calibration_refusal(values['standalone_check'], values['standalone_check_value'])}")
     if result.status == regs.StandaloneStatus.CALIBRATED:
         raise DeviceError("the device's last standalone press was a calibration: insert a sample and press again")
     if result.status not in MEASUREMENTS:
@@ -70,6 +76,33 @@ def recalibrate_advice(result: StandaloneResult) -> str | None:
     return (f"RECALIBRATE: {what} (lamp monitor, bound ±{STANDALONE_LAMP_TOLERANCE:.0%}): this result is biased "
             "(α by about a third of the change, σt by up to all of it). Empty the holder, run `trimeter device "
             "standalone calibrate`, press the button, then measure again (replace a lamp that keeps dimming).")
+
+
+def calibration_refusal(check: regs.StandaloneCheck, value: float) -> str:
+    """Why the device refused a calibration press (standalone_check, and what it saw), in the words the operator
+    acts on; the bounds are the host calibration's (trimeter.sequences.checks), declared once for both."""
+    from trimeter.sequences.checks import RHO_BLACK_AGREEMENT, RHO_BLACK_MAX
+
+    holder = regs.StandaloneHolder
+    beam_bound = holder.BEAM_AGREEMENT_PERMILLE / 1000
+    again = "Empty the holder and press the button again (the calibration the device had still holds)."
+    reasons = {
+        regs.StandaloneCheck.LITTLE_LIGHT: f"only {value:.0%} of the bins had light from both lamps (expected ≥ "
+                                           f"{holder.MIN_LIT_PERMILLE / 1000:.0%}): something opaque covers the "
+                                           "holder, or a lamp, a shutter or the spectrometer failed.",
+        regs.StandaloneCheck.SLOTS_SWAPPED: f"ρ_black {value:.3g} is at or above the white reference's: the black and "
+                                            "white slots seem swapped, or the white reference is missing.",
+        regs.StandaloneCheck.HOLDER_NOT_EMPTY: f"ρ_black {value:.2f} (expected ≤ {RHO_BLACK_MAX:g}): a sample seems "
+                                               f"to be in the holder. {again}",
+        regs.StandaloneCheck.RHO_BLACK_CHANGED: f"ρ_black changed by {value:.3f} from the device's calibration (bound "
+                                                f"{RHO_BLACK_AGREEMENT:g}): something is in the holder or on the black "
+                                                f"background. {again}",
+        regs.StandaloneCheck.BEAM_CHANGED: f"the collimated beam gives {value:.0%} of its light at the device's "
+                                           f"calibration, per its lamp's own light (bound ±{beam_bound:.0%}): "
+                                           f"something is in the beam. {again} If the collimated LED was replaced, "
+                                           "`trimeter device standalone calibrate --force` accepts it.",
+    }
+    return reasons.get(check, f"check {int(check)} failed (value {value:g})")
 
 
 def measurement_of(result: StandaloneResult, table: DeviceTable, slot: str, instrument: InstrumentInfo) -> Measurement:
