@@ -23,19 +23,15 @@ SAMPLE = "cyan-ink"
 def build_hil_map(path, thickness_mm: float = THICKNESS_MM, n: float = 1.5) -> AppearanceMap:
     """A small exact `ideal` map from adding-doubling (iadpython, test-only) for the host's inversion; the twin
     renders its samples with the tracer (trimeter.twin.traced), so the suite measures the chain and this map's error."""
-    from iadpython import Sample
+    from trimeter.forward.adding_doubling import ideal_abc
 
     alpha = 1.0 - (1.0 - np.linspace(0.0, 1.0, 17)) ** 2
     sigma_t = np.geomspace(0.3, 30.0, 17)
     g = np.linspace(0.0, 0.9, 10)
     shape = (len(alpha), len(sigma_t), len(g))
-    A, B, C = (np.empty(shape) for _ in range(3))
-    for i, a in enumerate(alpha):
-        for j, s in enumerate(sigma_t):
-            for k, gk in enumerate(g):
-                ur1, ut1, uru, utu = Sample(a=float(a), b=float(s) * thickness_mm, g=float(gk), d=thickness_mm, n=n,
-                                            n_above=1, n_below=1).rt()
-                A[i, j, k], B[i, j, k], C[i, j, k] = ur1, ut1 * utu, uru
+    aa, ss, gg = np.meshgrid(alpha, sigma_t, g, indexing="ij")
+    abc = ideal_abc(aa.ravel(), ss.ravel(), gg.ravel(), thickness_mm=thickness_mm, n=n).reshape(*aa.shape, 3)
+    A, B, C = abc[..., 0], abc[..., 1], abc[..., 2]
     recipe = {"name": f"hil-ideal-l{thickness_mm:g}", "geometry": "ideal", "n": n, "thickness_mm": thickness_mm}
     AppearanceMap(recipe=recipe, alpha=alpha, sigma_t=sigma_t, g=g, A=A, B=B, C=C, std_b=np.zeros(shape),
                   std_w=np.zeros(shape)).save(path)

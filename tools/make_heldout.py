@@ -99,7 +99,7 @@ def from_recipe(recipe_path, pairs, alphas, paths, seed, alpha_stderr=None, max_
 
 
 def from_ideal(map_path, count, seed):
-    from trimeter.forward.adding_doubling import ideal_abc
+    from trimeter.forward.adding_doubling import IAD_QUAD_POINTS, ideal_abc
     from trimeter.formats.appearance import AppearanceMap
 
     m = AppearanceMap.load(map_path)
@@ -114,7 +114,8 @@ def from_ideal(map_path, count, seed):
     t0 = time.perf_counter()
     abc = ideal_abc(al, sig, gs, thickness_mm=m.thickness_mm, n=m.n)
     rows = np.column_stack([al, sig, gs, abc, np.zeros(count), np.zeros(count)])
-    meta = {"recipe": m.recipe, "source": "iadpython adding-doubling (exact for the ideal geometry), off-grid",
+    meta = {"recipe": m.recipe, "source": f"iadpython adding-doubling at {IAD_QUAD_POINTS} quadrature points (exact "
+                                          "for the ideal geometry), off-grid",
             "seed": seed, "seconds": round(time.perf_counter() - t0, 1)}
     return m.name, meta, rows
 

@@ -14,12 +14,10 @@ import time
 
 import numpy as np
 
+from trimeter.forward.adding_doubling import ideal_abc
 from trimeter.forward.render import render_diffuse
 from trimeter.model.response import background_response
 
-# Adding-doubling's default 4 quadrature points are too few at moderate g; 32 converge over the map's
-# range (checked against 16 and 64).
-IAD_QUAD_POINTS = 32
 
 
 def random_materials(count: int, seed: int = 0) -> np.ndarray:
@@ -37,13 +35,11 @@ def random_materials(count: int, seed: int = 0) -> np.ndarray:
 def iad_reflectance(alpha, sigma_t, g, n, thickness_mm, rho):
     """I(ρ) of the ideal geometry from adding-doubling: UR1 + UT1·ρ·UTU/(1 − ρ·URU)."""
     try:
-        import iadpython
-    except ImportError as exc:  # a dev dependency: the device side doesn't have it
+        import iadpython  # noqa: F401 - a dev dependency: the device side doesn't have it
+    except ImportError as exc:
         raise RuntimeError("the adding-doubling cross-check needs iadpython (pip install 'trimeter[dev]')") from exc
-    ur1, ut1, uru, utu = iadpython.Sample(a=alpha, b=sigma_t * thickness_mm, g=g, d=thickness_mm, n=n,
-                                          n_above=1.0, n_below=1.0, quad_pts=IAD_QUAD_POINTS).rt()
-    rho = np.asarray(rho, dtype=float)
-    return float(ur1) + float(ut1) * rho * float(utu) / (1.0 - rho * float(uru))
+    A, B, C = ideal_abc([alpha], [sigma_t], [g], thickness_mm=thickness_mm, n=n)[0]
+    return background_response(A, B, C, np.asarray(rho, dtype=float))
 
 
 def iad_agreement(materials, n: float = 1.5, thickness_mm: float = 0.5, rhos=(0.02, 0.99),

@@ -79,7 +79,7 @@ def tracer_agreement(geometry: str, materials: ArrayLike, n: float, thickness_mm
                 row["tracer_model"] = model
             if iad is not None:
                 row["iad"] = iad_value = float(iad[k])
-                # 2e-4: adding-doubling's own quadrature error at 32 points (see IAD_QUAD_POINTS)
+                # 2e-4: adding-doubling's own quadrature error (trimeter.forward.adding_doubling.IAD_QUAD_POINTS)
                 row["z_iad"] = (traced - iad_value) / math.hypot(traced_err, 2e-4)
             rows.append(row)
         if progress:
