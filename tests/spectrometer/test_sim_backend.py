@@ -124,6 +124,25 @@ def test_a_late_reply_is_not_taken_for_the_next_answer(server):
         np.testing.assert_array_equal(spec.intensities(), 9)
 
 
+def test_a_port_closed_by_another_thread_mid_command_is_a_device_error(server):
+    """The press-button service's thread can be mid-capture when the rig (or a shutdown) closes the instrument:
+    pyserial then fails with a TypeError on the closed descriptor, which must reach the service as the
+    DeviceError it handles, not kill its thread."""
+    import threading
+
+    release = threading.Event()
+    server._expose = lambda it_us: (release.wait(5), (np.zeros(1024, dtype=np.uint16), 1.0))[1]
+    spec = open_spectrometer(f"sim:{server.port}?timeout_s=3")
+    closer = threading.Timer(0.3, spec.close)
+    closer.start()
+    try:
+        with pytest.raises(DeviceError, match="the port failed during 'ACQ'"):
+            spec.intensities()
+    finally:
+        release.set()
+        closer.join()
+
+
 @pytest.mark.parametrize("field, value", [("wavelength_range_nm", [340.0, 500.0, 850.0]),
                                           ("integration_time_us_limits", [10]),
                                           ("integration_time_us_limits", 10)])

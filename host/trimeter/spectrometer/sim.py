@@ -9,7 +9,8 @@ host/trimeter/twin/README.md § "Spectrometer line protocol". The server is trim
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any, Self
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any, Self, TypeVar
 import base64
 import json
 import time
@@ -18,6 +19,8 @@ import numpy as np
 
 from trimeter.errors import DeviceError, InputError
 from trimeter.spectrometer.base import SpectrometerDescription, check_integration_time
+
+T = TypeVar("T")
 
 if TYPE_CHECKING:
     from trimeter.inversion.bands import BandWeights
@@ -63,7 +66,7 @@ class SimSpectrometer:
     def _command(self, line: str, extra_timeout_s: float = 0.0) -> str:
         # The server answers every command exactly once, in order: replies still owed to commands that
         # timed out are skipped, so a late reply is never taken as the answer to this command.
-        self._serial.write(line.encode("ascii") + b"\n")
+        self._port_io(lambda: self._serial.write(line.encode("ascii") + b"\n"), line)
         deadline = time.monotonic() + self._timeout_s + extra_timeout_s
         while True:
             while b"\n" not in self._buffer:
@@ -71,7 +74,7 @@ class SimSpectrometer:
                     self._owed += 1
                     raise DeviceError(f"sim spectrometer at {self.port}: no reply to {line.split()[0]!r} "
                                       f"within {self._timeout_s + extra_timeout_s:.1f} s")
-                self._buffer += self._serial.read(max(1, self._serial.in_waiting))
+                self._buffer += self._port_io(lambda: self._serial.read(max(1, self._serial.in_waiting)), line)
             reply, _, self._buffer = self._buffer.partition(b"\n")
             if not self._owed:
                 break
@@ -82,6 +85,15 @@ class SimSpectrometer:
         if not text.startswith("OK"):
             raise DeviceError(f"sim spectrometer at {self.port}: malformed reply {text[:60]!r}")
         return text[2:].strip()
+
+    def _port_io(self, io: Callable[[], T], line: str) -> T:
+        """One read or write of the port; a port closed under it (another thread closed the instrument mid-command:
+        pyserial then fails with a TypeError or AttributeError as often as with an OSError) is a DeviceError."""
+        try:
+            return io()
+        except (OSError, TypeError, ValueError, AttributeError) as exc:
+            raise DeviceError(f"sim spectrometer at {self.port}: the port failed during {line.split()[0]!r} "
+                              f"({type(exc).__name__}: it was closed or lost)") from None
 
     def _describe(self) -> SpectrometerDescription:
         try:
