@@ -13,6 +13,7 @@ import fcntl
 import functools
 import json
 import os
+import secrets
 import select
 import shutil
 import signal
@@ -114,7 +115,7 @@ class Twin:
         self._rng = np.random.default_rng(seed)
         # The link faults' fates are keyed on this seed (faults.Fates), apart from the noise's generator: the
         # noise draws, which follow the exposures, must not shift them. No seed: a random one, kept to report.
-        self.fault_seed = int(np.random.SeedSequence().entropy if seed is None else seed)
+        self.fault_seed = int(seed) if seed is not None else secrets.randbits(64)
         self._map_table = None if map_table is None else table_bytes(map_table)
         self._stop = threading.Event()
         self._optics_lock = threading.Lock()
