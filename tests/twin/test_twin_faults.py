@@ -201,6 +201,9 @@ def test_flips_do_not_depend_on_how_the_bytes_were_read():
     whole = one.flips(600, 0.3)
     pieces = np.concatenate([two.flips(n, 0.3) for n in (1, 7, 300, 292)])
     assert np.array_equal(whole, pieces) and whole.any()
+    three = Fates(3).draw(POLL, FaultConfig())
+    assert not three.flips(100, 0.0).any()  # a clean stretch keeps its place in the stream
+    assert np.array_equal(three.flips(500, 0.3), whole[100:])
 
 
 def test_fates_honour_the_probabilities():
@@ -211,7 +214,9 @@ def test_fates_honour_the_probabilities():
     assert 0.07 < replies.count("late") / len(drawn) < 0.13
     flips = np.concatenate([fate.flips(8, faults.corrupt) for fate in drawn[:2000]])
     assert 0.07 < np.count_nonzero(flips) / len(flips) < 0.13
-    assert np.all(np.unpackbits(flips[flips != 0][:, None], axis=1).sum(1) == 1)  # one bit per corrupted byte
+    corrupted = flips[flips != 0]
+    assert np.all(np.unpackbits(corrupted[:, None], axis=1).sum(1) == 1)  # one bit per corrupted byte
+    assert set(corrupted.tolist()) == {1 << bit for bit in range(8)}
 
 
 def test_a_bad_seed_is_refused():

@@ -176,22 +176,35 @@ def request_length(buffer: bytes) -> int | None:
 
 class Fate:
     """One request's fate: what happens to its reply (`reply`: forward, drop, late) and the bit flips of its
-    bytes, the request's first and then its reply's, as `flips` hands them out in order."""
+    bytes, the request's first and then its reply's, as `flips` hands them out in order. Its generator,
+    keyed by Fates, is made only when a fault has a chance (a clean link costs a digest per request)."""
 
-    def __init__(self, reply: str, rng: np.random.Generator) -> None:
-        self.reply, self._rng = reply, rng
-        self._u = np.empty(0)
-        self._bits = np.empty(0, dtype=np.uint8)
+    def __init__(self, key: list[int], faults: FaultConfig) -> None:
+        self._key = key
+        self._rng: np.random.Generator | None = None
+        self._skipped = 0   # bytes handed out while corrupt was 0, whose uniforms are not drawn yet
+        self.reply = "forward"
+        if faults.drop + faults.late > 0.0:
+            u = self._generator().random()
+            self.reply = "drop" if u < faults.drop else "late" if u < faults.drop + faults.late else "forward"
+
+    def _generator(self) -> np.random.Generator:
+        if self._rng is None:
+            self._rng = np.random.default_rng(self._key)
+            self._rng.random()  # the reply's draw comes first, whether or not it was needed
+        return self._rng
 
     def flips(self, n: int, p: float) -> np.ndarray:
-        """XOR masks for the next n bytes: one random bit set with probability p each. Drawn in blocks of
-        MAX_FRAME bytes whatever n is, so the masks do not depend on how the bytes arrived in reads."""
-        while len(self._u) < n:
-            self._u = np.concatenate([self._u, self._rng.random(MAX_FRAME)])
-            self._bits = np.concatenate([self._bits, self._rng.integers(0, 8, MAX_FRAME, dtype=np.uint8)])
-        u, bits = self._u[:n], self._bits[:n]
-        self._u, self._bits = self._u[n:], self._bits[n:]
-        return np.where(u < p, np.left_shift(1, bits), 0).astype(np.uint8)
+        """XOR masks for the next n bytes: one random bit set with probability p each. Each byte takes the next
+        uniform u of the stream, which says both whether (u < p) and which bit (u / p in eighths); so the masks
+        do not depend on how the bytes arrived in reads, nor on a stretch with p = 0 before them."""
+        if p <= 0.0:
+            self._skipped += n
+            return np.zeros(n, dtype=np.uint8)
+        u = self._generator().random(self._skipped + n)[self._skipped:]
+        self._skipped = 0
+        bit = np.minimum(u / p * 8.0, 7.0).astype(np.uint8)
+        return np.where(u < p, np.left_shift(1, bit), 0).astype(np.uint8)
 
 
 class Fates:
@@ -209,9 +222,7 @@ class Fates:
         digest = int.from_bytes(hashlib.blake2b(request, digest_size=8).digest(), "little")
         occurrence = self._seen.get(digest, 0)
         self._seen[digest] = occurrence + 1
-        rng = np.random.default_rng([self.seed, digest, occurrence])
-        u = rng.random()
-        return Fate("drop" if u < faults.drop else "late" if u < faults.drop + faults.late else "forward", rng)
+        return Fate([self.seed, digest, occurrence], faults)
 
 
 class ModbusProxy:
