@@ -232,7 +232,6 @@ class ModbusProxy:
     def __init__(self, device_path: str, faults: Callable[[], FaultConfig], seed: int,
                  on_request: Callable[[int], None] | None = None) -> None:
         self._fates = Fates(seed)
-        self.seed = self._fates.seed
         self._faults, self._on_request = faults, on_request
         self._master, self._slave, self.port = open_raw_pty()
         self._device = os.open(device_path, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
