@@ -138,7 +138,9 @@ def test_corrupted_link_fails_some_transactions_and_counts_the_bytes(ideal_map):
             ok = sum(rtu.read_input(_find("vendor_id"), 1) == [registers.VENDOR_ID] for _ in range(40))
         finally:
             rtu.close()
-        counters = twin.control.state()["counters"]
+        state = twin.control.state()
+        counters = state["counters"]
+        assert state["fault_seed"] == 7
         # 8-byte request + 7-byte reply at 5 % per byte: ~46 % of transactions survive
         assert 5 < ok < 35 and counters["bytes_corrupted"] > 0
 
@@ -211,6 +213,10 @@ def test_impossible_twin_settings_are_refused_up_front():
             Twin(time_scale=bad)
     with pytest.raises(InputError, match="faults must be a FaultConfig"):
         Twin(faults={"drop": 0.1})
+    for bad in (-1, 1.5, "7", True):
+        with pytest.raises(InputError, match="seed must be a non-negative integer"):
+            Twin(seed=bad)
+    assert Twin(seed=5).fault_seed == 5 and Twin().fault_seed != Twin().fault_seed  # none given: a random one
 
 
 def test_a_crashed_firmware_is_reported_and_cleaned_up(ideal_map, tmp_path):

@@ -118,6 +118,7 @@ def register(bench_subparsers) -> None:
                                     description=__doc__)
     p.add_argument("--levels", default="0,0.01,0.02,0.02+0.05", help="CORRUPT[+DROP],… (default: %(default)s)")
     p.add_argument("--time-scale", type=float, default=50.0, help="twin time scale (default: %(default)s)")
-    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--seed", type=int, default=1,
+                   help="the twin's seed (noise and link faults), +1 per level (default: %(default)s)")
     p.add_argument("--json", help="also write the rows as JSON here")
     p.set_defaults(func=run)

@@ -125,7 +125,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="what the host reads: the spectrometer's pixels or the AS7341's nine channels (counts, gain, "
                         "integration, noise, saturation; its band weights over BANDS?), or the firmware's C12880MA "
                         "micro-spectrometer (read over Modbus: the spectrometer URL is mcu:<modbus port>)")
-    p.add_argument("--seed", type=int, default=None, help="noise seed (reproducible spectra)")
+    p.add_argument("--seed", type=int, default=None,
+                   help="seed of the noise and of the link faults (reproducible spectra and faults; default: a random "
+                        "one, shown by --ctl state)")
     p.add_argument("--json", action="store_true", help="print the ports as one JSON line")
     p.add_argument("--list-materials", action="store_true", help="list the virtual samples and exit")
     p.add_argument("--ctl", nargs="+", metavar="ARG",

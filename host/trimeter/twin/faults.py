@@ -1,15 +1,22 @@
 """Fault injection: the configuration and the Modbus proxy that corrupts, drops and delays bytes.
 
-The proxy sits between the host's pty and the firmware's pty. A *request* is a burst of host bytes
-after ≥ REQUEST_GAP_S of silence or after the device's last reply; each request's reply gets one
-fate (forward, drop, late), decided when the request arrives. Byte corruption (one random bit
-flipped) applies to every byte, both ways.
+The proxy sits between the host's pty and the firmware's pty. A *request* is one RTU frame from the host
+(its length read from the function code) or, for bytes that do not parse as one, a burst ended by
+≥ REQUEST_GAP_S of silence (at most MAX_FRAME bytes); it is forwarded once complete. Each request meets a
+fate: its reply is forwarded, dropped or late, and some of its bytes and of its reply's bytes have one
+random bit flipped (probability `corrupt` per byte). The fate is drawn from a generator keyed on the seed,
+a digest of the request's bytes and how many times those exact bytes came before (`Fates`), so with one
+seed a request meets the same fate on its n-th appearance however many other requests (status polls,
+retries) the wall clock let in between. Device bytes are counted as the reply of the request they follow
+(before any request: of the empty request), so spontaneous bytes are keyed the same way. `reset_at`
+counts every request, polls included: it moves with their number.
 """
 
 from __future__ import annotations
 
 import contextlib
 import dataclasses
+import hashlib
 import os
 import select
 import threading
@@ -24,6 +31,7 @@ from trimeter.errors import InputError
 from trimeter.twin._pty import open_raw_pty, read_some, write_all
 
 REQUEST_GAP_S = 0.003
+MAX_FRAME = 256  # bytes: the longest RTU frame; a longer unparsed burst is cut here
 LAMP_FAILURES = ("panels", "collimated", "both")
 SHUTTERS = ("panel_left", "panel_right", "collimated")
 LAMP_CHANNELS = SHUTTERS   # one LED channel behind each shutter
@@ -143,64 +151,142 @@ def as_lamps_emit(plant_state: dict, faults: FaultConfig) -> dict:
     return {**plant_state, "leds": leds}
 
 
-class ModbusProxy:
-    """host pty ⇄ firmware pty, with the faults of `faults()` (read on every request, so they can change)."""
+# A request frame's length from its header, for the function codes a Modbus master sends: fixed, or
+# (offset of its byte count, bytes besides the counted ones).
+_FIXED_LENGTH = {1: 8, 2: 8, 3: 8, 4: 8, 5: 8, 6: 8, 7: 4, 8: 8, 11: 4, 12: 4, 17: 4}
+_COUNTED_LENGTH = {15: (6, 9), 16: (6, 9), 20: (2, 5), 21: (2, 5), 23: (10, 13)}
+_READ_DEVICE_ID = (0x2B, 0x0E, 7)   # encapsulated interface, MEI type "read device identification": 7 bytes
 
-    def __init__(self, device_path: str, faults: Callable[[], FaultConfig], rng: np.random.Generator,
+
+def request_length(buffer: bytes) -> int | None:
+    """The length of the RTU request frame `buffer` starts with, as its header gives it (capped at MAX_FRAME);
+    None while the header is incomplete or its function code is not one this proxy knows."""
+    if len(buffer) < 2:
+        return None
+    code = buffer[1]
+    if code in _FIXED_LENGTH:
+        return _FIXED_LENGTH[code]
+    if code in _COUNTED_LENGTH:
+        at, extra = _COUNTED_LENGTH[code]
+        return min(buffer[at] + extra, MAX_FRAME) if len(buffer) > at else None
+    if code == _READ_DEVICE_ID[0] and len(buffer) > 2 and buffer[2] == _READ_DEVICE_ID[1]:
+        return _READ_DEVICE_ID[2]
+    return None
+
+
+class Fate:
+    """One request's fate: what happens to its reply (`reply`: forward, drop, late) and the bit flips of its
+    bytes, the request's first and then its reply's, as `flips` hands them out in order. Its generator,
+    keyed by Fates, is made only when a fault has a chance (a clean link costs a digest per request)."""
+
+    def __init__(self, key: list[int], faults: FaultConfig) -> None:
+        self._key = key
+        self._rng: np.random.Generator | None = None
+        self._skipped = 0   # bytes handed out while corrupt was 0, whose uniforms are not drawn yet
+        self.reply = "forward"
+        if faults.drop + faults.late > 0.0:
+            u = self._generator().random()
+            self.reply = "drop" if u < faults.drop else "late" if u < faults.drop + faults.late else "forward"
+
+    def _generator(self) -> np.random.Generator:
+        if self._rng is None:
+            self._rng = np.random.default_rng(self._key)
+            self._rng.random()  # the reply's draw comes first, whether or not it was needed
+        return self._rng
+
+    def flips(self, n: int, p: float) -> np.ndarray:
+        """XOR masks for the next n bytes: one random bit set with probability p each. Each byte takes the next
+        uniform u of the stream, which says both whether (u < p) and which bit (u / p in eighths); so the masks
+        do not depend on how the bytes arrived in reads, nor on a stretch with p = 0 before them."""
+        if p <= 0.0:
+            self._skipped += n
+            return np.zeros(n, dtype=np.uint8)
+        u = self._generator().random(self._skipped + n)[self._skipped:]
+        self._skipped = 0
+        bit = np.minimum(u / p * 8.0, 7.0).astype(np.uint8)
+        return np.where(u < p, np.left_shift(1, bit), 0).astype(np.uint8)
+
+
+class Fates:
+    """Draws each request's Fate from a generator keyed on (seed, a digest of the request's bytes, how many
+    times those bytes were drawn for before): the n-th appearance of a request meets the same fate whatever
+    else came in between. Holds one counter per distinct request."""
+
+    def __init__(self, seed: int) -> None:
+        if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+            raise InputError(f"fault seed must be a non-negative integer, got {seed!r}")
+        self.seed = int(seed)
+        self._seen: dict[int, int] = {}
+
+    def draw(self, request: bytes, faults: FaultConfig) -> Fate:
+        digest = int.from_bytes(hashlib.blake2b(request, digest_size=8).digest(), "little")
+        occurrence = self._seen.get(digest, 0)
+        self._seen[digest] = occurrence + 1
+        return Fate([self.seed, digest, occurrence], faults)
+
+
+class ModbusProxy:
+    """host pty ⇄ firmware pty, with the faults of `faults()` (read on every request, so they can change)
+    and the fates `seed` gives (see the module docstring)."""
+
+    def __init__(self, device_path: str, faults: Callable[[], FaultConfig], seed: int,
                  on_request: Callable[[int], None] | None = None) -> None:
-        self._faults, self._rng, self._on_request = faults, rng, on_request
+        self._fates = Fates(seed)
+        self._faults, self._on_request = faults, on_request
         self._master, self._slave, self.port = open_raw_pty()
         self._device = os.open(device_path, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
         with contextlib.suppress(Exception):  # not a tty (a test may hand in a pipe-like device): raw mode is moot
             tty.setraw(self._device)
         self.counters = {"requests": 0, "bytes_forwarded": 0, "bytes_corrupted": 0,
                          "replies_dropped": 0, "replies_late": 0}
-        self._fate = "forward"
+        self._fate = self._fates.draw(b"", FaultConfig())  # device bytes before any request: forwarded
+        self._pending = b""  # host bytes of a request not yet complete
         self._last_host_byte = -1e9
         self._held: list[tuple[float, bytes]] = []
         self._late_release = 0.0
-        self._replied = False
         self._wake_r, wake_w = os.pipe()
         self._wake_w: int | None = wake_w  # None once closed
         self._thread = threading.Thread(target=self._run, name="twin-modbus-proxy", daemon=True)
         self._thread.start()
 
     def _corrupt(self, data: bytes, p: float) -> bytes:
-        if p <= 0.0 or not data:
+        mask = self._fate.flips(len(data), p)
+        hits = int(np.count_nonzero(mask))
+        if not hits:
             return data
-        hit = self._rng.random(len(data)) < p
-        if not hit.any():
-            return data
-        arr = np.frombuffer(data, dtype=np.uint8).copy()
-        arr[hit] ^= (1 << self._rng.integers(0, 8, int(hit.sum()))).astype(np.uint8)
-        self.counters["bytes_corrupted"] += int(hit.sum())
-        return arr.tobytes()
+        self.counters["bytes_corrupted"] += hits
+        return (np.frombuffer(data, dtype=np.uint8) ^ mask).tobytes()
 
     def _from_host(self, data: bytes) -> None:
-        faults, now = self._faults(), time.monotonic()
-        # A new request: after a silence, or as soon as the device has answered the previous one (at high
-        # time scales a host may send its next request within the gap).
-        if now - self._last_host_byte >= REQUEST_GAP_S or self._replied:
-            self._replied = False
-            self.counters["requests"] += 1
-            if self._on_request is not None:
-                self._on_request(self.counters["requests"])
-            u = self._rng.random()
-            self._fate = "drop" if u < faults.drop else "late" if u < faults.drop + faults.late else "forward"
-            self.counters["replies_dropped" if self._fate == "drop" else "replies_late"] += self._fate != "forward"
-            self._late_release = now + faults.late_delay_s
-        self._last_host_byte = now
-        self.counters["bytes_forwarded"] += len(data)
-        write_all(self._device, self._corrupt(data, faults.corrupt), timeout_s=0.5)
+        self._last_host_byte = time.monotonic()
+        self._pending += data
+        while self._pending:
+            length = request_length(self._pending)
+            if length is None and len(self._pending) >= MAX_FRAME:
+                length = MAX_FRAME
+            if length is None or len(self._pending) < length:
+                return  # the rest of the frame, or the silence that ends the burst, is still to come
+            request, self._pending = self._pending[:length], self._pending[length:]
+            self._forward_request(request)
+
+    def _forward_request(self, request: bytes) -> None:
+        faults = self._faults()
+        self.counters["requests"] += 1
+        if self._on_request is not None:
+            self._on_request(self.counters["requests"])
+        self._fate = self._fates.draw(request, faults)
+        self.counters["replies_dropped" if self._fate.reply == "drop" else "replies_late"] += \
+            self._fate.reply != "forward"
+        self._late_release = time.monotonic() + faults.late_delay_s
+        self.counters["bytes_forwarded"] += len(request)
+        write_all(self._device, self._corrupt(request, faults.corrupt), timeout_s=0.5)
 
     def _from_device(self, data: bytes) -> None:
-        faults = self._faults()
-        self._replied = True
-        if self._fate == "drop":
+        if self._fate.reply == "drop":
             return
-        data = self._corrupt(data, faults.corrupt)
+        data = self._corrupt(data, self._faults().corrupt)
         self.counters["bytes_forwarded"] += len(data)
-        if self._fate == "late":
+        if self._fate.reply == "late":
             # Held back whole; later replies with a normal fate overtake it, as on a real bus.
             self._held.append((self._late_release, data))
             self._held.sort(key=lambda item: item[0])
@@ -210,7 +296,9 @@ class ModbusProxy:
     def _run(self) -> None:
         device_alive = True
         while True:
-            timeout = max(0.0, self._held[0][0] - time.monotonic()) if self._held else None
+            deadlines = ([self._held[0][0]] if self._held else []) + \
+                ([self._last_host_byte + REQUEST_GAP_S] if self._pending else [])
+            timeout = max(0.0, min(deadlines) - time.monotonic()) if deadlines else None
             fds = [self._master, self._wake_r] + ([self._device] if device_alive else [])
             ready, _, _ = select.select(fds, [], [], timeout)
             if self._wake_r in ready:
@@ -219,6 +307,9 @@ class ModbusProxy:
                 data = read_some(self._master)
                 if data and device_alive:
                     self._from_host(data)
+            if self._pending and time.monotonic() - self._last_host_byte >= REQUEST_GAP_S:
+                request, self._pending = self._pending, b""  # a burst that is no frame, ended by silence
+                self._forward_request(request)
             if device_alive and self._device in ready:
                 data = read_some(self._device)
                 if data is None:

@@ -13,6 +13,7 @@ import fcntl
 import functools
 import json
 import os
+import secrets
 import select
 import shutil
 import signal
@@ -109,7 +110,12 @@ class Twin:
         self._sample, self._thickness_mm, self._sensor = sample, thickness_mm, sensor
         self._state_dir_arg, self._appearance_map, self._white = state_dir, appearance_map, white
         self._firmware = Path(firmware) if firmware else FIRMWARE_BINARY
+        if seed is not None and (isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0):
+            raise InputError(f"seed must be a non-negative integer, got {seed!r}")
         self._rng = np.random.default_rng(seed)
+        # The link faults' fates are keyed on this seed (faults.Fates), apart from the noise's generator: the
+        # noise draws, which follow the exposures, must not shift them. No seed: a random one, kept to report.
+        self.fault_seed = int(seed) if seed is not None else secrets.randbits(64)
         self._map_table = None if map_table is None else table_bytes(map_table)
         self._stop = threading.Event()
         self._optics_lock = threading.Lock()
@@ -181,7 +187,8 @@ class Twin:
         poller.start()
         self._closers.append(lambda: poller.join(timeout=5))
 
-        self.proxy = ModbusProxy(os.path.realpath(fw_modbus), lambda: self.faults, self._rng, self._on_request)
+        self.proxy = ModbusProxy(os.path.realpath(fw_modbus), lambda: self.faults, self.fault_seed,
+                                 self._on_request)
         self._closers.append(self.proxy.close)
         self.modbus_port = self.proxy.port
 
@@ -402,7 +409,7 @@ class TwinControl:
             lamps = {"panels": t.optics.panels.heat, "collimated": t.optics.collimated.heat}
         return {"sim_time_s": plant["time_s"], "plant": plant, "sample": sample.name if sample else None,
                 "thickness_mm": sample.thickness_mm if sample else None, "faults": t.faults.to_dict(),
-                "lamp_temperature": lamps, "counters": dict(t.proxy.counters),
+                "lamp_temperature": lamps, "counters": dict(t.proxy.counters), "fault_seed": t.fault_seed,
                 "spectrometer": {"integration_time_us": t.spectrometer.integration_time_us,
                                  "acquisitions": t.spectrometer.acquisitions}}
 
