@@ -123,3 +123,22 @@ def test_bench_polarisation_refuses_bad_sizes(capsys):
     assert "--spp" in capsys.readouterr().err
     assert main(["bench", "polarisation", "--slab-spp", "3"]) == 2
     assert "--slab-spp" in capsys.readouterr().err
+
+
+def test_maps_readme_quotes_the_committed_run():
+    """maps/README.md's polarisation figures are maps/polarisation.json's (the run its command wrote)."""
+    from trimeter.paths import REPO_ROOT
+
+    run = json.loads((REPO_ROOT / "maps" / "polarisation.json").read_text())
+    readme = " ".join((REPO_ROOT / "maps" / "README.md").read_text().split())
+    assert f"--spp {run['spp']} --out maps/polarisation.json" in readme
+    slab = run["slab"]
+    for key in ("unpolarised", "polarised"):
+        assert f"{slab[key]['R_d']:.4f} ± {slab[key]['stderr']:.4f}" in readme
+    for geo in run["geometries"]:
+        for f in geo["fits"]:
+            for p, name in (("alpha", "α"), ("g", "g")):
+                c = f[p]
+                if c["beyond_map_error"]:  # every shift beyond the map's error is quoted, with its σ_map
+                    quoted = f"{name} {c['shift']:+.4f}".replace("-", "−")
+                    assert quoted in readme and f"{c['sigma_map']:.4f}" in readme, (geo["geometry"], f["material"], p)

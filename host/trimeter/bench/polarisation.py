@@ -46,6 +46,7 @@ TREATMENTS = {"unpolarised": (0, "hg"), "polarised": (1, "hg"), "depolarising": 
 SHIFTED = ("polarised", "depolarising")  # compared with the unpolarised renders
 # the clear-slab check: where R_d moves I most (dI/dR_d ∝ ρ(1 − ρ)), the ideal slab of the ideal map
 SLAB_RHO, SLAB_N, SLAB_THICKNESS_MM = 0.5, 1.5, 0.5
+DEFAULT_SPP, DEFAULT_SLAB_SPP, DEFAULT_SEED = 1 << 18, 1 << 22, 11
 
 
 def register(bench_subparsers) -> None:
@@ -53,12 +54,12 @@ def register(bench_subparsers) -> None:
                                                          "variant against its unpolarised one",
                                     description=__doc__.split("\n\n")[0])
     p.add_argument("--geometry", choices=("ideal", "device", "both"), default="both")
-    p.add_argument("--spp", type=int, default=1 << 18, help="volpath samples per render (default 262144)")
-    p.add_argument("--slab-spp", type=int, default=1 << 22,
-                   help="samples per render of the clear-slab check (default 4194304; 0: not run)")
+    p.add_argument("--spp", type=int, default=DEFAULT_SPP, help=f"volpath samples per render (default {DEFAULT_SPP})")
+    p.add_argument("--slab-spp", type=int, default=DEFAULT_SLAB_SPP,
+                   help=f"samples per render of the clear-slab check (default {DEFAULT_SLAB_SPP}; 0: not run)")
     p.add_argument("--materials", type=int, default=len(MATERIALS),
                    help=f"how many of the {len(MATERIALS)} built-in materials, in order (default all)")
-    p.add_argument("--seed", type=int, default=11)
+    p.add_argument("--seed", type=int, default=DEFAULT_SEED)
     p.add_argument("--out", type=Path, default=Path("out/bench-polarisation/results.json"))
     p.set_defaults(func=run)
 
