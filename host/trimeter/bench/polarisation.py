@@ -16,6 +16,9 @@ shift Δ = p − u (and d − u) of α, σt, g is printed against
   Monte Carlo std-error and interpolation term at the solution), and
 - σ_Δ: the shift's own render noise, propagated through the fit.
 A shift beyond σ_map (and beyond 2σ_Δ, so not render noise) is one the maps should not ignore.
+The renders are not extrapolated to no ray offset (trimeter.forward.render.render_diffuse_offset_free): the
+offset darkens a dense sample in all three treatments' renders alike (same paths), so the shifts keep it only
+to second order, while the levels, and so the fitted values themselves, carry it.
 
 First the set-up is checked on a clear, lossless slab (ideal geometry) over a grey background, where the
 slab's diffuse reflectance R_d enters and has a closed form per treatment of Fresnel: the rendered I of

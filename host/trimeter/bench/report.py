@@ -579,7 +579,8 @@ def polarisation_section(pol: dict[str, Any] | None) -> list[str]:
     lines = [f"## {POLARISATION_HEADING}", ""]
     command = "trimeter bench polarisation"
     if pol is None:
-        return lines + [f"Not run by this command (`--polarisation-spp 0`). The bench: `{command}` (a few minutes)."]
+        return lines + [f"Not run by this command (`--polarisation-spp 0`). The bench: `{command}` (a few minutes).",
+                        ""]
     unpolarised, polarised = pol["variants"]
     lines += [f"The maps' tracer, like the direct renders it is checked against, uses unpolarised Fresnel at every "
               f"face. Mitsuba {pol.get('mitsuba', '?')}'s `volpath` renders each material in `{unpolarised}` (u) and "
