@@ -21,6 +21,7 @@ def made(tmp_path_factory):
     docs, work = tmp / "docs", tmp / "work"
     rc = main(["bench", "report", "--map", MAP, "--noise", "0,0.01", "--repeats", "1", "--median-bins", "8",
                "--draws", "1", "--sensor-noise", "0,0.01", "--sensor-draws", "1", "--tracer-materials", "0",
+               "--polarisation-spp", "0",
                "--docs", str(docs), "--work", str(work)])
     assert rc == 0
     page = docs / report.PAGE
@@ -121,10 +122,38 @@ def test_a_tracer_check_result_becomes_its_table_and_figure(tmp_path):
     assert "ideal vs adding-doubling" in text
 
 
+def test_without_the_polarisation_bench_the_page_says_so_and_gives_the_command(made):
+    _, text, results = made
+    section = text.split(f"## {report.POLARISATION_HEADING}", 1)[1].split("\n## ", 1)[0]
+    assert results["polarisation"] is None
+    assert "Not run by this command" in section and "trimeter bench polarisation" in section
+
+
+@pytest.mark.slow
+def test_a_polarisation_result_becomes_its_tables(tmp_path):
+    """The section from the bench itself at a tiny size (it needs Mitsuba's polarised variant)."""
+    import argparse
+
+    pytest.importorskip("mitsuba")
+    from trimeter.bench import polarisation
+    from trimeter.forward.mitsuba_env import MitsubaUnavailable
+
+    try:
+        pol = polarisation.measure(argparse.Namespace(geometry="ideal", spp=256, slab_spp=4096, materials=2, seed=1))
+    except MitsubaUnavailable as exc:
+        pytest.skip(str(exc))
+    text = "\n".join(report.polarisation_section(pol))
+    assert "### ideal (fitted with ideal-n1.5-l0.5)" in text and "closed form 0.1554" in text
+    clear = pol["geometries"][0]["fits"][0]
+    assert "| clear (0.5, 0.2/mm, 0) | " in text and f"{clear['alpha']['shift']:+.4f}" in text
+    assert text.count("| grey (0.6, 2/mm, 0.3) |") == 1 and "Beyond the map's error:" in text
+
+
 @pytest.mark.parametrize("argv, message", [(["--noise", "0.01"], "including 0"), (["--noise", "a"], "not a comma"),
                                            (["--repeats", "0"], "at least 1"),
                                            (["--sensor-noise", "0.6"], "--sensor-noise"),
-                                           (["--tracer-materials", "-1"], "≥ 0")])
+                                           (["--tracer-materials", "-1"], "≥ 0"),
+                                           (["--polarisation-spp", "3"], "--polarisation-spp")])
 def test_bad_settings_are_refused_before_anything_runs(tmp_path, capsys, argv, message):
     assert main(["bench", "report", "--docs", str(tmp_path / "d"), "--work", str(tmp_path / "w"), *argv]) == 2
     assert message in capsys.readouterr().err

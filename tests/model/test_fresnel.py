@@ -5,7 +5,7 @@ with it; the physical limits hold."""
 import numpy as np
 import pytest
 
-from trimeter.model.fresnel import NUMPY, fresnel, normal_incidence_reflectance
+from trimeter.model.fresnel import NUMPY, fresnel, fresnel_polarised, normal_incidence_reflectance
 
 COS = np.linspace(0.0, 1.0, 2001)
 ETA = np.concatenate([np.linspace(1 / 1.8, 1.8, 157), [1.0, 1.5, 1 / 1.5, 1.33, 1 / 1.33]])
@@ -47,3 +47,17 @@ def test_limits():
     ok = cos_t > 0.05
     back, _ = fresnel(NUMPY, cos_t[ok], 1 / eta[ok])
     np.testing.assert_allclose(back, F[ok], rtol=1e-6, atol=1e-12)   # cancellation near the critical angle
+
+
+def test_per_polarisation_it_averages_to_the_unpolarised_and_vanishes_for_p_at_brewster():
+    cos, eta = _grid(np.float64)
+    R_s, R_p, cos_t = fresnel_polarised(NUMPY, cos, eta)
+    F, cos_t_unpolarised = fresnel(NUMPY, cos, eta)
+    np.testing.assert_array_equal(cos_t, cos_t_unpolarised)
+    np.testing.assert_allclose(0.5 * (R_s + R_p), F, rtol=1e-14, atol=1e-300)
+    assert np.all(R_p <= R_s + 1e-15)  # s reflects at least as much as p at every angle
+    assert float(fresnel_polarised(NUMPY, 1.0, 1.5)[0]) == pytest.approx(0.04)  # normal incidence: no plane,
+    assert float(fresnel_polarised(NUMPY, 1.0, 1.5)[1]) == pytest.approx(0.04)  # both alike
+    brewster = np.cos(np.arctan(1.5))
+    assert float(fresnel_polarised(NUMPY, brewster, 1.5)[1]) == pytest.approx(0.0, abs=1e-15)
+    assert float(fresnel_polarised(NUMPY, 0.5, 1 / 1.5)[1]) == 1.0  # beyond the critical angle

@@ -11,7 +11,9 @@ What it runs, each through the bench's own code (their figures are theirs; this 
 - `bench uncertainty` (trimeter.bench.uncertainty.measure): coverage of the reported ±1σ / ±2σ;
 - `bench sensor` (trimeter.bench.sensor.measure): every build's accuracy (each spectrometer and sensor, each fit
   of its readings) on the twin's materials at the thinner sample, noise-free and with noise;
-- `bench tracer-check` (trimeter.bench.tracer_check.check) at a small size (`--tracer-materials 0`: not run).
+- `bench tracer-check` (trimeter.bench.tracer_check.check) at a small size (`--tracer-materials 0`: not run);
+- `bench polarisation` (trimeter.bench.polarisation.measure): what the tracer's unpolarised Fresnel leaves out
+  (`--polarisation-spp 0`: not run).
 The benches' own output goes to --work (logs and JSON), the page, its figures and every figure as JSON
 (validation.json, with the page's stamp: what tools/gen_hardware.py quotes in the BOM) to --docs.
 """
@@ -83,6 +85,8 @@ def register(bench_subparsers: argparse._SubParsersAction) -> None:
                    help="random materials per geometry for the tracer check (default 8; 0: not run)")
     p.add_argument("--tracer-paths", type=int, default=1 << 18, help="tracer paths per material (default 262144)")
     p.add_argument("--tracer-spp", type=int, default=1 << 16, help="volpath samples per render (default 65536)")
+    p.add_argument("--polarisation-spp", type=int, default=1 << 18,
+                   help="volpath samples per render of the polarisation bench (default 262144; 0: not run)")
     p.add_argument("--no-device", action="store_true",
                    help="skip the single-precision build and the QEMU count (no C compiler or QEMU here)")
     p.set_defaults(func=run)
@@ -96,6 +100,8 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("--repeats, --draws, --median-bins and --sensor-draws must be at least 1")
     if args.tracer_materials < 0:
         raise InputError(f"--tracer-materials must be ≥ 0, got {args.tracer_materials}")
+    if args.polarisation_spp and args.polarisation_spp < 16:
+        raise InputError(f"--polarisation-spp must be 0 (not run) or ≥ 16, got {args.polarisation_spp}")
     args.work.mkdir(parents=True, exist_ok=True)
     results = measure(args, noise, sensor_noise)
     results["seconds"] = round(time.perf_counter() - start, 1)
@@ -139,12 +145,13 @@ def _step(title: str, log: Path) -> Iterator[None]:
 
 def measure(args: argparse.Namespace, noise: list[float], sensor_noise: list[float]) -> dict[str, Any]:
     """Run the benches; every figure the page shows, as one JSON-able dict."""
-    from trimeter.bench import fit, sensor, tracer_check, uncertainty
+    from trimeter.bench import fit, polarisation, sensor, tracer_check, uncertainty
 
     work: Path = args.work
     results: dict[str, Any] = {"stamp": machine_stamp(), "settings": {
         k: getattr(args, k) for k in ("maps", "noise", "repeats", "median_bins", "draws", "tracer_materials",
-                                      "tracer_paths", "tracer_spp", "no_device", "sensor_noise", "sensor_draws")}}
+                                      "tracer_paths", "tracer_spp", "no_device", "sensor_noise", "sensor_draws",
+                                      "polarisation_spp")}}
     with _step("accuracy and speed (bench fit)", work / "fit.log"):
         results["fit"] = fit.measure(argparse.Namespace(
             maps=args.maps, noise=",".join(map(str, noise)), median_bins=args.median_bins, repeats=args.repeats,
@@ -169,6 +176,14 @@ def measure(args: argparse.Namespace, noise: list[float], sensor_noise: list[flo
                 materials=args.tracer_materials, paths=args.tracer_paths, spp=args.tracer_spp, geometry="both",
                 seed=2027, backend="auto", series_orders=None))
             results["tracer"]["mitsuba"] = _mitsuba_version()
+    results["polarisation"] = None
+    if args.polarisation_spp:
+        with _step("polarised against unpolarised renders (bench polarisation)", work / "polarisation.log"):
+            t0 = time.perf_counter()
+            results["polarisation"] = polarisation.measure(argparse.Namespace(
+                geometry="both", spp=args.polarisation_spp, slab_spp=polarisation.DEFAULT_SLAB_SPP,
+                materials=len(polarisation.MATERIALS), seed=polarisation.DEFAULT_SEED))
+            results["polarisation"].update(seconds=round(time.perf_counter() - t0, 1), mitsuba=_mitsuba_version())
     return results
 
 
@@ -262,6 +277,7 @@ def write_page(results: dict[str, Any], docs: Path) -> Path:
     lines += _builds_section(results["builds"])
     lines += _uncertainty_section(results["uncertainty"], coverage_png, page)
     lines += _tracer_section(results["tracer"], tracer_png, page)
+    lines += polarisation_section(results.get("polarisation"))
     lines += _reproduce_section(results)
     atomic_write(page, "\n".join(lines) + "\n")
     return page
@@ -555,6 +571,62 @@ def _tracer_section(tracer: dict[str, Any] | None, png: Path | None, page: Path)
     return lines
 
 
+POLARISATION_HEADING = "Polarisation: what the tracer's unpolarised Fresnel leaves out"
+
+
+def polarisation_section(pol: dict[str, Any] | None) -> list[str]:
+    """The page's section from trimeter.bench.polarisation.measure's report (None: not run)."""
+    lines = [f"## {POLARISATION_HEADING}", ""]
+    command = "trimeter bench polarisation"
+    if pol is None:
+        return lines + [f"Not run by this command (`--polarisation-spp 0`). The bench: `{command}` (a few minutes).",
+                        ""]
+    unpolarised, polarised = pol["variants"]
+    lines += [f"The maps' tracer, like the direct renders it is checked against, uses unpolarised Fresnel at every "
+              f"face. Mitsuba {pol.get('mitsuba', '?')}'s `volpath` renders each material in `{unpolarised}` (u) and "
+              f"in `{polarised}`, the faces' Fresnel as Mueller matrices, twice: with Mitsuba's `hg`, whose "
+              "scattering keeps the light's polarisation (p), and with `hg_depolarising`, whose scattering "
+              "depolarises it (d); a real medium lies between. "
+              f"{pol['spp']:,} samples per render, all renders of a material from the same seeds (so each shift "
+              f"has its own standard error and z = shift / that error), {pol.get('seconds', float('nan')):.0f} s. "
+              "The intensities of all three are fitted with the geometry's shipped map (I_c, at normal incidence, "
+              "is the same for all); a fitted shift counts (!) when it is beyond the map's own error σ_map (the σ "
+              "fit() reports for noise-free intensities: the map's Monte Carlo and interpolation error) and beyond "
+              "twice its render noise.", ""]
+    slab = pol.get("slab")
+    if slab:
+        d = slab["delta"]
+        lines += [f"The set-up, on a clear lossless slab (n = {slab['n']}) over ρ = {slab['rho']}: the diffuse "
+                  f"reflectance R_d its rendered I implies is {slab['unpolarised']['R_d']:.4f} ± "
+                  f"{slab['unpolarised']['stderr']:.4f} unpolarised (closed form "
+                  f"{slab['unpolarised']['closed_form']:.4f}) and {slab['polarised']['R_d']:.4f} ± "
+                  f"{slab['polarised']['stderr']:.4f} polarised (closed form {slab['polarised']['closed_form']:.4f}); "
+                  f"the difference {d['R_d']:+.4f} ± {d['stderr']:.4f} (closed form {d['closed_form']:+.4f}), "
+                  f"{slab['spp']:,} samples per render.", ""]
+    names = {"alpha": "α", "sigma_t": "σt", "g": "g"}
+    for geo in pol["geometries"]:
+        rows = []
+        for k, f in enumerate(geo["fits"]):
+            black, white = geo["rows"][2 * k], geo["rows"][2 * k + 1]
+            cells = [f"{f['material']} ({f['alpha']['truth']:g}, {f['sigma_t']['truth']:g}/mm, {f['g']['truth']:g})"]
+            for r in (black, white):
+                cells.append(f"{r['delta']:+.5f} ({r['z']:+.1f}) / {r['delta_depolarising']:+.5f} "
+                             f"({r['z_depolarising']:+.1f})")
+            for p in ("alpha", "sigma_t", "g"):
+                c = f[p]
+                cells.append(f"{c['shift']:+.4f}{'!' if c['beyond_map_error'] else ''} / "
+                             f"{c['shift_depolarising']:+.4f}{'!' if c['beyond_map_error_depolarising'] else ''} "
+                             f"({c['sigma_map']:.4f})")
+            rows.append(cells)
+        moved = [sum(f[p][f"beyond_map_error{s}"] for f in geo["fits"] for p in names) for s in ("", "_depolarising")]
+        lines += [f"### {geo['geometry']} (fitted with {geo['map']})", ""]
+        lines += _table(["material (α, σt, g)", "ΔI_b p / d (z)", "ΔI_w p / d (z)",
+                         *(f"Δ{n} p / d (σ_map)" for n in names.values())], rows)
+        lines += [f"Beyond the map's error: {moved[0]} of {len(geo['fits']) * len(names)} fitted values (p), "
+                  f"{moved[1]} (d).", ""]
+    return lines + [f"More materials, more samples, the JSON: `{command}`.", ""]
+
+
 def _median_rel_stderr(rows: list[dict[str, Any]]) -> float:
     rel = [np.hypot(r["tracer_stderr"], r["volpath_stderr"]) / abs(r["volpath"]) for r in rows if r["volpath"]]
     return float(np.median(rel)) if rel else float("nan")
@@ -566,6 +638,7 @@ def _reproduce_section(results: dict[str, Any]) -> list[str]:
     for key, flag in (("noise", "--noise"), ("repeats", "--repeats"), ("median_bins", "--median-bins"),
                       ("draws", "--draws"), ("tracer_materials", "--tracer-materials"),
                       ("tracer_paths", "--tracer-paths"), ("tracer_spp", "--tracer-spp"),
+                      ("polarisation_spp", "--polarisation-spp"),
                       ("sensor_noise", "--sensor-noise"), ("sensor_draws", "--sensor-draws")):
         argv.append(f"{flag} {s[key]}")
     argv += [f"--map {m}" for m in s["maps"] or ()] + (["--no-device"] if s["no_device"] else [])
@@ -575,7 +648,7 @@ def _reproduce_section(results: dict[str, Any]) -> list[str]:
             "```", " ".join(argv), "```", "",
             "Each part on its own, with more options: `trimeter bench fit`, `trimeter bench table-fit --table "
             "maps/device-n1.5-l0.4.tlut`, `trimeter bench uncertainty`, `trimeter bench sensor`, "
-            "`trimeter bench tracer-check`, and the "
+            "`trimeter bench tracer-check`, `trimeter bench polarisation`, and the "
             "device's instruction count `make -C firmware qemu-count COUNT_TABLE=maps/device-n1.5-l0.4.tlut`."]
 
 

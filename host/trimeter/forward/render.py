@@ -26,7 +26,9 @@ from typing import Any
 import numpy as np
 
 from trimeter.model.collimated import collimated_transmittance
+from trimeter.errors import InputError
 from trimeter.forward.mitsuba_env import mitsuba
+from trimeter.forward.phase import PHASES, register_phases
 from trimeter.forward.scenes import (PARAM_KEYS, _Transform, integrator_for, reflectance_scale, resolve_geometry,
                                      scene_dict, top_face_z, translated)
 from trimeter.geometry import cover_slide_n
@@ -66,13 +68,16 @@ def to_mitsuba(obj, mi):
     return obj
 
 
-def _loaded(geometry, n: float, thickness_mm: float, z_offset: float = 0.0) -> _Loaded:
+def _loaded(geometry, n: float, thickness_mm: float, z_offset: float = 0.0, phase: str = "hg") -> _Loaded:
     mi = mitsuba()
     name, params = resolve_geometry(geometry)
-    key = (mi.variant(), name, json.dumps(params, sort_keys=True), n, thickness_mm, z_offset)
+    key = (mi.variant(), name, json.dumps(params, sort_keys=True), n, thickness_mm, z_offset, phase)
     if key not in _cache:
+        if phase not in PHASES:
+            raise InputError(f"phase must be one of {', '.join(PHASES)}, got {phase!r}")
+        register_phases(mi)
         # Load with representative (non-zero) values; every render overwrites them.
-        scene = scene_dict(params, 0.5, 1.0, 0.5, n, thickness_mm, 0.5)
+        scene = scene_dict(params, 0.5, 1.0, 0.5, n, thickness_mm, 0.5, phase=phase)
         scene = mi.load_dict(to_mitsuba(translated(scene, z_offset) if z_offset else scene, mi))
         if len(_cache) >= 2:   # a few live scenes at a time keep JIT memory bounded
             _cache.clear()
@@ -90,16 +95,18 @@ def render_diffuse(geometry, alpha: float, sigma_t: float, g: float, n: float, t
 
 
 def render_diffuse_batches(geometry, alpha: float, sigma_t: float, g: float, n: float, thickness_mm: float,
-                           rho: float, spp: int = DEFAULT_SPP, seed: int = 0, z_offset: float = 0.0) -> np.ndarray:
+                           rho: float, spp: int = DEFAULT_SPP, seed: int = 0, z_offset: float = 0.0,
+                           phase: str = "hg") -> np.ndarray:
     """render_diffuse's BATCHES batch means (reflectance factors), for comparisons whose renders share
-    seeds: their batch-wise differences give the difference's own std-error, smaller than either's."""
+    seeds: their batch-wise differences give the difference's own std-error, smaller than either's.
+    `phase`: the medium's phase function (trimeter.forward.phase: hg, or hg_depolarising)."""
     alpha, sigma_t, g = require_material(alpha, sigma_t, g)
     n, thickness_mm = require_sample(n, thickness_mm)
     rho = require_reflectance("rho", rho)
     spp = int(require_number("spp", spp, lo=BATCHES))
     seed = int(require_number("seed", seed, lo=0))
     mi = mitsuba()
-    loaded = _loaded(geometry, n, thickness_mm, float(z_offset))
+    loaded = _loaded(geometry, n, thickness_mm, float(z_offset), phase)
     p = loaded.params
     for name, value in (("alpha", alpha), ("sigma_t", sigma_t), ("g", g), ("rho", rho)):
         p[PARAM_KEYS[name]] = value

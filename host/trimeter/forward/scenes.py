@@ -87,12 +87,13 @@ def integrator_for(alpha: float) -> dict:
 
 
 def scene_dict(geometry, alpha: float, sigma_t: float, g: float, n: float, thickness_mm: float,
-               rho: float, spp: int = 65536, integrator: dict | None = None) -> dict:
+               rho: float, spp: int = 65536, integrator: dict | None = None, phase: str = "hg") -> dict:
     """The scene for one material, sample and background; `integrator` replaces volpath (the fast
-    map builder passes its own). Values are not validated here (trimeter.validation does it)."""
+    map builder passes its own); `phase` the medium's phase function plugin (trimeter.forward.phase).
+    Values are not validated here (trimeter.validation does it)."""
     name, params = resolve_geometry(geometry)
     medium = {"type": "homogeneous", "id": MEDIUM_ID, "albedo": float(alpha), "sigma_t": float(sigma_t),
-              "scale": 1.0, "phase": {"type": "hg", "g": float(g)}}
+              "scale": 1.0, "phase": {"type": phase, "g": float(g)}}
     scene = {"type": "scene", "integrator": integrator or integrator_for(float(alpha)), MEDIUM_ID: medium}
     if name == "ideal":
         scene.update(_ideal(params, float(n), float(thickness_mm), float(rho), int(spp)))
