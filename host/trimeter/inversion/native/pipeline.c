@@ -394,21 +394,22 @@ size_t tm_fit_scratch_size(size_t n) {
 /* finish._weighted for one column of one bin over k thicknesses (v, s: a value and its std per thickness,
  * `stride` apart): the inverse-variance mean and its std; where no std is usable, the plain mean of
  * the finite values and the smallest of their stds; NaN where no value is finite. As numpy reduces:
- * sums from +0 (so even a zero's sign agrees), the smallest from the first thickness's. v2 (or NULL):
- * a second column with the same stds, whose mean alone goes to *value2 (the divisions shared). */
-static void weighted(size_t k, size_t stride, const double *v, const double *v2, const double *s, double *value,
-                     double *std, double *value2) {
-    double wsum = 0.0, wvsum = 0.0, vsum = 0.0, smallest = 0.0, wsum2 = 0.0, wvsum2 = 0.0, vsum2 = 0.0;
+ * sums from +0 (so even a zero's sign agrees), the smallest from the first thickness's (looked for only
+ * in that fallback, a rare case). v2 (or NULL): a second column with the same stds, whose mean alone
+ * goes to *value2 (the divisions shared). Inlined into tm_combine's loop, where k = 2 is unrolled. */
+static inline __attribute__((always_inline)) void weighted(size_t k, size_t stride, const double *v, const double *v2,
+                                                           const double *s, double *value, double *std,
+                                                           double *value2) {
+    double wsum = 0.0, wvsum = 0.0, vsum = 0.0, wsum2 = 0.0, wvsum2 = 0.0, vsum2 = 0.0;
     size_t count = 0, count2 = 0;
     for (size_t j = 0; j < k; j++) {
         double vj = v[j * stride], sj = s[j * stride];
         int finite = isfinite(vj), usable_std = sj > 0.0 && sj < INFINITY;
         double inv = 1.0 / (sj * sj);
-        double w = finite && usable_std ? inv : 0.0, v0 = finite ? vj : 0.0, least = finite ? sj : INFINITY;
+        double w = finite && usable_std ? inv : 0.0, v0 = finite ? vj : 0.0;
         wsum += w;
         wvsum += v0 * w;
         vsum += v0;
-        smallest = j ? fmin(smallest, least) : least; /* fmin: a NaN std does not win */
         count += (size_t)finite;
         if (v2) {
             double uj = v2[j * stride];
@@ -424,6 +425,11 @@ static void weighted(size_t k, size_t stride, const double *v, const double *v2,
         *value = wvsum / wsum;
         *std = 1.0 / sqrt(wsum);
     } else {
+        double smallest = 0.0;
+        for (size_t j = 0; j < k; j++) {
+            double least = isfinite(v[j * stride]) ? s[j * stride] : INFINITY;
+            smallest = j ? fmin(smallest, least) : least; /* fmin: a NaN std does not win */
+        }
         *value = count ? vsum / (double)count : NAN;
         *std = count ? smallest : NAN;
     }
@@ -437,14 +443,16 @@ static int same_stds(size_t k, size_t stride, const double *a, const double *b) 
     return 1;
 }
 
-void tm_combine(size_t k, size_t n, const double *fits, double underdetermined_alpha_std, double underdetermined_g_std,
-                double disagree_sigmas, double *outputs) {
+/* tm_combine for bin i; inlined twice, so that the common two thicknesses run with k a constant */
+static inline __attribute__((always_inline)) void combine_bin(size_t k, size_t n, size_t i, const double *fits,
+                                                              double underdetermined_alpha_std,
+                                                              double underdetermined_g_std, double disagree_sigmas,
+                                                              const tm_fit_outputs out) {
     const size_t stride = (size_t)TM_ROW_COUNT * n; /* from one thickness's block to the next */
-    const tm_fit_outputs out = outputs_in(outputs, n);
     static const int value_rows[3] = {TM_ROW_ALPHA, TM_ROW_SIGMA_T, TM_ROW_G};
     static const int std_rows[3] = {TM_ROW_ALPHA_STD, TM_ROW_SIGMA_T_STD, TM_ROW_G_STD};
 #define ROW(p, r) ((p) + (size_t)(r) * n)
-    for (size_t i = 0; i < n; i++) {
+    {
         const double *bin = fits + i;
         int64_t fl = 0, all_unusable = 1;
         for (size_t j = 0; j < k; j++) {
@@ -455,7 +463,7 @@ void tm_combine(size_t k, size_t n, const double *fits, double underdetermined_a
         /* a thickness whose bin was unusable drops out; UNUSABLE stays only if all dropped */
         if (!all_unusable) fl &= ~(int64_t)TM_FLAGS_UNUSABLE;
         fl &= ~(int64_t)(TM_FLAG_UNDERDETERMINED | TM_FLAG_STD_APPROXIMATE); /* judged again below */
-        double value[3], std[3], beer;
+        double value[3], std[3], beer = NAN; /* set by the σt column's weighted() */
         weighted(k, stride, ROW(bin, TM_ROW_ALPHA), NULL, ROW(bin, TM_ROW_ALPHA_STD), &value[0], &std[0], NULL);
         /* the Beer-Lambert column takes σt's std */
         weighted(k, stride, ROW(bin, TM_ROW_SIGMA_T), ROW(bin, TM_ROW_SIGMA_T_BEER), ROW(bin, TM_ROW_SIGMA_T_STD),
@@ -500,4 +508,15 @@ void tm_combine(size_t k, size_t n, const double *fits, double underdetermined_a
         out.cond_g_std[i] = cond_g;
     }
 #undef ROW
+}
+
+void tm_combine(size_t k, size_t n, const double *fits, double underdetermined_alpha_std, double underdetermined_g_std,
+                double disagree_sigmas, double *outputs) {
+    const tm_fit_outputs out = outputs_in(outputs, n);
+    if (k == 2)
+        for (size_t i = 0; i < n; i++)
+            combine_bin(2, n, i, fits, underdetermined_alpha_std, underdetermined_g_std, disagree_sigmas, out);
+    else
+        for (size_t i = 0; i < n; i++)
+            combine_bin(k, n, i, fits, underdetermined_alpha_std, underdetermined_g_std, disagree_sigmas, out);
 }
