@@ -94,6 +94,85 @@ def test_thicknesses_fitted_into_one_block_combine_as_gathered_ones(ideal_map, t
     _assert_identical(together, gathered)
 
 
+class _PerThickness(NativeKernel):
+    """The native kernel without its one-call path for several thicknesses: fit() then fits each
+    thickness on its own (fused_fit into output_blocks) and combines them (combine), as it did before
+    tm_fit_thicknesses."""
+
+    def fit_thicknesses(self, *args, **kwargs):
+        return None
+
+
+def _device_pair_inputs(rng, n):
+    """The shipped device maps at 0.4 and 0.8 mm (in-scattering and model-error tables both) and their
+    intensities of random materials, with bad bins of every kind in some places and per-bin backgrounds."""
+    from trimeter.formats.appearance import AppearanceMap
+    from trimeter.inversion.artifacts import load_artifacts
+    from trimeter.paths import MAPS_DIR
+
+    models = [load_artifacts(AppearanceMap.load(MAPS_DIR / f"device-n1.5-l{ell}.tmap")) for ell in ("0.4", "0.8")]
+    alpha, g = rng.uniform(0.05, 0.999, n), rng.uniform(-0.2, 0.95, n)
+    sigma_t = np.exp(rng.uniform(np.log(0.05), np.log(40.0), n))
+    rho_b = rng.uniform(0.0, 0.1, n)
+    rho_w = rng.uniform(0.6, 0.95, n)
+    I = [np.stack(x) for x in zip(*(m.grid.intensities(alpha, sigma_t, g, rho_b, rho_w) for m in models), strict=True)]
+    I = [x * (1 + 0.01 * rng.normal(size=x.shape)) for x in I]
+    I[0][0, :7] = [np.nan, -0.5, 1.5, 0.9, np.inf, 0.0, 1e-6]  # unusable, black not below white, dark
+    I[2][1, 7:10] = [0.0, 1e-7, np.nan]  # I_c under the floor, missing
+    return models, I, np.stack([rho_b, rho_w])
+
+
+@pytest.mark.skipif(not native.available(), reason=native.status())
+@pytest.mark.parametrize("options", [{}, dict(I_b_std=1e-3, I_w_std=np.linspace(5e-4, 3e-3, 999), I_c_std=np.nan),
+                                     dict(thickness_std_mm=[0.01, 0.03], polish=3, polish_tol=0.0)])
+def test_thicknesses_fitted_in_one_call_are_the_per_thickness_fits_combined(options):
+    """tm_fit_thicknesses (every thickness's fit and their combination in one C call) against each
+    thickness fitted on its own and combined after, the path it replaced (and the one a guesser's
+    method still takes): every column of the combined result and of each thickness's, bit for bit."""
+    models, I, rho = _device_pair_inputs(np.random.default_rng(21), n=999)
+    kw = dict(rho_b=rho[0], rho_w=rho[1], method="lut", **options)
+    together = api.fit(models, *I, kernel=NativeKernel(), **kw)
+    apart = api.fit(models, *I, kernel=_PerThickness(), **kw)
+    _assert_identical(together, apart)
+    assert together.per_thickness[0].alpha.base is together.per_thickness[1].alpha.base  # one block
+    assert np.isfinite(together.alpha).mean() > 0.9 and (together.flags != 0).any()  # a fit, and bad bins in it
+
+
+@pytest.mark.skipif(not native.available(), reason=native.status())
+def test_three_thicknesses_in_one_call_are_the_per_thickness_fits_combined(ideal_map, thick_map):
+    """k = 3 (tm_combine's general loop, not the one unrolled for two)."""
+    from trimeter.inversion.artifacts import load_artifacts
+
+    rng = np.random.default_rng(4)
+    n = 203
+    alpha, g = rng.uniform(0.3, 0.99, n), rng.uniform(0, 0.9, n)
+    sigma_t = np.exp(rng.uniform(np.log(0.5), np.log(15.0), n))
+    models = [load_artifacts(m) for m in (ideal_map, thick_map, ideal_map)]
+    I = [np.stack(x) for x in zip(*(m.grid.intensities(alpha, sigma_t, g, *m.reference_rhos) for m in models),
+                                 strict=True)]
+    I[1][2] *= 1.5  # the third thickness disagrees with the others
+    together = api.fit(models, *I, method="lut", kernel=NativeKernel())
+    _assert_identical(together, api.fit(models, *I, method="lut", kernel=_PerThickness()))
+    assert (together.flags & int(FitFlag.THICKNESS_DISAGREE)).any()
+
+
+def test_the_numpy_kernel_has_no_one_call_path_for_several_thicknesses():
+    assert NumpyKernel().fit_thicknesses([], (), sd=None, options=[], method="lut", **THRESHOLDS) is None
+
+
+@pytest.mark.skipif(not native.available(), reason=native.status())
+def test_thicknesses_of_the_wrong_shape_are_refused(ideal_map):
+    from trimeter.inversion.artifacts import load_artifacts
+
+    solver = NativeKernel()._table_solver(load_artifacts(ideal_map).inverter)
+    x = np.full((2, 5), 0.5)
+    args = dict(sd=None, options=[{}, {}], underdetermined_std=(0.1, 0.2), disagree_sigmas=3.0)
+    with pytest.raises(ValueError, match="one solver and one set of options"):
+        native.fit_thicknesses([solver], x, x, x, x, x, **args)
+    with pytest.raises(ValueError, match=r"must be \(2, n\)"):
+        native.fit_thicknesses([solver, solver], x, x, x[:, :4], x, x, **args)
+
+
 def test_an_output_block_of_the_wrong_shape_is_refused():
     from trimeter.inversion.native import _fit_outputs
 

@@ -13,8 +13,9 @@ The fit takes what it solves as model objects (FitModel: a map's forward grid, t
 session, its nodes for the paper method), loaded by trimeter.inversion.artifacts (`trimeter.fit` takes map
 names and paths and loads them there), and the kernel (numpy or C, trimeter.inversion.kernel) it is
 handed. Methods come from one table (trimeter.inversion.methods). For a guess-and-polish method, one
-thickness's whole flow runs in one C call with the compiled kernel (`tm_fit`); `_prepare` + the solve
-+ trimeter.inversion.finish.finish are its reference.
+thickness's whole flow runs in one C call with the compiled kernel (`tm_fit`), and several thicknesses
+from the map tables' guesses with their combination in one too (`tm_fit_thicknesses`); `_prepare` + the
+solve + trimeter.inversion.finish.finish (and finish.combine) are their reference.
 """
 
 from __future__ import annotations
@@ -42,7 +43,7 @@ from trimeter.model.grid import ForwardGrid
 
 log = logging.getLogger("trimeter.inversion")
 
-# one thickness's (I_b, I_w, I_c, ρ_b, ρ_w) over its bins
+# (I_b, I_w, I_c, ρ_b, ρ_w): one thickness's over its bins, or k thicknesses' as (k, bins) arrays
 Inputs = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 
 # The polish also stops a bin once a step moved α and g by less than this fraction of their noise
@@ -116,7 +117,9 @@ def fit(models: FitModel | Sequence[FitModel], I_b: ArrayLike, I_w: ArrayLike, I
         raise InputError("inversion.api.fit takes loaded maps (trimeter.inversion.artifacts.load_artifacts); "
                          "trimeter.fit takes maps, paths and names")
     k = len(amaps)
-    arrays = _shape_inputs(k, I_b, I_w, I_c, rho_b, rho_w, amaps)
+    stacked = _shape_inputs(k, I_b, I_w, I_c, rho_b, rho_w, amaps)
+    arrays: list[Inputs] = [(stacked[0][i], stacked[1][i], stacked[2][i], stacked[3][i], stacked[4][i])
+                            for i in range(k)]
     stds = shape_stds(k, arrays, (I_b_std, I_w_std, I_c_std), noise_rel, noise_abs)
     thickness_rel = [t / m.setup.thickness_mm for t, m in zip(_thickness_stds(k, thickness_std_mm), amaps, strict=True)]
     opts: dict[str, Any] = dict(noise_rel=noise_rel, noise_abs=noise_abs, ic_floor=ic_floor, alpha_min_g=alpha_min_g,
@@ -124,6 +127,16 @@ def fit(models: FitModel | Sequence[FitModel], I_b: ArrayLike, I_w: ArrayLike, I
     if strategy.fit_all is not None:  # strategy.joint
         return strategy.fit_all(amaps, arrays, stds, thickness_rel, kernel=kernel, samples=samples, epsilon=epsilon,
                                 seed=seed, first_row=int(require_number("first_row", first_row, lo=0)), **opts)
+    if k > 1 and strategy.guesser is None:  # from the tables' guesses: every thickness and the combine in one call
+        options = [native_options(m, m.inverter.grid, polish=polish, polish_tol=polish_tol,
+                                  thickness_rel_std=thickness_rel[i], **opts) for i, m in enumerate(amaps)]
+        given = [sd for sd in stds if sd is not None]  # all or none
+        together = kernel.fit_thicknesses([m.inverter for m in amaps], stacked,
+                                          sd=np.stack(given) if given else None, options=options,
+                                          method=strategy.name, disagree_sigmas=DISAGREE_SIGMAS,
+                                          underdetermined_std=(UNDERDETERMINED_ALPHA_STD, UNDERDETERMINED_G_STD))
+        if together is not None:
+            return together
     # several thicknesses: each fitted into its place in the kernel's combine layout (no gathering after)
     blocks = kernel.output_blocks(k, arrays[0][0].shape[0]) if k > 1 else None
     singles = [_fit_one(amap, *arrays[i], sd=stds[i], thickness_rel_std=thickness_rel[i], method=strategy,
@@ -142,7 +155,8 @@ def fit(models: FitModel | Sequence[FitModel], I_b: ArrayLike, I_w: ArrayLike, I
 
 
 def _shape_inputs(k: int, I_b: ArrayLike, I_w: ArrayLike, I_c: ArrayLike, rho_b: ArrayLike | None,
-                  rho_w: ArrayLike | None, amaps: Sequence[FitModel]) -> list[Inputs]:
+                  rho_w: ArrayLike | None, amaps: Sequence[FitModel]) -> Inputs:
+    """I_b, I_w, I_c, ρ_b, ρ_w, each (k, bins): row i is thickness i's."""
     try:
         I_b, I_w, I_c = (np.atleast_1d(np.asarray(v, dtype=float)) for v in (I_b, I_w, I_c))
     except (TypeError, ValueError) as exc:
@@ -164,7 +178,7 @@ def _shape_inputs(k: int, I_b: ArrayLike, I_w: ArrayLike, I_c: ArrayLike, rho_b:
         except (TypeError, ValueError) as exc:
             raise InputError(f"{name} must be a number or an array over the bins ({exc})") from None
         rhos.append(full)
-    return [(I_b[i], I_w[i], I_c[i], rhos[0][i], rhos[1][i]) for i in range(k)]
+    return I_b, I_w, I_c, rhos[0], rhos[1]
 
 
 def shape_stds(k: int, arrays: list[Inputs], given: tuple[ArrayLike | None, ...], noise_rel: float,

@@ -3,7 +3,7 @@
 NumpyKernel is the reference (trimeter.inversion.newton); NativeKernel runs the same algorithm in the
 compiled library (trimeter.inversion.native, tested to agree to ~1e-9, flags bit for bit) and also
 fuses one thickness's whole fit into one call, and combines several thicknesses (bit for bit
-finish.combine's). A method never asks which one it has.
+finish.combine's), or fits and combines them all in one call. A method never asks which one it has.
 """
 
 from __future__ import annotations
@@ -68,6 +68,13 @@ class Kernel(Protocol):
         the kernel has no such path and finish.combine runs. blocks: output_blocks' array where the results
         were fused into it, read as it is."""
 
+    def fit_thicknesses(self, inverters: list[TableInverter], inputs: tuple[np.ndarray, ...], *, sd: np.ndarray | None,
+                        options: list[dict[str, Any]], method: str, underdetermined_std: tuple[float, float],
+                        disagree_sigmas: float) -> FitResult | None:
+        """Several thicknesses of the same bins, each fitted from its table's guess as fused_fit fits it and
+        then combined as combine() combines them, all in one call; or None where the kernel has no such
+        path. inputs: I_b, I_w, I_c, ρ_b, ρ_w, each (k, n); sd: the intensities' stds (k, n, 3) or None."""
+
 
 class NumpyKernel:
     name = "numpy"
@@ -99,6 +106,11 @@ class NumpyKernel:
 
     def combine(self, results: list[FitResult], method: str, *, underdetermined_std: tuple[float, float],
                 disagree_sigmas: float, blocks: np.ndarray | None = None) -> FitResult | None:
+        return None
+
+    def fit_thicknesses(self, inverters: list[TableInverter], inputs: tuple[np.ndarray, ...], *, sd: np.ndarray | None,
+                        options: list[dict[str, Any]], method: str, underdetermined_std: tuple[float, float],
+                        disagree_sigmas: float) -> FitResult | None:
         return None
 
 
@@ -176,6 +188,27 @@ class NativeKernel:
         columns = dict(zip(_ROWS, out, strict=True))
         columns["flags"] = columns["flags"].view(np.int64)
         return FitResult(**columns, method=method, per_thickness=results)
+
+    def fit_thicknesses(self, inverters: list[TableInverter], inputs: tuple[np.ndarray, ...], *, sd: np.ndarray | None,
+                        options: list[dict[str, Any]], method: str, underdetermined_std: tuple[float, float],
+                        disagree_sigmas: float) -> FitResult | None:
+        """tm_fit_thicknesses: the per-thickness results are views of its fits' blocks, as fused_fit's
+        written into output_blocks' are; a thickness without stds of its own has no conditioning stds."""
+        fits, combined, _ = native.fit_thicknesses([self._table_solver(t) for t in inverters], *inputs, sd=sd,
+                                                   options=options, underdetermined_std=underdetermined_std,
+                                                   disagree_sigmas=disagree_sigmas)
+        return FitResult(**self._columns(combined), method=method,
+                         per_thickness=[FitResult(**self._columns(block, own_conditioning=sd is not None),
+                                                  method=method) for block in fits])
+
+    @staticmethod
+    def _columns(block: np.ndarray, own_conditioning: bool = True) -> dict[str, Any]:
+        """An output block's rows as FitResult's columns (flags as int64)."""
+        columns: dict[str, Any] = dict(zip(_ROWS, block, strict=True))
+        columns["flags"] = block[_ROWS.index("flags")].view(np.int64)
+        if not own_conditioning:  # the noise model's stds: the conditioning stds are the stds themselves
+            columns["conditioning_alpha_std"] = columns["conditioning_g_std"] = None
+        return columns
 
     @staticmethod
     def _gathered(results: list[FitResult]) -> np.ndarray:

@@ -20,6 +20,7 @@ import ctypes
 import hashlib
 import os
 import warnings
+import weakref
 import zlib
 from pathlib import Path
 from collections.abc import Callable
@@ -241,16 +242,20 @@ class NativeSolver:
         return alpha, g, residual, J
 
     def _options(self, options: dict[str, Any]) -> Any:
+        """A reference to the C options struct for fit()'s options (options_struct)."""
+        return ctypes.byref(self.options_struct(options))
+
+    def options_struct(self, options: dict[str, Any]) -> _FitOptionsC:
         """The C options struct for fit()'s options, built once per distinct set: building a ctypes
         struct costs more than the dict lookup, most of all in a cold cache (one press-button
         measurement)."""
         key = tuple(options.items())
-        ref = self._fit_options.get(key)
-        if ref is None:
+        struct = self._fit_options.get(key)
+        if struct is None:
             if len(self._fit_options) >= 64:  # a caller sweeping parameters: keep it bounded
                 self._fit_options.clear()
-            ref = self._fit_options[key] = ctypes.byref(_fit_options(**options))
-        return ref
+            struct = self._fit_options[key] = _fit_options(**options)
+        return struct
 
     def fit(self, I_b: np.ndarray, I_w: ArrayLike, I_c: ArrayLike, rho_b: ArrayLike, rho_w: ArrayLike, *,
             sd: ArrayLike | None = None, alpha0: ArrayLike | None = None, g0: ArrayLike | None = None,
@@ -303,6 +308,60 @@ class NativeSolver:
         out["steps"] = int(steps)
         out["features"] = features
         return out
+
+
+_SIDE_BY_SIDE: dict[tuple[int, ...], tuple[list[Any], list[_FitOptionsC], tuple[Any, Any, Any]]] = {}
+
+
+def _side_by_side(solvers: list[NativeSolver], options: list[_FitOptionsC]) -> tuple[Any, Any, Any]:
+    """The solvers' grids, tables and the options as tm_fit_thicknesses takes them: k structs side by side
+    (ctypes arrays of copies, which point into the solvers' arrays). Built once per set (building them
+    costs a tenth of a small fit's glue); a set is found by its members' ids and taken only while each
+    member is still that one (a solver that is gone can have passed its id on: its copies are not read)."""
+    key = tuple(map(id, solvers)) + tuple(map(id, options))
+    hit = _SIDE_BY_SIDE.get(key)
+    if hit is not None and all(ref() is s for ref, s in zip(hit[0], solvers, strict=True)) \
+            and all(a is b for a, b in zip(hit[1], options, strict=True)):
+        return hit[2]
+    k = len(solvers)
+    tables = [s._table for s in solvers if s._table is not None]
+    if len(tables) != k:
+        raise ValueError("every thickness's solver needs its inverse table")
+    arrays = ((_ForwardGridC * k)(*(s._grid for s in solvers)), (_InverseTableC * k)(*tables),
+              (_FitOptionsC * k)(*options))
+    if len(_SIDE_BY_SIDE) >= 64:  # a caller sweeping parameters: keep it bounded
+        _SIDE_BY_SIDE.clear()
+    _SIDE_BY_SIDE[key] = ([weakref.ref(s) for s in solvers], list(options), arrays)
+    return arrays
+
+
+def fit_thicknesses(solvers: list[NativeSolver], I_b: np.ndarray, I_w: np.ndarray, I_c: np.ndarray,
+                    rho_b: np.ndarray, rho_w: np.ndarray, *, sd: ArrayLike | None, options: list[dict[str, Any]],
+                    underdetermined_std: tuple[float, float], disagree_sigmas: float
+                    ) -> tuple[np.ndarray, np.ndarray, int]:
+    """k thicknesses of the same n bins in one call (invert.h `tm_fit_thicknesses`): thickness j fitted as
+    solvers[j].fit(row j of the (k, n) inputs, sd=sd[j], **options[j]) fits it (from its table's guess),
+    then the k fits combined as combine() combines them. sd: the intensities' stds (k, n, 3), or None.
+    Returns (the k fits' output blocks (k, rows, n), the combined block (rows, n), the Newton steps)."""
+    k = len(solvers)
+    if k < 1 or len(options) != k:
+        raise ValueError("give one solver and one set of options per thickness")
+    inputs = [np.ascontiguousarray(x, dtype=np.float64) for x in (I_b, I_w, I_c, rho_b, rho_w)]
+    n = inputs[0].shape[-1]
+    if any(x.shape != (k, n) for x in inputs):
+        raise ValueError(f"the inputs must be ({k}, n), got {[x.shape for x in inputs]}")
+    if sd is not None:
+        sd = np.ascontiguousarray(sd, dtype=np.float64)
+        if sd.shape != (k, n, 3):
+            raise ValueError(f"the intensities' stds must be (k, n, 3) = ({k}, {n}, 3), got {sd.shape}")
+    grids, tables, opts = _side_by_side(solvers, [s.options_struct(o) for s, o in zip(solvers, options, strict=True)])
+    fits = np.empty((k, len(_OUTPUT_ROWS), n))
+    combined = np.empty((len(_OUTPUT_ROWS), n))
+    steps = _library().tm_fit_thicknesses(k, grids, tables, opts, n, *(_addr(x) for x in inputs),
+                                          None if sd is None else _addr(sd), *underdetermined_std, disagree_sigmas,
+                                          _addr(fits), _addr(combined))
+    _check(steps)
+    return fits, combined, int(steps)
 
 
 def _fit_outputs(n: int, block: np.ndarray | None = None) -> tuple[np.ndarray, dict[str, Any]]:

@@ -110,6 +110,13 @@ long long tm_fit(const tm_forward_grid *f, const tm_inverse_table *table, const 
  * the combined conditioning stds. */
 void tm_combine(size_t k, size_t n, const double *fits, double underdetermined_alpha_std, double underdetermined_g_std, double disagree_sigmas, double *outputs);
 
+/* Several thicknesses of the same n bins fitted and combined in one call (host library only): thickness j
+ * (grids[j], tables[j], options[j]: k of each, side by side) fitted as tm_fit fits it, from row j of the
+ * k × n inputs (sd_in: k × n × 3, or NULL), into block j of fits (k × TM_ROW_COUNT × n); then tm_combine
+ * of those blocks into outputs. One scratch block serves every thickness. -1 on a malformed grid or
+ * table, -2 when out of memory, else the Newton steps taken over all thicknesses. */
+long long tm_fit_thicknesses(size_t k, const tm_forward_grid *grids, const tm_inverse_table *tables, const tm_fit_options *options, size_t n, const double *I_b, const double *I_w, const double *I_c, const double *rho_b, const double *rho_w, const double *sd_in, double underdetermined_alpha_std, double underdetermined_g_std, double disagree_sigmas, double *fits, double *outputs);
+
 /* The fit in two halves around a caller-owned scratch block of tm_fit_scratch_size(n) bytes (no
  * allocation: what the firmware calls), with a guess (e.g. an MLP's) from the features in between. */
 size_t tm_fit_scratch_size(size_t n);

@@ -2,7 +2,7 @@
 
 import ctypes
 
-ABI_HASH = 0x0cefca51996d9dd1
+ABI_HASH = 0x9b04a457529a9f51
 STEP_RATIO = 0.25
 INSCATTER_ONCE = 0.001
 TABLE_FIT_NOISE_REL = 0.005
@@ -164,6 +164,24 @@ FUNCTIONS = {
         ctypes.c_double,
         ctypes.c_double,
         ctypes.c_double,
+        ctypes.c_void_p,
+    ]),
+    "tm_fit_thicknesses": (ctypes.c_longlong, [
+        ctypes.c_size_t,
+        ctypes.POINTER(ForwardGridStruct),
+        ctypes.POINTER(InverseTableStruct),
+        ctypes.POINTER(FitOptionsStruct),
+        ctypes.c_size_t,
+        ctypes.c_void_p,
+        ctypes.c_void_p,
+        ctypes.c_void_p,
+        ctypes.c_void_p,
+        ctypes.c_void_p,
+        ctypes.c_void_p,
+        ctypes.c_double,
+        ctypes.c_double,
+        ctypes.c_double,
+        ctypes.c_void_p,
         ctypes.c_void_p,
     ]),
     "tm_fit_scratch_size": (ctypes.c_size_t, [

@@ -24,6 +24,30 @@ long long tm_fit(const tm_forward_grid *f, const tm_inverse_table *table, const 
     return steps;
 }
 
+long long tm_fit_thicknesses(size_t k, const tm_forward_grid *grids, const tm_inverse_table *tables,
+                             const tm_fit_options *options, size_t n, const double *I_b, const double *I_w,
+                             const double *I_c, const double *rho_b, const double *rho_w, const double *sd_in,
+                             double underdetermined_alpha_std, double underdetermined_g_std, double disagree_sigmas,
+                             double *fits, double *outputs) {
+    if (!k || !tables) return -1;
+    for (size_t j = 0; j < k; j++)
+        if (!grid_ok(&grids[j], &tables[j])) return -1;
+    void *scratch = n > UINT32_MAX ? NULL : malloc(tm_fit_scratch_size(n));
+    if (!scratch) return -2;
+    long long steps = 0;
+    for (size_t j = 0; j < k && steps >= 0; j++) {
+        const size_t at = j * n;
+        double *block = fits + j * (size_t)TM_ROW_COUNT * n;
+        tm_fit_prepare(&grids[j], &options[j], n, I_b + at, I_w + at, I_c + at, rho_b + at, rho_w + at,
+                       sd_in ? sd_in + 3u * at : NULL, scratch, block, 0.0, 0.0, NULL);
+        long long taken = tm_fit_solve(&grids[j], &tables[j], &options[j], n, NULL, NULL, scratch, block);
+        steps = taken < 0 ? taken : steps + taken;
+    }
+    free(scratch);
+    if (steps >= 0) tm_combine(k, n, fits, underdetermined_alpha_std, underdetermined_g_std, disagree_sigmas, outputs);
+    return steps;
+}
+
 int tm_solve_alpha_g(const tm_forward_grid *f, const tm_inverse_table *table, size_t n, const double *I_b,
                      const double *I_w, const double *log_sigma_t, const double *rho_b, const double *rho_w,
                      int iterations, double step_tol, const double *step_var, double *alpha, double *g,

@@ -231,22 +231,22 @@ static inline int check_holds(const check_t *k, double da, double dg, double a2,
  * pass without dependent loads keeps many of those misses in flight); its arrays take ~1 KB of stack. */
 #define CHECK_BLOCK 16
 
-/* The check for the bins listed in idx (m of them), move by move, a block of bins at a time: the
- * moves' cells prefetched, then evaluated four bins per step with AVX2 where the polish uses it. A
- * bin that failed a move is not moved again. Sets TM_FLAG_STD_APPROXIMATE in flags. */
+/* The check for the bins listed in idx (m of them; checks[j] is idx[j]'s), move by move, a block of bins
+ * at a time: the moves' cells prefetched, then evaluated four bins per step with AVX2 where the polish
+ * uses it. A bin that failed a move is not moved again. Sets TM_FLAG_STD_APPROXIMATE in flags. */
 static void check_first_order(const tm_forward_grid *f, size_t m, const uint32_t *idx, const check_t *checks,
                               sigma_cell_t *cells, const double *I_b, const double *I_w, const double *rho_b,
                               const double *rho_w, double sigmas, int64_t *flags) {
     for (int move = 0; move < 4; move++) {
         for (size_t j0 = 0; j0 < m; j0 += CHECK_BLOCK) {
-            uint32_t lane[CHECK_BLOCK];
+            uint32_t lane[CHECK_BLOCK], slot[CHECK_BLOCK];
             double a1[CHECK_BLOCK], g1[CHECK_BLOCK], tb[CHECK_BLOCK], tw[CHECK_BLOCK], a2[CHECK_BLOCK], g2[CHECK_BLOCK];
             double da[CHECK_BLOCK], dg[CHECK_BLOCK];
             size_t k = 0, j1 = m - j0 < CHECK_BLOCK ? m : j0 + CHECK_BLOCK;
             for (size_t j = j0; j < j1; j++) {
                 uint32_t i = idx[j];
                 if (flags[i] & TM_FLAG_STD_APPROXIMATE) continue;
-                check_move_t mv = check_move(f, &checks[i], move, sigmas, I_b[i], I_w[i]);
+                check_move_t mv = check_move(f, &checks[j], move, sigmas, I_b[i], I_w[i]);
                 a1[k] = mv.a1;
                 g1[k] = mv.g1;
                 tb[k] = mv.tb;
@@ -254,6 +254,7 @@ static void check_first_order(const tm_forward_grid *f, size_t m, const uint32_t
                 da[k] = mv.da;
                 dg[k] = mv.dg;
                 prefetch_cell(f, &cells[i], a1[k], g1[k]);
+                slot[k] = (uint32_t)j;
                 lane[k++] = i;
             }
             size_t l = 0;
@@ -267,7 +268,7 @@ static void check_first_order(const tm_forward_grid *f, size_t m, const uint32_t
                 check_step(f, &cells[i], a1[l], g1[l], tb[l], tw[l], rho_b[i], rho_w[i], &a2[l], &g2[l]);
             }
             for (l = 0; l < k; l++)
-                if (!check_holds(&checks[lane[l]], da[l], dg[l], a2[l], g2[l])) flags[lane[l]] |= TM_FLAG_STD_APPROXIMATE;
+                if (!check_holds(&checks[slot[l]], da[l], dg[l], a2[l], g2[l])) flags[lane[l]] |= TM_FLAG_STD_APPROXIMATE;
         }
     }
 }
@@ -301,20 +302,16 @@ long long tm_fit_solve(const tm_forward_grid *f, const tm_inverse_table *table, 
     size_t steps = tmi_polish(f, n, cells, ib, iw, rb, rw, o->iterations, o->step_tol, sc.step_var, alpha, g, sc.active,
                           sc.evals);
     const int g_lo_is_edge = f->g_lo > -1 + 1e-6, g_hi_is_edge = f->g_hi < 1 - 1e-6;
-    size_t checked = 0; /* bins for check_first_order, listed in sc.active (the polish is done with it) */
+    /* bins for check_first_order, listed in sc.active (the polish is done with it), their states side by
+     * side in sc.checks: only those bins' (a few of them) are written */
+    size_t checked = 0;
     for (size_t i = 0; i < n; i++) {
         double Ji[9];
         int64_t fl = out->flags[i];
         int usable = !(fl & TM_FLAGS_UNUSABLE);
         double residual2 = tmi_final_residual2_and_jacobian(f, &cells[i], &sc.evals[i], alpha[i], g[i], ib[i], iw[i], rb[i],
                                                         rw[i], Ji);
-        check_t *k = &sc.checks[i];
-        k->alpha = alpha[i];
-        k->g = g[i];
-        k->j11 = Ji[0];
-        k->j12 = Ji[2];
-        k->j21 = Ji[3];
-        k->j22 = Ji[5];
+        const double solved_alpha = alpha[i], solved_g = g[i]; /* before the in-scattering move: the check's */
         double ds_in = 0.0; /* the in-scattering correction of σt */
         if (f->inscatter_L && !(fl & (TM_FLAGS_UNUSABLE | TM_FLAG_IC_BELOW_FLOOR | TM_FLAG_OUTSIDE_MAP)))
             ds_in = correct_inscatter(f, &cells[i], Ji, &alpha[i], &sigma_t[i], &g[i]);
@@ -351,6 +348,13 @@ long long tm_fit_solve(const tm_forward_grid *f, const tm_inverse_table *table, 
         }
         if (usable && (ua > o->underdetermined_alpha_std || ug > o->underdetermined_g_std)) fl |= TM_FLAG_UNDERDETERMINED;
         if (!(fl & TM_FLAGS_STD_CHECK_SKIP) && isfinite(sa) && isfinite(sg) && (sa > o->std_check_alpha || sg > o->std_check_g)) {
+            check_t *k = &sc.checks[checked];
+            k->alpha = solved_alpha;
+            k->g = solved_g;
+            k->j11 = Ji[0];
+            k->j12 = Ji[2];
+            k->j21 = Ji[3];
+            k->j22 = Ji[5];
             k->move_b = sqrt(sc.var_b[i] + model_b);
             k->move_w = sqrt(sc.var_w[i] + model_w);
             k->limit_a = o->std_check_tol * o->std_check_sigmas * sa;
@@ -394,21 +398,22 @@ size_t tm_fit_scratch_size(size_t n) {
 /* finish._weighted for one column of one bin over k thicknesses (v, s: a value and its std per thickness,
  * `stride` apart): the inverse-variance mean and its std; where no std is usable, the plain mean of
  * the finite values and the smallest of their stds; NaN where no value is finite. As numpy reduces:
- * sums from +0 (so even a zero's sign agrees), the smallest from the first thickness's. v2 (or NULL):
- * a second column with the same stds, whose mean alone goes to *value2 (the divisions shared). */
-static void weighted(size_t k, size_t stride, const double *v, const double *v2, const double *s, double *value,
-                     double *std, double *value2) {
-    double wsum = 0.0, wvsum = 0.0, vsum = 0.0, smallest = 0.0, wsum2 = 0.0, wvsum2 = 0.0, vsum2 = 0.0;
+ * sums from +0 (so even a zero's sign agrees), the smallest from the first thickness's (looked for only
+ * in that fallback, a rare case). v2 (or NULL): a second column with the same stds, whose mean alone
+ * goes to *value2 (the divisions shared). Inlined into tm_combine's loop, where k = 2 is unrolled. */
+static inline __attribute__((always_inline)) void weighted(size_t k, size_t stride, const double *v, const double *v2,
+                                                           const double *s, double *value, double *std,
+                                                           double *value2) {
+    double wsum = 0.0, wvsum = 0.0, vsum = 0.0, wsum2 = 0.0, wvsum2 = 0.0, vsum2 = 0.0;
     size_t count = 0, count2 = 0;
     for (size_t j = 0; j < k; j++) {
         double vj = v[j * stride], sj = s[j * stride];
         int finite = isfinite(vj), usable_std = sj > 0.0 && sj < INFINITY;
         double inv = 1.0 / (sj * sj);
-        double w = finite && usable_std ? inv : 0.0, v0 = finite ? vj : 0.0, least = finite ? sj : INFINITY;
+        double w = finite && usable_std ? inv : 0.0, v0 = finite ? vj : 0.0;
         wsum += w;
         wvsum += v0 * w;
         vsum += v0;
-        smallest = j ? fmin(smallest, least) : least; /* fmin: a NaN std does not win */
         count += (size_t)finite;
         if (v2) {
             double uj = v2[j * stride];
@@ -424,6 +429,11 @@ static void weighted(size_t k, size_t stride, const double *v, const double *v2,
         *value = wvsum / wsum;
         *std = 1.0 / sqrt(wsum);
     } else {
+        double smallest = 0.0;
+        for (size_t j = 0; j < k; j++) {
+            double least = isfinite(v[j * stride]) ? s[j * stride] : INFINITY;
+            smallest = j ? fmin(smallest, least) : least; /* fmin: a NaN std does not win */
+        }
         *value = count ? vsum / (double)count : NAN;
         *std = count ? smallest : NAN;
     }
@@ -437,14 +447,16 @@ static int same_stds(size_t k, size_t stride, const double *a, const double *b) 
     return 1;
 }
 
-void tm_combine(size_t k, size_t n, const double *fits, double underdetermined_alpha_std, double underdetermined_g_std,
-                double disagree_sigmas, double *outputs) {
+/* tm_combine for bin i; inlined twice, so that the common two thicknesses run with k a constant */
+static inline __attribute__((always_inline)) void combine_bin(size_t k, size_t n, size_t i, const double *fits,
+                                                              double underdetermined_alpha_std,
+                                                              double underdetermined_g_std, double disagree_sigmas,
+                                                              const tm_fit_outputs out) {
     const size_t stride = (size_t)TM_ROW_COUNT * n; /* from one thickness's block to the next */
-    const tm_fit_outputs out = outputs_in(outputs, n);
     static const int value_rows[3] = {TM_ROW_ALPHA, TM_ROW_SIGMA_T, TM_ROW_G};
     static const int std_rows[3] = {TM_ROW_ALPHA_STD, TM_ROW_SIGMA_T_STD, TM_ROW_G_STD};
 #define ROW(p, r) ((p) + (size_t)(r) * n)
-    for (size_t i = 0; i < n; i++) {
+    {
         const double *bin = fits + i;
         int64_t fl = 0, all_unusable = 1;
         for (size_t j = 0; j < k; j++) {
@@ -455,7 +467,7 @@ void tm_combine(size_t k, size_t n, const double *fits, double underdetermined_a
         /* a thickness whose bin was unusable drops out; UNUSABLE stays only if all dropped */
         if (!all_unusable) fl &= ~(int64_t)TM_FLAGS_UNUSABLE;
         fl &= ~(int64_t)(TM_FLAG_UNDERDETERMINED | TM_FLAG_STD_APPROXIMATE); /* judged again below */
-        double value[3], std[3], beer;
+        double value[3], std[3], beer = NAN; /* set by the σt column's weighted() */
         weighted(k, stride, ROW(bin, TM_ROW_ALPHA), NULL, ROW(bin, TM_ROW_ALPHA_STD), &value[0], &std[0], NULL);
         /* the Beer-Lambert column takes σt's std */
         weighted(k, stride, ROW(bin, TM_ROW_SIGMA_T), ROW(bin, TM_ROW_SIGMA_T_BEER), ROW(bin, TM_ROW_SIGMA_T_STD),
@@ -500,4 +512,15 @@ void tm_combine(size_t k, size_t n, const double *fits, double underdetermined_a
         out.cond_g_std[i] = cond_g;
     }
 #undef ROW
+}
+
+void tm_combine(size_t k, size_t n, const double *fits, double underdetermined_alpha_std, double underdetermined_g_std,
+                double disagree_sigmas, double *outputs) {
+    const tm_fit_outputs out = outputs_in(outputs, n);
+    if (k == 2)
+        for (size_t i = 0; i < n; i++)
+            combine_bin(2, n, i, fits, underdetermined_alpha_std, underdetermined_g_std, disagree_sigmas, out);
+    else
+        for (size_t i = 0; i < n; i++)
+            combine_bin(k, n, i, fits, underdetermined_alpha_std, underdetermined_g_std, disagree_sigmas, out);
 }
