@@ -311,6 +311,47 @@ def test_a_clean_line_keeps_the_longest_records(slave_factory):
     assert slave.requests == -(-len(data) // 2 // MAX_FILE_RECORD_WORDS)  # ceil: the fewest requests
 
 
+class GarblingRegisterSlave(ScriptedSlave):
+    """ScriptedSlave whose replies longer than `longest_clean_words` registers arrive with a bit flipped."""
+
+    def __init__(self, longest_clean_words):
+        super().__init__()
+        self.longest_clean_words = longest_clean_words
+        self.counts = []
+
+    def run(self):
+        for frame in self.frames():
+            address, fc, start, count = struct.unpack(">BBHH", frame[:6])
+            self.counts.append(count)
+            body = bytes([address, fc, 2 * count]) + struct.pack(f">{count}H", *range(start, start + count))
+            reply = bytearray(body + crc16(body))
+            if count > self.longest_clean_words:
+                reply[4] ^= 0x10
+            os.write(self.master, bytes(reply))
+
+
+def test_a_span_of_registers_is_read_in_requests_the_line_carries(slave_factory):
+    """The device's register reads (Device.read_many) split a long span into whole registers per request, as
+    long as the link's record_words: a line that garbles every reply over 20 registers still answers a
+    100-register status read, where one request of 100 would fail every try."""
+    from trimeter import registers as regs
+    from trimeter.device.client import Device
+    from trimeter.device.transport import LinkError
+
+    slave = slave_factory(cls=lambda _: GarblingRegisterSlave(longest_clean_words=20))
+    link = RtuTransport(slave.port, timeout_s=0.3, attempts=3)
+    names = [r.name for r in regs.REGISTERS if r.table == "input_register" and r.address < 100]
+    device = Device.__new__(Device)  # the register layer alone: no identity check against this scripted slave
+    device.transport, device.identity, device._reconnects_checked = link, None, 0
+    values = device.read_many(*names)  # its first requests are lost while they shrink to what the line carries
+    assert values["vendor_id"] == regs.BY_NAME["vendor_id"].address  # the slave answers each address with itself
+    assert link.record_words <= 30 and slave.counts[0] >= 90
+    assert sum(c > 20 for c in slave.counts) <= 3 * 6  # lost requests (3 tries each), at most MAX_SPAN_LOSSES
+    link.close()
+    with pytest.raises(LinkError):  # a request the line never carries, tried alone, is still a LinkError
+        RtuTransport(slave.port, timeout_s=0.1, attempts=2).read_words("input_register", 0, 30)
+
+
 def test_a_link_closed_by_another_thread_mid_request_is_a_link_error(slave_factory):
     """A service stopping while its loop still waits for a reply (the soak's end): the waiting request ends with
     a DeviceError the service's loop handles, never pyserial's TypeError on a closed port."""

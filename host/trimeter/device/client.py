@@ -50,6 +50,9 @@ Value = Any
 
 # How long a map table read may keep resuming after lost records (a full table on a clean line takes seconds).
 MAP_READ_BUDGET_S = 120.0
+# A register read lost on the link this often is given up (each loss halves the requests: 120 words reach the
+# shortest, 8, in four)
+MAX_SPAN_LOSSES = 6
 
 def encode(reg: regs.Register, value: Any) -> list[int]:
     """Physical value -> register words (or [0/1] for a bit), refusing out-of-range values by name. The same
@@ -304,14 +307,7 @@ class Device:
         out = {}
         self._after_reconnect()
         for table, items in by_table.items():
-            lo = min(r.address for r in items)
-            hi = max(r.address + r.words for r in items)
-            limit = MAX_READ_BITS if table in ("coil", "discrete_input") else MAX_READ_WORDS
-            if hi - lo > limit:  # too far apart for one request: read each alone
-                for reg in items:
-                    out.update(self._read_block(table, reg.address, reg.address + reg.words, [reg]))
-            else:
-                out.update(self._read_block(table, lo, hi, items))
+            out.update(self._read_spans(table, sorted(items, key=lambda r: r.address)))
         self._after_reconnect()
         return {name: out[name] for name in names}
 
@@ -323,7 +319,36 @@ class Device:
             if self.identity is not None:
                 self.identity = self.check_identity()
 
-    def _read_block(self, table: str, lo: int, hi: int, items: list[regs.Register]) -> dict[str, Value]:
+    def _read_spans(self, table: str, pending: list[regs.Register]) -> dict[str, Value]:
+        """`pending` (sorted by address) in requests of whole registers, each as long as the line carries now:
+        a noisy line garbles a long reply far more often than a short one (record_words), so a request the link
+        lost to garbled replies shrinks the next ones and its registers are asked for again, in shorter
+        requests. A request lost to silence (a link that is gone) is a LinkError at once, as before."""
+        out: dict[str, Value] = {}
+        bits, losses = table in ("coil", "discrete_input"), 0
+        while pending:
+            limit = MAX_READ_BITS if bits else min(MAX_READ_WORDS, record_words(self.transport))
+            size = 1
+            while size < len(pending) and pending[size].address + pending[size].words - pending[0].address <= limit:
+                size += 1
+            garbled = self._garbled_replies()
+            try:
+                out.update(self._read_block(table, pending[:size]))
+            except LinkError:
+                losses += 1
+                if size == 1 or losses > MAX_SPAN_LOSSES or self._garbled_replies() == garbled:
+                    raise
+                continue
+            pending = pending[size:]
+        return out
+
+    def _garbled_replies(self) -> int | None:
+        stats = getattr(self.transport, "stats", None)
+        return getattr(stats, "garbled_replies", None)
+
+    def _read_block(self, table: str, items: list[regs.Register]) -> dict[str, Value]:
+        """One request for the span of `items` (sorted by address)."""
+        lo, hi = items[0].address, max(r.address + r.words for r in items)
         if table in ("coil", "discrete_input"):
             data = [int(b) for b in self.transport.read_bits(table, lo, hi - lo)]
         else:

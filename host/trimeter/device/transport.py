@@ -66,14 +66,14 @@ MAX_WRITE_WORDS = 123
 MAX_READ_BITS = 2000
 MAX_FILE_RECORD_WORDS = 120  # FC 0x15: 1 + 7 + 2n <= 253 (one sub-request per frame)
 # A noisy line garbles a long frame far more often than a short one (a frame arrives whole with the per-byte
-# odds raised to its length): long transfers shrink their records while requests fail and grow them back
-# while they pass (record_words).
+# odds raised to its length): long transfers (file records, register spans) shrink their requests while
+# requests fail and grow them back while they pass (record_words).
 MIN_FILE_RECORD_WORDS = 8
 
 
 def record_words(transport: object) -> int:
-    """The words per file-record request for a long transfer over this transport now (its own estimate
-    where it keeps one, else the largest a frame holds)."""
+    """The words per request of a long transfer (file records, a span of registers) over this transport now
+    (its own estimate where it keeps one, else the largest a file-record frame holds)."""
     words = getattr(transport, "record_words", MAX_FILE_RECORD_WORDS)
     return words if isinstance(words, int) and MIN_FILE_RECORD_WORDS <= words <= MAX_FILE_RECORD_WORDS \
         else MAX_FILE_RECORD_WORDS
@@ -404,10 +404,11 @@ class RtuTransport:
     def read_words(self, table: str, address: int, count: int) -> list[int]:
         fc = TABLE_FUNCTION[table]
         method = {3: "read_holding_registers", 4: "read_input_registers"}[fc]
-        reply = self._execute(
-            f"a read of {count} {table}s at {address}", fc,
-            lambda c: getattr(c, method)(address, count=count, device_id=self.address),
-            lambda r: r.function_code == fc and len(r.registers) == count, 8, 5 + 2 * count, read="live")
+        with self._sizing_records():
+            reply = self._execute(
+                f"a read of {count} {table}s at {address}", fc,
+                lambda c: getattr(c, method)(address, count=count, device_id=self.address),
+                lambda r: r.function_code == fc and len(r.registers) == count, 8, 5 + 2 * count, read="live")
         return list(reply.registers)
 
     def write_bits(self, address: int, values: list[bool]) -> None:
@@ -447,7 +448,7 @@ class RtuTransport:
 
     @contextlib.contextmanager
     def _sizing_records(self) -> Iterator[None]:
-        """record_words after one file-record request: halved when it failed, or needed two or more tries
+        """record_words after one file-record or register read: halved when it failed, or needed two or more tries
         again (a garbled or missing reply); grown by a quarter when its first try passed."""
         failures_before = self.stats.garbled_replies + self.stats.timeouts
         try:
