@@ -36,3 +36,22 @@ def test_bad_options_are_refused(capsys, tmp_path):
                  ["--renders", str(tmp_path / "missing.json")]):
         assert main(["bench", "polarisation-tracer", *args]) == 2
         assert args[0] in capsys.readouterr().err
+
+
+def test_maps_readme_quotes_the_committed_run():
+    """maps/README.md's figures of the tracer's polarisation option are maps/polarisation-tracer.json's."""
+    from trimeter.paths import REPO_ROOT
+
+    run = json.loads((REPO_ROOT / "maps" / "polarisation-tracer.json").read_text())
+    readme = " ".join((REPO_ROOT / "maps" / "README.md").read_text().split())
+    assert "every figure in `maps/polarisation-tracer.json`" in readme
+    for t in run["slab"]["traced"]:
+        if t["factorised"]:
+            assert f"{t['R_d']:.4f} ± {t['stderr']:.4f}" in readme, t
+    for geo in run["geometries"]:
+        for r in geo["rows"]:
+            if r["background"] == "white":
+                quoted = f"{r['shift']:+.5f} ± {r['stderr_shift']:.5f}".replace("-", "−")
+                assert f"{r['material']} {quoted}" in readme, (geo["geometry"], r["material"])
+    for c in run["cost"]["columns"]:
+        assert f"{c['median_ratio']:.3f}" in readme and f"{c['fastest_ratio']:.3f}" in readme, c

@@ -65,7 +65,7 @@ def run(args: argparse.Namespace) -> int:
 
 def measure(args: argparse.Namespace) -> dict[str, Any]:
     """{"slab": the clear-slab check, "geometries": per geometry the materials' shifts, "cost": the timings}."""
-    from trimeter.paths import MAPS_DIR
+    from trimeter.paths import MAPS_DIR, REPO_ROOT
 
     if args.paths < 4096:
         raise InputError("--paths must be ≥ 4096")
@@ -81,8 +81,10 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
     except (OSError, ValueError) as exc:
         raise InputError(f"--renders {renders_path}: cannot read the polarisation bench's JSON ({exc})") from None
     geometries = ("ideal", "device") if args.geometry == "both" else (args.geometry,)
+    shown = Path(renders_path).resolve()
+    shown = shown.relative_to(REPO_ROOT) if shown.is_relative_to(REPO_ROOT) else shown
     report: dict[str, Any] = {"paths": args.paths, "batches": args.batches, "seed": args.seed,
-                              "series_orders": args.series_orders, "renders": str(renders_path),
+                              "series_orders": args.series_orders, "renders": str(shown),
                               "render_spp": renders.get("spp"), "slab": slab_check(4 * args.paths, args.seed),
                               "geometries": [shifts(geometry, renders, args.paths, args.batches, args.seed,
                                                     args.series_orders) for geometry in geometries],
@@ -128,23 +130,24 @@ def shifts(geometry: str, renders: dict, n_paths: int, batches: int, seed: int, 
     """Per TRACED material and reference background: the traced I (off), the traced shift on − off with its
     std-error over `batches` paired traces, and the renders' shifts."""
     from trimeter.bench.polarisation import MATERIALS
-    from trimeter.forward.transport import k_max_for, trace_column
+    from trimeter.forward.transport import N_BACKGROUND_ORDERS, k_max_for, trace_column
 
     amap, stack = _map_stack(geometry)
     rendered = {(r["material"], r["background"]): r for g in renders.get("geometries", ())
                 if g["geometry"] == geometry for r in g["rows"]}
-    orders = {"background_orders": series_orders} if series_orders and geometry == "device" else {}
+    series = bool(series_orders) and geometry == "device"
+    orders = series_orders if series else N_BACKGROUND_ORDERS
     rows = []
     for label, a, s, g in MATERIALS:
         if label not in TRACED:
             continue
         alpha = np.array([a])
-        I = {False: [], True: []}
+        I: dict[bool, list[list[float]]] = {False: [], True: []}
         for batch in range(batches):
             for polarisation in (False, True):
                 tally = trace_column(stack, s, g, n_paths, seed + batch, k_max_for(a, 1e-9), polarisation=polarisation,
-                                     **orders)
-                if orders:
+                                     background_orders=orders)
+                if series:
                     I[polarisation].append([float(tally.bounce_series(alpha, rho)[0][0])
                                             for rho in amap.reference_rhos])
                 else:
@@ -163,7 +166,7 @@ def shifts(geometry: str, renders: dict, n_paths: int, batches: int, seed: int, 
                            render_p_stderr=r["stderr_delta"])
                 row["z"] = (row["shift"] - row["render_d"]) / math.hypot(row["stderr_shift"], row["render_d_stderr"])
             rows.append(row)
-    return {"geometry": geometry, "map": amap.name, "orders": series_orders if orders else 2, "rows": rows}
+    return {"geometry": geometry, "map": amap.name, "orders": orders, "rows": rows}
 
 
 def cost(n_paths: int, repeats: int, seed: int) -> dict[str, Any]:

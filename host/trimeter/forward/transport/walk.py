@@ -5,6 +5,7 @@ side faces, termination), and the waves that run the loop and drop finished path
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 
@@ -131,7 +132,7 @@ class Walk:
         and the background), its new position and direction, and whether it ends there. The random
         numbers are drawn in one order (free flight, scattering, interface) whatever the event."""
         dr, L = self.dr, self.L
-        w = rest[0] if self.polarisation else None          # the s-share (see the class's docstring)
+        w: Any = rest[0] if self.polarisation else None     # the s-share (see the class's docstring)
         cv, rng = list(rest[int(self.polarisation):-1]), rest[-1]
         it = it + 1
         in_stack = li < L
