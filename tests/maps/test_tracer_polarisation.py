@@ -165,3 +165,29 @@ def test_the_polarisation_shift_matches_mitsubas_polarised_renders(geometry, lab
     render, error = row["delta_depolarising"], row["stderr_delta_depolarising"]
     assert abs(render) > 4 * error
     assert abs(shift - render) < 3 * math.hypot(error, own_error), (shift, own_error, render, error)
+
+
+def test_a_map_built_with_polarisation_records_it_and_differs_from_the_unpolarised_one(tiny_data, tmp_path):
+    """A recipe with `polarisation = true` builds a map whose stored recipe says so (and loads: the file
+    schema knows the flag), with another C (close to it) than the same recipe without it, from the same paths; a
+    stored flag that is not true/false is refused."""
+    from trimeter.errors import MapFileError
+    from trimeter.formats.appearance import MAP_KIND, AppearanceMap
+    from trimeter.formats.container import read_container, write_container
+    from trimeter.maps.builder import build_map
+    from trimeter.maps.recipe import parse_recipe
+
+    maps = {}
+    for polarisation in (False, True):
+        data = tiny_data()
+        data["polarisation"] = polarisation
+        maps[polarisation] = build_map(parse_recipe(data), tmp_path / f"{polarisation}.tmap", progress=False)
+    assert AppearanceMap.load(tmp_path / "True.tmap").recipe["polarisation"] is True
+    assert "polarisation" not in maps[False].recipe
+    assert not np.array_equal(maps[True].C, maps[False].C)
+    np.testing.assert_allclose(maps[True].C, maps[False].C, atol=0.02)
+    meta, arrays, _ = read_container(tmp_path / "True.tmap", MAP_KIND)
+    meta["recipe"]["polarisation"] = "yes"
+    write_container(tmp_path / "bad.tmap", MAP_KIND, meta, arrays)
+    with pytest.raises(MapFileError, match="polarisation"):
+        AppearanceMap.load(tmp_path / "bad.tmap")
