@@ -4,6 +4,7 @@ committed polarised renders, and its cost, at a small size; bad options are refu
 from __future__ import annotations
 
 import json
+import math
 
 from trimeter.cli import main
 
@@ -24,9 +25,10 @@ def test_the_bench_at_a_small_size_writes_every_figure(tmp_path, capsys):
     assert [(r["material"], r["background"]) for r in geo["rows"]] == [
         (m, b) for m in ("clear", "thin") for b in ("black", "white")]
     for r in geo["rows"]:
-        assert r["stderr_shift"] > 0 and "render_d" in r and abs(r["z"]) < 6
+        assert r["stderr_shift"] > 0 and "render_d" in r and math.isfinite(r["z"])
     white = [r for r in geo["rows"] if r["background"] == "white"]
-    assert all(r["shift"] > 0 for r in white)     # the ideal geometry's renders: I rises on white
+    # the ideal geometry's renders: I rises on white, by ~0.001 (this size: ±0.0003)
+    assert all(r["shift"] > 0 and abs(r["z"]) < 5 for r in white), white
     assert [c["sigma_t"] for c in report["cost"]["columns"]] == [0.2, 20.0]
     assert all(c["median_ratio"] > 0 for c in report["cost"]["columns"])
 
