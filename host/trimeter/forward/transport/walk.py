@@ -58,7 +58,7 @@ class Walk:
     (an analog choice, so its intensity stays unbiased at weight 1), then w ← w·R_s / P after a
     reflection, w ← w·T_s / (1 − P) after a refraction (T = 1 − R). w is reset to 1/2 at a scattering, at
     the background's bounce and at a side face: there the plane of incidence is another one, and the
-    faces' own (unpolarised) reflectance is used; an approximation, where little light goes. The
+    faces' own (unpolarised) reflectance is used; an approximation (maps/README.md: how much it moves). The
     detector's path starts unpolarised too: the adjoint of a polarisation-blind detector, and the first
     face is crossed at normal incidence, where s and p reflect alike. The adjoint walk gives the forward
     one's intensity because each interface acts on (s, p) intensities by the same diagonal factors
