@@ -39,7 +39,8 @@ def test_shipped_recipes_parse_with_the_documented_axes():
     ({"sampling": {"min_paths": 65536, "max_paths": 4096}}, "sampling.max_paths"),
     ({"sampling": {"truncation": 2}}, "sampling.truncation"),
     ({"name": "a\0b"}, "name"), ({"name": "a\nb"}, "name"), ({"name": "a\\b"}, "name"), ({"name": ".."}, "name"),
-    ({"name": "x" * 201}, "name"), ({"name": 5}, "name"),
+    ({"name": "x" * 201}, "name"), ({"name": 5}, "name"), ({"polarisation": "yes"}, "polarisation"),
+    ({"polarisation": 1}, "polarisation"),
 ])
 def test_impossible_values_are_refused_naming_the_field(change, field, tiny_data):
     data = tiny_data()
@@ -87,3 +88,39 @@ def test_the_fingerprint_ignores_last_bit_noise_in_generated_axes_but_not_a_real
         changed = copy.deepcopy(stored)
         change(changed)
         assert recipe_fingerprint(changed) != recipe_fingerprint(stored)
+
+
+def test_polarisation_is_off_unless_asked_and_only_then_in_the_stored_recipe(tiny_data):
+    """The tracer's polarisation option: off by default, and then absent from the stored recipe (so every
+    map built before it keeps its fingerprint); on, stored and part of the fingerprint."""
+    from trimeter.maps.builder import recipe_fingerprint
+
+    plain = parse_recipe(tiny_data())
+    assert plain.polarisation is False and "polarisation" not in plain.to_dict()
+    data = tiny_data()
+    data["polarisation"] = True
+    polarised = parse_recipe(data)
+    assert polarised.polarisation is True and polarised.to_dict()["polarisation"] is True
+    assert recipe_fingerprint(polarised) != recipe_fingerprint(plain)
+    data["polarisation"] = False
+    assert recipe_fingerprint(parse_recipe(data)) == recipe_fingerprint(plain)
+
+
+@pytest.mark.parametrize("polarisation", [False, True])
+def test_the_builder_passes_the_polarisation_option_to_the_tracer(tiny_data, polarisation):
+    from trimeter.forward.transport import Stack
+    from trimeter.forward.transport import trace_column as traced
+    from trimeter.maps.builder import trace_column
+
+    data = tiny_data()
+    data["polarisation"] = polarisation
+    recipe = parse_recipe(data)
+    seen = []
+
+    def tracer(stack, sigma_t, g, n_paths, seed, k_max, **options):
+        seen.append(options)
+        return traced(stack, sigma_t, g, n_paths, seed, k_max, **options)
+
+    trace_column(recipe, Stack.from_recipe("ideal", recipe.geometry_params, recipe.n, recipe.thickness_mm), 0, 0,
+                 tracer)
+    assert seen and all(options == ({"polarisation": True} if polarisation else {}) for options in seen)

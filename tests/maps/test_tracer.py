@@ -367,7 +367,7 @@ def test_a_bounce_series_control_variate_predicts_the_returns_it_replaces(monkey
     seen = {}
     real = series_module.returns_control_variate
 
-    def spy(dr, B, stack, sigma_t, seed, straight_through, final, second_bounce, at, value):
+    def spy(dr, B, stack, sigma_t, seed, straight_through, final, second_bounce, at, value, polarisation=False):
         bounced, returned = np.flatnonzero(final["m"] >= 1), at[final["reflections"][at] == 1]
         x1, y1 = final["bounce_x"].astype(float), final["bounce_y"].astype(float)
         rng = np.random.default_rng(1)
@@ -384,7 +384,7 @@ def test_a_bounce_series_control_variate_predicts_the_returns_it_replaces(monkey
         distance = np.hypot(second_bounce["x"][returned] - x1[returned], second_bounce["y"][returned] - y1[returned])
         seen.update(expected=total, returned=len(returned), predicted=moment / total, mean=distance.mean(),
                     sem=distance.std(ddof=1) / math.sqrt(len(returned)))
-        return real(dr, B, stack, sigma_t, seed, straight_through, final, second_bounce, at, value)
+        return real(dr, B, stack, sigma_t, seed, straight_through, final, second_bounce, at, value, polarisation)
 
     monkeypatch.setattr(series_module, "returns_control_variate", spy)
     device = Stack.from_recipe("device", load_geometry("device"), N, 0.8)

@@ -31,7 +31,7 @@ import numpy as np
 from trimeter.errors import InputError, MapFileError
 from trimeter.formats.container import read_container, write_container
 from trimeter.formats.schema import (GEOMETRY_PARAMS, PROVENANCE, REFLECTANCE, SAMPLE_N, THICKNESS_MM, ArraySpec,
-                                  ContainerSchema, Table, Text)
+                                  ContainerSchema, Flag, Table, Text)
 from trimeter.formats.stages import rebuild_command
 from trimeter.model.grid import ForwardGrid, node_model_variance
 from trimeter.model.inscatter_table import InscatterTable
@@ -52,7 +52,7 @@ MAP_SCHEMA = ContainerSchema(
     meta=Table({"recipe": Table({"geometry": Text(max_len=64), "n": SAMPLE_N, "thickness_mm": THICKNESS_MM,
                                  "name": Text(max_len=256), "description": Text(max_len=4096),
                                  "reference_rho_b": REFLECTANCE, "reference_rho_w": REFLECTANCE,
-                                 "geometry_params": GEOMETRY_PARAMS},
+                                 "geometry_params": GEOMETRY_PARAMS, "polarisation": Flag()},
                                 required=("geometry", "n", "thickness_mm"),
                                 rules=((lambda r: r.get("reference_rho_b", 0.0) < r.get("reference_rho_w", 1.0),
                                         "reference_rho_b must be below reference_rho_w"),)),

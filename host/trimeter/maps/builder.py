@@ -76,8 +76,9 @@ def trace_column(recipe: Recipe, stack: Stack, j: int, k: int, tracer: Callable 
     sigma_t, g = float(recipe.sigma_t[j]), float(recipe.g[k])
     tally: ColumnTally | None = None
     batch, n_next = 0, s.min_paths
+    options = {"polarisation": True} if recipe.polarisation else {}   # only when on: any tracer without it still serves
     while n_next > 0:
-        part = tracer(stack, sigma_t, g, n_next, column_seed(recipe.seed, j, k, batch), k_max)
+        part = tracer(stack, sigma_t, g, n_next, column_seed(recipe.seed, j, k, batch), k_max, **options)
         if tally is None:
             tally = part
         else:

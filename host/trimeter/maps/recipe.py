@@ -7,6 +7,7 @@
     reference_rho_b = 0.02          # backgrounds at which per-point std-errors are reported
     reference_rho_w = 0.9
     seed = 1
+    polarisation = false            # optional: track s and p at the interfaces (Walk's model; off: unpolarised Fresnel)
 
     [grid]
     alpha = { max = 0.999, count = 40 }            # 0 … max, log-spaced in 1 − α (finer near 1)
@@ -40,7 +41,7 @@ from trimeter.model.response import REFERENCE_RHOS
 from trimeter.validation import require_number, require_reflectance, require_sample
 
 _TOP_KEYS = {"name", "geometry", "n", "thickness_mm", "reference_rho_b", "reference_rho_w", "seed", "grid",
-             "sampling", "description"}
+             "sampling", "description", "polarisation"}
 _SAMPLING_DEFAULTS = {"target_stderr": 5e-4, "min_paths": 131072, "max_paths": 2097152, "truncation": 1e-5,
                       "target_alpha_stderr": None}
 
@@ -76,14 +77,20 @@ class Recipe:
     seed: int = 1
     sampling: Sampling = field(default_factory=Sampling)
     description: str = ""
+    # the tracer's `polarisation` option (trimeter.forward.transport.walk.Walk)
+    polarisation: bool = False
 
     def to_dict(self) -> dict:
-        """The recipe as stored in a map's metadata (the keys AppearanceMap relies on included)."""
-        return {"name": self.name, "description": self.description, "geometry": self.geometry,
-                "geometry_params": self.geometry_params, "n": self.n, "thickness_mm": self.thickness_mm,
-                "reference_rho_b": self.reference_rho_b, "reference_rho_w": self.reference_rho_w,
-                "seed": self.seed, "sampling": self.sampling.to_dict(),
-                "grid": {"alpha": self.alpha.tolist(), "sigma_t": self.sigma_t.tolist(), "g": self.g.tolist()}}
+        """The recipe as stored in a map's metadata (the keys AppearanceMap relies on included);
+        `polarisation` only when on, so recipes without it keep their fingerprint."""
+        out = {"name": self.name, "description": self.description, "geometry": self.geometry,
+               "geometry_params": self.geometry_params, "n": self.n, "thickness_mm": self.thickness_mm,
+               "reference_rho_b": self.reference_rho_b, "reference_rho_w": self.reference_rho_w,
+               "seed": self.seed, "sampling": self.sampling.to_dict(),
+               "grid": {"alpha": self.alpha.tolist(), "sigma_t": self.sigma_t.tolist(), "g": self.g.tolist()}}
+        if self.polarisation:
+            out["polarisation"] = True
+        return out
 
     @property
     def shape(self) -> tuple[int, int, int]:
@@ -114,6 +121,9 @@ def parse_recipe(data: dict, default_name: str = "map") -> Recipe:
     rho_w = require_reflectance("reference_rho_w", data.get("reference_rho_w", REFERENCE_RHOS[1]))
     seed = int(require_number("seed", data.get("seed", 1), lo=0, hi=2**31 - 1))
     name = data.get("name", default_name)
+    polarisation = data.get("polarisation", False)
+    if not isinstance(polarisation, bool):
+        raise InputError(f"polarisation must be true or false, got {polarisation!r}")
     # the name becomes a file and checkpoint directory name: nothing a file system refuses or reads as a path
     if not isinstance(name, str) or not name or len(name) > 200 or name in (".", "..") \
             or any(c in "/\\" or ord(c) < 0x20 or ord(c) == 0x7F for c in name):
@@ -156,7 +166,7 @@ def parse_recipe(data: dict, default_name: str = "map") -> Recipe:
                          f"({sampling.min_paths})")
     return Recipe(name=name, geometry=geometry, geometry_params=load_geometry(geometry), n=n, thickness_mm=thickness,
                   reference_rho_b=rho_b, reference_rho_w=rho_w, alpha=alpha, sigma_t=sigma_t, g=g, seed=seed,
-                  sampling=sampling, description=str(data.get("description", "")))
+                  sampling=sampling, description=str(data.get("description", "")), polarisation=polarisation)
 
 
 def _axis(field_name: str, spec: object, generator: Callable[[str, dict, int], np.ndarray]) -> np.ndarray:

@@ -47,7 +47,7 @@ def fresnel(xp: Any, cos_i: Any, eta: Any) -> tuple[Any, Any]:
 
 def fresnel_polarised(xp: Any, cos_i: Any, eta: Any) -> tuple[Any, Any, Any]:
     """`fresnel` per polarisation: (R_s, R_p, cos_t), light polarised perpendicular (s) and parallel (p) to the
-    plane of incidence; F = (R_s + R_p) / 2. The tracer does not use it (it traces unpolarised light)."""
+    plane of incidence; F = (R_s + R_p) / 2 (the map tracer's `polarisation` option)."""
     rs, rp, cos_t, tir = _amplitudes(xp, cos_i, eta)
     return xp.select(tir, 1.0, rs * rs), xp.select(tir, 1.0, rp * rp), cos_t
 

@@ -73,6 +73,11 @@ their light this way). Rays rising from that rim towards the stack meet its side
 interface (the stack shades the rim from the far panel), and a next-event estimate from the rim counts
 only directions that pass the stack without entering it.
 
+Fresnel reflection is unpolarised at every interface unless `trace_column(..., polarisation=True)` (a
+recipe's `polarisation = true`): then a path carries the s-share of its intensity between scatterings and
+the estimators take the s and p chains apart (the model and its limits: walk.Walk; its checks and cost:
+maps/README.md). The shipped maps are traced without it.
+
 The package, by concern: `scene` (the stack, its surroundings and lights; intersections), `sampling`
 (random streams and directions), `walk` (one step of every path, the symbolic loop in waves),
 `estimators` (next-event estimates and the control variates' expectations), `series` (a bounce

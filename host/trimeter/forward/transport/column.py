@@ -20,7 +20,8 @@ TRACE_CHUNK = 1 << 24
 def trace_column(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max: int,
                  below_fraction: float | None = None, backend: str = "llvm",
                  control_variates: bool = True, factorise: bool | None = None,
-                 background_orders: int = N_BACKGROUND_ORDERS, white_rho: float = REFERENCE_RHOS[1]) -> ColumnTally:
+                 background_orders: int = N_BACKGROUND_ORDERS, white_rho: float = REFERENCE_RHOS[1],
+                 polarisation: bool = False) -> ColumnTally:
     """Detector paths for one (σt, g), and for C either (a fraction as many) background paths or the
     detector paths' own later background orders (ColumnTally); seeds derived from `seed`; in chunks of
     at most TRACE_CHUNK paths (memory), chunk i > 0 seeded with mix64(seed + i).
@@ -34,7 +35,8 @@ def trace_column(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int
     `backend`: "llvm" or "cuda" (resolve_backend); the same seed gives the same paths on either, up to
     the backends' floating-point differences. `factorise` (B = UT1·UTU, see ColumnTally): None = where
     it is exact (Stack.factorises); True elsewhere is an InputError; False: detector paths carry on
-    past the background (comparisons)."""
+    past the background (comparisons). `polarisation`: the two polarisations tracked at the interfaces
+    (Walk's docstring has the model; off, the default and the shipped maps', unpolarised Fresnel)."""
     n_paths = int(n_paths)
     if factorise is None:
         factorise = stack.factorises
@@ -50,18 +52,20 @@ def trace_column(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int
         n = min(TRACE_CHUNK, n_paths - start)
         s = seed if i == 0 else mix64(seed + i)
         above = trace(stack, sigma_t, g, n, s, k_max, backend=backend, control_variates=control_variates,
-                      factorise=factorise, background_orders=background_orders)
+                      factorise=factorise, background_orders=background_orders, polarisation=polarisation)
         if background_orders > N_BACKGROUND_ORDERS:
             parts.append(ColumnTally(above, None, white_rho=white_rho))
             continue
         share = below_fraction if below_fraction is not None else 1 / BELOW_PILOT
         below = trace(stack, sigma_t, g, max(1024, int(n * share)), mix64(s ^ 0xB0B0B0B0), k_max,
-                      from_below=True, backend=backend, control_variates=control_variates, factorise=factorise)
+                      from_below=True, backend=backend, control_variates=control_variates, factorise=factorise,
+                      polarisation=polarisation)
         if below_fraction is None:
             more = int(n * below_share(above, below, factorised=factorise)) - below.n_paths
             if more > 0:
                 below += trace(stack, sigma_t, g, max(1024, more), mix64(s ^ 0xB0B0B0B1), k_max, from_below=True,
-                               backend=backend, control_variates=control_variates, factorise=factorise)
+                               backend=backend, control_variates=control_variates, factorise=factorise,
+                               polarisation=polarisation)
         parts.append(ColumnTally(above, below, factorised=factorise, white_rho=white_rho))
     total = parts[0]  # the range above has at least one chunk
     for part in parts[1:]:

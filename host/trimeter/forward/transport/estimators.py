@@ -11,7 +11,7 @@ import numpy as np
 
 from trimeter.forward.transport.sampling import cosine_direction
 from trimeter.forward.transport.scene import Stack, sees_panel
-from trimeter.model.fresnel import NUMPY, fresnel, normal_incidence_reflectance
+from trimeter.model.fresnel import NUMPY, fresnel, fresnel_polarised, normal_incidence_reflectance
 
 
 def clean_pass_probability(stack: Stack, sigma_t: float) -> float:
@@ -30,12 +30,14 @@ def clean_pass_probability(stack: Stack, sigma_t: float) -> float:
 PLAIN_RETURN_ITERATIONS = 24
 
 
-def plain_return(stack: Stack, sigma_t: float) -> tuple[float, float]:
+def plain_return(stack: Stack, sigma_t: float, polarisation: bool = False) -> tuple[float, float]:
     """(μ_min, E): background paths leaving at cosθ ≥ μ_min that return unscattered within
     PLAIN_RETURN_ITERATIONS iterations never meet a side face or the background's edge (their sideways
     travel is bounded), so the probability of that return is the same as for an infinite stack; E is
     its expectation over the cosine-distributed start, ∫ P(μ) 2μ dμ over [μ_min, 1], P from the
-    layers' Fresnel reflectances and the sample's Beer-Lambert attenuation, iteration by iteration."""
+    layers' Fresnel reflectances and the sample's Beer-Lambert attenuation, iteration by iteration.
+    `polarisation` (Walk's): P for s and p light each, averaged (the background's light is unpolarised,
+    and an unscattered path meets only faces parallel to one another, where the two never mix)."""
     n_layers = len(stack.layer_n)
     layer_n = np.array(stack.layer_n, dtype=float)
     depth = -np.diff(np.asarray(stack.plane_z, dtype=float))
@@ -66,10 +68,24 @@ def plain_return(stack: Stack, sigma_t: float) -> tuple[float, float]:
     media = np.concatenate([[1.0], layer_n, [1.0]])
     cos_media = np.vstack([mu, cos_l, mu])
     # interface i lies between medium i (above) and i + 1 (below); F is the same from either side
-    reflectance = np.array([fresnel(NUMPY, cos_media[i], media[i + 1] / media[i])[0] for i in range(n_layers + 1)])
-    up, down = np.zeros((n_layers + 1, len(mu))), np.zeros((n_layers + 1, len(mu)))   # index n_layers: the gap
+    if polarisation:
+        per_face = [fresnel_polarised(NUMPY, cos_media[i], media[i + 1] / media[i]) for i in range(n_layers + 1)]
+        returned = np.mean([_returned(np.array([face[which] for face in per_face]), survive, n_layers, steps)
+                            for which in (0, 1)], axis=0)
+    else:
+        reflectance = np.array([fresnel(NUMPY, cos_media[i], media[i + 1] / media[i])[0]
+                                for i in range(n_layers + 1)])
+        returned = _returned(reflectance, survive, n_layers, steps)
+    return min_cos, float(np.sum(weights * returned * 2 * mu))
+
+
+def _returned(reflectance: np.ndarray, survive: np.ndarray, n_layers: int, steps: int) -> np.ndarray:
+    """plain_return's probability per start cosine of coming back within `steps` iterations, from the
+    faces' reflectances (face, μ) and the layers' survival (layer, μ)."""
+    shape = (n_layers + 1, survive.shape[1])
+    up, down = np.zeros(shape), np.zeros(shape)      # index n_layers: the gap
     up[n_layers] = 1.0
-    returned = np.zeros(len(mu))
+    returned = np.zeros(survive.shape[1])
     for _ in range(steps):
         returned += down[n_layers]
         new_up, new_down = np.zeros_like(up), np.zeros_like(down)
@@ -83,7 +99,7 @@ def plain_return(stack: Stack, sigma_t: float) -> tuple[float, float]:
             if layer > 0:
                 new_up[layer - 1] += going_up * (1 - reflectance[layer])
         up, down = new_up, new_down
-    return min_cos, float(np.sum(weights * returned * 2 * mu))
+    return returned
 
 
 @functools.cache
@@ -101,7 +117,9 @@ def straight_through(walk, px, py, u_a, u_b):
     direction towards a point drawn uniformly on one panel (chosen by u_a) enlarged by the walk's
     `margin`, which holds every point the refracted ray can reach; ideal: a cosine-distributed
     direction. Value = (cos/π)/pdf · transmittance · reached the light. Dr.Jit arrays of the walk's
-    backend."""
+    backend. With the walk's `polarisation`, the Fresnel transmittance is the mean of the s and p
+    chains' products (the background's light is unpolarised; faces parallel to one another keep the
+    two apart, so that is exact); the reflected rest is the paths' own (Walk.step)."""
     dr, Float, Bool, UInt32 = walk.dr, walk.Float, walk.Bool, walk.UInt32
     stack, planes, W = walk.stack, walk.planes, walk.W
     if stack.panels:
@@ -136,13 +154,19 @@ def straight_through(walk, px, py, u_a, u_b):
     hits_stack = (dr.abs(qx) <= W) & (dr.abs(qy) <= W) if walk.finite else Bool(True)
     sin2 = ex * ex + ey * ey                    # n·sinθ is the same in every layer
     transmit = Float(1.0)
+    pol = walk.polarisation
+    transmit_s = transmit_p = Float(1.0)        # polarisation: the Fresnel part per polarisation; `transmit` the rest
     inside = Bool(True)
     n_before = 1.0
     for layer in range(walk.L - 1, -1, -1):     # bottom layer first
         n_l = walk.layer_n[layer]
         cos_before = dr.safe_sqrt(1 - sin2 / (n_before * n_before))
-        F, cos_l = fresnel(dr, cos_before, n_l / n_before)
-        transmit *= 1 - F
+        if pol:
+            R_s, R_p, cos_l = fresnel_polarised(dr, cos_before, n_l / n_before)
+            transmit_s, transmit_p = transmit_s * (1 - R_s), transmit_p * (1 - R_p)
+        else:
+            F, cos_l = fresnel(dr, cos_before, n_l / n_before)
+            transmit *= 1 - F
         depth = planes[layer] - planes[layer + 1]
         shift = depth / (n_l * cos_l)           # horizontal step per unit of the air direction's (x, y)
         qx, qy = qx + shift * ex, qy + shift * ey
@@ -151,8 +175,12 @@ def straight_through(walk, px, py, u_a, u_b):
         if walk.finite:
             inside &= (dr.abs(qx) <= W) & (dr.abs(qy) <= W)
         n_before = n_l
-    F, _ = fresnel(dr, dr.safe_sqrt(1 - sin2 / (n_before * n_before)), 1.0 / n_before)
-    transmit *= 1 - F
+    if pol:
+        R_s, R_p, _ = fresnel_polarised(dr, dr.safe_sqrt(1 - sin2 / (n_before * n_before)), 1.0 / n_before)
+        transmit = transmit * 0.5 * (transmit_s * (1 - R_s) + transmit_p * (1 - R_p))
+    else:
+        F, _ = fresnel(dr, dr.safe_sqrt(1 - sin2 / (n_before * n_before)), 1.0 / n_before)
+        transmit *= 1 - F
     qz = dr.select(hits_stack, planes[0], stack.background_z)
     qx, qy = dr.select(hits_stack, qx, px), dr.select(hits_stack, qy, py)
     transmit = dr.select(hits_stack, transmit, 1.0)

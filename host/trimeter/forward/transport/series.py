@@ -13,7 +13,7 @@ from trimeter.forward.transport.sampling import mix64
 from trimeter.forward.transport.scene import Stack
 from trimeter.forward.transport.tally import N_BACKGROUND_ORDERS, Tally, detector_path_variance, detector_sums
 from trimeter.forward.transport.walk import CARRIED, LOOP_STATE, OUTCOME
-from trimeter.model.fresnel import fresnel
+from trimeter.model.fresnel import fresnel, fresnel_polarised
 from trimeter.model.response import REFERENCE_RHOS
 
 LATER_WAVES = 4
@@ -54,7 +54,7 @@ def continuation_share(n_paths: int, first_terms, first_iterations: int, later_t
 
 
 def returns_control_variate(dr, B, stack: Stack, sigma_t: float, seed: int, straight_through, final: dict,
-                             second_bounce: dict, at, value):
+                             second_bounce: dict, at, value, polarisation: bool = False):
     """A bounce series' control variate for its noisiest outcome: whether a path comes back to the
     background after its first bounce (for a clear sample mostly a Fresnel reflection off the stack's
     back face). `at`: the paths that reached their 2nd bounce, `value` their next-event estimates
@@ -62,17 +62,19 @@ def returns_control_variate(dr, B, stack: Stack, sigma_t: float, seed: int, stra
     since its first bounce, `second_bounce`: where the paths landed) has its estimate replaced by the
     expectation of it given its first bounce's position (_expected_plain_returns, for every path that
     bounced). Returns the estimates without those paths', and the expectation per path (α^k at the
-    first bounce's k, row 2)."""
+    first bounce's k, row 2). `polarisation`: the walk's (single_reflection_returns)."""
     value = np.where(final["reflections"][at] == 1, 0.0, value)
     expected = np.zeros(len(final["m"]))
     bounced = np.flatnonzero(final["m"] >= 1)
     if len(bounced):
         expected[bounced] = _expected_plain_returns(dr, B, stack, sigma_t, seed, straight_through,
-                                                    final["bounce_x"][bounced], final["bounce_y"][bounced])
+                                                    final["bounce_x"][bounced], final["bounce_y"][bounced],
+                                                    polarisation)
     return value, expected
 
 
-def _expected_plain_returns(dr, B, stack: Stack, sigma_t: float, seed: int, straight_through, x, y):
+def _expected_plain_returns(dr, B, stack: Stack, sigma_t: float, seed: int, straight_through, x, y,
+                            polarisation: bool = False):
     """A bounce series' control variate for its noisiest outcome: whether a path comes back to the
     background after its first bounce (for a clear sample mostly a Fresnel reflection off the stack's
     back face). A path that came back by exactly one reflection and nothing else has its second
@@ -90,7 +92,7 @@ def _expected_plain_returns(dr, B, stack: Stack, sigma_t: float, seed: int, stra
         u1, u2, pick_u, u, v = (rng.next_float32() for _ in range(5))
         r, phi = dr.sqrt(u1), 2 * math.pi * u2
         P, landings = single_reflection_returns(dr, stack, sigma_t, xs, ys, r * dr.cos(phi), r * dr.sin(phi),
-                                                 dr.safe_sqrt(1 - u1))
+                                                 dr.safe_sqrt(1 - u1), polarisation)
         total = P[0]
         for p in P[1:]:
             total = total + p
@@ -111,19 +113,22 @@ def _expected_plain_returns(dr, B, stack: Stack, sigma_t: float, seed: int, stra
 RETURN_DIRECTIONS = 2
 
 
-def single_reflection_returns(dr, stack: Stack, sigma_t: float, x, y, dx, dy, dz):
+def single_reflection_returns(dr, stack: Stack, sigma_t: float, x, y, dx, dy, dz, polarisation: bool = False):
     """For rays leaving the background at (x, y) upward in direction (dx, dy, dz) (Dr.Jit arrays of one
     backend): per interface i of the stack (0 = its bottom face … L = its top face), the probability
     P_i that the ray comes back to the background after one Fresnel reflection there and nothing else
     (refracted through the interfaces below it both ways, unscattered, past no side face, landing on
     the background), and where it lands: ([P_i], [(x_i, y_i)]). The ray's way up and down is
     symmetric, so P_i = F_i·(transmittance up to i)², and it stays over the footprint if its entry,
-    the reflection and its exit do (each leg is monotonic sideways)."""
+    the reflection and its exit do (each leg is monotonic sideways). `polarisation` (Walk's): P_i =
+    (R_s,i·T_s² + R_p,i·T_p²)/2 with each polarisation's transmittance T up to i (the background's light is
+    unpolarised, and the faces, parallel to one another, keep s and p apart)."""
     n_layers = len(stack.layer_n)
     W, WB = stack.stack_half_width, stack.background_half_width
     sin2 = dr.maximum(1 - dz * dz, 0.0)
     gap = (stack.plane_z[-1] - stack.background_z) / dz     # sideways travel per unit of (dx, dy)
     step, transmit = gap, dr.ones(type(dz), dr.width(dz))
+    transmit_s = transmit_p = transmit          # polarisation: per polarisation, instead of `transmit`
     cos_below, n_below = dz, 1.0
 
     def over(px, py, half):
@@ -134,20 +139,32 @@ def single_reflection_returns(dr, stack: Stack, sigma_t: float, x, y, dx, dy, dz
     for i in range(n_layers + 1):
         layer = n_layers - i                     # the medium above interface i: layer − 1, or air at 0
         n_above = stack.layer_n[layer - 1] if layer >= 1 else 1.0
-        F, _ = fresnel(dr, cos_below, n_above / n_below)
+        if polarisation:
+            R_s, R_p, _ = fresnel_polarised(dr, cos_below, n_above / n_below)
+        else:
+            F, _ = fresnel(dr, cos_below, n_above / n_below)
         land_x, land_y = x + 2 * step * dx, y + 2 * step * dy
         ok = (entry_ok & over(x + step * dx, y + step * dy, W) & over(land_x - gap * dx, land_y - gap * dy, W)
               & over(land_x, land_y, WB))
-        P.append(dr.select(ok, F * transmit * transmit, 0.0))
+        if polarisation:
+            P.append(dr.select(ok, 0.5 * (R_s * transmit_s * transmit_s + R_p * transmit_p * transmit_p), 0.0))
+        else:
+            P.append(dr.select(ok, F * transmit * transmit, 0.0))
         landings.append((land_x, land_y))
         if layer >= 1:                           # on through layer − 1 to the next interface up
             li = layer - 1
             n_l = stack.layer_n[li]
             cos_l = dr.safe_sqrt(1 - sin2 / (n_l * n_l))
             depth = stack.plane_z[li] - stack.plane_z[li + 1]
-            transmit = transmit * (1 - F)
-            if li == stack.sample_layer:
-                transmit = transmit * dr.exp(-sigma_t * depth / cos_l)
+            if polarisation:
+                transmit_s, transmit_p = transmit_s * (1 - R_s), transmit_p * (1 - R_p)
+                if li == stack.sample_layer:
+                    beer = dr.exp(-sigma_t * depth / cos_l)
+                    transmit_s, transmit_p = transmit_s * beer, transmit_p * beer
+            else:
+                transmit = transmit * (1 - F)
+                if li == stack.sample_layer:
+                    transmit = transmit * dr.exp(-sigma_t * depth / cos_l)
             step = step + depth / (n_l * cos_l)
             cos_below, n_below = cos_l, n_l
     return P, landings
@@ -166,7 +183,7 @@ def trace_on(walk, passes, seed: int, n_paths: int, terms: list, own):
     if walk.returns_cv:
         value, expected = returns_control_variate(walk.dr, walk.B, walk.stack, walk.sigma_t_value, seed,
                                                   functools.partial(straight_through, walk), final, cut_record, at,
-                                                  value)
+                                                  value, walk.polarisation)
         terms.append((every, final["nee_k"], expected, N_BACKGROUND_ORDERS))
     terms.append((at, k_np[at], value, N_BACKGROUND_ORDERS))
     first = [*terms, (every, k_np.copy(), np.where(m_np < N_BACKGROUND_ORDERS, own, 0.0), m_np.copy())]
@@ -235,8 +252,9 @@ def go_on(walk, passes, paths, record, k_at, m_at):
                      **{name: dr.zeros(Float, n) for name in ("bounce_x", "bounce_y", "nee_u", "nee_v")})
         walk.stop_at(bounce + 1)
         # few paths: longer waves, fewer of each wave's fixed costs (tracing the loop, launching it)
-        current, next_record = walk.run([start[name] for name in LOOP_STATE] + [rng], OUTCOME,
-                                        bounce + 1 if bounce + 1 < walk.orders else None, LATER_WAVES * walk.wave)
+        state = [start[name] for name in LOOP_STATE] + walk.polarisation_start(n) + [rng]
+        current, next_record = walk.run(state, OUTCOME, bounce + 1 if bounce + 1 < walk.orders else None,
+                                        LATER_WAVES * walk.wave)
         for name in ("k", "m", "hit", "light"):
             if name in current:
                 passes.final[name][paths] = current[name]

@@ -36,7 +36,7 @@ class Passes:
 def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max: int, wave: int = 48,
           from_below: bool = False, backend: str = "llvm", control_variates: bool = True,
           factorise: bool = False, next_event: bool = True,
-          background_orders: int = N_BACKGROUND_ORDERS) -> Tally:
+          background_orders: int = N_BACKGROUND_ORDERS, polarisation: bool = False) -> Tally:
     """Trace `n_paths` adjoint paths from the detector at extinction σt [1/mm] and HG anisotropy g;
     or, `from_below`, paths leaving the background (under the detector spot) cosine-distributed
     upward, tallying those that come back to the background (row 0) — the C coefficient.
@@ -46,14 +46,15 @@ def trace(stack: Stack, sigma_t: float, g: float, n_paths: int, seed: int, k_max
     of a next-event estimate at the first bounce (no control variates either, they build on it).
     `background_orders`: detector paths stop at that background bounce (rows m < it; not factorised);
     beyond 2 (a bounce series, with next-event estimates), past their 2nd bounce in passes, with
-    roulette (see the package's docstring)."""
+    roulette (see the package's docstring).
+    `polarisation`: the two polarisations tracked at the interfaces (Walk's docstring has the model)."""
     if background_orders < N_BACKGROUND_ORDERS or (factorise and background_orders != N_BACKGROUND_ORDERS):
         raise InputError(f"background_orders must be ≥ {N_BACKGROUND_ORDERS} (and {N_BACKGROUND_ORDERS} for a "
                          f"factorised column), got {background_orders}")
     t0 = time.perf_counter()
     walk = Walk(stack, sigma_t, g, k_max, wave=wave, from_below=from_below, backend=backend,
                 control_variates=control_variates, factorise=factorise, next_event=next_event,
-                background_orders=background_orders)
+                background_orders=background_orders, polarisation=polarisation)
     state, start_cos = _start(walk, n_paths, seed)
     walk.stop_at(min(walk.orders, N_BACKGROUND_ORDERS) if walk.series else walk.orders)
     passes = _first_pass(walk, state)
@@ -114,7 +115,7 @@ def _start(walk: Walk, n_paths: int, seed: int):
     reach2 = dr.zeros(Float, n_paths)
     escape = dr.full(Bool, False, n_paths)
     state = [x, y, z, dx, dy, dz, li, k, m, it, alive, hit, nee_k, bounce_x, bounce_y, nee_u, nee_v, straight, clean,
-             x0, y0, reach2, escape, *cv_state, rng]
+             x0, y0, reach2, escape, *walk.polarisation_start(n_paths), *cv_state, rng]
     return state, start_cos
 
 
@@ -139,7 +140,7 @@ def _background_tally(walk: Walk, passes: Passes, n_paths: int, start_cos) -> Ta
     if start_cos is not None:  # control variates on
         # The light the stack's interfaces send straight back (no scattering, few reflections):
         # its expectation is a 1-D integral, so those paths' 0/1 outcomes are replaced by it.
-        min_cos, expected = plain_return(walk.stack, walk.sigma_t_value)
+        min_cos, expected = plain_return(walk.stack, walk.sigma_t_value, walk.polarisation)
         plain = hit_np & (k_np == 0) & (passes.it_total <= PLAIN_RETURN_ITERATIONS) & (start_cos >= min_cos)
         counts, second = background_sums(k_np, hit_np & ~plain)
         counts, second = add_constant(counts, second, n_paths, expected, row=0)

@@ -5,6 +5,7 @@ side faces, termination), and the waves that run the loop and drop finished path
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 
@@ -12,13 +13,14 @@ from trimeter.forward.transport.backend import load_drjit
 from trimeter.forward.transport.sampling import cosine_direction, henyey_greenstein
 from trimeter.forward.transport.scene import Stack, panel_margin, sees_light, side_entry
 from trimeter.forward.transport.tally import N_BACKGROUND_ORDERS
-from trimeter.model.fresnel import fresnel
+from trimeter.model.fresnel import fresnel, fresnel_polarised
 
 # A bounce series' count of reflections since the last bounce once it stopped being plain.
 NOT_PLAIN = 255
 
-# The symbolic loop's state, in `Walk.step`'s argument order (then, in a bounce series' first pass, its
-# count of reflections since the first bounce; then the random stream).
+# The symbolic loop's state, in `Walk.step`'s argument order (then, with polarisation, the s-share of the
+# path's intensity; in a bounce series' first pass, its count of reflections since the first bounce; then the
+# random stream).
 LOOP_STATE = ("x", "y", "z", "dx", "dy", "dz", "li", "k", "m", "it", "alive", "hit", "nee_k", "bounce_x", "bounce_y",
               "nee_u", "nee_v", "straight", "clean", "x0", "y0", "reach2", "escape")
 
@@ -35,18 +37,41 @@ CARRIED = [(name, np.float32) for name in ("x", "y", "z", "dx", "dy", "dz", "x0"
 ROTATIONS = 32
 
 
+# The s-share of unpolarised light.
+UNPOLARISED = 0.5
+
+
 class Walk:
     """One trace's walk: the stack and material as the kernel sees them (σt and g opaque inputs, so one
     compiled kernel serves every (σt, g) column; literals would be baked in and force a fresh LLVM
-    compile per column), the options that shape the loop, and the loop itself (`step`, `run`)."""
+    compile per column), the options that shape the loop, and the loop itself (`step`, `run`).
+
+    `polarisation` (off: unpolarised Fresnel at every interface, the maps' default) tracks the two
+    polarisations at the interfaces. The model: the panels' and the background's light is unpolarised, and
+    every scattering event depolarises (a path's light leaves it unpolarised, as Mitsuba's polarised variant
+    with trimeter.forward.phase's hg_depolarising has it). Between two such events a path meets only planes
+    parallel to z (the stack's faces, the cover slides' faces, the gap's bottom face), and the plane of
+    incidence at each is the plane of the path's own direction and z, which reflection and refraction keep;
+    so the light along the path stays a mix of s and p (no coherence between them arises from
+    unpolarised light), and its state is one number, the s-share w of its intensity (UNPOLARISED: 1/2).
+    At an interface with reflectances R_s, R_p a path reflects with probability P = w·R_s + (1 − w)·R_p
+    (an analog choice, so its intensity stays unbiased at weight 1), then w ← w·R_s / P after a
+    reflection, w ← w·T_s / (1 − P) after a refraction (T = 1 − R). w is reset to 1/2 at a scattering, at
+    the background's bounce and at a side face: there the plane of incidence is another one, and the
+    faces' own (unpolarised) reflectance is used; an approximation (maps/README.md: how much it moves). The
+    detector's path starts unpolarised too: the adjoint of a polarisation-blind detector, and the first
+    face is crossed at normal incidence, where s and p reflect alike. The adjoint walk gives the forward
+    one's intensity because each interface acts on (s, p) intensities by the same diagonal factors
+    both ways."""
 
     def __init__(self, stack: Stack, sigma_t: float, g: float, k_max: int, *, wave: int, from_below: bool,
-                 backend: str, control_variates: bool, factorise: bool, next_event: bool, background_orders: int):
+                 backend: str, control_variates: bool, factorise: bool, next_event: bool, background_orders: int,
+                 polarisation: bool = False):
         self.dr, self.B = load_drjit(backend)
         self.Float, self.UInt32, self.Bool = self.B.Float, self.B.UInt32, self.B.Bool
         dr = self.dr
         self.stack, self.k_max, self.wave = stack, k_max, wave
-        self.from_below, self.factorise = from_below, factorise
+        self.from_below, self.factorise, self.polarisation = from_below, factorise, polarisation
         self.control_variates = control_variates and not factorise and next_event
         self.L = len(stack.layer_n)
         self.planes = [float(z) for z in stack.plane_z]
@@ -73,8 +98,10 @@ class Walk:
         self.averaged = self.nee and bool(stack.panels) and ROTATIONS > 1 and self.control_variates
         self.safe_radius = min(self.W, self.WB)
         self.cut_at = None   # the bounce a pass stops its paths at (an opaque input: one kernel for every pass)
-        self.slot = {name: i for i, name in enumerate(LOOP_STATE)}     # then the count of reflections, the stream
-        self.slot["reflections"] = len(LOOP_STATE)
+        self.slot = {name: i for i, name in enumerate(LOOP_STATE)}     # then w, the count of reflections, the stream
+        if polarisation:
+            self.slot["w"] = len(LOOP_STATE)
+        self.slot["reflections"] = len(LOOP_STATE) + int(polarisation)
 
     # ------------------------------------------------------------------ helpers on Dr.Jit arrays
     def per_layer(self, li, values):
@@ -94,6 +121,10 @@ class Walk:
     def stop_at(self, bounce: int) -> None:
         self.cut_at = self.dr.opaque(self.UInt32, bounce)
 
+    def polarisation_start(self, n_paths: int) -> list:
+        """The loop state after LOOP_STATE for `n_paths` paths starting unpolarised: [w] with polarisation, else []."""
+        return [self.dr.full(self.Float, UNPOLARISED, n_paths)] if self.polarisation else []
+
     # ------------------------------------------------------------------ one step of every path
     def step(self, x, y, z, dx, dy, dz, li, k, m, it, alive, hit, nee_k, bounce_x, bounce_y, nee_u, nee_v, straight,
              clean, x0, y0, reach2, escape, *rest):
@@ -101,7 +132,8 @@ class Walk:
         and the background), its new position and direction, and whether it ends there. The random
         numbers are drawn in one order (free flight, scattering, interface) whatever the event."""
         dr, L = self.dr, self.L
-        cv, rng = list(rest[:-1]), rest[-1]
+        w: Any = rest[0] if self.polarisation else None     # the s-share (see the class's docstring)
+        cv, rng = list(rest[int(self.polarisation):-1]), rest[-1]
         it = it + 1
         in_stack = li < L
         in_gap = li == L
@@ -126,7 +158,11 @@ class Walk:
         n_next = dr.select(going_down, self.per_layer(li, self.layer_n[1:] + [1.0, 1.0]),
                            self.per_layer(li, [1.0] + self.layer_n))
         u_f = rng.next_float32()
-        F, cos_tr = fresnel(dr, dr.abs(dz), n_next / n_here)
+        if self.polarisation:
+            R_s, R_p, cos_tr = fresnel_polarised(dr, dr.abs(dz), n_next / n_here)
+            F = w * R_s + (1 - w) * R_p
+        else:
+            F, cos_tr = fresnel(dr, dr.abs(dz), n_next / n_here)
         ratio = n_here / n_next
 
         # --- the gap below the stack: background (going down) or the stack's bottom face (going up)
@@ -142,6 +178,10 @@ class Walk:
         # --- Lambertian background bounce: m += 1, cosine-sampled upward direction
         m = dr.select(on_bg, m + 1, m)
         lx, ly, lz = cosine_direction(dr, u1, u2)
+        if self.polarisation:
+            # (a reflection has P = F > u_f ≥ 0, a refraction 1 − F > 0: the other branch's 0/0 is not selected)
+            w = dr.select(scatter | on_bg | side | wall, UNPOLARISED,
+                          dr.select(reflect, w * R_s / F, dr.select(refract, w * (1 - R_s) / (1 - F), w)))
 
         # --- the new direction: scattered, refracted, reflected, bounced, off a side face or on
         tx, ty = dx * ratio, dy * ratio
@@ -192,7 +232,8 @@ class Walk:
         alive = alive & ~done
         reach2 = dr.maximum(reach2, (x - x0) * (x - x0) + (y - y0) * (y - y0))
         return (x, y, z, new_dx, new_dy, new_dz, dr.select(out_top, li, new_li), k, m, it, alive, hit, nee_k,
-                bounce_x, bounce_y, nee_u, nee_v, straight, clean, x0, y0, reach2, escape, *cv, rng)
+                bounce_x, bounce_y, nee_u, nee_v, straight, clean, x0, y0, reach2, escape,
+                *([w] if self.polarisation else []), *cv, rng)
 
     def _free_flight(self, x, y, z, dx, dy, dz, li, in_stack, going_down, u_free):
         """How far each path goes to its next event inside a layer, and which: (step, the plane it
