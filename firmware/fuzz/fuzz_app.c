@@ -153,7 +153,12 @@ static void check_state(void)
         abort();
     if (!c12880_wavelengths_valid(app_get()->cfg.spectro_wl)) abort();
     const standalone_t *sa = &app_get()->standalone;
-    if ((unsigned)sa->status > TRIMETER_STANDALONE_STATUS_LAMP_CHANGED || sa->bins > STANDALONE_BINS) abort();
+    if ((unsigned)sa->status > TRIMETER_STANDALONE_STATUS_CALIBRATION_REFUSED || sa->bins > STANDALONE_BINS) abort();
+    /* a calibration press ends calibrated with its check passed, or refused with the check that refused it */
+    if ((unsigned)sa->check > TRIMETER_STANDALONE_CHECK_BEAM_CHANGED) abort();
+    if ((sa->status == TRIMETER_STANDALONE_STATUS_CALIBRATED) != (sa->check == TRIMETER_STANDALONE_CHECK_NONE) &&
+        (sa->status == TRIMETER_STANDALONE_STATUS_CALIBRATED || sa->status == TRIMETER_STANDALONE_STATUS_CALIBRATION_REFUSED))
+        abort();
     if (sa->status == TRIMETER_STANDALONE_STATUS_LAMP_CHANGED) {
         bool changed = false;
         for (int l = 0; l < HAL_LED_COUNT; l++)
