@@ -15,6 +15,7 @@
 
 from __future__ import annotations
 
+import gc
 import logging
 import os
 import socket
@@ -53,6 +54,10 @@ def local_client(workers: int | None = None, retries: int = 2) -> Iterator:
     # (σt = 50, g = 0.9: also in a plain process with that variable set), so workers keep glibc's default.
     environ = {k: v for k, v in dask.config.get("distributed.nanny.pre-spawn-environ").items()
                if k != "MALLOC_TRIM_THRESHOLD_"}
+    # A Client whose construction failed (a bad --scheduler) is left half-built in a reference cycle; if the
+    # cyclic GC finalises it inside LocalCluster's loop start, its close() waits for the lock that start
+    # holds: a hang (seen once in CI). Finalise any such garbage now, outside it.
+    gc.collect()
     with dask.config.set({"distributed.worker.multiprocessing-method": "spawn",
                           "distributed.nanny.pre-spawn-environ": environ,
                           "distributed.scheduler.allowed-failures": retries,
@@ -76,10 +81,12 @@ def check_dask_scheduler(address: str, connect_timeout: float = CONNECT_TIMEOUT_
     """InputError unless what listens at a tcp:// `address` speaks first as a Dask scheduler does: its
     handshake's size within MAX_HANDSHAKE_BYTES, sent unasked within `connect_timeout`. Other schemes
     (tls://, ucx://, inproc://) are left to Dask."""
+    from distributed.comm import registry
     from distributed.comm.addressing import parse_address, parse_host_port
 
     try:
         scheme, location = parse_address(address)
+        registry.get_backend(scheme)  # a scheme Dask has no transport for: refused before any Client is built
         if scheme != "tcp":
             return
         host, port = parse_host_port(location)
@@ -107,12 +114,16 @@ def remote_client(address: str, connect_timeout: float = CONNECT_TIMEOUT_S) -> I
     be one before the client reads anything from it."""
     _, distributed = _dask()
     check_dask_scheduler(address, connect_timeout)
+    failure = None
     try:
         client = distributed.Client(address, timeout=connect_timeout)
     except (OSError, TimeoutError, ValueError, TypeError) as exc:
         reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise InputError(f"--scheduler {address}: no Dask scheduler answered within {connect_timeout:g} s "
-                         f"({reason})") from None
+        failure = InputError(f"--scheduler {address}: no Dask scheduler answered within {connect_timeout:g} s "
+                             f"({reason})")
+    if failure is not None:
+        gc.collect()  # the half-built Client, finalised here rather than inside a later loop start (local_client)
+        raise failure
     try:
         yield client
     finally:
