@@ -150,7 +150,7 @@ def test_an_unreachable_scheduler_is_one_clear_error(tmp_path, capsys):
 
 def test_a_failed_connect_leaves_no_half_built_client_for_a_later_gc():
     """A Client whose construction failed sits in a reference cycle; finalised by the cyclic GC inside a later
-    LocalCluster's loop start, its close() deadlocks on the lock that start holds (a CI run hung so). So: an
+    LocalCluster's loop start, its close() deadlocks on the lock that start holds. So: an
     unknown scheme builds no Client, and a failed one is finalised at once, even with the GC off."""
     import gc
 

@@ -50,8 +50,8 @@ Value = Any
 
 # How long a map table read may keep resuming after lost records (a full table on a clean line takes seconds).
 MAP_READ_BUDGET_S = 120.0
-# A register read lost on the link this often is given up (each loss halves the requests: 120 words reach the
-# shortest, 8, in four)
+# A register read lost on the link this often is given up (each loss halves the requests, so a few losses
+# reach the shortest; more mean the line carries nothing)
 MAX_SPAN_LOSSES = 6
 
 def encode(reg: regs.Register, value: Any) -> list[int]:

@@ -13,9 +13,9 @@ from numpy.typing import ArrayLike
 
 from trimeter.errors import BuildError
 
-# iadpython's default of 4 quadrature points is too few behind an n = 1.5 boundary: a clear slab over white
-# comes out ~0.5 % bright, a dark turbid one ~4 % dark. 32 points agree with 64 to ~0.05 % over the maps'
-# range (below a map's Monte Carlo std-error) at ~20 ms per material; iadpython breaks down at 128.
+# iadpython's default of 4 quadrature points is too few behind an n = 1.5 boundary (clear and dark turbid slabs
+# come out visibly off); 32 agree with twice as many to below a map's Monte Carlo std-error
+# (tests/forward/test_adding_doubling.py checks it), and iadpython itself breaks down far above that.
 IAD_QUAD_POINTS = 32
 
 

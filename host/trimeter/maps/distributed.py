@@ -56,7 +56,7 @@ def local_client(workers: int | None = None, retries: int = 2) -> Iterator:
                if k != "MALLOC_TRIM_THRESHOLD_"}
     # A Client whose construction failed (a bad --scheduler) is left half-built in a reference cycle; if the
     # cyclic GC finalises it inside LocalCluster's loop start, its close() waits for the lock that start
-    # holds: a hang (seen once in CI). Finalise any such garbage now, outside it.
+    # holds: a hang. Finalise any such garbage now, outside it.
     gc.collect()
     with dask.config.set({"distributed.worker.multiprocessing-method": "spawn",
                           "distributed.nanny.pre-spawn-environ": environ,
