@@ -4,7 +4,7 @@ instrument or several (serve_lab); Ctrl-C stops them all."""
 from __future__ import annotations
 
 import argparse
-import threading
+import time
 from collections.abc import Callable, Sequence
 from datetime import datetime
 from typing import TYPE_CHECKING
@@ -44,7 +44,10 @@ def serve_web(args: argparse.Namespace, settings: HostSettings, services: Sequen
     print(f"serving {where}; results in {settings.results_path}; web page on {server.url}/ "
           f"(`trimeter serve --show-token` prints the link with its token; Ctrl-C stops)", flush=True)
     try:
-        threading.Event().wait()
+        # timed: Ctrl-C is a process signal the kernel may hand to any thread, and Python runs its handler on
+        # the main thread only when that thread next runs bytecode, which an untimed wait never does
+        while True:
+            time.sleep(0.25)
     except KeyboardInterrupt:
         pass
     finally:
