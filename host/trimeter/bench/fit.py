@@ -29,7 +29,6 @@ well-conditioned columns (the materials whose references can resolve the targets
 from __future__ import annotations
 
 import functools
-import json
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -37,7 +36,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from trimeter.atomic import atomic_write
+from trimeter.bench import write_figures
 from trimeter.bench.fit_scoring import G_MIN_ALPHA, budget_summary, error_budget, error_figures, percentile
 from trimeter.bench.fit_speed import hull_split, speed
 from trimeter.bench.fit_tables import pareto_plot, print_budget, print_table
@@ -225,9 +224,7 @@ def _bench_backgrounds(amap: AppearanceMap, h: Heldout, budget: dict[str, Any], 
 
 
 def run(args: argparse.Namespace) -> int:
-    report = measure(args)
-    atomic_write(args.out / "results.json", json.dumps(report, indent=1, default=float))
-    print(f"\nall figures: {args.out / 'results.json'}")
+    write_figures(measure(args), args.out / "results.json")
     return 0
 
 

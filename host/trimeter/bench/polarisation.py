@@ -28,13 +28,13 @@ each variant gives R_d back, to compare with the closed forms.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from trimeter.bench import write_figures
 from trimeter.errors import InputError
 
 # (label, α, σt [1/mm], g): a nearly clear (so thin a fit flags it UNDERDETERMINED), a grey, an ink, a milky, a
@@ -70,11 +70,7 @@ def register(bench_subparsers) -> None:
 def run(args: argparse.Namespace) -> int:
     report = measure(args)
     _print(report)
-    from trimeter.atomic import atomic_write
-
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write(args.out, json.dumps(report, indent=1, default=float) + "\n")
-    print(f"\nall figures: {args.out}")
+    write_figures(report, args.out)
     return 0
 
 

@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from trimeter.bench import write_figures
 from trimeter.errors import InputError
 
 TRACED = ("clear", "thin")          # the bench's materials whose shifts are beyond the maps' error
@@ -55,11 +56,7 @@ def register(bench_subparsers) -> None:
 def run(args: argparse.Namespace) -> int:
     report = measure(args)
     _print(report)
-    from trimeter.atomic import atomic_write
-
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write(args.out, json.dumps(report, indent=1, default=float) + "\n")
-    print(f"\nall figures: {args.out}")
+    write_figures(report, args.out)
     return 0
 
 

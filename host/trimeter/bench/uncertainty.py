@@ -26,13 +26,12 @@ map's own error: the noise-free fit's |error| over the σ fit() reports at the l
 from __future__ import annotations
 
 import contextlib
-import json
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from trimeter.atomic import atomic_write
+from trimeter.bench import write_figures
 from trimeter.bench.heldout import HELDOUT_PARTS
 from trimeter.errors import InputError
 from trimeter.inversion.flags import FitFlag
@@ -220,10 +219,7 @@ def run(args) -> int:
             reports.append(report)
     if len(reports) > 1:
         _print_sweep(reports)
-    args.out.mkdir(parents=True, exist_ok=True)
-    path = args.out / "results.json"
-    atomic_write(path, json.dumps(reports[0] if len(reports) == 1 else {"sweep": reports}, indent=1, default=float))
-    print(f"\nall figures: {path}")
+    write_figures(reports[0] if len(reports) == 1 else {"sweep": reports}, args.out / "results.json")
     return 0
 
 
