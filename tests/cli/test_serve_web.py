@@ -75,12 +75,16 @@ def test_serve_web_serves_every_service_until_ctrl_c_then_stops_them_all(tmp_pat
                 real()
 
             monkeypatch.setattr(service, "close", close)
+        # Ctrl-C armed as in a terminal: a process started in the background by a non-interactive shell (nohup
+        # make test &) inherits SIGINT ignored, and no Ctrl-C would then reach serve_web at all
+        previous_handler = signal.signal(signal.SIGINT, signal.default_int_handler)
         helper = threading.Thread(target=ctrl_c_once_served, daemon=True)
         helper.start()
         try:
             serve_web(argparse.Namespace(http="127.0.0.1:0"), settings, services, "two idle instruments", create)
         finally:
             returned.set()
+            signal.signal(signal.SIGINT, previous_handler)
         helper.join(5)
     assert not main_thread_signalled, "Ctrl-C handed to another thread did not stop serve_web"
     assert answers == [200]
