@@ -2,6 +2,7 @@
 measurements, every written result is checked against the twin's truth, and the check itself rejects a
 result compared with the wrong material (so a garbage count of 0 means something)."""
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -43,3 +44,11 @@ def test_bench_commands_refuse_bad_arguments(capsys):
     assert main(["bench", "link", "--levels", "2"]) == 2
     assert "probability" in capsys.readouterr().err
     assert parse_levels("0, 0.01,0.02+0.05") == [(0.0, 0.0), (0.01, 0.0), (0.02, 0.05)]
+
+
+def test_bench_link_times_a_cold_read_of_the_instruments_table(tmp_path, capsys):
+    out = tmp_path / "link.json"
+    assert main(["bench", "link", "--levels", "0", "--table", "--time-scale", "200", "--json", str(out)]) == 0
+    (row,) = json.loads(out.read_text())["rows"]
+    assert row["table_s"] > 0 and row["table_resumes"] == 0 and "table_error" not in row
+    assert "cold table read" in capsys.readouterr().out

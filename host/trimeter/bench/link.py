@@ -2,19 +2,24 @@
 (holder check, warm-up, calibration) and a measurement of a virtual sample, each timed, with the
 transport's and the runner's retries; ratios against the clean link measured in the same run.
 
-    trimeter bench link [--levels 0,0.01,0.02,0.02+0.05] [--time-scale 50] [--seed 1] [--json PATH]
+    trimeter bench link [--levels 0,0.01,0.02,0.02+0.05] [--time-scale 50] [--seed 1] [--table] [--json PATH]
 
 A level is `CORRUPT[+DROP]`: the probability that a byte has a bit flipped (both ways), and that a
 reply is dropped. The host settings are the defaults (`timeout_s`, `attempts`), as `serve` uses them.
+`--table` adds a cold read of the instrument's whole map table (as serve's first fit with no map named
+does, no cache) with its resumes, against the read's time budget.
 """
 
 from __future__ import annotations
 
 import json
+import tempfile
 import time
 from pathlib import Path
 
 from trimeter.bench._rig import twin_and_service
+from trimeter.device.client import MAP_READ_BUDGET_S
+from trimeter.device.table_cache import instrument_table
 from trimeter.domain import Sample
 from trimeter.errors import InputError, TrimeterError
 from trimeter.sequences.measure import map_for_thickness
@@ -46,20 +51,24 @@ def _link_counts(service) -> dict:
     return {k: stats[k] for k in ("requests", "retries", "garbled_replies", "timeouts", "reconnects", "failures")}
 
 
-def measure_level(corrupt: float, drop: float, *, time_scale: float, seed: int) -> dict:
-    """One calibration and one measurement at this fault level on a fresh twin; failures are reported,
-    not raised (they are what the benchmark is about)."""
+def measure_level(corrupt: float, drop: float, *, time_scale: float, seed: int, table: bool = False) -> dict:
+    """One calibration and one measurement at this fault level on a fresh twin (then, with `table`, a cold read
+    of the instrument's map table); failures are reported, not raised (they are what the benchmark is about)."""
     row: dict = {"corrupt": corrupt, "drop": drop}
     with twin_and_service(time_scale=time_scale, seed=seed, faults=FaultConfig(corrupt=corrupt, drop=drop)) as (
             twin, service, settings):
         amap = map_for_thickness(THICKNESS_MM, settings.map or None)
-        for phase in ("calibrate", "measure"):
+        for phase in ("calibrate", "measure", *(("table",) if table else ())):
             t0 = time.monotonic()
             try:
                 if service.device is None:
                     service.connect()
                 if phase == "calibrate":
                     service.calibrate()
+                elif phase == "table":
+                    row["table_resumes"] = _cold_table_read(service.device)
+                    row["table_s"] = round(time.monotonic() - t0, 2)
+                    continue
                 else:
                     twin.control.insert_sample(SAMPLE, THICKNESS_MM)
                     service.measure([Sample(THICKNESS_MM, amap)])
@@ -69,13 +78,21 @@ def measure_level(corrupt: float, drop: float, *, time_scale: float, seed: int) 
                 row[f"{phase}_retry_wall_s"] = timing.get("retry_wall_s", 0.0)
             except TrimeterError as exc:
                 row[f"{phase}_s"] = None
-                row[f"{phase}_error"] = str(exc)
+                row[f"{phase}_error"] = f"{exc} ({time.monotonic() - t0:.0f} s)"
                 break
         if service.device is not None:
             row["link"] = _link_counts(service)
         row["proxy"] = {k: v for k, v in twin.control.state()["counters"].items()
                         if k in ("requests", "bytes_corrupted", "replies_dropped")}
     return row
+
+
+def _cold_table_read(device) -> int:
+    """Read the instrument's whole map table as serve's first fit does with an empty cache; the resumes it took."""
+    before = device.transport.stats.resumed_reads
+    with tempfile.TemporaryDirectory(prefix="trimeter-table-cache-") as cache:
+        instrument_table(device, Path(cache))
+    return device.transport.stats.resumed_reads - before
 
 
 def run(args) -> int:
@@ -88,7 +105,7 @@ def run(args) -> int:
     print(f"{'corrupt':>7} {'drop':>5} | {'calibrate s':>11} {'×clean':>6} {'steps↻':>6} | {'measure s':>9} "
           f"{'×clean':>6} {'steps↻':>6} | {'requests':>8} {'req↻':>5} {'garbled':>7} {'timeouts':>8}", flush=True)
     for i, (corrupt, drop) in enumerate(levels):
-        row = measure_level(corrupt, drop, time_scale=args.time_scale, seed=args.seed + i)
+        row = measure_level(corrupt, drop, time_scale=args.time_scale, seed=args.seed + i, table=args.table)
         rows.append(row)
         base = rows[0]
 
@@ -103,14 +120,18 @@ def run(args) -> int:
               f"{ratio('measure_s'):>6} {row.get('measure_step_retries', '-'):>6} | {link.get('requests', '-'):>8} "
               f"{link.get('retries', '-'):>5} {link.get('garbled_replies', '-'):>7} {link.get('timeouts', '-'):>8}",
               flush=True)
-        for phase in ("calibrate", "measure"):
+        if row.get("table_s") is not None:
+            print(f"        cold table read {row['table_s']:g} s ({ratio('table_s')}× clean, {row['table_resumes']} "
+                  f"resumes; budget {MAP_READ_BUDGET_S:g} s)", flush=True)
+        for phase in ("calibrate", "measure", "table"):
             if f"{phase}_error" in row:
                 print(f"        {phase} failed: {row[f'{phase}_error']}", flush=True)
     print("(×clean: wall time against the first level's; steps↻: steps the runner tried again; req↻: requests "
           "the transport repeated)")
     if args.json:
         Path(args.json).write_text(json.dumps({"time_scale": args.time_scale, "rows": rows}, indent=1) + "\n")
-    return 0 if all(r.get("measure_s") is not None for r in rows) else 1
+    return 0 if all(r.get("measure_s") is not None and (r.get("table_s") is not None or not args.table)
+                    for r in rows) else 1
 
 
 def register(bench_subparsers) -> None:
@@ -120,5 +141,7 @@ def register(bench_subparsers) -> None:
     p.add_argument("--time-scale", type=float, default=50.0, help="twin time scale (default: %(default)s)")
     p.add_argument("--seed", type=int, default=1,
                    help="the twin's seed (noise and link faults), +1 per level (default: %(default)s)")
+    p.add_argument("--table", action="store_true",
+                   help="also time a cold read of the instrument's whole map table per level")
     p.add_argument("--json", help="also write the rows as JSON here")
     p.set_defaults(func=run)
