@@ -364,3 +364,29 @@ def test_a_link_closed_by_another_thread_mid_request_is_a_link_error(slave_facto
             link.read_words("holding_register", 10, 3)
     finally:
         closer.join()
+
+
+class DroppingFileRecordSlave(FileRecordSlave):
+    """FileRecordSlave that never answers its first request (lost on the way: its reply may still come late)."""
+
+    def frames(self):
+        for frame in super().frames():
+            if self.requests > 1:
+                yield frame
+
+
+def test_a_long_read_avoids_the_shape_a_late_reply_may_come_in_and_is_not_asked_twice(slave_factory):
+    from trimeter.device.transport import unsuspected_record_words
+
+    data = bytes(range(256)) * 2
+    slave = slave_factory(cls=lambda _: DroppingFileRecordSlave(data))
+    link = RtuTransport(slave.port, timeout_s=0.1)
+    # the first read went unanswered; its retry's reply has its shape, so it is confirmed by a second ask
+    assert link.read_file_records(1, 0, 20) == data[:40]
+    assert slave.requests == 3 and link.stats.confirmations == 1
+    assert unsuspected_record_words(link, 20) == 19 and unsuspected_record_words(link, 30) == 30
+    # a read of a fresh shape is asked once
+    assert link.read_file_records(1, 20, unsuspected_record_words(link, 20)) == data[40:78]
+    assert slave.requests == 4 and link.stats.confirmations == 1
+    assert unsuspected_record_words(object(), 20) == 20   # a transport that keeps no suspicions
+    link.close()

@@ -31,7 +31,7 @@ from numpy.typing import ArrayLike
 
 from trimeter import registers as regs
 from trimeter.device.transport import (MAX_FILE_RECORD_WORDS, record_words, MAX_READ_BITS, MAX_READ_WORDS, LinkError,
-                                       ModbusExceptionReply, RtuTransport, Transport)
+                                       ModbusExceptionReply, RtuTransport, Transport, unsuspected_record_words)
 from trimeter.errors import DeviceError, InputError
 
 _STRUCT = {"u16": ">H", "i16": ">h", "u32": ">I", "i32": ">i", "f32": ">f"}
@@ -729,8 +729,10 @@ class Device:
 
     def read_map(self, slot: regs.MapSlot | str, length: int | None = None, *, offset: int = 0,
                  progress: Callable[[int, int], None] | None = None,
-                 time_budget_s: float = MAP_READ_BUDGET_S) -> bytes:
+                 time_budget_s: float = MAP_READ_BUDGET_S, on_data: Callable[[bytes], None] | None = None) -> bytes:
         """Read `length` bytes of a slot from `offset` (even) through file records (map_read_slot selects it).
+        `on_data` is handed each record's bytes as they arrive, so a caller keeps them when the read fails (the
+        last may carry a pad byte past an odd `length`).
 
         Resumable: a record the link loses (every transport attempt failed) is asked for again after the link
         is reopened and the slot selected again, from where the read stopped, for as long as `time_budget_s`
@@ -749,13 +751,13 @@ class Device:
             while len(out) < total:
                 record = (offset + len(out)) // 2
                 file_number, record_number = record // regs.MAP_RECORDS_PER_FILE + 1, record % regs.MAP_RECORDS_PER_FILE
-                words = min(record_words(self.transport), regs.MAP_RECORDS_PER_FILE - record_number,
-                            (total - len(out)) // 2)
+                words = unsuspected_record_words(self.transport, min(
+                    record_words(self.transport), regs.MAP_RECORDS_PER_FILE - record_number, (total - len(out)) // 2))
                 try:
                     if not selected:
                         self.write("map_read_slot", slot)
                         selected = True
-                    out += self.transport.read_file_records(file_number, record_number, words)
+                    chunk = self.transport.read_file_records(file_number, record_number, words)
                 except LinkError:
                     if time.monotonic() >= deadline:
                         raise
@@ -766,6 +768,9 @@ class Device:
                     if reopen is not None:
                         reopen()
                     continue
+                out += chunk
+                if on_data:
+                    on_data(chunk)
                 if progress:
                     progress(len(out), total)
         finally:

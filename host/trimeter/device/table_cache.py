@@ -8,17 +8,19 @@ import hashlib
 import os
 import re
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import IO, TYPE_CHECKING, Any
 
 from trimeter.atomic import atomic_write
-from trimeter.errors import MapFileError, OutputError
+from trimeter.errors import InputError, MapFileError, OutputError
 from trimeter.formats.device_table import HEADER_SIZE, MAX_BYTES, SUFFIX, DeviceTable, read_header
 from trimeter.registers import MapSlot
+from trimeter.tables import open_checked
 
 if TYPE_CHECKING:
     from trimeter.device.client import Device
 
 SHA256_HEX = re.compile(r"[0-9a-f]{64}")  # a table's name in the cache
+PARTIAL_SUFFIX = ".partial"  # the start of a table whose read the link cut short
 
 
 def cache_dir() -> Path:
@@ -96,12 +98,54 @@ def instrument_table(device: Device, cache: Path | None = None) -> tuple[DeviceT
     table = _cached(directory, length, head, tail_at, tail)
     if table is not None:
         return table, active.name, True
-    data = device.read_map(active, length)
+    # named by what identifies the table before it is whole: its length, header and trailing CRC-32
+    partial = directory / f"{length}-{hashlib.sha256(head).hexdigest()[:16]}-{tail.hex()}{PARTIAL_SUFFIX}"
+    data = _read_slot(device, active, length, partial)
     try:
         table = DeviceTable.from_bytes(data, source=f"the device's slot {active.name}")
     except MapFileError as exc:
         raise MapFileError(f"{exc}; flash a current table (`trimeter map flash maps/<map>.tlut --port PORT`) or "
                            f"pass --map") from None
+    finally:
+        partial.unlink(missing_ok=True)  # whole now, or not worth resuming: the next read starts afresh
     with contextlib.suppress(OutputError):  # an unwritable cache costs the next run a read, nothing else
         atomic_write(directory / f"{table.sha256}{SUFFIX}", data)
     return table, active.name, False
+
+
+def _read_slot(device: Device, slot: MapSlot, length: int, partial: Path) -> bytes:
+    """The slot's `length` bytes, going on from what an earlier read of the same table left in `partial` when
+    the link cut it short. The bytes are kept there as they arrive, so a read that fails (its time budget
+    spent on a noisy line) is resumed by the next try, the service's or the next press's, instead of
+    starting over: on a line too noisy to carry a whole table in one budget, the table still arrives. The
+    whole table's CRC-32 is checked afterwards (DeviceTable.from_bytes), whatever tries it took."""
+    data = bytearray()
+    with contextlib.suppress(OSError, InputError):
+        with open_checked(partial, max_bytes=length, follow_symlinks=False, binary=True) as f:
+            kept = f.read(length)
+        data += kept[:len(kept) & ~1]  # whole 16-bit records only
+    try:
+        partial.parent.mkdir(parents=True, exist_ok=True)
+        # not through a link, and a FIFO put there fails at once instead of waiting for a reader
+        fd = os.open(partial, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_NONBLOCK | getattr(os, "O_NOFOLLOW", 0),
+                     0o644)
+        sink: IO[bytes] | None = os.fdopen(fd, "wb")
+    except OSError:
+        sink = None  # an unwritable cache: the read is not resumable, nothing else
+    try:
+        if sink is not None:
+            sink.write(data)
+            sink.flush()
+
+        def keep(chunk: bytes) -> None:
+            with contextlib.suppress(OSError):
+                if sink is not None:
+                    sink.write(chunk)
+                    sink.flush()
+
+        if len(data) < length:
+            data += device.read_map(slot, length - len(data), offset=len(data), on_data=keep)
+    finally:
+        if sink is not None:
+            sink.close()
+    return bytes(data[:length])

@@ -69,6 +69,7 @@ MAX_FILE_RECORD_WORDS = 120  # FC 0x15: 1 + 7 + 2n <= 253 (one sub-request per f
 # odds raised to its length): long transfers (file records, register spans) shrink their requests while
 # requests fail and grow them back while they pass (record_words).
 MIN_FILE_RECORD_WORDS = 8
+FILE_RECORD_READ = 0x14
 
 
 def record_words(transport: object) -> int:
@@ -77,6 +78,25 @@ def record_words(transport: object) -> int:
     words = getattr(transport, "record_words", MAX_FILE_RECORD_WORDS)
     return words if isinstance(words, int) and MIN_FILE_RECORD_WORDS <= words <= MAX_FILE_RECORD_WORDS \
         else MAX_FILE_RECORD_WORDS
+
+
+def file_record_reply_bytes(words: int) -> int:
+    """The length of the reply frame to a one-sub-request file-record read of `words` records (address,
+    function, response length, sub-response length, reference type, data, CRC)."""
+    return 7 + 2 * words
+
+
+def unsuspected_record_words(transport: object, words: int) -> int:
+    """`words` records, or the nearest shorter count (down to half) whose reply no late reply to an earlier
+    unanswered file-record read can be mistaken for: RTU replies carry no record number, so a read of a shape
+    that is under suspicion is asked twice (the transport confirms it) and one of a fresh shape once. `words`
+    when every such count is under suspicion, or the transport keeps no suspicions."""
+    suspect = getattr(transport, "suspect_reply_bytes", None)
+    if not callable(suspect):
+        return words
+    lengths = suspect(FILE_RECORD_READ)
+    return next((count for count in range(words, max(1, words // 2) - 1, -1)
+                 if file_record_reply_bytes(count) not in lengths), words)
 
 
 class LinkError(DeviceError):
@@ -269,11 +289,16 @@ class RtuTransport:
         return data
 
     # ------------------------------------------------------------------------------------- requests
-    def _late_reply_possible(self, function_code: int, reply_bytes: int) -> bool:
-        """Whether an unanswered read's reply of this shape may still arrive (within the horizon)."""
+    def suspect_reply_bytes(self, function_code: int) -> set[int]:
+        """The reply lengths of this function code that a late reply to an unanswered read may still arrive in
+        (within the horizon): a read whose reply has one of them is confirmed."""
         now = time.monotonic()
         self._unanswered = [entry for entry in self._unanswered if entry[0] > now]
-        return any(entry[1:] == (function_code, reply_bytes) for entry in self._unanswered)
+        return {reply_bytes for _, code, reply_bytes in self._unanswered if code == function_code}
+
+    def _late_reply_possible(self, function_code: int, reply_bytes: int) -> bool:
+        """Whether an unanswered read's reply of this shape may still arrive (within the horizon)."""
+        return reply_bytes in self.suspect_reply_bytes(function_code)
 
     def _another_frame_by(self, deadline: float) -> bool:
         """Whether any byte arrives before `deadline` (the time by which this request's answer has come)."""
@@ -429,11 +454,11 @@ class RtuTransport:
         request = [FileRecord(file_number=file_number, record_number=record_number, record_length=2 * count)]
         with self._sizing_records():
             reply = self._execute(
-                f"a file-record read of file {file_number} record {record_number} (+{count})", 0x14,
+                f"a file-record read of file {file_number} record {record_number} (+{count})", FILE_RECORD_READ,
                 lambda c: c.read_file_record(request, device_id=self.address),
-                lambda r: r.function_code == 0x14 and len(r.records) == 1
+                lambda r: r.function_code == FILE_RECORD_READ and len(r.records) == 1
                 and len(r.records[0].record_data) == 2 * count,
-                12, 7 + 2 * count, read="stored")
+                12, file_record_reply_bytes(count), read="stored")
         return bytes(reply.records[0].record_data)
 
     def write_file_records(self, file_number: int, record_number: int, data: bytes) -> None:
