@@ -27,10 +27,11 @@ def data_dir() -> Path:
 
 
 @contextlib.contextmanager
-def user_dirs_at(*, data: Path, config: Path | None = None) -> Iterator[None]:
-    """TRIMETER_DATA_DIR (and TRIMETER_CONFIG_DIR, if given) pointed at these while the block runs (a demo or a
-    benchmark whose calibration must never touch the user's), restored afterwards, also on an error."""
-    wanted = {"TRIMETER_DATA_DIR": data, "TRIMETER_CONFIG_DIR": config}
+def user_dirs_at(*, data: Path | None = None, config: Path | None = None, cache: Path | None = None) -> Iterator[None]:
+    """TRIMETER_DATA_DIR, TRIMETER_CONFIG_DIR and TRIMETER_CACHE_DIR, those given, pointed at these while the
+    block runs (a demo or a benchmark whose calibration must never touch the user's), restored afterwards, also
+    on an error."""
+    wanted = {"TRIMETER_DATA_DIR": data, "TRIMETER_CONFIG_DIR": config, "TRIMETER_CACHE_DIR": cache}
     saved = {key: os.environ.get(key) for key, value in wanted.items() if value is not None}
     os.environ.update({key: str(value) for key, value in wanted.items() if value is not None})
     try:
