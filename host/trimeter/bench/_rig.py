@@ -42,9 +42,9 @@ def twin_and_service(*, time_scale: float, seed: int, faults: FaultConfig | None
         table = table_bytes(map_for_thickness(host.thickness_mm).name)
         twin = stack.enter_context(Twin(time_scale=time_scale, faults=faults, state_dir=root / "twin", seed=seed,
                                         map_table=table))
-        # the benches drive the button loop with the shipped map named: over their faulty links the file-record
-        # reads of the instrument's table fail too often (a known limit, in the README), and
-        # tests/hil/test_instrument_table.py covers fitting with the instrument's table
+        # the benches drive the button loop with the shipped map named, so that their figures are the link's and
+        # the sequence's, not a first table read's; `settings` may name none (bench soak --device-table: serve's
+        # default), and bench link --table times that read
         host.set("map", map_for_thickness(host.thickness_mm).name, source="benchmark")
         host.set("port", twin.modbus_port)
         host.set("spectrometer", twin.spectrometer_url)
