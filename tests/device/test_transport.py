@@ -390,3 +390,34 @@ def test_a_long_read_avoids_the_shape_a_late_reply_may_come_in_and_is_not_asked_
     assert slave.requests == 4 and link.stats.confirmations == 1
     assert unsuspected_record_words(object(), 20) == 20   # a transport that keeps no suspicions
     link.close()
+
+
+class SlowingSlave(ScriptedSlave):
+    """Register value = its address; answers at once for its first `fast` requests, then each `delay_s` late."""
+
+    fast, delay_s = 16, 0.25
+
+    def run(self):
+        for frame in self.frames():
+            address, fc, start, count = struct.unpack(">BBHH", frame[:6])
+            body = bytes([address, fc, 2 * count]) + struct.pack(f">{count}H", *range(start, start + count))
+            if self.requests > self.fast:
+                threading.Event().wait(self.delay_s)
+            os.write(self.master, body + crc16(body))
+
+
+def test_reads_wait_a_few_times_the_devices_answering_time_and_longer_when_it_slows(slave_factory):
+    from trimeter.device.transport import READ_ALLOWANCE_ANSWERS, READ_ALLOWANCE_FLOOR_S
+
+    slave = slave_factory(cls=lambda _: SlowingSlave())
+    link = RtuTransport(slave.port, timeout_s=1.0)
+    assert link._read_allowance_s() == 1.0   # nothing seen yet: the whole timeout
+    for i in range(READ_ALLOWANCE_ANSWERS):
+        assert link.read_words("holding_register", i, 2) == [i, i + 1]
+    assert READ_ALLOWANCE_FLOOR_S <= link._read_allowance_s() < 1.0 and link.stats.timeouts == 0
+    # the device now answers far later than it did: the first tries time out, each waiting twice as long as the
+    # last, and the late answers are not taken for the next try's
+    assert link.read_words("holding_register", 40, 3) == [40, 41, 42]
+    assert link.read_words("holding_register", 7, 3) == [7, 8, 9]
+    assert link.stats.timeouts >= 1 and link.stats.failures == 0
+    link.close()

@@ -7,7 +7,8 @@ What this layer guarantees to the client above it (trimeter.device.client):
   adapter to answer (the firmware answers from its main loop within milliseconds; a USB adapter adds up
   to its latency timer, 16 ms by default on FTDI chips), plus whatever `slow_reply()` allows for a
   request the device acts on before it answers (a flash erase). A lost request costs its timeout and
-  then the drain (below), so a timeout longer than needed is paid on every line error;
+  then the drain (below), so a timeout longer than needed is paid on every line error: a read waits a few
+  times the device's recent answering time instead, once it has seen enough answers (_read_allowance_s);
 - after any failure the input is drained and then flushed, so the framer restarts on a clean buffer
   (garbage, a bad CRC or half a frame never poisons the next request);
 - a garbled reply is given up on as soon as the bytes of a whole reply of the expected length are in
@@ -39,6 +40,7 @@ What this layer guarantees to the client above it (trimeter.device.client):
 from __future__ import annotations
 
 import asyncio
+import collections
 import contextlib
 import logging
 import time
@@ -69,6 +71,11 @@ MAX_FILE_RECORD_WORDS = 120  # FC 0x15: 1 + 7 + 2n <= 253 (one sub-request per f
 # odds raised to its length): long transfers (file records, register spans) shrink their requests while
 # requests fail and grow them back while they pass (record_words).
 MIN_FILE_RECORD_WORDS = 8
+# A read's attempt waits READ_ALLOWANCE_FACTOR × the slowest of the last READ_ALLOWANCE_ANSWERS answers, at least
+# READ_ALLOWANCE_FLOOR_S (above a USB adapter's 16 ms latency timer), at most timeout_s (see _read_allowance_s).
+READ_ALLOWANCE_ANSWERS = 16
+READ_ALLOWANCE_FACTOR = 4.0
+READ_ALLOWANCE_FLOOR_S = 0.03
 FILE_RECORD_READ = 0x14
 
 
@@ -187,6 +194,7 @@ class RtuTransport:
         self._unanswered: list[tuple[float, int, int]] = []
         self._slow_reply_s = 0.0
         self._request_timeout_s = timeout_s
+        self._answer_s: collections.deque[float] = collections.deque(maxlen=READ_ALLOWANCE_ANSWERS)
         self.reconnect_timeout_s = reconnect_timeout_s
         self.stats = LinkStats()
         self.record_words = MAX_FILE_RECORD_WORDS  # see MIN_FILE_RECORD_WORDS
@@ -296,6 +304,18 @@ class RtuTransport:
         self._unanswered = [entry for entry in self._unanswered if entry[0] > now]
         return {reply_bytes for _, code, reply_bytes in self._unanswered if code == function_code}
 
+    def _read_allowance_s(self) -> float:
+        """How long a read's attempt waits for the device to answer, beyond the frames' time on the wire: a few
+        times the slowest of its recent answers (at least READ_ALLOWANCE_FLOOR_S), never more than `timeout_s`,
+        which it is until enough answers were seen. On a noisy line most lost attempts are requests the device
+        never heard, and each costs this allowance twice (the wait, then the drain): the full `timeout_s` was
+        most of a noisy table read. A device slower than that is waited for with the allowance doubled at each
+        unanswered try of a request, and its late reply is caught by the reply shapes' suspicion as any
+        other late reply is; writes always wait the full `timeout_s` (asking one again could act twice)."""
+        if len(self._answer_s) < READ_ALLOWANCE_ANSWERS:
+            return self.timeout_s
+        return min(self.timeout_s, max(READ_ALLOWANCE_FLOOR_S, READ_ALLOWANCE_FACTOR * max(self._answer_s)))
+
     def _late_reply_possible(self, function_code: int, reply_bytes: int) -> bool:
         """Whether an unanswered read's reply of this shape may still arrive (within the horizon)."""
         return reply_bytes in self.suspect_reply_bytes(function_code)
@@ -327,8 +347,9 @@ class RtuTransport:
         for "live" values by a quiet line until the answer is due, for "stored" ones by two that agree."""
         started = time.monotonic()
         self.stats.requests += 1
-        self._request_timeout_s = timeout = self.request_timeout_s(request_bytes, reply_bytes)
-        self._client.comm_params.timeout_connect = timeout  # what pymodbus's serial client waits for a reply
+        full_timeout = self.request_timeout_s(request_bytes, reply_bytes)
+        wire_s = (request_bytes + reply_bytes) * 11 / self.baudrate
+        unanswered_tries = 0
         last_failure = "no attempt"
         candidate: bytes | None = None  # a reply waiting for its confirmation
         quiet = False
@@ -343,7 +364,13 @@ class RtuTransport:
                         self.reopen()
                     self._received = b""
                     self._expected_reply_bytes = reply_bytes
-                    answer_by = time.monotonic() + timeout
+                    timeout = full_timeout
+                    if read is not None and not self._slow_reply_s:
+                        timeout = min(full_timeout, wire_s + self._read_allowance_s() * 2 ** unanswered_tries)
+                    self._request_timeout_s = timeout  # the drain's window after it (see _drain)
+                    self._client.comm_params.timeout_connect = timeout  # what pymodbus's serial client waits
+                    sent = time.monotonic()
+                    answer_by = sent + full_timeout
                     reply = call(self._client)
                 except _GarbledReply:
                     self.stats.garbled_replies += 1
@@ -356,6 +383,7 @@ class RtuTransport:
                         # pymodbus's own wording ("… CLOSING CONNECTION") describes a close it does not do
                         # on a serial client; what happened is that no whole reply came back in time.
                         self.stats.timeouts += 1
+                        unanswered_tries += 1
                         unanswered = not self._received
                         last_failure = (f"no reply within {timeout:.3g} s" if not self._received else
                                         f"an incomplete reply within {timeout:.3g} s ({self._received.hex(' ')})")
@@ -378,6 +406,7 @@ class RtuTransport:
                     last_failure = f"a garbled reply ({self._received.hex(' ')})"
                     self._drain(answered=True)
                     continue
+                self._answer_s.append(max(0.0, time.monotonic() - sent - wire_s))
                 if reply.isError() and reply.function_code & 0x7F == function_code:
                     raise ModbusExceptionReply(what, int(getattr(reply, "exception_code", 0)))
                 if reply.isError() or not answers(reply):
