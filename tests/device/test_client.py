@@ -246,3 +246,28 @@ def test_a_map_read_resumes_where_a_lost_record_stopped_it():
     fake.every = 1                               # nothing gets through: given up when the budget is spent
     with pytest.raises(LinkError):
         dev.read_map("a", time_budget_s=0.05)
+
+
+class _GarblingInstrument(_LossyInstrument):
+    """_LossyInstrument whose lost records were lost to garbled replies (the line is there, only noisy)."""
+
+    def __init__(self, every: int):
+        super().__init__(every)
+        from types import SimpleNamespace
+
+        self.stats = SimpleNamespace(garbled_replies=0, resumed_reads=0, reconnects=0)
+
+    def read_file_records(self, file_number, record_number, count):
+        if (self.calls + 1) % self.every == 0:
+            self.stats.garbled_replies += 6
+        return super().read_file_records(file_number, record_number, count)
+
+
+def test_a_record_lost_to_garbled_replies_is_asked_again_without_a_reopen():
+    fake = _GarblingInstrument(every=10**9)
+    dev = Device(fake)
+    table = bytes(range(256)) * 100 + b"x"
+    dev.flash_map(table, version=1)
+    fake.every, fake.calls = 4, 0
+    assert dev.read_map("a") == table
+    assert fake.reopens == 0 and fake.stats.resumed_reads > 5

@@ -734,10 +734,12 @@ class Device:
         `on_data` is handed each record's bytes as they arrive, so a caller keeps them when the read fails (the
         last may carry a pad byte past an odd `length`).
 
-        Resumable: a record the link loses (every transport attempt failed) is asked for again after the link
-        is reopened and the slot selected again, from where the read stopped, for as long as `time_budget_s`
-        allows; only then the LinkError is raised. A table is hundreds of records: on a noisy line, restarting
-        it whole at each lost one would rarely finish."""
+        Resumable: a record the link loses (every transport attempt failed) is asked for again, from where the
+        read stopped, for as long as `time_budget_s` allows; only then the LinkError is raised. Lost to silence,
+        it is asked after the link is reopened and the slot selected again (the adapter may be wedged, the
+        device reset); lost to garbled replies, at once (the line is there, only noisy, and the records shrank).
+        A table is hundreds of records: on a noisy line, restarting it whole at each lost one would rarely
+        finish."""
         slot = regs.MapSlot[slot.upper()] if isinstance(slot, str) else regs.MapSlot(slot)
         if offset % 2:
             raise InputError("map read offset must be even (16-bit records)")
@@ -753,6 +755,7 @@ class Device:
                 file_number, record_number = record // regs.MAP_RECORDS_PER_FILE + 1, record % regs.MAP_RECORDS_PER_FILE
                 words = unsuspected_record_words(self.transport, min(
                     record_words(self.transport), regs.MAP_RECORDS_PER_FILE - record_number, (total - len(out)) // 2))
+                garbled = self._garbled_replies()
                 try:
                     if not selected:
                         self.write("map_read_slot", slot)
@@ -763,6 +766,8 @@ class Device:
                         raise
                     if (stats := getattr(self.transport, "stats", None)) is not None:
                         stats.resumed_reads += 1
+                    if selected and garbled is not None and self._garbled_replies() != garbled:
+                        continue  # lost to garbled replies: the line is there, only noisy; the records shrank
                     selected = False  # a reopened link may find a reset device: select the slot again
                     reopen = getattr(self.transport, "reopen", None)
                     if reopen is not None:
