@@ -50,7 +50,7 @@ class HostSettings:
     port: str = ""                     # serial port of the instrument (e.g. /dev/ttyUSB0)
     address: int = 1                   # Modbus slave address
     baudrate: int = 19200
-    timeout_s: float = 0.15            # per Modbus request, on top of its frames' time on the wire (transport.py)
+    timeout_s: float = 0.15            # per Modbus request beyond its frames' wire time; reads: at most (transport.py)
     attempts: int = 6                  # per Modbus request (a lost one costs ~2 × its timeout)
     local_echo: int = 0                # 1: the RS-485 adapter echoes what it sends (pymodbus strips it)
     spectrometer: str = ""             # spectrometer URL (sim:/dev/pts/N, seabreeze:, i2c:1)
