@@ -523,17 +523,38 @@ def test_demo_runs_end_to_end_and_reports_against_the_truth(start_twin, hil_map,
     assert "independent physics: partly" in out and "source: ideal-n1.5-l0.4.json" in out
 
 
-@pytest.mark.map_truth
-def test_demo_on_an_untraced_setup_says_its_truth_is_the_map(start_twin, tmp_path, capsys, monkeypatch):
-    """The shipped ideal map (0.5 mm) has no traced observables: the twin queries the very map the fit inverts,
-    and the demo says so. Its errors show the chain (calibration, noise, protocol) only: they would stay small
-    however wrong the map were, so they are asserted to be small and nothing is concluded about the map."""
+def test_demo_on_the_shipped_ideal_map_is_checked_against_adding_doubling(start_twin, tmp_path, capsys, monkeypatch):
+    """The shipped ideal map was traced; the twin's truth for it is adding-doubling's, so the demo's errors
+    include the map's own, and its line says so."""
     from trimeter.paths import MAPS_DIR
     from trimeter.twin.traced import traced_setup
 
     ideal = MAPS_DIR / "ideal-n1.5-l0.5.tmap"
-    if not ideal.is_file() or traced_setup("ideal", 1.5, 0.5) is not None:
-        pytest.skip("needs the shipped ideal map, untraced")
+    if not ideal.is_file() or traced_setup("ideal", 1.5, 0.5) is None:
+        pytest.skip("needs the shipped ideal map and its adding-doubling observables")
+    monkeypatch.setenv("TRIMETER_CONFIG_DIR", str(tmp_path / "config"))
+    assert main(["demo", "--map", str(ideal), "--thickness", "0.5", "--time-scale", "50",
+                 "--out", str(tmp_path / "demo")]) == 0
+    out = capsys.readouterr().out
+    assert "independent physics: yes" in out and "adding-doubling" in out, out
+    assert "source: ideal-n1.5-l0.5.json (tool tools/make_twin_observables.py, integrator adding-doubling" in out
+    p95 = next(line for line in out.splitlines() if line.startswith("over 420-720 nm"))
+    assert float(p95.split("|Δα| p95 ")[1].split(",")[0]) < 0.02, p95
+    assert float(p95.split("|Δσt|/σt p95 ")[1].split("%")[0]) < 2.0, p95
+
+
+@pytest.mark.map_truth
+def test_demo_on_a_setup_without_observables_says_its_truth_is_the_map(start_twin, tmp_path, capsys, monkeypatch):
+    """With no observables for the set-up (here: none at all) the twin queries the very map the fit inverts, and
+    the demo says so. Its errors show the chain (calibration, noise, protocol) only: they would stay small
+    however wrong the map were, so they are asserted to be small and nothing is concluded about the map."""
+    from trimeter.paths import MAPS_DIR
+    from trimeter.twin import traced
+
+    ideal = MAPS_DIR / "ideal-n1.5-l0.5.tmap"
+    if not ideal.is_file():
+        pytest.skip("needs the shipped ideal map")
+    monkeypatch.setattr(traced, "DATA_DIR", tmp_path / "no-observables")
     monkeypatch.setenv("TRIMETER_CONFIG_DIR", str(tmp_path / "config"))
     assert main(["demo", "--map", str(ideal), "--thickness", "0.5", "--time-scale", "50",
                  "--out", str(tmp_path / "demo")]) == 0

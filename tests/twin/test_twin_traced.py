@@ -1,6 +1,7 @@
 """The twin's physics: virtual samples traced by the maps' tracer (trimeter.twin.traced), close to but not
-the map the host inverts; stale data is refused; an untraced set-up says it fell back to the map, and the
-demo's "independent physics" line says what each source can show."""
+the map the host inverts, or for the ideal geometry computed by adding-doubling; stale data is refused; a set-up
+without either says it fell back to the map, and the demo's "independent physics" line says what each source
+can show."""
 
 from __future__ import annotations
 
@@ -19,6 +20,7 @@ from trimeter.twin import traced
 from trimeter.twin.optics import Optics, _catalogue, physics_line
 
 DEVICE_MAP = REPO_ROOT / "maps" / "device-n1.5-l0.4.tmap"
+IDEAL_MAP = REPO_ROOT / "maps" / "ideal-n1.5-l0.5.tmap"
 
 
 @pytest.mark.skipif(not DEVICE_MAP.exists() or traced.traced_setup("device", 1.5, 0.4) is None,
@@ -57,8 +59,36 @@ def test_traced_truth_names_its_source_and_what_it_shares_with_the_maps():
     # honest: the same tracer and the same I(ρ) model as the maps, so not independent of them
     assert line.startswith("independent physics: partly") and "I(ρ) = A + Bρ/(1 − Cρ)" in line
     assert "NOT the tracer's or the I(ρ) model's own" in line
-    with pytest.raises(InputError, match="physics must be one of traced, map"):
+    with pytest.raises(InputError, match="physics must be one of traced, adding-doubling, map"):
         physics_line("mitsuba", "milk", "x")
+
+
+@pytest.mark.skipif(not IDEAL_MAP.exists() or traced.traced_setup("ideal", 1.5, 0.5) is None,
+                    reason="needs the shipped ideal map and its adding-doubling observables")
+def test_the_shipped_ideal_maps_twin_is_adding_doubling_not_the_tracer():
+    """The shipped ideal map was traced; its twin's samples are adding-doubling's (an integrator of their own),
+    at every pixel what adding-doubling gives there (the spline between nodes included), near the map but never
+    it, and the demo's line says the map's whole error shows."""
+    pytest.importorskip("iadpython")
+    from trimeter.forward.adding_doubling import ideal_abc
+    from trimeter.model.response import background_response
+
+    amap = AppearanceMap.load(IDEAL_MAP)
+    optics = Optics(amap)
+    s = optics.insert_sample("yellow-ink", 0.5)
+    assert s.physics == "adding-doubling" and optics.truth()["physics"] == "adding-doubling"
+    source = optics.truth()["physics_source"]
+    assert source.startswith("ideal-n1.5-l0.5.json (tool tools/make_twin_observables.py, integrator adding-doubling")
+    assert "quad_points 32" in source
+    pixels = np.linspace(0, len(optics.wavelengths_nm) - 1, 7).astype(int)
+    direct = ideal_abc(s.alpha[pixels], s.sigma_t[pixels], s.g[pixels], thickness_mm=0.5, n=1.5)
+    for I, rho in ((s.I_b, optics.rho_black), (s.I_w, optics.rho_white)):
+        np.testing.assert_allclose(I[pixels], background_response(*direct.T, rho[pixels]), atol=1e-4)
+    I_b, I_w, _ = amap.query(s.alpha, s.sigma_t, s.g, optics.rho_black, optics.rho_white)
+    assert np.nanmax(np.abs(s.I_w - I_w)) < 0.01 and np.nanmax(np.abs(s.I_b - I_b)) < 0.01
+    assert np.nanmax(np.abs(s.I_w - I_w)) > 1e-5
+    line = physics_line("adding-doubling", "yellow-ink", amap.name)
+    assert line.startswith("independent physics: yes") and "whole of the map ideal-n1.5-l0.5's own error" in line
 
 
 def _tool():
@@ -91,3 +121,32 @@ def test_tool_output_loads_and_stale_data_is_refused(tmp_path, monkeypatch):
     bad.write_text(json.dumps(doc))
     with pytest.raises(InputError, match="A must be"):
         traced._load(bad)
+    doc = json.loads(path.read_text())
+    (bad := tmp_path / "bad-integrator.json").write_text(json.dumps({**doc, "integrator": "volpath"}))
+    with pytest.raises(InputError, match="integrator must be one of tracer, adding-doubling"):
+        traced._load(bad)
+
+
+def test_tool_computes_an_ideal_setup_by_adding_doubling(tmp_path, monkeypatch, capsys):
+    """One integrator per file: a traced file re-made by adding-doubling keeps none of the traced entries; the
+    integrator travels into the samples' physics; adding-doubling is refused for the device geometry."""
+    pytest.importorskip("iadpython")
+    tool = _tool()
+    monkeypatch.setattr(tool, "DATA_DIR", tmp_path)
+    path = tmp_path / "ideal-n1.5-l0.3.json"
+    path.write_text(json.dumps({"materials": {"cyan-ink": {"traced": True}}, "integrator": "tracer"}))
+    assert tool.main(["--setup", "ideal:0.3:adding-doubling", "--material", "milk", "--step-nm", "110"]) == 0
+    assert "quadrature error black" in capsys.readouterr().out
+    setup = traced._load(path)
+    assert setup.integrator == "adding-doubling" and setup.physics == "adding-doubling"
+    assert list(setup.materials) == ["milk"] and setup.provenance["step_nm"] == 110
+    entry = setup.materials["milk"]
+    assert entry["quad_points"] == 32 and entry["L"] == [0.0] * len(entry["wavelength_nm"])
+    assert 0 < max(entry["quadrature_error_white"]) < 2e-3
+    I_b, I_w, _, _ = setup.observables("milk", _catalogue()["material"]["milk"], load_geometry("ideal"),
+                                       np.linspace(400, 900, 20), 0.03, 0.99)
+    assert np.all((I_b > 0) & (I_w > I_b) & (I_w < 1))
+    for bad, message in (("device:0.4:adding-doubling", "exact only for the ideal geometry"),
+                         ("ideal:0.4:volpath", "integrator must be one of"), ("ideal:thin", "GEOMETRY:THICKNESS_MM")):
+        with pytest.raises(InputError, match=message):
+            tool.main(["--setup", bad, "--material", "milk"])

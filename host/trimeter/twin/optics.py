@@ -9,11 +9,12 @@ What the spectrometer sees for a plant state (counts/s per pixel, before noise):
     black slot (or between slots):  panels · (I_b  | ρ_black without a sample)
     white slot:                     panels · (I_w  | ρ_white)
     open slot:                      panels · (I(ρ=0) | 0) + beam · (I_c | 1)
-with (I_b, I_w, I_c) of the inserted sample traced for the set-up (geometry, n, ℓ) of the chosen map —
+with (I_b, I_w, I_c) of the inserted sample computed for the set-up (geometry, n, ℓ) of the chosen map —
 trimeter.twin.traced, not read from the map the host inverts, so a round trip includes the map's
-interpolation and Monte Carlo error. Those traces come from the maps' own tracer, reduced to the maps'
+interpolation and Monte Carlo error. Traced set-ups come from the maps' own tracer, reduced to the maps'
 own I(ρ) model, so they share that tracer's and that model's errors: they are not independent physics.
-A set-up or material nobody traced is rendered by the very map the host inverts (AppearanceMap.query);
+Ideal set-ups computed by adding-doubling are: a round trip then shows the whole error of a traced map.
+A set-up or material with neither is rendered by the very map the host inverts (AppearanceMap.query);
 `physics` records which source it was (PHYSICS) and the demo and the HIL suite say so (physics_line).
 """
 
@@ -211,6 +212,8 @@ class SpectrometerModel:
 PHYSICS = {
     "traced": "traced by the tracer the maps are built with (trimeter.forward.transport, "
               "tools/make_twin_observables.py) and reduced to the maps' own I(ρ) = A + Bρ/(1 − Cρ) model",
+    "adding-doubling": "computed by adding-doubling (Prahl's iadpython, tools/make_twin_observables.py), an "
+                       "integrator other than the maps' Monte Carlo tracer",
     "map": "queried from the very map the host inverts (no traced observables for this set-up or material)",
 }
 
@@ -222,6 +225,11 @@ def physics_line(physics: str, sample: str, map_name: str) -> str:
         return (f"independent physics: partly — the twin's '{sample}' was {PHYSICS['traced']}, not read from the "
                 f"map {map_name} the fit inverts: the errors below include that map's interpolation and Monte Carlo "
                 "error, NOT the tracer's or the I(ρ) model's own (e.g. its unpolarised Fresnel)")
+    if physics == "adding-doubling":
+        return (f"independent physics: yes — the twin's '{sample}' was {PHYSICS['adding-doubling']}: the errors "
+                f"below include the whole of the map {map_name}'s own error (its tracer's, its interpolation's, its "
+                "Monte Carlo noise); what both share is the ideal geometry's model itself (an infinite slab over a "
+                "Lambertian background, unpolarised Fresnel)")
     if physics == "map":
         return (f"independent physics: none — the twin's '{sample}' was {PHYSICS['map']}, map {map_name}: the "
                 "errors below are noise, drift and calibration only, NOT the map's own error "
@@ -319,7 +327,7 @@ class Optics:
                 I_c = traced.collimated(sigma_t, L, geometry_params)
                 self.sample = SampleOptics(name=name, thickness_mm=thickness_mm, alpha=alpha, sigma_t=sigma_t, g=g,
                                            I_b=I_b, I_w=I_w, I_c=I_c, I_open=I_open, map_name=amap.name,
-                                           physics="traced", physics_source=traced.source())
+                                           physics=traced.physics, physics_source=traced.source())
                 return self.sample
         I_b, I_w, I_c = amap.query(spectra["alpha"], spectra["sigma_t"], spectra["g"], self.rho_black, self.rho_white)
         I_open = amap.diffuse(spectra["alpha"], spectra["sigma_t"], spectra["g"], 0.0)

@@ -1,24 +1,33 @@
-"""The twin's virtual samples traced directly, not read off any appearance map (but not independent of
-the maps' physics: the same tracer, the same I(ρ) model).
+"""The twin's virtual samples computed directly, not read off any appearance map: traced by the maps' own
+tracer (not independent of the maps' physics: the same tracer, the same I(ρ) model), or, for the ideal
+geometry, by adding-doubling (an integrator of its own).
 
 The map the host inverts is an interpolant of the forward model; a twin that made its samples' I_b,
 I_w, I_c with that same map would hide the map's own error (node spacing, its Monte Carlo noise), so
 every round trip would look better than a real instrument can. Instead, `tools/make_twin_observables.py`
-traces each catalogue material once per set-up (geometry, n, ℓ) with the project's tracer
-(trimeter.forward.transport, at the material's own α, σt, g — no map), at a coarse set of wavelength nodes,
-and stores per node the background-response coefficients (A, B, C of I(ρ) = A + Bρ/(1 − Cρ)) and the
-collimated beam's in-scattering L = ln(1 + r) (trimeter.forward.transport.inscatter_tracer's direct tracer; 0 for the
-ideal geometry, whose detector takes only the unscattered beam). Between the nodes the coefficients
-are interpolated with a cubic spline in λ: the materials are smooth sums of Gaussian bands of ≥ 35 nm
-width, and all nodes of one material share their random numbers, so the Monte Carlo error is smooth in λ
-as well. The unscattered beam is analytic (Beer-Lambert with the Fresnel stack) at every pixel.
+computes each catalogue material once per set-up (geometry, n, ℓ) at a coarse set of wavelength nodes,
+with one of two integrators (the file's `integrator`):
+- `tracer`: the project's tracer (trimeter.forward.transport, at the material's own α, σt, g — no map);
+  per node the background-response coefficients (A, B, C of I(ρ) = A + Bρ/(1 − Cρ)) and the collimated
+  beam's in-scattering L = ln(1 + r) (trimeter.forward.transport.inscatter_tracer's direct tracer; 0 for the
+  ideal geometry, whose detector takes only the unscattered beam). All nodes of one material share their
+  random numbers, so the Monte Carlo error is smooth in λ.
+- `adding-doubling` (ideal geometry only): Prahl's adding-doubling (trimeter.forward.adding_doubling), exact
+  for the ideal geometry up to its quadrature, which the file bounds per node by the change from doubling
+  the quadrature points. No Monte Carlo, no tracer: a round trip against it shows the whole error of a map
+  the tracer built.
+Between the nodes the coefficients are interpolated with a cubic spline in λ: the materials are smooth
+sums of Gaussian bands of ≥ 35 nm width. The unscattered beam is analytic (Beer-Lambert with the Fresnel
+stack) at every pixel.
 
 Data: host/trimeter/data/twin_observables/<geometry>-n<n>-l<ℓ>.json, one file per set-up, with the
 hash of each material's catalogue entry and of the geometry: a material or geometry changed since
-the trace makes the data stale (an error, naming the tool to re-run).
+the computation makes the data stale (an error, naming the tool to re-run).
 
-What these observables cannot show: errors the maps' tracer and their I(ρ) model make (e.g. unpolarised
-Fresnel, one return coefficient C), since the twin's samples are made the same way.
+What traced observables cannot show: errors the maps' tracer and their I(ρ) model make (e.g. unpolarised
+Fresnel, one return coefficient C), since the twin's samples are made the same way. What adding-doubling
+shares with the maps: only the ideal geometry's model itself (an infinite slab over a Lambertian background
+under uniform light, unpolarised Fresnel).
 """
 
 from __future__ import annotations
@@ -41,6 +50,9 @@ from trimeter.model.collimated import collimated_transmittance
 DATA_DIR = Path(__file__).resolve().parents[1] / "data" / "twin_observables"
 FORMAT_VERSION = 1
 MAX_FILE_BYTES = 4_000_000
+# The integrators a file's observables may come from (its `integrator`; a file without one was traced), and
+# the name a virtual sample's physics takes from each (trimeter.twin.optics.PHYSICS).
+INTEGRATOR_PHYSICS = {"tracer": "traced", "adding-doubling": "adding-doubling"}
 
 
 def setup_name(geometry: str, n: float, thickness_mm: float) -> str:
@@ -63,6 +75,12 @@ class TracedSetup:
     materials: dict          # name → {"material_hash", "wavelength_nm", "A", "B", "C", "L", ...}
     provenance: dict
     path: Path
+    integrator: str = "tracer"   # a key of INTEGRATOR_PHYSICS
+
+    @property
+    def physics(self) -> str:
+        """Where a sample of this set-up comes from, as trimeter.twin.optics.PHYSICS names it."""
+        return INTEGRATOR_PHYSICS[self.integrator]
 
     def observables(self, name: str, material_entry: dict, geometry_params: dict, wavelengths_nm: ArrayLike,
                     rho_b: np.ndarray, rho_w: np.ndarray
@@ -88,9 +106,11 @@ class TracedSetup:
         return I_b, I_w, L, A
 
     def source(self) -> str:
-        """How these observables were made: the file and its provenance (tool, paths per node, seed)."""
-        p = self.provenance
-        made = ", ".join(f"{k} {p[k]}" for k in ("tool", "paths_per_node", "seed", "written_utc") if k in p)
+        """How these observables were made: the file and its provenance (tool, integrator, paths per node and
+        seed, or quadrature points)."""
+        p = {**self.provenance, "integrator": self.integrator}
+        made = ", ".join(f"{k} {p[k]}" for k in ("tool", "integrator", "paths_per_node", "seed", "quad_points",
+                                                 "written_utc") if k in p)
         return f"{self.path.name} ({made or 'no provenance recorded'})"
 
     def collimated(self, sigma_t: np.ndarray, L: np.ndarray, geometry_params: dict) -> np.ndarray:
@@ -105,6 +125,9 @@ def _check(doc: dict, path: Path) -> None:
     for key in ("geometry", "n", "thickness_mm", "geometry_hash", "materials"):
         if key not in doc:
             raise InputError(f"{path}: lacks {key!r}")
+    if doc.get("integrator", "tracer") not in INTEGRATOR_PHYSICS:
+        raise InputError(f"{path}: integrator must be one of {', '.join(INTEGRATOR_PHYSICS)}, got "
+                         f"{doc.get('integrator')!r}")
     for name, m in doc["materials"].items():
         nodes = np.asarray(m.get("wavelength_nm", []), dtype=float)
         if nodes.ndim != 1 or len(nodes) < 4 or not np.all(np.diff(nodes) > 0):
@@ -126,11 +149,12 @@ def _load(path: Path) -> TracedSetup:
     _check(doc, path)
     return TracedSetup(geometry=doc["geometry"], n=float(doc["n"]), thickness_mm=float(doc["thickness_mm"]),
                        geometry_hash=doc["geometry_hash"], materials=doc["materials"],
-                       provenance=doc.get("provenance", {}), path=path)
+                       provenance=doc.get("provenance", {}), path=path, integrator=doc.get("integrator", "tracer"))
 
 
 def traced_setup(geometry: str, n: float, thickness_mm: float) -> TracedSetup | None:
-    """The traced observables of a set-up, or None when none were traced for it."""
+    """The directly computed observables of a set-up (traced or by adding-doubling), or None when there are
+    none for it."""
     path = DATA_DIR / f"{setup_name(geometry, n, thickness_mm)}.json"
     if not math.isfinite(thickness_mm) or not path.is_file():
         return None
