@@ -112,9 +112,9 @@ def main(argv=None) -> int:
                    help="the mixtures `trimeter library mixtures --twin` measures, instead of the catalogue")
     p.add_argument("--paths", type=int, default=1 << 21, help="detector paths per wavelength node")
     p.add_argument("--photons", type=int, default=40_000, help="collimated in-scattering photons per node (device)")
-    p.add_argument("--step-nm", type=float, help="node spacing (default: 20 nm traced, 5 nm by adding-doubling, "
-                   "whose nodes cost little: a cubic spline through 20 nm nodes is up to ~1e-3 off in I on the "
-                   "catalogue's sharpest band, through 5 nm ones ~4e-5)")
+    p.add_argument("--step-nm", type=float, help="node spacing (default: 20 nm traced; 5 nm by adding-doubling, "
+                   "whose nodes cost little: a spline through 20 nm nodes misses the sharpest band by about a "
+                   "trace's Monte Carlo error, through 5 nm ones by far less than the quadrature's)")
     p.add_argument("--range-nm", type=float, nargs=2, default=(340.0, 1000.0))
     p.add_argument("--seed", type=int, default=7)
     args = p.parse_args(argv)

@@ -17,11 +17,10 @@ with one of two integrators (the file's `integrator`):
   the quadrature points. No Monte Carlo, no tracer: a round trip against it shows the whole error of a map
   the tracer built.
 Between the nodes the coefficients are interpolated with a cubic spline in λ: the materials are smooth
-sums of Gaussian bands of ≥ 35 nm width. That spline is part of the twin's truth's own error: through the
-traced files' 20 nm nodes it is off by up to ~1e-3 in I over 420-720 nm on the catalogue's sharpest band
-(the white ink's edge; about its Monte Carlo error there), through the adding-doubling files' 5 nm nodes by
-≤ 5e-5 (both measured in the ideal geometry at 0.5 mm, against adding-doubling at the nodes' midpoints). The unscattered beam is analytic
-(Beer-Lambert with the Fresnel stack) at every pixel.
+sums of Gaussian bands of ≥ 35 nm width. The spline is part of the twin's truth's own error: through the
+traced files' 20 nm nodes it misses the catalogue's sharpest band (the white ink's edge) by about the
+traces' Monte Carlo error; through the adding-doubling files' 5 nm nodes it is far below their quadrature's
+error. The unscattered beam is analytic (Beer-Lambert with the Fresnel stack) at every pixel.
 
 Data: host/trimeter/data/twin_observables/<geometry>-n<n>-l<ℓ>.json, one file per set-up, with the
 hash of each material's catalogue entry and of the geometry: a material or geometry changed since
