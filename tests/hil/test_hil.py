@@ -523,24 +523,33 @@ def test_demo_runs_end_to_end_and_reports_against_the_truth(start_twin, hil_map,
     assert "independent physics: partly" in out and "source: ideal-n1.5-l0.4.json" in out
 
 
-def test_demo_on_the_shipped_ideal_map_is_checked_against_adding_doubling(start_twin, tmp_path, capsys, monkeypatch):
-    """The shipped ideal map was traced; the twin's truth for it is adding-doubling's, so the demo's errors
-    include the map's own, and its line says so."""
+def _demo_on_the_shipped_ideal_map(tmp_path, capsys, monkeypatch) -> tuple[str, dict[str, float]]:
+    """`trimeter demo` on the shipped ideal map (0.5 mm): its output and its p95 errors over 420-720 nm."""
     from trimeter.paths import MAPS_DIR
-    from trimeter.twin.traced import traced_setup
 
     ideal = MAPS_DIR / "ideal-n1.5-l0.5.tmap"
-    if not ideal.is_file() or traced_setup("ideal", 1.5, 0.5) is None:
-        pytest.skip("needs the shipped ideal map and its adding-doubling observables")
+    if not ideal.is_file():
+        pytest.skip("needs the shipped ideal map")
     monkeypatch.setenv("TRIMETER_CONFIG_DIR", str(tmp_path / "config"))
     assert main(["demo", "--map", str(ideal), "--thickness", "0.5", "--time-scale", "50",
                  "--out", str(tmp_path / "demo")]) == 0
     out = capsys.readouterr().out
+    p95 = next(line for line in out.splitlines() if line.startswith("over 420-720 nm"))
+    return out, {"alpha": float(p95.split("|Δα| p95 ")[1].split(",")[0]),
+                 "sigma_t_pct": float(p95.split("|Δσt|/σt p95 ")[1].split("%")[0])}
+
+
+def test_demo_on_the_shipped_ideal_map_is_checked_against_adding_doubling(start_twin, tmp_path, capsys, monkeypatch):
+    """The shipped ideal map was traced; the twin's truth for it is adding-doubling's, so the demo's errors
+    include the map's own, and its line says so."""
+    from trimeter.twin.traced import traced_setup
+
+    if traced_setup("ideal", 1.5, 0.5) is None:
+        pytest.skip("needs the shipped ideal map's adding-doubling observables")
+    out, p95 = _demo_on_the_shipped_ideal_map(tmp_path, capsys, monkeypatch)
     assert "independent physics: yes" in out and "adding-doubling" in out, out
     assert "source: ideal-n1.5-l0.5.json (tool tools/make_twin_observables.py, integrator adding-doubling" in out
-    p95 = next(line for line in out.splitlines() if line.startswith("over 420-720 nm"))
-    assert float(p95.split("|Δα| p95 ")[1].split(",")[0]) < 0.02, p95
-    assert float(p95.split("|Δσt|/σt p95 ")[1].split("%")[0]) < 2.0, p95
+    assert p95["alpha"] < 0.02 and p95["sigma_t_pct"] < 2.0, p95
 
 
 @pytest.mark.map_truth
@@ -548,21 +557,13 @@ def test_demo_on_a_setup_without_observables_says_its_truth_is_the_map(start_twi
     """With no observables for the set-up (here: none at all) the twin queries the very map the fit inverts, and
     the demo says so. Its errors show the chain (calibration, noise, protocol) only: they would stay small
     however wrong the map were, so they are asserted to be small and nothing is concluded about the map."""
-    from trimeter.paths import MAPS_DIR
     from trimeter.twin import traced
 
-    ideal = MAPS_DIR / "ideal-n1.5-l0.5.tmap"
-    if not ideal.is_file():
-        pytest.skip("needs the shipped ideal map")
     monkeypatch.setattr(traced, "DATA_DIR", tmp_path / "no-observables")
-    monkeypatch.setenv("TRIMETER_CONFIG_DIR", str(tmp_path / "config"))
-    assert main(["demo", "--map", str(ideal), "--thickness", "0.5", "--time-scale", "50",
-                 "--out", str(tmp_path / "demo")]) == 0
-    out = capsys.readouterr().out
+    out, p95 = _demo_on_the_shipped_ideal_map(tmp_path, capsys, monkeypatch)
     assert "independent physics: none" in out and "NOT the map's own error" in out, out
     assert "source: AppearanceMap.query of ideal-n1.5-l0.5" in out
-    p95 = next(line for line in out.splitlines() if line.startswith("over 420-720 nm"))
-    assert float(p95.split("|Δσt|/σt p95 ")[1].split("%")[0]) < 2.0, p95
+    assert p95["sigma_t_pct"] < 2.0, p95
 
 
 def test_twin_truth_refuses_a_map_truth_in_a_test_not_marked_for_it():
