@@ -27,6 +27,8 @@ def test_names_resolve_and_unknown_ones_do_not():
         (fit, open_map, predict, load, Measurement)
     with pytest.raises(AttributeError):
         trimeter.no_such_thing  # noqa: B018
+    # imported once: a resolved name is the module's own from then on (a fit in a loop does not import again)
+    assert {"fit", "open_map", "predict", "load", "Measurement"} <= set(vars(trimeter))
 
 
 def test_open_map_by_name_is_the_one_fit_uses():
