@@ -421,3 +421,35 @@ def test_reads_wait_a_few_times_the_devices_answering_time_and_longer_when_it_sl
     assert link.read_words("holding_register", 7, 3) == [7, 8, 9]
     assert link.stats.timeouts >= 1 and link.stats.failures == 0
     link.close()
+
+
+class OneSlowAnswerSlave(SlowingSlave):
+    """Answers at once, but for request number `slow` (1-based), which it answers `delay_s` late."""
+
+    slow = 17
+
+    def run(self):
+        for frame in self.frames():
+            address, fc, start, count = struct.unpack(">BBHH", frame[:6])
+            body = bytes([address, fc, 2 * count]) + struct.pack(f">{count}H", *range(start, start + count))
+            if self.requests == self.slow:
+                threading.Event().wait(self.delay_s)
+            os.write(self.master, body + crc16(body))
+
+
+def test_an_answer_let_be_slow_does_not_widen_the_reads_allowance(slave_factory):
+    """A request made under slow_reply() (a flash erase) may take far longer than a read: its answer must not
+    count as the device's answering time, or every read after it waits the whole timeout on a lost try."""
+    from trimeter.device.transport import READ_ALLOWANCE_ANSWERS
+
+    slave = slave_factory(cls=lambda _: OneSlowAnswerSlave())
+    link = RtuTransport(slave.port, timeout_s=1.0)
+    for i in range(READ_ALLOWANCE_ANSWERS):
+        assert link.read_words("holding_register", i, 2) == [i, i + 1]
+    before = link._read_allowance_s()
+    assert before < 0.5
+    with link.slow_reply(2.0):
+        assert link.read_words("holding_register", 3, 1) == [3]
+    assert slave.requests == OneSlowAnswerSlave.slow and link.stats.timeouts == 0
+    assert link._read_allowance_s() < 0.5
+    link.close()

@@ -306,8 +306,8 @@ class RtuTransport:
 
     def _read_allowance_s(self) -> float:
         """How long a read's attempt waits for the device to answer, beyond the frames' time on the wire: a few
-        times the slowest of its recent answers (at least READ_ALLOWANCE_FLOOR_S), never more than `timeout_s`,
-        which it is until enough answers were seen. On a noisy line most lost attempts are requests the device
+        times the slowest of its recent answers (those let be slow by slow_reply() left out; at least
+        READ_ALLOWANCE_FLOOR_S), never more than `timeout_s`, which it is until enough answers were seen. On a noisy line most lost attempts are requests the device
         never heard, and each costs this allowance twice (the wait, then the drain): the full `timeout_s` was
         most of a noisy table read. A device slower than that is waited for with the allowance doubled at each
         unanswered try of a request, and its late reply is caught by the reply shapes' suspicion as any
@@ -406,7 +406,8 @@ class RtuTransport:
                     last_failure = f"a garbled reply ({self._received.hex(' ')})"
                     self._drain(answered=True)
                     continue
-                self._answer_s.append(max(0.0, time.monotonic() - sent - wire_s))
+                if not self._slow_reply_s:  # an answer let be slow (a flash erase) says nothing of a read's
+                    self._answer_s.append(max(0.0, time.monotonic() - sent - wire_s))
                 if reply.isError() and reply.function_code & 0x7F == function_code:
                     raise ModbusExceptionReply(what, int(getattr(reply, "exception_code", 0)))
                 if reply.isError() or not answers(reply):
