@@ -305,13 +305,13 @@ class RtuTransport:
         return {reply_bytes for _, code, reply_bytes in self._unanswered if code == function_code}
 
     def _read_allowance_s(self) -> float:
-        """How long a read's attempt waits for the device to answer, beyond the frames' time on the wire: a few
-        times the slowest of its recent answers (those let be slow by slow_reply() left out; at least
-        READ_ALLOWANCE_FLOOR_S), never more than `timeout_s`, which it is until enough answers were seen. On a noisy line most lost attempts are requests the device
-        never heard, and each costs this allowance twice (the wait, then the drain): the full `timeout_s` was
-        most of a noisy table read. A device slower than that is waited for with the allowance doubled at each
-        unanswered try of a request, and its late reply is caught by the reply shapes' suspicion as any
-        other late reply is; writes always wait the full `timeout_s` (asking one again could act twice)."""
+        """How long a read's attempt waits for the device to answer, beyond the frames' time on the wire: a few times
+        the slowest of its recent answers (those let be slow by slow_reply() left out; at least READ_ALLOWANCE_FLOOR_S),
+        never more than `timeout_s`, which it is until enough answers were seen. On a noisy line most lost attempts are
+        requests the device never heard, and each costs this allowance twice (the wait, then the drain): the full
+        `timeout_s` was most of a noisy table read. A device slower than that is waited for with the allowance doubled
+        at each unanswered try of a request, and its late reply is caught by the reply shapes' suspicion as any other
+        late reply is; writes always wait the full `timeout_s` (asking one again could act twice)."""
         if len(self._answer_s) < READ_ALLOWANCE_ANSWERS:
             return self.timeout_s
         return min(self.timeout_s, max(READ_ALLOWANCE_FLOOR_S, READ_ALLOWANCE_FACTOR * max(self._answer_s)))
