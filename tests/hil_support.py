@@ -22,7 +22,8 @@ SAMPLE = "cyan-ink"
 
 def build_hil_map(path, thickness_mm: float = THICKNESS_MM, n: float = 1.5) -> AppearanceMap:
     """A small exact `ideal` map from adding-doubling (iadpython, test-only) for the host's inversion; the twin
-    renders its samples with the tracer (trimeter.twin.traced), so the suite measures the chain and this map's error."""
+    renders its samples with the tracer (trimeter.twin.observables), so the suite measures the chain and this map's
+    error."""
     from trimeter.forward.adding_doubling import ideal_abc
 
     alpha = 1.0 - (1.0 - np.linspace(0.0, 1.0, 17)) ** 2

@@ -13,7 +13,7 @@ material, at wavelength nodes every --step-nm over the spectrometer's range:
 - adding-doubling (ideal geometry only): A, B, C from Prahl's adding-doubling at IAD_QUAD_POINTS quadrature
   points (trimeter.forward.adding_doubling), L = 0; the change in I_b, I_w at twice the points is recorded per
   node as the quadrature's error. Deterministic: no seed, no paths.
-See trimeter.twin.traced for how the twin uses it. Each material records how it was made; the file's
+See trimeter.twin.observables for how the twin uses it. Each material records how it was made; the file's
 provenance is the last run over the whole catalogue (a run over some materials or mixtures, --material /
 --twin-mixtures, adds to the file and leaves it). A file holds one integrator's observables.
 """
@@ -36,7 +36,7 @@ from trimeter.geometry import load_geometry
 from trimeter.forward.transport import Stack, k_max_for, trace_column
 from trimeter.twin.optics import catalogue_entry, material_names, material_spectra
 from trimeter.model.response import background_response
-from trimeter.twin.traced import DATA_DIR, FORMAT_VERSION, INTEGRATOR_PHYSICS, content_hash, setup_name
+from trimeter.twin.observables import DATA_DIR, FORMAT_VERSION, INTEGRATOR_PHYSICS, content_hash, setup_name
 
 # the shipped device maps', the HIL map's (adding-doubling itself: its twin is traced, so that a round trip
 # crosses two integrators) and the shipped ideal map's (traced: its twin by adding-doubling, for the same reason)

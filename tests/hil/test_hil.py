@@ -542,9 +542,9 @@ def _demo_on_the_shipped_ideal_map(tmp_path, capsys, monkeypatch) -> tuple[str, 
 def test_demo_on_the_shipped_ideal_map_is_checked_against_adding_doubling(start_twin, tmp_path, capsys, monkeypatch):
     """The shipped ideal map was traced; the twin's truth for it is adding-doubling's, so the demo's errors
     include the map's own, and its line says so."""
-    from trimeter.twin.traced import traced_setup
+    from trimeter.twin.observables import setup_observables
 
-    if traced_setup("ideal", 1.5, 0.5) is None:
+    if setup_observables("ideal", 1.5, 0.5) is None:
         pytest.skip("needs the shipped ideal map's adding-doubling observables")
     out, p95 = _demo_on_the_shipped_ideal_map(tmp_path, capsys, monkeypatch)
     assert "independent physics: yes" in out and "adding-doubling" in out, out
@@ -557,9 +557,9 @@ def test_demo_on_a_setup_without_observables_says_its_truth_is_the_map(start_twi
     """With no observables for the set-up (here: none at all) the twin queries the very map the fit inverts, and
     the demo says so. Its errors show the chain (calibration, noise, protocol) only: they would stay small
     however wrong the map were, so they are asserted to be small and nothing is concluded about the map."""
-    from trimeter.twin import traced
+    from trimeter.twin import observables
 
-    monkeypatch.setattr(traced, "DATA_DIR", tmp_path / "no-observables")
+    monkeypatch.setattr(observables, "DATA_DIR", tmp_path / "no-observables")
     out, p95 = _demo_on_the_shipped_ideal_map(tmp_path, capsys, monkeypatch)
     assert "independent physics: none" in out and "NOT the map's own error" in out, out
     assert "source: AppearanceMap.query of ideal-n1.5-l0.5" in out

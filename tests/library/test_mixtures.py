@@ -56,7 +56,7 @@ def test_a_traced_mixture_is_stamped_with_its_components(tmp_path, monkeypatch):
 
     from trimeter.geometry import load_geometry
     from trimeter.paths import REPO_ROOT
-    from trimeter.twin import traced
+    from trimeter.twin import observables
     from trimeter.twin.optics import catalogue_entry
 
     spec = importlib.util.spec_from_file_location("make_twin_observables",
@@ -66,7 +66,7 @@ def test_a_traced_mixture_is_stamped_with_its_components(tmp_path, monkeypatch):
     monkeypatch.setattr(tool, "DATA_DIR", tmp_path)
     name = "cyan-ink:0.5+yellow-ink:0.5"
     assert tool.main(["--setup", "ideal:0.3", "--material", name, "--paths", "4096", "--step-nm", "150"]) == 0
-    setup = traced._load(tmp_path / "ideal-n1.5-l0.3.json")
+    setup = observables._load(tmp_path / "ideal-n1.5-l0.3.json")
     params, lam = load_geometry("ideal"), np.linspace(400, 900, 20)
     I_b, I_w, _, _ = setup.observables(name, catalogue_entry(name), params, lam, 0.03, 0.99)
     assert np.all(I_w > I_b)

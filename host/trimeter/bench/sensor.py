@@ -1,7 +1,7 @@
 """`trimeter bench sensor`: every build's accuracy on the twin's materials, from one run.
 
 The twin's catalogue materials at --thickness, their I_b, I_w, I_c per pixel traced directly
-(trimeter.twin.traced: not read off the map the fits invert, though traced by the same tracer), read
+(trimeter.twin.observables: not read off the map the fits invert, though traced by the same tracer), read
 as each build reads them:
 - ideal spectrometer: the pixels as they are, fitted per wavelength (lut);
 - seabreeze: each pixel through the spectrometer's slit (trimeter.spectrometer.sensors.slit_matrix)

@@ -20,7 +20,7 @@ Where the numbers come from:
   This skips the firmware, the Modbus link and the spectrometer's exposures — what `trimeter measure`
   adds to a capture is covered by its own tests; a full-loop run is `trimeter sim --sample
   cyan-ink:0.5+yellow-ink:0.5` + `trimeter measure`, then `take`. The twin traces its samples
-  independently of the map (trimeter.twin.traced; the check's mixtures too: tools/make_twin_observables.py
+  independently of the map (trimeter.twin.observables; the check's mixtures too: tools/make_twin_observables.py
   --twin-mixtures), so the check sees the map's own error on inks and mixtures and the inks' fit errors;
   a mixture nobody traced is rendered with the map (mixtures.json says which).
 """

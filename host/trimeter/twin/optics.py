@@ -10,7 +10,7 @@ What the spectrometer sees for a plant state (counts/s per pixel, before noise):
     white slot:                     panels · (I_w  | ρ_white)
     open slot:                      panels · (I(ρ=0) | 0) + beam · (I_c | 1)
 with (I_b, I_w, I_c) of the inserted sample computed for the set-up (geometry, n, ℓ) of the chosen map —
-trimeter.twin.traced, not read from the map the host inverts, so a round trip includes the map's
+trimeter.twin.observables, not read from the map the host inverts, so a round trip includes the map's
 interpolation and Monte Carlo error. Traced set-ups come from the maps' own tracer, reduced to the maps'
 own I(ρ) model, so they share that tracer's and that model's errors: they are not independent physics.
 Ideal set-ups computed by adding-doubling are: a round trip then shows the whole error of a traced map.
@@ -33,7 +33,7 @@ from scipy.interpolate import PchipInterpolator
 from trimeter.errors import InputError
 from trimeter.geometry import load_geometry
 from trimeter.twin.sensor import As7341Model
-from trimeter.twin.traced import traced_setup
+from trimeter.twin.observables import setup_observables
 
 if TYPE_CHECKING:
     from trimeter.formats.appearance import AppearanceMap
@@ -75,7 +75,7 @@ def parse_mixture(name: str) -> list[tuple[str, float]] | None:
 
 def catalogue_entry(name: str) -> dict:
     """What defines a sample: its catalogue entry, or a mixture's fractions with its components' entries
-    (the traced observables are stamped with its hash: trimeter.twin.traced)."""
+    (the traced observables are stamped with its hash: trimeter.twin.observables)."""
     mixture = parse_mixture(name)
     if mixture is None:
         materials = _catalogue()["material"]
@@ -316,18 +316,18 @@ class Optics:
                 lam = self.wavelengths_nm[bad]
                 raise InputError(f"sample {name!r}: {key} spans {values.min():.4g}..{values.max():.4g}, outside map "
                                  f"{amap.name}'s {axis[0]:.4g}..{axis[-1]:.4g} at {lam[0]:.0f}-{lam[-1]:.0f} nm")
-        traced = traced_setup(str(amap.recipe.get("geometry")), amap.n, thickness_mm)
+        computed = setup_observables(str(amap.recipe.get("geometry")), amap.n, thickness_mm)
         alpha, sigma_t, g = spectra["alpha"], spectra["sigma_t"], spectra["g"]
-        if traced is not None:
-            geometry_params = load_geometry(traced.geometry)
-            observed = traced.observables(name, catalogue_entry(name), geometry_params,
+        if computed is not None:
+            geometry_params = load_geometry(computed.geometry)
+            observed = computed.observables(name, catalogue_entry(name), geometry_params,
                                           self.wavelengths_nm, self.rho_black, self.rho_white)
             if observed is not None:
                 I_b, I_w, L, I_open = observed
-                I_c = traced.collimated(sigma_t, L, geometry_params)
+                I_c = computed.collimated(sigma_t, L, geometry_params)
                 self.sample = SampleOptics(name=name, thickness_mm=thickness_mm, alpha=alpha, sigma_t=sigma_t, g=g,
                                            I_b=I_b, I_w=I_w, I_c=I_c, I_open=I_open, map_name=amap.name,
-                                           physics=traced.physics, physics_source=traced.source())
+                                           physics=computed.physics, physics_source=computed.source())
                 return self.sample
         I_b, I_w, I_c = amap.query(spectra["alpha"], spectra["sigma_t"], spectra["g"], self.rho_black, self.rho_white)
         I_open = amap.diffuse(spectra["alpha"], spectra["sigma_t"], spectra["g"], 0.0)

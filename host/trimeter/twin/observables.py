@@ -67,8 +67,9 @@ def content_hash(value: object) -> str:
 
 
 @dataclass(frozen=True)
-class TracedSetup:
-    """One set-up's traced observables: per material, coefficients at wavelength nodes."""
+class SetupObservables:
+    """One set-up's directly computed observables (traced, or by adding-doubling: `integrator`): per material,
+    coefficients at wavelength nodes."""
 
     geometry: str
     n: float
@@ -141,7 +142,7 @@ def _check(doc: dict, path: Path) -> None:
 
 
 @lru_cache(maxsize=16)
-def _load(path: Path) -> TracedSetup:
+def _load(path: Path) -> SetupObservables:
     if path.stat().st_size > MAX_FILE_BYTES:
         raise InputError(f"{path}: larger than {MAX_FILE_BYTES} bytes")
     try:
@@ -149,12 +150,12 @@ def _load(path: Path) -> TracedSetup:
     except (OSError, ValueError) as exc:
         raise InputError(f"{path}: unreadable ({exc})") from None
     _check(doc, path)
-    return TracedSetup(geometry=doc["geometry"], n=float(doc["n"]), thickness_mm=float(doc["thickness_mm"]),
-                       geometry_hash=doc["geometry_hash"], materials=doc["materials"],
-                       provenance=doc.get("provenance", {}), path=path, integrator=doc.get("integrator", "tracer"))
+    return SetupObservables(geometry=doc["geometry"], n=float(doc["n"]), thickness_mm=float(doc["thickness_mm"]),
+                            geometry_hash=doc["geometry_hash"], materials=doc["materials"],
+                            provenance=doc.get("provenance", {}), path=path, integrator=doc.get("integrator", "tracer"))
 
 
-def traced_setup(geometry: str, n: float, thickness_mm: float) -> TracedSetup | None:
+def setup_observables(geometry: str, n: float, thickness_mm: float) -> SetupObservables | None:
     """The directly computed observables of a set-up (traced or by adding-doubling), or None when there are
     none for it."""
     path = DATA_DIR / f"{setup_name(geometry, n, thickness_mm)}.json"

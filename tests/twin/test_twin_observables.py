@@ -1,4 +1,4 @@
-"""The twin's physics: virtual samples traced by the maps' tracer (trimeter.twin.traced), close to but not
+"""The twin's physics: virtual samples traced by the maps' tracer (trimeter.twin.observables), close to but not
 the map the host inverts, or for the ideal geometry computed by adding-doubling; stale data is refused; a set-up
 without either says it fell back to the map, and the demo's "independent physics" line says what each source
 can show."""
@@ -16,14 +16,14 @@ from trimeter.errors import InputError
 from trimeter.geometry import load_geometry
 from trimeter.formats.appearance import AppearanceMap
 from trimeter.paths import REPO_ROOT
-from trimeter.twin import traced
+from trimeter.twin import observables
 from trimeter.twin.optics import Optics, _catalogue, physics_line
 
 DEVICE_MAP = REPO_ROOT / "maps" / "device-n1.5-l0.4.tmap"
 IDEAL_MAP = REPO_ROOT / "maps" / "ideal-n1.5-l0.5.tmap"
 
 
-@pytest.mark.skipif(not DEVICE_MAP.exists() or traced.traced_setup("device", 1.5, 0.4) is None,
+@pytest.mark.skipif(not DEVICE_MAP.exists() or observables.setup_observables("device", 1.5, 0.4) is None,
                     reason="needs the shipped device map and its traced observables")
 def test_traced_sample_agrees_with_the_map_but_is_not_it():
     amap = AppearanceMap.load(DEVICE_MAP)
@@ -37,7 +37,7 @@ def test_traced_sample_agrees_with_the_map_but_is_not_it():
     np.testing.assert_allclose(s.I_c, I_c, rtol=2e-3)  # both analytic Beer-Lambert × traced in-scattering
 
 
-def test_untraced_setup_falls_back_to_the_map_and_says_so(ideal_map):
+def test_unsetup_observables_falls_back_to_the_map_and_says_so(ideal_map):
     other = dataclasses.replace(ideal_map, recipe={**ideal_map.recipe, "thickness_mm": 0.37}, path=None)
     optics = Optics(other)
     s = optics.insert_sample("milk", 0.37)
@@ -48,7 +48,8 @@ def test_untraced_setup_falls_back_to_the_map_and_says_so(ideal_map):
     assert line.startswith("independent physics: none") and "NOT the map's own error" in line
 
 
-@pytest.mark.skipif(traced.traced_setup("device", 1.5, 0.4) is None, reason="needs the traced device observables")
+@pytest.mark.skipif(observables.setup_observables("device", 1.5, 0.4) is None,
+                    reason="needs the traced device observables")
 def test_traced_truth_names_its_source_and_what_it_shares_with_the_maps():
     optics = Optics(AppearanceMap.load(DEVICE_MAP))
     optics.insert_sample("milk", 0.4)
@@ -63,7 +64,7 @@ def test_traced_truth_names_its_source_and_what_it_shares_with_the_maps():
         physics_line("mitsuba", "milk", "x")
 
 
-@pytest.mark.skipif(not IDEAL_MAP.exists() or traced.traced_setup("ideal", 1.5, 0.5) is None,
+@pytest.mark.skipif(not IDEAL_MAP.exists() or observables.setup_observables("ideal", 1.5, 0.5) is None,
                     reason="needs the shipped ideal map and its adding-doubling observables")
 def test_the_shipped_ideal_maps_twin_is_adding_doubling_not_the_tracer():
     """The shipped ideal map was traced; its twin's samples are adding-doubling's (an integrator of their own),
@@ -106,7 +107,7 @@ def test_tool_output_loads_and_stale_data_is_refused(tmp_path, monkeypatch):
     assert tool.main(["--setup", "ideal:0.3", "--material", "milk", "--paths", "4096", "--step-nm", "150",
                       "--range-nm", "340", "1000"]) == 0
     path = tmp_path / "ideal-n1.5-l0.3.json"
-    setup = traced._load(path)
+    setup = observables._load(path)
     lam = np.linspace(400, 900, 50)
     params = load_geometry("ideal")
     I_b, I_w, L, I_open = setup.observables("milk", _catalogue()["material"]["milk"], params, lam, 0.03, 0.99)
@@ -120,11 +121,11 @@ def test_tool_output_loads_and_stale_data_is_refused(tmp_path, monkeypatch):
     bad = tmp_path / "bad.json"
     bad.write_text(json.dumps(doc))
     with pytest.raises(InputError, match="A must be"):
-        traced._load(bad)
+        observables._load(bad)
     doc = json.loads(path.read_text())
     (bad := tmp_path / "bad-integrator.json").write_text(json.dumps({**doc, "integrator": "volpath"}))
     with pytest.raises(InputError, match="integrator must be one of tracer, adding-doubling"):
-        traced._load(bad)
+        observables._load(bad)
 
 
 def test_tool_computes_an_ideal_setup_by_adding_doubling(tmp_path, monkeypatch, capsys):
@@ -137,7 +138,7 @@ def test_tool_computes_an_ideal_setup_by_adding_doubling(tmp_path, monkeypatch, 
     path.write_text(json.dumps({"materials": {"cyan-ink": {"traced": True}}, "integrator": "tracer"}))
     assert tool.main(["--setup", "ideal:0.3:adding-doubling", "--material", "milk", "--step-nm", "110"]) == 0
     assert "quadrature error black" in capsys.readouterr().out
-    setup = traced._load(path)
+    setup = observables._load(path)
     assert setup.integrator == "adding-doubling" and setup.physics == "adding-doubling"
     assert list(setup.materials) == ["milk"] and setup.provenance["step_nm"] == 110
     entry = setup.materials["milk"]
