@@ -77,8 +77,9 @@ def trace_columns(amap, h, model: str, paths: int, orders: int, seed: int, done:
     return done
 
 
-def summarise(amap, h, columns: dict) -> dict:
-    """The differences, the fitted shifts and both sets' noise-free scores, over the materials traced."""
+def summarise(amap, h, columns: dict, fit_map=None) -> dict:
+    """The differences, the fitted shifts and both sets' noise-free scores, over the materials traced; the set
+    with the model fitted with `fit_map` where given (e.g. a map built with the model), else with the map."""
     import trimeter
     from trimeter.bench.fit_scoring import error_budget, error_figures, percentile
     from trimeter.bench.fit_variants import DEFAULT_POLISH
@@ -97,7 +98,7 @@ def summarise(amap, h, columns: dict) -> dict:
     I_c = heldout_collimated(amap, h)
     budget = error_budget(amap, h, rb, rw)
     as_traced = trimeter.fit(amap, I_b, I_w, I_c, method="lut", **DEFAULT_POLISH)
-    with_model = trimeter.fit(amap, I_b + dIb, I_w + dIw, I_c, method="lut", **DEFAULT_POLISH)
+    with_model = trimeter.fit(fit_map or amap, I_b + dIb, I_w + dIw, I_c, method="lut", **DEFAULT_POLISH)
     measurable, g_scored = budget["measurable"], budget["g_scored"]
     clear = measurable & (h["sigma_t"] * amap.thickness_mm < CLEAR_TAU)
     rest = measurable & ~clear
@@ -124,6 +125,7 @@ def summarise(amap, h, columns: dict) -> dict:
         "trace_seconds": {"maps": sum(c["t_maps"] for c in columns.values()),
                           "model": sum(c["t_model"] for c in columns.values())},
         "AB_same_everywhere": all(c["AB_same"] for c in columns.values()),
+        "fitted_with": (fit_map or amap).name,
     }
 
 
@@ -142,9 +144,11 @@ def report(name: str, model: str, paths: int, orders: int, s: dict) -> None:
     print(f"  fitted shift, measurable: |Δα| p50 {sh['alpha_50']:.4f} p95 {sh['alpha_95']:.4f}; |Δσt|/σt p50 "
           f"{sh['sigma_rel_50']:.2%} p95 {sh['sigma_rel_95']:.2%}; |Δg| (α ≥ 0.5) p50 {sh['g_50']:.4f} p95 "
           f"{sh['g_95']:.4f}; clear materials' Δα mean {am:+.4f} ± {asem:.4f}")
-    for label, key in (("truth as the maps trace it", "as_traced"), (f"truth with {what}", "with_model")):
+    fitted_with = "" if s["fitted_with"] == name else f", fitted with {s['fitted_with']}"
+    print("  noise-free fit errors:")
+    for label, key in (("truth as the maps trace it", "as_traced"), (f"truth with {what}{fitted_with}", "with_model")):
         r = sc[key]
-        print(f"  noise-free fit errors, {label:32s}: α p95 {r['alpha_p95']:.4f} (well-conditioned "
+        print(f"    {label}: α p95 {r['alpha_p95']:.4f} (well-conditioned "
               f"{r['alpha_p95_well']:.4f}), σt p95 {r['sigma_rel_p95']:.2%}, g p95 {r['g_p95']:.4f} "
               f"(well-conditioned {r['g_p95_well']:.4f})")
     print(f"  trace time at the same path count: as the maps {t['maps']:.0f} s, {what} {t['model']:.0f} s "
@@ -163,6 +167,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--orders", type=int, default=5, help="background orders the series traces")
     p.add_argument("--seed", type=int, default=1000, help="column c is traced from seed + c")
     p.add_argument("--columns", type=int, help="trace only the set's first N columns (a quick look)")
+    p.add_argument("--fit-map", type=Path, help="fit the set with the model with this map (e.g. one built with it)")
     p.add_argument("--out", type=Path, required=True, help="JSON: the columns' differences and the summary")
     args = p.parse_args(argv)
     try:
@@ -173,6 +178,10 @@ def main(argv: list[str] | None = None) -> int:
         if args.paths < 1024 or not 3 <= args.orders <= 16 or (args.columns is not None and args.columns < 1):
             raise InputError("needs at least 1024 paths, 3-16 orders and at least one column")
         _, _, h = heldout_for(amap)
+        fit_map = AppearanceMap.load(args.fit_map) if args.fit_map else None
+        if fit_map is not None and (fit_map.recipe.get("geometry"), fit_map.n, fit_map.thickness_mm) != (
+                amap.recipe.get("geometry"), amap.n, amap.thickness_mm):
+            raise InputError(f"--fit-map {fit_map.name} is not the same set-up (geometry, n, thickness) as {amap.name}")
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
@@ -186,7 +195,7 @@ def main(argv: list[str] | None = None) -> int:
         args.out.write_text(json.dumps(doc))
 
     trace_columns(amap, h, args.model, args.paths, args.orders, args.seed, doc["columns"], save, args.columns)
-    doc["summary"] = summarise(amap, h, doc["columns"])
+    doc["summary"] = summarise(amap, h, doc["columns"], fit_map)
     save()
     report(amap.name, args.model, args.paths, args.orders, doc["summary"])
     return 0

@@ -42,4 +42,7 @@ def test_refuses_what_it_cannot_compare(tmp_path, capsys):
     assert tool.main([str(MAPS_DIR / "ideal-n1.5-l0.5.tmap"), "--out", str(tmp_path / "x.json")]) == 1
     assert "a device map" in capsys.readouterr().err
     assert tool.main([str(DEVICE_MAP), "--paths", "10", "--out", str(tmp_path / "x.json")]) == 1
+    other = str(MAPS_DIR / "device-n1.5-l0.4.tmap")
+    assert tool.main([str(DEVICE_MAP), "--fit-map", other, "--out", str(tmp_path / "x.json")]) == 1
+    assert "not the same set-up" in capsys.readouterr().err
     assert not (tmp_path / "x.json").exists()
