@@ -333,7 +333,11 @@ def _header(results: dict[str, Any]) -> list[str]:
         "project's own tracer (`trimeter.forward.transport.trace_column`, with far more paths than the maps), for the "
         "ideal geometry by adding-doubling (`iadpython`). Because the device references come from the same tracer "
         "as the device maps, an error of the tracer itself does not show in the accuracy section: the tracer "
-        "is compared with Mitsuba 3 in the last section.",
+        "is compared with Mitsuba 3 in the last section. Nor do the models the device references share with the "
+        "maps: unpolarised Fresnel at every face and one return coefficient C for the background's bounces. What "
+        "each costs the fits on these held-out sets, were the light polarised or the series right, is measured by "
+        "`tools/model_effect_check.py` (figures: maps/README.md, \"Known open points\"); polarisation alone "
+        "puts the device maps' well-conditioned α and g p95 beyond their targets.",
         "- Noise, where there is any, is synthetic: relative Gaussian noise on I_b, I_w and I_c.",
         "- Times are the best of several rounds, all methods of a table timed round-robin in one process on a "
         "shared machine: compare them within a table. On a loaded machine a call longer than the scheduler's time "
