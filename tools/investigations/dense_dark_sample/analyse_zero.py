@@ -1,6 +1,8 @@
 """Zero-offset renders (zero_eps.py) vs the shipped scene and the tracer.
 usage: analyse_zero.py zero_json [zero_json ...] -- tracer_json [...]"""
 
+from typing import Any
+
 import sys
 import json
 import math
@@ -9,15 +11,15 @@ import numpy as np
 args = sys.argv[1:]
 cut = args.index("--")
 zs, ts = args[:cut], args[cut + 1 :]
-B = {}
-meta = None
+B: dict[str, dict[int, np.ndarray]] = {}
+meta: dict[str, Any] = {}
 for f in zs:
     r = json.load(open(f))
     meta = meta or r
     for k, v in r["batches"].items():
         var, seed = k.split("|")
         B.setdefault(var, {})[int(seed)] = np.array(v)
-out = {"variants": {}, "differences": {}}
+out: dict[str, Any] = {"variants": {}, "differences": {}}
 for var, d in B.items():
     seeds = sorted(d)
     y = np.concatenate([d[s] for s in seeds])

@@ -4,6 +4,8 @@ stack air | glass 0.15 | sample ℓ | glass 0.15 | air, panels as the tracer/sce
 exit into air scored by the exact fraction f(μ) of azimuths that meet a panel (tabulated), × (1−F0)·π/E.
 usage: indep.py out.json alpha sigma_t g n_paths_per_chunk chunks seed"""
 
+from typing import Any
+
 import json
 import os
 import sys
@@ -71,7 +73,7 @@ def fres(cos_i, eta):  # eta = n_t / n_i
 F0 = ((nl[0] - 1) / (nl[0] + 1)) ** 2
 weight = (1 - F0) * stack.scale
 rng = np.random.default_rng(seed)
-res = {"alpha": alpha, "sigma_t": sigma_t, "g": g, "N_per_chunk": N, "seed": seed, "chunks": []}
+res: dict[str, Any] = {"alpha": alpha, "sigma_t": sigma_t, "g": g, "N_per_chunk": N, "seed": seed, "chunks": []}
 L = len(nl)
 for ch in range(chunks):
     t0 = time.time()

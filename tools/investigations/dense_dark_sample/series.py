@@ -1,6 +1,8 @@
 """Render one material at several scene shifts (z_offset) with COMMON seeds (common random numbers), save batch means.
 usage: series.py out.json alpha sigma_t g rho spp_per_seed seeds(comma) offsets(comma)"""
 
+from typing import Any
+
 import sys
 import json
 import time
@@ -11,7 +13,7 @@ out, alpha, sigma_t, g, rho, spp = sys.argv[1], *map(float, sys.argv[2:6]), int(
 seeds = [int(s) for s in sys.argv[7].split(",")]
 offsets = [float(s) for s in sys.argv[8].split(",")]
 ell, n = 0.4, 1.5
-res = {
+res: dict[str, Any] = {
     "alpha": alpha,
     "sigma_t": sigma_t,
     "g": g,

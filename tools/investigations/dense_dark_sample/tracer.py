@@ -1,6 +1,8 @@
 """Tracer for one material: independent seeds, I at rho 0.02 and 0.9.
 usage: tracer.py out.json alpha sigma_t g n_paths seeds [orders]"""
 
+from typing import Any
+
 import sys
 import json
 import time
@@ -13,7 +15,7 @@ seeds = [int(s) for s in sys.argv[6].split(",")]
 orders = int(sys.argv[7]) if len(sys.argv) > 7 else None
 ell = 0.4
 stack = Stack.from_recipe("device", load_geometry("device"), 1.5, ell)
-res = {
+res: dict[str, Any] = {
     "alpha": alpha,
     "sigma_t": sigma_t,
     "g": g,
@@ -24,7 +26,7 @@ res = {
 }
 for s in seeds:
     t = time.time()
-    kw = {"background_orders": orders} if orders else {}
+    kw: dict[str, Any] = {"background_orders": orders} if orders else {}
     tally = trace_column(stack, sigma_t, g, N, s, k_max_for(0.999, 1e-5), **kw)
     A, B, C = (float(v[0]) for v in tally.abc([alpha]))
     row = {

@@ -1,6 +1,8 @@
 """Tracer with a different detector spot (mm diameter).
 usage: tracer_spot.py out.json alpha sigma_t g n_paths seeds spot_mm"""
 
+from typing import Any
+
 import sys
 import json
 import math
@@ -14,7 +16,7 @@ seeds = [int(s) for s in sys.argv[6].split(",")]
 spot = float(sys.argv[7])
 stack = Stack.from_recipe("device", load_geometry("device"), 1.5, 0.4)
 stack = dataclasses.replace(stack, detector_half_side=spot * math.sqrt(math.pi) / 4)
-res = {"alpha": alpha, "sigma_t": sigma_t, "g": g, "n_paths": N, "spot_mm": spot, "runs": []}
+res: dict[str, Any] = {"alpha": alpha, "sigma_t": sigma_t, "g": g, "n_paths": N, "spot_mm": spot, "runs": []}
 for s in seeds:
     tally = trace_column(stack, sigma_t, g, N, s, k_max_for(0.999, 1e-5))
     A, B, C = (float(v[0]) for v in tally.abc([alpha]))

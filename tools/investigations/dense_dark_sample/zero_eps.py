@@ -5,6 +5,8 @@ RayEpsilon(1/S + max|p|), so S = 1000 with the sample's front face at the origin
 usage: zero_eps.py out.json alpha sigma_t g rho spp seeds variants
 variants: 'S:dz:spot;S:dz:spot;...' (spot in mm, 0 = the shipped 2 mm)"""
 
+from typing import Any
+
 import sys
 import json
 import time
@@ -40,7 +42,8 @@ def transformed(scene, S, dz):
     return out
 
 
-res = {"alpha": alpha, "sigma_t": sigma_t, "g": g, "rho": rho, "spp": spp, "seeds": seeds, "batches": {}}
+res: dict[str, Any] = {"alpha": alpha, "sigma_t": sigma_t, "g": g, "rho": rho, "spp": spp, "seeds": seeds,
+                       "batches": {}}
 for S, dz, spot in variants:
     geo = copy.deepcopy(load_geometry("device"))
     if spot > 0:
