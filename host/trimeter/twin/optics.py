@@ -321,7 +321,7 @@ class Optics:
         if computed is not None:
             geometry_params = load_geometry(computed.geometry)
             observed = computed.observables(name, catalogue_entry(name), geometry_params,
-                                          self.wavelengths_nm, self.rho_black, self.rho_white)
+                                            self.wavelengths_nm, self.rho_black, self.rho_white)
             if observed is not None:
                 I_b, I_w, L, I_open = observed
                 I_c = computed.collimated(sigma_t, L, geometry_params)
