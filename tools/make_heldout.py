@@ -76,14 +76,16 @@ def from_recipe(recipe_path, pairs, alphas, paths, seed, alpha_stderr=None, max_
         al = np.where(np.arange(alphas) % 2 == 0, a_lo + (a_hi - a_lo) * u, a_hi - (a_hi - a_lo) * u ** 2)
         al = _off_grid(al, r.alpha, rng, a_lo, a_hi)
         col_seed = int(rng.integers(1 << 31))
-        tally = trace_column(stack, float(s), float(g), int(paths), col_seed, k_max)
+        tally = trace_column(stack, float(s), float(g), int(paths), col_seed, k_max,
+                             polarisation=r.polarisation)  # the recipe's model, as its map traces it
         # top up (once) until α's std-error (g held) at these α meets --alpha-stderr: a reference
         # must be several times more precise than the target it checks, wherever it is thin
         if alpha_stderr is not None:
             short = worst_alpha_stderr(tally, al, r.reference_rho_b, r.reference_rho_w) / alpha_stderr
             more = paths_to_reach(tally.n_paths, short, int(max_paths or paths)) - tally.n_paths
             if short > 1 and more > 0:
-                tally += trace_column(stack, float(s), float(g), int(more), mix64(col_seed), k_max)
+                tally += trace_column(stack, float(s), float(g), int(more), mix64(col_seed), k_max,
+                                      polarisation=r.polarisation)
         A, B, C = tally.abc(al)
         sb, sw = tally.stderr(al, r.reference_rho_b), tally.stderr(al, r.reference_rho_w)
         for j in range(alphas):
@@ -93,7 +95,8 @@ def from_recipe(recipe_path, pairs, alphas, paths, seed, alpha_stderr=None, max_
     print(file=sys.stderr)
     budget = (f"{paths} paths per (sigma_t, g)" if alpha_stderr is None else
               f"{paths}-{max_paths} paths per (sigma_t, g) (α std-error ≤ {alpha_stderr:g} where reachable)")
-    meta = {"recipe": r.to_dict(), "source": f"trimeter.forward.transport.trace_column, {budget}, off-grid",
+    model = ", polarisation tracked" if r.polarisation else ""
+    meta = {"recipe": r.to_dict(), "source": f"trimeter.forward.transport.trace_column, {budget}, off-grid{model}",
             "seed": seed, "seconds": round(time.perf_counter() - t0, 1)}
     return r.name, meta, np.array(rows)
 

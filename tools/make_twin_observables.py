@@ -3,13 +3,16 @@
     .venv/bin/python tools/make_twin_observables.py                      # the default set-ups, all materials
     .venv/bin/python tools/make_twin_observables.py --setup device:0.4 --paths 2097152
     .venv/bin/python tools/make_twin_observables.py --setup ideal:0.5:adding-doubling
+    .venv/bin/python tools/make_twin_observables.py --setup device:0.6 --polarisation on
 
 Per set-up (geometry preset, n, ℓ, and the integrator: `tracer` unless the set-up names another) and catalogue
 material, at wavelength nodes every --step-nm over the spectrometer's range:
 - tracer: one tracer column (trimeter.forward.transport.trace_column) at the material's own σt and g, evaluated
   at its own α → A, B, C; for the device, the collimated beam's in-scattering from
   trimeter.forward.transport.inscatter_tracer's direct tracer → L. The nodes of one material share a seed
-  (common random numbers), so the Monte Carlo error varies smoothly with λ.
+  (common random numbers), so the Monte Carlo error varies smoothly with λ. Fresnel per polarisation or
+  unpolarised (--polarisation): by default as the shipped map recipe of the set-up (maps/recipes/<set-up>.toml)
+  traces it, unpolarised where there is none, so the twin's physics is the maps' best model.
 - adding-doubling (ideal geometry only): A, B, C from Prahl's adding-doubling at IAD_QUAD_POINTS quadrature
   points (trimeter.forward.adding_doubling), L = 0; the change in I_b, I_w at twice the points is recorded per
   node as the quadrature's error. Deterministic: no seed, no paths.
@@ -35,7 +38,9 @@ from trimeter.forward.transport.inscatter_tracer import traced_log1p_ratio
 from trimeter.geometry import load_geometry
 from trimeter.forward.transport import Stack, k_max_for, trace_column
 from trimeter.twin.optics import catalogue_entry, material_names, material_spectra
+from trimeter.maps.recipe import load_recipe
 from trimeter.model.response import background_response
+from trimeter.paths import MAPS_DIR
 from trimeter.twin.observables import DATA_DIR, FORMAT_VERSION, INTEGRATOR_PHYSICS, content_hash, setup_name
 
 # the shipped device maps', the HIL map's (adding-doubling itself: its twin is traced, so that a round trip
@@ -47,13 +52,13 @@ STEP_NM = {"tracer": 20.0, "adding-doubling": 5.0}  # default node spacing (see 
 
 
 def trace_material(name: str, geometry: str, params: dict, n: float, thickness_mm: float, nodes, paths: int,
-                   photons: int, seed: int) -> dict:
+                   photons: int, seed: int, polarisation: bool) -> dict:
     s = material_spectra(name, nodes)
     stack = Stack.from_recipe(geometry, params, n, thickness_mm)
     k_max = k_max_for(float(s["alpha"].max()), TRUNCATION)
     out: dict[str, list[float]] = {k: [] for k in ("A", "B", "C", "L", "stderr_black", "stderr_white")}
     for alpha, sigma_t, g in zip(s["alpha"], s["sigma_t"], s["g"], strict=True):
-        tally = trace_column(stack, float(sigma_t), float(g), paths, seed, k_max)
+        tally = trace_column(stack, float(sigma_t), float(g), paths, seed, k_max, polarisation=polarisation)
         A, B, C = (float(v[0]) for v in tally.abc([alpha]))
         out["A"].append(A)
         out["B"].append(B)
@@ -101,6 +106,15 @@ def parse_setup(text: str) -> tuple[str, float, str]:
     return geometry, thickness_mm, integrator
 
 
+def traced_polarisation(choice: str, geometry: str, n: float, thickness_mm: float) -> bool:
+    """Whether a traced set-up tracks polarisation: --polarisation on/off, or `recipe`: as the shipped map
+    recipe of the same set-up does (off without one)."""
+    if choice != "recipe":
+        return choice == "on"
+    recipe = MAPS_DIR / "recipes" / f"{setup_name(geometry, n, thickness_mm)}.toml"
+    return recipe.is_file() and load_recipe(recipe).polarisation
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--setup", action="append", help="GEOMETRY:THICKNESS_MM[:INTEGRATOR], the integrator tracer "
@@ -117,6 +131,9 @@ def main(argv=None) -> int:
                    "trace's Monte Carlo error, through 5 nm ones by far less than the quadrature's)")
     p.add_argument("--range-nm", type=float, nargs=2, default=(340.0, 1000.0))
     p.add_argument("--seed", type=int, default=7)
+    p.add_argument("--polarisation", choices=("recipe", "on", "off"), default="recipe",
+                   help="traced set-ups: Fresnel per polarisation (on) or unpolarised (off); default: as the "
+                   "shipped map recipe of the set-up, off without one")
     args = p.parse_args(argv)
     if args.twin_mixtures:
         from trimeter.library.mixtures import default_twin_mixtures, mixture_label
@@ -131,9 +148,11 @@ def main(argv=None) -> int:
         step_nm = args.step_nm or STEP_NM[integrator]
         nodes = np.arange(args.range_nm[0], args.range_nm[1] + 1e-9, step_nm)
         path = DATA_DIR / f"{setup_name(geometry, args.n, thickness_mm)}.json"
+        polarisation = integrator == "tracer" and traced_polarisation(args.polarisation, geometry, args.n,
+                                                                        thickness_mm)
         doc = json.loads(path.read_text()) if path.is_file() else {"materials": {}}
-        if doc.get("integrator", "tracer") != integrator:  # one integrator per file: another's entries go
-            doc = {"materials": {}}
+        if (doc.get("integrator", "tracer"), doc.get("polarisation", False)) != (integrator, polarisation):
+            doc = {"materials": {}}   # one integrator and one model per file: another's entries go
         t0 = time.monotonic()
         for i, name in enumerate(materials):
             t = time.monotonic()
@@ -143,7 +162,8 @@ def main(argv=None) -> int:
                 made = {"quad_points": IAD_QUAD_POINTS, "error_from_quad_points": 2 * IAD_QUAD_POINTS}
             else:
                 entry = doc["materials"][name] = trace_material(name, geometry, params, args.n, thickness_mm, nodes,
-                                                                args.paths, args.photons, args.seed + i)
+                                                                args.paths, args.photons, args.seed + i,
+                                                                polarisation)
                 errors = "stderr"
                 made = {"paths_per_node": args.paths, "inscatter_photons": args.photons, "seed": args.seed}
             print(f"{path.name}: {name} by the {integrator} at {len(nodes)} nodes in {time.monotonic() - t:.0f} s "
@@ -151,7 +171,7 @@ def main(argv=None) -> int:
                   f"{max(entry[errors + '_white']):.1e})", flush=True)
             doc.update({"format_version": FORMAT_VERSION, "geometry": geometry, "n": args.n,
                         "thickness_mm": thickness_mm, "geometry_hash": content_hash(params),
-                        "integrator": integrator})
+                        "integrator": integrator, "polarisation": polarisation})
             if "provenance" not in doc or not (args.material or args.twin_mixtures):  # a subset: its entries say
                 doc["provenance"] = {"tool": "tools/make_twin_observables.py", "trimeter_version": __version__,
                                      **made, "step_nm": step_nm,

@@ -1,6 +1,7 @@
 """What a model the shipped maps leave out costs the fits on a device map's held-out set, if that model is right:
 - `--model series`: the bounce series in place of the maps' single return coefficient C;
-- `--model polarisation`: the two polarisations tracked at the interfaces in place of unpolarised Fresnel.
+- `--model polarisation`: the two polarisations tracked at the interfaces in place of unpolarised Fresnel (a map
+  traced without them; the shipped device maps track them).
 Each (σt, g) column of the held-out set is traced twice from one seed, as the maps trace it and with the model.
 With the series, A and B are bit for bit the same and only C differs (C matched to the series at the white);
 with polarisation the walks part where a reflection's odds differ, so the pair shares much of its noise,
@@ -38,13 +39,14 @@ def trace_columns(amap, h, model: str, paths: int, orders: int, seed: int, done:
                   limit: int | None = None) -> dict:
     """The paired difference per held-out column (keyed by its index among the set's unique (σt, g)), for the
     first `limit` columns in the set's order (None: all)."""
-    from trimeter.forward.transport import Stack, k_max_for, trace_column
+    from trimeter.forward.transport import N_BACKGROUND_ORDERS, Stack, k_max_for, trace_column
     from trimeter.model.response import background_response
 
     # the set-up as the map was traced (its stored recipe), as tools/make_heldout.py traces its recipe
     stack = Stack.from_recipe(amap.recipe["geometry"], amap.recipe["geometry_params"], amap.n, amap.thickness_mm)
     k_max = k_max_for(float(amap.alpha[-1]), float(amap.recipe["sampling"]["truncation"]))
-    extra = {"background_orders": orders} if model == "series" else {"polarisation": True}
+    as_maps = bool(amap.recipe.get("polarisation", False))
+    orders_with = orders if model == "series" else N_BACKGROUND_ORDERS
     rb, rw = amap.reference_rhos
     uniq, first, column = np.unique(np.column_stack([h["sigma_t"], h["g"]]), axis=0, return_index=True,
                                     return_inverse=True)
@@ -57,10 +59,11 @@ def trace_columns(amap, h, model: str, paths: int, orders: int, seed: int, done:
         idx = np.flatnonzero(column == c)
         alpha = h["alpha"][idx]
         started = time.perf_counter()
-        maps = trace_column(stack, s, g, paths, seed + int(c), k_max)
+        maps = trace_column(stack, s, g, paths, seed + int(c), k_max, polarisation=as_maps)
         t_maps = time.perf_counter() - started
         started = time.perf_counter()
-        other = trace_column(stack, s, g, paths, seed + int(c), k_max, **extra)
+        other = trace_column(stack, s, g, paths, seed + int(c), k_max, background_orders=orders_with,
+                             polarisation=as_maps or model == "polarisation")
         t_model = time.perf_counter() - started
         (A1, B1, C1), (A2, B2, C2) = maps.abc(alpha), other.abc(alpha)
         done[str(int(c))] = {
@@ -175,6 +178,8 @@ def main(argv: list[str] | None = None) -> int:
         if amap.recipe.get("geometry") != "device":
             raise InputError("a device map: the ideal geometry's background is unbounded (one C is exact there) and "
                              "its held-out set is adding-doubling's")
+        if args.model == "polarisation" and amap.recipe.get("polarisation"):
+            raise InputError(f"{amap.name} was traced with polarisation already: nothing to compare")
         if args.paths < 1024 or not 3 <= args.orders <= 16 or (args.columns is not None and args.columns < 1):
             raise InputError("needs at least 1024 paths, 3-16 orders and at least one column")
         _, _, h = heldout_for(amap)

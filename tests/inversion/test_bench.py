@@ -111,3 +111,26 @@ def test_two_thicknesses_case_fits_the_shipped_pair_together(capsys, monkeypatch
     monkeypatch.setattr(bench, "heldout_for", shuffled)
     assert bench.two_thicknesses(pair, repeats=1) == {}
     assert "different materials" in capsys.readouterr().out
+
+
+def test_a_held_out_set_of_another_model_is_refused(tmp_path):
+    """A set next to the map wins over the shipped one, so a set rendered for another model (here: the faces'
+    polarisation) must not silently score the map."""
+    import shutil
+
+    import pytest
+
+    from trimeter.bench.heldout import heldout_for
+    from trimeter.errors import MapFileError
+    from trimeter.formats.appearance import AppearanceMap
+    from trimeter.formats.container import read_container, write_container
+
+    shutil.copy(DATA / "ideal-l0.5.tmap", tmp_path / "ideal-l0.5.tmap")
+    meta, arrays, _ = read_container(DATA / "ideal-l0.5.held", "heldout-set")
+    write_container(tmp_path / "ideal-l0.5.held", "heldout-set", meta, arrays)
+    amap = AppearanceMap.load(tmp_path / "ideal-l0.5.tmap")
+    assert heldout_for(amap)[0] == tmp_path / "ideal-l0.5.held"
+    polarised = {**meta, "recipe": {**meta["recipe"], "polarisation": True}}
+    write_container(tmp_path / "ideal-l0.5.held", "heldout-set", polarised, arrays)
+    with pytest.raises(MapFileError, match="Fresnel per polarisation, the map ideal-l0.5 is .*unpolarised Fresnel"):
+        heldout_for(amap)

@@ -29,9 +29,22 @@ def heldout_for(amap: AppearanceMap) -> tuple[Path, dict[str, Any], Heldout]:
     for path in candidates:
         if path.is_file():
             meta, arrays, _ = read_container(path, "heldout-set")
+            # a set rendered for another set-up or model would score the map against the wrong physics
+            made, built = (_setup(meta.get("recipe", {})), _setup({**amap.recipe, "n": amap.n,
+                                                                   "thickness_mm": amap.thickness_mm}))
+            if made != built:
+                raise MapFileError(f"{path} was rendered for {made}, the map {amap.name} is {built}: make its set "
+                                   "with tools/make_heldout.py")
             return path, meta, {k: np.asarray(v, dtype=float) for k, v in arrays.items()}
     raise MapFileError(f"no held-out set for map {amap.name} (looked for {', '.join(map(str, candidates))}); "
                        f"make one with tools/make_heldout.py")
+
+
+def _setup(recipe: dict[str, Any]) -> str:
+    """A recipe's set-up and model, as far as a held-out set must match its map's."""
+    fresnel = "Fresnel per polarisation" if recipe.get("polarisation", False) else "unpolarised Fresnel"
+    return (f"geometry {recipe.get('geometry')!r}, n {recipe.get('n')}, ℓ {recipe.get('thickness_mm')} mm, "
+            f"{fresnel}")
 
 
 # The held-out materials are split once, here: every CALIBRATION_EVERY-th (σt, g) column (materials that

@@ -11,7 +11,10 @@ with one of two integrators (the file's `integrator`):
   per node the background-response coefficients (A, B, C of I(ρ) = A + Bρ/(1 − Cρ)) and the collimated
   beam's in-scattering L = ln(1 + r) (trimeter.forward.transport.inscatter_tracer's direct tracer; 0 for the
   ideal geometry, whose detector takes only the unscattered beam). All nodes of one material share their
-  random numbers, so the Monte Carlo error is smooth in λ.
+  random numbers, so the Monte Carlo error is smooth in λ. The file's `polarisation` says whether the tracer
+  tracked the two polarisations at the faces (as the map recipe of the same set-up does). L stays unpolarised,
+  as the maps' in-scattering tables are: a small correction to I_c whose light enters and leaves near normal
+  incidence, where s and p reflect alike.
 - `adding-doubling` (ideal geometry only): Prahl's adding-doubling (trimeter.forward.adding_doubling), exact
   for the ideal geometry up to its quadrature, which the file bounds per node by the change from doubling
   the quadrature points. No Monte Carlo, no tracer: a round trip against it shows the whole error of a map
@@ -26,10 +29,11 @@ Data: host/trimeter/data/twin_observables/<geometry>-n<n>-l<ℓ>.json, one file 
 hash of each material's catalogue entry and of the geometry: a material or geometry changed since
 the computation makes the data stale (an error, naming the tool to re-run).
 
-What traced observables cannot show: errors the maps' tracer and their I(ρ) model make (e.g. unpolarised
-Fresnel, one return coefficient C), since the twin's samples are made the same way. What adding-doubling
-shares with the maps: only the ideal geometry's model itself (an infinite slab over a Lambertian background
-under uniform light, unpolarised Fresnel).
+What traced observables cannot show: errors the maps' tracer and their I(ρ) model make (e.g. one return
+coefficient C; Fresnel unpolarised where neither tracks polarisation, every scattering depolarising where both
+do), since the twin's samples are made the same way. What adding-doubling shares with the maps: only the ideal
+geometry's model itself (an infinite slab over a Lambertian background under uniform light, unpolarised
+Fresnel).
 """
 
 from __future__ import annotations
@@ -79,6 +83,7 @@ class SetupObservables:
     provenance: dict
     path: Path
     integrator: str = "tracer"   # a key of INTEGRATOR_PHYSICS
+    polarisation: bool = False   # traced with the two polarisations tracked at the faces
 
     @property
     def physics(self) -> str:
@@ -112,8 +117,10 @@ class SetupObservables:
         """How these observables were made: the file and its provenance (tool, integrator, paths per node and
         seed, or quadrature points)."""
         p = {**self.provenance, "integrator": self.integrator}
-        made = ", ".join(f"{k} {p[k]}" for k in ("tool", "integrator", "paths_per_node", "seed", "quad_points",
-                                                 "written_utc") if k in p)
+        if self.integrator == "tracer":
+            p["Fresnel"] = "per polarisation" if self.polarisation else "unpolarised"
+        made = ", ".join(f"{k} {p[k]}" for k in ("tool", "integrator", "Fresnel", "paths_per_node", "seed",
+                                                 "quad_points", "written_utc") if k in p)
         return f"{self.path.name} ({made or 'no provenance recorded'})"
 
     def collimated(self, sigma_t: np.ndarray, L: np.ndarray, geometry_params: dict) -> np.ndarray:
@@ -131,6 +138,8 @@ def _check(doc: dict, path: Path) -> None:
     if doc.get("integrator", "tracer") not in INTEGRATOR_PHYSICS:
         raise InputError(f"{path}: integrator must be one of {', '.join(INTEGRATOR_PHYSICS)}, got "
                          f"{doc.get('integrator')!r}")
+    if not isinstance(doc.get("polarisation", False), bool):
+        raise InputError(f"{path}: polarisation must be true or false, got {doc.get('polarisation')!r}")
     for name, m in doc["materials"].items():
         nodes = np.asarray(m.get("wavelength_nm", []), dtype=float)
         if nodes.ndim != 1 or len(nodes) < 4 or not np.all(np.diff(nodes) > 0):
@@ -152,7 +161,8 @@ def _load(path: Path) -> SetupObservables:
     _check(doc, path)
     return SetupObservables(geometry=doc["geometry"], n=float(doc["n"]), thickness_mm=float(doc["thickness_mm"]),
                             geometry_hash=doc["geometry_hash"], materials=doc["materials"],
-                            provenance=doc.get("provenance", {}), path=path, integrator=doc.get("integrator", "tracer"))
+                            provenance=doc.get("provenance", {}), path=path, integrator=doc.get("integrator", "tracer"),
+                            polarisation=doc.get("polarisation", False))
 
 
 def setup_observables(geometry: str, n: float, thickness_mm: float) -> SetupObservables | None:
