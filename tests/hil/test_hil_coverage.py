@@ -6,7 +6,7 @@ reduced to its I(ρ) model, not read from it, so the figures include the map's i
 Carlo error but not the tracer's or the model's own. Coverage is pooled over the samples' unflagged bins in
 420-720 nm (2784 of them): each sample's bins are correlated (the same lamps, calibration and
 map), so the bounds are wider than a binomial count would need — measured on the twin with seeds 1-4:
-α 71-73 % / 95.6-96.3 %, σt 70-72 % / 96.0-96.4 %, g 79-84 % / 99.1-99.3 %. g is wider than it needs to
+α 68-72 % / 95.1-96.3 %, σt 68-70 % / 94.4-95.7 %, g 82-85 % / 99.1-99.5 %. g is wider than it needs to
 be (the map's error term, fitted on α, is generous for g); checked here only for not claiming more
 precision than it has, and for not being trivially wide."""
 

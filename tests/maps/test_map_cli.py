@@ -8,6 +8,7 @@ import pytest
 from trimeter.cli import main
 from trimeter.formats.appearance import AppearanceMap, shipped_maps
 from trimeter.formats.container import write_container
+from trimeter.paths import MAPS_DIR
 
 from tiny_toml import tiny_toml
 
@@ -28,7 +29,10 @@ def test_build_prints_figures_and_info_describes(built, capsys):
     assert info["grid"] == {"alpha": 5, "sigma_t": 2, "g": 2, "points": 20}
     assert info["recipe"]["geometry"] == "ideal" and info["provenance"]["mitsuba_version"]
     assert main(["map", "info", str(built)]) == 0
-    assert "MC stderr" in capsys.readouterr().out
+    text = capsys.readouterr().out
+    assert "MC stderr" in text and "Fresnel     unpolarised" in text
+    assert main(["map", "info", str(MAPS_DIR / "device-n1.5-l0.4.tmap")]) == 0  # the shipped device maps track it
+    assert "Fresnel     per polarisation" in capsys.readouterr().out
 
 
 def test_query_returns_the_interpolated_observables(built, capsys):

@@ -128,6 +128,37 @@ def test_tool_output_loads_and_stale_data_is_refused(tmp_path, monkeypatch):
         observables._load(bad)
 
 
+def test_tool_traces_with_the_polarisation_the_setups_recipe_has(tmp_path, monkeypatch):
+    """By default a traced set-up follows its shipped map recipe (the device maps track polarisation, no
+    recipe: unpolarised); the model is stamped in the file and its source, and a run with the other model
+    keeps none of the first's entries."""
+    pytest.importorskip("drjit")
+    tool = _tool()
+    assert tool.traced_polarisation("recipe", "device", 1.5, 0.4) is True
+    assert tool.traced_polarisation("recipe", "ideal", 1.5, 0.4) is False
+    assert tool.traced_polarisation("on", "ideal", 1.5, 0.4) is True
+    monkeypatch.setattr(tool, "DATA_DIR", tmp_path)
+    path = tmp_path / "ideal-n1.5-l0.3.json"
+    args = ["--setup", "ideal:0.3", "--paths", "4096", "--step-nm", "150", "--range-nm", "340", "1000"]
+    assert tool.main([*args, "--material", "milk"]) == 0
+    unpolarised = observables._load(path)
+    assert unpolarised.polarisation is False and "Fresnel unpolarised" in unpolarised.source()
+    observables._load.cache_clear()
+    assert tool.main([*args, "--material", "cyan-ink", "--polarisation", "on"]) == 0
+    polarised = observables._load(path)
+    assert polarised.polarisation is True and "Fresnel per polarisation" in polarised.source()
+    assert list(polarised.materials) == ["cyan-ink"]
+    observables._load.cache_clear()
+    assert tool.main([*args, "--material", "milk", "--polarisation", "on"]) == 0
+    same_seed = observables._load(path).materials["milk"]
+    # the same paths, other odds at the faces: the coefficients move
+    assert same_seed["A"] != unpolarised.materials["milk"]["A"]
+    doc = json.loads(path.read_text())
+    (bad := tmp_path / "bad-polarisation.json").write_text(json.dumps({**doc, "polarisation": "yes"}))
+    with pytest.raises(InputError, match="polarisation must be true or false"):
+        observables._load(bad)
+
+
 def test_tool_computes_an_ideal_setup_by_adding_doubling(tmp_path, monkeypatch, capsys):
     """One integrator per file: a traced file re-made by adding-doubling keeps none of the traced entries; the
     integrator travels into the samples' physics; adding-doubling is refused for the device geometry."""

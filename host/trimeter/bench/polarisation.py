@@ -1,10 +1,12 @@
 """`trimeter bench polarisation`: how much do the observables and the fitted α, σt, g move when the
 polarisations are tracked?
 
-The maps' tracer (and the direct renders it is checked against) use unpolarised Fresnel at every
-interface. Here a few materials per geometry are rendered with Mitsuba's volpath in the unpolarised
-variant (u) and twice in its polarised one (`*_polarized`: Fresnel as Mueller matrices at the dielectric
-faces; emitters and the Lambertian background unpolarised; the detector reads the intensity element):
+Unpolarised Fresnel at every interface is what the ideal map, adding-doubling and the direct renders the
+tracer is checked against use (the device maps track the polarisations: the tracer's option, which
+`bench polarisation-tracer` checks against these renders). Here a few materials per geometry are rendered
+with Mitsuba's volpath in the unpolarised variant (u) and twice in its polarised one (`*_polarized`:
+Fresnel as Mueller matrices at the dielectric faces; emitters and the Lambertian background unpolarised;
+the detector reads the intensity element):
 with Mitsuba's `hg` (p), whose Mueller matrix is the identity, so scattered light keeps the polarisation
 the faces gave it, and with `hg_depolarising` (d, trimeter.forward.phase), whose scattering leaves
 unpolarised light. A real medium lies between the two. All renders of a material share their seeds, so

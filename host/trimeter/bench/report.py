@@ -12,7 +12,7 @@ What it runs, each through the bench's own code (their figures are theirs; this 
 - `bench sensor` (trimeter.bench.sensor.measure): every build's accuracy (each spectrometer and sensor, each fit
   of its readings) on the twin's materials at the thinner sample, noise-free and with noise;
 - `bench tracer-check` (trimeter.bench.tracer_check.check) at a small size (`--tracer-materials 0`: not run);
-- `bench polarisation` (trimeter.bench.polarisation.measure): what the tracer's unpolarised Fresnel leaves out
+- `bench polarisation` (trimeter.bench.polarisation.measure): what unpolarised Fresnel leaves out
   (`--polarisation-spp 0`: not run).
 The benches' own output goes to --work (logs and JSON), the page, its figures and every figure as JSON
 (validation.json, with the page's stamp: what tools/gen_hardware.py quotes in the BOM) to --docs.
@@ -333,11 +333,12 @@ def _header(results: dict[str, Any]) -> list[str]:
         "project's own tracer (`trimeter.forward.transport.trace_column`, with far more paths than the maps), for the "
         "ideal geometry by adding-doubling (`iadpython`). Because the device references come from the same tracer "
         "as the device maps, an error of the tracer itself does not show in the accuracy section: the tracer "
-        "is compared with Mitsuba 3 in the last section. Nor do the models the device references share with the "
-        "maps: unpolarised Fresnel at every face and one return coefficient C for the background's bounces. What "
-        "each costs the fits on these held-out sets, were the light polarised or the series right, is measured by "
-        "`tools/model_effect_check.py` (figures: maps/README.md, \"Known open points\"); polarisation alone "
-        "puts the device maps' well-conditioned α and g p95 beyond their targets.",
+        "is compared with Mitsuba 3 further down. Nor do the models the device references share with the "
+        "maps: Fresnel per polarisation at every face with every scattering depolarising (the tracer's "
+        "polarisation option, on in the device recipes) and one return coefficient C for the background's "
+        "bounces. What the single C costs the fits on these held-out sets, and what unpolarised Fresnel cost them "
+        "before the device maps tracked polarisation, is measured by `tools/model_effect_check.py` (figures: "
+        "maps/README.md, \"Known open points\").",
         "- Noise, where there is any, is synthetic: relative Gaussian noise on I_b, I_w and I_c.",
         "- Times are the best of several rounds, all methods of a table timed round-robin in one process on a "
         "shared machine: compare them within a table. On a loaded machine a call longer than the scheduler's time "
@@ -575,7 +576,7 @@ def _tracer_section(tracer: dict[str, Any] | None, png: Path | None, page: Path)
     return lines
 
 
-POLARISATION_HEADING = "Polarisation: what the tracer's unpolarised Fresnel leaves out"
+POLARISATION_HEADING = "Polarisation: what unpolarised Fresnel leaves out"
 
 
 def polarisation_section(pol: dict[str, Any] | None) -> list[str]:
@@ -586,8 +587,10 @@ def polarisation_section(pol: dict[str, Any] | None) -> list[str]:
         return lines + [f"Not run by this command (`--polarisation-spp 0`). The bench: `{command}` (a few minutes).",
                         ""]
     unpolarised, polarised = pol["variants"]
-    lines += [f"The maps' tracer, like the direct renders it is checked against, uses unpolarised Fresnel at every "
-              f"face. Mitsuba {pol.get('mitsuba', '?')}'s `volpath` renders each material in `{unpolarised}` (u) and "
+    lines += ["The device maps are traced with Fresnel per polarisation at every face and every scattering "
+              "depolarising (the tracer's option, checked by `trimeter bench polarisation-tracer`); the ideal map, "
+              "the tracer check's renders and adding-doubling use unpolarised Fresnel. What that leaves out: "
+              f"Mitsuba {pol.get('mitsuba', '?')}'s `volpath` renders each material in `{unpolarised}` (u) and "
               f"in `{polarised}`, the faces' Fresnel as Mueller matrices, twice: with Mitsuba's `hg`, whose "
               "scattering keeps the light's polarisation (p), and with `hg_depolarising`, whose scattering "
               "depolarises it (d); a real medium lies between. "

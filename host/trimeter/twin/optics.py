@@ -224,7 +224,7 @@ def physics_line(physics: str, sample: str, map_name: str) -> str:
     if physics == "traced":
         return (f"independent physics: partly — the twin's '{sample}' was {PHYSICS['traced']}, not read from the "
                 f"map {map_name} the fit inverts: the errors below include that map's interpolation and Monte Carlo "
-                "error, NOT the tracer's or the I(ρ) model's own (e.g. its unpolarised Fresnel)")
+                "error, NOT the tracer's or the I(ρ) model's own (e.g. its single return coefficient C)")
     if physics == "adding-doubling":
         return (f"independent physics: yes — the twin's '{sample}' was {PHYSICS['adding-doubling']}: the errors "
                 f"below include the whole of the map {map_name}'s own error (its tracer's, its interpolation's, its "
