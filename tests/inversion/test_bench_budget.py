@@ -100,7 +100,8 @@ def test_bench_map_exact_rows_equal_rendered_rows_when_the_references_are_the_ma
     for suffix in (".tmap", ".tlut"):  # no .onnx next to it: no mlp rows
         shutil.copy(DATA / f"ideal-l0.5{suffix}", tmp_path / f"ideal-l0.5{suffix}")
     h = synthetic_heldout(amap, n=60)  # few: the paper ε-median (250 interpolations each) dominates the cost
-    write_container(tmp_path / "ideal-l0.5.held", "heldout-set", {"source": "synthetic: the map's forward model"}, h)
+    write_container(tmp_path / "ideal-l0.5.held", "heldout-set",
+                    {"source": "synthetic: the map's forward model", "recipe": amap.recipe}, h)
     out = tmp_path / "bench"
     rc = main(["bench", "fit", "--map", str(tmp_path / "ideal-l0.5.tmap"), "--noise", "0", "--repeats", "1",
                "--median-bins", "4", "--out", str(out)])
