@@ -134,3 +134,6 @@ def test_a_held_out_set_of_another_model_is_refused(tmp_path):
     write_container(tmp_path / "ideal-l0.5.held", "heldout-set", polarised, arrays)
     with pytest.raises(MapFileError, match="Fresnel per polarisation, the map ideal-l0.5 is .*unpolarised Fresnel"):
         heldout_for(amap)
+    write_container(tmp_path / "ideal-l0.5.held", "heldout-set", {"source": "no recipe"}, arrays)
+    with pytest.raises(MapFileError, match="does not say what it was rendered for"):
+        heldout_for(amap)

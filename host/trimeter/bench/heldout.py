@@ -30,8 +30,11 @@ def heldout_for(amap: AppearanceMap) -> tuple[Path, dict[str, Any], Heldout]:
         if path.is_file():
             meta, arrays, _ = read_container(path, "heldout-set")
             # a set rendered for another set-up or model would score the map against the wrong physics
-            made, built = (_setup(meta.get("recipe", {})), _setup({**amap.recipe, "n": amap.n,
-                                                                   "thickness_mm": amap.thickness_mm}))
+            if not isinstance(meta.get("recipe"), dict):
+                raise MapFileError(f"{path} does not say what it was rendered for (no recipe in its header): make "
+                                   "it with tools/make_heldout.py")
+            made, built = (_setup(meta["recipe"]), _setup({**amap.recipe, "n": amap.n,
+                                                           "thickness_mm": amap.thickness_mm}))
             if made != built:
                 raise MapFileError(f"{path} was rendered for {made}, the map {amap.name} is {built}: make its set "
                                    "with tools/make_heldout.py")
