@@ -159,6 +159,21 @@ def test_tool_traces_with_the_polarisation_the_setups_recipe_has(tmp_path, monke
         observables._load(bad)
 
 
+def test_the_shipped_traced_observables_model_the_faces_as_their_set_ups_recipes_do():
+    """A recipe that changes its Fresnel model leaves the twin's traced data of that set-up stale: this fails
+    until tools/make_twin_observables.py has re-traced it (the device set-ups: polarised, as their maps)."""
+    tool = _tool()
+    traced = [s for s in map(_setup_of, observables.available_setups()) if s.integrator == "tracer"]
+    assert {s.path.stem for s in traced} >= {"device-n1.5-l0.4", "device-n1.5-l0.8"}
+    for s in traced:
+        assert s.polarisation == tool.traced_polarisation("recipe", s.geometry, s.n, s.thickness_mm), s.path.name
+    assert all(s.polarisation for s in traced if s.geometry == "device")
+
+
+def _setup_of(stem: str) -> observables.SetupObservables:
+    return observables._load(observables.DATA_DIR / f"{stem}.json")
+
+
 def test_tool_computes_an_ideal_setup_by_adding_doubling(tmp_path, monkeypatch, capsys):
     """One integrator per file: a traced file re-made by adding-doubling keeps none of the traced entries; the
     integrator travels into the samples' physics; adding-doubling is refused for the device geometry."""

@@ -14,7 +14,7 @@ with one of two integrators (the file's `integrator`):
   random numbers, so the Monte Carlo error is smooth in λ. The file's `polarisation` says whether the tracer
   tracked the two polarisations at the faces (as the map recipe of the same set-up does). L stays unpolarised,
   as the maps' in-scattering tables are: a small correction to I_c whose light enters and leaves near normal
-  incidence, where s and p reflect alike.
+  incidence, where s and p reflect alike (its bounces inside the slab at other angles are not tracked).
 - `adding-doubling` (ideal geometry only): Prahl's adding-doubling (trimeter.forward.adding_doubling), exact
   for the ideal geometry up to its quadrature, which the file bounds per node by the change from doubling
   the quadrature points. No Monte Carlo, no tracer: a round trip against it shows the whole error of a map
