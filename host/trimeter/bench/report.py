@@ -338,7 +338,7 @@ def _header(results: dict[str, Any]) -> list[str]:
         "polarisation option, on in the device recipes) and one return coefficient C for the background's "
         "bounces. What the single C costs the fits on these held-out sets, and what unpolarised Fresnel cost them "
         "before the device maps tracked polarisation, is measured by `tools/model_effect_check.py` (figures: "
-        "maps/README.md, \"Known open points\").",
+        "maps/README.md, \"Polarisation\" and \"Known open points\").",
         "- Noise, where there is any, is synthetic: relative Gaussian noise on I_b, I_w and I_c.",
         "- Times are the best of several rounds, all methods of a table timed round-robin in one process on a "
         "shared machine: compare them within a table. On a loaded machine a call longer than the scheduler's time "
