@@ -45,9 +45,10 @@ def heldout_for(amap: AppearanceMap) -> tuple[Path, dict[str, Any], Heldout]:
 
 def _setup(recipe: dict[str, Any]) -> str:
     """A recipe's set-up and model, as far as a held-out set must match its map's."""
-    fresnel = "Fresnel per polarisation" if recipe.get("polarisation", False) else "unpolarised Fresnel"
+    from trimeter.maps.recipe import fresnel_model
+
     return (f"geometry {recipe.get('geometry')!r}, n {recipe.get('n')}, ℓ {recipe.get('thickness_mm')} mm, "
-            f"{fresnel}")
+            f"Fresnel {fresnel_model(recipe.get('polarisation', False))}")
 
 
 # The held-out materials are split once, here: every CALIBRATION_EVERY-th (σt, g) column (materials that

@@ -186,6 +186,8 @@ def cmd_list(args) -> int:
 
 
 def cmd_info(args) -> int:
+    from trimeter.maps.recipe import fresnel_model
+
     if str(args.map).endswith(".tlut"):
         return _table_info(args)
     info = _describe(load_appearance_map(args.map))
@@ -198,7 +200,7 @@ def cmd_info(args) -> int:
         f"sha256      {info['checksum_sha256']}",
         f"geometry    {r['geometry']}, n = {r['n']:g}, thickness = {r['thickness_mm']:g} mm, "
         f"reference ρ_b = {r.get('reference_rho_b')}, ρ_w = {r.get('reference_rho_w')}",
-        f"Fresnel     {'per polarisation (s and p tracked at the faces)' if r.get('polarisation') else 'unpolarised'}",
+        f"Fresnel     {fresnel_model(r.get('polarisation', False))}",
         f"grid        α {gr['alpha']} ({rg['alpha'][0]:g}…{rg['alpha'][1]:g}), σt {gr['sigma_t']} "
         f"({rg['sigma_t'][0]:g}…{rg['sigma_t'][1]:g} 1/mm), g {gr['g']} ({rg['g'][0]:g}…{rg['g'][1]:g}); "
         f"{gr['points']} points",

@@ -46,6 +46,11 @@ _SAMPLING_DEFAULTS = {"target_stderr": 5e-4, "min_paths": 131072, "max_paths": 2
                       "target_alpha_stderr": None}
 
 
+def fresnel_model(polarisation: bool) -> str:
+    """How a recipe's (a map's, a held-out set's, the twin's) faces reflect, as every listing names it."""
+    return "per polarisation" if polarisation else "unpolarised"
+
+
 @dataclass(frozen=True)
 class Sampling:
     target_stderr: float = 5e-4

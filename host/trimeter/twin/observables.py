@@ -51,6 +51,7 @@ from scipy.interpolate import CubicSpline
 
 from trimeter.errors import InputError
 from trimeter.geometry import cover_slide_n
+from trimeter.maps.recipe import fresnel_model
 from trimeter.model.collimated import collimated_transmittance
 
 DATA_DIR = Path(__file__).resolve().parents[1] / "data" / "twin_observables"
@@ -118,7 +119,7 @@ class SetupObservables:
         seed, or quadrature points)."""
         p = {**self.provenance, "integrator": self.integrator}
         if self.integrator == "tracer":
-            p["Fresnel"] = "per polarisation" if self.polarisation else "unpolarised"
+            p["Fresnel"] = fresnel_model(self.polarisation)
         made = ", ".join(f"{k} {p[k]}" for k in ("tool", "integrator", "Fresnel", "paths_per_node", "seed",
                                                  "quad_points", "written_utc") if k in p)
         return f"{self.path.name} ({made or 'no provenance recorded'})"
