@@ -16,7 +16,8 @@ THRESHOLDS = dict(underdetermined_std=(finish.UNDERDETERMINED_ALPHA_STD, finish.
                   disagree_sigmas=finish.DISAGREE_SIGMAS)
 
 
-def _random_fit(rng, n):
+def _random_fit(rng, n, bad=1.0):
+    """bad: scales the share of NaN, ±inf and zero cells (1: a quarter of each column)."""
     columns = {name: rng.normal(size=n) * rng.choice([1e-3, 1.0], size=n)
                for name in ("alpha", "sigma_t", "g", "sigma_t_beer")}
     for name in ("alpha_std", "sigma_t_std", "g_std"):
@@ -24,7 +25,7 @@ def _random_fit(rng, n):
     for name, column in columns.items():
         u = rng.random(n)
         zero = 0.0 if name.endswith("_std") else -0.0  # a std is never -0 (a square root's)
-        columns[name] = np.select([u < 0.1, u < 0.15, u < 0.2, u < 0.22, u < 0.25],
+        columns[name] = np.select([u < 0.1 * bad, u < 0.15 * bad, u < 0.2 * bad, u < 0.22 * bad, u < 0.25 * bad],
                                   [np.nan, np.inf, 0.0, -np.inf, zero], column)
     u = rng.random()
     conditioning = {} if u < 0.5 else {"conditioning_alpha_std": np.abs(rng.normal(size=n)) * 0.2,
@@ -62,6 +63,26 @@ def test_c_combination_is_the_numpy_one_bit_for_bit():
     # the random cases reach every flag the combination sets or clears
     for flag in (FitFlag.THICKNESS_DISAGREE, FitFlag.UNDERDETERMINED, FitFlag.STD_APPROXIMATE):
         assert seen & int(flag)
+
+
+@pytest.mark.skipif(not native.available(), reason=native.status())
+@pytest.mark.parametrize("simd", [True, False])
+def test_two_mostly_clean_thicknesses_combine_bit_for_bit(simd):
+    """Two thicknesses with few bad cells: most bins take the four-lane path (every weight sum positive), a
+    few the scalar one, with and without AVX2; stds scaled so that the quarter-weight rule and the
+    disagreement go both ways."""
+    rng = np.random.default_rng(5)
+    kernel = NativeKernel()
+    try:
+        native.set_simd(simd)
+        for _ in range(40):
+            n = int(rng.integers(1, 200))
+            fits = [_random_fit(rng, n, bad=0.05) for _ in range(2)]
+            fits[1].alpha_std[:] = fits[0].alpha_std * rng.uniform(0.3, 3.0, n)  # weights within ×10
+            with np.errstate(all="ignore"):
+                _assert_identical(kernel.combine(fits, "x", **THRESHOLDS), finish.combine(fits, "x"))
+    finally:
+        native.set_simd(True)
 
 
 def test_the_numpy_kernel_leaves_the_combination_to_api():

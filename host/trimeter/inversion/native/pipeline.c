@@ -517,10 +517,22 @@ static inline __attribute__((always_inline)) void combine_bin(size_t k, size_t n
 void tm_combine(size_t k, size_t n, const double *fits, double underdetermined_alpha_std, double underdetermined_g_std,
                 double disagree_sigmas, double *outputs) {
     const tm_fit_outputs out = outputs_in(outputs, n);
-    if (k == 2)
-        for (size_t i = 0; i < n; i++)
+    if (k == 2) {
+        size_t i = 0;
+#ifdef TM_SIMD
+        if (tmi_use_simd())
+            for (; i + 4 <= n; i += 4) {
+                int redo = tmi_combine2_4(n, i, fits, underdetermined_alpha_std, underdetermined_g_std, disagree_sigmas,
+                                          outputs);
+                for (int l = 0; redo; l++, redo >>= 1)
+                    if (redo & 1)
+                        combine_bin(2, n, i + (size_t)l, fits, underdetermined_alpha_std, underdetermined_g_std,
+                                    disagree_sigmas, out);
+            }
+#endif
+        for (; i < n; i++)
             combine_bin(2, n, i, fits, underdetermined_alpha_std, underdetermined_g_std, disagree_sigmas, out);
-    else
+    } else
         for (size_t i = 0; i < n; i++)
             combine_bin(k, n, i, fits, underdetermined_alpha_std, underdetermined_g_std, disagree_sigmas, out);
 }

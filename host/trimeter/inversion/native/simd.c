@@ -246,6 +246,113 @@ __attribute__((target("avx2"))) void tmi_check_step4(const tm_forward_grid *f, s
                                 _mm256_set1_pd(f->g_hi)));
 }
 
+/* Inverse-variance weights of two thicknesses' values v0, v1 with stds s0, s1 (pipeline.c weighted(),
+ * k = 2, lane by lane): w = 1/s² where the value is finite and the std in (0, ∞), else 0. */
+__attribute__((target("avx2"))) static inline v4 finite4(v4 x) {
+    return _mm256_cmp_pd(_mm256_andnot_pd(_mm256_set1_pd(-0.0), x), _mm256_set1_pd(INFINITY), _CMP_LT_OQ);
+}
+
+__attribute__((target("avx2"))) static inline v4 usable_std4(v4 s) {
+    return _mm256_and_pd(_mm256_cmp_pd(s, _mm256_setzero_pd(), _CMP_GT_OQ),
+                         _mm256_cmp_pd(s, _mm256_set1_pd(INFINITY), _CMP_LT_OQ));
+}
+
+/* Σ w·v from +0 as weighted() sums (so a −0 product gives +0), and its division by Σ w */
+__attribute__((target("avx2"))) static inline v4 weighted_mean4(v4 v0, v4 w0, v4 v1, v4 w1, v4 wsum) {
+    v4 v0z = _mm256_and_pd(finite4(v0), v0), v1z = _mm256_and_pd(finite4(v1), v1);
+    v4 sum = _mm256_add_pd(_mm256_add_pd(_mm256_setzero_pd(), _mm256_mul_pd(v0z, w0)), _mm256_mul_pd(v1z, w1));
+    return _mm256_div_pd(sum, wsum);
+}
+
+#define ROW4(p, r) _mm256_loadu_pd((p) + (size_t)(r) * n)
+
+/* tm_combine for two thicknesses and the bins i .. i+3, where every weight sum is positive (the common
+ * case): the same operations as combine_bin's, lane by lane. Writes those bins' outputs and returns a
+ * 4-bit mask of the lanes where a sum is not positive, which the caller redoes with combine_bin (the
+ * fallback's plain mean). */
+int tmi_combine2_4(size_t n, size_t i, const double *fits, double underdetermined_alpha_std,
+                   double underdetermined_g_std, double disagree_sigmas, double *outputs)
+    __attribute__((target("avx2")));
+int tmi_combine2_4(size_t n, size_t i, const double *fits, double underdetermined_alpha_std,
+                   double underdetermined_g_std, double disagree_sigmas, double *outputs) {
+    const double *a = fits + i, *b = fits + (size_t)TM_ROW_COUNT * n + i;
+    double *o = outputs + i;
+    const v4 one = _mm256_set1_pd(1.0), quarter = _mm256_set1_pd(0.25), sigmas = _mm256_set1_pd(disagree_sigmas);
+    static const int value_rows[3] = {TM_ROW_ALPHA, TM_ROW_SIGMA_T, TM_ROW_G};
+    static const int std_rows[3] = {TM_ROW_ALPHA_STD, TM_ROW_SIGMA_T_STD, TM_ROW_G_STD};
+    v4 value[3], std[3], fallback = _mm256_setzero_pd(), disagree = _mm256_setzero_pd();
+    v4 w0s = _mm256_setzero_pd(), w1s = w0s;
+    for (int c = 0; c < 3; c++) {
+        v4 va = ROW4(a, value_rows[c]), vb = ROW4(b, value_rows[c]);
+        v4 sa = ROW4(a, std_rows[c]), sb = ROW4(b, std_rows[c]);
+        v4 inv_a = _mm256_div_pd(one, _mm256_mul_pd(sa, sa)), inv_b = _mm256_div_pd(one, _mm256_mul_pd(sb, sb));
+        v4 usable_a = usable_std4(sa), usable_b = usable_std4(sb);
+        v4 wa = _mm256_and_pd(_mm256_and_pd(finite4(va), usable_a), inv_a);
+        v4 wb = _mm256_and_pd(_mm256_and_pd(finite4(vb), usable_b), inv_b);
+        v4 wsum = _mm256_add_pd(wa, wb); /* weighted()'s +0 + wa is wa: wa is +0 or positive */
+        fallback = _mm256_or_pd(fallback, _mm256_cmp_pd(wsum, _mm256_setzero_pd(), _CMP_NGT_UQ));
+        value[c] = weighted_mean4(va, wa, vb, wb, wsum);
+        std[c] = _mm256_div_pd(one, _mm256_sqrt_pd(wsum));
+        if (value_rows[c] == TM_ROW_SIGMA_T) { /* the Beer-Lambert column, with σt's stds */
+            v4 ua = ROW4(a, TM_ROW_SIGMA_T_BEER), ub = ROW4(b, TM_ROW_SIGMA_T_BEER);
+            v4 wa2 = _mm256_and_pd(_mm256_and_pd(finite4(ua), usable_a), inv_a);
+            v4 wb2 = _mm256_and_pd(_mm256_and_pd(finite4(ub), usable_b), inv_b);
+            v4 wsum2 = _mm256_add_pd(wa2, wb2);
+            fallback = _mm256_or_pd(fallback, _mm256_cmp_pd(wsum2, _mm256_setzero_pd(), _CMP_NGT_UQ));
+            _mm256_storeu_pd(o + (size_t)TM_ROW_SIGMA_T_BEER * n, weighted_mean4(ua, wa2, ub, wb2, wsum2));
+        }
+        v4 diff = _mm256_andnot_pd(_mm256_set1_pd(-0.0), _mm256_sub_pd(va, vb));
+        v4 scale = _mm256_mul_pd(sigmas, _mm256_sqrt_pd(_mm256_add_pd(_mm256_mul_pd(sa, sa), _mm256_mul_pd(sb, sb))));
+        disagree = _mm256_or_pd(disagree, _mm256_cmp_pd(diff, scale, _CMP_GT_OQ));
+        _mm256_storeu_pd(o + (size_t)value_rows[c] * n, value[c]);
+        _mm256_storeu_pd(o + (size_t)std_rows[c] * n, std[c]);
+        if (value_rows[c] != TM_ROW_SIGMA_T) { /* a flagged thickness weighs in where it carries a quarter of α's or g's weight */
+            v4 ra = _mm256_div_pd(std[c], sa), rb = _mm256_div_pd(std[c], sb);
+            w0s = _mm256_or_pd(w0s, _mm256_cmp_pd(_mm256_mul_pd(ra, ra), quarter, _CMP_GE_OQ));
+            w1s = _mm256_or_pd(w1s, _mm256_cmp_pd(_mm256_mul_pd(rb, rb), quarter, _CMP_GE_OQ));
+        }
+    }
+    /* the conditioning stds combined alike where they are not the stds themselves (bit for bit) */
+    v4 cond[2] = {std[0], std[2]};
+    static const int cond_rows[2] = {TM_ROW_CONDITIONING_ALPHA_STD, TM_ROW_CONDITIONING_G_STD};
+    for (int c = 0; c < 2; c++) {
+        int vrow = c ? TM_ROW_G : TM_ROW_ALPHA, srow = c ? TM_ROW_G_STD : TM_ROW_ALPHA_STD;
+        v4 ca = ROW4(a, cond_rows[c]), cb = ROW4(b, cond_rows[c]);
+        __m256i same = _mm256_and_si256(_mm256_cmpeq_epi64(_mm256_castpd_si256(ca), _mm256_castpd_si256(ROW4(a, srow))),
+                                        _mm256_cmpeq_epi64(_mm256_castpd_si256(cb), _mm256_castpd_si256(ROW4(b, srow))));
+        if (_mm256_movemask_pd(_mm256_castsi256_pd(same)) == 0xF) continue;
+        v4 wa = _mm256_and_pd(_mm256_and_pd(finite4(ROW4(a, vrow)), usable_std4(ca)),
+                              _mm256_div_pd(one, _mm256_mul_pd(ca, ca)));
+        v4 wb = _mm256_and_pd(_mm256_and_pd(finite4(ROW4(b, vrow)), usable_std4(cb)),
+                              _mm256_div_pd(one, _mm256_mul_pd(cb, cb)));
+        v4 wsum = _mm256_add_pd(wa, wb);
+        v4 differs = _mm256_xor_pd(_mm256_castsi256_pd(same), _mm256_castsi256_pd(_mm256_set1_epi64x(-1)));
+        fallback = _mm256_or_pd(fallback,
+                                _mm256_and_pd(differs, _mm256_cmp_pd(wsum, _mm256_setzero_pd(), _CMP_NGT_UQ)));
+        cond[c] = _mm256_blendv_pd(_mm256_div_pd(one, _mm256_sqrt_pd(wsum)), cond[c], _mm256_castsi256_pd(same));
+    }
+    _mm256_storeu_pd(o + (size_t)TM_ROW_CONDITIONING_ALPHA_STD * n, cond[0]);
+    _mm256_storeu_pd(o + (size_t)TM_ROW_CONDITIONING_G_STD * n, cond[1]);
+    v4 under = _mm256_or_pd(_mm256_cmp_pd(cond[0], _mm256_set1_pd(underdetermined_alpha_std), _CMP_GT_OQ),
+                            _mm256_cmp_pd(cond[1], _mm256_set1_pd(underdetermined_g_std), _CMP_GT_OQ));
+    int heavy_a = _mm256_movemask_pd(w0s), heavy_b = _mm256_movemask_pd(w1s);
+    int dis = _mm256_movemask_pd(disagree), und = _mm256_movemask_pd(under);
+    const int64_t *fa = (const int64_t *)(a + (size_t)TM_ROW_FLAGS * n), *fb = (const int64_t *)(b + (size_t)TM_ROW_FLAGS * n);
+    int64_t *fo = (int64_t *)(o + (size_t)TM_ROW_FLAGS * n);
+    for (int l = 0; l < 4; l++) {
+        int64_t f0 = fa[l], f1 = fb[l], fl = f0 | f1;
+        if (!((f0 & TM_FLAGS_UNUSABLE) && (f1 & TM_FLAGS_UNUSABLE))) fl &= ~(int64_t)TM_FLAGS_UNUSABLE;
+        fl &= ~(int64_t)(TM_FLAG_UNDERDETERMINED | TM_FLAG_STD_APPROXIMATE);
+        if (((f0 & TM_FLAG_STD_APPROXIMATE) && (heavy_a >> l & 1)) || ((f1 & TM_FLAG_STD_APPROXIMATE) && (heavy_b >> l & 1)))
+            fl |= TM_FLAG_STD_APPROXIMATE;
+        if (dis >> l & 1) fl |= TM_FLAG_THICKNESS_DISAGREE;
+        if (!(fl & TM_FLAGS_UNUSABLE) && (und >> l & 1)) fl |= TM_FLAG_UNDERDETERMINED;
+        fo[l] = fl;
+    }
+    return _mm256_movemask_pd(fallback);
+}
+#undef ROW4
+
 static int simd_enabled = -1; /* -1: not decided yet */
 
 int tmi_use_simd(void) {
