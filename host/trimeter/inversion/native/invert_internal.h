@@ -344,8 +344,8 @@ void tmi_newton_step4(const tm_forward_grid *f, sigma_cell_t *cells, const uint3
 void tmi_check_step4(const tm_forward_grid *f, sigma_cell_t *cells, const uint32_t *idx, const double *a1,
                      const double *g1, const double *tb, const double *tw, const double *rho_b, const double *rho_w,
                      double *a2, double *g2);
-int tmi_combine2_4(size_t n, size_t i, const double *fits, double underdetermined_alpha_std,
-                   double underdetermined_g_std, double disagree_sigmas, double *outputs);
+void tmi_combine2_4(size_t n, size_t i, const double *fits, double underdetermined_alpha_std,
+                    double underdetermined_g_std, double disagree_sigmas, double *outputs);
 #endif
 
 #endif

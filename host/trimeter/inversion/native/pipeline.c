@@ -521,14 +521,8 @@ void tm_combine(size_t k, size_t n, const double *fits, double underdetermined_a
         size_t i = 0;
 #ifdef TM_SIMD
         if (tmi_use_simd())
-            for (; i + 4 <= n; i += 4) {
-                int redo = tmi_combine2_4(n, i, fits, underdetermined_alpha_std, underdetermined_g_std, disagree_sigmas,
-                                          outputs);
-                for (int l = 0; redo; l++, redo >>= 1)
-                    if (redo & 1)
-                        combine_bin(2, n, i + (size_t)l, fits, underdetermined_alpha_std, underdetermined_g_std,
-                                    disagree_sigmas, out);
-            }
+            for (; i + 4 <= n; i += 4)
+                tmi_combine2_4(n, i, fits, underdetermined_alpha_std, underdetermined_g_std, disagree_sigmas, outputs);
 #endif
         for (; i < n; i++)
             combine_bin(2, n, i, fits, underdetermined_alpha_std, underdetermined_g_std, disagree_sigmas, out);

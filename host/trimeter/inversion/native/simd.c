@@ -246,112 +246,129 @@ __attribute__((target("avx2"))) void tmi_check_step4(const tm_forward_grid *f, s
                                 _mm256_set1_pd(f->g_hi)));
 }
 
-/* Inverse-variance weights of two thicknesses' values v0, v1 with stds s0, s1 (pipeline.c weighted(),
- * k = 2, lane by lane): w = 1/s² where the value is finite and the std in (0, ∞), else 0. */
+/* pipeline.c weighted() for two thicknesses, lane by lane: the inverse-variance mean of va, vb (stds sa,
+ * sb) and its std; where no weight is positive, the plain mean of the finite values and the smallest of
+ * their stds; NaN (C's NAN, not the instructions' default NaN) where neither is finite. ua, ub (or NULL): a
+ * second column with the same stds, whose mean alone goes to *value2. Every operation as weighted()'s,
+ * in its order (its sums from +0, so that a −0 product gives +0). */
 __attribute__((target("avx2"))) static inline v4 finite4(v4 x) {
     return _mm256_cmp_pd(_mm256_andnot_pd(_mm256_set1_pd(-0.0), x), _mm256_set1_pd(INFINITY), _CMP_LT_OQ);
 }
 
-__attribute__((target("avx2"))) static inline v4 usable_std4(v4 s) {
-    return _mm256_and_pd(_mm256_cmp_pd(s, _mm256_setzero_pd(), _CMP_GT_OQ),
-                         _mm256_cmp_pd(s, _mm256_set1_pd(INFINITY), _CMP_LT_OQ));
+/* fmin: a NaN loses to a number (min_pd alone returns its second operand where either is NaN) */
+__attribute__((target("avx2"))) static inline v4 fmin4(v4 a, v4 b) {
+    return _mm256_blendv_pd(_mm256_min_pd(a, b), a, _mm256_cmp_pd(b, b, _CMP_UNORD_Q));
 }
 
-/* Σ w·v from +0 as weighted() sums (so a −0 product gives +0), and its division by Σ w */
-__attribute__((target("avx2"))) static inline v4 weighted_mean4(v4 v0, v4 w0, v4 v1, v4 w1, v4 wsum) {
-    v4 v0z = _mm256_and_pd(finite4(v0), v0), v1z = _mm256_and_pd(finite4(v1), v1);
-    v4 sum = _mm256_add_pd(_mm256_add_pd(_mm256_setzero_pd(), _mm256_mul_pd(v0z, w0)), _mm256_mul_pd(v1z, w1));
-    return _mm256_div_pd(sum, wsum);
+/* mean or, where no weight is positive, the plain mean (NaN where no value is finite) */
+__attribute__((target("avx2"))) static inline v4 mean4(v4 va, v4 vb, v4 fa, v4 fb, v4 wa, v4 wb, v4 wsum,
+                                                       v4 positive, v4 count) {
+    v4 vaz = _mm256_and_pd(fa, va), vbz = _mm256_and_pd(fb, vb), zero = _mm256_setzero_pd();
+    v4 mean = _mm256_div_pd(_mm256_add_pd(_mm256_add_pd(zero, _mm256_mul_pd(vaz, wa)), _mm256_mul_pd(vbz, wb)), wsum);
+    if (_mm256_movemask_pd(positive) == 0xF) return mean; /* the common case: no division for the fallback */
+    v4 plain = _mm256_div_pd(_mm256_add_pd(_mm256_add_pd(zero, vaz), vbz), count);
+    plain = _mm256_blendv_pd(plain, _mm256_set1_pd(NAN), _mm256_cmp_pd(count, zero, _CMP_EQ_OQ));
+    return _mm256_blendv_pd(plain, mean, positive);
 }
 
-#define ROW4(p, r) _mm256_loadu_pd((p) + (size_t)(r) * n)
+__attribute__((target("avx2"))) static inline void weighted4(v4 va, v4 vb, v4 sa, v4 sb, const double *ua,
+                                                             const double *ub, v4 *value, v4 *std, v4 *value2) {
+    const v4 one = _mm256_set1_pd(1.0), zero = _mm256_setzero_pd(), inf = _mm256_set1_pd(INFINITY);
+    v4 usable_a = _mm256_and_pd(_mm256_cmp_pd(sa, zero, _CMP_GT_OQ), _mm256_cmp_pd(sa, inf, _CMP_LT_OQ));
+    v4 usable_b = _mm256_and_pd(_mm256_cmp_pd(sb, zero, _CMP_GT_OQ), _mm256_cmp_pd(sb, inf, _CMP_LT_OQ));
+    v4 inv_a = _mm256_div_pd(one, _mm256_mul_pd(sa, sa)), inv_b = _mm256_div_pd(one, _mm256_mul_pd(sb, sb));
+    v4 fa = finite4(va), fb = finite4(vb);
+    v4 wa = _mm256_and_pd(_mm256_and_pd(fa, usable_a), inv_a), wb = _mm256_and_pd(_mm256_and_pd(fb, usable_b), inv_b);
+    v4 wsum = _mm256_add_pd(wa, wb); /* weighted()'s +0 + wa is wa: wa is +0 or positive */
+    v4 positive = _mm256_cmp_pd(wsum, zero, _CMP_GT_OQ);
+    v4 count = _mm256_add_pd(_mm256_and_pd(fa, one), _mm256_and_pd(fb, one));
+    *value = mean4(va, vb, fa, fb, wa, wb, wsum, positive, count);
+    *std = _mm256_div_pd(one, _mm256_sqrt_pd(wsum));
+    if (_mm256_movemask_pd(positive) != 0xF) {
+        v4 smallest = fmin4(_mm256_blendv_pd(inf, sa, fa), _mm256_blendv_pd(inf, sb, fb));
+        smallest = _mm256_blendv_pd(smallest, _mm256_set1_pd(NAN), _mm256_cmp_pd(count, zero, _CMP_EQ_OQ));
+        *std = _mm256_blendv_pd(smallest, *std, positive);
+    }
+    if (ua) {
+        v4 u0 = _mm256_loadu_pd(ua), u1 = _mm256_loadu_pd(ub), f0 = finite4(u0), f1 = finite4(u1);
+        v4 w0 = _mm256_and_pd(_mm256_and_pd(f0, usable_a), inv_a), w1 = _mm256_and_pd(_mm256_and_pd(f1, usable_b), inv_b);
+        v4 wsum2 = _mm256_add_pd(w0, w1);
+        *value2 = mean4(u0, u1, f0, f1, w0, w1, wsum2, _mm256_cmp_pd(wsum2, zero, _CMP_GT_OQ),
+                        _mm256_add_pd(_mm256_and_pd(f0, one), _mm256_and_pd(f1, one)));
+    }
+}
 
-/* tm_combine for two thicknesses and the bins i .. i+3, where every weight sum is positive (the common
- * case): the same operations as combine_bin's, lane by lane. Writes those bins' outputs and returns a
- * 4-bit mask of the lanes where a sum is not positive, which the caller redoes with combine_bin (the
- * fallback's plain mean). */
-int tmi_combine2_4(size_t n, size_t i, const double *fits, double underdetermined_alpha_std,
-                   double underdetermined_g_std, double disagree_sigmas, double *outputs)
+#define ROW(p, r) ((p) + (size_t)(r) * n)
+
+/* pipeline.c combine_bin for two thicknesses and the bins i .. i+3: the same operations, lane by lane. */
+void tmi_combine2_4(size_t n, size_t i, const double *fits, double underdetermined_alpha_std,
+                    double underdetermined_g_std, double disagree_sigmas, double *outputs)
     __attribute__((target("avx2")));
-int tmi_combine2_4(size_t n, size_t i, const double *fits, double underdetermined_alpha_std,
-                   double underdetermined_g_std, double disagree_sigmas, double *outputs) {
+void tmi_combine2_4(size_t n, size_t i, const double *fits, double underdetermined_alpha_std,
+                    double underdetermined_g_std, double disagree_sigmas, double *outputs) {
     const double *a = fits + i, *b = fits + (size_t)TM_ROW_COUNT * n + i;
     double *o = outputs + i;
-    const v4 one = _mm256_set1_pd(1.0), quarter = _mm256_set1_pd(0.25), sigmas = _mm256_set1_pd(disagree_sigmas);
+    const v4 quarter = _mm256_set1_pd(0.25), sigmas = _mm256_set1_pd(disagree_sigmas);
     static const int value_rows[3] = {TM_ROW_ALPHA, TM_ROW_SIGMA_T, TM_ROW_G};
     static const int std_rows[3] = {TM_ROW_ALPHA_STD, TM_ROW_SIGMA_T_STD, TM_ROW_G_STD};
-    v4 value[3], std[3], fallback = _mm256_setzero_pd(), disagree = _mm256_setzero_pd();
-    v4 w0s = _mm256_setzero_pd(), w1s = w0s;
+    v4 std[3], disagree = _mm256_setzero_pd(), heavy_a = disagree, heavy_b = disagree;
+    const int64_t *fa = (const int64_t *)ROW(a, TM_ROW_FLAGS), *fb = (const int64_t *)ROW(b, TM_ROW_FLAGS);
+    int64_t approx_any = 0; /* the weights of a flagged thickness are weighed only where there is one */
+    for (int l = 0; l < 4; l++) approx_any |= (fa[l] | fb[l]) & TM_FLAG_STD_APPROXIMATE;
     for (int c = 0; c < 3; c++) {
-        v4 va = ROW4(a, value_rows[c]), vb = ROW4(b, value_rows[c]);
-        v4 sa = ROW4(a, std_rows[c]), sb = ROW4(b, std_rows[c]);
-        v4 inv_a = _mm256_div_pd(one, _mm256_mul_pd(sa, sa)), inv_b = _mm256_div_pd(one, _mm256_mul_pd(sb, sb));
-        v4 usable_a = usable_std4(sa), usable_b = usable_std4(sb);
-        v4 wa = _mm256_and_pd(_mm256_and_pd(finite4(va), usable_a), inv_a);
-        v4 wb = _mm256_and_pd(_mm256_and_pd(finite4(vb), usable_b), inv_b);
-        v4 wsum = _mm256_add_pd(wa, wb); /* weighted()'s +0 + wa is wa: wa is +0 or positive */
-        fallback = _mm256_or_pd(fallback, _mm256_cmp_pd(wsum, _mm256_setzero_pd(), _CMP_NGT_UQ));
-        value[c] = weighted_mean4(va, wa, vb, wb, wsum);
-        std[c] = _mm256_div_pd(one, _mm256_sqrt_pd(wsum));
-        if (value_rows[c] == TM_ROW_SIGMA_T) { /* the Beer-Lambert column, with σt's stds */
-            v4 ua = ROW4(a, TM_ROW_SIGMA_T_BEER), ub = ROW4(b, TM_ROW_SIGMA_T_BEER);
-            v4 wa2 = _mm256_and_pd(_mm256_and_pd(finite4(ua), usable_a), inv_a);
-            v4 wb2 = _mm256_and_pd(_mm256_and_pd(finite4(ub), usable_b), inv_b);
-            v4 wsum2 = _mm256_add_pd(wa2, wb2);
-            fallback = _mm256_or_pd(fallback, _mm256_cmp_pd(wsum2, _mm256_setzero_pd(), _CMP_NGT_UQ));
-            _mm256_storeu_pd(o + (size_t)TM_ROW_SIGMA_T_BEER * n, weighted_mean4(ua, wa2, ub, wb2, wsum2));
+        int sigma = value_rows[c] == TM_ROW_SIGMA_T; /* the Beer-Lambert column goes with σt's stds */
+        v4 va = _mm256_loadu_pd(ROW(a, value_rows[c])), vb = _mm256_loadu_pd(ROW(b, value_rows[c]));
+        v4 sa = _mm256_loadu_pd(ROW(a, std_rows[c])), sb = _mm256_loadu_pd(ROW(b, std_rows[c]));
+        v4 value, beer = _mm256_setzero_pd(); /* set where sigma */
+        weighted4(va, vb, sa, sb, sigma ? ROW(a, TM_ROW_SIGMA_T_BEER) : NULL, ROW(b, TM_ROW_SIGMA_T_BEER), &value,
+                  &std[c], &beer);
+        _mm256_storeu_pd(ROW(o, value_rows[c]), value);
+        _mm256_storeu_pd(ROW(o, std_rows[c]), std[c]);
+        if (sigma) {
+            _mm256_storeu_pd(ROW(o, TM_ROW_SIGMA_T_BEER), beer);
+        } else if (approx_any) { /* a flagged thickness weighs in where it carries a quarter of α's or g's weight */
+            v4 ra = _mm256_div_pd(std[c], sa), rb = _mm256_div_pd(std[c], sb);
+            heavy_a = _mm256_or_pd(heavy_a, _mm256_cmp_pd(_mm256_mul_pd(ra, ra), quarter, _CMP_GE_OQ));
+            heavy_b = _mm256_or_pd(heavy_b, _mm256_cmp_pd(_mm256_mul_pd(rb, rb), quarter, _CMP_GE_OQ));
         }
         v4 diff = _mm256_andnot_pd(_mm256_set1_pd(-0.0), _mm256_sub_pd(va, vb));
         v4 scale = _mm256_mul_pd(sigmas, _mm256_sqrt_pd(_mm256_add_pd(_mm256_mul_pd(sa, sa), _mm256_mul_pd(sb, sb))));
         disagree = _mm256_or_pd(disagree, _mm256_cmp_pd(diff, scale, _CMP_GT_OQ));
-        _mm256_storeu_pd(o + (size_t)value_rows[c] * n, value[c]);
-        _mm256_storeu_pd(o + (size_t)std_rows[c] * n, std[c]);
-        if (value_rows[c] != TM_ROW_SIGMA_T) { /* a flagged thickness weighs in where it carries a quarter of α's or g's weight */
-            v4 ra = _mm256_div_pd(std[c], sa), rb = _mm256_div_pd(std[c], sb);
-            w0s = _mm256_or_pd(w0s, _mm256_cmp_pd(_mm256_mul_pd(ra, ra), quarter, _CMP_GE_OQ));
-            w1s = _mm256_or_pd(w1s, _mm256_cmp_pd(_mm256_mul_pd(rb, rb), quarter, _CMP_GE_OQ));
-        }
     }
     /* the conditioning stds combined alike where they are not the stds themselves (bit for bit) */
     v4 cond[2] = {std[0], std[2]};
     static const int cond_rows[2] = {TM_ROW_CONDITIONING_ALPHA_STD, TM_ROW_CONDITIONING_G_STD};
     for (int c = 0; c < 2; c++) {
         int vrow = c ? TM_ROW_G : TM_ROW_ALPHA, srow = c ? TM_ROW_G_STD : TM_ROW_ALPHA_STD;
-        v4 ca = ROW4(a, cond_rows[c]), cb = ROW4(b, cond_rows[c]);
-        __m256i same = _mm256_and_si256(_mm256_cmpeq_epi64(_mm256_castpd_si256(ca), _mm256_castpd_si256(ROW4(a, srow))),
-                                        _mm256_cmpeq_epi64(_mm256_castpd_si256(cb), _mm256_castpd_si256(ROW4(b, srow))));
-        if (_mm256_movemask_pd(_mm256_castsi256_pd(same)) == 0xF) continue;
-        v4 wa = _mm256_and_pd(_mm256_and_pd(finite4(ROW4(a, vrow)), usable_std4(ca)),
-                              _mm256_div_pd(one, _mm256_mul_pd(ca, ca)));
-        v4 wb = _mm256_and_pd(_mm256_and_pd(finite4(ROW4(b, vrow)), usable_std4(cb)),
-                              _mm256_div_pd(one, _mm256_mul_pd(cb, cb)));
-        v4 wsum = _mm256_add_pd(wa, wb);
-        v4 differs = _mm256_xor_pd(_mm256_castsi256_pd(same), _mm256_castsi256_pd(_mm256_set1_epi64x(-1)));
-        fallback = _mm256_or_pd(fallback,
-                                _mm256_and_pd(differs, _mm256_cmp_pd(wsum, _mm256_setzero_pd(), _CMP_NGT_UQ)));
-        cond[c] = _mm256_blendv_pd(_mm256_div_pd(one, _mm256_sqrt_pd(wsum)), cond[c], _mm256_castsi256_pd(same));
+        v4 ca = _mm256_loadu_pd(ROW(a, cond_rows[c])), cb = _mm256_loadu_pd(ROW(b, cond_rows[c]));
+        __m256i same_a = _mm256_cmpeq_epi64(_mm256_castpd_si256(ca), _mm256_castpd_si256(_mm256_loadu_pd(ROW(a, srow))));
+        __m256i same_b = _mm256_cmpeq_epi64(_mm256_castpd_si256(cb), _mm256_castpd_si256(_mm256_loadu_pd(ROW(b, srow))));
+        v4 same = _mm256_castsi256_pd(_mm256_and_si256(same_a, same_b));
+        if (_mm256_movemask_pd(same) == 0xF) continue;
+        v4 unused, combined;
+        weighted4(_mm256_loadu_pd(ROW(a, vrow)), _mm256_loadu_pd(ROW(b, vrow)), ca, cb, NULL, NULL, &unused, &combined,
+                  NULL);
+        cond[c] = _mm256_blendv_pd(combined, cond[c], same);
     }
-    _mm256_storeu_pd(o + (size_t)TM_ROW_CONDITIONING_ALPHA_STD * n, cond[0]);
-    _mm256_storeu_pd(o + (size_t)TM_ROW_CONDITIONING_G_STD * n, cond[1]);
+    _mm256_storeu_pd(ROW(o, TM_ROW_CONDITIONING_ALPHA_STD), cond[0]);
+    _mm256_storeu_pd(ROW(o, TM_ROW_CONDITIONING_G_STD), cond[1]);
     v4 under = _mm256_or_pd(_mm256_cmp_pd(cond[0], _mm256_set1_pd(underdetermined_alpha_std), _CMP_GT_OQ),
                             _mm256_cmp_pd(cond[1], _mm256_set1_pd(underdetermined_g_std), _CMP_GT_OQ));
-    int heavy_a = _mm256_movemask_pd(w0s), heavy_b = _mm256_movemask_pd(w1s);
+    int heavy0 = _mm256_movemask_pd(heavy_a), heavy1 = _mm256_movemask_pd(heavy_b);
     int dis = _mm256_movemask_pd(disagree), und = _mm256_movemask_pd(under);
-    const int64_t *fa = (const int64_t *)(a + (size_t)TM_ROW_FLAGS * n), *fb = (const int64_t *)(b + (size_t)TM_ROW_FLAGS * n);
-    int64_t *fo = (int64_t *)(o + (size_t)TM_ROW_FLAGS * n);
+    int64_t *fo = (int64_t *)ROW(o, TM_ROW_FLAGS);
     for (int l = 0; l < 4; l++) {
         int64_t f0 = fa[l], f1 = fb[l], fl = f0 | f1;
         if (!((f0 & TM_FLAGS_UNUSABLE) && (f1 & TM_FLAGS_UNUSABLE))) fl &= ~(int64_t)TM_FLAGS_UNUSABLE;
         fl &= ~(int64_t)(TM_FLAG_UNDERDETERMINED | TM_FLAG_STD_APPROXIMATE);
-        if (((f0 & TM_FLAG_STD_APPROXIMATE) && (heavy_a >> l & 1)) || ((f1 & TM_FLAG_STD_APPROXIMATE) && (heavy_b >> l & 1)))
+        if (((f0 & TM_FLAG_STD_APPROXIMATE) && (heavy0 >> l & 1)) || ((f1 & TM_FLAG_STD_APPROXIMATE) && (heavy1 >> l & 1)))
             fl |= TM_FLAG_STD_APPROXIMATE;
         if (dis >> l & 1) fl |= TM_FLAG_THICKNESS_DISAGREE;
         if (!(fl & TM_FLAGS_UNUSABLE) && (und >> l & 1)) fl |= TM_FLAG_UNDERDETERMINED;
         fo[l] = fl;
     }
-    return _mm256_movemask_pd(fallback);
 }
-#undef ROW4
+#undef ROW
 
 static int simd_enabled = -1; /* -1: not decided yet */
 
