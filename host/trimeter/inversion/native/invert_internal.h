@@ -320,6 +320,7 @@ void tmi_initial_guess(const tm_inverse_table *t, double log_sigma_t, double I_b
 double tmi_inscatter_log1p(const tm_forward_grid *f, int ia, double wa, double sigma_t, int ig, double wg);
 void tmi_model_variance(const tm_forward_grid *f, const sigma_cell_t *c, double alpha, double g, double *var_b,
                         double *var_w);
+void tmi_prefetch_finish(const tm_forward_grid *f, const sigma_cell_t *c, double sigma_t);
 void tmi_prefetch_cells(const tm_forward_grid *f, size_t n, sigma_cell_t *cells, const double *alpha,
                         const double *g);
 

@@ -49,6 +49,27 @@ void tmi_prefetch_cells(const tm_forward_grid *f, size_t n, sigma_cell_t *cells,
     }
 }
 
+/* The in-scattering and model-error table cells that tm_fit_solve's per-bin pass will read for a bin (at
+ * its polish's last cells and its σt before the correction), prefetched a few bins ahead: like the
+ * forward cells, they are random reads in tables of up to a few MB, which a cold cache would otherwise
+ * serve bin by bin. The cells may still move by the pass's walk; a missed prefetch costs nothing but
+ * its slot. */
+void tmi_prefetch_finish(const tm_forward_grid *f, const sigma_cell_t *c, double sigma_t) {
+    if (c->ia < 0 || c->ig < 0) return;
+    const size_t ia = (size_t)c->ia, ig = (size_t)c->ig, ng = (size_t)f->ng;
+    if (f->model_var)
+        for (size_t da = 0; da < 2; da++)
+            for (size_t ds = 0; ds < 2; ds++)
+                __builtin_prefetch(f->model_var + (((ia + da) * (size_t)f->ns + (size_t)c->is + ds) * ng + ig) * 2u);
+    if (f->inscatter_L && sigma_t > 0.0) {
+        double p = clampd(sigma_t * f->thickness_mm, 0.0, f->in_tau_max) * f->in_inv_dt;
+        size_t it = (size_t)(p < f->in_nt - 2 ? p : f->in_nt - 2), nt = (size_t)f->in_nt;
+        for (size_t da = 0; da < 2; da++)
+            for (size_t dt = 0; dt < 2; dt++)
+                __builtin_prefetch(f->inscatter_L + ((ia + da) * nt + it + dt) * ng + ig);
+    }
+}
+
 /* L = ln(1 + r) of the in-scattered light at (α cell ia/wa, σt, g cell ig/wg):
  * ForwardGrid.inscatter_log1p, operation for operation. Trilinear; τ clamped to [0, in_tau_max]. */
 double tmi_inscatter_log1p(const tm_forward_grid *f, int ia, double wa, double sigma_t, int ig, double wg) {

@@ -273,6 +273,9 @@ static void check_first_order(const tm_forward_grid *f, size_t m, const uint32_t
     }
 }
 
+/* How many bins ahead the per-bin pass prefetches its table cells (tmi_prefetch_finish) */
+#define FINISH_AHEAD 8
+
 /* The second half: the initial (α, g) from alpha0/g0 (the MLP's) or, where those are NULL or not
  * finite (a broken network), from `table` (without one: the middle of the map's box); the polish,
  * then flags for not converged / outside the map / g undefined / underdetermined, first-order stds
@@ -305,7 +308,9 @@ long long tm_fit_solve(const tm_forward_grid *f, const tm_inverse_table *table, 
     /* bins for check_first_order, listed in sc.active (the polish is done with it), their states side by
      * side in sc.checks: only those bins' (a few of them) are written */
     size_t checked = 0;
+    for (size_t i = 0; i < FINISH_AHEAD && i < n; i++) tmi_prefetch_finish(f, &cells[i], sigma_t[i]);
     for (size_t i = 0; i < n; i++) {
+        if (i + FINISH_AHEAD < n) tmi_prefetch_finish(f, &cells[i + FINISH_AHEAD], sigma_t[i + FINISH_AHEAD]);
         double Ji[9];
         int64_t fl = out->flags[i];
         int usable = !(fl & TM_FLAGS_UNUSABLE);
