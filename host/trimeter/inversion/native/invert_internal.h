@@ -315,6 +315,8 @@ static inline fit_scratch_t carve_scratch(void *mem, size_t n) {
 }
 
 /* lookups.c */
+void tmi_initial_guesses(const tm_inverse_table *t, size_t n, const sigma_cell_t *cells, const double *I_b,
+                         const double *I_w, double *alpha, double *g);
 void tmi_initial_guess(const tm_inverse_table *t, double log_sigma_t, double I_b, double I_w, double *alpha,
                        double *g);
 double tmi_inscatter_log1p(const tm_forward_grid *f, int ia, double wa, double sigma_t, int ig, double wg);

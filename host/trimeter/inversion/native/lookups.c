@@ -3,18 +3,22 @@
  * and trilinear coefficients themselves are inline in invert_internal.h (every stage uses them). */
 #include "invert_internal.h"
 
-/* The table's guess at ln σt (already clamped to the forward grid, whose range is the table's):
- * bilinear in the two slices bracketing it, blended linearly in ln σt (TableInverter.initial_guess). */
-void tmi_initial_guess(const tm_inverse_table *t, double log_sigma_t, double I_b, double I_w,
-                          double *alpha, double *g) {
+/* Where the table's guess at ln σt (already clamped to the forward grid, whose range is the table's) reads:
+ * the cells of the two slices bracketing it, and the weights there (TableInverter.initial_guess). */
+typedef struct {
+    const double *q[2];
+    double fu[2], fv[2], w[2];
+} guess_cells_t;
+
+static inline guess_cells_t locate_guess(const tm_inverse_table *t, double log_sigma_t, double I_b, double I_w) {
+    guess_cells_t c;
     double ws;
     int is = find_cell_on(t->log_sigma_t, t->inv_ds, t->ns, t->uniform_ds, log_sigma_t, &ws);
     /* a NaN intensity counts as 0 here (it would index outside the table); the polish then returns NaN */
     double x = sqrt(I_b > 0.0 ? (I_b < 1.0 ? I_b : 1.0) : 0.0), y = sqrt(I_w > 0.0 ? (I_w < 1.0 ? I_w : 1.0) : 0.0);
-    v2d out = {0.0, 0.0}; /* (α, g): the cells hold both side by side, so each step serves both */
     for (int dk = 0; dk < 2; dk++) {
         int k = is + dk;
-        double wk = dk ? ws : 1.0 - ws;
+        c.w[dk] = dk ? ws : 1.0 - ws;
         const double *fr = t->frame + (size_t)k * 6u;
         double dx = x - fr[0], dy = y - fr[1];
         double u = clampd(fr[2] * dx + fr[3] * dy, 0.0, t->nx - 1.0);
@@ -22,18 +26,55 @@ void tmi_initial_guess(const tm_inverse_table *t, double log_sigma_t, double I_b
         int iu = (int)u, iv = (int)v;
         if (iu > t->nx - 2) iu = t->nx - 2;
         if (iv > t->ny - 2) iv = t->ny - 2;
-        v2d fu = splat2(u - iu), fv = splat2(v - iv);
-        const double *q = t->cells + (((size_t)k * (size_t)(t->ny - 1) + (size_t)iv) * (size_t)(t->nx - 1) + (size_t)iu) * 8u;
-        out += (load2(q) + load2(q + 2) * fu + (load2(q + 4) + load2(q + 6) * fu) * fv) * splat2(wk);
+        c.fu[dk] = u - iu;
+        c.fv[dk] = v - iv;
+        c.q[dk] = t->cells + (((size_t)k * (size_t)(t->ny - 1) + (size_t)iv) * (size_t)(t->nx - 1) + (size_t)iu) * 8u;
+    }
+    return c;
+}
+
+/* The guess from its cells: bilinear in each slice, blended linearly in ln σt */
+static inline void eval_guess(const guess_cells_t *c, double *alpha, double *g) {
+    v2d out = {0.0, 0.0}; /* (α, g): the cells hold both side by side, so each step serves both */
+    for (int dk = 0; dk < 2; dk++) {
+        const double *q = c->q[dk];
+        v2d fu = splat2(c->fu[dk]), fv = splat2(c->fv[dk]);
+        out += (load2(q) + load2(q + 2) * fu + (load2(q + 4) + load2(q + 6) * fu) * fv) * splat2(c->w[dk]);
     }
     *alpha = out[0];
     *g = out[1];
 }
 
+void tmi_initial_guess(const tm_inverse_table *t, double log_sigma_t, double I_b, double I_w,
+                          double *alpha, double *g) {
+    guess_cells_t c = locate_guess(t, log_sigma_t, I_b, I_w);
+    eval_guess(&c, alpha, g);
+}
+
+/* Bins per block of tmi_initial_guesses: each block's cells are found and prefetched in one pass before
+ * they are read (a bin's cells are random 64 B in a table of a few MB; a pass without dependent loads
+ * keeps many misses in flight); its array takes ~1.5 KB of stack. */
+#define GUESS_BLOCK 16
+
+/* tmi_initial_guess for n bins (their cells' ln σt), a block at a time: the same values */
+void tmi_initial_guesses(const tm_inverse_table *t, size_t n, const sigma_cell_t *cells, const double *I_b,
+                         const double *I_w, double *alpha, double *g) {
+    for (size_t j0 = 0; j0 < n; j0 += GUESS_BLOCK) {
+        guess_cells_t c[GUESS_BLOCK];
+        size_t m = n - j0 < GUESS_BLOCK ? n - j0 : GUESS_BLOCK;
+        for (size_t j = 0; j < m; j++) {
+            c[j] = locate_guess(t, cells[j0 + j].log_sigma_t, I_b[j0 + j], I_w[j0 + j]);
+            __builtin_prefetch(c[j].q[0]);
+            __builtin_prefetch(c[j].q[1]);
+        }
+        for (size_t j = 0; j < m; j++) eval_guess(&c[j], &alpha[j0 + j], &g[j0 + j]);
+    }
+}
+
 /* Every bin's first forward cell, found (kept as walk_cell's hints) and prefetched in one pass before
  * the polish: a bin's cell is a random 192 B in a ~22 MB grid, so in a cold cache each first visit
- * is a memory round trip that the polish would otherwise wait on bin by bin. (Prefetching the
- * table's guess cells, or each bin's next cell after every step, did not pay.) */
+ * is a memory round trip that the polish would otherwise wait on bin by bin. (Prefetching each bin's
+ * next cell after every step did not pay.) */
 void tmi_prefetch_cells(const tm_forward_grid *f, size_t n, sigma_cell_t *cells, const double *alpha,
                            const double *g) {
     for (size_t i = 0; i < n; i++) {

@@ -291,9 +291,10 @@ long long tm_fit_solve(const tm_forward_grid *f, const tm_inverse_table *table, 
     sigma_cell_t *cells = sc.cells;
     const double mc2 = o->mc_stderr * o->mc_stderr;
     double *alpha = out->alpha, *g = out->g, *sigma_t = out->sigma_t;
+    if (!alpha0) tmi_initial_guesses(table, n, cells, ib, iw, alpha, g); /* table is there (checked above) */
     for (size_t i = 0; i < n; i++) {
-        double a = alpha0 ? alpha0[i] : NAN, gg = g0 ? g0[i] : NAN;
-        if (!(isfinite(a) && isfinite(gg))) {
+        double a = alpha0 ? alpha0[i] : alpha[i], gg = alpha0 ? g0[i] : g[i];
+        if (alpha0 && !(isfinite(a) && isfinite(gg))) {
             a = 0.5 * (f->alpha_lo + f->alpha_hi);
             gg = 0.5 * (f->g_lo + f->g_hi);
             if (table) tmi_initial_guess(table, cells[i].log_sigma_t, ib[i], iw[i], &a, &gg);
