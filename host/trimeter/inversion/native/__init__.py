@@ -137,9 +137,9 @@ def _library() -> ctypes.CDLL:
 
 
 def set_simd(enabled: bool) -> bool:
-    """Let the polish take four bins per Newton step with AVX2 (the default where the CPU has it) or
-    only the scalar loop: the results are bit for bit the same (tests compare them). Returns whether
-    the four-lane step is in use."""
+    """Let the polish, the σ check and two thicknesses' combination take four bins per step with AVX2
+    (the default where the CPU has it) or only the scalar loops: the results are bit for bit the same
+    (tests compare them). Returns whether the four-lane steps are in use."""
     return bool(_LIB.tm_set_simd(1 if enabled else 0)) if _LIB is not None else False
 
 

@@ -94,8 +94,9 @@ uint64_t tm_abi_hash(void);
  * otherwise), so that Python can tell a library older than its sources. */
 uint64_t tm_source_hash(void);
 
-/* 0: the scalar polish only, 1: four bins per Newton step with AVX2 where the CPU has it (bit for bit
- * the same results). Returns whether the four-lane step is in use now. */
+/* 0: the scalar loops only, 1: four bins per step with AVX2 where the CPU has it (the polish, the σ
+ * check, two thicknesses' combination; bit for bit the same results). Returns whether the four-lane
+ * steps are in use now. */
 int tm_set_simd(int enabled);
 
 /* The whole single-thickness fit in one call, with scratch from malloc (host library only): -1 on a

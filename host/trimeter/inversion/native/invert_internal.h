@@ -5,7 +5,8 @@
  * up to rounding order (tests/inversion/test_native_kernel.py).
  *   lookups.c   the table's initial guess, in-scattering and model-error tables, cell prefetch
  *   newton.c    the damped Gauss-Newton polish (scalar), the Jacobian at the solution
- *   simd.c      the polish's four-bins-per-step AVX2 block (x86-64 only; empty elsewhere)
+ *   simd.c      four bins per step with AVX2: the polish, the σ check, two thicknesses' combination
+ *               (x86-64 only; empty elsewhere)
  *   pipeline.c  the whole fit: input flags, σt from I_c, polish, in-scattering, stds, their check
  *   library.c   the host library's extras: malloc'd scratch, the build's source hash
  * The firmware links the first four; only library.c allocates. */

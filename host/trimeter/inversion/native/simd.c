@@ -1,9 +1,10 @@
-/* newton_step (newton.c) for four bins at once with AVX2 (x86-64, chosen at run time; elsewhere, or with
- * tm_set_simd(0), the scalar loop runs). The same operations in the same order, lane by lane, and no
- * FMA (-std=c11 does not contract, and the target does not enable it): bit for bit the scalar
- * result, which tests/inversion/test_native_kernel.py checks. Most of a step's arithmetic does not
- * depend on the cell, and here it runs 4 lanes wide. Each lane still walks to its own cell (scalar: short loops), and its
- * 24 polynomial coefficients are loaded as 6 rows of 4 and transposed. */
+/* Four bins at once with AVX2 (x86-64, chosen at run time; elsewhere, or with tm_set_simd(0), the scalar
+ * loops run): newton_step (newton.c), the σ check's step and two thicknesses' combination (pipeline.c).
+ * The same operations in the same order, lane by lane, and no FMA (-std=c11 does not contract, and the
+ * target does not enable it): bit for bit the scalar result, which tests/inversion/test_native_kernel.py
+ * and test_native_combine.py check. Most of a step's arithmetic does not depend on the cell, and here it
+ * runs 4 lanes wide. Each lane still walks to its own cell (scalar: short loops), and its 24 polynomial
+ * coefficients are loaded as 6 rows of 4 and transposed. */
 #include "invert_internal.h"
 
 #ifdef TM_SIMD
