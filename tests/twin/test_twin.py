@@ -5,6 +5,8 @@ Modbus is spoken with hand-built RTU frames (trimeter.twin._rtu; the twin is tes
 
 from __future__ import annotations
 
+import contextlib
+import gc
 import json
 import os
 import signal
@@ -61,8 +63,18 @@ def _children():
     return kids
 
 
+def _open_fds() -> dict[str, str]:
+    """This process's open file descriptors and what each points to."""
+    fds = {}
+    for fd in os.listdir("/proc/self/fd"):
+        with contextlib.suppress(OSError):  # the listing's own descriptor, closed by now
+            fds[fd] = os.readlink(f"/proc/self/fd/{fd}")
+    return fds
+
+
 def test_start_stop_leaves_no_process_thread_fd_or_link(ideal_map, tmp_path):
-    fds_before, threads_before = set(os.listdir("/proc/self/fd")), threading.active_count()
+    gc.collect()  # an earlier test's garbage closes its descriptors now, not in the middle of this count
+    fds_before, threads_before = _open_fds(), threading.active_count()
     starts, stops = [], []
     for _ in range(3):
         t0 = time.perf_counter()
@@ -77,7 +89,11 @@ def test_start_stop_leaves_no_process_thread_fd_or_link(ideal_map, tmp_path):
         assert not os.path.exists(f"/proc/{pid}")
     assert _children() == {}
     assert threading.active_count() == threads_before
-    assert set(os.listdir("/proc/self/fd")) == fds_before
+    gc.collect()
+    fds_after = _open_fds()
+    assert fds_after == fds_before, (f"opened: {dict(fds_after.items() - fds_before.items())}, "
+                                     f"closed: {dict(fds_before.items() - fds_after.items())}, "
+                                     f"threads: {[t.name for t in threading.enumerate()]}")
     assert not (tmp_path / "twin" / "modbus").exists() and not (tmp_path / "twin" / "spectrometer").exists()
     assert (tmp_path / "twin" / "storage.bin").exists()  # kept: config persists across restarts
     print(f"twin start {np.median(starts) * 1e3:.0f} ms, stop {np.median(stops) * 1e3:.0f} ms (median of 3)")
