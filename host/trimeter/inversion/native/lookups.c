@@ -90,6 +90,25 @@ void tmi_prefetch_cells(const tm_forward_grid *f, size_t n, sigma_cell_t *cells,
     }
 }
 
+/* The in-scattering table's optical-depth cell for σt (τ clamped to [0, in_tau_max]) and the weight in it */
+static inline int inscatter_depth_cell(const tm_forward_grid *f, double sigma_t, double *wt) {
+    double p = clampd(sigma_t * f->thickness_mm, 0.0, f->in_tau_max) * f->in_inv_dt;
+    double fi = floor(p);
+    fi = fi > f->in_nt - 2 ? f->in_nt - 2 : fi;
+    *wt = clampd(p - fi, 0.0, 1.0);
+    return (int)fi;
+}
+
+/* L at node (ia, it) and g node ig; the next g node follows it */
+static inline const double *inscatter_at(const tm_forward_grid *f, int ia, int it, int ig) {
+    return f->inscatter_L + ((size_t)ia * (size_t)f->in_nt + (size_t)it) * (size_t)f->ng + (size_t)ig;
+}
+
+/* (var_b, var_w) at node (ia, is, ig); the next g node's follow them */
+static inline const double *model_var_at(const tm_forward_grid *f, int ia, int is, int ig) {
+    return f->model_var + (((size_t)ia * (size_t)f->ns + (size_t)is) * (size_t)f->ng + (size_t)ig) * 2u;
+}
+
 /* The in-scattering and model-error table cells that tm_fit_solve's per-bin pass will read for a bin (at
  * its polish's last cells and its σt before the correction), prefetched a few bins ahead: like the
  * forward cells, they are random reads in tables of up to a few MB, which a cold cache would otherwise
@@ -97,35 +116,26 @@ void tmi_prefetch_cells(const tm_forward_grid *f, size_t n, sigma_cell_t *cells,
  * its slot. */
 void tmi_prefetch_finish(const tm_forward_grid *f, const sigma_cell_t *c, double sigma_t) {
     if (c->ia < 0 || c->ig < 0) return;
-    const size_t ia = (size_t)c->ia, ig = (size_t)c->ig, ng = (size_t)f->ng;
     if (f->model_var)
-        for (size_t da = 0; da < 2; da++)
-            for (size_t ds = 0; ds < 2; ds++)
-                __builtin_prefetch(f->model_var + (((ia + da) * (size_t)f->ns + (size_t)c->is + ds) * ng + ig) * 2u);
+        for (int da = 0; da < 2; da++)
+            for (int ds = 0; ds < 2; ds++) __builtin_prefetch(model_var_at(f, c->ia + da, c->is + ds, c->ig));
     if (f->inscatter_L && sigma_t > 0.0) {
-        double p = clampd(sigma_t * f->thickness_mm, 0.0, f->in_tau_max) * f->in_inv_dt;
-        size_t it = (size_t)(p < f->in_nt - 2 ? p : f->in_nt - 2), nt = (size_t)f->in_nt;
-        for (size_t da = 0; da < 2; da++)
-            for (size_t dt = 0; dt < 2; dt++)
-                __builtin_prefetch(f->inscatter_L + ((ia + da) * nt + it + dt) * ng + ig);
+        double wt;
+        int it = inscatter_depth_cell(f, sigma_t, &wt);
+        for (int da = 0; da < 2; da++)
+            for (int dt = 0; dt < 2; dt++) __builtin_prefetch(inscatter_at(f, c->ia + da, it + dt, c->ig));
     }
 }
 
 /* L = ln(1 + r) of the in-scattered light at (α cell ia/wa, σt, g cell ig/wg):
  * ForwardGrid.inscatter_log1p, operation for operation. Trilinear; τ clamped to [0, in_tau_max]. */
 double tmi_inscatter_log1p(const tm_forward_grid *f, int ia, double wa, double sigma_t, int ig, double wg) {
-    double p = clampd(sigma_t * f->thickness_mm, 0.0, f->in_tau_max) * f->in_inv_dt;
-    double fi = floor(p);
-    fi = fi > f->in_nt - 2 ? f->in_nt - 2 : fi;
-    int it = (int)fi;
-    double wt = clampd(p - fi, 0.0, 1.0);
-    const size_t nt = (size_t)f->in_nt, ng = (size_t)f->ng;
-#define L_AT(i, j, k) f->inscatter_L[((size_t)(i) * nt + (size_t)(j)) * ng + (size_t)(k)]
-#define ALONG_G(i, j) lerp(L_AT(i, j, ig), L_AT(i, j, ig + 1), wg)
+    double wt;
+    int it = inscatter_depth_cell(f, sigma_t, &wt);
+#define ALONG_G(i, j) lerp(inscatter_at(f, i, j, ig)[0], inscatter_at(f, i, j, ig)[1], wg)
     double value = lerp(lerp(ALONG_G(ia, it), ALONG_G(ia, it + 1), wt),
                         lerp(ALONG_G(ia + 1, it), ALONG_G(ia + 1, it + 1), wt), wa);
 #undef ALONG_G
-#undef L_AT
     return value;
 }
 
@@ -146,8 +156,7 @@ void tmi_model_variance(const tm_forward_grid *f, const sigma_cell_t *c, double 
     for (int da = 0; da < 2; da++) {
         v2d along_g[2];
         for (int ds = 0; ds < 2; ds++) {
-            const double *v = f->model_var + ((((size_t)(ia + da) * (size_t)f->ns + (size_t)(is + ds)) *
-                                               (size_t)f->ng + (size_t)ig) * 2u);
+            const double *v = model_var_at(f, ia + da, is + ds, ig);
             v2d v0 = load2(v), v1 = load2(v + 2);
             along_g[ds] = v0 + (v1 - v0) * Wg;
         }
