@@ -122,9 +122,9 @@ def _float32_ulps(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 # How far a re-trace may land from the stored column: on the CPU that traced the map, bit for bit; on
-# another, numpy's and the JIT's SIMD code (chosen by CPU) may round a few sums differently (measured on
-# four device columns on an AVX2 machine: A and C bit for bit, B 1 step, the std-errors up to 11). A moved
-# path moves a column by its Monte Carlo error, ~1e-4 of it: ~1000 steps.
+# another, numpy's and the JIT's SIMD code (chosen by CPU) may round a few sums differently (maps/README,
+# "Deterministic", says by how much). A moved path moves a column by its Monte Carlo error, ~1e-4 of
+# it: about a thousand steps.
 RETRACE_ULPS = {"A": 8, "B": 8, "C": 8, "std_b": 64, "std_w": 64}
 
 

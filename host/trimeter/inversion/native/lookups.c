@@ -53,7 +53,7 @@ void tmi_initial_guess(const tm_inverse_table *t, double log_sigma_t, double I_b
 
 /* Bins per block of tmi_initial_guesses: each block's cells are found and prefetched in one pass before
  * they are read (a bin's cells are random 64 B in a table of a few MB; a pass without dependent loads
- * keeps many misses in flight); its array takes ~1.5 KB of stack. */
+ * keeps many misses in flight); its array takes ~1 KB of stack. */
 #define GUESS_BLOCK 16
 
 /* tmi_initial_guess for n bins (their cells' ln σt), a block at a time: the same values */
