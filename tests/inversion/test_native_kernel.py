@@ -341,3 +341,51 @@ def test_a_bin_held_at_the_box_s_edge_ends_at_the_best_alpha_along_it_in_every_i
                 np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-12)
     finally:
         native.set_simd(True)
+
+
+def _walk_steps(axis: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """How many cells the C side's walk takes from the cell index's start to x's cell (find_cell's)."""
+    index, scale = native._cell_index(axis)
+    t = (x - axis[0]) * scale
+    bucket = np.where(t >= 1.0, np.minimum(np.where(np.isfinite(t), t, len(index) - 1), len(index) - 1), 0)
+    start = index[bucket.astype(np.int64)].astype(np.int64)
+    cell = np.clip(np.searchsorted(axis, x, side="right") - 1, 0, len(axis) - 2)
+    return np.abs(cell - start)
+
+
+@pytest.mark.parametrize("name", ["device-n1.5-l0.4", "ideal-n1.5-l0.5"])
+def test_the_axes_cell_index_starts_each_search_a_step_or_two_from_the_cell(name):
+    """native._cell_index: each bucket holds the cell of its start, so that the walk from it is short on
+    the shipped maps' uneven α and g axes (refined near α = 1): at most two cells for any point."""
+    grid = load_artifacts(MAPS_DIR / f"{name}.tmap").inverter.grid
+    rng = np.random.default_rng(5)
+    for axis in (np.asarray(grid.alpha, dtype=np.float64), np.asarray(grid.g, dtype=np.float64)):
+        index, scale = native._cell_index(axis)
+        assert index is not None and index.dtype == np.uint16 and len(index) <= native.CELL_INDEX_MAX
+        starts = axis[0] + np.arange(len(index)) / scale
+        assert np.all((axis[index] <= starts) | (index == 0)) and np.all(index <= len(axis) - 2)
+        x = np.concatenate([rng.uniform(axis[0] - 0.1, axis[-1] + 0.1, 100_000), axis, np.nextafter(axis, -np.inf),
+                            [-np.inf, np.inf]])
+        assert _walk_steps(axis, x).max() <= 2
+    assert native._cell_index(np.array([0.0, 1.0, 2.0])) == (None, 0.0)  # too short to be worth one
+
+
+@pytest.mark.skipif(not native.available(), reason=native.status())
+@pytest.mark.parametrize("name", ["device-n1.5-l0.8", "ideal-n1.5-l0.5"])
+def test_the_axes_cell_index_changes_no_result(name):
+    """The α and g cells found through the axes' index (tm_forward_grid.alpha_index) against a binary
+    search (no index): the whole fit, with its edges, bit for bit."""
+    from trimeter.inversion.api import native_options
+
+    artifacts = load_artifacts(MAPS_DIR / f"{name}.tmap")
+    inverter = artifacts.inverter
+    options = native_options(artifacts, inverter.grid, polish=8, polish_tol=1e-6, noise_rel=0.005, noise_abs=2e-4,
+                             ic_floor=1e-4, alpha_min_g=0.02)
+    indexed, searched = (native.NativeSolver(inverter.grid, *inverter.inverse_cells) for _ in range(2))
+    assert indexed._grid.alpha_index and indexed._grid.g_index
+    searched._grid.alpha_index = searched._grid.g_index = None
+    args = _fit_inputs(np.random.default_rng(12), n=4001)
+    results = [solver.fit(*args, **options) for solver in (indexed, searched)]
+    for column in FitResultColumns + ("flags",):
+        np.testing.assert_array_equal(results[0][column], results[1][column], err_msg=column)
+    assert results[0]["steps"] == results[1]["steps"]

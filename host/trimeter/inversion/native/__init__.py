@@ -198,6 +198,13 @@ class NativeSolver:
         if grid.model_var is not None:
             keep["model_var"] = _cache_aligned(grid.model_var)
             self._grid.model_var = _ptr(keep["model_var"])
+        for axis in ("alpha", "g"):
+            index, scale = _cell_index(keep[axis])
+            if index is not None:
+                keep[axis + "_index"] = index
+                setattr(self._grid, axis + "_index", index.ctypes.data_as(ctypes.POINTER(ctypes.c_uint16)))
+                setattr(self._grid, axis + "_index_n", len(index))
+                setattr(self._grid, axis + "_index_scale", scale)
         self._table = None
         if inverse_cells is not None:
             if inverse_frame is None or inverse_shape is None or inverse_log_sigma_t is None:
@@ -419,6 +426,27 @@ def _uniform_step(axis: np.ndarray) -> float:
     walking, so this only decides speed, never the cell."""
     d = np.diff(axis)
     return float(1.0 / d.mean()) if len(d) and np.all(np.abs(d - d.mean()) <= 1e-4 * abs(d.mean())) else 0.0
+
+
+# At most this many buckets in an axis's cell index (tm_forward_grid's alpha_index): 8 KB, a quarter of
+# a core's L1 data cache.
+CELL_INDEX_MAX = 4096
+
+
+def _cell_index(axis: np.ndarray) -> tuple[np.ndarray | None, float]:
+    """An axis's cell index for the C side's search (invert.h, alpha_index): buckets of equal width from
+    its first node, each holding the cell of its start; enough of them (up to CELL_INDEX_MAX) that the
+    narrowest cell spans two. (None, 0) for an axis the C side searches as well without one."""
+    n = len(axis)
+    span = float(axis[-1] - axis[0])
+    if n < 4 or n - 2 > np.iinfo(np.uint16).max or not span > 0:
+        return None, 0.0
+    narrowest = float(np.diff(axis).min())
+    buckets = int(min(CELL_INDEX_MAX, max(n, np.ceil(2 * span / narrowest)) if narrowest > 0 else CELL_INDEX_MAX))
+    scale = buckets / span
+    starts = axis[0] + np.arange(buckets) / scale
+    cells = np.clip(np.searchsorted(axis, starts, side="right") - 1, 0, n - 2)
+    return np.ascontiguousarray(cells, dtype=np.uint16), scale
 
 
 def _check(rc: int) -> None:

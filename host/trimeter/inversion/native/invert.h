@@ -7,8 +7,8 @@
  * and Python refuses a library whose tm_abi_hash() is another header's.
  *
  * Kept to a small C subset the generator parses: `#include "table_fit.h"`, `#define TM_NAME number`,
- * enums of `NAME = 1 << k` or plain counters, `typedef struct { … } tm_name;` with fields of int32_t /
- * int64_t / double and pointers to them, and one-line prototypes of tm_ functions.
+ * enums of `NAME = 1 << k` or plain counters, `typedef struct { … } tm_name;` with fields of uint16_t /
+ * int32_t / int64_t / double and pointers to them, and one-line prototypes of tm_ functions.
  *
  * Data layouts (C order, float64):
  *   poly  [(na-1)(ns-1)(ng-1)][8 terms][3 coefs]  trilinear polynomial per forward cell, terms
@@ -59,6 +59,13 @@ typedef struct {
     /* The map's own error (ForwardGrid.model_var): variances of I_b, I_w on this grid's nodes,
      * [na][ns][ng][2], or NULL (then the scalar mc_stderr of the options stands in for it). */
     const double *model_var;
+    /* Where the search for α's (g's) cell starts, or NULL (a binary search): alpha_index[b] is the cell
+     * of α = alpha[0] + b / alpha_index_scale, b < alpha_index_n; the cell of any α is then the walk from
+     * alpha_index[(α − alpha[0])·scale], a step or two on an axis refined unevenly, where a binary
+     * search is ~7 dependent loads. Any index in [0, na−2] gives the same cell, only more slowly. */
+    int32_t alpha_index_n, g_index_n;
+    const uint16_t *alpha_index, *g_index;
+    double alpha_index_scale, g_index_scale;
 } tm_forward_grid;
 
 typedef struct {

@@ -2,7 +2,7 @@
 
 import ctypes
 
-ABI_HASH = 0x9b04a457529a9f51
+ABI_HASH = 0x2fd5a93c57b705cf
 STEP_RATIO = 0.25
 INSCATTER_ONCE = 0.001
 TABLE_FIT_NOISE_REL = 0.005
@@ -79,6 +79,12 @@ class ForwardGridStruct(ctypes.Structure):
         ("in_inv_dt", ctypes.c_double),
         ("in_tau_max", ctypes.c_double),
         ("model_var", ctypes.POINTER(ctypes.c_double)),
+        ("alpha_index_n", ctypes.c_int32),
+        ("g_index_n", ctypes.c_int32),
+        ("alpha_index", ctypes.POINTER(ctypes.c_uint16)),
+        ("g_index", ctypes.POINTER(ctypes.c_uint16)),
+        ("alpha_index_scale", ctypes.c_double),
+        ("g_index_scale", ctypes.c_double),
     ]
 
 

@@ -70,12 +70,45 @@ static inline int find_cell_on(const double *axis, const double *inv_d, int n, d
     return walk_from(axis, inv_d, n, x, t <= 0.0 ? 0 : (t >= n - 2 ? n - 2 : (int)t), w);
 }
 
-/* find_cell starting from the cell found last time (*hint; < 0: none yet): Newton iterates move a
- * cell or two at most, so a short walk replaces the ~6 dependent loads of the binary search. */
-static inline int walk_cell(const double *axis, const double *inv_d, int n, double x, int32_t *hint, double *w) {
-    int i = (*hint < 0 || isnan(x)) ? find_cell(axis, inv_d, n, x, w) : walk_from(axis, inv_d, n, x, *hint, w);
-    *hint = i;
-    return i;
+/* find_cell through an axis's index (tm_forward_grid's alpha_index; NULL: the binary search): the walk
+ * from the cell the index gives for x's bucket. A NaN x takes bucket 0, whose cell is 0, as find_cell's. */
+static inline int find_cell_indexed(const double *axis, const double *inv_d, int n, const uint16_t *index,
+                                    int index_n, double scale, double x, double *w) {
+    if (!index) return find_cell(axis, inv_d, n, x, w);
+    double t = (x - axis[0]) * scale;
+    int b = t >= 1.0 ? (t < index_n - 1 ? (int)t : index_n - 1) : 0;
+    return walk_from(axis, inv_d, n, x, index[b], w);
+}
+
+/* find_cell_indexed near the cell found last time (*hint; < 0: none yet): that cell while x is still in
+ * it (Newton iterates converge, so mostly), else found afresh (a walk from the hint would mispredict a
+ * branch per cell it crosses). */
+static inline int walk_indexed(const double *axis, const double *inv_d, int n, const uint16_t *index, int index_n,
+                               double scale, double x, int32_t *hint, double *w) {
+    int i = *hint;
+    if (i >= 0 && in_cell(axis, n, i, x))
+        *w = clampd((x - axis[i]) * inv_d[i], 0.0, 1.0);
+    else
+        i = find_cell_indexed(axis, inv_d, n, index, index_n, scale, x, w);
+    return *hint = i;
+}
+
+/* The two on a forward grid's α and g axes */
+#define TM_ALPHA_AXIS(f) (f)->alpha, (f)->inv_da, (f)->na, (f)->alpha_index, (f)->alpha_index_n, (f)->alpha_index_scale
+#define TM_G_AXIS(f) (f)->g, (f)->inv_dg, (f)->ng, (f)->g_index, (f)->g_index_n, (f)->g_index_scale
+
+static inline int alpha_cell(const tm_forward_grid *f, double alpha, double *w) {
+    return find_cell_indexed(TM_ALPHA_AXIS(f), alpha, w);
+}
+
+static inline int g_cell(const tm_forward_grid *f, double g, double *w) { return find_cell_indexed(TM_G_AXIS(f), g, w); }
+
+static inline int walk_alpha(const tm_forward_grid *f, double alpha, int32_t *hint, double *w) {
+    return walk_indexed(TM_ALPHA_AXIS(f), alpha, hint, w);
+}
+
+static inline int walk_g(const tm_forward_grid *f, double g, int32_t *hint, double *w) {
+    return walk_indexed(TM_G_AXIS(f), g, hint, w);
 }
 
 /* ln σt clamped to the grid the way ForwardGrid.sigma_cell does (NaN → lowest node, ±inf → ends). */
@@ -119,8 +152,8 @@ static inline const double *poly_row(const tm_forward_grid *f, int ia, int is, i
  * 192 B, so that the evaluation does not wait for memory. */
 static inline void prefetch_cell(const tm_forward_grid *f, sigma_cell_t *cell, double alpha, double g) {
     double w;
-    int ia = cell->ia = find_cell(f->alpha, f->inv_da, f->na, alpha, &w);
-    int ig = cell->ig = find_cell(f->g, f->inv_dg, f->ng, g, &w);
+    int ia = cell->ia = alpha_cell(f, alpha, &w);
+    int ig = cell->ig = g_cell(f, g, &w);
     const double *P = poly_row(f, ia, cell->is, ig);
     __builtin_prefetch(P);
     __builtin_prefetch(P + 8);
@@ -138,8 +171,8 @@ static inline void coefficients(const tm_forward_grid *f, sigma_cell_t *cell, do
                          abc_t *out) {
     double wa, wg, ws = cell->ws;
     int is = cell->is;
-    int ia = walk_cell(f->alpha, f->inv_da, f->na, alpha, &cell->ia, &wa);
-    int ig = walk_cell(f->g, f->inv_dg, f->ng, g, &cell->ig, &wg);
+    int ia = walk_alpha(f, alpha, &cell->ia, &wa);
+    int ig = walk_g(f, g, &cell->ig, &wg);
     const double *P = poly_row(f, ia, is, ig);
     for (int c = 0; c < 3; c++) {
         double p0 = P[0 * 3 + c] + P[2 * 3 + c] * ws;

@@ -79,8 +79,8 @@ void tmi_prefetch_cells(const tm_forward_grid *f, size_t n, sigma_cell_t *cells,
                            const double *g) {
     for (size_t i = 0; i < n; i++) {
         double w;
-        int ia = find_cell(f->alpha, f->inv_da, f->na, alpha[i], &w);
-        int ig = find_cell(f->g, f->inv_dg, f->ng, g[i], &w);
+        int ia = alpha_cell(f, alpha[i], &w);
+        int ig = g_cell(f, g[i], &w);
         cells[i].ia = ia;
         cells[i].ig = ig;
         const double *P = poly_row(f, ia, cells[i].is, ig);
@@ -147,9 +147,8 @@ void tmi_model_variance(const tm_forward_grid *f, const sigma_cell_t *c, double 
     double wa, wg, ws = c->ws;
     /* from the last evaluation's cells (the solution is at most a step away): find_cell's result for any
      * non-NaN (α, g), without its search */
-    int ia = c->ia < 0 ? find_cell(f->alpha, f->inv_da, f->na, alpha, &wa)
-                       : walk_from(f->alpha, f->inv_da, f->na, alpha, c->ia, &wa);
-    int ig = c->ig < 0 ? find_cell(f->g, f->inv_dg, f->ng, g, &wg) : walk_from(f->g, f->inv_dg, f->ng, g, c->ig, &wg);
+    int ia = c->ia < 0 ? alpha_cell(f, alpha, &wa) : walk_from(f->alpha, f->inv_da, f->na, alpha, c->ia, &wa);
+    int ig = c->ig < 0 ? g_cell(f, g, &wg) : walk_from(f->g, f->inv_dg, f->ng, g, c->ig, &wg);
     int is = c->is;
     /* (var_b, var_w) side by side on every node: both interpolated at once */
     v2d along_s[2], Wg = splat2(wg), Ws = splat2(ws);

@@ -64,8 +64,8 @@ __attribute__((target("avx2"))) static inline void coefficients4(const tm_forwar
     double wa[4], wg[4], ws[4], ida[4], idg[4], ids[4];
     for (int l = 0; l < 4; l++) {
         sigma_cell_t *c = &cells[idx[l]];
-        int ia = walk_cell(f->alpha, f->inv_da, f->na, alpha[l], &c->ia, &wa[l]);
-        int ig = walk_cell(f->g, f->inv_dg, f->ng, g[l], &c->ig, &wg[l]);
+        int ia = walk_alpha(f, alpha[l], &c->ia, &wa[l]);
+        int ig = walk_g(f, g[l], &c->ig, &wg[l]);
         P[l] = poly_row(f, ia, c->is, ig);
         ws[l] = c->ws;
         ida[l] = f->inv_da[ia];
