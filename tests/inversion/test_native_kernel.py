@@ -161,28 +161,38 @@ FitResultColumns = ("alpha", "sigma_t", "g", "alpha_std", "sigma_t_std", "g_std"
 
 
 @pytest.mark.skipif(not native.available(), reason=native.status())
-@pytest.mark.parametrize("method", ["lut", "mlp"])
-def test_four_bins_per_step_give_bit_for_bit_the_scalar_result(method):
-    """The AVX2 polish (four bins per Newton step) against the scalar loop, over the whole input
-    space with its edges: every column identical, not merely close."""
+@pytest.mark.parametrize("method, own_stds", [("lut", False), ("mlp", False), ("lut", True)])
+def test_four_bins_per_step_give_bit_for_bit_the_scalar_result(method, own_stds):
+    """The AVX2 steps (the polish, the finish's arithmetic, the σ check: four bins at once) against the
+    scalar loops, over the whole input space with its edges: every column identical, not merely close.
+    With the intensities' own stds (some below the noise model, some above, some NaN), the conditioning
+    stds take their own propagation."""
     from trimeter.formats.appearance import AppearanceMap
 
     if not native.set_simd(True):
         pytest.skip("this CPU has no AVX2: only the scalar loop runs")
     amap = AppearanceMap.load(MAPS_DIR / "device-n1.5-l0.8.tmap")
-    args = _fit_inputs(np.random.default_rng(11), n=4001)  # not a multiple of 4: the scalar tail too
+    rng = np.random.default_rng(11)
+    args = _fit_inputs(rng, n=4001)  # not a multiple of 4: the scalar tail too
+    stds = {}
+    if own_stds:
+        for name in ("I_b_std", "I_w_std", "I_c_std"):
+            sd = rng.uniform(0.0, 0.02, len(args[0]))
+            sd[rng.random(len(sd)) < 0.1] = np.nan  # the noise model's there
+            stds[name] = sd
     try:
         results = {}
         for simd in (True, False):
             native.set_simd(simd)
-            results[simd] = trimeter.fit(amap, *args[:3], rho_b=args[3], rho_w=args[4], method=method)
+            results[simd] = trimeter.fit(amap, *args[:3], rho_b=args[3], rho_w=args[4], method=method, **stds)
             inverter = load_artifacts(amap).inverter
             results[simd, "solve"] = NativeKernel().invert(inverter, args[0], args[1], np.exp(args[2] * 3), args[3],
                                                            args[4], iterations=8, step_tol=1e-6,
                                                            step_var=np.full(len(args[0]), 1e-9))
     finally:
         native.set_simd(True)
-    for name in FitResultColumns + ("flags",):
+    columns = FitResultColumns + ("flags",) + (("conditioning_alpha_std", "conditioning_g_std") if own_stds else ())
+    for name in columns:
         np.testing.assert_array_equal(getattr(results[True], name), getattr(results[False], name), err_msg=name)
     for a, b in zip(results[True, "solve"], results[False, "solve"], strict=True):
         np.testing.assert_array_equal(a, b)

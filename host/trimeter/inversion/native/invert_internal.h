@@ -310,6 +310,32 @@ static inline int grid_ok(const tm_forward_grid *f, const tm_inverse_table *tabl
  * four moves. A bin's state between the finish (which picks the bins) and the check: */
 typedef struct { double alpha, g, move_b, move_w, j11, j12, j21, j22, limit_a, limit_g; } check_t;
 
+/* A bin's finish between its table reads and its arithmetic: its Jacobian at the solution and
+ * residual², the in-scattering correction of σt, the map's error variances there, and (α, g) as
+ * solved, before the in-scattering move (the check's) */
+typedef struct { double Ji[9], residual2, ds_in, model_b, model_w, solved_alpha, solved_g; } finish_t;
+
+
+/* The rows of a fit's output block (enum tm_row) */
+typedef struct {
+    double *alpha, *sigma_t, *g, *alpha_std, *sigma_t_std, *g_std, *sigma_t_beer;
+    int64_t *flags;
+    double *cond_alpha_std, *cond_g_std;
+} tm_fit_outputs;
+
+static inline tm_fit_outputs outputs_in(double *block, size_t n) {
+    tm_fit_outputs o = {block + TM_ROW_ALPHA * n,
+                        block + TM_ROW_SIGMA_T * n,
+                        block + TM_ROW_G * n,
+                        block + TM_ROW_ALPHA_STD * n,
+                        block + TM_ROW_SIGMA_T_STD * n,
+                        block + TM_ROW_G_STD * n,
+                        block + TM_ROW_SIGMA_T_BEER * n,
+                        (int64_t *)(block + TM_ROW_FLAGS * n),
+                        block + TM_ROW_CONDITIONING_ALPHA_STD * n,
+                        block + TM_ROW_CONDITIONING_G_STD * n};
+    return o;
+}
 
 /* A fit's per-bin working state between its two halves (tm_fit_prepare, tm_fit_solve): the
  * sanitized inputs, the polish's step tolerance, the σt cell, the final evaluations and the polish's
@@ -322,6 +348,7 @@ typedef struct {
     sigma_cell_t *cells;
     final_eval_t *evals;
     check_t *checks;
+    finish_t *finish;
     uint32_t *active;
 } fit_scratch_t;
 
@@ -344,9 +371,22 @@ static inline fit_scratch_t carve_scratch(void *mem, size_t n) {
     sc.cells = (sigma_cell_t *)(d + 11 * n);
     sc.evals = (final_eval_t *)(sc.cells + n);
     sc.checks = (check_t *)(sc.evals + n);
-    sc.active = (uint32_t *)(sc.checks + n);
+    sc.finish = (finish_t *)(sc.checks + n);
+    sc.active = (uint32_t *)(sc.finish + n);
     return sc;
 }
+
+/* What the finish's arithmetic reads, for finish_bin (pipeline.c) and tmi_finish4 (simd.c): the options,
+ * the bins' finish_t, their intensity noise (fit_scratch_t's) and the outputs, which it completes. */
+typedef struct {
+    const tm_forward_grid *f;
+    const tm_fit_options *o;
+    const finish_t *fin;
+    const double *var_b, *var_w, *sd_c, *cond_var_b, *cond_var_w, *cond_sd_c;
+    tm_fit_outputs out;
+    double mc2;
+    int g_lo_is_edge, g_hi_is_edge; /* the map's g range ends inside (-1, 1) */
+} finish_ctx_t;
 
 /* lookups.c */
 void tmi_initial_guesses(const tm_inverse_table *t, size_t n, const sigma_cell_t *cells, const double *I_b,
@@ -383,6 +423,7 @@ void tmi_check_step4(const tm_forward_grid *f, sigma_cell_t *cells, const uint32
                      double *a2, double *g2);
 void tmi_combine2_4(size_t n, size_t i, const double *fits, double underdetermined_alpha_std,
                     double underdetermined_g_std, double disagree_sigmas, double *outputs);
+int tmi_finish4(const finish_ctx_t *c, size_t i);
 #endif
 
 #endif

@@ -34,27 +34,6 @@ static inline void propagate_one(const double *Ji, double var_b, double var_w, d
  * NaN for unusable bins. The numpy path in api.py is the reference (same operations, same order);
  * tests/inversion/test_native_kernel.py checks both bin for bin, flags included. */
 
-/* The rows of a fit's output block (enum tm_row) */
-typedef struct {
-    double *alpha, *sigma_t, *g, *alpha_std, *sigma_t_std, *g_std, *sigma_t_beer;
-    int64_t *flags;
-    double *cond_alpha_std, *cond_g_std;
-} tm_fit_outputs;
-
-static tm_fit_outputs outputs_in(double *block, size_t n) {
-    tm_fit_outputs o = {block + TM_ROW_ALPHA * n,
-                        block + TM_ROW_SIGMA_T * n,
-                        block + TM_ROW_G * n,
-                        block + TM_ROW_ALPHA_STD * n,
-                        block + TM_ROW_SIGMA_T_STD * n,
-                        block + TM_ROW_G_STD * n,
-                        block + TM_ROW_SIGMA_T_BEER * n,
-                        (int64_t *)(block + TM_ROW_FLAGS * n),
-                        block + TM_ROW_CONDITIONING_ALPHA_STD * n,
-                        block + TM_ROW_CONDITIONING_G_STD * n};
-    return o;
-}
-
 /* beer_lambert_sigma_t: solve b·I·x² + a·x − I = 0 for x = exp(−σt ℓ) (the stable root); NaN where
  * I_c is not in (0, t_valid]. */
 static inline double beer_lambert(const tm_forward_grid *f, const tm_fit_options *o, double I_c) {
@@ -275,6 +254,82 @@ static void check_first_order(const tm_forward_grid *f, size_t m, const uint32_t
 /* How many bins ahead the per-bin pass prefetches its table cells (tmi_prefetch_finish) */
 #define FINISH_AHEAD 8
 
+/* The finish's arithmetic for bin i, after its table reads (fin[i]): flags for not converged / outside
+ * the map / g undefined / underdetermined, first-order stds, NaN for unusable bins, all written to the
+ * outputs; returns whether the bin's stds go to check_first_order (tmi_finish4 does four bins at once,
+ * the same operations lane by lane). */
+static int finish_bin(const finish_ctx_t *c, size_t i) {
+    const tm_forward_grid *f = c->f;
+    const tm_fit_options *o = c->o;
+    const tm_fit_outputs *out = &c->out;
+    const finish_t *b = &c->fin[i];
+    const double *Ji = b->Ji;
+    int64_t fl = out->flags[i];
+    int usable = !(fl & TM_FLAGS_UNUSABLE);
+    double alpha = out->alpha[i], g = out->g[i];
+    /* variances, not stds: only their sums are needed (sqrt(x² + y²), not hypot: these are small
+     * positive numbers, nothing to guard, and hypot is slower) */
+    double var_b = c->var_b[i] + c->mc2, var_w = c->var_w[i] + c->mc2;
+    double tolerance = 3.0 * sqrt(var_b + var_w) + 1e-4;
+    int not_conv = !(b->residual2 <= tolerance * tolerance); /* |residual| ≤ tolerance, squared */
+    int at_edge = (g <= f->g_lo + 1e-9 && c->g_lo_is_edge) || (g >= f->g_hi - 1e-9 && c->g_hi_is_edge);
+    if (usable && not_conv) fl |= TM_FLAG_NOT_CONVERGED;
+    if (usable && not_conv && at_edge) fl |= TM_FLAG_OUTSIDE_MAP;
+    double a = isfinite(alpha) ? clampd(alpha, 0.0, 1.0) : NAN;
+    double gg = isfinite(g) ? clampd(g, -1.0, 1.0) : NAN;
+    double sa, ss, sg, ds_rel = o->inscatter_rel_std * b->ds_in;
+    propagate_one(Ji, c->var_b[i] + b->model_b, c->var_w[i] + b->model_w, c->sd_c[i], ds_rel * ds_rel, &sa, &ss, &sg);
+    double thick = o->thickness_rel_std * out->sigma_t[i];
+    ss = sqrt(ss * ss + thick * thick);
+    if (fl & TM_FLAG_IC_BELOW_FLOOR) ss = INFINITY;
+    if (usable && !(a >= o->alpha_min_g)) {
+        fl |= TM_FLAG_G_UNDEFINED;
+        gg = sg = NAN;
+    }
+    /* UNDERDETERMINED is the map's conditioning at no less than the instrument's noise model: a
+     * capture's frame scatter alone misses drift and calibration error, and one quiet capture
+     * must not make α and g look told apart where a realistic noise leaves them not */
+    double ua = sa, us = ss, ug = sg;
+    if (c->cond_var_b[i] != c->var_b[i] || c->cond_var_w[i] != c->var_w[i] || c->cond_sd_c[i] != c->sd_c[i]) {
+        propagate_one(Ji, c->cond_var_b[i] + b->model_b, c->cond_var_w[i] + b->model_w, c->cond_sd_c[i],
+                      ds_rel * ds_rel, &ua, &us, &ug);
+        if (isnan(gg)) ug = NAN;
+    }
+    if (usable && (ua > o->underdetermined_alpha_std || ug > o->underdetermined_g_std)) fl |= TM_FLAG_UNDERDETERMINED;
+    int check = !(fl & TM_FLAGS_STD_CHECK_SKIP) && isfinite(sa) && isfinite(sg) &&
+                (sa > o->std_check_alpha || sg > o->std_check_g);
+    if (!usable) {
+        a = gg = sa = ss = sg = ua = ug = NAN;
+        out->sigma_t[i] = out->sigma_t_beer[i] = NAN;
+    }
+    out->alpha[i] = a;
+    out->g[i] = gg;
+    out->alpha_std[i] = sa;
+    out->sigma_t_std[i] = ss;
+    out->g_std[i] = sg;
+    out->cond_alpha_std[i] = ua;
+    out->cond_g_std[i] = ug;
+    out->flags[i] = fl;
+    return check;
+}
+
+/* Bin i's state for check_first_order, from its finish (its stds as finish_bin wrote them) */
+static void add_check(const finish_ctx_t *c, size_t i, check_t *k, uint32_t *slot) {
+    const tm_fit_options *o = c->o;
+    const finish_t *b = &c->fin[i];
+    k->alpha = b->solved_alpha;
+    k->g = b->solved_g;
+    k->j11 = b->Ji[0];
+    k->j12 = b->Ji[2];
+    k->j21 = b->Ji[3];
+    k->j22 = b->Ji[5];
+    k->move_b = sqrt(c->var_b[i] + b->model_b);
+    k->move_w = sqrt(c->var_w[i] + b->model_w);
+    k->limit_a = o->std_check_tol * o->std_check_sigmas * c->out.alpha_std[i];
+    k->limit_g = o->std_check_tol * o->std_check_sigmas * c->out.g_std[i];
+    *slot = (uint32_t)i;
+}
+
 /* The second half: the initial (α, g) from alpha0/g0 (the MLP's) or, where those are NULL or not
  * finite (a broken network), from `table` (without one: the middle of the map's box); the polish,
  * then flags for not converged / outside the map / g undefined / underdetermined, first-order stds
@@ -309,75 +364,34 @@ long long tm_fit_solve(const tm_forward_grid *f, const tm_inverse_table *table, 
      * side in sc.checks: only those bins' (a few of them) are written */
     size_t checked = 0;
     for (size_t i = 0; i < FINISH_AHEAD && i < n; i++) tmi_prefetch_finish(f, &cells[i], sigma_t[i]);
+    finish_t *fin = sc.finish;
     for (size_t i = 0; i < n; i++) {
         if (i + FINISH_AHEAD < n) tmi_prefetch_finish(f, &cells[i + FINISH_AHEAD], sigma_t[i + FINISH_AHEAD]);
-        double Ji[9];
+        finish_t *b = &fin[i];
         int64_t fl = out->flags[i];
-        int usable = !(fl & TM_FLAGS_UNUSABLE);
-        double residual2 = tmi_final_residual2_and_jacobian(f, &cells[i], &sc.evals[i], alpha[i], g[i], ib[i], iw[i], rb[i],
-                                                        rw[i], Ji);
-        const double solved_alpha = alpha[i], solved_g = g[i]; /* before the in-scattering move: the check's */
-        double ds_in = 0.0; /* the in-scattering correction of σt */
+        b->residual2 = tmi_final_residual2_and_jacobian(f, &cells[i], &sc.evals[i], alpha[i], g[i], ib[i], iw[i],
+                                                        rb[i], rw[i], b->Ji);
+        b->solved_alpha = alpha[i];
+        b->solved_g = g[i];
+        b->ds_in = 0.0;
         if (f->inscatter_L && !(fl & (TM_FLAGS_UNUSABLE | TM_FLAG_IC_BELOW_FLOOR | TM_FLAG_OUTSIDE_MAP)))
-            ds_in = correct_inscatter(f, &cells[i], Ji, &alpha[i], &sigma_t[i], &g[i]);
-        /* variances, not stds: only their sums are needed (sqrt(x² + y²), not hypot: these are small
-         * positive numbers, nothing to guard, and hypot is slower) */
-        double var_b = sc.var_b[i] + mc2, var_w = sc.var_w[i] + mc2;
-        double tolerance = 3.0 * sqrt(var_b + var_w) + 1e-4;
-        int not_conv = !(residual2 <= tolerance * tolerance); /* |residual| ≤ tolerance, squared */
-        int at_edge = (g[i] <= f->g_lo + 1e-9 && g_lo_is_edge) || (g[i] >= f->g_hi - 1e-9 && g_hi_is_edge);
-        if (usable && not_conv) fl |= TM_FLAG_NOT_CONVERGED;
-        if (usable && not_conv && at_edge) fl |= TM_FLAG_OUTSIDE_MAP;
-        double a = isfinite(alpha[i]) ? clampd(alpha[i], 0.0, 1.0) : NAN;
-        double gg = isfinite(g[i]) ? clampd(g[i], -1.0, 1.0) : NAN;
-        /* the map's own error at the solution, in place of its median MC std-error where the grid has it */
-        double model_b = mc2, model_w = mc2;
-        if (f->model_var) tmi_model_variance(f, &cells[i], alpha[i], g[i], &model_b, &model_w);
-        double sa, ss, sg, ds_rel = o->inscatter_rel_std * ds_in;
-        propagate_one(Ji, sc.var_b[i] + model_b, sc.var_w[i] + model_w, sc.sd_c[i], ds_rel * ds_rel, &sa, &ss, &sg);
-        double thick = o->thickness_rel_std * sigma_t[i];
-        ss = sqrt(ss * ss + thick * thick);
-        if (fl & TM_FLAG_IC_BELOW_FLOOR) ss = INFINITY;
-        if (usable && !(a >= o->alpha_min_g)) {
-            fl |= TM_FLAG_G_UNDEFINED;
-            gg = sg = NAN;
-        }
-        /* UNDERDETERMINED is the map's conditioning at no less than the instrument's noise model: a
-         * capture's frame scatter alone misses drift and calibration error, and one quiet capture
-         * must not make α and g look told apart where a realistic noise leaves them not */
-        double ua = sa, us = ss, ug = sg;
-        if (sc.cond_var_b[i] != sc.var_b[i] || sc.cond_var_w[i] != sc.var_w[i] || sc.cond_sd_c[i] != sc.sd_c[i]) {
-            propagate_one(Ji, sc.cond_var_b[i] + model_b, sc.cond_var_w[i] + model_w, sc.cond_sd_c[i], ds_rel * ds_rel,
-                          &ua, &us, &ug);
-            if (isnan(gg)) ug = NAN;
-        }
-        if (usable && (ua > o->underdetermined_alpha_std || ug > o->underdetermined_g_std)) fl |= TM_FLAG_UNDERDETERMINED;
-        if (!(fl & TM_FLAGS_STD_CHECK_SKIP) && isfinite(sa) && isfinite(sg) && (sa > o->std_check_alpha || sg > o->std_check_g)) {
-            check_t *k = &sc.checks[checked];
-            k->alpha = solved_alpha;
-            k->g = solved_g;
-            k->j11 = Ji[0];
-            k->j12 = Ji[2];
-            k->j21 = Ji[3];
-            k->j22 = Ji[5];
-            k->move_b = sqrt(sc.var_b[i] + model_b);
-            k->move_w = sqrt(sc.var_w[i] + model_w);
-            k->limit_a = o->std_check_tol * o->std_check_sigmas * sa;
-            k->limit_g = o->std_check_tol * o->std_check_sigmas * sg;
-            sc.active[checked++] = (uint32_t)i;
-        }
-        if (!usable) {
-            a = gg = sa = ss = sg = ua = ug = NAN;
-            sigma_t[i] = out->sigma_t_beer[i] = NAN;
-        }
-        alpha[i] = a;
-        g[i] = gg;
-        out->alpha_std[i] = sa;
-        out->sigma_t_std[i] = ss;
-        out->g_std[i] = sg;
-        out->cond_alpha_std[i] = ua;
-        out->cond_g_std[i] = ug;
-        out->flags[i] = fl;
+            b->ds_in = correct_inscatter(f, &cells[i], b->Ji, &alpha[i], &sigma_t[i], &g[i]);
+        b->model_b = b->model_w = mc2;
+        if (f->model_var) tmi_model_variance(f, &cells[i], alpha[i], g[i], &b->model_b, &b->model_w);
+    }
+    const finish_ctx_t ctx = {f, o, fin, sc.var_b, sc.var_w, sc.sd_c, sc.cond_var_b, sc.cond_var_w, sc.cond_sd_c,
+                              *out, mc2, g_lo_is_edge, g_hi_is_edge};
+    for (size_t i = 0; i < n;) {
+        int lanes = 1, check;
+#ifdef TM_SIMD
+        if (i + 4 <= n && tmi_use_simd())
+            check = tmi_finish4(&ctx, i), lanes = 4;
+        else
+#endif
+            check = finish_bin(&ctx, i);
+        for (int l = 0; l < lanes; l++)
+            if (check >> l & 1) add_check(&ctx, i + (size_t)l, &sc.checks[checked], &sc.active[checked]), checked++;
+        i += (size_t)lanes;
     }
     check_first_order(f, checked, sc.active, sc.checks, cells, ib, iw, rb, rw, o->std_check_sigmas, out->flags);
     return (long long)steps;
@@ -396,7 +410,8 @@ void tm_propagate(size_t n, const double *J, const double *sigma_I, const double
 
 size_t tm_fit_scratch_size(size_t n) {
     return (n ? n : 1) *
-           (11 * sizeof(double) + sizeof(sigma_cell_t) + sizeof(final_eval_t) + sizeof(check_t) + sizeof(uint32_t));
+           (11 * sizeof(double) + sizeof(sigma_cell_t) + sizeof(final_eval_t) + sizeof(check_t) + sizeof(finish_t) +
+            sizeof(uint32_t));
 }
 
 

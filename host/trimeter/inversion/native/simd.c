@@ -371,6 +371,118 @@ void tmi_combine2_4(size_t n, size_t i, const double *fits, double underdetermin
 }
 #undef ROW
 
+/* propagate_one (pipeline.c), four lanes: the stds of (α, σt, g) from the Jacobian's entries J0..J5, J7
+ * (Ji's), the intensities' variances and I_c's std, and σt's further variance */
+__attribute__((target("avx2"))) static inline void propagate4(const v4 *J, v4 var_b, v4 var_w, v4 sd_c,
+                                                              v4 var_s_extra, v4 *std_a, v4 *std_s, v4 *std_g) {
+    const v4 sign = _mm256_set1_pd(-0.0), inf = _mm256_set1_pd(INFINITY);
+    v4 ds = _mm256_div_pd(sd_c, J[7]);
+    v4 var_s = _mm256_add_pd(_mm256_mul_pd(ds, ds), var_s_extra);
+    v4 inv_det = _mm256_div_pd(_mm256_set1_pd(1.0), _mm256_sub_pd(_mm256_mul_pd(J[0], J[5]), _mm256_mul_pd(J[2], J[3])));
+    v4 i00 = _mm256_mul_pd(J[5], inv_det), i01 = _mm256_mul_pd(_mm256_xor_pd(J[2], sign), inv_det);
+    v4 i10 = _mm256_mul_pd(_mm256_xor_pd(J[3], sign), inv_det), i11 = _mm256_mul_pd(J[0], inv_det);
+    v4 c00 = _mm256_add_pd(var_b, _mm256_mul_pd(_mm256_mul_pd(J[1], J[1]), var_s));
+    v4 c11 = _mm256_add_pd(var_w, _mm256_mul_pd(_mm256_mul_pd(J[4], J[4]), var_s));
+    v4 c01 = _mm256_mul_pd(_mm256_mul_pd(J[1], J[4]), var_s);
+    v4 va = _mm256_add_pd(
+        _mm256_mul_pd(i00, _mm256_add_pd(_mm256_mul_pd(i00, c00), _mm256_mul_pd(i01, c01))),
+        _mm256_mul_pd(i01, _mm256_add_pd(_mm256_mul_pd(i00, c01), _mm256_mul_pd(i01, c11))));
+    v4 vg = _mm256_add_pd(
+        _mm256_mul_pd(i10, _mm256_add_pd(_mm256_mul_pd(i10, c00), _mm256_mul_pd(i11, c01))),
+        _mm256_mul_pd(i11, _mm256_add_pd(_mm256_mul_pd(i10, c01), _mm256_mul_pd(i11, c11))));
+    v4 sa = _mm256_sqrt_pd(_mm256_andnot_pd(sign, va)), sg = _mm256_sqrt_pd(_mm256_andnot_pd(sign, vg));
+    *std_a = _mm256_blendv_pd(sa, inf, _mm256_cmp_pd(sa, sa, _CMP_UNORD_Q));
+    *std_g = _mm256_blendv_pd(sg, inf, _mm256_cmp_pd(sg, sg, _CMP_UNORD_Q));
+    *std_s = _mm256_sqrt_pd(var_s);
+}
+
+/* flags |= bit in the lanes of mask */
+__attribute__((target("avx2"))) static inline __m256i flag4(__m256i flags, v4 mask, int64_t bit) {
+    return _mm256_or_si256(flags, _mm256_and_si256(_mm256_castpd_si256(mask), _mm256_set1_epi64x(bit)));
+}
+
+/* lanes whose flags have any of bits */
+__attribute__((target("avx2"))) static inline v4 flagged4(__m256i flags, int64_t bits) {
+    __m256i none = _mm256_cmpeq_epi64(_mm256_and_si256(flags, _mm256_set1_epi64x(bits)), _mm256_setzero_si256());
+    return _mm256_castsi256_pd(_mm256_xor_si256(none, _mm256_set1_epi64x(-1)));
+}
+
+/* pipeline.c finish_bin for the bins i .. i+3: the same operations, lane by lane; returns the lanes
+ * (bit l: bin i+l) whose stds go to check_first_order. */
+int tmi_finish4(const finish_ctx_t *c, size_t i) __attribute__((target("avx2")));
+int tmi_finish4(const finish_ctx_t *c, size_t i) {
+    const tm_forward_grid *f = c->f;
+    const tm_fit_options *o = c->o;
+    const tm_fit_outputs *out = &c->out;
+    const finish_t *b = c->fin + i;
+    const v4 nan = _mm256_set1_pd(NAN), inf = _mm256_set1_pd(INFINITY), zero = _mm256_setzero_pd();
+    const v4 all = _mm256_castsi256_pd(_mm256_set1_epi64x(-1));
+    v4 J[8];
+    for (int k = 0; k < 8; k++) J[k] = set4(b[0].Ji[k], b[1].Ji[k], b[2].Ji[k], b[3].Ji[k]);
+#define FIELD(x) set4(b[0].x, b[1].x, b[2].x, b[3].x)
+    v4 residual2 = FIELD(residual2), ds_in = FIELD(ds_in), model_b = FIELD(model_b), model_w = FIELD(model_w);
+#undef FIELD
+    __m256i fl = _mm256_loadu_si256((const __m256i *)(out->flags + i));
+    v4 usable = _mm256_xor_pd(flagged4(fl, TM_FLAGS_UNUSABLE), all);
+    v4 alpha = _mm256_loadu_pd(out->alpha + i), g = _mm256_loadu_pd(out->g + i);
+    v4 in_var_b = _mm256_loadu_pd(c->var_b + i), in_var_w = _mm256_loadu_pd(c->var_w + i);
+    v4 sd_c = _mm256_loadu_pd(c->sd_c + i), mc2 = _mm256_set1_pd(c->mc2);
+    v4 var_b = _mm256_add_pd(in_var_b, mc2), var_w = _mm256_add_pd(in_var_w, mc2);
+    v4 tolerance = _mm256_add_pd(_mm256_mul_pd(_mm256_set1_pd(3.0), _mm256_sqrt_pd(_mm256_add_pd(var_b, var_w))),
+                                 _mm256_set1_pd(1e-4));
+    v4 not_conv = _mm256_and_pd(usable, _mm256_cmp_pd(residual2, _mm256_mul_pd(tolerance, tolerance), _CMP_NLE_UQ));
+    v4 at_edge = _mm256_or_pd(
+        _mm256_and_pd(_mm256_cmp_pd(g, _mm256_set1_pd(f->g_lo + 1e-9), _CMP_LE_OQ), c->g_lo_is_edge ? all : zero),
+        _mm256_and_pd(_mm256_cmp_pd(g, _mm256_set1_pd(f->g_hi - 1e-9), _CMP_GE_OQ), c->g_hi_is_edge ? all : zero));
+    fl = flag4(fl, not_conv, TM_FLAG_NOT_CONVERGED);
+    fl = flag4(fl, _mm256_and_pd(not_conv, at_edge), TM_FLAG_OUTSIDE_MAP);
+    v4 a = _mm256_blendv_pd(nan, clamp4(alpha, zero, _mm256_set1_pd(1.0)), finite4(alpha));
+    v4 gg = _mm256_blendv_pd(nan, clamp4(g, _mm256_set1_pd(-1.0), _mm256_set1_pd(1.0)), finite4(g));
+    v4 ds_rel = _mm256_mul_pd(_mm256_set1_pd(o->inscatter_rel_std), ds_in), extra = _mm256_mul_pd(ds_rel, ds_rel);
+    v4 sa, ss, sg;
+    propagate4(J, _mm256_add_pd(in_var_b, model_b), _mm256_add_pd(in_var_w, model_w), sd_c, extra, &sa, &ss, &sg);
+    v4 sigma_t = _mm256_loadu_pd(out->sigma_t + i);
+    v4 thick = _mm256_mul_pd(_mm256_set1_pd(o->thickness_rel_std), sigma_t);
+    ss = _mm256_sqrt_pd(_mm256_add_pd(_mm256_mul_pd(ss, ss), _mm256_mul_pd(thick, thick)));
+    ss = _mm256_blendv_pd(ss, inf, flagged4(fl, TM_FLAG_IC_BELOW_FLOOR));
+    v4 g_undefined = _mm256_andnot_pd(_mm256_cmp_pd(a, _mm256_set1_pd(o->alpha_min_g), _CMP_GE_OQ), usable);
+    fl = flag4(fl, g_undefined, TM_FLAG_G_UNDEFINED);
+    gg = _mm256_blendv_pd(gg, nan, g_undefined);
+    sg = _mm256_blendv_pd(sg, nan, g_undefined);
+    v4 ua = sa, ug = sg;
+    v4 cond_var_b = _mm256_loadu_pd(c->cond_var_b + i), cond_var_w = _mm256_loadu_pd(c->cond_var_w + i);
+    v4 cond_sd_c = _mm256_loadu_pd(c->cond_sd_c + i);
+    v4 differ = _mm256_or_pd(_mm256_or_pd(_mm256_cmp_pd(cond_var_b, in_var_b, _CMP_NEQ_UQ),
+                                          _mm256_cmp_pd(cond_var_w, in_var_w, _CMP_NEQ_UQ)),
+                             _mm256_cmp_pd(cond_sd_c, sd_c, _CMP_NEQ_UQ));
+    if (_mm256_movemask_pd(differ)) {
+        v4 ua2, us2, ug2;
+        propagate4(J, _mm256_add_pd(cond_var_b, model_b), _mm256_add_pd(cond_var_w, model_w), cond_sd_c, extra, &ua2,
+                   &us2, &ug2);
+        ug2 = _mm256_blendv_pd(ug2, nan, _mm256_cmp_pd(gg, gg, _CMP_UNORD_Q));
+        ua = _mm256_blendv_pd(ua, ua2, differ);
+        ug = _mm256_blendv_pd(ug, ug2, differ);
+    }
+    v4 under = _mm256_and_pd(usable, _mm256_or_pd(_mm256_cmp_pd(ua, _mm256_set1_pd(o->underdetermined_alpha_std), _CMP_GT_OQ),
+                                                  _mm256_cmp_pd(ug, _mm256_set1_pd(o->underdetermined_g_std), _CMP_GT_OQ)));
+    fl = flag4(fl, under, TM_FLAG_UNDERDETERMINED);
+    v4 check = _mm256_andnot_pd(flagged4(fl, TM_FLAGS_STD_CHECK_SKIP), _mm256_and_pd(finite4(sa), finite4(sg)));
+    check = _mm256_and_pd(check, _mm256_or_pd(_mm256_cmp_pd(sa, _mm256_set1_pd(o->std_check_alpha), _CMP_GT_OQ),
+                                              _mm256_cmp_pd(sg, _mm256_set1_pd(o->std_check_g), _CMP_GT_OQ)));
+    /* unusable bins: NaN */
+    _mm256_storeu_pd(out->alpha + i, _mm256_blendv_pd(nan, a, usable));
+    _mm256_storeu_pd(out->g + i, _mm256_blendv_pd(nan, gg, usable));
+    _mm256_storeu_pd(out->alpha_std + i, _mm256_blendv_pd(nan, sa, usable));
+    _mm256_storeu_pd(out->sigma_t_std + i, _mm256_blendv_pd(nan, ss, usable));
+    _mm256_storeu_pd(out->g_std + i, _mm256_blendv_pd(nan, sg, usable));
+    _mm256_storeu_pd(out->cond_alpha_std + i, _mm256_blendv_pd(nan, ua, usable));
+    _mm256_storeu_pd(out->cond_g_std + i, _mm256_blendv_pd(nan, ug, usable));
+    _mm256_storeu_pd(out->sigma_t + i, _mm256_blendv_pd(nan, sigma_t, usable));
+    _mm256_storeu_pd(out->sigma_t_beer + i, _mm256_blendv_pd(nan, _mm256_loadu_pd(out->sigma_t_beer + i), usable));
+    _mm256_storeu_si256((__m256i *)(out->flags + i), fl);
+    return _mm256_movemask_pd(check);
+}
+
 static int simd_enabled = -1; /* -1: not decided yet */
 
 int tmi_use_simd(void) {
