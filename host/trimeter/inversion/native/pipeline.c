@@ -364,6 +364,8 @@ long long tm_fit_solve(const tm_forward_grid *f, const tm_inverse_table *table, 
      * side in sc.checks: only those bins' (a few of them) are written */
     size_t checked = 0;
     for (size_t i = 0; i < FINISH_AHEAD && i < n; i++) tmi_prefetch_finish(f, &cells[i], sigma_t[i]);
+    /* the finish in two passes: each bin's table reads (Jacobian, in-scattering, model error) into its
+     * finish_t, then the arithmetic, which four lanes take at once */
     finish_t *fin = sc.finish;
     for (size_t i = 0; i < n; i++) {
         if (i + FINISH_AHEAD < n) tmi_prefetch_finish(f, &cells[i + FINISH_AHEAD], sigma_t[i + FINISH_AHEAD]);
@@ -376,6 +378,7 @@ long long tm_fit_solve(const tm_forward_grid *f, const tm_inverse_table *table, 
         b->ds_in = 0.0;
         if (f->inscatter_L && !(fl & (TM_FLAGS_UNUSABLE | TM_FLAG_IC_BELOW_FLOOR | TM_FLAG_OUTSIDE_MAP)))
             b->ds_in = correct_inscatter(f, &cells[i], b->Ji, &alpha[i], &sigma_t[i], &g[i]);
+        /* the map's own error at the solution, in place of its median MC std-error where the grid has it */
         b->model_b = b->model_w = mc2;
         if (f->model_var) tmi_model_variance(f, &cells[i], alpha[i], g[i], &b->model_b, &b->model_w);
     }
@@ -384,13 +387,17 @@ long long tm_fit_solve(const tm_forward_grid *f, const tm_inverse_table *table, 
     for (size_t i = 0; i < n;) {
         int lanes = 1, check;
 #ifdef TM_SIMD
-        if (i + 4 <= n && tmi_use_simd())
-            check = tmi_finish4(&ctx, i), lanes = 4;
-        else
+        if (i + 4 <= n && tmi_use_simd()) {
+            check = tmi_finish4(&ctx, i);
+            lanes = 4;
+        } else
 #endif
             check = finish_bin(&ctx, i);
         for (int l = 0; l < lanes; l++)
-            if (check >> l & 1) add_check(&ctx, i + (size_t)l, &sc.checks[checked], &sc.active[checked]), checked++;
+            if (check >> l & 1) {
+                add_check(&ctx, i + (size_t)l, &sc.checks[checked], &sc.active[checked]);
+                checked++;
+            }
         i += (size_t)lanes;
     }
     check_first_order(f, checked, sc.active, sc.checks, cells, ib, iw, rb, rw, o->std_check_sigmas, out->flags);
