@@ -120,7 +120,7 @@ static inline double clamp_log_sigma(const tm_forward_grid *f, double log_sigma_
 /* Where a bin's ln σt sits on the grid; fixed while its (α, g) are solved. */
 typedef struct {
     int32_t is;
-    int32_t ia, ig; /* the α and g cells of the last evaluation: walk_cell's hints (-1: none yet) */
+    int32_t ia, ig; /* the α and g cells of the last evaluation: walk_alpha's and walk_g's hints (-1: none yet) */
     int32_t evaluated; /* the polish stored its last evaluation (final_eval_t) for this bin */
     double ws;
     double sigma_t; /* σt clamped to the grid, as ForwardGrid.clamp_sigma_t (≈ exp of sigma_cell's ln σt) */
@@ -146,8 +146,8 @@ static inline const double *poly_row(const tm_forward_grid *f, int ia, int is, i
     return f->poly + (((size_t)ia * (size_t)(f->ns - 1) + (size_t)is) * (size_t)(f->ng - 1) + (size_t)ig) * 24u;
 }
 
-/* Find a bin's forward cell at (α, g) some cells away from its last one, by binary search (a walk
- * that far mispredicts at every cell), leave it as the bin's walk hints (coefficients() then finds
+/* Find a bin's forward cell at (α, g) some cells away from its last one, through the axes' index (a
+ * walk that far mispredicts at every cell), leave it as the bin's walk hints (coefficients() then finds
  * it at once; the cell, hence the result, is the same either way) and prefetch its polynomial,
  * 192 B, so that the evaluation does not wait for memory. */
 static inline void prefetch_cell(const tm_forward_grid *f, sigma_cell_t *cell, double alpha, double g) {

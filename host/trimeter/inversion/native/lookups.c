@@ -71,7 +71,7 @@ void tmi_initial_guesses(const tm_inverse_table *t, size_t n, const sigma_cell_t
     }
 }
 
-/* Every bin's first forward cell, found (kept as walk_cell's hints) and prefetched in one pass before
+/* Every bin's first forward cell, found (kept as walk_alpha's and walk_g's hints) and prefetched in one pass before
  * the polish: a bin's cell is a random 192 B in a ~22 MB grid, so in a cold cache each first visit
  * is a memory round trip that the polish would otherwise wait on bin by bin. (Prefetching each bin's
  * next cell after every step did not pay.) */
