@@ -38,20 +38,25 @@ def test_the_percent_format_becomes_cells():
 
 @pytest.mark.slow
 def test_the_tutorial_runs_on_the_twin(tmp_path, monkeypatch):
-    from jupyter_client.manager import KernelManager
+    from jupyter_client.manager import AsyncKernelManager
+    from jupyter_core.utils import run_sync
     from nbclient import NotebookClient
 
     monkeypatch.setenv("TMPDIR", str(tmp_path))  # the notebook's working directory lands here
     nb = nbformat.read(gen.NOTEBOOK, as_version=4)
-    # the kernel talks over Unix sockets in tmp_path, not over TCP ports any local user could reach
-    kernel = KernelManager(kernel_name="python3", transport="ipc", ip=str(tmp_path / "kernel"))
+    # the kernel talks over Unix sockets in tmp_path, not over TCP ports any local user could reach.
+    # Async, as NotebookClient's own: a blocking KernelManager driven from its event loop starts a
+    # "MainThread - runner" loop thread that lives as long as this process.
+    kernel = AsyncKernelManager(kernel_name="python3", transport="ipc", ip=str(tmp_path / "kernel"))
     t0 = time.monotonic()
     try:
-        NotebookClient(nb, km=kernel, timeout=CELL_TIMEOUT_S,
-                       resources={"metadata": {"path": str(tmp_path)}}).execute()
-    finally:  # a kernel manager handed in is the caller's to stop
+        # cleanup_kc: also for a kernel manager handed in, stop the client's channels and the kernel when done;
+        # left open, the heartbeat thread outlives the test and keeps re-opening its socket to the dead kernel
+        NotebookClient(nb, km=kernel, timeout=CELL_TIMEOUT_S, shutdown_kernel="immediate",
+                       resources={"metadata": {"path": str(tmp_path)}}).execute(cleanup_kc=True)
+    finally:  # a kernel manager handed in is the caller's to stop (if the client could not)
         if kernel.has_kernel:
-            kernel.shutdown_kernel(now=True)
+            run_sync(kernel.shutdown_kernel)(now=True)
     print(f"\nthe tutorial ran in {time.monotonic() - t0:.0f} s")
 
     def text(i):
