@@ -1,6 +1,7 @@
 """Shared pytest options: the HIL suite runs against the twin unless --port/--spectrometer name a real
 instrument; tests marked `hardware` need one and are skipped on the twin."""
 
+import os
 import sys
 from pathlib import Path
 
@@ -25,3 +26,19 @@ def pytest_collection_modifyitems(config, items):
         # the marker, not the keyword: tests/hardware/ (the printed parts) puts "hardware" in every keyword set there
         if item.get_closest_marker("hardware"):
             item.add_marker(skip)
+
+
+@pytest.fixture(scope="session", autouse=True)
+def cache_dir_of_this_process():
+    """TRIMETER_CACHE_DIR (the device tables read from instruments, the twin's seeded storage images) one
+    directory per pytest process, kept between runs: under pytest-xdist the workers' twins would otherwise
+    read the same table into one cache at once, each truncating and resuming the other's partial file
+    (trimeter.device.table_cache). A subdirectory of the cache directory in force (TRIMETER_CACHE_DIR or
+    the user's), named by the worker (PYTEST_XDIST_WORKER; "main" without xdist); tests that need an
+    empty cache still set their own."""
+    import platformdirs
+
+    base = os.environ.get("TRIMETER_CACHE_DIR") or platformdirs.user_cache_dir("trimeter")
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("TRIMETER_CACHE_DIR", str(Path(base) / "pytest" / os.environ.get("PYTEST_XDIST_WORKER", "main")))
+        yield

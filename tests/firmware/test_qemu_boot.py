@@ -31,26 +31,24 @@ pytestmark = [
 ]
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 @pytest.fixture(scope="module")
-def line():
-    port = free_port()
+def line(tmp_path_factory):
+    # USART1 on a Unix socket of this test's own: a TCP port picked free and handed to QEMU could be taken by
+    # another process (a second pytest worker) before QEMU binds it, and the test would then talk to that
+    path = tmp_path_factory.mktemp("qemu") / "usart1"
     proc = subprocess.Popen(
         [QEMU, "-M", "netduinoplus2", "-nographic", "-monitor", "none", "-kernel", str(ELF),
-         "-serial", f"tcp:127.0.0.1:{port},server=on,wait=on,nodelay=on"],
+         "-serial", f"unix:{path},server=on,wait=on"],
         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         deadline = time.monotonic() + 10
         while True:
+            sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
             try:
-                sock = socket.create_connection(("127.0.0.1", port), timeout=1)
+                sock.connect(str(path))
                 break
             except OSError:
+                sock.close()
                 assert proc.poll() is None and time.monotonic() < deadline, "QEMU did not open its serial port"
                 time.sleep(0.05)
         sock.settimeout(0.5)

@@ -19,6 +19,12 @@ ROOT = Path(__file__).resolve().parents[2]
 COUNT_PY = ROOT / "firmware" / "qemu" / "count.py"
 
 
+def _own_build(tmp_path) -> list[str]:
+    """count.elf built in the test's own directory: firmware/build/qemu is one path for every caller, and another
+    count running beside this one (a second pytest worker, `trimeter bench report`) would rebuild it under us."""
+    return [f"COUNT_BUILD={tmp_path / 'qemu'}"]
+
+
 def _count_module():
     spec = importlib.util.spec_from_file_location("qemu_count", COUNT_PY)
     module = importlib.util.module_from_spec(spec)
@@ -39,9 +45,9 @@ def test_spans_count_the_instructions_between_each_pair_of_markers(tmp_path):
 
 @pytest.mark.skipif(shutil.which("qemu-system-arm") is None or shutil.which("arm-none-eabi-gcc") is None,
                     reason="needs qemu-system-arm and gcc-arm-none-eabi")
-def test_qemu_count_reports_every_measurement_with_plausible_counts():
-    run = subprocess.run(["make", "-s", "-C", str(ROOT / "firmware"), "qemu-count"], capture_output=True,
-                         text=True, timeout=300)
+def test_qemu_count_reports_every_measurement_with_plausible_counts(tmp_path):
+    run = subprocess.run(["make", "-s", "-C", str(ROOT / "firmware"), "qemu-count", *_own_build(tmp_path)],
+                         capture_output=True, text=True, timeout=300)
     assert run.returncode == 0, run.stderr
     counts = {m.group(1).strip(): int(m.group(2))
               for m in re.finditer(r"^  (.+?)\s{2,}(\d+)", run.stdout, re.MULTILINE)}
@@ -64,8 +70,8 @@ def test_qemu_count_counts_the_inverse_core_per_bin_with_a_device_table(tmp_path
     tool = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(tool)
     table = tool.build(AppearanceMap.load(find_map("device-n1.5-l0.4"))).save(tmp_path / "l04.tlut")
-    run = subprocess.run(["make", "-s", "-C", str(ROOT / "firmware"), "qemu-count", f"COUNT_TABLE={table}"],
-                         capture_output=True, text=True, timeout=300)
+    run = subprocess.run(["make", "-s", "-C", str(ROOT / "firmware"), "qemu-count", f"COUNT_TABLE={table}",
+                          *_own_build(tmp_path)], capture_output=True, text=True, timeout=300)
     assert run.returncode == 0, run.stderr
     check = re.search(r"^  tr_fit_bins, table check \(n = 0\)\s+(\d+)", run.stdout, re.MULTILINE)
     per_bin = re.search(r"^  tr_fit_bins, 1 bin\s+(\d+) \(min (\d+), max (\d+), (\d+) calls\)", run.stdout,
@@ -83,13 +89,13 @@ def test_qemu_count_counts_the_inverse_core_per_bin_with_a_device_table(tmp_path
 
 @pytest.mark.skipif(shutil.which("qemu-system-arm") is None or shutil.which("arm-none-eabi-gcc") is None,
                     reason="needs qemu-system-arm and gcc-arm-none-eabi")
-def test_qemu_count_as_json_holds_the_table_s_counts():
+def test_qemu_count_as_json_holds_the_table_s_counts(tmp_path):
     """COUNT_ARGS=--json (what `trimeter bench report` reads): the same counts as the table, one object."""
     import json
 
     def count(*extra):
-        run = subprocess.run(["make", "-s", "-C", str(ROOT / "firmware"), "qemu-count", *extra], capture_output=True,
-                             text=True, timeout=300)
+        run = subprocess.run(["make", "-s", "-C", str(ROOT / "firmware"), "qemu-count", *extra, *_own_build(tmp_path)],
+                             capture_output=True, text=True, timeout=300)
         assert run.returncode == 0, run.stderr
         return run.stdout
 

@@ -197,6 +197,7 @@ def test_a_scheduler_address_where_something_else_listens_is_refused_before_anyt
             assert time.perf_counter() - t0 < 5
     finally:
         web.shutdown()
+        web.server_close()
         talker.close()
 
 

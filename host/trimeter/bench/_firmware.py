@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import shutil
 import subprocess
+import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -46,9 +47,13 @@ def qemu_instruction_counts(table: Path, timeout_s: float = 300.0) -> dict[str, 
     its time estimate assumes)."""
     if shutil.which("make") is None or not (FIRMWARE_DIR / "qemu" / "count.py").is_file():
         raise BuildError(f"counting needs make and the repository's firmware/ ({FIRMWARE_DIR})")
+    # count.elf built in a directory of this run's own: firmware/build/qemu is shared by every count, and one
+    # running beside this one (a `make qemu-count`, the test suite's other worker) would rebuild it under this one
     try:
-        done = subprocess.run(["make", "-s", "-C", str(FIRMWARE_DIR), "qemu-count", f"COUNT_TABLE={table.resolve()}",
-                               "COUNT_ARGS=--json"], capture_output=True, text=True, timeout=timeout_s)
+        with tempfile.TemporaryDirectory(prefix="trimeter-qemu-count-") as build:
+            done = subprocess.run(["make", "-s", "-C", str(FIRMWARE_DIR), "qemu-count",
+                                   f"COUNT_TABLE={table.resolve()}", "COUNT_ARGS=--json", f"COUNT_BUILD={build}"],
+                                  capture_output=True, text=True, timeout=timeout_s)
     except subprocess.TimeoutExpired:
         raise BuildError(f"the QEMU count did not finish within {timeout_s:g} s") from None
     lines = [line for line in done.stdout.splitlines() if line.startswith("{")]
