@@ -95,8 +95,11 @@ firmware-test: setup
 fuzz: setup
 	$(MAKE) -C firmware fuzz FUZZ_SECONDS=$(FUZZ_SECONDS)
 
+# On both cores (pytest-xdist): one worker per core, each test file whole on one worker (its module fixtures made
+# once, its tests in file order, as in a single process). PYTEST_WORKERS=0: the suite in this one process.
+PYTEST_WORKERS ?= 2
 pytest: setup firmware native
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n $(PYTEST_WORKERS) --dist loadfile
 
 # The documentation site (mkdocs.yml): --strict, so a broken link or anchor fails; nothing downloaded.
 docs: setup
