@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import itertools
 
+import numpy as np
 import pytest
 
 from trimeter import registers as regs
@@ -27,9 +28,16 @@ def _values():
     return values
 
 
-def test_dump_then_parse_gives_the_same_register_words():
+@pytest.mark.parametrize("legacy_printing", [False, True])
+def test_dump_then_parse_gives_the_same_register_words(legacy_printing):
+    """Also where another module set numpy's print options for the whole process (importing colour-science sets
+    its 1.13 legacy mode, which prints six digits of an f32)."""
     values = _values()
-    text = dump_config(values, IDENTITY, "/dev/ttyUSB0")
+    if legacy_printing:
+        with np.printoptions(legacy="1.13"):
+            text = dump_config(values, IDENTITY, "/dev/ttyUSB0")
+    else:
+        text = dump_config(values, IDENTITY, "/dev/ttyUSB0")
     assert "0.1000000" not in text  # f32 values in their shortest form
     parsed, unknown = parse_config(text, "backup.toml")
     assert unknown == [] and list(parsed) == list(CONFIG_NAMES)

@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import json
 import math
+import subprocess
+import sys
 import xml.etree.ElementTree as ET
 
 import numpy as np
@@ -88,7 +90,8 @@ def test_resampling_averages_windows_and_keeps_flat_spectra():
 
 
 def test_srgb_matches_colour_science():
-    colour = pytest.importorskip("colour")
+    with np.printoptions():  # as they were after it: importing colour-science sets numpy's legacy printing
+        colour = pytest.importorskip("colour")
     shape = colour.SpectralShape(360, 780, 1)
     cmfs = colour.MSDS_CMFS["CIE 1931 2 Degree Standard Observer"].copy().align(shape)
     checker = colour.SDS_COLOURCHECKERS["ColorChecker N Ohta"]
@@ -109,6 +112,16 @@ def test_srgb_matches_colour_science():
                                      chromatic_adaptation_transform="CAT02")
         ours = spectra_to_linear_srgb(shape.wavelengths, checker[name].copy().align(shape).values, "C")
         np.testing.assert_allclose(ours, expected, rtol=0.04, atol=0.01, err_msg=name)
+
+
+def test_a_colour_export_leaves_numpy_s_printing_as_it_was():
+    """colour-science sets numpy's 1.13 legacy printing on import (six digits in str() of a float32): in a fresh
+    process, an export's colour conversion must not pass that on to what the process writes next."""
+    code = ("import numpy as np; from trimeter.results.export import spectra_to_linear_srgb; "
+            "spectra_to_linear_srgb([400.0, 700.0], [0.5, 0.5]); print(str(np.float32(1.15516505e-05)))")
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.strip() == "1.15516505e-05"
 
 
 def test_rgb_is_exact_for_flat_spectra_and_goes_through_transmittance():

@@ -49,7 +49,10 @@ def dump_config(values: dict, identity: Identity, port: str = "") -> str:
         if isinstance(value, IntEnum):
             text = f'"{value.name.lower()}"'
         elif reg.type == "f32":
-            text = str(np.float32(value))  # the shortest text that reads back as the same f32 (0.1, not 0.100000001)
+            # the shortest text that reads back as the same f32 (0.1, not 0.100000001), whatever print options
+            # another module set for this process (importing colour-science sets numpy's 1.13 legacy: 6 digits)
+            with np.printoptions(legacy=False):
+                text = str(np.float32(value))
         else:
             text = str(int(value))
         unit = f"  # {reg.unit}" if reg.unit and reg.unit != "1" else ""

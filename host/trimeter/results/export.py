@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from functools import lru_cache
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -74,12 +74,23 @@ def loaded_parameters(parameters: SpectralColumns, source: dict, where: str | Pa
 
 
 # ------------------------------------------------------------------------------------- colour
+def _colour_science() -> Any:
+    """colour-science, imported without what its import does to the whole process: it sets numpy's 1.13
+    legacy print mode, in which str() of a numpy number has six or twelve digits, not the shortest that reads
+    back, in every later text this process writes (a configuration backup after an export)."""
+    options = np.get_printoptions()
+    import colour
+
+    np.set_printoptions(**options)
+    return colour
+
+
 @lru_cache(maxsize=8)
 def _tristimulus_weights(illuminant: str) -> tuple[np.ndarray, np.ndarray]:
     """(λ, W) with XYZ = Σ_λ W(λ)·T(λ) for a transmittance or reflectance T: colour-science's CIE 1931 2°
     observer × the illuminant at 1 nm over 360-780 nm, normalised so that T ≡ 1 has Y = 1 (its
     "Integration" method, tested against colour.sd_to_XYZ)."""
-    import colour
+    colour = _colour_science()
 
     if illuminant not in colour.SDS_ILLUMINANTS or illuminant not in colour.CCS_ILLUMINANTS[CMFS]:
         raise InputError(f"illuminant must be a CIE illuminant colour-science knows (D65, D50, A, F2, …), "
@@ -95,7 +106,7 @@ def spectra_to_linear_srgb(wavelengths_nm: ArrayLike, values: ArrayLike, illumin
     """Linear sRGB of reflectance/transmittance spectra (`values`: (..., len(wavelengths))) seen under
     `illuminant`, adapted to sRGB's D65 white (CAT02) when the illuminant is another. Spectra are
     interpolated linearly onto 1 nm and held constant beyond their ends."""
-    import colour
+    colour = _colour_science()
 
     lam, weights = _tristimulus_weights(illuminant)
     values = np.asarray(values, dtype=float)
@@ -110,7 +121,7 @@ def spectra_to_linear_srgb(wavelengths_nm: ArrayLike, values: ArrayLike, illumin
 
 def srgb_encode(linear: ArrayLike) -> np.ndarray:
     """sRGB's transfer function (for swatches and images), linear values clipped to [0, 1]."""
-    import colour
+    colour = _colour_science()
 
     return colour.cctf_encoding(np.clip(np.asarray(linear, dtype=float), 0.0, 1.0), function="sRGB")
 
@@ -144,7 +155,7 @@ def linear_srgb_coefficients(material: SpectralMaterial, thickness_mm: float = 1
     sigma_t, sigma_a = -np.log(np.clip(rgb, TRANSMITTANCE_FLOOR, 1.0)) / thickness_mm
     sigma_a = np.clip(sigma_a, 0.0, sigma_t) + 0.0
     lam, weights = _tristimulus_weights(illuminant)
-    import colour
+    colour = _colour_science()
 
     to_rgb = colour.RGB_COLOURSPACES["sRGB"].matrix_XYZ_to_RGB
     channel = np.clip(weights @ to_rgb.T, 0.0, None)                   # (λ, 3) positive channel weights
