@@ -442,7 +442,7 @@ def _cell_index(axis: np.ndarray) -> tuple[np.ndarray | None, float]:
     if n < 4 or n - 2 > np.iinfo(np.uint16).max or not span > 0:
         return None, 0.0
     narrowest = float(np.diff(axis).min())
-    buckets = int(min(CELL_INDEX_MAX, max(n, np.ceil(2 * span / narrowest)) if narrowest > 0 else CELL_INDEX_MAX))
+    buckets = CELL_INDEX_MAX if not narrowest > 0 else int(min(CELL_INDEX_MAX, max(n, np.ceil(2 * span / narrowest))))
     scale = buckets / span
     starts = axis[0] + np.arange(buckets) / scale
     cells = np.clip(np.searchsorted(axis, starts, side="right") - 1, 0, n - 2)

@@ -80,17 +80,16 @@ static inline int find_cell_indexed(const double *axis, const double *inv_d, int
     return walk_from(axis, inv_d, n, x, index[b], w);
 }
 
-/* find_cell_indexed near the cell found last time (*hint; < 0: none yet): that cell while x is still in
+/* find_cell_indexed near the cell found last time (hint; < 0: none): that cell while x is still in
  * it (Newton iterates converge, so mostly), else found afresh (a walk from the hint would mispredict a
  * branch per cell it crosses). */
-static inline int walk_indexed(const double *axis, const double *inv_d, int n, const uint16_t *index, int index_n,
-                               double scale, double x, int32_t *hint, double *w) {
-    int i = *hint;
-    if (i >= 0 && in_cell(axis, n, i, x))
-        *w = clampd((x - axis[i]) * inv_d[i], 0.0, 1.0);
-    else
-        i = find_cell_indexed(axis, inv_d, n, index, index_n, scale, x, w);
-    return *hint = i;
+static inline int cell_near(const double *axis, const double *inv_d, int n, const uint16_t *index, int index_n,
+                            double scale, double x, int hint, double *w) {
+    if (hint >= 0 && in_cell(axis, n, hint, x)) {
+        *w = clampd((x - axis[hint]) * inv_d[hint], 0.0, 1.0);
+        return hint;
+    }
+    return find_cell_indexed(axis, inv_d, n, index, index_n, scale, x, w);
 }
 
 /* The two on a forward grid's α and g axes */
@@ -103,13 +102,21 @@ static inline int alpha_cell(const tm_forward_grid *f, double alpha, double *w) 
 
 static inline int g_cell(const tm_forward_grid *f, double g, double *w) { return find_cell_indexed(TM_G_AXIS(f), g, w); }
 
-static inline int walk_alpha(const tm_forward_grid *f, double alpha, int32_t *hint, double *w) {
-    return walk_indexed(TM_ALPHA_AXIS(f), alpha, hint, w);
+/* cell_near on the α and g axes from the cell found last time (hint; < 0: none) */
+static inline int alpha_near(const tm_forward_grid *f, double alpha, int hint, double *w) {
+    return cell_near(TM_ALPHA_AXIS(f), alpha, hint, w);
 }
 
-static inline int walk_g(const tm_forward_grid *f, double g, int32_t *hint, double *w) {
-    return walk_indexed(TM_G_AXIS(f), g, hint, w);
+static inline int g_near(const tm_forward_grid *f, double g, int hint, double *w) {
+    return cell_near(TM_G_AXIS(f), g, hint, w);
 }
+
+/* the same, keeping the cell found as the next hint */
+static inline int walk_alpha(const tm_forward_grid *f, double alpha, int32_t *hint, double *w) {
+    return *hint = alpha_near(f, alpha, *hint, w);
+}
+
+static inline int walk_g(const tm_forward_grid *f, double g, int32_t *hint, double *w) { return *hint = g_near(f, g, *hint, w); }
 
 /* ln σt clamped to the grid the way ForwardGrid.sigma_cell does (NaN → lowest node, ±inf → ends). */
 static inline double clamp_log_sigma(const tm_forward_grid *f, double log_sigma_t) {

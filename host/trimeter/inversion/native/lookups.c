@@ -147,8 +147,7 @@ void tmi_model_variance(const tm_forward_grid *f, const sigma_cell_t *c, double 
     double wa, wg, ws = c->ws;
     /* from the last evaluation's cells (the solution is at most a step away): find_cell's result for any
      * non-NaN (α, g), without its search */
-    int ia = c->ia < 0 ? alpha_cell(f, alpha, &wa) : walk_from(f->alpha, f->inv_da, f->na, alpha, c->ia, &wa);
-    int ig = c->ig < 0 ? g_cell(f, g, &wg) : walk_from(f->g, f->inv_dg, f->ng, g, c->ig, &wg);
+    int ia = alpha_near(f, alpha, c->ia, &wa), ig = g_near(f, g, c->ig, &wg);
     int is = c->is;
     /* (var_b, var_w) side by side on every node: both interpolated at once */
     v2d along_s[2], Wg = splat2(wg), Ws = splat2(ws);

@@ -140,8 +140,7 @@ void tm_fit_prepare(const tm_forward_grid *f, const tm_fit_options *o, size_t n,
 static double correct_inscatter(const tm_forward_grid *f, const sigma_cell_t *c, const double *Ji, double *alpha,
                                 double *sigma_t, double *g) {
     double wa, wg, s0 = *sigma_t;
-    int ia = c->ia < 0 ? alpha_cell(f, *alpha, &wa) : walk_from(f->alpha, f->inv_da, f->na, *alpha, c->ia, &wa);
-    int ig = c->ig < 0 ? g_cell(f, *g, &wg) : walk_from(f->g, f->inv_dg, f->ng, *g, c->ig, &wg);
+    int ia = alpha_near(f, *alpha, c->ia, &wa), ig = g_near(f, *g, c->ig, &wg);
     double L = tmi_inscatter_log1p(f, ia, wa, s0, ig, wg);
     if (!(L > 0.0)) return 0.0; /* nothing scattered in */
     double s = s0 + L / f->thickness_mm;
