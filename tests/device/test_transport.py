@@ -366,6 +366,24 @@ def test_a_link_closed_by_another_thread_mid_request_is_a_link_error(slave_facto
         closer.join()
 
 
+def test_a_close_reported_as_a_missing_reply_ends_the_request_and_is_never_reopened(slave_factory, monkeypatch):
+    """The close can land while pymodbus waits, which then reports no reply rather than failing: the request
+    must end there, not reopen the port its owner just closed and wait out its other attempts."""
+    from pymodbus.exceptions import ModbusIOException
+
+    slave = slave_factory()
+    link = RtuTransport(slave.port, timeout_s=0.5, attempts=3)
+
+    def closed_while_waiting(*args, **kwargs):
+        link.close()
+        raise ModbusIOException("No response received, expected at least 4 bytes (0 received)")
+
+    monkeypatch.setattr(link._client, "read_holding_registers", closed_while_waiting)
+    with pytest.raises(DeviceError, match="closed while a read of 3 holding_registers at 10 waited"):
+        link.read_words("holding_register", 10, 3)
+    assert link._client.socket is None and link.stats.reconnects == 0 and link.stats.retries == 0
+
+
 class DroppingFileRecordSlave(FileRecordSlave):
     """FileRecordSlave that never answers its first request (lost on the way: its reply may still come late)."""
 

@@ -335,7 +335,10 @@ class RtuTransport:
         try:
             return int(sock.in_waiting)
         except (OSError, TypeError, ValueError):
-            raise LinkError(f"the serial port {self.port} was closed while a request waited for its reply") from None
+            raise self._closed_under("a request") from None
+
+    def _closed_under(self, what: str) -> LinkError:
+        return LinkError(f"the serial port {self.port} was closed while {what} waited for its reply")
 
     def _execute(self, what: str, function_code: int, call: Callable[[ModbusSerialClient], Any],
                  answers: Callable[[Any], bool], request_bytes: int, reply_bytes: int, *,
@@ -359,6 +362,8 @@ class RtuTransport:
                     break  # the extra attempt only confirms the last attempt's reply
                 if attempt:
                     self.stats.retries += 1
+                if not self.is_open:  # closed by another thread between attempts: never reopened behind its back
+                    raise self._closed_under(what)
                 try:
                     if self._client.socket is None:
                         self.reopen()
@@ -378,6 +383,8 @@ class RtuTransport:
                     self._drain(answered=True)
                     continue
                 except (ModbusException, asyncio.TimeoutError, OSError) as exc:
+                    if not self.is_open:  # pymodbus may report the close as a missing reply
+                        raise self._closed_under(what) from None
                     # ConnectionException / SerialException (an OSError) = the adapter went away.
                     if isinstance(exc, ModbusIOException) and "No response" in str(exc):
                         # pymodbus's own wording ("… CLOSING CONNECTION") describes a close it does not do
@@ -441,7 +448,7 @@ class RtuTransport:
             # while its loop still waits): a lost link, which the caller handles; on an open port, a real bug
             if self.is_open and self._client.socket is not None:
                 raise
-            raise LinkError(f"the serial port {self.port} was closed while {what} waited for its reply") from None
+            raise self._closed_under(what) from None
         finally:
             self._expected_reply_bytes = 0
             self.stats.busy_s += time.monotonic() - started
