@@ -45,7 +45,7 @@ $(NATIVE_GEN) &: $(NATIVE_DIR)/invert.h $(FIT_CORE_DIR)/table_fit.h tools/gen_na
 # -O3 (the fit's loops inlined and unrolled further than -O2 does: faster, as `trimeter bench fit` shows) changes
 # no result: without -ffast-math nothing is reassociated, and -std=c11 contracts nothing into FMAs.
 $(NATIVE_LIB): $(NATIVE_SOURCES) $(NATIVE_GEN)
-	$(CC) -O3 -std=c11 -Wall -Wextra -Werror -shared -fPIC -I$(FIT_CORE_DIR) \
+	$(CC) -O3 -std=c11 -Wall -Wextra -Werror -shared -fPIC -pthread -I$(FIT_CORE_DIR) \
 	  -DTM_SOURCE_HASH=0x$$(cat $(NATIVE_SOURCES) | sha256sum | cut -c1-16)ULL \
 	  -o $@ $(filter %.c,$(NATIVE_SOURCES)) -lm
 

@@ -177,6 +177,27 @@ def test_three_thicknesses_in_one_call_are_the_per_thickness_fits_combined(ideal
     assert (together.flags & int(FitFlag.THICKNESS_DISAGREE)).any()
 
 
+@pytest.mark.skipif(not native.available(), reason=native.status())
+@pytest.mark.parametrize("options", [{}, dict(I_b_std=2e-3, I_w_std=1e-3, I_c_std=np.nan, thickness_std_mm=0.02)])
+def test_thicknesses_fitted_in_threads_are_those_fitted_one_after_the_other(options):
+    """Each thickness in a thread of its own, some in threads and the rest in the caller's (three thicknesses,
+    two threads), more threads than thicknesses: every column bit for bit as in one thread."""
+    models, I, rho = _device_pair_inputs(np.random.default_rng(5), n=777)
+    models, I = [*models, models[0]], [np.concatenate([x, x[:1] * 1.01]) for x in I]
+    kw = dict(rho_b=rho[0], rho_w=rho[1], method="lut", **options)
+    alone = api.fit(models, *I, kernel=NativeKernel(threads=1), **kw)
+    for threads in (2, 3, 8):
+        _assert_identical(alone, api.fit(models, *I, kernel=NativeKernel(threads=threads), **kw))
+    assert np.isfinite(alone.alpha).mean() > 0.9 and (alone.flags != 0).any()
+
+
+@pytest.mark.skipif(not native.available(), reason=native.status())
+@pytest.mark.parametrize("threads", [0, -1, 1.5, True, "2"])
+def test_a_thread_count_that_is_not_a_whole_number_of_at_least_one_is_refused(threads):
+    with pytest.raises(ValueError, match="threads must be"):
+        NativeKernel(threads=threads)
+
+
 def test_the_numpy_kernel_has_no_one_call_path_for_several_thicknesses():
     assert NumpyKernel().fit_thicknesses([], (), sd=None, options=[], method="lut", **THRESHOLDS) is None
 

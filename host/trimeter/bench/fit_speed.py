@@ -56,10 +56,12 @@ def speed(amaps: list[AppearanceMap], median_bins: int, repeats: int) -> dict[st
     Bins: the ideal (else the first) map's held-out materials inside the hull of its nodes, noise-free,
     tiled to 1024. Two thicknesses: where two
     maps share geometry and n at other thicknesses, the same materials' intensities from each map's
-    forward model, fitted together; the one-thickness fit of the first of them is timed beside it."""
+    forward model, fitted together (the default kernel's threads, one per thickness where the process may
+    use as many CPUs, and in one thread); the one-thickness fit of the first of them is timed beside it."""
     import trimeter
     from trimeter.inversion.paper import coordinates, interpolator
     from trimeter.inversion.artifacts import load_artifacts
+    from trimeter.inversion.kernel import NativeKernel, default_kernel
 
     amap = next((m for m in amaps if m.recipe.get("geometry") == "ideal"), amaps[0])
     artifacts = load_artifacts(amap)
@@ -79,6 +81,7 @@ def speed(amaps: list[AppearanceMap], median_bins: int, repeats: int) -> dict[st
     pair = next(((a, b) for i, a in enumerate(amaps) for b in amaps[i + 1:]
                  if (a.recipe.get("geometry"), a.n) == (b.recipe.get("geometry"), b.n)
                  and a.thickness_mm != b.thickness_mm), None)
+    threads = min(2, _threads(default_kernel())) if pair is not None else 1
     if pair is not None:
         _, _, hp = heldout_for(pair[0])
         tp = np.resize(np.arange(len(hp["alpha"])), 1024)
@@ -90,6 +93,10 @@ def speed(amaps: list[AppearanceMap], median_bins: int, repeats: int) -> dict[st
                                                                     method="lut", **DEFAULT_POLISH)
         calls["lut, two thicknesses"] = lambda: trimeter.fit(list(pair), stacked[0], stacked[1], stacked[2],
                                                              method="lut", **DEFAULT_POLISH)
+        if threads > 1:
+            one_thread = NativeKernel(threads=1)
+            calls["lut, two thicknesses, one thread"] = lambda: trimeter.fit(
+                list(pair), stacked[0], stacked[1], stacked[2], method="lut", kernel=one_thread, **DEFAULT_POLISH)
     best = {name: np.inf for name in calls}
     for fn in calls.values():
         fn()
@@ -102,8 +109,9 @@ def speed(amaps: list[AppearanceMap], median_bins: int, repeats: int) -> dict[st
     paper_ms = timed_ms(median) * 1024 / nb
     lookup = best["bare lookup"]
     print(f"\n== speed with uncertainty: {amap.name}, 1024 bins (its held-out materials inside the hull of its "
-          f"nodes, noise-free), one core, "
-          f"best of {max(repeats, 1) * 20} round-robin rounds")
+          f"nodes, noise-free), one core"
+          + (f" (two thicknesses: {threads} threads, one per thickness, unless said)" if threads > 1 else "")
+          + f", best of {max(repeats, 1) * 20} round-robin rounds")
     print(f"   {'':44s} {'ms_per_1024':>12s} {'× bare lookup':>14s} {'× paper faster':>15s}")
     print(f"   {'paper ε-median (fixed; ' + str(nb) + ' bins, scaled)':44s} {paper_ms:12.4g} "
           f"{paper_ms / lookup:14.3g} {1.0:15.3g}")
@@ -117,7 +125,23 @@ def speed(amaps: list[AppearanceMap], median_bins: int, repeats: int) -> dict[st
     if pair is not None:
         two = best["lut, two thicknesses"]
         verdicts["two_thicknesses_ms"] = {"value": two, "max": SPEED_TWO_MS_MAX, "met": two <= SPEED_TWO_MS_MAX}
-        line += (f"; two thicknesses ({pair[0].name} + {pair[1].name}) ≤ {SPEED_TWO_MS_MAX:g} ms: {two:.3g} ms "
-                 f"{'met' if two <= SPEED_TWO_MS_MAX else 'MISSED'}")
+        line += (f"; two thicknesses ({pair[0].name} + {pair[1].name}, {threads} thread{'s' * (threads > 1)}) "
+                 f"≤ {SPEED_TWO_MS_MAX:g} ms: {two:.3g} ms {'met' if two <= SPEED_TWO_MS_MAX else 'MISSED'}")
+        if "lut, two thicknesses, one thread" in best:
+            one = best["lut, two thicknesses, one thread"]
+            verdicts["two_thicknesses_one_thread_ms"] = {"value": one, "max": SPEED_TWO_MS_MAX,
+                                                         "met": one <= SPEED_TWO_MS_MAX}
+            line += f"; in one thread: {one:.3g} ms {'met' if one <= SPEED_TWO_MS_MAX else 'MISSED'}"
     print(line)
-    return {"map": amap.name, "ms_per_1024": {**best, "paper ε-median": paper_ms}, "targets": verdicts}
+    return {"map": amap.name, "ms_per_1024": {**best, "paper ε-median": paper_ms}, "targets": verdicts,
+            "two_thickness_threads": threads}
+
+
+def _threads(kernel: object) -> int:
+    """How many threads the kernel fits several thicknesses in (the numpy kernel: one)."""
+    from trimeter.inversion import native
+    from trimeter.inversion.kernel import NativeKernel
+
+    if not isinstance(kernel, NativeKernel):
+        return 1
+    return kernel.threads or native.usable_cpus()

@@ -437,12 +437,15 @@ def _speed_lines(speed: dict[str, Any]) -> list[str]:
              f"{speed['map']}: 1024 bins (its held-out materials inside the hull of the map's nodes, noise-free), "
              "the whole lut fit, with per-bin σ and flags, against a bare scipy `LinearNDInterpolator` lookup of "
              "the same bins on the map's nodes (the paper's interpolant, built beforehand: the call alone), timed "
-             "round-robin in the same run; the paper's ε-median on fewer bins, scaled.", ""]
+             "round-robin in the same run; the paper's ε-median on fewer bins, scaled."
+             + (f" Two thicknesses run in {speed['two_thickness_threads']} threads, one per thickness, unless the row "
+                "says one thread; everything else in one." if speed.get("two_thickness_threads", 1) > 1 else ""), ""]
     lines += _table(["", "ms per 1024 bins", "× bare lookup"],
                     [[name, _g(ms), _g(ms / lookup)] for name, ms in times.items()])
     for key, t in speed["targets"].items():
         label = {"lut_over_lookup": "whole lut fit over a bare lookup",
-                 "two_thicknesses_ms": "two thicknesses fitted together, ms per 1024 bins"}.get(key, key)
+                 "two_thicknesses_ms": "two thicknesses fitted together, ms per 1024 bins",
+                 "two_thicknesses_one_thread_ms": "the same in one thread, ms per 1024 bins"}.get(key, key)
         lines.append(f"- {label}: {_g(t['value'])} (target ≤ {t['max']:g}): {'met' if t['met'] else 'missed'}")
     return lines + [""]
 

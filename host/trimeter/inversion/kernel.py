@@ -116,12 +116,16 @@ class NumpyKernel:
 
 class NativeKernel:
     """The compiled kernel; one NativeSolver per grid or table inverter, made on first use and kept as
-    long as the grid or inverter lives."""
+    long as the grid or inverter lives. threads: how many thicknesses of one fit run at once (None: as many
+    as the process may use CPUs, at each fit); the results are the same for any count."""
     name = "native"
 
-    def __init__(self) -> None:
+    def __init__(self, threads: int | None = None) -> None:
         if not native.available():
             raise RuntimeError(f"the native kernel is not available: {native.status()}")
+        if threads is not None and (isinstance(threads, bool) or not isinstance(threads, int) or threads < 1):
+            raise ValueError(f"threads must be a whole number ≥ 1 or None, not {threads!r}")
+        self.threads = threads
         self._solvers: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
     def _grid_solver(self, grid: ForwardGrid) -> native.NativeSolver:
@@ -196,7 +200,8 @@ class NativeKernel:
         written into output_blocks' are; a thickness without stds of its own has no conditioning stds."""
         fits, combined, _ = native.fit_thicknesses([self._table_solver(t) for t in inverters], *inputs, sd=sd,
                                                    options=options, underdetermined_std=underdetermined_std,
-                                                   disagree_sigmas=disagree_sigmas)
+                                                   disagree_sigmas=disagree_sigmas,
+                                                   threads=self.threads or native.usable_cpus())
         return FitResult(**self._columns(combined), method=method,
                          per_thickness=[FitResult(**self._columns(block, own_conditioning=sd is not None),
                                                   method=method) for block in fits])

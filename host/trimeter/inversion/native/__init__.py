@@ -344,11 +344,12 @@ def _side_by_side(solvers: list[NativeSolver], options: list[_FitOptionsC]) -> t
 
 def fit_thicknesses(solvers: list[NativeSolver], I_b: np.ndarray, I_w: np.ndarray, I_c: np.ndarray,
                     rho_b: np.ndarray, rho_w: np.ndarray, *, sd: ArrayLike | None, options: list[dict[str, Any]],
-                    underdetermined_std: tuple[float, float], disagree_sigmas: float
+                    underdetermined_std: tuple[float, float], disagree_sigmas: float, threads: int = 1
                     ) -> tuple[np.ndarray, np.ndarray, int]:
     """k thicknesses of the same n bins in one call (invert.h `tm_fit_thicknesses`): thickness j fitted as
     solvers[j].fit(row j of the (k, n) inputs, sd=sd[j], **options[j]) fits it (from its table's guess),
     then the k fits combined as combine() combines them. sd: the intensities' stds (k, n, 3), or None.
+    threads: up to this many thicknesses fitted at once (the results are the same for any count).
     Returns (the k fits' output blocks (k, rows, n), the combined block (rows, n), the Newton steps)."""
     k = len(solvers)
     if k < 1 or len(options) != k:
@@ -366,9 +367,17 @@ def fit_thicknesses(solvers: list[NativeSolver], I_b: np.ndarray, I_w: np.ndarra
     combined = np.empty((len(_OUTPUT_ROWS), n))
     steps = _library().tm_fit_thicknesses(k, grids, tables, opts, n, *(_addr(x) for x in inputs),
                                           None if sd is None else _addr(sd), *underdetermined_std, disagree_sigmas,
-                                          _addr(fits), _addr(combined))
+                                          _addr(fits), _addr(combined), max(1, min(int(threads), k)))
     _check(steps)
     return fits, combined, int(steps)
+
+
+def usable_cpus() -> int:
+    """The CPUs this process may run on (its affinity, where the OS has one; else all of them)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # no affinity API (macOS)
+        return os.cpu_count() or 1
 
 
 def _fit_outputs(n: int, block: np.ndarray | None = None) -> tuple[np.ndarray, dict[str, Any]]:

@@ -1,5 +1,6 @@
 /* The host library's extras around the kernel (not linked into the firmware): the entry points
  * that allocate their scratch, and the hash of the sources the library was built from. */
+#include <pthread.h>
 #include <stdlib.h>
 
 #include "compact.h"
@@ -24,26 +25,69 @@ long long tm_fit(const tm_forward_grid *f, const tm_inverse_table *table, const 
     return steps;
 }
 
+/* One thickness of tm_fit_thicknesses: tm_fit's two halves into its block, with scratch of its own */
+typedef struct {
+    const tm_forward_grid *f;
+    const tm_inverse_table *table;
+    const tm_fit_options *o;
+    size_t n;
+    const double *I_b, *I_w, *I_c, *rho_b, *rho_w, *sd_in;
+    double *block;
+    long long steps; /* tm_fit's result */
+} thickness_job_t;
+
+static void *fit_thickness(void *arg) {
+    thickness_job_t *j = arg;
+    void *scratch = malloc(tm_fit_scratch_size(j->n));
+    if (!scratch) {
+        j->steps = -2;
+        return NULL;
+    }
+    tm_fit_prepare(j->f, j->o, j->n, j->I_b, j->I_w, j->I_c, j->rho_b, j->rho_w, j->sd_in, scratch, j->block, 0.0, 0.0,
+                   NULL);
+    j->steps = tm_fit_solve(j->f, j->table, j->o, j->n, NULL, NULL, scratch, j->block);
+    free(scratch);
+    return NULL;
+}
+
+/* Below this many bins a thickness is fitted in the calling thread: starting a thread costs about what
+ * fitting this many bins does */
+#define THREAD_MIN_BINS 128
+
 long long tm_fit_thicknesses(size_t k, const tm_forward_grid *grids, const tm_inverse_table *tables,
                              const tm_fit_options *options, size_t n, const double *I_b, const double *I_w,
                              const double *I_c, const double *rho_b, const double *rho_w, const double *sd_in,
                              double underdetermined_alpha_std, double underdetermined_g_std, double disagree_sigmas,
-                             double *fits, double *outputs) {
+                             double *fits, double *outputs, int threads) {
     if (!k || !tables) return -1;
     for (size_t j = 0; j < k; j++)
         if (!grid_ok(&grids[j], &tables[j])) return -1;
-    void *scratch = n > UINT32_MAX ? NULL : malloc(tm_fit_scratch_size(n));
-    if (!scratch) return -2;
-    long long steps = 0;
-    for (size_t j = 0; j < k && steps >= 0; j++) {
-        const size_t at = j * n;
-        double *block = fits + j * (size_t)TM_ROW_COUNT * n;
-        tm_fit_prepare(&grids[j], &options[j], n, I_b + at, I_w + at, I_c + at, rho_b + at, rho_w + at,
-                       sd_in ? sd_in + 3u * at : NULL, scratch, block, 0.0, 0.0, NULL);
-        long long taken = tm_fit_solve(&grids[j], &tables[j], &options[j], n, NULL, NULL, scratch, block);
-        steps = taken < 0 ? taken : steps + taken;
+    thickness_job_t *jobs = n > UINT32_MAX ? NULL : malloc(k * sizeof *jobs);
+    pthread_t *started = malloc(k * sizeof *started);
+    if (!jobs || !started) {
+        free(jobs);
+        free(started);
+        return -2;
     }
-    free(scratch);
+    for (size_t j = 0; j < k; j++) {
+        const size_t at = j * n;
+        jobs[j] = (thickness_job_t){&grids[j], &tables[j], &options[j], n, I_b + at, I_w + at, I_c + at, rho_b + at,
+                                    rho_w + at, sd_in ? sd_in + 3u * at : NULL, fits + j * (size_t)TM_ROW_COUNT * n,
+                                    0};
+    }
+    /* thicknesses 1.. in threads of their own (up to threads - 1 of them) while this one fits thickness 0,
+     * then the rest here in turn; each bin's fit is its own, so the results are the same for any threads */
+    size_t helpers = threads > 1 && n >= THREAD_MIN_BINS ? (size_t)threads - 1 : 0, running = 0;
+    while (running < helpers && running + 1 < k &&
+           pthread_create(&started[running], NULL, fit_thickness, &jobs[running + 1]) == 0)
+        running++;
+    for (size_t j = 0; j < k; j++)
+        if (j == 0 || j > running) fit_thickness(&jobs[j]);
+    for (size_t t = 0; t < running; t++) pthread_join(started[t], NULL);
+    long long steps = 0;
+    for (size_t j = 0; j < k && steps >= 0; j++) steps = jobs[j].steps < 0 ? jobs[j].steps : steps + jobs[j].steps;
+    free(jobs);
+    free(started);
     if (steps >= 0) tm_combine(k, n, fits, underdetermined_alpha_std, underdetermined_g_std, disagree_sigmas, outputs);
     return steps;
 }

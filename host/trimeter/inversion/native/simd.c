@@ -483,7 +483,8 @@ int tmi_finish4(const finish_ctx_t *c, size_t i) {
     return _mm256_movemask_pd(check);
 }
 
-static int simd_enabled = -1; /* -1: not decided yet */
+/* -1: not decided yet; atomic, as the threads of tm_fit_thicknesses read it (on x86 a plain load) */
+static _Atomic int simd_enabled = -1;
 
 int tmi_use_simd(void) {
     if (simd_enabled < 0) {
