@@ -352,6 +352,20 @@ def test_a_span_of_registers_is_read_in_requests_the_line_carries(slave_factory)
         RtuTransport(slave.port, timeout_s=0.1, attempts=2).read_words("input_register", 0, 30)
 
 
+def test_only_a_clean_read_of_the_whole_record_size_grows_it(slave_factory):
+    """A short read passing says nothing of the longer frames the line garbled: the end of a transfer, or a
+    poll of a few registers, leaves the record size where the long reads put it."""
+    slave = slave_factory()
+    link = RtuTransport(slave.port, timeout_s=0.3)
+    link.record_words = 16
+    for _ in range(3):
+        link.read_words("holding_register", 10, 3)
+    assert link.record_words == 16
+    link.read_words("holding_register", 10, 16)
+    assert link.record_words == 20
+    link.close()
+
+
 def test_a_link_closed_by_another_thread_mid_request_is_a_link_error(slave_factory):
     """A service stopping while its loop still waits for a reply (the soak's end): the waiting request ends with
     a DeviceError the service's loop handles, never pyserial's TypeError on a closed port."""

@@ -466,7 +466,7 @@ class RtuTransport:
     def read_words(self, table: str, address: int, count: int) -> list[int]:
         fc = TABLE_FUNCTION[table]
         method = {3: "read_holding_registers", 4: "read_input_registers"}[fc]
-        with self._sizing_records():
+        with self._sizing_records(count):
             reply = self._execute(
                 f"a read of {count} {table}s at {address}", fc,
                 lambda c: getattr(c, method)(address, count=count, device_id=self.address),
@@ -489,7 +489,7 @@ class RtuTransport:
 
     def read_file_records(self, file_number: int, record_number: int, count: int) -> bytes:
         request = [FileRecord(file_number=file_number, record_number=record_number, record_length=2 * count)]
-        with self._sizing_records():
+        with self._sizing_records(count):
             reply = self._execute(
                 f"a file-record read of file {file_number} record {record_number} (+{count})", FILE_RECORD_READ,
                 lambda c: c.read_file_record(request, device_id=self.address),
@@ -500,7 +500,7 @@ class RtuTransport:
 
     def write_file_records(self, file_number: int, record_number: int, data: bytes) -> None:
         request = [FileRecord(file_number=file_number, record_number=record_number, record_data=bytes(data))]
-        with self._sizing_records():
+        with self._sizing_records(len(data) // 2):
             self._execute(
                 f"a file-record write of file {file_number} record {record_number} (+{len(data) // 2})", 0x15,
                 lambda c: c.write_file_record(request, device_id=self.address),
@@ -509,9 +509,10 @@ class RtuTransport:
                 12 + len(data), 12 + len(data))
 
     @contextlib.contextmanager
-    def _sizing_records(self) -> Iterator[None]:
-        """record_words after one file-record or register read: halved when it failed, or needed two or more tries
-        again (a garbled or missing reply); grown by a quarter when its first try passed."""
+    def _sizing_records(self, words: int) -> Iterator[None]:
+        """record_words after one file-record or register request of `words` words: halved when it failed, or
+        had four or more tries fail (garbled or missing replies); grown by a quarter when its first try passed and it
+        was at least record_words long (a shorter one passing says nothing of the longer frames that failed)."""
         failures_before = self.stats.garbled_replies + self.stats.timeouts
         try:
             yield
@@ -521,5 +522,5 @@ class RtuTransport:
         failed = self.stats.garbled_replies + self.stats.timeouts - failures_before
         if failed >= 4:
             self.record_words = max(MIN_FILE_RECORD_WORDS, self.record_words // 2)
-        elif failed == 0:
+        elif failed == 0 and words >= self.record_words:
             self.record_words = min(MAX_FILE_RECORD_WORDS, self.record_words + max(1, self.record_words // 4))
