@@ -31,11 +31,10 @@ def pytest_collection_modifyitems(config, items):
 @pytest.fixture(scope="session", autouse=True)
 def cache_dir_of_this_process():
     """TRIMETER_CACHE_DIR (the device tables read from instruments, the twin's seeded storage images) one
-    directory per pytest process, kept between runs: under pytest-xdist the workers' twins would otherwise
-    read the same table into one cache at once, each truncating and resuming the other's partial file
-    (trimeter.device.table_cache). A subdirectory of the cache directory in force (TRIMETER_CACHE_DIR or
-    the user's), named by the worker (PYTEST_XDIST_WORKER; "main" without xdist); tests that need an
-    empty cache still set their own."""
+    directory per pytest process, kept between runs: under pytest-xdist each worker's twins then find (or
+    miss) the tables their own tests cached, whatever the other worker ran before. A subdirectory of the
+    cache directory in force (TRIMETER_CACHE_DIR or the user's), named by the worker (PYTEST_XDIST_WORKER;
+    "main" without xdist); tests that need an empty cache still set their own."""
     import platformdirs
 
     base = os.environ.get("TRIMETER_CACHE_DIR") or platformdirs.user_cache_dir("trimeter")

@@ -10,7 +10,7 @@ import pytest
 from trimeter.device.table_cache import PARTIAL_SUFFIX, instrument_table
 from trimeter.device.transport import LinkError
 from trimeter.errors import MapFileError
-from trimeter.formats.device_table import DeviceTable
+from trimeter.formats.device_table import SUFFIX, DeviceTable
 from trimeter.paths import MAPS_DIR
 from trimeter.registers import MapSlot
 
@@ -94,3 +94,26 @@ def test_bytes_kept_for_another_table_or_behind_a_link_are_not_used(tmp_path):
     device = FlakySlotDevice(TABLE, per_read=len(TABLE))
     assert instrument_table(device, cache)[0].sha256 == DeviceTable.from_bytes(TABLE).sha256
     assert device.offsets == [0] and elsewhere.read_bytes() == TABLE[:60_000]
+
+
+@pytest.mark.skipif(os.name != "posix", reason="the lock is POSIX's flock")
+def test_a_second_reader_of_the_same_table_neither_resumes_nor_damages_the_first_ones_bytes(tmp_path):
+    """Two processes reading the same table at once (two instruments with the same map): the one that holds
+    the kept bytes goes on with them, the other reads its own from the start and leaves them alone."""
+    import fcntl
+
+    with pytest.raises(LinkError):
+        instrument_table(FlakySlotDevice(TABLE, per_read=48_000), tmp_path)
+    (partial,) = tmp_path.glob("*" + PARTIAL_SUFFIX)
+    with open(partial, "rb") as held:  # the first reader, still reading
+        fcntl.flock(held, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        with pytest.raises(LinkError):  # cut short: nothing of it kept
+            instrument_table(FlakySlotDevice(TABLE, per_read=10_000), tmp_path)
+        second = FlakySlotDevice(TABLE, per_read=len(TABLE))
+        assert instrument_table(second, tmp_path)[0].sha256 == DeviceTable.from_bytes(TABLE).sha256
+        assert second.offsets == [0] and partial.read_bytes() == TABLE[:48_000]  # read alone, the kept bytes left
+    for cached in tmp_path.glob("*" + SUFFIX):  # so that the first reader's next try reads the slot again
+        cached.unlink()
+    device = FlakySlotDevice(TABLE, per_read=len(TABLE))
+    assert instrument_table(device, tmp_path)[0].sha256 == DeviceTable.from_bytes(TABLE).sha256
+    assert device.offsets == [48_000] and not partial.exists()

@@ -7,14 +7,19 @@ import contextlib
 import hashlib
 import os
 import re
+import stat
 from pathlib import Path
 from typing import IO, TYPE_CHECKING, Any
 
+try:
+    import fcntl
+except ImportError:  # not on Windows: one reader at a time is then not enforced
+    fcntl = None  # type: ignore[assignment]
+
 from trimeter.atomic import atomic_write
-from trimeter.errors import InputError, MapFileError, OutputError
+from trimeter.errors import MapFileError, OutputError
 from trimeter.formats.device_table import HEADER_SIZE, MAX_BYTES, SUFFIX, DeviceTable, read_header
 from trimeter.registers import MapSlot
-from trimeter.tables import open_checked
 
 if TYPE_CHECKING:
     from trimeter.device.client import Device
@@ -100,41 +105,37 @@ def instrument_table(device: Device, cache: Path | None = None) -> tuple[DeviceT
         return table, active.name, True
     # named by what identifies the table before it is whole: its length, header and trailing CRC-32
     partial = directory / f"{length}-{hashlib.sha256(head).hexdigest()[:16]}-{tail.hex()}{PARTIAL_SUFFIX}"
-    data = _read_slot(device, active, length, partial)
+    data, resumable = _read_slot(device, active, length, partial)
     try:
         table = DeviceTable.from_bytes(data, source=f"the device's slot {active.name}")
     except MapFileError as exc:
         raise MapFileError(f"{exc}; flash a current table (`trimeter map flash maps/<map>.tlut --port PORT`) or "
                            f"pass --map") from None
     finally:
-        partial.unlink(missing_ok=True)  # whole now, or not worth resuming: the next read starts afresh
+        if resumable:  # whole now, or not worth resuming: the next read starts afresh
+            partial.unlink(missing_ok=True)
     with contextlib.suppress(OutputError):  # an unwritable cache costs the next run a read, nothing else
         atomic_write(directory / f"{table.sha256}{SUFFIX}", data)
     return table, active.name, False
 
 
-def _read_slot(device: Device, slot: MapSlot, length: int, partial: Path) -> bytes:
+def _read_slot(device: Device, slot: MapSlot, length: int, partial: Path) -> tuple[bytes, bool]:
     """The slot's `length` bytes, going on from what an earlier read of the same table left in `partial` when
-    the link cut it short. The bytes are kept there as they arrive, so a read that fails (its time budget
-    spent on a noisy line) is resumed by the next try, the service's or the next press's, instead of
-    starting over: on a line too noisy to carry a whole table in one budget, the table still arrives. The
-    whole table's CRC-32 is checked afterwards (DeviceTable.from_bytes), whatever tries it took."""
+    the link cut it short; and whether this read kept its bytes there (the caller then removes the file). The
+    bytes are kept as they arrive, so a read that fails (its time budget spent on a noisy line) is resumed by
+    the next try, the service's or the next press's, instead of starting over: on a line too noisy to carry a
+    whole table in one budget, the table still arrives. The whole table's CRC-32 is checked afterwards
+    (DeviceTable.from_bytes), whatever tries it took. One reader at a time keeps bytes in `partial` (a lock on
+    it): another process reading the same table meanwhile (a second instrument with the same map) reads its
+    own from the start without keeping them."""
+    sink = _resume_file(partial)
     data = bytearray()
-    with contextlib.suppress(OSError, InputError):
-        with open_checked(partial, max_bytes=length, follow_symlinks=False, binary=True) as f:
-            kept = f.read(length)
-        data += kept[:len(kept) & ~1]  # whole 16-bit records only
-    try:
-        partial.parent.mkdir(parents=True, exist_ok=True)
-        # not through a link, and a FIFO put there fails at once instead of waiting for a reader
-        fd = os.open(partial, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_NONBLOCK | getattr(os, "O_NOFOLLOW", 0),
-                     0o644)
-        sink: IO[bytes] | None = os.fdopen(fd, "wb")
-    except OSError:
-        sink = None  # an unwritable cache: the read is not resumable, nothing else
     try:
         if sink is not None:
-            sink.write(data)
+            data += sink.read(length)
+            del data[len(data) & ~1:]  # whole 16-bit records only
+            sink.seek(len(data))
+            sink.truncate()
             sink.flush()
 
         def keep(chunk: bytes) -> None:
@@ -147,5 +148,25 @@ def _read_slot(device: Device, slot: MapSlot, length: int, partial: Path) -> byt
             data += device.read_map(slot, length - len(data), offset=len(data), on_data=keep)
     finally:
         if sink is not None:
-            sink.close()
-    return bytes(data[:length])
+            sink.close()  # and with it the lock
+    return bytes(data[:length]), sink is not None
+
+
+def _resume_file(partial: Path) -> IO[bytes] | None:
+    """`partial` opened to read and write, locked for this reader alone; None where it cannot be (an unwritable
+    cache, not a regular file, or another reader holds it): the read then goes on without keeping its bytes."""
+    try:
+        partial.parent.mkdir(parents=True, exist_ok=True)
+        # not through a link, and a FIFO put there fails at once instead of waiting for a writer
+        fd = os.open(partial, os.O_RDWR | os.O_CREAT | os.O_NONBLOCK | getattr(os, "O_NOFOLLOW", 0), 0o644)
+    except OSError:
+        return None
+    try:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            raise OSError(f"{partial} is not a regular file")
+        if fcntl is not None:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)  # BlockingIOError (an OSError) while another holds it
+        return os.fdopen(fd, "r+b")
+    except OSError:
+        os.close(fd)
+        return None
