@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 
+import pytest
+
 from trimeter.cli import main
 
 from inversion_support import DATA
@@ -47,19 +49,31 @@ def test_bench_fit_reports_figures_and_plot(tmp_path, capsys):
     assert ms["paper ε-median"] > ms["lut"] > 0
 
 
-def test_speed_times_two_thicknesses_where_two_maps_differ_only_in_thickness(capsys):
+@pytest.mark.parametrize("cpus", [1, 2])
+def test_speed_times_two_thicknesses_where_two_maps_differ_only_in_thickness(capsys, monkeypatch, cpus):
+    """Where the process may use two CPUs (and the kernel is the C one) the two thicknesses are timed in a
+    thread each and in one thread, both judged; on one CPU in one thread only."""
     from trimeter.bench.fit_speed import SPEED_TWO_MS_MAX, speed
     from trimeter.formats.appearance import AppearanceMap
+    from trimeter.inversion import native
 
+    monkeypatch.setattr(native, "usable_cpus", lambda: cpus)
     maps = [AppearanceMap.load(DATA / name) for name in ("ideal-l0.5.tmap", "ideal-l1.0.tmap")]
     report = speed(maps, 4, 1)
+    ms, threads = report["ms_per_1024"], report["two_thickness_threads"]
+    assert threads == (cpus if native.available() else 1)
     two = report["targets"]["two_thicknesses_ms"]
-    assert two["value"] == report["ms_per_1024"]["lut, two thicknesses"] > 0
+    assert two["value"] == ms["lut, two thicknesses"] > 0
     assert two["met"] == (two["value"] <= SPEED_TWO_MS_MAX)
+    one = report["targets"].get("two_thicknesses_one_thread_ms")
+    assert (one is not None) == (threads > 1)
+    if one is not None:
+        assert one["value"] == ms["lut, two thicknesses, one thread"] > 0 and one["met"] == (one["value"] <= 0.8)
     text = capsys.readouterr().out
     rows = [line for line in text.splitlines() if line.startswith("   ") and "×" not in line and "targets" not in line]
-    assert len(rows) == 5, text  # the paper's ε-median, the lookup, lut, lut on the first map alone, both maps
-    assert "two thicknesses (ideal-l0.5 + ideal-l1.0)" in text
+    # the paper's ε-median, the lookup, lut, lut on the first map alone, both maps (in threads, and in one)
+    assert len(rows) == 5 + (threads > 1), text
+    assert f"two thicknesses (ideal-l0.5 + ideal-l1.0, {threads} thread" in text
 
 
 def test_per_wavelength_backgrounds_case_scores_the_fit_at_the_bins_own_backgrounds():
