@@ -3,6 +3,7 @@ numpy reference it mirrors: the same columns and flags bit for bit, on random fi
 zero values and stds, any flag bits, with and without conditioning stds, one to four thicknesses."""
 
 import dataclasses
+import os
 
 import numpy as np
 import pytest
@@ -189,6 +190,41 @@ def test_thicknesses_fitted_in_threads_are_those_fitted_one_after_the_other(opti
     for threads in (2, 3, 8):
         _assert_identical(alone, api.fit(models, *I, kernel=NativeKernel(threads=threads), **kw))
     assert np.isfinite(alone.alpha).mean() > 0.9 and (alone.flags != 0).any()
+
+
+_FORKED_CASE: dict = {}  # what a forked child fits: inherited with the parent's memory, nothing sent to it
+
+
+def _fit_in_a_forked_child():
+    """The threaded fit's columns, in a child forked after the parent's helper threads were started (they
+    are not in the child: its fit must start its own, not wait for the parent's forever)."""
+    models, I, kw = _FORKED_CASE["case"]
+    together = api.fit(models, *I, kernel=NativeKernel(threads=2), **kw)
+    return together.alpha.tobytes() + together.g_std.tobytes() + together.flags.tobytes()
+
+
+@pytest.mark.skipif(not native.available() or not hasattr(os, "fork"), reason="needs the native kernel and fork()")
+def test_threads_kept_between_fits_serve_concurrent_callers_and_a_forked_child():
+    """The helper threads outlive a call: fits from several threads at once (some find every helper busy
+    and fit alone) and from a child forked after the helpers started all give the one-thread columns."""
+    import multiprocessing
+    from concurrent.futures import ThreadPoolExecutor
+
+    models, I, rho = _device_pair_inputs(np.random.default_rng(9), n=600)
+    kw = dict(rho_b=rho[0], rho_w=rho[1], method="lut")
+    alone = api.fit(models, *I, kernel=NativeKernel(threads=1), **kw)
+    threaded = NativeKernel(threads=2)
+    with ThreadPoolExecutor(max_workers=12) as pool:
+        results = list(pool.map(lambda _: api.fit(models, *I, kernel=threaded, **kw), range(24)))
+    for result in results:
+        _assert_identical(alone, result)
+    expected = alone.alpha.tobytes() + alone.g_std.tobytes() + alone.flags.tobytes()
+    _FORKED_CASE["case"] = (models, I, kw)
+    try:
+        with multiprocessing.get_context("fork").Pool(1) as child:
+            assert child.apply_async(_fit_in_a_forked_child).get(timeout=60) == expected
+    finally:
+        _FORKED_CASE.clear()
 
 
 @pytest.mark.skipif(not native.available(), reason=native.status())

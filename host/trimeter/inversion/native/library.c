@@ -50,7 +50,87 @@ static void *fit_thickness(void *arg) {
     return NULL;
 }
 
-/* Below this many bins a thickness is fitted in the calling thread: starting a thread costs about what
+/* Threads kept between calls to fit thicknesses beside the caller's: starting a thread each call costs
+ * about a tenth of a two-thickness fit where its CPU had gone idle. A helper is started on its first job
+ * and then waits for the next; one given to no caller is free. */
+#define HELPERS 7
+
+typedef struct {
+    pthread_mutex_t lock;
+    pthread_cond_t cond;      /* a job handed over (the helper waits for it), or finished (the caller does) */
+    thickness_job_t *job;     /* NULL: free */
+    int finished, exists;
+} helper_t;
+
+static helper_t helpers[HELPERS];
+static pthread_once_t helpers_once = PTHREAD_ONCE_INIT;
+
+static void reset_helpers(void) {
+    for (int i = 0; i < HELPERS; i++) {
+        helper_t *h = &helpers[i];
+        pthread_mutex_init(&h->lock, NULL);
+        pthread_cond_init(&h->cond, NULL);
+        h->job = NULL;
+        h->finished = h->exists = 0;
+    }
+}
+
+/* A child after fork() has none of its parent's threads: its helpers start again when first needed (the
+ * parent's locks may have been held by one of them) */
+static void init_helpers(void) {
+    reset_helpers();
+    pthread_atfork(NULL, NULL, reset_helpers);
+}
+
+static void *helper_loop(void *arg) {
+    helper_t *h = arg;
+    pthread_mutex_lock(&h->lock);
+    for (;;) {
+        while (!h->job || h->finished) pthread_cond_wait(&h->cond, &h->lock);
+        thickness_job_t *job = h->job;
+        pthread_mutex_unlock(&h->lock);
+        fit_thickness(job);
+        pthread_mutex_lock(&h->lock);
+        h->finished = 1;
+        pthread_cond_broadcast(&h->cond);
+    }
+    return NULL;
+}
+
+static int start_helper(helper_t *h) {
+    pthread_t thread;
+    if (pthread_create(&thread, NULL, helper_loop, h)) return 0;
+    pthread_detach(thread);
+    return 1;
+}
+
+/* The job handed to a free helper (started on its first use): that helper, or NULL where none is free */
+static helper_t *hand_over(thickness_job_t *job) {
+    pthread_once(&helpers_once, init_helpers);
+    for (int i = 0; i < HELPERS; i++) {
+        helper_t *h = &helpers[i];
+        pthread_mutex_lock(&h->lock);
+        int taken = !h->job && (h->exists || (h->exists = start_helper(h)));
+        if (taken) {
+            h->job = job;
+            h->finished = 0;
+            pthread_cond_broadcast(&h->cond);
+        }
+        pthread_mutex_unlock(&h->lock);
+        if (taken) return h;
+    }
+    return NULL;
+}
+
+/* Waits for the helper's job and frees it */
+static void collect(helper_t *h) {
+    pthread_mutex_lock(&h->lock);
+    while (!h->finished) pthread_cond_wait(&h->cond, &h->lock);
+    h->job = NULL;
+    pthread_mutex_unlock(&h->lock);
+}
+
+/* Below this many bins a thickness is fitted in the calling thread: handing it over costs about what
  * fitting this many bins does */
 #define THREAD_MIN_BINS 128
 
@@ -63,10 +143,10 @@ long long tm_fit_thicknesses(size_t k, const tm_forward_grid *grids, const tm_in
     for (size_t j = 0; j < k; j++)
         if (!grid_ok(&grids[j], &tables[j])) return -1;
     thickness_job_t *jobs = n > UINT32_MAX ? NULL : malloc(k * sizeof *jobs);
-    pthread_t *started = malloc(k * sizeof *started);
-    if (!jobs || !started) {
+    helper_t **given = malloc(k * sizeof *given);
+    if (!jobs || !given) {
         free(jobs);
-        free(started);
+        free(given);
         return -2;
     }
     for (size_t j = 0; j < k; j++) {
@@ -75,19 +155,19 @@ long long tm_fit_thicknesses(size_t k, const tm_forward_grid *grids, const tm_in
                                     rho_w + at, sd_in ? sd_in + 3u * at : NULL, fits + j * (size_t)TM_ROW_COUNT * n,
                                     0};
     }
-    /* thicknesses 1.. in threads of their own (up to threads - 1 of them) while this one fits thickness 0,
-     * then the rest here in turn; each bin's fit is its own, so the results are the same for any threads */
-    size_t helpers = threads > 1 && n >= THREAD_MIN_BINS ? (size_t)threads - 1 : 0, running = 0;
-    while (running < helpers && running + 1 < k &&
-           pthread_create(&started[running], NULL, fit_thickness, &jobs[running + 1]) == 0)
+    /* thicknesses 1.. to helpers (up to threads - 1 of them, as many as are free) while this thread fits
+     * thickness 0, then the rest here in turn; each bin's fit is its own, so the results are the same
+     * for any threads */
+    size_t wanted = threads > 1 && n >= THREAD_MIN_BINS ? (size_t)threads - 1 : 0, running = 0;
+    while (running < wanted && running + 1 < k && (given[running] = hand_over(&jobs[running + 1])) != NULL)
         running++;
     for (size_t j = 0; j < k; j++)
         if (j == 0 || j > running) fit_thickness(&jobs[j]);
-    for (size_t t = 0; t < running; t++) pthread_join(started[t], NULL);
+    for (size_t t = 0; t < running; t++) collect(given[t]);
     long long steps = 0;
     for (size_t j = 0; j < k && steps >= 0; j++) steps = jobs[j].steps < 0 ? jobs[j].steps : steps + jobs[j].steps;
     free(jobs);
-    free(started);
+    free(given);
     if (steps >= 0) tm_combine(k, n, fits, underdetermined_alpha_std, underdetermined_g_std, disagree_sigmas, outputs);
     return steps;
 }
