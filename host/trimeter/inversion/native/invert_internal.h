@@ -8,8 +8,9 @@
  *   simd.c      four bins per step with AVX2: the polish, the σ check, two thicknesses' combination
  *               (x86-64 only; empty elsewhere)
  *   pipeline.c  the whole fit: input flags, σt from I_c, polish, in-scattering, stds, their check
- *   library.c   the host library's extras: malloc'd scratch, the build's source hash
- * The firmware links the first four; only library.c allocates. */
+ *   library.c   the host library's extras: malloc'd scratch, threads for several thicknesses, the source hash
+ * `make native-portable` builds the first four for the Cortex-M4 too (the stand-in for a host without
+ * AVX2); only library.c allocates or starts threads. */
 #ifndef TRIMETER_INVERT_INTERNAL_H
 #define TRIMETER_INVERT_INTERNAL_H
 

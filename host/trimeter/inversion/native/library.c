@@ -1,5 +1,6 @@
 /* The host library's extras around the kernel (not linked into the firmware): the entry points
- * that allocate their scratch, and the hash of the sources the library was built from. */
+ * that allocate their scratch, the threads that fit several thicknesses at once, and the hash of the
+ * sources the library was built from. */
 #include <pthread.h>
 #include <stdlib.h>
 
