@@ -81,7 +81,8 @@ def speed(amaps: list[AppearanceMap], median_bins: int, repeats: int) -> dict[st
     pair = next(((a, b) for i, a in enumerate(amaps) for b in amaps[i + 1:]
                  if (a.recipe.get("geometry"), a.n) == (b.recipe.get("geometry"), b.n)
                  and a.thickness_mm != b.thickness_mm), None)
-    threads = min(2, _threads(default_kernel())) if pair is not None else 1
+    kernel = default_kernel()
+    threads = min(2, kernel.fit_threads()) if pair is not None and isinstance(kernel, NativeKernel) else 1
     if pair is not None:
         _, _, hp = heldout_for(pair[0])
         tp = np.resize(np.arange(len(hp["alpha"])), 1024)
@@ -135,13 +136,3 @@ def speed(amaps: list[AppearanceMap], median_bins: int, repeats: int) -> dict[st
     print(line)
     return {"map": amap.name, "ms_per_1024": {**best, "paper ε-median": paper_ms}, "targets": verdicts,
             "two_thickness_threads": threads}
-
-
-def _threads(kernel: object) -> int:
-    """How many threads the kernel fits several thicknesses in (the numpy kernel: one)."""
-    from trimeter.inversion import native
-    from trimeter.inversion.kernel import NativeKernel
-
-    if not isinstance(kernel, NativeKernel):
-        return 1
-    return kernel.threads or native.usable_cpus()

@@ -255,7 +255,7 @@ def machine_stamp() -> dict[str, Any]:
     return {"commit": git("rev-parse", "HEAD") or "unknown (not a git checkout)",
             "commit_date": git("show", "-s", "--format=%cI", "HEAD"), "uncommitted_changes": bool(changed),
             "date_utc": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC"), "cpu": cpu,
-            "cores": os.cpu_count(), "cores_usable": len(os.sched_getaffinity(0)), "load_average": list(load),
+            "cores": os.cpu_count(), "cores_usable": native.usable_cpus(), "load_average": list(load),
             "python": platform.python_version(), "numpy": np.__version__, "os": platform.platform(terse=True),
             "kernel": native.status()}
 

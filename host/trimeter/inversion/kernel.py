@@ -128,6 +128,10 @@ class NativeKernel:
         self.threads = threads
         self._solvers: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
+    def fit_threads(self) -> int:
+        """How many thicknesses of one fit run at once now."""
+        return self.threads or native.usable_cpus()
+
     def _grid_solver(self, grid: ForwardGrid) -> native.NativeSolver:
         solver = self._solvers.get(grid)
         if solver is None:
@@ -201,7 +205,7 @@ class NativeKernel:
         fits, combined, _ = native.fit_thicknesses([self._table_solver(t) for t in inverters], *inputs, sd=sd,
                                                    options=options, underdetermined_std=underdetermined_std,
                                                    disagree_sigmas=disagree_sigmas,
-                                                   threads=self.threads or native.usable_cpus())
+                                                   threads=self.fit_threads())
         return FitResult(**self._columns(combined), method=method,
                          per_thickness=[FitResult(**self._columns(block, own_conditioning=sd is not None),
                                                   method=method) for block in fits])
