@@ -154,8 +154,10 @@ def probe_address(bus: SharedBus, address: int, *, listen_s: float | None = None
     with bus.lock:
         listen = listen_s if listen_s is not None else bus._rtu.request_timeout_s(8, 7) + 0.05
         results = []
-        for _ in range(PROBE_ROUNDS):
-            results.append(count_replies(bus._rtu.listen_after(probe_request(address), listen), address))
+        for round_ in range(PROBE_ROUNDS):
+            # each round after a silent or garbled one listens twice as long: a busy device may answer late
+            results.append(count_replies(bus._rtu.listen_after(probe_request(address), listen * 2 ** round_),
+                                         address))
             if results[-1] == 1:
                 return
         if all(n == 0 for n in results):
