@@ -181,8 +181,9 @@ def test_three_thicknesses_in_one_call_are_the_per_thickness_fits_combined(ideal
 @pytest.mark.skipif(not native.available(), reason=native.status())
 @pytest.mark.parametrize("options", [{}, dict(I_b_std=2e-3, I_w_std=1e-3, I_c_std=np.nan, thickness_std_mm=0.02)])
 def test_thicknesses_fitted_in_threads_are_those_fitted_one_after_the_other(options):
-    """Each thickness in a thread of its own, some in threads and the rest in the caller's (three thicknesses,
-    two threads), more threads than thicknesses: every column bit for bit as in one thread."""
+    """The thicknesses' bins in parts shared out between threads (three thicknesses of 777 bins: runs of parts
+    that end inside a thickness with two threads, a thickness each with three, more threads than thicknesses
+    with eight): every column bit for bit as in one thread."""
     models, I, rho = _device_pair_inputs(np.random.default_rng(5), n=777)
     models, I = [*models, models[0]], [np.concatenate([x, x[:1] * 1.01]) for x in I]
     kw = dict(rho_b=rho[0], rho_w=rho[1], method="lut", **options)
@@ -225,6 +226,27 @@ def test_threads_kept_between_fits_serve_concurrent_callers_and_a_forked_child()
             assert child.apply_async(_fit_in_a_forked_child).get(timeout=60) == expected
     finally:
         _FORKED_CASE.clear()
+
+
+@pytest.mark.skipif(not native.available(), reason=native.status())
+@pytest.mark.parametrize("n", [1, 129, 1000])
+def test_one_thickness_shared_out_between_threads_is_its_fit_in_one_call(n):
+    """tm_fit_thicknesses with one thickness: its bins' parts (one part of a bin; two, the second of one bin;
+    eight, the last short) in up to four threads, bit for bit tm_fit's whole fit of them."""
+    models, I, rho = _device_pair_inputs(np.random.default_rng(13), n=max(n, 10))
+    solver = NativeKernel()._table_solver(models[0].inverter)
+    options = api.native_options(models[0], models[0].inverter.grid, polish=8, polish_tol=1e-6, noise_rel=0.005,
+                                 noise_abs=2e-4, ic_floor=1e-4, alpha_min_g=0.02)
+    rows = [x[:1, :n] for x in I] + [r[None, :n] for r in rho]
+    whole = solver.fit(*(x[0] for x in rows), **options)
+    for threads in (1, 2, 4):
+        fits, combined, steps = native.fit_thicknesses([solver], *rows, sd=None, options=[options],
+                                                       underdetermined_std=THRESHOLDS["underdetermined_std"],
+                                                       disagree_sigmas=THRESHOLDS["disagree_sigmas"], threads=threads)
+        assert steps == whole["steps"]
+        for row, name in zip(fits[0], native._OUTPUT_ROWS, strict=True):
+            want = whole[name].view(np.float64) if name == "flags" else whole[name]
+            assert row.tobytes() == want.tobytes(), (threads, name)
 
 
 @pytest.mark.skipif(not native.available(), reason=native.status())

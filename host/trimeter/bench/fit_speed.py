@@ -56,8 +56,8 @@ def speed(amaps: list[AppearanceMap], median_bins: int, repeats: int) -> dict[st
     Bins: the ideal (else the first) map's held-out materials inside the hull of its nodes, noise-free,
     tiled to 1024. Two thicknesses: where two
     maps share geometry and n at other thicknesses, the same materials' intensities from each map's
-    forward model, fitted together (the default kernel's threads, one per thickness where the process may
-    use as many CPUs, and in one thread); the one-thickness fit of the first of them is timed beside it."""
+    forward model, fitted together (in the default kernel's threads, two where the process may use as many
+    CPUs, and in one); the one-thickness fit of the first of them is timed beside it."""
     import trimeter
     from trimeter.inversion.paper import coordinates, interpolator
     from trimeter.inversion.artifacts import load_artifacts
@@ -111,7 +111,7 @@ def speed(amaps: list[AppearanceMap], median_bins: int, repeats: int) -> dict[st
     lookup = best["bare lookup"]
     print(f"\n== speed with uncertainty: {amap.name}, 1024 bins (its held-out materials inside the hull of its "
           f"nodes, noise-free), one core"
-          + (f" (two thicknesses: {threads} threads, one per thickness, unless said)" if threads > 1 else "")
+          + (f" (two thicknesses: in {threads} threads unless said)" if threads > 1 else "")
           + f", best of {max(repeats, 1) * 20} round-robin rounds")
     print(f"   {'':44s} {'ms_per_1024':>12s} {'× bare lookup':>14s} {'× paper faster':>15s}")
     print(f"   {'paper ε-median (fixed; ' + str(nb) + ' bins, scaled)':44s} {paper_ms:12.4g} "

@@ -116,8 +116,9 @@ class NumpyKernel:
 
 class NativeKernel:
     """The compiled kernel; one NativeSolver per grid or table inverter, made on first use and kept as
-    long as the grid or inverter lives. threads: how many thicknesses of one fit run at once (None: as many
-    as the process may use CPUs, at each fit); the results are the same for any count."""
+    long as the grid or inverter lives. threads: how many threads share out the bins of a fit of several
+    thicknesses (None: as many as the process may use CPUs, at each fit); the results are the same for any
+    count."""
     name = "native"
 
     def __init__(self, threads: int | None = None) -> None:
@@ -129,7 +130,7 @@ class NativeKernel:
         self._solvers: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
     def fit_threads(self) -> int:
-        """How many thicknesses of one fit run at once now."""
+        """How many threads a fit of several thicknesses uses now."""
         return self.threads or native.usable_cpus()
 
     def _grid_solver(self, grid: ForwardGrid) -> native.NativeSolver:

@@ -349,7 +349,7 @@ def fit_thicknesses(solvers: list[NativeSolver], I_b: np.ndarray, I_w: np.ndarra
     """k thicknesses of the same n bins in one call (invert.h `tm_fit_thicknesses`): thickness j fitted as
     solvers[j].fit(row j of the (k, n) inputs, sd=sd[j], **options[j]) fits it (from its table's guess),
     then the k fits combined as combine() combines them. sd: the intensities' stds (k, n, 3), or None.
-    threads: up to this many thicknesses fitted at once (the results are the same for any count).
+    threads: up to this many threads share the bins out, in parts (the results are the same for any count).
     Returns (the k fits' output blocks (k, rows, n), the combined block (rows, n), the Newton steps)."""
     k = len(solvers)
     if k < 1 or len(options) != k:
@@ -367,7 +367,7 @@ def fit_thicknesses(solvers: list[NativeSolver], I_b: np.ndarray, I_w: np.ndarra
     combined = np.empty((len(_OUTPUT_ROWS), n))
     steps = _library().tm_fit_thicknesses(k, grids, tables, opts, n, *(_addr(x) for x in inputs),
                                           None if sd is None else _addr(sd), *underdetermined_std, disagree_sigmas,
-                                          _addr(fits), _addr(combined), max(1, min(int(threads), k)))
+                                          _addr(fits), _addr(combined), max(1, min(int(threads), 1 << 16)))
     _check(steps)
     return fits, combined, int(steps)
 

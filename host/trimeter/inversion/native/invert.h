@@ -121,10 +121,10 @@ void tm_combine(size_t k, size_t n, const double *fits, double underdetermined_a
 /* Several thicknesses of the same n bins fitted and combined in one call (host library only): thickness j
  * (grids[j], tables[j], options[j]: k of each, side by side) fitted as tm_fit fits it, from row j of the
  * k × n inputs (sd_in: k × n × 3, or NULL), into block j of fits (k × TM_ROW_COUNT × n); then tm_combine
- * of those blocks into outputs. Up to `threads` thicknesses are fitted at once, each in a thread of its
- * own (the caller's included, the others kept for the next call; ≤ 1: one after the other in the
- * caller's): the same results for any count. -1 on a malformed grid or table, -2 when out of memory, else the Newton steps taken over all
- * thicknesses. */
+ * of those blocks into outputs. Up to `threads` threads share the bins out in parts of a thickness each
+ * (the caller's included, the others kept for the next call; ≤ 1: all in the caller's): the same
+ * results for any count. -1 on a malformed grid or table, -2 when out of memory, else the Newton steps
+ * taken over all thicknesses. */
 long long tm_fit_thicknesses(size_t k, const tm_forward_grid *grids, const tm_inverse_table *tables, const tm_fit_options *options, size_t n, const double *I_b, const double *I_w, const double *I_c, const double *rho_b, const double *rho_w, const double *sd_in, double underdetermined_alpha_std, double underdetermined_g_std, double disagree_sigmas, double *fits, double *outputs, int threads);
 
 /* The fit in two halves around a caller-owned scratch block of tm_fit_scratch_size(n) bytes (no

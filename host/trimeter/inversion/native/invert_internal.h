@@ -8,7 +8,7 @@
  *   simd.c      four bins per step with AVX2: the polish, the σ check, two thicknesses' combination
  *               (x86-64 only; empty elsewhere)
  *   pipeline.c  the whole fit: input flags, σt from I_c, polish, in-scattering, stds, their check
- *   library.c   the host library's extras: malloc'd scratch, threads for several thicknesses, the source hash
+ *   library.c   the host library's extras: malloc'd scratch, threads sharing out several thicknesses' bins, the source hash
  * `make native-portable` builds the first four for the Cortex-M4 too (the stand-in for a host without
  * AVX2); only library.c allocates or starts threads. */
 #ifndef TRIMETER_INVERT_INTERNAL_H
@@ -331,17 +331,18 @@ typedef struct {
     double *cond_alpha_std, *cond_g_std;
 } tm_fit_outputs;
 
-static inline tm_fit_outputs outputs_in(double *block, size_t n) {
-    tm_fit_outputs o = {block + TM_ROW_ALPHA * n,
-                        block + TM_ROW_SIGMA_T * n,
-                        block + TM_ROW_G * n,
-                        block + TM_ROW_ALPHA_STD * n,
-                        block + TM_ROW_SIGMA_T_STD * n,
-                        block + TM_ROW_G_STD * n,
-                        block + TM_ROW_SIGMA_T_BEER * n,
-                        (int64_t *)(block + TM_ROW_FLAGS * n),
-                        block + TM_ROW_CONDITIONING_ALPHA_STD * n,
-                        block + TM_ROW_CONDITIONING_G_STD * n};
+/* The rows of a block whose rows are `stride` values apart */
+static inline tm_fit_outputs outputs_in(double *block, size_t stride) {
+    tm_fit_outputs o = {block + TM_ROW_ALPHA * stride,
+                        block + TM_ROW_SIGMA_T * stride,
+                        block + TM_ROW_G * stride,
+                        block + TM_ROW_ALPHA_STD * stride,
+                        block + TM_ROW_SIGMA_T_STD * stride,
+                        block + TM_ROW_G_STD * stride,
+                        block + TM_ROW_SIGMA_T_BEER * stride,
+                        (int64_t *)(block + TM_ROW_FLAGS * stride),
+                        block + TM_ROW_CONDITIONING_ALPHA_STD * stride,
+                        block + TM_ROW_CONDITIONING_G_STD * stride};
     return o;
 }
 
@@ -419,6 +420,14 @@ int tmi_solve_alpha_g(const tm_forward_grid *f, const tm_inverse_table *table, s
                       const double *I_w, const double *log_sigma_t, const double *rho_b, const double *rho_w,
                       int iterations, double step_tol, const double *step_var, double *alpha, double *g,
                       double *residual, double *J, void *scratch);
+
+/* pipeline.c: tm_fit_prepare and tm_fit_solve with their output rows `stride` apart (a part of a wider
+ * block's bins) */
+void tmi_fit_prepare(const tm_forward_grid *f, const tm_fit_options *o, size_t n, const double *I_b, const double *I_w,
+                     const double *I_c, const double *rho_b, const double *rho_w, const double *sd_in, void *scratch,
+                     double *outputs, size_t stride, double log_lo, double log_hi, float *features);
+long long tmi_fit_solve(const tm_forward_grid *f, const tm_inverse_table *table, const tm_fit_options *o, size_t n,
+                        const double *alpha0, const double *g0, void *scratch, double *outputs, size_t stride);
 
 /* simd.c */
 #ifdef TM_SIMD

@@ -1,7 +1,8 @@
 /* The host library's extras around the kernel (not linked into the firmware): the entry points
- * that allocate their scratch, the threads that fit several thicknesses at once, and the hash of the
+ * that allocate their scratch, the threads that share out the bins of several thicknesses, and the hash of the
  * sources the library was built from. */
 #include <pthread.h>
+#include <stdatomic.h>
 #include <stdlib.h>
 
 #include "compact.h"
@@ -26,41 +27,69 @@ long long tm_fit(const tm_forward_grid *f, const tm_inverse_table *table, const 
     return steps;
 }
 
-/* One thickness of tm_fit_thicknesses: tm_fit's two halves into its block, with scratch of its own */
-typedef struct {
-    const tm_forward_grid *f;
-    const tm_inverse_table *table;
-    const tm_fit_options *o;
-    size_t n;
-    const double *I_b, *I_w, *I_c, *rho_b, *rho_w, *sd_in;
-    double *block;
-    long long steps; /* tm_fit's result */
-} thickness_job_t;
+/* The bins of a part: a thickness's bins are fitted in parts of at most this many, so that threads share
+ * the work evenly however late one of them starts (a helper whose CPU had gone idle starts a tenth of a
+ * two-thickness fit late) */
+#define PART_BINS 128
+#define HELPERS 7
 
-static void *fit_thickness(void *arg) {
-    thickness_job_t *j = arg;
-    void *scratch = malloc(tm_fit_scratch_size(j->n));
-    if (!scratch) {
-        j->steps = -2;
-        return NULL;
-    }
-    tm_fit_prepare(j->f, j->o, j->n, j->I_b, j->I_w, j->I_c, j->rho_b, j->rho_w, j->sd_in, scratch, j->block, 0.0, 0.0,
-                   NULL);
-    j->steps = tm_fit_solve(j->f, j->table, j->o, j->n, NULL, NULL, scratch, j->block);
-    free(scratch);
-    return NULL;
+/* The work of one tm_fit_thicknesses: k thicknesses of n bins, each in `per_thickness` parts, the parts
+ * numbered thickness by thickness and dealt out in one run of consecutive parts per thread. A thread
+ * takes the parts of its own run first (mostly one thickness: its map stays in that core's cache), then
+ * those left in the others' runs. */
+typedef struct {
+    const tm_forward_grid *grids;
+    const tm_inverse_table *tables;
+    const tm_fit_options *options;
+    size_t k, n, per_thickness, runs;
+    const double *I_b, *I_w, *I_c, *rho_b, *rho_w, *sd_in;
+    double *fits;
+    struct {
+        atomic_size_t next; /* the run's next part to take: past `end`, none is left */
+        size_t end;
+    } run[HELPERS + 1];
+    atomic_llong steps; /* the Newton steps of the parts fitted, or the first error */
+} work_t;
+
+/* One part: tm_fit's two halves straight into its place in its thickness's block */
+static long long fit_part(const work_t *w, size_t p, void *scratch) {
+    const size_t j = p / w->per_thickness, first = p % w->per_thickness * PART_BINS;
+    const size_t m = w->n - first < PART_BINS ? w->n - first : PART_BINS, at = j * w->n + first;
+    double *block = w->fits + j * (size_t)TM_ROW_COUNT * w->n + first;
+    tmi_fit_prepare(&w->grids[j], &w->options[j], m, w->I_b + at, w->I_w + at, w->I_c + at, w->rho_b + at,
+                    w->rho_w + at, w->sd_in ? w->sd_in + 3u * at : NULL, scratch, block, w->n, 0.0, 0.0, NULL);
+    return tmi_fit_solve(&w->grids[j], &w->tables[j], &w->options[j], m, NULL, NULL, scratch, block, w->n);
 }
 
-/* Threads kept between calls to fit thicknesses beside the caller's: starting a thread each call costs
- * about a tenth of a two-thickness fit where its CPU had gone idle. A helper is started on its first job
- * and then waits for the next; one given to no caller is free. */
-#define HELPERS 7
+/* Parts fitted until none is left, run `own`'s first; scratch: tm_fit_scratch_size(PART_BINS) bytes */
+static void take_parts(work_t *w, size_t own, void *scratch) {
+    long long steps = 0;
+    for (size_t r = 0; r < w->runs; r++) {
+        const size_t run = (own + r) % w->runs;
+        for (size_t p; (p = atomic_fetch_add(&w->run[run].next, 1)) < w->run[run].end;) {
+            long long s = fit_part(w, p, scratch);
+            if (s < 0) {
+                atomic_store(&w->steps, s);
+                return;
+            }
+            steps += s;
+        }
+    }
+    long long seen = atomic_load(&w->steps);
+    while (seen >= 0 && !atomic_compare_exchange_weak(&w->steps, &seen, seen + steps)) {
+    }
+}
+
+/* Threads kept between calls to take parts beside the caller: starting a thread each call costs about
+ * a tenth of a two-thickness fit where its CPU had gone idle. A helper is started on its first work and
+ * then waits for the next; one given to no caller is free. */
 
 typedef struct {
     pthread_mutex_t lock;
-    pthread_cond_t cond;      /* a job handed over (the helper waits for it), or finished (the caller does) */
-    thickness_job_t *job;     /* NULL: free */
-    int finished, exists;
+    pthread_cond_t cond;      /* work handed over (the helper waits for it), or finished (the caller does) */
+    work_t *work;             /* NULL: free */
+    size_t own;               /* the work's run this helper takes first */
+    int started, finished, exists;
 } helper_t;
 
 static helper_t helpers[HELPERS];
@@ -71,8 +100,8 @@ static void reset_helpers(void) {
         helper_t *h = &helpers[i];
         pthread_mutex_init(&h->lock, NULL);
         pthread_cond_init(&h->cond, NULL);
-        h->job = NULL;
-        h->finished = h->exists = 0;
+        h->work = NULL;
+        h->started = h->finished = h->exists = 0;
     }
 }
 
@@ -85,12 +114,14 @@ static void init_helpers(void) {
 
 static void *helper_loop(void *arg) {
     helper_t *h = arg;
+    void *scratch = malloc(tm_fit_scratch_size(PART_BINS)); /* for its life; without it, it takes no parts */
     pthread_mutex_lock(&h->lock);
     for (;;) {
-        while (!h->job || h->finished) pthread_cond_wait(&h->cond, &h->lock);
-        thickness_job_t *job = h->job;
+        while (!h->work || h->started) pthread_cond_wait(&h->cond, &h->lock);
+        work_t *work = h->work;
+        h->started = 1;
         pthread_mutex_unlock(&h->lock);
-        fit_thickness(job);
+        if (scratch) take_parts(work, h->own, scratch);
         pthread_mutex_lock(&h->lock);
         h->finished = 1;
         pthread_cond_broadcast(&h->cond);
@@ -105,16 +136,18 @@ static int start_helper(helper_t *h) {
     return 1;
 }
 
-/* The job handed to a free helper (started on its first use): that helper, or NULL where none is free */
-static helper_t *hand_over(thickness_job_t *job) {
+/* The work handed to a free helper (started on its first use), to take run `own` first: that helper, or
+ * NULL where none is free */
+static helper_t *hand_over(work_t *work, size_t own) {
     pthread_once(&helpers_once, init_helpers);
     for (int i = 0; i < HELPERS; i++) {
         helper_t *h = &helpers[i];
         pthread_mutex_lock(&h->lock);
-        int taken = !h->job && (h->exists || (h->exists = start_helper(h)));
+        int taken = !h->work && (h->exists || (h->exists = start_helper(h)));
         if (taken) {
-            h->job = job;
-            h->finished = 0;
+            h->work = work;
+            h->own = own;
+            h->started = h->finished = 0;
             pthread_cond_broadcast(&h->cond);
         }
         pthread_mutex_unlock(&h->lock);
@@ -123,52 +156,52 @@ static helper_t *hand_over(thickness_job_t *job) {
     return NULL;
 }
 
-/* Waits for the helper's job and frees it */
+/* Frees the helper once it is done with the work; one that has not started yet never will (every part is
+ * taken by now), so it is not waited for */
 static void collect(helper_t *h) {
     pthread_mutex_lock(&h->lock);
-    while (!h->finished) pthread_cond_wait(&h->cond, &h->lock);
-    h->job = NULL;
+    if (h->started)
+        while (!h->finished) pthread_cond_wait(&h->cond, &h->lock);
+    h->work = NULL;
+    h->started = 0;
     pthread_mutex_unlock(&h->lock);
 }
 
-/* Below this many bins a thickness is fitted in the calling thread: handing it over costs about what
- * fitting this many bins does */
-#define THREAD_MIN_BINS 128
+/* Below this many bins over all thicknesses the caller fits them alone: handing parts over costs about
+ * what fitting this many bins does */
+#define THREAD_MIN_BINS 256
 
 long long tm_fit_thicknesses(size_t k, const tm_forward_grid *grids, const tm_inverse_table *tables,
                              const tm_fit_options *options, size_t n, const double *I_b, const double *I_w,
                              const double *I_c, const double *rho_b, const double *rho_w, const double *sd_in,
                              double underdetermined_alpha_std, double underdetermined_g_std, double disagree_sigmas,
                              double *fits, double *outputs, int threads) {
-    if (!k || !tables) return -1;
+    if (!k || !tables || n > UINT32_MAX) return -1;
     for (size_t j = 0; j < k; j++)
         if (!grid_ok(&grids[j], &tables[j])) return -1;
-    thickness_job_t *jobs = n > UINT32_MAX ? NULL : malloc(k * sizeof *jobs);
-    helper_t **given = malloc(k * sizeof *given);
-    if (!jobs || !given) {
-        free(jobs);
-        free(given);
-        return -2;
+    void *scratch = malloc(tm_fit_scratch_size(PART_BINS));
+    if (!scratch) return -2;
+    const size_t per_thickness = (n + PART_BINS - 1) / PART_BINS, parts = k * per_thickness;
+    /* up to threads - 1 helpers beside this thread, a run of parts each; each bin's fit is its own, so the
+     * results are the same whoever fits which part */
+    size_t helpers_wanted = threads > 1 && parts > 1 && k * n >= THREAD_MIN_BINS ? (size_t)threads - 1 : 0;
+    if (helpers_wanted > HELPERS) helpers_wanted = HELPERS;
+    if (helpers_wanted > parts - 1) helpers_wanted = parts - 1;
+    work_t w = {.grids = grids, .tables = tables, .options = options, .k = k, .n = n, .per_thickness = per_thickness,
+                .runs = helpers_wanted + 1, .I_b = I_b, .I_w = I_w, .I_c = I_c, .rho_b = rho_b, .rho_w = rho_w,
+                .sd_in = sd_in, .fits = fits};
+    for (size_t r = 0; r < w.runs; r++) {
+        atomic_init(&w.run[r].next, r * parts / w.runs);
+        w.run[r].end = (r + 1) * parts / w.runs;
     }
-    for (size_t j = 0; j < k; j++) {
-        const size_t at = j * n;
-        jobs[j] = (thickness_job_t){&grids[j], &tables[j], &options[j], n, I_b + at, I_w + at, I_c + at, rho_b + at,
-                                    rho_w + at, sd_in ? sd_in + 3u * at : NULL, fits + j * (size_t)TM_ROW_COUNT * n,
-                                    0};
-    }
-    /* thicknesses 1.. to helpers (up to threads - 1 of them, as many as are free) while this thread fits
-     * thickness 0, then the rest here in turn; each bin's fit is its own, so the results are the same
-     * for any threads */
-    size_t wanted = threads > 1 && n >= THREAD_MIN_BINS ? (size_t)threads - 1 : 0, running = 0;
-    while (running < wanted && running + 1 < k && (given[running] = hand_over(&jobs[running + 1])) != NULL)
-        running++;
-    for (size_t j = 0; j < k; j++)
-        if (j == 0 || j > running) fit_thickness(&jobs[j]);
+    atomic_init(&w.steps, 0);
+    helper_t *given[HELPERS];
+    size_t running = 0;
+    while (running < helpers_wanted && (given[running] = hand_over(&w, running + 1)) != NULL) running++;
+    take_parts(&w, 0, scratch);
     for (size_t t = 0; t < running; t++) collect(given[t]);
-    long long steps = 0;
-    for (size_t j = 0; j < k && steps >= 0; j++) steps = jobs[j].steps < 0 ? jobs[j].steps : steps + jobs[j].steps;
-    free(jobs);
-    free(given);
+    free(scratch);
+    long long steps = atomic_load(&w.steps);
     if (steps >= 0) tm_combine(k, n, fits, underdetermined_alpha_std, underdetermined_g_std, disagree_sigmas, outputs);
     return steps;
 }

@@ -87,12 +87,13 @@ static int64_t prepare_bin(const tm_forward_grid *f, const tm_fit_options *o, si
 /* The first half of a fit: input flags, σt from I_c and the Beer-Lambert column into `outputs`, the
  * sanitized inputs and σt cells into `scratch`; with `features` (n × 5 float32, else NULL) also the
  * MLP's input (trimeter.inversion.mlp.features; ln σt clamped to [log_lo, log_hi]), so that the
- * network's guess can go to tm_fit_solve without preparing the bins twice. */
-void tm_fit_prepare(const tm_forward_grid *f, const tm_fit_options *o, size_t n, const double *I_b, const double *I_w,
-                    const double *I_c, const double *rho_b, const double *rho_w, const double *sd_in, void *scratch,
-                    double *outputs, double log_lo, double log_hi, float *features) {
+ * network's guess can go to tm_fit_solve without preparing the bins twice. The output rows are `stride`
+ * apart: n for tm_fit_prepare, a larger block's width where these n bins are a part of its bins. */
+void tmi_fit_prepare(const tm_forward_grid *f, const tm_fit_options *o, size_t n, const double *I_b, const double *I_w,
+                     const double *I_c, const double *rho_b, const double *rho_w, const double *sd_in, void *scratch,
+                     double *outputs, size_t stride, double log_lo, double log_hi, float *features) {
     fit_scratch_t sc = carve_scratch(scratch, n);
-    const tm_fit_outputs o_ = outputs_in(outputs, n), *out = &o_;
+    const tm_fit_outputs o_ = outputs_in(outputs, stride), *out = &o_;
     const double mc2 = o->mc_stderr * o->mc_stderr, kappa2 = o->step_tol_std * o->step_tol_std;
     const sigma_bounds_t bounds = sigma_bounds(f);
     for (size_t i = 0; i < n; i++) {
@@ -332,14 +333,13 @@ static void add_check(const finish_ctx_t *c, size_t i, check_t *k, uint32_t *slo
 /* The second half: the initial (α, g) from alpha0/g0 (the MLP's) or, where those are NULL or not
  * finite (a broken network), from `table` (without one: the middle of the map's box); the polish,
  * then flags for not converged / outside the map / g undefined / underdetermined, first-order stds
- * and NaN for unusable bins. Returns the number of Newton steps taken (≥ 0), -1 on a malformed grid
- * or a missing guess. */
-long long tm_fit_solve(const tm_forward_grid *f, const tm_inverse_table *table, const tm_fit_options *o, size_t n,
-                       const double *alpha0, const double *g0, void *scratch,
-                       double *outputs) {
+ * and NaN for unusable bins, into output rows `stride` apart (as tmi_fit_prepare's). Returns the number
+ * of Newton steps taken (≥ 0), -1 on a malformed grid or a missing guess. */
+long long tmi_fit_solve(const tm_forward_grid *f, const tm_inverse_table *table, const tm_fit_options *o, size_t n,
+                        const double *alpha0, const double *g0, void *scratch, double *outputs, size_t stride) {
     if (!grid_ok(f, table) || (!alpha0 && !table) || (alpha0 && !g0) || n > UINT32_MAX) return -1;
     fit_scratch_t sc = carve_scratch(scratch, n);
-    const tm_fit_outputs o_ = outputs_in(outputs, n), *out = &o_;
+    const tm_fit_outputs o_ = outputs_in(outputs, stride), *out = &o_;
     const double *ib = sc.ib, *iw = sc.iw, *rb = sc.rb, *rw = sc.rw;
     sigma_cell_t *cells = sc.cells;
     const double mc2 = o->mc_stderr * o->mc_stderr;
@@ -401,6 +401,17 @@ long long tm_fit_solve(const tm_forward_grid *f, const tm_inverse_table *table, 
     }
     check_first_order(f, checked, sc.active, sc.checks, cells, ib, iw, rb, rw, o->std_check_sigmas, out->flags);
     return (long long)steps;
+}
+
+void tm_fit_prepare(const tm_forward_grid *f, const tm_fit_options *o, size_t n, const double *I_b, const double *I_w,
+                    const double *I_c, const double *rho_b, const double *rho_w, const double *sd_in, void *scratch,
+                    double *outputs, double log_lo, double log_hi, float *features) {
+    tmi_fit_prepare(f, o, n, I_b, I_w, I_c, rho_b, rho_w, sd_in, scratch, outputs, n, log_lo, log_hi, features);
+}
+
+long long tm_fit_solve(const tm_forward_grid *f, const tm_inverse_table *table, const tm_fit_options *o, size_t n,
+                       const double *alpha0, const double *g0, void *scratch, double *outputs) {
+    return tmi_fit_solve(f, table, o, n, alpha0, g0, scratch, outputs, n);
 }
 
 /* First-order standard deviations for n bins (ForwardGrid.propagate); sigma_I is n × 3, sigma_t_var
