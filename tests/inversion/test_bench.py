@@ -51,8 +51,8 @@ def test_bench_fit_reports_figures_and_plot(tmp_path, capsys):
 
 @pytest.mark.parametrize("cpus", [1, 2])
 def test_speed_times_two_thicknesses_where_two_maps_differ_only_in_thickness(capsys, monkeypatch, cpus):
-    """Where the process may use two CPUs (and the kernel is the C one) the two thicknesses are timed in a
-    thread each and in one thread, both judged; on one CPU in one thread only."""
+    """Where the process may use two CPUs (and the kernel is the C one) the lut fits are timed in two threads
+    and in one, both two-thickness figures judged; on one CPU in one thread only."""
     from trimeter.bench.fit_speed import SPEED_TWO_MS_MAX, speed
     from trimeter.formats.appearance import AppearanceMap
     from trimeter.inversion import native
@@ -60,7 +60,7 @@ def test_speed_times_two_thicknesses_where_two_maps_differ_only_in_thickness(cap
     monkeypatch.setattr(native, "usable_cpus", lambda: cpus)
     maps = [AppearanceMap.load(DATA / name) for name in ("ideal-l0.5.tmap", "ideal-l1.0.tmap")]
     report = speed(maps, 4, 1)
-    ms, threads = report["ms_per_1024"], report["two_thickness_threads"]
+    ms, threads = report["ms_per_1024"], report["fit_threads"]
     assert threads == (cpus if native.available() else 1)
     two = report["targets"]["two_thicknesses_ms"]
     assert two["value"] == ms["lut, two thicknesses"] > 0
@@ -71,8 +71,10 @@ def test_speed_times_two_thicknesses_where_two_maps_differ_only_in_thickness(cap
         assert one["value"] == ms["lut, two thicknesses, one thread"] > 0 and one["met"] == (one["value"] <= 0.8)
     text = capsys.readouterr().out
     rows = [line for line in text.splitlines() if line.startswith("   ") and "×" not in line and "targets" not in line]
-    # the paper's ε-median, the lookup, lut, lut on the first map alone, both maps (in threads, and in one)
-    assert len(rows) == 5 + (threads > 1), text
+    # the paper's ε-median, the lookup, lut, lut on the first map alone, both maps; lut and both maps in one
+    # thread as well
+    assert len(rows) == 5 + 2 * (threads > 1), text
+    assert ("lut, one thread" in ms) == (threads > 1)
     assert f"two thicknesses (ideal-l0.5 + ideal-l1.0, {threads} thread" in text
 
 

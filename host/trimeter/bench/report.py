@@ -438,9 +438,10 @@ def _speed_lines(speed: dict[str, Any]) -> list[str]:
              "the whole lut fit, with per-bin σ and flags, against a bare scipy `LinearNDInterpolator` lookup of "
              "the same bins on the map's nodes (the paper's interpolant, built beforehand: the call alone), timed "
              "round-robin in the same run; the paper's ε-median on fewer bins, scaled."
-             + (f" Two thicknesses run in {speed['two_thickness_threads']} threads, which share their bins out, "
-                "unless the row says one thread; everything else in one."
-                if speed.get("two_thickness_threads", 1) > 1 else ""), ""]
+             + (f" The lut fits run in {speed['fit_threads']} threads, which share the bins out, unless the row "
+                "says one thread; the lookup and the paper's method in one."
+                if speed.get("fit_threads", 1) > 1 else ""),
+             ""]
     lines += _table(["", "ms per 1024 bins", "× bare lookup"],
                     [[name, _g(ms), _g(ms / lookup)] for name, ms in times.items()])
     for key, t in speed["targets"].items():

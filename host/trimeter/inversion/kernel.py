@@ -116,9 +116,8 @@ class NumpyKernel:
 
 class NativeKernel:
     """The compiled kernel; one NativeSolver per grid or table inverter, made on first use and kept as
-    long as the grid or inverter lives. threads: how many threads share out the bins of a fit of several
-    thicknesses (None: as many as the process may use CPUs, at each fit); the results are the same for any
-    count."""
+    long as the grid or inverter lives. threads: how many threads share out a fit's bins from the table's
+    guess (None: as many as the process may use CPUs, at each fit); the results are the same for any count."""
     name = "native"
 
     def __init__(self, threads: int | None = None) -> None:
@@ -130,7 +129,7 @@ class NativeKernel:
         self._solvers: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
     def fit_threads(self) -> int:
-        """How many threads a fit of several thicknesses uses now."""
+        """How many threads a fit from the table's guess uses now."""
         return self.threads or native.usable_cpus()
 
     def _grid_solver(self, grid: ForwardGrid) -> native.NativeSolver:
@@ -168,7 +167,7 @@ class NativeKernel:
                   block: np.ndarray | None = None) -> dict[str, Any] | None:
         solver = self._table_solver(inverter)
         if guesser is None:
-            out = solver.fit(I_b, I_w, I_c, rho_b, rho_w, sd=sd, block=block, **options)
+            out = solver.fit(I_b, I_w, I_c, rho_b, rho_w, sd=sd, block=block, threads=self.fit_threads(), **options)
         else:  # the guesser reads the features C prepares; tm_fit_solve clamps its guess to the map's box
             broken: list[int] = []
 

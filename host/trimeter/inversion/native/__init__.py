@@ -266,12 +266,14 @@ class NativeSolver:
 
     def fit(self, I_b: np.ndarray, I_w: ArrayLike, I_c: ArrayLike, rho_b: ArrayLike, rho_w: ArrayLike, *,
             sd: ArrayLike | None = None, alpha0: ArrayLike | None = None, g0: ArrayLike | None = None,
-            block: np.ndarray | None = None, **options: Any) -> dict[str, Any]:
+            block: np.ndarray | None = None, threads: int = 1, **options: Any) -> dict[str, Any]:
         """One thickness's whole fit in one call (invert.h `tm_fit`, api._fit_one's reference path
         operation for operation): a dict of the FitResult columns and `steps`, the Newton steps taken.
         sd: the intensities' stds (n, 3), or None for the noise model of `options`
         (trimeter.inversion.api.native_options(…)). block: the output block to write (rows
-        invert_h.OUTPUT_ROWS × n, float64, C-contiguous), else a new one."""
+        invert_h.OUTPUT_ROWS × n, float64, C-contiguous), else a new one. threads: from the table's guess,
+        up to this many threads share the bins out (`tm_fit_thicknesses` of one thickness; the same
+        results for any count)."""
         n = len(I_b)
         args = [_f64(v, n) for v in (I_b, I_w, I_c, rho_b, rho_w)]
         sd = _stds(sd, n)
@@ -281,9 +283,15 @@ class NativeSolver:
         if alpha0 is None and self._table is None:
             raise ValueError("this solver has no inverse table: pass alpha0 and g0")
         block, out = _fit_outputs(n, block)
-        steps = _library().tm_fit(self._grid_ref, self._table_ref if alpha0 is None else None, self._options(options),
-                                  n, *(_addr(a) for a in args), None if sd is None else _addr(sd),
-                                  *(None if v is None else _addr(v) for v in guess), _addr(block))
+        if alpha0 is None and threads > 1:
+            steps = _library().tm_fit_thicknesses(1, self._grid_ref, self._table_ref, self._options(options), n,
+                                                  *(_addr(a) for a in args), None if sd is None else _addr(sd),
+                                                  0.0, 0.0, 0.0, _addr(block), None, min(int(threads), 1 << 16))
+        else:
+            steps = _library().tm_fit(self._grid_ref, self._table_ref if alpha0 is None else None,
+                                      self._options(options), n, *(_addr(a) for a in args),
+                                      None if sd is None else _addr(sd),
+                                      *(None if v is None else _addr(v) for v in guess), _addr(block))
         _check(steps)
         out["steps"] = int(steps)
         return out

@@ -121,7 +121,8 @@ void tm_combine(size_t k, size_t n, const double *fits, double underdetermined_a
 /* Several thicknesses of the same n bins fitted and combined in one call (host library only): thickness j
  * (grids[j], tables[j], options[j]: k of each, side by side) fitted as tm_fit fits it, from row j of the
  * k × n inputs (sd_in: k × n × 3, or NULL), into block j of fits (k × TM_ROW_COUNT × n); then tm_combine
- * of those blocks into outputs. Up to `threads` threads share the bins out in parts of a thickness each
+ * of those blocks into outputs (NULL: none, e.g. for one thickness, whose fit is then tm_fit's with the
+ * table's guess). Up to `threads` threads share the bins out in parts of a thickness each
  * (the caller's included, the others kept for the next call; ≤ 1: all in the caller's): the same
  * results for any count. -1 on a malformed grid or table, -2 when out of memory, else the Newton steps
  * taken over all thicknesses. */

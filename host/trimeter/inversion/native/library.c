@@ -202,7 +202,8 @@ long long tm_fit_thicknesses(size_t k, const tm_forward_grid *grids, const tm_in
     for (size_t t = 0; t < running; t++) collect(given[t]);
     free(scratch);
     long long steps = atomic_load(&w.steps);
-    if (steps >= 0) tm_combine(k, n, fits, underdetermined_alpha_std, underdetermined_g_std, disagree_sigmas, outputs);
+    if (steps >= 0 && outputs)
+        tm_combine(k, n, fits, underdetermined_alpha_std, underdetermined_g_std, disagree_sigmas, outputs);
     return steps;
 }
 
