@@ -4,6 +4,7 @@ and holds."""
 
 from __future__ import annotations
 
+import functools
 import inspect
 from collections.abc import Callable
 from pathlib import Path
@@ -16,6 +17,7 @@ if TYPE_CHECKING:
     from trimeter.formats.appearance import AppearanceMap
     from trimeter.inversion.artifacts import ArtifactCache
     from trimeter.inversion.fit_model import FitModel
+    from trimeter.inversion.kernel import Kernel
 
     # (label, method name, fit options, the map's loaded artifacts)
     Variant = tuple[str, str, dict[str, Any], FitModel]
@@ -102,10 +104,19 @@ def variant_bytes(variant: Variant) -> tuple[int, int]:
 
 def fit_variant(variant: Variant, I_b: np.ndarray, I_w: np.ndarray, I_c: np.ndarray, rho_b: np.ndarray | None = None,
                  rho_w: np.ndarray | None = None) -> FitResult:
+    """The variant's whole fit on one core (its figures set methods side by side, the paper's in one thread)"""
     from trimeter.inversion.api import fit
 
     _, method, kw, artifacts = variant
-    return fit(artifacts, I_b, I_w, I_c, rho_b, rho_w, method=method, **kw)
+    return fit(artifacts, I_b, I_w, I_c, rho_b, rho_w, method=method, kernel=one_core_kernel(), **kw)
+
+
+@functools.cache
+def one_core_kernel() -> Kernel:
+    """The default kernel, in one thread where it would use several (one instance: it keeps its solvers)"""
+    from trimeter.inversion.kernel import NativeKernel, default_kernel
+
+    return NativeKernel(threads=1) if isinstance(default_kernel(), NativeKernel) else default_kernel()
 
 
 def kernel_call(variant: Variant, I_b: np.ndarray, I_w: np.ndarray, I_c: np.ndarray, rb: float,
