@@ -8,7 +8,7 @@
  *   simd.c      four bins per step with AVX2: the polish, the σ check, two thicknesses' combination
  *               (x86-64 only; empty elsewhere)
  *   pipeline.c  the whole fit: input flags, σt from I_c, polish, in-scattering, stds, their check
- *   library.c   the host library's extras: malloc'd scratch, threads sharing out several thicknesses' bins, the source hash
+ *   library.c   the host library's extras: malloc'd scratch, threads sharing out a fit's bins, the source hash
  * `make native-portable` builds the first four for the Cortex-M4 too (the stand-in for a host without
  * AVX2); only library.c allocates or starts threads. */
 #ifndef TRIMETER_INVERT_INTERNAL_H
