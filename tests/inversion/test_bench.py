@@ -75,6 +75,10 @@ def test_speed_times_two_thicknesses_where_two_maps_differ_only_in_thickness(cap
     # thread as well
     assert len(rows) == 5 + 2 * (threads > 1), text
     assert ("lut, one thread" in ms) == (threads > 1)
+    order = report["round"]  # the one-thickness fits each right after a lookup, in threads and in one alike
+    assert [order[order.index(name) - 1] for name in ("lut", "lut, one thread") if name in ms] == \
+        ["bare lookup"] * (1 + (threads > 1))
+    assert set(order) == set(ms) - {"paper ε-median"}
     assert f"two thicknesses (ideal-l0.5 + ideal-l1.0, {threads} thread" in text
 
 

@@ -142,4 +142,4 @@ def speed(amaps: list[AppearanceMap], median_bins: int, repeats: int) -> dict[st
             line += f"; in one thread: {one:.3g} ms {'met' if one <= SPEED_TWO_MS_MAX else 'MISSED'}"
     print(line)
     return {"map": amap.name, "ms_per_1024": {**best, "paper ε-median": paper_ms}, "targets": verdicts,
-            "fit_threads": threads}
+            "fit_threads": threads, "round": order}

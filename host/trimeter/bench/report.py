@@ -438,6 +438,8 @@ def _speed_lines(speed: dict[str, Any]) -> list[str]:
              "the whole lut fit, with per-bin σ and flags, against a bare scipy `LinearNDInterpolator` lookup of "
              "the same bins on the map's nodes (the paper's interpolant, built beforehand: the call alone), timed "
              "round-robin in the same run; the paper's ε-median on fewer bins, scaled."
+             + (" Each round times, in this order: " + " → ".join(f"“{name}”" for name in speed["round"]) + "."
+                if "round" in speed else "")
              + (f" The lut fits run in {speed['fit_threads']} threads, which share the bins out, unless the row "
                 "says one thread; the lookup and the paper's method in one."
                 if speed.get("fit_threads", 1) > 1 else ""),
