@@ -286,7 +286,7 @@ class NativeSolver:
         if alpha0 is None and threads > 1:
             steps = _library().tm_fit_thicknesses(1, self._grid_ref, self._table_ref, self._options(options), n,
                                                   *(_addr(a) for a in args), None if sd is None else _addr(sd),
-                                                  0.0, 0.0, 0.0, _addr(block), None, min(int(threads), 1 << 16))
+                                                  0.0, 0.0, 0.0, _addr(block), None, _thread_count(threads))
         else:
             steps = _library().tm_fit(self._grid_ref, self._table_ref if alpha0 is None else None,
                                       self._options(options), n, *(_addr(a) for a in args),
@@ -375,9 +375,14 @@ def fit_thicknesses(solvers: list[NativeSolver], I_b: np.ndarray, I_w: np.ndarra
     combined = np.empty((len(_OUTPUT_ROWS), n))
     steps = _library().tm_fit_thicknesses(k, grids, tables, opts, n, *(_addr(x) for x in inputs),
                                           None if sd is None else _addr(sd), *underdetermined_std, disagree_sigmas,
-                                          _addr(fits), _addr(combined), max(1, min(int(threads), 1 << 16)))
+                                          _addr(fits), _addr(combined), _thread_count(threads))
     _check(steps)
     return fits, combined, int(steps)
+
+
+def _thread_count(threads: int) -> int:
+    """A thread count as the C int takes it (the library uses at most as many as it has helpers and parts)"""
+    return max(1, min(int(threads), 1 << 16))
 
 
 def usable_cpus() -> int:

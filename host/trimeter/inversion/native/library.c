@@ -1,6 +1,6 @@
 /* The host library's extras around the kernel (not linked into the firmware): the entry points
- * that allocate their scratch, the threads that share out the bins of several thicknesses, and the hash of the
- * sources the library was built from. */
+ * that allocate their scratch, the threads that share out a fit's bins, and the hash of the sources the
+ * library was built from. */
 #include <pthread.h>
 #include <stdatomic.h>
 #include <stdlib.h>
@@ -83,7 +83,6 @@ static void take_parts(work_t *w, size_t own, void *scratch) {
 /* Threads kept between calls to take parts beside the caller: starting a thread each call costs about
  * a tenth of a two-thickness fit where its CPU had gone idle. A helper is started on its first work and
  * then waits for the next; one given to no caller is free. */
-
 typedef struct {
     pthread_mutex_t lock;
     pthread_cond_t cond;      /* work handed over (the helper waits for it), or finished (the caller does) */
@@ -167,8 +166,8 @@ static void collect(helper_t *h) {
     pthread_mutex_unlock(&h->lock);
 }
 
-/* Below this many bins over all thicknesses the caller fits them alone: handing parts over costs about
- * what fitting this many bins does */
+/* Below this many bins over all thicknesses the caller fits them alone: too few to be worth waking a
+ * helper for */
 #define THREAD_MIN_BINS 256
 
 long long tm_fit_thicknesses(size_t k, const tm_forward_grid *grids, const tm_inverse_table *tables,
