@@ -105,7 +105,11 @@ pytest: setup firmware native
 docs: setup
 	NO_MKDOCS_2_WARNING=1 $(PY) -m mkdocs build --strict --quiet
 
-test: setup check-gen lint firmware firmware-test native-portable fuzz pytest docs
+# The checks before pytest are independent and each mostly on one core (the type check, the fuzzers): two at a
+# time, each one's output printed whole when it ends. pytest then has both cores to itself.
+test: setup check-gen
+	$(MAKE) -j2 --output-sync=target lint firmware firmware-test native-portable fuzz native
+	$(MAKE) pytest docs
 
 SENSOR ?= spectrometer
 demo: setup firmware native

@@ -25,8 +25,15 @@ fi
 stamp=".venv/.installed-$(sha256sum pyproject.toml | cut -c1-16)"
 if [ ! -f "$stamp" ]; then
   echo "setup: installing trimeter into .venv (with the maps, hardware, docs and dev extras)"
-  .venv/bin/python -m pip install -q --upgrade pip
-  .venv/bin/python -m pip install -q -e ".[maps,hardware,docs,dev]"
+  # uv fetches and installs the wheels in parallel (pip one by one, which dominated a fresh clone's
+  # `make test` set-up); it resolves the same versions. pip where uv cannot be had.
+  if .venv/bin/python -m pip install -q uv; then
+    .venv/bin/uv pip install -q --python .venv/bin/python -e ".[maps,hardware,docs,dev]"
+  else
+    echo "setup: uv could not be installed; installing with pip (slower)"
+    .venv/bin/python -m pip install -q --upgrade pip
+    .venv/bin/python -m pip install -q -e ".[maps,hardware,docs,dev]"
+  fi
   rm -f .venv/.installed-*
   touch "$stamp"
 fi
