@@ -108,8 +108,8 @@ docs: setup
 # The checks before pytest are independent and each mostly on one core (the type check, the fuzzers): two at a
 # time, each one's output printed whole when it ends. pytest then has both cores to itself.
 test: setup check-gen
-	$(MAKE) -j2 --output-sync=target lint firmware firmware-test native-portable fuzz native
-	$(MAKE) pytest docs
+	$(MAKE) --no-print-directory -j2 --output-sync=target lint firmware firmware-test native-portable fuzz native
+	$(MAKE) --no-print-directory pytest docs
 
 SENSOR ?= spectrometer
 demo: setup firmware native

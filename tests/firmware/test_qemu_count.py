@@ -16,6 +16,8 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
+# stdout holds the recipe's output alone, also where pytest runs under make (a sub-make names its directories)
+COUNT = ["make", "-s", "--no-print-directory", "-C", str(ROOT / "firmware"), "qemu-count"]
 COUNT_PY = ROOT / "firmware" / "qemu" / "count.py"
 
 
@@ -46,7 +48,7 @@ def test_spans_count_the_instructions_between_each_pair_of_markers(tmp_path):
 @pytest.mark.skipif(shutil.which("qemu-system-arm") is None or shutil.which("arm-none-eabi-gcc") is None,
                     reason="needs qemu-system-arm and gcc-arm-none-eabi")
 def test_qemu_count_reports_every_measurement_with_plausible_counts(tmp_path):
-    run = subprocess.run(["make", "-s", "-C", str(ROOT / "firmware"), "qemu-count", *_own_build(tmp_path)],
+    run = subprocess.run([*COUNT, *_own_build(tmp_path)],
                          capture_output=True, text=True, timeout=300)
     assert run.returncode == 0, run.stderr
     counts = {m.group(1).strip(): int(m.group(2))
@@ -70,7 +72,7 @@ def test_qemu_count_counts_the_inverse_core_per_bin_with_a_device_table(tmp_path
     tool = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(tool)
     table = tool.build(AppearanceMap.load(find_map("device-n1.5-l0.4"))).save(tmp_path / "l04.tlut")
-    run = subprocess.run(["make", "-s", "-C", str(ROOT / "firmware"), "qemu-count", f"COUNT_TABLE={table}",
+    run = subprocess.run([*COUNT, f"COUNT_TABLE={table}",
                           *_own_build(tmp_path)], capture_output=True, text=True, timeout=300)
     assert run.returncode == 0, run.stderr
     check = re.search(r"^  tr_fit_bins, table check \(n = 0\)\s+(\d+)", run.stdout, re.MULTILINE)
@@ -94,7 +96,7 @@ def test_qemu_count_as_json_holds_the_table_s_counts(tmp_path):
     import json
 
     def count(*extra):
-        run = subprocess.run(["make", "-s", "-C", str(ROOT / "firmware"), "qemu-count", *extra, *_own_build(tmp_path)],
+        run = subprocess.run([*COUNT, *extra, *_own_build(tmp_path)],
                              capture_output=True, text=True, timeout=300)
         assert run.returncode == 0, run.stderr
         return run.stdout
