@@ -229,6 +229,27 @@ def test_threads_kept_between_fits_serve_concurrent_callers_and_a_forked_child()
 
 
 @pytest.mark.skipif(not native.available(), reason=native.status())
+def test_helpers_woken_ahead_of_a_fit_take_its_parts_and_otherwise_sleep_again():
+    """expect_fit wakes the helpers a fit will hand parts to: the fits that follow give the one-thread columns;
+    helpers woken for fits that never come (absurd ones too) wait awake a millisecond at most, then sleep, so
+    the process takes next to no CPU while this thread sleeps."""
+    import time
+
+    models, I, rho = _device_pair_inputs(np.random.default_rng(21), n=600)
+    kw = dict(rho_b=rho[0], rho_w=rho[1], method="lut")
+    alone = api.fit(models, *I, kernel=NativeKernel(threads=1), **kw)
+    threaded = NativeKernel(threads=4)
+    for _ in range(5):
+        native.expect_fit(2, 600, 4)
+        _assert_identical(alone, api.fit(models, *I, kernel=threaded, **kw))
+    for k, n, threads in ((2, 600, 4), (0, 0, 4), (1, 10, 1), (3, 10**9, 1 << 16)):
+        native.expect_fit(k, n, threads)
+    before = time.process_time()
+    time.sleep(0.3)
+    assert time.process_time() - before < 0.1
+
+
+@pytest.mark.skipif(not native.available(), reason=native.status())
 @pytest.mark.parametrize("n", [1, 129, 1000])
 def test_one_thickness_shared_out_between_threads_is_its_fit_in_one_call(n):
     """tm_fit_thicknesses with one thickness: its bins' parts (one part of a bin; two, the second of one bin;

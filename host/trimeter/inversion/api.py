@@ -102,6 +102,8 @@ def fit(models: FitModel | Sequence[FitModel], I_b: ArrayLike, I_w: ArrayLike, I
 
     strategy = get_method(method)
     kernel = default_kernel() if kernel is None else kernel
+    if strategy.guesser is None and not strategy.joint:  # from the tables' guesses, maybe in several threads
+        kernel.expect_fit(len(models) if isinstance(models, Sequence) else 1, _bins_at_a_glance(I_b))
     polish = strategy.default_polish if polish is None else polish
 
     noise_rel = require_number("noise_rel", noise_rel, lo=0.0)
@@ -154,6 +156,12 @@ def fit(models: FitModel | Sequence[FitModel], I_b: ArrayLike, I_w: ArrayLike, I
     combined = combine(singles, method) if combined is None else combined
     combined.guess_fallback_bins = sum(r.guess_fallback_bins for r in singles)
     return combined
+
+
+def _bins_at_a_glance(x: ArrayLike) -> int:
+    """The bins of an array's last axis, without converting anything (0 for what is not yet an array)."""
+    shape = getattr(x, "shape", None)
+    return int(shape[-1]) if shape else 0
 
 
 def _shape_inputs(k: int, I_b: ArrayLike, I_w: ArrayLike, I_c: ArrayLike, rho_b: ArrayLike | None,

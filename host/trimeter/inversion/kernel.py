@@ -37,6 +37,10 @@ class Guesser(Protocol):
 class Kernel(Protocol):
     name: str
 
+    def expect_fit(self, k: int, n: int) -> None:
+        """A fit of k thicknesses of n bins from the tables' guesses is on its way (the caller still checks its
+        inputs): what it will run on gets ready meanwhile, where the kernel has anything to ready."""
+
     def solve_alpha_g(self, grid: ForwardGrid, I_b: np.ndarray, I_w: np.ndarray, cell: SigmaCell, rho_b: np.ndarray,
                       rho_w: np.ndarray, alpha0: np.ndarray, g0: np.ndarray, *, iterations: int, step_tol: float = 0.0,
                       step_var: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
@@ -78,6 +82,9 @@ class Kernel(Protocol):
 
 class NumpyKernel:
     name = "numpy"
+
+    def expect_fit(self, k: int, n: int) -> None:
+        pass
 
     def solve_alpha_g(self, grid: ForwardGrid, I_b: np.ndarray, I_w: np.ndarray, cell: SigmaCell, rho_b: np.ndarray,
                       rho_w: np.ndarray, alpha0: np.ndarray, g0: np.ndarray, *, iterations: int, step_tol: float = 0.0,
@@ -131,6 +138,13 @@ class NativeKernel:
     def fit_threads(self) -> int:
         """How many threads a fit from the table's guess uses now."""
         return self.threads or native.usable_cpus()
+
+    def expect_fit(self, k: int, n: int) -> None:
+        """The threads that will share the fit out are woken now: their CPUs may have gone idle, and
+        waking one takes longer than checking the inputs does."""
+        threads = self.fit_threads()
+        if threads > 1:
+            native.expect_fit(k, n, threads)
 
     def _grid_solver(self, grid: ForwardGrid) -> native.NativeSolver:
         solver = self._solvers.get(grid)

@@ -380,6 +380,12 @@ def fit_thicknesses(solvers: list[NativeSolver], I_b: np.ndarray, I_w: np.ndarra
     return fits, combined, int(steps)
 
 
+def expect_fit(k: int, n: int, threads: int) -> None:
+    """A fit_thicknesses (or a fit from the table's guess) of k thicknesses of n bins in `threads` threads is to
+    come: `tm_expect_fit` wakes the helpers it will use, to wait for it awake (a millisecond at most)."""
+    _library().tm_expect_fit(k, n, _thread_count(threads))
+
+
 def _thread_count(threads: int) -> int:
     """A thread count as the C int takes it (the library uses at most as many as it has helpers and parts)"""
     return max(1, min(int(threads), 1 << 16))

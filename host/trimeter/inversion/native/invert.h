@@ -128,6 +128,11 @@ void tm_combine(size_t k, size_t n, const double *fits, double underdetermined_a
  * taken over all thicknesses. */
 long long tm_fit_thicknesses(size_t k, const tm_forward_grid *grids, const tm_inverse_table *tables, const tm_fit_options *options, size_t n, const double *I_b, const double *I_w, const double *I_c, const double *rho_b, const double *rho_w, const double *sd_in, double underdetermined_alpha_std, double underdetermined_g_std, double disagree_sigmas, double *fits, double *outputs, int threads);
 
+/* A tm_fit_thicknesses(k, …, n, …, threads) to come (host library only): the helpers it will hand parts to
+ * are woken now and wait for it awake for a millisecond, so that the call does not wait for their CPUs to
+ * wake from idle. Changes no result; without it, or past the wait, the call wakes them itself. */
+void tm_expect_fit(size_t k, size_t n, int threads);
+
 /* The fit in two halves around a caller-owned scratch block of tm_fit_scratch_size(n) bytes (no
  * allocation: what the firmware calls), with a guess (e.g. an MLP's) from the features in between. */
 size_t tm_fit_scratch_size(size_t n);

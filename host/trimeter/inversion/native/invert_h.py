@@ -2,7 +2,7 @@
 
 import ctypes
 
-ABI_HASH = 0x396cdaee31bd668b
+ABI_HASH = 0x39cf5e18abfe91f3
 STEP_RATIO = 0.25
 INSCATTER_ONCE = 0.001
 TABLE_FIT_NOISE_REL = 0.005
@@ -189,6 +189,11 @@ FUNCTIONS = {
         ctypes.c_double,
         ctypes.c_void_p,
         ctypes.c_void_p,
+        ctypes.c_int,
+    ]),
+    "tm_expect_fit": (None, [
+        ctypes.c_size_t,
+        ctypes.c_size_t,
         ctypes.c_int,
     ]),
     "tm_fit_scratch_size": (ctypes.c_size_t, [

@@ -2,8 +2,10 @@
  * that allocate their scratch, the threads that share out a fit's bins, and the hash of the sources the
  * library was built from. */
 #include <pthread.h>
+#include <sched.h>
 #include <stdatomic.h>
 #include <stdlib.h>
+#include <time.h>
 
 #include "compact.h"
 #include "invert_internal.h"
@@ -89,6 +91,8 @@ typedef struct {
     work_t *work;             /* NULL: free */
     size_t own;               /* the work's run this helper takes first */
     int started, finished, exists;
+    int expect;               /* woken ahead of work (tm_expect_fit): wait for it awake */
+    atomic_int handed;        /* work is handed over: what a helper waiting awake watches */
 } helper_t;
 
 static helper_t helpers[HELPERS];
@@ -100,7 +104,8 @@ static void reset_helpers(void) {
         pthread_mutex_init(&h->lock, NULL);
         pthread_cond_init(&h->cond, NULL);
         h->work = NULL;
-        h->started = h->finished = h->exists = 0;
+        h->started = h->finished = h->exists = h->expect = 0;
+        atomic_init(&h->handed, 0);
     }
 }
 
@@ -111,12 +116,37 @@ static void init_helpers(void) {
     pthread_atfork(NULL, NULL, reset_helpers);
 }
 
+/* How long a helper woken ahead of a fit waits for its work awake before it sleeps again */
+#define EXPECT_NS 1000000L
+
+static long long elapsed_ns(const struct timespec *since) {
+    struct timespec now;
+    clock_gettime(CLOCK_MONOTONIC, &now);
+    return (now.tv_sec - since->tv_sec) * 1000000000LL + (now.tv_nsec - since->tv_nsec);
+}
+
+/* Waiting awake: yielding, so that the CPU serves any other thread that wants it meanwhile */
+static void wait_awake(helper_t *h) {
+    struct timespec since;
+    clock_gettime(CLOCK_MONOTONIC, &since);
+    while (!atomic_load_explicit(&h->handed, memory_order_acquire) && elapsed_ns(&since) < EXPECT_NS) sched_yield();
+}
+
 static void *helper_loop(void *arg) {
     helper_t *h = arg;
     void *scratch = malloc(tm_fit_scratch_size(PART_BINS)); /* for its life; without it, it takes no parts */
     pthread_mutex_lock(&h->lock);
     for (;;) {
-        while (!h->work || h->started) pthread_cond_wait(&h->cond, &h->lock);
+        while (!h->work || h->started) {
+            if (h->expect) {
+                h->expect = 0;
+                pthread_mutex_unlock(&h->lock);
+                wait_awake(h);
+                pthread_mutex_lock(&h->lock);
+            } else {
+                pthread_cond_wait(&h->cond, &h->lock);
+            }
+        }
         work_t *work = h->work;
         h->started = 1;
         pthread_mutex_unlock(&h->lock);
@@ -147,6 +177,7 @@ static helper_t *hand_over(work_t *work, size_t own) {
             h->work = work;
             h->own = own;
             h->started = h->finished = 0;
+            atomic_store_explicit(&h->handed, 1, memory_order_release);
             pthread_cond_broadcast(&h->cond);
         }
         pthread_mutex_unlock(&h->lock);
@@ -163,12 +194,37 @@ static void collect(helper_t *h) {
         while (!h->finished) pthread_cond_wait(&h->cond, &h->lock);
     h->work = NULL;
     h->started = 0;
+    atomic_store_explicit(&h->handed, 0, memory_order_relaxed);
     pthread_mutex_unlock(&h->lock);
 }
 
 /* Below this many bins over all thicknesses the caller fits them alone: too few to be worth waking a
  * helper for */
 #define THREAD_MIN_BINS 256
+
+/* The helpers a fit of k thicknesses of n bins in `threads` threads hands parts to */
+static size_t helpers_for(size_t k, size_t n, int threads) {
+    const size_t parts = k * ((n + PART_BINS - 1) / PART_BINS);
+    size_t wanted = threads > 1 && parts > 1 && k * n >= THREAD_MIN_BINS ? (size_t)threads - 1 : 0;
+    if (wanted > HELPERS) wanted = HELPERS;
+    return wanted > parts - 1 ? parts - 1 : wanted;
+}
+
+void tm_expect_fit(size_t k, size_t n, int threads) {
+    size_t wanted = helpers_for(k, n, threads);
+    if (!wanted) return;
+    pthread_once(&helpers_once, init_helpers);
+    for (int i = 0; i < HELPERS && wanted; i++) {
+        helper_t *h = &helpers[i];
+        pthread_mutex_lock(&h->lock);
+        if (!h->work && (h->exists || (h->exists = start_helper(h)))) {
+            h->expect = 1;
+            pthread_cond_broadcast(&h->cond);
+            wanted--;
+        }
+        pthread_mutex_unlock(&h->lock);
+    }
+}
 
 long long tm_fit_thicknesses(size_t k, const tm_forward_grid *grids, const tm_inverse_table *tables,
                              const tm_fit_options *options, size_t n, const double *I_b, const double *I_w,
@@ -183,9 +239,7 @@ long long tm_fit_thicknesses(size_t k, const tm_forward_grid *grids, const tm_in
     const size_t per_thickness = (n + PART_BINS - 1) / PART_BINS, parts = k * per_thickness;
     /* up to threads - 1 helpers beside this thread, a run of parts each; each bin's fit is its own, so the
      * results are the same whoever fits which part */
-    size_t helpers_wanted = threads > 1 && parts > 1 && k * n >= THREAD_MIN_BINS ? (size_t)threads - 1 : 0;
-    if (helpers_wanted > HELPERS) helpers_wanted = HELPERS;
-    if (helpers_wanted > parts - 1) helpers_wanted = parts - 1;
+    const size_t helpers_wanted = helpers_for(k, n, threads);
     work_t w = {.grids = grids, .tables = tables, .options = options, .k = k, .n = n, .per_thickness = per_thickness,
                 .runs = helpers_wanted + 1, .I_b = I_b, .I_w = I_w, .I_c = I_c, .rho_b = rho_b, .rho_w = rho_w,
                 .sd_in = sd_in, .fits = fits};
