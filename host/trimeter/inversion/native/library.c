@@ -1,6 +1,7 @@
 /* The host library's extras around the kernel (not linked into the firmware): the entry points
  * that allocate their scratch, the threads that share out a fit's bins, and the hash of the sources the
  * library was built from. */
+#define _POSIX_C_SOURCE 200809L /* clock_gettime under -std=c11 */
 #include <pthread.h>
 #include <sched.h>
 #include <stdatomic.h>
