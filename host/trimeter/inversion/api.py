@@ -20,7 +20,9 @@ solve + trimeter.inversion.finish.finish (and finish.combine) are their referenc
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import weakref
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -98,54 +100,34 @@ def fit(models: FitModel | Sequence[FitModel], I_b: ArrayLike, I_w: ArrayLike, I
     (every other method fits each bin on its own).
     """
     from trimeter.inversion.methods import get_method  # the table imports the methods, which use this module
-    from trimeter.validation import require_number
 
-    strategy = get_method(method)
-    kernel = default_kernel() if kernel is None else kernel
-    if strategy.guesser is None and not strategy.joint:  # from the tables' guesses, maybe in several threads
-        kernel.expect_fit(len(models) if isinstance(models, Sequence) else 1, _bins_at_a_glance(I_b))
-    polish = strategy.default_polish if polish is None else polish
-
-    noise_rel = require_number("noise_rel", noise_rel, lo=0.0)
-    noise_abs = require_number("noise_abs", noise_abs, lo=0.0)
-    ic_floor = require_number("ic_floor", ic_floor, lo=0.0, lo_open=True, hi=1.0)
-    alpha_min_g = require_number("alpha_min_g", alpha_min_g, lo=0.0, hi=1.0)
-    epsilon = require_number("epsilon", epsilon, lo=0.0)
-    polish, samples = int(require_number("polish", polish, lo=0)), int(require_number("samples", samples, lo=0))
-    polish_tol = require_number("polish_tol", polish_tol, lo=0.0)
-    inscatter_rel_std = require_number("inscatter_rel_std", inscatter_rel_std, lo=0.0)
     amaps = list(models) if isinstance(models, Sequence) else [models]
-    if not amaps:
-        raise InputError("maps must name at least one map")
-    if not all(hasattr(m, "inverter") for m in amaps):  # a map, a path or a name: trimeter.fit loads those
-        raise InputError("inversion.api.fit takes loaded maps (trimeter.inversion.artifacts.load_artifacts); "
-                         "trimeter.fit takes maps, paths and names")
-    k = len(amaps)
+    kernel = default_kernel() if kernel is None else kernel
+    s = _settings(amaps, get_method(method), polish, polish_tol, noise_rel, noise_abs, ic_floor, alpha_min_g, epsilon,
+                  samples, inscatter_rel_std, thickness_std_mm, first_row)
+    strategy, opts, k = s.strategy, s.options, len(amaps)
+    if s.from_tables:  # the threads that may share the fit out wake while the inputs are checked
+        kernel.expect_fit(k, _bins_at_a_glance(I_b))
     stacked = _shape_inputs(k, I_b, I_w, I_c, rho_b, rho_w, amaps)
     arrays: list[Inputs] = [(stacked[0][i], stacked[1][i], stacked[2][i], stacked[3][i], stacked[4][i])
                             for i in range(k)]
-    stds = shape_stds(k, arrays, (I_b_std, I_w_std, I_c_std), noise_rel, noise_abs)
-    thickness_rel = [t / m.setup.thickness_mm for t, m in zip(_thickness_stds(k, thickness_std_mm), amaps, strict=True)]
-    opts: dict[str, Any] = dict(noise_rel=noise_rel, noise_abs=noise_abs, ic_floor=ic_floor, alpha_min_g=alpha_min_g,
-                                inscatter_rel_std=inscatter_rel_std)
+    stds = shape_stds(k, arrays, (I_b_std, I_w_std, I_c_std), opts["noise_rel"], opts["noise_abs"])
     if strategy.fit_all is not None:  # strategy.joint
-        return strategy.fit_all(amaps, arrays, stds, thickness_rel, kernel=kernel, samples=samples, epsilon=epsilon,
-                                seed=seed, first_row=int(require_number("first_row", first_row, lo=0)), **opts)
-    if k > 1 and strategy.guesser is None:  # from the tables' guesses: every thickness and the combine in one call
-        options = [native_options(m, m.inverter.grid, polish=polish, polish_tol=polish_tol,
-                                  thickness_rel_std=thickness_rel[i], **opts) for i, m in enumerate(amaps)]
+        return strategy.fit_all(amaps, arrays, stds, s.thickness_rel, kernel=kernel, samples=s.samples,
+                                epsilon=s.epsilon, seed=seed, first_row=s.first_row, **opts)
+    if k > 1 and s.from_tables:  # every thickness and the combine in one call
         given = [sd for sd in stds if sd is not None]  # all or none
         together = kernel.fit_thicknesses([m.inverter for m in amaps], stacked,
-                                          sd=np.stack(given) if given else None, options=options,
+                                          sd=np.stack(given) if given else None, options=s.native,
                                           method=strategy.name, disagree_sigmas=DISAGREE_SIGMAS,
                                           underdetermined_std=(UNDERDETERMINED_ALPHA_STD, UNDERDETERMINED_G_STD))
         if together is not None:
             return together
     # several thicknesses: each fitted into its place in the kernel's combine layout (no gathering after)
     blocks = kernel.output_blocks(k, arrays[0][0].shape[0]) if k > 1 else None
-    singles = [_fit_one(amap, *arrays[i], sd=stds[i], thickness_rel_std=thickness_rel[i], method=strategy,
-                        kernel=kernel, polish=polish, polish_tol=polish_tol, mlp_model=mlp_model,
-                        block=None if blocks is None else blocks[i], **opts)
+    singles = [_fit_one(amap, *arrays[i], sd=stds[i], thickness_rel_std=s.thickness_rel[i], method=strategy,
+                        kernel=kernel, polish=s.polish, polish_tol=s.polish_tol, mlp_model=mlp_model,
+                        options=s.native[i], block=None if blocks is None else blocks[i], **opts)
                for i, amap in enumerate(amaps)]
     if k == 1:
         return singles[0]
@@ -156,6 +138,76 @@ def fit(models: FitModel | Sequence[FitModel], I_b: ArrayLike, I_w: ArrayLike, I
     combined = combine(singles, method) if combined is None else combined
     combined.guess_fallback_bins = sum(r.guess_fallback_bins for r in singles)
     return combined
+
+
+@dataclass(frozen=True)
+class _Settings:
+    """fit()'s parameters checked, and what they make of its models: the same for every call with the same
+    parameters and models, so kept (_settings). Read, never changed."""
+    strategy: Method
+    polish: int
+    polish_tol: float
+    samples: int
+    epsilon: float
+    first_row: int
+    options: dict[str, Any]            # noise_rel, noise_abs, ic_floor, alpha_min_g, inscatter_rel_std
+    thickness_rel: list[float]         # each model's thickness std over its thickness
+    from_tables: bool                  # the method polishes the map tables' guesses (lut)
+    native: list[dict[str, Any]]       # each model's native_options, for a method that polishes a guess
+
+
+_SETTINGS: dict[tuple, tuple[list[weakref.ref], _Settings]] = {}
+
+
+def _settings(amaps: list[FitModel], strategy: Method, *params: Any) -> _Settings:
+    """The checked settings of a call with these models, this method and these parameters (the rest of
+    fit()'s signature after method, in order): checked once and kept, since checking them and deriving the
+    C kernel's options is a good part of a small fit's time. Kept by the method's identity (the settings
+    hold it: a method registered later under the same name is another), the models' identities while they
+    live (weak references: a model that is gone may have passed its id on) and the parameters' values; a
+    call whose parameters are not all hashable (thickness stds in an array) is checked every time."""
+    try:
+        key = (id(strategy), tuple(map(id, amaps)), params)
+        hit = _SETTINGS.get(key)
+    except TypeError:
+        return _check_settings(amaps, strategy, *params)
+    if hit is not None and all(ref() is m for ref, m in zip(hit[0], amaps, strict=True)):
+        return hit[1]
+    settings = _check_settings(amaps, strategy, *params)
+    if len(_SETTINGS) >= 64:  # a caller sweeping parameters: keep it bounded
+        _SETTINGS.clear()
+    with contextlib.suppress(TypeError):  # a model that takes no weak reference: checked every time
+        _SETTINGS[key] = ([weakref.ref(m) for m in amaps], settings)
+    return settings
+
+
+def _check_settings(amaps: list[FitModel], strategy: Method, polish: int | None, polish_tol: float, noise_rel: float,
+                    noise_abs: float, ic_floor: float, alpha_min_g: float, epsilon: float, samples: int,
+                    inscatter_rel_std: float, thickness_std_mm: float | ArrayLike, first_row: int) -> _Settings:
+    from trimeter.validation import require_number
+
+    polish = strategy.default_polish if polish is None else polish
+    options = dict(noise_rel=require_number("noise_rel", noise_rel, lo=0.0),
+                   noise_abs=require_number("noise_abs", noise_abs, lo=0.0),
+                   ic_floor=require_number("ic_floor", ic_floor, lo=0.0, lo_open=True, hi=1.0),
+                   alpha_min_g=require_number("alpha_min_g", alpha_min_g, lo=0.0, hi=1.0),
+                   inscatter_rel_std=require_number("inscatter_rel_std", inscatter_rel_std, lo=0.0))
+    epsilon = require_number("epsilon", epsilon, lo=0.0)
+    polish, samples = int(require_number("polish", polish, lo=0)), int(require_number("samples", samples, lo=0))
+    polish_tol = require_number("polish_tol", polish_tol, lo=0.0)
+    first_row = int(require_number("first_row", first_row, lo=0))
+    if not amaps:
+        raise InputError("maps must name at least one map")
+    if not all(hasattr(m, "inverter") for m in amaps):  # a map, a path or a name: trimeter.fit loads those
+        raise InputError("inversion.api.fit takes loaded maps (trimeter.inversion.artifacts.load_artifacts); "
+                         "trimeter.fit takes maps, paths and names")
+    k = len(amaps)
+    thickness_rel = [t / m.setup.thickness_mm for t, m in zip(_thickness_stds(k, thickness_std_mm), amaps, strict=True)]
+    native = [] if strategy.joint else [native_options(m, m.inverter.grid, polish=polish, polish_tol=polish_tol,
+                                                        thickness_rel_std=thickness_rel[i], **options)
+                                         for i, m in enumerate(amaps)]
+    return _Settings(strategy, polish, polish_tol, samples, epsilon, first_row, options, thickness_rel,
+                     strategy.guesser is None and not strategy.joint, native)
 
 
 def _bins_at_a_glance(x: ArrayLike) -> int:
@@ -234,14 +286,12 @@ def _thickness_stds(k: int, thickness_std_mm: float | ArrayLike) -> list[float]:
 def _fit_one(model: FitModel, I_b: np.ndarray, I_w: np.ndarray, I_c: np.ndarray, rho_b: np.ndarray,
              rho_w: np.ndarray, *, sd: np.ndarray | None, thickness_rel_std: float, method: Method, kernel: Kernel,
              polish: int, polish_tol: float, mlp_model: str | Path | None, noise_rel: float, noise_abs: float,
-             ic_floor: float, alpha_min_g: float, inscatter_rel_std: float,
+             ic_floor: float, alpha_min_g: float, inscatter_rel_std: float, options: dict[str, Any],
              block: np.ndarray | None = None) -> FitResult:
+    """One thickness's fit; options: native_options of these parameters, for the kernel's fused path."""
     inverter = model.inverter
     grid = inverter.grid
     guesser = None if method.guesser is None else method.guesser(model, {"mlp_model": mlp_model})
-    options = native_options(model, grid, polish=polish, polish_tol=polish_tol, noise_rel=noise_rel,
-                             noise_abs=noise_abs, ic_floor=ic_floor, alpha_min_g=alpha_min_g,
-                             thickness_rel_std=thickness_rel_std, inscatter_rel_std=inscatter_rel_std)
     out = kernel.fused_fit(inverter, I_b, I_w, I_c, rho_b, rho_w, sd=sd, guesser=guesser, options=options,
                            block=block)
     if out is not None:
