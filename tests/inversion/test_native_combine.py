@@ -271,6 +271,20 @@ def test_one_thickness_shared_out_between_threads_is_its_fit_in_one_call(n):
 
 
 @pytest.mark.skipif(not native.available(), reason=native.status())
+def test_the_thread_count_comes_from_the_environment_where_set_and_given_wins(monkeypatch):
+    monkeypatch.setenv("TRIMETER_FIT_THREADS", " 3 ")
+    assert NativeKernel().fit_threads() == 3
+    assert NativeKernel(threads=1).fit_threads() == 1
+    monkeypatch.setenv("TRIMETER_FIT_THREADS", "")
+    assert NativeKernel().fit_threads() == native.usable_cpus()
+    for bad in ("0", "-1", "two", "1.5"):
+        monkeypatch.setenv("TRIMETER_FIT_THREADS", bad)
+        with pytest.raises(native.NativeKernelError, match="TRIMETER_FIT_THREADS must be a whole number"):
+            NativeKernel()
+        assert NativeKernel(threads=2).fit_threads() == 2
+
+
+@pytest.mark.skipif(not native.available(), reason=native.status())
 @pytest.mark.parametrize("threads", [0, -1, 1.5, True, "2"])
 def test_a_thread_count_that_is_not_a_whole_number_of_at_least_one_is_refused(threads):
     with pytest.raises(ValueError, match="threads must be"):

@@ -124,7 +124,8 @@ class NumpyKernel:
 class NativeKernel:
     """The compiled kernel; one NativeSolver per grid or table inverter, made on first use and kept as
     long as the grid or inverter lives. threads: how many threads share out a fit's bins from the table's
-    guess (None: as many as the process may use CPUs, at each fit); the results are the same for any count."""
+    guess (None: TRIMETER_FIT_THREADS where set, e.g. 1 for a process among others that share the CPUs, else
+    as many as the process may use CPUs, at each fit); the results are the same for any count."""
     name = "native"
 
     def __init__(self, threads: int | None = None) -> None:
@@ -132,7 +133,7 @@ class NativeKernel:
             raise RuntimeError(f"the native kernel is not available: {native.status()}")
         if threads is not None and (isinstance(threads, bool) or not isinstance(threads, int) or threads < 1):
             raise ValueError(f"threads must be a whole number ≥ 1 or None, not {threads!r}")
-        self.threads = threads
+        self.threads = native.threads_from_environment() if threads is None else threads
         self._solvers: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
     def fit_threads(self) -> int:

@@ -55,7 +55,7 @@ REBUILD = "run `make native`, or set TRIMETER_KERNEL=numpy to run the numpy kern
 
 class NativeKernelError(TrimeterError):
     """TRIMETER_KERNEL=native, but the compiled kernel is missing, stale or does not load; or
-    TRIMETER_KERNEL has an unknown value."""
+    TRIMETER_KERNEL or TRIMETER_FIT_THREADS has a value it does not take."""
 
 
 class NativeKernelWarning(UserWarning):
@@ -389,6 +389,16 @@ def expect_fit(k: int, n: int, threads: int) -> None:
 def _thread_count(threads: int) -> int:
     """A thread count as the C int takes it (the library uses at most as many as it has helpers and parts)"""
     return max(1, min(int(threads), 1 << 16))
+
+
+def threads_from_environment() -> int | None:
+    """TRIMETER_FIT_THREADS: how many threads a fit shares its bins out to (unset or empty: None)."""
+    value = os.environ.get("TRIMETER_FIT_THREADS", "").strip()
+    if not value:
+        return None
+    if not value.isdigit() or int(value) < 1:
+        raise NativeKernelError(f"TRIMETER_FIT_THREADS must be a whole number ≥ 1, not {value!r}")
+    return int(value)
 
 
 def usable_cpus() -> int:
