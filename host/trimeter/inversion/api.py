@@ -81,7 +81,8 @@ def fit(models: FitModel | Sequence[FitModel], I_b: ArrayLike, I_w: ArrayLike, I
     several thicknesses); with k maps, I_b, I_w, I_c (and ρ's, if per-thickness) have shape (k, N).
     method: a name in trimeter.inversion.methods; kernel: numpy or C (default: default_kernel()); the C
     kernel shares the bins out between threads from the table's guess (lut), as many as the process may use
-    CPUs (trimeter.inversion.kernel.NativeKernel(threads=1): all in the caller's; the same results).
+    CPUs or TRIMETER_FIT_THREADS says (trimeter.inversion.kernel.NativeKernel(threads=1): all in the caller's;
+    the same results).
     rho_b, rho_w: per-bin background reflectances (default: each map's reference backgrounds).
     noise_rel, noise_abs: the intensity noise model σ_I = noise_rel·I + noise_abs (for the stds and
     the convergence tolerance) where the intensities' own stds are not given; ic_floor: I_c below it
