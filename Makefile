@@ -95,10 +95,9 @@ firmware-test: setup
 fuzz: setup
 	$(MAKE) -C firmware fuzz FUZZ_SECONDS=$(FUZZ_SECONDS)
 
-# pytest-xdist: each test file whole on one worker (its module fixtures made once, its tests in file order, as in
-# a single process). Two workers per core (at most 8): the twin's tests spend most of their time waiting on its
-# serial line, so one per core leaves the cores idle half the time. PYTEST_WORKERS=0: the suite in this one process.
-PYTEST_WORKERS ?= $(shell n=$$(nproc); echo $$(( 2 * n > 8 ? 8 : 2 * n )))
+# On both cores (pytest-xdist): one worker per core, each test file whole on one worker (its module fixtures made
+# once, its tests in file order, as in a single process). PYTEST_WORKERS=0: the suite in this one process.
+PYTEST_WORKERS ?= 2
 pytest: setup firmware native
 	$(PY) -m pytest -q -n $(PYTEST_WORKERS) --dist loadfile
 
